@@ -1,0 +1,69 @@
+"""Atomic file writing: a reader never sees a half-written file.
+
+Data goes to a temporary file in the target's folder, is flushed and fsynced,
+then renamed over the target (``os.replace`` is atomic on POSIX and Windows).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO
+
+from cdma_lidar.errors import ConfigError
+
+__all__ = ["atomic_open", "atomic_write_bytes", "atomic_write_text", "check_writable"]
+
+
+def check_writable(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a Path after checking its folder exists and is writable.
+
+    Raises ConfigError naming the path, so the CLI can say what to do before any
+    work is spent on a scan whose result could not be saved.
+    """
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ConfigError(f"output folder {str(parent)!r} does not exist; create it first", "out")
+    if not os.access(parent, os.W_OK):
+        raise ConfigError(f"output folder {str(parent)!r} is not writable", "out")
+    if p.is_dir():
+        raise ConfigError(f"output path {str(p)!r} is a folder; give a file name", "out")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO]:
+    """Open a temporary file beside ``path``; on clean exit it replaces ``path`` atomically.
+
+    On an exception the temporary file is removed and ``path`` is left untouched.
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"mode must be 'w' or 'wb', not {mode!r}")
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent or ".")
+    try:
+        with os.fdopen(fd, mode, **({"encoding": "utf-8"} if mode == "w" else {})) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_open(path, "wb") as fh:
+        fh.write(data)
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    with atomic_open(path, "w") as fh:
+        fh.write(text)

@@ -1,0 +1,1 @@
+"""Bit-exact fixed-point model of the CDMA LiDAR FPGA: integers only."""

@@ -1,0 +1,1 @@
+"""Serial/USB frame protocol spoken by host and device: framing, messages, link layer."""

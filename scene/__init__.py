@@ -1,0 +1,1 @@
+"""The simulated world behind the virtual device: scenes, rays, optics, noise, other users."""
