@@ -1,0 +1,373 @@
+r"""The simulated instrument: photodiode waveform and ADC samples of one column.
+
+Signal model (Supplementary Notes 4, 5, 9, 11)::
+
+    lasers k (Gold member code_index[k], polarity-modulated by our UID over n periods)
+      -> grating (true geometry) -> scene -> back along the same path -> one photodiode
+    v(t) = sum_k A_k c_k(t - tau_k)                 echoes of the lit channels
+         + sum_g A_g c_k(t - tau_g)                 grating ghosts (fixed distance, own code)
+         + sum_u A_u c_u(t - tau_u)                 other LiDARs (same family, their own UID)
+         + e(t)                                     thermal/ASE noise, white Gaussian
+    A_k   = link_gain * P[k, col] * reflectivity * cos(incidence) / r^2        (V)
+    tau_k = 2 r / c + system_delay                                             (s)
+    codes = clip(round_half_up(adc_gain * v / lsb + adc_offset), adc_bits)     (ADC)
+
+``c(t)`` is the bipolar NRZ chip waveform (+1 for bit 0) of period ``n * N`` chips, AC
+coupled (no DC) and filtered by the detector transfer function
+
+    H(f) = exp(-ln(2)/2 * (f / B)^2) * T(f),   T = 1 below 0.8 f_Nyq, cos^2 taper to 0 at f_Nyq
+
+(Gaussian with its -3 dB point at ``detector_bandwidth_hz`` = B, times an anti-alias
+taper that is zero from the Nyquist frequency ``f_Nyq = chip_rate * S / 2`` up). The
+filtered waveform is therefore band-limited below Nyquist, so rendering it from its
+Fourier series is exact for ANY delay, fractional samples included::
+
+    Z_q = H(f_q) * sinc(q / (nN)) * DFT(chips)[q mod nN] / (nN) * exp(-2j pi f_q tau')
+    f_q = q * chip_rate / (nN),  q = 0 .. L/2,  L = n N S samples per frame
+    y   = irfft(L * sum_k A_k Z_q,k)        one inverse FFT per column, all channels summed
+
+Sampling instants: ADC sample i of a frame is taken at ``(i + 1/2) / (S * chip_rate)``
+after the start of the emitted frame, so sample i of chip m lies inside chip m and an
+echo with ``tau = d / (S * chip_rate)`` peaks exactly at lag d in the receive chain
+(``tau' = tau + Tc/2 - Ts/2`` folds the pulse centre and the sample phase in).
+
+Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely;
+the per-channel work is one phase ramp (an outer product of two short exponentials) and
+one multiply-add over L/2 bins. R frames share the deterministic echo; each frame gets
+independent noise and is quantised on its own.
+
+Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
+with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
+resend) and the same scene, seed and settings give the same codes.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar.errors import out_of_range
+from scene.model import SPEED_OF_LIGHT_M_S, InstrumentSpec, Scene
+from scene.truth import Truth, compute_truth
+
+__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+#: Fine grid of the analog value handed to the ADC model: 2**-FRAC_BITS LSB.
+FRAC_BITS = 8
+
+_STREAM_SCAN = 0
+_STREAM_CALIBRATE = 1
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What the device is configured to emit and sample (may differ from the scene's defaults).
+
+    code_index: Gold member per channel; uid_bits/uid: our UID (n periods per frame);
+    samples_per_chip S; averages R (frames per column); poly_u/poly_v: the code pair.
+    """
+
+    samples_per_chip: int
+    averages: int
+    uid_bits: int
+    uid: int
+    code_index: tuple[int, ...]
+    poly_u: tuple[int, ...]
+    poly_v: tuple[int, ...]
+
+    @classmethod
+    def from_spec(cls, spec: InstrumentSpec) -> RenderSettings:
+        """The scene's own defaults."""
+        return cls(samples_per_chip=spec.samples_per_chip, averages=spec.averages,
+                   uid_bits=spec.uid_bits, uid=spec.uid, code_index=spec.code_indices,
+                   poly_u=spec.poly_u, poly_v=spec.poly_v)
+
+    @property
+    def frame_chips(self) -> int:
+        """Chips per UID frame: n * N."""
+        return self.uid_bits * ((1 << self.poly_u[0]) - 1)
+
+    @property
+    def frame_samples(self) -> int:
+        """Samples per UID frame: n * N * S."""
+        return self.frame_chips * self.samples_per_chip
+
+
+def detector_response(f_hz: NDArray[np.float64], bandwidth_hz: float,
+                      nyquist_hz: float) -> NDArray[np.float64]:
+    """H(f): Gaussian (-3 dB at ``bandwidth_hz``) times the anti-alias taper; H(0) = 0 (AC)."""
+    f = np.abs(np.asarray(f_hz, dtype=np.float64))
+    h = np.exp(-0.5 * np.log(2.0) * (f / bandwidth_hz) ** 2)
+    knee = 0.8 * nyquist_hz
+    x = np.clip((f - knee) / (nyquist_hz - knee), 0.0, 1.0)
+    h *= np.cos(0.5 * np.pi * x) ** 2
+    h[f == 0] = 0.0
+    return h
+
+
+@functools.lru_cache(maxsize=4)
+def _family(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> NDArray[np.uint8]:
+    from firmware_model.gold import gold_family
+
+    return gold_family(poly_u, poly_v)
+
+
+def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
+    """(-1)^bit_p(uid) for periods p = 0..n-1."""
+    return np.where((uid >> np.arange(n)) & 1, -1.0, 1.0)
+
+
+class Instrument:
+    """Renders the ADC samples the virtual board would record for one column.
+
+    ``Instrument(scene, seed)``; :meth:`render` for a scan column, :meth:`render_calibration`
+    for one shot of the zeroth-order target. Powers are a (K, C) matrix in watts (default:
+    the scene's per-channel laser power at every column).
+    """
+
+    def __init__(self, scene: Scene, seed: int = 0) -> None:
+        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+            raise out_of_range("seed", "a non-negative integer", seed)
+        self.scene = scene
+        self.spec = scene.instrument
+        self.seed = int(seed)
+        self.truth: Truth = compute_truth(scene)
+        h = self.truth.hits
+        k, c = h.range_m.shape
+        self.channels, self.columns = k, c
+        self.default_power_w = np.repeat(self.spec.laser_power_w[:, None], c, axis=1)
+        lit = h.lit
+        r = np.where(lit, h.range_m, 1.0)
+        #: per-pixel amplitude (V) per watt of laser power; 0 where nothing is hit
+        self.gain_v_per_w = np.where(
+            lit, self.spec.link_gain_v_m2_per_w * np.nan_to_num(h.reflectivity)
+            * h.cos_incidence / r**2, 0.0)
+        #: per-pixel round-trip delay (s) including the hidden system delay
+        self.delay_s = np.where(lit, 2.0 * r / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s,
+                                np.nan)
+        self._spectra: dict[tuple, NDArray[np.complex128]] = {}
+        self.noise_rms_v = self._noise_rms(RenderSettings.from_spec(self.spec))
+
+    # -- the scene's needs ---------------------------------------------------------------
+
+    def calibration_gain_v_per_w(self) -> float:
+        """Amplitude (V) per watt of one channel's echo from the zeroth-order target."""
+        cal = self.scene.calibration
+        return (self.spec.link_gain_v_m2_per_w * cal.reflectivity * cal.zeroth_order_efficiency
+                / cal.target_distance_m**2)
+
+    def lit_channels(self, column: int) -> NDArray[np.int64]:
+        """Channels whose ray hits an object at ``column``."""
+        return np.flatnonzero(self.truth.hits.lit[:, column])
+
+    def range_bounds_m(self) -> tuple[float, float]:
+        """(min, max) range the gate must cover: lit pixels, calibration target, overrides."""
+        rng = self.truth.hits.range_m
+        cand = [self.scene.calibration.target_distance_m]
+        cand += [u.delay_s * SPEED_OF_LIGHT_M_S / 2 for u in self.spec.other_users]
+        if np.any(np.isfinite(rng)):
+            cand += [float(np.nanmin(rng)), float(np.nanmax(rng))]
+        lo, hi = min(cand), max(cand)
+        if self.spec.min_range_m is not None:
+            lo = self.spec.min_range_m
+        if self.spec.max_range_m is not None:
+            hi = self.spec.max_range_m
+        return lo, hi
+
+    def default_gate(self, samples_per_chip: int | None = None, margin: int = 16,
+                     minimum: int = 64) -> tuple[int, int]:
+        """(gate_start, gate_len) in samples covering the scene's range bounds plus margins."""
+        s = samples_per_chip or self.spec.samples_per_chip
+        fs = self.spec.chip_rate_hz * s
+        lo, hi = self.range_bounds_m()
+        d_lo = (2 * lo / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s) * fs
+        d_hi = (2 * hi / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s) * fs
+        period = self.spec.code_length * s
+        start = int(np.floor(d_lo)) - margin
+        length = int(np.ceil(d_hi)) + margin - start + 1
+        length = max(minimum, -(-length // 16) * 16)
+        if length >= period:
+            return 0, period
+        if start < 0:
+            start = max(start, 0)
+        return start % period, length
+
+    # -- spectra ---------------------------------------------------------------------------
+
+    def _frame_bins(self, cfg: RenderSettings) -> tuple[NDArray[np.float64], int]:
+        length = cfg.frame_samples
+        m = length // 2 + 1
+        f = np.arange(m) * self.spec.chip_rate_hz / cfg.frame_chips
+        return f, length
+
+    def _code_spectra(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
+                      uid_bits: int) -> NDArray[np.complex128]:
+        """(len(indices), L/2+1) filtered NRZ spectra of Gold members with a UID, scaled by L."""
+        key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, indices, uid, uid_bits)
+        hit = self._spectra.get(key)
+        if hit is not None:
+            return hit
+        fam = _family(cfg.poly_u, cfg.poly_v)
+        n_chips = fam.shape[1]
+        nn = uid_bits * n_chips
+        s = cfg.samples_per_chip
+        length = nn * s
+        m = length // 2 + 1
+        bip = 1.0 - 2.0 * fam[list(indices)].astype(np.float64)  # (k, N)
+        chips = (bip[:, None, :] * _uid_signs(uid, uid_bits)[None, :, None]).reshape(len(indices),
+                                                                                     nn)
+        spec = np.fft.fft(chips, axis=1)
+        q = np.arange(m)
+        f = q * self.spec.chip_rate_hz / nn
+        h = detector_response(f, self.spec.detector_bandwidth_hz,
+                              self.spec.chip_rate_hz * s / 2)
+        weight = h * np.sinc(q / nn) / nn * length
+        out = spec[:, q % nn] * weight[None, :]
+        if len(self._spectra) > 16:
+            self._spectra.clear()
+        self._spectra[key] = out
+        return out
+
+    @staticmethod
+    def _phases(f0_hz: float, m: int, tau_s: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """exp(-2j pi q f0 tau) for q < m, per delay: outer product of two short ramps."""
+        b = int(np.ceil(np.sqrt(m)))
+        a = -(-m // b)
+        w = -2.0 * np.pi * f0_hz * tau_s[:, None]
+        lo = np.exp(1j * w * np.arange(b)[None, :])
+        hi = np.exp(1j * w * (b * np.arange(a))[None, :])
+        return (hi[:, :, None] * lo[:, None, :]).reshape(len(tau_s), a * b)[:, :m]
+
+    def _sample_shift_s(self, cfg: RenderSettings) -> float:
+        tc = 1.0 / self.spec.chip_rate_hz
+        return tc / 2 - tc / cfg.samples_per_chip / 2
+
+    def echo(self, column: int, cfg: RenderSettings,
+             power_w: NDArray[np.float64] | None = None,
+             calibration: bool = False) -> NDArray[np.float64]:
+        """Noise-free photodiode voltage (V) of one frame (L samples) at ``column``.
+
+        Our own channels (lit ones only) and the ghosts configured for this column; other
+        users are not periodic in our frame in general and are added by :meth:`render`.
+        ``power_w``: laser power per channel (W) at this column. In ``calibration`` mode every
+        channel sees the zeroth-order target.
+        """
+        f, length = self._frame_bins(cfg)
+        m = f.size
+        power = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
+        if calibration:
+            cal = self.scene.calibration
+            chans = np.arange(self.channels)
+            amps = self.calibration_gain_v_per_w() * power
+            taus = np.full(self.channels, 2 * cal.target_distance_m / SPEED_OF_LIGHT_M_S
+                           + self.spec.system_delay_s)
+        else:
+            chans = self.lit_channels(column)
+            amps = self.gain_v_per_w[chans, column] * power[chans]
+            taus = self.delay_s[chans, column]
+        amps_l, taus_l, chans_l = [amps], [taus], [chans]
+        for g in self.spec.ghosts:
+            if g.columns and column not in g.columns:
+                continue
+            gch = np.asarray(g.channels if g.channels else range(self.channels), dtype=np.int64)
+            amps_l.append(np.full(gch.size, g.amplitude_v))
+            taus_l.append(np.full(gch.size, 2 * g.distance_m / SPEED_OF_LIGHT_M_S
+                                  + self.spec.system_delay_s))
+            chans_l.append(gch)
+        amps = np.concatenate(amps_l)
+        taus = np.concatenate(taus_l)
+        chans = np.concatenate(chans_l)
+        keep = amps != 0
+        if not np.any(keep):
+            return np.zeros(length)
+        amps, taus, chans = amps[keep], taus[keep], chans[keep]
+        uniq, inv = np.unique(chans, return_inverse=True)
+        spectra = self._code_spectra(cfg, tuple(int(cfg.code_index[c]) for c in uniq),
+                                     cfg.uid, cfg.uid_bits)
+        ph = self._phases(f[1] if m > 1 else 0.0, m, taus + self._sample_shift_s(cfg))
+        total = np.einsum("k,km,km->m", amps.astype(np.complex128), spectra[inv], ph)
+        return np.fft.irfft(total, n=length)
+
+    def other_users_signal(self, column: int, cfg: RenderSettings,
+                           total_samples: int) -> NDArray[np.float64] | None:
+        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none)."""
+        users = [u for u in self.spec.other_users if not u.columns or column in u.columns]
+        if not users:
+            return None
+        out = np.zeros(total_samples)
+        idx = np.arange(total_samples)
+        for u in users:
+            ucfg = RenderSettings(cfg.samples_per_chip, 1, u.uid_bits, u.uid, cfg.code_index,
+                                  cfg.poly_u, cfg.poly_v)
+            f, length = self._frame_bins(ucfg)
+            spec = self._code_spectra(ucfg, (u.code_index,), u.uid, u.uid_bits)
+            ph = self._phases(f[1], f.size,
+                              np.array([u.delay_s + self._sample_shift_s(cfg)]))
+            frame = np.fft.irfft(u.amplitude_v * spec[0] * ph[0], n=length)
+            out += frame[idx % length]
+        return out
+
+    # -- noise and ADC -----------------------------------------------------------------------
+
+    def _noise_rms(self, cfg: RenderSettings) -> float:
+        spec = self.spec
+        if spec.snr_db is None:
+            return float(spec.noise_rms_v or 0.0)
+        amp = self.gain_v_per_w * self.default_power_w
+        lit = self.truth.hits.lit
+        if not np.any(lit):
+            mean_a2 = float(np.mean((self.calibration_gain_v_per_w() * spec.laser_power_w) ** 2))
+        else:
+            mean_a2 = float(np.median(amp[lit] ** 2))
+        return float(np.sqrt(mean_a2 * self.unit_signal_power(cfg) / 10 ** (spec.snr_db / 10)))
+
+    def unit_signal_power(self, cfg: RenderSettings) -> float:
+        """Mean square (V^2) of one channel's filtered waveform at amplitude 1 V."""
+        spectra = self._code_spectra(cfg, (int(cfg.code_index[0]),), 0, 1)
+        y = np.fft.irfft(spectra[0], n=cfg.samples_per_chip * ((1 << cfg.poly_u[0]) - 1))
+        return float(np.mean(y * y))
+
+    def to_codes(self, volts: NDArray[np.float64]) -> NDArray[np.int16]:
+        """ADC: ``clip(round_half_up(gain * v / lsb + offset))`` via firmware_model.adc.quantise."""
+        from firmware_model.adc import quantise
+
+        spec = self.spec
+        lsb = spec.adc_full_scale_v / (1 << (spec.adc_bits - 1))
+        scale = spec.adc_gain / lsb * (1 << FRAC_BITS)
+        fine = np.rint(volts * scale + spec.adc_offset * (1 << FRAC_BITS))
+        big = float(1 << (spec.adc_bits + FRAC_BITS + 2))
+        np.clip(fine, -big, big, out=fine)
+        return quantise(fine.astype(np.int64), FRAC_BITS, spec.adc_bits)
+
+    def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
+               power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
+               shot: int = 0) -> NDArray[np.int16]:
+        """ADC codes of one column: ``averages * uid_bits * N * S`` samples (frame r, period p, i).
+
+        ``frame`` is the scan's frame counter (noise seed); ``power_w`` the per-channel laser
+        power (W) at this column; ``calibration`` renders shot ``shot`` of the zeroth-order
+        target instead of the scene.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        if not 0 <= column < self.columns and not calibration:
+            raise out_of_range("column", f"an integer from 0 to {self.columns - 1}", column)
+        col = 0 if calibration else column
+        one = self.echo(col, cfg, power_w, calibration=calibration)
+        length = one.size
+        total = length * cfg.averages
+        analog = np.tile(one, cfg.averages)
+        if not calibration:
+            users = self.other_users_signal(col, cfg, total)
+            if users is not None:
+                analog += users
+        if self.noise_rms_v > 0:
+            stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+            rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+            analog += self.noise_rms_v * rng.standard_normal(total)
+        return self.to_codes(analog)
