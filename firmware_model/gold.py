@@ -1,0 +1,206 @@
+"""Gold code families of a preferred pair, their FPGA seeds, and periodic correlations.
+
+Family (Supplementary Note 2, eq. 2) of a pair (u, v) of degree m, N = 2^m - 1,
+u and v the Fibonacci m-sequences of ``poly_u`` and ``poly_v`` (default seeds
+all ones, see :mod:`firmware_model.lfsr`)::
+
+    member k, 0 <= k < N:   c_k[n] = u[n] XOR v[(n - k) mod N]   (v delayed by k chips)
+    member N:               u
+    member N + 1:           v                                    (2^m + 1 codes)
+
+Chips are uint8 bits; the bipolar chip is +1 for bit 0 and -1 for bit 1.
+
+Periodic correlation of bipolar sequences a', b' of length N (lag k in chips)::
+
+    theta_ab(k) = sum_n a'[n] b'[(n + k) mod N]
+
+computed by FFT and rounded to the exact integer. A preferred pair has
+theta_uv(k) in {-1, -t(m), t(m) - 2} for every k, t(m) = 1 + 2^floor((m + 2) / 2);
+then every pair of distinct family members, and every member against itself at
+k != 0, also stays within {-1, -t(m), t(m) - 2}.
+
+FPGA seeds: the hardware runs two free-running Fibonacci registers from chip 0
+and XORs them. ``gold_seeds`` loads u with its default seed and v with the state
+the default v register has after (N - k) mod N clocks (jump-ahead), so the XOR
+is member k. For members N and N + 1 the other register is loaded with zeros
+(an all-zero Fibonacci register outputs 0 for ever).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from cdma_lidar.errors import ConfigError, out_of_range
+from firmware_model.lfsr import (
+    Poly,
+    check_primitive,
+    jump,
+    mseq,
+    seed_to_str,
+)
+
+__all__ = [
+    "bipolar",
+    "check_pair",
+    "family_size",
+    "gold_code",
+    "gold_family",
+    "gold_seeds",
+    "is_preferred_pair",
+    "periodic_xcorr",
+    "t_value",
+    "xcorr_values",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+Seed = str | Sequence[int] | np.ndarray | None
+
+
+def t_value(m: int) -> int:
+    """t(m) = 1 + 2^floor((m + 2) / 2): the Gold bound on |cross-correlation|."""
+    return 1 + (1 << ((int(m) + 2) // 2))
+
+
+def family_size(m: int) -> int:
+    """Number of codes in a degree-m Gold family: 2^m + 1."""
+    return (1 << int(m)) + 1
+
+
+def check_pair(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
+               field_u: str = "poly_u", field_v: str = "poly_v") -> tuple[Poly, Poly]:
+    """Normalise two primitive polynomials of one degree (ConfigError otherwise)."""
+    pu = check_primitive(poly_u, field=field_u)
+    pv = check_primitive(poly_v, field=field_v)
+    if pu[0] != pv[0]:
+        raise out_of_range(field_v, f"of the same degree as {field_u} ({pu[0]})", poly_v)
+    return pu, pv
+
+
+def _check_index(index: int, n: int, field: str = "index") -> int:
+    try:
+        k = int(index)
+    except (TypeError, ValueError):
+        raise out_of_range(field, f"an integer in 0..{n + 1}", index) from None
+    if k != index or not 0 <= k <= n + 1:
+        raise out_of_range(field, f"an integer in 0..{n + 1}", index)
+    return k
+
+
+def gold_code(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str, index: int,
+              chips: int | None = None, seed_u: Seed = None, seed_v: Seed = None) -> np.ndarray:
+    """Member ``index`` of the Gold family (see module docstring) as uint8 chip bits.
+
+    ``chips`` defaults to one period N; longer requests repeat the code periodically.
+    ``seed_u``/``seed_v`` choose the phases of u and v (bit strings, stage 1 first).
+    """
+    pu, pv = check_pair(poly_u, poly_v)
+    n = (1 << pu[0]) - 1
+    k = _check_index(index, n)
+    u = mseq(pu, seed_u)
+    v = mseq(pv, seed_v)
+    if k == n:
+        code = u
+    elif k == n + 1:
+        code = v
+    else:
+        code = u ^ np.roll(v, k)
+    if chips is None:
+        return code
+    if int(chips) < 0 or int(chips) != chips:
+        raise out_of_range("chips", "a non-negative integer", chips)
+    return np.resize(code, int(chips))
+
+
+def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
+                seed_u: Seed = None, seed_v: Seed = None) -> np.ndarray:
+    """All 2^m + 1 members, shape (2^m + 1, N) uint8; row k is ``gold_code(..., k)``.
+
+    Vectorised: rows 0..N-1 are windows of v repeated twice (row k starts at
+    N - k), XORed with u broadcast in one call, written straight into the result.
+    """
+    pu, pv = check_pair(poly_u, poly_v)
+    n = (1 << pu[0]) - 1
+    u = mseq(pu, seed_u)
+    v = mseq(pv, seed_v)
+    family = np.empty((n + 2, n), dtype=np.uint8)
+    windows = sliding_window_view(np.concatenate([v, v]), n)  # windows[s] = vv[s:s+N]
+    np.bitwise_xor(u, windows[n:0:-1], out=family[:n])  # s = N - k for k = 0..N-1
+    family[n] = u
+    family[n + 1] = v
+    return family
+
+
+def gold_seeds(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
+               index: int) -> tuple[str, str]:
+    """Seeds (stage 1 first) that make two free-running Fibonacci registers output
+    member ``index`` from chip 0 when their chips are XORed.
+
+    u: default seed (all ones); v: the default-seeded v register jumped ahead by
+    (N - index) mod N clocks. Member N (u) loads v with zeros, member N + 1 (v)
+    loads u with zeros.
+    """
+    pu, pv = check_pair(poly_u, poly_v)
+    m = pu[0]
+    n = (1 << m) - 1
+    k = _check_index(index, n)
+    ones = "1" * m
+    zeros = "0" * m
+    if k == n:
+        return ones, zeros
+    if k == n + 1:
+        return zeros, ones
+    return ones, seed_to_str(jump(pv, None, (n - k) % n))
+
+
+def bipolar(bits: np.ndarray) -> np.ndarray:
+    """Chip bits -> bipolar int8: 0 -> +1, 1 -> -1."""
+    return (1 - 2 * np.asarray(bits, dtype=np.int8)).astype(np.int8)
+
+
+def periodic_xcorr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """theta_ab(k) = sum_n a'[n] b'[(n + k) mod N] for k = 0..N-1 (int64, exact).
+
+    ``a`` and ``b`` are chip bits of equal length along the last axis (leading
+    axes broadcast). Computed with real FFTs; every value is an integer of
+    magnitude <= N, so float64 rounding is exact for N < 2^40.
+    """
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.shape[-1] != b.shape[-1] or a.shape[-1] == 0:
+        raise out_of_range("b", f"sequences of the same non-zero length as a ({a.shape[-1]})",
+                           b.shape)
+    n = a.shape[-1]
+    fa = np.fft.rfft(bipolar(a).astype(np.float64), axis=-1)
+    fb = np.fft.rfft(bipolar(b).astype(np.float64), axis=-1)
+    theta = np.fft.irfft(np.conj(fa) * fb, n=n, axis=-1)
+    return np.rint(theta).astype(np.int64)
+
+
+def xcorr_values(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
+                 seed_u: Seed = None, seed_v: Seed = None) -> dict[int, int]:
+    """The periodic cross-correlation values of u and v with their counts (over N lags)."""
+    pu, pv = check_pair(poly_u, poly_v)
+    theta = periodic_xcorr(mseq(pu, seed_u), mseq(pv, seed_v))
+    values, counts = np.unique(theta, return_counts=True)
+    return {int(v): int(c) for v, c in zip(values, counts, strict=True)}
+
+
+def is_preferred_pair(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str) -> bool:
+    """True when every cross-correlation value is in {-1, -t(m), t(m) - 2} and u != v.
+
+    Degrees that are multiples of 4 have no preferred pairs; the test still runs.
+    """
+    try:
+        pu, pv = check_pair(poly_u, poly_v)
+    except ConfigError:
+        return False
+    if pu == pv:
+        return False
+    t = t_value(pu[0])
+    return set(xcorr_values(pu, pv)) <= {-1, -t, t - 2}
+
