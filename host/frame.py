@@ -1,0 +1,170 @@
+"""One frame of receiver results, gathered column by column into (channel, column) arrays.
+
+The device sends one ``ColumnResult`` per grating column, holding for each of its K
+channels every ``ReceiverOutput`` field except ``corr`` (docs/interfaces.md). The
+host keeps a frame as a :class:`FrameData`: the same fields stacked into arrays
+whose first two axes are ``(K channels, C columns)``, plus a ``done`` mask that says
+which columns have arrived. That makes every later step (ranging, UID filtering,
+point-cloud assembly) a vectorised numpy expression over the whole frame, and it is
+also what a resumable partial scan saves to disk (:meth:`FrameData.to_arrays`).
+
+Units: lags in samples (``0 .. N*S - 1``), correlator outputs in integer correlator
+units (``out`` of the receive chain), grating angles in degrees.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar.errors import ConfigError, out_of_range
+
+__all__ = ["FrameData"]
+
+# Per-pixel fields: name -> (dtype, trailing shape key). Trailing shape keys:
+# "" scalar per pixel, "2" neighbours, "n" UID periods, "P" extra peaks, "Pn" both.
+_PIXEL_FIELDS: dict[str, tuple[type, str]] = {
+    "peak_lag": (np.int64, ""),
+    "peak": (np.int64, ""),
+    "neighbours": (np.int64, "2"),
+    "noise_count": (np.int64, ""),
+    "noise_sum": (np.int64, ""),
+    "noise_sumsq": (np.int64, ""),
+    "uid_signs": (np.int8, "n"),
+    "uid_observed": (np.int64, ""),
+    "uid_match": (np.bool_, ""),
+    "extra_lag": (np.int64, "P"),
+    "extra_peak": (np.int64, "P"),
+    "extra_signs": (np.int8, "Pn"),
+}
+
+
+@dataclass
+class FrameData:
+    """Receiver results of one frame as ``(K, C, ...)`` arrays (K channels, C columns).
+
+    Attributes:
+        peak_lag: primary peak lag (samples), (K, C).
+        peak: correlator output at the peak (signed, correlator units), (K, C).
+        neighbours: outputs at ``peak_lag - 1`` and ``peak_lag + 1``, (K, C, 2).
+        noise_count, noise_sum, noise_sumsq: noise-floor statistics, (K, C).
+        uid_signs: per-period signs at the peak (-1, 0, +1), (K, C, n).
+        uid_observed: UID bits read from those signs (bit p set where negative), (K, C).
+        uid_match: True where the observed UID is ours, (K, C).
+        extra_lag, extra_peak: further peaks (samples, correlator units), (K, C, P-1).
+        extra_signs: their per-period signs, (K, C, P-1, n).
+        angle_deg: grating rotation of each column (deg), (C,).
+        done: True for columns that have arrived, (C,).
+        frame: frame number.
+    """
+
+    peak_lag: NDArray[np.int64]
+    peak: NDArray[np.int64]
+    neighbours: NDArray[np.int64]
+    noise_count: NDArray[np.int64]
+    noise_sum: NDArray[np.int64]
+    noise_sumsq: NDArray[np.int64]
+    uid_signs: NDArray[np.int8]
+    uid_observed: NDArray[np.int64]
+    uid_match: NDArray[np.bool_]
+    extra_lag: NDArray[np.int64]
+    extra_peak: NDArray[np.int64]
+    extra_signs: NDArray[np.int8]
+    angle_deg: NDArray[np.float64]
+    done: NDArray[np.bool_]
+    frame: int = 0
+
+    @classmethod
+    def empty(cls, channels: int, columns: int, uid_bits: int = 1, peaks: int = 1,
+              frame: int = 0) -> FrameData:
+        """A frame with no column yet: zeros everywhere, ``done`` all False."""
+        if channels < 1:
+            raise out_of_range("channels", "at least 1", channels)
+        if columns < 1:
+            raise out_of_range("columns", "at least 1", columns)
+        if uid_bits < 1:
+            raise out_of_range("uid_bits", "at least 1", uid_bits)
+        if peaks < 1:
+            raise out_of_range("peaks", "at least 1", peaks)
+        trailing = {"": (), "2": (2,), "n": (uid_bits,), "P": (peaks - 1,),
+                    "Pn": (peaks - 1, uid_bits)}
+        arrays = {name: np.zeros((channels, columns, *trailing[key]), dtype=dt)
+                  for name, (dt, key) in _PIXEL_FIELDS.items()}
+        return cls(**arrays, angle_deg=np.full(columns, np.nan), done=np.zeros(columns, bool),
+                   frame=frame)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(K channels, C columns)."""
+        return self.peak_lag.shape  # type: ignore[return-value]
+
+    @property
+    def uid_bits(self) -> int:
+        """Number of UID periods n."""
+        return int(self.uid_signs.shape[-1])
+
+    @property
+    def peaks(self) -> int:
+        """Number of peaks reported per channel (primary plus extras)."""
+        return int(self.extra_lag.shape[-1]) + 1
+
+    def set_column(self, index: int, result: Any, angle_deg: float | None = None) -> None:
+        """Store one column result (any object or mapping with the ReceiverOutput field names).
+
+        ``index`` is the position in this frame (0 .. C-1). ``angle_deg`` defaults to the
+        result's ``angle_deg`` attribute or key.
+        """
+        c = self.shape[1]
+        if not 0 <= index < c:
+            raise out_of_range("column", f"from 0 to {c - 1}", index)
+        get = result.get if isinstance(result, Mapping) else (
+            lambda name, default=None: getattr(result, name, default))
+        for name in _PIXEL_FIELDS:
+            value = get(name)
+            if value is None:
+                if name.startswith("extra") and self.peaks == 1:
+                    continue
+                raise ConfigError(f"column result lacks field {name!r}", field=name)
+            arr = np.asarray(value)
+            target = getattr(self, name)
+            want = target.shape[:1] + target.shape[2:]
+            if arr.size == 0 and 0 in want:
+                continue
+            if arr.shape != want:
+                raise out_of_range(f"{name} shape", f"{want}", arr.shape)
+            target[:, index] = arr
+        if angle_deg is None:
+            angle_deg = get("angle_deg")
+        if angle_deg is not None:
+            self.angle_deg[index] = float(angle_deg)
+        self.done[index] = True
+
+    def to_arrays(self) -> dict[str, NDArray]:
+        """Every field as a plain array (for ``np.savez``); inverse of :meth:`from_arrays`."""
+        out = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, Any]) -> FrameData:
+        """Rebuild a frame from :meth:`to_arrays` output (e.g. an opened ``.npz``)."""
+        missing = [f.name for f in fields(cls) if f.name not in arrays]
+        if missing:
+            raise ConfigError(f"frame data lacks {', '.join(missing)}", field=missing[0])
+        kw = {f.name: np.array(arrays[f.name]) for f in fields(cls)}
+        kw["frame"] = int(kw["frame"])
+        return cls(**kw)
+
+    @classmethod
+    def from_columns(cls, results: Iterable[Any], channels: int, columns: int,
+                     first_column: int = 0, uid_bits: int = 1, peaks: int = 1,
+                     frame: int = 0) -> FrameData:
+        """Assemble a frame from column results that carry a ``column`` index."""
+        data = cls.empty(channels, columns, uid_bits, peaks, frame)
+        for res in results:
+            col = res["column"] if isinstance(res, Mapping) else res.column
+            data.set_column(int(col) - first_column, res)
+        return data

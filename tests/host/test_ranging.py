@@ -1,0 +1,144 @@
+"""Ranging math: sub-sample refinement on synthetic correlation peaks, range scale, fill-in."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cdma_lidar.errors import ConfigError
+from host.ranging import (
+    SPEED_OF_LIGHT_M_S,
+    RangingConfig,
+    fill_columns,
+    in_windows,
+    lag_to_range_m,
+    precision_eq27_m,
+    sample_range_m,
+    subsample_delta,
+)
+
+FINE = 64  # fine time steps per sample when synthesising delayed echoes
+
+
+def _correlation(code: np.ndarray, samples_per_chip: int, delay_samples: float) -> np.ndarray:
+    """Circular correlation of a rectangular-chip code with its copy delayed by a fraction."""
+    fine = np.repeat(code, samples_per_chip * FINE).astype(np.float64)
+    shift = round(delay_samples * FINE)
+    echo_fine = np.roll(fine, shift)
+    # Integrate-and-dump over each sample: what an ADC behind a matched low-pass sees.
+    echo = echo_fine.reshape(-1, FINE).mean(axis=1)
+    ref = np.repeat(code, samples_per_chip).astype(np.float64)
+    return np.real(np.fft.ifft(np.conj(np.fft.fft(ref)) * np.fft.fft(echo)))
+
+
+def _wrapped(err: float, n: int) -> float:
+    return abs((err + n / 2) % n - n / 2)
+
+
+def _peak_and_neighbours(corr: np.ndarray) -> tuple[int, float, np.ndarray]:
+    lag = int(np.argmax(np.abs(corr)))
+    n = corr.size
+    return lag, corr[lag], np.array([corr[(lag - 1) % n], corr[(lag + 1) % n]])
+
+
+RNG_CODE = np.where(np.random.default_rng(7).random(1023) < 0.5, -1, 1)
+
+
+@given(st.floats(min_value=100.0, max_value=3000.0), st.sampled_from([2, 4, 8]),
+       st.sampled_from([1.0, -1.0]))
+def test_triangle_fit_recovers_fractional_delay(delay: float, spc: int, polarity: float):
+    corr = polarity * _correlation(RNG_CODE, spc, delay)
+    lag, peak, nb = _peak_and_neighbours(corr)
+    est = lag + float(subsample_delta(peak, nb, "triangle"))
+    true = round(delay * FINE) / FINE
+    assert _wrapped(est - true, corr.size) < 0.05
+    # The integer lag alone is off by up to half a sample.
+    assert _wrapped(lag - true, corr.size) <= 0.5 + 1e-9
+
+
+@given(st.floats(min_value=100.0, max_value=3000.0), st.sampled_from([2, 4, 8]))
+def test_parabolic_moves_towards_true_delay(delay: float, spc: int):
+    corr = _correlation(RNG_CODE, spc, delay)
+    lag, peak, nb = _peak_and_neighbours(corr)
+    true = round(delay * FINE) / FINE
+    est = lag + float(subsample_delta(peak, nb, "parabolic"))
+    n = corr.size
+    assert _wrapped(est - true, n) <= _wrapped(lag - true, n) + 0.02
+    assert _wrapped(est - true, n) < 0.3
+
+
+@given(st.floats(min_value=-0.5, max_value=0.5), st.floats(min_value=1.0, max_value=1e6),
+       st.floats(min_value=0.01, max_value=0.4))
+def test_parabolic_is_exact_on_a_parabola(d: float, a: float, b: float):
+    x = np.array([-1.0, 0.0, 1.0])
+    y = a * (1.0 - b * (x - d) ** 2)  # positive at all three samples
+    got = float(subsample_delta(y[1], y[[0, 2]], "parabolic"))
+    assert got == pytest.approx(d, abs=1e-9)
+
+
+def test_subsample_degenerate_and_none():
+    assert subsample_delta(0, [0, 0], "parabolic") == 0.0
+    assert subsample_delta(5, [5, 5], "triangle") == 0.0
+    assert subsample_delta(10, [2, 9], "none") == 0.0
+    # Vectorised over pixels, results within [-0.5, 0.5].
+    d = subsample_delta(np.array([[10, 10]]), np.array([[[9, 1], [1, 9]]]), "triangle")
+    assert d.shape == (1, 2) and d[0, 0] < 0 < d[0, 1]
+    with pytest.raises(ConfigError, match="method"):
+        subsample_delta(1, [0, 0], "cubic")
+
+
+def test_range_scale_and_offset():
+    # 62.5 Mchip/s, 4 samples/chip: one sample is c / 500e6 / ... = 0.5996 m of range.
+    assert sample_range_m(4, 62.5e6) == pytest.approx(SPEED_OF_LIGHT_M_S / (2 * 250e6))
+    assert lag_to_range_m(10, 4, 62.5e6) == pytest.approx(10 * 0.599584916)
+    assert lag_to_range_m(10.5, 4, 62.5e6, offset_m=1.0) == pytest.approx(10.5 * 0.599584916 - 1)
+    with pytest.raises(ConfigError, match="chip_rate_hz"):
+        sample_range_m(4, 0.0)
+    with pytest.raises(ConfigError, match="samples_per_chip"):
+        sample_range_m(0, 1e6)
+
+
+def test_precision_eq27():
+    # eq. 27 by hand: sqrt(6/Ns)/(2 pi) * dR / sqrt(SNR).
+    ns, f = 2047 * 4, 62.5e6
+    d_r = SPEED_OF_LIGHT_M_S / (2 * f)
+    want = np.sqrt(6 / ns) / (2 * np.pi) * d_r / np.sqrt(0.01)
+    assert precision_eq27_m(f, ns, snr=0.01) == pytest.approx(want)
+    # SNR_XC = N_s * SNR: the same precision from SNR_XC in dB.
+    assert precision_eq27_m(f, ns, snr_xc_db=10 * np.log10(0.01 * ns)) == pytest.approx(want)
+    # Quadrupling SNR halves sigma.
+    assert precision_eq27_m(f, ns, snr=0.04) == pytest.approx(want / 2)
+    with pytest.raises(ConfigError):
+        precision_eq27_m(f, ns)
+
+
+def test_ghost_windows_wrap():
+    lags = np.array([0, 5, 9, 10, 8180, 8187])
+    hit = in_windows(lags, ((8185, 6), (9, 1)), 8188)
+    assert hit.tolist() == [True, False, True, False, False, True]
+
+
+def test_fill_columns_interior_gaps_only():
+    r = np.array([[1.0, 5.0], [np.nan, np.nan], [np.nan, 7.0], [4.0, np.nan], [np.nan, 9.0]])
+    ok = np.isfinite(r)
+    out, filled = fill_columns(r, ok, max_gap=2)
+    # Column 0: channels 1, 2 between 1.0 and 4.0 -> 2.0, 3.0; channel 4 at the edge stays.
+    assert out[:, 0][:4] == pytest.approx([1.0, 2.0, 3.0, 4.0])
+    assert np.isnan(out[4, 0])
+    assert filled[:, 0].tolist() == [False, True, True, False, False]
+    # Column 1: channel 1 between 5 and 7 -> 6; channel 3 between 7 and 9 -> 8.
+    assert out[:, 1] == pytest.approx([5, 6, 7, 8, 9])
+    # A gap longer than max_gap stays empty.
+    out1, filled1 = fill_columns(r, ok, max_gap=1)
+    assert not filled1[:, 0].any() and np.isnan(out1[1, 0])
+
+
+def test_config_checks():
+    cfg = RangingConfig(samples_per_chip=4, code_length=2047)
+    assert cfg.samples_per_symbol == 8188
+    with pytest.raises(ConfigError, match="method"):
+        RangingConfig(method="spline")
+    with pytest.raises(ConfigError, match="max_gap"):
+        RangingConfig(max_gap=-1)
