@@ -38,7 +38,8 @@ def test_outliers_and_missing_values_are_dropped():
 
 def test_multimodal_histogram_is_refused():
     vals = np.concatenate([_shots(3.0, 0.01, 300), _shots(5.0, 0.01, 150, seed=2)])
-    with pytest.raises(CalibrationError, match=r"multimodal: 2 modes at (2\.99\d|3\.00\d) m.*5\.00\d m"):
+    pattern = r"multimodal: 2 modes at (2\.99\d|3\.00\d) m.*5\.00\d m"
+    with pytest.raises(CalibrationError, match=pattern):
         analyse_histogram(vals, gap_m=GAP, max_spread_m=SPREAD)
 
 
@@ -63,9 +64,9 @@ def test_file_round_trip_and_applicability(tmp_path):
     back = Calibration.load(path)
     assert back.offset_m == pytest.approx(cal.offset_m)
     back.check_applies(DEVICE, {**CONFIG, "poly_u": (11, 2), "averages": 20})  # averages free
-    with pytest.raises(CalibrationError, match="another device.*serial"):
+    with pytest.raises(CalibrationError, match=r"another device.*serial"):
         back.check_applies({**DEVICE, "serial": "V-0002"}, CONFIG)
-    with pytest.raises(CalibrationError, match="another configuration.*chip_rate_hz"):
+    with pytest.raises(CalibrationError, match=r"another configuration.*chip_rate_hz"):
         back.check_applies(DEVICE, {**CONFIG, "chip_rate_hz": 125e6})
 
 
