@@ -1,0 +1,677 @@
+"""The FPGA receive chain, bit-exact: accumulate, despread, correlate, scale, peaks, noise floor.
+
+Everything here is integer arithmetic; docs/firmware.md is the full reference
+(block diagram, parameter ranges, every signal's fixed-point format). In short,
+for one column of ``R * n * N * S`` signed ADC codes (frame r, then UID period p,
+then sample i)::
+
+    acc[p][i] = sum_r x[(r*n + p)*NS + i]                 s(b + clog2 R)
+    d[i]      = sum_p (-1)^bit_p(uid) * acc[p][i]         s(b + bitlen(n R))
+    ref_k[i]  = +1 if code_k[i // S] == 0 else -1         chip bit 0 -> +1
+    raw_k[l]  = sum_i ref_k[i] * d[(i + l) mod NS]        s(b + bitlen(N S R n))
+                (an echo delayed by d samples peaks at lag l = d)
+    out_k[l]  = sat_out_bits(round(raw_k[l] / 2^out_shift))
+    gate:       lag_j = (gate_start + j) mod NS, j = 0..gate_len-1   (lags in samples)
+
+then per channel the peak (largest |out| outside ghost windows, ties to the
+lowest j), up to ``peaks`` peaks at least W+1 gate lags apart, the neighbours
+``out`` at peak_lag -+ 1, the noise floor (count, sum, sum of squares of ``out``
+over the gate minus peaks +-W and ghost lags) and the per-period UID signs.
+
+Two implementations give the same integers:
+
+* :func:`reference` / :class:`ReferenceReceiver`: literal, streaming (feed any
+  chunking, sample by sample), Python integers and exact fractions. Slow.
+* :func:`fast` / :func:`fast_frame` / :class:`FastReceiver`: vectorised; the
+  correlation runs in the chip domain as an exact float64 matrix product or an
+  FFT rounded under a rigorous error bound (``firmware_model._correlate``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+from fractions import Fraction
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdma_lidar.errors import ConfigError, out_of_range
+from firmware_model import _correlate
+from firmware_model.adc import adc_limits
+from firmware_model.snr import snr_xc_db
+
+__all__ = [
+    "MAX_CHANNELS",
+    "MAX_CODE_LENGTH",
+    "ROUNDING_MODES",
+    "FastReceiver",
+    "ReceiverConfig",
+    "ReceiverOutput",
+    "ReferenceReceiver",
+    "Widths",
+    "check_codes",
+    "fast",
+    "fast_frame",
+    "fast_from_accumulators",
+    "reference",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+Rounding = Literal["truncate", "half_up", "convergent"]
+ROUNDING_MODES: tuple[str, ...] = ("truncate", "half_up", "convergent")
+MAX_CODE_LENGTH = 2**20 - 1  # degree 20; any length 3..MAX_CODE_LENGTH is accepted
+MIN_CODE_LENGTH = 3
+MAX_CHANNELS = 1024
+MAX_GHOST_WINDOWS = 8
+INT64_BITS = 63  # magnitude bits of an int64
+
+
+def _bitlen(x: int) -> int:
+    """Bits of the unsigned integer x (floor(log2 x) + 1; 0 for x = 0)."""
+    return int(x).bit_length()
+
+
+def _clog2(x: int) -> int:
+    """ceil(log2 x) for x >= 1 (clog2(1) = 0)."""
+    return (int(x) - 1).bit_length()
+
+
+@dataclass(frozen=True)
+class Widths:
+    """Derived word widths in bits for one configuration and code length (docs/firmware.md §3).
+
+    Signed widths (s(w)): ``adc``, ``acc``, ``desp``, ``raw``, ``uid``, ``rounded``,
+    ``out``, ``noise_sum``. Unsigned (u(w)): ``noise_count``, ``noise_sumsq``.
+    ``out`` is the effective output width min(out_bits, rounded); the output word
+    itself is ``out_bits`` wide. ``float_exact`` says whether N*S*R*n*2^(b-1) < 2^53,
+    i.e. whether a float64 correlation is exact without splitting.
+    """
+
+    adc: int
+    acc: int
+    desp: int
+    raw: int
+    uid: int
+    rounded: int
+    out: int
+    noise_count: int
+    noise_sum: int
+    noise_sumsq: int
+    float_exact: bool
+
+
+@dataclass(frozen=True)
+class ReceiverConfig:
+    """Parameters of the receive chain (ranges in docs/firmware.md §2).
+
+    Lags, gate and ghost windows are in samples; ``ghost_windows`` holds
+    ``(start_lag, length)`` pairs of absolute lags (mod N*S). Checks that need the
+    code length N (gate inside the period, derived widths) run in :meth:`widths`,
+    which ``reference``/``fast`` call with ``codes.shape[1]``.
+    """
+
+    adc_bits: int = 12
+    samples_per_chip: int = 4
+    averages: int = 10
+    uid_bits: int = 1
+    uid: int = 0
+    gate_start: int = 0
+    gate_len: int = 64
+    peak_exclude: int = 8
+    ghost_windows: tuple[tuple[int, int], ...] = ()
+    out_shift: int = 0
+    rounding: Rounding = "truncate"
+    out_bits: int = 32
+    peaks: int = 1
+
+    def __post_init__(self) -> None:
+        _int_in("adc_bits", self.adc_bits, 8, 16)
+        _int_in("samples_per_chip", self.samples_per_chip, 1, 64)
+        _int_in("averages", self.averages, 1, 1024)
+        _int_in("uid_bits", self.uid_bits, 1, 16)
+        _int_in("uid", self.uid, 0, (1 << self.uid_bits) - 1)
+        _int_in("gate_start", self.gate_start, 0, MAX_CODE_LENGTH * 64 - 1)
+        _int_in("gate_len", self.gate_len, 1, MAX_CODE_LENGTH * 64)
+        _int_in("peak_exclude", self.peak_exclude, 0, MAX_CODE_LENGTH * 64)
+        _int_in("out_shift", self.out_shift, 0, 62)
+        _int_in("out_bits", self.out_bits, 8, 32)
+        _int_in("peaks", self.peaks, 1, 8)
+        if self.rounding not in ROUNDING_MODES:
+            raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), self.rounding)
+        try:
+            ghosts = tuple((int(s), int(n)) for s, n in self.ghost_windows)
+        except (TypeError, ValueError):
+            raise out_of_range(
+                "ghost_windows", "a sequence of (start, len) integer pairs", self.ghost_windows
+            ) from None
+        if len(ghosts) > MAX_GHOST_WINDOWS:
+            raise out_of_range("ghost_windows", f"at most {MAX_GHOST_WINDOWS} windows", len(ghosts))
+        for s, n in ghosts:
+            if s < 0 or n < 1:
+                raise out_of_range(
+                    "ghost_windows", "(start >= 0, len >= 1) pairs", self.ghost_windows
+                )
+        object.__setattr__(self, "ghost_windows", ghosts)
+
+    def replace(self, **changes: object) -> ReceiverConfig:
+        """Return a copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def period_samples(self, n_chips: int) -> int:
+        """NS = N * S, samples per code period."""
+        return int(n_chips) * self.samples_per_chip
+
+    def column_samples(self, n_chips: int) -> int:
+        """Samples in one column: R * n * N * S."""
+        return self.averages * self.uid_bits * self.period_samples(n_chips)
+
+    def widths(self, n_chips: int) -> Widths:
+        """Check the config against code length ``n_chips`` and derive every width.
+
+        Raises ConfigError when the gate or a ghost window does not fit in the
+        period, or when a derived width cannot be held in int64 (only
+        ``noise_sumsq`` can: lower ``out_bits``, raise ``out_shift`` or shorten
+        ``gate_len``).
+        """
+        _int_in("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
+        ns = self.period_samples(n_chips)
+        if self.gate_start >= ns:
+            raise out_of_range("gate_start", f"0..{ns - 1} (N*S - 1)", self.gate_start)
+        if self.gate_len > ns:
+            raise out_of_range("gate_len", f"1..{ns} (N*S)", self.gate_len)
+        for s, n in self.ghost_windows:
+            if s >= ns or n > ns:
+                raise out_of_range(
+                    "ghost_windows", f"(start 0..{ns - 1}, len 1..{ns}) pairs", self.ghost_windows
+                )
+        b, r, n_uid = self.adc_bits, self.averages, self.uid_bits
+        s = self.out_shift
+        raw = b + _bitlen(ns * r * n_uid)
+        rounded = raw if s == 0 else max(raw - s + 1, 2)
+        out = min(self.out_bits, rounded)
+        g = self.gate_len
+        w = Widths(
+            adc=b,
+            acc=b + _clog2(r),
+            desp=b + _bitlen(n_uid * r),
+            raw=raw,
+            uid=b + _bitlen(ns * r),
+            rounded=rounded,
+            out=out,
+            noise_count=_bitlen(g),
+            noise_sum=out + _clog2(g),
+            noise_sumsq=2 * out - 2 + _bitlen(g),
+            float_exact=ns * r * n_uid * (1 << (b - 1)) < 2**53,
+        )
+        if w.noise_sumsq > INT64_BITS:
+            raise ConfigError(
+                f"out_bits/out_shift/gate_len give a noise_sumsq accumulator of "
+                f"2*{out}-2+bitlen({g}) = {w.noise_sumsq} bits; it must be <= {INT64_BITS}: "
+                f"lower out_bits, raise out_shift or shorten gate_len",
+                field="out_bits",
+            )
+        return w
+
+
+@dataclass(frozen=True, eq=False)
+class ReceiverOutput:
+    """Integers the chain reports for one column, one row per channel (K channels).
+
+    corr (K, G) int64          ``out`` over the gate, j = 0..G-1
+    peak_lag (K,) int64        lag of the first peak in samples (lag_j, not j); -1 if none
+    peak (K,) int64            signed ``out`` at the peak (0 if none)
+    neighbours (K, 2) int64    ``out`` at peak_lag - 1 and + 1 (mod N*S)
+    noise_count/_sum/_sumsq    noise floor statistics (K,) int64
+    uid_signs (K, n) int8      sign of each period's raw correlation at peak_lag
+    uid_observed (K,) int64    bit p set where uid_signs[:, p] < 0
+    uid_match (K,) bool        no zero sign and uid_observed == uid
+    extra_lag/extra_peak (K, P-1) int64, extra_signs (K, P-1, n) int8: later peaks
+    """
+
+    corr: NDArray[np.int64]
+    peak_lag: NDArray[np.int64]
+    peak: NDArray[np.int64]
+    neighbours: NDArray[np.int64]
+    noise_count: NDArray[np.int64]
+    noise_sum: NDArray[np.int64]
+    noise_sumsq: NDArray[np.int64]
+    uid_signs: NDArray[np.int8]
+    uid_observed: NDArray[np.int64]
+    uid_match: NDArray[np.bool_]
+    extra_lag: NDArray[np.int64]
+    extra_peak: NDArray[np.int64]
+    extra_signs: NDArray[np.int8]
+
+    def snr_db(self) -> NDArray[np.float64]:
+        """SNR_XC in dB per channel (:func:`firmware_model.snr.snr_xc_db`)."""
+        return snr_xc_db(self.peak, self.noise_count, self.noise_sum, self.noise_sumsq)
+
+    def mismatches(self, other: ReceiverOutput) -> list[str]:
+        """Names of the fields whose values, shapes or dtypes differ from ``other``."""
+        bad = []
+        for f in dataclasses.fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if a.dtype != b.dtype or a.shape != b.shape or not np.array_equal(a, b):
+                bad.append(f.name)
+        return bad
+
+    def same_as(self, other: ReceiverOutput) -> bool:
+        """True when every field is bit-identical (values, shapes and dtypes)."""
+        return not self.mismatches(other)
+
+
+def check_codes(codes: ArrayLike) -> NDArray[np.uint8]:
+    """Validate a (K, N) array of chip bits (0/1) and return it as uint8."""
+    c = np.asarray(codes)
+    if c.ndim != 2:
+        raise out_of_range("codes", "a 2-D (K, N) array of chip bits", f"{c.ndim}-D")
+    if c.dtype.kind not in "iub":
+        raise out_of_range("codes", "an integer or bool array of chip bits", f"dtype {c.dtype}")
+    k, n = c.shape
+    if not 1 <= k <= MAX_CHANNELS:
+        raise out_of_range("codes.shape[0] (channels K)", f"1..{MAX_CHANNELS}", k)
+    if not MIN_CODE_LENGTH <= n <= MAX_CODE_LENGTH:
+        raise out_of_range(
+            "codes.shape[1] (code length N)", f"{MIN_CODE_LENGTH}..{MAX_CODE_LENGTH}", n
+        )
+    if c.dtype.kind != "b" and c.size and (int(c.min()) < 0 or int(c.max()) > 1):
+        raise out_of_range("codes", "chip bits 0 or 1", f"values {int(c.min())}..{int(c.max())}")
+    return c.astype(np.uint8)
+
+
+def _int_in(field_name: str, value: object, lo: int, hi: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise out_of_range(field_name, f"an integer in {lo}..{hi}", value)
+    if not lo <= int(value) <= hi:
+        raise out_of_range(field_name, f"an integer in {lo}..{hi}", value)
+
+
+def _as_samples(samples: ArrayLike, ndim: int) -> NDArray[np.integer]:
+    x = np.asarray(samples)
+    if x.ndim != ndim:
+        what = "a 1-D integer array" if ndim == 1 else "a 2-D (columns, samples) integer array"
+        raise out_of_range("samples", what, f"{x.ndim}-D")
+    if x.dtype.kind not in "iu":
+        raise out_of_range("samples", "an integer array of ADC codes", f"dtype {x.dtype}")
+    return x
+
+
+# --------------------------------------------------------------------------------------
+# Reference: literal, streaming, Python integers.
+# --------------------------------------------------------------------------------------
+
+
+class ReferenceReceiver:
+    """Streaming reference model of one column: ``feed`` chunks of any size, then ``finish``.
+
+    Samples are consumed one by one in arrival order, exactly as the hardware
+    accumulator sees them: sample t adds to ``acc[(t // NS) % n][t % NS]``.
+    Deliberately simple and slow (Python integers); use small configurations.
+    """
+
+    def __init__(self, cfg: ReceiverConfig, codes: ArrayLike) -> None:
+        self.cfg = cfg
+        bits = check_codes(codes)
+        self.n_chips = int(bits.shape[1])
+        self.widths = cfg.widths(self.n_chips)
+        s = cfg.samples_per_chip
+        self._ns = self.n_chips * s
+        self._ref = [[1 - 2 * int(row[i // s]) for i in range(self._ns)] for row in bits.tolist()]
+        self._acc = [[0] * self._ns for _ in range(cfg.uid_bits)]
+        self._t = 0
+        self._total = cfg.column_samples(self.n_chips)
+        self._lo, self._hi = adc_limits(cfg.adc_bits)
+
+    @property
+    def samples_needed(self) -> int:
+        """ADC samples still expected before :meth:`finish`."""
+        return self._total - self._t
+
+    def feed(self, chunk: ArrayLike) -> None:
+        """Accumulate a 1-D chunk of ADC codes (any length up to :attr:`samples_needed`)."""
+        x = _as_samples(chunk, 1)
+        if len(x) > self.samples_needed:
+            raise out_of_range(
+                "samples", f"{self._total} ADC codes per column", self._t + len(x)
+            )
+        ns, n = self._ns, self.cfg.uid_bits
+        for v in x.tolist():
+            if not self._lo <= v <= self._hi:
+                raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", v)
+            t = self._t
+            self._acc[(t // ns) % n][t % ns] += v
+            self._t = t + 1
+
+    def finish(self) -> ReceiverOutput:
+        """Despread, correlate, scale and search; return the column's output."""
+        if self._t != self._total:
+            raise out_of_range("samples", f"{self._total} ADC codes per column", self._t)
+        cfg, ns = self.cfg, self._ns
+        n, uid, g = cfg.uid_bits, cfg.uid, cfg.gate_len
+        d = [
+            sum(-self._acc[p][i] if (uid >> p) & 1 else self._acc[p][i] for p in range(n))
+            for i in range(ns)
+        ]
+        lags = [(cfg.gate_start + j) % ns for j in range(g)]
+        ghost = [
+            any((lag - start) % ns < length for start, length in cfg.ghost_windows)
+            for lag in lags
+        ]
+        w = cfg.peak_exclude
+        rows: dict[str, list] = {name: [] for name in _FIELDS}
+        for ref in self._ref:
+
+            def corr_at(data: list[int], lag: int, ref: list[int] = ref) -> int:
+                return sum(ref[i] * data[(i + lag) % ns] for i in range(ns))
+
+            out = [self._scale(corr_at(d, lag)) for lag in lags]
+            found: list[int] = []
+            for _ in range(cfg.peaks):
+                best = None
+                for j in range(g):
+                    if ghost[j] or any(abs(j - q) <= w for q in found):
+                        continue
+                    if best is None or abs(out[j]) > abs(out[best]):
+                        best = j
+                if best is None:
+                    break
+                found.append(best)
+            peak_lags = [lags[j] for j in found] + [-1] * (cfg.peaks - len(found))
+            peak_vals = [out[j] for j in found] + [0] * (cfg.peaks - len(found))
+            signs = [
+                [_sign(corr_at(self._acc[p], lag)) for p in range(n)] if lag >= 0 else [0] * n
+                for lag in peak_lags
+            ]
+            noise = [
+                out[j] for j in range(g)
+                if not ghost[j] and all(abs(j - q) > w for q in found)
+            ]
+            if found:
+                lag0 = peak_lags[0]
+                nb = [self._scale(corr_at(d, (lag0 - 1) % ns)),
+                      self._scale(corr_at(d, (lag0 + 1) % ns))]
+            else:
+                nb = [0, 0]
+            observed = sum(1 << p for p in range(n) if signs[0][p] < 0)
+            rows["corr"].append(out)
+            rows["peak_lag"].append(peak_lags[0])
+            rows["peak"].append(peak_vals[0])
+            rows["neighbours"].append(nb)
+            rows["noise_count"].append(len(noise))
+            rows["noise_sum"].append(sum(noise))
+            rows["noise_sumsq"].append(sum(v * v for v in noise))
+            rows["uid_signs"].append(signs[0])
+            rows["uid_observed"].append(observed)
+            rows["uid_match"].append(bool(found) and 0 not in signs[0] and observed == uid)
+            rows["extra_lag"].append(peak_lags[1:])
+            rows["extra_peak"].append(peak_vals[1:])
+            rows["extra_signs"].append(signs[1:])
+        k, p1 = len(self._ref), cfg.peaks - 1
+        return ReceiverOutput(
+            corr=np.array(rows["corr"], dtype=np.int64).reshape(k, g),
+            peak_lag=np.array(rows["peak_lag"], dtype=np.int64),
+            peak=np.array(rows["peak"], dtype=np.int64),
+            neighbours=np.array(rows["neighbours"], dtype=np.int64).reshape(k, 2),
+            noise_count=np.array(rows["noise_count"], dtype=np.int64),
+            noise_sum=np.array(rows["noise_sum"], dtype=np.int64),
+            noise_sumsq=np.array(rows["noise_sumsq"], dtype=np.int64),
+            uid_signs=np.array(rows["uid_signs"], dtype=np.int8).reshape(k, n),
+            uid_observed=np.array(rows["uid_observed"], dtype=np.int64),
+            uid_match=np.array(rows["uid_match"], dtype=np.bool_),
+            extra_lag=np.array(rows["extra_lag"], dtype=np.int64).reshape(k, p1),
+            extra_peak=np.array(rows["extra_peak"], dtype=np.int64).reshape(k, p1),
+            extra_signs=np.array(rows["extra_signs"], dtype=np.int8).reshape(k, p1, n),
+        )
+
+    def _scale(self, raw: int) -> int:
+        """out = sat(round(raw / 2^s)), written with exact fractions (docs/firmware.md §3)."""
+        cfg = self.cfg
+        x = Fraction(raw, 1 << cfg.out_shift)
+        if cfg.rounding == "truncate":
+            r = math.floor(x)
+        elif cfg.rounding == "half_up":
+            r = math.floor(x + Fraction(1, 2))
+        else:
+            r = round(x)  # Fraction.__round__ without digits: half to even
+        top = (1 << (cfg.out_bits - 1)) - 1
+        return min(max(r, -top - 1), top)
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(ReceiverOutput))
+
+
+def _sign(v: int) -> int:
+    return (v > 0) - (v < 0)
+
+
+def reference(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> ReceiverOutput:
+    """Run the streaming reference on one column (``samples``: 1-D, R*n*N*S ADC codes)."""
+    rx = ReferenceReceiver(cfg, codes)
+    rx.feed(samples)
+    return rx.finish()
+
+
+# --------------------------------------------------------------------------------------
+# Fast path: vectorised, bit-identical to the reference.
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class FastReceiver:
+    """Vectorised receive chain for one configuration and code set; reuse it across columns.
+
+    ``method`` forces the correlator ("matmul" or "fft"; default picks the
+    cheaper one); ``float_bits`` (default 53) is the largest magnitude, in bits,
+    the float64 products may reach before operands are split into limbs. Both
+    only choose how the same integers are computed.
+    """
+
+    cfg: ReceiverConfig
+    codes: ArrayLike
+    method: str | None = None
+    float_bits: int = 53
+    widths: Widths = field(init=False)
+
+    def __post_init__(self) -> None:
+        bits = check_codes(self.codes)
+        self.codes = bits
+        cfg = self.cfg
+        self.n_chips = int(bits.shape[1])
+        self.widths = cfg.widths(self.n_chips)
+        self._ns = ns = self.n_chips * cfg.samples_per_chip
+        g = cfg.gate_len
+        self._lag_lo = (cfg.gate_start - 1) % ns
+        self._lags = (self._lag_lo + np.arange(g + 2, dtype=np.int64)) % ns  # lags of out[m]
+        gate_lags = self._lags[1:-1]
+        ghost = np.zeros(g, dtype=bool)
+        for start, length in cfg.ghost_windows:
+            ghost |= (gate_lags - start) % ns < length
+        self._ghost = ghost
+        self._despread = np.array(
+            [-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], dtype=np.int64
+        )
+        self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
+        self._corr = _correlate.GateCorrelator(
+            self._bip, cfg.samples_per_chip, self._lag_lo, g + 2,
+            method=self.method, float_bits=self.float_bits,
+        )
+        self._lo, self._hi = adc_limits(cfg.adc_bits)
+
+    @property
+    def correlator_method(self) -> str:
+        """"matmul" or "fft": how the gated correlation is computed."""
+        return self._corr.method
+
+    def column(self, samples: ArrayLike) -> ReceiverOutput:
+        """One column: ``samples`` 1-D, R*n*N*S ADC codes."""
+        x = _as_samples(samples, 1)
+        return self.frame(x[None, :])[0]
+
+    def frame(self, samples: ArrayLike) -> list[ReceiverOutput]:
+        """Many columns at once: ``samples`` (C, R*n*N*S) ADC codes; one output per column."""
+        x = _as_samples(samples, 2)
+        return self._finish(self.accumulate(x))
+
+    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.int64]:
+        """Sum the R UID frames: (C, R*n*NS) ADC codes -> acc (C, n, NS) int64."""
+        cfg = self.cfg
+        c = samples.shape[0]
+        need = cfg.column_samples(self.n_chips)
+        if samples.shape[1] != need:
+            raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
+        info = np.iinfo(samples.dtype)
+        if samples.size and (info.min < self._lo or info.max > self._hi):
+            lo, hi = int(samples.min()), int(samples.max())
+            if lo < self._lo or hi > self._hi:
+                bad = lo if lo < self._lo else hi
+                raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
+        x = samples.reshape(c, cfg.averages, cfg.uid_bits * self._ns)
+        acc_type = np.int32 if self.widths.acc <= 31 else np.int64
+        acc = x.sum(axis=1, dtype=acc_type).astype(np.int64, copy=False)
+        return acc.reshape(c, cfg.uid_bits, self._ns)
+
+    def from_accumulators(self, acc: ArrayLike) -> list[ReceiverOutput]:
+        """Finish the chain from accumulated periods ``acc`` (C, n, NS) integers.
+
+        ``acc[c, p, i]`` is the sum over the R UID frames of sample i of period p;
+        each entry must lie in the range R ADC codes can reach.
+        """
+        cfg = self.cfg
+        a = np.asarray(acc)
+        if a.ndim != 3 or a.shape[1:] != (cfg.uid_bits, self._ns) or a.dtype.kind not in "iu":
+            raise out_of_range(
+                "acc", f"a (C, {cfg.uid_bits}, {self._ns}) integer array", f"{a.shape} {a.dtype}"
+            )
+        a = a.astype(np.int64, copy=False)
+        r = cfg.averages
+        if a.size and (int(a.min()) < r * self._lo or int(a.max()) > r * self._hi):
+            raise out_of_range("acc", f"sums of {r} ADC codes", f"{int(a.min())}..{int(a.max())}")
+        return self._finish(a)
+
+    def _finish(self, a: NDArray[np.int64]) -> list[ReceiverOutput]:
+        cfg = self.cfg
+        d = np.einsum("cpi,p->ci", a, self._despread) if cfg.uid_bits > 1 else a[:, 0, :] * (
+            self._despread[0]
+        )
+        y = _correlate.chip_sums(d, cfg.samples_per_chip)  # (C, S, N)
+        raw = self._corr(y)  # (C, K, G+2) int64
+        out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
+        return self._post(raw, out, a)
+
+    # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)
+
+    def _post(
+        self, raw: NDArray[np.int64], out: NDArray[np.int64], acc: NDArray[np.int64]
+    ) -> list[ReceiverOutput]:
+        cfg = self.cfg
+        c, k, _ = out.shape
+        g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
+        corr = out[:, :, 1:-1]
+        mag = np.abs(corr)
+        mag = np.where(self._ghost, -1, mag)
+        jj = np.arange(g)
+        pk_j = np.full((c, k, npk), -1, dtype=np.int64)
+        near_any = np.zeros((c, k, g), dtype=bool)
+        for p in range(npk):
+            j = np.argmax(mag, axis=-1)  # first (lowest j) among equal maxima
+            ok = np.take_along_axis(mag, j[..., None], axis=-1)[..., 0] >= 0
+            pk_j[..., p] = np.where(ok, j, -1)
+            near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
+            near_any |= near
+            mag = np.where(near, -1, mag)
+        found = pk_j >= 0
+        jsafe = np.where(found, pk_j, 0)
+        pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
+        pk_val = np.where(found, np.take_along_axis(corr, jsafe, axis=-1), 0)
+        # neighbours of the first peak: out[m] with m = j (lag-1) and j + 2 (lag+1)
+        j0 = jsafe[..., :1]
+        nb = np.concatenate(
+            [np.take_along_axis(out, j0, axis=-1), np.take_along_axis(out, j0 + 2, axis=-1)],
+            axis=-1,
+        )
+        nb = np.where(found[..., :1], nb, 0)
+        noise = ~self._ghost & ~near_any
+        cnt = noise.sum(axis=-1, dtype=np.int64)
+        nz = np.where(noise, corr, 0)
+        nsum = nz.sum(axis=-1, dtype=np.int64)
+        nsq = (nz * nz).sum(axis=-1, dtype=np.int64)
+        signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
+        observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
+        match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
+        outs = []
+        for ci in range(c):
+            outs.append(
+                ReceiverOutput(
+                    corr=np.ascontiguousarray(corr[ci]),
+                    peak_lag=pk_lag[ci, :, 0].copy(),
+                    peak=pk_val[ci, :, 0].copy(),
+                    neighbours=nb[ci].copy(),
+                    noise_count=cnt[ci].copy(),
+                    noise_sum=nsum[ci].copy(),
+                    noise_sumsq=nsq[ci].copy(),
+                    uid_signs=signs[ci, :, 0, :].copy(),
+                    uid_observed=observed[ci].copy(),
+                    uid_match=match[ci].copy(),
+                    extra_lag=pk_lag[ci, :, 1:].copy(),
+                    extra_peak=pk_val[ci, :, 1:].copy(),
+                    extra_signs=signs[ci, :, 1:, :].copy(),
+                )
+            )
+        return outs
+
+    def _uid_signs(
+        self,
+        raw: NDArray[np.int64],
+        acc: NDArray[np.int64],
+        jsafe: NDArray[np.int64],
+        found: NDArray[np.bool_],
+    ) -> NDArray[np.int8]:
+        """sign(sum_i ref_k[i] acc[p][(i + lag) mod NS]) at each peak lag -> (C, K, P, n) int8."""
+        cfg = self.cfg
+        if cfg.uid_bits == 1:
+            # d = (-1)^uid * acc[0], so the period's correlation is (-1)^uid * raw at the lag.
+            r = np.take_along_axis(raw, jsafe + 1, axis=-1) * self._despread[0]
+            s = np.sign(r)[..., None]
+        else:
+            lags = self._lags[1:-1][jsafe]  # (C, K, P)
+            s = np.sign(_correlate.correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
+        return np.where(found[..., None], s, 0).astype(np.int8)
+
+
+def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> NDArray[np.int64]:
+    """out = sat(round(raw / 2^shift)) with integer shifts (docs/firmware.md §3)."""
+    if shift == 0:
+        r = raw
+    elif rounding == "truncate":
+        r = raw >> shift
+    elif rounding == "half_up":
+        r = (raw + (1 << (shift - 1))) >> shift
+    else:
+        q = raw >> shift
+        rem = raw - (q << shift)
+        half = 1 << (shift - 1)
+        r = q + ((rem > half) | ((rem == half) & ((q & 1) == 1)))
+    top = (1 << (out_bits - 1)) - 1
+    return np.clip(r, -top - 1, top)
+
+
+def fast(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> ReceiverOutput:
+    """One column through the vectorised chain; bit-identical to :func:`reference`."""
+    return FastReceiver(cfg, codes).column(samples)
+
+
+def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> list[ReceiverOutput]:
+    """C columns at once (``samples`` shape (C, R*n*N*S)); one :class:`ReceiverOutput` each."""
+    return FastReceiver(cfg, codes).frame(samples)
+
+
+def fast_from_accumulators(
+    cfg: ReceiverConfig, codes: ArrayLike, acc: ArrayLike
+) -> list[ReceiverOutput]:
+    """Finish the chain from accumulated periods ``acc`` (C, n, N*S): see FastReceiver."""
+    return FastReceiver(cfg, codes).from_accumulators(acc)
