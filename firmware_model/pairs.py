@@ -172,11 +172,11 @@ def pair_degrees() -> list[int]:
     return sorted(PAIR_TABLE)
 
 
-def pair_table(degree: int | None = None) -> list[PreferredPair]:
+def pair_table(degree: int | None = None, field: str = "degree") -> list[PreferredPair]:
     """Table entries (with their sources) for one degree, or for all degrees."""
     if degree is None:
         return [p for m in sorted(PAIR_TABLE) for p in PAIR_TABLE[m]]
-    return list(PAIR_TABLE[_check_degree(degree)])
+    return list(PAIR_TABLE[_check_degree(degree, field=field)])
 
 
 def preferred_pairs(degree: int) -> list[tuple[Poly, Poly]]:

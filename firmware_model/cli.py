@@ -1,0 +1,225 @@
+"""``cdma-lidar codes ...``: m-sequences, Gold codes, preferred pairs, pair checks, UIDs.
+
+Commands (a contract: users and tests rely on these forms)::
+
+    cdma-lidar codes mseq  --poly 10,3 [--seed BITS] [--chips N] [--format bits|bipolar|hex]
+    cdma-lidar codes gold  --poly-u 10,3 --poly-v 10,9,8,6,3,2 --index K
+                           [--seed-u BITS] [--seed-v BITS] [--chips N] [--format ...]
+    cdma-lidar codes pairs [--degree M] [--verify]
+    cdma-lidar codes check --poly-u ... --poly-v ...
+    cdma-lidar codes uid   --bits N
+    cdma-lidar codes seeds --poly-u ... --poly-v ... --index K   (FPGA register seeds)
+
+Chip output formats (one line on stdout, nothing else):
+
+* ``bits``: one ``0``/``1`` character per chip, chip 0 first.
+* ``bipolar``: chips as ``1``/``-1`` (bit 0 -> +1, bit 1 -> -1), separated by spaces.
+* ``hex``: chips packed MSB first into bytes (chip 0 is the top bit of the first
+  byte), the last byte padded with zero bits, written as lowercase hex, two
+  digits per byte (ceil(chips / 8) bytes).
+
+Bad arguments raise ConfigError naming the option; the dispatcher prints one
+line and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+import numpy as np
+
+from cdma_lidar.errors import out_of_range
+from firmware_model.gold import (
+    check_pair,
+    family_size,
+    gold_code,
+    gold_seeds,
+    t_value,
+    xcorr_values,
+)
+from firmware_model.lfsr import Poly, check_primitive, format_poly, mseq, parse_poly, parse_seed
+from firmware_model.pairs import pair_table
+from firmware_model.uid import MAX_UID_BITS, necklace_count, necklaces, uid_to_str
+
+__all__ = ["FORMATS", "format_chips", "register"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+FORMATS = ("bits", "bipolar", "hex")
+
+#: Longest chip request the CLI accepts (the output is one line).
+MAX_CHIPS = 1 << 26
+
+
+def format_chips(bits: np.ndarray, fmt: str) -> str:
+    """Render chip bits as one line (without newline) in ``bits``, ``bipolar`` or ``hex``."""
+    bits = np.asarray(bits, dtype=np.uint8)
+    if fmt == "bits":
+        return (bits + ord("0")).tobytes().decode("ascii")
+    if fmt == "bipolar":
+        return " ".join(np.where(bits == 0, "1", "-1").tolist())
+    if fmt == "hex":
+        return np.packbits(bits).tobytes().hex()
+    raise out_of_range("--format", "one of " + ", ".join(FORMATS), fmt)
+
+
+def _poly(text: str, field: str) -> Poly:
+    return check_primitive(parse_poly(text, field=field), field=field)
+
+
+def _pair(args: argparse.Namespace) -> tuple[Poly, Poly]:
+    pu = _poly(args.poly_u, "--poly-u")
+    pv = _poly(args.poly_v, "--poly-v")
+    return check_pair(pu, pv, field_u="--poly-u", field_v="--poly-v")
+
+
+def _chips(value: int | None) -> int | None:
+    if value is not None and not 0 < value <= MAX_CHIPS:
+        raise out_of_range("--chips", f"an integer in 1..{MAX_CHIPS}", value)
+    return value
+
+
+def _write(line: str) -> None:
+    sys.stdout.write(line + "\n")
+
+
+def cmd_mseq(args: argparse.Namespace) -> int:
+    """``codes mseq``: the first N chips of the Fibonacci m-sequence."""
+    poly = _poly(args.poly, "--poly")
+    seed = parse_seed(args.seed, poly[0], field="--seed") if args.seed is not None else None
+    _write(format_chips(mseq(poly, seed, _chips(args.chips)), args.format))
+    return 0
+
+
+def _index(value: int, poly: Poly) -> int:
+    n = (1 << poly[0]) - 1
+    if not 0 <= value <= n + 1:
+        raise out_of_range("--index", f"an integer in 0..{n + 1}", value)
+    return value
+
+
+def cmd_gold(args: argparse.Namespace) -> int:
+    """``codes gold``: member K of the Gold family of (u, v)."""
+    pu, pv = _pair(args)
+    m = pu[0]
+    seed_u = None if args.seed_u is None else parse_seed(args.seed_u, m, field="--seed-u")
+    seed_v = None if args.seed_v is None else parse_seed(args.seed_v, m, field="--seed-v")
+    index = _index(args.index, pu)
+    code = gold_code(pu, pv, index, chips=_chips(args.chips), seed_u=seed_u, seed_v=seed_v)
+    _write(format_chips(code, args.format))
+    return 0
+
+
+def cmd_seeds(args: argparse.Namespace) -> int:
+    """``codes seeds``: register seeds (stage 1 first) that produce member K from chip 0."""
+    pu, pv = _pair(args)
+    seed_u, seed_v = gold_seeds(pu, pv, _index(args.index, pu))
+    _write(f"{seed_u} {seed_v}")
+    return 0
+
+
+def cmd_pairs(args: argparse.Namespace) -> int:
+    """``codes pairs``: the verified preferred pairs (optionally re-verified now)."""
+    entries = pair_table(args.degree, field="--degree")
+    header = f"{'degree':>6}  {'poly_u':<18} {'poly_v':<30} {'t(m)':>5} {'codes':>8}"
+    if args.verify:
+        header += "  preferred"
+    _write(header + "  source")
+    failed = 0
+    for e in entries:
+        line = (f"{e.degree:>6}  {format_poly(e.u):<18} {format_poly(e.v):<30} "
+                f"{t_value(e.degree):>5} {family_size(e.degree):>8}")
+        if args.verify:
+            t = t_value(e.degree)
+            ok = set(xcorr_values(e.u, e.v)) <= {-1, -t, t - 2}
+            failed += not ok
+            line += f"  {'yes' if ok else 'NO':<9}"
+        _write(line + "  " + e.source)
+    return 1 if failed else 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """``codes check``: cross-correlation values of u and v, their counts, preferred or not."""
+    pu, pv = _pair(args)
+    m = pu[0]
+    t = t_value(m)
+    values = xcorr_values(pu, pv)
+    allowed = {-1, -t, t - 2}
+    preferred = pu != pv and set(values) <= allowed
+    _write(f"degree {m}, N = {(1 << m) - 1} chips, t(m) = {t}, "
+           f"preferred values {{-1, {-t}, {t - 2}}}")
+    _write(f"{'value':>8} {'count':>8}")
+    for value, count in values.items():
+        _write(f"{value:>8} {count:>8}")
+    reason = "" if m % 4 else " (degrees that are multiples of 4 have no preferred pairs)"
+    _write(f"preferred: {'yes' if preferred else 'no'}{'' if preferred else reason}")
+    return 0
+
+
+def cmd_uid(args: argparse.Namespace) -> int:
+    """``codes uid``: the n-bit necklaces (canonical UIDs) and u(n)."""
+    n = args.bits
+    if not 1 <= n <= MAX_UID_BITS:
+        raise out_of_range("--bits", f"an integer in 1..{MAX_UID_BITS}", n)
+    _write(f"{'uid':>8}  bits (period 0 first)")
+    for value in necklaces(n):
+        _write(f"{value:>8}  {uid_to_str(value, n)}")
+    _write(f"u({n}) = {necklace_count(n)}")
+    return 0
+
+
+def _add_chip_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--chips", type=int, metavar="N", help="number of chips (default one period)")
+    p.add_argument("--format", choices=FORMATS, default="bits",
+                   help="bits: 0/1 chars; bipolar: 1/-1; hex: MSB-first packed bytes")
+
+
+def _add_pair_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--poly-u", required=True, metavar="EXPS", help="u polynomial, e.g. 11,2")
+    p.add_argument("--poly-v", required=True, metavar="EXPS", help="v polynomial, e.g. 11,8,5,2")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``codes`` command and its subcommands to the ``cdma-lidar`` parser."""
+    codes = subparsers.add_parser(
+        "codes", help="m-sequences, Gold codes, preferred pairs, UIDs",
+        description="Bit-exact code generator (Fibonacci LFSR, stage 1 first seeds).")
+    sub = codes.add_subparsers(dest="codes_command", metavar="KIND")
+    sub.required = True
+
+    p = sub.add_parser("mseq", help="chips of an m-sequence")
+    p.add_argument("--poly", required=True, metavar="EXPS", help="exponents, e.g. 10,3")
+    p.add_argument("--seed", metavar="BITS", help="seed bits, stage 1 first (default all ones)")
+    _add_chip_options(p)
+    p.set_defaults(func=cmd_mseq)
+
+    p = sub.add_parser("gold", help="chips of one Gold family member")
+    _add_pair_options(p)
+    p.add_argument("--index", required=True, type=int, metavar="K",
+                   help="member: 0..N-1 u^v delayed by K, N is u, N+1 is v")
+    p.add_argument("--seed-u", metavar="BITS", help="u seed, stage 1 first (default all ones)")
+    p.add_argument("--seed-v", metavar="BITS", help="v seed, stage 1 first (default all ones)")
+    _add_chip_options(p)
+    p.set_defaults(func=cmd_gold)
+
+    p = sub.add_parser("pairs", help="verified preferred pairs")
+    p.add_argument("--degree", type=int, metavar="M", help="only this degree (5..20, not 4k)")
+    p.add_argument("--verify", action="store_true",
+                   help="recompute each pair's cross-correlation now (exit 1 if one fails)")
+    p.set_defaults(func=cmd_pairs)
+
+    p = sub.add_parser("check", help="cross-correlation values of a pair")
+    _add_pair_options(p)
+    p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser("uid", help="UID necklaces of N bits and u(N)")
+    p.add_argument("--bits", required=True, type=int, metavar="N", help=f"1..{MAX_UID_BITS}")
+    p.set_defaults(func=cmd_uid)
+
+    p = sub.add_parser("seeds", help="FPGA register seeds for one Gold member")
+    _add_pair_options(p)
+    p.add_argument("--index", required=True, type=int, metavar="K", help="member 0..N+1")
+    p.set_defaults(func=cmd_seeds)
+
