@@ -1,0 +1,357 @@
+"""Co-simulation glue: build the reference RTL with Icarus Verilog and run cocotb benches.
+
+The RTL (``hdl_ref/rtl/*.v``) takes its configuration as run-time ports, so one
+build serves many configurations. A simulation run is driven by a *job*: a JSON
+file listing cases (port values and stimuli) that a cocotb test module in
+``hdl_ref.tb`` plays into the design one after the other; it writes what the
+design produced (every output word, and the clock counts) to a result JSON
+file. Comparing those words with the model (``firmware_model``) is left to the
+caller, so the same simulation result can be compared against a correct and a
+deliberately wrong model configuration.
+
+Port encodings (see ``docs/hdl.md``)::
+
+    polynomial (11, 2)     -> taps = (1 << 10) | (1 << 1)      bit e-1 per exponent e
+    seed "11011" (stage 1 first) -> 0b11011 read right to left: bit k-1 = stage k
+    rounding               -> 0 truncate, 1 half_up, 2 convergent
+    ghost windows          -> packed start/len fields of LAG_W bits, len 0 = unused slot
+    peak_exclude W         -> min(W, MAX_G) (|j - j_q| <= G - 1 < MAX_G, so equal results)
+
+cocotb is imported only inside the functions that build or run a simulation,
+so ``import hdl_ref.cosim`` works without it; the model package never imports it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.fileio import atomic_write_text
+
+__all__ = [
+    "GOLD_TOP",
+    "ROUNDING_CODES",
+    "RTL_DIR",
+    "RTL_SOURCES",
+    "RX_TOP",
+    "GoldParams",
+    "RxParams",
+    "SimulatorMissing",
+    "build",
+    "decode_rx_result",
+    "gold_ports",
+    "iverilog_available",
+    "poly_taps",
+    "run_job",
+    "rx_latency_clocks",
+    "rx_ports",
+    "seed_bits",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+RTL_DIR = Path(__file__).resolve().parent / "rtl"
+RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "rx_chain.v")
+RX_TOP = "rx_chain"
+GOLD_TOP = "gold_gen"
+ROUNDING_CODES = {"truncate": 0, "half_up": 1, "convergent": 2}
+
+
+class SimulatorMissing(RuntimeError):
+    """Icarus Verilog (``iverilog``/``vvp``) is not on PATH."""
+
+
+def iverilog_available() -> bool:
+    """True when both ``iverilog`` and ``vvp`` are on PATH."""
+    return shutil.which("iverilog") is not None and shutil.which("vvp") is not None
+
+
+def _clog2(x: int) -> int:
+    """ceil(log2 x), with clog2(1) = 0 (Verilog ``$clog2``)."""
+    return max(0, math.ceil(math.log2(x))) if x > 1 else 0
+
+
+@dataclass(frozen=True)
+class RxParams:
+    """Synthesis-time parameters of ``rx_chain`` (the hardware's maxima).
+
+    Every ``ReceiverConfig`` within these maxima runs on one build: the
+    configuration itself is a set of run-time ports.
+    """
+
+    max_deg: int = 11   # largest code degree m (N = 2^m - 1 chips)
+    max_s: int = 4      # largest samples_per_chip
+    max_uid: int = 4    # largest uid_bits
+    max_r: int = 4      # largest averages
+    max_g: int = 64     # largest gate_len, lags
+    max_p: int = 3      # largest peaks
+    nghost: int = 2     # ghost-window slots
+    adc_w: int = 16     # s_data width (adc_bits <= adc_w)
+    out_w: int = 32     # out word width (out_bits <= out_w)
+
+    def generics(self) -> dict[str, int]:
+        """Verilog parameter overrides for ``rx_chain``."""
+        return {
+            "MAX_DEG": self.max_deg, "MAX_S": self.max_s, "MAX_UID": self.max_uid,
+            "MAX_R": self.max_r, "MAX_G": self.max_g, "MAX_P": self.max_p,
+            "NGHOST": self.nghost, "ADC_W": self.adc_w, "OUT_W": self.out_w,
+        }
+
+    @property
+    def lag_w(self) -> int:
+        """Width of lag ports: lags 0..NS-1 and lengths 0..NS, bits."""
+        return _clog2(((1 << self.max_deg) - 1) * self.max_s + 1)
+
+    @property
+    def g_w(self) -> int:
+        """Width of gate-index ports, bits."""
+        return _clog2(self.max_g + 1)
+
+    def tag(self) -> str:
+        """Short name of this parameter set (used for build folders)."""
+        return "rx_" + "_".join(f"{k}{v}" for k, v in asdict(self).items())
+
+
+@dataclass(frozen=True)
+class GoldParams:
+    """Synthesis-time parameters of ``gold_gen``."""
+
+    max_deg: int = 11
+    max_uid: int = 8
+
+    def generics(self) -> dict[str, int]:
+        """Verilog parameter overrides for ``gold_gen``."""
+        return {"MAX_DEG": self.max_deg, "MAX_UID": self.max_uid}
+
+    def tag(self) -> str:
+        """Short name of this parameter set (used for build folders)."""
+        return f"gold_d{self.max_deg}_u{self.max_uid}"
+
+
+def poly_taps(poly: Sequence[int]) -> int:
+    """Tap mask of a polynomial given as exponents (constant term implied): bit e-1 per e."""
+    mask = 0
+    for e in poly:
+        mask |= 1 << (int(e) - 1)
+    return mask
+
+
+def seed_bits(seed: str) -> int:
+    """Seed bit string, stage 1 first, as the port value (bit k-1 = stage k)."""
+    return sum(1 << k for k, ch in enumerate(seed) if ch == "1")
+
+
+def _need(field: str, value: int, hi: int, lo: int = 0) -> int:
+    if not lo <= value <= hi:
+        raise out_of_range(field, f"{lo}..{hi} on this RTL build", value)
+    return int(value)
+
+
+def gold_ports(poly_u: Sequence[int], poly_v: Sequence[int], index: int, uid: int,
+               uid_bits: int, params: GoldParams) -> dict[str, int]:
+    """``gold_gen`` input port values for member ``index`` of the pair with a UID."""
+    from firmware_model.gold import gold_seeds
+
+    m = int(poly_u[0])
+    _need("degree", m, params.max_deg, 2)
+    _need("uid_bits", uid_bits, params.max_uid, 1)
+    seed_u, seed_v = gold_seeds(tuple(poly_u), tuple(poly_v), index)
+    return {
+        "degree": m, "taps_u": poly_taps(poly_u), "taps_v": poly_taps(poly_v),
+        "seed_u": seed_bits(seed_u), "seed_v": seed_bits(seed_v),
+        "uid": _need("uid", uid, (1 << uid_bits) - 1), "uid_bits": uid_bits,
+    }
+
+
+def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
+             params: RxParams) -> dict[str, int]:
+    """``rx_chain`` configuration port values for a ``ReceiverConfig`` and a Gold member.
+
+    ``cfg`` is a ``firmware_model.receiver.ReceiverConfig`` (any object with its
+    fields). Raises ``ConfigError`` naming the field when the configuration is
+    outside what this build supports (``params``) or outside docs/firmware.md.
+    """
+    from firmware_model.gold import gold_seeds
+
+    m = int(poly_u[0])
+    _need("degree", m, params.max_deg, 2)
+    n_chips = (1 << m) - 1
+    s = _need("samples_per_chip", cfg.samples_per_chip, params.max_s, 1)
+    ns = n_chips * s
+    n = _need("uid_bits", cfg.uid_bits, params.max_uid, 1)
+    ghosts = tuple(cfg.ghost_windows)
+    if len(ghosts) > params.nghost:
+        raise out_of_range("ghost_windows", f"at most {params.nghost} windows on this RTL build",
+                           ghosts)
+    _need("adc_bits", cfg.adc_bits, params.adc_w, 2)
+    lag_w = params.lag_w
+    g_start = g_len = 0
+    for w, (start, length) in enumerate(ghosts):
+        g_start |= _need("ghost_windows.start", start, ns - 1) << (w * lag_w)
+        g_len |= _need("ghost_windows.len", length, ns, 1) << (w * lag_w)
+    if cfg.rounding not in ROUNDING_CODES:
+        raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_CODES), cfg.rounding)
+    seed_u, seed_v = gold_seeds(tuple(poly_u), tuple(poly_v), index)
+    return {
+        "cfg_degree": m,
+        "cfg_taps_u": poly_taps(poly_u),
+        "cfg_taps_v": poly_taps(poly_v),
+        "cfg_seed_u": seed_bits(seed_u),
+        "cfg_seed_v": seed_bits(seed_v),
+        "cfg_spc": s,
+        "cfg_averages": _need("averages", cfg.averages, params.max_r, 1),
+        "cfg_uid_bits": n,
+        "cfg_uid": _need("uid", cfg.uid, (1 << n) - 1),
+        "cfg_gate_start": _need("gate_start", cfg.gate_start, ns - 1),
+        "cfg_gate_len": _need("gate_len", cfg.gate_len, min(params.max_g, ns), 1),
+        "cfg_peak_exclude": min(int(cfg.peak_exclude), params.max_g),
+        "cfg_ghost_start": g_start,
+        "cfg_ghost_len": g_len,
+        "cfg_out_shift": _need("out_shift", cfg.out_shift, 62),
+        "cfg_rounding": ROUNDING_CODES[cfg.rounding],
+        "cfg_out_bits": _need("out_bits", cfg.out_bits, params.out_w, 2),
+        "cfg_peaks": _need("peaks", cfg.peaks, params.max_p, 1),
+    }
+
+
+def rx_latency_clocks(ports: Mapping[str, int]) -> dict[str, int]:
+    """Clock counts of one ``rx_chain`` run, as documented in docs/hdl.md.
+
+    ``start_to_ready``: clocks from the ``start`` clock edge to the first clock
+    with ``s_ready``; ``last_to_done``: from the clock that takes the last
+    sample to the clock edge that raises ``done``.
+    """
+    n_chips = (1 << ports["cfg_degree"]) - 1
+    ns = n_chips * ports["cfg_spc"]
+    n = ports["cfg_uid_bits"]
+    g = ports["cfg_gate_len"]
+    p = ports["cfg_peaks"]
+    corr = (g + 2) * n * ns
+    # DRAIN 1, CORR corr, CWAIT 4, P x (PEAK g + PWAIT 2), FETCH 3, NOISE g, NWAIT 2, DONE 1
+    return {
+        "start_to_ready": 3,
+        "last_to_done": 1 + corr + 4 + p * (g + 2) + 3 + g + 2 + 1,
+    }
+
+
+def _signed(value: int, bits: int) -> int:
+    return value - (1 << bits) if value >> (bits - 1) & 1 else value
+
+
+def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
+                     params: RxParams) -> dict[str, Any]:
+    """Turn the raw output words of one ``rx_chain`` run into ``ReceiverOutput`` fields.
+
+    ``raw`` is one case of a bench result: ``{"corr": [[j, word], ...], "res": {port: word}}``.
+    Returns plain Python values for one channel (K = 1): ``corr`` (list of G
+    ints), ``peak_lag``, ``peak``, ``neighbours`` (2), ``noise_count``,
+    ``noise_sum``, ``noise_sumsq``, ``uid_signs`` (n), ``uid_observed``,
+    ``uid_match``, ``extra_lag``/``extra_peak`` (P-1), ``extra_signs`` (P-1 x n).
+    Only format conversion happens here (port fields to integers; lag -1 for a
+    missing peak); every value is computed by the RTL.
+    """
+    ow, lw, uw = params.out_w, params.lag_w, params.max_uid
+    n = ports["cfg_uid_bits"]
+    res = raw["res"]
+    p_count = ports["cfg_peaks"]
+    corr = [None] * ports["cfg_gate_len"]
+    for j, word in raw["corr"]:
+        if not 0 <= j < len(corr) or corr[j] is not None:
+            raise ConfigError(f"corr stream: unexpected or repeated index {j}", field="corr")
+        corr[j] = _signed(word, ow)
+    peaks = []
+    for q in range(p_count):
+        found = res["res_found"] >> q & 1
+        neg = res["res_neg"] >> (q * uw)
+        nz = res["res_nz"] >> (q * uw)
+        signs = [(-1 if neg >> b & 1 else 1) if nz >> b & 1 else 0 for b in range(n)]
+        peaks.append((
+            (res["res_lag"] >> (q * lw)) & ((1 << lw) - 1) if found else -1,
+            _signed((res["res_peak"] >> (q * ow)) & ((1 << ow) - 1), ow),
+            signs,
+        ))
+    return {
+        "corr": corr,
+        "peak_lag": peaks[0][0],
+        "peak": peaks[0][1],
+        "neighbours": [_signed(res["res_nb_lo"], ow), _signed(res["res_nb_hi"], ow)],
+        "noise_count": res["res_noise_count"],
+        "noise_sum": _signed(res["res_noise_sum"], ow + params.g_w),
+        "noise_sumsq": res["res_noise_sumsq"],
+        "uid_signs": peaks[0][2],
+        "uid_observed": res["res_uid_observed"],
+        "uid_match": bool(res["res_uid_match"]),
+        "extra_lag": [pk[0] for pk in peaks[1:]],
+        "extra_peak": [pk[1] for pk in peaks[1:]],
+        "extra_signs": [pk[2] for pk in peaks[1:]],
+    }
+
+
+def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str]) -> Path:
+    """Compile the RTL with Icarus for ``top`` and ``generics`` into ``build_dir``.
+
+    Reuses an up-to-date build (cocotb's runner compares source times). Returns
+    the build folder. Raises ``SimulatorMissing`` without Icarus.
+    """
+    if not iverilog_available():
+        raise SimulatorMissing("iverilog/vvp not found on PATH (Debian: apt-get install iverilog)")
+    from cocotb_tools.runner import get_runner
+
+    build_dir = Path(build_dir).resolve()
+    build_dir.mkdir(parents=True, exist_ok=True)
+    runner = get_runner("icarus")
+    runner.build(
+        sources=[RTL_DIR / name for name in RTL_SOURCES],
+        hdl_toplevel=top,
+        parameters=dict(generics),
+        build_dir=build_dir,
+        timescale=("1ns", "1ps"),
+        log_file=build_dir / "build.log",
+    )
+    return build_dir
+
+
+def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
+            job: Mapping[str, Any], generics: Mapping[str, int] | None = None,
+            name: str = "job") -> dict[str, Any]:
+    """Run one cocotb ``test_module`` (``hdl_ref.tb.*``) on a build, playing ``job``.
+
+    The job is written to ``<build_dir>/<name>.job.json`` and handed to the bench
+    through the environment (``HDL_REF_JOB``, ``HDL_REF_RESULT``); the bench's
+    result JSON is returned. Raises ``RuntimeError`` when the simulation fails or
+    leaves no result (its log is ``<build_dir>/<name>.log``).
+    """
+    from cocotb_tools.check_results import get_results
+    from cocotb_tools.runner import get_runner
+
+    build_dir = Path(build_dir).resolve()
+    job_file = build_dir / f"{name}.job.json"
+    result_file = build_dir / f"{name}.result.json"
+    result_file.unlink(missing_ok=True)
+    atomic_write_text(job_file, json.dumps(job))
+    runner = get_runner("icarus")
+    xml = runner.test(
+        test_module=test_module,
+        hdl_toplevel=top,
+        hdl_toplevel_lang="verilog",
+        build_dir=build_dir,
+        test_dir=build_dir,
+        parameters=dict(generics or {}),
+        extra_env={"HDL_REF_JOB": str(job_file), "HDL_REF_RESULT": str(result_file)},
+        results_xml=str(build_dir / f"{name}.results.xml"),
+        log_file=build_dir / f"{name}.log",
+        timescale=("1ns", "1ps"),
+    )
+    total, failed = get_results(Path(xml))
+    if failed or not result_file.exists():
+        raise RuntimeError(f"simulation {name} failed ({failed} of {total} cocotb tests); "
+                           f"see {build_dir / (name + '.log')}")
+    return json.loads(result_file.read_text())
