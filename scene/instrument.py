@@ -167,10 +167,9 @@ class Instrument:
         return np.flatnonzero(self.truth.hits.lit[:, column])
 
     def range_bounds_m(self) -> tuple[float, float]:
-        """(min, max) range the gate must cover: lit pixels, calibration target, overrides."""
+        """(min, max) range (m) of the lit pixels and the calibration target, or the overrides."""
         rng = self.truth.hits.range_m
         cand = [self.scene.calibration.target_distance_m]
-        cand += [u.delay_s * SPEED_OF_LIGHT_M_S / 2 for u in self.spec.other_users]
         if np.any(np.isfinite(rng)):
             cand += [float(np.nanmin(rng)), float(np.nanmax(rng))]
         lo, hi = min(cand), max(cand)
@@ -182,20 +181,25 @@ class Instrument:
 
     def default_gate(self, samples_per_chip: int | None = None, margin: int = 16,
                      minimum: int = 64) -> tuple[int, int]:
-        """(gate_start, gate_len) in samples covering the scene's range bounds plus margins."""
+        """(gate_start, gate_len) in samples covering the scene's echoes plus margins.
+
+        Covers the range bounds (lit pixels, calibration target; system delay included),
+        the other users' delays and the ghosts' delays, ``margin`` samples either side,
+        at least ``minimum`` lags, rounded up to a multiple of 16.
+        """
         s = samples_per_chip or self.spec.samples_per_chip
         fs = self.spec.chip_rate_hz * s
         lo, hi = self.range_bounds_m()
-        d_lo = (2 * lo / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s) * fs
-        d_hi = (2 * hi / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s) * fs
+        sys_d = self.spec.system_delay_s
+        delays = [2 * lo / SPEED_OF_LIGHT_M_S + sys_d, 2 * hi / SPEED_OF_LIGHT_M_S + sys_d]
+        delays += [u.delay_s for u in self.spec.other_users]
+        delays += [2 * g.distance_m / SPEED_OF_LIGHT_M_S + sys_d for g in self.spec.ghosts]
         period = self.spec.code_length * s
-        start = int(np.floor(d_lo)) - margin
-        length = int(np.ceil(d_hi)) + margin - start + 1
+        start = max(int(np.floor(min(delays) * fs)) - margin, 0)
+        length = int(np.ceil(max(delays) * fs)) + margin - start + 1
         length = max(minimum, -(-length // 16) * 16)
         if length >= period:
             return 0, period
-        if start < 0:
-            start = max(start, 0)
         return start % period, length
 
     # -- spectra ---------------------------------------------------------------------------

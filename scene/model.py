@@ -185,9 +185,10 @@ class OtherUser:
     """Another LiDAR whose light reaches our photodiode (Note 11).
 
     It emits Gold member ``code_index`` of the same pair, polarity-modulated by its own
-    ``uid`` over ``uid_bits`` code periods, delayed by ``delay_s`` (its distance and its
-    asynchronous start) with amplitude ``amplitude_v`` at our detector, on every column in
-    ``columns`` (empty: all).
+    ``uid`` over ``uid_bits`` code periods. ``delay_s`` is the start of its UID frame
+    relative to ours as seen at our ADC (its asynchronous start plus the one-way flight:
+    in the TOML, ``distance_m`` gives ``delay_s = distance_m / c``); ``amplitude_v`` is its
+    amplitude at our detector. Present on every column in ``columns`` (empty: all).
     """
 
     uid: int
@@ -395,7 +396,7 @@ def _parse_users(value: Any, path: str, n_codes: int, c: int) -> tuple[OtherUser
         if u.has("delay_s"):
             delay = u.num("delay_s", 0.0, 1.0, unit="s")
         else:
-            delay = 2.0 * u.num("distance_m", 0.0, 1e5, unit="m") / SPEED_OF_LIGHT_M_S
+            delay = u.num("distance_m", 0.0, 1e5, unit="m") / SPEED_OF_LIGHT_M_S
         cols = tuple(int(x) for x in u.nums("columns", 0, c - 1, min_len=0, integer=True)) \
             if u.has("columns") else ()
         out.append(OtherUser(uid=uid, code_index=u.int("code_index", 0, n_codes - 1, 0),
@@ -458,8 +459,8 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
     if snr_db is None:
         noise_rms = r.num("noise_rms_v", 0.0, 1e3, 0.0, unit="V")
     elif r.has("noise_rms_v"):
-        raise ConfigError("instrument.snr_db and instrument.noise_rms_v are exclusive; give one",
-                          field="instrument.noise_rms_v")
+        raise out_of_range("instrument.noise_rms_v", "absent when instrument.snr_db is given",
+                           r.raw("noise_rms_v"))
     min_r = r.num("min_range_m", 0.0, 1e5, unit="m") if r.has("min_range_m") else None
     max_r = r.num("max_range_m", 0.0, 1e5, unit="m") if r.has("max_range_m") else None
     if min_r is not None and max_r is not None and max_r < min_r:
