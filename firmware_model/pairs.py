@@ -74,7 +74,7 @@ def _p(u: Poly, v: Poly, source: str) -> PreferredPair:
 
 
 _PAPER = "paper Table 1"
-_PAPER_STAR = "paper Table 1 (used in the experiment)"
+_PAPER_STAR = "paper Table 1, starred row (experiment and simulation)"
 _ISSUE = "CLI contract example (issue 2)"
 
 
