@@ -54,7 +54,7 @@ from cdma_lidar.errors import out_of_range
 from scene.model import SPEED_OF_LIGHT_M_S, InstrumentSpec, Scene
 from scene.truth import Truth, compute_truth
 
-__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response"]
+__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response", "gold_codes"]
 
 log = logging.getLogger("cdma_lidar." + __name__)
 
@@ -111,11 +111,26 @@ def detector_response(f_hz: NDArray[np.float64], bandwidth_hz: float,
     return h
 
 
-@functools.lru_cache(maxsize=4)
-def _family(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> NDArray[np.uint8]:
-    from firmware_model.gold import gold_family
+@functools.lru_cache(maxsize=8)
+def _msequences(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> tuple[NDArray, NDArray]:
+    from firmware_model.gold import check_pair
+    from firmware_model.lfsr import mseq
 
-    return gold_family(poly_u, poly_v)
+    pu, pv = check_pair(poly_u, poly_v)
+    return mseq(pu), mseq(pv)
+
+
+def gold_codes(poly_u: tuple[int, ...], poly_v: tuple[int, ...],
+               indices: tuple[int, ...]) -> NDArray[np.uint8]:
+    """(len(indices), N) chip bits of Gold members (same definition as firmware_model.gold)."""
+    u, v = _msequences(tuple(poly_u), tuple(poly_v))
+    n = u.size
+    out = np.empty((len(indices), n), dtype=np.uint8)
+    for row, k in enumerate(indices):
+        if not 0 <= k <= n + 1:
+            raise out_of_range("code_index", f"an integer from 0 to {n + 1}", k)
+        out[row] = u if k == n else v if k == n + 1 else u ^ np.roll(v, k)
+    return out
 
 
 def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
@@ -217,13 +232,13 @@ class Instrument:
         hit = self._spectra.get(key)
         if hit is not None:
             return hit
-        fam = _family(cfg.poly_u, cfg.poly_v)
-        n_chips = fam.shape[1]
+        codes = gold_codes(cfg.poly_u, cfg.poly_v, indices)
+        n_chips = codes.shape[1]
         nn = uid_bits * n_chips
         s = cfg.samples_per_chip
         length = nn * s
         m = length // 2 + 1
-        bip = 1.0 - 2.0 * fam[list(indices)].astype(np.float64)  # (k, N)
+        bip = 1.0 - 2.0 * codes.astype(np.float64)  # (k, N)
         chips = (bip[:, None, :] * _uid_signs(uid, uid_bits)[None, :, None]).reshape(len(indices),
                                                                                      nn)
         spec = np.fft.fft(chips, axis=1)

@@ -356,12 +356,15 @@ def _parse_rotations(r: _Reader, geometry_kw: dict[str, Any]) -> NDArray[np.floa
     az = r.vec("azimuth_deg", 2, -60.0, 60.0, [-5.0, 5.0], unit="deg")
     cols = r.int("columns", 1, 100_000, 160)
     geom = GratingGeometry(**geometry_kw)
-    # column 0 is the leftmost as the sensor sees it (largest azimuth, +y)
-    azimuths = np.linspace(az[1], az[0], cols) if cols > 1 else np.array([az.mean()])
+    # column 0 is the leftmost as the sensor sees it (largest azimuth, +y); the stage steps
+    # the rotation uniformly between the rotations that aim the reference wavelength at the
+    # two ends of the field (so a column's angle is start + step * column)
+    ends = np.array([az[1], az[0]]) if cols > 1 else np.array([az.mean()])
     try:
-        return geom.rotations_for_azimuths(azimuths)
+        rot_ends = geom.rotations_for_azimuths(ends)
     except ConfigError as exc:
         raise ConfigError(f"{r.name('azimuth_deg')}: {exc}", field=r.name("azimuth_deg")) from exc
+    return np.linspace(rot_ends[0], rot_ends[-1], cols)
 
 
 def _parse_ghosts(value: Any, path: str, k: int, c: int) -> tuple[Ghost, ...]:

@@ -9,8 +9,9 @@ from importlib import resources
 import numpy as np
 import pytest
 
+from firmware_model.gold import gold_family
 from firmware_model.receiver import FastReceiver, ReceiverConfig
-from scene.instrument import Instrument, RenderSettings, _family
+from scene.instrument import Instrument, RenderSettings, gold_codes
 from scene.model import SPEED_OF_LIGHT_M_S, load_scene, parse_scene
 
 FS = 62.5e6 * 4  # samples per second of the presets
@@ -25,7 +26,7 @@ def _wall(distance=5.0, count=4, columns=2, **over):
 
 def _receiver(inst, cfg=None, **kw):
     cfg = cfg or RenderSettings.from_spec(inst.spec)
-    codes = _family(cfg.poly_u, cfg.poly_v)[list(cfg.code_index)]
+    codes = gold_codes(cfg.poly_u, cfg.poly_v, cfg.code_index)
     start, length = inst.default_gate()
     rc = ReceiverConfig(adc_bits=inst.spec.adc_bits, samples_per_chip=cfg.samples_per_chip,
                         averages=cfg.averages, uid_bits=cfg.uid_bits, uid=cfg.uid,
@@ -198,3 +199,9 @@ def test_adc_clips_and_offsets():
     inst = Instrument(_wall(5.0, count=1, columns=1), seed=0)
     codes = inst.to_codes(np.array([-10.0, 10.0, 0.0, 0.5 / 2048]))
     assert codes.tolist() == [-2048, 2047, 0, 1]
+
+
+def test_gold_codes_match_the_code_generator():
+    fam = gold_family((11, 2), (11, 8, 5, 2))
+    idx = (0, 5, 2046, 2047, 2048)
+    np.testing.assert_array_equal(gold_codes((11, 2), (11, 8, 5, 2), idx), fam[list(idx)])
