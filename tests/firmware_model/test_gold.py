@@ -157,3 +157,12 @@ def test_errors():
         gold_code((11, 2), (10, 3), 0)
     with pytest.raises(ConfigError, match="primitive"):
         gold_family((11, 1), (11, 2))
+
+
+@pytest.mark.parametrize("pair", [p for m in (5, 6) for p in preferred_pairs(m)])
+def test_every_family_row_matches_definition(pair):
+    pu, pv = pair
+    u, v = mseq(pu), mseq(pv)
+    fam = gold_family(pu, pv)
+    for k in range(len(fam)):
+        assert np.array_equal(fam[k], direct_member(u, v, k)), k

@@ -261,3 +261,13 @@ def test_scipy_max_len_seq_equivalence(ps):
 def test_scipy_default_taps_are_our_polynomials(m):
     seq, _ = scipy.signal.max_len_seq(m, length=4000)
     assert np.array_equal(seq.astype(np.uint8), mseq(SCIPY_POLYS[m], chips=4000))
+
+
+@pytest.mark.parametrize("poly", [(2, 1), (32, 22, 2, 1)])
+def test_degree_bounds_work(poly):
+    m = poly[0]
+    reg = FibonacciLFSR(poly)
+    assert np.array_equal(reg.clock_many(100), mseq(poly, chips=100))
+    assert np.array_equal(reg.state, jump(poly, None, 100))
+    if m == 2:
+        assert mseq(poly).tolist() == [1, 1, 0]
