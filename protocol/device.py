@@ -1,0 +1,572 @@
+"""Device end of the link: framing, sessions, ACK/NAK, replay cache and the column ring.
+
+The device application (:class:`DeviceApp`, e.g. ``firmware_model.device`` for the
+virtual device) only answers decoded requests and produces columns.
+:class:`DeviceEndpoint` does everything that touches the wire::
+
+    port bytes -> FrameDecoder -> request? --no--> ignored (counted)
+                                     | yes
+                 session ok? --no--> NAK WRONG_SESSION (HELLO always passes)
+                                     | yes
+         same seq + same bytes as a  --yes--> replay the stored reply (act once)
+         cached request?             | no
+         older seq than the last?    --yes--> dropped as stale duplicate
+                                     | no
+                 act -> reply (ACK / NAK / data) with the request's seq, cache it
+
+While a scan or calibration runs, each :meth:`DeviceEndpoint.poll` sends at most one
+column pulled from the app's generator (so requests such as SCAN_ABORT and RESEND
+are served between columns), keeps it in a ring of recent columns for RESEND, and
+sends a HEARTBEAT every ``heartbeat_s`` seconds.
+
+Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
+``in_waiting``, ``timeout``): a pty (:class:`protocol.link.FdPort`), a pyserial
+port, a TCP socket or an in-process pipe::
+
+    stop = threading.Event()
+    ep = DeviceEndpoint(port, app)
+    threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True).start()
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import logging
+import secrets
+import threading
+import time
+import zlib
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar.errors import ConfigError, DeviceError, FrameError
+from protocol.columns import ColumnResult, column_payload_size, encode_column
+from protocol.framing import (
+    COMPAT_RETRANSMIT,
+    FRAME_LIMIT,
+    MIN_MAX_FRAME,
+    OVERHEAD,
+    PROTOCOL_VERSION,
+    Frame,
+    FrameDecoder,
+    encode_frame,
+)
+from protocol.messages import (
+    CONFIG_KEYS,
+    REPLY_TO,
+    SCHEMA_CRC,
+    TEMPERATURE_UNKNOWN,
+    CaptureKind,
+    ErrorCode,
+    Info,
+    MsgKind,
+    MsgType,
+    ScanEndReason,
+    State,
+    Status,
+    decode_config,
+    decode_payload,
+    encode_config,
+    encode_payload,
+    kind_of,
+)
+
+__all__ = ["DeviceApp", "DeviceEndpoint", "EndpointStats"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+_READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
+_KEY_IDS = {k.id: k.name for k in CONFIG_KEYS}
+_CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
+
+
+class DeviceApp(abc.ABC):
+    """What a device application implements behind a :class:`DeviceEndpoint`.
+
+    Methods are called from the endpoint's thread, one at a time. Refuse a request
+    by raising ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming
+    the field) or ``DeviceError(message, code=ErrorCode..., field=...)``.
+    """
+
+    @abc.abstractmethod
+    def info(self) -> Info:
+        """Identity, limits and nominal geometry (link fields are filled by the endpoint)."""
+
+    @abc.abstractmethod
+    def get_config(self) -> dict[str, Any]:
+        """Current configuration ``{key name: python value}`` (see CONFIG_KEYS)."""
+
+    @abc.abstractmethod
+    def set_config(self, values: dict[str, Any]) -> None:
+        """Apply all of ``values`` or none of them (validate first)."""
+
+    @abc.abstractmethod
+    def scan(self, frame: int, first_column: int, columns: int) -> Iterator[ColumnResult]:
+        """Start a scan: validate now (raise to NAK), then yield columns in order."""
+
+    def calibrate(self, frame: int, shots: int) -> Iterator[ColumnResult]:
+        """Start a zeroth-order calibration: yield ``shots`` columns (column = shot)."""
+        raise DeviceError("calibration not supported", code=ErrorCode.UNKNOWN_TYPE)
+
+    def set_power(self, channel_start: int, column_start: int,
+                  power: NDArray[np.uint16]) -> None:
+        """Store a (channels, columns) rectangle of the power matrix (1/65535 of max)."""
+        raise DeviceError("power control not supported", code=ErrorCode.UNKNOWN_TYPE)
+
+    def capture(self, kind: CaptureKind, column: int, channel: int) -> NDArray[np.integer]:
+        """Debug data of one column: raw ADC codes (RAW) or a correlation trace (CORR)."""
+        raise DeviceError("capture not supported", code=ErrorCode.NOT_AVAILABLE)
+
+    def abort(self) -> None:  # noqa: B027 - optional hook, default does nothing
+        """Called when a running scan or calibration is stopped early."""
+
+    def health(self) -> tuple[int, int]:
+        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits)."""
+        return TEMPERATURE_UNKNOWN, 0
+
+
+@dataclass
+class EndpointStats:
+    """Counters of a :class:`DeviceEndpoint`."""
+
+    rx_requests: int = 0
+    replays: int = 0
+    stale: int = 0
+    ignored: int = 0
+    naks: int = 0
+    tx_frames: int = 0
+    columns_sent: int = 0
+    resent: int = 0
+
+
+@dataclass
+class _Stream:
+    gen: Iterator[ColumnResult]
+    frame: int
+    first: int
+    count: int
+    calibration: bool
+    produced: int = 0
+
+    @property
+    def next_column(self) -> int:
+        return self.first + self.produced
+
+
+@dataclass
+class _Cached:
+    key: int
+    frames: list[bytes] = field(default_factory=list)
+
+
+class DeviceEndpoint:
+    """Protocol engine of the device end. See the module docstring.
+
+    Args:
+        port: port-like object (``read``, ``write``, ``in_waiting``, ``timeout``).
+        app: the device application.
+        session_id: session id (u32, not 0); random when None (chosen "at boot").
+        max_frame: largest frame this end sends or accepts (bytes, 512..65535).
+        ring_columns: recent columns kept for RESEND.
+        heartbeat_s: HEARTBEAT interval while scanning (s).
+        poll_s: longest blocking read when idle (s).
+        replay_depth: requests remembered for retransmission replay.
+        clock: monotonic clock (s), replaceable in tests.
+    """
+
+    def __init__(self, port: Any, app: DeviceApp, *, session_id: int | None = None,
+                 max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
+                 poll_s: float = 0.01, replay_depth: int = 32,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not MIN_MAX_FRAME <= max_frame <= FRAME_LIMIT:
+            raise ConfigError(f"max_frame must be {MIN_MAX_FRAME} to {FRAME_LIMIT} bytes, "
+                              f"not {max_frame}", "max_frame")
+        self.port = port
+        self.app = app
+        self.session = session_id if session_id else (secrets.randbits(32) or 1)
+        self.max_frame = max_frame
+        self.tx_max_frame = max_frame
+        self.ring_columns = ring_columns
+        self.heartbeat_s = heartbeat_s
+        self.replay_depth = replay_depth
+        self.clock = clock
+        self.decoder = FrameDecoder(max_frame)
+        self.stats = EndpointStats()
+        self._boot = clock()
+        self._replay: OrderedDict[int, _Cached] = OrderedDict()
+        self._last_seq: int | None = None
+        self._stream: _Stream | None = None
+        self._last_frame = 0
+        self._ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
+        self._stream_seq = 0
+        self._last_heartbeat = 0.0
+        self._capture: tuple[tuple[int, int, int], NDArray] | None = None
+        self._lock = threading.Lock()
+        port.timeout = poll_s
+
+    # ---- main loop ------------------------------------------------------------------
+    def serve_forever(self, stop: threading.Event) -> None:
+        """Poll until ``stop`` is set or the port fails (logged)."""
+        while not stop.is_set():
+            try:
+                self.poll()
+            except (OSError, ValueError, TypeError) as exc:
+                # A closed pty or pyserial port: the host side went away.
+                if stop.is_set():
+                    break
+                log.warning("device endpoint stops: port failed (%s)", exc)
+                break
+
+    def poll(self) -> None:
+        """Read what arrived, answer requests, then send at most one streamed column."""
+        with self._lock:
+            busy = self._stream is not None
+            n = self.port.in_waiting
+            if n:
+                data = self.port.read(n)
+            elif busy:
+                data = b""
+            else:
+                data = self.port.read(1)
+                if data:
+                    more = self.port.in_waiting
+                    if more:
+                        data += self.port.read(more)
+            if data:
+                for frame in self.decoder.feed(data):
+                    self._on_frame(frame)
+                while self.decoder.rejected:
+                    self._on_rejected(self.decoder.rejected.pop(0))
+            if self._stream is not None:
+                self._step_stream()
+                now = self.clock()
+                if self._stream is not None and now - self._last_heartbeat >= self.heartbeat_s:
+                    self._last_heartbeat = now
+                    self._send_stream(MsgType.HEARTBEAT,
+                                      encode_payload(MsgType.HEARTBEAT,
+                                                     self.status().to_fields()))
+
+    def status(self) -> Status:
+        """Current status (as sent in STATUS and HEARTBEAT)."""
+        st = self._stream
+        temp, faults = self.app.health()
+        mask = 0xFFFFFFFF
+        return Status(
+            state=(State.IDLE if st is None else
+                   State.CALIBRATING if st.calibration else State.SCANNING),
+            frame=(st.frame if st else self._last_frame) & mask,
+            next_column=(st.next_column if st else 0) & 0xFFFF,
+            columns_sent=self.stats.columns_sent & mask,
+            uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
+            rx_frames=self.decoder.stats.frames & mask,
+            rx_errors=self.decoder.stats.errors & mask,
+            tx_frames=self.stats.tx_frames & mask,
+            replays=self.stats.replays & mask,
+            temperature_mc=temp, faults=faults & mask)
+
+    # ---- sending --------------------------------------------------------------------
+    def _write(self, wire: bytes) -> None:
+        self.port.write(wire)
+        self.stats.tx_frames += 1
+
+    def _send_stream(self, msg_type: MsgType, payload: bytes, compat: int = 0) -> None:
+        self._stream_seq = (self._stream_seq + 1) & 0xFFFF
+        self._write(encode_frame(msg_type, payload, self._stream_seq, self.session,
+                                 compat=compat, max_frame=self.tx_max_frame))
+
+    def _reply_frame(self, req: Frame, msg_type: MsgType, payload: bytes) -> bytes:
+        return encode_frame(msg_type, payload, req.seq, self.session,
+                            max_frame=self.tx_max_frame)
+
+    def _nak(self, req: Frame, code: ErrorCode, fld: str = "", detail: str = "") -> bytes:
+        self.stats.naks += 1
+        log.debug("NAK %s seq %d: %s %s %s", req.msg_type, req.seq, code.name, fld, detail)
+        payload = encode_payload(MsgType.NAK, {
+            "request_type": req.msg_type, "code": int(code),
+            "field": _clip(fld), "detail": _clip(detail)})
+        return self._reply_frame(req, MsgType.NAK, payload)
+
+    # ---- receiving ------------------------------------------------------------------
+    def _on_rejected(self, frame: Frame) -> None:
+        if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+            return
+        if frame.version != PROTOCOL_VERSION:
+            wire = self._nak(frame, ErrorCode.VERSION, "version",
+                             f"device speaks protocol version {PROTOCOL_VERSION}")
+        else:
+            wire = self._nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                             f"unknown incompat flags 0x{frame.incompat:02x}")
+        self._write(wire)
+
+    def _on_frame(self, frame: Frame) -> None:
+        if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+            self.stats.ignored += 1
+            return
+        self.stats.rx_requests += 1
+        is_hello = frame.msg_type == MsgType.HELLO
+        if not is_hello and frame.session != self.session:
+            self._write(self._nak(frame, ErrorCode.WRONG_SESSION, "session",
+                                  f"this device's session is 0x{self.session:08x}; "
+                                  "send HELLO"))
+            return
+        key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
+        cached = self._replay.get(frame.seq)
+        if cached is not None and cached.key == key:
+            self.stats.replays += 1
+            for wire in cached.frames:
+                self._write(wire)
+            return
+        if not is_hello and self._last_seq is not None:
+            age = (self._last_seq - frame.seq) & 0xFFFF
+            if 0 < age < 0x8000:
+                self.stats.stale += 1
+                log.debug("dropped stale request seq %d (last %d)", frame.seq, self._last_seq)
+                return
+        after: list[Callable[[], None]] = []
+        try:
+            wire = self._handle(frame, after)
+        except FrameError as exc:
+            wire = self._nak(frame, ErrorCode.MALFORMED, getattr(exc, "field", ""), str(exc))
+        except DeviceError as exc:
+            wire = self._nak(frame, _code(exc.code), exc.field or "", str(exc))
+            after.clear()
+        except ConfigError as exc:
+            wire = self._nak(frame, ErrorCode.OUT_OF_RANGE, exc.field or "", str(exc))
+            after.clear()
+        except Exception as exc:  # the device must never die on a request
+            log.exception("device application failed on %s", _type_name(frame.msg_type))
+            wire = self._nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
+            after.clear()
+        if is_hello:
+            self._replay.clear()
+        self._replay[frame.seq] = _Cached(key, [wire])
+        self._replay.move_to_end(frame.seq)
+        while len(self._replay) > self.replay_depth:
+            self._replay.popitem(last=False)
+        self._last_seq = frame.seq
+        self._write(wire)
+        for action in after:
+            action()
+
+    # ---- request handlers -------------------------------------------------------------
+    def _handle(self, req: Frame, after: list[Callable[[], None]]) -> bytes:
+        try:
+            t = MsgType(req.msg_type)
+        except ValueError:
+            return self._nak(req, ErrorCode.UNKNOWN_TYPE, "msg_type",
+                             f"unknown request type 0x{req.msg_type:02x}")
+        if t not in REPLY_TO:
+            return self._nak(req, ErrorCode.UNKNOWN_TYPE, "msg_type", f"{t.name} is not a request")
+        fields_ = decode_payload(t, req.payload)
+        assert isinstance(fields_, dict)
+        handler = getattr(self, "_on_" + t.name.lower())
+        return handler(req, fields_, after)
+
+    def _ack(self, req: Frame) -> bytes:
+        return self._reply_frame(req, MsgType.ACK,
+                                 encode_payload(MsgType.ACK, {"request_type": req.msg_type}))
+
+    def _on_hello(self, req: Frame, f: dict, after: list) -> bytes:
+        self._stop_stream(ScanEndReason.ABORTED, send_end=False)
+        self._ring.clear()
+        self._capture = None
+        self.tx_max_frame = min(self.max_frame, f["host_max_frame"])
+        info = dataclasses.replace(
+            self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.session,
+            schema_crc=SCHEMA_CRC, max_frame=self.tx_max_frame,
+            ring_columns=min(self.ring_columns, 65535),
+            heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))))
+        log.info("HELLO from host nonce 0x%08x: session 0x%08x, max frame %d",
+                 f["host_nonce"], self.session, self.tx_max_frame)
+        return self._reply_frame(req, MsgType.INFO, encode_payload(MsgType.INFO,
+                                                                   info.to_fields()))
+
+    def _on_config_get(self, req: Frame, f: dict, after: list) -> bytes:
+        values = self.app.get_config()
+        if f["keys"]:
+            want = []
+            for kid in f["keys"]:
+                name = _KEY_IDS.get(kid & 0x7F)
+                if name is None:
+                    return self._nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
+                want.append(name)
+            values = {n: values[n] for n in want if n in values}
+        payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values)})
+        if OVERHEAD + len(payload) > self.tx_max_frame:
+            return self._nak(req, ErrorCode.TOO_LARGE, "keys",
+                             "ask for fewer keys per CONFIG_GET")
+        return self._reply_frame(req, MsgType.CONFIG, payload)
+
+    def _on_config_set(self, req: Frame, f: dict, after: list) -> bytes:
+        if self._stream is not None:
+            return self._nak(req, ErrorCode.BUSY, "", "abort the running scan first")
+        cfg = decode_config(f["items"])
+        if cfg.unknown:
+            return self._nak(req, ErrorCode.UNKNOWN_KEY, f"key {cfg.unknown[0]}",
+                             "key not known to this device")
+        for name in cfg.values:
+            if name in _READ_ONLY:
+                return self._nak(req, ErrorCode.READ_ONLY, name, f"{name} is read-only")
+        self.app.set_config(cfg.values)
+        return self._ack(req)
+
+    def _on_power_set(self, req: Frame, f: dict, after: list) -> bytes:
+        power = np.asarray(f["power"], dtype=np.uint16).reshape(f["channels"], f["columns"])
+        self.app.set_power(f["channel_start"], f["column_start"], power)
+        return self._ack(req)
+
+    def _start_stream(self, req: Frame, gen_factory: Callable[[], Iterator[ColumnResult]],
+                      frame: int, first: int, count: int, calibration: bool) -> bytes:
+        if self._stream is not None:
+            return self._nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
+        info = self.app.info()
+        peaks = int(self.app.get_config().get("peaks", 1))
+        need = OVERHEAD + column_payload_size(info.channels, peaks)
+        if need > self.tx_max_frame:
+            return self._nak(req, ErrorCode.TOO_LARGE, "peaks",
+                             f"a column of {info.channels} channels x {peaks} peaks needs "
+                             f"{need} bytes, max frame is {self.tx_max_frame}")
+        gen = iter(gen_factory())
+        self._stream = _Stream(gen, frame, first, count, calibration)
+        self._last_frame = frame
+        self._last_heartbeat = self.clock()
+        return self._ack(req)
+
+    def _on_scan_start(self, req: Frame, f: dict, after: list) -> bytes:
+        return self._start_stream(
+            req, lambda: self.app.scan(f["frame"], f["first_column"], f["columns"]),
+            f["frame"], f["first_column"], f["columns"], False)
+
+    def _on_calibrate(self, req: Frame, f: dict, after: list) -> bytes:
+        return self._start_stream(req, lambda: self.app.calibrate(f["frame"], f["shots"]),
+                                  f["frame"], 0, f["shots"], True)
+
+    def _on_scan_abort(self, req: Frame, f: dict, after: list) -> bytes:
+        if self._stream is not None:
+            after.append(lambda: self._stop_stream(ScanEndReason.ABORTED))
+        return self._ack(req)
+
+    def _on_resend(self, req: Frame, f: dict, after: list) -> bytes:
+        frame = f["frame"]
+        st = self._stream
+        todo = []
+        for k, col in enumerate(f["columns"]):
+            wire = self._ring.get((frame, col))
+            if wire is not None:
+                todo.append(wire)
+            elif not (st is not None and st.frame == frame and
+                      st.next_column <= col < st.first + st.count):
+                return self._nak(req, ErrorCode.NOT_AVAILABLE, f"columns[{k}]",
+                                 f"column {col} of frame {frame} is no longer kept")
+
+        def resend() -> None:
+            for payload in todo:
+                self.stats.resent += 1
+                self.stats.columns_sent += 1
+                self._send_stream(MsgType.COLUMN_RESULT, payload, COMPAT_RETRANSMIT)
+
+        after.append(resend)
+        return self._ack(req)
+
+    def _on_capture(self, req: Frame, f: dict, after: list) -> bytes:
+        key = (f["kind"], f["column"], f["channel"])
+        if f["offset"] == 0 or self._capture is None or self._capture[0] != key:
+            if f["offset"] != 0:
+                return self._nak(req, ErrorCode.NOT_AVAILABLE, "offset",
+                                 "read offset 0 first to take a capture")
+            data = np.asarray(self.app.capture(CaptureKind(f["kind"]), f["column"],
+                                               f["channel"])).ravel()
+            if data.dtype.kind not in "iu":
+                raise DeviceError("capture is not integer data", code=ErrorCode.INTERNAL)
+            lo, hi = (int(data.min()), int(data.max())) if data.size else (0, 0)
+            for dt in (np.int16, np.int32, np.int64):
+                if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
+                    break
+            self._capture = (key, data.astype(np.dtype(dt).newbyteorder("<")))
+        arr = self._capture[1]
+        total, off = arr.size, f["offset"]
+        if off > total:
+            return self._nak(req, ErrorCode.OUT_OF_RANGE, "offset",
+                             f"offset must be 0..{total}, not {off}")
+        room = (self.tx_max_frame - OVERHEAD - _CAPTURE_HEADER) // arr.itemsize
+        n = max(0, min(f["max_count"], room, total - off))
+        payload = encode_payload(MsgType.CAPTURE_DATA, {
+            "kind": f["kind"], "column": f["column"], "channel": f["channel"],
+            "elem_bytes": arr.itemsize, "total": total, "offset": off,
+            "data": arr[off:off + n].tobytes()})
+        return self._reply_frame(req, MsgType.CAPTURE_DATA, payload)
+
+    def _on_status_get(self, req: Frame, f: dict, after: list) -> bytes:
+        return self._reply_frame(req, MsgType.STATUS,
+                                 encode_payload(MsgType.STATUS, self.status().to_fields()))
+
+    # ---- streaming -------------------------------------------------------------------
+    def _step_stream(self) -> None:
+        st = self._stream
+        assert st is not None
+        if st.produced >= st.count:
+            self._stop_stream(ScanEndReason.COMPLETE)
+            return
+        try:
+            col = next(st.gen)
+        except StopIteration:
+            log.warning("application ended frame %d after %d of %d columns", st.frame,
+                        st.produced, st.count)
+            self._stop_stream(ScanEndReason.ERROR)
+            return
+        except Exception:
+            log.exception("application failed during frame %d", st.frame)
+            self._stop_stream(ScanEndReason.ERROR)
+            return
+        if col.frame != st.frame or col.calibration != st.calibration:
+            col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
+        payload = encode_column(col)
+        self._ring[(st.frame, col.column)] = payload
+        self._ring.move_to_end((st.frame, col.column))
+        while len(self._ring) > self.ring_columns:
+            self._ring.popitem(last=False)
+        st.produced += 1
+        self.stats.columns_sent += 1
+        self._send_stream(MsgType.COLUMN_RESULT, payload)
+        if st.produced >= st.count:
+            self._stop_stream(ScanEndReason.COMPLETE)
+
+    def _stop_stream(self, reason: ScanEndReason, send_end: bool = True) -> None:
+        st = self._stream
+        if st is None:
+            return
+        self._stream = None
+        if reason is not ScanEndReason.COMPLETE:
+            self.app.abort()
+        close = getattr(st.gen, "close", None)
+        if close is not None:
+            close()
+        if send_end:
+            self._send_stream(MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
+                "frame": st.frame, "first_column": st.first, "columns": st.produced,
+                "calibration": int(st.calibration), "reason": int(reason)}))
+
+
+def _clip(s: str, limit: int = 255) -> str:
+    b = s.encode("utf-8")[:limit]
+    return b.decode("utf-8", errors="ignore")
+
+
+def _code(code: int) -> ErrorCode:
+    try:
+        return ErrorCode(code)
+    except ValueError:
+        return ErrorCode.INTERNAL
+
+
+def _type_name(t: int) -> str:
+    try:
+        return MsgType(t).name
+    except ValueError:
+        return f"0x{t:02x}"

@@ -1,0 +1,283 @@
+"""Frame layer: header, CRC-32 and COBS with 0x00 delimiters; a stream decoder that never raises.
+
+One frame on the wire::
+
+    00 | COBS( header(12) | payload(len) | crc32(4) ) | 00
+
+    header, little-endian (frozen in every protocol version):
+    off size field
+      0   1  version          PROTOCOL_VERSION (1)
+      1   1  incompat_flags   a receiver drops a frame with an unknown bit set
+      2   1  compat_flags     unknown bits are ignored
+      3   1  msg_type         see protocol.messages.MsgType
+      4   2  seq              request: host counter; reply: its request's; stream: device counter
+      6   2  payload_len      bytes of payload
+      8   4  session_id       chosen at random by the device at boot; 0 from a host before HELLO
+
+    crc32 = CRC-32/ISO-HDLC (zlib.crc32: reflected poly 0xEDB88320, init and xorout
+            0xFFFFFFFF) over header and payload, stored little-endian.
+
+The delimiter before the frame ends any garbage the receiver has buffered, so it
+resynchronises at the next frame whatever came before; the one after ends the frame
+at once (no timeout needed). Two delimiters in a row are an empty frame and are
+skipped silently.
+
+:class:`FrameDecoder` turns any byte stream into :class:`Frame` objects. It never
+raises on wire bytes: garbage, bit flips, truncation, oversize frames, wrong versions
+and unknown incompatible flags become counts in :class:`DecoderStats`.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import zlib
+from dataclasses import dataclass, fields
+
+from cdma_lidar.errors import FieldError, FrameError, out_of_range
+from protocol import cobs
+
+__all__ = [
+    "COMPAT_RETRANSMIT",
+    "CRC_SIZE",
+    "DELIMITER",
+    "FRAME_LIMIT",
+    "HEADER",
+    "HEADER_SIZE",
+    "INCOMPAT_KNOWN",
+    "MIN_MAX_FRAME",
+    "OVERHEAD",
+    "PROTOCOL_VERSION",
+    "DecoderStats",
+    "Frame",
+    "FrameDecoder",
+    "crc32",
+    "decode_frame",
+    "encode_frame",
+    "max_wire_len",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+PROTOCOL_VERSION = 1
+DELIMITER = b"\x00"
+HEADER = struct.Struct("<BBBBHHI")
+HEADER_SIZE = HEADER.size  # 12
+CRC_SIZE = 4
+OVERHEAD = HEADER_SIZE + CRC_SIZE  # 16 bytes around every payload
+#: Largest decoded frame (header + payload + CRC, bytes) any device may announce.
+FRAME_LIMIT = 65535
+#: Smallest max frame size a device may announce (bytes): every control message fits.
+MIN_MAX_FRAME = 512
+#: compat flag bit 0: this frame is a retransmission (a resent column); informational.
+COMPAT_RETRANSMIT = 0x01
+#: incompat flag bits this implementation understands (none in version 1).
+INCOMPAT_KNOWN = 0x00
+
+_CRC = struct.Struct("<I")
+
+
+def crc32(data: bytes) -> int:
+    """CRC-32/ISO-HDLC of ``data`` (check value of b"123456789" is 0xCBF43926)."""
+    return zlib.crc32(data) & 0xFFFFFFFF
+
+
+def max_wire_len(max_frame: int) -> int:
+    """Bytes on the wire for a decoded frame of ``max_frame`` bytes, both delimiters included."""
+    return cobs.max_encoded_len(max_frame) + 2
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One frame that passed the CRC and version checks. ``payload`` is still undecoded."""
+
+    msg_type: int
+    seq: int
+    session: int
+    payload: bytes
+    compat: int = 0
+    incompat: int = 0
+    version: int = PROTOCOL_VERSION
+
+
+def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
+                 compat: int = 0, incompat: int = 0, version: int = PROTOCOL_VERSION,
+                 max_frame: int = FRAME_LIMIT) -> bytes:
+    """Build the wire bytes of one frame, both 0x00 delimiters included.
+
+    Raises FieldError naming the header field that cannot hold its value, or
+    ``payload`` when the frame would exceed ``max_frame`` bytes (decoded size).
+    """
+    for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
+                            ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
+                            ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
+        if not isinstance(value, int) or not 0 <= value <= hi:
+            raise out_of_range(f"frame.{name}", f"an integer from 0 to {hi}", value, FieldError)
+    size = OVERHEAD + len(payload)
+    if size > max_frame:
+        raise out_of_range("payload", f"at most {max_frame - OVERHEAD} bytes (max frame "
+                           f"{max_frame})", f"{len(payload)} bytes", FieldError)
+    head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
+    body = head + payload
+    body += _CRC.pack(zlib.crc32(body) & 0xFFFFFFFF)
+    return DELIMITER + cobs.encode(body) + DELIMITER
+
+
+def decode_frame(body: bytes) -> Frame:
+    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid.
+
+    The reason is the first word of the message: ``short``, ``crc``, ``length``,
+    ``version`` or ``incompat``.
+    """
+    n = len(body)
+    if n < OVERHEAD:
+        raise FrameError(f"short: {n} bytes, a frame has at least {OVERHEAD}")
+    (crc,) = _CRC.unpack_from(body, n - CRC_SIZE)
+    if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) & 0xFFFFFFFF != crc:
+        raise FrameError("crc: CRC-32 mismatch")
+    version, incompat, compat, msg_type, seq, plen, session = HEADER.unpack_from(body)
+    if plen != n - OVERHEAD:
+        raise FrameError(f"length: header says {plen} payload bytes, frame has {n - OVERHEAD}")
+    frame = Frame(msg_type, seq, session, bytes(body[HEADER_SIZE: n - CRC_SIZE]), compat,
+                  incompat, version)
+    if version != PROTOCOL_VERSION:
+        raise _Rejected("version", frame)
+    if incompat & ~INCOMPAT_KNOWN:
+        raise _Rejected("incompat", frame)
+    return frame
+
+
+class _Rejected(FrameError):
+    """A frame with a valid CRC that this version must not act on (version, incompat flags)."""
+
+    def __init__(self, reason: str, frame: Frame) -> None:
+        super().__init__(f"{reason}: version {frame.version}, incompat flags "
+                         f"0x{frame.incompat:02x}")
+        self.reason = reason
+        self.frame = frame
+
+
+@dataclass
+class DecoderStats:
+    """Counts of what a :class:`FrameDecoder` saw (every error event is one count).
+
+    ``frames`` are accepted frames; every other field except ``bytes`` counts a
+    rejected chunk between delimiters.
+    """
+
+    bytes: int = 0
+    frames: int = 0
+    cobs: int = 0
+    short: int = 0
+    crc: int = 0
+    length: int = 0
+    oversize: int = 0
+    version: int = 0
+    incompat: int = 0
+
+    @property
+    def errors(self) -> int:
+        """All rejected chunks."""
+        return self.cobs + self.short + self.crc + self.length + self.oversize + \
+            self.version + self.incompat
+
+    def as_dict(self) -> dict[str, int]:
+        """Counters by name (``errors`` included)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["errors"] = self.errors
+        return d
+
+
+class FrameDecoder:
+    """Stream decoder: feed it any slices of the byte stream, get whole frames back.
+
+    It owns its receive buffer, so partial reads (pyserial ``read(n)`` may return
+    fewer bytes) are fine. A chunk longer than ``max_wire_len(max_frame)`` is dropped
+    up to the next delimiter and counted as ``oversize`` without being buffered.
+    ``rejected`` lists frames that passed the CRC but had another version or unknown
+    incompatible flags (the device answers them with a NAK); the caller drains it.
+    """
+
+    def __init__(self, max_frame: int = FRAME_LIMIT) -> None:
+        self.stats = DecoderStats()
+        self.rejected: list[Frame] = []
+        self._buf = bytearray()
+        self._skipping = False  # inside an oversize chunk: drop until the next delimiter
+        self.max_frame = max_frame
+
+    @property
+    def max_frame(self) -> int:
+        """Largest decoded frame accepted (bytes, header and CRC included)."""
+        return self._max_frame
+
+    @max_frame.setter
+    def max_frame(self, value: int) -> None:
+        if not MIN_MAX_FRAME <= value <= FRAME_LIMIT:
+            raise out_of_range("max_frame", f"{MIN_MAX_FRAME} to {FRAME_LIMIT} bytes", value)
+        self._max_frame = value
+        self._max_chunk = cobs.max_encoded_len(value)
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held back waiting for a delimiter."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Add received bytes; return the frames they complete, in order. Never raises."""
+        st = self.stats
+        st.bytes += len(data)
+        buf = self._buf
+        buf += data
+        out: list[Frame] = []
+        start = 0
+        while True:
+            end = buf.find(0, start)
+            if end < 0:
+                break
+            if self._skipping:
+                self._skipping = False
+            elif end > start:
+                self._chunk(buf[start:end], out)
+            start = end + 1
+        if start:
+            del buf[:start]
+        if self._skipping:
+            buf.clear()
+        elif len(buf) > self._max_chunk:
+            st.oversize += 1
+            buf.clear()
+            self._skipping = True
+        return out
+
+    def _chunk(self, chunk: bytes, out: list[Frame]) -> None:
+        st = self.stats
+        if len(chunk) > self._max_chunk:
+            st.oversize += 1
+            return
+        try:
+            body = cobs.decode(bytes(chunk))
+        except FrameError:
+            st.cobs += 1
+            return
+        if len(body) > self._max_frame:
+            st.oversize += 1
+            return
+        try:
+            frame = decode_frame(body)
+        except _Rejected as exc:
+            setattr(st, exc.reason, getattr(st, exc.reason) + 1)
+            if len(self.rejected) < 64:
+                self.rejected.append(exc.frame)
+            return
+        except FrameError as exc:
+            reason = str(exc).split(":", 1)[0]
+            setattr(st, reason, getattr(st, reason) + 1)
+            return
+        st.frames += 1
+        out.append(frame)
+
+    def reset(self) -> None:
+        """Forget buffered bytes (counters are kept)."""
+        self._buf.clear()
+        self._skipping = False
+        self.rejected.clear()

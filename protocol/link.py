@@ -1,0 +1,617 @@
+"""Host end of the link: requests with retries, streamed columns with gap repair, diagnostics.
+
+:class:`HostLink` talks to a :class:`protocol.device.DeviceEndpoint` over any
+port-like object: whatever :func:`open_port` returns for a pyserial URL
+(``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), or a
+:class:`FdPort` around a file descriptor. It owns its receive buffer (a
+:class:`protocol.framing.FrameDecoder`) and only ever blocks in ``port.read`` with a
+short timeout, so it never spins a core.
+
+Requests: each carries a new ``seq``; the reply (ACK, NAK or data) echoes it. No
+reply within ``timeout_s`` -> the identical frame is sent again, up to ``retries``
+times; the device answers a retransmission from its replay cache instead of acting
+twice. Then :class:`LinkTimeout` says what the line showed (``diagnosis``):
+
+* ``no bytes at all``           -- nothing came back: power, cable, port name;
+* ``bytes but no valid frame``  -- wrong baud rate, or not a cdma-lidar device;
+* ``frames but wrong session``  -- the device rebooted: call :meth:`HostLink.hello`;
+* ``frames but no answer``      -- the device is alive but ignores this request.
+
+Scans: columns arrive as COLUMN_RESULT frames; :meth:`HostLink.scan` yields them in
+column order exactly once, asks for missing ones again (RESEND) as soon as a later
+column, a HEARTBEAT or SCAN_END shows they were sent, or after ``timeout_s`` of
+silence, and fails with LinkTimeout after ``retries`` unanswered requests for the
+same column.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import logging
+import os
+import secrets
+import select
+import struct
+import termios
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdma_lidar.errors import (
+    DeviceError,
+    FieldError,
+    LinkError,
+    LinkTimeout,
+    ScanAborted,
+    out_of_range,
+)
+from protocol.columns import ColumnResult
+from protocol.framing import (
+    FRAME_LIMIT,
+    OVERHEAD,
+    PROTOCOL_VERSION,
+    Frame,
+    FrameDecoder,
+    encode_frame,
+)
+from protocol.messages import (
+    REPLY_TO,
+    SCHEMA_CRC,
+    CaptureKind,
+    ErrorCode,
+    Info,
+    MsgKind,
+    MsgType,
+    ScanEndReason,
+    Status,
+    config_key,
+    decode_config,
+    decode_payload,
+    encode_config,
+    encode_payload,
+    kind_of,
+)
+
+__all__ = [
+    "DIAG_GARBAGE",
+    "DIAG_NO_ANSWER",
+    "DIAG_SILENT",
+    "DIAG_WRONG_SESSION",
+    "FdPort",
+    "HostLink",
+    "LinkStats",
+    "open_port",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+DIAG_SILENT = "no bytes at all"
+DIAG_GARBAGE = "bytes but no valid frame"
+DIAG_WRONG_SESSION = "frames but wrong session"
+DIAG_NO_ANSWER = "frames but no answer"
+
+_HINTS = {
+    DIAG_SILENT: "check that the device is powered and connected and that the port is right",
+    DIAG_GARBAGE: "check the baud rate and that the port is a cdma-lidar device",
+    DIAG_WRONG_SESSION: "the device restarted: call hello() again",
+    DIAG_NO_ANSWER: "the device is alive but does not answer this request",
+}
+
+
+def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any) -> Any:
+    """Open any pyserial URL (device path, ``socket://``, ``loop://``, ``virtual://``).
+
+    ``scene.urlhandler`` is added to ``serial.protocol_handler_packages`` first, so
+    the virtual device's ``virtual://`` handler is found. Raises LinkError with a
+    one-line hint when the port does not exist or cannot be opened.
+    """
+    import serial
+
+    if "scene.urlhandler" not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append("scene.urlhandler")
+    try:
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kw)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        scheme = url.split("://", 1)[0] if "://" in url else ""
+        if scheme and "://" in url and "invalid URL" in str(exc):
+            hint = f"unknown URL scheme {scheme!r}; use a device path, socket:// or virtual://"
+        elif "://" in url:
+            hint = "check the URL and that its server or handler is available"
+        else:
+            hint = "check the device is plugged in and the path is right (ls /dev/tty*)"
+        raise LinkError(f"cannot open port {url!r}: {exc}; {hint}") from None
+
+
+class FdPort:
+    """Minimal port over a file descriptor (e.g. a pty master from ``os.openpty``).
+
+    Same surface as a pyserial port as far as the protocol uses it: ``read(n)``
+    blocks until ``n`` bytes or ``timeout`` seconds, ``write``, ``in_waiting``,
+    ``timeout``, ``close``. The fd is put in non-blocking mode; it is closed by
+    :meth:`close`.
+    """
+
+    def __init__(self, fd: int, timeout: float | None = 0.05) -> None:
+        self.fd = fd
+        self.timeout = timeout
+        os.set_blocking(fd, False)
+        self._closed = False
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes ready to read without blocking."""
+        buf = fcntl.ioctl(self.fd, termios.FIONREAD, b"\0\0\0\0")
+        return struct.unpack("i", buf)[0]
+
+    def read(self, n: int = 1) -> bytes:
+        """Up to ``n`` bytes; returns early with fewer when ``timeout`` expires."""
+        out = bytearray()
+        deadline = None if self.timeout is None else time.monotonic() + self.timeout
+        while len(out) < n:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            r, _, _ = select.select([self.fd], [], [], left)
+            if not r:
+                break
+            try:
+                chunk = os.read(self.fd, n - len(out))
+            except BlockingIOError:
+                continue
+            if not chunk:
+                break
+            out += chunk
+        return bytes(out)
+
+    def write(self, data: bytes) -> int:
+        """Write all of ``data`` (waits while the pty buffer is full)."""
+        view = memoryview(data)
+        while view:
+            try:
+                k = os.write(self.fd, view)
+            except BlockingIOError:
+                select.select([], [self.fd], [], 1.0)
+                continue
+            view = view[k:]
+        return len(data)
+
+    def flush(self) -> None:
+        """Nothing buffered in user space."""
+
+    def close(self) -> None:
+        """Close the descriptor (once)."""
+        if not self._closed:
+            self._closed = True
+            os.close(self.fd)
+
+
+@dataclass
+class LinkStats:
+    """Counters of a :class:`HostLink` (decoder errors are in ``HostLink.decoder.stats``)."""
+
+    requests: int = 0
+    retries: int = 0
+    wrong_session: int = 0
+    stale_replies: int = 0
+    malformed: int = 0
+    ignored: int = 0
+    columns: int = 0
+    duplicates: int = 0
+    resend_requests: int = 0
+    resent_columns: int = 0
+
+
+@dataclass
+class _Window:
+    """Counters at the start of a wait, for the silent-link diagnosis."""
+
+    bytes: int
+    frames: int
+    wrong_session: int
+
+
+class HostLink:
+    """Host end of the protocol over a port-like object.
+
+    Args:
+        port: from :func:`open_port`, a :class:`FdPort`, or anything with ``read``,
+            ``write``, ``in_waiting`` and ``timeout``.
+        timeout_s: wait for one reply, and longest silence in a scan (s).
+        retries: retransmissions of a request (and RESENDs of one column) before
+            LinkTimeout.
+        poll_s: longest blocking read (s); default ``min(0.05, timeout_s / 4)``.
+        max_frame: largest frame the host accepts (bytes), announced in HELLO.
+        clock: monotonic clock (s), replaceable in tests.
+    """
+
+    def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
+                 poll_s: float | None = None, max_frame: int = FRAME_LIMIT,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not timeout_s > 0:
+            raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
+        if not 0 <= retries <= 100:
+            raise out_of_range("retries", "an integer from 0 to 100", retries)
+        self.port = port
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.clock = clock
+        self.decoder = FrameDecoder(max_frame)
+        self.stats = LinkStats()
+        self.info: Info | None = None
+        self.session: int | None = None
+        self.last_status: Status | None = None
+        self.max_frame = 4096  # until INFO says more; every request fits
+        self._host_max = max_frame
+        self._nonce = secrets.randbits(32)
+        self._seq = self._nonce & 0xFFFF
+        self._next_frame_id = secrets.randbits(31)
+        self._pending: int | None = None
+        self._hello_seq: int | None = None
+        self._reply: Frame | None = None
+        self._streaming = False
+        self._stream: deque[tuple[int, Any]] = deque()
+        self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
+                              or type(port).__name__)
+        port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
+
+    # ---- context manager ----------------------------------------------------------------
+    def __enter__(self) -> HostLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the port."""
+        with contextlib.suppress(Exception):
+            self.port.close()
+
+    # ---- public requests --------------------------------------------------------------
+    def hello(self) -> Info:
+        """Open a session: learn the device's identity, limits, geometry and session id."""
+        seq = self._new_seq()
+        self._hello_seq = seq
+        try:
+            reply = self._transact(MsgType.HELLO, {"host_nonce": self._nonce,
+                                                   "host_max_frame": self._host_max}, seq)
+        finally:
+            self._hello_seq = None
+        info = Info.from_fields(reply)
+        if info.protocol_version != PROTOCOL_VERSION:
+            raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
+                            f"{PROTOCOL_VERSION}; update the host or the firmware")
+        if info.schema_crc != SCHEMA_CRC:
+            log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
+                        "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
+        self.info = info
+        self.session = info.session_id
+        self.max_frame = info.max_frame
+        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d)",
+                 self.session, info.serial, info.firmware_version, info.channels,
+                 info.max_frame)
+        return info
+
+    def get_config(self, *names: str) -> dict[str, Any]:
+        """Configuration values by key name (all keys when no names are given)."""
+        keys = [config_key(n).id for n in names]
+        reply = self._request(MsgType.CONFIG_GET, {"keys": keys})
+        return decode_config(reply["items"]).values
+
+    def set_config(self, **values: Any) -> None:
+        """Set configuration keys (python values, see ``CONFIG_KEYS``); all or none.
+
+        Raises FieldError for a key or value the wire cannot carry and DeviceError
+        (``code``, ``field``) when the device refuses.
+        """
+        if not values:
+            return
+        self._request(MsgType.CONFIG_SET, {"items": encode_config(values,
+                                                                  allow_read_only=False)})
+
+    def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
+        """Send a (channels, columns) laser-power matrix in chunks that fit the frame size.
+
+        Integer matrices are in units of 1/65535 of the per-pixel maximum (0..65535);
+        float matrices are fractions 0..1 and are rounded to that grid.
+        """
+        m = np.asarray(matrix)
+        if m.ndim != 2 or m.size == 0:
+            raise out_of_range("power", "a non-empty (channels, columns) matrix",
+                               f"shape {m.shape}", FieldError)
+        if m.dtype.kind == "f":
+            if not np.isfinite(m).all() or m.min() < 0 or m.max() > 1:
+                raise out_of_range("power", "fractions from 0 to 1", m, FieldError)
+            m = np.rint(m * 65535.0).astype(np.int64)
+        elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
+            raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
+        rows, cols = m.shape
+        room = (self.max_frame - OVERHEAD - 8) // 2  # values per request
+        step_c = min(cols, room)
+        step_r = max(1, min(rows, room // step_c))
+        for r0 in range(0, rows, step_r):
+            for c0 in range(0, cols, step_c):
+                block = m[r0:r0 + step_r, c0:c0 + step_c]
+                self._request(MsgType.POWER_SET, {
+                    "channel_start": channel_start + r0, "column_start": column_start + c0,
+                    "channels": block.shape[0], "columns": block.shape[1],
+                    "power": block.ravel()})
+
+    def status(self) -> Status:
+        """Device status."""
+        return Status(**self._request(MsgType.STATUS_GET, {}))
+
+    def abort(self) -> None:
+        """Stop a running scan or calibration (harmless when idle)."""
+        self._request(MsgType.SCAN_ABORT, {})
+
+    def capture(self, kind: str | int = "raw", column: int = 0, channel: int = 0) -> NDArray:
+        """Debug capture of one column: raw ADC samples or a channel's correlation trace.
+
+        ``kind`` is ``"raw"`` / ``"corr"`` (or a CaptureKind). Read in chunks under the
+        frame size; returns an int16/int32/int64 array.
+        """
+        if isinstance(kind, str):
+            names = {k.name.lower(): k for k in CaptureKind}
+            if kind not in names:
+                raise out_of_range("kind", "'raw' or 'corr'", kind, FieldError)
+            kind = names[kind]
+        parts: list[NDArray] = []
+        offset, total = 0, None
+        while total is None or offset < total:
+            d = self._request(MsgType.CAPTURE, {"kind": int(kind), "column": column,
+                                                "channel": channel, "offset": offset,
+                                                "max_count": 65535})
+            dt = {2: "<i2", 4: "<i4", 8: "<i8"}.get(d["elem_bytes"])
+            if dt is None or d["offset"] != offset or len(d["data"]) % d["elem_bytes"]:
+                raise LinkError(f"CAPTURE_DATA out of step: offset {d['offset']} (wanted "
+                                f"{offset}), {d['elem_bytes']} bytes per element")
+            chunk = np.frombuffer(d["data"], dtype=dt)
+            total = d["total"]
+            if chunk.size == 0 and offset < total:
+                raise LinkError("CAPTURE_DATA chunk is empty before the end of the capture")
+            parts.append(chunk)
+            offset += chunk.size
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int16)
+
+    def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
+             frame: int | None = None) -> Iterator[ColumnResult]:
+        """Scan ``frames`` frames of ``columns`` columns from ``first_column``.
+
+        Yields ColumnResults in column order, each exactly once, repairing gaps. By
+        default a frame is the device's full ``column_count`` (see INFO). Leaving the
+        loop early aborts the scan on the device.
+        """
+        info = self._need_info()
+        if columns is None:
+            columns = info.column_count - first_column
+        for k in range(frames):
+            fid = self._frame_id(frame if k == 0 else None)
+            yield from self._stream_columns(
+                MsgType.SCAN_START,
+                {"frame": fid, "first_column": first_column, "columns": columns},
+                fid, first_column, columns)
+
+    def calibrate(self, shots: int, frame: int | None = None) -> list[ColumnResult]:
+        """Zeroth-order calibration: ``shots`` columns flagged ``calibration``."""
+        self._need_info()
+        fid = self._frame_id(frame)
+        return list(self._stream_columns(MsgType.CALIBRATE, {"frame": fid, "shots": shots},
+                                         fid, 0, shots))
+
+    # ---- streaming -------------------------------------------------------------------------
+    def _frame_id(self, frame: int | None) -> int:
+        if frame is None:
+            frame = self._next_frame_id
+        self._next_frame_id = (frame + 1) & 0xFFFFFFFF
+        return frame
+
+    def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
+                        count: int) -> Iterator[ColumnResult]:
+        end = first + count
+        self._stream.clear()
+        self._streaming = True
+        finished = False
+        try:
+            self._request(req, fields_)
+            received: dict[int, ColumnResult] = {}
+            asked: dict[int, tuple[float, int]] = {}
+            nxt = first
+            horizon = first  # columns below this have been sent by the device
+            last_rx = self.clock()
+            while nxt < end:
+                got = False
+                while self._stream:
+                    got = True
+                    mtype, item = self._stream.popleft()
+                    if mtype == MsgType.COLUMN_RESULT:
+                        c = item
+                        if c.frame != fid or not nxt <= c.column < end or c.column in received:
+                            self.stats.duplicates += 1
+                            continue
+                        received[c.column] = c
+                        horizon = max(horizon, c.column + 1)
+                    elif mtype == MsgType.HEARTBEAT:
+                        if item.frame == fid:
+                            horizon = max(horizon, min(end, item.next_column))
+                    elif mtype == MsgType.SCAN_END and item["frame"] == fid:
+                        horizon = max(horizon, min(end, item["first_column"] + item["columns"]))
+                        reason = item["reason"]
+                        if reason == ScanEndReason.ERROR:
+                            raise DeviceError(f"device failed during frame {fid} after "
+                                              f"{item['columns']} columns",
+                                              code=ErrorCode.INTERNAL)
+                        if reason == ScanEndReason.ABORTED:
+                            raise ScanAborted(f"frame {fid} was aborted on the device after "
+                                              f"{item['columns']} columns")
+                while nxt in received:
+                    self.stats.columns += 1
+                    yield received.pop(nxt)
+                    nxt += 1
+                if nxt >= end:
+                    break
+                now = self.clock()
+                if got:
+                    last_rx = now
+                elif now - last_rx >= self.timeout_s:
+                    horizon = end  # silence: ask for everything still missing
+                    last_rx = now
+                due = [c for c in range(nxt, horizon) if c not in received and
+                       (c not in asked or now - asked[c][0] >= self.timeout_s)]
+                if due:
+                    self._resend(fid, due[:255], asked, now)
+                    last_rx = self.clock()
+                    continue
+                self._pump()
+            finished = True
+        finally:
+            self._streaming = False
+            self._stream.clear()
+            if not finished:
+                with contextlib.suppress(LinkError):
+                    self.abort()
+
+    def _resend(self, fid: int, cols: list[int], asked: dict[int, tuple[float, int]],
+                now: float) -> None:
+        for c in cols:
+            tries = asked.get(c, (0.0, 0))[1]
+            if tries > self.retries:
+                raise LinkTimeout(
+                    f"column {c} of frame {fid} never arrived after {tries} resend requests "
+                    f"on {self._port_name}; {_HINTS[DIAG_NO_ANSWER]}", DIAG_NO_ANSWER)
+            asked[c] = (now, tries + 1)
+        self.stats.resend_requests += 1
+        self.stats.resent_columns += len(cols)
+        log.debug("frame %d: asking again for %d columns from %d", fid, len(cols), cols[0])
+        self._request(MsgType.RESEND, {"frame": fid, "columns": cols})
+
+    # ---- request machinery -------------------------------------------------------------------
+    def _need_info(self) -> Info:
+        if self.info is None:
+            self.hello()
+        assert self.info is not None
+        return self.info
+
+    def _new_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return self._seq
+
+    def _request(self, msg_type: MsgType, fields_: dict[str, Any]) -> dict[str, Any]:
+        if self.session is None:
+            self.hello()
+        return self._transact(msg_type, fields_, self._new_seq())
+
+    def _transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int) -> dict[str, Any]:
+        payload = encode_payload(msg_type, fields_)
+        wire = encode_frame(msg_type, payload, seq, self.session or 0,
+                            max_frame=self.max_frame)
+        self.stats.requests += 1
+        win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
+                      self.stats.wrong_session)
+        self._pending = seq
+        self._reply = None
+        try:
+            for attempt in range(self.retries + 1):
+                if attempt:
+                    self.stats.retries += 1
+                    log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
+                self._write(wire)
+                deadline = self.clock() + self.timeout_s
+                while self._reply is None and self.clock() < deadline:
+                    self._pump()
+                if self._reply is not None:
+                    return self._accept_reply(msg_type, self._reply)
+        finally:
+            self._pending = None
+        diag = self._diagnose(win)
+        raise LinkTimeout(
+            f"{msg_type.name} got no answer from {self._port_name} after "
+            f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {_HINTS[diag]}", diag)
+
+    def _diagnose(self, win: _Window) -> str:
+        """What the line showed since ``win``: one of the DIAG_* strings."""
+        st = self.decoder.stats
+        if st.bytes == win.bytes:
+            return DIAG_SILENT
+        if st.frames == win.frames:
+            return DIAG_GARBAGE
+        wrong = self.stats.wrong_session - win.wrong_session
+        if wrong and st.frames - win.frames == wrong:
+            return DIAG_WRONG_SESSION
+        return DIAG_NO_ANSWER
+
+    def _accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+        except Exception as exc:  # FrameError; the decoder raises nothing else
+            raise LinkError(f"malformed {frame.msg_type:#04x} reply to {msg_type.name}: "
+                            f"{exc}") from None
+        assert isinstance(body, dict)
+        if frame.msg_type == MsgType.NAK:
+            try:
+                code = ErrorCode(body["code"])
+                cname = code.name
+            except ValueError:
+                cname = f"error {body['code']}"
+            where = f" (field {body['field']})" if body["field"] else ""
+            detail = f": {body['detail']}" if body["detail"] else ""
+            raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
+                              code=body["code"], field=body["field"] or None)
+        expected = REPLY_TO[msg_type]
+        if frame.msg_type != expected or (expected == MsgType.ACK and
+                                          body["request_type"] != msg_type):
+            raise LinkError(f"device answered {msg_type.name} with {frame.msg_type:#04x}")
+        return body
+
+    def _write(self, wire: bytes) -> None:
+        try:
+            self.port.write(wire)
+        except Exception as exc:  # pyserial raises SerialException (an OSError) or others
+            raise LinkError(f"cannot write to {self._port_name}: {exc}; is the device "
+                            "still connected?") from None
+
+    def _pump(self) -> None:
+        """One blocking read (at most ``port.timeout``) and dispatch of what it completes."""
+        try:
+            n = self.port.in_waiting
+            data = self.port.read(n if n else 1)
+        except Exception as exc:
+            raise LinkError(f"cannot read from {self._port_name}: {exc}; is the device "
+                            "still connected?") from None
+        if data:
+            for frame in self.decoder.feed(data):
+                self._dispatch(frame)
+
+    def _dispatch(self, frame: Frame) -> None:
+        kind = kind_of(frame.msg_type)
+        if kind is MsgKind.REQUEST:
+            self.stats.ignored += 1
+            return
+        hello_reply = (kind is MsgKind.REPLY and frame.seq == self._hello_seq and
+                       frame.msg_type in (MsgType.INFO, MsgType.NAK))
+        if not hello_reply and frame.session != self.session:
+            self.stats.wrong_session += 1
+            if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and
+                    frame.seq == self._pending and self._reply is None and
+                    frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
+                self._reply = frame  # the device says it restarted: fail fast
+            return
+        if kind is MsgKind.REPLY:
+            if frame.seq == self._pending and self._reply is None:
+                self._reply = frame
+            else:
+                self.stats.stale_replies += 1
+            return
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+        except Exception:  # FrameError (unknown stream type, malformed payload)
+            self.stats.malformed += 1
+            return
+        if frame.msg_type == MsgType.HEARTBEAT:
+            body = Status(**body)
+            self.last_status = body
+        if self._streaming:
+            self._stream.append((frame.msg_type, body))

@@ -1,0 +1,236 @@
+"""Test fixtures for the protocol: a synthetic device application and an in-memory lossy link.
+
+``SyntheticApp`` is a small but complete :class:`protocol.device.DeviceApp` whose
+columns are a pure function of (frame, column, config), so a test can recompute
+what every received column must be. ``mem_pair`` builds two connected port-like
+objects; each direction can drop, duplicate, corrupt and reorder whole writes (one
+write is one frame) from a seeded generator.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
+from protocol.columns import ColumnResult
+from protocol.device import DeviceApp, DeviceEndpoint
+from protocol.messages import CaptureKind, ErrorCode, Info
+
+
+# ---- synthetic device application ------------------------------------------------------
+def expected_column(frame: int, column: int, channels: int, peaks: int, uid_bits: int,
+                    calibration: bool = False) -> ColumnResult:
+    """The column SyntheticApp produces: deterministic in its arguments."""
+    rng = np.random.default_rng([frame, column, channels, peaks, uid_bits, int(calibration)])
+    k, e, n = channels, peaks - 1, uid_bits
+    return ColumnResult.from_arrays(
+        frame, column, (column * 0.05 - 20.0) if not calibration else 0.0,
+        peak_lag=rng.integers(0, 8000, k), peak=rng.integers(-(2**31), 2**31, k),
+        neighbours=rng.integers(-(2**31), 2**31, (k, 2)), noise_count=rng.integers(0, 5000, k),
+        noise_sum=rng.integers(-(2**40), 2**40, k), noise_sumsq=rng.integers(0, 2**62, k),
+        uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 1 << n, k),
+        uid_match=rng.integers(0, 2, k).astype(bool),
+        extra_lag=rng.integers(0, 8000, (k, e)) if e else None,
+        extra_peak=rng.integers(-1000, 1000, (k, e)) if e else None,
+        extra_signs=rng.integers(-1, 2, (k, e, n)) if e else None,
+        calibration=calibration, timestamp_us=column * 1000)
+
+
+class SyntheticApp(DeviceApp):
+    """A device application for tests: validated config, power store, columns, captures."""
+
+    def __init__(self, channels: int = 8, columns: int = 64, column_delay_s: float = 0.0) -> None:
+        self.channels = channels
+        self.columns = columns
+        self.column_delay_s = column_delay_s
+        self.config: dict[str, Any] = {
+            "poly_u": (11, 2), "poly_v": (11, 8, 5, 2), "code_index": tuple(range(channels)),
+            "uid_bits": 1, "uid": 0, "samples_per_chip": 4, "averages": 10, "adc_bits": 12,
+            "gate_start": 0, "gate_len": 64, "peak_exclude": 8, "ghost_windows": (),
+            "out_shift": 0, "rounding": "truncate", "out_bits": 32, "peaks": 1,
+            "columns_per_frame": columns, "mode": "ranging"}
+        self.power = np.full((channels, columns), 65535, dtype=np.uint16)
+        self.set_config_calls = 0
+        self.scan_calls = 0
+        self.aborts = 0
+
+    def info(self) -> Info:
+        return Info.nominal(
+            serial="SYN-0001", firmware_version="test-1.0",
+            wavelengths_m=1570e-9 + 0.875e-9 * np.arange(self.channels), grooves_per_mm=600.0,
+            incidence_deg=60.0, tilt_deg=None, reference_wavelength_m=1587e-9,
+            chip_rate_hz=1e9, column_start_deg=-20.0, column_step_deg=0.05,
+            column_count=self.columns, max_channels=self.channels, adc_bits=12)
+
+    def get_config(self) -> dict[str, Any]:
+        return dict(self.config)
+
+    def set_config(self, values: dict[str, Any]) -> None:
+        new = dict(self.config)
+        new.update(values)
+        if not 1 <= new["peaks"] <= 8:
+            raise out_of_range("peaks", "an integer from 1 to 8", new["peaks"])
+        if not 1 <= new["uid_bits"] <= 8:
+            raise out_of_range("uid_bits", "an integer from 1 to 8", new["uid_bits"])
+        if len(new["code_index"]) != self.channels:
+            raise ConfigError(f"code_index must have {self.channels} items", "code_index")
+        self.set_config_calls += 1
+        self.config = new
+
+    def set_power(self, channel_start: int, column_start: int, power: np.ndarray) -> None:
+        r, c = power.shape
+        if channel_start + r > self.channels or column_start + c > self.columns:
+            raise out_of_range("channel_start", f"a rectangle inside ({self.channels}, "
+                               f"{self.columns})", (channel_start, column_start, r, c))
+        self.power[channel_start:channel_start + r, column_start:column_start + c] = power
+
+    def _columns(self, frame: int, first: int, count: int,
+                 calibration: bool) -> Iterator[ColumnResult]:
+        for col in range(first, first + count):
+            if self.column_delay_s:
+                time.sleep(self.column_delay_s)
+            yield expected_column(frame, col, self.channels, self.config["peaks"],
+                                  self.config["uid_bits"], calibration)
+
+    def scan(self, frame: int, first_column: int, columns: int) -> Iterator[ColumnResult]:
+        if first_column + columns > self.columns:
+            raise out_of_range("columns", f"at most {self.columns - first_column}", columns)
+        self.scan_calls += 1
+        return self._columns(frame, first_column, columns, False)
+
+    def calibrate(self, frame: int, shots: int) -> Iterator[ColumnResult]:
+        return self._columns(frame, 0, shots, True)
+
+    def capture(self, kind: CaptureKind, column: int, channel: int) -> np.ndarray:
+        if column >= self.columns:
+            raise DeviceError("no such column", code=ErrorCode.OUT_OF_RANGE, field="column")
+        rng = np.random.default_rng([int(kind), column, channel])
+        if kind == CaptureKind.RAW:
+            return rng.integers(-2048, 2048, 20000).astype(np.int16)
+        return rng.integers(-(2**40), 2**40, 3000)
+
+    def abort(self) -> None:
+        self.aborts += 1
+
+
+def capture_expected(kind: CaptureKind, column: int, channel: int) -> np.ndarray:
+    """What SyntheticApp.capture returns."""
+    return SyntheticApp(1, column + 1).capture(kind, column, channel)
+
+
+# ---- in-memory lossy link ------------------------------------------------------------
+@dataclass
+class Faults:
+    """Per-write fault probabilities of one direction of a memory link."""
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    corrupt: float = 0.0
+    reorder: float = 0.0
+
+
+class _Pipe:
+    def __init__(self, faults: Faults | None, seed: int) -> None:
+        self.buf = bytearray()
+        self.cond = threading.Condition()
+        self.faults = faults or Faults()
+        self.rng = random.Random(seed)
+        self.held: bytes | None = None
+        self.closed = False
+        self.writes = 0
+
+    def push(self, data: bytes) -> None:
+        f, r = self.faults, self.rng
+        with self.cond:
+            self.writes += 1
+            out: list[bytes] = []
+            if r.random() >= f.drop:
+                d = bytes(data)
+                if d and r.random() < f.corrupt:
+                    b = bytearray(d)
+                    pos = r.randrange(len(b))
+                    b[pos] ^= 1 << r.randrange(8)
+                    d = bytes(b)
+                out.append(d)
+                if r.random() < f.duplicate:
+                    out.append(d)
+            if out and self.held is None and r.random() < f.reorder:
+                self.held = out.pop(0)  # delivered after the next write
+            elif self.held is not None:
+                out.append(self.held)
+                self.held = None
+            for d in out:
+                self.buf += d
+            self.cond.notify_all()
+
+
+class MemPort:
+    """One end of an in-memory link with the pyserial surface the protocol uses."""
+
+    def __init__(self, rx: _Pipe, tx: _Pipe, max_read: int | None = None) -> None:
+        self.rx, self.tx = rx, tx
+        self.timeout: float | None = 0.02
+        self.max_read = max_read  # return at most this many bytes per read (partial reads)
+        self.name = "mem://"
+
+    @property
+    def in_waiting(self) -> int:
+        if self.rx.closed:
+            raise OSError("port closed")
+        return len(self.rx.buf)
+
+    def read(self, n: int = 1) -> bytes:
+        with self.rx.cond:
+            if self.rx.closed:
+                raise OSError("port closed")
+            if not self.rx.buf:
+                self.rx.cond.wait(self.timeout)
+            k = min(n, len(self.rx.buf), self.max_read or n)
+            data = bytes(self.rx.buf[:k])
+            del self.rx.buf[:k]
+            return data
+
+    def write(self, data: bytes) -> int:
+        if self.tx.closed:
+            raise OSError("port closed")
+        self.tx.push(data)
+        return len(data)
+
+    def close(self) -> None:
+        for p in (self.rx, self.tx):
+            with p.cond:
+                p.closed = True
+                p.cond.notify_all()
+
+
+def mem_pair(to_device: Faults | None = None, to_host: Faults | None = None, seed: int = 0,
+             max_read: int | None = None) -> tuple[MemPort, MemPort]:
+    """(host port, device port) joined in memory, with optional faults per direction."""
+    a = _Pipe(to_device, seed)
+    b = _Pipe(to_host, seed + 1)
+    return MemPort(b, a, max_read), MemPort(a, b, max_read)
+
+
+class RunningDevice:
+    """A DeviceEndpoint serving in a daemon thread; use as a context manager."""
+
+    def __init__(self, port: Any, app: DeviceApp, **kw: Any) -> None:
+        self.endpoint = DeviceEndpoint(port, app, **kw)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.endpoint.serve_forever, args=(self.stop,),
+                                       daemon=True)
+
+    def __enter__(self) -> DeviceEndpoint:
+        self.thread.start()
+        return self.endpoint
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
