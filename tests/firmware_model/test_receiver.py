@@ -1,0 +1,264 @@
+"""Receive chain: the fast paths are bit-identical to the streaming reference.
+
+Hypothesis draws whole configurations (ADC width, S, R, UID bits and value, K, N,
+gate incl. wrapping and whole period, shift, rounding, output width, ghost
+windows, several peaks) and signals (uniform, tiny alphabets that force ties,
+full scale, delayed echoes), feeds the reference in random chunks, and compares
+every output field of every fast variant: matrix product, FFT, and both with
+the float limit lowered so the operands are split into limbs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from cdma_lidar.errors import ConfigError
+from firmware_model.receiver import (
+    FastReceiver,
+    ReceiverConfig,
+    ReferenceReceiver,
+    fast,
+    fast_frame,
+    reference,
+)
+
+
+@st.composite
+def cases(draw):
+    n = draw(st.integers(3, 23))
+    s = draw(st.integers(1, 4))
+    k = draw(st.integers(1, 3))
+    ns = n * s
+    gate_kind = draw(st.sampled_from(["any", "full", "one", "wrap"]))
+    if gate_kind == "full":
+        gs, gl = draw(st.integers(0, ns - 1)), ns
+    elif gate_kind == "one":
+        gs, gl = draw(st.integers(0, ns - 1)), 1
+    elif gate_kind == "wrap":
+        gs = draw(st.integers(max(0, ns - 6), ns - 1))
+        gl = draw(st.integers(min(ns, ns - gs + 1), ns))
+    else:
+        gs, gl = draw(st.integers(0, ns - 1)), draw(st.integers(1, ns))
+    uid_bits = draw(st.integers(1, 3))
+    ghosts = draw(
+        st.lists(st.tuples(st.integers(0, ns - 1), st.integers(1, max(1, ns // 3))), max_size=2)
+    )
+    b = draw(st.integers(8, 16))
+    cfg = ReceiverConfig(
+        adc_bits=b,
+        samples_per_chip=s,
+        averages=draw(st.integers(1, 3)),
+        uid_bits=uid_bits,
+        uid=draw(st.integers(0, (1 << uid_bits) - 1)),
+        gate_start=gs,
+        gate_len=gl,
+        peak_exclude=draw(st.integers(0, 4)),
+        ghost_windows=tuple(ghosts),
+        out_shift=draw(st.integers(0, 12)),
+        rounding=draw(st.sampled_from(["truncate", "half_up", "convergent"])),
+        out_bits=draw(st.integers(8, 32)),
+        peaks=draw(st.integers(1, 3)),
+    )
+    try:
+        cfg.widths(n)
+    except ConfigError:
+        assume(False)
+    seed = draw(st.integers(0, 2**32 - 1))
+    kind = draw(st.sampled_from(["uniform", "tiny", "full", "echo"]))
+    rng = np.random.default_rng(seed)
+    codes = rng.integers(0, 2, (k, n), dtype=np.uint8)
+    lo, hi = -(1 << (b - 1)), (1 << (b - 1)) - 1
+    total = cfg.column_samples(n)
+    if kind == "uniform":
+        x = rng.integers(lo, hi + 1, total)
+    elif kind == "tiny":
+        x = rng.integers(-1, 2, total)
+    elif kind == "full":
+        x = rng.choice([lo, hi], total)
+    else:  # delayed, UID-modulated echoes of each channel plus noise, clipped like an ADC
+        period = np.zeros(ns, dtype=np.int64)
+        for row in codes:
+            ref = np.repeat(1 - 2 * row.astype(np.int64), s)
+            period += int(rng.integers(-40, 41)) * np.roll(ref, int(rng.integers(0, ns)))
+        pol = [(-1) ** ((cfg.uid >> p) & 1) for p in range(uid_bits)]
+        one = np.concatenate([q * period for q in pol])
+        x = np.tile(one, cfg.averages) + rng.integers(-3, 4, total)
+        x = np.clip(x, lo, hi)
+    dtype = draw(st.sampled_from([np.int16, np.int32, np.int64]))
+    cuts = sorted(draw(st.lists(st.integers(0, total), max_size=6)))
+    return cfg, codes, x.astype(dtype), cuts
+
+
+def _fast_variants(cfg, codes):
+    n = codes.shape[1]
+    yield FastReceiver(cfg, codes, method="matmul")
+    yield FastReceiver(cfg, codes, method="fft")
+    yield FastReceiver(cfg, codes, method="matmul", float_bits=n.bit_length() + 2)
+    yield FastReceiver(cfg, codes, method="fft", float_bits=36)
+
+
+@settings(max_examples=150)
+@given(cases())
+def test_fast_paths_equal_chunked_reference(case):
+    cfg, codes, x, cuts = case
+    rx = ReferenceReceiver(cfg, codes)
+    for chunk in np.split(x, cuts):
+        rx.feed(chunk)
+    assert rx.samples_needed == 0
+    want = rx.finish()
+    assert want.corr.shape == (codes.shape[0], cfg.gate_len)
+    for fr in _fast_variants(cfg, codes):
+        got = fr.column(x)
+        assert got.mismatches(want) == [], (fr.correlator_method, fr.float_bits)
+
+
+@settings(max_examples=15)
+@given(cases(), st.integers(2, 4))
+def test_fast_frame_equals_columns(case, columns):
+    cfg, codes, x, _ = case
+    rng = np.random.default_rng(len(x))
+    lo, hi = -(1 << (cfg.adc_bits - 1)), (1 << (cfg.adc_bits - 1)) - 1
+    frame = np.stack([x] + [rng.integers(lo, hi + 1, len(x)) for _ in range(columns - 1)])
+    outs = fast_frame(cfg, codes, frame)
+    assert len(outs) == columns
+    for col, out in zip(frame, outs, strict=True):
+        assert out.same_as(reference(cfg, codes, col))
+
+
+def test_hand_computed_example():
+    # code 0,0,1 -> ref +1,+1,-1 (S=1); an impulse of 5 at sample 0:
+    # raw[l] = ref[(-l) mod 3] * 5 = [5, -5, 5]; ties on |out| go to the lowest j.
+    cfg = ReceiverConfig(samples_per_chip=1, averages=1, gate_len=3, peak_exclude=0)
+    codes = np.array([[0, 0, 1]])
+    x = np.array([5, 0, 0])
+    for run in (reference, fast):
+        out = run(cfg, codes, x)
+        assert out.corr.tolist() == [[5, -5, 5]]
+        assert out.peak_lag.tolist() == [0]
+        assert out.peak.tolist() == [5]
+        assert out.neighbours.tolist() == [[5, -5]]  # lags 2 and 1
+        assert (out.noise_count[0], out.noise_sum[0], out.noise_sumsq[0]) == (2, 0, 50)
+        assert out.uid_signs.tolist() == [[1]] and out.uid_match.tolist() == [True]
+
+
+@pytest.mark.parametrize("delay", [0, 1, 7, 37, 79])
+def test_echo_delayed_by_d_samples_peaks_at_lag_d(delay):
+    rng = np.random.default_rng(delay)
+    codes = rng.integers(0, 2, (2, 20))
+    s = 4
+    cfg = ReceiverConfig(samples_per_chip=s, averages=2, gate_start=0, gate_len=80)
+    echo = np.roll(np.repeat(1 - 2 * codes[1], s), delay) * 100
+    x = np.tile(echo, 2)
+    for run in (reference, fast):
+        out = run(cfg, codes, x)
+        assert out.peak_lag[1] == delay
+        assert out.peak[1] == 2 * 100 * 80
+
+
+def test_uid_decoding_and_mismatch():
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, 2, (1, 15))
+    s, n_uid, uid = 2, 3, 0b101
+    ref = np.repeat(1 - 2 * codes[0], s)
+    echo = np.roll(ref, 5) * 50
+    frame = np.concatenate([(-1) ** ((uid >> p) & 1) * echo for p in range(n_uid)])
+    x = np.tile(frame, 2)
+    ours = ReceiverConfig(samples_per_chip=s, averages=2, uid_bits=n_uid, uid=uid, gate_len=30)
+    other = ours.replace(uid=0b011)
+    for run in (reference, fast):
+        a = run(ours, codes, x)
+        assert a.uid_signs.tolist() == [[-1, 1, -1]]
+        assert a.uid_observed.tolist() == [uid] and a.uid_match.tolist() == [True]
+        assert a.peak_lag.tolist() == [5] and a.peak.tolist() == [3 * 2 * 50 * 30]
+        b = run(other, codes, x)  # despread with the wrong UID: periods partly cancel
+        assert not b.uid_match[0]
+        assert abs(b.peak[0]) < abs(a.peak[0])
+
+
+def test_no_eligible_lag_reports_minus_one():
+    codes = np.array([[0, 1, 1, 0, 1]])
+    cfg = ReceiverConfig(samples_per_chip=1, averages=1, gate_start=1, gate_len=3, peaks=2,
+                         ghost_windows=((0, 5),))
+    x = np.arange(5) * 3
+    for run in (reference, fast):
+        out = run(cfg, codes, x)
+        assert out.peak_lag.tolist() == [-1] and out.peak.tolist() == [0]
+        assert out.neighbours.tolist() == [[0, 0]]
+        assert out.noise_count.tolist() == [0]
+        assert out.extra_lag.tolist() == [[-1]]
+        assert out.uid_signs.tolist() == [[0]] and not out.uid_match[0]
+
+
+def test_second_peak_respects_exclusion_and_is_missing_when_nothing_is_left():
+    codes = np.array([[0, 1, 1, 1, 0, 1, 0]])
+    cfg = ReceiverConfig(samples_per_chip=1, averages=1, gate_len=7, peak_exclude=3, peaks=3)
+    x = np.roll(1 - 2 * codes[0], 2) * 10
+    for run in (reference, fast):
+        out = run(cfg, codes, x)
+        assert out.peak_lag[0] == 2
+        # lags 0..6, exclusion |j - 2| <= 3 leaves j = 6 only, then nothing
+        assert out.extra_lag.tolist() == [[6, -1]]
+        assert out.noise_count.tolist() == [0]
+
+
+def test_config_validation_names_the_field():
+    with pytest.raises(ConfigError, match="adc_bits"):
+        ReceiverConfig(adc_bits=17)
+    with pytest.raises(ConfigError, match="rounding"):
+        ReceiverConfig(rounding="nearest")
+    with pytest.raises(ConfigError, match="uid"):
+        ReceiverConfig(uid_bits=2, uid=4)
+    with pytest.raises(ConfigError, match="ghost_windows"):
+        ReceiverConfig(ghost_windows=((1,),))
+    codes = np.zeros((1, 7), dtype=np.uint8)
+    with pytest.raises(ConfigError, match="gate_start"):
+        reference(ReceiverConfig(samples_per_chip=1, gate_start=7), codes, np.zeros(70))
+    with pytest.raises(ConfigError, match="gate_len"):
+        fast(ReceiverConfig(samples_per_chip=1, gate_len=8), codes, np.zeros(70, np.int16))
+    with pytest.raises(ConfigError, match="codes"):
+        fast(ReceiverConfig(), np.full((1, 7), 2), np.zeros(280, np.int16))
+
+
+def test_noise_sumsq_too_wide_is_rejected_with_its_fields():
+    cfg = ReceiverConfig(gate_len=2047 * 4)  # out_bits = 32, whole period of a degree-11 code
+    with pytest.raises(ConfigError, match="out_bits/out_shift/gate_len") as err:
+        cfg.widths(2047)
+    assert err.value.field == "out_bits"
+    assert cfg.replace(out_bits=26).widths(2047).noise_sumsq <= 63
+
+
+def test_widths_of_the_default_and_the_largest_config():
+    w = ReceiverConfig().widths(2047)
+    assert (w.acc, w.desp, w.raw, w.out, w.noise_sumsq) == (16, 16, 29, 29, 63)
+    big = ReceiverConfig(adc_bits=16, samples_per_chip=64, averages=1024, uid_bits=16,
+                         gate_len=64, out_bits=24)
+    wb = big.widths(2**20 - 1)
+    assert wb.raw == 56 and not wb.float_exact
+    assert wb.noise_sumsq <= 63
+
+
+@pytest.mark.parametrize("run", [reference, fast])
+def test_bad_samples_are_rejected(run):
+    codes = np.zeros((1, 5), dtype=np.uint8)
+    cfg = ReceiverConfig(adc_bits=8, samples_per_chip=1, averages=1, gate_len=5)
+    with pytest.raises(ConfigError, match="samples"):
+        run(cfg, codes, np.array([0, 0, 128, 0, 0]))
+    with pytest.raises(ConfigError, match="samples"):
+        run(cfg, codes, np.zeros(4, dtype=np.int16))
+    with pytest.raises(ConfigError, match="samples"):
+        run(cfg, codes, np.zeros(5))
+
+
+def test_reference_rejects_overfeeding_and_early_finish():
+    rx = ReferenceReceiver(ReceiverConfig(samples_per_chip=1, averages=1, gate_len=3),
+                           np.zeros((1, 3), np.uint8))
+    rx.feed([1, 2])
+    with pytest.raises(ConfigError, match="samples"):
+        rx.finish()
+    with pytest.raises(ConfigError, match="samples"):
+        rx.feed([1, 2])
+    rx.feed([3])
+    assert rx.finish().corr.shape == (1, 3)
