@@ -203,6 +203,7 @@ class DeviceEndpoint:
         self._last_seq: int | None = None
         self._stream: _Stream | None = None
         self._last_frame = 0
+        self._last_next = 0
         self._ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
         self._stream_seq = 0
         self._last_heartbeat = 0.0
@@ -261,7 +262,7 @@ class DeviceEndpoint:
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(st.frame if st else self._last_frame) & mask,
-            next_column=(st.next_column if st else 0) & 0xFFFF,
+            next_column=(st.next_column if st else self._last_next) & 0xFFFF,
             columns_sent=self.stats.columns_sent & mask,
             uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
             rx_frames=self.decoder.stats.frames & mask,
@@ -542,6 +543,7 @@ class DeviceEndpoint:
         if st is None:
             return
         self._stream = None
+        self._last_next = st.next_column
         if reason is not ScanEndReason.COMPLETE:
             self.app.abort()
         close = getattr(st.gen, "close", None)

@@ -19,9 +19,9 @@ twice. Then :class:`LinkTimeout` says what the line showed (``diagnosis``):
 
 Scans: columns arrive as COLUMN_RESULT frames; :meth:`HostLink.scan` yields them in
 column order exactly once, asks for missing ones again (RESEND) as soon as a later
-column, a HEARTBEAT or SCAN_END shows they were sent, or after ``timeout_s`` of
-silence, and fails with LinkTimeout after ``retries`` unanswered requests for the
-same column.
+column, a HEARTBEAT or SCAN_END shows they were sent. After ``timeout_s`` of
+silence it asks STATUS to learn how far the device got. It fails with LinkTimeout
+after ``retries`` fruitless RESENDs of one column.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ from protocol.messages import (
     MsgKind,
     MsgType,
     ScanEndReason,
+    State,
     Status,
     config_key,
     decode_config,
@@ -457,8 +458,11 @@ class HostLink:
                 if got:
                     last_rx = now
                 elif now - last_rx >= self.timeout_s:
-                    horizon = end  # silence: ask for everything still missing
-                    last_rx = now
+                    # Silence: ask the device how far it got (raises LinkTimeout with a
+                    # diagnosis if it does not answer either).
+                    horizon = max(horizon, self._probe(fid, nxt, end, received))
+                    last_rx = self.clock()
+                    continue
                 due = [c for c in range(nxt, horizon) if c not in received and
                        (c not in asked or now - asked[c][0] >= self.timeout_s)]
                 if due:
@@ -473,6 +477,18 @@ class HostLink:
             if not finished:
                 with contextlib.suppress(LinkError):
                     self.abort()
+
+    def _probe(self, fid: int, nxt: int, end: int, received: dict[int, ColumnResult]) -> int:
+        """STATUS_GET after a silent spell; returns how far the device has sent columns."""
+        st = self.status()
+        if st.frame != fid:
+            raise LinkError(f"device is {st.state_name} with frame {st.frame}, not frame {fid}: "
+                            "it lost the scan (restarted or another host took over)")
+        sent = min(end, st.next_column)
+        if st.state == State.IDLE and sent < end and \
+                all(c in received for c in range(nxt, sent)):
+            raise ScanAborted(f"device stopped frame {fid} after column {sent - 1}")
+        return sent
 
     def _resend(self, fid: int, cols: list[int], asked: dict[int, tuple[float, int]],
                 now: float) -> None:

@@ -283,7 +283,7 @@ TEMPERATURE_UNKNOWN = -(2**31)
 _STATUS_FIELDS = (
     u("state", 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2),
     u("frame", 32, "frame id of the current or last scan"),
-    u("next_column", 16, "next column (or shot) the running scan will produce"),
+    u("next_column", 16, "next column (or shot) the current or last scan produces"),
     u("columns_sent", 32, "COLUMN_RESULT frames sent since boot (resends included)"),
     u("uptime_ms", 32, "time since boot", "ms"),
     u("rx_frames", 32, "valid frames received since boot"),

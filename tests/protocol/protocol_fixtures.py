@@ -2,18 +2,15 @@
 
 ``SyntheticApp`` is a small but complete :class:`protocol.device.DeviceApp` whose
 columns are a pure function of (frame, column, config), so a test can recompute
-what every received column must be. ``mem_pair`` builds two connected port-like
-objects; each direction can drop, duplicate, corrupt and reorder whole writes (one
-write is one frame) from a seeded generator.
+what every received column must be. The lossy in-memory link is
+:func:`protocol.pipe.pipe_pair`.
 """
 
 from __future__ import annotations
 
-import random
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -123,99 +120,6 @@ class SyntheticApp(DeviceApp):
 def capture_expected(kind: CaptureKind, column: int, channel: int) -> np.ndarray:
     """What SyntheticApp.capture returns."""
     return SyntheticApp(1, column + 1).capture(kind, column, channel)
-
-
-# ---- in-memory lossy link ------------------------------------------------------------
-@dataclass
-class Faults:
-    """Per-write fault probabilities of one direction of a memory link."""
-
-    drop: float = 0.0
-    duplicate: float = 0.0
-    corrupt: float = 0.0
-    reorder: float = 0.0
-
-
-class _Pipe:
-    def __init__(self, faults: Faults | None, seed: int) -> None:
-        self.buf = bytearray()
-        self.cond = threading.Condition()
-        self.faults = faults or Faults()
-        self.rng = random.Random(seed)
-        self.held: bytes | None = None
-        self.closed = False
-        self.writes = 0
-
-    def push(self, data: bytes) -> None:
-        f, r = self.faults, self.rng
-        with self.cond:
-            self.writes += 1
-            out: list[bytes] = []
-            if r.random() >= f.drop:
-                d = bytes(data)
-                if d and r.random() < f.corrupt:
-                    b = bytearray(d)
-                    pos = r.randrange(len(b))
-                    b[pos] ^= 1 << r.randrange(8)
-                    d = bytes(b)
-                out.append(d)
-                if r.random() < f.duplicate:
-                    out.append(d)
-            if out and self.held is None and r.random() < f.reorder:
-                self.held = out.pop(0)  # delivered after the next write
-            elif self.held is not None:
-                out.append(self.held)
-                self.held = None
-            for d in out:
-                self.buf += d
-            self.cond.notify_all()
-
-
-class MemPort:
-    """One end of an in-memory link with the pyserial surface the protocol uses."""
-
-    def __init__(self, rx: _Pipe, tx: _Pipe, max_read: int | None = None) -> None:
-        self.rx, self.tx = rx, tx
-        self.timeout: float | None = 0.02
-        self.max_read = max_read  # return at most this many bytes per read (partial reads)
-        self.name = "mem://"
-
-    @property
-    def in_waiting(self) -> int:
-        if self.rx.closed:
-            raise OSError("port closed")
-        return len(self.rx.buf)
-
-    def read(self, n: int = 1) -> bytes:
-        with self.rx.cond:
-            if self.rx.closed:
-                raise OSError("port closed")
-            if not self.rx.buf:
-                self.rx.cond.wait(self.timeout)
-            k = min(n, len(self.rx.buf), self.max_read or n)
-            data = bytes(self.rx.buf[:k])
-            del self.rx.buf[:k]
-            return data
-
-    def write(self, data: bytes) -> int:
-        if self.tx.closed:
-            raise OSError("port closed")
-        self.tx.push(data)
-        return len(data)
-
-    def close(self) -> None:
-        for p in (self.rx, self.tx):
-            with p.cond:
-                p.closed = True
-                p.cond.notify_all()
-
-
-def mem_pair(to_device: Faults | None = None, to_host: Faults | None = None, seed: int = 0,
-             max_read: int | None = None) -> tuple[MemPort, MemPort]:
-    """(host port, device port) joined in memory, with optional faults per direction."""
-    a = _Pipe(to_device, seed)
-    b = _Pipe(to_host, seed + 1)
-    return MemPort(b, a, max_read), MemPort(a, b, max_read)
 
 
 class RunningDevice:
