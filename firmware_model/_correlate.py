@@ -48,23 +48,22 @@ _FFT_COST_FACTOR = 8.0  # BLAS throughput / FFT throughput, per "operation" belo
 def chip_sums(d: NDArray[np.int64], s: int) -> NDArray[np.int64]:
     """Integrate-and-dump: (C, N*S) -> (C, S, N), ``Y[c, r, m] = sum_{t<S} d[(mS+r+t) mod NS]``.
 
-    With prefix sums ``P[m, j] = sum_{t<j} d[mS + t]`` inside chip m, the window
-    starting at phase r of chip m is ``(P[m, S] - P[m, r]) + P[m+1, r]`` (m+1 mod N).
+    First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
+    sample (S - 1 shifted adds for small S, a prefix sum otherwise), then
+    ``Y[c, r, m] = W[c, m S + r]`` as one contiguous transpose.
     """
     c, ns = d.shape
     n = ns // s
-    d3 = d.reshape(c, n, s)
-    if s == 1:
-        return d3.transpose(0, 2, 1).astype(np.int64, copy=True)
-    pre = np.cumsum(d3, axis=2, dtype=np.int64)  # P[m, j+1]
-    total = pre[:, :, -1]  # (C, N)
-    y = np.empty((c, s, n), dtype=np.int64)
-    y[:, 0, :] = total
-    head = pre[:, :, :-1].transpose(0, 2, 1)  # (C, S-1, N): P[m, r] for r = 1..S-1
-    y[:, 1:, :] = total[:, None, :] - head
-    y[:, 1:, :-1] += head[:, :, 1:]
-    y[:, 1:, -1] += head[:, :, 0]
-    return y
+    if s <= 8:
+        w = d.astype(np.int64, copy=True)
+        for t in range(1, s):
+            w[:, :-t] += d[:, t:]
+            w[:, -t:] += d[:, :t]
+    else:
+        ext = np.concatenate([np.zeros((c, 1), np.int64), d, d[:, : s - 1]], axis=1)
+        cs = np.cumsum(ext, axis=1)
+        w = cs[:, s : s + ns] - cs[:, :ns]
+    return np.ascontiguousarray(w.reshape(c, n, s).transpose(0, 2, 1))
 
 
 def _limbs(
