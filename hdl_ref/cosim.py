@@ -54,6 +54,7 @@ __all__ = [
     "rx_latency_clocks",
     "rx_ports",
     "seed_bits",
+    "to_receiver_output",
 ]
 
 log = logging.getLogger("cdma_lidar." + __name__)
@@ -293,6 +294,39 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
         "extra_peak": [pk[1] for pk in peaks[1:]],
         "extra_signs": [pk[2] for pk in peaks[1:]],
     }
+
+
+def to_receiver_output(decoded: Mapping[str, Any]) -> Any:
+    """A one-channel ``firmware_model.receiver.ReceiverOutput`` from :func:`decode_rx_result`.
+
+    Shapes and dtypes are those of the model (K = 1), so ``mismatches()`` of the
+    model's output against it compares values, shapes and dtypes field by field.
+    """
+    import numpy as np
+
+    from firmware_model.receiver import ReceiverOutput
+
+    n = len(decoded["uid_signs"])
+    extra = len(decoded["extra_lag"])
+
+    def i64(v: Any, shape: tuple[int, ...]) -> Any:
+        return np.array(v, dtype=np.int64).reshape(shape)
+
+    return ReceiverOutput(
+        corr=i64(decoded["corr"], (1, -1)),
+        peak_lag=i64([decoded["peak_lag"]], (1,)),
+        peak=i64([decoded["peak"]], (1,)),
+        neighbours=i64(decoded["neighbours"], (1, 2)),
+        noise_count=i64([decoded["noise_count"]], (1,)),
+        noise_sum=i64([decoded["noise_sum"]], (1,)),
+        noise_sumsq=i64([decoded["noise_sumsq"]], (1,)),
+        uid_signs=np.array(decoded["uid_signs"], dtype=np.int8).reshape(1, n),
+        uid_observed=i64([decoded["uid_observed"]], (1,)),
+        uid_match=np.array([decoded["uid_match"]], dtype=np.bool_),
+        extra_lag=i64(decoded["extra_lag"], (1, extra)),
+        extra_peak=i64(decoded["extra_peak"], (1, extra)),
+        extra_signs=np.array(decoded["extra_signs"], dtype=np.int8).reshape(1, extra, n),
+    )
 
 
 def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str]) -> Path:
