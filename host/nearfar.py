@@ -10,21 +10,33 @@ Control law (pure function, :func:`next_power`). SNR_XC = peak^2 / sigma^2 and t
 peak is proportional to the pixel's power, so scaling a pixel's power by ``g`` moves
 its SNR_XC by ``20 log10 g`` dB for a given noise floor. What makes a near-far column
 bad is its noise floor: the strong channels' cross-correlation raises sigma for
-everybody, and the strong pixels themselves stay far above the threshold (they are
-limited only by each other). So a strong pixel is brought down to the peak that
-would give the target ``T = threshold + margin`` on a *quiet* noise floor -- the 10th
-percentile of the effective floors ``sigma = |peak| / 10^(SNR_XC / 20)`` across the
-frame -- which one step takes it to the level of the weak echoes::
+everybody, the strong pixels included, so their own SNR_XC does not show how strong
+they are. Their *reference* SNR does: the peak against the noise floor of a typical
+column with objects in it, ``sigma_ref``. Each pixel's effective floor is
+``|peak| / 10^(SNR_XC/20)``; a column's floor is the median over its channels, and
+``sigma_ref`` is the 25th percentile of the floors of the columns where something was
+detected (above the threshold) -- columns that only have sky in them show the bare
+thermal floor, which no object column can reach. With the target
+``T = threshold + margin``::
 
-    SNR > T + margin      ->  P *= min(1, sigma_quiet * 10^(T / 20) / |peak|)
-    SNR < threshold       ->  P *= 10^(min(T - SNR, max_step) / 20)  (up, at most max_step)
-    otherwise             ->  P unchanged                              (dead band)
+    SNR_ref = 20 log10(|peak| / sigma_ref)
+    strong: SNR >= threshold and SNR_ref > T + margin
+            ->  P *= 10^((T + margin/2 - SNR_ref) / 20)   (down into the dead band)
+    weak:   SNR < threshold and SNR_ref < T
+            ->  P *= 10^(min(T - SNR, max_step) / 20)     (up, at most max_step)
+    otherwise  ->  P unchanged
 
-Without peaks (``peak=None``) a strong pixel's own floor stands in for the quiet one,
-i.e. ``P *= 10^((T - SNR) / 20)``. Then ``P`` is clipped to ``[min_power,
-max_power]`` per pixel, and if the sum exceeds the eye-safety cap the whole matrix is
-scaled down to it (the device enforces the same cap). Powers are relative (1.0 = the
-device's full channel power).
+A pixel below the threshold whose peak is nevertheless large against the reference
+floor is not weak: it is drowned by its column (its "peak" is interference) or was
+just brought down from strong; raising it would only feed the interference back.
+
+One step takes a strong pixel to the level of the echoes in ordinary columns. Without
+peaks (``peak=None``) the pixel's own floor stands in for the reference one. Then ``P`` is
+clipped to ``[min_power, max_power]`` per pixel. A column's channels are emitted at
+once, so a column whose sum exceeds the eye-safety cap is brought down to it; the
+raised pixels give way first (they may be empty sky that no power will light up),
+then, if that is not enough, the whole column. The device enforces the same cap.
+Powers are in one consistent unit (W on the device).
 """
 
 from __future__ import annotations
@@ -44,23 +56,27 @@ log = logging.getLogger("cdma_lidar." + __name__)
 
 @dataclass(frozen=True)
 class PowerLimits:
-    """Power bounds (relative units; 1.0 is a channel's full power).
+    """Power bounds (one unit throughout, W on the device).
 
     Attributes:
         max_power: per-pixel maximum, scalar or (K, C).
-        min_power: per-pixel minimum (keeps a pixel measurable), scalar.
-        total_cap: eye-safety cap on the sum over the matrix; None for K * C * max.
+        min_power: per-pixel minimum (keeps a pixel measurable), scalar; None for
+            1e-4 of the smallest maximum.
+        total_cap: eye-safety cap on each column's sum over channels (all channels of a
+            column are emitted together); None for no cap beyond the per-pixel maxima.
     """
 
     max_power: float | NDArray = 1.0
-    min_power: float = 1e-3
+    min_power: float | None = None
     total_cap: float | None = None
 
     def __post_init__(self) -> None:
         mx = np.asarray(self.max_power, dtype=np.float64)
         if not (np.all(np.isfinite(mx)) and np.all(mx > 0)):
             raise out_of_range("max_power", "finite and > 0", self.max_power)
-        if not (np.isfinite(self.min_power) and 0 < self.min_power <= float(mx.min())):
+        if self.min_power is None:
+            object.__setattr__(self, "min_power", 1e-4 * float(mx.min()))
+        elif not (np.isfinite(self.min_power) and 0 < self.min_power <= float(mx.min())):
             raise out_of_range("min_power", f"in (0, {float(mx.min())}]", self.min_power)
         if self.total_cap is not None and not (np.isfinite(self.total_cap)
                                                and self.total_cap > 0):
@@ -84,11 +100,8 @@ def next_power(power: ArrayLike, snr_db: ArrayLike, threshold_db: float,
     if max_step_db <= 0:
         raise out_of_range("max_step_db", "> 0 dB", max_step_db)
     target = threshold_db + margin_db
-    err = target - s
     finite = np.isfinite(s)
-    change = np.zeros_like(p)
-    strong = finite & (s > target + margin_db)
-    change = np.where(strong, err, change)
+    s_quiet = np.where(finite, s, -np.inf)
     if peak is not None:
         pk = np.abs(np.asarray(peak, dtype=np.float64))
         if pk.shape != s.shape:
@@ -96,20 +109,35 @@ def next_power(power: ArrayLike, snr_db: ArrayLike, threshold_db: float,
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma = pk / 10.0 ** (np.where(finite, s, 0.0) / 20.0)
             usable = finite & (pk > 0) & np.isfinite(sigma)
-            if np.any(usable):
-                quiet = float(np.percentile(sigma[usable], 10))
-                to_target = 20.0 * np.log10(quiet * 10.0 ** (target / 20.0) / pk)
-                change = np.where(strong & usable, np.minimum(to_target, 0.0), change)
-    change = np.where(finite & (s < threshold_db), np.minimum(err, max_step_db), change)
-    new = p * 10.0 ** (change / 20.0)
-    new = np.clip(new, limits.min_power, limits.max_power)
-    cap = limits.total_cap
-    if cap is None:
-        cap = float(np.sum(np.broadcast_to(limits.max_power, p.shape)))
-    total = float(new.sum())
-    if total > cap:
-        new *= cap / total
+            detected = np.any(usable & (s >= threshold_db), axis=0)
+            if np.any(detected):
+                col_floor = np.nanmedian(np.where(usable, sigma, np.nan)[:, detected], axis=0)
+                ref = float(np.percentile(col_floor, 25))
+                s_quiet = np.where(usable, 20.0 * np.log10(pk / ref), s_quiet)
+    change = np.zeros_like(p)
+    detected = finite & (s >= threshold_db)
+    strong = detected & (s_quiet > target + margin_db)
+    weak = finite & (s < threshold_db) & (s_quiet < target)
+    change = np.where(strong, target + margin_db / 2 - s_quiet, change)
+    change = np.where(weak, np.minimum(target - s, max_step_db), change)
+    new = np.clip(p * 10.0 ** (change / 20.0), limits.min_power, limits.max_power)
+    if limits.total_cap is not None:
+        new = _apply_cap(new, change > 0, limits.total_cap)
     return new
+
+
+def _apply_cap(power: NDArray[np.float64], raised: NDArray[np.bool_],
+               cap: float) -> NDArray[np.float64]:
+    """Scale each column to at most ``cap``: raised pixels first, then the whole column."""
+    up = np.where(raised, power, 0.0).sum(axis=0)
+    rest = power.sum(axis=0) - up
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f_up = np.where(up > 0, np.clip((cap - rest) / up, 0.0, 1.0), 1.0)
+    out = np.where(raised, power * f_up[None, :], power)
+    total = out.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f_all = np.where(total > cap, cap / total, 1.0)
+    return out * f_all[None, :]
 
 
 @dataclass
@@ -145,7 +173,7 @@ class NearFarController:
         self.snr_maps.append(s.copy())
         nxt = next_power(self.power, s, self.threshold_db, self.limits, peak=peak,
                          margin_db=self.margin_db, max_step_db=self.max_step_db)
-        log.info("near-far frame %d: %.1f %% above threshold, power sum %.2f -> %.2f",
+        log.info("near-far frame %d: %.1f %% above threshold, power sum %.3g -> %.3g",
                  len(self.snr_maps) - 1, 100.0 * float(np.mean(s >= self.threshold_db)),
                  float(self.power.sum()), float(nxt.sum()))
         self.powers.append(nxt)

@@ -149,7 +149,11 @@ def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float) -> Foreign
 
     A return whose canonical UID equals the canonical form of ours but is a different
     rotation is still foreign (a user with our necklace but other phase cannot be us:
-    our own periods are aligned with our reference).
+    our own periods are aligned with our reference). A return that reads as the bitwise
+    complement of our UID is *not* reported: our own echoes in the other channels leak
+    into every channel through the Gold codes' cross-correlation, and where that
+    sidelobe is negative their per-period signs spell exactly ``~uid``. (The price: a
+    user whose UID is our complement at the same phase is not told apart from it.)
     """
     from firmware_model.snr import snr_xc_db
 
@@ -172,7 +176,9 @@ def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float) -> Foreign
                             for a in (frame.noise_count, frame.noise_sum, frame.noise_sumsq)))
     snr = np.asarray(snr, dtype=np.float64)
     done = np.broadcast_to(frame.done[None, :, None], (k, c, p))
-    hit = done & clear & (obs != uid) & (peak != 0) & (snr >= snr_threshold_db)
+    complement = ~uid & ((1 << n) - 1)
+    hit = (done & clear & (obs != uid) & (obs != complement) & (peak != 0)
+           & (snr >= snr_threshold_db))
     ch, col, _ = np.nonzero(hit)
     return ForeignReturns(channel=ch.astype(np.int64), column=col.astype(np.int64),
                           lag=lag[hit], peak=peak[hit], observed=obs[hit],
