@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
+from protocol.schema import blob, i, u
 
 __all__ = [
     "COLUMN_HEADER",
@@ -66,31 +67,40 @@ FLAG_CALIBRATION = 0x01
 _HEAD = struct.Struct("<IHBBBHiI")
 
 COLUMN_HEADER = cs.Struct(
-    "frame" / cs.Int32ul * "frame id given in SCAN_START / CALIBRATE",
-    "column" / cs.Int16ul * "column index (calibration: shot index)",
-    "flags" / cs.Int8ul * "bit 0: calibration shot; other bits 0",
-    "uid_bits" / cs.Int8ul * "n, UID code periods (1..8)",
-    "peaks" / cs.Int8ul * "P, peaks per channel (1..8)",
-    "channels" / cs.Int16ul * "K, channel records that follow",
-    "angle_udeg" / cs.Int32sl * "grating rotation angle (micro-degrees)",
-    "timestamp_us" / cs.Int32ul * "device clock when the column was measured (us, wraps)",
+    u("frame", 32, "frame id given in SCAN_START / CALIBRATE"),
+    u("column", 16, "column index (calibration: shot index)"),
+    u("flags", 8, "bit 0: calibration shot; other bits 0", lo=0, hi=1),
+    u("uid_bits", 8, "n, UID code periods", "periods", 1, MAX_UID_BITS),
+    u("peaks", 8, "P, peaks per channel", "", 1, MAX_PEAKS),
+    u("channels", 16, "K, channel records that follow", "", 1, 65535),
+    i("angle_udeg", 32, "grating rotation angle of the column", "µdeg"),
+    u("timestamp_us", 32, "device clock when the column was measured (wraps)", "µs"),
 )
 
+_E = cs.this._.peaks - 1  # extra peaks per channel
 _RECORD_STRUCT = cs.Struct(
-    "peak_lag" / cs.Int32ul * "lag of the strongest peak (samples)",
-    "peak" / cs.Int32sl * "scaled correlation at peak_lag (signed out_bits)",
-    "neighbours" / cs.Array(2, cs.Int32sl) * "scaled correlation at peak_lag-1, peak_lag+1",
-    "noise_count" / cs.Int32ul * "gate lags in the noise floor",
-    "noise_sum" / cs.Int64sl * "sum of out over the noise lags",
-    "noise_sumsq" / cs.Int64ul * "sum of out^2 over the noise lags",
-    "uid_neg" / cs.Int8ul * "bit p: period p sign at the peak is -1",
-    "uid_zero" / cs.Int8ul * "bit p: period p sign at the peak is 0",
-    "uid_observed" / cs.Int8ul * "observed UID (bit p set where the sign is -1)",
-    "uid_match" / cs.Int8ul * "1 when no sign is 0 and uid_observed == uid, else 0",
-    "extra_lag" / cs.Array(cs.this._.peaks - 1, cs.Int32ul) * "lags of peaks 2..P (samples)",
-    "extra_peak" / cs.Array(cs.this._.peaks - 1, cs.Int32sl) * "values of peaks 2..P",
-    "extra_neg" / cs.Array(cs.this._.peaks - 1, cs.Int8ul) * "sign masks (-1) of peaks 2..P",
-    "extra_zero" / cs.Array(cs.this._.peaks - 1, cs.Int8ul) * "sign masks (0) of peaks 2..P",
+    u("peak_lag", 32, "lag of the strongest peak", "samples", 0, None, "0..N*S-1"),
+    i("peak", 32, "scaled correlation out at peak_lag", "out LSB", allowed="signed out_bits"),
+    blob("neighbours", cs.Array(2, cs.Int32sl), "i32[2]", "out at peak_lag-1, peak_lag+1",
+         "out LSB", "signed out_bits"),
+    u("noise_count", 32, "gate lags in the noise floor", "lags", allowed="0..gate_len"),
+    i("noise_sum", 64, "sum of out over the noise lags", "out LSB"),
+    u("noise_sumsq", 64, "sum of out^2 over the noise lags", "out LSB^2"),
+    u("uid_neg", 8, "bit p: period p's sign at the peak is -1", "mask",
+      allowed="bits 0..n-1"),
+    u("uid_zero", 8, "bit p: period p's sign at the peak is 0", "mask",
+      allowed="bits 0..n-1"),
+    u("uid_observed", 8, "observed UID: bit p set where period p's sign is -1", "",
+      allowed="0..2^n-1"),
+    u("uid_match", 8, "1 when no sign is 0 and uid_observed == uid", "", 0, 1),
+    blob("extra_lag", cs.Array(_E, cs.Int32ul), "u32[P-1]", "lags of peaks 2..P", "samples",
+         "0..N*S-1"),
+    blob("extra_peak", cs.Array(_E, cs.Int32sl), "i32[P-1]", "out at peaks 2..P", "out LSB",
+         "signed out_bits"),
+    blob("extra_neg", cs.Array(_E, cs.Int8ul), "u8[P-1]", "sign masks (-1) of peaks 2..P",
+         "mask", "bits 0..n-1"),
+    blob("extra_zero", cs.Array(_E, cs.Int8ul), "u8[P-1]", "sign masks (0) of peaks 2..P",
+         "mask", "bits 0..n-1"),
 )
 
 #: Declarative form of the whole COLUMN_RESULT payload (documentation and baseline codec).
@@ -419,8 +429,8 @@ def decode_column_construct(payload: bytes) -> ColumnResult:
     if not 1 <= c.peaks <= MAX_PEAKS:
         raise FrameError(f"column: peaks {c.peaks}")
     rec = np.zeros(c.channels, dtype=record_dtype(c.peaks))
-    for i, r in enumerate(c.records):
-        rec[i] = (r.peak_lag, r.peak, list(r.neighbours), r.noise_count, r.noise_sum,
+    for idx, r in enumerate(c.records):
+        rec[idx] = (r.peak_lag, r.peak, list(r.neighbours), r.noise_count, r.noise_sum,
                   r.noise_sumsq, r.uid_neg, r.uid_zero, r.uid_observed, r.uid_match,
                   list(r.extra_lag), list(r.extra_peak), list(r.extra_neg),
                   list(r.extra_zero))

@@ -43,6 +43,7 @@ __all__ = [
     "DELIMITER",
     "FRAME_LIMIT",
     "HEADER",
+    "HEADER_FIELDS",
     "HEADER_SIZE",
     "INCOMPAT_KNOWN",
     "MIN_MAX_FRAME",
@@ -61,7 +62,17 @@ log = logging.getLogger("cdma_lidar." + __name__)
 
 PROTOCOL_VERSION = 1
 DELIMITER = b"\x00"
-HEADER = struct.Struct("<BBBBHHI")
+#: Header fields in wire order: (name, struct format, description). Frozen in every version.
+HEADER_FIELDS = (
+    ("version", "B", "protocol version; this document: 1"),
+    ("incompat_flags", "B", "a receiver drops (device: NAKs) a frame with an unknown bit set"),
+    ("compat_flags", "B", "bit 0: retransmitted (a resent column); unknown bits are ignored"),
+    ("msg_type", "B", "message type (table below)"),
+    ("seq", "H", "request: host counter; reply: the request's seq; stream: device counter"),
+    ("payload_len", "H", "payload bytes that follow the header"),
+    ("session_id", "I", "device session, random at boot, never 0; host sends 0 before HELLO"),
+)
+HEADER = struct.Struct("<" + "".join(f for _, f, _ in HEADER_FIELDS))
 HEADER_SIZE = HEADER.size  # 12
 CRC_SIZE = 4
 OVERHEAD = HEADER_SIZE + CRC_SIZE  # 16 bytes around every payload

@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from protocol import columns as _columns
 from protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
+from protocol.schema import FieldMeta, array, blob, i, text, u
 
 __all__ = [
     "CONFIG_KEYS",
@@ -168,89 +169,6 @@ class CaptureKind(enum.IntEnum):
     CORR = 1  #: correlation trace ``out`` of one channel over the gate lags
 
 
-# ---- field declarations ---------------------------------------------------------------
-@dataclass(frozen=True)
-class FieldMeta:
-    """What the spec says about one field."""
-
-    ctype: str  # C-like wire type, e.g. "u16", "i32", "u8 len + UTF-8"
-    unit: str
-    lo: int | None
-    hi: int | None
-    doc: str
-    kind: str = "int"  # int | text | array | blob
-    max_items: int | None = None
-    allowed: str = ""  # range text for the spec; derived from lo/hi when empty
-
-    @property
-    def range_text(self) -> str:
-        if self.allowed:
-            return self.allowed
-        if self.lo is None:
-            return ""
-        return f"{self.lo}..{self.hi}"
-
-
-_INT = {  # (construct subcon, C type, natural lo, natural hi)
-    ("u", 8): (cs.Int8ul, "u8", 0, 2**8 - 1),
-    ("u", 16): (cs.Int16ul, "u16", 0, 2**16 - 1),
-    ("u", 32): (cs.Int32ul, "u32", 0, 2**32 - 1),
-    ("u", 64): (cs.Int64ul, "u64", 0, 2**64 - 1),
-    ("i", 16): (cs.Int16sl, "i16", -(2**15), 2**15 - 1),
-    ("i", 32): (cs.Int32sl, "i32", -(2**31), 2**31 - 1),
-    ("i", 64): (cs.Int64sl, "i64", -(2**63), 2**63 - 1),
-}
-
-
-def _named(name: str, sub: cs.Construct, meta: FieldMeta) -> cs.Renamed:
-    r = name / sub * meta.doc
-    r.meta = meta  # read by the validator and by protocol.spec
-    return r
-
-
-def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> cs.Renamed:
-    """Unsigned little-endian integer field of ``bits`` bits, optional [lo, hi]."""
-    sub, ctype, nlo, nhi = _INT[("u", bits)]
-    return _named(name, sub, FieldMeta(ctype, unit, nlo if lo is None else lo,
-                                       nhi if hi is None else hi, doc, allowed=allowed))
-
-
-def i(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> cs.Renamed:
-    """Signed two's-complement little-endian integer field."""
-    sub, ctype, nlo, nhi = _INT[("i", bits)]
-    return _named(name, sub, FieldMeta(ctype, unit, nlo if lo is None else lo,
-                                       nhi if hi is None else hi, doc, allowed=allowed))
-
-
-def text(name: str, doc: str) -> cs.Renamed:
-    """UTF-8 string with a u8 byte-length prefix (at most 255 bytes)."""
-    return _named(name, cs.PascalString(cs.Int8ul, "utf8"),
-                  FieldMeta("u8 len + UTF-8", "", None, None, doc, kind="text",
-                            allowed="0..255 bytes"))
-
-
-def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit: str = "",
-          lo: int | None = None, hi: int | None = None, max_items: int | None = None,
-          allowed: str = "") -> cs.Renamed:
-    """Count-prefixed array of integers: ``u<count_bits>`` count, then the elements."""
-    csub, cctype, _, cmax = _INT[("u", count_bits)]
-    esub, ectype, nlo, nhi = _INT[(elem, elem_bits)]
-    return _named(name, cs.PrefixedArray(csub, esub),
-                  FieldMeta(f"{cctype} n + n x {ectype}", unit, nlo if lo is None else lo,
-                            nhi if hi is None else hi, doc, kind="array",
-                            max_items=cmax if max_items is None else max_items,
-                            allowed=allowed))
-
-
-def blob(name: str, sub: cs.Construct, ctype: str, doc: str, unit: str = "",
-         allowed: str = "") -> cs.Renamed:
-    """Any other construct (validated by construct itself)."""
-    return _named(name, sub, FieldMeta(ctype, unit, None, None, doc, kind="blob",
-                                       allowed=allowed))
-
-
 @dataclass(frozen=True)
 class MessageSpec:
     """One message type: its payload declaration and, for requests, the reply type."""
@@ -356,8 +274,6 @@ _MESSAGE_LIST = [
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
          u("protocol_version", 8, "protocol version spoken (1)"),
-         text("firmware_version", "firmware version string"),
-         text("serial", "device serial number"),
          u("session_id", 32, "session id chosen at boot, also in every frame header",
            lo=1, hi=2**32 - 1),
          u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
@@ -383,6 +299,8 @@ _MESSAGE_LIST = [
          i("column_start_udeg", 32, "rotation angle of column 0", "µdeg"),
          i("column_step_udeg", 32, "rotation step between columns", "µdeg"),
          u("column_count", 16, "columns in a full frame", "", 1),
+         text("firmware_version", "firmware version string"),
+         text("serial", "device serial number"),
          array("wavelengths_pm", 16, "u", 32, "nominal wavelength of each channel (count K)",
                "pm", 1, max_items=65535, allowed="K = 1..max_channels items"),
          ),

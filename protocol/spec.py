@@ -1,0 +1,247 @@
+"""Generate the tables of ``docs/protocol.md`` from the declarations in code.
+
+Every table of the spec page sits between two markers::
+
+    <!-- BEGIN GENERATED: name -->
+    ...
+    <!-- END GENERATED: name -->
+
+``python -m protocol.spec`` rewrites them in place; ``python -m protocol.spec --check``
+exits 1 when the committed page differs from the code (the test suite runs the same
+check), so the page and the code cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import construct as cs
+
+from cdma_lidar.fileio import atomic_write_text
+from protocol import framing
+from protocol.columns import _RECORD_STRUCT, COLUMN_HEADER, FLAG_CALIBRATION
+from protocol.messages import (
+    CONFIG_KEYS,
+    CONFIG_OPTIONAL,
+    ERROR_DOCS,
+    MESSAGES,
+    SCHEMA_CRC,
+    MsgKind,
+    MsgType,
+    encode_payload,
+)
+
+__all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
+
+DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+
+_SIZES = {"u8": 1, "u16": 2, "u32": 4, "u64": 8, "i16": 2, "i32": 4, "i64": 8, "i32[2]": 8}
+_FMT = {"B": "u8", "H": "u16", "I": "u32"}
+
+
+def _row(*cells: object) -> str:
+    return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
+
+
+def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
+    out = [_row(*head), _row(*("---" for _ in head))]
+    out += [_row(*r) for r in rows]
+    return "\n".join(out)
+
+
+def header_table() -> str:
+    """Frame header fields with offsets."""
+    rows, off = [], 0
+    for name, fmt, doc in framing.HEADER_FIELDS:
+        size = framing.struct.calcsize("<" + fmt)
+        rows.append((off, size, f"`{name}`", _FMT[fmt], doc))
+        off += size
+    return _table(("offset", "size", "field", "type", "meaning"), rows)
+
+
+def constants_table() -> str:
+    """Protocol constants."""
+    rows = [
+        ("`PROTOCOL_VERSION`", framing.PROTOCOL_VERSION, "header byte 0"),
+        ("`HEADER_SIZE`", framing.HEADER_SIZE, "bytes"),
+        ("`CRC_SIZE`", framing.CRC_SIZE, "bytes, CRC-32 little-endian after the payload"),
+        ("`FRAME_LIMIT`", framing.FRAME_LIMIT,
+         "largest max frame size a device may announce (bytes, header + payload + CRC)"),
+        ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME, "smallest max frame size (bytes)"),
+        ("`COMPAT_RETRANSMIT`", f"0x{framing.COMPAT_RETRANSMIT:02x}",
+         "compat flag: frame is a retransmission"),
+        ("`INCOMPAT_KNOWN`", f"0x{framing.INCOMPAT_KNOWN:02x}",
+         "incompat flags understood by version 1 (none)"),
+        ("`CONFIG_OPTIONAL`", f"0x{CONFIG_OPTIONAL:02x}", "key id bit: ignorable if unknown"),
+        ("`FLAG_CALIBRATION`", f"0x{FLAG_CALIBRATION:02x}", "COLUMN_RESULT flags bit"),
+        ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
+    ]
+    return _table(("name", "value", "meaning"), rows)
+
+
+def messages_table() -> str:
+    """Overview of every message type."""
+    rows = []
+    for t, m in MESSAGES.items():
+        direction = "host → device" if m.kind is MsgKind.REQUEST else "device → host"
+        reply = m.reply.name if m.reply else ""
+        rows.append((f"0x{int(t):02X}", f"[{t.name}](#{t.name.lower()})", m.kind.value,
+                     direction, reply, m.doc))
+    return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
+
+
+def _fields_table(subcons: list, *, offset: int | str = 0) -> str:
+    rows = []
+    off: int | str = offset
+    for sc in subcons:
+        meta = getattr(sc, "meta", None)
+        if meta is None:  # a plain construct field (column layout)
+            ctype, unit, rng, doc = _ctype(sc.subcon), "", "", sc.docs
+        else:
+            ctype, unit, rng, doc = meta.ctype, meta.unit, meta.range_text, meta.doc
+        rows.append((off, f"`{sc.name}`", ctype, unit, rng, doc))
+        size = _SIZES.get(ctype)
+        off = off + size if isinstance(off, int) and size else "var"
+    return _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
+
+
+def _ctype(sub: cs.Construct) -> str:
+    while isinstance(sub, cs.Renamed):
+        sub = sub.subcon
+    if isinstance(sub, cs.FormatField):
+        return _STRUCT_TYPES[sub.fmtstr]
+    if isinstance(sub, cs.Array):
+        count = sub.count if isinstance(sub.count, int) else "P-1"
+        return f"{_ctype(sub.subcon)}[{count}]"
+    raise TypeError(f"no spec type for {sub!r}")
+
+
+_STRUCT_TYPES = {"<B": "u8", "<H": "u16", "<I": "u32", "<L": "u32", "<Q": "u64", "<b": "i8",
+                 "<h": "i16", "<i": "i32", "<l": "i32", "<q": "i64"}
+
+
+def message_fields() -> str:
+    """One field table per message (COLUMN_RESULT: see its own section)."""
+    parts = []
+    for t, m in MESSAGES.items():
+        parts.append(f"#### {t.name}\n\n`0x{int(t):02X}`, {m.kind.value}. {m.doc}\n")
+        if t == MsgType.COLUMN_RESULT:
+            parts.append("Layout: see [COLUMN_RESULT layout](#column_result-layout).\n")
+        elif not m.fields:
+            parts.append("Empty payload (`payload_len` = 0).\n")
+        else:
+            parts.append(_fields_table(m.fields) + "\n")
+    return "\n".join(parts).rstrip()
+
+
+def column_table() -> str:
+    """COLUMN_RESULT header and per-channel record."""
+    head = _fields_table(list(COLUMN_HEADER.subcons))
+    rec = _fields_table(list(_RECORD_STRUCT.subcons))
+    pos = {"extra_lag": "40", "extra_peak": "40 + 4(P-1)", "extra_neg": "40 + 8(P-1)",
+           "extra_zero": "40 + 9(P-1)"}
+    # Offsets after the first variable-size field, in terms of P.
+    rec = "\n".join(_fix_offset(line, pos) for line in rec.split("\n"))
+    return (f"Column header ({framing.struct.calcsize('<IHBBBHiI')} bytes):\n\n{head}\n\n"
+            f"Channel record (`40 + 10 (P-1)` bytes, K of them, channel 0 first):\n\n{rec}")
+
+
+def config_table() -> str:
+    """CONFIG keys."""
+    rows = [(k.id, f"`{k.name}`", k.ctype, k.unit, k.allowed, "yes" if k.read_only else "",
+             k.doc) for k in CONFIG_KEYS]
+    return _table(("key", "name", "value type", "unit", "range", "read-only", "meaning"), rows)
+
+
+def errors_table() -> str:
+    """NAK error codes."""
+    return _table(("code", "name", "meaning"),
+                  [(int(c), f"`{c.name}`", d) for c, d in ERROR_DOCS.items()])
+
+
+def _fix_offset(line: str, pos: dict[str, str]) -> str:
+    for name, off in pos.items():
+        if f"| `{name}` |" in line:
+            return line.replace("| var |", f"| {off} |", 1).replace(
+                f"| 40 | `{name}`", f"| {off} | `{name}`", 1)
+    return line
+
+
+def examples() -> str:
+    """Hex dumps of complete frames (seq 0x0102, session 0xA1B2C3D4)."""
+    cases = [
+        ("STATUS_GET request, seq 0x0102, session 0xA1B2C3D4", MsgType.STATUS_GET, {}),
+        ("SCAN_START frame 7, columns 0..99", MsgType.SCAN_START,
+         {"frame": 7, "first_column": 0, "columns": 100}),
+        ("ACK of a SCAN_START", MsgType.ACK, {"request_type": int(MsgType.SCAN_START)}),
+    ]
+    out = []
+    for title, t, f in cases:
+        payload = encode_payload(t, f)
+        body = framing.HEADER.pack(framing.PROTOCOL_VERSION, 0, 0, int(t), 0x0102,
+                                   len(payload), 0xA1B2C3D4) + payload
+        crc = framing.crc32(body)
+        wire = framing.encode_frame(int(t), payload, 0x0102, 0xA1B2C3D4)
+        out.append(f"{title}:\n\n```text\nframe  {body.hex(' ')} | crc {crc:08x} (LE "
+                   f"{crc.to_bytes(4, 'little').hex(' ')})\nwire   {wire.hex(' ')}\n```")
+    return "\n\n".join(out)
+
+
+#: Generated sections by marker name.
+SECTIONS: dict[str, Callable[[], str]] = {
+    "constants": constants_table,
+    "header": header_table,
+    "messages": messages_table,
+    "fields": message_fields,
+    "column": column_table,
+    "config": config_table,
+    "errors": errors_table,
+    "examples": examples,
+}
+
+_BLOCK = re.compile(r"(<!-- BEGIN GENERATED: (\w+) -->\n)(.*?)(<!-- END GENERATED: \2 -->)",
+                    re.S)
+
+
+def render(text: str) -> str:
+    """``text`` with every generated block replaced by its current content."""
+    def sub(m: re.Match) -> str:
+        name = m.group(2)
+        if name not in SECTIONS:
+            raise KeyError(f"unknown generated section {name!r} in docs/protocol.md")
+        return f"{m.group(1)}{SECTIONS[name]()}\n{m.group(4)}"
+
+    return _BLOCK.sub(sub, text)
+
+
+def check(path: Path = DOC_PATH) -> bool:
+    """True when the page at ``path`` equals its regenerated form."""
+    text = path.read_text(encoding="utf-8")
+    return render(text) == text
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Regenerate (or with --check, verify) the tables of docs/protocol.md."""
+    ap = argparse.ArgumentParser(prog="python -m protocol.spec", description=__doc__.split(
+        "\n")[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 if the page is stale")
+    ap.add_argument("--path", type=Path, default=DOC_PATH)
+    args = ap.parse_args(argv)
+    text = args.path.read_text(encoding="utf-8")
+    new = render(text)
+    if args.check:
+        if new != text:
+            sys.stderr.write(f"{args.path} is stale: run python -m protocol.spec\n")
+            return 1
+        return 0
+    if new != text:
+        atomic_write_text(args.path, new)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
