@@ -105,20 +105,24 @@ class GateCorrelator:
         self.r_m = (self.r0 + m) % s
         self.nq = int(self.u_m[-1]) + 1
         self.fft_len = 1 << (2 * n - 1).bit_length()
-        mm_ops = n * k * self.nq
+        self.sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]  # lags m of phase r
+        mm_ops = n * k * count / s
         fft_ops = (k + 1) * self.fft_len * math.log2(self.fft_len) * _FFT_COST_FACTOR
-        mm_bytes = n * k * self.nq * 8
+        mm_bytes = n * k * count * 8
         if method is None:
             method = "matmul" if (mm_ops <= fft_ops and mm_bytes <= _MATMUL_BMAT_BYTES) else "fft"
         if method not in ("matmul", "fft"):
             raise out_of_range("method", "'matmul', 'fft' or None", method)
         self.method = method
         if method == "matmul":
-            u = np.arange(self.nq)
-            idx = (np.arange(n)[:, None] - self.q0 - u[None, :]) % n  # (N, nq)
-            self.bmat = np.ascontiguousarray(
-                bip[:, idx].transpose(1, 0, 2).reshape(n, k * self.nq), dtype=np.float64
-            )
+            # one Hankel block per phase r holding only the chip lags that phase needs
+            self.bmat = []
+            for sel in self.sel:
+                u = self.u_m[sel]
+                idx = (np.arange(n)[:, None] - self.q0 - u[None, :]) % n  # (N, nq_r)
+                self.bmat.append(np.ascontiguousarray(
+                    bip[:, idx].transpose(1, 0, 2).reshape(n, k * len(u)), dtype=np.float64
+                ))
         else:
             self._spec = None
         log.debug("gate correlator: N=%d S=%d K=%d lags=%d via %s", n, s, k, count, method)
@@ -132,20 +136,23 @@ class GateCorrelator:
 
     def _matmul(self, y: NDArray[np.int64]) -> NDArray[np.int64]:
         c, s, n = y.shape
+        count = len(self.u_m)
         limit = 1 << self.float_bits
         h = self.float_bits - n.bit_length()
-        per_col = max(s * n * 8 * 2, s * self.k * self.nq * 8)
+        per_col = s * n * 8 * 2 + self.k * count * 16
         block = max(1, _MEM_BYTES // per_col)
-        out = np.empty((c, self.k, len(self.u_m)), dtype=np.int64)
+        out = np.zeros((c, self.k, count), dtype=np.int64)
         for c0 in range(0, c, block):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
-            acc = np.zeros((cb, self.k, len(self.u_m)), dtype=np.int64)
+            acc = out[c0 : c0 + cb]
             for limb, shift in _limbs(yb, lambda v: n * int(np.abs(v).max(initial=0)) < limit, h):
-                o = limb.reshape(cb * s, n).astype(np.float64) @ self.bmat
-                o = o.reshape(cb, s, self.k, self.nq)[:, self.r_m, :, self.u_m]  # (M, cb, K)
-                acc += o.transpose(1, 2, 0).astype(np.int64) << shift
-            out[c0 : c0 + cb] = acc
+                lf = limb.astype(np.float64)  # exact: |limb| < 2^53
+                for r, sel in enumerate(self.sel):
+                    if len(sel):
+                        o = lf[:, r, :] @ self.bmat[r]  # (cb, K * nq_r), exact integers
+                        o = o.reshape(cb, self.k, len(sel)).astype(np.int64)
+                        acc[:, :, sel] += o << shift
         return out
 
     # -- FFT with a rigorous rounding guard

@@ -603,26 +603,29 @@ class FastReceiver:
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
-        outs = []
-        for ci in range(c):
-            outs.append(
-                ReceiverOutput(
-                    corr=np.ascontiguousarray(corr[ci]),
-                    peak_lag=pk_lag[ci, :, 0].copy(),
-                    peak=pk_val[ci, :, 0].copy(),
-                    neighbours=nb[ci].copy(),
-                    noise_count=cnt[ci].copy(),
-                    noise_sum=nsum[ci].copy(),
-                    noise_sumsq=nsq[ci].copy(),
-                    uid_signs=signs[ci, :, 0, :].copy(),
-                    uid_observed=observed[ci].copy(),
-                    uid_match=match[ci].copy(),
-                    extra_lag=pk_lag[ci, :, 1:].copy(),
-                    extra_peak=pk_val[ci, :, 1:].copy(),
-                    extra_signs=signs[ci, :, 1:, :].copy(),
-                )
+        corr = np.ascontiguousarray(corr)
+        uid0 = np.ascontiguousarray(signs[:, :, 0, :])
+        extra_signs = np.ascontiguousarray(signs[:, :, 1:, :])
+        lag0, val0 = np.ascontiguousarray(pk_lag[..., 0]), np.ascontiguousarray(pk_val[..., 0])
+        lag1, val1 = np.ascontiguousarray(pk_lag[..., 1:]), np.ascontiguousarray(pk_val[..., 1:])
+        return [  # per-column views into the frame's arrays
+            ReceiverOutput(
+                corr=corr[ci],
+                peak_lag=lag0[ci],
+                peak=val0[ci],
+                neighbours=nb[ci],
+                noise_count=cnt[ci],
+                noise_sum=nsum[ci],
+                noise_sumsq=nsq[ci],
+                uid_signs=uid0[ci],
+                uid_observed=observed[ci],
+                uid_match=match[ci],
+                extra_lag=lag1[ci],
+                extra_peak=val1[ci],
+                extra_signs=extra_signs[ci],
             )
-        return outs
+            for ci in range(c)
+        ]
 
     def _uid_signs(
         self,
