@@ -28,6 +28,7 @@ def _receiver(inst, cfg=None, **kw):
     cfg = cfg or RenderSettings.from_spec(inst.spec)
     codes = gold_codes(cfg.poly_u, cfg.poly_v, cfg.code_index)
     start, length = inst.default_gate()
+    kw.setdefault("out_bits", 24)
     rc = ReceiverConfig(adc_bits=inst.spec.adc_bits, samples_per_chip=cfg.samples_per_chip,
                         averages=cfg.averages, uid_bits=cfg.uid_bits, uid=cfg.uid,
                         gate_start=kw.pop("gate_start", start), gate_len=kw.pop("gate_len", length),
@@ -97,7 +98,7 @@ def test_amplitude_follows_inverse_square_of_range():
     peaks = {}
     for d in (3.0, 6.0):
         inst = Instrument(_wall(d, count=2, columns=1, **{"instrument.snr_db": 40.0}), seed=1)
-        out = _receiver(inst, gate_start=0, gate_len=128, out_bits=24).column(inst.render(0))
+        out = _receiver(inst, gate_start=0, gate_len=128).column(inst.render(0))
         peaks[d] = out.peak.astype(float)
     np.testing.assert_allclose(peaks[3.0] / peaks[6.0], 4.0, rtol=0.03)
 
@@ -118,7 +119,7 @@ def test_ghosts_appear_only_where_configured():
     results = {}
     for flag in (False, True):
         inst = Instrument(_ghost_scene(flag), seed=2)
-        rx = _receiver(inst, gate_start=0, gate_len=128, out_bits=24)
+        rx = _receiver(inst, gate_start=0, gate_len=128)
         results[flag] = [rx.column(inst.render(c)) for c in range(2)]
     j = round(ghost_lag)
 

@@ -1,0 +1,340 @@
+"""The virtual board's application: configuration limits, power control, the receive chain.
+
+:class:`VirtualFirmware` implements :class:`protocol.device.DeviceApp`. It sits behind
+the protocol's :class:`protocol.device.DeviceEndpoint` (which owns framing, sequence
+numbers, replay and the column ring buffer) and in front of the simulated instrument
+(:class:`scene.instrument.Instrument`)::
+
+    host --wire--> DeviceEndpoint --requests--> VirtualFirmware --settings--> Instrument
+                                 <--columns---   (receive chain)  <--ADC codes--
+
+* INFO: identity, limits, and the NOMINAL geometry (what the data sheet says); the
+  simulated light follows the scene's TRUE geometry, which may differ slightly.
+* CONFIG: every key is checked against the limits below; a bad value is refused with
+  ``ConfigError`` naming the key (the endpoint answers NAK OUT_OF_RANGE with that field).
+  All keys of one CONFIG_SET are applied or none.
+* POWER: a (K, C) matrix of per-pixel laser power in 1/65535 of ``max_pixel_power_w``; a
+  rectangle that would push any column's total above the eye-safety cap
+  ``total_power_cap_w`` is refused (field ``power``), as is one outside the matrix.
+* SCAN: renders each column's ADC codes (R * n * N * S samples, noise seeded by
+  (seed, frame, column), so a resend or a rescan of the same frame id gives the same
+  result) and runs ``firmware_model.receiver`` (the fast, bit-exact path, a batch of
+  columns at a time) with the current configuration.
+* CALIBRATE: ``shots`` columns of the zeroth-order beam-trap target at its fixed
+  distance, every channel lit, grating angle reported as 90 degrees.
+* CAPTURE: the raw ADC codes of a column (of the last scanned frame id) or one
+  channel's correlation trace over the gate.
+
+Limits (virtual board): code degree 3..15, K fixed by the scene, samples per chip
+1..16, averages 1..1024, UID bits 1..8, peaks 1..8, gate inside one period, at most
+2**25 samples per column.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar import __version__
+from cdma_lidar.errors import ConfigError, out_of_range
+from firmware_model.receiver import FastReceiver, ReceiverConfig
+from protocol.columns import ColumnResult
+from protocol.device import DeviceApp
+from protocol.messages import MODES, ROUNDINGS, CaptureKind, Info
+from scene.instrument import Instrument, RenderSettings, gold_codes
+from scene.model import Scene
+
+__all__ = ["LIMITS", "VirtualFirmware"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+#: Limits of the virtual board (also announced in INFO).
+LIMITS = {
+    "max_degree": 15,
+    "spc_min": 1,
+    "spc_max": 16,
+    "max_averages": 1024,
+    "max_uid_bits": 8,
+    "max_peaks": 8,
+    "max_column_samples": 1 << 25,
+}
+
+#: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
+CALIBRATION_ANGLE_DEG = 90.0
+
+_BATCH = 8  # columns rendered and correlated together
+
+
+class VirtualFirmware(DeviceApp):
+    """Device application of the virtual board (implements protocol.device.DeviceApp).
+
+    Args:
+        scene: the world in front of the instrument (true parameters).
+        seed: noise seed; the same scene, seed, configuration and frame ids give the same
+            samples and results.
+        serial: serial number announced in INFO.
+    """
+
+    def __init__(self, scene: Scene, seed: int = 0, serial: str | None = None) -> None:
+        self.scene = scene
+        self.instrument = Instrument(scene, seed)
+        self.spec = scene.instrument
+        self.seed = int(seed)
+        self.serial = serial or f"VIRT-{scene.name}-{self.seed}"
+        k, c = self.instrument.channels, self.instrument.columns
+        self.channels, self.columns = k, c
+        start, length = self.instrument.default_gate()
+        self._config: dict[str, Any] = {
+            "poly_u": self.spec.poly_u, "poly_v": self.spec.poly_v,
+            "code_index": tuple(self.spec.code_indices), "uid_bits": self.spec.uid_bits,
+            "uid": self.spec.uid, "samples_per_chip": self.spec.samples_per_chip,
+            "averages": self.spec.averages, "adc_bits": self.spec.adc_bits,
+            "gate_start": start, "gate_len": length, "peak_exclude": 8, "ghost_windows": (),
+            "out_shift": 0, "rounding": "truncate", "out_bits": _out_bits(length), "peaks": 1,
+            "columns_per_frame": c, "mode": "ranging",
+        }
+        self._check(self._config)
+        self.power_code = np.clip(np.round(self.instrument.default_power_w
+                                           / self.spec.max_pixel_power_w * 65535), 0, 65535
+                                  ).astype(np.uint16)
+        self._receiver: tuple[tuple, FastReceiver] | None = None
+        self._last_frame = 0
+        self._clock_us = 0
+
+    # ---- identity -------------------------------------------------------------------
+    def info(self) -> Info:
+        """Identity, limits and the nominal geometry."""
+        spec = self.spec
+        geom = spec.geometry(nominal=True)
+        rot = spec.rotations_deg
+        step = float(rot[1] - rot[0]) if rot.size > 1 else 0.0
+        n = spec.code_length
+        return Info.nominal(
+            serial=self.serial, firmware_version=f"virtual-{__version__}",
+            wavelengths_m=spec.wavelengths_m, grooves_per_mm=geom.grooves_per_mm,
+            incidence_deg=geom.incidence_deg, tilt_deg=geom.tilt_deg,
+            reference_wavelength_m=geom.reference_wavelength_m,
+            chip_rate_hz=spec.chip_rate_hz, column_start_deg=float(rot[0]),
+            column_step_deg=step, column_count=self.columns,
+            max_degree=LIMITS["max_degree"], max_channels=self.channels,
+            adc_bits=spec.adc_bits, spc_min=LIMITS["spc_min"], spc_max=LIMITS["spc_max"],
+            max_averages=LIMITS["max_averages"], max_uid_bits=LIMITS["max_uid_bits"],
+            max_peaks=LIMITS["max_peaks"], max_gate_len=n * LIMITS["spc_max"],
+            max_columns=self.columns)
+
+    # ---- configuration --------------------------------------------------------------
+    def get_config(self) -> dict[str, Any]:
+        """Current configuration ``{key: value}``."""
+        return dict(self._config)
+
+    def set_config(self, values: dict[str, Any]) -> None:
+        """Validate the merged configuration, then apply all of ``values``."""
+        merged = dict(self._config)
+        merged.update(values)
+        for name in values:
+            if name not in self._config:
+                raise out_of_range(name, "a configuration key", name)
+        if "adc_bits" in values and values["adc_bits"] != self.spec.adc_bits:
+            raise out_of_range("adc_bits", f"{self.spec.adc_bits} (read-only)",
+                               values["adc_bits"])
+        self._check(merged)
+        self._config = merged
+        self._receiver = None
+        log.info("configuration: %s", ", ".join(f"{k}={v}" for k, v in values.items()
+                                                 if k != "code_index"))
+
+    def _check(self, c: dict[str, Any]) -> None:
+        from firmware_model.gold import check_pair
+
+        pu, _ = check_pair(c["poly_u"], c["poly_v"])
+        degree = pu[0]
+        if not 3 <= degree <= LIMITS["max_degree"]:
+            raise out_of_range("poly_u", f"a polynomial of degree 3 to {LIMITS['max_degree']}",
+                               pu)
+        n = (1 << degree) - 1
+        idx = tuple(int(x) for x in c["code_index"])
+        if len(idx) != self.channels:
+            raise out_of_range("code_index", f"{self.channels} items (one per channel)",
+                               len(idx))
+        if any(not 0 <= x <= n + 1 for x in idx):
+            raise out_of_range("code_index", f"members 0 to {n + 1}", idx)
+        _int("uid_bits", c["uid_bits"], 1, LIMITS["max_uid_bits"])
+        _int("uid", c["uid"], 0, (1 << c["uid_bits"]) - 1)
+        _int("samples_per_chip", c["samples_per_chip"], LIMITS["spc_min"], LIMITS["spc_max"])
+        _int("averages", c["averages"], 1, LIMITS["max_averages"])
+        ns = n * c["samples_per_chip"]
+        _int("gate_start", c["gate_start"], 0, ns - 1)
+        _int("gate_len", c["gate_len"], 1, ns)
+        _int("peak_exclude", c["peak_exclude"], 0, ns)
+        _int("peaks", c["peaks"], 1, LIMITS["max_peaks"])
+        _int("out_shift", c["out_shift"], 0, 62)
+        _int("out_bits", c["out_bits"], 8, 32)
+        _int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
+        if c["rounding"] not in ROUNDINGS:
+            raise out_of_range("rounding", "one of " + ", ".join(ROUNDINGS), c["rounding"])
+        if c["mode"] not in MODES:
+            raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
+        samples = c["averages"] * c["uid_bits"] * ns
+        if samples > LIMITS["max_column_samples"]:
+            raise out_of_range("averages", f"at most {LIMITS['max_column_samples']} samples per "
+                               "column (averages * uid_bits * N * samples_per_chip)", samples)
+        rc = self._receiver_config(c)
+        try:
+            rc.widths(n)
+        except ConfigError as exc:
+            raise ConfigError(str(exc), field=exc.field or "out_bits") from exc
+
+    def _receiver_config(self, c: dict[str, Any]) -> ReceiverConfig:
+        try:
+            return ReceiverConfig(
+                adc_bits=self.spec.adc_bits, samples_per_chip=c["samples_per_chip"],
+                averages=c["averages"], uid_bits=c["uid_bits"], uid=c["uid"],
+                gate_start=c["gate_start"], gate_len=c["gate_len"],
+                peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
+                out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
+                peaks=c["peaks"])
+        except ConfigError as exc:
+            raise ConfigError(str(exc), field=exc.field) from exc
+
+    def render_settings(self) -> RenderSettings:
+        """What the instrument emits and samples under the current configuration."""
+        c = self._config
+        return RenderSettings(samples_per_chip=c["samples_per_chip"], averages=c["averages"],
+                              uid_bits=c["uid_bits"], uid=c["uid"],
+                              code_index=tuple(int(x) for x in c["code_index"]),
+                              poly_u=tuple(c["poly_u"]), poly_v=tuple(c["poly_v"]))
+
+    def receiver(self) -> FastReceiver:
+        """The receive chain for the current configuration (built once per configuration)."""
+        c = self._config
+        key = tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in sorted(c.items()))
+        if self._receiver is None or self._receiver[0] != key:
+            codes = gold_codes(tuple(c["poly_u"]), tuple(c["poly_v"]),
+                               tuple(int(x) for x in c["code_index"]))
+            self._receiver = (key, FastReceiver(self._receiver_config(c), codes))
+        return self._receiver[1]
+
+    # ---- power ----------------------------------------------------------------------
+    def set_power(self, channel_start: int, column_start: int,
+                  power: NDArray[np.uint16]) -> None:
+        """Store a rectangle of the power matrix (1/65535 of the per-pixel maximum)."""
+        p = np.asarray(power, dtype=np.uint16)
+        rows, cols = p.shape
+        if not 0 <= channel_start or channel_start + rows > self.channels:
+            raise out_of_range("channel_start",
+                               f"a rectangle inside channels 0..{self.channels - 1}",
+                               channel_start)
+        if not 0 <= column_start or column_start + cols > self.columns:
+            raise out_of_range("column_start",
+                               f"a rectangle inside columns 0..{self.columns - 1}", column_start)
+        new = self.power_code.copy()
+        new[channel_start:channel_start + rows, column_start:column_start + cols] = p
+        totals = new.astype(np.float64).sum(axis=0) / 65535 * self.spec.max_pixel_power_w
+        worst = int(np.argmax(totals))
+        if totals[worst] > self.spec.total_power_cap_w * (1 + 1e-9):
+            raise out_of_range(
+                "power", f"at most {self.spec.total_power_cap_w} W in total per column "
+                f"(eye-safety cap; column {worst} would get {totals[worst]:.4g} W)",
+                f"{totals[worst]:.4g} W")
+        self.power_code = new
+
+    def power_w(self) -> NDArray[np.float64]:
+        """(K, C) laser power per pixel (W)."""
+        return self.power_code.astype(np.float64) / 65535 * self.spec.max_pixel_power_w
+
+    # ---- measurements ---------------------------------------------------------------
+    def _timestamp(self, cfg: RenderSettings) -> int:
+        """Simulated device clock (us): advances by one column's acquisition time."""
+        samples = cfg.averages * cfg.frame_samples
+        self._clock_us += round(samples / (self.spec.chip_rate_hz * cfg.samples_per_chip) * 1e6)
+        return self._clock_us & 0xFFFFFFFF
+
+    def column_samples(self, frame: int, column: int) -> NDArray[np.int16]:
+        """ADC codes of one scan column under the current configuration and power."""
+        cfg = self.render_settings()
+        calibration = self._config["mode"] == "calibration"
+        power = self.power_w()[:, column]
+        return self.instrument.render(column, cfg, frame, power, calibration=calibration,
+                                      shot=column)
+
+    def scan(self, frame: int, first_column: int, columns: int) -> Iterator[ColumnResult]:
+        """Validate now, then yield ColumnResults of columns first..first+columns-1."""
+        if not 0 <= first_column < self.columns:
+            raise out_of_range("first_column", f"0 to {self.columns - 1}", first_column)
+        if first_column + columns > self.columns:
+            raise out_of_range("columns", f"1 to {self.columns - first_column} from column "
+                               f"{first_column}", columns)
+        self._last_frame = frame
+        rx = self.receiver()
+        cfg = self.render_settings()
+        return self._scan_gen(frame, first_column, columns, rx, cfg)
+
+    def _scan_gen(self, frame: int, first: int, count: int, rx: FastReceiver,
+                  cfg: RenderSettings) -> Iterator[ColumnResult]:
+        calibration = self._config["mode"] == "calibration"
+        power = self.power_w()
+        for b0 in range(first, first + count, _BATCH):
+            cols = list(range(b0, min(b0 + _BATCH, first + count)))
+            samples = np.stack([self.instrument.render(c, cfg, frame, power[:, c],
+                                                       calibration=calibration, shot=c)
+                                for c in cols])
+            outs = rx.frame(samples)
+            for c, out in zip(cols, outs, strict=True):
+                angle = CALIBRATION_ANGLE_DEG if calibration else float(self.spec.rotations_deg[c])
+                yield ColumnResult.from_receiver(frame, c, angle, out, calibration=calibration,
+                                                 timestamp_us=self._timestamp(cfg))
+
+    def calibrate(self, frame: int, shots: int) -> Iterator[ColumnResult]:
+        """Zeroth-order mode: ``shots`` results of the calibration target (column = shot)."""
+        if not 1 <= shots <= 65535:
+            raise out_of_range("shots", "1 to 65535", shots)
+        rx = self.receiver()
+        cfg = self.render_settings()
+        return self._calibrate_gen(frame, shots, rx, cfg)
+
+    def _calibrate_gen(self, frame: int, shots: int, rx: FastReceiver,
+                       cfg: RenderSettings) -> Iterator[ColumnResult]:
+        power = self.instrument.default_power_w[:, 0]
+        for b0 in range(0, shots, _BATCH):
+            idx = list(range(b0, min(b0 + _BATCH, shots)))
+            samples = np.stack([self.instrument.render(0, cfg, frame, power, calibration=True,
+                                                       shot=s) for s in idx])
+            for s, out in zip(idx, rx.frame(samples), strict=True):
+                yield ColumnResult.from_receiver(frame, s, CALIBRATION_ANGLE_DEG, out,
+                                                 calibration=True,
+                                                 timestamp_us=self._timestamp(cfg))
+
+    def capture(self, kind: CaptureKind, column: int, channel: int) -> NDArray[np.integer]:
+        """Raw ADC codes of ``column`` (last scanned frame id) or channel's gated trace."""
+        if not 0 <= column < self.columns:
+            raise out_of_range("column", f"0 to {self.columns - 1}", column)
+        samples = self.column_samples(self._last_frame, column)
+        if kind == CaptureKind.RAW:
+            return samples
+        if not 0 <= channel < self.channels:
+            raise out_of_range("channel", f"0 to {self.channels - 1}", channel)
+        return self.receiver().column(samples).corr[channel]
+
+    def abort(self) -> None:
+        """Nothing to undo: columns are rendered on demand."""
+        log.info("scan aborted")
+
+    def health(self) -> tuple[int, int]:
+        """A virtual board at a steady 35 degrees C, no faults."""
+        return 35_000, 0
+
+
+def _out_bits(gate_len: int) -> int:
+    """Widest output whose noise sum of squares fits 63 bits: 2 b - 2 + bitlen(gate) <= 63."""
+    return max(8, min(32, (65 - int(gate_len).bit_length()) // 2))
+
+
+def _int(name: str, value: Any, lo: int, hi: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or \
+            not lo <= int(value) <= hi:
+        raise out_of_range(name, f"an integer from {lo} to {hi}", value)
+

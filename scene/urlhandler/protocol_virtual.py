@@ -1,0 +1,197 @@
+"""``virtual://SCENE?seed=N&line_error_rate=P``: the virtual device as a pyserial port.
+
+Registered the way pyserial registers ``loop://``: a module ``protocol_virtual`` with a
+``Serial`` class, in a package listed in ``serial.protocol_handler_packages``
+(:func:`protocol.link.open_port` adds ``scene.urlhandler``)::
+
+    import serial
+    serial.protocol_handler_packages.append("scene.urlhandler")
+    port = serial.serial_for_url("virtual://paper-scene1?seed=3")
+
+Opening the port starts, in a daemon thread, a :class:`protocol.device.DeviceEndpoint`
+serving :class:`firmware_model.device.VirtualFirmware` over two in-process byte pipes.
+Closing the port stops it.
+
+URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml file
+(``virtual:///abs/scene.toml``). Query options:
+
+    seed=N               noise seed (default 0)
+    line_error_rate=P    probability of flipping each bit on the line, both directions
+                         (default 0), to prove the link loses nothing
+    line_seed=N          seed of the line errors (default: seed)
+    session=N            session id of the device (default: random, as at a real boot)
+    anything else        a scene option (``distance=7.5``, ``instrument.snr_db=-5``)
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import urllib.parse
+from typing import Any
+
+from serial.serialutil import PortNotOpenError, SerialBase, SerialException
+
+from cdma_lidar.errors import CdmaLidarError
+from scene.pipes import BytePipe, LineNoise, PipePort
+
+__all__ = ["Serial", "parse_url"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+_OWN_OPTIONS = ("seed", "line_error_rate", "line_seed", "session")
+
+
+def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
+    """Split ``virtual://SCENE?opts`` into (scene, own options, scene options)."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme != "virtual":
+        raise SerialException(f"expected a URL of the form virtual://SCENE?seed=N, not {url!r}")
+    scene = parts.netloc + parts.path
+    if not scene:
+        raise SerialException("virtual:// needs a scene: e.g. virtual://paper-scene1")
+    own: dict[str, Any] = {}
+    rest: dict[str, str] = {}
+    for key, values in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items():
+        value = values[-1]
+        if key in _OWN_OPTIONS:
+            try:
+                own[key] = float(value) if key == "line_error_rate" else int(value)
+            except ValueError:
+                raise SerialException(f"virtual:// option {key}={value!r} is not a number"
+                                      ) from None
+        else:
+            rest[key] = value
+    return scene, own, rest
+
+
+class Serial(SerialBase):
+    """pyserial port whose other end is the in-process virtual device."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._to_device: BytePipe | None = None
+        self._from_device: BytePipe | None = None
+        self._noise: LineNoise | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.endpoint = None
+        self.firmware = None
+        super().__init__(*args, **kwargs)
+
+    # ---- open / close -----------------------------------------------------------------
+    def open(self) -> None:
+        """Build the scene and the virtual board, start the device thread."""
+        if self.is_open:
+            raise SerialException("Port is already open.")
+        if self._port is None:
+            raise SerialException("Port must be configured before it can be used.")
+        from firmware_model.device import VirtualFirmware
+        from protocol.device import DeviceEndpoint
+        from scene.model import load_scene
+
+        name, own, scene_opts = parse_url(self.portstr)
+        seed = int(own.get("seed", 0))
+        try:
+            query = urllib.parse.urlencode(scene_opts)
+            scene = load_scene(f"{name}?{query}" if query else name)
+            self._noise = LineNoise(own.get("line_error_rate", 0.0),
+                                    int(own.get("line_seed", seed)))
+            self.firmware = VirtualFirmware(scene, seed)
+        except CdmaLidarError as exc:
+            raise SerialException(f"virtual://{name}: {exc}") from exc
+        self._to_device, self._from_device = BytePipe(), BytePipe()
+        dev_port = PipePort(self._to_device, self._from_device, self._noise)
+        self.endpoint = DeviceEndpoint(dev_port, self.firmware, session_id=own.get("session"))
+        self._stop.clear()
+        self._thread = threading.Thread(target=self.endpoint.serve_forever, args=(self._stop,),
+                                        name=f"virtual-device-{name}", daemon=True)
+        self._thread.start()
+        self.is_open = True
+        log.info("virtual device %s (seed %d, line error rate %g) started", name, seed,
+                 self._noise.rate)
+
+    def close(self) -> None:
+        """Stop the device thread and close the pipes."""
+        if self.is_open:
+            self.is_open = False
+            self._stop.set()
+            for pipe in (self._to_device, self._from_device):
+                if pipe is not None:
+                    pipe.close()
+            if self._thread is not None:
+                self._thread.join(timeout=5.0)
+        super().close()
+
+    def from_url(self, url: str) -> str:
+        """Check the URL (pyserial calls this through ``open``)."""
+        parse_url(url)
+        return url
+
+    def _reconfigure_port(self) -> None:
+        """Baud rate and framing mean nothing on an in-process line."""
+
+    # ---- data -------------------------------------------------------------------------
+    @property
+    def in_waiting(self) -> int:
+        """Bytes from the device ready to read."""
+        if not self.is_open or self._from_device is None:
+            raise PortNotOpenError()
+        return self._from_device.available()
+
+    def read(self, size: int = 1) -> bytes:
+        """Up to ``size`` bytes; returns early at the port's timeout."""
+        if not self.is_open or self._from_device is None:
+            raise PortNotOpenError()
+        return self._from_device.read(size, self._timeout)
+
+    def write(self, data: bytes) -> int:
+        """Send bytes to the device (through the line's bit errors)."""
+        if not self.is_open or self._to_device is None or self._noise is None:
+            raise PortNotOpenError()
+        raw = bytes(data)
+        self._to_device.write(self._noise(raw))
+        return len(raw)
+
+    def flush(self) -> None:
+        """Nothing is buffered on this side."""
+
+    def reset_input_buffer(self) -> None:
+        """Drop bytes the device sent but nobody read."""
+        if not self.is_open or self._from_device is None:
+            raise PortNotOpenError()
+        self._from_device.clear()
+
+    def reset_output_buffer(self) -> None:
+        """Nothing waits to be sent."""
+
+    @property
+    def out_waiting(self) -> int:
+        """Nothing waits to be sent."""
+        return 0
+
+    # ---- modem lines (meaningless here, as in loop://) ---------------------------------
+    def _update_break_state(self) -> None:
+        pass
+
+    def _update_rts_state(self) -> None:
+        pass
+
+    def _update_dtr_state(self) -> None:
+        pass
+
+    @property
+    def cts(self) -> bool:
+        return True
+
+    @property
+    def dsr(self) -> bool:
+        return True
+
+    @property
+    def ri(self) -> bool:
+        return False
+
+    @property
+    def cd(self) -> bool:
+        return True
+
