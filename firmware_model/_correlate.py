@@ -41,6 +41,7 @@ _EPS = float(np.finfo(np.float64).eps)
 _FFT_GUARD = 0.25
 _FFT_CONST = 16.0
 _MEM_BYTES = 64 << 20  # working-set cap per block of columns / channels
+_FFT_BLOCK_BYTES = 16 << 20  # spectra x channels per inverse-FFT batch
 _MATMUL_BMAT_BYTES = 128 << 20
 _FFT_COST_FACTOR = 8.0  # BLAS throughput / FFT throughput, per "operation" below
 
@@ -183,7 +184,7 @@ class GateCorrelator:
         h = math.floor(math.log2(guard / unit))
         if h < 1:
             raise out_of_range("float_bits", "large enough for an exact FFT", self.float_bits)
-        kb = max(1, _MEM_BYTES // (s * (big // 2 + 1) * 16 + s * big * 8))
+        kb = max(1, _FFT_BLOCK_BYTES // (s * (big // 2 + 1) * 16 + s * big * 8))
         out = np.zeros((c, self.k, len(self.u_m)), dtype=np.int64)
         sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]
         qs = [(self.q0 + self.u_m[m]) % n for m in sel]

@@ -573,7 +573,7 @@ class FastReceiver:
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
         corr = out[:, :, 1:-1]
         mag = np.abs(corr)
-        mag = np.where(self._ghost, -1, mag)
+        mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
         near_any = np.zeros((c, k, g), dtype=bool)
@@ -583,7 +583,7 @@ class FastReceiver:
             pk_j[..., p] = np.where(ok, j, -1)
             near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
             near_any |= near
-            mag = np.where(near, -1, mag)
+            mag[near] = -1
         found = pk_j >= 0
         jsafe = np.where(found, pk_j, 0)
         pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
@@ -597,9 +597,9 @@ class FastReceiver:
         nb = np.where(found[..., :1], nb, 0)
         noise = ~self._ghost & ~near_any
         cnt = noise.sum(axis=-1, dtype=np.int64)
-        nz = np.where(noise, corr, 0)
-        nsum = nz.sum(axis=-1, dtype=np.int64)
-        nsq = (nz * nz).sum(axis=-1, dtype=np.int64)
+        nsum = corr.sum(axis=-1, dtype=np.int64, where=noise)
+        np.multiply(corr, corr, out=mag, where=noise)  # mag is free now; reuse its memory
+        nsq = mag.sum(axis=-1, dtype=np.int64, where=noise)  # exact: widths.noise_sumsq <= 63
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
