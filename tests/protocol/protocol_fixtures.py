@@ -28,7 +28,7 @@ def expected_column(frame: int, column: int, channels: int, peaks: int, uid_bits
     rng = np.random.default_rng([frame, column, channels, peaks, uid_bits, int(calibration)])
     k, e, n = channels, peaks - 1, uid_bits
     return ColumnResult.from_arrays(
-        frame, column, (column * 0.05 - 20.0) if not calibration else 0.0,
+        frame, column, (column * 0.05 % 360.0 - 20.0) if not calibration else 0.0,
         peak_lag=rng.integers(0, 8000, k), peak=rng.integers(-(2**31), 2**31, k),
         neighbours=rng.integers(-(2**31), 2**31, (k, 2)), noise_count=rng.integers(0, 5000, k),
         noise_sum=rng.integers(-(2**40), 2**40, k), noise_sumsq=rng.integers(0, 2**62, k),

@@ -1,0 +1,294 @@
+"""Every message round-trips; encoders name bad fields; decoders raise only FrameError."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from protocol_fixtures import expected_column
+
+from cdma_lidar.errors import FieldError, FrameError
+from protocol.columns import (
+    ColumnResult,
+    column_payload_size,
+    decode_column,
+    decode_column_construct,
+    encode_column,
+    encode_column_construct,
+)
+from protocol.messages import (
+    CONFIG_KEYS,
+    CONFIG_OPTIONAL,
+    MESSAGES,
+    REPLY_TO,
+    Info,
+    MsgKind,
+    MsgType,
+    Status,
+    decode_config,
+    decode_payload,
+    encode_config,
+    encode_payload,
+    mask_to_poly,
+    poly_to_mask,
+)
+
+
+# ---- strategies derived from the declarations ------------------------------------------------
+def _field_strategy(msg: MsgType, sc) -> st.SearchStrategy:
+    meta = sc.meta
+    if meta.kind == "int":
+        return st.integers(meta.lo, meta.hi)
+    if meta.kind == "text":
+        return st.text(max_size=40).filter(lambda s: len(s.encode()) <= 255)
+    if meta.kind == "array":
+        return st.lists(st.integers(meta.lo, meta.hi), max_size=min(meta.max_items, 30))
+    special = {
+        "keys": st.lists(st.integers(0, 255), max_size=20),
+        "items": st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
+                                                 "value": st.binary(max_size=40)}),
+                          max_size=6),
+        "data": st.binary(max_size=300),
+    }
+    return special[sc.name]
+
+
+@st.composite
+def message_fields(draw, msg: MsgType) -> dict:
+    spec = MESSAGES[msg]
+    if msg == MsgType.POWER_SET:
+        r, c = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+        return {"channel_start": draw(st.integers(0, 65535)),
+                "column_start": draw(st.integers(0, 65535)), "channels": r, "columns": c,
+                "power": draw(st.lists(st.integers(0, 65535), min_size=r * c,
+                                       max_size=r * c))}
+    return {sc.name: draw(_field_strategy(msg, sc)) for sc in spec.fields}
+
+
+CONTROL = [t for t in MESSAGES if t != MsgType.COLUMN_RESULT]
+
+
+@pytest.mark.parametrize("msg", CONTROL, ids=lambda t: t.name)
+@given(data=st.data())
+def test_every_message_round_trips(msg: MsgType, data) -> None:
+    fields = data.draw(message_fields(msg))
+    payload = encode_payload(msg, fields)
+    assert decode_payload(msg, payload) == fields
+    assert encode_payload(msg, decode_payload(msg, payload)) == payload
+
+
+@pytest.mark.parametrize("msg", list(MESSAGES), ids=lambda t: t.name)
+@given(payload=st.binary(max_size=400))
+def test_decoder_raises_only_frame_error(msg: MsgType, payload: bytes) -> None:
+    try:
+        decode_payload(msg, payload)
+    except FrameError:
+        pass
+
+
+@pytest.mark.parametrize("msg", CONTROL, ids=lambda t: t.name)
+def test_decoder_rejects_trailing_and_missing_bytes(msg: MsgType) -> None:
+    fields = _minimal(msg)
+    payload = encode_payload(msg, fields)
+    if MESSAGES[msg].fields and MESSAGES[msg].fields[-1].meta.kind != "blob":
+        with pytest.raises(FrameError):
+            decode_payload(msg, payload + b"\x01")
+    if payload:
+        last = MESSAGES[msg].fields[-1].meta.kind
+        if last != "blob":
+            with pytest.raises(FrameError):
+                decode_payload(msg, payload[:-1])
+
+
+def _minimal(msg: MsgType) -> dict:
+    out = {}
+    for sc in MESSAGES[msg].fields:
+        m = sc.meta
+        out[sc.name] = {"int": m.lo, "text": "x", "array": [m.lo or 0]}.get(m.kind, None)
+    if msg == MsgType.POWER_SET:
+        out.update(channels=1, columns=1, power=[7])
+    for name in ("keys", "items"):
+        if name in out:
+            out[name] = []
+    if "data" in out:
+        out["data"] = b"\x01\x02"
+    return out
+
+
+def test_kinds_and_replies() -> None:
+    for t, spec in MESSAGES.items():
+        assert spec.kind is {0: MsgKind.REQUEST, 1: MsgKind.REPLY}.get(
+            int(t) >> 7 if int(t) < 0xC0 else 2, MsgKind.STREAM)
+        if spec.kind is MsgKind.REQUEST:
+            assert REPLY_TO[t] in (MsgType.ACK, MsgType.INFO, MsgType.CONFIG, MsgType.STATUS,
+                                   MsgType.CAPTURE_DATA)
+
+
+@pytest.mark.parametrize(("msg", "fields", "name"), [
+    (MsgType.SCAN_START, {"frame": -1, "first_column": 0, "columns": 1}, "SCAN_START.frame"),
+    (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 0}, "SCAN_START.columns"),
+    (MsgType.SCAN_START, {"frame": 1, "first_column": 0}, "SCAN_START.columns"),
+    (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 1, "x": 2}, "SCAN_START.x"),
+    (MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 100}, "HELLO.host_max_frame"),
+    (MsgType.RESEND, {"frame": 1, "columns": list(range(256))}, "RESEND.columns"),
+    (MsgType.RESEND, {"frame": 1, "columns": [1, 70000]}, "RESEND.columns[1]"),
+    (MsgType.NAK, {"request_type": 1, "code": 4, "field": "é" * 200, "detail": ""},
+     "NAK.field"),
+    (MsgType.CAPTURE, {"kind": 2, "column": 0, "channel": 0, "offset": 0, "max_count": 1},
+     "CAPTURE.kind"),
+    (MsgType.POWER_SET, {"channel_start": 0, "column_start": 0, "channels": 2, "columns": 2,
+                         "power": [1, 2, 3]}, "POWER_SET.power"),
+    (MsgType.POWER_SET, {"channel_start": 0, "column_start": 0, "channels": 1, "columns": 1,
+                         "power": [70000]}, "POWER_SET.power"),
+])
+def test_encoder_names_the_bad_field(msg: MsgType, fields: dict, name: str) -> None:
+    with pytest.raises(FieldError) as exc:
+        encode_payload(msg, fields)
+    assert name in str(exc.value)
+
+
+# ---- INFO / STATUS views ------------------------------------------------------------------------
+def test_info_and_status_mirror_their_declarations() -> None:
+    info_fields = {f.name for f in dataclasses.fields(Info)}
+    assert info_fields == {sc.name for sc in MESSAGES[MsgType.INFO].fields}
+    status_fields = {f.name for f in dataclasses.fields(Status)}
+    assert status_fields == {sc.name for sc in MESSAGES[MsgType.STATUS].fields}
+    assert status_fields == {sc.name for sc in MESSAGES[MsgType.HEARTBEAT].fields}
+
+
+def test_info_nominal_units() -> None:
+    info = Info.nominal(serial="S", firmware_version="F", wavelengths_m=[1570e-9, 1570.875e-9],
+                        grooves_per_mm=600.0, incidence_deg=60.0, tilt_deg=-1.25,
+                        reference_wavelength_m=1587e-9, chip_rate_hz=2.5e8,
+                        column_start_deg=-20.0, column_step_deg=0.05, column_count=5)
+    back = Info.from_fields(decode_payload(MsgType.INFO, encode_payload(MsgType.INFO,
+                                                                       info.to_fields())))
+    assert back == info
+    assert back.wavelengths_pm == (1_570_000, 1_570_875)
+    np.testing.assert_allclose(back.wavelengths_m, [1570e-9, 1570.875e-9])
+    np.testing.assert_allclose(back.column_angles_deg, [-20, -19.95, -19.9, -19.85, -19.8])
+    assert back.tilt_deg == pytest.approx(-1.25)
+    assert back.grooves_per_mm == 600.0 and back.incidence_deg == 60.0
+    assert dataclasses.replace(back, tilt_udeg=-(2**31)).tilt_deg is None
+
+
+# ---- CONFIG key-length-value -------------------------------------------------------------------
+CONFIG_EXAMPLES = {
+    "poly_u": (11, 2), "poly_v": (11, 8, 5, 2), "code_index": (0, 5, 2049, 7),
+    "uid_bits": 3, "uid": 5, "samples_per_chip": 4, "averages": 100_000, "adc_bits": 12,
+    "gate_start": 123, "gate_len": 4000, "peak_exclude": 8,
+    "ghost_windows": ((10, 3), (4000, 20)), "out_shift": 7, "rounding": "convergent",
+    "out_bits": 24, "peaks": 8, "columns_per_frame": 500, "mode": "calibration",
+}
+
+
+def test_config_examples_cover_every_key() -> None:
+    assert set(CONFIG_EXAMPLES) == {k.name for k in CONFIG_KEYS}
+    assert len({k.id for k in CONFIG_KEYS}) == len(CONFIG_KEYS)
+    assert all(0 < k.id < CONFIG_OPTIONAL for k in CONFIG_KEYS)
+
+
+def test_config_round_trip_through_config_set() -> None:
+    items = encode_config(CONFIG_EXAMPLES)
+    payload = encode_payload(MsgType.CONFIG_SET, {"items": items})
+    got = decode_config(decode_payload(MsgType.CONFIG_SET, payload)["items"])
+    assert got.values == CONFIG_EXAMPLES and got.unknown == [] and got.ignored == []
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("uid_bits", 0), ("uid_bits", 9), ("peaks", 9), ("out_bits", 7), ("out_bits", 33),
+    ("rounding", "nearest"), ("mode", "sleep"), ("poly_u", (40, 2)), ("poly_u", (3, 3)),
+    ("code_index", [1, -1]), ("ghost_windows", [(1, 2, 3)]), ("out_shift", 64),
+    ("averages", 0), ("samples_per_chip", 70000), ("bogus_key", 1),
+])
+def test_config_encoder_names_the_key(name: str, value: object) -> None:
+    with pytest.raises(FieldError, match=name.split("_key")[0]):
+        encode_config({name: value})
+
+
+def test_config_read_only_refused_when_asked() -> None:
+    with pytest.raises(FieldError, match="adc_bits"):
+        encode_config({"adc_bits": 12}, allow_read_only=False)
+
+
+def test_config_unknown_and_optional_keys() -> None:
+    items = [{"key": 99, "value": b"\x01"}, {"key": 99 | CONFIG_OPTIONAL, "value": b""},
+             {"key": 16, "value": b"\x02"}]
+    got = decode_config(items)
+    assert got.values == {"peaks": 2}
+    assert got.unknown == [99] and got.ignored == [99 | CONFIG_OPTIONAL]
+
+
+@pytest.mark.parametrize(("key", "value"), [(16, b""), (16, b"\x01\x02"), (16, b"\x09"),
+                                            (3, b"\x01"), (14, b"\x03")])
+def test_config_decoder_names_key_of_bad_value(key: int, value: bytes) -> None:
+    with pytest.raises(FrameError) as exc:
+        decode_config([{"key": key, "value": value}])
+    assert exc.value.field == {16: "peaks", 3: "code_index", 14: "rounding"}[key]
+
+
+@given(st.sets(st.integers(1, 31), min_size=1, max_size=8))
+def test_poly_mask_round_trip(exps: set[int]) -> None:
+    poly = tuple(sorted(exps, reverse=True))
+    assert mask_to_poly(poly_to_mask(poly)) == poly
+    assert poly_to_mask((11, 2)) == 0x804
+
+
+# ---- COLUMN_RESULT: numpy path == construct path ------------------------------------------
+@given(st.integers(0, 2**32 - 1), st.integers(0, 65535), st.integers(1, 40),
+       st.integers(1, 8), st.integers(1, 8), st.booleans())
+def test_column_fast_and_construct_paths_agree(frame: int, column: int, k: int, p: int, n: int,
+                                               cal: bool) -> None:
+    col = expected_column(frame, column, k, p, n, cal)
+    fast = encode_column(col)
+    assert fast == encode_column_construct(col)
+    assert len(fast) == column_payload_size(k, p)
+    assert decode_column(fast) == col == decode_column_construct(fast)
+    back = decode_column(fast)
+    assert back.uid_signs.shape == (k, n) and back.extra_signs.shape == (k, p - 1, n)
+    np.testing.assert_array_equal(back.uid_signs, col.uid_signs)
+    assert back.calibration == cal and back.peaks == p and back.channels == k
+
+
+def test_column_from_arrays_keeps_every_receiver_field() -> None:
+    rng = np.random.default_rng(3)
+    k, n, p = 5, 3, 3
+    arrays = dict(
+        peak_lag=rng.integers(0, 100, k), peak=rng.integers(-9, 9, k),
+        neighbours=rng.integers(-9, 9, (k, 2)), noise_count=rng.integers(0, 9, k),
+        noise_sum=rng.integers(-9, 9, k), noise_sumsq=rng.integers(0, 99, k),
+        uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 8, k),
+        uid_match=rng.integers(0, 2, k).astype(bool), extra_lag=rng.integers(0, 100, (k, 2)),
+        extra_peak=rng.integers(-9, 9, (k, 2)), extra_signs=rng.integers(-1, 2, (k, 2, n)))
+    col = decode_column(encode_column(ColumnResult.from_arrays(1, 2, 12.345678, **arrays)))
+    for name, value in arrays.items():
+        np.testing.assert_array_equal(getattr(col, name), value, err_msg=name)
+    assert col.angle_udeg == 12_345_678 and col.peaks == p and col.uid_bits == n
+
+
+@pytest.mark.parametrize(("name", "bad"), [
+    ("peak_lag", -1), ("peak", 2**31), ("neighbours", -(2**31) - 1), ("noise_count", 2**32),
+    ("uid_observed", 8), ("uid_signs", 2), ("uid_match", 3), ("noise_sumsq", -1),
+])
+def test_column_from_arrays_names_bad_field(name: str, bad: int) -> None:
+    k, n = 3, 3
+    arrays = dict(peak_lag=np.zeros(k, int), peak=np.zeros(k, int),
+                  neighbours=np.zeros((k, 2), int), noise_count=np.zeros(k, int),
+                  noise_sum=np.zeros(k, int), noise_sumsq=np.zeros(k, int),
+                  uid_signs=np.ones((k, n), int), uid_observed=np.zeros(k, int),
+                  uid_match=np.zeros(k, int))
+    arr = np.array(arrays[name], dtype=object)
+    arr.flat[0] = bad
+    arrays[name] = arr.astype(np.int64) if abs(bad) < 2**63 else arr
+    with pytest.raises(FieldError, match=name):
+        ColumnResult.from_arrays(0, 0, 0.0, **arrays)
+
+
+@pytest.mark.parametrize("cut", [0, 5, 18, 19, 20, -1])
+def test_column_decoder_rejects_wrong_lengths(cut: int) -> None:
+    payload = encode_column(expected_column(1, 1, 4, 2, 2))
+    with pytest.raises(FrameError):
+        decode_column(payload[:cut] if cut >= 0 else payload + b"\x00")
