@@ -12,7 +12,7 @@ from scene.truth import compute_truth
 
 
 def _scene(*objects):
-    return parse_scene({"instrument": {"wavelengths": {"count": 2}, "columns": 2},
+    return parse_scene({"instrument": {"wavelengths": {"count": 2}, "rotations_deg": [0.0, 1.0]},
                         "objects": list(objects)})
 
 

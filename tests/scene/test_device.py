@@ -1,0 +1,235 @@
+"""The virtual device end to end: virtual:// through HostLink, limits and NAKs, power caps,
+calibration, capture, line errors, determinism, and the pty server as a subprocess."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from cdma_lidar.errors import ConfigError, DeviceError
+from firmware_model.device import VirtualFirmware
+from firmware_model.snr import snr_xc_db
+from protocol.device import DeviceApp
+from protocol.link import HostLink, open_port
+from scene.model import SPEED_OF_LIGHT_M_S, load_scene
+
+FS = 62.5e6 * 4
+URL = "virtual://flat-wall?seed=3&distance=7.5&instrument.wavelengths.count=8&instrument.columns=4"
+
+
+@pytest.fixture
+def link():
+    with HostLink(open_port(URL), timeout_s=1.0) as lk:
+        lk.hello()
+        yield lk
+
+
+def _true_lags(distance_m):
+    return (2 * distance_m / SPEED_OF_LIGHT_M_S + 37.3e-9) * FS
+
+
+def test_virtual_firmware_is_a_device_app():
+    assert isinstance(VirtualFirmware(load_scene("calibration"), 0), DeviceApp)
+
+
+def test_serial_for_url_finds_the_handler():
+    if "scene.urlhandler" not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append("scene.urlhandler")
+    port = serial.serial_for_url("virtual://calibration?seed=1", timeout=0.1)
+    try:
+        assert port.is_open and port.in_waiting == 0
+        assert port.read(1) == b""  # nothing unless asked
+    finally:
+        port.close()
+    with pytest.raises(serial.SerialException, match="scene must be a preset"):
+        serial.serial_for_url("virtual://nowhere")
+
+
+def test_handshake_reports_what_the_host_needs(link):
+    info = link.info
+    assert info.channels == 8 and info.column_count == 4
+    assert info.chip_rate_hz == 62_500_000
+    assert info.incidence_deg == pytest.approx(60.0)  # nominal, not the true 60.02
+    assert info.grooves_per_mm == pytest.approx(600.0)
+    spec = load_scene(URL.split("://")[1].replace("flat-wall?seed=3&", "flat-wall?")).instrument
+    np.testing.assert_allclose(info.column_angles_deg, spec.rotations_deg, atol=2e-6)
+    np.testing.assert_allclose(info.wavelengths_m, spec.wavelengths_m, atol=1e-12)
+    cfg = link.get_config()
+    assert cfg["samples_per_chip"] == 4 and cfg["averages"] == 10
+    assert cfg["gate_len"] >= 128
+
+
+def test_scan_through_hostlink_ranges_the_wall(link):
+    cols = list(link.scan())
+    assert [c.column for c in cols] == [0, 1, 2, 3]
+    lags = np.array([c.peak_lag for c in cols])
+    assert np.all(np.abs(lags - _true_lags(7.5)) <= 1)
+    snr = np.array([snr_xc_db(c.peak, c.noise_count, c.noise_sum, c.noise_sumsq) for c in cols])
+    assert np.all(snr > 15)
+    # several scans in a row
+    again = list(link.scan(frames=2))
+    assert len(again) == 8
+
+
+def test_same_seed_same_results_across_devices():
+    results = []
+    for _ in range(2):
+        with HostLink(open_port(URL), timeout_s=1.0) as lk:
+            lk.hello()
+            results.append([c.records.tobytes() for c in lk.scan(frame=1234)])
+    assert results[0] == results[1]
+    with HostLink(open_port(URL.replace("seed=3", "seed=4")), timeout_s=1.0) as lk:
+        lk.hello()
+        other = [c.records.tobytes() for c in lk.scan(frame=1234)]
+    assert other != results[0]
+
+
+def test_config_limits_are_refused_with_the_field(link):
+    for change, field in [({"averages": 5000}, "averages"), ({"samples_per_chip": 40},
+                                                            "samples_per_chip"),
+                          ({"code_index": list(range(7))}, "code_index"),
+                          ({"gate_start": 2047 * 4}, "gate_start"),
+                          ({"uid_bits": 3, "uid": 8}, "uid")]:
+        with pytest.raises(DeviceError) as info:
+            link.set_config(**change)
+        assert info.value.field == field
+    # all or nothing: the refused keys did not change anything
+    assert link.get_config()["averages"] == 10
+    link.set_config(averages=4, peaks=2, gate_len=96)
+    cfg = link.get_config()
+    assert (cfg["averages"], cfg["peaks"], cfg["gate_len"]) == (4, 2, 96)
+    cols = list(link.scan(columns=1))
+    assert cols[0].peaks == 2
+
+
+def test_power_matrix_scales_the_echo_and_the_caps_hold(link):
+    (base_col,) = link.scan(columns=1)
+    base = base_col.peak.astype(float)
+    power = np.full((8, 4), 0.125)  # default is 2.5 mW of 10 mW max = 0.25
+    link.set_power(power)
+    (half_col,) = link.scan(columns=1)
+    half = half_col.peak.astype(float)
+    np.testing.assert_allclose(half / base, 0.5, rtol=0.1)
+    link.set_power(np.ones((8, 4)))  # 8 x 10 mW per column: under the 0.2 W cap
+    (full_col,) = link.scan(columns=1)
+    full = full_col.peak.astype(float)
+    np.testing.assert_allclose(full / base, 4.0, rtol=0.1)
+    with pytest.raises(DeviceError) as info:
+        link.set_power(np.ones((2, 2)), channel_start=7)
+    assert info.value.field == "channel_start"
+
+
+def test_total_eye_safety_cap():
+    scene = load_scene("flat-wall", overrides={"instrument.total_power_cap_w": 0.05,
+                                               "instrument.laser_power_w": 1e-3})
+    fw = VirtualFirmware(scene, 0)
+    with pytest.raises(ConfigError) as info:
+        fw.set_power(0, 0, np.full((40, 16), 65535, dtype=np.uint16))
+    assert info.value.field == "power"
+    assert "eye-safety" in str(info.value)
+    fw.set_power(0, 0, np.full((40, 16), 1000, dtype=np.uint16))  # 40 x 0.15 mW is fine
+    url = ("virtual://flat-wall?instrument.total_power_cap_w=0.05&instrument.laser_power_w=1e-3"
+           "&instrument.columns=2")
+    with HostLink(open_port(url), timeout_s=1.0) as lk:
+        lk.hello()
+        with pytest.raises(DeviceError) as nak:
+            lk.set_power(np.ones((40, 2)))
+        assert nak.value.field == "power" and "eye-safety" in str(nak.value)
+
+
+def test_calibration_sees_the_zeroth_order_target(link):
+    shots = link.calibrate(6)
+    assert len(shots) == 6 and all(s.calibration for s in shots)
+    assert [s.column for s in shots] == list(range(6))
+    lags = np.array([s.peak_lag for s in shots])
+    target = load_scene("flat-wall").calibration.target_distance_m
+    assert np.all(np.abs(lags - _true_lags(target)) <= 1)
+    assert shots[0].angle_deg == pytest.approx(90.0)
+
+
+def test_capture_raw_and_correlation(link):
+    cols = list(link.scan(columns=1))
+    raw = link.capture("raw", 0)
+    assert raw.size == 10 * 2047 * 4 and raw.dtype == np.int16
+    corr = link.capture("corr", 0, 5)
+    cfg = link.get_config()
+    assert corr.size == cfg["gate_len"]
+    j = int(np.argmax(np.abs(corr)))
+    assert (cfg["gate_start"] + j) == cols[0].peak_lag[5]
+    assert int(corr[j]) == cols[0].peak[5]
+
+
+def test_line_errors_lose_nothing():
+    url = URL + "&line_error_rate=2e-4&line_seed=9"
+    with HostLink(open_port(url), timeout_s=0.5, retries=8) as lk:
+        lk.hello()
+        clean = None
+        for _ in range(3):
+            cols = list(lk.scan(frame=77))
+            assert [c.column for c in cols] == [0, 1, 2, 3]
+            rec = [c.records.tobytes() for c in cols]
+            clean = clean or rec
+            assert rec == clean  # the same frame id gives the same, intact results
+        port = lk.port
+        assert port._noise.flipped > 0  # errors really were injected
+        assert lk.decoder.stats.errors > 0 or lk.stats.retries > 0
+
+
+def test_uid_scene_reports_our_uid():
+    url = ("virtual://multi-user?seed=2&instrument.wavelengths.count=4&instrument.columns=2"
+           "&instrument.averages=2")
+    with HostLink(open_port(url), timeout_s=1.0) as lk:
+        lk.hello()
+        cfg = lk.get_config()
+        assert (cfg["uid_bits"], cfg["uid"]) == (3, 1)
+        cols = list(lk.scan())
+    assert all(bool(c.uid_match[0]) and int(c.uid_observed[0]) == 1 for c in cols)
+
+
+def _readline(proc, timeout_s=60.0):
+    deadline = time.monotonic() + timeout_s
+    buf = b""
+    fd = proc.stdout.fileno()
+    while not buf.endswith(b"\n"):
+        left = deadline - time.monotonic()
+        assert left > 0, "device did not print its pty path"
+        r, _, _ = select.select([fd], [], [], left)
+        if r:
+            chunk = os.read(fd, 1)
+            assert chunk, proc.stderr.read().decode()
+            buf += chunk
+    return buf.decode().strip()
+
+
+def test_pty_device_end_to_end():
+    cmd = [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+           "flat-wall?instrument.wavelengths.count=4&instrument.columns=3", "--pty",
+           "--seed", "5"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        path = _readline(proc)
+        assert path.startswith("/dev/")
+        for _ in range(2):  # connect twice; two scans each
+            with HostLink(open_port(path), timeout_s=2.0) as lk:
+                info = lk.hello()
+                assert info.channels == 4
+                first = list(lk.scan(frame=5))
+                second = list(lk.scan(frame=6))
+                assert [c.column for c in first] == [0, 1, 2]
+                assert len(second) == 3
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            rc = proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 0
