@@ -97,6 +97,8 @@ def view_3d(cloud: PointCloud, path: str | os.PathLike[str]) -> None:
         sc = ax.scatter(cloud.x[ok], cloud.y[ok], cloud.z[ok], c=cloud.range[ok], s=2,
                         cmap="turbo")
         fig.colorbar(sc, ax=ax, label="range (m)", shrink=0.7)
+        span = np.array([np.ptp(v[ok]) for v in (cloud.x, cloud.y, cloud.z)])
+        ax.set_box_aspect(np.maximum(span, 0.3 * span.max()) if span.max() > 0 else None)
     ax.set_xlabel("x forward (m)")
     ax.set_ylabel("y left (m)")
     ax.set_zlabel("z up (m)")

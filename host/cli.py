@@ -1,0 +1,298 @@
+"""The host commands: ``info``, ``scan``, ``calibrate`` and ``demo``.
+
+Every command checks what it can before it touches the device (output folder
+writable, extension known, numbers in range), so a bad argument costs nothing and
+exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
+``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cdma_lidar.errors import ConfigError
+from cdma_lidar.fileio import check_writable
+
+__all__ = ["register"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+DEMO_SCENE = "paper-scene1"
+
+
+def _say(*parts: object) -> None:
+    """One line of command output on stdout (CLI results, not logging)."""
+    sys.stdout.write(" ".join(str(p) for p in parts) + "\n")
+    sys.stdout.flush()
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, not {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, not {text!r}")
+    return v
+
+
+def _finite_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, not {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, not {text!r}")
+    return v
+
+
+def _ghost(text: str) -> tuple[int, int]:
+    try:
+        start, length = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be START:LENGTH in samples, not {text!r}"
+                                         ) from None
+    if start < 0 or length < 1:
+        raise argparse.ArgumentTypeError(f"needs START >= 0 and LENGTH >= 1, not {text!r}")
+    return start, length
+
+
+def _setting(text: str) -> tuple[str, Any]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"must be KEY=VALUE, not {text!r}")
+    key, raw = text.split("=", 1)
+    parts = [p.strip() for p in raw.split(",")]
+    vals: list[Any] = []
+    for p in parts:
+        try:
+            vals.append(int(p))
+        except ValueError:
+            vals.append(p)
+    return key.strip(), (tuple(vals) if len(vals) > 1 else vals[0])
+
+
+def _add_port(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--port", required=True, metavar="URL",
+                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
+    p.add_argument("--timeout", type=_positive_float, default=1.0, metavar="S",
+                   help="seconds to wait for each answer (default 1)")
+
+
+def _add_set(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", type=_setting, action="append", default=[], metavar="KEY=VALUE",
+                   help="configure the device first (e.g. averages=20, peaks=4); repeatable")
+
+
+def register(subparsers: Any) -> None:
+    """Add the host's subcommands to the ``cdma-lidar`` parser."""
+    p = subparsers.add_parser("info", help="show a device's identity, geometry and configuration")
+    _add_port(p)
+    p.set_defaults(func=cmd_info)
+
+    p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
+    _add_port(p)
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="point cloud: .ply, .pcd, .npz or .las (by extension)")
+    p.add_argument("--frames", type=int, default=1, metavar="N",
+                   help="frames to scan; the cloud is the last one (default 1)")
+    p.add_argument("--calibration", metavar="FILE", help="calibration TOML from 'calibrate'")
+    p.add_argument("--near-far", action="store_true",
+                   help="adjust per-pixel power between frames (use with --frames 3)")
+    p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
+                   help="SNR_XC threshold in dB (default 16)")
+    p.add_argument("--interpolate", action="store_true",
+                   help="fill rejected pixels from their column neighbours (flag 1)")
+    p.add_argument("--ghost-window", type=_ghost, action="append", default=[],
+                   metavar="START:LEN", help="lags (samples) of a known grating ghost")
+    p.add_argument("--power-cap", type=_positive_float, metavar="X",
+                   help="near-far: cap per column, in units of the per-pixel maximum power")
+    p.add_argument("--pictures", action="store_true",
+                   help="also write SNR heatmap, depth image and 3D view PNGs beside --out")
+    p.add_argument("--resume", action="store_true",
+                   help="finish an interrupted scan (OUT.partial.npz) without redoing columns")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_set(p)
+    p.set_defaults(func=cmd_scan)
+
+    p = subparsers.add_parser("calibrate",
+                              help="measure the system delay on the zeroth-order target")
+    _add_port(p)
+    p.add_argument("--target-distance", type=_positive_float, required=True, metavar="METRES",
+                   help="known distance from the grating to the calibration target (m)")
+    p.add_argument("--shots", type=int, default=20, metavar="N",
+                   help="repeated shots (default 20)")
+    p.add_argument("--out", required=True, metavar="FILE", help="calibration file (.toml)")
+    p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
+                   help="SNR_XC threshold in dB (default 16)")
+    p.add_argument("--max-spread", type=_positive_float, metavar="M",
+                   help="widest acceptable histogram standard deviation (m)")
+    _add_set(p)
+    p.set_defaults(func=cmd_calibrate)
+
+    p = subparsers.add_parser(
+        "demo", help="calibrate and scan paper-scene1 on the virtual device, with pictures")
+    p.add_argument("--out", default="cdma-lidar-demo", metavar="DIR",
+                   help="folder for the results (default ./cdma-lidar-demo)")
+    p.add_argument("--seed", type=int, default=1, help="noise seed of the virtual device")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+
+
+def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
+    if settings:
+        device.link.set_config(**dict(settings))
+        device.refresh_config()
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    """Print identity, limits, geometry and configuration."""
+    from host.device import connect
+    from host.ranging import sample_range_m
+
+    with connect(args.port, timeout_s=args.timeout) as dev:
+        info, cfg = dev.info, dev.config
+        wl = dev.wavelengths_m
+        ang = dev.column_angles_deg
+        _say(f"device      {info.serial} (firmware {info.firmware_version}, protocol "
+              f"{info.protocol_version})")
+        _say(f"channels    {dev.channels}: {wl[0] * 1e9:.3f} .. {wl[-1] * 1e9:.3f} nm")
+        _say(f"columns     {dev.columns}: {ang[0]:.4f} .. {ang[-1]:.4f} deg")
+        _say(f"chip rate   {info.chip_rate_hz / 1e6:g} Mchip/s, code length {dev.code_length}")
+        geo = dev.geometry()
+        _say(f"grating     {geo.grooves_per_mm:g} lines/mm, incidence {geo.incidence_deg:g} deg, "
+              f"tilt {np.degrees(geo.gamma_rad):.3f} deg")
+        rc = dev.ranging_config()
+        _say(f"range scale {rc.samples_per_chip} samples/chip, "
+              f"{100 * sample_range_m(rc.samples_per_chip, rc.chip_rate_hz):.2f} cm per lag "
+              "sample")
+        for key, value in cfg.items():
+            _say(f"  {key:18s} {value}")
+    return 0
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    """Scan and write the point cloud."""
+    from host.calibration import Calibration
+    from host.device import connect
+    from host.pointcloud import FORMATS
+    from host.scan import ScanOptions, run_scan, state_path
+
+    out = Path(args.out)
+    if out.suffix.lower() not in FORMATS:
+        raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
+                          f"{out.suffix or '(no extension)'!r}", field="out")
+    check_writable(out)
+    if args.resume and not state_path(out).is_file():
+        raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
+                          "without --resume", field="resume")
+    cal = Calibration.load(args.calibration) if args.calibration else None
+    options = ScanOptions(frames=args.frames, near_far=args.near_far,
+                          snr_threshold_db=args.snr_threshold, interpolate=args.interpolate,
+                          ghost_windows=tuple(args.ghost_window), power_cap=args.power_cap,
+                          offset_m=cal.offset_m if cal else 0.0)
+    with connect(args.port, timeout_s=args.timeout) as dev:
+        _configure(dev, args.set)
+        if cal is not None:
+            cal.check_applies(dev.identity(), dev.calibration_config())
+        else:
+            log.warning("no --calibration: ranges include the system delay")
+        t0 = time.monotonic()
+        try:
+            res = run_scan(dev, out, options, resume=args.resume,
+                           progress=not args.no_progress, pictures_too=args.pictures)
+        except KeyboardInterrupt:
+            sys.stderr.write(f"partial scan saved to {state_path(out)}; run the same command "
+                             "with --resume to finish it\n")
+            raise
+        dt = time.monotonic() - t0
+    img = res.image
+    _say(f"scanned {res.columns_scanned} columns in {dt:.1f} s; "
+          f"{int(img.valid.sum())} of {img.range_m.size} pixels valid "
+          f"({100 * float(img.valid.mean()):.1f} %)")
+    if args.near_far and len(res.snr_maps) > 1:
+        thr = img.config.snr_threshold_db
+        fr = [100 * float(np.mean(m >= thr)) for m in res.snr_maps]
+        _say("pixels above threshold per frame: " + ", ".join(f"{f:.1f} %" for f in fr))
+    if len(img.foreign):
+        users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
+        _say(f"other users' returns: {len(img.foreign)} ({users})")
+    for f in res.files:
+        _say(f"wrote {f}")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Zeroth-order calibration to a TOML file."""
+    from host.device import connect
+    from host.scan import calibrate_device
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".toml":
+        raise ConfigError(f"--out must be a .toml file, not {str(out)!r}", field="out")
+    check_writable(out)
+    if not 1 <= args.shots <= 65535:
+        raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
+    with connect(args.port, timeout_s=args.timeout) as dev:
+        _configure(dev, args.set)
+        cal = calibrate_device(dev, args.target_distance, shots=args.shots,
+                               snr_threshold_db=args.snr_threshold,
+                               max_spread_m=args.max_spread)
+    cal.save(out)
+    _say(f"offset {cal.offset_m:.4f} m, spread {cal.spread_m:.4f} m from {cal.samples} "
+          f"returns of {cal.shots} shots; wrote {out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Calibrate and scan the paper's scene 1 on the virtual device; print a summary."""
+    from host.device import connect
+    from host.ranging import estimate_ranges, precision_eq27_m
+    from host.scan import ScanOptions, calibrate_device, run_scan, summarise
+    from scene import load_scene
+    from scene.truth import compute_truth
+
+    folder = Path(args.out)
+    folder.mkdir(parents=True, exist_ok=True)
+    check_writable(folder / "x")
+    t0 = time.monotonic()
+    scene = load_scene(DEMO_SCENE)
+    url = f"virtual://{DEMO_SCENE}?seed={args.seed}"
+    with connect(url) as dev:
+        cal = calibrate_device(dev, scene.calibration.target_distance_m, shots=20)
+        cal.save(folder / "calibration.toml")
+        res = run_scan(dev, folder / f"{DEMO_SCENE}.ply", ScanOptions(offset_m=cal.offset_m),
+                       progress=not args.no_progress, pictures_too=True)
+    truth = compute_truth(scene).range_m
+    s = summarise(res.image, truth)
+    rc = res.image.config
+    obj_valid = res.image.valid & np.isfinite(truth)
+    sigma = float(precision_eq27_m(rc.chip_rate_hz, rc.samples_per_symbol,
+                                   snr_xc_db=float(np.median(res.image.snr_xc_db[obj_valid]))))
+    _say(f"device        {url} ({dev.info.serial})")
+    _say(f"calibration   offset {cal.offset_m:.4f} m, spread {cal.spread_m:.4f} m "
+          f"({cal.samples} returns)")
+    _say(f"pixels        {int(s['pixels'])} ({dev.channels} channels x {dev.columns} columns), "
+          f"{int(s['object_pixels'])} on objects")
+    _say(f"valid         {100 * s['valid_fraction']:.1f} % of all pixels, "
+          f"{100 * s['object_valid_fraction']:.1f} % of object pixels, "
+          f"{int(s['false_valid'])} valid without an object")
+    _say(f"range error   median {100 * s['median_error_m']:.2f} cm, 95th percentile "
+          f"{100 * s['p95_error_m']:.2f} cm (eq. 27 precision {100 * sigma:.2f} cm)")
+    for method in ("none", "parabolic"):
+        alt = estimate_ranges(res.data, dataclasses.replace(rc, method=method))
+        e = summarise(alt, truth)
+        _say(f"  {method:9s}   median {100 * e['median_error_m']:.2f} cm, 95th percentile "
+              f"{100 * e['p95_error_m']:.2f} cm")
+    for f in res.files:
+        _say(f"wrote         {f}")
+    _say(f"time          {time.monotonic() - t0:.1f} s")
+    return 0

@@ -1,0 +1,367 @@
+"""Scans and calibrations on a device: orchestration, progress, resumable partial scans.
+
+:func:`run_scan` scans ``frames`` frames column by column, turns each finished frame
+into ranges (:mod:`host.ranging`), optionally closes the near-far loop between
+frames (:mod:`host.nearfar`), and writes the last frame's point cloud (and pictures).
+
+Resumable: while scanning, the frame in progress is saved every second to
+``OUT.partial.npz`` (atomically; NPZ with every :class:`host.frame.FrameData` array,
+the frame counter, the near-far history and a JSON header naming the device, its
+configuration and the scan options). Ctrl-C or a lost link leaves that file behind;
+``resume=True`` (``--resume``) reloads it, checks it belongs to the same device and
+configuration, scans only the columns that never arrived, and removes it at the end.
+
+:func:`calibrate_device` takes zeroth-order shots and builds a
+:class:`host.calibration.Calibration` (Supplementary Note 6).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
+from cdma_lidar.fileio import atomic_open, check_writable
+from host import pictures
+from host.calibration import Calibration, toml_safe
+from host.device import Device
+from host.frame import FrameData
+from host.nearfar import NearFarController, PowerLimits
+from host.pointcloud import FORMATS, PointCloud, assemble, write
+from host.ranging import RangeImage, estimate_ranges, sample_range_m
+
+__all__ = [
+    "STATE_SUFFIX",
+    "ScanOptions",
+    "ScanResult",
+    "ScanState",
+    "calibrate_device",
+    "picture_paths",
+    "run_scan",
+    "state_path",
+    "summarise",
+]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+STATE_SUFFIX = ".partial.npz"
+_SAVE_EVERY_S = 1.0
+
+
+def state_path(out: str | os.PathLike[str]) -> Path:
+    """Where the partial scan for output ``out`` is kept: ``OUT.partial.npz``."""
+    return Path(str(out) + STATE_SUFFIX)
+
+
+def picture_paths(out: str | os.PathLike[str]) -> dict[str, Path]:
+    """PNG files written beside ``out``: SNR heatmap(s), depth image, 3D view."""
+    p = Path(out)
+    stem = p.with_suffix("")
+    return {"snr": Path(f"{stem}_snr.png"), "depth": Path(f"{stem}_depth.png"),
+            "view": Path(f"{stem}_3d.png")}
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    """What a scan does besides scanning (all recorded in the partial-scan file).
+
+    Attributes:
+        frames: frames to scan; the point cloud is made from the last one.
+        near_far: adjust the per-pixel power between frames (Note 12).
+        snr_threshold_db: SNR_XC threshold (dB).
+        interpolate: fill rejected pixels from their column neighbours (flag 1).
+        ghost_windows: ``(start, length)`` lag windows (samples) of known ghosts.
+        power_cap: eye-safety cap per column, in units of the per-pixel maximum power
+            (None: only the device enforces its cap; refused matrices are scaled down).
+        initial_power: near-far start power, as a fraction of the per-pixel maximum.
+        offset_m: calibration offset (m).
+    """
+
+    frames: int = 1
+    near_far: bool = False
+    snr_threshold_db: float | None = None
+    interpolate: bool = False
+    ghost_windows: tuple[tuple[int, int], ...] = ()
+    power_cap: float | None = None
+    initial_power: float = 0.25
+    offset_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.frames <= 10000:
+            raise ConfigError(f"frames must be from 1 to 10000, not {self.frames!r}",
+                              field="frames")
+        if not 0 < self.initial_power <= 1:
+            raise ConfigError(f"initial_power must be in (0, 1], not {self.initial_power!r}",
+                              field="initial_power")
+
+
+@dataclass
+class ScanState:
+    """A scan in progress: enough to resume it (see the module docstring)."""
+
+    header: dict[str, Any]
+    frame_index: int
+    frame_base: int
+    data: FrameData
+    powers: list[NDArray[np.float64]] = field(default_factory=list)
+    snr_maps: list[NDArray[np.float64]] = field(default_factory=list)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the state atomically (NPZ)."""
+        arrays = {f"frame_{k}": v for k, v in self.data.to_arrays().items()}
+        arrays["header"] = np.array(json.dumps(self.header, sort_keys=True))
+        arrays["frame_index"] = np.array(self.frame_index)
+        arrays["frame_base"] = np.array(self.frame_base)
+        if self.powers:
+            arrays["powers"] = np.stack(self.powers)
+        if self.snr_maps:
+            arrays["snr_maps"] = np.stack(self.snr_maps)
+        with atomic_open(path, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> ScanState:
+        """Read a state file; a missing or damaged file is a ConfigError."""
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"no partial scan to resume at {str(p)!r}; run the scan "
+                              "without --resume", field="resume")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                frame = FrameData.from_arrays({k[6:]: z[k] for k in z.files
+                                               if k.startswith("frame_")})
+                return cls(header=json.loads(str(z["header"])),
+                           frame_index=int(z["frame_index"]), frame_base=int(z["frame_base"]),
+                           data=frame,
+                           powers=list(z["powers"]) if "powers" in z.files else [],
+                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [])
+        except (OSError, ValueError, KeyError) as exc:
+            raise ConfigError(f"partial scan {str(p)!r} is damaged ({exc}); delete it and "
+                              "scan again without --resume", field="resume") from exc
+
+
+@dataclass
+class ScanResult:
+    """What a scan produced: the last frame's cloud and ranges, and the per-frame history."""
+
+    cloud: PointCloud
+    image: RangeImage
+    data: FrameData
+    snr_maps: list[NDArray[np.float64]]
+    powers: list[NDArray[np.float64]]
+    columns_scanned: int
+    files: list[Path]
+
+
+def _header(device: Device, options: ScanOptions, out: Path) -> dict[str, Any]:
+    return {"device": toml_safe(device.identity()),
+            "configuration": toml_safe(device.calibration_config()),
+            "options": toml_safe(dataclasses.asdict(options)), "out": str(out)}
+
+
+def _runs(missing: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """Contiguous runs ``(first, count)`` of True in a 1-D mask."""
+    idx = np.flatnonzero(missing)
+    if idx.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+    ends = np.concatenate([idx[breaks], [idx[-1]]])
+    return [(int(a), int(b - a + 1)) for a, b in zip(starts, ends, strict=True)]
+
+
+def _set_power(device: Device, matrix: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Send a power matrix (fractions of the per-pixel maximum); back off if the cap refuses."""
+    from cdma_lidar.errors import DeviceError
+
+    m = np.clip(matrix, 0.0, 1.0)
+    for _ in range(20):
+        try:
+            device.link.set_power(m)
+            return m
+        except DeviceError as exc:
+            if getattr(exc, "field", None) != "power":
+                raise
+            log.info("device refused the power matrix (%s); scaling it by 0.8", exc)
+            m = m * 0.8
+    raise LinkError("the device refuses every power matrix; check its eye-safety settings")
+
+
+def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
+             *, resume: bool = False, progress: bool = True, pictures_too: bool = False,
+             on_column: Callable[[int, int], None] | None = None) -> ScanResult:
+    """Scan, build the point cloud of the last frame and write it to ``out``.
+
+    ``on_column(frame_index, column)`` is called after each stored column (tests use
+    it to interrupt a scan). Raises ScanAborted (after saving the partial scan) when
+    the link is lost; re-raises KeyboardInterrupt after saving.
+    """
+    out = Path(out)
+    if out.suffix.lower() not in FORMATS:
+        raise ConfigError(f"output file extension must be one of {', '.join(FORMATS)}, "
+                          f"not {out.suffix or '(none)'!r}", field="out")
+    check_writable(out)
+    spath = state_path(out)
+    threshold = options.snr_threshold_db
+    ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,
+                                    ghost_windows=options.ghost_windows)
+    if threshold is not None:
+        ranging = dataclasses.replace(ranging, snr_threshold_db=threshold)
+    k, c = device.channels, device.columns
+    uid_bits, peaks = int(device.config.get("uid_bits", 1)), int(device.config.get("peaks", 1))
+    header = _header(device, options, out)
+    if resume:
+        state = ScanState.load(spath)
+        for key in ("device", "configuration", "options"):
+            if state.header.get(key) != header[key]:
+                raise ConfigError(
+                    f"the partial scan at {str(spath)!r} was made with another {key}; resume "
+                    "it with the same device and options, or scan again without --resume",
+                    field="resume")
+        log.info("resuming frame %d of %d: %d of %d columns already done",
+                 state.frame_index + 1, options.frames, int(state.data.done.sum()), c)
+    else:
+        base = int(np.random.default_rng().integers(0, 2**31 - options.frames - 1))
+        state = ScanState(header=header, frame_index=0, frame_base=base,
+                          data=FrameData.empty(k, c, uid_bits, peaks))
+    controller = None
+    if options.near_far:
+        limits = PowerLimits(max_power=1.0, total_cap=options.power_cap)
+        controller = NearFarController((k, c), ranging.snr_threshold_db, limits,
+                                       initial_power=options.initial_power)
+        if state.powers:
+            controller.powers[:] = [np.asarray(p) for p in state.powers]
+            controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
+        controller.powers[-1] = _set_power(device, controller.power)
+
+    total = options.frames * c
+    done_before = state.frame_index * c + int(state.data.done.sum())
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=done_before, unit="col", desc="scan", leave=False,
+                   dynamic_ncols=True)
+    scanned = 0
+    image: RangeImage | None = None
+    last_save = time.monotonic()
+    try:
+        while state.frame_index < options.frames:
+            fid = state.frame_base + state.frame_index
+            data = state.data
+            for first, count in _runs(~data.done):
+                for col in device.link.scan(first_column=first, columns=count, frames=1,
+                                            frame=fid):
+                    data.set_column(int(col.column), col)
+                    scanned += 1
+                    if bar is not None:
+                        bar.update(1)
+                    if on_column is not None:
+                        on_column(state.frame_index, int(col.column))
+                    if time.monotonic() - last_save > _SAVE_EVERY_S:
+                        state.save(spath)
+                        last_save = time.monotonic()
+            data.angle_deg = np.where(np.isfinite(data.angle_deg), data.angle_deg,
+                                      device.column_angles_deg)
+            image = estimate_ranges(data, ranging)
+            state.snr_maps.append(image.snr_xc_db)
+            last = state.frame_index + 1 >= options.frames
+            if controller is not None:
+                controller.snr_maps[:] = state.snr_maps[:-1]
+                nxt = controller.update(image.snr_xc_db, image.peak)
+                if not last:
+                    controller.powers[-1] = _set_power(device, nxt)
+                state.powers = list(controller.powers)
+            state.frame_index += 1
+            if not last:
+                state.data = FrameData.empty(k, c, uid_bits, peaks, frame=state.frame_index)
+                state.save(spath)
+                last_save = time.monotonic()
+    except KeyboardInterrupt:
+        state.save(spath)
+        log.warning("scan interrupted; partial scan saved to %s: run the same command with "
+                    "--resume to finish it", spath)
+        raise
+    except LinkError as exc:
+        state.save(spath)
+        raise ScanAborted(f"scan stopped: {exc}; partial scan saved to {spath}, run the same "
+                          "command with --resume to finish it") from exc
+    finally:
+        if bar is not None:
+            bar.close()
+    assert image is not None
+    cloud = assemble(image, device.geometry(), device.wavelengths_m, state.data.angle_deg)
+    write(cloud, out)
+    files = [out]
+    if pictures_too:
+        paths = picture_paths(out)
+        maps = (state.snr_maps if options.near_far and len(state.snr_maps) > 1
+                else [image.snr_xc_db])
+        titles = ([f"frame {i}" for i in range(len(maps))] if len(maps) > 1 else ["SNR_XC"])
+        if len(maps) > 2:
+            maps, titles = [maps[0], maps[-1]], ["first frame", "last frame"]
+        pictures.snr_heatmaps(maps, ranging.snr_threshold_db, paths["snr"], titles)
+        pictures.depth_image(cloud, paths["depth"])
+        pictures.view_3d(cloud, paths["view"])
+        files += list(paths.values())
+    spath.unlink(missing_ok=True)
+    return ScanResult(cloud=cloud, image=image, data=state.data,
+                      snr_maps=list(state.snr_maps),
+                      powers=list(state.powers), columns_scanned=scanned, files=files)
+
+
+def calibrate_device(device: Device, target_distance_m: float, *, shots: int = 20,
+                     snr_threshold_db: float | None = None,
+                     max_spread_m: float | None = None) -> Calibration:
+    """Zeroth-order calibration (Note 6): ``shots`` shots, every channel, one histogram.
+
+    The uncalibrated range of every channel of every shot above the SNR_XC threshold
+    goes into the histogram (sub-sample refined); its one mode minus
+    ``target_distance_m`` is the offset. Histogram modes further apart than one lag
+    sample count as separate; ``max_spread_m`` defaults to a quarter of a sample.
+    """
+    if not 1 <= shots <= 65535:
+        raise ConfigError(f"shots must be from 1 to 65535, not {shots!r}", field="shots")
+    ranging = device.ranging_config(offset_m=0.0, min_support=0)
+    if snr_threshold_db is not None:
+        ranging = dataclasses.replace(ranging, snr_threshold_db=snr_threshold_db)
+    results = device.link.calibrate(shots)
+    if len(results) != shots:
+        raise CalibrationError(f"device sent {len(results)} of {shots} calibration shots")
+    data = FrameData.from_columns(results, device.channels, shots,
+                                  uid_bits=int(device.config.get("uid_bits", 1)),
+                                  peaks=int(device.config.get("peaks", 1)))
+    image = estimate_ranges(data, ranging)
+    one_sample = sample_range_m(ranging.samples_per_chip, ranging.chip_rate_hz)
+    spread = 0.25 * one_sample if max_spread_m is None else max_spread_m
+    return Calibration.from_ranges(image.range_m[image.valid], target_distance_m, shots=shots,
+                                   gap_m=one_sample, max_spread_m=spread,
+                                   device=device.identity(),
+                                   configuration=device.calibration_config())
+
+
+def summarise(image: RangeImage, truth_range_m: NDArray[np.float64] | None = None
+              ) -> dict[str, float]:
+    """Figures of a frame: pixels, valid fraction and, with truth, range errors (m)."""
+    out: dict[str, float] = {"pixels": float(image.range_m.size),
+                             "valid_fraction": float(np.mean(image.valid))}
+    if truth_range_m is not None:
+        obj = np.isfinite(truth_range_m)
+        v = image.valid
+        err = np.abs(image.range_m - truth_range_m)[v & obj]
+        out["object_pixels"] = float(obj.sum())
+        out["object_valid_fraction"] = float(np.mean(v[obj])) if obj.any() else float("nan")
+        out["false_valid"] = float(np.count_nonzero(v & ~obj))
+        out["median_error_m"] = float(np.median(err)) if err.size else float("nan")
+        out["p95_error_m"] = float(np.percentile(err, 95)) if err.size else float("nan")
+    return out
