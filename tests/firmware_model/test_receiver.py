@@ -97,7 +97,7 @@ def _fast_variants(cfg, codes):
     yield FastReceiver(cfg, codes, method="matmul")
     yield FastReceiver(cfg, codes, method="fft")
     yield FastReceiver(cfg, codes, method="matmul", float_bits=n.bit_length() + 2)
-    yield FastReceiver(cfg, codes, method="fft", float_bits=36)
+    yield FastReceiver(cfg, codes, method="fft", float_bits=30)
 
 
 @settings(max_examples=150)
