@@ -1,0 +1,360 @@
+"""Host link and device endpoint in memory: requests, NAKs, replay, scans, diagnoses."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, expected_column
+
+from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
+from protocol import framing
+from protocol.device import DeviceEndpoint
+from protocol.framing import Frame, FrameDecoder, encode_frame
+from protocol.link import (
+    DIAG_GARBAGE,
+    DIAG_NO_ANSWER,
+    DIAG_SILENT,
+    DIAG_WRONG_SESSION,
+    HostLink,
+    open_port,
+)
+from protocol.messages import (
+    CONFIG_OPTIONAL,
+    CaptureKind,
+    ErrorCode,
+    MsgType,
+    decode_payload,
+    encode_config,
+    encode_payload,
+)
+from protocol.pipe import PipePort, pipe_pair
+
+TIMEOUT = 0.05
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[HostLink, DeviceEndpoint, SyntheticApp]]:
+    host, dev = pipe_pair(max_read=500)
+    app = SyntheticApp()
+    with RunningDevice(dev, app, heartbeat_s=0.05, session_id=0x1234) as ep:
+        link = HostLink(host, timeout_s=TIMEOUT, retries=2)
+        link.hello()
+        yield link, ep, app
+        link.close()
+
+
+class Raw:
+    """Talk to a device endpoint frame by frame (no HostLink in between)."""
+
+    def __init__(self, port: PipePort, session: int = 0) -> None:
+        self.port = port
+        self.session = session
+        self.dec = FrameDecoder()
+
+    def send(self, t: int, fields: dict | None = None, seq: int = 1, **kw) -> bytes:
+        wire = encode_frame(t, encode_payload(t, fields or {}), seq, self.session, **kw)
+        self.port.write(wire)
+        return wire
+
+    def recv(self, wait: float = 0.3) -> list[Frame]:
+        out: list[Frame] = []
+        end = time.monotonic() + wait
+        while time.monotonic() < end:
+            out += self.dec.feed(self.port.read(max(1, self.port.in_waiting)))
+            if out and not self.port.in_waiting:
+                time.sleep(0.02)
+                if not self.port.in_waiting:
+                    break
+        return out
+
+
+@pytest.fixture
+def raw() -> Iterator[tuple[Raw, DeviceEndpoint, SyntheticApp]]:
+    host, dev = pipe_pair()
+    host.timeout = 0.02
+    app = SyntheticApp()
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
+        r = Raw(host)
+        r.send(MsgType.HELLO, {"host_nonce": 5, "host_max_frame": 65535}, seq=100)
+        (info,) = r.recv()
+        assert info.msg_type == MsgType.INFO and info.session == 0xABCD
+        r.session = 0xABCD
+        yield r, ep, app
+
+
+def nak(frame: Frame) -> dict:
+    assert frame.msg_type == MsgType.NAK, frame
+    return decode_payload(MsgType.NAK, frame.payload)
+
+
+# ---- requests -------------------------------------------------------------------------------
+def test_handshake_gives_identity_limits_and_geometry(rig) -> None:
+    link, ep, _app = rig
+    info = link.info
+    assert info.serial == "SYN-0001" and info.session_id == 0x1234 == link.session
+    assert info.channels == 8 and info.column_count == 64 and info.max_frame == 16384
+    np.testing.assert_allclose(info.wavelengths_m, 1570e-9 + 0.875e-9 * np.arange(8))
+    assert info.tilt_deg is None and info.heartbeat_ms == 50
+    assert info.ring_columns == ep.ring_columns
+
+
+def test_config_set_get_and_device_refusal(rig) -> None:
+    link, _, app = rig
+    link.set_config(peaks=3, uid_bits=2, rounding="half_up", ghost_windows=[(5, 2)])
+    got = link.get_config()
+    assert got["peaks"] == 3 and got["rounding"] == "half_up"
+    assert got["ghost_windows"] == ((5, 2),)
+    assert link.get_config("uid_bits", "poly_u") == {"uid_bits": 2, "poly_u": (11, 2)}
+    with pytest.raises(DeviceError) as exc:
+        link.set_config(code_index=[1, 2, 3])
+    assert exc.value.code == ErrorCode.OUT_OF_RANGE and exc.value.field == "code_index"
+    assert app.config["peaks"] == 3  # a refused CONFIG_SET changes nothing
+    with pytest.raises(FieldError, match="adc_bits"):
+        link.set_config(adc_bits=12)
+    with pytest.raises(FieldError, match="nonsense"):
+        link.set_config(nonsense=1)
+
+
+def test_power_matrix_is_chunked_under_the_frame_size() -> None:
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=8, columns=300)
+    with RunningDevice(dev, app, max_frame=512):
+        link = HostLink(host, timeout_s=TIMEOUT)
+        assert link.hello().max_frame == 512
+        m = (np.arange(8 * 300).reshape(8, 300) * 7) % 65536
+        before = link.stats.requests
+        link.set_power(m)
+        assert link.stats.requests - before >= 8 * 300 * 2 // 512
+        np.testing.assert_array_equal(app.power, m)
+        link.set_power(np.full((2, 3), 0.5), channel_start=1, column_start=10)
+        assert (app.power[1:3, 10:13] == 32768).all()
+        with pytest.raises(DeviceError) as exc:
+            link.set_power(np.ones((9, 1), dtype=int))
+        assert exc.value.field == "channel_start"
+        with pytest.raises(FieldError, match="power"):
+            link.set_power(np.full((2, 2), 1.5))
+
+
+def test_scan_calibrate_capture_status(rig) -> None:
+    link, _ep, _app = rig
+    link.set_config(peaks=2, uid_bits=3)
+    cols = list(link.scan(first_column=5, columns=20))
+    assert [c.column for c in cols] == list(range(5, 25))
+    assert all(c == expected_column(c.frame, c.column, 8, 2, 3) for c in cols)
+    two = list(link.scan(columns=3, frames=2))
+    assert len(two) == 6 and two[0].frame + 1 == two[3].frame
+    cal = link.calibrate(4)
+    assert [c.column for c in cal] == [0, 1, 2, 3] and all(c.calibration for c in cal)
+    assert cal[1] == expected_column(cal[1].frame, 1, 8, 2, 3, calibration=True)
+    raw = link.capture("raw", column=3)
+    np.testing.assert_array_equal(raw, capture_expected(CaptureKind.RAW, 3, 0))
+    corr = link.capture(CaptureKind.CORR, column=2, channel=5)
+    assert corr.dtype == np.int64
+    np.testing.assert_array_equal(corr, capture_expected(CaptureKind.CORR, 2, 5))
+    st = link.status()
+    assert st.state_name == "idle" and st.frame == cal[0].frame and st.next_column == 4
+    assert st.columns_sent == 20 + 6 + 4 and st.rx_errors == 0
+    with pytest.raises(DeviceError) as exc:
+        link.capture("raw", column=99)
+    assert exc.value.field == "column"
+
+
+def test_leaving_a_scan_early_aborts_it(rig) -> None:
+    link, _ep, app = rig
+    app.column_delay_s = 0.005
+    for c in link.scan():
+        if c.column == 3:
+            break
+    assert app.aborts == 1
+    assert link.status().state_name == "idle"
+    assert len(list(link.scan(columns=5))) == 5  # the link is usable again
+
+
+def test_busy_and_too_large(rig) -> None:
+    link, _ep, app = rig
+    app.column_delay_s = 0.01
+    it = link.scan()
+    next(it)
+    with pytest.raises(DeviceError) as exc:
+        link.set_config(peaks=2)
+    assert exc.value.code == ErrorCode.BUSY
+    it.close()
+    app.column_delay_s = 0.0
+    host, dev = pipe_pair()
+    big = SyntheticApp(channels=40)
+    with RunningDevice(dev, big, max_frame=2048):
+        link2 = HostLink(host, timeout_s=TIMEOUT)
+        link2.set_config(peaks=8)
+        with pytest.raises(DeviceError) as exc:
+            list(link2.scan())
+        assert exc.value.code == ErrorCode.TOO_LARGE and exc.value.field == "peaks"
+
+
+def test_resend_of_a_column_no_longer_kept(rig) -> None:
+    link, ep, _app = rig
+    ep.ring_columns = 4
+    cols = list(link.scan(columns=10))
+    with pytest.raises(DeviceError) as exc:
+        link._request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0]})
+    assert exc.value.code == ErrorCode.NOT_AVAILABLE and exc.value.field == "columns[1]"
+
+
+# ---- device behaviour, frame by frame ------------------------------------------------------------
+def test_retransmitted_request_is_replayed_not_repeated(raw) -> None:
+    r, ep, app = raw
+    items = encode_config({"peaks": 4})
+    wire = r.send(MsgType.CONFIG_SET, {"items": items}, seq=101)
+    first = r.recv()
+    r.port.write(wire)
+    r.port.write(wire)
+    again = r.recv()
+    assert [f.msg_type for f in first] == [MsgType.ACK]
+    assert again == first * 2
+    assert app.set_config_calls == 1 and ep.stats.replays == 2
+    r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
+    r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
+    frames = r.recv(0.5)
+    assert app.scan_calls == 1
+    cols = [f for f in frames if f.msg_type == MsgType.COLUMN_RESULT]
+    assert len(cols) == 3
+
+
+def test_late_duplicate_of_an_older_request_is_dropped(raw) -> None:
+    r, ep, app = raw
+    r.send(MsgType.STATUS_GET, seq=110)
+    assert len(r.recv()) == 1
+    r.send(MsgType.CONFIG_SET, {"items": encode_config({"peaks": 5})}, seq=105)
+    assert r.recv(0.15) == []
+    assert ep.stats.stale == 1 and app.config["peaks"] == 1
+
+
+def test_device_naks_what_it_cannot_act_on(raw) -> None:
+    r, ep, app = raw
+    r.send(MsgType.CONFIG_SET, {"items": [{"key": 99, "value": b"\x01"}]}, seq=120)
+    (f,) = r.recv()
+    assert nak(f)["code"] == ErrorCode.UNKNOWN_KEY and nak(f)["field"] == "key 99"
+    assert f.seq == 120 and f.session == 0xABCD
+    r.send(MsgType.CONFIG_SET, {"items": [{"key": 99 | CONFIG_OPTIONAL, "value": b"\x01"},
+                                          {"key": 16, "value": b"\x02"}]}, seq=121)
+    (f,) = r.recv()
+    assert f.msg_type == MsgType.ACK and app.config["peaks"] == 2
+    r.send(MsgType.CONFIG_SET, {"items": [{"key": 8, "value": b"\x0c"}]}, seq=122)
+    assert nak(r.recv()[0])["code"] == ErrorCode.READ_ONLY
+    r.send(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x02\x00"}]}, seq=123)
+    n = nak(r.recv()[0])
+    assert n["code"] == ErrorCode.MALFORMED and n["field"] == "peaks"
+    r.port.write(encode_frame(MsgType.SCAN_START, b"\x01\x02", 124, r.session))
+    assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
+    r.port.write(encode_frame(0x7E, b"", 125, r.session))
+    assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=2))
+    (f,) = r.recv()
+    assert nak(f)["code"] == ErrorCode.VERSION and f.version == framing.PROTOCOL_VERSION
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
+    assert nak(r.recv()[0])["code"] == ErrorCode.UNSUPPORTED_FLAGS
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 128, 0x5555))
+    assert nak(r.recv()[0])["code"] == ErrorCode.WRONG_SESSION
+    r.port.write(encode_frame(MsgType.ACK, b"\x01", 129, r.session))  # not a request
+    assert r.recv(0.1) == [] and ep.stats.ignored == 1
+
+
+def test_device_survives_an_application_crash(raw) -> None:
+    r, _ep, app = raw
+
+    def boom(values: dict) -> None:
+        raise RuntimeError("firmware bug")
+
+    app.set_config = boom
+    r.send(MsgType.CONFIG_SET, {"items": encode_config({"peaks": 2})}, seq=130)
+    n = nak(r.recv()[0])
+    assert n["code"] == ErrorCode.INTERNAL and "firmware bug" in n["detail"]
+    r.send(MsgType.STATUS_GET, seq=131)
+    assert r.recv()[0].msg_type == MsgType.STATUS
+
+
+def test_device_survives_line_garbage(raw) -> None:
+    r, _ep, _app = raw
+    r.port.write(os.urandom(5000).replace(b"\x00", b"\x01") + b"\x00\x00")
+    r.send(MsgType.STATUS_GET, seq=140)
+    (f,) = r.recv()
+    assert f.msg_type == MsgType.STATUS
+    assert decode_payload(MsgType.STATUS, f.payload)["rx_errors"] >= 1
+
+
+# ---- the host's view of a bad line ----------------------------------------------------
+def _talker(port: PipePort, stop: threading.Event, make: callable) -> threading.Thread:
+    def run() -> None:
+        k = 0
+        while not stop.is_set():
+            port.write(make(k))
+            k += 1
+            time.sleep(0.005)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+@pytest.mark.parametrize(("diag", "make"), [
+    (DIAG_SILENT, None),
+    (DIAG_GARBAGE, lambda k: bytes([0x55, k & 0xFF, 0x00, 0x03, 0x77])),
+    (DIAG_WRONG_SESSION, lambda k: encode_frame(
+        MsgType.HEARTBEAT, encode_payload(MsgType.HEARTBEAT, {
+            "state": 0, "frame": 0, "next_column": 0, "columns_sent": 0, "uptime_ms": k,
+            "rx_frames": 0, "rx_errors": 0, "tx_frames": 0, "replays": 0,
+            "temperature_mc": 0, "faults": 0}), k, 0x0BAD)),
+    (DIAG_NO_ANSWER, lambda k: encode_frame(MsgType.ACK, b"\x0a", 9999, 0x600D)),
+])
+def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
+    host, dev = pipe_pair()
+    stop = threading.Event()
+    if make is not None:
+        _talker(dev, stop, make)
+    link = HostLink(host, timeout_s=0.03, retries=1)
+    link.session = 0x600D  # as if HELLO had succeeded before the trouble
+    try:
+        with pytest.raises(LinkTimeout) as exc:
+            link.status()
+    finally:
+        stop.set()
+    assert exc.value.diagnosis == diag
+    assert diag in str(exc.value) and "STATUS_GET" in str(exc.value)
+    assert link.stats.retries == 1
+
+
+def test_device_restart_is_reported_at_once(rig) -> None:
+    link, ep, _app = rig
+    ep.session = 0x7777  # the device rebooted and chose a new session
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError) as exc:
+        link.status()
+    assert exc.value.code == ErrorCode.WRONG_SESSION
+    assert time.monotonic() - t0 < 10 * TIMEOUT
+    assert link.hello().session_id == 0x7777
+    assert link.status().state_name == "idle"
+
+
+def test_open_port_errors_say_what_to_do() -> None:
+    with pytest.raises(LinkError, match="cannot open port '/dev/nonexistent-cdma'"):
+        open_port("/dev/nonexistent-cdma")
+    with pytest.raises(LinkError, match="unknown URL scheme 'bogus'"):
+        open_port("bogus://x")
+    port = open_port("loop://", timeout=0.01)
+    link = HostLink(port, timeout_s=0.02, retries=0)
+    with pytest.raises(LinkTimeout) as exc:  # a loopback only echoes our own requests
+        link.hello()
+    assert exc.value.diagnosis == DIAG_NO_ANSWER and link.stats.ignored >= 1
+    link.close()
+
+
+def test_host_link_checks_its_arguments() -> None:
+    host, _ = pipe_pair()
+    with pytest.raises(ValueError, match="timeout_s"):
+        HostLink(host, timeout_s=0)
+    with pytest.raises(ValueError, match="retries"):
+        HostLink(host, retries=-1)

@@ -1,0 +1,154 @@
+"""Stateful test over a lossy in-memory link: nothing is lost, nothing is done twice.
+
+The line drops, duplicates, corrupts and reorders frames in both directions. Every
+request must either complete with the right effect or fail with LinkTimeout and a
+diagnosis; every scan must deliver each column exactly once, in order and intact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
+from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+
+from cdma_lidar.errors import LinkTimeout
+from protocol.link import DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_SILENT, HostLink
+from protocol.pipe import Faults, pipe_pair
+
+DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER}
+K, C = 6, 40
+
+
+class LossyLink(RuleBasedStateMachine):
+    """Model: the device's configuration and power matrix as the host believes them."""
+
+    @initialize(seed=st.integers(0, 2**16), drop=st.sampled_from([0.0, 0.05, 0.15]),
+                dup=st.sampled_from([0.0, 0.1]), corrupt=st.sampled_from([0.0, 0.1]),
+                reorder=st.sampled_from([0.0, 0.1]))
+    def start(self, seed: int, drop: float, dup: float, corrupt: float, reorder: float) -> None:
+        f = Faults(drop=drop, duplicate=dup, corrupt=corrupt, reorder=reorder)
+        host, dev = pipe_pair(f, f, seed=seed, max_read=900)
+        self.app = SyntheticApp(channels=K, columns=C)
+        self.device = RunningDevice(dev, self.app, heartbeat_s=0.02)
+        self.device.__enter__()
+        self.link = HostLink(host, timeout_s=0.02, retries=8)
+        self.config = {"peaks": 1, "uid_bits": 1}
+        self.power = self.app.power.copy()
+        self.timeouts = 0
+        self._call(self.link.hello)
+
+    def teardown(self) -> None:
+        if hasattr(self, "device"):
+            self.device.__exit__(None, None, None)
+
+    def _call(self, fn, *args, **kw):
+        """Run a request; a timeout is allowed but must carry a diagnosis."""
+        try:
+            return True, fn(*args, **kw)
+        except LinkTimeout as exc:
+            assert exc.diagnosis in DIAGNOSES, exc
+            self.timeouts += 1
+            return False, None
+
+    @rule(peaks=st.integers(1, 4), uid_bits=st.integers(1, 4))
+    def set_config(self, peaks: int, uid_bits: int) -> None:
+        ok, _ = self._call(self.link.set_config, peaks=peaks, uid_bits=uid_bits)
+        if ok:
+            self.config = {"peaks": peaks, "uid_bits": uid_bits}
+        else:  # unknown whether it was applied: learn it from the device
+            self.config = {k: self.app.config[k] for k in self.config}
+
+    @rule()
+    def get_config(self) -> None:
+        ok, got = self._call(self.link.get_config, "peaks", "uid_bits")
+        if ok:
+            assert got == self.config
+
+    @rule(first=st.integers(0, C - 1), count=st.integers(1, C))
+    def scan(self, first: int, count: int) -> None:
+        count = min(count, C - first)
+        ok, cols = self._call(lambda: list(self.link.scan(first_column=first, columns=count)))
+        if not ok:
+            return
+        assert [c.column for c in cols] == list(range(first, first + count))
+        p, n = self.config["peaks"], self.config["uid_bits"]
+        for c in cols:
+            assert c == expected_column(c.frame, c.column, K, p, n), c.column
+        assert len({c.frame for c in cols}) == 1
+
+    @rule(r0=st.integers(0, K - 1), c0=st.integers(0, C - 1), value=st.integers(0, 65535))
+    def set_power(self, r0: int, c0: int, value: int) -> None:
+        block = np.full((min(2, K - r0), min(5, C - c0)), value, dtype=np.int64)
+        ok, _ = self._call(self.link.set_power, block, channel_start=r0, column_start=c0)
+        if ok:
+            self.power[r0:r0 + block.shape[0], c0:c0 + block.shape[1]] = value
+        else:
+            self.power = self.app.power.copy()
+
+    @rule()
+    def status(self) -> None:
+        ok, st_ = self._call(self.link.status)
+        if ok:
+            assert st_.state_name == "idle"
+
+    @invariant()
+    def device_matches_model(self) -> None:
+        if hasattr(self, "app"):
+            assert {k: self.app.config[k] for k in self.config} == self.config
+            np.testing.assert_array_equal(self.app.power, self.power)
+            assert self.app.set_config_calls <= 1 + 30  # never runaway repeats
+
+
+LossyLink.TestCase.settings = settings(max_examples=12, stateful_step_count=8, deadline=None)
+TestLossyLink = LossyLink.TestCase
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_heavy_loss_every_request_completes_or_times_out_clearly(seed: int) -> None:
+    f = Faults(drop=0.4, duplicate=0.2, corrupt=0.2, reorder=0.2)
+    host, dev = pipe_pair(f, f, seed=seed)
+    app = SyntheticApp(channels=K, columns=C)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.02, retries=3)
+        outcomes = []
+        for k in range(12):
+            try:
+                if k % 3 == 0:
+                    cols = list(link.scan(columns=10))
+                    assert [c.column for c in cols] == list(range(10))
+                    assert all(c == expected_column(c.frame, c.column, K, 1, 1) for c in cols)
+                else:
+                    link.status()
+                outcomes.append("ok")
+            except LinkTimeout as exc:
+                assert exc.diagnosis in DIAGNOSES
+                outcomes.append(exc.diagnosis)
+        assert "ok" in outcomes
+
+
+def test_dead_line_fails_after_the_retries() -> None:
+    host, dev = pipe_pair(to_host=Faults(drop=1.0))
+    app = SyntheticApp()
+    with RunningDevice(dev, app):
+        link = HostLink(host, timeout_s=0.02, retries=2)
+        with pytest.raises(LinkTimeout) as exc:
+            link.hello()
+        assert exc.value.diagnosis == DIAG_SILENT
+        assert link.stats.retries == 2
+
+
+def test_scan_through_bit_errors_is_repaired() -> None:
+    """Bit errors on the way up: damaged columns are asked for again; none is lost or doubled."""
+    host, dev = pipe_pair(to_host=Faults(bit_error_rate=2e-4), seed=7)
+    app = SyntheticApp(channels=K, columns=C)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.03, retries=10)
+        link.hello()
+        cols = list(link.scan())
+        assert [c.column for c in cols] == list(range(C))
+        assert all(c == expected_column(c.frame, c.column, K, 1, 1) for c in cols)
+        assert link.stats.resend_requests >= 1
+        assert link.decoder.stats.crc + link.decoder.stats.cobs >= 1

@@ -1,0 +1,54 @@
+"""End to end over a real pty pair: handshake, configuration and a scan through the kernel."""
+
+from __future__ import annotations
+
+import os
+import tty
+
+import numpy as np
+import pytest
+from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+
+from cdma_lidar.errors import LinkTimeout
+from protocol.link import DIAG_SILENT, FdPort, HostLink, open_port
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pty")
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    yield FdPort(master), path
+    os.close(slave)
+
+
+def test_handshake_configure_scan_over_pty(pty_pair) -> None:
+    device_port, path = pty_pair
+    app = SyntheticApp(channels=40, columns=50)
+    with RunningDevice(device_port, app, heartbeat_s=0.05):
+        port = open_port(path, baudrate=921600, timeout=0.02)
+        with HostLink(port, timeout_s=0.5, retries=3) as link:
+            info = link.hello()
+            assert info.channels == 40 and info.serial == "SYN-0001"
+            link.set_config(peaks=2, uid_bits=2, rounding="convergent")
+            assert link.get_config("peaks", "rounding") == {"peaks": 2, "rounding": "convergent"}
+            link.set_power(np.full((40, 50), 0.25))
+            assert (app.power == 16384).all()
+            cols = list(link.scan())
+            assert [c.column for c in cols] == list(range(50))
+            assert all(c == expected_column(c.frame, c.column, 40, 2, 2) for c in cols)
+            assert link.decoder.stats.errors == 0 and link.stats.retries == 0
+            assert link.status().columns_sent == 50
+    device_port.close()
+
+
+def test_pty_without_device_is_diagnosed_silent(pty_pair) -> None:
+    _, path = pty_pair
+    port = open_port(path, timeout=0.01)
+    with HostLink(port, timeout_s=0.03, retries=1) as link, \
+            pytest.raises(LinkTimeout) as exc:
+        link.hello()
+    assert exc.value.diagnosis == DIAG_SILENT
+    assert path in str(exc.value)

@@ -1,0 +1,52 @@
+"""docs/protocol.md is generated from the declarations: it must equal its regenerated form."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from protocol import spec
+from protocol.framing import FrameDecoder
+from protocol.messages import CONFIG_KEYS, MESSAGES, SCHEMA_CRC, ErrorCode, MsgType
+
+
+def test_committed_spec_page_matches_the_code() -> None:
+    assert spec.check(), "docs/protocol.md is stale: run python -m protocol.spec"
+    assert spec.main(["--check"]) == 0
+
+
+def test_page_mentions_every_message_key_and_error() -> None:
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    for t in MESSAGES:
+        assert f"#### {t.name}" in text
+    for k in CONFIG_KEYS:
+        assert f"| {k.id} | `{k.name}` |" in text
+    for c in ErrorCode:
+        assert f"| {int(c)} | `{c.name}` |" in text
+    assert f"0x{SCHEMA_CRC:08x}" in text
+
+
+def test_stale_table_is_detected_and_rewritten(tmp_path) -> None:
+    page = tmp_path / "protocol.md"
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    stale = text.replace("| 16 | `peaks` |", "| 16 | `peaks_old` |")
+    assert stale != text
+    page.write_text(stale, encoding="utf-8")
+    assert spec.main(["--check", "--path", str(page)]) == 1
+    assert spec.main(["--path", str(page)]) == 0
+    assert page.read_text(encoding="utf-8") == text
+
+
+def test_unknown_section_is_an_error() -> None:
+    with pytest.raises(KeyError, match="nope"):
+        spec.render("<!-- BEGIN GENERATED: nope -->\n<!-- END GENERATED: nope -->")
+
+
+def test_example_wire_bytes_in_the_page_decode() -> None:
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    wires = re.findall(r"^wire   ([0-9a-f ]+)$", text, re.M)
+    assert len(wires) == 3
+    frames = [FrameDecoder().feed(bytes.fromhex(w))[0] for w in wires]
+    assert [f.msg_type for f in frames] == [MsgType.STATUS_GET, MsgType.SCAN_START, MsgType.ACK]
+    assert all(f.seq == 0x0102 and f.session == 0xA1B2C3D4 for f in frames)
