@@ -199,12 +199,14 @@ def _set_power(device: Device, matrix: NDArray[np.float64]) -> NDArray[np.float6
 
 def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
              *, resume: bool = False, progress: bool = True, pictures_too: bool = False,
+             frame_id: int | None = None,
              on_column: Callable[[int, int], None] | None = None) -> ScanResult:
     """Scan, build the point cloud of the last frame and write it to ``out``.
 
-    ``on_column(frame_index, column)`` is called after each stored column (tests use
-    it to interrupt a scan). Raises ScanAborted (after saving the partial scan) when
-    the link is lost; re-raises KeyboardInterrupt after saving.
+    Frame n is requested with frame id ``frame_id + n`` (default: random), which seeds
+    the virtual device's noise. ``on_column(frame_index, column)`` is called after each
+    stored column. Raises ScanAborted (after saving the partial scan) when the link is
+    lost; re-raises KeyboardInterrupt after saving.
     """
     out = Path(out)
     if out.suffix.lower() not in FORMATS:
@@ -225,13 +227,14 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         for key in ("device", "configuration", "options"):
             if state.header.get(key) != header[key]:
                 raise ConfigError(
-                    f"the partial scan at {str(spath)!r} was made with another {key}; resume "
-                    "it with the same device and options, or scan again without --resume",
-                    field="resume")
+                    f"the partial scan at {str(spath)!r} does not match this scan's {key}; "
+                    "resume it with the same device and options, or scan again without "
+                    "--resume", field="resume")
         log.info("resuming frame %d of %d: %d of %d columns already done",
                  state.frame_index + 1, options.frames, int(state.data.done.sum()), c)
     else:
-        base = int(np.random.default_rng().integers(0, 2**31 - options.frames - 1))
+        base = (int(np.random.default_rng().integers(0, 2**31 - options.frames - 1))
+                if frame_id is None else int(frame_id))
         state = ScanState(header=header, frame_index=0, frame_base=base,
                           data=FrameData.empty(k, c, uid_bits, peaks))
     controller = None

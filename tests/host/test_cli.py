@@ -1,0 +1,128 @@
+"""The host commands end to end, and their one-line errors (exit status 2)."""
+
+from __future__ import annotations
+
+import os
+import tomllib
+
+import pytest
+
+from cdma_lidar.cli import main
+
+
+def _run(capsys, *argv: str) -> tuple[int, str, str]:
+    try:
+        code = main(list(argv))
+    except SystemExit as exc:  # argparse usage errors
+        code = int(exc.code or 0)
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+def _one_line_error(capsys, *argv: str) -> str:
+    code, _, err = _run(capsys, *argv)
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if not ln.startswith(("WARNING", "INFO"))]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_info_on_virtual_device(capsys):
+    code, out, _ = _run(capsys, "info", "--port", "virtual://flat-wall?seed=1")
+    assert code == 0
+    assert "VIRT-flat-wall-1" in out and "channels    40" in out
+    assert "samples_per_chip" in out
+
+
+def test_demo_summary_and_files(capsys, tmp_path):
+    code, out, _ = _run(capsys, "demo", "--out", str(tmp_path), "--no-progress")
+    assert code == 0
+    assert "100.0 % of object pixels" in out or "of object pixels" in out
+    assert "0 valid without an object" in out
+    assert "eq. 27 precision" in out
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["calibration.toml", "paper-scene1.ply", "paper-scene1_3d.png",
+                     "paper-scene1_depth.png", "paper-scene1_snr.png"]
+
+
+def test_calibrate_then_scan_with_calibration(capsys, tmp_path):
+    cal = tmp_path / "cal.toml"
+    code, out, _ = _run(capsys, "calibrate", "--port", "virtual://multi-user?seed=1",
+                        "--target-distance", "0.5", "--shots", "8", "--out", str(cal))
+    assert code == 0 and "offset" in out
+    doc = tomllib.loads(cal.read_text())
+    assert doc["device"]["serial"] == "VIRT-multi-user-1" and doc["shots"] == 8
+    code, out, _ = _run(capsys, "scan", "--port", "virtual://multi-user?seed=1", "--out",
+                        str(tmp_path / "mu.pcd"), "--calibration", str(cal), "--no-progress",
+                        "--set", "peaks=4")
+    assert code == 0 and "pixels valid" in out and (tmp_path / "mu.pcd").is_file()
+    # The same file on another device is refused with a clear message.
+    line = _one_line_error(capsys, "scan", "--port", "virtual://multi-user?seed=2", "--out",
+                           str(tmp_path / "x.ply"), "--calibration", str(cal), "--no-progress")
+    assert "another device" in line and "calibrate" in line
+
+
+def test_unknown_port(capsys, tmp_path):
+    line = _one_line_error(capsys, "scan", "--port", "/dev/no-such-port", "--out",
+                           str(tmp_path / "a.ply"))
+    assert "cannot open port" in line
+    line = _one_line_error(capsys, "info", "--port", "nope://thing")
+    assert "nope" in line
+
+
+def test_silent_device(capsys):
+    master, slave = os.openpty()
+    try:
+        line = _one_line_error(capsys, "info", "--port", os.ttyname(slave), "--timeout", "0.1")
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert "no answer" in line and "check" in line
+
+
+def test_impossible_configuration(capsys, tmp_path):
+    line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                           str(tmp_path / "a.ply"), "--set", "samples_per_chip=99")
+    assert "samples_per_chip" in line
+    line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                           str(tmp_path / "a.ply"), "--frames", "0")
+    assert "frames" in line
+
+
+@pytest.mark.parametrize(("out", "words"), [
+    ("/no/such/folder/a.ply", "does not exist"),
+    ("{tmp}/a.xyz", "must end in one of"),
+])
+def test_bad_output_path(capsys, tmp_path, out, words):
+    line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                           out.format(tmp=tmp_path))
+    assert words in line
+
+
+def test_unwritable_output_folder(capsys, tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as a user who can write anywhere")
+        line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                               str(ro / "a.ply"))
+        assert "not writable" in line
+    finally:
+        ro.chmod(0o700)
+
+
+def test_resume_without_partial_scan(capsys, tmp_path):
+    line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                           str(tmp_path / "a.ply"), "--resume")
+    assert "nothing to resume" in line
+
+
+def test_calibrate_bad_arguments(capsys, tmp_path):
+    code, _, err = _run(capsys, "calibrate", "--port", "virtual://calibration",
+                        "--target-distance", "-1", "--out", str(tmp_path / "c.toml"))
+    assert code == 2 and "target-distance" in err
+    line = _one_line_error(capsys, "calibrate", "--port", "virtual://calibration",
+                           "--target-distance", "0.75", "--out", str(tmp_path / "c.txt"))
+    assert ".toml" in line

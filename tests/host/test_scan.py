@@ -1,0 +1,157 @@
+"""Scans through virtual://: acceptance on paper-scene1, near-far, multi-user, resume."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
+from host.calibration import Calibration
+from host.device import connect
+from host.ranging import estimate_ranges, precision_eq27_m
+from host.scan import ScanOptions, calibrate_device, run_scan, state_path, summarise
+from scene import load_scene
+from scene.truth import compute_truth
+
+
+def _truth(name: str) -> np.ndarray:
+    return compute_truth(load_scene(name)).range_m
+
+
+@pytest.fixture(scope="module")
+def paper_scan(tmp_path_factory):
+    """Calibrate and scan paper-scene1 once; several tests look at the result."""
+    out = tmp_path_factory.mktemp("paper") / "scene1.ply"
+    with connect("virtual://paper-scene1?seed=1") as dev:
+        cal = calibrate_device(dev, load_scene("paper-scene1").calibration.target_distance_m)
+        res = run_scan(dev, out, ScanOptions(offset_m=cal.offset_m), progress=False,
+                       pictures_too=True, frame_id=7)
+        identity, config = dev.identity(), dev.calibration_config()
+    return cal, res, identity, config, out
+
+
+def test_paper_scene1_acceptance(paper_scan):
+    _, res, _, _, _ = paper_scan
+    truth = _truth("paper-scene1")
+    s = summarise(res.image, truth)
+    assert s["object_valid_fraction"] >= 0.95
+    assert s["false_valid"] == 0
+    rc = res.image.config
+    obj_valid = res.image.valid & np.isfinite(truth)
+    sigma = float(precision_eq27_m(rc.chip_rate_hz, rc.samples_per_symbol,
+                                   snr_xc_db=float(np.median(res.image.snr_xc_db[obj_valid]))))
+    assert s["median_error_m"] <= sigma
+    # Sub-sample refinement buys an order of magnitude over the integer lag.
+    coarse = summarise(estimate_ranges(res.data, dataclasses.replace(rc, method="none")), truth)
+    assert coarse["median_error_m"] > 5 * s["median_error_m"]
+
+
+def test_calibration_finds_the_hidden_delay(paper_scan):
+    cal, _, identity, config, _ = paper_scan
+    true_offset = load_scene("paper-scene1").instrument.system_delay_s * 299_792_458.0 / 2
+    assert cal.offset_m == pytest.approx(true_offset, abs=0.05)
+    assert cal.spread_m < 0.15
+    cal.check_applies(identity, config)
+    with pytest.raises(CalibrationError, match="another device"):
+        cal.check_applies({**identity, "serial": "VIRT-other"}, config)
+
+
+def test_scan_writes_cloud_and_pictures(paper_scan):
+    _, res, _, _, out = paper_scan
+    assert [f.name for f in res.files] == ["scene1.ply", "scene1_snr.png", "scene1_depth.png",
+                                           "scene1_3d.png"]
+    for f in res.files[1:]:
+        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f.stat().st_size > 5000
+    assert not state_path(out).exists()
+    assert res.cloud.has_range.sum() == res.image.valid.sum()
+
+
+def test_resume_finishes_without_redoing_columns(tmp_path, paper_scan):
+    _, full, *_ = paper_scan
+    out = tmp_path / "r.npz"
+
+    def stop_at_50(_frame: int, column: int) -> None:
+        if column == 49:
+            raise KeyboardInterrupt
+
+    with connect("virtual://paper-scene1?seed=1") as dev:
+        with pytest.raises(KeyboardInterrupt):
+            run_scan(dev, out, ScanOptions(offset_m=full.image.config.offset_m),
+                     progress=False, frame_id=7, on_column=stop_at_50)
+        assert state_path(out).is_file() and not out.exists()
+        res = run_scan(dev, out, ScanOptions(offset_m=full.image.config.offset_m),
+                       resume=True, progress=False)
+    assert res.columns_scanned == 110
+    assert not state_path(out).exists()
+    # Same frame id, same noise: identical to the uninterrupted scan.
+    np.testing.assert_array_equal(res.image.flags, full.image.flags)
+    np.testing.assert_array_equal(res.image.range_m, full.image.range_m)
+
+
+def test_lost_link_leaves_a_resumable_scan(tmp_path):
+    out = tmp_path / "lost.ply"
+
+    def cut(_frame: int, column: int) -> None:
+        if column == 3:
+            raise LinkError("link lost (test)")
+
+    with connect("virtual://multi-user?seed=2") as dev:
+        with pytest.raises(ScanAborted, match="--resume"):
+            run_scan(dev, out, progress=False, on_column=cut)
+        assert state_path(out).is_file()
+        with pytest.raises(ConfigError, match="does not match this scan's options"):
+            run_scan(dev, out, ScanOptions(frames=2), resume=True, progress=False)
+        res = run_scan(dev, out, resume=True, progress=False)
+    assert res.columns_scanned == 4  # columns 4..7 of 8
+    assert out.is_file()
+
+
+def test_near_far_loop_within_three_frames(tmp_path):
+    truth = _truth("near-far")
+    obj = np.isfinite(truth)
+    with connect("virtual://near-far?seed=1") as dev:
+        res = run_scan(dev, tmp_path / "nf.ply", ScanOptions(frames=3, near_far=True),
+                       progress=False, pictures_too=True)
+    thr = res.image.config.snr_threshold_db
+    above = [float(np.mean(m[obj] >= thr)) for m in res.snr_maps]
+    assert above[0] < 0.9  # the near block drowns part of the letters
+    assert max(above[1:]) >= 0.95
+    # Never above the per-pixel maximum; the block was turned down.
+    assert all(p.max() <= 1.0 for p in res.powers)
+    block = truth < 3.0
+    assert np.median(res.powers[-1][block]) < 0.1 * np.median(res.powers[0][block])
+
+
+def test_multi_user_reports_only_own_ranges(tmp_path):
+    scene = load_scene("multi-user")
+    truth = _truth("multi-user")
+    with connect("virtual://multi-user?seed=1") as dev:
+        dev.link.set_config(peaks=4)
+        dev.refresh_config()
+        cal_offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
+        res = run_scan(dev, tmp_path / "mu.ply", ScanOptions(offset_m=cal_offset),
+                       progress=False)
+    img = res.image
+    assert np.mean(img.valid) >= 0.95
+    err = np.abs(img.range_m - truth)[img.valid]
+    assert np.median(err) < 0.1  # our wall at 8 m, not the other users' delays
+    users = img.foreign.users()
+    # User 0 (UID 000, same Gold code as our channel 0) is named by its UID.
+    assert 0 in users
+    on_ch0 = img.foreign.channel == 0
+    assert set(img.foreign.user[on_ch0].tolist()) >= {0}
+    assert scene.instrument.uid not in set(img.foreign.observed.tolist())
+
+
+def test_calibration_file_round_trip_refuses_other_device(tmp_path):
+    with connect("virtual://calibration?seed=3") as dev:
+        cal = calibrate_device(dev, load_scene("calibration").calibration.target_distance_m,
+                               shots=10)
+    path = tmp_path / "cal.toml"
+    cal.save(path)
+    back = Calibration.load(path)
+    with connect("virtual://paper-scene1?seed=1") as dev:
+        with pytest.raises(CalibrationError, match="another device"):
+            back.check_applies(dev.identity(), dev.calibration_config())
