@@ -262,3 +262,23 @@ def test_reference_rejects_overfeeding_and_early_finish():
         rx.feed([1, 2])
     rx.feed([3])
     assert rx.finish().corr.shape == (1, 3)
+
+
+@pytest.mark.parametrize(("degree", "gate_len", "method"), [(7, 40, "matmul"), (9, 1022, "fft")])
+def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
+    from firmware_model.gold import gold_family
+    from firmware_model.pairs import preferred_pairs
+
+    codes = gold_family(*preferred_pairs(degree)[0])[:5]
+    n = codes.shape[1]
+    cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_start=200, gate_len=gate_len,
+                         out_bits=20, peaks=2)
+    rng = np.random.default_rng(gate_len)
+    x = rng.integers(-2048, 2048, cfg.column_samples(n))
+    rx = FastReceiver(cfg, codes)
+    assert rx.correlator_method == method
+    got = rx.column(x)
+    if method == "matmul":
+        assert got.mismatches(reference(cfg, codes, x)) == []
+    else:  # the reference would take seconds here; the other exact path must agree
+        assert got.mismatches(FastReceiver(cfg, codes, method="matmul").column(x)) == []
