@@ -231,10 +231,16 @@ class Instrument:
 
     def _code_spectra(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
                       uid_bits: int) -> NDArray[np.complex128]:
-        """(len(indices), L/2+1) filtered NRZ spectra of Gold members with a UID, scaled by L.
+        """(len(indices), L/2+1) filtered NRZ spectra of Gold members with a UID, scaled by L."""
+        rows = self._spectrum_rows(cfg, indices, uid, uid_bits)
+        return np.stack([rows[i] for i in indices])
 
-        Rows are cached per (settings, member, UID), so a column's lit subset costs only
-        a gather; the cache is dropped when the settings change.
+    def _spectrum_rows(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
+                       uid_bits: int) -> dict[int, NDArray[np.complex128]]:
+        """Spectra by Gold member, computed once per (settings, member, UID).
+
+        A column's lit subset then costs nothing to gather; the cache is dropped when
+        the settings change.
         """
         key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
         rows = self._spectra.get(key)
@@ -262,17 +268,7 @@ class Instrument:
             out = spec[:, q % nn] * weight[None, :]
             for i, row in zip(missing, out, strict=True):
                 rows[i] = row
-        return np.stack([rows[i] for i in indices])
-
-    @staticmethod
-    def _phases(f0_hz: float, m: int, tau_s: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """exp(-2j pi q f0 tau) for q < m, per delay: outer product of two short ramps."""
-        b = int(np.ceil(np.sqrt(m)))
-        a = -(-m // b)
-        w = -2.0 * np.pi * f0_hz * tau_s[:, None]
-        lo = np.exp(1j * w * np.arange(b)[None, :])
-        hi = np.exp(1j * w * (b * np.arange(a))[None, :])
-        return (hi[:, :, None] * lo[:, None, :]).reshape(len(tau_s), a * b)[:, :m]
+        return rows
 
     def _sample_shift_s(self, cfg: RenderSettings) -> float:
         tc = 1.0 / self.spec.chip_rate_hz
@@ -317,12 +313,33 @@ class Instrument:
         if not np.any(keep):
             return np.zeros(length)
         amps, taus, chans = amps[keep], taus[keep], chans[keep]
-        uniq, inv = np.unique(chans, return_inverse=True)
-        spectra = self._code_spectra(cfg, tuple(int(cfg.code_index[c]) for c in uniq),
-                                     cfg.uid, cfg.uid_bits)
-        ph = self._phases(f[1] if m > 1 else 0.0, m, taus + self._sample_shift_s(cfg))
-        total = np.einsum("k,km,km->m", amps.astype(np.complex128), spectra[inv], ph)
-        return np.fft.irfft(total, n=length)
+        members = tuple(int(cfg.code_index[c]) for c in chans)
+        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
+        return np.fft.irfft(self._sum_delayed(f[1] if m > 1 else 0.0, m, amps,
+                                              taus + self._sample_shift_s(cfg),
+                                              [rows[i] for i in members]), n=length)
+
+    @staticmethod
+    def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
+                     spectra: list[NDArray[np.complex128]]) -> NDArray[np.complex128]:
+        """sum_k amps_k * spectra_k[q] * exp(-2j pi q f0 tau_k), q < m: the per-channel work.
+
+        The phase ramp of each channel is the outer product of two short exponentials
+        (q = a * B + b), so each channel costs three passes over m bins.
+        """
+        b = int(np.ceil(np.sqrt(m)))
+        a = -(-m // b)
+        w = -2.0 * np.pi * f0_hz * taus
+        lo = np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]
+        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :])
+        total = np.zeros(m, dtype=np.complex128)
+        tmp = np.empty((a, b), dtype=np.complex128)
+        flat = tmp.reshape(-1)[:m]
+        for k, spec in enumerate(spectra):
+            np.multiply.outer(hi[k], lo[k], out=tmp)
+            flat *= spec
+            total += flat
+        return total
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
                            total_samples: int) -> NDArray[np.float64] | None:
@@ -336,10 +353,10 @@ class Instrument:
             ucfg = RenderSettings(cfg.samples_per_chip, 1, u.uid_bits, u.uid, cfg.code_index,
                                   cfg.poly_u, cfg.poly_v)
             f, length = self._frame_bins(ucfg)
-            spec = self._code_spectra(ucfg, (u.code_index,), u.uid, u.uid_bits)
-            ph = self._phases(f[1], f.size,
-                              np.array([u.delay_s + self._sample_shift_s(cfg)]))
-            frame = np.fft.irfft(u.amplitude_v * spec[0] * ph[0], n=length)
+            spec = self._spectrum_rows(ucfg, (u.code_index,), u.uid, u.uid_bits)[u.code_index]
+            frame = np.fft.irfft(self._sum_delayed(
+                f[1], f.size, np.array([u.amplitude_v]),
+                np.array([u.delay_s + self._sample_shift_s(cfg)]), [spec]), n=length)
             out += frame[idx % length]
         return out
 
