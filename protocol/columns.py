@@ -392,7 +392,11 @@ def decode_column(payload: bytes) -> ColumnResult:
         raise FrameError(f"column: {len(payload)} bytes, {k} channels x {p} peaks need "
                          f"{_HEAD.size + k * dt.itemsize}")
     rec = np.frombuffer(payload, dtype=dt, count=k, offset=_HEAD.size)
-    return ColumnResult(frame, column, angle, rec, n, bool(flags & FLAG_CALIBRATION), ts)
+    # Same as ColumnResult(...) minus the frozen-dataclass __setattr__ calls (hot path).
+    col = object.__new__(ColumnResult)
+    col.__dict__.update(frame=frame, column=column, angle_udeg=angle, records=rec, uid_bits=n,
+                        calibration=bool(flags & FLAG_CALIBRATION), timestamp_us=ts)
+    return col
 
 
 # ---- declarative codec (construct) --------------------------------------------------

@@ -33,6 +33,7 @@ import logging
 import struct
 import zlib
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from protocol import cobs
@@ -98,8 +99,7 @@ def max_wire_len(max_frame: int) -> int:
     return cobs.max_encoded_len(max_frame) + 2
 
 
-@dataclass(frozen=True, slots=True)
-class Frame:
+class Frame(NamedTuple):
     """One frame that passed the CRC and version checks. ``payload`` is still undecoded."""
 
     msg_type: int
@@ -119,19 +119,22 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     Raises FieldError naming the header field that cannot hold its value, or
     ``payload`` when the frame would exceed ``max_frame`` bytes (decoded size).
     """
-    for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
-                            ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
-                            ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
-        if not isinstance(value, int) or not 0 <= value <= hi:
-            raise out_of_range(f"frame.{name}", f"an integer from 0 to {hi}", value, FieldError)
     size = OVERHEAD + len(payload)
     if size > max_frame:
         raise out_of_range("payload", f"at most {max_frame - OVERHEAD} bytes (max frame "
                            f"{max_frame})", f"{len(payload)} bytes", FieldError)
-    head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
+    try:
+        head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
+    except struct.error:
+        for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
+                                ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
+                                ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
+            if not isinstance(value, int) or not 0 <= value <= hi:
+                raise out_of_range(f"frame.{name}", f"an integer from 0 to {hi}", value,
+                                   FieldError) from None
+        raise
     body = head + payload
-    body += _CRC.pack(zlib.crc32(body) & 0xFFFFFFFF)
-    return DELIMITER + cobs.encode(body) + DELIMITER
+    return b"".join((DELIMITER, cobs.encode(body + _CRC.pack(zlib.crc32(body))), DELIMITER))
 
 
 def decode_frame(body: bytes) -> Frame:
@@ -149,7 +152,7 @@ def decode_frame(body: bytes) -> Frame:
     version, incompat, compat, msg_type, seq, plen, session = HEADER.unpack_from(body)
     if plen != n - OVERHEAD:
         raise FrameError(f"length: header says {plen} payload bytes, frame has {n - OVERHEAD}")
-    frame = Frame(msg_type, seq, session, bytes(body[HEADER_SIZE: n - CRC_SIZE]), compat,
+    frame = Frame(msg_type, seq, session, body[HEADER_SIZE: n - CRC_SIZE], compat,
                   incompat, version)
     if version != PROTOCOL_VERSION:
         raise _Rejected("version", frame)
@@ -237,27 +240,24 @@ class FrameDecoder:
         """Add received bytes; return the frames they complete, in order. Never raises."""
         st = self.stats
         st.bytes += len(data)
-        buf = self._buf
-        buf += data
+        if self._buf:
+            data = bytes(self._buf) + data
+            self._buf.clear()
+        pieces = bytes(data).split(DELIMITER)
         out: list[Frame] = []
-        start = 0
-        while True:
-            end = buf.find(0, start)
-            if end < 0:
-                break
+        for chunk in pieces[:-1]:  # every piece but the last ended at a delimiter
             if self._skipping:
                 self._skipping = False
-            elif end > start:
-                self._chunk(buf[start:end], out)
-            start = end + 1
-        if start:
-            del buf[:start]
+            elif chunk:
+                self._chunk(chunk, out)
+        tail = pieces[-1]
         if self._skipping:
-            buf.clear()
-        elif len(buf) > self._max_chunk:
+            pass  # still inside an oversize chunk: drop
+        elif len(tail) > self._max_chunk:
             st.oversize += 1
-            buf.clear()
             self._skipping = True
+        else:
+            self._buf += tail
         return out
 
     def _chunk(self, chunk: bytes, out: list[Frame]) -> None:
@@ -266,7 +266,7 @@ class FrameDecoder:
             st.oversize += 1
             return
         try:
-            body = cobs.decode(bytes(chunk))
+            body = cobs.decode(chunk)
         except FrameError:
             st.cobs += 1
             return

@@ -19,6 +19,8 @@ frames_st = st.builds(
     session=st.integers(0, 0xFFFFFFFF),
     payload=st.binary(max_size=700),
     compat=st.integers(0, 255),
+    incompat=st.just(0),
+    version=st.just(framing.PROTOCOL_VERSION),
 )
 
 
