@@ -206,3 +206,24 @@ def test_gold_codes_match_the_code_generator():
     fam = gold_family((11, 2), (11, 8, 5, 2))
     idx = (0, 5, 2046, 2047, 2048)
     np.testing.assert_array_equal(gold_codes((11, 2), (11, 8, 5, 2), idx), fam[list(idx)])
+
+
+def test_our_uid_polarity_matches_the_code_generator():
+    from firmware_model.uid import polarity_modulate
+
+    inst = Instrument(_shell(6.0), seed=0)
+    base = RenderSettings.from_spec(inst.spec)
+    cfg = RenderSettings(base.samples_per_chip, 1, 3, 0b101, base.code_index, base.poly_u,
+                         base.poly_v)
+    echo = inst.echo(0, cfg)
+    lag = round(inst.delay_s[0, 0] * FS)
+    bits = polarity_modulate(gold_codes(cfg.poly_u, cfg.poly_v, (0,))[0], 0b101, 3)
+    ref = np.repeat(1.0 - 2.0 * bits, cfg.samples_per_chip)  # what the device emits
+    aligned = np.roll(echo, -lag)
+    # the echo is the emitted sequence (all three periods, each with its polarity), delayed
+    per_period = (aligned * ref).reshape(3, -1).sum(axis=1)
+    flipped = (aligned * -ref).reshape(3, -1).sum(axis=1)
+    assert np.all(per_period > 0) and np.all(flipped < 0)
+    plain = np.repeat(1.0 - 2.0 * gold_codes(cfg.poly_u, cfg.poly_v, (0,))[0], 4)
+    signs = np.sign((aligned.reshape(3, -1) * plain).sum(axis=1))
+    assert signs.tolist() == [-1.0, 1.0, -1.0]  # bit p of 0b101 set -> period p inverted
