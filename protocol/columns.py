@@ -140,10 +140,13 @@ _INT_LIMITS = {
 
 def _masks(signs: NDArray, n: int) -> tuple[NDArray, NDArray]:
     """(negative mask, zero mask) along the last axis of a sign array in {-1, 0, +1}."""
-    weights = (1 << np.arange(n, dtype=np.int64))
-    neg = ((signs < 0) * weights).sum(axis=-1)
-    zero = ((signs == 0) * weights).sum(axis=-1)
-    return neg.astype(np.uint8), zero.astype(np.uint8)
+    weights = _WEIGHTS[:n]
+    neg = (signs < 0).astype(np.uint8) @ weights
+    zero = (signs == 0).astype(np.uint8) @ weights
+    return neg, zero
+
+
+_WEIGHTS = (1 << np.arange(MAX_UID_BITS)).astype(np.uint8)
 
 
 def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
@@ -316,7 +319,8 @@ class ColumnResult:
             raise out_of_range("uid_observed", f"below 2^uid_bits = {1 << n}",
                                int(np.max(rec["uid_observed"])), FieldError)
         match = np.asarray(uid_match)
-        if match.shape != (k,) or not np.isin(match, (0, 1)).all():
+        if match.shape != (k,) or match.dtype.kind not in "biu" or \
+                (k and (match.min() < 0 or match.max() > 1)):
             raise out_of_range("uid_match", f"a ({k},) array of booleans", match, FieldError)
         rec["uid_match"] = match
         if e:
@@ -360,14 +364,16 @@ def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
     if arr.dtype.kind not in "iub":
         raise out_of_range(name, "an integer array", f"dtype {arr.dtype}", FieldError)
     lo, hi = _INT_LIMITS[name]
-    if arr.size and (int(arr.min()) < lo or int(arr.max()) > hi):
-        bad = int(arr.min()) if int(arr.min()) < lo else int(arr.max())
-        raise out_of_range(name, f"integers from {lo} to {hi}", bad, FieldError)
+    if arr.size:
+        amin, amax = int(arr.min()), int(arr.max())
+        if amin < lo or amax > hi:
+            raise out_of_range(name, f"integers from {lo} to {hi}", amin if amin < lo else amax,
+                               FieldError)
     return arr
 
 
 def _check_signs(name: str, signs: NDArray) -> None:
-    if signs.dtype.kind not in "iu" or (signs.size and not np.isin(signs, (-1, 0, 1)).all()):
+    if signs.dtype.kind not in "iu" or (signs.size and (signs.min() < -1 or signs.max() > 1)):
         raise out_of_range(name, "values in {-1, 0, +1}", signs, FieldError)
 
 

@@ -77,13 +77,15 @@ from protocol.messages import (
     kind_of,
 )
 
-__all__ = ["DeviceApp", "DeviceEndpoint", "EndpointStats"]
+__all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceEndpoint", "EndpointStats"]
 
 log = logging.getLogger("cdma_lidar." + __name__)
 
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
 _KEY_IDS = {k.id: k.name for k in CONFIG_KEYS}
 _CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
+#: STATUS.faults bit set by the endpoint when the application's health() fails.
+FAULT_HEALTH = 0x8000_0000
 
 
 class DeviceApp(abc.ABC):
@@ -208,6 +210,7 @@ class DeviceEndpoint:
         self._stream_seq = 0
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
+        self._info: Info | None = None  # as sent in the last INFO
         self._lock = threading.Lock()
         port.timeout = poll_s
 
@@ -256,7 +259,11 @@ class DeviceEndpoint:
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT)."""
         st = self._stream
-        temp, faults = self.app.health()
+        try:
+            temp, faults = self.app.health()
+        except Exception:  # a health sensor must not take the link down
+            log.exception("application health() failed")
+            temp, faults = TEMPERATURE_UNKNOWN, FAULT_HEALTH
         mask = 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
@@ -378,7 +385,7 @@ class DeviceEndpoint:
         self._ring.clear()
         self._capture = None
         self.tx_max_frame = min(self.max_frame, f["host_max_frame"])
-        info = dataclasses.replace(
+        self._info = info = dataclasses.replace(
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.session,
             schema_crc=SCHEMA_CRC, max_frame=self.tx_max_frame,
             ring_columns=min(self.ring_columns, 65535),
@@ -426,7 +433,7 @@ class DeviceEndpoint:
                       frame: int, first: int, count: int, calibration: bool) -> bytes:
         if self._stream is not None:
             return self._nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
-        info = self.app.info()
+        info = self._info or self.app.info()
         peaks = int(self.app.get_config().get("peaks", 1))
         need = OVERHEAD + column_payload_size(info.channels, peaks)
         if need > self.tx_max_frame:

@@ -227,6 +227,8 @@ class HostLink:
         poll_s: longest blocking read (s); default ``min(0.05, timeout_s / 4)``.
         max_frame: largest frame the host accepts (bytes), announced in HELLO.
         clock: monotonic clock (s), replaceable in tests.
+
+    One HostLink per port, used from one thread at a time.
     """
 
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,

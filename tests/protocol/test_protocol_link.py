@@ -13,7 +13,7 @@ from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, exp
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
 from protocol import framing
-from protocol.device import DeviceEndpoint
+from protocol.device import FAULT_HEALTH, DeviceEndpoint
 from protocol.framing import Frame, FrameDecoder, encode_frame
 from protocol.link import (
     DIAG_GARBAGE,
@@ -358,3 +358,15 @@ def test_host_link_checks_its_arguments() -> None:
         HostLink(host, timeout_s=0)
     with pytest.raises(ValueError, match="retries"):
         HostLink(host, retries=-1)
+
+
+def test_failing_health_sensor_sets_a_fault_bit_not_a_dead_link(rig) -> None:
+    link, _, app = rig
+
+    def broken() -> tuple[int, int]:
+        raise RuntimeError("i2c timeout")
+
+    app.health = broken
+    st = link.status()
+    assert st.faults & FAULT_HEALTH and st.temperature_c != st.temperature_c  # NaN
+    assert len(list(link.scan(columns=3))) == 3  # heartbeats call health() too
