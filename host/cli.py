@@ -14,13 +14,15 @@ import logging
 import math
 import sys
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.fileio import check_writable
+from cdma_lidar.fileio import atomic_write_text, check_writable
 
 __all__ = ["register"]
 
@@ -113,6 +115,10 @@ def register(subparsers: Any) -> None:
                    help="fill rejected pixels from their column neighbours (flag 1)")
     p.add_argument("--ghost-window", type=_ghost, action="append", default=[],
                    metavar="START:LEN", help="lags (samples) of a known grating ghost")
+    p.add_argument("--ghost-map", metavar="FILE",
+                   help="ghost windows (TOML) saved by --save-ghost-map on an empty field")
+    p.add_argument("--save-ghost-map", metavar="FILE",
+                   help="this scan sees an empty field: save its detections as a ghost map")
     p.add_argument("--power-cap", type=_positive_float, metavar="X",
                    help="near-far: cap per column, in units of the per-pixel maximum power")
     p.add_argument("--pictures", action="store_true",
@@ -195,9 +201,17 @@ def cmd_scan(args: argparse.Namespace) -> int:
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")
     cal = Calibration.load(args.calibration) if args.calibration else None
+    ghosts = list(args.ghost_window)
+    if args.ghost_map:
+        ghosts += _load_ghost_map(args.ghost_map)
+    if args.save_ghost_map:
+        if Path(args.save_ghost_map).suffix.lower() != ".toml":
+            raise ConfigError(f"--save-ghost-map must be a .toml file, not "
+                              f"{args.save_ghost_map!r}", field="save_ghost_map")
+        check_writable(args.save_ghost_map)
     options = ScanOptions(frames=args.frames, near_far=args.near_far,
                           snr_threshold_db=args.snr_threshold, interpolate=args.interpolate,
-                          ghost_windows=tuple(args.ghost_window), power_cap=args.power_cap,
+                          ghost_windows=tuple(ghosts), power_cap=args.power_cap,
                           offset_m=cal.offset_m if cal else 0.0)
     with connect(args.port, timeout_s=args.timeout) as dev:
         _configure(dev, args.set)
@@ -225,9 +239,33 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if len(img.foreign):
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
         _say(f"other users' returns: {len(img.foreign)} ({users})")
+    if args.save_ghost_map:
+        from host.ranging import ghost_windows_from_image
+
+        windows = ghost_windows_from_image(img)
+        text = tomli_w.dumps({"windows": [list(w) for w in windows],
+                              "device": dev.identity()})
+        atomic_write_text(args.save_ghost_map, text)
+        _say(f"ghost map: {len(windows)} windows {list(windows)}; wrote {args.save_ghost_map}")
     for f in res.files:
         _say(f"wrote {f}")
     return 0
+
+
+def _load_ghost_map(path: str) -> list[tuple[int, int]]:
+    try:
+        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        windows = [(int(a), int(b)) for a, b in doc["windows"]]
+    except FileNotFoundError:
+        raise ConfigError(f"ghost map {path!r} does not exist; make one with "
+                          "--save-ghost-map on an empty field", field="ghost_map") from None
+    except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"ghost map {path!r} is not a list of [start, length] windows "
+                          f"({exc})", field="ghost_map") from None
+    if any(a < 0 or b < 1 for a, b in windows):
+        raise ConfigError(f"ghost map {path!r} has a window with start < 0 or length < 1",
+                          field="ghost_map")
+    return windows
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:

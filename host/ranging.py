@@ -62,6 +62,7 @@ __all__ = [
     "RangingConfig",
     "estimate_ranges",
     "fill_columns",
+    "ghost_windows_from_image",
     "in_windows",
     "lag_to_range_m",
     "neighbour_support",
@@ -175,6 +176,29 @@ def neighbour_support(lag: NDArray, strong: NDArray, tol_samples: float) -> NDAr
             with np.errstate(invalid="ignore"):
                 count += np.abs(other - lag) <= tol_samples
     return count
+
+
+def ghost_windows_from_image(image: RangeImage, margin: int = 2
+                             ) -> tuple[tuple[int, int], ...]:
+    """Ghost map from a scan of an empty field (beam trap, open sky): lag windows (samples).
+
+    Grating ghosts (Note 5) carry the channel's own code from a fixed distance, so with
+    nothing in the field every detection that survives the threshold and the isolation
+    check is a ghost. Their integer lags, widened by ``margin`` samples on each side,
+    are merged into ``(start, length)`` windows for :attr:`RangingConfig.ghost_windows`.
+    """
+    ns = image.config.samples_per_symbol
+    lags = np.unique(np.rint(image.lag[image.valid]).astype(np.int64) % ns)
+    if lags.size == 0:
+        return ()
+    lo, hi = lags - margin, lags + margin
+    windows: list[list[int]] = []
+    for a, b in zip(lo.tolist(), hi.tolist(), strict=True):
+        if windows and a <= windows[-1][1] + 1:
+            windows[-1][1] = max(windows[-1][1], b)
+        else:
+            windows.append([a, b])
+    return tuple((int(a % ns), int(b - a + 1)) for a, b in windows)
 
 
 def fill_columns(range_m: NDArray, ok: NDArray, max_gap: int) -> tuple[NDArray, NDArray]:
@@ -295,14 +319,19 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     """
     from firmware_model.snr import snr_xc_db
 
-    own = select_own(frame, config.uid)
+    ns = config.samples_per_symbol
+
+    def in_ghost(lags: NDArray[np.int64]) -> NDArray[np.bool_]:
+        return in_windows(lags, config.ghost_windows, ns)
+
+    own = select_own(frame, config.uid, in_ghost if config.ghost_windows else None)
     snr = np.asarray(snr_xc_db(own.peak, frame.noise_count, frame.noise_sum,
                                frame.noise_sumsq), dtype=np.float64)
     delta = subsample_delta(own.peak, own.neighbours, config.method)
     delta = np.where(own.has_neighbours, delta, 0.0)
     lag = own.lag.astype(np.float64) + delta
     rng = lag_to_range_m(lag, config.samples_per_chip, config.chip_rate_hz, config.offset_m)
-    ghost = in_windows(own.lag, config.ghost_windows, config.samples_per_symbol)
+    ghost = own.ghost
     done = np.broadcast_to(frame.done[None, :], frame.shape)
     ours = own.source >= 0
     ok = done & ours & ~ghost & (snr >= config.snr_threshold_db)
@@ -310,7 +339,7 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
         ok &= neighbour_support(lag, ok, config.support_tol) >= config.min_support
     flags = np.where(ok, 0, FLAG_REJECTED).astype(np.uint8)
     flags |= np.where(own.foreign, FLAG_FOREIGN, 0).astype(np.uint8)
-    flags |= np.where(ghost & ours, FLAG_GHOST, 0).astype(np.uint8)
+    flags |= np.where(ghost, FLAG_GHOST, 0).astype(np.uint8)
     out_range = np.where(ok, rng, np.nan)
     if config.interpolate:
         out_range, filled = fill_columns(out_range, ok, config.max_gap)

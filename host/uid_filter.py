@@ -17,6 +17,7 @@ integer). All functions are vectorised over the ``(K, C)`` pixels of a frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -79,6 +80,8 @@ class OwnReturns:
         has_neighbours: True where the chosen peak is the primary (neighbours were sent).
         source: 0 for the primary peak, j + 1 for extra peak j, -1 where none is ours.
         foreign: True where the primary peak has a clear foreign UID and no extra peak is ours.
+        ghost: True where the primary peak is ours but in a ghost window, and no extra
+            peak outside the windows is ours.
     """
 
     lag: NDArray[np.int64]
@@ -87,24 +90,35 @@ class OwnReturns:
     has_neighbours: NDArray[np.bool_]
     source: NDArray[np.int64]
     foreign: NDArray[np.bool_]
+    ghost: NDArray[np.bool_]
 
 
-def select_own(frame: FrameData, uid: int) -> OwnReturns:
+def select_own(frame: FrameData, uid: int,
+               excluded: Callable[[NDArray[np.int64]], NDArray[np.bool_]] | None = None
+               ) -> OwnReturns:
     """Pick our own return in every pixel (primary peak if it matches, else a matching extra).
 
     With a single UID period (no identity modulation) this is the primary peak
-    wherever the receiver says ``uid_match``.
+    wherever the receiver says ``uid_match``. ``excluded(lags) -> mask`` marks lags
+    that cannot be ours (grating ghost windows); a primary peak there gives way to the
+    strongest matching extra peak outside them, if any (else the pixel is a ghost).
     """
     n = frame.uid_bits
     if not 0 <= uid < (1 << n):
         raise out_of_range("uid", f"from 0 to {(1 << n) - 1}", uid)
-    primary_ours = frame.uid_match.astype(bool)
+    if excluded is None:
+        def excluded(lags: NDArray[np.int64]) -> NDArray[np.bool_]:
+            return np.zeros(np.shape(lags), dtype=bool)
+    primary_match = frame.uid_match.astype(bool)
+    primary_ghost = primary_match & excluded(frame.peak_lag)
+    primary_ours = primary_match & ~primary_ghost
     source = np.where(primary_ours, 0, -1).astype(np.int64)
     lag = frame.peak_lag.copy()
     peak = frame.peak.copy()
     if frame.peaks > 1:
         obs, clear = observed_uids(frame.extra_signs)  # (K, C, P-1)
-        extra_ours = clear & (obs == uid) & (frame.extra_peak != 0)
+        extra_ours = (clear & (obs == uid) & (frame.extra_peak != 0)
+                      & ~excluded(frame.extra_lag))
         mag = np.where(extra_ours, np.abs(frame.extra_peak), -1)
         best = np.argmax(mag, axis=-1)
         has_extra = np.take_along_axis(mag, best[..., None], -1)[..., 0] >= 0
@@ -114,9 +128,10 @@ def select_own(frame: FrameData, uid: int) -> OwnReturns:
                         peak)
         source = np.where(use, best + 1, source)
     _, primary_clear = observed_uids(frame.uid_signs)
-    foreign = (source < 0) & primary_clear & ~primary_ours
+    foreign = (source < 0) & primary_clear & ~primary_match
     return OwnReturns(lag=lag, peak=peak, neighbours=frame.neighbours,
-                      has_neighbours=source == 0, source=source, foreign=foreign)
+                      has_neighbours=source == 0, source=source, foreign=foreign,
+                      ghost=(source < 0) & primary_ghost)
 
 
 @dataclass
