@@ -126,3 +126,22 @@ def test_calibrate_bad_arguments(capsys, tmp_path):
     line = _one_line_error(capsys, "calibrate", "--port", "virtual://calibration",
                            "--target-distance", "0.75", "--out", str(tmp_path / "c.txt"))
     assert ".toml" in line
+
+
+def test_scan_over_a_pty(capsys, tmp_path):
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+                             "multi-user", "--seed", "1", "--pty"],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/"), path
+        code, out, _ = _run(capsys, "scan", "--port", path, "--out", str(tmp_path / "p.ply"),
+                            "--no-progress", "--set", "peaks=4")
+        assert code == 0
+        assert "320 of 320 pixels valid" in out and "UID 0" in out
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

@@ -1,0 +1,64 @@
+"""FrameData: column results in, (K, C) arrays out, and back through NPZ."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from cdma_lidar.errors import ConfigError
+from firmware_model.gold import gold_family
+from firmware_model.receiver import FastReceiver, ReceiverConfig
+from host.frame import FrameData
+from protocol.columns import ColumnResult, decode_column, encode_column
+
+
+def _receiver_output(seed: int, peaks: int = 3, uid_bits: int = 2):
+    codes = gold_family((5, 2), (5, 4, 3, 2))[:4]
+    cfg = ReceiverConfig(samples_per_chip=2, averages=2, uid_bits=uid_bits, gate_len=32,
+                         peaks=peaks, peak_exclude=2)
+    rng = np.random.default_rng(seed)
+    samples = rng.integers(-300, 300, cfg.column_samples(codes.shape[1]))
+    return FastReceiver(cfg, codes).column(samples)
+
+
+def test_columns_from_receiver_and_wire_land_in_place():
+    f = FrameData.empty(4, 3, uid_bits=2, peaks=3)
+    outs = [_receiver_output(s) for s in range(3)]
+    for col, out in enumerate(outs):
+        wire = decode_column(encode_column(ColumnResult.from_receiver(0, col, 0.5 * col, out)))
+        f.set_column(wire.column, wire)
+    assert f.done.all() and f.angle_deg.tolist() == [0.0, 0.5, 1.0]
+    for col, out in enumerate(outs):
+        np.testing.assert_array_equal(f.peak_lag[:, col], out.peak_lag)
+        np.testing.assert_array_equal(f.neighbours[:, col], out.neighbours)
+        np.testing.assert_array_equal(f.extra_signs[:, col], out.extra_signs)
+        np.testing.assert_array_equal(f.noise_sumsq[:, col], out.noise_sumsq)
+
+
+def test_npz_round_trip():
+    f = FrameData.empty(4, 2, uid_bits=2, peaks=3, frame=9)
+    f.set_column(1, _receiver_output(5), angle_deg=-1.5)
+    buf = io.BytesIO()
+    np.savez(buf, **f.to_arrays())
+    buf.seek(0)
+    with np.load(buf) as z:
+        g = FrameData.from_arrays(z)
+    assert g.frame == 9 and g.done.tolist() == [False, True]
+    for name, value in f.to_arrays().items():
+        np.testing.assert_array_equal(getattr(g, name), value)
+
+
+def test_shape_and_field_checks():
+    f = FrameData.empty(4, 2, uid_bits=2, peaks=3)
+    with pytest.raises(ConfigError, match="column"):
+        f.set_column(2, _receiver_output(1))
+    with pytest.raises(ConfigError, match="uid_signs shape"):
+        f.set_column(0, _receiver_output(1, uid_bits=1))
+    with pytest.raises(ConfigError, match="lacks"):
+        f.set_column(0, {"peak_lag": np.zeros(4)})
+    with pytest.raises(ConfigError, match="channels"):
+        FrameData.empty(0, 2)
+    with pytest.raises(ConfigError, match="lacks"):
+        FrameData.from_arrays({"peak": np.zeros((1, 1))})
