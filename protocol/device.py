@@ -14,10 +14,12 @@ virtual device) only answers decoded requests and produces columns.
                                      | no
                  act -> reply (ACK / NAK / data) with the request's seq, cache it
 
-While a scan or calibration runs, each :meth:`DeviceEndpoint.poll` sends at most one
-column pulled from the app's generator (so requests such as SCAN_ABORT and RESEND
-are served between columns), keeps it in a ring of recent columns for RESEND, and
-sends a HEARTBEAT every ``heartbeat_s`` seconds.
+While a scan or calibration runs, a worker thread pulls columns from the app's
+generator, keeps each in a ring of recent columns for RESEND and sends it; the
+polling thread meanwhile answers requests (STATUS_GET, RESEND and SCAN_ABORT
+without waiting for the application) and sends a HEARTBEAT every ``heartbeat_s``
+seconds, so the host hears from the device even while a column takes long to
+compute. The application is only ever called by one thread at a time.
 
 Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
 ``in_waiting``, ``timeout``): a pty (:class:`protocol.link.FdPort`), a pyserial
@@ -84,6 +86,8 @@ log = logging.getLogger("cdma_lidar." + __name__)
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
 _KEY_IDS = {k.id: k.name for k in CONFIG_KEYS}
 _CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
+# Requests answered without calling the application (never wait for a column to compute).
+_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
 
@@ -155,6 +159,7 @@ class _Stream:
     count: int
     calibration: bool
     produced: int = 0
+    stopped: bool = False  # set (under the endpoint lock) when the stream ends for any reason
 
     @property
     def next_column(self) -> int:
@@ -211,59 +216,74 @@ class DeviceEndpoint:
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
         self._info: Info | None = None  # as sent in the last INFO
+        # _lock guards the endpoint's state and the port's write side; _app_lock serialises
+        # calls into the application. Order: _lock may be held while taking _app_lock, never
+        # the reverse (the column producer releases _app_lock before it takes _lock).
         self._lock = threading.Lock()
+        self._app_lock = threading.RLock()
+        self._health = (TEMPERATURE_UNKNOWN, 0)
         port.timeout = poll_s
 
     # ---- main loop ------------------------------------------------------------------
     def serve_forever(self, stop: threading.Event) -> None:
-        """Poll until ``stop`` is set or the port fails (logged)."""
-        while not stop.is_set():
-            try:
-                self.poll()
-            except (OSError, ValueError, TypeError) as exc:
-                # A closed pty or pyserial port: the host side went away.
-                if stop.is_set():
+        """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
+        try:
+            while not stop.is_set():
+                try:
+                    self.poll()
+                except (OSError, ValueError, TypeError) as exc:
+                    # A closed pty or pyserial port: the host side went away.
+                    if not stop.is_set():
+                        log.warning("device endpoint stops: port failed (%s)", exc)
                     break
-                log.warning("device endpoint stops: port failed (%s)", exc)
-                break
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop a running stream (no SCAN_END); the port is left open."""
+        with self._lock:
+            self._stop_stream(ScanEndReason.ABORTED, send_end=False)
 
     def poll(self) -> None:
-        """Read what arrived, answer requests, then send at most one streamed column."""
+        """Read what arrived (blocking at most ``poll_s``), answer requests, send heartbeats.
+
+        Columns are produced and sent by a worker thread started at SCAN_START /
+        CALIBRATE, so requests such as STATUS_GET, RESEND and SCAN_ABORT are answered and
+        heartbeats go out while the application computes.
+        """
+        n = self.port.in_waiting
+        if n:
+            data = self.port.read(n)
+        else:
+            data = self.port.read(1)
+            if data:
+                more = self.port.in_waiting
+                if more:
+                    data += self.port.read(more)
         with self._lock:
-            busy = self._stream is not None
-            n = self.port.in_waiting
-            if n:
-                data = self.port.read(n)
-            elif busy:
-                data = b""
-            else:
-                data = self.port.read(1)
-                if data:
-                    more = self.port.in_waiting
-                    if more:
-                        data += self.port.read(more)
             if data:
                 for frame in self.decoder.feed(data):
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
-            if self._stream is not None:
-                self._step_stream()
-                now = self.clock()
-                if self._stream is not None and now - self._last_heartbeat >= self.heartbeat_s:
-                    self._last_heartbeat = now
-                    self._send_stream(MsgType.HEARTBEAT,
-                                      encode_payload(MsgType.HEARTBEAT,
-                                                     self.status().to_fields()))
+            now = self.clock()
+            if self._stream is not None and now - self._last_heartbeat >= self.heartbeat_s:
+                self._last_heartbeat = now
+                self._send_stream(MsgType.HEARTBEAT,
+                                  encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
 
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT)."""
         st = self._stream
-        try:
-            temp, faults = self.app.health()
-        except Exception:  # a health sensor must not take the link down
-            log.exception("application health() failed")
-            temp, faults = TEMPERATURE_UNKNOWN, FAULT_HEALTH
+        if self._app_lock.acquire(blocking=False):  # else: the last reading
+            try:
+                self._health = self.app.health()
+            except Exception:  # a health sensor must not take the link down
+                log.exception("application health() failed")
+                self._health = (TEMPERATURE_UNKNOWN, FAULT_HEALTH)
+            finally:
+                self._app_lock.release()
+        temp, faults = self._health
         mask = 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
@@ -374,7 +394,10 @@ class DeviceEndpoint:
         fields_ = decode_payload(t, req.payload)
         assert isinstance(fields_, dict)
         handler = getattr(self, "_on_" + t.name.lower())
-        return handler(req, fields_, after)
+        if t in _WITHOUT_APP:
+            return handler(req, fields_, after)
+        with self._app_lock:
+            return handler(req, fields_, after)
 
     def _ack(self, req: Frame) -> bytes:
         return self._reply_frame(req, MsgType.ACK,
@@ -430,7 +453,8 @@ class DeviceEndpoint:
         return self._ack(req)
 
     def _start_stream(self, req: Frame, gen_factory: Callable[[], Iterator[ColumnResult]],
-                      frame: int, first: int, count: int, calibration: bool) -> bytes:
+                      frame: int, first: int, count: int, calibration: bool,
+                      after: list[Callable[[], None]]) -> bytes:
         if self._stream is not None:
             return self._nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
         info = self._info or self.app.info()
@@ -441,19 +465,23 @@ class DeviceEndpoint:
                              f"a column of {info.channels} channels x {peaks} peaks needs "
                              f"{need} bytes, max frame is {self.tx_max_frame}")
         gen = iter(gen_factory())
-        self._stream = _Stream(gen, frame, first, count, calibration)
+        st = _Stream(gen, frame, first, count, calibration)
+        self._stream = st
         self._last_frame = frame
         self._last_heartbeat = self.clock()
+        worker = threading.Thread(target=self._produce, args=(st,), daemon=True,
+                                  name=f"cdma-lidar-frame-{frame}")
+        after.append(worker.start)  # after the ACK is on the wire
         return self._ack(req)
 
     def _on_scan_start(self, req: Frame, f: dict, after: list) -> bytes:
         return self._start_stream(
             req, lambda: self.app.scan(f["frame"], f["first_column"], f["columns"]),
-            f["frame"], f["first_column"], f["columns"], False)
+            f["frame"], f["first_column"], f["columns"], False, after)
 
     def _on_calibrate(self, req: Frame, f: dict, after: list) -> bytes:
         return self._start_stream(req, lambda: self.app.calibrate(f["frame"], f["shots"]),
-                                  f["frame"], 0, f["shots"], True)
+                                  f["frame"], 0, f["shots"], True, after)
 
     def _on_scan_abort(self, req: Frame, f: dict, after: list) -> bytes:
         if self._stream is not None:
@@ -515,47 +543,65 @@ class DeviceEndpoint:
                                  encode_payload(MsgType.STATUS, self.status().to_fields()))
 
     # ---- streaming -------------------------------------------------------------------
-    def _step_stream(self) -> None:
-        st = self._stream
-        assert st is not None
-        if st.produced >= st.count:
-            self._stop_stream(ScanEndReason.COMPLETE)
-            return
+    def _produce(self, st: _Stream) -> None:
+        """Worker thread of one stream: pull columns from the app and send them in order."""
+        reason = ScanEndReason.COMPLETE
         try:
-            col = next(st.gen)
-        except StopIteration:
-            log.warning("application ended frame %d after %d of %d columns", st.frame,
-                        st.produced, st.count)
-            self._stop_stream(ScanEndReason.ERROR)
-            return
-        except Exception:
-            log.exception("application failed during frame %d", st.frame)
-            self._stop_stream(ScanEndReason.ERROR)
-            return
-        if col.frame != st.frame or col.calibration != st.calibration:
-            col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
-        payload = encode_column(col)
-        self._ring[(st.frame, col.column)] = payload
-        self._ring.move_to_end((st.frame, col.column))
-        while len(self._ring) > self.ring_columns:
-            self._ring.popitem(last=False)
-        st.produced += 1
-        self.stats.columns_sent += 1
-        self._send_stream(MsgType.COLUMN_RESULT, payload)
-        if st.produced >= st.count:
-            self._stop_stream(ScanEndReason.COMPLETE)
+            while not st.stopped and st.produced < st.count:
+                try:
+                    with self._app_lock:
+                        if st.stopped:
+                            break
+                        col = next(st.gen)
+                    if col.frame != st.frame or col.calibration != st.calibration:
+                        col = dataclasses.replace(col, frame=st.frame,
+                                                  calibration=st.calibration)
+                    payload = encode_column(col)
+                except StopIteration:
+                    log.warning("application ended frame %d after %d of %d columns", st.frame,
+                                st.produced, st.count)
+                    reason = ScanEndReason.ERROR
+                    break
+                except Exception:
+                    log.exception("application failed during frame %d", st.frame)
+                    reason = ScanEndReason.ERROR
+                    break
+                with self._lock:
+                    if st.stopped:
+                        break
+                    key = (st.frame, col.column)
+                    self._ring[key] = payload
+                    self._ring.move_to_end(key)
+                    while len(self._ring) > self.ring_columns:
+                        self._ring.popitem(last=False)
+                    st.produced += 1
+                    self.stats.columns_sent += 1
+                    self._send_stream(MsgType.COLUMN_RESULT, payload)
+            with self._lock:
+                if not st.stopped:
+                    self._stop_stream(reason)
+        except OSError as exc:  # the port went away under us
+            log.warning("column stream of frame %d stops: %s", st.frame, exc)
+            with self._lock:
+                if self._stream is st:
+                    self._stream = None
+                st.stopped = True
+        finally:
+            with self._app_lock:
+                close = getattr(st.gen, "close", None)
+                if close is not None:
+                    close()
+                if reason is not ScanEndReason.COMPLETE or st.produced < st.count:
+                    self.app.abort()
 
     def _stop_stream(self, reason: ScanEndReason, send_end: bool = True) -> None:
+        """End the current stream (caller holds ``_lock``); its worker notices and exits."""
         st = self._stream
         if st is None:
             return
+        st.stopped = True
         self._stream = None
         self._last_next = st.next_column
-        if reason is not ScanEndReason.COMPLETE:
-            self.app.abort()
-        close = getattr(st.gen, "close", None)
-        if close is not None:
-            close()
         if send_end:
             self._send_stream(MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
                 "frame": st.frame, "first_column": st.first, "columns": st.produced,

@@ -170,6 +170,9 @@ def test_leaving_a_scan_early_aborts_it(rig) -> None:
     for c in link.scan():
         if c.column == 3:
             break
+    deadline = time.monotonic() + 2.0  # the column worker calls abort() when it stops
+    while app.aborts == 0 and time.monotonic() < deadline:
+        time.sleep(0.005)
     assert app.aborts == 1
     assert link.status().state_name == "idle"
     assert len(list(link.scan(columns=5))) == 5  # the link is usable again
@@ -370,3 +373,15 @@ def test_failing_health_sensor_sets_a_fault_bit_not_a_dead_link(rig) -> None:
     st = link.status()
     assert st.faults & FAULT_HEALTH and st.temperature_c != st.temperature_c  # NaN
     assert len(list(link.scan(columns=3))) == 3  # heartbeats call health() too
+
+
+def test_device_stays_responsive_while_a_column_takes_long() -> None:
+    """Columns slower than the host's whole retry budget: heartbeats and STATUS keep it alive."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(column_delay_s=0.15)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.04, retries=1)  # budget 0.08 s < 0.15 s per column
+        cols = list(link.scan(columns=3))
+        assert [c.column for c in cols] == [0, 1, 2]
+        assert link.stats.resend_requests == 0
+        assert link.last_status is not None and link.last_status.state_name == "scanning"
