@@ -117,8 +117,9 @@ module rx_chain #(
     localparam integer RAW_W  = PER_W + $clog2(MAX_UID);            // despread correlation
     localparam integer EXT_W  = ((RAW_W > OUT_W) ? RAW_W : OUT_W) + 2;
     localparam integer ADDR_W = $clog2(MAX_UID * MAX_NS);
-    localparam integer CA_W   = G_W + 1;                             // correlation RAM address
-    localparam [CA_W-1:0] CA_TWO = 2;
+    localparam integer JJ_W   = G_W + 1;                             // extended gate index
+    localparam integer CA_W   = $clog2(MAX_G + 2);                   // correlation RAM address
+    localparam [JJ_W-1:0] JJ_TWO = 2;
     localparam integer CW     = OUT_W + 2 * MAX_UID;                 // correlation RAM word
     localparam integer MAG_W  = OUT_W + 1;                           // |out|
 
@@ -167,7 +168,7 @@ module rx_chain #(
     reg  [ADDR_W-1:0] ram_waddr;
     reg  [AVG_W-1:0]  ram_wdata;
 
-    sdp_ram #(.WIDTH(AVG_W), .AW(ADDR_W)) avg_ram (
+    sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_NS)) avg_ram (
         .clk(clk), .we(ram_we), .waddr(ram_waddr), .wdata(ram_wdata),
         .raddr(ram_raddr), .rdata(ram_rdata)
     );
@@ -218,17 +219,17 @@ module rx_chain #(
     reg  [ADDR_W:0]   k_base;       // k_p * NS
     reg  [LAG_W-1:0]  k_a;          // (lag + k_i) mod NS
     reg  [LAG_W-1:0]  k_lag;        // current lag
-    reg  [CA_W-1:0]   k_jj;         // extended gate index 0..G+1 (lag_j = lag of jj-1)
+    reg  [JJ_W-1:0]   k_jj;         // extended gate index 0..G+1 (lag_j = lag of jj-1)
     wire              k_last_i = (k_i == ns - 1'b1);
     wire              k_last_p = (k_p == c_uid_bits - 1'b1);
-    wire [CA_W-1:0]   jj_last  = {1'b0, c_gate_len} + 1'b1;
+    wire [JJ_W-1:0]   jj_last  = {1'b0, c_gate_len} + 1'b1;
     wire [LAG_W-1:0]  k_lag_nx = lag_inc(k_lag, ns);
     wire [ADDR_W:0]   k_addr   = k_base + {{(ADDR_W+1-LAG_W){1'b0}}, k_a};
 
     // stage 1 (RAM data valid)
     reg               c1_v, c1_chip, c1_first, c1_last, c1_lastp;
     reg  [UID_W-1:0]  c1_p;
-    reg  [CA_W-1:0]   c1_jj;
+    reg  [JJ_W-1:0]   c1_jj;
     reg  signed [PER_W-1:0] per_acc;
     reg  signed [RAW_W-1:0] tot_acc;
     reg  [MAX_UID-1:0] sg_neg, sg_nz;
@@ -248,7 +249,7 @@ module rx_chain #(
 
     // stage 2 (raw correlation of one lag) -> rounding and saturation
     reg               c2_v;
-    reg  [CA_W-1:0]   c2_jj;
+    reg  [JJ_W-1:0]   c2_jj;
     reg  signed [RAW_W-1:0] c2_raw;
     reg  [MAX_UID-1:0] c2_neg, c2_nz;
 
@@ -272,19 +273,19 @@ module rx_chain #(
 
     // stage 3: correlation RAM write and stream
     reg               c3_v;
-    reg  [CA_W-1:0]   c3_jj;
+    reg  [JJ_W-1:0]   c3_jj;
     reg  [CW-1:0]     c3_word;
 
     // ------------------------------------------------------------------
     // Correlation RAM: word = {nz[MAX_UID], neg[MAX_UID], out[OUT_W]},
     // address jj = j + 1 (jj 0 and G+1 are the neighbour lags)
     // ------------------------------------------------------------------
-    reg  [CA_W-1:0]   cr_raddr;
+    reg  [JJ_W-1:0]   cr_raddr;
     wire [CW-1:0]     cr_rdata;
 
-    sdp_ram #(.WIDTH(CW), .AW(CA_W)) corr_ram (
-        .clk(clk), .we(c3_v), .waddr(c3_jj), .wdata(c3_word),
-        .raddr(cr_raddr), .rdata(cr_rdata)
+    sdp_ram #(.WIDTH(CW), .DEPTH(MAX_G + 2)) corr_ram (
+        .clk(clk), .we(c3_v), .waddr(c3_jj[CA_W-1:0]), .wdata(c3_word),
+        .raddr(cr_raddr[CA_W-1:0]), .rdata(cr_rdata)
     );
     wire signed [OUT_W-1:0] cr_out  = cr_rdata[OUT_W-1:0];
     wire [MAG_W-1:0]        cr_mag  = cr_out[OUT_W-1] ? -{cr_out[OUT_W-1], cr_out}
@@ -340,6 +341,8 @@ module rx_chain #(
     wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
 
     wire [P_W-1:0]    q_k_last = c_peaks - 1'b1;
+    localparam [MAX_P-1:0] P_ONE = 1;
+    wire [MAX_P-1:0]  q_bit    = P_ONE << q_k;       // one-hot of the peak being searched
     wire [G_W-1:0]    q_j_last = c_gate_len - 1'b1;
 
     // ------------------------------------------------------------------
@@ -385,7 +388,7 @@ module rx_chain #(
             c3_word <= {c2_nz, c2_neg, rsat[OUT_W-1:0]};
         end
         // ---- stage 3: stream gate lags ----
-        if (c3_v && c3_jj != {CA_W{1'b0}} && c3_jj != jj_last) begin
+        if (c3_v && c3_jj != {JJ_W{1'b0}} && c3_jj != jj_last) begin
             corr_valid <= 1'b1;
             corr_index <= c3_jj[G_W-1:0] - 1'b1;
             corr_data  <= c3_word[OUT_W-1:0];
@@ -445,7 +448,7 @@ module rx_chain #(
             k_s      <= {S_W{1'b0}};
             k_p      <= {UID_W{1'b0}};
             k_base   <= {(ADDR_W+1){1'b0}};
-            k_jj     <= {CA_W{1'b0}};
+            k_jj     <= {JJ_W{1'b0}};
             k_lag    <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
             k_a      <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
             state    <= S_CORR;
@@ -509,9 +512,9 @@ module rx_chain #(
             wait_cnt <= wait_cnt + 1'b1;
             if (wait_cnt == 3'd1) begin
                 // record peak q_k
-                pk_found[q_k]                 <= b_have;
+                pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
                 pk_j[q_k*G_W +: G_W]          <= b_j;
-                res_found[q_k]                <= b_have;
+                res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
                 res_lag[q_k*LAG_W +: LAG_W]   <= b_lag;
                 res_index[q_k*G_W +: G_W]     <= b_j;
                 // a missing peak reports value 0 and no signs (docs/firmware.md 4)
@@ -609,13 +612,15 @@ module rx_chain #(
         ram_raddr = (state == S_CORR) ? k_addr[ADDR_W-1:0] : a_addr[ADDR_W-1:0];
         case (state)
         S_FETCH: cr_raddr = (f_cnt == 2'd0) ? {1'b0, pk_j[G_W-1:0]}
-                                            : {1'b0, pk_j[G_W-1:0]} + CA_TWO;
+                                            : {1'b0, pk_j[G_W-1:0]} + JJ_TWO;
         default: cr_raddr = {1'b0, q_j} + 1'b1;
         endcase
     end
 
     // Sink for bits that are wider than any legal value needs (lint).
+    // (c3_jj and cr_raddr carry G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
     wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W],
+                       c3_jj, cr_raddr,
                        ns_full[MAX_DEG+S_W:LAG_W]};
 endmodule
 

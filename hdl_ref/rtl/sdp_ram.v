@@ -6,7 +6,8 @@
 
 module sdp_ram #(
     parameter integer WIDTH = 16,
-    parameter integer AW    = 10                // address width; 2^AW words
+    parameter integer DEPTH = 1024,
+    parameter integer AW    = $clog2(DEPTH)     // derived: address width
 ) (
     input  wire                     clk,
     input  wire                     we,
@@ -15,7 +16,7 @@ module sdp_ram #(
     input  wire [AW-1:0]            raddr,
     output reg  [WIDTH-1:0]         rdata
 );
-    reg [WIDTH-1:0] mem [0:(1<<AW)-1];
+    reg [WIDTH-1:0] mem [0:DEPTH-1];
 
     always @(posedge clk) begin
         if (we)

