@@ -142,3 +142,57 @@ def test_config_checks():
         RangingConfig(method="spline")
     with pytest.raises(ConfigError, match="max_gap"):
         RangingConfig(max_gap=-1)
+
+
+def _flat_frame(k: int = 6, c: int = 4, lag: int = 30):
+    from host.frame import FrameData
+
+    f = FrameData.empty(k, c)
+    f.done[:] = True
+    f.uid_match[:] = True
+    f.uid_signs[:] = 1
+    f.noise_count[:], f.noise_sum[:], f.noise_sumsq[:] = 40, 0, 4000  # sigma 10
+    f.peak[:] = 3000  # 49.5 dB
+    f.peak_lag[:] = lag
+    f.neighbours[:] = [2000, 2500]
+    return f
+
+
+def test_estimate_ranges_threshold_support_and_fill():
+    from host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, estimate_ranges
+
+    f = _flat_frame()
+    f.peak[2:4, 1] = 20  # two weak pixels in column 1: 6 dB
+    f.peak[5, 3], f.peak_lag[5, 3] = 3000, 90  # a lone strong pixel at another lag
+    f.peak_lag[4, 3] = 200
+    f.peak[4, 3] = 20
+    f.done[2] = False  # column 2 never arrived
+    cfg = RangingConfig(samples_per_chip=4, code_length=2047, snr_threshold_db=20.0)
+    img = estimate_ranges(f, cfg)
+    assert img.flags[2, 1] == FLAG_REJECTED and img.flags[3, 1] == FLAG_REJECTED
+    assert np.all(img.flags[:, 2] == FLAG_REJECTED)  # missing column
+    assert img.flags[5, 3] == FLAG_REJECTED  # isolated: no neighbour at lag ~90
+    assert img.flags[0, 0] == 0
+    # Triangle refinement: (2500 - 2000) / (2 * (3000 - 2000)) = +0.25 sample.
+    assert img.lag[0, 0] == pytest.approx(30.25)
+    assert img.range_m[0, 0] == pytest.approx(30.25 * sample_range_m(4, 62.5e6))
+    filled = estimate_ranges(f, RangingConfig(samples_per_chip=4, code_length=2047,
+                                              snr_threshold_db=20.0, interpolate=True))
+    assert filled.flags[2, 1] == FLAG_INTERPOLATED and filled.flags[3, 1] == FLAG_INTERPOLATED
+    assert filled.range_m[2, 1] == pytest.approx(img.range_m[0, 0])
+    assert np.all(filled.flags[:, 2] == FLAG_REJECTED)  # nothing to fill from
+    assert filled.flags[5, 3] == FLAG_REJECTED  # edge run: not filled
+    no_support = estimate_ranges(f, RangingConfig(samples_per_chip=4, code_length=2047,
+                                                  snr_threshold_db=20.0, min_support=0))
+    assert no_support.flags[5, 3] == 0
+
+
+def test_neighbour_support_counts_consistent_lags():
+    from host.ranging import neighbour_support
+
+    lag = np.array([[10.0, 10.5, 40.0], [10.2, 10.0, 10.1], [70.0, 10.0, 9.0]])
+    strong = np.ones((3, 3), bool)
+    strong[2, 2] = False
+    n = neighbour_support(lag, strong, 1.5)
+    assert n[1, 1] == 5  # (0,0) (0,1) (1,0) (1,2) (2,1); 40, 70 too far; (2,2) not strong
+    assert n[0, 2] == 0 and n[2, 0] == 0  # lags 40 and 70 stand alone
