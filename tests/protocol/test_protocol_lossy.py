@@ -79,6 +79,21 @@ class LossyLink(RuleBasedStateMachine):
             assert c == expected_column(c.frame, c.column, K, p, n), c.column
         assert len({c.frame for c in cols}) == 1
 
+    @rule(stop_after=st.integers(0, 5))
+    def scan_left_early(self, stop_after: int) -> None:
+        """The user leaves the loop: the scan is aborted and the device is idle again."""
+        seen = []
+
+        def run() -> None:
+            for c in self.link.scan(columns=C):
+                seen.append(c.column)
+                if len(seen) > stop_after:
+                    break
+
+        ok, _ = self._call(run)
+        if ok:
+            assert seen == list(range(stop_after + 1))
+
     @rule(r0=st.integers(0, K - 1), c0=st.integers(0, C - 1), value=st.integers(0, 65535))
     def set_power(self, r0: int, c0: int, value: int) -> None:
         block = np.full((min(2, K - r0), min(5, C - c0)), value, dtype=np.int64)
