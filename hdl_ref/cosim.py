@@ -223,22 +223,37 @@ def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
     }
 
 
-def rx_latency_clocks(ports: Mapping[str, int]) -> dict[str, int]:
+def rx_latency_clocks(ports: Mapping[str, int], gap: int = 0) -> dict[str, int]:
     """Clock counts of one ``rx_chain`` run, as documented in docs/hdl.md.
 
-    ``start_to_ready``: clocks from the ``start`` clock edge to the first clock
-    with ``s_ready``; ``last_to_done``: from the clock that takes the last
-    sample to the clock edge that raises ``done``.
+    ``start_to_ready``: clocks from the ``start`` clock edge to the edge that
+    takes the first sample (the source offering it from the start);
+    ``first_to_last``: from that edge to the edge taking the last sample, one
+    per clock except where the source drops ``s_valid`` (every ``gap``-th clock
+    counted from the clock after ``start``, as the cocotb bench does);
+    ``last_to_done``: from there to the clock edge that raises ``done``.
     """
     n_chips = (1 << ports["cfg_degree"]) - 1
     ns = n_chips * ports["cfg_spc"]
     n = ports["cfg_uid_bits"]
+    total = ports["cfg_averages"] * n * ns
+    def offered(clock: int) -> bool:
+        return not (gap and clock % gap == gap - 1)
+
+    first = 2                                   # clock 2 after start is the first in ACCUM
+    while not offered(first):
+        first += 1
+    last, taken = first, 1
+    while taken < total:
+        last += 1
+        taken += offered(last)
     g = ports["cfg_gate_len"]
     p = ports["cfg_peaks"]
     corr = (g + 2) * n * ns
     # DRAIN 1, CORR corr, CWAIT 4, P x (PEAK g + PWAIT 2), FETCH 3, NOISE g, NWAIT 2, DONE 1
     return {
-        "start_to_ready": 3,
+        "start_to_ready": first + 1,
+        "first_to_last": last - first,
         "last_to_done": 1 + corr + 4 + p * (g + 2) + 3 + g + 2 + 1,
     }
 

@@ -2,7 +2,8 @@
 
 Run through :func:`hdl_ref.cosim.run_job` (never imported by the model). For each
 case it drives the configuration ports, pulses ``start``, streams the samples
-one per clock while ``s_ready`` is high, records every ``corr_*`` word as it
+one per clock while ``s_ready`` is high (or with ``s_valid`` low on every
+``gap``-th clock when the case has ``"gap"``), records every ``corr_*`` word as it
 appears and, at ``done``, every result port. Clock counts (start to first
 sample, last sample to done) are measured in simulated clocks. Comparison with
 the model happens in the caller (tests/hdl_ref).
@@ -48,18 +49,25 @@ async def _run_case(dut, case: dict) -> dict:
     await RisingEdge(dut.clk)
     t_start = get_sim_time("ns")
     dut.start.value = 0
-    dut.s_valid.value = 1
+    # optional source gaps: s_valid low on every clock c with c % gap == gap - 1
+    gap = int(case.get("gap", 0))
+    clock = 0
+    valid = not (gap and clock % gap == gap - 1)
+    dut.s_valid.value = int(valid)
     dut.s_data.value = samples[0] & mask
     taken = 0
     t_first = t_last = t_start
     while taken < len(samples):
         await RisingEdge(dut.clk)
-        if dut.s_ready.value:           # value before this edge: the edge took the sample
+        if valid and dut.s_ready.value:  # values before this edge: the edge took the sample
             if taken == 0:
                 t_first = get_sim_time("ns")
             taken += 1
             if taken < len(samples):
                 dut.s_data.value = samples[taken] & mask
+        clock += 1
+        valid = not (gap and clock % gap == gap - 1)
+        dut.s_valid.value = int(valid)
     t_last = get_sim_time("ns")
     dut.s_valid.value = 0
     await RisingEdge(dut.done)
@@ -74,6 +82,7 @@ async def _run_case(dut, case: dict) -> dict:
         "res": res,
         "clocks": {
             "start_to_ready": round((t_first - t_start) / PERIOD_NS),
+            "first_to_last": round((t_last - t_first) / PERIOD_NS),
             "last_to_done": round((t_done - t_last) / PERIOD_NS),
         },
     }

@@ -11,10 +11,10 @@ parameter set, configurations are run-time ports) and compares, per case:
 Cases: seeded random configurations (degrees 5-7, S 1-4, gates 8-32 lags, R 1-4,
 UID 1-3 bits, ghost windows, 1-3 peaks), extremes (full-scale inputs, wrapping
 gates, saturation of an 8-bit output, no eligible lag, zero input, UID
-mismatch), one degree-11 case with the paper's pair and a 64-lag gate,
-hypothesis-chosen batches, and a small parameter set (MAX_UID = MAX_R = MAX_P =
-1, 8-bit ADC port) that exercises the degenerate widths. A deliberately wrong
-model parameter must make the comparison fail.
+mismatch, gaps in the sample stream), one degree-11 case with the paper's pair
+and a 64-lag gate, hypothesis-chosen batches, and a small parameter set
+(MAX_UID = MAX_R = MAX_P = 1, 8-bit ADC port) that exercises the degenerate
+widths. A deliberately wrong model parameter must make the comparison fail.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ class Case:
     pair: tuple[tuple[int, ...], tuple[int, ...]]
     index: int
     samples: tuple[int, ...]
+    gap: int = 0  # the source drops s_valid on every gap-th clock (0: never)
 
     @property
     def code(self) -> np.ndarray:
@@ -109,7 +110,7 @@ def _extreme_cases() -> list[Case]:
     cfg = ReceiverConfig(adc_bits=16, samples_per_chip=4, averages=4, uid_bits=3, uid=5,
                          gate_start=100, gate_len=32, peak_exclude=2, out_bits=32, peaks=2)
     x = full_scale_column(code7, spc=4, averages=4, uid_bits=3, tx_uid=5, adc_bits=16, delay=117)
-    cases.append(Case("full-scale-echo", cfg, pair7, 3, tuple(x.tolist())))
+    cases.append(Case("full-scale-echo", cfg, pair7, 3, tuple(x.tolist()), gap=3))
 
     # Every sample the most negative code: the accumulators' negative extreme.
     x = np.full(4 * 2 * ns7, -(1 << 15), dtype=np.int64)
@@ -126,7 +127,7 @@ def _extreme_cases() -> list[Case]:
                          out_shift=3, rounding="convergent", ghost_windows=((ns6 - 2, 4),))
     x = echo_column(gold_code(*pair6, 10), spc=3, averages=2, uid_bits=1, tx_uid=0, adc_bits=12,
                     delay=5, amplitude=600.0, noise_rms=80.0, rng=rng)
-    cases.append(Case("wrapping-gate", cfg, pair6, 10, tuple(x.tolist())))
+    cases.append(Case("wrapping-gate", cfg, pair6, 10, tuple(x.tolist()), gap=7))
     cfg = cfg.replace(gate_start=0, gate_len=12, ghost_windows=())
     x = echo_column(gold_code(*pair6, 10), spc=3, averages=2, uid_bits=1, tx_uid=0, adc_bits=12,
                     delay=0, amplitude=600.0, noise_rms=80.0, rng=rng)
@@ -198,7 +199,7 @@ def _simulate(builder, params: cosim.RxParams, cases: list[Case], name: str) -> 
     """Run ``cases`` in one simulation; return per case the ports and raw result."""
     build_dir = builder(params)
     ports = [cosim.rx_ports(c.cfg, c.pair[0], c.pair[1], c.index, params) for c in cases]
-    job = {"cases": [{"ports": p, "samples": list(c.samples)}
+    job = {"cases": [{"ports": p, "samples": list(c.samples), "gap": c.gap}
                      for p, c in zip(ports, cases, strict=True)]}
     raw = cosim.run_job(cosim.RX_TOP, "hdl_ref.tb.test_rx_chain", build_dir, job, name=name)
     return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
@@ -216,7 +217,7 @@ def _check(case: Case, run: dict, params: cosim.RxParams) -> None:
     model = case.model()
     bad = model.mismatches(rtl)
     assert not bad, {f: (getattr(model, f).tolist(), getattr(rtl, f).tolist()) for f in bad}
-    assert run["raw"]["clocks"] == cosim.rx_latency_clocks(run["ports"])
+    assert run["raw"]["clocks"] == cosim.rx_latency_clocks(run["ports"], gap=case.gap)
 
 
 @pytest.fixture(scope="module")
