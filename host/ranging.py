@@ -250,6 +250,9 @@ class RangingConfig:
             its 8 neighbours are also above it with a lag within ``support_tol``
             (isolated noise peaks are rejected); 0 turns the check off.
         support_tol: lag tolerance (samples) for a neighbour to count as support.
+        foreign_threshold_db: other users' peaks are reported from this SNR_XC (dB) on,
+            if they repeat in an adjacent column (their UID is read from all n periods,
+            so a weaker peak still names its user).
     """
 
     samples_per_chip: int = 4
@@ -264,6 +267,7 @@ class RangingConfig:
     uid: int = 0
     min_support: int = 1
     support_tol: float = 1.5
+    foreign_threshold_db: float = 12.0
 
     def __post_init__(self) -> None:
         sample_range_m(self.samples_per_chip, self.chip_rate_hz)  # checks both
@@ -347,7 +351,9 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
         flags = np.where(filled, (flags & ~np.uint8(FLAG_REJECTED)) | FLAG_INTERPOLATED,
                          flags).astype(np.uint8)
         out_range = np.where(ok | filled, out_range, np.nan)
-    foreign = find_foreign(frame, config.uid, config.snr_threshold_db)
+    foreign = find_foreign(frame, config.uid, config.foreign_threshold_db,
+                           column_support=config.min_support > 0,
+                           tol_samples=config.support_tol)
     log.debug("frame %d: %d valid, %d rejected, %d foreign returns", frame.frame,
               int(np.count_nonzero(flags == 0)),
               int(np.count_nonzero(flags & FLAG_REJECTED)), len(foreign))

@@ -101,7 +101,9 @@ def select_own(frame: FrameData, uid: int,
     With a single UID period (no identity modulation) this is the primary peak
     wherever the receiver says ``uid_match``. ``excluded(lags) -> mask`` marks lags
     that cannot be ours (grating ghost windows); a primary peak there gives way to the
-    strongest matching extra peak outside them, if any (else the pixel is a ghost).
+    strongest matching extra peak outside them, if any (else the pixel is a ghost). A
+    primary with another user's clear UID gives way the same way. The complement of our
+    UID counts as our own cross-talk, not as a user (see :func:`find_foreign`).
     """
     n = frame.uid_bits
     if not 0 <= uid < (1 << n):
@@ -112,6 +114,9 @@ def select_own(frame: FrameData, uid: int,
     primary_match = frame.uid_match.astype(bool)
     primary_ghost = primary_match & excluded(frame.peak_lag)
     primary_ours = primary_match & ~primary_ghost
+    complement = ~uid & ((1 << n) - 1)
+    p_obs, primary_clear = observed_uids(frame.uid_signs)
+    primary_foreign = primary_clear & (p_obs != uid) & (p_obs != complement)
     source = np.where(primary_ours, 0, -1).astype(np.int64)
     lag = frame.peak_lag.copy()
     peak = frame.peak.copy()
@@ -122,13 +127,14 @@ def select_own(frame: FrameData, uid: int,
         mag = np.where(extra_ours, np.abs(frame.extra_peak), -1)
         best = np.argmax(mag, axis=-1)
         has_extra = np.take_along_axis(mag, best[..., None], -1)[..., 0] >= 0
-        use = ~primary_ours & has_extra
+        # Only a peak that is explained (another user's, or a ghost) gives way; a primary
+        # that is just noise would otherwise hand the pixel to the next noise peak.
+        use = ~primary_ours & has_extra & (primary_foreign | primary_ghost)
         lag = np.where(use, np.take_along_axis(frame.extra_lag, best[..., None], -1)[..., 0], lag)
         peak = np.where(use, np.take_along_axis(frame.extra_peak, best[..., None], -1)[..., 0],
                         peak)
         source = np.where(use, best + 1, source)
-    _, primary_clear = observed_uids(frame.uid_signs)
-    foreign = (source < 0) & primary_clear & ~primary_match
+    foreign = (source < 0) & primary_foreign
     return OwnReturns(lag=lag, peak=peak, neighbours=frame.neighbours,
                       has_neighbours=source == 0, source=source, foreign=foreign,
                       ghost=(source < 0) & primary_ghost)
@@ -159,8 +165,14 @@ class ForeignReturns:
         return {int(k): int(c) for k, c in zip(keys, counts, strict=True)}
 
 
-def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float) -> ForeignReturns:
+def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float, *,
+                 column_support: bool = True, tol_samples: float = 1.5) -> ForeignReturns:
     """Every primary or extra peak above ``snr_threshold_db`` whose clear UID is not ours.
+
+    With ``column_support`` a return counts only if the same user shows up in the same
+    channel of an adjacent column within ``tol_samples`` of the same lag: another LiDAR
+    stays put for the milliseconds between two columns, while a noise peak that happens
+    to read as a UID does not repeat.
 
     A return whose canonical UID equals the canonical form of ours but is a different
     rotation is still foreign (a user with our necklace but other phase cannot be us:
@@ -194,6 +206,21 @@ def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float) -> Foreign
     complement = ~uid & ((1 << n) - 1)
     hit = (done & clear & (obs != uid) & (obs != complement) & (peak != 0)
            & (snr >= snr_threshold_db))
+    if column_support and c > 1:
+        user = np.where(hit, _canonical_table(n)[obs], -1)
+        fl = np.where(hit, lag, -(10**9)).astype(np.float64)
+        seen = np.zeros_like(hit)
+        for shift in (-1, 1):
+            o_user = np.full_like(user, -2)
+            o_lag = np.full_like(fl, np.nan)
+            if shift < 0:
+                o_user[:, 1:], o_lag[:, 1:] = user[:, :-1], fl[:, :-1]
+            else:
+                o_user[:, :-1], o_lag[:, :-1] = user[:, 1:], fl[:, 1:]
+            same = ((user[..., :, None] == o_user[..., None, :])
+                    & (np.abs(fl[..., :, None] - o_lag[..., None, :]) <= tol_samples))
+            seen |= same.any(axis=-1)
+        hit &= seen
     ch, col, _ = np.nonzero(hit)
     return ForeignReturns(channel=ch.astype(np.int64), column=col.astype(np.int64),
                           lag=lag[hit], peak=peak[hit], observed=obs[hit],

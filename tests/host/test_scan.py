@@ -128,7 +128,7 @@ def test_multi_user_reports_only_own_ranges(tmp_path):
     scene = load_scene("multi-user")
     truth = _truth("multi-user")
     with connect("virtual://multi-user?seed=1") as dev:
-        dev.link.set_config(peaks=4)
+        dev.link.set_config(peaks=8, peak_exclude=3)
         dev.refresh_config()
         cal_offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
         res = run_scan(dev, tmp_path / "mu.ply", ScanOptions(offset_m=cal_offset),
@@ -137,12 +137,14 @@ def test_multi_user_reports_only_own_ranges(tmp_path):
     assert np.mean(img.valid) >= 0.95
     err = np.abs(img.range_m - truth)[img.valid]
     assert np.median(err) < 0.1  # our wall at 8 m, not the other users' delays
+    # The other users share our channel 0's Gold code; users 0 (UID 000, 3 m) and 3
+    # (UID 011, 12 m) are named in every column, and nowhere else. User 7 (20 m,
+    # 1.5 mV) stays under the noise.
     users = img.foreign.users()
-    # User 0 (UID 000, same Gold code as our channel 0) is named by its UID.
-    assert 0 in users
-    on_ch0 = img.foreign.channel == 0
-    assert set(img.foreign.user[on_ch0].tolist()) >= {0}
+    assert users == {0: 8, 3: 8}
+    assert set(img.foreign.channel.tolist()) == {0}
     assert scene.instrument.uid not in set(img.foreign.observed.tolist())
+    assert np.all(img.flags[0] == 0)  # our own range on channel 0 too
 
 
 def test_calibration_file_round_trip_refuses_other_device(tmp_path):

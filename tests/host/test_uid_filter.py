@@ -70,25 +70,33 @@ def test_select_own_uses_matching_extra_peak():
 
 
 def test_find_foreign_names_users_by_necklace():
-    f = find_foreign(_frame(), OURS, snr_threshold_db=20.0)
+    f = find_foreign(_frame(), OURS, snr_threshold_db=20.0, column_support=False)
     got = sorted(zip(f.channel.tolist(), f.column.tolist(), f.lag.tolist(), f.user.tolist(),
                      strict=True))
     # (0,1) primary UID 011 -> user 3; (0,1) extra 0 (UID 000, 38 dB) -> user 0;
     # (1,2) primary 101 -> user 3 again. Noise extras (< 20 dB) are not reported.
     assert got == [(0, 1, 7, 3), (0, 1, 40, 0), (1, 2, 50, 3)]
     assert f.users() == {0: 1, 3: 2}
+    # A user must repeat in an adjacent column (same channel, lag within 1.5 samples).
+    assert len(find_foreign(_frame(), OURS, snr_threshold_db=20.0)) == 0
+    fr = _frame()
+    fr.peak_lag[0, 2], fr.peak[0, 2] = 8, 9000  # user 3 again, one column on, lag 8
+    fr.uid_signs[0, 2] = _signs(0b011)
+    fr.uid_match[0, 2] = False
+    g = find_foreign(fr, OURS, snr_threshold_db=20.0)
+    assert sorted(zip(g.column.tolist(), g.lag.tolist(), strict=True)) == [(1, 7), (2, 8)]
 
 
 def test_complement_of_our_uid_is_cross_talk_not_a_user():
     fr = _frame()
     fr.uid_signs[1, 2] = _signs(0b110)  # ~001 = 110 -> our own signal, negative sidelobe
-    f = find_foreign(fr, OURS, snr_threshold_db=20.0)
+    f = find_foreign(fr, OURS, snr_threshold_db=20.0, column_support=False)
     assert (1, 2) not in set(zip(f.channel.tolist(), f.column.tolist(), strict=True))
 
 
 def test_ranges_flag_foreign_and_keep_ours():
     cfg = RangingConfig(samples_per_chip=4, code_length=2047, snr_threshold_db=20.0,
-                        uid=OURS, min_support=0)
+                        foreign_threshold_db=20.0, uid=OURS, min_support=0)
     img = estimate_ranges(_frame(), cfg)
     assert img.flags[1, 2] == FLAG_REJECTED | FLAG_FOREIGN
     assert img.flags[1, 0] == FLAG_REJECTED  # unclear identity: rejected, not foreign
@@ -102,3 +110,18 @@ def test_ranges_flag_foreign_and_keep_ours():
 def test_wrong_uid_rejected():
     with pytest.raises(ConfigError, match="uid"):
         select_own(_frame(), 8)
+
+
+def test_unexplained_primary_does_not_hand_the_pixel_to_an_extra_peak():
+    fr = _frame()
+    # (1, 1): primary reads ~001 = 110 (our own cross-talk or noise), extra 0 reads ours.
+    fr.uid_signs[1, 1] = _signs(0b110)
+    fr.uid_match[1, 1] = False
+    fr.extra_peak[1, 1], fr.extra_lag[1, 1] = [4000, 0], [33, 0]
+    fr.extra_signs[1, 1] = [_signs(OURS), _signs(0)]
+    own = select_own(fr, OURS)
+    assert own.source[1, 1] == -1 and not own.foreign[1, 1]
+    # The same extra peak is taken when the primary is another user's (UID 011).
+    fr.uid_signs[1, 1] = _signs(0b011)
+    own = select_own(fr, OURS)
+    assert own.source[1, 1] == 1 and own.lag[1, 1] == 33
