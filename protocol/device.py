@@ -211,6 +211,7 @@ class DeviceEndpoint:
         self._stream: _Stream | None = None
         self._last_frame = 0
         self._last_next = 0
+        self._last_end = ScanEndReason.COMPLETE
         self._ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
         self._stream_seq = 0
         self._last_heartbeat = 0.0
@@ -290,6 +291,7 @@ class DeviceEndpoint:
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(st.frame if st else self._last_frame) & mask,
             next_column=(st.next_column if st else self._last_next) & 0xFFFF,
+            last_end=int(self._last_end),
             columns_sent=self.stats.columns_sent & mask,
             uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
             rx_frames=self.decoder.stats.frames & mask,
@@ -602,6 +604,7 @@ class DeviceEndpoint:
         st.stopped = True
         self._stream = None
         self._last_next = st.next_column
+        self._last_end = reason
         if send_end:
             self._send_stream(MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
                 "frame": st.frame, "first_column": st.first, "columns": st.produced,

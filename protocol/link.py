@@ -414,10 +414,16 @@ class HostLink:
 
     def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
                         count: int) -> Iterator[ColumnResult]:
+        """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
+
+        If the device ends the stream early (SCAN_END aborted or error, or idle short of
+        the end), every column it did send is still delivered before the error is raised.
+        """
         end = first + count
         self._stream.clear()
         self._streaming = True
         finished = False
+        failure: Exception | None = None
         try:
             self._request(req, fields_)
             received: dict[int, ColumnResult] = {}
@@ -441,15 +447,10 @@ class HostLink:
                         if item.frame == fid:
                             horizon = max(horizon, min(end, item.next_column))
                     elif mtype == MsgType.SCAN_END and item["frame"] == fid:
-                        horizon = max(horizon, min(end, item["first_column"] + item["columns"]))
-                        reason = item["reason"]
-                        if reason == ScanEndReason.ERROR:
-                            raise DeviceError(f"device failed during frame {fid} after "
-                                              f"{item['columns']} columns",
-                                              code=ErrorCode.INTERNAL)
-                        if reason == ScanEndReason.ABORTED:
-                            raise ScanAborted(f"frame {fid} was aborted on the device after "
-                                              f"{item['columns']} columns")
+                        sent = min(end, item["first_column"] + item["columns"])
+                        horizon = max(horizon, sent)
+                        if item["reason"] != ScanEndReason.COMPLETE and failure is None:
+                            end, failure = sent, self._early_end(fid, item["reason"], sent)
                 while nxt in received:
                     self.stats.columns += 1
                     yield received.pop(nxt)
@@ -462,7 +463,11 @@ class HostLink:
                 elif now - last_rx >= self.timeout_s:
                     # Silence: ask the device how far it got (raises LinkTimeout with a
                     # diagnosis if it does not answer either).
-                    horizon = max(horizon, self._probe(fid, nxt, end, received))
+                    st = self._probe(fid)
+                    sent = min(end, st.next_column)
+                    horizon = max(horizon, sent)
+                    if st.state == State.IDLE and sent < end and failure is None:
+                        end, failure = sent, self._early_end(fid, st.last_end, sent)
                     last_rx = self.clock()
                     continue
                 due = [c for c in range(nxt, horizon) if c not in received and
@@ -472,6 +477,8 @@ class HostLink:
                     last_rx = self.clock()
                     continue
                 self._pump()
+            if failure is not None:
+                raise failure
             finished = True
         finally:
             self._streaming = False
@@ -480,17 +487,20 @@ class HostLink:
                 with contextlib.suppress(LinkError):
                     self.abort()
 
-    def _probe(self, fid: int, nxt: int, end: int, received: dict[int, ColumnResult]) -> int:
-        """STATUS_GET after a silent spell; returns how far the device has sent columns."""
+    @staticmethod
+    def _early_end(fid: int, reason: int, sent: int) -> Exception:
+        if reason == ScanEndReason.ERROR:
+            return DeviceError(f"device failed during frame {fid} after {sent} columns",
+                               code=ErrorCode.INTERNAL)
+        return ScanAborted(f"frame {fid} was stopped on the device at column {sent}")
+
+    def _probe(self, fid: int) -> Status:
+        """STATUS_GET after a silent spell: how far the device got with frame ``fid``."""
         st = self.status()
         if st.frame != fid:
             raise LinkError(f"device is {st.state_name} with frame {st.frame}, not frame {fid}: "
                             "it lost the scan (restarted or another host took over)")
-        sent = min(end, st.next_column)
-        if st.state == State.IDLE and sent < end and \
-                all(c in received for c in range(nxt, sent)):
-            raise ScanAborted(f"device stopped frame {fid} after column {sent - 1}")
-        return sent
+        return st
 
     def _resend(self, fid: int, cols: list[int], asked: dict[int, tuple[float, int]],
                 now: float) -> None:

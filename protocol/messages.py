@@ -202,6 +202,8 @@ _STATUS_FIELDS = (
     u("state", 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2),
     u("frame", 32, "frame id of the current or last scan"),
     u("next_column", 16, "next column (or shot) the current or last scan produces"),
+    u("last_end", 8, "how the last scan ended: 0 complete, 1 aborted, 2 device error",
+      lo=0, hi=2),
     u("columns_sent", 32, "COLUMN_RESULT frames sent since boot (resends included)"),
     u("uptime_ms", 32, "time since boot", "ms"),
     u("rx_frames", 32, "valid frames received since boot"),
@@ -769,6 +771,7 @@ class Status:
     state: int = 0
     frame: int = 0
     next_column: int = 0
+    last_end: int = 0
     columns_sent: int = 0
     uptime_ms: int = 0
     rx_frames: int = 0

@@ -57,6 +57,7 @@ class SyntheticApp(DeviceApp):
         self.set_config_calls = 0
         self.scan_calls = 0
         self.aborts = 0
+        self.fail_at: int | None = None  # column at which the generator raises
 
     def info(self) -> Info:
         return Info.nominal(
@@ -91,6 +92,8 @@ class SyntheticApp(DeviceApp):
     def _columns(self, frame: int, first: int, count: int,
                  calibration: bool) -> Iterator[ColumnResult]:
         for col in range(first, first + count):
+            if col == self.fail_at:
+                raise RuntimeError(f"sensor fault at column {col}")
             if self.column_delay_s:
                 time.sleep(self.column_delay_s)
             yield expected_column(frame, col, self.channels, self.config["peaks"],

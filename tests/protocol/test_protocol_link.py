@@ -28,6 +28,7 @@ from protocol.messages import (
     CaptureKind,
     ErrorCode,
     MsgType,
+    Status,
     decode_payload,
     encode_config,
     encode_payload,
@@ -307,10 +308,8 @@ def _talker(port: PipePort, stop: threading.Event, make: callable) -> threading.
     (DIAG_SILENT, None),
     (DIAG_GARBAGE, lambda k: bytes([0x55, k & 0xFF, 0x00, 0x03, 0x77])),
     (DIAG_WRONG_SESSION, lambda k: encode_frame(
-        MsgType.HEARTBEAT, encode_payload(MsgType.HEARTBEAT, {
-            "state": 0, "frame": 0, "next_column": 0, "columns_sent": 0, "uptime_ms": k,
-            "rx_frames": 0, "rx_errors": 0, "tx_frames": 0, "replays": 0,
-            "temperature_mc": 0, "faults": 0}), k, 0x0BAD)),
+        MsgType.HEARTBEAT, encode_payload(MsgType.HEARTBEAT,
+                                          Status(uptime_ms=k).to_fields()), k, 0x0BAD)),
     (DIAG_NO_ANSWER, lambda k: encode_frame(MsgType.ACK, b"\x0a", 9999, 0x600D)),
 ])
 def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
@@ -385,3 +384,30 @@ def test_device_stays_responsive_while_a_column_takes_long() -> None:
         assert [c.column for c in cols] == [0, 1, 2]
         assert link.stats.resend_requests == 0
         assert link.last_status is not None and link.last_status.state_name == "scanning"
+
+
+@pytest.mark.parametrize("lost_end", [False, True])
+def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bool) -> None:
+    """Also when SCAN_END is lost: the STATUS probe says how the scan ended."""
+    host, dev = pipe_pair(seed=4)
+    if lost_end:
+        push = dev._tx.push
+
+        def drop_scan_end(data: bytes) -> None:
+            frames = FrameDecoder().feed(data)
+            if not (frames and frames[0].msg_type == MsgType.SCAN_END):
+                push(data)
+
+        dev._tx.push = drop_scan_end
+    app = SyntheticApp()
+    app.fail_at = 7
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.03, retries=8)
+        got = []
+        with pytest.raises(DeviceError) as exc:
+            for c in link.scan(columns=20):
+                got.append(c.column)
+        assert exc.value.code == ErrorCode.INTERNAL
+        assert got == list(range(7))
+        app.fail_at = None
+        assert len(list(link.scan(columns=5))) == 5
