@@ -145,3 +145,12 @@ def test_scan_over_a_pty(capsys, tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_calibration_on_a_noisy_device_is_refused(capsys, tmp_path):
+    out = tmp_path / "c.toml"
+    line = _one_line_error(capsys, "calibrate", "--port",
+                           "virtual://calibration?seed=1&instrument.noise_rms_v=0.5",
+                           "--target-distance", "0.75", "--out", str(out),
+                           "--snr-threshold", "8")
+    assert "too wide" in line and not out.exists()
