@@ -95,9 +95,13 @@ FAULT_HEALTH = 0x8000_0000
 class DeviceApp(abc.ABC):
     """What a device application implements behind a :class:`DeviceEndpoint`.
 
-    Methods are called from the endpoint's thread, one at a time. Refuse a request
-    by raising ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming
-    the field) or ``DeviceError(message, code=ErrorCode..., field=...)``.
+    Methods are called one at a time (the endpoint serialises them), though not always
+    from the same thread: the scan generator and :meth:`abort` run in the endpoint's
+    column worker. A generator may take long per column: meanwhile the endpoint keeps
+    answering STATUS_GET, RESEND and SCAN_ABORT and sending heartbeats; other requests
+    wait for the column in progress. Refuse a request by raising
+    ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming the field) or
+    ``DeviceError(message, code=ErrorCode..., field=...)``.
     """
 
     @abc.abstractmethod
