@@ -66,7 +66,20 @@ LIMITS = {
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
 
-_BATCH = 8  # columns rendered and correlated together
+#: Columns rendered and correlated together: the fast receiver's GEMMs are several times
+#: cheaper per column in batches, but the endpoint is silent while a batch is computed, so
+#: batches start small (quick first column) and stay short of the host's silence timeout.
+_BATCHES = (4, 8, 16)
+
+
+def _batches(first: int, count: int) -> Iterator[list[int]]:
+    """Consecutive index lists covering first..first+count-1, sizes 4, 8, then 16."""
+    pos, k, end = first, 0, first + count
+    while pos < end:
+        size = _BATCHES[min(k, len(_BATCHES) - 1)]
+        yield list(range(pos, min(pos + size, end)))
+        pos += size
+        k += 1
 
 
 class VirtualFirmware(DeviceApp):
@@ -277,8 +290,7 @@ class VirtualFirmware(DeviceApp):
                   cfg: RenderSettings) -> Iterator[ColumnResult]:
         calibration = self._config["mode"] == "calibration"
         power = self.power_w()
-        for b0 in range(first, first + count, _BATCH):
-            cols = list(range(b0, min(b0 + _BATCH, first + count)))
+        for cols in _batches(first, count):
             samples = np.stack([self.instrument.render(c, cfg, frame, power[:, c],
                                                        calibration=calibration, shot=c)
                                 for c in cols])
@@ -299,8 +311,7 @@ class VirtualFirmware(DeviceApp):
     def _calibrate_gen(self, frame: int, shots: int, rx: FastReceiver,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.instrument.default_power_w[:, 0]
-        for b0 in range(0, shots, _BATCH):
-            idx = list(range(b0, min(b0 + _BATCH, shots)))
+        for idx in _batches(0, shots):
             samples = np.stack([self.instrument.render(0, cfg, frame, power, calibration=True,
                                                        shot=s) for s in idx])
             for s, out in zip(idx, rx.frame(samples), strict=True):

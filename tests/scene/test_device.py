@@ -233,3 +233,40 @@ def test_pty_device_end_to_end():
             if proc.poll() is None:
                 proc.kill()
     assert rc == 0
+
+
+def test_tcp_device_end_to_end():
+    cmd = [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+           "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--tcp",
+           "127.0.0.1:0"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        url = _readline(proc)
+        assert url.startswith("socket://127.0.0.1:")
+        for _ in range(2):  # the board outlives a connection
+            with HostLink(open_port(url), timeout_s=2.0) as lk:
+                assert lk.hello().channels == 4
+                assert [c.column for c in lk.scan(frame=9)] == [0, 1]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            rc = proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 0
+
+
+def test_paper_scene1_lit_pixels_stand_out_from_empty_ones():
+    """What the host's acceptance relies on: with the default configuration, lit pixels
+    range correctly and their SNR_XC sits above every pixel that sees nothing."""
+    fw = VirtualFirmware(load_scene("paper-scene1"), seed=0)
+    cols = list(fw.scan(3, 40, 48))  # the "DMA" and "LI" columns and the gap between
+    lit = fw.instrument.truth.hits.lit[:, 40:88]
+    lag = np.array([c.peak_lag for c in cols]).T
+    true = fw.instrument.delay_s[:, 40:88] * FS
+    snr = np.array([snr_xc_db(c.peak, c.noise_count, c.noise_sum, c.noise_sumsq)
+                    for c in cols]).T
+    assert lit.sum() > 200 and (~lit).sum() > 1000
+    assert np.mean(np.abs(lag[lit] - true[lit]) <= 1) >= 0.97
+    assert np.percentile(snr[lit], 5) > snr[~lit].max() + 1.0
