@@ -348,11 +348,17 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
     """Compile the RTL with Icarus for ``top`` and ``generics`` into ``build_dir``.
 
     Reuses an up-to-date build (cocotb's runner compares source times). Returns
-    the build folder. Raises ``SimulatorMissing`` without Icarus.
+    the build folder. Raises ``SimulatorMissing`` without Icarus or without the
+    shared libpython that cocotb embeds in the simulator.
     """
     if not iverilog_available():
         raise SimulatorMissing("iverilog/vvp not found on PATH (Debian: apt-get install iverilog)")
+    import find_libpython  # a cocotb dependency
     from cocotb_tools.runner import get_runner
+
+    if find_libpython.find_libpython() is None:
+        raise SimulatorMissing("cocotb needs the shared libpython of this Python, which was not "
+                               "found (Debian: apt-get install libpython3.11)")
 
     build_dir = Path(build_dir).resolve()
     build_dir.mkdir(parents=True, exist_ok=True)

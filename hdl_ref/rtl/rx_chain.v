@@ -23,10 +23,11 @@
 //   PEAK   `peaks` passes of gate_len clocks over the correlation RAM;
 //   FETCH  read the first peak's two neighbours;
 //   NOISE  one pass of gate_len clocks (count, sum, sum of squares).
-// Latency from the last sample to `done`:
-//   (gate_len + 2) * n * NS + peaks * (gate_len + 2) + gate_len + 16 clocks
-// (see docs/hdl.md for the exact count). Throughput while averaging: one
-// sample per clock.
+// Latency (clock edges, checked by the co-simulation for every case):
+//   start -> first sample taken:   3
+//   last sample taken -> done:     (gate_len + 2) * n * NS + peaks * (gate_len + 2)
+//                                  + gate_len + 11
+// Throughput while averaging: one sample per clock (docs/hdl.md).
 //
 // All configuration inputs are sampled at `start` (one-clock pulse in IDLE)
 // and must be valid then; the result outputs are held from `done` until the
