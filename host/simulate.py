@@ -18,9 +18,9 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import ConfigError
 from host.frame import FrameData
 from host.geometry import GratingGeometry
-from host.ranging import SPEED_OF_LIGHT_M_S, RangingConfig
+from host.ranging import SPEED_OF_LIGHT_M_S, RangingConfig, precision_eq27_m
 
-__all__ = ["SimulatedScan", "simulate_frame"]
+__all__ = ["SimulatedScan", "eq27_from_configuration", "simulate_frame"]
 
 
 @dataclass
@@ -78,3 +78,23 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
                          wavelengths_m=np.asarray(spec.wavelengths_m),
                          rotations_deg=np.asarray(spec.rotations_deg),
                          true_offset_m=spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2.0)
+
+
+def eq27_from_configuration(scene_name: str) -> float:
+    """Eq. 27 with the per-sample SNR of eq. 30 from the scene's own parameters (median pixel).
+
+    SNR_k = A_k^2 / (sigma^2 / R + sum_{j != k, same column} A_j^2): echo amplitudes A
+    (V) from the instrument's link budget, thermal noise sigma (V) averaged over R
+    frames, every other lit channel of the column as interference.
+    """
+    from scene import load_scene
+    from scene.instrument import Instrument
+
+    inst = Instrument(load_scene(scene_name), seed=0)
+    spec = inst.spec
+    a2 = (inst.gain_v_per_w * inst.default_power_w) ** 2
+    others = a2.sum(axis=0, keepdims=True) - a2
+    snr = a2 / (inst.noise_rms_v**2 / spec.averages + others)
+    lit = inst.gain_v_per_w > 0
+    return float(precision_eq27_m(spec.chip_rate_hz, spec.code_length * spec.samples_per_chip,
+                                  snr=float(np.median(snr[lit]))))

@@ -12,6 +12,7 @@ from host.calibration import Calibration
 from host.device import connect
 from host.ranging import estimate_ranges, precision_eq27_m
 from host.scan import ScanOptions, calibrate_device, run_scan, state_path, summarise
+from host.simulate import eq27_from_configuration
 from scene import load_scene
 from scene.truth import compute_truth
 
@@ -43,6 +44,8 @@ def test_paper_scene1_acceptance(paper_scan):
     sigma = float(precision_eq27_m(rc.chip_rate_hz, rc.samples_per_symbol,
                                    snr_xc_db=float(np.median(res.image.snr_xc_db[obj_valid]))))
     assert s["median_error_m"] <= sigma
+    # ... and within eq. 27 from the scene's configuration (eq. 30 SNR, median pixel).
+    assert s["median_error_m"] <= eq27_from_configuration("paper-scene1")
     # Sub-sample refinement buys an order of magnitude over the integer lag.
     coarse = summarise(estimate_ranges(res.data, dataclasses.replace(rc, method="none")), truth)
     assert coarse["median_error_m"] > 5 * s["median_error_m"]
