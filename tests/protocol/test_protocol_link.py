@@ -317,7 +317,7 @@ def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
     stop = threading.Event()
     if make is not None:
         _talker(dev, stop, make)
-    link = HostLink(host, timeout_s=0.03, retries=1)
+    link = HostLink(host, timeout_s=0.1, retries=1)
     link.session = 0x600D  # as if HELLO had succeeded before the trouble
     try:
         with pytest.raises(LinkTimeout) as exc:
@@ -332,11 +332,10 @@ def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
 def test_device_restart_is_reported_at_once(rig) -> None:
     link, ep, _app = rig
     ep.session = 0x7777  # the device rebooted and chose a new session
-    t0 = time.monotonic()
-    with pytest.raises(DeviceError) as exc:
+    with pytest.raises(DeviceError) as exc:  # a NAK, not a LinkTimeout after the retries
         link.status()
     assert exc.value.code == ErrorCode.WRONG_SESSION
-    assert time.monotonic() - t0 < 10 * TIMEOUT
+    assert link.stats.retries == 0
     assert link.hello().session_id == 0x7777
     assert link.status().state_name == "idle"
 
