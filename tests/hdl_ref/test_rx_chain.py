@@ -275,8 +275,7 @@ def _batches(draw) -> list[Case]:
 
 
 @pytest.mark.hdl
-@settings(max_examples=3, suppress_health_check=[HealthCheck.function_scoped_fixture,
-                                                 HealthCheck.too_slow])
+@settings(max_examples=3, suppress_health_check=[HealthCheck.too_slow])
 @given(batch=_batches())
 def test_rtl_equals_model_hypothesis(rx_builder, batch):
     runs = _simulate(rx_builder, PARAMS, batch, "hypothesis")
