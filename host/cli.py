@@ -305,10 +305,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     scene = load_scene(DEMO_SCENE)
     url = f"virtual://{DEMO_SCENE}?seed={args.seed}"
     with connect(url) as dev:
-        cal = calibrate_device(dev, scene.calibration.target_distance_m, shots=20)
+        cal = calibrate_device(dev, scene.calibration.target_distance_m, shots=20,
+                               frame_id=0)
         cal.save(folder / "calibration.toml")
         res = run_scan(dev, folder / f"{DEMO_SCENE}.ply", ScanOptions(offset_m=cal.offset_m),
-                       progress=not args.no_progress, pictures_too=True)
+                       progress=not args.no_progress, pictures_too=True, frame_id=1)
     truth = compute_truth(scene).range_m
     s = summarise(res.image, truth)
     rc = res.image.config

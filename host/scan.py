@@ -324,21 +324,22 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
 
 
 def calibrate_device(device: Device, target_distance_m: float, *, shots: int = 20,
-                     snr_threshold_db: float | None = None,
-                     max_spread_m: float | None = None) -> Calibration:
+                     snr_threshold_db: float | None = None, max_spread_m: float | None = None,
+                     frame_id: int | None = None) -> Calibration:
     """Zeroth-order calibration (Note 6): ``shots`` shots, every channel, one histogram.
 
     The uncalibrated range of every channel of every shot above the SNR_XC threshold
     goes into the histogram (sub-sample refined); its one mode minus
     ``target_distance_m`` is the offset. Histogram modes further apart than one lag
     sample count as separate; ``max_spread_m`` defaults to a quarter of a sample.
+    ``frame_id`` seeds a virtual device's noise (default: the link's next id).
     """
     if not 1 <= shots <= 65535:
         raise ConfigError(f"shots must be from 1 to 65535, not {shots!r}", field="shots")
     ranging = device.ranging_config(offset_m=0.0, min_support=0)
     if snr_threshold_db is not None:
         ranging = dataclasses.replace(ranging, snr_threshold_db=snr_threshold_db)
-    results = device.link.calibrate(shots)
+    results = device.link.calibrate(shots, frame=frame_id)
     if len(results) != shots:
         raise CalibrationError(f"device sent {len(results)} of {shots} calibration shots")
     data = FrameData.from_columns(results, device.channels, shots,
