@@ -120,8 +120,10 @@ def _minimal(msg: MsgType) -> dict:
 
 def test_kinds_and_replies() -> None:
     for t, spec in MESSAGES.items():
-        assert spec.kind is {0: MsgKind.REQUEST, 1: MsgKind.REPLY}.get(
-            int(t) >> 7 if int(t) < 0xC0 else 2, MsgKind.STREAM)
+        expected = (MsgKind.REQUEST if t < 0x80 else MsgKind.REPLY if t < 0xC0
+                    else MsgKind.STREAM)
+        assert spec.kind is expected
+        assert (t in REPLY_TO) == (expected is MsgKind.REQUEST)
         if spec.kind is MsgKind.REQUEST:
             assert REPLY_TO[t] in (MsgType.ACK, MsgType.INFO, MsgType.CONFIG, MsgType.STATUS,
                                    MsgType.CAPTURE_DATA)
