@@ -23,7 +23,7 @@ import construct as cs
 
 from cdma_lidar.fileio import atomic_write_text
 from protocol import framing
-from protocol.columns import _RECORD_STRUCT, COLUMN_HEADER, FLAG_CALIBRATION
+from protocol.columns import _RECORD_STRUCT, COLUMN_HEADER, FLAG_CALIBRATION, ColumnResult
 from protocol.messages import (
     CONFIG_KEYS,
     CONFIG_OPTIONAL,
@@ -178,6 +178,16 @@ def examples() -> str:
         ("SCAN_START frame 7, columns 0..99", MsgType.SCAN_START,
          {"frame": 7, "first_column": 0, "columns": 100}),
         ("ACK of a SCAN_START", MsgType.ACK, {"request_type": int(MsgType.SCAN_START)}),
+        ("NAK of a CONFIG_SET: OUT_OF_RANGE, field `peaks`", MsgType.NAK,
+         {"request_type": int(MsgType.CONFIG_SET), "code": 4, "field": "peaks",
+          "detail": ""}),
+        ("COLUMN_RESULT of frame 7, column 3, 2 channels, P = 1, n = 2, angle -1.5 deg",
+         MsgType.COLUMN_RESULT, ColumnResult.from_arrays(
+             7, 3, -1.5, peak_lag=[100, 2041], peak=[52000, -300], neighbours=[[20, 19],
+                                                                                [-7, 2]],
+             noise_count=[120, 120], noise_sum=[-35, 16], noise_sumsq=[9100, 8800],
+             uid_signs=[[1, -1], [1, 0]], uid_observed=[2, 0], uid_match=[True, False],
+             timestamp_us=1_000_000)),
     ]
     out = []
     for title, t, f in cases:

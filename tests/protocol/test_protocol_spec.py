@@ -8,7 +8,14 @@ import pytest
 
 from protocol import spec
 from protocol.framing import FrameDecoder
-from protocol.messages import CONFIG_KEYS, MESSAGES, SCHEMA_CRC, ErrorCode, MsgType
+from protocol.messages import (
+    CONFIG_KEYS,
+    MESSAGES,
+    SCHEMA_CRC,
+    ErrorCode,
+    MsgType,
+    decode_payload,
+)
 
 
 def test_committed_spec_page_matches_the_code() -> None:
@@ -46,7 +53,10 @@ def test_unknown_section_is_an_error() -> None:
 def test_example_wire_bytes_in_the_page_decode() -> None:
     text = spec.DOC_PATH.read_text(encoding="utf-8")
     wires = re.findall(r"^wire   ([0-9a-f ]+)$", text, re.M)
-    assert len(wires) == 3
+    assert len(wires) == 5
     frames = [FrameDecoder().feed(bytes.fromhex(w))[0] for w in wires]
-    assert [f.msg_type for f in frames] == [MsgType.STATUS_GET, MsgType.SCAN_START, MsgType.ACK]
+    assert [f.msg_type for f in frames] == [MsgType.STATUS_GET, MsgType.SCAN_START, MsgType.ACK,
+                                            MsgType.NAK, MsgType.COLUMN_RESULT]
+    col = decode_payload(MsgType.COLUMN_RESULT, frames[-1].payload)
+    assert col.column == 3 and col.angle_deg == -1.5 and list(col.peak_lag) == [100, 2041]
     assert all(f.seq == 0x0102 and f.session == 0xA1B2C3D4 for f in frames)
