@@ -252,7 +252,8 @@ class HostLink:
         self._nonce = secrets.randbits(32)
         self._seq = self._nonce & 0xFFFF
         self._next_frame_id = secrets.randbits(31)
-        self._pending: int | None = None
+        self._pending: int | None = None  # seq of the request waiting for its reply
+        self._pending_type = 0
         self._hello_seq: int | None = None
         self._reply: Frame | None = None
         self._streaming = False
@@ -321,6 +322,7 @@ class HostLink:
         Integer matrices are in units of 1/65535 of the per-pixel maximum (0..65535);
         float matrices are fractions 0..1 and are rounded to that grid.
         """
+        self._need_info()  # the chunk size depends on the session's max frame
         m = np.asarray(matrix)
         if m.ndim != 2 or m.size == 0:
             raise out_of_range("power", "a non-empty (channels, columns) matrix",
@@ -540,6 +542,7 @@ class HostLink:
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
                       self.stats.wrong_session)
         self._pending = seq
+        self._pending_type = int(msg_type)
         self._reply = None
         try:
             for attempt in range(self.retries + 1):
@@ -628,7 +631,11 @@ class HostLink:
                 self._reply = frame  # the device says it restarted: fail fast
             return
         if kind is MsgKind.REPLY:
-            if frame.seq == self._pending and self._reply is None:
+            # ACK and NAK echo the request type: a reply to another request that happens
+            # to carry the same seq (a previous link, a wrapped counter) is not ours.
+            echoed = frame.payload[:1] if frame.msg_type in (MsgType.ACK, MsgType.NAK) else b""
+            if frame.seq == self._pending and self._reply is None and \
+                    echoed in (b"", bytes([self._pending_type])):
                 self._reply = frame
             else:
                 self.stats.stale_replies += 1

@@ -410,3 +410,33 @@ def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bo
         assert got == list(range(7))
         app.fail_at = None
         assert len(list(link.scan(columns=5))) == 5
+
+
+def test_power_before_hello_uses_the_session_frame_size() -> None:
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=8, columns=300)
+    with RunningDevice(dev, app, max_frame=512) as ep:
+        link = HostLink(host, timeout_s=TIMEOUT)
+        link.set_power(np.full((8, 300), 3))  # hello() happens first, implicitly
+        assert (app.power == 3).all() and ep.decoder.stats.oversize == 0
+
+
+def test_reply_echoing_another_request_type_is_not_taken() -> None:
+    """An ACK with the right seq but another request's type (e.g. from a previous link)."""
+    host, dev = pipe_pair()
+    stop = threading.Event()
+
+    def responder() -> None:
+        dec = FrameDecoder()
+        while not stop.is_set():
+            for f in dec.feed(dev.read(max(1, dev.in_waiting))):
+                for rtype in (MsgType.CONFIG_SET, f.msg_type):  # wrong echo first
+                    dev.write(encode_frame(MsgType.ACK, bytes([rtype]), f.seq, 0x42))
+
+    t = threading.Thread(target=responder, daemon=True)
+    t.start()
+    link = HostLink(host, timeout_s=TIMEOUT, retries=0)
+    link.session = 0x42
+    link.abort()  # takes the second ACK, which echoes SCAN_ABORT
+    stop.set()
+    assert link.stats.stale_replies >= 1
