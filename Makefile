@@ -1,6 +1,6 @@
 # Two entry points for a fresh Debian machine with Python 3.11 (see README):
 #   make demo   set up .venv and run the main job (scan of a built-in scene on the virtual device)
-#   make test   set up .venv (and Icarus Verilog) and run every test
+#   make test   set up .venv (and Icarus Verilog, libusb) and run every test
 # Both are idempotent: the venv is rebuilt only when pyproject.toml changes.
 
 PYTHON ?= python3
@@ -9,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test lint bench iverilog clean
+.PHONY: demo test lint bench sysdeps clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -17,14 +17,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[test]'
 	@rm -f $(VENV)/.installed-* && touch $@
 
-iverilog:
-	@command -v iverilog >/dev/null || { $(SUDO) apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq iverilog >/dev/null; }
+# Debian packages the tests need: Icarus Verilog (co-simulation) and libusb (Open3D imports it).
+sysdeps:
+	@missing=""; command -v iverilog >/dev/null || missing="$$missing iverilog"; \
+	{ /sbin/ldconfig -p 2>/dev/null || ldconfig -p; } | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
+	if [ -n "$$missing" ]; then $(SUDO) apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null; fi
 
 demo: $(STAMP)
-	$(BIN)/cdma-lidar codes pairs
+	$(BIN)/cdma-lidar demo --out out/demo
 
-test: $(STAMP) iverilog
+test: $(STAMP) sysdeps
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 

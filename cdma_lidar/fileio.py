@@ -18,6 +18,17 @@ from cdma_lidar.errors import ConfigError
 __all__ = ["atomic_open", "atomic_write_bytes", "atomic_write_text", "check_writable"]
 
 
+def _read_umask() -> int:
+    """The process umask (read once; os.umask can only be read by setting it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: Files get the permissions ``open()`` would give them (mkstemp alone makes them 0600).
+_FILE_MODE = 0o666 & ~_read_umask()
+
+
 def check_writable(path: str | os.PathLike[str]) -> Path:
     """Return ``path`` as a Path after checking its folder exists and is writable.
 
@@ -46,6 +57,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO]:
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent or ".")
     try:
+        os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, mode, **({"encoding": "utf-8"} if mode == "w" else {})) as fh:
             yield fh
             fh.flush()
