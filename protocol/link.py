@@ -21,7 +21,7 @@ Scans: columns arrive as COLUMN_RESULT frames; :meth:`HostLink.scan` yields them
 column order exactly once, asks for missing ones again (RESEND) as soon as a later
 column, a HEARTBEAT or SCAN_END shows they were sent. After ``timeout_s`` of
 silence it asks STATUS to learn how far the device got. It fails with LinkTimeout
-after ``retries`` fruitless RESENDs of one column.
+after ``column_retries`` fruitless RESENDs of one column.
 """
 
 from __future__ import annotations
@@ -222,8 +222,11 @@ class HostLink:
         port: from :func:`open_port`, a :class:`FdPort`, or anything with ``read``,
             ``write``, ``in_waiting`` and ``timeout``.
         timeout_s: wait for one reply, and longest silence in a scan (s).
-        retries: retransmissions of a request (and RESENDs of one column) before
-            LinkTimeout.
+        retries: retransmissions of a request before LinkTimeout.
+        column_retries: RESENDs of one missing column before LinkTimeout; default
+            ``10 * (retries + 1)``. Columns are long frames: on a noisy line most of
+            them may need several tries although the device answers every request
+            (at a bit error rate of 1e-4 a 1.6 KB frame gets through 27 % of the time).
         poll_s: longest blocking read (s); default ``min(0.05, timeout_s / 4)``.
         max_frame: largest frame the host accepts (bytes), announced in HELLO.
         clock: monotonic clock (s), replaceable in tests.
@@ -232,7 +235,8 @@ class HostLink:
     """
 
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
-                 poll_s: float | None = None, max_frame: int = FRAME_LIMIT,
+                 column_retries: int | None = None, poll_s: float | None = None,
+                 max_frame: int = FRAME_LIMIT,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -241,6 +245,10 @@ class HostLink:
         self.port = port
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
+        self.column_retries = 10 * (self.retries + 1) if column_retries is None \
+            else int(column_retries)
+        if not 0 <= self.column_retries <= 1000:
+            raise out_of_range("column_retries", "an integer from 0 to 1000", column_retries)
         self.clock = clock
         self.decoder = FrameDecoder(max_frame)
         self.stats = LinkStats()
@@ -508,10 +516,15 @@ class HostLink:
                 now: float) -> None:
         for c in cols:
             tries = asked.get(c, (0.0, 0))[1]
-            if tries > self.retries:
+            if tries >= self.column_retries:
+                st = self.decoder.stats
+                damaged = st.crc + st.cobs + st.length + st.short
+                diag = DIAG_GARBAGE if damaged else DIAG_NO_ANSWER
+                hint = (f"{damaged} damaged frames so far: the line corrupts long frames"
+                        if damaged else _HINTS[DIAG_NO_ANSWER])
                 raise LinkTimeout(
-                    f"column {c} of frame {fid} never arrived after {tries} resend requests "
-                    f"on {self._port_name}; {_HINTS[DIAG_NO_ANSWER]}", DIAG_NO_ANSWER)
+                    f"column {c} of frame {fid} never arrived intact after {tries} resend "
+                    f"requests on {self._port_name}: {diag}; {hint}", diag)
             asked[c] = (now, tries + 1)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols)

@@ -440,3 +440,28 @@ def test_reply_echoing_another_request_type_is_not_taken() -> None:
     link.abort()  # takes the second ACK, which echoes SCAN_ABORT
     stop.set()
     assert link.stats.stale_replies >= 1
+
+
+def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
+    """Short frames pass, every copy of column 2 is damaged: a clear timeout, no hang."""
+    host, dev = pipe_pair()
+    push = dev._tx.push
+
+    def damage_column_2(data: bytes) -> None:
+        frames = FrameDecoder().feed(data)
+        if frames and frames[0].msg_type == MsgType.COLUMN_RESULT and \
+                frames[0].payload[4:6] == b"\x02\x00":
+            data = data[:40] + bytes([data[40] ^ 0x10]) + data[41:]
+        push(data)
+
+    dev._tx.push = damage_column_2
+    app = SyntheticApp()
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.03, retries=2, column_retries=3)
+        got = []
+        with pytest.raises(LinkTimeout) as exc:
+            for c in link.scan(columns=6):
+                got.append(c.column)
+        assert got == [0, 1]
+        assert exc.value.diagnosis == DIAG_GARBAGE and "column 2" in str(exc.value)
+        assert link.stats.resent_columns >= 3
