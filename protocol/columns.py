@@ -50,6 +50,7 @@ __all__ = [
     "FLAG_CALIBRATION",
     "MAX_PEAKS",
     "MAX_UID_BITS",
+    "NO_PEAK",
     "ColumnResult",
     "column_payload_size",
     "decode_column",
@@ -79,7 +80,8 @@ COLUMN_HEADER = cs.Struct(
 
 _E = cs.this._.peaks - 1  # extra peaks per channel
 _RECORD_STRUCT = cs.Struct(
-    u("peak_lag", 32, "lag of the strongest peak", "samples", 0, None, "0..N*S-1"),
+    u("peak_lag", 32, "lag of the strongest peak; 0xFFFFFFFF: no eligible lag", "samples",
+      0, None, "0..N*S-1 or 0xFFFFFFFF"),
     i("peak", 32, "scaled correlation out at peak_lag", "out LSB", allowed="signed out_bits"),
     blob("neighbours", cs.Array(2, cs.Int32sl), "i32[2]", "out at peak_lag-1, peak_lag+1",
          "out LSB", "signed out_bits"),
@@ -93,8 +95,8 @@ _RECORD_STRUCT = cs.Struct(
     u("uid_observed", 8, "observed UID: bit p set where period p's sign is -1", "",
       allowed="0..2^n-1"),
     u("uid_match", 8, "1 when no sign is 0 and uid_observed == uid", "", 0, 1),
-    blob("extra_lag", cs.Array(_E, cs.Int32ul), "u32[P-1]", "lags of peaks 2..P", "samples",
-         "0..N*S-1"),
+    blob("extra_lag", cs.Array(_E, cs.Int32ul), "u32[P-1]",
+         "lags of peaks 2..P; 0xFFFFFFFF: no such peak", "samples", "0..N*S-1 or 0xFFFFFFFF"),
     blob("extra_peak", cs.Array(_E, cs.Int32sl), "i32[P-1]", "out at peaks 2..P", "out LSB",
          "signed out_bits"),
     blob("extra_neg", cs.Array(_E, cs.Int8ul), "u8[P-1]", "sign masks (-1) of peaks 2..P",
@@ -129,6 +131,11 @@ def column_payload_size(channels: int, peaks: int) -> int:
     """Bytes of a COLUMN_RESULT payload for K channels and P peaks: ``19 + K*(40+10(P-1))``."""
     return _HEAD.size + channels * (40 + 10 * (peaks - 1))
 
+
+#: Wire value of a lag where the receiver found no eligible peak (it reports lag -1).
+NO_PEAK = 0xFFFF_FFFF
+
+_LAG_FIELDS = ("peak_lag", "extra_lag")
 
 _INT_LIMITS = {
     "peak_lag": (0, 2**32 - 1), "peak": (-(2**31), 2**31 - 1),
@@ -201,9 +208,9 @@ class ColumnResult:
         return self.angle_udeg * 1e-6
 
     @property
-    def peak_lag(self) -> NDArray[np.uint32]:
-        """(K,) lag of the strongest peak (samples)."""
-        return self.records["peak_lag"]
+    def peak_lag(self) -> NDArray[np.int64]:
+        """(K,) lag of the strongest peak (samples); -1 where no lag was eligible."""
+        return _lags_from_wire(self.records["peak_lag"])
 
     @property
     def peak(self) -> NDArray[np.int32]:
@@ -246,9 +253,9 @@ class ColumnResult:
         return self.records["uid_match"].astype(bool)
 
     @property
-    def extra_lag(self) -> NDArray[np.uint32]:
-        """(K, P-1) lags of peaks 2..P (samples)."""
-        return self.records["extra_lag"]
+    def extra_lag(self) -> NDArray[np.int64]:
+        """(K, P-1) lags of peaks 2..P (samples); -1 where there was no such peak."""
+        return _lags_from_wire(self.records["extra_lag"])
 
     @property
     def extra_peak(self) -> NDArray[np.int32]:
@@ -357,8 +364,17 @@ def _check_int(name: str, value: Any, lo: int, hi: int) -> None:
         raise out_of_range(name, f"an integer from {lo} to {hi}", value, FieldError)
 
 
+def _lags_from_wire(lags: NDArray[np.uint32]) -> NDArray[np.int64]:
+    """Wire lags as int64, with NO_PEAK turned back into the receiver's -1."""
+    out = lags.astype(np.int64)
+    out[lags == NO_PEAK] = -1
+    return out
+
+
 def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
     arr = np.asarray(value)
+    if name in _LAG_FIELDS and arr.dtype.kind == "i" and arr.size and int(arr.min()) == -1:
+        arr = np.where(arr == -1, NO_PEAK, arr).astype(np.int64)  # "no peak" on the wire
     if arr.shape != shape:
         raise out_of_range(name, f"an array of shape {shape}", f"shape {arr.shape}", FieldError)
     if arr.dtype.kind not in "iub":

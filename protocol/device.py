@@ -583,6 +583,10 @@ class DeviceEndpoint:
                     st.produced += 1
                     self.stats.columns_sent += 1
                     self._send_stream(MsgType.COLUMN_RESULT, payload)
+                    if st.produced >= st.count:
+                        # End the stream under the same lock that sent its last column:
+                        # a SCAN_START arriving right after must not find it still busy.
+                        self._stop_stream(reason)
             with self._lock:
                 if not st.stopped:
                     self._stop_stream(reason)

@@ -272,7 +272,7 @@ def test_column_from_arrays_keeps_every_receiver_field() -> None:
 
 
 @pytest.mark.parametrize(("name", "bad"), [
-    ("peak_lag", -1), ("peak", 2**31), ("neighbours", -(2**31) - 1), ("noise_count", 2**32),
+    ("peak_lag", -2), ("peak", 2**31), ("neighbours", -(2**31) - 1), ("noise_count", 2**32),
     ("uid_observed", 8), ("uid_signs", 2), ("uid_match", 3), ("noise_sumsq", -1),
 ])
 def test_column_from_arrays_names_bad_field(name: str, bad: int) -> None:
