@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import ConfigError, DeviceError, FrameError
+from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
 from protocol.columns import ColumnResult, column_payload_size, encode_column
 from protocol.framing import (
     COMPAT_RETRANSMIT,
@@ -164,6 +164,7 @@ class _Stream:
     calibration: bool
     produced: int = 0
     stopped: bool = False  # set (under the endpoint lock) when the stream ends for any reason
+    finished: bool = False  # generator closed and app.abort() called if due (under _app_lock)
 
     @property
     def next_column(self) -> int:
@@ -196,8 +197,18 @@ class DeviceEndpoint:
                  poll_s: float = 0.01, replay_depth: int = 32,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not MIN_MAX_FRAME <= max_frame <= FRAME_LIMIT:
-            raise ConfigError(f"max_frame must be {MIN_MAX_FRAME} to {FRAME_LIMIT} bytes, "
-                              f"not {max_frame}", "max_frame")
+            raise out_of_range("max_frame", f"{MIN_MAX_FRAME} to {FRAME_LIMIT} bytes", max_frame)
+        if not 0 <= ring_columns <= 65535:
+            raise out_of_range("ring_columns", "0 to 65535 columns", ring_columns)
+        if not 0.001 <= heartbeat_s <= 65.535:
+            raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
+                               heartbeat_s)
+        if not 0 < poll_s <= 1:
+            raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin)", poll_s)
+        if not 1 <= replay_depth <= 32768:
+            raise out_of_range("replay_depth", "1 to 32768 requests", replay_depth)
+        if session_id is not None and not 0 <= session_id <= 0xFFFFFFFF:
+            raise out_of_range("session_id", "1 to 2^32-1 (0 or None: random)", session_id)
         self.port = port
         self.app = app
         self.session = session_id if session_id else (secrets.randbits(32) or 1)
@@ -213,6 +224,7 @@ class DeviceEndpoint:
         self._replay: OrderedDict[int, _Cached] = OrderedDict()
         self._last_seq: int | None = None
         self._stream: _Stream | None = None
+        self._latest: _Stream | None = None  # the last stream started, running or not
         self._last_frame = 0
         self._last_next = 0
         self._last_end = ScanEndReason.COMPLETE
@@ -386,7 +398,12 @@ class DeviceEndpoint:
         self._last_seq = frame.seq
         self._write(wire)
         for action in after:
-            action()
+            try:
+                action()
+            except OSError:
+                raise  # the port failed
+            except Exception:  # a bug must not take the device off the line
+                log.exception("action after %s failed", _type_name(frame.msg_type))
 
     # ---- request handlers -------------------------------------------------------------
     def _handle(self, req: Frame, after: list[Callable[[], None]]) -> bytes:
@@ -463,6 +480,9 @@ class DeviceEndpoint:
                       after: list[Callable[[], None]]) -> bytes:
         if self._stream is not None:
             return self._nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
+        prev = self._latest
+        if prev is not None:  # we hold _app_lock: its generator is not running
+            self._finish(prev)  # close it (and abort) before the app starts another stream
         info = self._info or self.app.info()
         peaks = int(self.app.get_config().get("peaks", 1))
         need = OVERHEAD + column_payload_size(info.channels, peaks)
@@ -472,7 +492,7 @@ class DeviceEndpoint:
                              f"{need} bytes, max frame is {self.tx_max_frame}")
         gen = iter(gen_factory())
         st = _Stream(gen, frame, first, count, calibration)
-        self._stream = st
+        self._stream = self._latest = st
         self._last_frame = frame
         self._last_heartbeat = self.clock()
         worker = threading.Thread(target=self._produce, args=(st,), daemon=True,
@@ -563,6 +583,12 @@ class DeviceEndpoint:
                         col = dataclasses.replace(col, frame=st.frame,
                                                   calibration=st.calibration)
                     payload = encode_column(col)
+                    if OVERHEAD + len(payload) > self.tx_max_frame:
+                        log.error("frame %d column %d: %d bytes do not fit the max frame %d",
+                                  st.frame, col.column, OVERHEAD + len(payload),
+                                  self.tx_max_frame)
+                        reason = ScanEndReason.ERROR
+                        break
                 except StopIteration:
                     log.warning("application ended frame %d after %d of %d columns", st.frame,
                                 st.produced, st.count)
@@ -596,13 +622,37 @@ class DeviceEndpoint:
                 if self._stream is st:
                     self._stream = None
                 st.stopped = True
+        except Exception:  # e.g. a column the frame size cannot carry: end it, stay alive
+            log.exception("column stream of frame %d failed", st.frame)
+            with self._lock:
+                if not st.stopped:
+                    try:  # marks it stopped before it sends SCAN_END
+                        self._stop_stream(ScanEndReason.ERROR)
+                    except Exception:
+                        log.exception("cannot send SCAN_END of frame %d", st.frame)
         finally:
             with self._app_lock:
-                close = getattr(st.gen, "close", None)
-                if close is not None:
-                    close()
-                if reason is not ScanEndReason.COMPLETE or st.produced < st.count:
-                    self.app.abort()
+                self._finish(st)
+
+    def _finish(self, st: _Stream) -> None:
+        """Close the generator of an ended stream; call ``app.abort()`` if it ended early.
+
+        Caller holds ``_app_lock`` (so the generator is not running). Runs once per
+        stream: in its worker when it exits, or earlier in the next SCAN_START /
+        CALIBRATE, so the application never sees the clean-up of an old stream after it
+        was asked for a new one.
+        """
+        if st.finished or not st.stopped:
+            return
+        st.finished = True
+        try:
+            close = getattr(st.gen, "close", None)
+            if close is not None:
+                close()
+            if st.produced < st.count:
+                self.app.abort()
+        except Exception:  # the device must not die on an application's clean-up
+            log.exception("application failed while ending frame %d", st.frame)
 
     def _stop_stream(self, reason: ScanEndReason, send_end: bool = True) -> None:
         """End the current stream (caller holds ``_lock``); its worker notices and exits."""

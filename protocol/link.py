@@ -15,7 +15,13 @@ twice. Then :class:`LinkTimeout` says what the line showed (``diagnosis``):
 * ``no bytes at all``           -- nothing came back: power, cable, port name;
 * ``bytes but no valid frame``  -- wrong baud rate, or not a cdma-lidar device;
 * ``frames but wrong session``  -- the device rebooted: call :meth:`HostLink.hello`;
+* ``frames of another protocol version`` -- CRC-valid frames this version must not
+  read (another ``version`` or unknown incompat flags): update host or firmware;
 * ``frames but no answer``      -- the device is alive but ignores this request.
+
+A reply to the pending request that carries another protocol version (a device
+answers a request of a version it does not speak with NAK VERSION in its own
+version) fails the request at once with :class:`LinkError` naming both versions.
 
 Scans: columns arrive as COLUMN_RESULT frames; :meth:`HostLink.scan` yields them in
 column order exactly once, asks for missing ones again (RESEND) as soon as a later
@@ -83,6 +89,7 @@ __all__ = [
     "DIAG_GARBAGE",
     "DIAG_NO_ANSWER",
     "DIAG_SILENT",
+    "DIAG_VERSION",
     "DIAG_WRONG_SESSION",
     "FdPort",
     "HostLink",
@@ -96,12 +103,14 @@ DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
 DIAG_WRONG_SESSION = "frames but wrong session"
 DIAG_NO_ANSWER = "frames but no answer"
+DIAG_VERSION = "frames of another protocol version"
 
 _HINTS = {
     DIAG_SILENT: "check that the device is powered and connected and that the port is right",
     DIAG_GARBAGE: "check the baud rate and that the port is a cdma-lidar device",
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
+    DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
 }
 
 
@@ -151,7 +160,11 @@ class FdPort:
         return struct.unpack("i", buf)[0]
 
     def read(self, n: int = 1) -> bytes:
-        """Up to ``n`` bytes; returns early with fewer when ``timeout`` expires."""
+        """Up to ``n`` bytes; returns early with fewer when ``timeout`` expires.
+
+        Raises OSError at end of file, like pyserial, so a caller never spins on a
+        descriptor that is always readable but empty.
+        """
         out = bytearray()
         deadline = None if self.timeout is None else time.monotonic() + self.timeout
         while len(out) < n:
@@ -163,8 +176,8 @@ class FdPort:
                 chunk = os.read(self.fd, n - len(out))
             except BlockingIOError:
                 continue
-            if not chunk:
-                break
+            if not chunk:  # end of file: readable but nothing to read
+                raise OSError(f"fd {self.fd}: end of file (the other side closed)")
             out += chunk
         return bytes(out)
 
@@ -213,6 +226,7 @@ class _Window:
     bytes: int
     frames: int
     wrong_session: int
+    other_version: int
 
 
 class HostLink:
@@ -227,7 +241,8 @@ class HostLink:
             ``10 * (retries + 1)``. Columns are long frames: on a noisy line most of
             them may need several tries although the device answers every request
             (at a bit error rate of 1e-4 a 1.6 KB frame gets through 27 % of the time).
-        poll_s: longest blocking read (s); default ``min(0.05, timeout_s / 4)``.
+        poll_s: longest blocking read (s), greater than 0 so that waiting never spins;
+            default ``min(0.05, timeout_s / 4)``.
         max_frame: largest frame the host accepts (bytes), announced in HELLO.
         clock: monotonic clock (s), replaceable in tests.
 
@@ -249,6 +264,9 @@ class HostLink:
             else int(column_retries)
         if not 0 <= self.column_retries <= 1000:
             raise out_of_range("column_retries", "an integer from 0 to 1000", column_retries)
+        if poll_s is not None and not 0 < poll_s <= 10:
+            raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
+                               "would make every wait spin)", poll_s)
         self.clock = clock
         self.decoder = FrameDecoder(max_frame)
         self.stats = LinkStats()
@@ -264,6 +282,7 @@ class HostLink:
         self._pending_type = 0
         self._hello_seq: int | None = None
         self._reply: Frame | None = None
+        self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._streaming = False
         self._stream: deque[tuple[int, Any]] = deque()
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
@@ -553,10 +572,11 @@ class HostLink:
                             max_frame=self.max_frame)
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
-                      self.stats.wrong_session)
+                      self.stats.wrong_session, self._other_version())
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
+        self._reply_version = None
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
@@ -564,10 +584,18 @@ class HostLink:
                     log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
                 self._write(wire)
                 deadline = self.clock() + self.timeout_s
-                while self._reply is None and self.clock() < deadline:
+                while self._reply is None and self._reply_version is None and \
+                        self.clock() < deadline:
                     self._pump()
                 if self._reply is not None:
                     return self._accept_reply(msg_type, self._reply)
+                if self._reply_version is not None:
+                    f = self._reply_version
+                    raise LinkError(
+                        f"device answered {msg_type.name} in protocol version {f.version} "
+                        f"with incompat flags 0x{f.incompat:02x}; this host speaks version "
+                        f"{PROTOCOL_VERSION} and knows no incompat flags: "
+                        f"{_HINTS[DIAG_VERSION]}")
         finally:
             self._pending = None
         diag = self._diagnose(win)
@@ -581,11 +609,15 @@ class HostLink:
         if st.bytes == win.bytes:
             return DIAG_SILENT
         if st.frames == win.frames:
-            return DIAG_GARBAGE
+            return DIAG_VERSION if self._other_version() > win.other_version else DIAG_GARBAGE
         wrong = self.stats.wrong_session - win.wrong_session
         if wrong and st.frames - win.frames == wrong:
             return DIAG_WRONG_SESSION
         return DIAG_NO_ANSWER
+
+    def _other_version(self) -> int:
+        """CRC-valid frames rejected for their version or incompat flags so far."""
+        return self.decoder.stats.version + self.decoder.stats.incompat
 
     def _accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         try:
@@ -628,6 +660,10 @@ class HostLink:
         if data:
             for frame in self.decoder.feed(data):
                 self._dispatch(frame)
+            while self.decoder.rejected:  # frames of another version or incompat flags
+                frame = self.decoder.rejected.pop(0)
+                if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
+                    self._reply_version = frame
 
     def _dispatch(self, frame: Frame) -> None:
         kind = kind_of(frame.msg_type)

@@ -1,0 +1,236 @@
+"""Edges of the link: version skew, spinning waits, end of file, stream clean-up order."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+from protocol_fixtures import RunningDevice, SyntheticApp
+
+from cdma_lidar.errors import LinkError, LinkTimeout
+from protocol import cobs, framing
+from protocol.columns import ColumnResult
+from protocol.device import DeviceEndpoint
+from protocol.framing import Frame, FrameDecoder, encode_frame
+from protocol.link import DIAG_GARBAGE, DIAG_VERSION, FdPort, HostLink
+from protocol.messages import ErrorCode, MsgType, Status, encode_payload
+from protocol.pipe import pipe_pair
+
+
+def _responder(port, stop: threading.Event, answer) -> threading.Thread:
+    """A fake device: ``answer(frame)`` gives the wire bytes to send back for each request."""
+    def run() -> None:
+        dec = FrameDecoder()
+        while not stop.is_set():
+            for f in dec.feed(port.read(max(1, port.in_waiting))):
+                port.write(answer(f))
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
+    """A version-2 device NAKs VERSION in its own version: the host says so, no timeout."""
+    host, dev = pipe_pair()
+    stop = threading.Event()
+    nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
+                                       "code": int(ErrorCode.VERSION), "field": "version",
+                                       "detail": ""})
+    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=2))
+    link = HostLink(host, timeout_s=0.5, retries=3)
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(LinkError, match="protocol version 2") as exc:
+            link.hello()
+    finally:
+        stop.set()
+    assert not isinstance(exc.value, LinkTimeout)
+    assert "version 1" in str(exc.value)
+    assert link.stats.retries == 0 and time.monotonic() - t0 < 0.5
+
+
+def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
+    """Frames that pass the CRC but carry another version, none answering us."""
+    host, dev = pipe_pair()
+    stop = threading.Event()
+    hb = encode_payload(MsgType.HEARTBEAT, Status().to_fields())
+
+    def talk() -> None:
+        k = 0
+        while not stop.is_set():
+            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=3))
+            k += 1
+            time.sleep(0.005)
+
+    threading.Thread(target=talk, daemon=True).start()
+    link = HostLink(host, timeout_s=0.05, retries=1)
+    link.session = 0x600D
+    try:
+        with pytest.raises(LinkTimeout) as exc:
+            link.status()
+    finally:
+        stop.set()
+    assert exc.value.diagnosis == DIAG_VERSION and DIAG_VERSION in str(exc.value)
+    assert link.decoder.stats.version >= 1 and link.decoder.stats.frames == 0
+
+
+def test_garbage_is_still_garbage_with_the_version_diagnosis_in_place() -> None:
+    host, dev = pipe_pair()
+    dev.write(b"\x00\x03\x01\x02\x00" * 10)
+    link = HostLink(host, timeout_s=0.03, retries=0)
+    link.session = 1
+    with pytest.raises(LinkTimeout) as exc:
+        link.status()
+    assert exc.value.diagnosis == DIAG_GARBAGE
+
+
+@pytest.mark.parametrize(("kw", "name"), [
+    ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0}, "poll_s"),
+])
+def test_host_refuses_a_poll_time_that_would_spin(kw: dict, name: str) -> None:
+    host, _ = pipe_pair()
+    with pytest.raises(ValueError, match=name):
+        HostLink(host, **kw)
+
+
+@pytest.mark.parametrize(("kw", "name"), [
+    ({"poll_s": 0}, "poll_s"), ({"heartbeat_s": 0}, "heartbeat_s"),
+    ({"heartbeat_s": 100.0}, "heartbeat_s"), ({"ring_columns": -1}, "ring_columns"),
+    ({"ring_columns": 70000}, "ring_columns"), ({"replay_depth": 0}, "replay_depth"),
+    ({"max_frame": 100}, "max_frame"), ({"session_id": 2**32}, "session_id"),
+])
+def test_device_endpoint_names_a_bad_argument(kw: dict, name: str) -> None:
+    _, dev = pipe_pair()
+    with pytest.raises(ValueError, match=name):
+        DeviceEndpoint(dev, SyntheticApp(), **kw)
+
+
+def test_fd_port_raises_at_end_of_file_instead_of_returning_nothing() -> None:
+    r, w = os.pipe()
+    port = FdPort(r, timeout=1.0)
+    os.write(w, b"abc")
+    assert port.read(3) == b"abc"
+    os.close(w)
+    t0 = time.monotonic()
+    with pytest.raises(OSError, match="end of file"):
+        port.read(1)
+    assert time.monotonic() - t0 < 0.5  # at once, not after the timeout
+    port.close()
+
+
+def test_device_endpoint_stops_when_its_fd_reaches_end_of_file() -> None:
+    """serve_forever ends (it would otherwise spin on an always-readable empty fd)."""
+    r, w = os.pipe()
+    port = FdPort(r)
+    port.write = lambda data: len(data)  # type: ignore[method-assign]  # write side unused
+    ep = DeviceEndpoint(port, SyntheticApp())
+    stop = threading.Event()
+    t = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
+    t.start()
+    os.close(w)
+    t.join(2.0)
+    assert not t.is_alive()
+    stop.set()
+    port.close()
+
+
+class _RecordingApp(SyntheticApp):
+    """Logs scan(), generator close and abort() in the order the application sees them."""
+
+    def __init__(self) -> None:
+        super().__init__(column_delay_s=0.03)
+        self.log: list[tuple[str, int]] = []
+
+    def scan(self, frame: int, first_column: int, columns: int) -> Iterator[ColumnResult]:
+        self.log.append(("scan", frame))
+        inner = super().scan(frame, first_column, columns)
+
+        def gen() -> Iterator[ColumnResult]:
+            try:
+                yield from inner
+            finally:
+                self.log.append(("close", frame))
+
+        return gen()
+
+    def abort(self) -> None:
+        super().abort()
+        self.log.append(("abort", self.log[-1][1] if self.log else -1))
+
+
+def test_an_ended_stream_is_cleaned_up_before_the_next_one_starts() -> None:
+    """SCAN_ABORT then SCAN_START at once: the app closes scan 1 before it is asked for scan 2."""
+    host, dev = pipe_pair()
+    host.timeout = 0.02
+    app = _RecordingApp()
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+        def send(t: MsgType, fields: dict, seq: int) -> bytes:
+            return encode_frame(t, encode_payload(t, fields), seq, 0xABCD)
+
+        host.write(send(MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 65535}, 1))
+        host.write(send(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 50}, 2))
+        time.sleep(0.05)  # the worker is inside a column of frame 1
+        host.write(send(MsgType.SCAN_ABORT, {}, 3) +
+                   send(MsgType.SCAN_START, {"frame": 2, "first_column": 0, "columns": 2}, 4))
+        dec = FrameDecoder()
+        got: list[Frame] = []
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and not any(
+                f.msg_type == MsgType.SCAN_END and f.payload[:4] == b"\x02\x00\x00\x00"
+                for f in got):
+            got += dec.feed(host.read(max(1, host.in_waiting)))
+    acks = [f for f in got if f.msg_type == MsgType.ACK]
+    assert [f.seq for f in acks] == [2, 3, 4]  # the second scan was not refused BUSY
+    assert app.log.index(("close", 1)) < app.log.index(("scan", 2))
+    assert app.log.index(("abort", 1)) < app.log.index(("scan", 2))
+    assert app.log.count(("close", 1)) == 1 and app.aborts == 1
+
+
+def test_back_to_back_scans_are_never_refused_busy() -> None:
+    """The stream ends under the lock that sent its last column (no BUSY window)."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(columns=4)
+    with RunningDevice(dev, app, heartbeat_s=0.05):
+        link = HostLink(host, timeout_s=0.2, retries=2)
+        for _ in range(40):
+            assert [c.column for c in link.scan()] == [0, 1, 2, 3]
+        assert app.aborts == 0 and link.stats.retries == 0
+
+
+def test_worker_failure_outside_the_application_ends_the_stream() -> None:
+    """A column too large for the frame size: SCAN_END reason 2, and the device stays usable."""
+    host, dev = pipe_pair()
+
+    class Growing(SyntheticApp):
+        def _columns(self, frame, first, count, calibration):  # type: ignore[override]
+            yield from super()._columns(frame, first, 1, calibration)
+            self.channels = 40  # a misbehaving app: columns grow beyond what was checked
+            yield from super()._columns(frame, first + 1, count - 1, calibration)
+
+    app = Growing(channels=8, columns=10)
+    with RunningDevice(dev, app, max_frame=1024, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.05, retries=2)
+        got = []
+        with pytest.raises(LinkError):
+            for c in link.scan(columns=5):
+                got.append(c.column)
+        assert got == [0]
+        st = link.status()
+        assert st.state_name == "idle" and st.last_end == 2
+        app.channels = 8
+        app._columns = SyntheticApp._columns.__get__(app)  # type: ignore[method-assign]
+        assert [c.column for c in link.scan(columns=3)] == [0, 1, 2]
+
+
+def test_zero_length_decoded_frame_is_counted_as_short() -> None:
+    """COBS of zero bytes (``01``) between delimiters is a frame of 0 bytes: an error event."""
+    dec = FrameDecoder()
+    assert cobs.decode(b"\x01") == b""
+    good = encode_frame(MsgType.ACK, b"\x05", 1, 2)
+    assert dec.feed(b"\x00\x01\x00" + good) == [Frame(MsgType.ACK, 1, 2, b"\x05")]
+    assert dec.stats.short == 1 and dec.stats.errors == 1
+    assert framing.OVERHEAD == 16
