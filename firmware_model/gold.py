@@ -37,6 +37,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from cdma_lidar.errors import ConfigError, out_of_range
 from firmware_model.lfsr import (
     Poly,
+    _check_chips,
     check_primitive,
     jump,
     mseq,
@@ -44,6 +45,7 @@ from firmware_model.lfsr import (
 )
 
 __all__ = [
+    "MAX_FAMILY_DEGREE",
     "bipolar",
     "check_pair",
     "family_size",
@@ -59,6 +61,9 @@ __all__ = [
 log = logging.getLogger("cdma_lidar." + __name__)
 
 Seed = str | Sequence[int] | np.ndarray | None
+
+#: Largest degree :func:`gold_family` builds whole (degree 16: 4.3 GB of chips).
+MAX_FAMILY_DEGREE = 16
 
 
 def t_value(m: int) -> int:
@@ -97,23 +102,22 @@ def gold_code(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str, index: i
 
     ``chips`` defaults to one period N; longer requests repeat the code periodically.
     ``seed_u``/``seed_v`` choose the phases of u and v (bit strings, stage 1 first).
+
+    Only the requested chips are generated: v delayed by k chips is the v register
+    started k chips early, i.e. from its seed jumped ahead by (N - k) mod N clocks
+    (the FPGA's own trick, see :func:`gold_seeds`), so a short prefix of a
+    degree-32 member costs O(chips), not O(2^32).
     """
     pu, pv = check_pair(poly_u, poly_v)
     n = (1 << pu[0]) - 1
     k = _check_index(index, n)
-    u = mseq(pu, seed_u)
-    v = mseq(pv, seed_v)
+    chips = n if chips is None else _check_chips(chips)
+    if k == n + 1:
+        return mseq(pv, seed_v, chips)
+    u = mseq(pu, seed_u, chips)
     if k == n:
-        code = u
-    elif k == n + 1:
-        code = v
-    else:
-        code = u ^ np.roll(v, k)
-    if chips is None:
-        return code
-    if int(chips) < 0 or int(chips) != chips:
-        raise out_of_range("chips", "a non-negative integer", chips)
-    return np.resize(code, int(chips))
+        return u
+    return u ^ mseq(pv, jump(pv, seed_v, (n - k) % n), chips)
 
 
 def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
@@ -124,6 +128,9 @@ def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
     N - k), XORed with u broadcast in one call, written straight into the result.
     """
     pu, pv = check_pair(poly_u, poly_v)
+    if pu[0] > MAX_FAMILY_DEGREE:
+        raise out_of_range("poly_u", f"of degree 2..{MAX_FAMILY_DEGREE} for a whole family "
+                           f"((2^m + 1) x (2^m - 1) bytes); use gold_code per member", pu)
     n = (1 << pu[0]) - 1
     u = mseq(pu, seed_u)
     v = mseq(pv, seed_v)

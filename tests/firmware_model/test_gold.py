@@ -148,7 +148,20 @@ def test_paper_pair_three_valued_counts():
     assert not is_preferred_pair((11, 2), (11, 2))
 
 
+def test_prefix_of_a_degree_32_member_without_a_whole_period():
+    # member N - 3 is u[n] ^ v[n + 3]: checkable from two short m-sequence prefixes
+    pu, pv = (32, 22, 2, 1), (32, 7, 5, 3, 2, 1)
+    n = (1 << 32) - 1
+    want = mseq(pu, chips=64) ^ mseq(pv, chips=67)[3:]
+    assert np.array_equal(gold_code(pu, pv, n - 3, chips=64), want)
+    assert np.array_equal(gold_code(pu, pv, n + 1, chips=10), mseq(pv, chips=10))
+
+
 def test_errors():
+    with pytest.raises(ConfigError, match="poly_u"):
+        gold_family((17, 3), (17, 3, 2, 1))  # 17 GB: refused, not attempted
+    with pytest.raises(ConfigError, match="chips"):
+        gold_code(*PAPER_PAIR, 0, chips=-1)
     with pytest.raises(ConfigError, match="index"):
         gold_code(*PAPER_PAIR, 2049)
     with pytest.raises(ConfigError, match="index"):
