@@ -52,6 +52,9 @@ FORMATS = ("bits", "bipolar", "hex")
 #: Longest chip request the CLI accepts (the output is one line).
 MAX_CHIPS = 1 << 26
 
+#: Largest degree ``codes check`` correlates (degree 24: about 0.9 GB and 5 s).
+MAX_CHECK_DEGREE = 24
+
 
 def format_chips(bits: np.ndarray, fmt: str) -> str:
     """Render chip bits as one line (without newline) in ``bits``, ``bipolar`` or ``hex``."""
@@ -75,8 +78,15 @@ def _pair(args: argparse.Namespace) -> tuple[Poly, Poly]:
     return check_pair(pu, pv, field_u="--poly-u", field_v="--poly-v")
 
 
-def _chips(value: int | None) -> int | None:
-    if value is not None and not 0 < value <= MAX_CHIPS:
+def _chips(value: int | None, degree: int) -> int:
+    """--chips checked against MAX_CHIPS; default one period, which must itself fit."""
+    if value is None:
+        period = (1 << degree) - 1
+        if period > MAX_CHIPS:
+            raise out_of_range("--chips", f"given (1..{MAX_CHIPS}) for degree {degree} "
+                               f"(one period is 2^{degree} - 1 = {period} chips)", value)
+        return period
+    if not 0 < value <= MAX_CHIPS:
         raise out_of_range("--chips", f"an integer in 1..{MAX_CHIPS}", value)
     return value
 
@@ -89,7 +99,7 @@ def cmd_mseq(args: argparse.Namespace) -> int:
     """``codes mseq``: the first N chips of the Fibonacci m-sequence."""
     poly = _poly(args.poly, "--poly")
     seed = parse_seed(args.seed, poly[0], field="--seed") if args.seed is not None else None
-    _write(format_chips(mseq(poly, seed, _chips(args.chips)), args.format))
+    _write(format_chips(mseq(poly, seed, _chips(args.chips, poly[0])), args.format))
     return 0
 
 
@@ -107,7 +117,8 @@ def cmd_gold(args: argparse.Namespace) -> int:
     seed_u = None if args.seed_u is None else parse_seed(args.seed_u, m, field="--seed-u")
     seed_v = None if args.seed_v is None else parse_seed(args.seed_v, m, field="--seed-v")
     index = _index(args.index, pu)
-    code = gold_code(pu, pv, index, chips=_chips(args.chips), seed_u=seed_u, seed_v=seed_v)
+    code = gold_code(pu, pv, index, chips=_chips(args.chips, m), seed_u=seed_u,
+                     seed_v=seed_v)
     _write(format_chips(code, args.format))
     return 0
 
@@ -144,6 +155,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     """``codes check``: cross-correlation values of u and v, their counts, preferred or not."""
     pu, pv = _pair(args)
     m = pu[0]
+    if m > MAX_CHECK_DEGREE:
+        raise out_of_range("--poly-u", f"of degree 2..{MAX_CHECK_DEGREE} (the check "
+                           "correlates whole periods in memory)", format_poly(pu))
     t = t_value(m)
     values = xcorr_values(pu, pv)
     allowed = {-1, -t, t - 2}

@@ -130,6 +130,13 @@ def test_seeds(capsys):
         (["pairs", "--degree", "21"], "--degree"),
         (["check", "--poly-u", "11,2", "--poly-v", "11,1"], "--poly-v"),
         (["uid", "--bits", "0"], "--bits"),
+        (["uid", "--bits", "25"], "--bits"),
+        (["mseq", "--poly", "32,22,2,1"], "--chips"),  # one period is 4 G chips
+        (["mseq", "--poly", "10,3", "--chips", str((1 << 26) + 1)], "--chips"),
+        (["gold", "--poly-u", "32,22,2,1", "--poly-v", "32,7,5,3,2,1", "--index", "0"],
+         "--chips"),
+        (["check", "--poly-u", "25,3", "--poly-v", "25,3"], "--poly-u"),
+        (["seeds", "--poly-u", "5,2", "--poly-v", "5,4,3,2", "--index", "34"], "--index"),
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(capsys, argv, names):
@@ -137,6 +144,17 @@ def test_bad_arguments_exit_2_with_one_line(capsys, argv, names):
     assert status == 2
     assert out == ""
     assert err.count("\n") == 1 and names in err
+
+
+def test_long_codes_print_only_the_requested_chips(capsys):
+    status, out, err = run(capsys, "codes", "gold", "--poly-u", "32,22,2,1", "--poly-v",
+                           "32,7,5,3,2,1", "--index", str((1 << 32) - 1 - 3), "--chips", "64")
+    assert status == 0 and err == ""
+    want = mseq((32, 22, 2, 1), chips=64) ^ mseq((32, 7, 5, 3, 2, 1), chips=67)[3:]
+    assert np.array_equal(bits_of(out.strip()), want)
+    status, out, _ = run(capsys, "codes", "mseq", "--poly", "32,22,2,1", "--chips", "16",
+                         "--format", "hex")
+    assert status == 0 and out == "ffff\n"  # default seed: the first 32 chips are ones
 
 
 def test_console_script_subprocess():
