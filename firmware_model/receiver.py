@@ -144,11 +144,16 @@ class ReceiverConfig:
         if self.rounding not in ROUNDING_MODES:
             raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), self.rounding)
         try:
-            ghosts = tuple((int(s), int(n)) for s, n in self.ghost_windows)
+            ghosts = tuple((s, n) for s, n in self.ghost_windows)
         except (TypeError, ValueError):
+            ghosts = None
+        if ghosts is None or not all(
+            isinstance(v, int | np.integer) and not isinstance(v, bool) for w in ghosts for v in w
+        ):
             raise out_of_range(
                 "ghost_windows", "a sequence of (start, len) integer pairs", self.ghost_windows
-            ) from None
+            )
+        ghosts = tuple((int(s), int(n)) for s, n in ghosts)
         if len(ghosts) > MAX_GHOST_WINDOWS:
             raise out_of_range("ghost_windows", f"at most {MAX_GHOST_WINDOWS} windows", len(ghosts))
         for s, n in ghosts:

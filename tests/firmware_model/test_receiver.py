@@ -213,6 +213,9 @@ def test_config_validation_names_the_field():
         ReceiverConfig(uid_bits=2, uid=4)
     with pytest.raises(ConfigError, match="ghost_windows"):
         ReceiverConfig(ghost_windows=((1,),))
+    with pytest.raises(ConfigError, match="ghost_windows"):
+        ReceiverConfig(ghost_windows=((1.5, 2),))  # not silently truncated to 1
+    assert ReceiverConfig(ghost_windows=[[np.int64(3), 4]]).ghost_windows == ((3, 4),)
     codes = np.zeros((1, 7), dtype=np.uint8)
     with pytest.raises(ConfigError, match="gate_start"):
         reference(ReceiverConfig(samples_per_chip=1, gate_start=7), codes, np.zeros(70))
@@ -282,3 +285,36 @@ def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
         assert got.mismatches(reference(cfg, codes, x)) == []
     else:  # the reference would take seconds here; the other exact path must agree
         assert got.mismatches(FastReceiver(cfg, codes, method="matmul").column(x)) == []
+
+
+@settings(max_examples=40)
+@given(st.integers(1, 4), st.integers(1, 3), st.integers(1, 3), st.data())
+def test_uid_echo_straddling_period_boundaries(n_uid, s, r, data):
+    """A continuous UID stream delayed by d samples: c_p = A R ((NS - d) s_p + d s_(p-1)).
+
+    docs/firmware.md section 5: the first d samples of period p carry period p - 1's
+    polarity, so the signs decode the UID only for d < NS/2 and the despread peak is
+    A R (n NS - 2 d t), t the number of cyclic bit changes of the UID.
+    """
+    n_chips = data.draw(st.integers(3, 15))
+    ns = n_chips * s
+    uid = data.draw(st.integers(0, (1 << n_uid) - 1))
+    d = data.draw(st.integers(0, ns - 1))
+    amp = data.draw(st.integers(1, 50))
+    codes = np.random.default_rng(d).integers(0, 2, (1, n_chips))
+    pol = np.array([-1 if (uid >> p) & 1 else 1 for p in range(n_uid)])
+    ref = np.repeat(1 - 2 * codes[0].astype(np.int64), s)
+    stream = np.concatenate([q * ref for q in pol])  # one UID frame as emitted
+    x = np.tile(np.roll(stream, d), r) * amp  # delayed continuously across periods
+    # a one-lag gate at d isolates the correlation there, whatever the code's sidelobes
+    cfg = ReceiverConfig(samples_per_chip=s, averages=r, uid_bits=n_uid, uid=uid,
+                         gate_start=d, gate_len=1)
+    c = amp * r * ((ns - d) * pol + d * np.roll(pol, 1))  # np.roll(pol, 1)[p] = s_(p-1)
+    changes = int((pol != np.roll(pol, 1)).sum())
+    for run in (reference, fast):
+        out = run(cfg, codes, x)
+        assert out.peak_lag.tolist() == [d]
+        assert out.peak.tolist() == [amp * r * (n_uid * ns - 2 * d * changes)]
+        assert out.uid_signs.tolist() == [np.sign(c).tolist()]
+        if 2 * d < ns:
+            assert out.uid_match.tolist() == [True]
