@@ -12,7 +12,9 @@ import argparse
 import dataclasses
 import logging
 import math
+import os
 import sys
+import tempfile
 import time
 import tomllib
 from pathlib import Path
@@ -35,6 +37,26 @@ def _say(*parts: object) -> None:
     """One line of command output on stdout (CLI results, not logging)."""
     sys.stdout.write(" ".join(str(p) for p in parts) + "\n")
     sys.stdout.flush()
+
+
+def _writable(path: str | os.PathLike[str], option: str) -> Path:
+    """Check ``path`` can be written before any device time is spent on it.
+
+    ``check_writable`` asks the OS (``os.access``), which says yes to root everywhere
+    and to pseudo file systems; creating and removing a file beside ``path`` is the
+    test that cannot lie. Raises ConfigError naming ``option``.
+    """
+    p = check_writable(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        raise ConfigError(f"{option} {str(p)!r}: cannot write in folder {str(folder)!r} "
+                          f"({exc.strerror}); choose a writable folder",
+                          field=option.lstrip("-")) from None
+    os.close(fd)
+    os.unlink(probe)
+    return p
 
 
 def _positive_float(text: str) -> float:
@@ -196,7 +218,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in FORMATS:
         raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
                           f"{out.suffix or '(no extension)'!r}", field="out")
-    check_writable(out)
+    _writable(out, "--out")
     if args.resume and not state_path(out).is_file():
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")
@@ -208,7 +230,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         if Path(args.save_ghost_map).suffix.lower() != ".toml":
             raise ConfigError(f"--save-ghost-map must be a .toml file, not "
                               f"{args.save_ghost_map!r}", field="save_ghost_map")
-        check_writable(args.save_ghost_map)
+        _writable(args.save_ghost_map, "--save-ghost-map")
     options = ScanOptions(frames=args.frames, near_far=args.near_far,
                           snr_threshold_db=args.snr_threshold, interpolate=args.interpolate,
                           ghost_windows=tuple(ghosts), power_cap=args.power_cap,
@@ -276,7 +298,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".toml":
         raise ConfigError(f"--out must be a .toml file, not {str(out)!r}", field="out")
-    check_writable(out)
+    _writable(out, "--out")
     if not 1 <= args.shots <= 65535:
         raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
     with connect(args.port, timeout_s=args.timeout) as dev:
@@ -299,8 +321,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from scene.truth import compute_truth
 
     folder = Path(args.out)
-    folder.mkdir(parents=True, exist_ok=True)
-    check_writable(folder / "x")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {str(folder)!r}: cannot create the folder ({exc.strerror}); "
+                          "choose a writable place", field="out") from None
+    _writable(folder / "calibration.toml", "--out")
     t0 = time.monotonic()
     scene = load_scene(DEMO_SCENE)
     url = f"virtual://{DEMO_SCENE}?seed={args.seed}"

@@ -88,8 +88,14 @@ def _cmd_truth(args: argparse.Namespace) -> int:
     from scene.model import load_scene
     from scene.truth import save_truth
 
+    if not str(args.out).lower().endswith(".npz"):
+        raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
     scene = load_scene(args.scene)
-    truth = save_truth(scene, args.out)
+    try:
+        truth = save_truth(scene, args.out)
+    except OSError as exc:  # check_writable trusts os.access, which root always passes
+        raise ConfigError(f"--out {args.out!r}: cannot write it ({exc.strerror}); choose a "
+                          "writable folder", "out") from None
     lit = truth.hits.lit
     rng = truth.range_m[lit]
     summary = f"{rng.min():.3f}..{rng.max():.3f} m" if rng.size else "no hits"

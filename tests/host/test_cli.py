@@ -116,6 +116,24 @@ def test_unwritable_output_folder(capsys, tmp_path):
         ro.chmod(0o700)
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+@pytest.mark.parametrize("argv", [
+    ("scan", "--port", "virtual://flat-wall", "--out", "/proc/a.ply"),
+    ("scan", "--port", "virtual://flat-wall", "--out", "{tmp}/a.ply",
+     "--save-ghost-map", "/proc/g.toml"),
+    ("calibrate", "--port", "virtual://calibration", "--target-distance", "0.75",
+     "--out", "/proc/c.toml"),
+    ("demo", "--out", "/proc/demo"),
+    ("demo", "--out", "/proc"),
+])
+def test_output_folder_that_refuses_files(capsys, tmp_path, argv):
+    """/proc refuses new files even to root, whom os.access always lets through."""
+    argv = tuple(a.format(tmp=tmp_path) for a in argv)
+    line = _one_line_error(capsys, *argv)
+    assert "/proc" in line and ("cannot write" in line or "cannot create" in line)
+    assert not list(tmp_path.iterdir())  # nothing scanned, nothing written
+
+
 def test_resume_without_partial_scan(capsys, tmp_path):
     line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
                            str(tmp_path / "a.ply"), "--resume")

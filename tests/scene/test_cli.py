@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+import pytest
 
 from cdma_lidar.cli import main
 from scene.model import PRESETS
@@ -53,3 +56,13 @@ def test_errors_are_one_line_exit_2(tmp_path, capsys):
     assert "objects[0].radius_m must be" in err and err.count("\n") == 1
     assert main(["device", "--scene", "flat-wall", "--tcp", "nonsense"]) == 2
     assert "--tcp must be HOST:PORT" in capsys.readouterr().err
+    assert main(["scene", "truth", "flat-wall", "--out", str(tmp_path / "t.txt")]) == 2
+    assert ".npz" in capsys.readouterr().err and not (tmp_path / "t.txt").exists()
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_truth_into_a_folder_that_refuses_files(capsys):
+    """/proc refuses new files even to root (whom os.access always lets through)."""
+    assert main(["scene", "truth", "flat-wall", "--out", "/proc/t.npz"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write" in err
