@@ -23,7 +23,13 @@ import construct as cs
 
 from cdma_lidar.fileio import atomic_write_text
 from protocol import framing
-from protocol.columns import _RECORD_STRUCT, COLUMN_HEADER, FLAG_CALIBRATION, ColumnResult
+from protocol.columns import (
+    _RECORD_STRUCT,
+    COLUMN_HEADER,
+    FLAG_CALIBRATION,
+    NO_PEAK,
+    ColumnResult,
+)
 from protocol.messages import (
     CONFIG_KEYS,
     CONFIG_OPTIONAL,
@@ -78,6 +84,8 @@ def constants_table() -> str:
          "incompat flags understood by version 1 (none)"),
         ("`CONFIG_OPTIONAL`", f"0x{CONFIG_OPTIONAL:02x}", "key id bit: ignorable if unknown"),
         ("`FLAG_CALIBRATION`", f"0x{FLAG_CALIBRATION:02x}", "COLUMN_RESULT flags bit"),
+        ("`NO_PEAK`", f"0x{NO_PEAK:08X}",
+         "COLUMN_RESULT lag of a peak that was not found (the receiver's lag -1)"),
         ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
     ]
     return _table(("name", "value", "meaning"), rows)

@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import inspect
 import re
 
 import pytest
 
 from protocol import spec
-from protocol.framing import FrameDecoder
+from protocol.columns import column_payload_size
+from protocol.framing import FrameDecoder, crc32, encode_frame
+from protocol.link import (
+    DIAG_GARBAGE,
+    DIAG_NO_ANSWER,
+    DIAG_SILENT,
+    DIAG_VERSION,
+    DIAG_WRONG_SESSION,
+    HostLink,
+)
 from protocol.messages import (
     CONFIG_KEYS,
     MESSAGES,
@@ -60,3 +70,19 @@ def test_example_wire_bytes_in_the_page_decode() -> None:
     col = decode_payload(MsgType.COLUMN_RESULT, frames[-1].payload)
     assert col.column == 3 and col.angle_deg == -1.5 and list(col.peak_lag) == [100, 2041]
     assert all(f.seq == 0x0102 and f.session == 0xA1B2C3D4 for f in frames)
+
+
+def test_hand_written_numbers_of_the_page_match_the_code() -> None:
+    """The prose outside the generated blocks: CRC example, diagnoses, default timing."""
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    head = bytes.fromhex("01 00 00 0a 02 01 00 00 d4 c3 b2 a1")
+    assert f"give CRC 0x{crc32(head):08X}" in text
+    wire = encode_frame(MsgType.STATUS_GET, b"", 0x0102, 0xA1B2C3D4)
+    assert f"COBS-encode to `{wire[1:-1].hex(' ')}`" in text
+    for diag in (DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION, DIAG_NO_ANSWER):
+        assert f"| `{diag}` |" in text
+    sig = inspect.signature(HostLink.__init__).parameters
+    timeout, retries = sig["timeout_s"].default, sig["retries"].default
+    assert f"| {timeout:g} s per try, {retries} retries;" in text
+    assert f"(default {10 * (retries + 1)})" in text
+    assert f"{column_payload_size(40, 1)} bytes)" in text  # "40 channels, 1 peak: ..."
