@@ -139,8 +139,11 @@ def normalize_poly(poly: Sequence[int] | str, field: str = "poly") -> Poly:
         return parse_poly(poly, field=field)
     try:
         exps = [int(e) for e in poly]
+        whole = all(e == x for e, x in zip(exps, poly, strict=True) if not isinstance(x, str))
     except (TypeError, ValueError):
-        raise out_of_range(field, "a sequence of integer exponents", poly) from None
+        exps, whole = [], False
+    if not whole or any(isinstance(x, bool) for x in poly):
+        raise out_of_range(field, "a sequence of integer exponents", poly)
     if exps and min(exps) == 0 and exps.count(0) == 1:
         exps.remove(0)
     if not exps:

@@ -82,6 +82,12 @@ def test_parse_poly_rejects(bad):
         parse_poly(bad)
 
 
+@pytest.mark.parametrize("bad", [[11, 2.5], [11, None], [True, 2], 5])
+def test_normalize_poly_rejects_non_integer_exponents(bad):
+    with pytest.raises(ConfigError, match="integer exponents"):
+        normalize_poly(bad)
+
+
 def test_primitive_counts_match_euler_phi():
     # number of primitive polynomials of degree m is phi(2^m - 1) / m
     for m in range(2, 10):
