@@ -417,6 +417,8 @@ class HostLink:
         default a frame is the device's full ``column_count`` (see INFO). Leaving the
         loop early aborts the scan on the device.
         """
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise out_of_range("frames", "an integer of at least 1", frames)
         info = self._need_info()
         if columns is None:
             columns = info.column_count - first_column
@@ -461,12 +463,12 @@ class HostLink:
             horizon = first  # columns below this have been sent by the device
             last_rx = self.clock()
             while nxt < end:
-                got = False
+                got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
-                    got = True
                     mtype, item = self._stream.popleft()
                     if mtype == MsgType.COLUMN_RESULT:
                         c = item
+                        got = got or c.frame == fid
                         if c.frame != fid or not nxt <= c.column < end or c.column in received:
                             self.stats.duplicates += 1
                             continue
@@ -474,8 +476,10 @@ class HostLink:
                         horizon = max(horizon, c.column + 1)
                     elif mtype == MsgType.HEARTBEAT:
                         if item.frame == fid:
+                            got = True
                             horizon = max(horizon, min(end, item.next_column))
                     elif mtype == MsgType.SCAN_END and item["frame"] == fid:
+                        got = True
                         sent = min(end, item["first_column"] + item["columns"])
                         horizon = max(horizon, sent)
                         if item["reason"] != ScanEndReason.COMPLETE and failure is None:

@@ -234,3 +234,42 @@ def test_zero_length_decoded_frame_is_counted_as_short() -> None:
     assert dec.feed(b"\x00\x01\x00" + good) == [Frame(MsgType.ACK, 1, 2, b"\x05")]
     assert dec.stats.short == 1 and dec.stats.errors == 1
     assert framing.OVERHEAD == 16
+
+
+def test_heartbeats_of_another_frame_do_not_keep_a_scan_waiting_forever() -> None:
+    """The device is busy with someone else's frame: the silence probe says so."""
+    host, dev = pipe_pair()
+    stop = threading.Event()
+    other = Status(state=1, frame=999, next_column=3)
+    dev.timeout = 0.005  # a heartbeat every 5 ms, ten per host timeout
+
+    def device() -> None:
+        dec = FrameDecoder()
+        while not stop.is_set():
+            for f in dec.feed(dev.read(max(1, dev.in_waiting))):
+                if f.msg_type == MsgType.STATUS_GET:
+                    reply = encode_frame(MsgType.STATUS, encode_payload(
+                        MsgType.STATUS, other.to_fields()), f.seq, 0x42)
+                else:
+                    reply = encode_frame(MsgType.ACK, bytes([f.msg_type]), f.seq, 0x42)
+                dev.write(reply)
+            dev.write(encode_frame(MsgType.HEARTBEAT, encode_payload(
+                MsgType.HEARTBEAT, other.to_fields()), 1, 0x42))
+
+    threading.Thread(target=device, daemon=True).start()
+    link = HostLink(host, timeout_s=0.05, retries=1)
+    link.session = 0x42
+    link.info = SyntheticApp().info()
+    try:
+        with pytest.raises(LinkError, match="frame 999"):
+            list(link.scan(columns=5, frame=7))
+    finally:
+        stop.set()
+
+
+@pytest.mark.parametrize("frames", [0, -1, 1.5])
+def test_scan_names_a_bad_frame_count(frames) -> None:
+    host, _ = pipe_pair()
+    link = HostLink(host, timeout_s=0.02, retries=0)
+    with pytest.raises(ValueError, match="frames"):
+        next(link.scan(frames=frames))
