@@ -294,3 +294,16 @@ def test_column_decoder_rejects_wrong_lengths(cut: int) -> None:
     payload = encode_column(expected_column(1, 1, 4, 2, 2))
     with pytest.raises(FrameError):
         decode_column(payload[:cut] if cut >= 0 else payload + b"\x00")
+
+
+@given(st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
+                                       "value": st.binary(max_size=24)}), max_size=8))
+def test_config_decoder_raises_only_frame_error_naming_the_key(items: list[dict]) -> None:
+    try:
+        got = decode_config(items)
+    except FrameError as exc:
+        assert exc.field in {k.name for k in CONFIG_KEYS}
+    else:
+        known = {k.id for k in CONFIG_KEYS}
+        assert set(got.unknown) | set(got.ignored) == \
+            {it["key"] for it in items if it["key"] & 0x7F not in known}
