@@ -139,26 +139,30 @@ def bench_pty(columns: int = 3000) -> None:
     host_port = open_port(path, timeout=0.02)
     link = HostLink(host_port, timeout_s=0.5, retries=3)
     link.hello()
-    t0 = time.perf_counter()
-    n = sum(1 for _ in link.scan())
-    dt = time.perf_counter() - t0
-    proto = n / dt
+    proto = 0.0
+    for _ in range(3):  # best of 3 scans: the machine is shared
+        t0 = time.perf_counter()
+        n = sum(1 for _ in link.scan())
+        proto = max(proto, n / (time.perf_counter() - t0))
     frame_len = len(encode_frame(MsgType.COLUMN_RESULT, encode_column(make_column()), 1, 1))
     stop.set()
     th.join(1.0)
 
-    # Baseline: the same bytes through the same pty, no protocol (writer thread, reader here).
+    # Baseline: the same bytes through the same pty, no protocol (writer thread, reader
+    # here, the same read pattern as HostLink), best of 3.
     blob = encode_frame(MsgType.COLUMN_RESULT, encode_column(make_column()), 1, 1) * 200
     total = frame_len * columns
-    writer = threading.Thread(target=lambda: [dev_port.write(blob)
-                                              for _ in range(columns // 200)], daemon=True)
-    t0 = time.perf_counter()
-    writer.start()
-    got = 0
-    while got < (columns // 200) * len(blob):
-        got += len(host_port.read(max(1, host_port.in_waiting)))
-    raw = got / frame_len / (time.perf_counter() - t0)
-    writer.join()
+    raw = 0.0
+    for _ in range(3):
+        writer = threading.Thread(target=lambda: [dev_port.write(blob)
+                                                  for _ in range(columns // 200)], daemon=True)
+        t0 = time.perf_counter()
+        writer.start()
+        got = 0
+        while got < (columns // 200) * len(blob):
+            got += len(host_port.read(max(1, host_port.in_waiting)))
+        raw = max(raw, got / frame_len / (time.perf_counter() - t0))
+        writer.join()
     link.close()
     dev_port.close()
     os.close(slave)
