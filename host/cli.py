@@ -132,9 +132,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--near-far", action="store_true",
                    help="adjust per-pixel power between frames (use with --frames 3)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
-                   help="SNR_XC threshold in dB (default 16)")
+                   help="SNR_XC threshold in dB: pixels below it are rejected (default 16)")
+    p.add_argument("--min-support", type=int, default=1, metavar="N",
+                   help="keep a pixel above the threshold only if N of its 8 neighbours are "
+                        "too, at a lag within 1.5 samples (default 1; 0: the threshold alone)")
     p.add_argument("--interpolate", action="store_true",
-                   help="fill rejected pixels from their column neighbours (flag 1)")
+                   help="fill runs of up to 2 rejected channels by linear interpolation "
+                        "along the column (flag 1)")
     p.add_argument("--ghost-window", type=_ghost, action="append", default=[],
                    metavar="START:LEN", help="lags (samples) of a known grating ghost")
     p.add_argument("--ghost-map", metavar="FILE",
@@ -232,7 +236,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
                               f"{args.save_ghost_map!r}", field="save_ghost_map")
         _writable(args.save_ghost_map, "--save-ghost-map")
     options = ScanOptions(frames=args.frames, near_far=args.near_far,
-                          snr_threshold_db=args.snr_threshold, interpolate=args.interpolate,
+                          snr_threshold_db=args.snr_threshold, min_support=args.min_support,
+                          interpolate=args.interpolate,
                           ghost_windows=tuple(ghosts), power_cap=args.power_cap,
                           offset_m=cal.offset_m if cal else 0.0)
     with connect(args.port, timeout_s=args.timeout) as dev:

@@ -22,8 +22,13 @@ the scene truth; the default (``triangle``) had the smaller median error there
 
 SNR_XC (eq. 44, Note 9) comes from the receiver's integer noise statistics through
 the one shared function :func:`firmware_model.snr.snr_xc_db`. Pixels below the
-threshold are rejected; like the paper ("3D imaging"), rejected pixels may be filled
-by linear interpolation of the neighbouring channels' ranges in the same column.
+threshold are rejected. On top of it, a pixel above the threshold is kept only if
+``min_support`` of its 8 neighbours are above it too at a lag within ``support_tol``
+(:func:`neighbour_support`; 0 turns this off): on paper-scene1 the strongest empty
+pixels and the weakest object pixels overlap within about 1 dB, so the threshold alone
+lets isolated noise peaks through (docs/host.md has the measurement). Like the paper
+("3D imaging"), rejected pixels may be filled by linear interpolation of the
+neighbouring channels' ranges in the same column.
 
 Precision (eq. 27, Note 7)::
 

@@ -78,7 +78,10 @@ class ScanOptions:
     Attributes:
         frames: frames to scan; the point cloud is made from the last one.
         near_far: adjust the per-pixel power between frames (Note 12).
-        snr_threshold_db: SNR_XC threshold (dB).
+        snr_threshold_db: SNR_XC threshold (dB); None: the default (16 dB).
+        min_support: a pixel above the threshold is kept only if at least this many of
+            its 8 neighbours are above it too at a lag within 1.5 samples
+            (:attr:`host.ranging.RangingConfig.min_support`); 0: the threshold alone.
         interpolate: fill rejected pixels from their column neighbours (flag 1).
         ghost_windows: ``(start, length)`` lag windows (samples) of known ghosts.
         power_cap: eye-safety cap per column, in units of the per-pixel maximum power
@@ -90,6 +93,7 @@ class ScanOptions:
     frames: int = 1
     near_far: bool = False
     snr_threshold_db: float | None = None
+    min_support: int = 1
     interpolate: bool = False
     ghost_windows: tuple[tuple[int, int], ...] = ()
     power_cap: float | None = None
@@ -100,6 +104,9 @@ class ScanOptions:
         if not 1 <= self.frames <= 10000:
             raise ConfigError(f"frames must be from 1 to 10000, not {self.frames!r}",
                               field="frames")
+        if not 0 <= self.min_support <= 8:
+            raise ConfigError(f"min_support must be from 0 to 8 neighbours, not "
+                              f"{self.min_support!r}", field="min_support")
         if not 0 < self.initial_power <= 1:
             raise ConfigError(f"initial_power must be in (0, 1], not {self.initial_power!r}",
                               field="initial_power")
@@ -216,7 +223,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     spath = state_path(out)
     threshold = options.snr_threshold_db
     ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,
-                                    ghost_windows=options.ghost_windows)
+                                    ghost_windows=options.ghost_windows,
+                                    min_support=options.min_support)
     if threshold is not None:
         ranging = dataclasses.replace(ranging, snr_threshold_db=threshold)
     k, c = device.channels, device.columns

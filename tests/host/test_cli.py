@@ -6,6 +6,7 @@ import os
 import re
 import tomllib
 
+import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
@@ -175,3 +176,21 @@ def test_calibration_on_a_noisy_device_is_refused(capsys, tmp_path):
                            "--target-distance", "0.75", "--out", str(out),
                            "--snr-threshold", "8")
     assert "too wide" in line and not out.exists()
+
+
+def test_scan_interpolate_and_min_support(capsys, tmp_path):
+    from host.pointcloud import read_npz
+
+    out = tmp_path / "i.npz"
+    code, text, _ = _run(capsys, "scan", "--port", "virtual://paper-scene1?seed=2", "--out",
+                         str(out), "--no-progress", "--snr-threshold", "20", "--interpolate",
+                         "--min-support", "2")
+    assert code == 0, text
+    cloud = read_npz(out)
+    filled = cloud.flags == 1
+    assert filled.sum() >= 20
+    assert np.all(np.isfinite(cloud.x[filled]))
+    assert np.all(np.isnan(cloud.x[(cloud.flags & 2) != 0]))
+    line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
+                           str(tmp_path / "a.ply"), "--min-support", "9")
+    assert "min_support must be from 0 to 8" in line

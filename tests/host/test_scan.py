@@ -160,3 +160,26 @@ def test_calibration_file_round_trip_refuses_other_device(tmp_path):
     with connect("virtual://paper-scene1?seed=1") as dev:
         with pytest.raises(CalibrationError, match="another device"):
             back.check_applies(dev.identity(), dev.calibration_config())
+
+
+def test_interpolation_fills_rejected_object_pixels(paper_scan):
+    """At 20 dB some object pixels fall below the threshold; --interpolate fills short runs
+    of them along the column (flag 1, bit 2 cleared) close to the truth."""
+    from host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED
+
+    _, res, *_ = paper_scan
+    truth = _truth("paper-scene1")
+    obj = np.isfinite(truth)
+    strict = dataclasses.replace(res.image.config, snr_threshold_db=20.0)
+    plain = estimate_ranges(res.data, strict)
+    filled = estimate_ranges(res.data, dataclasses.replace(strict, interpolate=True))
+    new = filled.flags == FLAG_INTERPOLATED
+    assert new.sum() >= 20
+    assert np.all(plain.flags[new] & FLAG_REJECTED) and np.all(np.isnan(plain.range_m[new]))
+    assert np.all(np.isfinite(filled.range_m[new]))
+    # Measured pixels are untouched; only rejected ones change.
+    np.testing.assert_array_equal(filled.range_m[plain.valid], plain.range_m[plain.valid])
+    assert np.all(filled.flags[~new] == plain.flags[~new])
+    # Filled pixels lie between measured neighbours of the same letter: close to the truth.
+    err = np.abs(filled.range_m - truth)[new & obj]
+    assert np.median(err) < 0.05 and np.mean(new[obj]) > np.mean(new[~obj])
