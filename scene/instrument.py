@@ -387,13 +387,24 @@ class Instrument:
         return spec.adc_gain / lsb * (1 << FRAC_BITS), spec.adc_offset * (1 << FRAC_BITS)
 
     def _quantise_fine(self, fine: NDArray[np.float64]) -> NDArray[np.int16]:
-        """Round a fine-grid float array in place and hand it to firmware_model.adc.quantise."""
-        from firmware_model.adc import quantise
+        """ADC codes of a fine-grid float array (consumed in place), in five float passes.
 
+        Bit-identical to ``firmware_model.adc.quantise(rint(fine), FRAC_BITS, adc_bits)``
+        (tested): with ``x = rint(fine)`` an integer-valued float64, the quantiser's
+        ``(x + 2**(F-1)) >> F`` is ``floor((x + 2**(F-1)) * 2**-F)``, and each step is exact
+        in float64 while ``|x| < 2**52`` (beyond that both clip to the same end code).
+        Staying in float64 saves the int64 conversion and two integer passes (about half
+        the ADC's cost, a tenth of a column's rendering).
+        """
+        from firmware_model.adc import adc_limits
+
+        lo, hi = adc_limits(self.spec.adc_bits)
         np.rint(fine, out=fine)
-        big = float(1 << (self.spec.adc_bits + FRAC_BITS + 2))
-        np.clip(fine, -big, big, out=fine)
-        return quantise(fine.astype(np.int64), FRAC_BITS, self.spec.adc_bits)
+        fine += float(1 << (FRAC_BITS - 1))
+        fine *= 1.0 / (1 << FRAC_BITS)
+        np.floor(fine, out=fine)
+        np.clip(fine, lo, hi, out=fine)
+        return fine.astype(np.int16)
 
     def to_codes(self, volts: NDArray[np.float64]) -> NDArray[np.int16]:
         """ADC: ``clip(round_half_up(gain * v / lsb + offset))`` via firmware_model.adc.quantise.

@@ -202,6 +202,32 @@ def test_adc_clips_and_offsets():
     assert codes.tolist() == [-2048, 2047, 0, 1]
 
 
+@pytest.mark.parametrize("adc_bits", [8, 12, 16])
+def test_fused_adc_is_the_firmware_quantiser(adc_bits):
+    """The instrument's float ADC equals firmware_model.adc.quantise(rint(x)) bit for bit:
+    random values, every half-way point of a range of codes, both clip edges, infinities."""
+    from firmware_model.adc import quantise
+    from scene.instrument import FRAC_BITS
+
+    inst = Instrument(_wall(5.0, count=1, columns=1, **{"instrument.adc_bits": adc_bits}), 0)
+    one = float(1 << FRAC_BITS)
+    top = float(1 << (adc_bits - 1)) * one
+    rng = np.random.default_rng(adc_bits)
+    half = (np.arange(-40, 40) + 0.5) * one  # exactly between two codes
+    fine = np.concatenate([
+        rng.normal(0.0, 0.4 * top, 20000), rng.uniform(-3 * top, 3 * top, 2000),
+        half, half - 0.5, half + 0.5, half - 1e-9 * one,
+        [top - one / 2 - 1, top - one / 2, -top - one / 2 - 1, -top - one / 2, 2.0**60, -2.0**60],
+    ])
+    want = quantise(np.clip(np.rint(fine), -2.0**62, 2.0**62).astype(np.int64), FRAC_BITS,
+                    adc_bits)
+    got = inst._quantise_fine(fine.copy())
+    assert got.dtype == np.int16
+    np.testing.assert_array_equal(got, want)
+    assert inst._quantise_fine(np.array([np.inf, -np.inf])).tolist() == [
+        (1 << (adc_bits - 1)) - 1, -(1 << (adc_bits - 1))]
+
+
 def test_gold_codes_match_the_code_generator():
     fam = gold_family((11, 2), (11, 8, 5, 2))
     idx = (0, 5, 2046, 2047, 2048)
