@@ -428,6 +428,8 @@ class DeviceEndpoint:
 
     def _on_hello(self, req: Frame, f: dict, after: list) -> bytes:
         self._stop_stream(ScanEndReason.ABORTED, send_end=False)
+        if self._latest is not None:  # we hold _app_lock: end it for the app right now
+            self._finish(self._latest)
         self._ring.clear()
         self._capture = None
         self.tx_max_frame = min(self.max_frame, f["host_max_frame"])

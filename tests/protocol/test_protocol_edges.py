@@ -273,3 +273,27 @@ def test_scan_names_a_bad_frame_count(frames) -> None:
     link = HostLink(host, timeout_s=0.02, retries=0)
     with pytest.raises(ValueError, match="frames"):
         next(link.scan(frames=frames))
+
+
+def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> None:
+    """A new host says HELLO mid-scan: by the time INFO arrives the app has aborted it."""
+    host, dev = pipe_pair()
+    host.timeout = 0.02
+    app = _RecordingApp()
+
+    def send(t: MsgType, fields: dict, seq: int, session: int) -> None:
+        host.write(encode_frame(t, encode_payload(t, fields), seq, session))
+
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+        send(MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 65535}, 1, 0)
+        send(MsgType.SCAN_START, {"frame": 5, "first_column": 0, "columns": 50}, 2, 0xABCD)
+        time.sleep(0.05)
+        send(MsgType.HELLO, {"host_nonce": 2, "host_max_frame": 65535}, 900, 0)
+        dec = FrameDecoder()
+        info: list[Frame] = []
+        deadline = time.monotonic() + 3.0
+        while not info and time.monotonic() < deadline:
+            info = [f for f in dec.feed(host.read(max(1, host.in_waiting)))
+                    if f.msg_type == MsgType.INFO and f.seq == 900]
+        assert info, "no INFO for the second HELLO"
+        assert app.aborts == 1 and ("close", 5) in app.log
