@@ -113,6 +113,9 @@ class ReceiverConfig:
     ``(start_lag, length)`` pairs of absolute lags (mod N*S). Checks that need the
     code length N (gate inside the period, derived widths) run in :meth:`widths`,
     which ``reference``/``fast`` call with ``codes.shape[1]``.
+
+    ``uid_bits`` may be 1..16 here (and in ``hdl_ref``); a device is narrower: the
+    protocol carries 1..``max_uid_bits`` and the virtual device announces 8 in INFO.
     """
 
     adc_bits: int = 12
