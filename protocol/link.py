@@ -87,6 +87,7 @@ from protocol.messages import (
 
 __all__ = [
     "DIAG_GARBAGE",
+    "DIAG_HINTS",
     "DIAG_NO_ANSWER",
     "DIAG_SILENT",
     "DIAG_VERSION",
@@ -105,7 +106,8 @@ DIAG_WRONG_SESSION = "frames but wrong session"
 DIAG_NO_ANSWER = "frames but no answer"
 DIAG_VERSION = "frames of another protocol version"
 
-_HINTS = {
+#: What to do about each diagnosis (one line, for error messages).
+DIAG_HINTS = {
     DIAG_SILENT: "check that the device is powered and connected and that the port is right",
     DIAG_GARBAGE: "check the baud rate and that the port is a cdma-lidar device",
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
@@ -544,7 +546,7 @@ class HostLink:
                 damaged = st.crc + st.cobs + st.length + st.short
                 diag = DIAG_GARBAGE if damaged else DIAG_NO_ANSWER
                 hint = (f"{damaged} damaged frames so far: the line corrupts long frames"
-                        if damaged else _HINTS[DIAG_NO_ANSWER])
+                        if damaged else DIAG_HINTS[DIAG_NO_ANSWER])
                 raise LinkTimeout(
                     f"column {c} of frame {fid} never arrived intact after {tries} resend "
                     f"requests on {self._port_name}: {diag}; {hint}", diag)
@@ -599,13 +601,13 @@ class HostLink:
                         f"device answered {msg_type.name} in protocol version {f.version} "
                         f"with incompat flags 0x{f.incompat:02x}; this host speaks version "
                         f"{PROTOCOL_VERSION} and knows no incompat flags: "
-                        f"{_HINTS[DIAG_VERSION]}")
+                        f"{DIAG_HINTS[DIAG_VERSION]}")
         finally:
             self._pending = None
         diag = self._diagnose(win)
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
-            f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {_HINTS[diag]}", diag)
+            f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {DIAG_HINTS[diag]}", diag)
 
     def _diagnose(self, win: _Window) -> str:
         """What the line showed since ``win``: one of the DIAG_* strings."""

@@ -12,6 +12,7 @@ from protocol.columns import column_payload_size
 from protocol.framing import FrameDecoder, crc32, encode_frame
 from protocol.link import (
     DIAG_GARBAGE,
+    DIAG_HINTS,
     DIAG_NO_ANSWER,
     DIAG_SILENT,
     DIAG_VERSION,
@@ -86,3 +87,10 @@ def test_hand_written_numbers_of_the_page_match_the_code() -> None:
     assert f"| {timeout:g} s per try, {retries} retries;" in text
     assert f"(default {10 * (retries + 1)})" in text
     assert f"{column_payload_size(40, 1)} bytes)" in text  # "40 channels, 1 peak: ..."
+
+
+def test_every_diagnosis_has_a_hint_and_a_row_in_the_page() -> None:
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    assert set(DIAG_HINTS) == {DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION,
+                               DIAG_NO_ANSWER}
+    assert all(hint and f"| `{d}` |" in text for d, hint in DIAG_HINTS.items())
