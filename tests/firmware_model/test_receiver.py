@@ -42,7 +42,7 @@ def cases(draw):
         gl = draw(st.integers(min(ns, ns - gs + 1), ns))
     else:
         gs, gl = draw(st.integers(0, ns - 1)), draw(st.integers(1, ns))
-    uid_bits = draw(st.integers(1, 3))
+    uid_bits = draw(st.sampled_from((1, 2, 3, 1, 2, 3, 16)))  # 16: the largest UID, 1 in 7
     ghosts = draw(
         st.lists(st.tuples(st.integers(0, ns - 1), st.integers(1, max(1, ns // 3))), max_size=2)
     )
