@@ -629,6 +629,7 @@ class HostLink:
         try:
             body = decode_payload(frame.msg_type, frame.payload)
         except Exception as exc:  # FrameError; the decoder raises nothing else
+            self.stats.malformed += 1
             raise LinkError(f"malformed {frame.msg_type:#04x} reply to {msg_type.name}: "
                             f"{exc}") from None
         assert isinstance(body, dict)
