@@ -300,8 +300,7 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                 last_save = time.monotonic()
     except KeyboardInterrupt:
         state.save(spath)
-        log.warning("scan interrupted; partial scan saved to %s: run the same command with "
-                    "--resume to finish it", spath)
+        log.info("scan interrupted; partial scan saved to %s (resume=True finishes it)", spath)
         raise
     except LinkError as exc:
         state.save(spath)
