@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import logging
 import os
 import secrets
@@ -128,6 +129,8 @@ def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any
     if "scene.urlhandler" not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append("scene.urlhandler")
     try:
+        if url.lower().startswith("socket://"):
+            return _tcp_port_class()(url, baudrate=baudrate, timeout=timeout, **kw)
         return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kw)
     except (serial.SerialException, OSError, ValueError) as exc:
         scheme = url.split("://", 1)[0] if "://" in url else ""
@@ -138,6 +141,30 @@ def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any
         else:
             hint = "check the device is plugged in and the path is right (ls /dev/tty*)"
         raise LinkError(f"cannot open port {url!r}: {exc}; {hint}") from None
+
+
+@functools.cache
+def _tcp_port_class() -> type:
+    """pyserial's ``socket://`` port with a true ``in_waiting`` (bytes, not 0 or 1).
+
+    pyserial's handler reports 1 whenever anything is readable, so a reader that asks
+    for ``in_waiting`` bytes gets one byte per call: about 80 columns/s instead of
+    thousands. FIONREAD on the socket gives the real count.
+    """
+    from serial import PortNotOpenError
+    from serial.urlhandler.protocol_socket import Serial as SocketSerial
+
+    class TcpPort(SocketSerial):
+        """``socket://HOST:PORT`` as pyserial opens it; ``in_waiting`` counts bytes."""
+
+        @property
+        def in_waiting(self) -> int:
+            if not self.is_open:
+                raise PortNotOpenError()
+            buf = fcntl.ioctl(self._socket.fileno(), termios.FIONREAD, b"\0\0\0\0")
+            return struct.unpack("i", buf)[0]
+
+    return TcpPort
 
 
 class FdPort:

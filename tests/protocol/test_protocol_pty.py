@@ -1,8 +1,11 @@
-"""End to end over a real pty pair: handshake, configuration and a scan through the kernel."""
+"""End to end through the kernel: a real pty pair, and a TCP socket (socket://)."""
 
 from __future__ import annotations
 
 import os
+import socket
+import threading
+import time
 import tty
 
 import numpy as np
@@ -52,3 +55,39 @@ def test_pty_without_device_is_diagnosed_silent(pty_pair) -> None:
         link.hello()
     assert exc.value.diagnosis == DIAG_SILENT
     assert path in str(exc.value)
+
+
+def test_handshake_and_scan_over_tcp_with_a_true_in_waiting() -> None:
+    """socket:// through open_port: in_waiting counts bytes (pyserial's says 0 or 1)."""
+    server = socket.create_server(("127.0.0.1", 0))
+    host_addr, port_no = server.getsockname()[:2]
+    box: dict = {}
+
+    def accept() -> None:
+        conn, _ = server.accept()
+        box["conn"] = conn
+
+    t = threading.Thread(target=accept, daemon=True)
+    t.start()
+    port = open_port(f"socket://{host_addr}:{port_no}", timeout=0.02)
+    t.join(5.0)
+    conn = box["conn"]
+    conn.sendall(b"\x55" * 300)
+    deadline = time.monotonic() + 5.0
+    while port.in_waiting < 300 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert port.in_waiting == 300  # one read takes them all
+    assert port.read(300) == b"\x55" * 300
+    app = SyntheticApp(channels=40, columns=200)
+    dev_port = FdPort(conn.fileno())
+    try:
+        with RunningDevice(dev_port, app, heartbeat_s=0.05), \
+                HostLink(port, timeout_s=0.5, retries=3) as link:
+            assert link.hello().channels == 40
+            cols = list(link.scan())
+            assert [c.column for c in cols] == list(range(200))
+            assert all(c == expected_column(c.frame, c.column, 40, 1, 1) for c in cols)
+            assert link.stats.retries == 0
+    finally:
+        conn.close()
+        server.close()
