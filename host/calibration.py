@@ -194,8 +194,9 @@ class Calibration:
             raise ConfigError(f"calibration file {str(p)!r} does not exist; run "
                               "'cdma-lidar calibrate' first", field="calibration") from exc
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"calibration file {str(p)!r} is not valid TOML: {exc}",
-                              field="calibration") from exc
+            raise ConfigError(f"calibration file {str(p)!r} is not valid TOML ({exc}); make "
+                              "a new one with 'cdma-lidar calibrate'", field="calibration"
+                              ) from exc
         try:
             return cls(offset_m=float(doc["offset_m"]), spread_m=float(doc["spread_m"]),
                        target_distance_m=float(doc["target_distance_m"]),
@@ -203,8 +204,12 @@ class Calibration:
                        device=dict(doc.get("device", {})),
                        configuration=dict(doc.get("configuration", {})),
                        date=str(doc.get("date", "")))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"calibration file {str(p)!r} lacks or garbles {exc}",
+        except KeyError as exc:
+            raise ConfigError(f"calibration file {str(p)!r} lacks the field {exc}; make a new "
+                              "one with 'cdma-lidar calibrate'", field="calibration") from exc
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"calibration file {str(p)!r} has a field of the wrong type "
+                              f"({exc}); make a new one with 'cdma-lidar calibrate'",
                               field="calibration") from exc
 
     def check_applies(self, device: Mapping[str, Any],

@@ -77,7 +77,11 @@ def test_bad_files(tmp_path):
     with pytest.raises(ConfigError, match="not valid TOML"):
         Calibration.load(tmp_path / "bad.toml")
     (tmp_path / "short.toml").write_text("offset_m = 1.0")
-    with pytest.raises(ConfigError, match="lacks"):
+    with pytest.raises(ConfigError, match=r"lacks the field 'spread_m'.*cdma-lidar calibrate"):
         Calibration.load(tmp_path / "short.toml")
+    (tmp_path / "typed.toml").write_text(
+        'offset_m = "x"\nspread_m = 0.1\ntarget_distance_m = 1.0\nshots = 3\n')
+    with pytest.raises(ConfigError, match="wrong type"):
+        Calibration.load(tmp_path / "typed.toml")
     with pytest.raises(ConfigError, match="target_distance"):
         Calibration.from_ranges([1.0] * 10, -1.0, shots=1, gap_m=GAP, max_spread_m=SPREAD)
