@@ -1,16 +1,18 @@
-"""Protocol throughput: COLUMN_RESULT encode + decode in process, and columns/s through a pty.
+"""Protocol throughput: COLUMN_RESULT encode + decode in process; columns/s through a pty and TCP.
 
 In process, one 40-channel column goes through the whole frame path both ways
 (payload, header, CRC-32, COBS, delimiters; then the stream decoder and the payload
 parser). The baseline is the same path with the construct-declared payload codec.
-Through a pty, a DeviceEndpoint streams columns to a HostLink scan (gap repair and
-all); the baseline is the raw pty carrying the same frame bytes with no protocol.
+Through a pty and a loopback TCP socket, a DeviceEndpoint streams columns to a
+HostLink scan (gap repair and all); the baseline is the same connection carrying
+the same frame bytes with no protocol.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import socket
 import threading
 import time
 import tty
@@ -127,16 +129,13 @@ class _FastApp(DeviceApp):
                 for c in range(first_column, first_column + columns))
 
 
-def bench_pty(columns: int = 3000) -> None:
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    path = os.ttyname(slave)
-    dev_port = FdPort(master)
+def _bench_link(label: str, dev_port, host_port, columns: int) -> None:
+    """Scan ``columns`` columns from a DeviceEndpoint on ``dev_port`` to a HostLink on
+    ``host_port``; baseline: the same frame bytes through the same connection, raw."""
     ep = DeviceEndpoint(dev_port, _FastApp(columns), heartbeat_s=0.2, ring_columns=4096)
     stop = threading.Event()
     th = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
     th.start()
-    host_port = open_port(path, timeout=0.02)
     link = HostLink(host_port, timeout_s=0.5, retries=3)
     link.hello()
     proto = 0.0
@@ -148,8 +147,8 @@ def bench_pty(columns: int = 3000) -> None:
     stop.set()
     th.join(1.0)
 
-    # Baseline: the same bytes through the same pty, no protocol (writer thread, reader
-    # here, the same read pattern as HostLink), best of 3.
+    # Baseline: the same bytes through the same connection, no protocol (writer thread,
+    # reader here, the same read pattern as HostLink), best of 3.
     blob = encode_frame(MsgType.COLUMN_RESULT, encode_column(make_column()), 1, 1) * 200
     total = frame_len * columns
     raw = 0.0
@@ -164,17 +163,45 @@ def bench_pty(columns: int = 3000) -> None:
         raw = max(raw, got / frame_len / (time.perf_counter() - t0))
         writer.join()
     link.close()
-    dev_port.close()
-    os.close(slave)
-    print(f"pty scan, {K} channels ({frame_len} B/frame): {proto:,.0f} columns/s "
-          f"({proto * frame_len / 1e6:.1f} MB/s) vs raw pty {raw:,.0f} frames/s: "
+    print(f"{label} scan, {K} channels ({frame_len} B/frame): {proto:,.0f} columns/s "
+          f"({proto * frame_len / 1e6:.1f} MB/s) vs raw {label} {raw:,.0f} frames/s: "
           f"x{proto / raw:.2f} of the raw byte rate ({total / 1e6:.1f} MB per scan)")
+
+
+def bench_pty(columns: int = 3000) -> None:
+    """Device on a pty master (FdPort), host on the slave path through pyserial."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    dev_port = FdPort(master)
+    try:
+        _bench_link("pty", dev_port, open_port(os.ttyname(slave), timeout=0.02), columns)
+    finally:
+        dev_port.close()
+        os.close(slave)
+
+
+def bench_tcp(columns: int = 3000) -> None:
+    """Device on an accepted TCP socket (FdPort), host on ``socket://`` through open_port."""
+    server = socket.create_server(("127.0.0.1", 0))
+    box: list[socket.socket] = []
+    th = threading.Thread(target=lambda: box.append(server.accept()[0]), daemon=True)
+    th.start()
+    host_port = open_port(f"socket://127.0.0.1:{server.getsockname()[1]}", timeout=0.02)
+    th.join(5.0)
+    conn = box[0]
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    try:
+        _bench_link("tcp", FdPort(conn.fileno()), host_port, columns)
+    finally:
+        conn.close()
+        server.close()
 
 
 def main() -> None:
     """Print the figures (ratios against baselines measured in the same run)."""
     bench_in_process()
     bench_pty()
+    bench_tcp()
 
 
 if __name__ == "__main__":
