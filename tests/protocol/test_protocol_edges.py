@@ -297,3 +297,23 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
                     if f.msg_type == MsgType.INFO and f.seq == 900]
         assert info, "no INFO for the second HELLO"
         assert app.aborts == 1 and ("close", 5) in app.log
+
+
+def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
+    """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
+    from protocol.link import DIAG_SILENT
+    from protocol.pipe import Faults
+
+    host, dev = pipe_pair()
+    app = SyntheticApp(columns=40, column_delay_s=0.01)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.05, retries=1)
+        link.hello()
+        got = []
+        with pytest.raises(LinkTimeout) as exc:
+            for c in link.scan():
+                got.append(c.column)
+                if c.column == 2:
+                    dev._tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
+    assert got[:3] == [0, 1, 2] and len(got) < 40
+    assert exc.value.diagnosis == DIAG_SILENT and "STATUS_GET" in str(exc.value)
