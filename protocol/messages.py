@@ -504,13 +504,16 @@ class ConfigKey:
         try:
             w = self.to_wire(value)
         except FieldError as exc:
-            raise FieldError(f"{self.name}: {exc}", field=self.name) from None
+            msg = str(exc) if str(exc).startswith(self.name) else f"{self.name}: {exc}"
+            raise FieldError(msg, field=self.name) from None
         if self.lo is not None:
             items = w if isinstance(w, list | tuple | np.ndarray) else [w]
+            each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
             for v in items:
                 if isinstance(v, bool) or not isinstance(v, int | np.integer) or \
                         not self.lo <= int(v) <= self.hi:
-                    raise out_of_range(self.name, self.allowed, value, FieldError)
+                    raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}.."
+                                       f"{self.hi} on the wire)", value, FieldError)
         try:
             return self.sub.build(w)
         except (cs.ConstructError, TypeError, ValueError) as exc:

@@ -318,3 +318,14 @@ def test_column_record_declaration_and_numpy_dtype_list_the_same_fields() -> Non
         assert list(record_dtype(p).names) == names
         assert record_dtype(p).itemsize == 40 + 10 * (p - 1)
     assert COLUMN_HEADER.sizeof() == _HEAD.size == 19
+
+
+@pytest.mark.parametrize(("values", "text"), [
+    ({"peaks": 9}, "peaks must be 1..max_peaks (1..8 on the wire), not 9"),
+    ({"code_index": [1, 70000]}, "(each 0..65535 on the wire)"),
+    ({"rounding": "nearest"}, "rounding must be one of truncate, half_up, convergent"),
+])
+def test_config_encoder_message_says_the_wire_range(values: dict, text: str) -> None:
+    with pytest.raises(FieldError) as exc:
+        encode_config(values)
+    assert text in str(exc.value) and exc.value.field == next(iter(values))
