@@ -118,8 +118,7 @@ class PipePort:
         want = min(n, self.max_read or n)
         rx = self._rx
         with rx.cond:
-            if not rx.cond.wait_for(lambda: len(rx.buf) >= want or rx.closed, self.timeout):
-                pass
+            rx.cond.wait_for(lambda: len(rx.buf) >= want or rx.closed, self.timeout)
             if rx.closed and not rx.buf:
                 raise OSError("pipe closed")
             data = bytes(rx.buf[:want])
