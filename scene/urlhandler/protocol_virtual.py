@@ -60,6 +60,9 @@ def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
             except ValueError:
                 raise SerialException(f"virtual:// option {key}={value!r} is not a number"
                                       ) from None
+            if key != "line_error_rate" and not 0 <= own[key] < 2**63:
+                raise SerialException(f"virtual:// option {key} must be a non-negative "
+                                      f"integer, not {value!r}")
         else:
             rest[key] = value
     return scene, own, rest

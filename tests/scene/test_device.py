@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import serial
 
-from cdma_lidar.errors import ConfigError, DeviceError
+from cdma_lidar.errors import ConfigError, DeviceError, LinkError
 from firmware_model.device import VirtualFirmware
 from firmware_model.snr import snr_xc_db
 from protocol.device import DeviceApp
@@ -51,6 +51,18 @@ def test_serial_for_url_finds_the_handler():
         port.close()
     with pytest.raises(serial.SerialException, match="scene must be a preset"):
         serial.serial_for_url("virtual://nowhere")
+
+
+@pytest.mark.parametrize(("query", "words"), [
+    ("seed=-1", "seed must be a non-negative integer"),
+    ("line_seed=-2", "line_seed must be a non-negative integer"),
+    ("seed=abc", "seed='abc' is not a number"),
+    ("line_error_rate=2", "line_error_rate must be a probability from 0 to 0.5"),
+    ("bogus=3", "bogus is not a known field"),
+])
+def test_bad_url_options_name_the_option(query, words):
+    with pytest.raises(LinkError, match=words):
+        open_port(f"virtual://flat-wall?{query}")
 
 
 def test_handshake_reports_what_the_host_needs(link):
