@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import logging
 import math
 import os
@@ -223,6 +224,9 @@ def cmd_scan(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
                           f"{out.suffix or '(no extension)'!r}", field="out")
     _writable(out, "--out")
+    if out.suffix.lower() == ".las" and importlib.util.find_spec("laspy") is None:
+        raise ConfigError("--out .las needs laspy: pip install 'cdma-lidar[las]' (or write "
+                          ".ply, .pcd or .npz)", field="out")
     if args.resume and not state_path(out).is_file():
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")

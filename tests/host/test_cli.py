@@ -194,3 +194,14 @@ def test_scan_interpolate_and_min_support(capsys, tmp_path):
     line = _one_line_error(capsys, "scan", "--port", "virtual://flat-wall", "--out",
                            str(tmp_path / "a.ply"), "--min-support", "9")
     assert "min_support must be from 0 to 8" in line
+
+
+def test_las_without_laspy_is_refused_before_scanning(capsys, tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "laspy" else real(name, *a))
+    line = _one_line_error(capsys, "scan", "--port", "/dev/no-such-port", "--out",
+                           str(tmp_path / "a.las"))
+    assert "pip install 'cdma-lidar[las]'" in line  # not "cannot open port": checked first
