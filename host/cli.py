@@ -152,6 +152,9 @@ def register(subparsers: Any) -> None:
                    help="also write SNR heatmap, depth image and 3D view PNGs beside --out")
     p.add_argument("--resume", action="store_true",
                    help="finish an interrupted scan (OUT.partial.npz) without redoing columns")
+    p.add_argument("--frame-id", type=int, metavar="N",
+                   help="id of the first frame (default random); a virtual device seeds its "
+                        "noise with it, so the same seed and id give the same cloud")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
     p.set_defaults(func=cmd_scan)
@@ -239,6 +242,9 @@ def cmd_scan(args: argparse.Namespace) -> int:
             raise ConfigError(f"--save-ghost-map must be a .toml file, not "
                               f"{args.save_ghost_map!r}", field="save_ghost_map")
         _writable(args.save_ghost_map, "--save-ghost-map")
+    if args.frame_id is not None and not 0 <= args.frame_id <= 2**31 - 1 - args.frames:
+        raise ConfigError(f"--frame-id must be from 0 to {2**31 - 1 - args.frames}, not "
+                          f"{args.frame_id}", field="frame_id")
     options = ScanOptions(frames=args.frames, near_far=args.near_far,
                           snr_threshold_db=args.snr_threshold, min_support=args.min_support,
                           interpolate=args.interpolate,
@@ -253,7 +259,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         try:
             res = run_scan(dev, out, options, resume=args.resume,
-                           progress=not args.no_progress, pictures_too=args.pictures)
+                           progress=not args.no_progress, pictures_too=args.pictures,
+                           frame_id=args.frame_id)
         except KeyboardInterrupt:
             sys.stderr.write(f"partial scan saved to {state_path(out)}; run the same command "
                              "with --resume to finish it\n")

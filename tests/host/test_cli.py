@@ -205,3 +205,19 @@ def test_las_without_laspy_is_refused_before_scanning(capsys, tmp_path, monkeypa
     line = _one_line_error(capsys, "scan", "--port", "/dev/no-such-port", "--out",
                            str(tmp_path / "a.las"))
     assert "pip install 'cdma-lidar[las]'" in line  # not "cannot open port": checked first
+
+
+def test_same_seed_and_frame_id_same_cloud_bytes(capsys, tmp_path):
+    def scan(name: str, frame_id: str) -> bytes:
+        out = tmp_path / name
+        code, text, _ = _run(capsys, "scan", "--port", "virtual://multi-user?seed=3", "--out",
+                             str(out), "--no-progress", "--frame-id", frame_id)
+        assert code == 0, text
+        return out.read_bytes()
+
+    first = scan("a.ply", "41")
+    assert scan("b.ply", "41") == first
+    assert scan("c.ply", "42") != first  # another frame id: other noise
+    line = _one_line_error(capsys, "scan", "--port", "virtual://multi-user", "--out",
+                           str(tmp_path / "d.ply"), "--frame-id", "-1")
+    assert "--frame-id must be from 0" in line
