@@ -273,7 +273,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.near_far and len(res.snr_maps) > 1:
         thr = img.config.snr_threshold_db
         fr = [100 * float(np.mean(m >= thr)) for m in res.snr_maps]
-        _say("pixels above threshold per frame: " + ", ".join(f"{f:.1f} %" for f in fr))
+        _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
+             + ", ".join(f"{f:.1f} %" for f in fr))
     if len(img.foreign):
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
         _say(f"other users' returns: {len(img.foreign)} ({users})")
