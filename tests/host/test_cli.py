@@ -221,3 +221,33 @@ def test_same_seed_and_frame_id_same_cloud_bytes(capsys, tmp_path):
     line = _one_line_error(capsys, "scan", "--port", "virtual://multi-user", "--out",
                            str(tmp_path / "d.ply"), "--frame-id", "-1")
     assert "--frame-id must be from 0" in line
+
+
+def test_ctrl_c_leaves_a_partial_scan_that_resume_finishes(capsys, tmp_path, monkeypatch):
+    from host.frame import FrameData
+    from host.scan import state_path
+
+    port = "virtual://multi-user?seed=2"
+    whole = tmp_path / "whole.ply"
+    code, _, _ = _run(capsys, "scan", "--port", port, "--out", str(whole), "--no-progress",
+                      "--frame-id", "5")
+    assert code == 0
+    out = tmp_path / "cut.ply"
+    real = FrameData.set_column
+
+    def interrupt_at_3(self, index, result, angle_deg=None):
+        if index == 3:
+            raise KeyboardInterrupt
+        real(self, index, result, angle_deg)
+
+    monkeypatch.setattr(FrameData, "set_column", interrupt_at_3)
+    code, _, err = _run(capsys, "scan", "--port", port, "--out", str(out), "--no-progress",
+                        "--frame-id", "5")
+    assert code == 130 and "--resume" in err
+    assert state_path(out).is_file() and not out.exists()
+    monkeypatch.setattr(FrameData, "set_column", real)
+    code, text, _ = _run(capsys, "scan", "--port", port, "--out", str(out), "--no-progress",
+                         "--resume")
+    assert code == 0 and "scanned 5 columns" in text  # 3..7, not 0..2 again
+    assert not state_path(out).exists()
+    assert out.read_bytes() == whole.read_bytes()
