@@ -31,12 +31,15 @@ import urllib.parse
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
+
+if TYPE_CHECKING:  # the host's geometry module is imported lazily (it imports nothing of ours)
+    from host.geometry import GratingGeometry
 
 __all__ = [
     "PRESETS",
@@ -276,7 +279,7 @@ class InstrumentSpec:
         """Gold member used by each channel (default: channel k uses member k)."""
         return self.code_index if self.code_index is not None else tuple(range(self.channels))
 
-    def geometry(self, nominal: bool = False):
+    def geometry(self, nominal: bool = False) -> GratingGeometry:
         """The grating geometry: true (what the light does) or nominal (what the host assumes)."""
         from host.geometry import GratingGeometry
 
