@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
 
-if TYPE_CHECKING:  # the host's geometry module is imported lazily (it imports nothing of ours)
+if TYPE_CHECKING:  # imported at call time in geometry(): scene does not load host at import
     from host.geometry import GratingGeometry
 
 __all__ = [
