@@ -220,6 +220,10 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         raise ConfigError(f"output file extension must be one of {', '.join(FORMATS)}, "
                           f"not {out.suffix or '(none)'!r}", field="out")
     check_writable(out)
+    if device.config.get("mode") == "calibration":
+        raise ConfigError("the device is in calibration mode: its columns see the "
+                          "zeroth-order target at a 90 deg grating angle, not the scene; scan "
+                          "with --set mode=ranging (or use 'cdma-lidar calibrate')", field="mode")
     spath = state_path(out)
     threshold = options.snr_threshold_db
     ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,

@@ -251,3 +251,10 @@ def test_ctrl_c_leaves_a_partial_scan_that_resume_finishes(capsys, tmp_path, mon
     assert code == 0 and "scanned 5 columns" in text  # 3..7, not 0..2 again
     assert not state_path(out).exists()
     assert out.read_bytes() == whole.read_bytes()
+
+
+def test_scan_in_calibration_mode_says_what_to_do(capsys, tmp_path):
+    line = _one_line_error(capsys, "scan", "--port", "virtual://multi-user", "--out",
+                           str(tmp_path / "a.ply"), "--no-progress", "--set", "mode=calibration")
+    assert "calibration mode" in line and "--set mode=ranging" in line
+    assert not list(tmp_path.iterdir())
