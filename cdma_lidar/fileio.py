@@ -29,20 +29,30 @@ def _read_umask() -> int:
 _FILE_MODE = 0o666 & ~_read_umask()
 
 
-def check_writable(path: str | os.PathLike[str]) -> Path:
-    """Return ``path`` as a Path after checking its folder exists and is writable.
+def check_writable(path: str | os.PathLike[str], option: str = "--out") -> Path:
+    """Return ``path`` as a Path after proving a file can be created beside it.
 
-    Raises ConfigError naming the path, so the CLI can say what to do before any
-    work is spent on a scan whose result could not be saved.
+    Creates and removes a probe file in the target's folder: ``os.access`` says yes
+    to root everywhere and to pseudo file systems such as ``/proc``, a probe cannot
+    lie. Raises ConfigError naming ``option`` (the CLI option or field that gave the
+    path), so the CLI can say what to do before any work is spent on a scan whose
+    result could not be saved.
     """
     p = Path(path)
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir():
-        raise ConfigError(f"output folder {str(parent)!r} does not exist; create it first", "out")
-    if not os.access(parent, os.W_OK):
-        raise ConfigError(f"output folder {str(parent)!r} is not writable", "out")
+    field = option.lstrip("-")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise ConfigError(f"{option}: folder {str(folder)!r} does not exist; create it first",
+                          field)
     if p.is_dir():
-        raise ConfigError(f"output path {str(p)!r} is a folder; give a file name", "out")
+        raise ConfigError(f"{option}: {str(p)!r} is a folder; give a file name", field)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        raise ConfigError(f"{option} {str(p)!r}: cannot write in folder {str(folder)!r} "
+                          f"({exc.strerror}); choose a writable folder", field) from None
+    os.close(fd)
+    os.unlink(probe)
     return p
 
 

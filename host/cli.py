@@ -13,9 +13,7 @@ import dataclasses
 import importlib.util
 import logging
 import math
-import os
 import sys
-import tempfile
 import time
 import tomllib
 from pathlib import Path
@@ -38,26 +36,6 @@ def _say(*parts: object) -> None:
     """One line of command output on stdout (CLI results, not logging)."""
     sys.stdout.write(" ".join(str(p) for p in parts) + "\n")
     sys.stdout.flush()
-
-
-def _writable(path: str | os.PathLike[str], option: str) -> Path:
-    """Check ``path`` can be written before any device time is spent on it.
-
-    ``check_writable`` asks the OS (``os.access``), which says yes to root everywhere
-    and to pseudo file systems; creating and removing a file beside ``path`` is the
-    test that cannot lie. Raises ConfigError naming ``option``.
-    """
-    p = check_writable(path)
-    folder = p.parent if str(p.parent) else Path(".")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=folder)
-    except OSError as exc:
-        raise ConfigError(f"{option} {str(p)!r}: cannot write in folder {str(folder)!r} "
-                          f"({exc.strerror}); choose a writable folder",
-                          field=option.lstrip("-")) from None
-    os.close(fd)
-    os.unlink(probe)
-    return p
 
 
 def _positive_float(text: str) -> float:
@@ -226,7 +204,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in FORMATS:
         raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
                           f"{out.suffix or '(no extension)'!r}", field="out")
-    _writable(out, "--out")
+    check_writable(out, "--out")
     if out.suffix.lower() == ".las" and importlib.util.find_spec("laspy") is None:
         raise ConfigError("--out .las needs laspy: pip install 'cdma-lidar[las]' (or write "
                           ".ply, .pcd or .npz)", field="out")
@@ -241,7 +219,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         if Path(args.save_ghost_map).suffix.lower() != ".toml":
             raise ConfigError(f"--save-ghost-map must be a .toml file, not "
                               f"{args.save_ghost_map!r}", field="save_ghost_map")
-        _writable(args.save_ghost_map, "--save-ghost-map")
+        check_writable(args.save_ghost_map, "--save-ghost-map")
     if args.frame_id is not None and not 0 <= args.frame_id <= 2**31 - 1 - args.frames:
         raise ConfigError(f"--frame-id must be from 0 to {2**31 - 1 - args.frames}, not "
                           f"{args.frame_id}", field="frame_id")
@@ -315,7 +293,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".toml":
         raise ConfigError(f"--out must be a .toml file, not {str(out)!r}", field="out")
-    _writable(out, "--out")
+    check_writable(out, "--out")
     if not 1 <= args.shots <= 65535:
         raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
     with connect(args.port, timeout_s=args.timeout) as dev:
@@ -343,7 +321,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise ConfigError(f"--out {str(folder)!r}: cannot create the folder ({exc.strerror}); "
                           "choose a writable place", field="out") from None
-    _writable(folder / "calibration.toml", "--out")
+    check_writable(folder / "calibration.toml", "--out")
     t0 = time.monotonic()
     scene = load_scene(DEMO_SCENE)
     url = f"virtual://{DEMO_SCENE}?seed={args.seed}"

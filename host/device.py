@@ -109,7 +109,7 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
     Raises LinkError with one line that says what to do when the port cannot be
     opened or the device does not answer.
     """
-    from protocol.link import HostLink, open_port
+    from protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
 
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries)
@@ -118,9 +118,9 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
         config = link.get_config()
     except LinkTimeout as exc:
         link.close()
-        what = f" ({exc.diagnosis})" if getattr(exc, "diagnosis", "") else ""
-        raise LinkError(f"no answer from {url}{what}; check that the device is powered and "
-                        "connected and that the port and baud rate are right") from exc
+        diagnosis = getattr(exc, "diagnosis", "") or DIAG_SILENT
+        hint = DIAG_HINTS.get(diagnosis, DIAG_HINTS[DIAG_SILENT])
+        raise LinkError(f"no answer from {url} ({diagnosis}); {hint}") from exc
     except BaseException:
         link.close()
         raise

@@ -343,7 +343,8 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     ghost = own.ghost
     done = np.broadcast_to(frame.done[None, :], frame.shape)
     ours = own.source >= 0
-    ok = done & ours & ~ghost & (snr >= config.snr_threshold_db)
+    # lag -1: the device found no eligible lag (all ghosted, or fewer peaks than asked)
+    ok = done & ours & (own.lag >= 0) & ~ghost & (snr >= config.snr_threshold_db)
     if config.min_support > 0:
         ok &= neighbour_support(lag, ok, config.support_tol) >= config.min_support
     flags = np.where(ok, 0, FLAG_REJECTED).astype(np.uint8)

@@ -44,7 +44,7 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
                    power_w: NDArray[np.float64] | None = None, frame: int = 0,
                    gate: tuple[int, int] | None = None) -> SimulatedScan:
     """Render and receive every column of ``scene_name`` (a preset or a TOML path)."""
-    from firmware_model.gold import gold_family
+    from firmware_model.gold import gold_code
     from firmware_model.receiver import FastReceiver, ReceiverConfig
     from scene import load_scene
     from scene.instrument import Instrument
@@ -53,7 +53,7 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
     inst = Instrument(scene, seed=seed)
     spec = inst.spec
     gate_start, gate_len = gate if gate is not None else inst.default_gate()
-    codes = gold_family(spec.poly_u, spec.poly_v)[list(spec.code_indices)]
+    codes = np.stack([gold_code(spec.poly_u, spec.poly_v, k) for k in spec.code_indices])
     cfg = ReceiverConfig(adc_bits=spec.adc_bits, samples_per_chip=spec.samples_per_chip,
                          averages=spec.averages, uid_bits=spec.uid_bits, uid=spec.uid,
                          gate_start=gate_start, gate_len=gate_len, peaks=peaks)

@@ -14,6 +14,7 @@ import logging
 import sys
 
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.fileio import check_writable
 
 __all__ = ["register"]
 
@@ -90,10 +91,11 @@ def _cmd_truth(args: argparse.Namespace) -> int:
 
     if not str(args.out).lower().endswith(".npz"):
         raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
+    check_writable(args.out, "--out")
     scene = load_scene(args.scene)
     try:
         truth = save_truth(scene, args.out)
-    except OSError as exc:  # check_writable trusts os.access, which root always passes
+    except OSError as exc:  # the folder changed under us after the check
         raise ConfigError(f"--out {args.out!r}: cannot write it ({exc.strerror}); choose a "
                           "writable folder", "out") from None
     lit = truth.hits.lit
