@@ -74,6 +74,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
         f"  code degree {spec.code_degree}, {spec.chip_rate_hz / 1e6:g} Mchip/s, "
         f"S={spec.samples_per_chip}, R={spec.averages}, uid {spec.uid}/{spec.uid_bits} bits",
         f"  noise rms {inst.noise_rms_v * 1e3:.3f} mV, default gate {inst.default_gate()}",
+        f"  calibration target (zeroth order) at {scene.calibration.target_distance_m:g} m: "
+        f"calibrate with --target-distance {scene.calibration.target_distance_m:g}",
     ]
     for i, obj in enumerate(scene.objects):
         sel = h.object_id == i

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
-from scene.model import PRESETS
+from scene.model import PRESETS, load_scene
 
 
 def test_truth_npz(tmp_path, capsys):
@@ -40,7 +40,10 @@ def test_truth_with_option_and_list(tmp_path, capsys):
     listed = capsys.readouterr().out
     assert all(name in listed for name in PRESETS)
     assert main(["scene", "show", "near-far"]) == 0
-    assert "block" in capsys.readouterr().out
+    shown = capsys.readouterr().out
+    assert "block" in shown
+    target = load_scene("near-far").calibration.target_distance_m
+    assert f"--target-distance {target:g}" in shown
 
 
 def test_errors_are_one_line_exit_2(tmp_path, capsys):
