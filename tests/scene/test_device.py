@@ -3,6 +3,7 @@ calibration, capture, line errors, determinism, and the pty server as a subproce
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import signal
@@ -222,12 +223,27 @@ def _readline(proc, timeout_s=60.0):
     return buf.decode().strip()
 
 
+@contextlib.contextmanager
+def _device_process(cmd):
+    """Run ``cdma-lidar device ...``; on exit stop it with SIGTERM and expect status 0."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            rc = proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 0
+
+
 def test_pty_device_end_to_end():
     cmd = [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
            "flat-wall?instrument.wavelengths.count=4&instrument.columns=3", "--pty",
            "--seed", "5"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
+    with _device_process(cmd) as proc:
         path = _readline(proc)
         assert path.startswith("/dev/")
         for _ in range(2):  # connect twice; two scans each
@@ -238,36 +254,19 @@ def test_pty_device_end_to_end():
                 second = list(lk.scan(frame=6))
                 assert [c.column for c in first] == [0, 1, 2]
                 assert len(second) == 3
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            rc = proc.wait(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert rc == 0
 
 
 def test_tcp_device_end_to_end():
     cmd = [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
            "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--tcp",
            "127.0.0.1:0"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
+    with _device_process(cmd) as proc:
         url = _readline(proc)
         assert url.startswith("socket://127.0.0.1:")
         for _ in range(2):  # the board outlives a connection
             with HostLink(open_port(url), timeout_s=2.0) as lk:
                 assert lk.hello().channels == 4
                 assert [c.column for c in lk.scan(frame=9)] == [0, 1]
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            rc = proc.wait(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert rc == 0
 
 
 def test_paper_scene1_lit_pixels_stand_out_from_empty_ones():
