@@ -22,9 +22,9 @@ from collections.abc import Callable
 import numpy as np
 import scipy.signal
 
-from firmware_model.gold import gold_code, gold_family
-from firmware_model.lfsr import FibonacciLFSR, jump, mseq, scipy_arguments
-from firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.gold import gold_code, gold_family
+from cdma_lidar.firmware_model.lfsr import FibonacciLFSR, jump, mseq, scipy_arguments
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 
 
 def timings(fn: Callable[[], object], repeat: int) -> list[float]:

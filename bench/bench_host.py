@@ -23,16 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
-from host.nearfar import NearFarController, PowerLimits
-from host.pointcloud import assemble, write_ply
-from host.ranging import (
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits
+from cdma_lidar.host.pointcloud import assemble, write_ply
+from cdma_lidar.host.ranging import (
     RangingConfig,
     estimate_ranges,
     lag_to_range_m,
     precision_eq27_m,
     subsample_delta,
 )
-from host.simulate import eq27_from_configuration, simulate_frame
+from cdma_lidar.study.simulate import eq27_from_configuration, simulate_frame
 
 
 def _errors(sim, cfg: RangingConfig) -> tuple[float, float, float, float]:
@@ -105,7 +105,7 @@ def bench_support(frames: int = 10) -> None:
 
 
 def bench_near_far() -> None:
-    from scene import load_scene
+    from cdma_lidar.scene import load_scene
 
     spec = load_scene("near-far").instrument
     k, c = spec.channels, spec.columns

@@ -20,17 +20,17 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from protocol.columns import (
+from cdma_lidar.protocol.columns import (
     ColumnResult,
     decode_column,
     decode_column_construct,
     encode_column,
     encode_column_construct,
 )
-from protocol.device import DeviceApp, DeviceEndpoint
-from protocol.framing import FrameDecoder, encode_frame
-from protocol.link import FdPort, HostLink, open_port
-from protocol.messages import Info, MsgType
+from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
+from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import FdPort, HostLink, open_port
+from cdma_lidar.protocol.messages import Info, MsgType
 
 K = 40
 

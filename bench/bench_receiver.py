@@ -24,10 +24,10 @@ import tracemalloc
 import numpy as np
 from scipy import signal
 
-from firmware_model.adc import quantise
-from firmware_model.gold import gold_code
-from firmware_model.pairs import PAPER_PAIR, preferred_pairs
-from firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.firmware_model.adc import quantise
+from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 
 CHIP_RATE_HZ = 62.5e6
 FRAC_BITS = 8

@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
-from firmware_model.device import VirtualFirmware
-from scene.instrument import Instrument, RenderSettings
-from scene.model import load_scene, parse_scene
+from cdma_lidar.virtual.board import VirtualFirmware
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.model import load_scene, parse_scene
 
 ACQ_S = 160 * 10 * 2047 / 62.5e6
 

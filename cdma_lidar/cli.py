@@ -24,7 +24,7 @@ __all__ = ["build_parser", "main"]
 log = logging.getLogger("cdma_lidar.cli")
 
 #: Packages whose ``cli`` module contributes subcommands, in help order.
-COMMAND_MODULES = ("firmware_model.cli", "scene.cli", "host.cli")
+COMMAND_MODULES = ("cdma_lidar.firmware_model.cli", "cdma_lidar.scene.cli", "cdma_lidar.host.cli")
 
 
 class _OneLineParser(argparse.ArgumentParser):

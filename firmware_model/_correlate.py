@@ -35,7 +35,7 @@ from cdma_lidar.errors import out_of_range
 
 __all__ = ["GateCorrelator", "chip_sums", "correlate_at"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 _EPS = float(np.finfo(np.float64).eps)
 _FFT_GUARD = 0.25

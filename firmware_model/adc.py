@@ -24,7 +24,7 @@ from cdma_lidar.errors import out_of_range
 
 __all__ = ["ADC_BITS_RANGE", "FRAC_BITS_RANGE", "adc_limits", "quantise"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 ADC_BITS_RANGE = (8, 16)
 FRAC_BITS_RANGE = (0, 40)

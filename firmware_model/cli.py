@@ -31,7 +31,7 @@ import sys
 import numpy as np
 
 from cdma_lidar.errors import out_of_range
-from firmware_model.gold import (
+from cdma_lidar.firmware_model.gold import (
     check_pair,
     family_size,
     gold_code,
@@ -39,13 +39,13 @@ from firmware_model.gold import (
     t_value,
     xcorr_values,
 )
-from firmware_model.lfsr import Poly, check_primitive, format_poly, mseq, parse_poly, parse_seed
-from firmware_model.pairs import pair_table
-from firmware_model.uid import MAX_UID_BITS, necklace_count, necklaces, uid_to_str
+from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, format_poly, mseq, parse_poly, parse_seed
+from cdma_lidar.firmware_model.pairs import pair_table
+from cdma_lidar.firmware_model.uid import MAX_UID_BITS, necklace_count, necklaces, uid_to_str
 
 __all__ = ["FORMATS", "format_chips", "register"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 FORMATS = ("bits", "bipolar", "hex")
 

@@ -2,7 +2,7 @@
 
 Family (Supplementary Note 2, eq. 2) of a pair (u, v) of degree m, N = 2^m - 1,
 u and v the Fibonacci m-sequences of ``poly_u`` and ``poly_v`` (default seeds
-all ones, see :mod:`firmware_model.lfsr`)::
+all ones, see :mod:`cdma_lidar.firmware_model.lfsr`)::
 
     member k, 0 <= k < N:   c_k[n] = u[n] XOR v[(n - k) mod N]   (v delayed by k chips)
     member N:               u
@@ -35,7 +35,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from cdma_lidar.errors import ConfigError, out_of_range
-from firmware_model.lfsr import (
+from cdma_lidar.firmware_model.lfsr import (
     Poly,
     _check_chips,
     check_primitive,
@@ -58,7 +58,7 @@ __all__ = [
     "xcorr_values",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 Seed = str | Sequence[int] | np.ndarray | None
 

@@ -103,7 +103,7 @@ __all__ = [
     "transition_matrix",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Exponents, highest first, constant term implied: ``(11, 2)`` is x^11 + x^2 + 1.
 Poly = tuple[int, ...]

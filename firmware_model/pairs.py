@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdma_lidar.errors import ConfigError, out_of_range
-from firmware_model.lfsr import Poly, check_primitive, mseq
+from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, mseq
 
 __all__ = [
     "DECIMATIONS",
@@ -46,7 +46,7 @@ __all__ = [
     "preferred_pairs",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 MIN_PAIR_DEGREE = 5
 MAX_PAIR_DEGREE = 20

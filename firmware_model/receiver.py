@@ -24,7 +24,7 @@ Two implementations give the same integers:
   chunking, sample by sample), Python integers and exact fractions. Slow.
 * :func:`fast` / :func:`fast_frame` / :class:`FastReceiver`: vectorised; the
   correlation runs in the chip domain as an exact float64 matrix product or an
-  FFT rounded under a rigorous error bound (``firmware_model._correlate``).
+  FFT rounded under a rigorous error bound (``cdma_lidar.firmware_model._correlate``).
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
-from firmware_model import _correlate
-from firmware_model.adc import adc_limits
-from firmware_model.snr import snr_xc_db
+from cdma_lidar.firmware_model import _correlate
+from cdma_lidar.firmware_model.adc import adc_limits
+from cdma_lidar.firmware_model.snr import snr_xc_db
 
 __all__ = [
     "MAX_CHANNELS",
@@ -60,7 +60,7 @@ __all__ = [
     "reference",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 Rounding = Literal["truncate", "half_up", "convergent"]
 ROUNDING_MODES: tuple[str, ...] = ("truncate", "half_up", "convergent")
@@ -256,7 +256,7 @@ class ReceiverOutput:
     extra_signs: NDArray[np.int8]
 
     def snr_db(self) -> NDArray[np.float64]:
-        """SNR_XC in dB per channel (:func:`firmware_model.snr.snr_xc_db`)."""
+        """SNR_XC in dB per channel (:func:`cdma_lidar.firmware_model.snr.snr_xc_db`)."""
         return snr_xc_db(self.peak, self.noise_count, self.noise_sum, self.noise_sumsq)
 
     def mismatches(self, other: ReceiverOutput) -> list[str]:

@@ -27,7 +27,7 @@ from cdma_lidar.errors import out_of_range
 
 __all__ = ["snr_xc_db"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 def snr_xc_db(

@@ -47,7 +47,7 @@ __all__ = [
     "uid_to_str",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Largest n for which :func:`necklaces` lists the representatives (2^24 candidates scanned).
 MAX_UID_BITS = 24

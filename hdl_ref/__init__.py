@@ -1,9 +1,9 @@
 """Reference Verilog RTL of the code generator and receive chain, with its co-simulation.
 
 ``hdl_ref/rtl/*.v`` holds the RTL (``lfsr_fib``, ``gold_gen``, ``sdp_ram``,
-``rx_chain``); :mod:`hdl_ref.cosim` builds it with Icarus Verilog and plays
-cocotb benches (:mod:`hdl_ref.tb`), :mod:`hdl_ref.stimuli` makes ADC columns,
-``python -m hdl_ref.lint`` runs Verilator's lint and ``python -m hdl_ref.synth``
+``rx_chain``); :mod:`cdma_lidar.hdl_ref.cosim` builds it with Icarus Verilog and plays
+cocotb benches (:mod:`cdma_lidar.hdl_ref.tb`), :mod:`cdma_lidar.hdl_ref.stimuli` makes ADC columns,
+``python -m cdma_lidar.hdl_ref.lint`` runs Verilator's lint and ``python -m cdma_lidar.hdl_ref.synth``
 produces the yosys resource tables of ``docs/hdl.md``. cocotb is imported only
 when a simulation is built or run; ``firmware_model`` never imports it.
 """

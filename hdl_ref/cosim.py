@@ -3,7 +3,7 @@
 The RTL (``hdl_ref/rtl/*.v``) takes its configuration as run-time ports, so one
 build serves many configurations. A simulation run is driven by a *job*: a JSON
 file listing cases (port values and stimuli) that a cocotb test module in
-``hdl_ref.tb`` plays into the design one after the other; it writes what the
+``cdma_lidar.hdl_ref.tb`` plays into the design one after the other; it writes what the
 design produced (every output word, and the clock counts) to a result JSON
 file. Comparing those words with the model (``firmware_model``) is left to the
 caller, so the same simulation result can be compared against a correct and a
@@ -18,7 +18,7 @@ Port encodings (see ``docs/hdl.md``)::
     peak_exclude W         -> min(W, MAX_G) (|j - j_q| <= G - 1 < MAX_G, so equal results)
 
 cocotb is imported only inside the functions that build or run a simulation,
-so ``import hdl_ref.cosim`` works without it; the model package never imports it.
+so ``import cdma_lidar.hdl_ref.cosim`` works without it; the model package never imports it.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ __all__ = [
     "to_receiver_output",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 RTL_DIR = Path(__file__).resolve().parent / "rtl"
 RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "rx_chain.v")
@@ -159,7 +159,7 @@ def _need(field: str, value: int, hi: int, lo: int = 0) -> int:
 def gold_ports(poly_u: Sequence[int], poly_v: Sequence[int], index: int, uid: int,
                uid_bits: int, params: GoldParams) -> dict[str, int]:
     """``gold_gen`` input port values for member ``index`` of the pair with a UID."""
-    from firmware_model.gold import gold_seeds
+    from cdma_lidar.firmware_model.gold import gold_seeds
 
     m = int(poly_u[0])
     _need("degree", m, params.max_deg, 2)
@@ -176,11 +176,11 @@ def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
              params: RxParams) -> dict[str, int]:
     """``rx_chain`` configuration port values for a ``ReceiverConfig`` and a Gold member.
 
-    ``cfg`` is a ``firmware_model.receiver.ReceiverConfig`` (any object with its
+    ``cfg`` is a ``cdma_lidar.firmware_model.receiver.ReceiverConfig`` (any object with its
     fields). Raises ``ConfigError`` naming the field when the configuration is
     outside what this build supports (``params``) or outside docs/firmware.md.
     """
-    from firmware_model.gold import gold_seeds
+    from cdma_lidar.firmware_model.gold import gold_seeds
 
     m = int(poly_u[0])
     _need("degree", m, params.max_deg, 2)
@@ -312,14 +312,14 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
 
 
 def to_receiver_output(decoded: Mapping[str, Any]) -> Any:
-    """A one-channel ``firmware_model.receiver.ReceiverOutput`` from :func:`decode_rx_result`.
+    """A one-channel ``cdma_lidar.firmware_model.receiver.ReceiverOutput`` from :func:`decode_rx_result`.
 
     Shapes and dtypes are those of the model (K = 1), so ``mismatches()`` of the
     model's output against it compares values, shapes and dtypes field by field.
     """
     import numpy as np
 
-    from firmware_model.receiver import ReceiverOutput
+    from cdma_lidar.firmware_model.receiver import ReceiverOutput
 
     n = len(decoded["uid_signs"])
     extra = len(decoded["extra_lag"])
@@ -377,7 +377,7 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
 def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
             job: Mapping[str, Any], generics: Mapping[str, int] | None = None,
             name: str = "job") -> dict[str, Any]:
-    """Run one cocotb ``test_module`` (``hdl_ref.tb.*``) on a build, playing ``job``.
+    """Run one cocotb ``test_module`` (``cdma_lidar.hdl_ref.tb.*``) on a build, playing ``job``.
 
     The job is written to ``<build_dir>/<name>.job.json`` and handed to the bench
     through the environment (``HDL_REF_JOB``, ``HDL_REF_RESULT``); the bench's

@@ -1,4 +1,4 @@
-"""Verilator lint of the reference RTL: ``python -m hdl_ref.lint``.
+"""Verilator lint of the reference RTL: ``python -m cdma_lidar.hdl_ref.lint``.
 
 Runs ``verilator --lint-only -Wall`` on every top module for a set of parameter
 sets that reach the corners of the width arithmetic (single-entry maxima, the
@@ -18,11 +18,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from hdl_ref.cosim import RTL_DIR
+from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 # (top module, sources, parameter overrides)
 LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
@@ -89,7 +89,7 @@ def lint(sets: Mapping[str, tuple[str, tuple[str, ...], dict[str, int]]] = LINT_
 
 def main(argv: list[str] | None = None) -> int:
     """Lint every parameter set; print one line per set; 0 when all are clean."""
-    parser = argparse.ArgumentParser(prog="python -m hdl_ref.lint", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m cdma_lidar.hdl_ref.lint", description=__doc__)
     parser.parse_args(argv)
     try:
         results = lint()

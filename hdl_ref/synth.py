@@ -1,4 +1,4 @@
-"""Resource use of the reference RTL from yosys: ``python -m hdl_ref.synth [--write-doc]``.
+"""Resource use of the reference RTL from yosys: ``python -m cdma_lidar.hdl_ref.synth [--write-doc]``.
 
 Synthesises each design of :data:`DESIGNS` with three yosys flows:
 
@@ -34,14 +34,14 @@ from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text
-from hdl_ref.cosim import RTL_DIR
+from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = [
     "DESIGNS", "FLOWS", "Design", "main", "markdown", "synthesise", "table_row", "update_doc",
     "yosys_version",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "hdl.md"
 BEGIN, END = "<!-- synth:begin -->", "<!-- synth:end -->"
@@ -150,7 +150,7 @@ COLUMNS: dict[str, list[tuple[str, str]]] = {
 
 def markdown(results: Mapping[tuple[str, str], Mapping[str, int]], version: str) -> str:
     """Markdown tables (one per flow) of the synthesis results."""
-    lines = [f"Produced by `python -m hdl_ref.synth --write-doc` with {version}.", ""]
+    lines = [f"Produced by `python -m cdma_lidar.hdl_ref.synth --write-doc` with {version}.", ""]
     lines.append("| design | parameters |")
     lines.append("|---|---|")
     for d in DESIGNS:
@@ -181,7 +181,7 @@ def update_doc(text: str, table: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Synthesise every design with every flow; print (or write into docs/hdl.md) the tables."""
-    parser = argparse.ArgumentParser(prog="python -m hdl_ref.synth", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m cdma_lidar.hdl_ref.synth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--write-doc", action="store_true",
                         help=f"replace the synthesis section of {DOC_PATH}")

@@ -52,7 +52,7 @@ __all__ = [
     "toml_safe",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Configuration fields that change the system delay or the lag-to-range scale; a
 #: calibration applies only where all of those present in the file are equal.

@@ -27,7 +27,7 @@ from cdma_lidar.fileio import atomic_write_text, check_writable
 
 __all__ = ["register"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 DEMO_SCENE = "paper-scene1"
 
@@ -169,8 +169,8 @@ def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     """Print identity, limits, geometry and configuration."""
-    from host.device import connect
-    from host.ranging import sample_range_m
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.ranging import sample_range_m
 
     with connect(args.port, timeout_s=args.timeout) as dev:
         info, cfg = dev.info, dev.config
@@ -195,10 +195,10 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_scan(args: argparse.Namespace) -> int:
     """Scan and write the point cloud."""
-    from host.calibration import Calibration
-    from host.device import connect
-    from host.pointcloud import FORMATS
-    from host.scan import ScanOptions, run_scan, state_path
+    from cdma_lidar.host.calibration import Calibration
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.pointcloud import FORMATS
+    from cdma_lidar.host.scan import ScanOptions, run_scan, state_path
 
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:
@@ -257,7 +257,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
         _say(f"other users' returns: {len(img.foreign)} ({users})")
     if args.save_ghost_map:
-        from host.ranging import ghost_windows_from_image
+        from cdma_lidar.host.ranging import ghost_windows_from_image
 
         windows = ghost_windows_from_image(img)
         text = tomli_w.dumps({"windows": [list(w) for w in windows],
@@ -287,8 +287,8 @@ def _load_ghost_map(path: str) -> list[tuple[int, int]]:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Zeroth-order calibration to a TOML file."""
-    from host.device import connect
-    from host.scan import calibrate_device
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.scan import calibrate_device
 
     out = Path(args.out)
     if out.suffix.lower() != ".toml":
@@ -309,11 +309,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Calibrate and scan the paper's scene 1 on the virtual device; print a summary."""
-    from host.device import connect
-    from host.ranging import estimate_ranges, precision_eq27_m
-    from host.scan import ScanOptions, calibrate_device, run_scan, summarise
-    from scene import load_scene
-    from scene.truth import compute_truth
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
+    from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, summarise
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.truth import compute_truth
 
     folder = Path(args.out)
     try:

@@ -51,7 +51,7 @@ from cdma_lidar.errors import out_of_range
 
 __all__ = ["NearFarController", "PowerLimits", "next_power"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)

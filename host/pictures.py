@@ -20,11 +20,11 @@ from matplotlib.image import AxesImage
 from numpy.typing import NDArray
 
 from cdma_lidar.fileio import atomic_open
-from host.pointcloud import PointCloud
+from cdma_lidar.host.pointcloud import PointCloud
 
 __all__ = ["depth_image", "snr_heatmap", "snr_heatmaps", "view_3d"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 def _figure(width_in: float, height_in: float) -> Figure:

@@ -3,7 +3,7 @@
 A :class:`PointCloud` is organised like the scan: ``(K channels, C columns)`` arrays
 of x, y, z (m, sensor frame: x forward, y left, z up, origin at the grating), range
 (m), SNR_XC (dB), peak (correlator units), channel, column and flags (see
-:mod:`host.ranging`: 0 valid, 1 interpolated, 2 rejected, 4 foreign UID, 8 ghost).
+:mod:`cdma_lidar.host.ranging`: 0 valid, 1 interpolated, 2 rejected, 4 foreign UID, 8 ghost).
 Pixels without a range have NaN coordinates.
 
 Writers, chosen by the output file's extension (all written atomically):
@@ -31,8 +31,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open, check_writable
-from host.geometry import GratingGeometry
-from host.ranging import FLAG_REJECTED, RangeImage
+from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.host.ranging import FLAG_REJECTED, RangeImage
 
 __all__ = [
     "FORMATS",
@@ -46,7 +46,7 @@ __all__ = [
     "write_ply",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Per-point fields in file order with their numpy type.
 _POINT_FIELDS = (

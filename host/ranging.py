@@ -21,7 +21,7 @@ the scene truth; the default (``triangle``) had the smaller median error there
 (paper-scene1: 0.016 m against 0.022 m parabolic and 0.249 m integer lag).
 
 SNR_XC (eq. 44, Note 9) comes from the receiver's integer noise statistics through
-the one shared function :func:`firmware_model.snr.snr_xc_db`. Pixels below the
+the one shared function :func:`cdma_lidar.firmware_model.snr.snr_xc_db`. Pixels below the
 threshold are rejected. On top of it, a pixel above the threshold is kept only if
 ``min_support`` of its 8 neighbours are above it too at a lag within ``support_tol``
 (:func:`neighbour_support`; 0 turns this off): on paper-scene1 the strongest empty
@@ -52,8 +52,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import out_of_range
-from host.frame import FrameData
-from host.uid_filter import ForeignReturns, find_foreign, select_own
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.uid_filter import ForeignReturns, find_foreign, select_own
 
 __all__ = [
     "DEFAULT_SNR_THRESHOLD_DB",
@@ -76,7 +76,7 @@ __all__ = [
     "subsample_delta",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 FLAG_INTERPOLATED = 1
@@ -326,7 +326,7 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     SNR_XC with the shared function, refine the lag, convert to range, threshold, and
     optionally fill rejected pixels along each column.
     """
-    from firmware_model.snr import snr_xc_db
+    from cdma_lidar.firmware_model.snr import snr_xc_db
 
     ns = config.samples_per_symbol
 

@@ -1,18 +1,18 @@
 """Scans and calibrations on a device: orchestration, progress, resumable partial scans.
 
 :func:`run_scan` scans ``frames`` frames column by column, turns each finished frame
-into ranges (:mod:`host.ranging`), optionally closes the near-far loop between
-frames (:mod:`host.nearfar`), and writes the last frame's point cloud (and pictures).
+into ranges (:mod:`cdma_lidar.host.ranging`), optionally closes the near-far loop between
+frames (:mod:`cdma_lidar.host.nearfar`), and writes the last frame's point cloud (and pictures).
 
 Resumable: while scanning, the frame in progress is saved every second to
-``OUT.partial.npz`` (atomically; NPZ with every :class:`host.frame.FrameData` array,
+``OUT.partial.npz`` (atomically; NPZ with every :class:`cdma_lidar.host.frame.FrameData` array,
 the frame counter, the near-far history and a JSON header naming the device, its
 configuration and the scan options). Ctrl-C or a lost link leaves that file behind;
 ``resume=True`` (``--resume``) reloads it, checks it belongs to the same device and
 configuration, scans only the columns that never arrived, and removes it at the end.
 
 :func:`calibrate_device` takes zeroth-order shots and builds a
-:class:`host.calibration.Calibration` (Supplementary Note 6).
+:class:`cdma_lidar.host.calibration.Calibration` (Supplementary Note 6).
 """
 
 from __future__ import annotations
@@ -32,13 +32,13 @@ from numpy.typing import NDArray
 
 from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
 from cdma_lidar.fileio import atomic_open, check_writable
-from host import pictures
-from host.calibration import Calibration, toml_safe
-from host.device import Device
-from host.frame import FrameData
-from host.nearfar import NearFarController, PowerLimits
-from host.pointcloud import FORMATS, PointCloud, assemble, write
-from host.ranging import RangeImage, estimate_ranges, sample_range_m
+from cdma_lidar.host import pictures
+from cdma_lidar.host.calibration import Calibration, toml_safe
+from cdma_lidar.host.connection import Device
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits
+from cdma_lidar.host.pointcloud import FORMATS, PointCloud, assemble, write
+from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
 
 __all__ = [
     "STATE_SUFFIX",
@@ -52,7 +52,7 @@ __all__ = [
     "summarise",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 STATE_SUFFIX = ".partial.npz"
 _SAVE_EVERY_S = 1.0
@@ -81,7 +81,7 @@ class ScanOptions:
         snr_threshold_db: SNR_XC threshold (dB); None: the default (16 dB).
         min_support: a pixel above the threshold is kept only if at least this many of
             its 8 neighbours are above it too at a lag within 1.5 samples
-            (:attr:`host.ranging.RangingConfig.min_support`); 0: the threshold alone.
+            (:attr:`cdma_lidar.host.ranging.RangingConfig.min_support`); 0: the threshold alone.
         interpolate: fill rejected pixels from their column neighbours (flag 1).
         ghost_windows: ``(start, length)`` lag windows (samples) of known ghosts.
         power_cap: eye-safety cap per column, in units of the per-pixel maximum power

@@ -8,7 +8,7 @@ is zero and the observed UID equals our UID exactly (the receiver's ``uid_match`
 it belongs to another user when the signs are all non-zero but spell another UID.
 Since the other user's periods are not aligned with ours, what we observe is a
 rotation of its UID: we name it by the canonical necklace (the smallest rotation,
-``firmware_model.uid.canonical_necklace``), which is the same for every rotation.
+``cdma_lidar.firmware_model.uid.canonical_necklace``), which is the same for every rotation.
 
 When the primary peak is foreign but an extra peak carries our UID, that extra peak
 is our echo and is used instead (it has no neighbour samples, so its lag is an
@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import out_of_range
-from host.frame import FrameData
+from cdma_lidar.host.frame import FrameData
 
 __all__ = [
     "ForeignReturns",
@@ -41,7 +41,7 @@ _MAX_UID_BITS = 16
 
 @lru_cache(maxsize=16)
 def _canonical_table(n: int) -> NDArray[np.int64]:
-    from firmware_model.uid import canonical_necklace
+    from cdma_lidar.firmware_model.uid import canonical_necklace
 
     return np.array([canonical_necklace(v, n) for v in range(1 << n)], dtype=np.int64)
 
@@ -182,7 +182,7 @@ def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float, *,
     sidelobe is negative their per-period signs spell exactly ``~uid``. (The price: a
     user whose UID is our complement at the same phase is not told apart from it.)
     """
-    from firmware_model.snr import snr_xc_db
+    from cdma_lidar.firmware_model.snr import snr_xc_db
 
     n = frame.uid_bits
     if not 0 <= uid < (1 << n):

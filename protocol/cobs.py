@@ -11,7 +11,7 @@ no zero. The trailing implied zero of the last block is dropped::
     data     254 x non-zero       ->  encoded  FF <254 bytes>
 
 The encoding is never longer than ``n + 1 + n // 254`` bytes and contains no 0x00,
-so 0x00 can delimit frames on the wire (see :mod:`protocol.framing`).
+so 0x00 can delimit frames on the wire (see :mod:`cdma_lidar.protocol.framing`).
 
 :func:`encode` and :func:`decode` use the C extension of the ``cobs`` package when it
 is installed (about 2 us for a 4 KB frame) and the pure-Python reference
@@ -26,7 +26,7 @@ from cdma_lidar.errors import FrameError
 
 __all__ = ["HAVE_C_COBS", "decode", "decode_py", "encode", "encode_py", "max_encoded_len"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 def max_encoded_len(n: int) -> int:

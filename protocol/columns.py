@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from protocol.schema import blob, i, u
+from cdma_lidar.protocol.schema import blob, i, u
 
 __all__ = [
     "COLUMN_HEADER",
@@ -289,7 +289,7 @@ class ColumnResult:
                     timestamp_us: int = 0) -> ColumnResult:
         """Check every value against its wire field and pack the records.
 
-        Shapes are those of ``firmware_model.receiver.ReceiverOutput`` (K channels,
+        Shapes are those of ``cdma_lidar.firmware_model.receiver.ReceiverOutput`` (K channels,
         n UID bits, P peaks). Raises FieldError naming the first bad field.
         """
         _check_int("frame", frame, 0, 2**32 - 1)

@@ -9,7 +9,7 @@ One frame on the wire::
       0   1  version          PROTOCOL_VERSION (1)
       1   1  incompat_flags   a receiver drops a frame with an unknown bit set
       2   1  compat_flags     unknown bits are ignored
-      3   1  msg_type         see protocol.messages.MsgType
+      3   1  msg_type         see cdma_lidar.protocol.messages.MsgType
       4   2  seq              request: host counter; reply: its request's; stream: device counter
       6   2  payload_len      bytes of payload
       8   4  session_id       chosen at random by the device at boot; 0 from a host before HELLO
@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from protocol import cobs
+from cdma_lidar.protocol import cobs
 
 __all__ = [
     "COMPAT_RETRANSMIT",
@@ -59,7 +59,7 @@ __all__ = [
     "max_wire_len",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 PROTOCOL_VERSION = 1
 DELIMITER = b"\x00"

@@ -1,10 +1,10 @@
 """Host end of the link: requests with retries, streamed columns with gap repair, diagnostics.
 
-:class:`HostLink` talks to a :class:`protocol.device.DeviceEndpoint` over any
+:class:`HostLink` talks to a :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` over any
 port-like object: whatever :func:`open_port` returns for a pyserial URL
 (``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), or a
 :class:`FdPort` around a file descriptor. It owns its receive buffer (a
-:class:`protocol.framing.FrameDecoder`) and only ever blocks in ``port.read`` with a
+:class:`cdma_lidar.protocol.framing.FrameDecoder`) and only ever blocks in ``port.read`` with a
 short timeout, so it never spins a core.
 
 Requests: each carries a new ``seq``; the reply (ACK, NAK or data) echoes it. No
@@ -58,8 +58,8 @@ from cdma_lidar.errors import (
     ScanAborted,
     out_of_range,
 )
-from protocol.columns import ColumnResult
-from protocol.framing import (
+from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
     OVERHEAD,
     PROTOCOL_VERSION,
@@ -67,7 +67,7 @@ from protocol.framing import (
     FrameDecoder,
     encode_frame,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     REPLY_TO,
     SCHEMA_CRC,
     CaptureKind,
@@ -99,7 +99,7 @@ __all__ = [
     "open_port",
 ]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
@@ -120,14 +120,14 @@ DIAG_HINTS = {
 def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any) -> Any:
     """Open any pyserial URL (device path, ``socket://``, ``loop://``, ``virtual://``).
 
-    ``scene.urlhandler`` is added to ``serial.protocol_handler_packages`` first, so
+    ``cdma_lidar.virtual.urlhandler`` is added to ``serial.protocol_handler_packages`` first, so
     the virtual device's ``virtual://`` handler is found. Raises LinkError with a
     one-line hint when the port does not exist or cannot be opened.
     """
     import serial
 
-    if "scene.urlhandler" not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append("scene.urlhandler")
+    if "cdma_lidar.virtual.urlhandler" not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
     try:
         if url.lower().startswith("socket://"):
             return _tcp_port_class()(url, baudrate=baudrate, timeout=timeout, **kw)

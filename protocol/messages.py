@@ -11,7 +11,7 @@ Each field is declared with :func:`u` / :func:`i` / :func:`text` / :func:`array`
 unit, allowed range, description). From that one declaration come the encoder's
 range checks (:func:`encode_payload` raises FieldError naming the field), the
 strict decoder (:func:`decode_payload` raises FrameError only), the spec tables
-in ``docs/protocol.md`` (``python -m protocol.spec``) and :data:`SCHEMA_CRC`.
+in ``docs/protocol.md`` (``python -m cdma_lidar.protocol.spec``) and :data:`SCHEMA_CRC`.
 
 CONFIG_SET / CONFIG carry key-length-value items (:data:`CONFIG_KEYS`), so keys can
 be added without a new protocol version. Bit 7 of a key id is the *optional* flag:
@@ -34,9 +34,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from protocol import columns as _columns
-from protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
-from protocol.schema import FieldMeta, array, blob, i, text, u
+from cdma_lidar.protocol import columns as _columns
+from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
+from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, text, u
 
 __all__ = [
     "CONFIG_KEYS",

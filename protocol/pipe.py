@@ -1,7 +1,7 @@
 """In-process byte pipe with the pyserial surface, and optional line faults.
 
 :func:`pipe_pair` joins a host end and a device end in memory, e.g. to run a
-:class:`protocol.device.DeviceEndpoint` in a thread behind a ``virtual://`` URL
+:class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` in a thread behind a ``virtual://`` URL
 handler or in tests. Each direction can misbehave like a bad line, from a seeded
 generator so a run is repeatable:
 

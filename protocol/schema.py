@@ -4,7 +4,7 @@
 named construct field (``"name" / subcon * "doc"``) with a :class:`FieldMeta`
 attached as ``.meta``: its C-like type, unit, allowed range and description. The
 encoders' range checks, the strict decoders and the tables of ``docs/protocol.md``
-(:mod:`protocol.spec`) all read that one declaration.
+(:mod:`cdma_lidar.protocol.spec`) all read that one declaration.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ _INT = {  # (construct subcon, C type, natural lo, natural hi)
 
 def _named(name: str, sub: cs.Construct, meta: FieldMeta) -> cs.Renamed:
     r = name / sub * meta.doc
-    r.meta = meta  # read by the validator and by protocol.spec
+    r.meta = meta  # read by the validator and by cdma_lidar.protocol.spec
     return r
 
 

@@ -6,7 +6,7 @@ Every table of the spec page sits between two markers::
     ...
     <!-- END GENERATED: name -->
 
-``python -m protocol.spec`` rewrites them in place; ``python -m protocol.spec --check``
+``python -m cdma_lidar.protocol.spec`` rewrites them in place; ``python -m cdma_lidar.protocol.spec --check``
 exits 1 when the committed page differs from the code (the test suite runs the same
 check), so the page and the code cannot drift apart.
 """
@@ -22,15 +22,15 @@ from pathlib import Path
 import construct as cs
 
 from cdma_lidar.fileio import atomic_write_text
-from protocol import framing
-from protocol.columns import (
+from cdma_lidar.protocol import framing
+from cdma_lidar.protocol.columns import (
     _RECORD_STRUCT,
     COLUMN_HEADER,
     FLAG_CALIBRATION,
     NO_PEAK,
     ColumnResult,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     CONFIG_KEYS,
     CONFIG_OPTIONAL,
     ERROR_DOCS,
@@ -244,7 +244,7 @@ def check(path: Path = DOC_PATH) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     """Regenerate (or with --check, verify) the tables of docs/protocol.md."""
-    ap = argparse.ArgumentParser(prog="python -m protocol.spec", description=__doc__.split(
+    ap = argparse.ArgumentParser(prog="python -m cdma_lidar.protocol.spec", description=__doc__.split(
         "\n")[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if the page is stale")
     ap.add_argument("--path", type=Path, default=DOC_PATH)
@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     new = render(text)
     if args.check:
         if new != text:
-            sys.stderr.write(f"{args.path} is stale: run python -m protocol.spec\n")
+            sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
             return 1
         return 0
     if new != text:

@@ -18,7 +18,7 @@ from cdma_lidar.fileio import check_writable
 
 __all__ = ["register"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -50,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from scene.model import PRESETS, load_scene
+    from cdma_lidar.scene.model import PRESETS, load_scene
 
     for name in PRESETS:
         sys.stdout.write(f"{name:14s} {load_scene(name).description}\n")
@@ -58,8 +58,8 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_show(args: argparse.Namespace) -> int:
-    from scene.instrument import Instrument
-    from scene.model import load_scene
+    from cdma_lidar.scene.instrument import Instrument
+    from cdma_lidar.scene.model import load_scene
 
     scene = load_scene(args.scene)
     inst = Instrument(scene, 0)
@@ -88,8 +88,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_truth(args: argparse.Namespace) -> int:
-    from scene.model import load_scene
-    from scene.truth import save_truth
+    from cdma_lidar.scene.model import load_scene
+    from cdma_lidar.scene.truth import save_truth
 
     if not str(args.out).lower().endswith(".npz"):
         raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
@@ -116,8 +116,8 @@ def _parse_hostport(text: str) -> tuple[str, int]:
 
 
 def _cmd_device(args: argparse.Namespace) -> int:
-    from scene.model import load_scene
-    from scene.serve import serve_pty, serve_tcp
+    from cdma_lidar.scene.model import load_scene
+    from cdma_lidar.virtual.serve import serve_pty, serve_tcp
 
     if args.seed < 0:
         raise out_of_range("--seed", "a non-negative integer", args.seed)

@@ -51,12 +51,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import out_of_range
-from scene.model import SPEED_OF_LIGHT_M_S, InstrumentSpec, Scene
-from scene.truth import Truth, compute_truth
+from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, InstrumentSpec, Scene
+from cdma_lidar.scene.truth import Truth, compute_truth
 
 __all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response", "gold_codes"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Fine grid of the analog value handed to the ADC model: 2**-FRAC_BITS LSB.
 FRAC_BITS = 8
@@ -113,8 +113,8 @@ def detector_response(f_hz: NDArray[np.float64], bandwidth_hz: float,
 
 @functools.lru_cache(maxsize=8)
 def _msequences(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> tuple[NDArray, NDArray]:
-    from firmware_model.gold import check_pair
-    from firmware_model.lfsr import mseq
+    from cdma_lidar.firmware_model.gold import check_pair
+    from cdma_lidar.firmware_model.lfsr import mseq
 
     pu, pv = check_pair(poly_u, poly_v)
     return mseq(pu), mseq(pv)
@@ -122,7 +122,7 @@ def _msequences(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> tuple[NDArr
 
 def gold_codes(poly_u: tuple[int, ...], poly_v: tuple[int, ...],
                indices: tuple[int, ...]) -> NDArray[np.uint8]:
-    """(len(indices), N) chip bits of Gold members (same definition as firmware_model.gold)."""
+    """(len(indices), N) chip bits of Gold members (same definition as cdma_lidar.firmware_model.gold)."""
     u, v = _msequences(tuple(poly_u), tuple(poly_v))
     n = u.size
     out = np.empty((len(indices), n), dtype=np.uint8)
@@ -389,14 +389,14 @@ class Instrument:
     def _quantise_fine(self, fine: NDArray[np.float64]) -> NDArray[np.int16]:
         """ADC codes of a fine-grid float array (consumed in place), in five float passes.
 
-        Bit-identical to ``firmware_model.adc.quantise(rint(fine), FRAC_BITS, adc_bits)``
+        Bit-identical to ``cdma_lidar.firmware_model.adc.quantise(rint(fine), FRAC_BITS, adc_bits)``
         (tested): with ``x = rint(fine)`` an integer-valued float64, the quantiser's
         ``(x + 2**(F-1)) >> F`` is ``floor((x + 2**(F-1)) * 2**-F)``, and each step is exact
         in float64 while ``|x| < 2**52`` (beyond that both clip to the same end code).
         Staying in float64 saves the int64 conversion and two integer passes (about half
         the ADC's cost, a tenth of a column's rendering).
         """
-        from firmware_model.adc import adc_limits
+        from cdma_lidar.firmware_model.adc import adc_limits
 
         lo, hi = adc_limits(self.spec.adc_bits)
         np.rint(fine, out=fine)
@@ -407,7 +407,7 @@ class Instrument:
         return fine.astype(np.int16)
 
     def to_codes(self, volts: NDArray[np.float64]) -> NDArray[np.int16]:
-        """ADC: ``clip(round_half_up(gain * v / lsb + offset))`` via firmware_model.adc.quantise.
+        """ADC: ``clip(round_half_up(gain * v / lsb + offset))`` via cdma_lidar.firmware_model.adc.quantise.
 
         The analog value goes to the quantiser on a grid 2**-FRAC_BITS LSB fine.
         """

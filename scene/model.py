@@ -17,7 +17,7 @@ Every field is checked once at load time; a bad value raises ``ConfigError`` nam
 dotted field (``objects[3].radius_m``) and its allowed range. Units: metres, seconds,
 watts, volts, degrees, hertz; lags in samples, codes in chips.
 
-Frames: the sensor frame of :mod:`host.geometry` (x forward, y left, z up, origin at the
+Frames: the sensor frame of :mod:`cdma_lidar.optics.grating` (x forward, y left, z up, origin at the
 grating) is the scene's global frame. Object orientation is ``[yaw, pitch, roll]`` in
 degrees, applied as R = Rz(yaw) @ Ry(pitch) @ Rx(roll) to the object's local axes.
 """
@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import ConfigError, out_of_range
 
 if TYPE_CHECKING:  # imported at call time in geometry(): scene does not load host at import
-    from host.geometry import GratingGeometry
+    from cdma_lidar.optics.grating import GratingGeometry
 
 __all__ = [
     "PRESETS",
@@ -281,7 +281,7 @@ class InstrumentSpec:
 
     def geometry(self, nominal: bool = False) -> GratingGeometry:
         """The grating geometry: true (what the light does) or nominal (what the host assumes)."""
-        from host.geometry import GratingGeometry
+        from cdma_lidar.optics.grating import GratingGeometry
 
         if nominal:
             return GratingGeometry(self.nominal_grooves_per_mm, self.nominal_incidence_deg,
@@ -354,7 +354,7 @@ def _parse_wavelengths(r: _Reader) -> NDArray[np.float64]:
 def _parse_rotations(r: _Reader, geometry_kw: dict[str, Any]) -> NDArray[np.float64]:
     if r.has("rotations_deg"):
         return r.nums("rotations_deg", -60.0, 60.0, max_len=100_000, unit="deg")
-    from host.geometry import GratingGeometry
+    from cdma_lidar.optics.grating import GratingGeometry
 
     az = r.vec("azimuth_deg", 2, -60.0, 60.0, [-5.0, 5.0], unit="deg")
     cols = r.int("columns", 1, 100_000, 160)
@@ -596,7 +596,7 @@ def load_scene(name_or_path: str | Path, overrides: dict[str, Any] | None = None
     opts.update(overrides or {})
     path = Path(base)
     if base in PRESETS:
-        raw = resources.files("scene").joinpath("presets", f"{base}.toml").read_text("utf-8")
+        raw = resources.files("cdma_lidar.scene").joinpath("presets", f"{base}.toml").read_text("utf-8")
     elif path.suffix == ".toml" or path.exists():
         try:
             raw = path.read_text("utf-8")

@@ -1,7 +1,7 @@
 """Ray casting: where each pixel's beam first meets an object.
 
 Rays start at the grating (the origin of the sensor frame) along unit directions from
-:meth:`host.geometry.GratingGeometry.directions`. Every object kind returns, per ray, the
+:meth:`cdma_lidar.optics.grating.GratingGeometry.directions`. Every object kind returns, per ray, the
 distance ``t`` (m) to its first hit in front of the origin (``inf`` if none) and the cosine
 of the incidence angle (between the ray and the surface normal, in [0, 1], used for
 Lambertian reflection). The nearest object wins.
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scene.model import ObjectSpec, Scene
+from cdma_lidar.scene.model import ObjectSpec, Scene
 
 __all__ = ["Hits", "cast", "glyph_polygons", "intersect"]
 

@@ -23,8 +23,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.fileio import atomic_write_bytes, check_writable
-from scene.model import Scene
-from scene.raycast import Hits, cast
+from cdma_lidar.scene.model import Scene
+from cdma_lidar.scene.raycast import Hits, cast
 
 __all__ = ["Truth", "compute_truth", "save_truth"]
 

@@ -1,6 +1,6 @@
 """cocotb bench for ``rx_chain``: plays every case of a job and records the output words.
 
-Run through :func:`hdl_ref.cosim.run_job` (never imported by the model). For each
+Run through :func:`cdma_lidar.hdl_ref.cosim.run_job` (never imported by the model). For each
 case it drives the configuration ports, pulses ``start``, streams the samples
 one per clock while ``s_ready`` is high (or with ``s_valid`` low on every
 ``gap``-th clock when the case has ``"gap"``), records every ``corr_*`` word as it

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.adc import adc_limits, quantise
+from cdma_lidar.firmware_model.adc import adc_limits, quantise
 
 
 @given(

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
-from firmware_model.cli import format_chips
-from firmware_model.gold import gold_code, gold_seeds
-from firmware_model.lfsr import mseq
-from firmware_model.pairs import preferred_pairs
-from firmware_model.uid import necklaces
+from cdma_lidar.firmware_model.cli import format_chips
+from cdma_lidar.firmware_model.gold import gold_code, gold_seeds
+from cdma_lidar.firmware_model.lfsr import mseq
+from cdma_lidar.firmware_model.pairs import preferred_pairs
+from cdma_lidar.firmware_model.uid import necklaces
 
 
 def run(capsys, *argv):

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.gold import (
+from cdma_lidar.firmware_model.gold import (
     bipolar,
     family_size,
     gold_code,
@@ -19,8 +19,8 @@ from firmware_model.gold import (
     t_value,
     xcorr_values,
 )
-from firmware_model.lfsr import fibonacci_run, mseq
-from firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.lfsr import fibonacci_run, mseq
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 
 SMALL_PAIRS = [pair for m in (5, 6, 7, 9, 10, 11) for pair in preferred_pairs(m)]
 

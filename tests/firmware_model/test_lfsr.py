@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.gold import periodic_xcorr
-from firmware_model.lfsr import (
+from cdma_lidar.firmware_model.gold import periodic_xcorr
+from cdma_lidar.firmware_model.lfsr import (
     FibonacciLFSR,
     GaloisLFSR,
     fibonacci_run,

@@ -8,9 +8,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.gold import periodic_xcorr, t_value
-from firmware_model.lfsr import is_primitive, mseq
-from firmware_model.pairs import (
+from cdma_lidar.firmware_model.gold import periodic_xcorr, t_value
+from cdma_lidar.firmware_model.lfsr import is_primitive, mseq
+from cdma_lidar.firmware_model.pairs import (
     DECIMATIONS,
     PAIR_TABLE,
     PAPER_PAIR,

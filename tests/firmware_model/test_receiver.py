@@ -16,7 +16,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.receiver import (
+from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
     ReferenceReceiver,
@@ -269,8 +269,8 @@ def test_reference_rejects_overfeeding_and_early_finish():
 
 @pytest.mark.parametrize(("degree", "gate_len", "method"), [(7, 40, "matmul"), (9, 1022, "fft")])
 def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
-    from firmware_model.gold import gold_family
-    from firmware_model.pairs import preferred_pairs
+    from cdma_lidar.firmware_model.gold import gold_family
+    from cdma_lidar.firmware_model.pairs import preferred_pairs
 
     codes = gold_family(*preferred_pairs(degree)[0])[:5]
     n = codes.shape[1]

@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_model.adc import adc_limits, quantise
-from firmware_model.gold import gold_family
-from firmware_model.lfsr import mseq
-from firmware_model.pairs import preferred_pairs
-from firmware_model.receiver import (
+from cdma_lidar.firmware_model.adc import adc_limits, quantise
+from cdma_lidar.firmware_model.gold import gold_family
+from cdma_lidar.firmware_model.lfsr import mseq
+from cdma_lidar.firmware_model.pairs import preferred_pairs
+from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
     fast,

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.snr import snr_xc_db
+from cdma_lidar.firmware_model.snr import snr_xc_db
 
 
 @given(

@@ -10,9 +10,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.gold import bipolar, gold_code
-from firmware_model.pairs import PAPER_PAIR
-from firmware_model.uid import (
+from cdma_lidar.firmware_model.gold import bipolar, gold_code
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR
+from cdma_lidar.firmware_model.uid import (
     candidates_direct,
     candidates_uid,
     canonical_necklace,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hdl_ref import cosim
+from cdma_lidar.hdl_ref import cosim
 
 SKIP_REASON = ("Icarus Verilog (iverilog, vvp) is not installed: apt-get install iverilog "
                "(make test installs it)")

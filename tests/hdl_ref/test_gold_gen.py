@@ -1,4 +1,4 @@
-"""gold_gen RTL against firmware_model.gold/.uid, clock by clock.
+"""gold_gen RTL against cdma_lidar.firmware_model.gold/.uid, clock by clock.
 
 One simulation plays every case: seeds from ``gold_seeds`` (the model's
 jump-ahead), a random enable pattern, and for every clock the RTL's chip,
@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware_model.gold import gold_code
-from firmware_model.pairs import PAPER_PAIR, preferred_pairs
-from firmware_model.uid import polarity_modulate
-from hdl_ref import cosim
+from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.uid import polarity_modulate
+from cdma_lidar.hdl_ref import cosim
 
 PARAMS = cosim.GoldParams(max_deg=11, max_uid=8)
 
@@ -69,7 +69,7 @@ def gold_run(gold_builder) -> list[dict]:
                                    c["uid_bits"], PARAMS), "en": c["en"]}
         for c in CASES
     ]}
-    return cosim.run_job(cosim.GOLD_TOP, "hdl_ref.tb.test_gold_gen", build_dir, job,
+    return cosim.run_job(cosim.GOLD_TOP, "cdma_lidar.hdl_ref.tb.test_gold_gen", build_dir, job,
                          name="gold")["cases"]
 
 

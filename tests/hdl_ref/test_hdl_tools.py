@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.lfsr import mseq
-from firmware_model.receiver import ReceiverConfig
-from hdl_ref import cosim, lint, synth
+from cdma_lidar.firmware_model.lfsr import mseq
+from cdma_lidar.firmware_model.receiver import ReceiverConfig
+from cdma_lidar.hdl_ref import cosim, lint, synth
 
 
 def _rtl_register(poly: tuple[int, ...], seed: str, chips: int) -> np.ndarray:

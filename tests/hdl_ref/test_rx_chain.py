@@ -1,4 +1,4 @@
-"""rx_chain RTL against firmware_model.receiver.reference, word for word.
+"""rx_chain RTL against cdma_lidar.firmware_model.receiver.reference, word for word.
 
 Every case runs the Icarus build of ``hdl_ref/rtl`` under cocotb (one build per
 parameter set, configurations are run-time ports) and compares, per case:
@@ -27,11 +27,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_model.gold import gold_code
-from firmware_model.pairs import PAPER_PAIR, preferred_pairs
-from firmware_model.receiver import ReceiverConfig, reference
-from hdl_ref import cosim
-from hdl_ref.stimuli import echo_column, full_scale_column
+from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
+from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
 
 PARAMS = cosim.RxParams(max_deg=11, max_s=4, max_uid=4, max_r=4, max_g=64, max_p=3,
                         nghost=2, adc_w=16, out_w=32)
@@ -201,7 +201,7 @@ def _simulate(builder, params: cosim.RxParams, cases: list[Case], name: str) -> 
     ports = [cosim.rx_ports(c.cfg, c.pair[0], c.pair[1], c.index, params) for c in cases]
     job = {"cases": [{"ports": p, "samples": list(c.samples), "gap": c.gap}
                      for p, c in zip(ports, cases, strict=True)]}
-    raw = cosim.run_job(cosim.RX_TOP, "hdl_ref.tb.test_rx_chain", build_dir, job, name=name)
+    raw = cosim.run_job(cosim.RX_TOP, "cdma_lidar.hdl_ref.tb.test_rx_chain", build_dir, job, name=name)
     return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import CalibrationError, ConfigError
-from host.calibration import Calibration, analyse_histogram
+from cdma_lidar.host.calibration import Calibration, analyse_histogram
 
 GAP, SPREAD = 0.6, 0.1
 DEVICE = {"name": "virtual", "serial": "V-0001", "firmware": "1.0"}

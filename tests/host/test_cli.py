@@ -179,7 +179,7 @@ def test_calibration_on_a_noisy_device_is_refused(capsys, tmp_path):
 
 
 def test_scan_interpolate_and_min_support(capsys, tmp_path):
-    from host.pointcloud import read_npz
+    from cdma_lidar.host.pointcloud import read_npz
 
     out = tmp_path / "i.npz"
     code, text, _ = _run(capsys, "scan", "--port", "virtual://paper-scene1?seed=2", "--out",
@@ -224,8 +224,8 @@ def test_same_seed_and_frame_id_same_cloud_bytes(capsys, tmp_path):
 
 
 def test_ctrl_c_leaves_a_partial_scan_that_resume_finishes(capsys, tmp_path, monkeypatch):
-    from host.frame import FrameData
-    from host.scan import state_path
+    from cdma_lidar.host.frame import FrameData
+    from cdma_lidar.host.scan import state_path
 
     port = "virtual://multi-user?seed=2"
     whole = tmp_path / "whole.ply"

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.gold import gold_family
-from firmware_model.receiver import FastReceiver, ReceiverConfig
-from host.frame import FrameData
-from protocol.columns import ColumnResult, decode_column, encode_column
+from cdma_lidar.firmware_model.gold import gold_family
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.protocol.columns import ColumnResult, decode_column, encode_column
 
 
 def _receiver_output(seed: int, peaks: int = 3, uid_bits: int = 2):

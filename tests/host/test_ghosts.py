@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
-from host.frame import FrameData
-from host.ranging import (
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.ranging import (
     FLAG_GHOST,
     FLAG_REJECTED,
     RangingConfig,
     estimate_ranges,
     ghost_windows_from_image,
 )
-from scene import load_scene
-from scene.truth import compute_truth
+from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.truth import compute_truth
 
 SCENE = """
 name = "{name}"

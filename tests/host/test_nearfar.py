@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from host.nearfar import NearFarController, PowerLimits, next_power
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits, next_power
 
 THRESHOLD_DB = 20.0
 

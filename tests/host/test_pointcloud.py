@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from host.geometry import GratingGeometry, paper_wavelengths_m
-from host.pointcloud import assemble, read_npz, write
-from host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, RangeImage
-from host.uid_filter import ForeignReturns
+from cdma_lidar.optics.grating import GratingGeometry, paper_wavelengths_m
+from cdma_lidar.host.pointcloud import assemble, read_npz, write
+from cdma_lidar.host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, RangeImage
+from cdma_lidar.host.uid_filter import ForeignReturns
 
 K, C = 6, 9
 

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from host.ranging import (
+from cdma_lidar.host.ranging import (
     SPEED_OF_LIGHT_M_S,
     RangingConfig,
     fill_columns,
@@ -145,7 +145,7 @@ def test_config_checks():
 
 
 def _flat_frame(k: int = 6, c: int = 4, lag: int = 30):
-    from host.frame import FrameData
+    from cdma_lidar.host.frame import FrameData
 
     f = FrameData.empty(k, c)
     f.done[:] = True
@@ -159,7 +159,7 @@ def _flat_frame(k: int = 6, c: int = 4, lag: int = 30):
 
 
 def test_estimate_ranges_threshold_support_and_fill():
-    from host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, estimate_ranges
+    from cdma_lidar.host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, estimate_ranges
 
     f = _flat_frame()
     f.peak[2:4, 1] = 20  # two weak pixels in column 1: 6 dB
@@ -188,7 +188,7 @@ def test_estimate_ranges_threshold_support_and_fill():
 
 
 def test_neighbour_support_counts_consistent_lags():
-    from host.ranging import neighbour_support
+    from cdma_lidar.host.ranging import neighbour_support
 
     lag = np.array([[10.0, 10.5, 40.0], [10.2, 10.0, 10.1], [70.0, 10.0, 9.0]])
     strong = np.ones((3, 3), bool)

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
-from host.calibration import Calibration
-from host.device import connect
-from host.ranging import estimate_ranges, precision_eq27_m
-from host.scan import ScanOptions, calibrate_device, run_scan, state_path, summarise
-from host.simulate import eq27_from_configuration
-from scene import load_scene
-from scene.truth import compute_truth
+from cdma_lidar.host.calibration import Calibration
+from cdma_lidar.host.connection import connect
+from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
+from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, state_path, summarise
+from cdma_lidar.study.simulate import eq27_from_configuration
+from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.truth import compute_truth
 
 
 def _truth(name: str) -> np.ndarray:
@@ -165,7 +165,7 @@ def test_calibration_file_round_trip_refuses_other_device(tmp_path):
 def test_interpolation_fills_rejected_object_pixels(paper_scan):
     """At 20 dB some object pixels fall below the threshold; --interpolate fills short runs
     of them along the column (flag 1, bit 2 cleared) close to the truth."""
-    from host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED
+    from cdma_lidar.host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED
 
     _, res, *_ = paper_scan
     truth = _truth("paper-scene1")

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from firmware_model.uid import canonical_necklace
-from host.frame import FrameData
-from host.ranging import FLAG_FOREIGN, FLAG_REJECTED, RangingConfig, estimate_ranges
-from host.uid_filter import canonical_uids, find_foreign, observed_uids, select_own
+from cdma_lidar.firmware_model.uid import canonical_necklace
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.ranging import FLAG_FOREIGN, FLAG_REJECTED, RangingConfig, estimate_ranges
+from cdma_lidar.host.uid_filter import canonical_uids, find_foreign, observed_uids, select_own
 
 N = 3
 OURS = 0b001

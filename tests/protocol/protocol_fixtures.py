@@ -1,9 +1,9 @@
 """Test fixtures for the protocol: a synthetic device application and an in-memory lossy link.
 
-``SyntheticApp`` is a small but complete :class:`protocol.device.DeviceApp` whose
+``SyntheticApp`` is a small but complete :class:`cdma_lidar.protocol.endpoint.DeviceApp` whose
 columns are a pure function of (frame, column, config), so a test can recompute
 what every received column must be. The lossy in-memory link is
-:func:`protocol.pipe.pipe_pair`.
+:func:`cdma_lidar.protocol.pipe.pipe_pair`.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 
 from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
-from protocol.columns import ColumnResult
-from protocol.device import DeviceApp, DeviceEndpoint
-from protocol.messages import CaptureKind, ErrorCode, Info
+from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, Info
 
 
 # ---- synthetic device application ------------------------------------------------------

@@ -15,8 +15,8 @@ import subprocess
 import pytest
 
 from cdma_lidar.errors import FrameError
-from protocol import cobs, spec
-from protocol.framing import crc32, encode_frame
+from cdma_lidar.protocol import cobs, spec
+from cdma_lidar.protocol.framing import crc32, encode_frame
 
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
 pytestmark = pytest.mark.skipif(CC is None, reason="needs a C compiler")

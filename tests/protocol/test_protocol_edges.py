@@ -11,13 +11,13 @@ import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp
 
 from cdma_lidar.errors import LinkError, LinkTimeout
-from protocol import cobs, framing
-from protocol.columns import ColumnResult
-from protocol.device import DeviceEndpoint
-from protocol.framing import Frame, FrameDecoder, encode_frame
-from protocol.link import DIAG_GARBAGE, DIAG_VERSION, FdPort, HostLink
-from protocol.messages import ErrorCode, MsgType, Status, encode_payload
-from protocol.pipe import pipe_pair
+from cdma_lidar.protocol import cobs, framing
+from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, FdPort, HostLink
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, Status, encode_payload
+from cdma_lidar.protocol.pipe import pipe_pair
 
 
 def _responder(port, stop: threading.Event, answer) -> threading.Thread:
@@ -301,8 +301,8 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
-    from protocol.link import DIAG_SILENT
-    from protocol.pipe import Faults
+    from cdma_lidar.protocol.link import DIAG_SILENT
+    from cdma_lidar.protocol.pipe import Faults
 
     host, dev = pipe_pair()
     app = SyntheticApp(columns=40, column_delay_s=0.01)

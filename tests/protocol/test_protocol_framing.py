@@ -9,8 +9,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import FieldError, FrameError
-from protocol import cobs, framing
-from protocol.framing import Frame, FrameDecoder, crc32, encode_frame
+from cdma_lidar.protocol import cobs, framing
+from cdma_lidar.protocol.framing import Frame, FrameDecoder, crc32, encode_frame
 
 frames_st = st.builds(
     Frame,

@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 from protocol_fixtures import RunningDevice, SyntheticApp
 
 from cdma_lidar.errors import CdmaLidarError, FrameError
-from protocol.device import DeviceEndpoint
-from protocol.framing import FrameDecoder, encode_frame
-from protocol.link import HostLink
-from protocol.messages import REPLY_TO, MsgType, Status, decode_payload, encode_payload
-from protocol.pipe import pipe_pair
+from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import REPLY_TO, MsgType, Status, decode_payload, encode_payload
+from cdma_lidar.protocol.pipe import pipe_pair
 
 SESSION = 0xABCD
 REQUESTS = sorted(int(t) for t in REPLY_TO)

@@ -11,10 +11,10 @@ import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, expected_column
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
-from protocol import framing
-from protocol.device import FAULT_HEALTH, DeviceEndpoint
-from protocol.framing import Frame, FrameDecoder, encode_frame
-from protocol.link import (
+from cdma_lidar.protocol import framing
+from cdma_lidar.protocol.endpoint import FAULT_HEALTH, DeviceEndpoint
+from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import (
     DIAG_GARBAGE,
     DIAG_NO_ANSWER,
     DIAG_SILENT,
@@ -22,7 +22,7 @@ from protocol.link import (
     HostLink,
     open_port,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     CONFIG_OPTIONAL,
     CaptureKind,
     ErrorCode,
@@ -32,7 +32,7 @@ from protocol.messages import (
     encode_config,
     encode_payload,
 )
-from protocol.pipe import PipePort, pipe_pair
+from cdma_lidar.protocol.pipe import PipePort, pipe_pair
 
 TIMEOUT = 0.05
 

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from protocol_fixtures import expected_column
 
 from cdma_lidar.errors import FieldError, FrameError
-from protocol.columns import (
+from cdma_lidar.protocol.columns import (
     ColumnResult,
     column_payload_size,
     decode_column,
@@ -19,7 +19,7 @@ from protocol.columns import (
     encode_column,
     encode_column_construct,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     CONFIG_KEYS,
     CONFIG_OPTIONAL,
     MESSAGES,
@@ -311,7 +311,7 @@ def test_config_decoder_raises_only_frame_error_naming_the_key(items: list[dict]
 
 def test_column_record_declaration_and_numpy_dtype_list_the_same_fields() -> None:
     """The spec table comes from the construct record, the wire from the dtype: same order."""
-    from protocol.columns import _HEAD, _RECORD_STRUCT, COLUMN_HEADER, record_dtype
+    from cdma_lidar.protocol.columns import _HEAD, _RECORD_STRUCT, COLUMN_HEADER, record_dtype
 
     names = [sc.name for sc in _RECORD_STRUCT.subcons]
     for p in (1, 2, 8):

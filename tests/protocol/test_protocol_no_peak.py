@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware_model.receiver import ReceiverConfig, fast
-from protocol.columns import NO_PEAK, ColumnResult, decode_column, encode_column
+from cdma_lidar.firmware_model.receiver import ReceiverConfig, fast
+from cdma_lidar.protocol.columns import NO_PEAK, ColumnResult, decode_column, encode_column
 
 
 def test_missing_extra_peaks_round_trip_as_minus_one():

@@ -13,7 +13,7 @@ import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
-from protocol.link import DIAG_SILENT, FdPort, HostLink, open_port
+from cdma_lidar.protocol.link import DIAG_SILENT, FdPort, HostLink, open_port
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pty")
 

@@ -7,10 +7,10 @@ import re
 
 import pytest
 
-from protocol import spec
-from protocol.columns import column_payload_size
-from protocol.framing import FrameDecoder, crc32, encode_frame
-from protocol.link import (
+from cdma_lidar.protocol import spec
+from cdma_lidar.protocol.columns import column_payload_size
+from cdma_lidar.protocol.framing import FrameDecoder, crc32, encode_frame
+from cdma_lidar.protocol.link import (
     DIAG_GARBAGE,
     DIAG_HINTS,
     DIAG_NO_ANSWER,
@@ -19,7 +19,7 @@ from protocol.link import (
     DIAG_WRONG_SESSION,
     HostLink,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     CONFIG_KEYS,
     MESSAGES,
     SCHEMA_CRC,
@@ -30,7 +30,7 @@ from protocol.messages import (
 
 
 def test_committed_spec_page_matches_the_code() -> None:
-    assert spec.check(), "docs/protocol.md is stale: run python -m protocol.spec"
+    assert spec.check(), "docs/protocol.md is stale: run python -m cdma_lidar.protocol.spec"
     assert spec.main(["--check"]) == 0
 
 

@@ -9,10 +9,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from firmware_model.gold import gold_family
-from firmware_model.receiver import FastReceiver, ReceiverConfig
-from scene.instrument import Instrument, RenderSettings, gold_codes
-from scene.model import SPEED_OF_LIGHT_M_S, load_scene, parse_scene
+from cdma_lidar.firmware_model.gold import gold_family
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.scene.instrument import Instrument, RenderSettings, gold_codes
+from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, load_scene, parse_scene
 
 FS = 62.5e6 * 4  # samples per second of the presets
 
@@ -104,7 +104,7 @@ def test_amplitude_follows_inverse_square_of_range():
 
 
 def _ghost_scene(with_ghost: bool):
-    doc = tomllib.loads(resources.files("scene").joinpath("presets", "flat-wall.toml")
+    doc = tomllib.loads(resources.files("cdma_lidar.scene").joinpath("presets", "flat-wall.toml")
                         .read_text("utf-8"))
     doc.pop("shortcuts")
     doc["instrument"].update({"wavelengths": {"count": 4}, "columns": 2})
@@ -135,7 +135,7 @@ def test_ghosts_appear_only_where_configured():
 
 
 def _multi_user(with_users: bool):
-    doc = tomllib.loads(resources.files("scene").joinpath("presets", "multi-user.toml")
+    doc = tomllib.loads(resources.files("cdma_lidar.scene").joinpath("presets", "multi-user.toml")
                         .read_text("utf-8"))
     doc["instrument"].update({"wavelengths": {"count": 2}, "columns": 1})
     if not with_users:
@@ -204,10 +204,10 @@ def test_adc_clips_and_offsets():
 
 @pytest.mark.parametrize("adc_bits", [8, 12, 16])
 def test_fused_adc_is_the_firmware_quantiser(adc_bits):
-    """The instrument's float ADC equals firmware_model.adc.quantise(rint(x)) bit for bit:
+    """The instrument's float ADC equals cdma_lidar.firmware_model.adc.quantise(rint(x)) bit for bit:
     random values, every half-way point of a range of codes, both clip edges, infinities."""
-    from firmware_model.adc import quantise
-    from scene.instrument import FRAC_BITS
+    from cdma_lidar.firmware_model.adc import quantise
+    from cdma_lidar.scene.instrument import FRAC_BITS
 
     inst = Instrument(_wall(5.0, count=1, columns=1, **{"instrument.adc_bits": adc_bits}), 0)
     one = float(1 << FRAC_BITS)
@@ -235,7 +235,7 @@ def test_gold_codes_match_the_code_generator():
 
 
 def test_our_uid_polarity_matches_the_code_generator():
-    from firmware_model.uid import polarity_modulate
+    from cdma_lidar.firmware_model.uid import polarity_modulate
 
     inst = Instrument(_shell(6.0), seed=0)
     base = RenderSettings.from_spec(inst.spec)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from scene.model import PRESETS, load_scene, parse_scene
+from cdma_lidar.scene.model import PRESETS, load_scene, parse_scene
 
 
 def _doc(**instrument):

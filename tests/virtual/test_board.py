@@ -16,11 +16,11 @@ import pytest
 import serial
 
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError
-from firmware_model.device import VirtualFirmware
-from firmware_model.snr import snr_xc_db
-from protocol.device import DeviceApp
-from protocol.link import HostLink, open_port
-from scene.model import SPEED_OF_LIGHT_M_S, load_scene
+from cdma_lidar.virtual.board import VirtualFirmware
+from cdma_lidar.firmware_model.snr import snr_xc_db
+from cdma_lidar.protocol.endpoint import DeviceApp
+from cdma_lidar.protocol.link import HostLink, open_port
+from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, load_scene
 
 FS = 62.5e6 * 4
 URL = "virtual://flat-wall?seed=3&distance=7.5&instrument.wavelengths.count=8&instrument.columns=4"
@@ -42,8 +42,8 @@ def test_virtual_firmware_is_a_device_app():
 
 
 def test_serial_for_url_finds_the_handler():
-    if "scene.urlhandler" not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append("scene.urlhandler")
+    if "cdma_lidar.virtual.urlhandler" not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
     port = serial.serial_for_url("virtual://calibration?seed=1", timeout=0.1)
     try:
         assert port.is_open and port.in_waiting == 0

@@ -1,6 +1,6 @@
 """Device end of the link: framing, sessions, ACK/NAK, replay cache and the column ring.
 
-The device application (:class:`DeviceApp`, e.g. ``firmware_model.device`` for the
+The device application (:class:`DeviceApp`, e.g. ``cdma_lidar.virtual.board`` for the
 virtual device) only answers decoded requests and produces columns.
 :class:`DeviceEndpoint` does everything that touches the wire::
 
@@ -22,7 +22,7 @@ seconds, so the host hears from the device even while a column takes long to
 compute. The application is only ever called by one thread at a time.
 
 Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
-``in_waiting``, ``timeout``): a pty (:class:`protocol.link.FdPort`), a pyserial
+``in_waiting``, ``timeout``): a pty (:class:`cdma_lidar.protocol.link.FdPort`), a pyserial
 port, a TCP socket or an in-process pipe::
 
     stop = threading.Event()
@@ -48,8 +48,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
-from protocol.columns import ColumnResult, column_payload_size, encode_column
-from protocol.framing import (
+from cdma_lidar.protocol.columns import ColumnResult, column_payload_size, encode_column
+from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
     FRAME_LIMIT,
     MIN_MAX_FRAME,
@@ -59,7 +59,7 @@ from protocol.framing import (
     FrameDecoder,
     encode_frame,
 )
-from protocol.messages import (
+from cdma_lidar.protocol.messages import (
     CONFIG_KEYS,
     REPLY_TO,
     SCHEMA_CRC,
@@ -81,7 +81,7 @@ from protocol.messages import (
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceEndpoint", "EndpointStats"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
 _KEY_IDS = {k.id: k.name for k in CONFIG_KEYS}

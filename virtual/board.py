@@ -1,9 +1,9 @@
 """The virtual board's application: configuration limits, power control, the receive chain.
 
-:class:`VirtualFirmware` implements :class:`protocol.device.DeviceApp`. It sits behind
-the protocol's :class:`protocol.device.DeviceEndpoint` (which owns framing, sequence
+:class:`VirtualFirmware` implements :class:`cdma_lidar.protocol.endpoint.DeviceApp`. It sits behind
+the protocol's :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` (which owns framing, sequence
 numbers, replay and the column ring buffer) and in front of the simulated instrument
-(:class:`scene.instrument.Instrument`)::
+(:class:`cdma_lidar.scene.instrument.Instrument`)::
 
     host --wire--> DeviceEndpoint --requests--> VirtualFirmware --settings--> Instrument
                                  <--columns---   (receive chain)  <--ADC codes--
@@ -18,7 +18,7 @@ numbers, replay and the column ring buffer) and in front of the simulated instru
   ``total_power_cap_w`` is refused (field ``power``), as is one outside the matrix.
 * SCAN: renders each column's ADC codes (R * n * N * S samples, noise seeded by
   (seed, frame, column), so a resend or a rescan of the same frame id gives the same
-  result) and runs ``firmware_model.receiver`` (the fast, bit-exact path, a batch of
+  result) and runs ``cdma_lidar.firmware_model.receiver`` (the fast, bit-exact path, a batch of
   columns at a time) with the current configuration.
 * CALIBRATE: ``shots`` columns of the zeroth-order beam-trap target at its fixed
   distance, every channel lit, grating angle reported as 90 degrees.
@@ -41,16 +41,16 @@ from numpy.typing import NDArray
 
 from cdma_lidar import __version__
 from cdma_lidar.errors import ConfigError, out_of_range
-from firmware_model.receiver import FastReceiver, ReceiverConfig
-from protocol.columns import ColumnResult
-from protocol.device import DeviceApp
-from protocol.messages import MODES, ROUNDINGS, CaptureKind, Info
-from scene.instrument import Instrument, RenderSettings, gold_codes
-from scene.model import Scene
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.endpoint import DeviceApp
+from cdma_lidar.protocol.messages import MODES, ROUNDINGS, CaptureKind, Info
+from cdma_lidar.scene.instrument import Instrument, RenderSettings, gold_codes
+from cdma_lidar.scene.model import Scene
 
 __all__ = ["LIMITS", "VirtualFirmware"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 #: Limits of the virtual board (also announced in INFO).
 LIMITS = {
@@ -83,7 +83,7 @@ def _batches(first: int, count: int) -> Iterator[list[int]]:
 
 
 class VirtualFirmware(DeviceApp):
-    """Device application of the virtual board (implements protocol.device.DeviceApp).
+    """Device application of the virtual board (implements cdma_lidar.protocol.endpoint.DeviceApp).
 
     Args:
         scene: the world in front of the instrument (true parameters).
@@ -161,7 +161,7 @@ class VirtualFirmware(DeviceApp):
                                                  if k != "code_index"))
 
     def _check(self, c: dict[str, Any]) -> None:
-        from firmware_model.gold import check_pair
+        from cdma_lidar.firmware_model.gold import check_pair
 
         pu, _ = check_pair(c["poly_u"], c["poly_v"])
         degree = pu[0]

@@ -2,14 +2,14 @@
 
 Registered the way pyserial registers ``loop://``: a module ``protocol_virtual`` with a
 ``Serial`` class, in a package listed in ``serial.protocol_handler_packages``
-(:func:`protocol.link.open_port` adds ``scene.urlhandler``)::
+(:func:`cdma_lidar.protocol.link.open_port` adds ``cdma_lidar.virtual.urlhandler``)::
 
     import serial
-    serial.protocol_handler_packages.append("scene.urlhandler")
+    serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
     port = serial.serial_for_url("virtual://paper-scene1?seed=3")
 
-Opening the port starts, in a daemon thread, a :class:`protocol.device.DeviceEndpoint`
-serving :class:`firmware_model.device.VirtualFirmware` over two in-process byte pipes.
+Opening the port starts, in a daemon thread, a :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint`
+serving :class:`cdma_lidar.virtual.board.VirtualFirmware` over two in-process byte pipes.
 Closing the port stops it.
 
 URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml file
@@ -33,11 +33,11 @@ from typing import Any
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from cdma_lidar.errors import CdmaLidarError
-from scene.pipes import BytePipe, LineNoise, PipePort
+from cdma_lidar.virtual.pipes import BytePipe, LineNoise, PipePort
 
 __all__ = ["Serial", "parse_url"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 _OWN_OPTIONS = ("seed", "line_error_rate", "line_seed", "session")
 
@@ -88,9 +88,9 @@ class Serial(SerialBase):
             raise SerialException("Port is already open.")
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")
-        from firmware_model.device import VirtualFirmware
-        from protocol.device import DeviceEndpoint
-        from scene.model import load_scene
+        from cdma_lidar.virtual.board import VirtualFirmware
+        from cdma_lidar.protocol.endpoint import DeviceEndpoint
+        from cdma_lidar.scene.model import load_scene
 
         name, own, scene_opts = parse_url(self.portstr)
         seed = int(own.get("seed", 0))

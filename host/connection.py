@@ -18,17 +18,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import LinkError, LinkTimeout
-from host.geometry import GratingGeometry
-from host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
+from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 
 __all__ = ["Device", "connect"]
 
-log = logging.getLogger("cdma_lidar." + __name__)
+log = logging.getLogger(__name__)
 
 
 @dataclass
 class Device:
-    """An open session with a device (``link`` is a :class:`protocol.link.HostLink`)."""
+    """An open session with a device (``link`` is a :class:`cdma_lidar.protocol.link.HostLink`)."""
 
     link: Any
     info: Any
@@ -109,7 +109,7 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
     Raises LinkError with one line that says what to do when the port cannot be
     opened or the device does not answer.
     """
-    from protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
+    from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
 
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from host.geometry import GratingGeometry, azimuth_elevation_deg, paper_wavelengths_m
+from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg, paper_wavelengths_m
 
 GEOM = GratingGeometry()
 WL = paper_wavelengths_m()
