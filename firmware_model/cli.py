@@ -29,8 +29,6 @@ import logging
 import sys
 
 import numpy as np
-
-from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import (
     check_pair,
     family_size,
@@ -39,9 +37,18 @@ from cdma_lidar.firmware_model.gold import (
     t_value,
     xcorr_values,
 )
-from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, format_poly, mseq, parse_poly, parse_seed
+from cdma_lidar.firmware_model.lfsr import (
+    Poly,
+    check_primitive,
+    format_poly,
+    mseq,
+    parse_poly,
+    parse_seed,
+)
 from cdma_lidar.firmware_model.pairs import pair_table
 from cdma_lidar.firmware_model.uid import MAX_UID_BITS, necklace_count, necklaces, uid_to_str
+
+from cdma_lidar.errors import out_of_range
 
 __all__ = ["FORMATS", "format_chips", "register"]
 

@@ -32,9 +32,6 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
-
-from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.lfsr import (
     Poly,
     _check_chips,
@@ -43,6 +40,9 @@ from cdma_lidar.firmware_model.lfsr import (
     mseq,
     seed_to_str,
 )
+from numpy.lib.stride_tricks import sliding_window_view
+
+from cdma_lidar.errors import ConfigError, out_of_range
 
 __all__ = [
     "MAX_FAMILY_DEGREE",

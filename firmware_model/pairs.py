@@ -27,9 +27,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, mseq
 
 from cdma_lidar.errors import ConfigError, out_of_range
-from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, mseq
 
 __all__ = [
     "DECIMATIONS",
