@@ -1,10 +1,8 @@
-"""``cdma-lidar scene ...`` and ``cdma-lidar device ...``: scenes, their truth, the virtual device.
+"""``cdma-lidar scene ...``: the built-in scenes and their ground truth.
 
     cdma-lidar scene list                               the built-in presets
     cdma-lidar scene show SCENE                         instrument and objects, lit pixels
     cdma-lidar scene truth SCENE --out truth.npz        per-pixel ground truth (NPZ)
-    cdma-lidar device --scene SCENE --pty               serve the virtual device on a pty
-    cdma-lidar device --scene SCENE --tcp HOST:PORT     ... or on a TCP socket (socket://)
 """
 
 from __future__ import annotations
@@ -13,7 +11,7 @@ import argparse
 import logging
 import sys
 
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import check_writable
 
 __all__ = ["register"]
@@ -22,7 +20,7 @@ log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``scene`` and ``device`` commands."""
+    """Add the ``scene`` command."""
     sc = subparsers.add_parser("scene", help="built-in scenes and their ground truth")
     sub = sc.add_subparsers(dest="scene_command", metavar="SUBCOMMAND")
     sub.required = True
@@ -38,15 +36,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("scene", help="preset name or .toml file")
     p.add_argument("--out", required=True, help="output .npz file")
     p.set_defaults(func=_cmd_truth)
-
-    dev = subparsers.add_parser(
-        "device", help="serve the virtual device (a simulated instrument) on a pty or TCP port")
-    dev.add_argument("--scene", default="paper-scene1", help="preset name or .toml file")
-    dev.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    where = dev.add_mutually_exclusive_group(required=True)
-    where.add_argument("--pty", action="store_true", help="create a pty and print its path")
-    where.add_argument("--tcp", metavar="HOST:PORT", help="listen on a TCP socket")
-    dev.set_defaults(func=_cmd_device)
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
@@ -106,32 +95,3 @@ def _cmd_truth(args: argparse.Namespace) -> int:
     sys.stdout.write(f"{args.out}: {lit.shape[0]} x {lit.shape[1]} pixels, "
                      f"{int(lit.sum())} hit ({summary})\n")
     return 0
-
-
-def _parse_hostport(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise out_of_range("--tcp", "HOST:PORT with a port from 0 to 65535", text)
-    return host or "127.0.0.1", int(port)
-
-
-def _cmd_device(args: argparse.Namespace) -> int:
-    from cdma_lidar.scene.model import load_scene
-    from cdma_lidar.virtual.serve import serve_pty, serve_tcp
-
-    if args.seed < 0:
-        raise out_of_range("--seed", "a non-negative integer", args.seed)
-    scene = load_scene(args.scene)
-    if args.pty:
-        return serve_pty(scene, args.seed, announce=_announce)
-    host, port = _parse_hostport(args.tcp)
-    try:
-        return serve_tcp(scene, args.seed, host, port, announce=_announce)
-    except OSError as exc:
-        raise ConfigError(f"--tcp {args.tcp}: cannot listen ({exc.strerror})", "--tcp") from exc
-
-
-def _announce(text: str) -> None:
-    sys.stdout.write(text + "\n")
-    sys.stdout.flush()
-
