@@ -1,7 +1,10 @@
-"""The ``cdma-lidar`` command: one entry point, subcommands contributed by each package.
+"""The ``cdma-lidar`` command: the top of the stack, composing every layer's commands.
 
 Each package that has commands provides ``<package>.cli.register(subparsers)``,
-which adds its subcommands and sets ``func`` to a callable ``(args) -> int``.
+which adds its subcommands and sets ``func`` to a callable ``(args) -> int``;
+:data:`COMMAND_MODULES` lists them in help order. Importing
+:mod:`cdma_lidar.virtual` (through its ``cli``) registers the ``virtual://`` URL
+scheme, so every ``--port`` accepts it.
 
 Error contract (users and tests rely on it): a bad argument, file, port or
 configuration exits with status 2 and exactly one line on stderr that names
@@ -11,20 +14,25 @@ what is wrong and what is allowed. Ctrl-C exits with 130.
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
-from cdma_lidar import __version__
+from cdma_lidar import __version__, demo
 from cdma_lidar.errors import CdmaLidarError
+from cdma_lidar.firmware_model import cli as codes_cli
+from cdma_lidar.host import cli as host_cli
+from cdma_lidar.scene import cli as scene_cli
+from cdma_lidar.virtual import cli as device_cli
 
 __all__ = ["build_parser", "main"]
 
 log = logging.getLogger("cdma_lidar.cli")
 
-#: Packages whose ``cli`` module contributes subcommands, in help order.
-COMMAND_MODULES = ("cdma_lidar.firmware_model.cli", "cdma_lidar.scene.cli", "cdma_lidar.host.cli")
+#: Modules that contribute subcommands, in help order: codes; scene; device; info, scan,
+#: calibrate; demo.
+COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, demo)
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -46,13 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_OneLineParser)
     sub.required = True
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:  # a package without commands yet
-            if exc.name != name:
-                raise
-            continue
+    for module in COMMAND_MODULES:
         module.register(sub)
     return parser
 

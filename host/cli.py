@@ -1,4 +1,4 @@
-"""The host commands: ``info``, ``scan``, ``calibrate`` and ``demo``.
+"""The host commands: ``info``, ``scan`` and ``calibrate``.
 
 Every command checks what it can before it touches the device (output folder
 writable, extension known, numbers in range), so a bad argument costs nothing and
@@ -9,7 +9,6 @@ exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import logging
 import math
@@ -24,12 +23,16 @@ import tomli_w
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
+from cdma_lidar.host.calibration import Calibration
+from cdma_lidar.host.connection import connect
+from cdma_lidar.host.pointcloud import FORMATS
+from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
+from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, state_path
 
 __all__ = ["register"]
 
 log = logging.getLogger(__name__)
 
-DEMO_SCENE = "paper-scene1"
 
 
 def _say(*parts: object) -> None:
@@ -152,14 +155,6 @@ def register(subparsers: Any) -> None:
     _add_set(p)
     p.set_defaults(func=cmd_calibrate)
 
-    p = subparsers.add_parser(
-        "demo", help="calibrate and scan paper-scene1 on the virtual device, with pictures")
-    p.add_argument("--out", default="cdma-lidar-demo", metavar="DIR",
-                   help="folder for the results (default ./cdma-lidar-demo)")
-    p.add_argument("--seed", type=int, default=1, help="noise seed of the virtual device")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_demo)
-
 
 def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
     if settings:
@@ -169,8 +164,6 @@ def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     """Print identity, limits, geometry and configuration."""
-    from cdma_lidar.host.connection import connect
-    from cdma_lidar.host.ranging import sample_range_m
 
     with connect(args.port, timeout_s=args.timeout) as dev:
         info, cfg = dev.info, dev.config
@@ -195,10 +188,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_scan(args: argparse.Namespace) -> int:
     """Scan and write the point cloud."""
-    from cdma_lidar.host.calibration import Calibration
-    from cdma_lidar.host.connection import connect
-    from cdma_lidar.host.pointcloud import FORMATS
-    from cdma_lidar.host.scan import ScanOptions, run_scan, state_path
 
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:
@@ -257,7 +246,6 @@ def cmd_scan(args: argparse.Namespace) -> int:
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
         _say(f"other users' returns: {len(img.foreign)} ({users})")
     if args.save_ghost_map:
-        from cdma_lidar.host.ranging import ghost_windows_from_image
 
         windows = ghost_windows_from_image(img)
         text = tomli_w.dumps({"windows": [list(w) for w in windows],
@@ -287,8 +275,6 @@ def _load_ghost_map(path: str) -> list[tuple[int, int]]:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Zeroth-order calibration to a TOML file."""
-    from cdma_lidar.host.connection import connect
-    from cdma_lidar.host.scan import calibrate_device
 
     out = Path(args.out)
     if out.suffix.lower() != ".toml":
@@ -304,55 +290,4 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     cal.save(out)
     _say(f"offset {cal.offset_m:.4f} m, spread {cal.spread_m:.4f} m from {cal.samples} "
           f"returns of {cal.shots} shots; wrote {out}")
-    return 0
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    """Calibrate and scan the paper's scene 1 on the virtual device; print a summary."""
-    from cdma_lidar.host.connection import connect
-    from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
-    from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, summarise
-    from cdma_lidar.scene import load_scene
-    from cdma_lidar.scene.truth import compute_truth
-
-    folder = Path(args.out)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {str(folder)!r}: cannot create the folder ({exc.strerror}); "
-                          "choose a writable place", field="out") from None
-    check_writable(folder / "calibration.toml", "--out")
-    t0 = time.monotonic()
-    scene = load_scene(DEMO_SCENE)
-    url = f"virtual://{DEMO_SCENE}?seed={args.seed}"
-    with connect(url) as dev:
-        cal = calibrate_device(dev, scene.calibration.target_distance_m, shots=20,
-                               frame_id=0)
-        cal.save(folder / "calibration.toml")
-        res = run_scan(dev, folder / f"{DEMO_SCENE}.ply", ScanOptions(offset_m=cal.offset_m),
-                       progress=not args.no_progress, pictures_too=True, frame_id=1)
-    truth = compute_truth(scene).range_m
-    s = summarise(res.image, truth)
-    rc = res.image.config
-    obj_valid = res.image.valid & np.isfinite(truth)
-    sigma = float(precision_eq27_m(rc.chip_rate_hz, rc.samples_per_symbol,
-                                   snr_xc_db=float(np.median(res.image.snr_xc_db[obj_valid]))))
-    _say(f"device        {url} ({dev.info.serial})")
-    _say(f"calibration   offset {cal.offset_m:.4f} m, spread {cal.spread_m:.4f} m "
-          f"({cal.samples} returns)")
-    _say(f"pixels        {int(s['pixels'])} ({dev.channels} channels x {dev.columns} columns), "
-          f"{int(s['object_pixels'])} on objects")
-    _say(f"valid         {100 * s['valid_fraction']:.1f} % of all pixels, "
-          f"{100 * s['object_valid_fraction']:.1f} % of object pixels, "
-          f"{int(s['false_valid'])} valid without an object")
-    _say(f"range error   median {100 * s['median_error_m']:.2f} cm, 95th percentile "
-          f"{100 * s['p95_error_m']:.2f} cm (eq. 27 precision {100 * sigma:.2f} cm)")
-    for method in ("none", "parabolic"):
-        alt = estimate_ranges(res.data, dataclasses.replace(rc, method=method))
-        e = summarise(alt, truth)
-        _say(f"  {method:9s}   median {100 * e['median_error_m']:.2f} cm, 95th percentile "
-              f"{100 * e['p95_error_m']:.2f} cm")
-    for f in res.files:
-        _say(f"wrote         {f}")
-    _say(f"time          {time.monotonic() - t0:.1f} s")
     return 0
