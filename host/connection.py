@@ -18,8 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import LinkError, LinkTimeout
-from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
+from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
 
 __all__ = ["Device", "connect"]
 
@@ -109,7 +110,6 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
     Raises LinkError with one line that says what to do when the port cannot be
     opened or the device does not answer.
     """
-    from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
 
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries)

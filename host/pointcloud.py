@@ -31,8 +31,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open, check_writable
-from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.host.ranging import FLAG_REJECTED, RangeImage
+from cdma_lidar.optics.grating import GratingGeometry
 
 __all__ = [
     "FORMATS",

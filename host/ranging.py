@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import out_of_range
+from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.uid_filter import ForeignReturns, find_foreign, select_own
 
@@ -326,7 +327,6 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     SNR_XC with the shared function, refine the lag, convert to range, threshold, and
     optionally fill rejected pixels along each column.
     """
-    from cdma_lidar.firmware_model.snr import snr_xc_db
 
     ns = config.samples_per_symbol
 

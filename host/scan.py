@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
+from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkError, ScanAborted
 from cdma_lidar.fileio import atomic_open, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
@@ -189,7 +189,6 @@ def _runs(missing: NDArray[np.bool_]) -> list[tuple[int, int]]:
 
 def _set_power(device: Device, matrix: NDArray[np.float64]) -> NDArray[np.float64]:
     """Send a power matrix (fractions of the per-pixel maximum); back off if the cap refuses."""
-    from cdma_lidar.errors import DeviceError
 
     m = np.clip(matrix, 0.0, 1.0)
     for _ in range(20):

@@ -25,6 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import out_of_range
+from cdma_lidar.firmware_model.snr import snr_xc_db
+from cdma_lidar.firmware_model.uid import canonical_necklace
 from cdma_lidar.host.frame import FrameData
 
 __all__ = [
@@ -41,7 +43,6 @@ _MAX_UID_BITS = 16
 
 @lru_cache(maxsize=16)
 def _canonical_table(n: int) -> NDArray[np.int64]:
-    from cdma_lidar.firmware_model.uid import canonical_necklace
 
     return np.array([canonical_necklace(v, n) for v in range(1 << n)], dtype=np.int64)
 
@@ -182,7 +183,6 @@ def find_foreign(frame: FrameData, uid: int, snr_threshold_db: float, *,
     sidelobe is negative their per-period signs spell exactly ``~uid``. (The price: a
     user whose UID is our complement at the same phase is not told apart from it.)
     """
-    from cdma_lidar.firmware_model.snr import snr_xc_db
 
     n = frame.uid_bits
     if not 0 <= uid < (1 << n):

@@ -16,9 +16,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError
+from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.host.ranging import SPEED_OF_LIGHT_M_S, RangingConfig, precision_eq27_m
+from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.instrument import Instrument
 
 __all__ = ["SimulatedScan", "eq27_from_configuration", "simulate_frame"]
 
@@ -44,10 +48,6 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
                    power_w: NDArray[np.float64] | None = None, frame: int = 0,
                    gate: tuple[int, int] | None = None) -> SimulatedScan:
     """Render and receive every column of ``scene_name`` (a preset or a TOML path)."""
-    from cdma_lidar.firmware_model.gold import gold_code
-    from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
-    from cdma_lidar.scene import load_scene
-    from cdma_lidar.scene.instrument import Instrument
 
     scene = load_scene(scene_name)
     inst = Instrument(scene, seed=seed)
@@ -87,8 +87,6 @@ def eq27_from_configuration(scene_name: str) -> float:
     (V) from the instrument's link budget, thermal noise sigma (V) averaged over R
     frames, every other lit channel of the column as interference.
     """
-    from cdma_lidar.scene import load_scene
-    from cdma_lidar.scene.instrument import Instrument
 
     inst = Instrument(load_scene(scene_name), seed=0)
     spec = inst.spec

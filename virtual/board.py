@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar import __version__
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.gold import check_pair
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceApp
@@ -161,7 +162,6 @@ class VirtualFirmware(DeviceApp):
                                                  if k != "code_index"))
 
     def _check(self, c: dict[str, Any]) -> None:
-        from cdma_lidar.firmware_model.gold import check_pair
 
         pu, _ = check_pair(c["poly_u"], c["poly_v"])
         degree = pu[0]

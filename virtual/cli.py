@@ -11,10 +11,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.scene.model import load_scene
 from cdma_lidar.virtual.serve import serve_pty, serve_tcp
-
-from cdma_lidar.errors import ConfigError, out_of_range
 
 __all__ = ["register"]
 

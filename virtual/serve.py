@@ -23,7 +23,10 @@ import threading
 import tty
 from collections.abc import Callable, Iterator
 
+from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.link import FdPort
 from cdma_lidar.scene.model import Scene
+from cdma_lidar.virtual.board import VirtualFirmware
 from cdma_lidar.virtual.pipes import SocketPort
 
 __all__ = ["serve_pty", "serve_tcp"]
@@ -48,9 +51,6 @@ def _stop_on_signals() -> Iterator[threading.Event]:
 
 def serve_pty(scene: Scene, seed: int, announce: Callable[[str], None]) -> int:
     """Serve on a new pty; ``announce`` gets the slave path (one line). Returns 0."""
-    from cdma_lidar.virtual.board import VirtualFirmware
-    from cdma_lidar.protocol.endpoint import DeviceEndpoint
-    from cdma_lidar.protocol.link import FdPort
 
     firmware = VirtualFirmware(scene, seed)
     master, slave = os.openpty()
@@ -75,8 +75,6 @@ def serve_pty(scene: Scene, seed: int, announce: Callable[[str], None]) -> int:
 def serve_tcp(scene: Scene, seed: int, host: str, port_no: int,
               announce: Callable[[str], None]) -> int:
     """Serve on a TCP socket, one connection at a time; announces ``socket://HOST:PORT``."""
-    from cdma_lidar.virtual.board import VirtualFirmware
-    from cdma_lidar.protocol.endpoint import DeviceEndpoint
 
     firmware = VirtualFirmware(scene, seed)
     server = socket.create_server((host, port_no), reuse_port=False)

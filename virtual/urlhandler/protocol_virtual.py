@@ -33,6 +33,9 @@ from typing import Any
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from cdma_lidar.errors import CdmaLidarError
+from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.scene.model import load_scene
+from cdma_lidar.virtual.board import VirtualFirmware
 from cdma_lidar.virtual.pipes import BytePipe, LineNoise, PipePort
 
 __all__ = ["Serial", "parse_url"]
@@ -88,9 +91,6 @@ class Serial(SerialBase):
             raise SerialException("Port is already open.")
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")
-        from cdma_lidar.virtual.board import VirtualFirmware
-        from cdma_lidar.protocol.endpoint import DeviceEndpoint
-        from cdma_lidar.scene.model import load_scene
 
         name, own, scene_opts = parse_url(self.portstr)
         seed = int(own.get("seed", 0))
