@@ -184,7 +184,7 @@ def write_las(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     dimensions. Needs the optional extra ``las`` (``pip install cdma-lidar[las]``).
     """
     try:
-        import laspy
+        import laspy  # optional extra `las`: loaded only when a .las is written
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ConfigError("writing .las needs laspy: pip install 'cdma-lidar[las]'",
                           field="out") from exc
