@@ -41,9 +41,10 @@ def test_virtual_firmware_is_a_device_app():
     assert isinstance(VirtualFirmware(load_scene("calibration"), 0), DeviceApp)
 
 
-def test_serial_for_url_finds_the_handler():
-    if "cdma_lidar.virtual.urlhandler" not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
+def test_importing_the_virtual_package_registers_its_url_scheme():
+    import cdma_lidar.virtual as virtual  # the import under test (already done by the board)
+
+    assert serial.protocol_handler_packages.count(virtual.URL_HANDLER_PACKAGE) == 1
     port = serial.serial_for_url("virtual://calibration?seed=1", timeout=0.1)
     try:
         assert port.is_open and port.in_waiting == 0

@@ -2,10 +2,10 @@
 
 Registered the way pyserial registers ``loop://``: a module ``protocol_virtual`` with a
 ``Serial`` class, in a package listed in ``serial.protocol_handler_packages``
-(:func:`cdma_lidar.protocol.link.open_port` adds ``cdma_lidar.virtual.urlhandler``)::
+(importing :mod:`cdma_lidar.virtual` adds ``cdma_lidar.virtual.urlhandler``)::
 
     import serial
-    serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
+    import cdma_lidar.virtual  # registers virtual://
     port = serial.serial_for_url("virtual://paper-scene1?seed=3")
 
 Opening the port starts, in a daemon thread, a :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint`
