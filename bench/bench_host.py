@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cdma_lidar.host.cloud_formats.ply import write as write_ply
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits
-from cdma_lidar.host.pointcloud import assemble, write_ply
+from cdma_lidar.host.pointcloud import assemble
 from cdma_lidar.host.ranging import (
     RangingConfig,
     estimate_ranges,

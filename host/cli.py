@@ -24,8 +24,8 @@ import tomli_w
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
 from cdma_lidar.host.calibration import Calibration
+from cdma_lidar.host.cloud_formats import FORMATS
 from cdma_lidar.host.connection import connect
-from cdma_lidar.host.pointcloud import FORMATS
 from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
 from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, state_path
 

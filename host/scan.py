@@ -35,10 +35,11 @@ from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkEr
 from cdma_lidar.fileio import atomic_open, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
+from cdma_lidar.host.cloud_formats import FORMATS, write
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits
-from cdma_lidar.host.pointcloud import FORMATS, PointCloud, assemble, write
+from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
 
 __all__ = [

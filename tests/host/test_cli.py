@@ -179,7 +179,7 @@ def test_calibration_on_a_noisy_device_is_refused(capsys, tmp_path):
 
 
 def test_scan_interpolate_and_min_support(capsys, tmp_path):
-    from cdma_lidar.host.pointcloud import read_npz
+    from cdma_lidar.host.cloud_formats.npz import read as read_npz
 
     out = tmp_path / "i.npz"
     code, text, _ = _run(capsys, "scan", "--port", "virtual://paper-scene1?seed=2", "--out",

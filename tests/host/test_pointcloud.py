@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.optics.grating import GratingGeometry, paper_wavelengths_m
-from cdma_lidar.host.pointcloud import assemble, read_npz, write
+from cdma_lidar.host.cloud_formats import write
+from cdma_lidar.host.cloud_formats.npz import read as read_npz
+from cdma_lidar.host.pointcloud import assemble
 from cdma_lidar.host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, RangeImage
 from cdma_lidar.host.uid_filter import ForeignReturns
+from cdma_lidar.optics.grating import GratingGeometry, paper_wavelengths_m
 
 K, C = 6, 9
 
