@@ -1,9 +1,10 @@
 """One frame of receiver results, gathered column by column into (channel, column) arrays.
 
 The device sends one ``ColumnResult`` per grating column, holding for each of its K
-channels every ``ReceiverOutput`` field except ``corr`` (docs/interfaces.md). The
-host keeps a frame as a :class:`FrameData`: the same fields stacked into arrays
-whose first two axes are ``(K channels, C columns)``, plus a ``done`` mask that says
+channels every field of the column record (:mod:`cdma_lidar.column_record`: every
+``ReceiverOutput`` field except ``corr``). The host keeps a frame as a
+:class:`FrameData`: the same fields stacked into arrays whose first two axes are
+``(K channels, C columns)``, plus a ``done`` mask that says
 which columns have arrived. That makes every later step (ranging, UID filtering,
 point-cloud assembly) a vectorised numpy expression over the whole frame, and it is
 also what a resumable partial scan saves to disk (:meth:`FrameData.to_arrays`).
@@ -21,59 +22,28 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.column_record import RECORD, record_fields
 from cdma_lidar.errors import ConfigError, out_of_range
 
 __all__ = ["FrameData"]
 
-# Per-pixel fields: name -> (dtype, trailing shape key). Trailing shape keys:
-# "" scalar per pixel, "2" neighbours, "n" UID periods, "P" extra peaks, "Pn" both.
-_PIXEL_FIELDS: dict[str, tuple[type, str]] = {
-    "peak_lag": (np.int64, ""),
-    "peak": (np.int64, ""),
-    "neighbours": (np.int64, "2"),
-    "noise_count": (np.int64, ""),
-    "noise_sum": (np.int64, ""),
-    "noise_sumsq": (np.int64, ""),
-    "uid_signs": (np.int8, "n"),
-    "uid_observed": (np.int64, ""),
-    "uid_match": (np.bool_, ""),
-    "extra_lag": (np.int64, "P"),
-    "extra_peak": (np.int64, "P"),
-    "extra_signs": (np.int8, "Pn"),
-}
-
 
 @dataclass
+@record_fields(leading=("K", "C"))
 class FrameData:
     """Receiver results of one frame as ``(K, C, ...)`` arrays (K channels, C columns).
 
-    Attributes:
-        peak_lag: primary peak lag (samples), (K, C).
-        peak: correlator output at the peak (signed, correlator units), (K, C).
-        neighbours: outputs at ``peak_lag - 1`` and ``peak_lag + 1``, (K, C, 2).
-        noise_count, noise_sum, noise_sumsq: noise-floor statistics, (K, C).
-        uid_signs: per-period signs at the peak (-1, 0, +1), (K, C, n).
-        uid_observed: UID bits read from those signs (bit p set where negative), (K, C).
-        uid_match: True where the observed UID is ours, (K, C).
-        extra_lag, extra_peak: further peaks (samples, correlator units), (K, C, P-1).
-        extra_signs: their per-period signs, (K, C, P-1, n).
-        angle_deg: grating rotation of each column (deg), (C,).
-        done: True for columns that have arrived, (C,).
-        frame: frame number.
+    Its fields are one array per field of the column record (listed at the end; the
+    ``record_fields`` decorator adds them from :data:`cdma_lidar.column_record.RECORD`),
+    then:
+
+    angle_deg (C,) float64: grating rotation of each column (deg), NaN until it arrives.
+    done (C,) bool: True for columns that have arrived.
+    frame: frame number.
+
+    The record's arrays (the ``ReceiverOutput`` shapes with the column axis C added):
     """
 
-    peak_lag: NDArray[np.int64]
-    peak: NDArray[np.int64]
-    neighbours: NDArray[np.int64]
-    noise_count: NDArray[np.int64]
-    noise_sum: NDArray[np.int64]
-    noise_sumsq: NDArray[np.int64]
-    uid_signs: NDArray[np.int8]
-    uid_observed: NDArray[np.int64]
-    uid_match: NDArray[np.bool_]
-    extra_lag: NDArray[np.int64]
-    extra_peak: NDArray[np.int64]
-    extra_signs: NDArray[np.int8]
     angle_deg: NDArray[np.float64]
     done: NDArray[np.bool_]
     frame: int = 0
@@ -90,10 +60,8 @@ class FrameData:
             raise out_of_range("uid_bits", "at least 1", uid_bits)
         if peaks < 1:
             raise out_of_range("peaks", "at least 1", peaks)
-        trailing = {"": (), "2": (2,), "n": (uid_bits,), "P": (peaks - 1,),
-                    "Pn": (peaks - 1, uid_bits)}
-        arrays = {name: np.zeros((channels, columns, *trailing[key]), dtype=dt)
-                  for name, (dt, key) in _PIXEL_FIELDS.items()}
+        arrays = {f.name: np.zeros((channels, columns, *f.shape(uid_bits, peaks)), dtype=f.dtype)
+                  for f in RECORD}
         return cls(**arrays, angle_deg=np.full(columns, np.nan), done=np.zeros(columns, bool),
                    frame=frame)
 
@@ -123,10 +91,11 @@ class FrameData:
             raise out_of_range("column", f"from 0 to {c - 1}", index)
         get = result.get if isinstance(result, Mapping) else (
             lambda name, default=None: getattr(result, name, default))
-        for name in _PIXEL_FIELDS:
+        for f in RECORD:
+            name = f.name
             value = get(name)
             if value is None:
-                if name.startswith("extra") and self.peaks == 1:
+                if f.per_extra_peak and self.peaks == 1:
                     continue
                 raise ConfigError(f"column result lacks field {name!r}", field=name)
             arr = np.asarray(value)

@@ -1,28 +1,16 @@
 """COLUMN_RESULT: the receiver's integer outputs for one grating column, all channels.
 
-The payload is a 19-byte column header followed by one fixed-size record per
-channel (array of structs, little-endian, packed, no padding). With P peaks and
-n UID bits a record is ``40 + 10 * (P - 1)`` bytes::
-
-    column header                      channel record (K of them)
-    off size                           off      size
-      0   4  frame        u32            0        4  peak_lag     u32  samples
-      4   2  column       u16            4        4  peak         i32  out units
-      6   1  flags        u8             8        8  neighbours   2 x i32 (lag-1, lag+1)
-      7   1  uid_bits     u8  n         16        4  noise_count  u32
-      8   1  peaks        u8  P         20        8  noise_sum    i64
-      9   2  channels     u16 K         28        8  noise_sumsq  u64
-     11   4  angle_udeg   i32           36        1  uid_neg      u8 mask
-     15   4  timestamp_us u32           37        1  uid_zero     u8 mask
-                                        38        1  uid_observed u8
-                                        39        1  uid_match    u8 (0 or 1)
-                                        40  4(P-1)  extra_lag    u32[P-1]
-                                          4(P-1)  extra_peak   i32[P-1]
-                                          1(P-1)  extra_neg    u8[P-1]
-                                          1(P-1)  extra_zero   u8[P-1]
+The payload is a 19-byte column header (:data:`COLUMN_HEADER`) followed by one
+fixed-size record per channel (array of structs, little-endian, packed, no
+padding). The channel record is the one declared in :mod:`cdma_lidar.column_record`
+(its wire fields, in order); with P peaks it is ``40 + 10 * (P - 1)`` bytes. Every
+view here is derived from that declaration: the construct record, the numpy
+dtype, the encoder's range checks, the payload size and the per-field properties
+of :class:`ColumnResult`. ``docs/protocol.md`` (generated) shows the layout.
 
 UID signs travel as two masks: bit p of ``uid_neg`` is set where the per-period
-sign at the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1).
+sign at the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag
+the receiver reports as -1 (no peak) travels as :data:`NO_PEAK`.
 
 Two codecs produce the same bytes: the fast one (numpy structured dtype, a few
 microseconds per 40-channel column) used on the link, and the declarative one
@@ -41,6 +29,16 @@ import construct as cs
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdma_lidar.checks import check_int
+from cdma_lidar.column_record import (
+    FIELD_NAMES,
+    NO_PEAK,
+    RECORD,
+    WIRE_FIELDS,
+    RecordField,
+    WireField,
+    record_size,
+)
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol.schema import blob, i, u
 
@@ -51,6 +49,7 @@ __all__ = [
     "MAX_PEAKS",
     "MAX_UID_BITS",
     "NO_PEAK",
+    "RECORD_STRUCT",
     "ColumnResult",
     "column_payload_size",
     "decode_column",
@@ -65,8 +64,6 @@ MAX_UID_BITS = 8
 #: flags bit 0: the column is a zeroth-order calibration shot (column = shot index).
 FLAG_CALIBRATION = 0x01
 
-_HEAD = struct.Struct("<IHBBBHiI")
-
 COLUMN_HEADER = cs.Struct(
     u("frame", 32, "frame id given in SCAN_START / CALIBRATE"),
     u("column", 16, "column index (calibration: shot index)"),
@@ -78,71 +75,67 @@ COLUMN_HEADER = cs.Struct(
     u("timestamp_us", 32, "device clock when the column was measured (wraps)", "µs"),
 )
 
+
+def _format(sub: cs.Construct) -> str:
+    """struct format letter of a header field (every one is a plain FormatField)."""
+    while isinstance(sub, cs.Renamed):
+        sub = sub.subcon
+    return sub.fmtstr.lstrip("<")
+
+
+#: The column header as a struct (fast codec); the same fields as COLUMN_HEADER.
+_HEAD = struct.Struct("<" + "".join(_format(sc) for sc in COLUMN_HEADER.subcons))
+
+# ---- the channel record, derived from cdma_lidar.column_record -----------------------------
+_CS_INT = {"u8": cs.Int8ul, "u32": cs.Int32ul, "u64": cs.Int64ul, "i32": cs.Int32sl,
+           "i64": cs.Int64sl}
 _E = cs.this._.peaks - 1  # extra peaks per channel
-_RECORD_STRUCT = cs.Struct(
-    u("peak_lag", 32, "lag of the strongest peak; 0xFFFFFFFF: no eligible lag", "samples",
-      0, None, "0..N*S-1 or 0xFFFFFFFF"),
-    i("peak", 32, "scaled correlation out at peak_lag", "out LSB", allowed="signed out_bits"),
-    blob("neighbours", cs.Array(2, cs.Int32sl), "i32[2]", "out at peak_lag-1, peak_lag+1",
-         "out LSB", "signed out_bits"),
-    u("noise_count", 32, "gate lags in the noise floor", "lags", allowed="0..gate_len"),
-    i("noise_sum", 64, "sum of out over the noise lags", "out LSB"),
-    u("noise_sumsq", 64, "sum of out^2 over the noise lags", "out LSB^2"),
-    u("uid_neg", 8, "bit p: period p's sign at the peak is -1", "mask",
-      allowed="bits 0..n-1"),
-    u("uid_zero", 8, "bit p: period p's sign at the peak is 0", "mask",
-      allowed="bits 0..n-1"),
-    u("uid_observed", 8, "observed UID: bit p set where period p's sign is -1", "",
-      allowed="0..2^n-1"),
-    u("uid_match", 8, "1 when no sign is 0 and uid_observed == uid", "", 0, 1),
-    blob("extra_lag", cs.Array(_E, cs.Int32ul), "u32[P-1]",
-         "lags of peaks 2..P; 0xFFFFFFFF: no such peak", "samples", "0..N*S-1 or 0xFFFFFFFF"),
-    blob("extra_peak", cs.Array(_E, cs.Int32sl), "i32[P-1]", "out at peaks 2..P", "out LSB",
-         "signed out_bits"),
-    blob("extra_neg", cs.Array(_E, cs.Int8ul), "u8[P-1]", "sign masks (-1) of peaks 2..P",
-         "mask", "bits 0..n-1"),
-    blob("extra_zero", cs.Array(_E, cs.Int8ul), "u8[P-1]", "sign masks (0) of peaks 2..P",
-         "mask", "bits 0..n-1"),
-)
+
+
+def _construct_field(w: WireField) -> cs.Renamed:
+    """The construct field (with its spec metadata) of one wire field of the record."""
+    if not w.axes:
+        make = u if w.ctype.startswith("u") else i
+        return make(w.name, int(w.ctype[1:]), w.doc, w.unit, allowed=w.allowed)
+    sub: cs.Construct = _CS_INT[w.ctype]
+    for axis in reversed(w.axes):
+        sub = cs.Array(_E if axis == "P-1" else axis, sub)
+    return blob(w.name, sub, w.spec_type, w.doc, w.unit, w.allowed)
+
+
+#: Declarative form of one channel record (the spec table of docs/protocol.md reads it).
+RECORD_STRUCT = cs.Struct(*(_construct_field(w) for w in WIRE_FIELDS))
 
 #: Declarative form of the whole COLUMN_RESULT payload (documentation and baseline codec).
 COLUMN_STRUCT = cs.Struct(
     *COLUMN_HEADER.subcons,
-    "records" / cs.Array(cs.this.channels, _RECORD_STRUCT),
+    "records" / cs.Array(cs.this.channels, RECORD_STRUCT),
 )
+
+
+def _dtype_entry(w: WireField, peaks: int) -> tuple:
+    if not w.axes:
+        return (w.name, w.numpy_type)
+    return (w.name, w.numpy_type, w.shape(peaks))
 
 
 @lru_cache(maxsize=16)
 def record_dtype(peaks: int) -> np.dtype:
     """Packed little-endian structured dtype of one channel record for ``peaks`` peaks."""
-    if not 1 <= peaks <= MAX_PEAKS:
-        raise out_of_range("peaks", f"an integer from 1 to {MAX_PEAKS}", peaks, FieldError)
-    e = peaks - 1
-    return np.dtype([
-        ("peak_lag", "<u4"), ("peak", "<i4"), ("neighbours", "<i4", (2,)),
-        ("noise_count", "<u4"), ("noise_sum", "<i8"), ("noise_sumsq", "<u8"),
-        ("uid_neg", "u1"), ("uid_zero", "u1"), ("uid_observed", "u1"), ("uid_match", "u1"),
-        ("extra_lag", "<u4", (e,)), ("extra_peak", "<i4", (e,)),
-        ("extra_neg", "u1", (e,)), ("extra_zero", "u1", (e,)),
-    ])
+    check_int("peaks", peaks, 1, MAX_PEAKS, cls=FieldError)
+    return np.dtype([_dtype_entry(w, peaks) for w in WIRE_FIELDS])
 
 
 def column_payload_size(channels: int, peaks: int) -> int:
     """Bytes of a COLUMN_RESULT payload for K channels and P peaks: ``19 + K*(40+10(P-1))``."""
-    return _HEAD.size + channels * (40 + 10 * (peaks - 1))
+    return _HEAD.size + channels * record_size(peaks)
 
 
-#: Wire value of a lag where the receiver found no eligible peak (it reports lag -1).
-NO_PEAK = 0xFFFF_FFFF
-
-_LAG_FIELDS = ("peak_lag", "extra_lag")
-
-_INT_LIMITS = {
-    "peak_lag": (0, 2**32 - 1), "peak": (-(2**31), 2**31 - 1),
-    "neighbours": (-(2**31), 2**31 - 1), "noise_count": (0, 2**32 - 1),
-    "noise_sum": (-(2**63), 2**63 - 1), "noise_sumsq": (0, 2**64 - 1),
-    "uid_observed": (0, 255), "extra_lag": (0, 2**32 - 1), "extra_peak": (-(2**31), 2**31 - 1),
-}
+#: Range checks of the fields that travel as integers: the limits of their wire type.
+_INT_LIMITS = {f.name: f.wire[0].limits for f in RECORD if f.encoding in ("int", "lag")}
+_LAG_FIELDS = frozenset(f.name for f in RECORD if f.encoding == "lag")
+#: The first wire field repeated per extra peak: its length is P - 1.
+_FIRST_EXTRA = next(f for f in RECORD if f.per_extra_peak)
 
 
 def _masks(signs: NDArray, n: int) -> tuple[NDArray, NDArray]:
@@ -168,8 +161,11 @@ def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
 class ColumnResult:
     """One column of receiver outputs: the payload of a COLUMN_RESULT frame.
 
-    Per-channel fields are read-only numpy views of ``records`` (one structured
-    record per channel, :func:`record_dtype`). Build one with :meth:`from_arrays`
+    Per-channel fields (one read-only property per field of
+    :data:`cdma_lidar.column_record.RECORD`, with the receiver's shapes) are views
+    of ``records`` (one structured record per channel, :func:`record_dtype`):
+    integers as their wire type, lags as int64 with -1 for :data:`NO_PEAK`, flags
+    as bool and signs as int8 in {-1, 0, +1}. Build one with :meth:`from_arrays`
     or :meth:`from_receiver` (both check every value against its wire field);
     :func:`decode_column` builds one straight from the wire bytes.
 
@@ -191,7 +187,7 @@ class ColumnResult:
     calibration: bool = False
     timestamp_us: int = 0
 
-    # ---- derived views -------------------------------------------------------------
+    # ---- derived views (plus one property per record field, added below) ------------
     @property
     def channels(self) -> int:
         """K, number of channel records."""
@@ -200,72 +196,12 @@ class ColumnResult:
     @property
     def peaks(self) -> int:
         """P, peaks per channel (1 + extra peaks)."""
-        return 1 + int(self.records.dtype["extra_lag"].shape[0])
+        return 1 + int(self.records.dtype[_FIRST_EXTRA.wire[0].name].shape[0])
 
     @property
     def angle_deg(self) -> float:
         """Grating rotation angle (deg)."""
         return self.angle_udeg * 1e-6
-
-    @property
-    def peak_lag(self) -> NDArray[np.int64]:
-        """(K,) lag of the strongest peak (samples); -1 where no lag was eligible."""
-        return _lags_from_wire(self.records["peak_lag"])
-
-    @property
-    def peak(self) -> NDArray[np.int32]:
-        """(K,) scaled correlation at the peak."""
-        return self.records["peak"]
-
-    @property
-    def neighbours(self) -> NDArray[np.int32]:
-        """(K, 2) scaled correlation at peak_lag - 1 and peak_lag + 1."""
-        return self.records["neighbours"]
-
-    @property
-    def noise_count(self) -> NDArray[np.uint32]:
-        """(K,) number of lags in the noise floor."""
-        return self.records["noise_count"]
-
-    @property
-    def noise_sum(self) -> NDArray[np.int64]:
-        """(K,) sum of the noise-floor outputs."""
-        return self.records["noise_sum"]
-
-    @property
-    def noise_sumsq(self) -> NDArray[np.uint64]:
-        """(K,) sum of squares of the noise-floor outputs."""
-        return self.records["noise_sumsq"]
-
-    @property
-    def uid_signs(self) -> NDArray[np.int8]:
-        """(K, n) per-period sign at the peak, in {-1, 0, +1}."""
-        return _signs(self.records["uid_neg"], self.records["uid_zero"], self.uid_bits)
-
-    @property
-    def uid_observed(self) -> NDArray[np.uint8]:
-        """(K,) observed UID (bit p set where period p's sign is negative)."""
-        return self.records["uid_observed"]
-
-    @property
-    def uid_match(self) -> NDArray[np.bool_]:
-        """(K,) True when the observed UID equals the configured one and no sign is 0."""
-        return self.records["uid_match"].astype(bool)
-
-    @property
-    def extra_lag(self) -> NDArray[np.int64]:
-        """(K, P-1) lags of peaks 2..P (samples); -1 where there was no such peak."""
-        return _lags_from_wire(self.records["extra_lag"])
-
-    @property
-    def extra_peak(self) -> NDArray[np.int32]:
-        """(K, P-1) values of peaks 2..P."""
-        return self.records["extra_peak"]
-
-    @property
-    def extra_signs(self) -> NDArray[np.int8]:
-        """(K, P-1, n) per-period signs at peaks 2..P."""
-        return _signs(self.records["extra_neg"], self.records["extra_zero"], self.uid_bits)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, ColumnResult):
@@ -281,23 +217,22 @@ class ColumnResult:
     # ---- construction ---------------------------------------------------------------
     @classmethod
     def from_arrays(cls, frame: int, column: int, angle_deg: float, *,
-                    peak_lag: ArrayLike, peak: ArrayLike, neighbours: ArrayLike,
-                    noise_count: ArrayLike, noise_sum: ArrayLike, noise_sumsq: ArrayLike,
-                    uid_signs: ArrayLike, uid_observed: ArrayLike, uid_match: ArrayLike,
-                    extra_lag: ArrayLike | None = None, extra_peak: ArrayLike | None = None,
-                    extra_signs: ArrayLike | None = None, calibration: bool = False,
-                    timestamp_us: int = 0) -> ColumnResult:
+                    calibration: bool = False, timestamp_us: int = 0,
+                    **fields: ArrayLike | None) -> ColumnResult:
         """Check every value against its wire field and pack the records.
 
-        Shapes are those of ``cdma_lidar.firmware_model.receiver.ReceiverOutput`` (K channels,
-        n UID bits, P peaks). Raises FieldError naming the first bad field.
+        ``fields`` are the record's fields by name (:data:`~cdma_lidar.column_record.
+        FIELD_NAMES`), shaped as in ``cdma_lidar.firmware_model.output.ReceiverOutput``
+        (K channels, n UID bits, P peaks); the ``extra_*`` ones may be left out (or
+        None) for P = 1. Raises FieldError naming the first bad field.
         """
-        _check_int("frame", frame, 0, 2**32 - 1)
-        _check_int("column", column, 0, 2**16 - 1)
-        _check_int("timestamp_us", timestamp_us, 0, 2**32 - 1)
+        _check_names(fields)
+        check_int("frame", frame, 0, 2**32 - 1, cls=FieldError)
+        check_int("column", column, 0, 2**16 - 1, cls=FieldError)
+        check_int("timestamp_us", timestamp_us, 0, 2**32 - 1, cls=FieldError)
         angle_udeg = round(float(angle_deg) * 1e6)
-        _check_int("angle_deg (micro-degrees)", angle_udeg, -(2**31), 2**31 - 1)
-        signs = np.asarray(uid_signs)
+        check_int("angle_deg (micro-degrees)", angle_udeg, -(2**31), 2**31 - 1, cls=FieldError)
+        signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
                                FieldError)
@@ -307,36 +242,21 @@ class ColumnResult:
                                FieldError)
         if not 1 <= k <= 65535:
             raise out_of_range("channels", "1 to 65535", k, FieldError)
-        e = 0 if extra_lag is None else np.asarray(extra_lag).reshape(k, -1).shape[1]
+        first_extra = fields.get(_FIRST_EXTRA.name)
+        e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]
         rec = np.zeros(k, dtype=record_dtype(e + 1))
-        arrays: dict[str, Any] = {
-            "peak_lag": (peak_lag, (k,)), "peak": (peak, (k,)),
-            "neighbours": (neighbours, (k, 2)), "noise_count": (noise_count, (k,)),
-            "noise_sum": (noise_sum, (k,)), "noise_sumsq": (noise_sumsq, (k,)),
-            "uid_observed": (uid_observed, (k,)),
-        }
-        if e:
-            arrays["extra_lag"] = (extra_lag, (k, e))
-            arrays["extra_peak"] = (extra_peak, (k, e))
-        for name, (value, shape) in arrays.items():
-            rec[name] = _checked_array(name, value, shape)
-        _check_signs("uid_signs", signs)
-        rec["uid_neg"], rec["uid_zero"] = _masks(signs, n)
-        if int(np.max(rec["uid_observed"])) >= 1 << n:
-            raise out_of_range("uid_observed", f"below 2^uid_bits = {1 << n}",
-                               int(np.max(rec["uid_observed"])), FieldError)
-        match = np.asarray(uid_match)
-        if match.shape != (k,) or match.dtype.kind not in "biu" or \
-                (k and (match.min() < 0 or match.max() > 1)):
-            raise out_of_range("uid_match", f"a ({k},) array of booleans", match, FieldError)
-        rec["uid_match"] = match
-        if e:
-            es = np.asarray(extra_signs) if extra_signs is not None else None
-            if es is None or es.shape != (k, e, n):
-                raise out_of_range("extra_signs", f"a ({k}, {e}, {n}) array",
-                                   None if es is None else f"shape {es.shape}", FieldError)
-            _check_signs("extra_signs", es)
-            rec["extra_neg"], rec["extra_zero"] = _masks(es, n)
+        wanted = [f for f in RECORD if e or not f.per_extra_peak]
+        for f in wanted:  # integers and lags first, then what depends on n
+            if f.encoding in ("int", "lag"):
+                rec[f.name] = _checked_array(f.name, fields.get(f.name), (k, *f.shape(n, e + 1)))
+        for f in wanted:
+            if f.encoding == "signs":
+                _pack_signs(rec, f, fields.get(f.name), (k, *f.shape(n, e + 1)), n)
+            elif f.encoding == "flag":
+                _pack_flag(rec, f.name, fields.get(f.name), k)
+            elif f.name == "uid_observed" and int(np.max(rec[f.name])) >= 1 << n:
+                raise out_of_range(f.name, f"below 2^uid_bits = {1 << n}",
+                                   int(np.max(rec[f.name])), FieldError)
         rec.flags.writeable = False
         return cls(int(frame), int(column), angle_udeg, rec, n, bool(calibration),
                    int(timestamp_us))
@@ -345,23 +265,54 @@ class ColumnResult:
     def from_receiver(cls, frame: int, column: int, angle_deg: float, out: Any, *,
                       calibration: bool = False, timestamp_us: int = 0) -> ColumnResult:
         """Pack a ``ReceiverOutput`` (every field but ``corr``) into a column."""
-        extra = getattr(out, "extra_lag", None)
+        extra = getattr(out, _FIRST_EXTRA.name, None)
         has_extra = extra is not None and np.asarray(extra).size > 0
-        return cls.from_arrays(
-            frame, column, angle_deg, peak_lag=out.peak_lag, peak=out.peak,
-            neighbours=out.neighbours, noise_count=out.noise_count, noise_sum=out.noise_sum,
-            noise_sumsq=out.noise_sumsq, uid_signs=out.uid_signs,
-            uid_observed=out.uid_observed, uid_match=out.uid_match,
-            extra_lag=out.extra_lag if has_extra else None,
-            extra_peak=out.extra_peak if has_extra else None,
-            extra_signs=out.extra_signs if has_extra else None,
-            calibration=calibration, timestamp_us=timestamp_us)
+        arrays = {f.name: getattr(out, f.name) for f in RECORD
+                  if has_extra or not f.per_extra_peak}
+        return cls.from_arrays(frame, column, angle_deg, calibration=calibration,
+                               timestamp_us=timestamp_us, **arrays)
 
 
-def _check_int(name: str, value: Any, lo: int, hi: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or \
-            not lo <= int(value) <= hi:
-        raise out_of_range(name, f"an integer from {lo} to {hi}", value, FieldError)
+def _view(f: RecordField) -> property:
+    """Read-only property of ColumnResult presenting record field ``f`` in the receiver's form."""
+    name = f.name
+    if f.encoding == "lag":
+        def get(self: ColumnResult) -> NDArray:
+            return _lags_from_wire(self.records[name])
+        form = "int64, -1 where the wire says NO_PEAK"
+    elif f.encoding == "flag":
+        def get(self: ColumnResult) -> NDArray:
+            return self.records[name].astype(bool)
+        form = "bool"
+    elif f.encoding == "signs":
+        neg, zero = (w.name for w in f.wire)
+
+        def get(self: ColumnResult) -> NDArray:
+            return _signs(self.records[neg], self.records[zero], self.uid_bits)
+        form = "int8 in {-1, 0, +1}"
+    else:
+        def get(self: ColumnResult) -> NDArray:
+            return self.records[name]
+        form = f"{f.wire[0].ctype} as on the wire"
+    get.__name__ = name
+    unit = f" ({f.unit})" if f.unit else ""
+    get.__doc__ = f"(K{''.join(', ' + str(a) for a in f.axes)}) {f.doc}{unit}; {form}."
+    return property(get)
+
+
+for _f in RECORD:
+    setattr(ColumnResult, _f.name, _view(_f))
+del _f
+
+
+def _check_names(fields: dict[str, Any]) -> None:
+    """TypeError, as for a bad keyword argument, unless ``fields`` are record fields."""
+    unknown = sorted(set(fields) - set(FIELD_NAMES))
+    if unknown:
+        raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
+    missing = [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]
+    if missing:
+        raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
 
 
 def _lags_from_wire(lags: NDArray[np.uint32]) -> NDArray[np.int64]:
@@ -388,9 +339,26 @@ def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
     return arr
 
 
-def _check_signs(name: str, signs: NDArray) -> None:
+def _pack_signs(rec: np.ndarray, f: RecordField, value: Any, shape: tuple[int, ...],
+                n: int) -> None:
+    """Check a sign array of ``shape`` and store it as the field's two wire masks."""
+    signs = None if value is None else np.asarray(value)
+    if signs is None or signs.shape != shape:
+        raise out_of_range(f.name, f"a {shape} array",
+                           None if signs is None else f"shape {signs.shape}", FieldError)
     if signs.dtype.kind not in "iu" or (signs.size and (signs.min() < -1 or signs.max() > 1)):
-        raise out_of_range(name, "values in {-1, 0, +1}", signs, FieldError)
+        raise out_of_range(f.name, "values in {-1, 0, +1}", signs, FieldError)
+    neg, zero = f.wire
+    rec[neg.name], rec[zero.name] = _masks(signs, n)
+
+
+def _pack_flag(rec: np.ndarray, name: str, value: Any, k: int) -> None:
+    """Check a (K,) boolean (or 0/1) array and store it as u8 0/1."""
+    match = np.asarray(value)
+    if match.shape != (k,) or match.dtype.kind not in "biu" or \
+            (k and (match.min() < 0 or match.max() > 1)):
+        raise out_of_range(name, f"a ({k},) array of booleans", match, FieldError)
+    rec[name] = match
 
 
 # ---- fast codec (numpy) -------------------------------------------------------------
@@ -424,21 +392,9 @@ def decode_column(payload: bytes) -> ColumnResult:
 # ---- declarative codec (construct) --------------------------------------------------
 def encode_column_construct(col: ColumnResult) -> bytes:
     """COLUMN_RESULT payload bytes built through :data:`COLUMN_STRUCT` (baseline path)."""
-    recs = []
-    e = col.peaks - 1
-    for r in col.records:
-        recs.append({
-            "peak_lag": int(r["peak_lag"]), "peak": int(r["peak"]),
-            "neighbours": [int(v) for v in r["neighbours"]],
-            "noise_count": int(r["noise_count"]), "noise_sum": int(r["noise_sum"]),
-            "noise_sumsq": int(r["noise_sumsq"]), "uid_neg": int(r["uid_neg"]),
-            "uid_zero": int(r["uid_zero"]), "uid_observed": int(r["uid_observed"]),
-            "uid_match": int(r["uid_match"]),
-            "extra_lag": [int(v) for v in r["extra_lag"]][:e],
-            "extra_peak": [int(v) for v in r["extra_peak"]][:e],
-            "extra_neg": [int(v) for v in r["extra_neg"]][:e],
-            "extra_zero": [int(v) for v in r["extra_zero"]][:e],
-        })
+    names = [w.name for w in WIRE_FIELDS]
+    per_field = [col.records[name].tolist() for name in names]  # Python ints and lists
+    recs = [dict(zip(names, values, strict=True)) for values in zip(*per_field, strict=True)]
     return COLUMN_STRUCT.build({
         "frame": col.frame, "column": col.column,
         "flags": FLAG_CALIBRATION if col.calibration else 0, "uid_bits": col.uid_bits,
@@ -456,10 +412,7 @@ def decode_column_construct(payload: bytes) -> ColumnResult:
         raise FrameError(f"column: peaks {c.peaks}")
     rec = np.zeros(c.channels, dtype=record_dtype(c.peaks))
     for idx, r in enumerate(c.records):
-        rec[idx] = (r.peak_lag, r.peak, list(r.neighbours), r.noise_count, r.noise_sum,
-                  r.noise_sumsq, r.uid_neg, r.uid_zero, r.uid_observed, r.uid_match,
-                  list(r.extra_lag), list(r.extra_peak), list(r.extra_neg),
-                  list(r.extra_zero))
+        rec[idx] = tuple(list(r[w.name]) if w.axes else r[w.name] for w in WIRE_FIELDS)
     rec.flags.writeable = False
     return ColumnResult(c.frame, c.column, c.angle_udeg, rec, c.uid_bits,
                         bool(c.flags & FLAG_CALIBRATION), c.timestamp_us)

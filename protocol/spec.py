@@ -21,13 +21,14 @@ from pathlib import Path
 
 import construct as cs
 
+from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.protocol import framing
 from cdma_lidar.protocol.columns import (
-    _RECORD_STRUCT,
     COLUMN_HEADER,
     FLAG_CALIBRATION,
     NO_PEAK,
+    RECORD_STRUCT,
     ColumnResult,
 )
 from cdma_lidar.protocol.messages import (
@@ -45,7 +46,7 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
-_SIZES = {"u8": 1, "u16": 2, "u32": 4, "u64": 8, "i16": 2, "i32": 4, "i64": 8, "i32[2]": 8}
+_SIZES = {"u8": 1, "u16": 2, "u32": 4, "u64": 8, "i16": 2, "i32": 4, "i64": 8}
 _FMT = {"B": "u8", "H": "u16", "I": "u32"}
 
 
@@ -147,15 +148,17 @@ def message_fields() -> str:
 
 
 def column_table() -> str:
-    """COLUMN_RESULT header and per-channel record."""
+    """COLUMN_RESULT header and per-channel record (offsets of the record in terms of P)."""
     head = _fields_table(list(COLUMN_HEADER.subcons))
-    rec = _fields_table(list(_RECORD_STRUCT.subcons))
-    pos = {"extra_lag": "40", "extra_peak": "40 + 4(P-1)", "extra_neg": "40 + 8(P-1)",
-           "extra_zero": "40 + 9(P-1)"}
-    # Offsets after the first variable-size field, in terms of P.
-    rec = "\n".join(_fix_offset(line, pos) for line in rec.split("\n"))
-    return (f"Column header ({framing.struct.calcsize('<IHBBBHiI')} bytes):\n\n{head}\n\n"
-            f"Channel record (`40 + 10 (P-1)` bytes, K of them, channel 0 first):\n\n{rec}")
+    rows = []
+    for sc, at in zip(RECORD_STRUCT.subcons, wire_layout(), strict=True):
+        m = sc.meta
+        off = f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
+        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
+    rec = _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
+    return (f"Column header ({COLUMN_HEADER.sizeof()} bytes):\n\n{head}\n\n"
+            f"Channel record (`{RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} (P-1)` bytes, K of "
+            f"them, channel 0 first):\n\n{rec}")
 
 
 def config_table() -> str:
@@ -169,14 +172,6 @@ def errors_table() -> str:
     """NAK error codes."""
     return _table(("code", "name", "meaning"),
                   [(int(c), f"`{c.name}`", d) for c, d in ERROR_DOCS.items()])
-
-
-def _fix_offset(line: str, pos: dict[str, str]) -> str:
-    for name, off in pos.items():
-        if f"| `{name}` |" in line:
-            return line.replace("| var |", f"| {off} |", 1).replace(
-                f"| 40 | `{name}`", f"| {off} | `{name}`", 1)
-    return line
 
 
 def examples() -> str:

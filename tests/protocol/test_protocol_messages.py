@@ -309,17 +309,6 @@ def test_config_decoder_raises_only_frame_error_naming_the_key(items: list[dict]
             {it["key"] for it in items if it["key"] & 0x7F not in known}
 
 
-def test_column_record_declaration_and_numpy_dtype_list_the_same_fields() -> None:
-    """The spec table comes from the construct record, the wire from the dtype: same order."""
-    from cdma_lidar.protocol.columns import _HEAD, _RECORD_STRUCT, COLUMN_HEADER, record_dtype
-
-    names = [sc.name for sc in _RECORD_STRUCT.subcons]
-    for p in (1, 2, 8):
-        assert list(record_dtype(p).names) == names
-        assert record_dtype(p).itemsize == 40 + 10 * (p - 1)
-    assert COLUMN_HEADER.sizeof() == _HEAD.size == 19
-
-
 @pytest.mark.parametrize(("values", "text"), [
     ({"peaks": 9}, "peaks must be 1..max_peaks (1..8 on the wire), not 9"),
     ({"code_index": [1, 70000]}, "(each 0..65535 on the wire)"),
