@@ -2,8 +2,8 @@
 
 Everything here is integer arithmetic; docs/firmware.md is the full reference
 (block diagram, parameter ranges, every signal's fixed-point format). In short,
-for one column of ``R * n * N * S`` signed ADC codes (frame r, then UID period p,
-then sample i)::
+for one column of ``R * n * N * S`` signed ADC codes (repetition r = 0..R-1 of the
+n-period UID sequence, then UID period p, then sample i)::
 
     acc[p][i] = sum_r x[(r*n + p)*NS + i]                 s(b + clog2 R)
     d[i]      = sum_p (-1)^bit_p(uid) * acc[p][i]         s(b + bitlen(n R))
@@ -23,8 +23,11 @@ Two implementations give the same integers:
 * :func:`reference` / :class:`ReferenceReceiver`: literal, streaming (feed any
   chunking, sample by sample), Python integers and exact fractions. Slow.
 * :func:`fast` / :func:`fast_frame` / :class:`FastReceiver`: vectorised; the
-  correlation runs in the chip domain as an exact float64 matrix product or an
-  FFT rounded under a rigorous error bound (``cdma_lidar.firmware_model._correlate``).
+  correlation runs in the chip domain through a kernel from the registry in
+  :mod:`cdma_lidar.firmware_model.correlators` (``method=``, one of
+  :func:`correlator_methods`: ``"auto"``, an exact float64 matrix product
+  ``"matmul"``, an FFT rounded under a rigorous error bound ``"fft"``, or any kernel
+  registered since).
 """
 
 from __future__ import annotations
@@ -34,26 +37,33 @@ import logging
 import math
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import Literal
 
 import numpy as np
-from cdma_lidar.firmware_model import _correlate
-from cdma_lidar.firmware_model.adc import adc_limits
-from cdma_lidar.firmware_model.output import ReceiverOutput
 from numpy.typing import ArrayLike, NDArray
 
+from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.adc import adc_limits
+from cdma_lidar.firmware_model.correlators import (
+    AUTO,
+    GatePlan,
+    correlator_methods,
+    make_correlator,
+)
+from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at
+from cdma_lidar.firmware_model.output import ReceiverOutput
+from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
 __all__ = [
     "MAX_CHANNELS",
     "MAX_CODE_LENGTH",
-    "ROUNDING_MODES",
     "FastReceiver",
     "ReceiverConfig",
     "ReceiverOutput",
     "ReferenceReceiver",
     "Widths",
     "check_codes",
+    "correlator_methods",
     "fast",
     "fast_frame",
     "fast_from_accumulators",
@@ -62,8 +72,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-Rounding = Literal["truncate", "half_up", "convergent"]
-ROUNDING_MODES: tuple[str, ...] = ("truncate", "half_up", "convergent")
 MAX_CODE_LENGTH = 2**20 - 1  # degree 20; any length 3..MAX_CODE_LENGTH is accepted
 MIN_CODE_LENGTH = 3
 MAX_CHANNELS = 1024
@@ -133,26 +141,24 @@ class ReceiverConfig:
     peaks: int = 1
 
     def __post_init__(self) -> None:
-        _int_in("adc_bits", self.adc_bits, 8, 16)
-        _int_in("samples_per_chip", self.samples_per_chip, 1, 64)
-        _int_in("averages", self.averages, 1, 1024)
-        _int_in("uid_bits", self.uid_bits, 1, 16)
-        _int_in("uid", self.uid, 0, (1 << self.uid_bits) - 1)
-        _int_in("gate_start", self.gate_start, 0, MAX_CODE_LENGTH * 64 - 1)
-        _int_in("gate_len", self.gate_len, 1, MAX_CODE_LENGTH * 64)
-        _int_in("peak_exclude", self.peak_exclude, 0, MAX_CODE_LENGTH * 64)
-        _int_in("out_shift", self.out_shift, 0, 62)
-        _int_in("out_bits", self.out_bits, 8, 32)
-        _int_in("peaks", self.peaks, 1, 8)
+        check_int("adc_bits", self.adc_bits, 8, 16)
+        check_int("samples_per_chip", self.samples_per_chip, 1, 64)
+        check_int("averages", self.averages, 1, 1024)
+        check_int("uid_bits", self.uid_bits, 1, 16)
+        check_int("uid", self.uid, 0, (1 << self.uid_bits) - 1)
+        check_int("gate_start", self.gate_start, 0, MAX_CODE_LENGTH * 64 - 1)
+        check_int("gate_len", self.gate_len, 1, MAX_CODE_LENGTH * 64)
+        check_int("peak_exclude", self.peak_exclude, 0, MAX_CODE_LENGTH * 64)
+        check_int("out_shift", self.out_shift, 0, 62)
+        check_int("out_bits", self.out_bits, 8, 32)
+        check_int("peaks", self.peaks, 1, 8)
         if self.rounding not in ROUNDING_MODES:
             raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), self.rounding)
         try:
             ghosts = tuple((s, n) for s, n in self.ghost_windows)
         except (TypeError, ValueError):
             ghosts = None
-        if ghosts is None or not all(
-            isinstance(v, int | np.integer) and not isinstance(v, bool) for w in ghosts for v in w
-        ):
+        if ghosts is None or not all(is_int(v) for w in ghosts for v in w):
             raise out_of_range(
                 "ghost_windows", "a sequence of (start, len) integer pairs", self.ghost_windows
             )
@@ -186,7 +192,7 @@ class ReceiverConfig:
         ``noise_sumsq`` can: lower ``out_bits``, raise ``out_shift`` or shorten
         ``gate_len``).
         """
-        _int_in("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
+        check_int("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
         ns = self.period_samples(n_chips)
         if self.gate_start >= ns:
             raise out_of_range("gate_start", f"0..{ns - 1} (N*S - 1)", self.gate_start)
@@ -243,13 +249,6 @@ def check_codes(codes: ArrayLike) -> NDArray[np.uint8]:
     if c.dtype.kind != "b" and c.size and (int(c.min()) < 0 or int(c.max()) > 1):
         raise out_of_range("codes", "chip bits 0 or 1", f"values {int(c.min())}..{int(c.max())}")
     return c.astype(np.uint8)
-
-
-def _int_in(field_name: str, value: object, lo: int, hi: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise out_of_range(field_name, f"an integer in {lo}..{hi}", value)
-    if not lo <= int(value) <= hi:
-        raise out_of_range(field_name, f"an integer in {lo}..{hi}", value)
 
 
 def _as_samples(samples: ArrayLike, ndim: int) -> NDArray[np.integer]:
@@ -426,15 +425,17 @@ def reference(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> Rece
 class FastReceiver:
     """Vectorised receive chain for one configuration and code set; reuse it across columns.
 
-    ``method`` forces the correlator ("matmul" or "fft"; default picks the
-    cheaper one); ``float_bits`` (default 53) is the largest magnitude, in bits,
-    the float64 products may reach before operands are split into limbs. Both
-    only choose how the same integers are computed.
+    ``method`` names the correlation kernel, one of :func:`correlator_methods`
+    (default ``"auto"``: the registered kernel with the lowest cost estimate,
+    "matmul" for short gates, "fft" for long ones); ``float_bits`` (default 53) is
+    the largest magnitude, in bits, the float64 kernels' products may reach before
+    operands are split into limbs. Both only choose how the same integers are
+    computed. An unknown ``method`` raises ConfigError listing the registered names.
     """
 
     cfg: ReceiverConfig
     codes: ArrayLike
-    method: str | None = None
+    method: str = AUTO
     float_bits: int = 53
     widths: Widths = field(init=False)
 
@@ -457,15 +458,14 @@ class FastReceiver:
             [-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], dtype=np.int64
         )
         self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
-        self._corr = _correlate.GateCorrelator(
-            self._bip, cfg.samples_per_chip, self._lag_lo, g + 2,
-            method=self.method, float_bits=self.float_bits,
-        )
+        plan = GatePlan(self._bip, cfg.samples_per_chip, self._lag_lo, g + 2,
+                        float_bits=self.float_bits)
+        self._corr = make_correlator(self.method, plan)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
 
     @property
     def correlator_method(self) -> str:
-        """"matmul" or "fft": how the gated correlation is computed."""
+        """The registered kernel computing the gated correlation ("matmul", "fft", ...)."""
         return self._corr.method
 
     def column(self, samples: ArrayLike) -> ReceiverOutput:
@@ -474,12 +474,15 @@ class FastReceiver:
         return self.frame(x[None, :])[0]
 
     def frame(self, samples: ArrayLike) -> list[ReceiverOutput]:
-        """Many columns at once: ``samples`` (C, R*n*N*S) ADC codes; one output per column."""
+        """Many columns at once (e.g. a scan frame): ``samples`` (C, R*n*N*S) ADC codes.
+
+        Returns one output per column.
+        """
         x = _as_samples(samples, 2)
         return self._finish(self.accumulate(x))
 
     def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.int64]:
-        """Sum the R UID frames: (C, R*n*NS) ADC codes -> acc (C, n, NS) int64."""
+        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS) int64."""
         cfg = self.cfg
         c = samples.shape[0]
         need = cfg.column_samples(self.n_chips)
@@ -499,7 +502,7 @@ class FastReceiver:
     def from_accumulators(self, acc: ArrayLike) -> list[ReceiverOutput]:
         """Finish the chain from accumulated periods ``acc`` (C, n, NS) integers.
 
-        ``acc[c, p, i]`` is the sum over the R UID frames of sample i of period p;
+        ``acc[c, p, i]`` is the sum over the R repetitions of sample i of period p;
         each entry must lie in the range R ADC codes can reach.
         """
         cfg = self.cfg
@@ -519,7 +522,7 @@ class FastReceiver:
         d = np.einsum("cpi,p->ci", a, self._despread) if cfg.uid_bits > 1 else a[:, 0, :] * (
             self._despread[0]
         )
-        y = _correlate.chip_sums(d, cfg.samples_per_chip)  # (C, S, N)
+        y = chip_sums(d, cfg.samples_per_chip)  # (C, S, N)
         raw = self._corr(y)  # (C, K, G+2) int64
         out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
         return self._post(raw, out, a)
@@ -569,7 +572,7 @@ class FastReceiver:
         extra_signs = np.ascontiguousarray(signs[:, :, 1:, :])
         lag0, val0 = np.ascontiguousarray(pk_lag[..., 0]), np.ascontiguousarray(pk_val[..., 0])
         lag1, val1 = np.ascontiguousarray(pk_lag[..., 1:]), np.ascontiguousarray(pk_val[..., 1:])
-        return [  # per-column views into the frame's arrays
+        return [  # per-column views into the batch's arrays
             ReceiverOutput(
                 corr=corr[ci],
                 peak_lag=lag0[ci],
@@ -603,7 +606,7 @@ class FastReceiver:
             s = np.sign(r)[..., None]
         else:
             lags = self._lags[1:-1][jsafe]  # (C, K, P)
-            s = np.sign(_correlate.correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
+            s = np.sign(correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
         return np.where(found[..., None], s, 0).astype(np.int8)
 
 
@@ -624,18 +627,26 @@ def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> 
     return np.clip(r, -top - 1, top)
 
 
-def fast(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> ReceiverOutput:
-    """One column through the vectorised chain; bit-identical to :func:`reference`."""
-    return FastReceiver(cfg, codes).column(samples)
+def fast(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
+         method: str = AUTO) -> ReceiverOutput:
+    """One column through the vectorised chain; bit-identical to :func:`reference`.
+
+    ``method``: the correlation kernel, one of :func:`correlator_methods`.
+    """
+    return FastReceiver(cfg, codes, method=method).column(samples)
 
 
-def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike) -> list[ReceiverOutput]:
-    """C columns at once (``samples`` shape (C, R*n*N*S)); one :class:`ReceiverOutput` each."""
-    return FastReceiver(cfg, codes).frame(samples)
+def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
+               method: str = AUTO) -> list[ReceiverOutput]:
+    """C columns at once (``samples`` shape (C, R*n*N*S)); one :class:`ReceiverOutput` each.
+
+    ``method``: the correlation kernel, one of :func:`correlator_methods`.
+    """
+    return FastReceiver(cfg, codes, method=method).frame(samples)
 
 
 def fast_from_accumulators(
-    cfg: ReceiverConfig, codes: ArrayLike, acc: ArrayLike
+    cfg: ReceiverConfig, codes: ArrayLike, acc: ArrayLike, *, method: str = AUTO
 ) -> list[ReceiverOutput]:
     """Finish the chain from accumulated periods ``acc`` (C, n, N*S): see FastReceiver."""
-    return FastReceiver(cfg, codes).from_accumulators(acc)
+    return FastReceiver(cfg, codes, method=method).from_accumulators(acc)

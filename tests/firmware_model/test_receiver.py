@@ -4,11 +4,15 @@ Hypothesis draws whole configurations (ADC width, S, R, UID bits and value, K, N
 gate incl. wrapping and whole period, shift, rounding, output width, ghost
 windows, several peaks) and signals (uniform, tiny alphabets that force ties,
 full scale, delayed echoes), feeds the reference in random chunks, and compares
-every output field of every fast variant: matrix product, FFT, and both with
-the float limit lowered so the operands are split into limbs.
+every output field of every fast variant: every registered correlation kernel
+(``correlator_methods()``: auto, matrix product, FFT, and any kernel registered
+since), and the float kernels with the float limit lowered so the operands are
+split into limbs. A toy kernel registered here becomes usable by name.
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 import pytest
@@ -16,12 +20,20 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
+from cdma_lidar.firmware_model.correlators import (
+    Correlator,
+    GatePlan,
+    register_correlator,
+    unregister_correlator,
+)
 from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
     ReferenceReceiver,
+    correlator_methods,
     fast,
     fast_frame,
+    fast_from_accumulators,
     reference,
 )
 
@@ -92,27 +104,137 @@ def cases(draw):
     return cfg, codes, x.astype(dtype), cuts
 
 
+class PerLagCorrelator(Correlator):
+    """Toy kernel: one int64 dot product per channel, lag and column, straight from
+    ``raw[c, k, m] = sum_j bip_k[j] Y[c, r_m, (j + q0 + u_m) mod N]`` (slow, obviously exact)."""
+
+    def __call__(self, y):
+        plan = self.plan
+        bip = plan.bip.astype(np.int64)
+        out = np.zeros((y.shape[0], plan.k, plan.count), dtype=np.int64)
+        for m in range(plan.count):
+            row = np.roll(y[:, plan.r_m[m], :], -(plan.q0 + int(plan.u_m[m])), axis=-1)
+            out[:, :, m] = row @ bip.T
+        return out
+
+
+@contextlib.contextmanager
+def toy_kernel():
+    """Register the toy kernel as "perlag" for the duration (hypothesis-safe: per example)."""
+    register_correlator("perlag", PerLagCorrelator)
+    try:
+        yield "perlag"
+    finally:
+        unregister_correlator("perlag")
+
+
+#: Float limits low enough that the float kernels split their operands into limbs.
+LIMB_FLOAT_BITS = {"matmul": lambda n: n.bit_length() + 2, "fft": lambda n: 30}
+
+
 def _fast_variants(cfg, codes):
     n = codes.shape[1]
-    yield FastReceiver(cfg, codes, method="matmul")
-    yield FastReceiver(cfg, codes, method="fft")
-    yield FastReceiver(cfg, codes, method="matmul", float_bits=n.bit_length() + 2)
-    yield FastReceiver(cfg, codes, method="fft", float_bits=30)
+    for method in correlator_methods():
+        yield FastReceiver(cfg, codes, method=method)
+        if method in LIMB_FLOAT_BITS:
+            yield FastReceiver(cfg, codes, method=method, float_bits=LIMB_FLOAT_BITS[method](n))
 
 
-@settings(max_examples=150)
-@given(cases())
-def test_fast_paths_equal_chunked_reference(case):
-    cfg, codes, x, cuts = case
+def _chunked_reference(cfg, codes, x, cuts):
     rx = ReferenceReceiver(cfg, codes)
     for chunk in np.split(x, cuts):
         rx.feed(chunk)
     assert rx.samples_needed == 0
     want = rx.finish()
     assert want.corr.shape == (codes.shape[0], cfg.gate_len)
+    return want
+
+
+@settings(max_examples=150)
+@given(cases())
+def test_fast_paths_equal_chunked_reference(case):
+    cfg, codes, x, cuts = case
+    want = _chunked_reference(cfg, codes, x, cuts)
+    seen = set()
     for fr in _fast_variants(cfg, codes):
         got = fr.column(x)
-        assert got.mismatches(want) == [], (fr.correlator_method, fr.float_bits)
+        assert got.mismatches(want) == [], (fr.method, fr.correlator_method, fr.float_bits)
+        seen.add(fr.method)
+    assert seen == set(correlator_methods())
+
+
+def test_every_method_is_listed_auto_first():
+    methods = correlator_methods()
+    assert methods[0] == "auto"
+    assert {"matmul", "fft"} <= set(methods[1:])
+
+
+@settings(max_examples=40)
+@given(cases())
+def test_a_registered_kernel_is_usable_by_name(case):
+    cfg, codes, x, cuts = case
+    want = _chunked_reference(cfg, codes, x, cuts)
+    with toy_kernel() as name:
+        assert name in correlator_methods()
+        # the parametrised equality check of every registered method includes it
+        for fr in _fast_variants(cfg, codes):
+            assert fr.column(x).mismatches(want) == [], fr.method
+        for got in (
+            fast(cfg, codes, x, method=name),
+            fast_frame(cfg, codes, x[None, :], method=name)[0],
+        ):
+            assert got.mismatches(want) == []
+        rx = FastReceiver(cfg, codes, method=name)
+        assert rx.correlator_method == name
+        # its cost is the default (infinite): "auto" never picks a kernel that did not ask
+        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft")
+        acc = rx.accumulate(x[None, :])
+        assert fast_from_accumulators(cfg, codes, acc, method=name)[0].same_as(want)
+    assert name not in correlator_methods()
+    with pytest.raises(ConfigError, match="method"):
+        FastReceiver(cfg, codes, method=name)
+
+
+def test_registration_rejects_taken_and_reserved_names():
+    with toy_kernel() as name, pytest.raises(ConfigError, match="already registered"):
+        register_correlator(name, PerLagCorrelator)
+    with pytest.raises(ConfigError, match="name"):
+        register_correlator("auto", PerLagCorrelator)
+    with pytest.raises(ConfigError, match="factory"):
+        register_correlator("other", lambda plan: None)
+
+
+@pytest.mark.parametrize("run", ["class", "fast", "fast_frame", "fast_from_accumulators"])
+def test_unknown_method_is_a_config_error_listing_the_methods(run):
+    cfg = ReceiverConfig(samples_per_chip=1, averages=1, gate_len=3)
+    codes = np.zeros((1, 7), np.uint8)
+    x = np.zeros(7, np.int16)
+    calls = {
+        "class": lambda: FastReceiver(cfg, codes, method="gpu"),
+        "fast": lambda: fast(cfg, codes, x, method="gpu"),
+        "fast_frame": lambda: fast_frame(cfg, codes, x[None, :], method="gpu"),
+        "fast_from_accumulators": lambda: fast_from_accumulators(
+            cfg, codes, np.zeros((1, 1, 7), np.int64), method="gpu"),
+    }
+    with pytest.raises(ConfigError, match="method") as err:
+        calls[run]()
+    assert err.value.field == "method"
+    for name in correlator_methods():
+        assert name in str(err.value)
+
+
+def test_auto_choice_follows_the_cost_estimates():
+    """"auto" is the lowest cost of the registered kernels, ties to the first registered."""
+    from cdma_lidar.firmware_model.correlators import choose_correlator
+    from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
+    from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
+
+    rng = np.random.default_rng(5)
+    for n, k, s, count in [(2047, 40, 4, 66), (511, 5, 2, 1024), (31, 3, 1, 31), (8191, 40, 4,
+                                                                                   32766)]:
+        plan = GatePlan((1 - 2 * rng.integers(0, 2, (k, n))).astype(np.int8), s, 0, count)
+        mm, ff = MatmulCorrelator.cost(plan), FFTCorrelator.cost(plan)
+        assert choose_correlator(plan) == ("matmul" if mm <= ff else "fft")
 
 
 @settings(max_examples=15)

@@ -1,0 +1,184 @@
+"""The correlator seam: what a gated-correlation kernel implements, and the one registry.
+
+The fast receive chain reduces every column to chip sums ``Y`` (C, S, N) (see
+:mod:`cdma_lidar.firmware_model.correlators.chip_domain`) and asks a kernel for the
+raw correlation at ``count`` consecutive sample lags ``(lag_lo + m) mod N*S``::
+
+    raw[c, k, m] = sum_i ref_k[i] d_c[(i + lag_m) mod NS]
+                 = sum_j bip_k[j] Y[c, r_m, (j + q0 + u_m) mod N]
+    lag_m = lag_lo + m = (q0 + u_m) S + r_m,   r_m in 0..S-1
+
+A kernel is a :class:`Correlator` subclass, registered under a name with
+:func:`register_correlator`; the receiver picks it by that name
+(``FastReceiver(cfg, codes, method=...)``), or by the lowest :meth:`Correlator.cost`
+with ``method="auto"``. Every kernel must return the exact int64 integers of the
+definition: it is bit-identical to the streaming reference or it is a bug.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdma_lidar.errors import ConfigError, out_of_range
+
+__all__ = [
+    "AUTO",
+    "BLOCK_BYTES",
+    "Correlator",
+    "GatePlan",
+    "choose_correlator",
+    "correlator_methods",
+    "limbs",
+    "make_correlator",
+    "register_correlator",
+    "unregister_correlator",
+]
+
+log = logging.getLogger(__name__)
+
+#: The method name that lets the cost estimates choose.
+AUTO = "auto"
+
+#: Working-set cap (bytes) per block of columns or channels in the kernels.
+BLOCK_BYTES = 64 << 20
+
+
+class GatePlan:
+    """The geometry one kernel is prepared for: codes, S, the gated lags, the float budget.
+
+    ``bip`` (K, N) int8 +-1 (chip bit 0 -> +1), ``s`` samples per chip, lags
+    ``(lag_lo + m) mod N*S`` for m < ``count`` (samples), and ``float_bits``: the
+    largest magnitude, in bits, a float64 kernel may let its exact integers reach
+    before it splits the operands into limbs (``n.bit_length() + 2 .. 53``).
+
+    Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
+    the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
+    ``nq = u_m[-1] + 1``; ``sel[r]`` the lags m of phase r.
+    """
+
+    def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
+                 float_bits: int = 53) -> None:
+        self.k, self.n = bip.shape
+        self.s = s
+        self.bip = bip
+        self.count = count
+        n = self.n
+        if not n.bit_length() + 2 <= float_bits <= 53:
+            raise out_of_range("float_bits", f"{n.bit_length() + 2}..53", float_bits)
+        self.float_bits = float_bits
+        self.lag_lo = int(lag_lo)
+        self.q0, self.r0 = divmod(self.lag_lo, s)
+        m = np.arange(count)
+        self.u_m = (self.r0 + m) // s
+        self.r_m = (self.r0 + m) % s
+        self.nq = int(self.u_m[-1]) + 1
+        self.sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]  # lags m of phase r
+
+
+class Correlator(ABC):
+    """A gated-correlation kernel: prepared once per plan, then called per block of columns.
+
+    Subclasses implement ``__init__(plan)`` (build whatever the plan allows to
+    precompute: Hankel blocks, spectra, ...), ``__call__(y)`` and, to take part in
+    ``method="auto"``, :meth:`cost`.
+    """
+
+    def __init__(self, plan: GatePlan) -> None:
+        self.plan = plan
+        #: the registered name it was made under (set by :func:`make_correlator`)
+        self.method = ""
+
+    @classmethod
+    def cost(cls, plan: GatePlan) -> float:
+        """Estimated cost (arbitrary common unit: BLAS multiply-adds) of one column.
+
+        ``math.inf`` (the default) means "only when asked for by name".
+        """
+        return math.inf
+
+    @abstractmethod
+    def __call__(self, y: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Chip sums ``y`` (C, S, N) int64 -> exact ``raw`` (C, K, count) int64."""
+
+
+_REGISTRY: dict[str, type[Correlator]] = {}
+
+
+def register_correlator(name: str, factory: type[Correlator], *, replace: bool = False) -> None:
+    """Make kernel ``factory`` (a :class:`Correlator` subclass) usable as ``method=name``.
+
+    Registration order is the tie-break of ``"auto"`` (the first of equal costs wins)
+    and the order of :func:`correlator_methods`. Raises ConfigError for a name that is
+    taken (unless ``replace``) or reserved (``"auto"``).
+    """
+    if not isinstance(name, str) or not name.isidentifier() or name == AUTO:
+        raise out_of_range("name", f"an identifier other than {AUTO!r}", name)
+    if not (isinstance(factory, type) and issubclass(factory, Correlator)):
+        raise out_of_range("factory", "a Correlator subclass", factory)
+    if name in _REGISTRY and not replace:
+        raise ConfigError(f"correlator {name!r} is already registered", field="name")
+    _REGISTRY[name] = factory
+
+
+def unregister_correlator(name: str) -> None:
+    """Remove a registered kernel (tests and plug-ins that register temporarily)."""
+    if name not in _REGISTRY:
+        raise out_of_range("name", "one of " + ", ".join(_REGISTRY), name)
+    del _REGISTRY[name]
+
+
+def correlator_methods() -> tuple[str, ...]:
+    """Valid ``method=`` values: ``"auto"`` first, then the kernels in registration order."""
+    return (AUTO, *_REGISTRY)
+
+
+def choose_correlator(plan: GatePlan) -> str:
+    """The kernel ``"auto"`` picks: the lowest :meth:`Correlator.cost`, ties to the first."""
+    best, best_cost = "", math.inf
+    for name, cls in _REGISTRY.items():
+        c = cls.cost(plan)
+        if c < best_cost:
+            best, best_cost = name, c
+    if not best:
+        raise ConfigError("no registered correlator has a finite cost for this plan",
+                          field="method")
+    return best
+
+
+def make_correlator(method: str, plan: GatePlan) -> Correlator:
+    """Prepare the kernel ``method`` (a registered name or ``"auto"``) for ``plan``.
+
+    Raises ConfigError naming ``method`` and listing the registered names otherwise.
+    """
+    if not isinstance(method, str) or (method != AUTO and method not in _REGISTRY):
+        raise out_of_range("method", "one of " + ", ".join(correlator_methods()), method)
+    name = choose_correlator(plan) if method == AUTO else method
+    kernel = _REGISTRY[name](plan)
+    kernel.method = name
+    log.debug("gate correlator: N=%d S=%d K=%d lags=%d via %s",
+              plan.n, plan.s, plan.k, plan.count, name)
+    return kernel
+
+
+def limbs(
+    y: NDArray[np.int64], fits: Callable[[NDArray[np.int64]], bool], h: int
+) -> list[tuple[NDArray[np.int64], int]]:
+    """Split ``y = sum limb * 2^shift`` until ``fits(limb)``; low limbs are in [0, 2^h).
+
+    The generic half of the float kernels' exactness guard; each kernel supplies its
+    own ``fits`` (its error bound) and limb width ``h``.
+    """
+    out: list[tuple[NDArray[np.int64], int]] = []
+    shift = 0
+    while not fits(y):
+        out.append((y & ((1 << h) - 1), shift))
+        y = y >> h
+        shift += h
+    out.append((y, shift))
+    return out

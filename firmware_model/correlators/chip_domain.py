@@ -1,0 +1,68 @@
+"""Integrate-and-dump into the chip domain, and the per-period dots of the UID signs.
+
+With ``W[i] = sum_{s<S} d[(i + s) mod NS]`` and ``Y_r[m] = W[m S + r]`` (r = 0..S-1,
+m = 0..N-1), a sample lag ``l = q S + r`` gives::
+
+    raw[l] = sum_i ref[i] d[(i + l) mod NS] = sum_c bip[c] Y_r[(c + q) mod N]
+
+so the correlation over N*S samples becomes S chip-rate correlations of length N,
+which the registered kernels (:mod:`cdma_lidar.firmware_model.correlators`) evaluate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
+
+from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES
+
+__all__ = ["chip_sums", "correlate_at"]
+
+
+def chip_sums(d: NDArray[np.int64], s: int) -> NDArray[np.int64]:
+    """Integrate-and-dump: (C, N*S) -> (C, S, N), ``Y[c, r, m] = sum_{t<S} d[(mS+r+t) mod NS]``.
+
+    First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
+    sample (S - 1 shifted adds for small S, a prefix sum otherwise), then
+    ``Y[c, r, m] = W[c, m S + r]`` as one contiguous transpose.
+    """
+    c, ns = d.shape
+    n = ns // s
+    if s <= 8:
+        w = d.astype(np.int64, copy=True)
+        for t in range(1, s):
+            w[:, :-t] += d[:, t:]
+            w[:, -t:] += d[:, :t]
+    else:
+        ext = np.concatenate([np.zeros((c, 1), np.int64), d, d[:, : s - 1]], axis=1)
+        cs = np.cumsum(ext, axis=1)
+        w = cs[:, s : s + ns] - cs[:, :ns]
+    return np.ascontiguousarray(w.reshape(c, n, s).transpose(0, 2, 1))
+
+
+def correlate_at(
+    bip: NDArray[np.int8], acc: NDArray[np.int64], lags: NDArray[np.int64], s: int
+) -> NDArray[np.int64]:
+    """Per-period raw correlation at given lags (the UID signs at the peaks).
+
+    ``bip`` (K, N) +-1, ``acc`` (C, n, N*S), ``lags`` (C, K, P) in 0..NS-1 (samples).
+    Returns (C, K, P, n) int64 ``sum_i ref_k[i] acc[c, p, (i + lag) mod NS]``, exact.
+    """
+    c, n_uid, ns = acc.shape
+    k, n = bip.shape
+    _, _, npk = lags.shape
+    y = chip_sums(acc.reshape(c * n_uid, ns), s).reshape(c, n_uid, s, n)
+    q, r = np.divmod(lags, s)
+    out = np.empty((c, k, npk, n_uid), dtype=np.int64)
+    block = max(1, BLOCK_BYTES // (k * npk * n * 8 * 2))
+    b64 = bip.astype(np.int64)[None, :, None, :]
+    for c0 in range(0, c, block):
+        c1 = min(c, c0 + block)
+        ci = np.arange(c0, c1)[:, None, None]
+        for p in range(n_uid):
+            y2 = np.concatenate([y[c0:c1, p], y[c0:c1, p]], axis=-1)  # (cb, S, 2N)
+            win = sliding_window_view(y2, n, axis=-1)  # (cb, S, N+1, N)
+            rows = win[ci - c0, r[c0:c1], q[c0:c1]]  # (cb, K, P, N)
+            out[c0:c1, :, :, p] = (rows * b64).sum(axis=-1)
+    return out
