@@ -12,13 +12,16 @@ deliberately wrong model configuration.
 Port encodings (see ``docs/hdl.md``)::
 
     polynomial (11, 2)     -> taps = (1 << 10) | (1 << 1)      bit e-1 per exponent e
+                              (cdma_lidar.poly.tap_mask)
     seed "11011" (stage 1 first) -> 0b11011 read right to left: bit k-1 = stage k
-    rounding               -> 0 truncate, 1 half_up, 2 convergent
+    rounding               -> 0 truncate, 1 half_up, 2 convergent (cdma_lidar.rounding)
     ghost windows          -> packed start/len fields of LAG_W bits, len 0 = unused slot
     peak_exclude W         -> min(W, MAX_G) (|j - j_q| <= G - 1 < MAX_G, so equal results)
 
 cocotb is imported only inside the functions that build or run a simulation,
 so ``import cdma_lidar.hdl_ref.cosim`` works without it; the model package never imports it.
+A decoded run becomes a ``ReceiverOutput`` field by field from the column record
+(:mod:`cdma_lidar.column_record`).
 """
 
 from __future__ import annotations
@@ -33,12 +36,18 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from cdma_lidar.column_record import FIELD_NAMES, RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.fileio import atomic_write_text
+from cdma_lidar.firmware_model.gold import gold_seeds
+from cdma_lidar.firmware_model.output import ReceiverOutput
+from cdma_lidar.poly import tap_mask
+from cdma_lidar.rounding import ROUNDING_MODES, rounding_code
 
 __all__ = [
     "GOLD_TOP",
-    "ROUNDING_CODES",
     "RTL_DIR",
     "RTL_SOURCES",
     "RX_TOP",
@@ -49,7 +58,6 @@ __all__ = [
     "decode_rx_result",
     "gold_ports",
     "iverilog_available",
-    "poly_taps",
     "run_job",
     "rx_latency_clocks",
     "rx_ports",
@@ -63,7 +71,6 @@ RTL_DIR = Path(__file__).resolve().parent / "rtl"
 RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "rx_chain.v")
 RX_TOP = "rx_chain"
 GOLD_TOP = "gold_gen"
-ROUNDING_CODES = {"truncate": 0, "half_up": 1, "convergent": 2}
 
 
 class SimulatorMissing(RuntimeError):
@@ -137,14 +144,6 @@ class GoldParams:
         return f"gold_d{self.max_deg}_u{self.max_uid}"
 
 
-def poly_taps(poly: Sequence[int]) -> int:
-    """Tap mask of a polynomial given as exponents (constant term implied): bit e-1 per e."""
-    mask = 0
-    for e in poly:
-        mask |= 1 << (int(e) - 1)
-    return mask
-
-
 def seed_bits(seed: str) -> int:
     """Seed bit string, stage 1 first, as the port value (bit k-1 = stage k)."""
     return sum(1 << k for k, ch in enumerate(seed) if ch == "1")
@@ -159,14 +158,12 @@ def _need(field: str, value: int, hi: int, lo: int = 0) -> int:
 def gold_ports(poly_u: Sequence[int], poly_v: Sequence[int], index: int, uid: int,
                uid_bits: int, params: GoldParams) -> dict[str, int]:
     """``gold_gen`` input port values for member ``index`` of the pair with a UID."""
-    from cdma_lidar.firmware_model.gold import gold_seeds
-
     m = int(poly_u[0])
     _need("degree", m, params.max_deg, 2)
     _need("uid_bits", uid_bits, params.max_uid, 1)
     seed_u, seed_v = gold_seeds(tuple(poly_u), tuple(poly_v), index)
     return {
-        "degree": m, "taps_u": poly_taps(poly_u), "taps_v": poly_taps(poly_v),
+        "degree": m, "taps_u": tap_mask(poly_u), "taps_v": tap_mask(poly_v),
         "seed_u": seed_bits(seed_u), "seed_v": seed_bits(seed_v),
         "uid": _need("uid", uid, (1 << uid_bits) - 1), "uid_bits": uid_bits,
     }
@@ -180,8 +177,6 @@ def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
     fields). Raises ``ConfigError`` naming the field when the configuration is
     outside what this build supports (``params``) or outside docs/firmware.md.
     """
-    from cdma_lidar.firmware_model.gold import gold_seeds
-
     m = int(poly_u[0])
     _need("degree", m, params.max_deg, 2)
     n_chips = (1 << m) - 1
@@ -198,13 +193,13 @@ def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
     for w, (start, length) in enumerate(ghosts):
         g_start |= _need("ghost_windows.start", start, ns - 1) << (w * lag_w)
         g_len |= _need("ghost_windows.len", length, ns, 1) << (w * lag_w)
-    if cfg.rounding not in ROUNDING_CODES:
-        raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_CODES), cfg.rounding)
+    if cfg.rounding not in ROUNDING_MODES:
+        raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), cfg.rounding)
     seed_u, seed_v = gold_seeds(tuple(poly_u), tuple(poly_v), index)
     return {
         "cfg_degree": m,
-        "cfg_taps_u": poly_taps(poly_u),
-        "cfg_taps_v": poly_taps(poly_v),
+        "cfg_taps_u": tap_mask(poly_u),
+        "cfg_taps_v": tap_mask(poly_v),
         "cfg_seed_u": seed_bits(seed_u),
         "cfg_seed_v": seed_bits(seed_v),
         "cfg_spc": s,
@@ -217,7 +212,7 @@ def rx_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int], index: int,
         "cfg_ghost_start": g_start,
         "cfg_ghost_len": g_len,
         "cfg_out_shift": _need("out_shift", cfg.out_shift, 62),
-        "cfg_rounding": ROUNDING_CODES[cfg.rounding],
+        "cfg_rounding": rounding_code(cfg.rounding),
         "cfg_out_bits": _need("out_bits", cfg.out_bits, params.out_w, 2),
         "cfg_peaks": _need("peaks", cfg.peaks, params.max_p, 1),
     }
@@ -267,12 +262,11 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
     """Turn the raw output words of one ``rx_chain`` run into ``ReceiverOutput`` fields.
 
     ``raw`` is one case of a bench result: ``{"corr": [[j, word], ...], "res": {port: word}}``.
-    Returns plain Python values for one channel (K = 1): ``corr`` (list of G
-    ints), ``peak_lag``, ``peak``, ``neighbours`` (2), ``noise_count``,
-    ``noise_sum``, ``noise_sumsq``, ``uid_signs`` (n), ``uid_observed``,
-    ``uid_match``, ``extra_lag``/``extra_peak`` (P-1), ``extra_signs`` (P-1 x n).
-    Only format conversion happens here (port fields to integers; lag -1 for a
-    missing peak); every value is computed by the RTL.
+    Returns plain Python values for one channel (K = 1): ``corr`` (list of G ints),
+    then every field of the column record in record order (without the channel
+    axis: ``neighbours`` 2 values, ``uid_signs`` n, ``extra_*`` P-1, ``extra_signs``
+    P-1 lists of n). Only format conversion happens here (port fields to integers;
+    lag -1 for a missing peak); every value is computed by the RTL.
     """
     ow, lw, uw = params.out_w, params.lag_w, params.max_uid
     n = ports["cfg_uid_bits"]
@@ -294,8 +288,8 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
             _signed((res["res_peak"] >> (q * ow)) & ((1 << ow) - 1), ow),
             signs,
         ))
-    return {
-        "corr": corr,
+    # Where each record field comes from in the RTL's result ports.
+    ports_of = {
         "peak_lag": peaks[0][0],
         "peak": peaks[0][1],
         "neighbours": [_signed(res["res_nb_lo"], ow), _signed(res["res_nb_hi"], ow)],
@@ -309,39 +303,22 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
         "extra_peak": [pk[1] for pk in peaks[1:]],
         "extra_signs": [pk[2] for pk in peaks[1:]],
     }
+    return {"corr": corr} | {name: ports_of[name] for name in FIELD_NAMES}
 
 
-def to_receiver_output(decoded: Mapping[str, Any]) -> Any:
-    """A one-channel ``cdma_lidar.firmware_model.receiver.ReceiverOutput`` from :func:`decode_rx_result`.
+def to_receiver_output(decoded: Mapping[str, Any]) -> ReceiverOutput:
+    """A one-channel ``ReceiverOutput`` from :func:`decode_rx_result`.
 
-    Shapes and dtypes are those of the model (K = 1), so ``mismatches()`` of the
-    model's output against it compares values, shapes and dtypes field by field.
+    Shapes and dtypes are those of the model (K = 1, each field's dtype and trailing
+    shape from the column record), so ``mismatches()`` of the model's output against
+    it compares values, shapes and dtypes field by field.
     """
-    import numpy as np
-
-    from cdma_lidar.firmware_model.receiver import ReceiverOutput
-
     n = len(decoded["uid_signs"])
-    extra = len(decoded["extra_lag"])
-
-    def i64(v: Any, shape: tuple[int, ...]) -> Any:
-        return np.array(v, dtype=np.int64).reshape(shape)
-
-    return ReceiverOutput(
-        corr=i64(decoded["corr"], (1, -1)),
-        peak_lag=i64([decoded["peak_lag"]], (1,)),
-        peak=i64([decoded["peak"]], (1,)),
-        neighbours=i64(decoded["neighbours"], (1, 2)),
-        noise_count=i64([decoded["noise_count"]], (1,)),
-        noise_sum=i64([decoded["noise_sum"]], (1,)),
-        noise_sumsq=i64([decoded["noise_sumsq"]], (1,)),
-        uid_signs=np.array(decoded["uid_signs"], dtype=np.int8).reshape(1, n),
-        uid_observed=i64([decoded["uid_observed"]], (1,)),
-        uid_match=np.array([decoded["uid_match"]], dtype=np.bool_),
-        extra_lag=i64(decoded["extra_lag"], (1, extra)),
-        extra_peak=i64(decoded["extra_peak"], (1, extra)),
-        extra_signs=np.array(decoded["extra_signs"], dtype=np.int8).reshape(1, extra, n),
-    )
+    peaks = 1 + len(decoded["extra_lag"])
+    values = {"corr": np.array(decoded["corr"], dtype=np.int64).reshape(1, -1)}
+    for f in RECORD:
+        values[f.name] = np.array(decoded[f.name], dtype=f.dtype).reshape(1, *f.shape(n, peaks))
+    return ReceiverOutput(**values)
 
 
 def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str]) -> Path:
@@ -353,8 +330,9 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
     """
     if not iverilog_available():
         raise SimulatorMissing("iverilog/vvp not found on PATH (Debian: apt-get install iverilog)")
+    # cocotb is optional (only co-simulation needs it): loaded lazily
     import find_libpython  # a cocotb dependency
-    from cocotb_tools.runner import get_runner
+    from cocotb_tools.runner import get_runner  # optional: cocotb
 
     if find_libpython.find_libpython() is None:
         raise SimulatorMissing("cocotb needs the shared libpython of this Python, which was not "
@@ -384,8 +362,9 @@ def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
     result JSON is returned. Raises ``RuntimeError`` when the simulation fails or
     leaves no result (its log is ``<build_dir>/<name>.log``).
     """
+    # cocotb is optional (only co-simulation needs it): loaded lazily
     from cocotb_tools.check_results import get_results
-    from cocotb_tools.runner import get_runner
+    from cocotb_tools.runner import get_runner  # optional: cocotb
 
     build_dir = Path(build_dir).resolve()
     job_file = build_dir / f"{name}.job.json"

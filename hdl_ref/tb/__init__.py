@@ -1,1 +1,4 @@
-"""cocotb benches for the reference RTL (run inside the simulator by ``cdma_lidar.hdl_ref.cosim.run_job``)."""
+"""cocotb benches for the reference RTL.
+
+They run inside the simulator, started by ``cdma_lidar.hdl_ref.cosim.run_job``.
+"""

@@ -16,11 +16,12 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
 from cdma_lidar.hdl_ref import cosim, lint, synth
+from cdma_lidar.poly import tap_mask
 
 
 def _rtl_register(poly: tuple[int, ...], seed: str, chips: int) -> np.ndarray:
     """What lfsr_fib does with the port values cosim computes, written as integer ops."""
-    taps, state, m = cosim.poly_taps(poly), cosim.seed_bits(seed), poly[0]
+    taps, state, m = tap_mask(poly), cosim.seed_bits(seed), poly[0]
     out = []
     for _ in range(chips):
         out.append(state >> (m - 1) & 1)
@@ -37,7 +38,7 @@ def test_port_encodings_reproduce_mseq(poly, seed):
 
 
 def test_port_encodings_examples():
-    assert cosim.poly_taps((11, 2)) == (1 << 10) | (1 << 1)
+    assert tap_mask((11, 2)) == (1 << 10) | (1 << 1)
     assert cosim.seed_bits("11011") == 0b11011
     assert cosim.seed_bits("10000") == 1
 

@@ -32,12 +32,12 @@ from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
 from cdma_lidar.hdl_ref import cosim
 from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
+from cdma_lidar.rounding import ROUNDING_MODES
 
 PARAMS = cosim.RxParams(max_deg=11, max_s=4, max_uid=4, max_r=4, max_g=64, max_p=3,
                         nghost=2, adc_w=16, out_w=32)
 SMALL = cosim.RxParams(max_deg=5, max_s=1, max_uid=1, max_r=1, max_g=8, max_p=1,
                        nghost=1, adc_w=8, out_w=16)
-ROUNDINGS = ("truncate", "half_up", "convergent")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +85,7 @@ def _random_case(pick: Callable[[int, int], int], name: str) -> Case:
         adc_bits=b, samples_per_chip=s, averages=r, uid_bits=n,
         uid=pick(0, (1 << n) - 1), gate_start=pick(0, ns - 1), gate_len=g,
         peak_exclude=pick(0, 5), ghost_windows=ghosts,
-        out_shift=pick(0, 11), rounding=ROUNDINGS[pick(0, 2)],
+        out_shift=pick(0, 11), rounding=ROUNDING_MODES[pick(0, 2)],
         out_bits=pick(8, 32), peaks=pick(1, 3),
     )
     index = pick(0, n_chips + 1)
@@ -201,7 +201,8 @@ def _simulate(builder, params: cosim.RxParams, cases: list[Case], name: str) -> 
     ports = [cosim.rx_ports(c.cfg, c.pair[0], c.pair[1], c.index, params) for c in cases]
     job = {"cases": [{"ports": p, "samples": list(c.samples), "gap": c.gap}
                      for p, c in zip(ports, cases, strict=True)]}
-    raw = cosim.run_job(cosim.RX_TOP, "cdma_lidar.hdl_ref.tb.test_rx_chain", build_dir, job, name=name)
+    raw = cosim.run_job(cosim.RX_TOP, "cdma_lidar.hdl_ref.tb.test_rx_chain", build_dir, job,
+                        name=name)
     return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
 
 
