@@ -10,6 +10,8 @@ Baselines, measured in the same run:
 * m-sequence: the chip-by-chip Fibonacci model ``FibonacciLFSR.clock_many`` and
   ``scipy.signal.max_len_seq`` (compiled) for the same chips.
 * jump-ahead: clocking the register k times chip by chip.
+* a device's code set (``gold_codes``, K members of one pair, as the scene and the
+  receiver build it): the same per-member ``gold_code`` loop.
 
 Run: ``.venv/bin/python -m bench codes``.
 """
@@ -22,7 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.signal
 
-from cdma_lidar.firmware_model.gold import gold_code, gold_family
+from cdma_lidar.firmware_model.gold import gold_code, gold_codes, gold_family
 from cdma_lidar.firmware_model.lfsr import FibonacciLFSR, jump, mseq, scipy_arguments
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 
@@ -70,6 +72,16 @@ def bench_family(pu, pv, repeat: int, target_s: float, baseline_members: int | N
           f"-> speed-up x{t_base / t_fast:.0f} (best), x{t_base / t_worst:.0f} (worst)")
 
 
+def bench_members(pu, pv, k: int) -> None:
+    indices = tuple(range(k))
+    gold_codes(pu, pv, indices)  # first call generates and caches u and v
+    t_fast = best_of(lambda: gold_codes(pu, pv, indices), 7)
+    t_base = best_of(lambda: per_member_loop(pu, pv, k), 3)
+    assert np.array_equal(gold_codes(pu, pv, indices), per_member_loop(pu, pv, k))
+    print(f"gold_codes {k} members of degree {pu[0]}: {t_fast * 1e3:8.2f} ms; per-member "
+          f"gold_code loop {t_base * 1e3:8.1f} ms (x{t_base / t_fast:.0f})")
+
+
 def bench_mseq(poly, chips: int) -> None:
     t_fast = best_of(lambda: mseq(poly, chips=chips), 3)
     reg_time = best_of(lambda: FibonacciLFSR(poly).clock_many(chips), 1)
@@ -94,6 +106,7 @@ def bench_jump(poly, k: int) -> None:
 def main() -> None:
     bench_family(*PAPER_PAIR, repeat=7, target_s=0.050, baseline_members=None)
     bench_family(*preferred_pairs(15)[0], repeat=3, target_s=5.0, baseline_members=2048)
+    bench_members(*PAPER_PAIR, 40)
     bench_mseq((20, 3), (1 << 20) - 1)
     bench_mseq((11, 2), 2047)
     bench_jump((20, 3), 1_000_000)

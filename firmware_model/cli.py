@@ -29,6 +29,9 @@ import logging
 import sys
 
 import numpy as np
+
+from cdma_lidar.checks import check_int
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import (
     check_pair,
     family_size,
@@ -38,7 +41,6 @@ from cdma_lidar.firmware_model.gold import (
     xcorr_values,
 )
 from cdma_lidar.firmware_model.lfsr import (
-    Poly,
     check_primitive,
     format_poly,
     mseq,
@@ -47,8 +49,7 @@ from cdma_lidar.firmware_model.lfsr import (
 )
 from cdma_lidar.firmware_model.pairs import pair_table
 from cdma_lidar.firmware_model.uid import MAX_UID_BITS, necklace_count, necklaces, uid_to_str
-
-from cdma_lidar.errors import out_of_range
+from cdma_lidar.poly import Poly
 
 __all__ = ["FORMATS", "format_chips", "register"]
 
@@ -93,9 +94,7 @@ def _chips(value: int | None, degree: int) -> int:
             raise out_of_range("--chips", f"given (1..{MAX_CHIPS}) for degree {degree} "
                                f"(one period is 2^{degree} - 1 = {period} chips)", value)
         return period
-    if not 0 < value <= MAX_CHIPS:
-        raise out_of_range("--chips", f"an integer in 1..{MAX_CHIPS}", value)
-    return value
+    return check_int("--chips", value, 1, MAX_CHIPS)
 
 
 def _write(line: str) -> None:
@@ -111,10 +110,7 @@ def cmd_mseq(args: argparse.Namespace) -> int:
 
 
 def _index(value: int, poly: Poly) -> int:
-    n = (1 << poly[0]) - 1
-    if not 0 <= value <= n + 1:
-        raise out_of_range("--index", f"an integer in 0..{n + 1}", value)
-    return value
+    return check_int("--index", value, 0, 1 << poly[0])  # 0..N+1, N = 2^m - 1
 
 
 def cmd_gold(args: argparse.Namespace) -> int:

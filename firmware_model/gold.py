@@ -28,21 +28,24 @@ is member k. For members N and N + 1 the other register is loaded with zeros
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
+
+from cdma_lidar.checks import check_int
+from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.lfsr import (
-    Poly,
     _check_chips,
     check_primitive,
     jump,
     mseq,
     seed_to_str,
 )
-from numpy.lib.stride_tricks import sliding_window_view
-
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.poly import Poly
 
 __all__ = [
     "MAX_FAMILY_DEGREE",
@@ -50,6 +53,7 @@ __all__ = [
     "check_pair",
     "family_size",
     "gold_code",
+    "gold_codes",
     "gold_family",
     "gold_seeds",
     "is_preferred_pair",
@@ -87,13 +91,8 @@ def check_pair(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
 
 
 def _check_index(index: int, n: int, field: str = "index") -> int:
-    try:
-        k = int(index)
-    except (TypeError, ValueError):
-        raise out_of_range(field, f"an integer in 0..{n + 1}", index) from None
-    if k != index or not 0 <= k <= n + 1:
-        raise out_of_range(field, f"an integer in 0..{n + 1}", index)
-    return k
+    """A member index of a family of code length n: 0..n + 1."""
+    return check_int(field, index, 0, n + 1)
 
 
 def gold_code(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str, index: int,
@@ -140,6 +139,41 @@ def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
     family[n] = u
     family[n + 1] = v
     return family
+
+
+@functools.lru_cache(maxsize=8)
+def _pair_msequences(pu: Poly, pv: Poly) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Default-seed u and v of a checked pair, read-only (shared by gold_codes calls)."""
+    u, v = mseq(pu), mseq(pv)
+    u.flags.writeable = False
+    v.flags.writeable = False
+    return u, v
+
+
+def gold_codes(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
+               indices: Sequence[int], field: str = "index") -> NDArray[np.uint8]:
+    """Members ``indices`` of the family, stacked: shape (len(indices), N) uint8 chip bits.
+
+    Row i is ``gold_code(poly_u, poly_v, indices[i])`` (default seeds, one period).
+    For the few members a device uses (the receiver's code set, the emitter's
+    lasers): one XOR of u with a window of v repeated twice per member, and the
+    m-sequences of the last 8 pairs are kept, so a repeated call costs O(K N).
+    An index outside 0..N+1 raises ConfigError naming ``field``.
+    """
+    pu, pv = check_pair(poly_u, poly_v)
+    u, v = _pair_msequences(pu, pv)
+    n = u.size
+    ks = [_check_index(k, n, field) for k in indices]
+    out = np.empty((len(ks), n), dtype=np.uint8)
+    vv = np.concatenate([v, v]) if any(k < n for k in ks) else v
+    for row, k in enumerate(ks):
+        if k == n:
+            out[row] = u
+        elif k == n + 1:
+            out[row] = v
+        else:
+            np.bitwise_xor(u, vv[n - k : 2 * n - k], out=out[row])  # v[(i - k) mod N]
+    return out
 
 
 def gold_seeds(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,

@@ -2,7 +2,9 @@
 
 Polynomials are written as in the paper: a tuple of exponents, highest first,
 constant term implied. ``(11, 2)`` is x^11 + x^2 + 1; its degree m is the
-register length. Degrees 2 to 32 are supported.
+register length. Degrees 2 to 32 are supported. Their bit masks (coefficient
+mask, wire mask, register tap mask) follow the one convention of
+:mod:`cdma_lidar.poly`; :func:`normalize_poly` is the validation.
 
 Fibonacci form (the FPGA's form)
 --------------------------------
@@ -72,21 +74,21 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from cdma_lidar.checks import is_int
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.poly import Poly, poly_to_mask, tap_mask
 
 __all__ = [
     "MAX_DEGREE",
     "MIN_DEGREE",
     "FibonacciLFSR",
     "GaloisLFSR",
-    "Poly",
     "check_primitive",
     "fibonacci_run",
     "fibonacci_to_galois",
     "format_poly",
     "galois_run",
     "galois_to_fibonacci",
-    "int_to_poly",
     "is_primitive",
     "jump",
     "jump_matrix",
@@ -95,7 +97,6 @@ __all__ = [
     "parse_poly",
     "parse_seed",
     "poly_degree",
-    "poly_to_int",
     "prime_factors",
     "reciprocal_poly",
     "scipy_arguments",
@@ -104,9 +105,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: Exponents, highest first, constant term implied: ``(11, 2)`` is x^11 + x^2 + 1.
-Poly = tuple[int, ...]
 
 MIN_DEGREE = 2
 MAX_DEGREE = 32
@@ -160,21 +158,6 @@ def normalize_poly(poly: Sequence[int] | str, field: str = "poly") -> Poly:
 def poly_degree(poly: Sequence[int]) -> int:
     """Degree m of a normalised polynomial (its highest exponent)."""
     return max(int(e) for e in poly)
-
-
-def poly_to_int(poly: Sequence[int]) -> int:
-    """Coefficient bit mask: bit e set for each exponent, and bit 0 (the constant)."""
-    value = 1
-    for e in poly:
-        value |= 1 << int(e)
-    return value
-
-
-def int_to_poly(value: int) -> Poly:
-    """Inverse of :func:`poly_to_int`; the constant term (bit 0) must be set."""
-    if value & 1 == 0 or value < 2:
-        raise out_of_range("value", "an odd coefficient mask of degree >= 1", value)
-    return tuple(e for e in range(value.bit_length() - 1, 0, -1) if value >> e & 1)
 
 
 def reciprocal_poly(poly: Sequence[int]) -> Poly:
@@ -238,7 +221,7 @@ def prime_factors(n: int) -> tuple[int, ...]:
 
 @functools.lru_cache(maxsize=4096)
 def _is_primitive_cached(poly: Poly) -> bool:
-    f = poly_to_int(poly)
+    f = poly_to_mask(poly)
     m = poly[0]
     order = (1 << m) - 1
     if _x_pow_mod(order, f) != 1:
@@ -350,13 +333,10 @@ def fibonacci_run(poly: Sequence[int] | str, state: str | Sequence[int] | np.nda
 
 
 def _check_chips(chips: int, field: str = "chips") -> int:
-    try:
-        value = int(chips)
-    except (TypeError, ValueError):
-        raise out_of_range(field, "a non-negative integer", chips) from None
-    if value < 0 or value != chips:
+    """A chip count: any non-negative integer (no upper bound, so not ``check_int``)."""
+    if not is_int(chips) or int(chips) < 0:
         raise out_of_range(field, "a non-negative integer", chips)
-    return value
+    return int(chips)
 
 
 def mseq(poly: Sequence[int] | str, seed: str | Sequence[int] | np.ndarray | None = None,
@@ -427,7 +407,7 @@ def galois_run(poly: Sequence[int] | str, state: str | Sequence[int] | np.ndarra
     st = parse_seed(state, m)
     chips = _check_chips(chips)
     reg = int(sum(int(b) << j for j, b in enumerate(st)))
-    mask = sum(1 << (e - 1) for e in exps)
+    mask = tap_mask(exps)  # stage j is bit j - 1
     out = bytearray(chips)
     for n in range(chips):
         o = reg & 1
@@ -492,7 +472,7 @@ class FibonacciLFSR:
         self.degree = self.poly[0]
         self.period = (1 << self.degree) - 1
         self.state = parse_seed(seed, self.degree)
-        self._mask = sum(1 << (e - 1) for e in self.poly)
+        self._mask = tap_mask(self.poly)  # stage j is bit j - 1
 
     def clock(self) -> int:
         """One clock: returns the chip (stage m) and shifts in the feedback bit."""

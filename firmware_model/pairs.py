@@ -27,9 +27,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from cdma_lidar.firmware_model.lfsr import Poly, check_primitive, mseq
 
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.lfsr import check_primitive, mseq
+from cdma_lidar.poly import Poly
 
 __all__ = [
     "DECIMATIONS",
@@ -151,13 +153,7 @@ DECIMATIONS: dict[str, tuple[int, ...]] = {"odd": (3, 5, 13), "2 mod 4": (5, 13)
 
 
 def _check_degree(degree: int, field: str = "degree") -> int:
-    try:
-        m = int(degree)
-    except (TypeError, ValueError):
-        raise out_of_range(field, f"an integer in {MIN_PAIR_DEGREE}..{MAX_PAIR_DEGREE}",
-                           degree) from None
-    if m != degree or not MIN_PAIR_DEGREE <= m <= MAX_PAIR_DEGREE:
-        raise out_of_range(field, f"an integer in {MIN_PAIR_DEGREE}..{MAX_PAIR_DEGREE}", degree)
+    m = check_int(field, degree, MIN_PAIR_DEGREE, MAX_PAIR_DEGREE)
     if m % 4 == 0:
         raise ConfigError(
             f"{field} must not be a multiple of 4 (degrees 8, 12, 16, 20 have no "

@@ -30,6 +30,7 @@ from math import gcd
 
 import numpy as np
 
+from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 
 __all__ = [
@@ -54,24 +55,17 @@ MAX_UID_BITS = 24
 
 
 def _check_bits(n: int, field: str = "n", hi: int | None = MAX_UID_BITS) -> int:
-    allowed = f"an integer in 1..{hi}" if hi else "a positive integer"
-    try:
-        value = int(n)
-    except (TypeError, ValueError):
-        raise out_of_range(field, allowed, n) from None
-    if value != n or value < 1 or (hi is not None and value > hi):
-        raise out_of_range(field, allowed, n)
-    return value
+    """A UID width: 1..hi, or any positive integer when ``hi`` is None."""
+    if hi is not None:
+        return check_int(field, n, 1, hi)
+    if not is_int(n) or int(n) < 1:
+        raise out_of_range(field, "a positive integer", n)
+    return int(n)
 
 
 def _check_uid(uid: int, n: int, field: str = "uid") -> int:
-    try:
-        value = int(uid)
-    except (TypeError, ValueError):
-        raise out_of_range(field, f"an integer in 0..{(1 << n) - 1}", uid) from None
-    if value != uid or not 0 <= value < (1 << n):
-        raise out_of_range(field, f"an integer in 0..{(1 << n) - 1}", uid)
-    return value
+    """A UID value of n bits: 0..2^n - 1."""
+    return check_int(field, uid, 0, (1 << n) - 1)
 
 
 def _totient(d: int) -> int:

@@ -12,6 +12,7 @@ from cdma_lidar.firmware_model.gold import (
     bipolar,
     family_size,
     gold_code,
+    gold_codes,
     gold_family,
     gold_seeds,
     is_preferred_pair,
@@ -179,3 +180,24 @@ def test_every_family_row_matches_definition(pair):
     fam = gold_family(pu, pv)
     for k in range(len(fam)):
         assert np.array_equal(fam[k], direct_member(u, v, k)), k
+
+
+@pytest.mark.parametrize(("pair", "indices"), [
+    (((5, 2), (5, 4, 3, 2)), (0, 1, 30, 31, 32, 7, 0)),
+    (((11, 2), (11, 8, 5, 2)), (0, 5, 2046, 2047, 2048)),
+    (((7, 1), (7, 5, 3, 1)), ()),
+])
+def test_gold_codes_stack_the_requested_members(pair, indices):
+    fam = gold_family(*pair)
+    got = gold_codes(*pair, indices)
+    assert got.dtype == np.uint8 and got.shape == (len(indices), fam.shape[1])
+    np.testing.assert_array_equal(got, fam[list(indices)])
+    got[:] = 1  # the caller owns the result; the cached m-sequences are untouched
+    np.testing.assert_array_equal(gold_codes(*pair, indices), fam[list(indices)])
+
+
+def test_gold_codes_name_the_bad_index():
+    with pytest.raises(ConfigError, match=r"code_index must be an integer in 0\.\.32"):
+        gold_codes((5, 2), (5, 4, 3, 2), (0, 33), field="code_index")
+    with pytest.raises(ConfigError, match="index"):
+        gold_codes((5, 2), (5, 4, 3, 2), (-1,))

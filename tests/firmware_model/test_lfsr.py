@@ -19,7 +19,6 @@ from cdma_lidar.firmware_model.lfsr import (
     fibonacci_to_galois,
     galois_run,
     galois_to_fibonacci,
-    int_to_poly,
     is_primitive,
     jump,
     jump_matrix,
@@ -27,13 +26,13 @@ from cdma_lidar.firmware_model.lfsr import (
     normalize_poly,
     parse_poly,
     parse_seed,
-    poly_to_int,
     prime_factors,
     reciprocal_poly,
     scipy_arguments,
     seed_to_str,
     transition_matrix,
 )
+from cdma_lidar.poly import mask_to_poly, poly_to_mask, tap_mask
 
 # scipy's default taps (its private table, read here only as an independent list of
 # primitive polynomials for every degree 2..32): taps t <-> our exponent m - t.
@@ -71,8 +70,9 @@ def test_parse_poly_forms():
     assert parse_poly("[10,3,0]") == (10, 3)
     assert parse_poly("2, 11") == (11, 2)
     assert normalize_poly([13, 4, 3, 1]) == (13, 4, 3, 1)
-    assert poly_to_int((11, 2)) == (1 << 11) | 4 | 1
-    assert int_to_poly(poly_to_int((13, 4, 3, 1))) == (13, 4, 3, 1)
+    assert poly_to_mask((11, 2)) == (1 << 11) | 4 | 1
+    assert mask_to_poly(poly_to_mask((13, 4, 3, 1))) == (13, 4, 3, 1)
+    assert tap_mask((11, 2)) == (1 << 10) | 2  # stage j is bit j - 1
     assert reciprocal_poly((11, 2)) == (11, 9)
 
 
