@@ -54,7 +54,15 @@ class FieldError(ConfigError):
 
 
 class FrameError(CdmaLidarError):
-    """Wire bytes that are not a valid frame. The stream decoder counts these, never raises."""
+    """Wire bytes that are not a valid frame. The stream decoder counts these, never raises.
+
+    ``field`` names the payload field or CONFIG key that failed to decode, when known, so
+    the device's NAK MALFORMED can point at it.
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 class LinkError(CdmaLidarError, OSError):
