@@ -29,8 +29,10 @@ from cdma_lidar.protocol.columns import (
 )
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
-from cdma_lidar.protocol.link import FdPort, HostLink, open_port
-from cdma_lidar.protocol.messages import Info, MsgType
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import MsgType
+from cdma_lidar.protocol.ports import FdPort, open_port
+from cdma_lidar.protocol.views import Info
 
 K = 40
 

@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 from cdma_lidar.optics.grating import GratingGeometry
-from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink, open_port
+from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
+from cdma_lidar.protocol.ports import open_port
 
 __all__ = ["Device", "connect"]
 

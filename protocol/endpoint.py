@@ -22,8 +22,9 @@ seconds, so the host hears from the device even while a column takes long to
 compute. The application is only ever called by one thread at a time.
 
 Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
-``in_waiting``, ``timeout``): a pty (:class:`cdma_lidar.protocol.link.FdPort`), a pyserial
-port, a TCP socket or an in-process pipe::
+``in_waiting``, ``timeout``): a pty or an accepted TCP socket
+(:class:`cdma_lidar.protocol.ports.FdPort`), a pyserial port or an in-process pipe
+(:class:`cdma_lidar.protocol.pipes.PipePort`)::
 
     stop = threading.Event()
     ep = DeviceEndpoint(port, app)
@@ -47,8 +48,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
+from cdma_lidar.checks import check_int
+from cdma_lidar.errors import ConfigError, DeviceError, FieldError, FrameError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult, column_payload_size, encode_column
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
     FRAME_LIMIT,
@@ -60,31 +63,24 @@ from cdma_lidar.protocol.framing import (
     encode_frame,
 )
 from cdma_lidar.protocol.messages import (
-    CONFIG_KEYS,
-    REPLY_TO,
     SCHEMA_CRC,
-    TEMPERATURE_UNKNOWN,
     CaptureKind,
     ErrorCode,
-    Info,
     MsgKind,
     MsgType,
     ScanEndReason,
     State,
-    Status,
-    decode_config,
     decode_payload,
-    encode_config,
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, Status
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceEndpoint", "EndpointStats"]
 
 log = logging.getLogger(__name__)
 
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
-_KEY_IDS = {k.id: k.name for k in CONFIG_KEYS}
 _CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
@@ -196,19 +192,16 @@ class DeviceEndpoint:
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
                  poll_s: float = 0.01, replay_depth: int = 32,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        if not MIN_MAX_FRAME <= max_frame <= FRAME_LIMIT:
-            raise out_of_range("max_frame", f"{MIN_MAX_FRAME} to {FRAME_LIMIT} bytes", max_frame)
-        if not 0 <= ring_columns <= 65535:
-            raise out_of_range("ring_columns", "0 to 65535 columns", ring_columns)
+        check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
+        check_int("ring_columns", ring_columns, 0, 65535)
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
         if not 0 < poll_s <= 1:
             raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin)", poll_s)
-        if not 1 <= replay_depth <= 32768:
-            raise out_of_range("replay_depth", "1 to 32768 requests", replay_depth)
-        if session_id is not None and not 0 <= session_id <= 0xFFFFFFFF:
-            raise out_of_range("session_id", "1 to 2^32-1 (0 or None: random)", session_id)
+        check_int("replay_depth", replay_depth, 1, 32768)
+        if session_id is not None:  # 0 or None: random
+            check_int("session_id", session_id, 0, 0xFFFFFFFF)
         self.port = port
         self.app = app
         self.session = session_id if session_id else (secrets.randbits(32) or 1)
@@ -239,6 +232,19 @@ class DeviceEndpoint:
         self._lock = threading.Lock()
         self._app_lock = threading.RLock()
         self._health = (TEMPERATURE_UNKNOWN, 0)
+        #: Request handler of each request type, ``(request, fields, after) -> reply wire``.
+        self._handlers: dict[MsgType, Callable[[Frame, dict, list], bytes]] = {
+            MsgType.HELLO: self._on_hello,
+            MsgType.CONFIG_GET: self._on_config_get,
+            MsgType.CONFIG_SET: self._on_config_set,
+            MsgType.POWER_SET: self._on_power_set,
+            MsgType.SCAN_START: self._on_scan_start,
+            MsgType.SCAN_ABORT: self._on_scan_abort,
+            MsgType.RESEND: self._on_resend,
+            MsgType.CALIBRATE: self._on_calibrate,
+            MsgType.CAPTURE: self._on_capture,
+            MsgType.STATUS_GET: self._on_status_get,
+        }
         port.timeout = poll_s
 
     # ---- main loop ------------------------------------------------------------------
@@ -378,7 +384,7 @@ class DeviceEndpoint:
         try:
             wire = self._handle(frame, after)
         except FrameError as exc:
-            wire = self._nak(frame, ErrorCode.MALFORMED, getattr(exc, "field", ""), str(exc))
+            wire = self._nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except DeviceError as exc:
             wire = self._nak(frame, _code(exc.code), exc.field or "", str(exc))
             after.clear()
@@ -412,11 +418,11 @@ class DeviceEndpoint:
         except ValueError:
             return self._nak(req, ErrorCode.UNKNOWN_TYPE, "msg_type",
                              f"unknown request type 0x{req.msg_type:02x}")
-        if t not in REPLY_TO:
+        handler = self._handlers.get(t)
+        if handler is None:
             return self._nak(req, ErrorCode.UNKNOWN_TYPE, "msg_type", f"{t.name} is not a request")
         fields_ = decode_payload(t, req.payload)
         assert isinstance(fields_, dict)
-        handler = getattr(self, "_on_" + t.name.lower())
         if t in _WITHOUT_APP:
             return handler(req, fields_, after)
         with self._app_lock:
@@ -448,10 +454,10 @@ class DeviceEndpoint:
         if f["keys"]:
             want = []
             for kid in f["keys"]:
-                name = _KEY_IDS.get(kid & 0x7F)
-                if name is None:
+                try:
+                    want.append(config_key(kid).name)
+                except FieldError:
                     return self._nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
-                want.append(name)
             values = {n: values[n] for n in want if n in values}
         payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values)})
         if OVERHEAD + len(payload) > self.tx_max_frame:

@@ -35,6 +35,7 @@ import zlib
 from dataclasses import dataclass, fields
 from typing import NamedTuple
 
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import cobs
 
@@ -125,14 +126,16 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
                            f"{max_frame})", f"{len(payload)} bytes", FieldError)
     try:
         head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
-    except struct.error:
+    except struct.error as exc:
+        packing = exc
+    else:
+        packing = None
+    if packing is not None:  # checked only on failure: every column frame is packed here
         for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
                                 ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
                                 ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
-            if not isinstance(value, int) or not 0 <= value <= hi:
-                raise out_of_range(f"frame.{name}", f"an integer from 0 to {hi}", value,
-                                   FieldError) from None
-        raise
+            check_int(f"frame.{name}", value, 0, hi, cls=FieldError)
+        raise packing
     body = head + payload
     return b"".join((DELIMITER, cobs.encode(body + _CRC.pack(zlib.crc32(body))), DELIMITER))
 
@@ -226,9 +229,7 @@ class FrameDecoder:
 
     @max_frame.setter
     def max_frame(self, value: int) -> None:
-        if not MIN_MAX_FRAME <= value <= FRAME_LIMIT:
-            raise out_of_range("max_frame", f"{MIN_MAX_FRAME} to {FRAME_LIMIT} bytes", value)
-        self._max_frame = value
+        self._max_frame = check_int("max_frame", value, MIN_MAX_FRAME, FRAME_LIMIT)
         self._max_chunk = cobs.max_encoded_len(value)
 
     @property

@@ -1,9 +1,11 @@
 """Host end of the link: requests with retries, streamed columns with gap repair, diagnostics.
 
 :class:`HostLink` talks to a :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` over any
-port-like object: whatever :func:`open_port` returns for a pyserial URL
-(``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), or a
-:class:`FdPort` around a file descriptor. It owns its receive buffer (a
+port-like object (:mod:`cdma_lidar.protocol.ports`): whatever
+:func:`~cdma_lidar.protocol.ports.open_port` returns for a pyserial URL (``/dev/ttyACM0``,
+``socket://host:port``, a pty path, ``virtual://...``), a
+:class:`~cdma_lidar.protocol.ports.FdPort` around a file descriptor, or one end of an
+in-process :func:`~cdma_lidar.protocol.pipes.pipe_pair`. It owns its receive buffer (a
 :class:`cdma_lidar.protocol.framing.FrameDecoder`) and only ever blocks in ``port.read`` with a
 short timeout, so it never spins a core.
 
@@ -33,14 +35,8 @@ after ``column_retries`` fruitless RESENDs of one column.
 from __future__ import annotations
 
 import contextlib
-import fcntl
-import functools
 import logging
-import os
 import secrets
-import select
-import struct
-import termios
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -50,6 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import (
     DeviceError,
     FieldError,
@@ -59,6 +56,7 @@ from cdma_lidar.errors import (
     out_of_range,
 )
 from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
     OVERHEAD,
@@ -72,19 +70,15 @@ from cdma_lidar.protocol.messages import (
     SCHEMA_CRC,
     CaptureKind,
     ErrorCode,
-    Info,
     MsgKind,
     MsgType,
     ScanEndReason,
     State,
-    Status,
-    config_key,
-    decode_config,
     decode_payload,
-    encode_config,
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.views import Info, Status
 
 __all__ = [
     "DIAG_GARBAGE",
@@ -93,10 +87,8 @@ __all__ = [
     "DIAG_SILENT",
     "DIAG_VERSION",
     "DIAG_WRONG_SESSION",
-    "FdPort",
     "HostLink",
     "LinkStats",
-    "open_port",
 ]
 
 log = logging.getLogger(__name__)
@@ -115,121 +107,6 @@ DIAG_HINTS = {
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
 }
-
-
-def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any) -> Any:
-    """Open any pyserial URL (device path, ``socket://``, ``loop://``, ``virtual://``).
-
-    ``cdma_lidar.virtual.urlhandler`` is added to ``serial.protocol_handler_packages`` first, so
-    the virtual device's ``virtual://`` handler is found. Raises LinkError with a
-    one-line hint when the port does not exist or cannot be opened.
-    """
-    import serial
-
-    if "cdma_lidar.virtual.urlhandler" not in serial.protocol_handler_packages:
-        serial.protocol_handler_packages.append("cdma_lidar.virtual.urlhandler")
-    try:
-        if url.lower().startswith("socket://"):
-            return _tcp_port_class()(url, baudrate=baudrate, timeout=timeout, **kw)
-        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kw)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        scheme = url.split("://", 1)[0] if "://" in url else ""
-        if scheme and "://" in url and "invalid URL" in str(exc):
-            hint = f"unknown URL scheme {scheme!r}; use a device path, socket:// or virtual://"
-        elif "://" in url:
-            hint = "check the URL and that its server or handler is available"
-        else:
-            hint = "check the device is plugged in and the path is right (ls /dev/tty*)"
-        raise LinkError(f"cannot open port {url!r}: {exc}; {hint}") from None
-
-
-@functools.cache
-def _tcp_port_class() -> type:
-    """pyserial's ``socket://`` port with a true ``in_waiting`` (bytes, not 0 or 1).
-
-    pyserial's handler reports 1 whenever anything is readable, so a reader that asks
-    for ``in_waiting`` bytes gets one byte per call: about 80 columns/s instead of
-    thousands. FIONREAD on the socket gives the real count.
-    """
-    from serial import PortNotOpenError
-    from serial.urlhandler.protocol_socket import Serial as SocketSerial
-
-    class TcpPort(SocketSerial):
-        """``socket://HOST:PORT`` as pyserial opens it; ``in_waiting`` counts bytes."""
-
-        @property
-        def in_waiting(self) -> int:
-            if not self.is_open:
-                raise PortNotOpenError()
-            buf = fcntl.ioctl(self._socket.fileno(), termios.FIONREAD, b"\0\0\0\0")
-            return struct.unpack("i", buf)[0]
-
-    return TcpPort
-
-
-class FdPort:
-    """Minimal port over a file descriptor (e.g. a pty master from ``os.openpty``).
-
-    Same surface as a pyserial port as far as the protocol uses it: ``read(n)``
-    blocks until ``n`` bytes or ``timeout`` seconds, ``write``, ``in_waiting``,
-    ``timeout``, ``close``. The fd is put in non-blocking mode; it is closed by
-    :meth:`close`.
-    """
-
-    def __init__(self, fd: int, timeout: float | None = 0.05) -> None:
-        self.fd = fd
-        self.timeout = timeout
-        os.set_blocking(fd, False)
-        self._closed = False
-
-    @property
-    def in_waiting(self) -> int:
-        """Bytes ready to read without blocking."""
-        buf = fcntl.ioctl(self.fd, termios.FIONREAD, b"\0\0\0\0")
-        return struct.unpack("i", buf)[0]
-
-    def read(self, n: int = 1) -> bytes:
-        """Up to ``n`` bytes; returns early with fewer when ``timeout`` expires.
-
-        Raises OSError at end of file, like pyserial, so a caller never spins on a
-        descriptor that is always readable but empty.
-        """
-        out = bytearray()
-        deadline = None if self.timeout is None else time.monotonic() + self.timeout
-        while len(out) < n:
-            left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            r, _, _ = select.select([self.fd], [], [], left)
-            if not r:
-                break
-            try:
-                chunk = os.read(self.fd, n - len(out))
-            except BlockingIOError:
-                continue
-            if not chunk:  # end of file: readable but nothing to read
-                raise OSError(f"fd {self.fd}: end of file (the other side closed)")
-            out += chunk
-        return bytes(out)
-
-    def write(self, data: bytes) -> int:
-        """Write all of ``data`` (waits while the pty buffer is full)."""
-        view = memoryview(data)
-        while view:
-            try:
-                k = os.write(self.fd, view)
-            except BlockingIOError:
-                select.select([], [self.fd], [], 1.0)
-                continue
-            view = view[k:]
-        return len(data)
-
-    def flush(self) -> None:
-        """Nothing buffered in user space."""
-
-    def close(self) -> None:
-        """Close the descriptor (once)."""
-        if not self._closed:
-            self._closed = True
-            os.close(self.fd)
 
 
 @dataclass
@@ -262,7 +139,8 @@ class HostLink:
     """Host end of the protocol over a port-like object.
 
     Args:
-        port: from :func:`open_port`, a :class:`FdPort`, or anything with ``read``,
+        port: from :func:`~cdma_lidar.protocol.ports.open_port`, a
+            :class:`~cdma_lidar.protocol.ports.FdPort`, or anything with ``read``,
             ``write``, ``in_waiting`` and ``timeout``.
         timeout_s: wait for one reply, and longest silence in a scan (s).
         retries: retransmissions of a request before LinkTimeout.
@@ -284,15 +162,11 @@ class HostLink:
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
-        if not 0 <= retries <= 100:
-            raise out_of_range("retries", "an integer from 0 to 100", retries)
         self.port = port
         self.timeout_s = float(timeout_s)
-        self.retries = int(retries)
+        self.retries = check_int("retries", retries, 0, 100)
         self.column_retries = 10 * (self.retries + 1) if column_retries is None \
-            else int(column_retries)
-        if not 0 <= self.column_retries <= 1000:
-            raise out_of_range("column_retries", "an integer from 0 to 1000", column_retries)
+            else check_int("column_retries", column_retries, 0, 1000)
         if poll_s is not None and not 0 < poll_s <= 10:
             raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
                                "would make every wait spin)", poll_s)
@@ -446,7 +320,7 @@ class HostLink:
         default a frame is the device's full ``column_count`` (see INFO). Leaving the
         loop early aborts the scan on the device.
         """
-        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
         info = self._need_info()
         if columns is None:

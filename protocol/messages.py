@@ -13,62 +13,43 @@ range checks (:func:`encode_payload` raises FieldError naming the field), the
 strict decoder (:func:`decode_payload` raises FrameError only), the spec tables
 in ``docs/protocol.md`` (``python -m cdma_lidar.protocol.spec``) and :data:`SCHEMA_CRC`.
 
-CONFIG_SET / CONFIG carry key-length-value items (:data:`CONFIG_KEYS`), so keys can
-be added without a new protocol version. Bit 7 of a key id is the *optional* flag:
-a device that does not know an optional key ignores it; an unknown key without the
-flag is refused with NAK UNKNOWN_KEY naming the key.
+CONFIG_SET / CONFIG carry key-length-value items whose keys are declared in
+:mod:`cdma_lidar.protocol.config_keys`; INFO and STATUS have typed views in
+:mod:`cdma_lidar.protocol.views`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import enum
-import math
 import zlib
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import construct as cs
 import numpy as np
-from numpy.typing import NDArray
 
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, text, u
 
 __all__ = [
-    "CONFIG_KEYS",
-    "CONFIG_OPTIONAL",
     "ERROR_DOCS",
     "MESSAGES",
-    "MODES",
     "REPLY_TO",
-    "ROUNDINGS",
     "SCHEMA_CRC",
-    "TEMPERATURE_UNKNOWN",
-    "TILT_AUTO",
     "CaptureKind",
-    "ConfigKey",
-    "DecodedConfig",
     "ErrorCode",
-    "FieldMeta",
-    "Info",
     "MessageSpec",
     "MsgKind",
     "MsgType",
     "ScanEndReason",
     "State",
-    "Status",
-    "config_key",
-    "decode_config",
     "decode_payload",
-    "encode_config",
     "encode_payload",
     "kind_of",
-    "mask_to_poly",
-    "poly_to_mask",
 ]
 
 
@@ -191,12 +172,6 @@ class MessageSpec:
 def _msg(t: MsgType, doc: str, *fields_: cs.Renamed, reply: MsgType | None = None) -> MessageSpec:
     return MessageSpec(t, cs.Struct(*fields_, cs.Terminated), doc, reply)
 
-
-#: Sentinel of Info.tilt_udeg: no nominal tilt, the host derives it (reference wavelength
-#: horizontal at zero rotation).
-TILT_AUTO = -(2**31)
-#: Sentinel of Status.temperature_mc: no sensor.
-TEMPERATURE_UNKNOWN = -(2**31)
 
 _STATUS_FIELDS = (
     u("state", 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2),
@@ -341,10 +316,7 @@ REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.
 # ---- encode / decode ------------------------------------------------------------------
 def _check_value(path: str, meta: FieldMeta, value: Any) -> None:
     if meta.kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or \
-                not meta.lo <= int(value) <= meta.hi:
-            raise out_of_range(path, f"an integer from {meta.lo} to {meta.hi}", value,
-                               FieldError)
+        check_int(path, value, meta.lo, meta.hi, cls=FieldError)
     elif meta.kind == "text":
         if not isinstance(value, str) or len(value.encode("utf-8")) > 255:
             raise out_of_range(path, "a string of at most 255 UTF-8 bytes", value, FieldError)
@@ -356,10 +328,7 @@ def _check_value(path: str, meta: FieldMeta, value: Any) -> None:
         if len(items) > (meta.max_items or 0):
             raise out_of_range(path, f"at most {meta.max_items} items", len(items), FieldError)
         for k, v in enumerate(items):
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or \
-                    not meta.lo <= int(v) <= meta.hi:
-                raise out_of_range(f"{path}[{k}]", f"an integer from {meta.lo} to {meta.hi}",
-                                   v, FieldError)
+            check_int(f"{path}[{k}]", v, meta.lo, meta.hi, cls=FieldError)
 
 
 def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None = None) -> bytes:
@@ -425,380 +394,9 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         try:
             _check_value(sc.name, sc.meta, v)
         except FieldError as exc:
-            err = FrameError(f"{spec.type.name}: {exc}")
-            err.field = sc.name  # type: ignore[attr-defined]
-            raise err from None
+            raise FrameError(f"{spec.type.name}: {exc}", field=sc.name) from None
         out[sc.name] = v
     return out
-
-
-# ---- configuration keys (KLV) -----------------------------------------------------------
-#: Bit 7 of a key id: a device that does not know this key ignores it.
-CONFIG_OPTIONAL = 0x80
-
-ROUNDINGS = ("truncate", "half_up", "convergent")
-MODES = ("ranging", "calibration")
-
-
-def poly_to_mask(poly: Sequence[int] | int) -> int:
-    """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1) to the wire mask (bit e = x^e term)."""
-    if isinstance(poly, int | np.integer) and not isinstance(poly, bool):
-        mask = int(poly)
-    else:
-        try:
-            exps = [int(e) for e in poly]
-        except (TypeError, ValueError):
-            raise out_of_range("poly", "a tuple of exponents like (11, 2)", poly,
-                               FieldError) from None
-        if len(set(exps)) != len(exps) or any(not 1 <= e <= 31 for e in exps):
-            raise out_of_range("poly", "distinct exponents from 1 to 31", poly, FieldError)
-        mask = sum(1 << e for e in exps)
-    if not 0 < mask < 2**32 or mask & 1:
-        raise out_of_range("poly", "a mask with bits 1..31 (constant term implied)", mask,
-                           FieldError)
-    return mask
-
-
-def mask_to_poly(mask: int) -> tuple[int, ...]:
-    """Wire mask to the exponent tuple, highest first (constant term implied)."""
-    return tuple(e for e in range(31, 0, -1) if mask >> e & 1)
-
-
-def _enum(names: tuple[str, ...], key: str) -> tuple[Callable, Callable]:
-    def to_wire(v: Any) -> int:
-        if isinstance(v, str):
-            if v not in names:
-                raise out_of_range(key, "one of " + ", ".join(names), v, FieldError)
-            return names.index(v)
-        return v
-
-    def from_wire(v: int) -> str | int:
-        return names[v] if 0 <= v < len(names) else v
-
-    return to_wire, from_wire
-
-
-def _ident(v: Any) -> Any:
-    return v
-
-
-@dataclass(frozen=True)
-class ConfigKey:
-    """One key of the CONFIG key-length-value set."""
-
-    id: int
-    name: str
-    sub: cs.Construct  # value encoding (fills the whole length)
-    ctype: str
-    unit: str
-    allowed: str
-    doc: str
-    lo: int | None = None
-    hi: int | None = None
-    read_only: bool = False
-    to_wire: Callable[[Any], Any] = _ident
-    from_wire: Callable[[Any], Any] = _ident
-
-    def encode(self, value: Any) -> bytes:
-        """Value bytes; raises FieldError naming the key."""
-        try:
-            w = self.to_wire(value)
-        except FieldError as exc:
-            msg = str(exc) if str(exc).startswith(self.name) else f"{self.name}: {exc}"
-            raise FieldError(msg, field=self.name) from None
-        if self.lo is not None:
-            items = w if isinstance(w, list | tuple | np.ndarray) else [w]
-            each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
-            for v in items:
-                if isinstance(v, bool) or not isinstance(v, int | np.integer) or \
-                        not self.lo <= int(v) <= self.hi:
-                    raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}.."
-                                       f"{self.hi} on the wire)", value, FieldError)
-        try:
-            return self.sub.build(w)
-        except (cs.ConstructError, TypeError, ValueError) as exc:
-            raise out_of_range(self.name, self.allowed, value, FieldError) from exc
-
-    def decode(self, data: bytes) -> Any:
-        """Python value of the wire bytes; raises FrameError if malformed or out of range."""
-        try:
-            w = self.sub.parse(data)
-        except cs.ConstructError:
-            raise FrameError(f"{self.name}: malformed value ({len(data)} bytes)") from None
-        if isinstance(w, list):
-            w = [tuple(int(x) for x in (e.start, e.length)) if isinstance(e, dict) else int(e)
-                 for e in w]
-        if self.lo is not None:
-            for v in w if isinstance(w, list) else [w]:
-                if not self.lo <= v <= self.hi:
-                    raise FrameError(f"{self.name}: {v} not in {self.lo}..{self.hi}")
-        return self.from_wire(w)
-
-
-def _full(sub: cs.Construct) -> cs.Construct:
-    return cs.FocusedSeq("v", "v" / sub, cs.Terminated)
-
-
-_ROUND_TO, _ROUND_FROM = _enum(ROUNDINGS, "rounding")
-_MODE_TO, _MODE_FROM = _enum(MODES, "mode")
-_WINDOW = cs.Struct("start" / cs.Int32ul, "length" / cs.Int32ul)
-
-
-def _windows_to_wire(v: Any) -> list[dict[str, int]]:
-    try:
-        pairs = [(int(s), int(n)) for s, n in v]
-    except (TypeError, ValueError):
-        raise out_of_range("ghost_windows", "a list of (start, length) pairs", v,
-                           FieldError) from None
-    if any(not 0 <= s < 2**32 or not 0 <= n < 2**32 for s, n in pairs):
-        raise out_of_range("ghost_windows", "u32 starts and lengths (samples)", v, FieldError)
-    return [{"start": s, "length": n} for s, n in pairs]
-
-
-CONFIG_KEYS: tuple[ConfigKey, ...] = (
-    ConfigKey(1, "poly_u", _full(cs.Int32ul), "u32", "", "mask, degree 2..max_degree",
-              "first Gold polynomial: bit e set = x^e term, x^0 implied (host: exponent "
-              "tuple, highest first)", to_wire=poly_to_mask, from_wire=mask_to_poly),
-    ConfigKey(2, "poly_v", _full(cs.Int32ul), "u32", "", "mask, same degree as poly_u",
-              "second Gold polynomial, same encoding", to_wire=poly_to_mask,
-              from_wire=mask_to_poly),
-    ConfigKey(3, "code_index", _full(cs.GreedyRange(cs.Int16ul)), "u16 x K", "",
-              "0..2^m (N+1), K items", "Gold family member of each channel", 0, 65535,
-              to_wire=lambda v: [int(x) for x in v], from_wire=tuple),
-    ConfigKey(4, "uid_bits", _full(cs.Int8ul), "u8", "code periods", "1..max_uid_bits",
-              "UID length n", 1, 8),
-    ConfigKey(5, "uid", _full(cs.Int8ul), "u8", "", "0..2^uid_bits-1",
-              "this device's UID (bit p = polarity of period p)", 0, 255),
-    ConfigKey(6, "samples_per_chip", _full(cs.Int16ul), "u16", "samples/chip",
-              "spc_min..spc_max", "ADC samples per chip S", 1, 65535),
-    ConfigKey(7, "averages", _full(cs.Int32ul), "u32", "code frames", "1..max_averages",
-              "coherently summed code frames", 1, 2**32 - 1),
-    ConfigKey(8, "adc_bits", _full(cs.Int8ul), "u8", "bits", "8..16, read-only",
-              "ADC resolution", 8, 16, read_only=True),
-    ConfigKey(9, "gate_start", _full(cs.Int32ul), "u32", "samples", "0..N*S-1",
-              "first lag of the gate", 0, 2**32 - 1),
-    ConfigKey(10, "gate_len", _full(cs.Int32ul), "u32", "samples", "1..min(N*S, max_gate_len)",
-              "lags in the gate", 1, 2**32 - 1),
-    ConfigKey(11, "peak_exclude", _full(cs.Int32ul), "u32", "samples", "0..N*S",
-              "W: peaks at least W+1 lags apart; noise excludes |j - j_peak| <= W",
-              0, 2**32 - 1),
-    ConfigKey(12, "ghost_windows", _full(cs.GreedyRange(_WINDOW)), "(u32 start, u32 len) x n",
-              "samples", "lags mod N*S",
-              "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
-              to_wire=_windows_to_wire, from_wire=tuple),
-    ConfigKey(13, "out_shift", _full(cs.Int8ul), "u8", "bits", "0..63",
-              "out = round(raw / 2^out_shift)", 0, 63),
-    ConfigKey(14, "rounding", _full(cs.Int8ul), "u8", "", "0 truncate, 1 half_up, "
-              "2 convergent", "rounding of the output shift", 0, 2,
-              to_wire=_ROUND_TO, from_wire=_ROUND_FROM),
-    ConfigKey(15, "out_bits", _full(cs.Int8ul), "u8", "bits", "8..32",
-              "outputs saturate to signed out_bits", 8, 32),
-    ConfigKey(16, "peaks", _full(cs.Int8ul), "u8", "", "1..max_peaks",
-              "peaks reported per channel P", 1, 8),
-    ConfigKey(17, "columns_per_frame", _full(cs.Int16ul), "u16", "columns",
-              "1..max_columns", "columns in a default scan frame", 1, 65535),
-    ConfigKey(18, "mode", _full(cs.Int8ul), "u8", "", "0 ranging, 1 calibration",
-              "measurement mode (calibration = zeroth-order beam)", 0, 1,
-              to_wire=_MODE_TO, from_wire=_MODE_FROM),
-)
-_KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
-_KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}
-
-
-def encode_config(values: dict[str, Any], *, allow_read_only: bool = True) -> list[dict]:
-    """KLV items (for CONFIG_SET / CONFIG) of ``{name: python value}``.
-
-    Raises FieldError naming an unknown key, a read-only one (when not allowed) or a
-    value its key cannot hold.
-    """
-    items = []
-    for name, value in values.items():
-        key = _KEY_BY_NAME.get(name)
-        if key is None:
-            raise out_of_range(name, "a configuration key (" + ", ".join(_KEY_BY_NAME) + ")",
-                               "unknown key", FieldError)
-        if key.read_only and not allow_read_only:
-            raise FieldError(f"{name} is read-only", field=name)
-        data = key.encode(value)
-        if len(data) > 65535:
-            raise out_of_range(name, "at most 65535 value bytes", len(data), FieldError)
-        items.append({"key": key.id, "value": data})
-    return items
-
-
-@dataclass
-class DecodedConfig:
-    """Result of :func:`decode_config`."""
-
-    values: dict[str, Any] = field(default_factory=dict)
-    unknown: list[int] = field(default_factory=list)  # mandatory keys not known
-    ignored: list[int] = field(default_factory=list)  # optional keys not known
-
-
-def decode_config(items: list[dict]) -> DecodedConfig:
-    """Python values of KLV items; raises FrameError (naming the key) on a bad value."""
-    out = DecodedConfig()
-    for it in items:
-        kid, data = int(it["key"]), bytes(it["value"])
-        key = _KEY_BY_ID.get(kid & ~CONFIG_OPTIONAL)
-        if key is None:
-            (out.ignored if kid & CONFIG_OPTIONAL else out.unknown).append(kid)
-            continue
-        try:
-            out.values[key.name] = key.decode(data)
-        except FrameError as exc:
-            err = FrameError(str(exc))
-            err.field = key.name  # type: ignore[attr-defined]
-            raise err from None
-    return out
-
-
-def config_key(name_or_id: str | int) -> ConfigKey:
-    """The :class:`ConfigKey` of a name or id; raises FieldError if unknown."""
-    k = _KEY_BY_NAME.get(name_or_id) if isinstance(name_or_id, str) else \
-        _KEY_BY_ID.get(int(name_or_id) & ~CONFIG_OPTIONAL)
-    if k is None:
-        raise out_of_range("key", "a configuration key", name_or_id, FieldError)
-    return k
-
-
-# ---- typed views of INFO and STATUS -------------------------------------------------------
-@dataclass(frozen=True)
-class Info:
-    """INFO payload: identity, limits and nominal geometry (wire units, see the spec).
-
-    The device endpoint fills ``protocol_version``, ``session_id``, ``schema_crc``,
-    ``max_frame``, ``ring_columns`` and ``heartbeat_ms``; the device application
-    fills the rest (see :meth:`nominal`).
-    """
-
-    firmware_version: str
-    serial: str
-    wavelengths_pm: tuple[int, ...]
-    protocol_version: int = 1
-    session_id: int = 1
-    schema_crc: int = 0
-    max_frame: int = 16384
-    ring_columns: int = 1024
-    heartbeat_ms: int = 200
-    max_degree: int = 20
-    max_channels: int = 64
-    adc_bits: int = 12
-    spc_min: int = 1
-    spc_max: int = 64
-    max_averages: int = 1 << 20
-    max_uid_bits: int = 8
-    max_peaks: int = 8
-    max_gate_len: int = 1 << 20
-    max_columns: int = 65535
-    chip_rate_hz: int = 1_000_000_000
-    grooves_per_mm_milli: int = 600_000
-    incidence_udeg: int = 60_000_000
-    tilt_udeg: int = TILT_AUTO
-    reference_wavelength_pm: int = 1_587_000
-    column_start_udeg: int = 0
-    column_step_udeg: int = 100_000
-    column_count: int = 1
-
-    @classmethod
-    def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
-                grooves_per_mm: float, incidence_deg: float, tilt_deg: float | None,
-                reference_wavelength_m: float, chip_rate_hz: float,
-                column_start_deg: float, column_step_deg: float, column_count: int,
-                **limits: int) -> Info:
-        """Build from SI units and degrees (rounded to the wire's pm / µdeg / 0.001 /mm)."""
-        return cls(
-            firmware_version=firmware_version, serial=serial,
-            wavelengths_pm=tuple(round(w * 1e12) for w in wavelengths_m),
-            grooves_per_mm_milli=round(grooves_per_mm * 1e3),
-            incidence_udeg=round(incidence_deg * 1e6),
-            tilt_udeg=TILT_AUTO if tilt_deg is None else round(tilt_deg * 1e6),
-            reference_wavelength_pm=round(reference_wavelength_m * 1e12),
-            chip_rate_hz=round(chip_rate_hz), column_start_udeg=round(column_start_deg * 1e6),
-            column_step_udeg=round(column_step_deg * 1e6), column_count=column_count,
-            **limits)
-
-    @property
-    def channels(self) -> int:
-        """K, number of channels."""
-        return len(self.wavelengths_pm)
-
-    @property
-    def wavelengths_m(self) -> NDArray[np.float64]:
-        """(K,) nominal channel wavelengths (m)."""
-        return np.asarray(self.wavelengths_pm, dtype=np.float64) * 1e-12
-
-    @property
-    def column_angles_deg(self) -> NDArray[np.float64]:
-        """(C,) nominal grating rotation angle of each column (deg)."""
-        return (self.column_start_udeg + self.column_step_udeg *
-                np.arange(self.column_count, dtype=np.float64)) * 1e-6
-
-    @property
-    def grooves_per_mm(self) -> float:
-        """Grating groove density (lines/mm)."""
-        return self.grooves_per_mm_milli * 1e-3
-
-    @property
-    def incidence_deg(self) -> float:
-        """Incidence angle (deg)."""
-        return self.incidence_udeg * 1e-6
-
-    @property
-    def tilt_deg(self) -> float | None:
-        """Mounting tilt (deg), or None when the host should derive it."""
-        return None if self.tilt_udeg == TILT_AUTO else self.tilt_udeg * 1e-6
-
-    @property
-    def reference_wavelength_m(self) -> float:
-        """Wavelength made horizontal by the default tilt (m)."""
-        return self.reference_wavelength_pm * 1e-12
-
-    def to_fields(self) -> dict[str, Any]:
-        """Field dict for :func:`encode_payload` (MsgType.INFO)."""
-        d = dataclasses.asdict(self)
-        d["wavelengths_pm"] = list(self.wavelengths_pm)
-        return d
-
-    @classmethod
-    def from_fields(cls, d: dict[str, Any]) -> Info:
-        """From a decoded INFO payload."""
-        d = dict(d)
-        d["wavelengths_pm"] = tuple(d["wavelengths_pm"])
-        return cls(**d)
-
-
-@dataclass(frozen=True)
-class Status:
-    """STATUS / HEARTBEAT payload."""
-
-    state: int = 0
-    frame: int = 0
-    next_column: int = 0
-    last_end: int = 0
-    columns_sent: int = 0
-    uptime_ms: int = 0
-    rx_frames: int = 0
-    rx_errors: int = 0
-    tx_frames: int = 0
-    replays: int = 0
-    temperature_mc: int = TEMPERATURE_UNKNOWN
-    faults: int = 0
-
-    @property
-    def state_name(self) -> str:
-        """``idle``, ``scanning`` or ``calibrating``."""
-        return State(self.state).name.lower() if self.state in iter(State) else str(self.state)
-
-    @property
-    def temperature_c(self) -> float:
-        """Board temperature (°C), NaN without a sensor."""
-        return math.nan if self.temperature_mc == TEMPERATURE_UNKNOWN else \
-            self.temperature_mc * 1e-3
-
-    def to_fields(self) -> dict[str, Any]:
-        """Field dict for :func:`encode_payload`."""
-        return dataclasses.asdict(self)
 
 
 # ---- schema hash ------------------------------------------------------------------------------

@@ -6,9 +6,10 @@ Every table of the spec page sits between two markers::
     ...
     <!-- END GENERATED: name -->
 
-``python -m cdma_lidar.protocol.spec`` rewrites them in place; ``python -m cdma_lidar.protocol.spec --check``
-exits 1 when the committed page differs from the code (the test suite runs the same
-check), so the page and the code cannot drift apart.
+``python -m cdma_lidar.protocol.spec`` rewrites them in place;
+``python -m cdma_lidar.protocol.spec --check`` exits 1 when the committed page differs
+from the code (the test suite runs the same check), so the page and the code cannot
+drift apart.
 """
 
 from __future__ import annotations
@@ -31,9 +32,8 @@ from cdma_lidar.protocol.columns import (
     RECORD_STRUCT,
     ColumnResult,
 )
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL
 from cdma_lidar.protocol.messages import (
-    CONFIG_KEYS,
-    CONFIG_OPTIONAL,
     ERROR_DOCS,
     MESSAGES,
     SCHEMA_CRC,
@@ -239,8 +239,8 @@ def check(path: Path = DOC_PATH) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     """Regenerate (or with --check, verify) the tables of docs/protocol.md."""
-    ap = argparse.ArgumentParser(prog="python -m cdma_lidar.protocol.spec", description=__doc__.split(
-        "\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m cdma_lidar.protocol.spec",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if the page is stale")
     ap.add_argument("--path", type=Path, default=DOC_PATH)
     args = ap.parse_args(argv)

@@ -40,12 +40,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar import __version__
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.gold import check_pair
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
-from cdma_lidar.protocol.messages import MODES, ROUNDINGS, CaptureKind, Info
+from cdma_lidar.protocol.messages import CaptureKind
+from cdma_lidar.protocol.views import Info
+from cdma_lidar.rounding import ROUNDING_MODES
 from cdma_lidar.scene.instrument import Instrument, RenderSettings, gold_codes
 from cdma_lidar.scene.model import Scene
 
@@ -175,20 +179,20 @@ class VirtualFirmware(DeviceApp):
                                len(idx))
         if any(not 0 <= x <= n + 1 for x in idx):
             raise out_of_range("code_index", f"members 0 to {n + 1}", idx)
-        _int("uid_bits", c["uid_bits"], 1, LIMITS["max_uid_bits"])
-        _int("uid", c["uid"], 0, (1 << c["uid_bits"]) - 1)
-        _int("samples_per_chip", c["samples_per_chip"], LIMITS["spc_min"], LIMITS["spc_max"])
-        _int("averages", c["averages"], 1, LIMITS["max_averages"])
+        check_int("uid_bits", c["uid_bits"], 1, LIMITS["max_uid_bits"])
+        check_int("uid", c["uid"], 0, (1 << c["uid_bits"]) - 1)
+        check_int("samples_per_chip", c["samples_per_chip"], LIMITS["spc_min"], LIMITS["spc_max"])
+        check_int("averages", c["averages"], 1, LIMITS["max_averages"])
         ns = n * c["samples_per_chip"]
-        _int("gate_start", c["gate_start"], 0, ns - 1)
-        _int("gate_len", c["gate_len"], 1, ns)
-        _int("peak_exclude", c["peak_exclude"], 0, ns)
-        _int("peaks", c["peaks"], 1, LIMITS["max_peaks"])
-        _int("out_shift", c["out_shift"], 0, 62)
-        _int("out_bits", c["out_bits"], 8, 32)
-        _int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
-        if c["rounding"] not in ROUNDINGS:
-            raise out_of_range("rounding", "one of " + ", ".join(ROUNDINGS), c["rounding"])
+        check_int("gate_start", c["gate_start"], 0, ns - 1)
+        check_int("gate_len", c["gate_len"], 1, ns)
+        check_int("peak_exclude", c["peak_exclude"], 0, ns)
+        check_int("peaks", c["peaks"], 1, LIMITS["max_peaks"])
+        check_int("out_shift", c["out_shift"], 0, 62)
+        check_int("out_bits", c["out_bits"], 8, 32)
+        check_int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
+        if c["rounding"] not in ROUNDING_MODES:
+            raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), c["rounding"])
         if c["mode"] not in MODES:
             raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
         samples = c["averages"] * c["uid_bits"] * ns
@@ -342,10 +346,3 @@ class VirtualFirmware(DeviceApp):
 def _out_bits(gate_len: int) -> int:
     """Widest output whose noise sum of squares fits 63 bits: 2 b - 2 + bitlen(gate) <= 63."""
     return max(8, min(32, (65 - int(gate_len).bit_length()) // 2))
-
-
-def _int(name: str, value: Any, lo: int, hi: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or \
-            not lo <= int(value) <= hi:
-        raise out_of_range(name, f"an integer from {lo} to {hi}", value)
-

@@ -24,10 +24,9 @@ import tty
 from collections.abc import Callable, Iterator
 
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
-from cdma_lidar.protocol.link import FdPort
+from cdma_lidar.protocol.ports import FdPort
 from cdma_lidar.scene.model import Scene
 from cdma_lidar.virtual.board import VirtualFirmware
-from cdma_lidar.virtual.pipes import SocketPort
 
 __all__ = ["serve_pty", "serve_tcp"]
 
@@ -92,7 +91,7 @@ def serve_tcp(scene: Scene, seed: int, host: str, port_no: int,
                     continue
                 log.info("host connected from %s:%d", *peer[:2])
                 conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                sp = SocketPort(conn)
+                sp = FdPort(conn.detach())  # the port owns and closes the descriptor
                 try:
                     DeviceEndpoint(sp, firmware).serve_forever(stop)
                 finally:

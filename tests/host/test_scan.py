@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
 from cdma_lidar.errors import CalibrationError, ConfigError, LinkError, ScanAborted
 from cdma_lidar.host.calibration import Calibration
 from cdma_lidar.host.connection import connect

@@ -3,7 +3,7 @@
 ``SyntheticApp`` is a small but complete :class:`cdma_lidar.protocol.endpoint.DeviceApp` whose
 columns are a pure function of (frame, column, config), so a test can recompute
 what every received column must be. The lossy in-memory link is
-:func:`cdma_lidar.protocol.pipe.pipe_pair`.
+:func:`cdma_lidar.protocol.pipes.pipe_pair`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ import numpy as np
 from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, Info
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode
+from cdma_lidar.protocol.views import Info
 
 
 # ---- synthetic device application ------------------------------------------------------

@@ -15,9 +15,11 @@ from cdma_lidar.protocol import cobs, framing
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
-from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, FdPort, HostLink
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, Status, encode_payload
-from cdma_lidar.protocol.pipe import pipe_pair
+from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, HostLink
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
+from cdma_lidar.protocol.pipes import pipe_pair
+from cdma_lidar.protocol.ports import FdPort
+from cdma_lidar.protocol.views import Status
 
 
 def _responder(port, stop: threading.Event, answer) -> threading.Thread:
@@ -302,7 +304,7 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
     from cdma_lidar.protocol.link import DIAG_SILENT
-    from cdma_lidar.protocol.pipe import Faults
+    from cdma_lidar.protocol.pipes import Faults
 
     host, dev = pipe_pair()
     app = SyntheticApp(columns=40, column_delay_s=0.01)
@@ -314,6 +316,6 @@ def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
             for c in link.scan():
                 got.append(c.column)
                 if c.column == 2:
-                    dev._tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
+                    dev.tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
     assert got[:3] == [0, 1, 2] and len(got) < 40
     assert exc.value.diagnosis == DIAG_SILENT and "STATUS_GET" in str(exc.value)

@@ -18,8 +18,9 @@ from cdma_lidar.errors import CdmaLidarError, FrameError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import REPLY_TO, MsgType, Status, decode_payload, encode_payload
-from cdma_lidar.protocol.pipe import pipe_pair
+from cdma_lidar.protocol.messages import REPLY_TO, MsgType, decode_payload, encode_payload
+from cdma_lidar.protocol.pipes import pipe_pair
+from cdma_lidar.protocol.views import Status
 
 SESSION = 0xABCD
 REQUESTS = sorted(int(t) for t in REPLY_TO)

@@ -8,10 +8,12 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import serial
 from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, expected_column
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
 from cdma_lidar.protocol import framing
+from cdma_lidar.protocol.config_keys import CONFIG_OPTIONAL, encode_config
 from cdma_lidar.protocol.endpoint import FAULT_HEALTH, DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import (
@@ -20,19 +22,20 @@ from cdma_lidar.protocol.link import (
     DIAG_SILENT,
     DIAG_WRONG_SESSION,
     HostLink,
-    open_port,
 )
 from cdma_lidar.protocol.messages import (
-    CONFIG_OPTIONAL,
+    REPLY_TO,
     CaptureKind,
     ErrorCode,
+    MsgKind,
     MsgType,
-    Status,
     decode_payload,
-    encode_config,
     encode_payload,
+    kind_of,
 )
-from cdma_lidar.protocol.pipe import PipePort, pipe_pair
+from cdma_lidar.protocol.pipes import PipePort, pipe_pair
+from cdma_lidar.protocol.ports import open_port
+from cdma_lidar.protocol.views import Status
 
 TIMEOUT = 0.05
 
@@ -353,6 +356,24 @@ def test_open_port_errors_say_what_to_do() -> None:
     link.close()
 
 
+def test_open_port_names_the_scheme_without_a_handler_and_registers_none() -> None:
+    before = list(serial.protocol_handler_packages)
+    with pytest.raises(LinkError) as exc:
+        open_port("nosuchscheme://x")
+    text = str(exc.value)
+    assert "'nosuchscheme'" in text and "no handler is registered for nosuchscheme://" in text
+    assert "virtual" not in text  # the wire layer knows no device package
+    assert serial.protocol_handler_packages == before
+
+
+def test_every_request_type_has_a_handler_and_nothing_else_does() -> None:
+    _, dev = pipe_pair()
+    ep = DeviceEndpoint(dev, SyntheticApp())
+    requests = {t for t in MsgType if kind_of(t) is MsgKind.REQUEST}
+    assert set(ep._handlers) == requests == set(REPLY_TO)
+    assert all(h.__self__ is ep for h in ep._handlers.values())
+
+
 def test_host_link_checks_its_arguments() -> None:
     host, _ = pipe_pair()
     with pytest.raises(ValueError, match="timeout_s"):
@@ -390,14 +411,14 @@ def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bo
     """Also when SCAN_END is lost: the STATUS probe says how the scan ended."""
     host, dev = pipe_pair(seed=4)
     if lost_end:
-        push = dev._tx.push
+        push = dev.tx.write
 
         def drop_scan_end(data: bytes) -> None:
             frames = FrameDecoder().feed(data)
             if not (frames and frames[0].msg_type == MsgType.SCAN_END):
                 push(data)
 
-        dev._tx.push = drop_scan_end
+        dev.tx.write = drop_scan_end
     app = SyntheticApp()
     app.fail_at = 7
     with RunningDevice(dev, app, heartbeat_s=0.02):
@@ -445,7 +466,7 @@ def test_reply_echoing_another_request_type_is_not_taken() -> None:
 def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
     """Short frames pass, every copy of column 2 is damaged: a clear timeout, no hang."""
     host, dev = pipe_pair()
-    push = dev._tx.push
+    push = dev.tx.write
 
     def damage_column_2(data: bytes) -> None:
         frames = FrameDecoder().feed(data)
@@ -454,7 +475,7 @@ def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
             data = data[:40] + bytes([data[40] ^ 0x10]) + data[41:]
         push(data)
 
-    dev._tx.push = damage_column_2
+    dev.tx.write = damage_column_2
     app = SyntheticApp()
     with RunningDevice(dev, app, heartbeat_s=0.02):
         link = HostLink(host, timeout_s=0.03, retries=2, column_retries=3)

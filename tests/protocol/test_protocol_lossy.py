@@ -16,7 +16,7 @@ from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
 from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_SILENT, HostLink
-from cdma_lidar.protocol.pipe import Faults, pipe_pair
+from cdma_lidar.protocol.pipes import Faults, pipe_pair
 
 DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER}
 K, C = 6, 40

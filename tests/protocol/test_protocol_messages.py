@@ -19,22 +19,22 @@ from cdma_lidar.protocol.columns import (
     encode_column,
     encode_column_construct,
 )
-from cdma_lidar.protocol.messages import (
+from cdma_lidar.protocol.config_keys import (
     CONFIG_KEYS,
     CONFIG_OPTIONAL,
+    config_key,
+    decode_config,
+    encode_config,
+)
+from cdma_lidar.protocol.messages import (
     MESSAGES,
     REPLY_TO,
-    Info,
     MsgKind,
     MsgType,
-    Status,
-    decode_config,
     decode_payload,
-    encode_config,
     encode_payload,
-    mask_to_poly,
-    poly_to_mask,
 )
+from cdma_lidar.protocol.views import Info, Status
 
 
 # ---- strategies derived from the declarations ------------------------------------------------
@@ -234,9 +234,10 @@ def test_config_decoder_names_key_of_bad_value(key: int, value: bytes) -> None:
 
 @given(st.sets(st.integers(1, 31), min_size=1, max_size=8))
 def test_poly_mask_round_trip(exps: set[int]) -> None:
+    key = config_key("poly_u")
     poly = tuple(sorted(exps, reverse=True))
-    assert mask_to_poly(poly_to_mask(poly)) == poly
-    assert poly_to_mask((11, 2)) == 0x804
+    assert key.decode(key.encode(poly)) == poly
+    assert key.encode((11, 2)) == (0x804).to_bytes(4, "little")
 
 
 # ---- COLUMN_RESULT: numpy path == construct path ------------------------------------------

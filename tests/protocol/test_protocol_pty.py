@@ -13,7 +13,8 @@ import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
-from cdma_lidar.protocol.link import DIAG_SILENT, FdPort, HostLink, open_port
+from cdma_lidar.protocol.link import DIAG_SILENT, HostLink
+from cdma_lidar.protocol.ports import FdPort, open_port
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pty")
 

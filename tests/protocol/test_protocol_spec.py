@@ -9,6 +9,7 @@ import pytest
 
 from cdma_lidar.protocol import spec
 from cdma_lidar.protocol.columns import column_payload_size
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import FrameDecoder, crc32, encode_frame
 from cdma_lidar.protocol.link import (
     DIAG_GARBAGE,
@@ -20,7 +21,6 @@ from cdma_lidar.protocol.link import (
     HostLink,
 )
 from cdma_lidar.protocol.messages import (
-    CONFIG_KEYS,
     MESSAGES,
     SCHEMA_CRC,
     ErrorCode,

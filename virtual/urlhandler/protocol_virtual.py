@@ -34,9 +34,9 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.pipes import BytePipe, LineNoise, PipePort
 from cdma_lidar.scene.model import load_scene
 from cdma_lidar.virtual.board import VirtualFirmware
-from cdma_lidar.virtual.pipes import BytePipe, LineNoise, PipePort
 
 __all__ = ["Serial", "parse_url"]
 
@@ -102,8 +102,9 @@ class Serial(SerialBase):
             self.firmware = VirtualFirmware(scene, seed)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
-        self._to_device, self._from_device = BytePipe(), BytePipe()
-        dev_port = PipePort(self._to_device, self._from_device, self._noise)
+        self._to_device = BytePipe(noise=self._noise)
+        self._from_device = BytePipe(noise=self._noise)
+        dev_port = PipePort(self._to_device, self._from_device, f"virtual://{name}")
         self.endpoint = DeviceEndpoint(dev_port, self.firmware, session_id=own.get("session"))
         self._stop.clear()
         self._thread = threading.Thread(target=self.endpoint.serve_forever, args=(self._stop,),
@@ -149,10 +150,10 @@ class Serial(SerialBase):
 
     def write(self, data: bytes) -> int:
         """Send bytes to the device (through the line's bit errors)."""
-        if not self.is_open or self._to_device is None or self._noise is None:
+        if not self.is_open or self._to_device is None:
             raise PortNotOpenError()
         raw = bytes(data)
-        self._to_device.write(self._noise(raw))
+        self._to_device.write(raw)  # through the line's bit errors
         return len(raw)
 
     def flush(self) -> None:

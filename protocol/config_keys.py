@@ -1,0 +1,270 @@
+"""CONFIG keys: the key-length-value set carried by CONFIG_SET and CONFIG.
+
+Each key is declared once as a :class:`ConfigKey`: id, name, value encoding, C type,
+unit, allowed range and, for keys whose host value is not the wire value, the mapping
+between the two (exponent tuples <-> polynomial masks, rounding and mode names <->
+codes, window pairs <-> structs). The encoder (:func:`encode_config`), the strict
+decoder (:func:`decode_config`), the spec table in ``docs/protocol.md`` and the
+schema CRC all read that one declaration.
+
+Keys can be added without a new protocol version. Bit 7 of a key id is the *optional*
+flag (:data:`CONFIG_OPTIONAL`): a device that does not know an optional key ignores it;
+an unknown key without the flag is refused with NAK UNKNOWN_KEY naming the key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import construct as cs
+import numpy as np
+
+from cdma_lidar.checks import is_int
+from cdma_lidar.errors import FieldError, FrameError, out_of_range
+from cdma_lidar.poly import mask_to_poly, poly_to_mask
+from cdma_lidar.rounding import ROUNDING_MODES
+
+__all__ = [
+    "CONFIG_KEYS",
+    "CONFIG_OPTIONAL",
+    "MODES",
+    "ConfigKey",
+    "DecodedConfig",
+    "config_key",
+    "decode_config",
+    "encode_config",
+]
+
+#: Bit 7 of a key id: a device that does not know this key ignores it.
+CONFIG_OPTIONAL = 0x80
+
+#: Measurement mode names; the index of each is its wire code (key ``mode``).
+MODES: tuple[str, ...] = ("ranging", "calibration")
+
+
+# ---- host value <-> wire value -------------------------------------------------------------
+def _poly_to_wire(poly: Sequence[int] | int) -> int:
+    """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask.
+
+    The wire mask is the coefficient mask of :mod:`cdma_lidar.poly` without the constant
+    term (bit e = x^e term, bits 1..31): ``poly_to_mask(poly) & ~1``.
+    """
+    if is_int(poly):
+        mask = int(poly)  # type: ignore[arg-type]
+    else:
+        try:
+            exps = [int(e) for e in poly]  # type: ignore[union-attr]
+        except (TypeError, ValueError):
+            raise out_of_range("poly", "a tuple of exponents like (11, 2)", poly,
+                               FieldError) from None
+        if len(set(exps)) != len(exps) or any(not 1 <= e <= 31 for e in exps):
+            raise out_of_range("poly", "distinct exponents from 1 to 31", poly, FieldError)
+        mask = poly_to_mask(exps) & ~1
+    if not 0 < mask < 2**32 or mask & 1:
+        raise out_of_range("poly", "a mask with bits 1..31 (constant term implied)", mask,
+                           FieldError)
+    return mask
+
+
+def _enum(names: tuple[str, ...], key: str) -> tuple[Callable, Callable]:
+    """(to_wire, from_wire) of a key whose wire code is the index of its name in ``names``."""
+    def to_wire(v: Any) -> int:
+        if isinstance(v, str):
+            if v not in names:
+                raise out_of_range(key, "one of " + ", ".join(names), v, FieldError)
+            return names.index(v)
+        return v
+
+    def from_wire(v: int) -> str | int:
+        return names[v] if 0 <= v < len(names) else v
+
+    return to_wire, from_wire
+
+
+def _enum_allowed(names: tuple[str, ...]) -> str:
+    """Spec range text of an enum key: ``0 truncate, 1 half_up, 2 convergent``."""
+    return ", ".join(f"{code} {name}" for code, name in enumerate(names))
+
+
+def _ident(v: Any) -> Any:
+    return v
+
+
+@dataclass(frozen=True)
+class ConfigKey:
+    """One key of the CONFIG key-length-value set."""
+
+    id: int
+    name: str
+    sub: cs.Construct  # value encoding (fills the whole length)
+    ctype: str
+    unit: str
+    allowed: str
+    doc: str
+    lo: int | None = None
+    hi: int | None = None
+    read_only: bool = False
+    to_wire: Callable[[Any], Any] = _ident
+    from_wire: Callable[[Any], Any] = _ident
+
+    def encode(self, value: Any) -> bytes:
+        """Value bytes; raises FieldError naming the key."""
+        try:
+            w = self.to_wire(value)
+        except FieldError as exc:
+            msg = str(exc) if str(exc).startswith(self.name) else f"{self.name}: {exc}"
+            raise FieldError(msg, field=self.name) from None
+        if self.lo is not None:
+            assert self.hi is not None
+            many = isinstance(w, list | tuple | np.ndarray)
+            each = "each " if many else ""
+            for v in w if many else [w]:
+                # Not check_int: the message gives the device's limit and the wire range.
+                if not is_int(v) or not self.lo <= int(v) <= self.hi:
+                    raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}.."
+                                       f"{self.hi} on the wire)", value, FieldError)
+        try:
+            return self.sub.build(w)
+        except (cs.ConstructError, TypeError, ValueError) as exc:
+            raise out_of_range(self.name, self.allowed, value, FieldError) from exc
+
+    def decode(self, data: bytes) -> Any:
+        """Python value of the wire bytes; raises FrameError if malformed or out of range."""
+        try:
+            w = self.sub.parse(data)
+        except cs.ConstructError:
+            raise FrameError(f"{self.name}: malformed value ({len(data)} bytes)",
+                             field=self.name) from None
+        if isinstance(w, list):
+            w = [tuple(int(x) for x in (e.start, e.length)) if isinstance(e, dict) else int(e)
+                 for e in w]
+        if self.lo is not None:
+            for v in w if isinstance(w, list) else [w]:
+                if not self.lo <= v <= self.hi:
+                    raise FrameError(f"{self.name}: {v} not in {self.lo}..{self.hi}",
+                                     field=self.name)
+        return self.from_wire(w)
+
+
+def _full(sub: cs.Construct) -> cs.Construct:
+    return cs.FocusedSeq("v", "v" / sub, cs.Terminated)
+
+
+_ROUND_TO, _ROUND_FROM = _enum(ROUNDING_MODES, "rounding")
+_MODE_TO, _MODE_FROM = _enum(MODES, "mode")
+_WINDOW = cs.Struct("start" / cs.Int32ul, "length" / cs.Int32ul)
+
+
+def _windows_to_wire(v: Any) -> list[dict[str, int]]:
+    try:
+        pairs = [(int(s), int(n)) for s, n in v]
+    except (TypeError, ValueError):
+        raise out_of_range("ghost_windows", "a list of (start, length) pairs", v,
+                           FieldError) from None
+    if any(not 0 <= s < 2**32 or not 0 <= n < 2**32 for s, n in pairs):
+        raise out_of_range("ghost_windows", "u32 starts and lengths (samples)", v, FieldError)
+    return [{"start": s, "length": n} for s, n in pairs]
+
+
+CONFIG_KEYS: tuple[ConfigKey, ...] = (
+    ConfigKey(1, "poly_u", _full(cs.Int32ul), "u32", "", "mask, degree 2..max_degree",
+              "first Gold polynomial: bit e set = x^e term, x^0 implied (host: exponent "
+              "tuple, highest first)", to_wire=_poly_to_wire, from_wire=mask_to_poly),
+    ConfigKey(2, "poly_v", _full(cs.Int32ul), "u32", "", "mask, same degree as poly_u",
+              "second Gold polynomial, same encoding", to_wire=_poly_to_wire,
+              from_wire=mask_to_poly),
+    ConfigKey(3, "code_index", _full(cs.GreedyRange(cs.Int16ul)), "u16 x K", "",
+              "0..2^m (N+1), K items", "Gold family member of each channel", 0, 65535,
+              to_wire=lambda v: [int(x) for x in v], from_wire=tuple),
+    ConfigKey(4, "uid_bits", _full(cs.Int8ul), "u8", "code periods", "1..max_uid_bits",
+              "UID length n", 1, 8),
+    ConfigKey(5, "uid", _full(cs.Int8ul), "u8", "", "0..2^uid_bits-1",
+              "this device's UID (bit p = polarity of period p)", 0, 255),
+    ConfigKey(6, "samples_per_chip", _full(cs.Int16ul), "u16", "samples/chip",
+              "spc_min..spc_max", "ADC samples per chip S", 1, 65535),
+    ConfigKey(7, "averages", _full(cs.Int32ul), "u32", "code frames", "1..max_averages",
+              "coherently summed code frames", 1, 2**32 - 1),
+    ConfigKey(8, "adc_bits", _full(cs.Int8ul), "u8", "bits", "8..16, read-only",
+              "ADC resolution", 8, 16, read_only=True),
+    ConfigKey(9, "gate_start", _full(cs.Int32ul), "u32", "samples", "0..N*S-1",
+              "first lag of the gate", 0, 2**32 - 1),
+    ConfigKey(10, "gate_len", _full(cs.Int32ul), "u32", "samples", "1..min(N*S, max_gate_len)",
+              "lags in the gate", 1, 2**32 - 1),
+    ConfigKey(11, "peak_exclude", _full(cs.Int32ul), "u32", "samples", "0..N*S",
+              "W: peaks at least W+1 lags apart; noise excludes |j - j_peak| <= W",
+              0, 2**32 - 1),
+    ConfigKey(12, "ghost_windows", _full(cs.GreedyRange(_WINDOW)), "(u32 start, u32 len) x n",
+              "samples", "lags mod N*S",
+              "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
+              to_wire=_windows_to_wire, from_wire=tuple),
+    ConfigKey(13, "out_shift", _full(cs.Int8ul), "u8", "bits", "0..63",
+              "out = round(raw / 2^out_shift)", 0, 63),
+    ConfigKey(14, "rounding", _full(cs.Int8ul), "u8", "", _enum_allowed(ROUNDING_MODES),
+              "rounding of the output shift", 0, len(ROUNDING_MODES) - 1,
+              to_wire=_ROUND_TO, from_wire=_ROUND_FROM),
+    ConfigKey(15, "out_bits", _full(cs.Int8ul), "u8", "bits", "8..32",
+              "outputs saturate to signed out_bits", 8, 32),
+    ConfigKey(16, "peaks", _full(cs.Int8ul), "u8", "", "1..max_peaks",
+              "peaks reported per channel P", 1, 8),
+    ConfigKey(17, "columns_per_frame", _full(cs.Int16ul), "u16", "columns",
+              "1..max_columns", "columns in a default scan frame", 1, 65535),
+    ConfigKey(18, "mode", _full(cs.Int8ul), "u8", "", _enum_allowed(MODES),
+              "measurement mode (calibration = zeroth-order beam)", 0, len(MODES) - 1,
+              to_wire=_MODE_TO, from_wire=_MODE_FROM),
+)
+_KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
+_KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}
+
+
+def encode_config(values: dict[str, Any], *, allow_read_only: bool = True) -> list[dict]:
+    """KLV items (for CONFIG_SET / CONFIG) of ``{name: python value}``.
+
+    Raises FieldError naming an unknown key, a read-only one (when not allowed) or a
+    value its key cannot hold.
+    """
+    items = []
+    for name, value in values.items():
+        key = _KEY_BY_NAME.get(name)
+        if key is None:
+            raise out_of_range(name, "a configuration key (" + ", ".join(_KEY_BY_NAME) + ")",
+                               "unknown key", FieldError)
+        if key.read_only and not allow_read_only:
+            raise FieldError(f"{name} is read-only", field=name)
+        data = key.encode(value)
+        if len(data) > 65535:
+            raise out_of_range(name, "at most 65535 value bytes", len(data), FieldError)
+        items.append({"key": key.id, "value": data})
+    return items
+
+
+@dataclass
+class DecodedConfig:
+    """Result of :func:`decode_config`."""
+
+    values: dict[str, Any] = field(default_factory=dict)
+    unknown: list[int] = field(default_factory=list)  # mandatory keys not known
+    ignored: list[int] = field(default_factory=list)  # optional keys not known
+
+
+def decode_config(items: list[dict]) -> DecodedConfig:
+    """Python values of KLV items; raises FrameError (``field`` = the key) on a bad value."""
+    out = DecodedConfig()
+    for it in items:
+        kid, data = int(it["key"]), bytes(it["value"])
+        key = _KEY_BY_ID.get(kid & ~CONFIG_OPTIONAL)
+        if key is None:
+            (out.ignored if kid & CONFIG_OPTIONAL else out.unknown).append(kid)
+            continue
+        out.values[key.name] = key.decode(data)
+    return out
+
+
+def config_key(name_or_id: str | int) -> ConfigKey:
+    """The :class:`ConfigKey` of a name or id; raises FieldError if unknown."""
+    k = _KEY_BY_NAME.get(name_or_id) if isinstance(name_or_id, str) else \
+        _KEY_BY_ID.get(int(name_or_id) & ~CONFIG_OPTIONAL)
+    if k is None:
+        raise out_of_range("key", "a configuration key", name_or_id, FieldError)
+    return k

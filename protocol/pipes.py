@@ -1,0 +1,239 @@
+"""In-process line: byte pipes with the port surface, and seeded line faults.
+
+A :class:`BytePipe` carries bytes one way between threads. A :class:`PipePort` reads
+one pipe and writes another, with the surface a pyserial port shows the protocol
+(``read(n)`` waiting up to ``timeout``, ``write``, ``in_waiting``, ``close``);
+:func:`pipe_pair` joins a host end and a device end, e.g. to run a
+:class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` in a thread in tests. The
+virtual device's ``virtual://`` handler builds its line from the same pieces.
+
+Each pipe can misbehave like a bad line, from seeded generators so a run is
+repeatable:
+
+* per write (the endpoints write one frame per call), :class:`Faults`: ``drop``,
+  ``duplicate``, ``reorder`` (held back and delivered after the next write),
+  ``corrupt`` (one bit flipped);
+* per bit, :class:`LineNoise`: each bit flipped independently with a probability
+  (``Faults.bit_error_rate``, or one LineNoise shared by both directions).
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cdma_lidar.errors import out_of_range
+
+__all__ = ["BytePipe", "Faults", "LineNoise", "PipePort", "pipe_pair"]
+
+#: Largest bit error rate: beyond one half, flipping is just another code.
+MAX_BIT_ERROR_RATE = 0.5
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Fault probabilities of one direction (each in 0..1; ``bit_error_rate`` in 0..0.5).
+
+    ``drop``, ``duplicate``, ``corrupt`` and ``reorder`` act per write;
+    ``bit_error_rate`` is the probability of flipping each bit (see :class:`LineNoise`).
+    """
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    corrupt: float = 0.0
+    reorder: float = 0.0
+    bit_error_rate: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "duplicate", "corrupt", "reorder"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise out_of_range(name, "a probability from 0 to 1", v)
+        if not 0.0 <= self.bit_error_rate <= MAX_BIT_ERROR_RATE:
+            raise out_of_range("bit_error_rate", "a probability from 0 to 0.5",
+                               self.bit_error_rate)
+
+    @property
+    def any(self) -> bool:
+        """True when some fault can happen."""
+        return any((self.drop, self.duplicate, self.corrupt, self.reorder,
+                    self.bit_error_rate))
+
+
+class LineNoise:
+    """Flips each bit independently with probability ``rate`` (seeded, reproducible).
+
+    Thread-safe, so one instance may serve both directions of a line; ``flipped``
+    counts the bits flipped so far.
+    """
+
+    def __init__(self, rate: float, seed: int = 0) -> None:
+        if not (isinstance(rate, int | float) and 0.0 <= rate <= MAX_BIT_ERROR_RATE):
+            raise out_of_range("line_error_rate", "a probability from 0 to 0.5", rate)
+        self.rate = float(rate)
+        self._rng = np.random.default_rng([seed, 0x11E])
+        self._lock = threading.Lock()
+        self.flipped = 0
+
+    def __call__(self, data: bytes) -> bytes:
+        """``data`` with its bit errors (the same object when none)."""
+        if self.rate == 0.0 or not data:
+            return data
+        with self._lock:
+            nbits = 8 * len(data)
+            count = int(self._rng.binomial(nbits, self.rate))
+            if count == 0:
+                return data
+            pos = self._rng.choice(nbits, size=count, replace=False)
+        arr = np.frombuffer(data, dtype=np.uint8).copy()
+        np.bitwise_xor.at(arr, pos // 8, (1 << (pos % 8)).astype(np.uint8))
+        self.flipped += count
+        return arr.tobytes()
+
+
+class BytePipe:
+    """One direction of a line: a thread-safe byte buffer, faults applied on write.
+
+    Args:
+        faults: what this direction does to each write (default: nothing).
+        seed: seed of the per-write faults and of the bit errors of ``faults``.
+        noise: bit errors shared with other pipes (the virtual device's line); by
+            default a :class:`LineNoise` of ``faults.bit_error_rate`` when that is set.
+
+    ``faults`` may be replaced while the pipe is in use; the bit errors stay.
+    """
+
+    def __init__(self, faults: Faults | None = None, seed: int = 0,
+                 noise: LineNoise | None = None) -> None:
+        self._buf = bytearray()
+        self._cv = threading.Condition()
+        self.closed = False
+        self.faults = faults or Faults()
+        self.noise = noise if noise is not None or not self.faults.bit_error_rate else \
+            LineNoise(self.faults.bit_error_rate, seed)
+        self._rng = random.Random(seed)
+        self._held: bytes | None = None
+
+    def _impair(self, data: bytes) -> list[bytes]:
+        """What reaches the buffer of one write of ``data``."""
+        f, r = self.faults, self._rng
+        if not f.any:
+            return [self.noise(data) if self.noise is not None else data]
+        if r.random() < f.drop:
+            out: list[bytes] = []
+        else:
+            b = bytearray(data)
+            if b and r.random() < f.corrupt:
+                b[r.randrange(len(b))] ^= 1 << r.randrange(8)
+            one = self.noise(bytes(b)) if self.noise is not None else bytes(b)
+            out = [one]
+            if r.random() < f.duplicate:
+                out.append(one)
+        if out and self._held is None and r.random() < f.reorder:
+            self._held = out.pop(0)
+        elif self._held is not None:
+            out.append(self._held)
+            self._held = None
+        return out
+
+    def write(self, data: bytes) -> None:
+        """Append ``data`` (through the faults); raises OSError once the pipe is closed."""
+        data = bytes(data)
+        with self._cv:
+            if self.closed:
+                raise OSError("pipe closed")
+            for chunk in self._impair(data):
+                self._buf += chunk
+            self._cv.notify_all()
+
+    def available(self) -> int:
+        """Bytes ready to read."""
+        with self._cv:
+            return len(self._buf)
+
+    def read(self, n: int, timeout: float | None) -> bytes:
+        """Up to ``n`` bytes: returns when ``n`` arrived, at the timeout (s), or when closed.
+
+        ``timeout`` None blocks until ``n`` bytes; 0 returns what is there.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cv:
+            while len(self._buf) < n and not self.closed:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                self._cv.wait(left)
+            out = bytes(self._buf[:n])
+            del self._buf[:n]
+            return out
+
+    def clear(self) -> None:
+        """Drop what is buffered."""
+        with self._cv:
+            self._buf.clear()
+
+    def close(self) -> None:
+        """Close: readers return what is left, then the port above raises OSError."""
+        with self._cv:
+            self.closed = True
+            self._cv.notify_all()
+
+
+class PipePort:
+    """Port surface over two pipes: reads ``rx``, writes ``tx``.
+
+    ``read(n)`` follows pyserial: it waits until ``n`` bytes or ``timeout`` seconds
+    (None: forever), then returns what it has. ``max_read`` caps the bytes returned
+    per call, to exercise callers against partial reads. Reading a closed, drained
+    pipe or writing a closed one raises OSError, as a vanished serial port does.
+    """
+
+    def __init__(self, rx: BytePipe, tx: BytePipe, name: str = "pipe",
+                 max_read: int | None = None, timeout: float | None = 0.05) -> None:
+        self.rx, self.tx = rx, tx
+        self.name = name
+        self.max_read = max_read
+        self.timeout = timeout
+        self.is_open = True
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes ready to read."""
+        n = self.rx.available()
+        if not n and self.rx.closed:
+            raise OSError("pipe closed")
+        return n
+
+    def read(self, n: int = 1) -> bytes:
+        """Up to ``n`` bytes (fewer when the timeout expires or ``max_read`` is set)."""
+        data = self.rx.read(min(n, self.max_read or n), self.timeout)
+        if not data and self.rx.closed:
+            raise OSError("pipe closed")
+        return data
+
+    def write(self, data: bytes) -> int:
+        """Send ``data`` to the other end (through the faults of this direction)."""
+        self.tx.write(data)
+        return len(data)
+
+    def flush(self) -> None:
+        """Nothing to flush."""
+
+    def close(self) -> None:
+        """Close both directions; the peer's next read or write raises OSError."""
+        self.is_open = False
+        self.rx.close()
+        self.tx.close()
+
+
+def pipe_pair(to_device: Faults | None = None, to_host: Faults | None = None, seed: int = 0,
+              max_read: int | None = None) -> tuple[PipePort, PipePort]:
+    """(host end, device end) of an in-memory link, with optional faults per direction."""
+    down = BytePipe(to_device, seed)
+    up = BytePipe(to_host, seed + 1)
+    return (PipePort(up, down, "pipe://host", max_read),
+            PipePort(down, up, "pipe://device", max_read))
