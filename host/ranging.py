@@ -55,6 +55,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.uid_filter import ForeignReturns, find_foreign, select_own
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = [
     "DEFAULT_SNR_THRESHOLD_DB",
@@ -63,7 +64,6 @@ __all__ = [
     "FLAG_INTERPOLATED",
     "FLAG_REJECTED",
     "METHODS",
-    "SPEED_OF_LIGHT_M_S",
     "RangeImage",
     "RangingConfig",
     "estimate_ranges",
@@ -79,7 +79,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SPEED_OF_LIGHT_M_S = 299_792_458.0
 FLAG_INTERPOLATED = 1
 FLAG_REJECTED = 2
 FLAG_FOREIGN = 4

@@ -19,10 +19,11 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.ranging import SPEED_OF_LIGHT_M_S, RangingConfig, precision_eq27_m
+from cdma_lidar.host.ranging import RangingConfig, precision_eq27_m
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = ["SimulatedScan", "eq27_from_configuration", "simulate_frame"]
 

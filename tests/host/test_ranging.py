@@ -9,7 +9,6 @@ from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.host.ranging import (
-    SPEED_OF_LIGHT_M_S,
     RangingConfig,
     fill_columns,
     in_windows,
@@ -18,6 +17,7 @@ from cdma_lidar.host.ranging import (
     sample_range_m,
     subsample_delta,
 )
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 FINE = 64  # fine time steps per sample when synthesising delayed echoes
 
