@@ -24,9 +24,10 @@ import time
 
 import numpy as np
 
-from cdma_lidar.virtual.board import VirtualFirmware
+from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
-from cdma_lidar.scene.model import load_scene, parse_scene
+from cdma_lidar.scene.scenefile import parse_scene
+from cdma_lidar.virtual.board import VirtualFirmware
 
 ACQ_S = 160 * 10 * 2047 / 62.5e6
 

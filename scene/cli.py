@@ -13,6 +13,9 @@ import sys
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import check_writable
+from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.scene.loader import PRESETS, load_scene
+from cdma_lidar.scene.truth import save_truth
 
 __all__ = ["register"]
 
@@ -39,17 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from cdma_lidar.scene.model import PRESETS, load_scene
-
     for name in PRESETS:
         sys.stdout.write(f"{name:14s} {load_scene(name).description}\n")
     return 0
 
 
 def _cmd_show(args: argparse.Namespace) -> int:
-    from cdma_lidar.scene.instrument import Instrument
-    from cdma_lidar.scene.model import load_scene
-
     scene = load_scene(args.scene)
     inst = Instrument(scene, 0)
     spec = scene.instrument
@@ -77,9 +75,6 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_truth(args: argparse.Namespace) -> int:
-    from cdma_lidar.scene.model import load_scene
-    from cdma_lidar.scene.truth import save_truth
-
     if not str(args.out).lower().endswith(".npz"):
         raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
     check_writable(args.out, "--out")

@@ -43,18 +43,21 @@ resend) and the same scene, seed and settings give the same codes.
 
 from __future__ import annotations
 
-import functools
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
-from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, InstrumentSpec, Scene
+from cdma_lidar.firmware_model.adc import quantise
+from cdma_lidar.firmware_model.gold import gold_codes
+from cdma_lidar.scene.model import InstrumentSpec, Scene
 from cdma_lidar.scene.truth import Truth, compute_truth
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response", "gold_codes"]
+__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response"]
 
 log = logging.getLogger(__name__)
 
@@ -111,28 +114,6 @@ def detector_response(f_hz: NDArray[np.float64], bandwidth_hz: float,
     return h
 
 
-@functools.lru_cache(maxsize=8)
-def _msequences(poly_u: tuple[int, ...], poly_v: tuple[int, ...]) -> tuple[NDArray, NDArray]:
-    from cdma_lidar.firmware_model.gold import check_pair
-    from cdma_lidar.firmware_model.lfsr import mseq
-
-    pu, pv = check_pair(poly_u, poly_v)
-    return mseq(pu), mseq(pv)
-
-
-def gold_codes(poly_u: tuple[int, ...], poly_v: tuple[int, ...],
-               indices: tuple[int, ...]) -> NDArray[np.uint8]:
-    """(len(indices), N) chip bits of Gold members (same definition as cdma_lidar.firmware_model.gold)."""
-    u, v = _msequences(tuple(poly_u), tuple(poly_v))
-    n = u.size
-    out = np.empty((len(indices), n), dtype=np.uint8)
-    for row, k in enumerate(indices):
-        if not 0 <= k <= n + 1:
-            raise out_of_range("code_index", f"an integer from 0 to {n + 1}", k)
-        out[row] = u if k == n else v if k == n + 1 else u ^ np.roll(v, k)
-    return out
-
-
 def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
     """(-1)^bit_p(uid) for periods p = 0..n-1."""
     return np.where((uid >> np.arange(n)) & 1, -1.0, 1.0)
@@ -147,7 +128,7 @@ class Instrument:
     """
 
     def __init__(self, scene: Scene, seed: int = 0) -> None:
-        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        if not is_int(seed) or seed < 0:
             raise out_of_range("seed", "a non-negative integer", seed)
         self.scene = scene
         self.spec = scene.instrument
@@ -250,7 +231,7 @@ class Instrument:
             rows = self._spectra[key] = {}
         missing = tuple(sorted({i for i in indices if i not in rows}))
         if missing:
-            codes = gold_codes(cfg.poly_u, cfg.poly_v, missing)
+            codes = gold_codes(cfg.poly_u, cfg.poly_v, missing, field="code_index")
             n_chips = codes.shape[1]
             nn = uid_bits * n_chips
             s = cfg.samples_per_chip
@@ -387,29 +368,19 @@ class Instrument:
         return spec.adc_gain / lsb * (1 << FRAC_BITS), spec.adc_offset * (1 << FRAC_BITS)
 
     def _quantise_fine(self, fine: NDArray[np.float64]) -> NDArray[np.int16]:
-        """ADC codes of a fine-grid float array (consumed in place), in five float passes.
+        """ADC codes of a fine-grid float64 array, which is consumed (the work buffer).
 
-        Bit-identical to ``cdma_lidar.firmware_model.adc.quantise(rint(fine), FRAC_BITS, adc_bits)``
-        (tested): with ``x = rint(fine)`` an integer-valued float64, the quantiser's
-        ``(x + 2**(F-1)) >> F`` is ``floor((x + 2**(F-1)) * 2**-F)``, and each step is exact
-        in float64 while ``|x| < 2**52`` (beyond that both clip to the same end code).
-        Staying in float64 saves the int64 conversion and two integer passes (about half
-        the ADC's cost, a tenth of a column's rendering).
+        ``cdma_lidar.firmware_model.adc.quantise`` of ``rint(fine)``: its float path, five
+        in-place float64 passes, bit-identical to the integer quantiser.
         """
-        from cdma_lidar.firmware_model.adc import adc_limits
-
-        lo, hi = adc_limits(self.spec.adc_bits)
-        np.rint(fine, out=fine)
-        fine += float(1 << (FRAC_BITS - 1))
-        fine *= 1.0 / (1 << FRAC_BITS)
-        np.floor(fine, out=fine)
-        np.clip(fine, lo, hi, out=fine)
-        return fine.astype(np.int16)
+        return quantise(fine, FRAC_BITS, self.spec.adc_bits, float_input=True,
+                        overwrite_input=True)
 
     def to_codes(self, volts: NDArray[np.float64]) -> NDArray[np.int16]:
-        """ADC: ``clip(round_half_up(gain * v / lsb + offset))`` via cdma_lidar.firmware_model.adc.quantise.
+        """ADC: ``clip(round_half_up(gain * v / lsb + offset))``.
 
-        The analog value goes to the quantiser on a grid 2**-FRAC_BITS LSB fine.
+        The analog value goes to ``cdma_lidar.firmware_model.adc.quantise`` on a grid
+        2**-FRAC_BITS LSB fine.
         """
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
@@ -424,8 +395,8 @@ class Instrument:
         target instead of the scene.
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
-        if not 0 <= column < self.columns and not calibration:
-            raise out_of_range("column", f"an integer from 0 to {self.columns - 1}", column)
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
         col = 0 if calibration else column
         scale, offset = self._fine_scale()
         one = self.echo(col, cfg, power_w, calibration=calibration) * scale + offset

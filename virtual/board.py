@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from cdma_lidar import __version__
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
-from cdma_lidar.firmware_model.gold import check_pair
+from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import MODES
@@ -50,7 +50,7 @@ from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.protocol.views import Info
 from cdma_lidar.rounding import ROUNDING_MODES
-from cdma_lidar.scene.instrument import Instrument, RenderSettings, gold_codes
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.scene.model import Scene
 
 __all__ = ["LIMITS", "VirtualFirmware"]

@@ -12,7 +12,7 @@ import argparse
 import sys
 
 from cdma_lidar.errors import ConfigError, out_of_range
-from cdma_lidar.scene.model import load_scene
+from cdma_lidar.scene import load_scene
 from cdma_lidar.virtual.serve import serve_pty, serve_tcp
 
 __all__ = ["register"]

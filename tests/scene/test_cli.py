@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
-from cdma_lidar.scene.model import PRESETS, load_scene
+from cdma_lidar.scene import PRESETS, load_scene
 
 
 def test_truth_npz(tmp_path, capsys):

@@ -9,10 +9,12 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from cdma_lidar.firmware_model.gold import gold_family
+from cdma_lidar.firmware_model.gold import gold_codes, gold_family
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
-from cdma_lidar.scene.instrument import Instrument, RenderSettings, gold_codes
-from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, load_scene, parse_scene
+from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.scenefile import parse_scene
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 FS = 62.5e6 * 4  # samples per second of the presets
 
@@ -204,7 +206,7 @@ def test_adc_clips_and_offsets():
 
 @pytest.mark.parametrize("adc_bits", [8, 12, 16])
 def test_fused_adc_is_the_firmware_quantiser(adc_bits):
-    """The instrument's float ADC equals cdma_lidar.firmware_model.adc.quantise(rint(x)) bit for bit:
+    """The instrument's float ADC equals the firmware's integer quantise(rint(x)) bit for bit:
     random values, every half-way point of a range of codes, both clip edges, infinities."""
     from cdma_lidar.firmware_model.adc import quantise
     from cdma_lidar.scene.instrument import FRAC_BITS

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.scene.model import PRESETS, load_scene, parse_scene
+from cdma_lidar.scene import PRESETS, load_scene
+from cdma_lidar.scene.scenefile import parse_scene
 
 
 def _doc(**instrument):

@@ -6,8 +6,9 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cdma_lidar.scene.model import parse_scene, rotation_matrix
+from cdma_lidar.scene.model import rotation_matrix
 from cdma_lidar.scene.raycast import cast, glyph_polygons
+from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.scene.truth import compute_truth
 
 
@@ -83,7 +84,7 @@ def test_text_is_filled_even_odd_and_centred():
 
 
 def test_paper_scene1_truth_has_three_depths_and_empty_space():
-    from cdma_lidar.scene.model import load_scene
+    from cdma_lidar.scene import load_scene
 
     truth = compute_truth(load_scene("paper-scene1"))
     h = truth.hits

@@ -17,12 +17,13 @@ import serial
 
 import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError
-from cdma_lidar.virtual.board import VirtualFirmware
 from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.ports import open_port
-from cdma_lidar.scene.model import SPEED_OF_LIGHT_M_S, load_scene
+from cdma_lidar.scene import load_scene
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
+from cdma_lidar.virtual.board import VirtualFirmware
 
 FS = 62.5e6 * 4
 URL = "virtual://flat-wall?seed=3&distance=7.5&instrument.wavelengths.count=8&instrument.columns=4"
