@@ -2,10 +2,11 @@
 
 ``hdl_ref/rtl/*.v`` holds the RTL (``lfsr_fib``, ``gold_gen``, ``sdp_ram``,
 ``rx_chain``); :mod:`cdma_lidar.hdl_ref.cosim` builds it with Icarus Verilog and plays
-cocotb benches (:mod:`cdma_lidar.hdl_ref.tb`), :mod:`cdma_lidar.hdl_ref.stimuli` makes ADC columns,
-``python -m cdma_lidar.hdl_ref.lint`` runs Verilator's lint and ``python -m cdma_lidar.hdl_ref.synth``
-produces the yosys resource tables of ``docs/hdl.md``. cocotb is imported only
-when a simulation is built or run; ``firmware_model`` never imports it.
+cocotb benches (:mod:`cdma_lidar.hdl_ref.tb`), :mod:`cdma_lidar.hdl_ref.stimuli` makes ADC
+columns, ``python -m cdma_lidar.hdl_ref.lint`` runs Verilator's lint and
+``python -m cdma_lidar.hdl_ref.synth`` produces the yosys resource tables of ``docs/hdl.md``.
+cocotb is imported only when a simulation is built or run; ``firmware_model`` never
+imports it.
 """
 
 __all__: list[str] = []

@@ -1,4 +1,6 @@
-"""Resource use of the reference RTL from yosys: ``python -m cdma_lidar.hdl_ref.synth [--write-doc]``.
+"""Resource use of the reference RTL from yosys.
+
+Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc]``.
 
 Synthesises each design of :data:`DESIGNS` with three yosys flows:
 

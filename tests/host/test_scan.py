@@ -13,9 +13,9 @@ from cdma_lidar.host.calibration import Calibration
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
 from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, state_path, summarise
-from cdma_lidar.study.simulate import eq27_from_configuration
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
+from cdma_lidar.study.simulate import eq27_from_configuration
 
 
 def _truth(name: str) -> np.ndarray:
