@@ -263,7 +263,7 @@ _MESSAGE_LIST = [
          u("adc_bits", 8, "ADC resolution", "bits", 8, 16),
          u("spc_min", 16, "smallest samples per chip", "samples/chip", 1, 65535),
          u("spc_max", 16, "largest samples per chip", "samples/chip", 1, 65535),
-         u("max_averages", 32, "largest number of averaged code frames", "", 1),
+         u("max_averages", 32, "largest number of averaged code repetitions", "", 1),
          u("max_uid_bits", 8, "largest UID length n", "bits", 1, 8),
          u("max_peaks", 8, "largest peaks per channel P", "", 1, 8),
          u("max_gate_len", 32, "largest lag gate", "samples", 1),
