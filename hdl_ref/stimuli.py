@@ -1,7 +1,7 @@
 """Stimuli for co-simulating ``rx_chain``: ADC columns with a coded echo, noise and extremes.
 
 Everything is seeded (``numpy.random.Generator``) and returns plain integer
-arrays in the sample order of docs/firmware.md: frame r, then UID period p,
+arrays in the sample order of docs/firmware.md: repetition r, then UID period p,
 then sample i (``t = (r * n + p) * NS + i``). The echo is what our own emitter
 sends: Gold member chips, period p inverted when bit p of the emitter's UID is
 1, each chip held for S samples, delayed circularly by ``delay`` samples.

@@ -388,7 +388,8 @@ class Instrument:
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
                shot: int = 0) -> NDArray[np.int16]:
-        """ADC codes of one column: ``averages * uid_bits * N * S`` samples (frame r, period p, i).
+        """ADC codes of one column: ``averages * uid_bits * N * S`` samples (repetition r,
+        period p, sample i).
 
         ``frame`` is the scan's frame counter (noise seed); ``power_w`` the per-channel laser
         power (W) at this column; ``calibration`` renders shot ``shot`` of the zeroth-order
