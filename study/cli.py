@@ -1,0 +1,90 @@
+"""``cdma-lidar study ...``: list the studies and run one, locally or on a Dask cluster.
+
+Commands (a contract: users and tests rely on these forms)::
+
+    cdma-lidar study list
+    cdma-lidar study run NAME --out DIR [--quick] [--workers N | --scheduler ADDRESS]
+                         [--resume] [--set KEY=VALUE ...] [--no-progress]
+
+``list`` prints one line per study: its name, then a one-line description.
+``run`` writes DIR/results.csv, DIR/summary.json, DIR/run.json, DIR/replicates.csv,
+DIR/failures.json and the study's PNG figures (docs/studies.md). ``--workers 0`` runs
+in this process without Dask; ``--workers N`` a local Dask cluster of N worker
+processes (default: one per CPU); ``--scheduler tcp://HOST:PORT`` (or ``tls://``) an
+existing cluster. Exit status: 0 all tasks done, 1 some tasks failed (listed on stderr
+with their parameters, all others done and written), 2 bad name, setting, grid or
+address (one line), 130 interrupted (finished tasks are kept: rerun with --resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+from cdma_lidar.checks import check_int
+from cdma_lidar.study.catalogue import get_study, studies
+from cdma_lidar.study.engine import parse_set, run_study
+
+__all__ = ["register"]
+
+log = logging.getLogger(__name__)
+
+
+def _safe(text: str) -> str:
+    """Text from a study or a task error, with control characters escaped for a terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    """``study list``: name and one line per study."""
+    width = max(len(s.name) for s in studies())
+    for s in studies():
+        sys.stdout.write(f"{s.name:<{width}}  {_safe(s.description)}\n")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``study run NAME``: run a study and write its table, summary and figures."""
+    study = get_study(args.name)
+    overrides = parse_set(args.set or [])
+    study.options(args.quick, overrides)  # bad --set values fail before any cluster starts
+    workers = None if args.workers is None else check_int("--workers", args.workers, 0, 4096)
+    result = run_study(study, args.out, quick=args.quick, overrides=overrides, workers=workers,
+                       scheduler=args.scheduler, resume=args.resume,
+                       progress=not args.no_progress and sys.stderr.isatty())
+    sys.stdout.write(f"{study.name}: {len(result.table)} points, {result.computed} tasks "
+                     f"computed, {result.cached} reused -> {result.out}\n")
+    for name, h in result.summary.items():
+        paper = "" if h.get("paper") is None else f" (paper: {h['paper']})"
+        sys.stdout.write(f"  {name}: {h.get('ours')} {h.get('unit', '')}{paper}\n")
+    for f in result.failures:
+        sys.stderr.write(f"cdma-lidar study: task failed: {_safe(json.dumps(f.params))} "
+                         f"replicate {f.replicate}: {_safe(f.error)}\n")
+    return 1 if result.failures else 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``study list`` and ``study run``."""
+    p = sub.add_parser("study", help="sweeps of the speed/accuracy trade (docs/studies.md)")
+    ssub = p.add_subparsers(dest="study_command", metavar="STUDY_COMMAND",
+                            parser_class=type(p))
+    ssub.required = True
+    pl = ssub.add_parser("list", help="the studies, one line each")
+    pl.set_defaults(func=cmd_list)
+    pr = ssub.add_parser("run", help="run a study into --out DIR")
+    pr.add_argument("name", help="study name (see `study list`)")
+    pr.add_argument("--out", required=True, help="output folder")
+    pr.add_argument("--quick", action="store_true", help="the study's reduced grid")
+    where = pr.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help="local Dask workers (default: one per CPU; 0: in this process)")
+    where.add_argument("--scheduler", default=None,
+                       help="address of a running Dask scheduler, tcp://HOST:PORT or tls://...")
+    pr.add_argument("--resume", action="store_true",
+                    help="reuse the finished tasks in --out, compute only the missing ones")
+    pr.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="change a study setting (repeatable; lists comma-separated)")
+    pr.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pr.set_defaults(func=cmd_run)

@@ -1,0 +1,170 @@
+"""The study engine: same tables on every executor, seeds, resume, failures, composites."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cdma_lidar.errors import ConfigError
+from cdma_lidar.study.detection import STUDY as DETECTION
+from cdma_lidar.study.engine import (
+    RunContext,
+    Setting,
+    Study,
+    Table,
+    grid_product,
+    headline,
+    read_csv,
+    run_study,
+    task_seed,
+)
+
+#: The detection study shrunk to 4 points x 2 replicates of 20 trials (well under a second).
+TINY = {"degrees": "5", "S": "1,2", "snr_db": "-12,-6", "trials": "20", "replicates": "2"}
+
+
+def model_columns(out: Path, study: Study) -> list[dict]:
+    """results.csv without the columns that measure the machine (time, memory)."""
+    table = read_csv(out / "results.csv")
+    drop = {c for m in study.machine_columns for c in (m, f"{m}_ci95")}
+    return [{k: v for k, v in row.items() if k not in drop} for row in table.rows]
+
+
+def test_in_process_and_local_cluster_give_identical_tables(tmp_path):
+    local = run_study(DETECTION, tmp_path / "local", overrides=TINY, workers=0, progress=False)
+    dask2 = run_study(DETECTION, tmp_path / "dask", overrides=TINY, workers=2, progress=False)
+    assert local.computed == dask2.computed == 8 and not local.failures
+    assert model_columns(tmp_path / "local", DETECTION) == model_columns(tmp_path / "dask",
+                                                                         DETECTION)
+    assert json.loads((tmp_path / "local" / "summary.json").read_text()) == \
+        json.loads((tmp_path / "dask" / "summary.json").read_text())
+    rates = read_csv(tmp_path / "dask" / "results.csv").column("detection_rate")
+    assert rates.shape == (4,) and np.all((rates >= 0) & (rates <= 1))
+    assert (tmp_path / "dask" / "detection.png").stat().st_size > 1000
+
+
+def test_worker_count_does_not_change_the_table(tmp_path):
+    one = run_study(DETECTION, tmp_path / "w1", overrides=TINY, workers=1, processes=False,
+                    progress=False)
+    three = run_study(DETECTION, tmp_path / "w3", overrides=TINY, workers=3, processes=False,
+                      progress=False)
+    assert one.computed == three.computed == 8
+    assert model_columns(tmp_path / "w1", DETECTION) == model_columns(tmp_path / "w3", DETECTION)
+
+
+def test_seeds_differ_per_point_and_replicate_and_follow_the_root():
+    a = task_seed(1, {"x": 1}, 0).generate_state(4)
+    assert np.array_equal(a, task_seed(1, {"x": 1}, 0).generate_state(4))
+    for other in (task_seed(1, {"x": 2}, 0), task_seed(1, {"x": 1}, 1), task_seed(2, {"x": 1}, 0)):
+        assert not np.array_equal(a, other.generate_state(4))
+
+
+def test_another_seed_changes_the_measurement(tmp_path):
+    a = run_study(DETECTION, tmp_path / "a", overrides=TINY, workers=0, progress=False)
+    b = run_study(DETECTION, tmp_path / "b", overrides={**TINY, "seed": "7"}, workers=0,
+                  progress=False)
+    assert a.replicates.column("snr_xc_median_db").tolist() != \
+        b.replicates.column("snr_xc_median_db").tolist()
+
+
+def test_resume_recomputes_nothing_when_complete_and_only_what_is_missing(tmp_path):
+    out = tmp_path / "run"
+    first = run_study(DETECTION, out, overrides=TINY, workers=0, progress=False)
+    assert (first.computed, first.cached) == (8, 0)
+    table = (out / "results.csv").read_text()
+    again = run_study(DETECTION, out, overrides=TINY, workers=0, resume=True, progress=False)
+    assert (again.computed, again.cached) == (0, 8)
+    assert (out / "results.csv").read_text() == table  # cached timings too: byte for byte
+    stored = sorted((out / "tasks").glob("*.json"))
+    for path in stored[:3]:
+        path.unlink()
+    partial = run_study(DETECTION, out, overrides=TINY, workers=0, resume=True, progress=False)
+    assert (partial.computed, partial.cached) == (3, 5)
+    assert model_columns(out, DETECTION) == [
+        {k: v for k, v in row.items() if k not in ("time_per_trial_s", "time_per_trial_s_ci95")}
+        for row in read_csv(tmp_path / "run" / "results.csv").rows]
+    fresh = run_study(DETECTION, out, overrides=TINY, workers=0, progress=False)
+    assert (fresh.computed, fresh.cached) == (8, 0)  # without --resume: start again
+
+
+def test_resume_ignores_a_corrupt_or_foreign_task_file(tmp_path):
+    out = tmp_path / "run"
+    run_study(DETECTION, out, overrides=TINY, workers=0, progress=False)
+    stored = sorted((out / "tasks").glob("*.json"))
+    stored[0].write_text("{not json")
+    doc = json.loads(stored[1].read_text())
+    doc["params"]["S"] = 99
+    stored[1].write_text(json.dumps(doc))
+    again = run_study(DETECTION, out, overrides=TINY, workers=0, resume=True, progress=False)
+    assert (again.computed, again.cached) == (2, 6)
+
+
+def _flaky_task(params, seed):
+    if params["x"] == 2:
+        raise RuntimeError("x = 2 is refused\nsecond line")
+    return {"y": params["x"] * 10 + int(seed.generate_state(1)[0] % 3)}
+
+
+FLAKY = Study("flaky", "a task that raises at one point",
+              grid=lambda o: grid_product(x=[1, 2, 3]), task=_flaky_task)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_failing_task_is_reported_with_its_parameters_and_the_others_finish(tmp_path, workers):
+    res = run_study(FLAKY, tmp_path, workers=workers, processes=False, progress=False)
+    assert [(f.params, f.replicate) for f in res.failures] == [({"x": 2}, 0)]
+    assert res.failures[0].error == "RuntimeError: x = 2 is refused"
+    assert res.computed == 2
+    failures = json.loads((tmp_path / "failures.json").read_text())
+    assert failures == [{"params": {"x": 2}, "replicate": 0,
+                         "error": "RuntimeError: x = 2 is refused"}]
+    rows = read_csv(tmp_path / "results.csv").rows
+    assert [r["x"] for r in rows] == [1, 2, 3]
+    assert rows[1]["replicates"] == 0 and rows[1]["y"] is None
+    assert rows[0]["y"] // 10 == 1 and rows[2]["y"] // 10 == 3
+
+
+def _sub_reduce(table: Table, ctx: RunContext) -> dict:
+    return {"total": headline(float(np.nansum(table.column("y"))), None, "1")}
+
+
+SUB = Study("sub", "y = 10 x", grid=lambda o: grid_product(x=list(o["xs"])),
+            task=lambda p, s: {"y": 10 * p["x"]}, reduce=_sub_reduce,
+            settings=(Setting("xs", (1, 2), "x values"),))
+
+
+def _composite_reduce(table: Table, ctx: RunContext) -> dict:
+    a = ctx.run_sub(SUB)
+    b = ctx.run_sub(Study("sub2", "y = 10 x", grid=SUB.grid, task=SUB.task, reduce=_sub_reduce,
+                          settings=SUB.settings), {"xs": (5,)})
+    (ctx.out / "report.md").write_text(f"a={a.summary['total']['ours']}\n")
+    return {"a": a.summary["total"], "b": b.summary["total"]}
+
+
+def test_a_composite_study_runs_its_parts_into_subfolders(tmp_path):
+    composite = Study("all", "both", grid=lambda o: [], task=None, reduce=_composite_reduce)
+    res = run_study(composite, tmp_path, workers=0, progress=False)
+    assert res.summary == {"a": {"ours": 30.0, "paper": None, "unit": "1"},
+                           "b": {"ours": 50.0, "paper": None, "unit": "1"}}
+    assert (tmp_path / "sub" / "results.csv").exists() and (tmp_path / "report.md").exists()
+    assert sorted(res.subs) == ["sub", "sub2"]
+    assert json.loads((tmp_path / "run.json").read_text())["sub_studies"] == ["sub", "sub2"]
+
+
+def test_bad_grids_and_settings_are_config_errors(tmp_path):
+    dup = Study("dup", "", grid=lambda o: [{"x": 1}, {"x": 1}], task=_flaky_task)
+    with pytest.raises(ConfigError, match="twice"):
+        run_study(dup, tmp_path, workers=0)
+    with pytest.raises(ConfigError, match="empty"):
+        run_study(Study("e", "", grid=lambda o: [], task=_flaky_task), tmp_path, workers=0)
+    with pytest.raises(ConfigError, match="no such setting"):
+        run_study(DETECTION, tmp_path, overrides={"bogus": "1"}, workers=0)
+    with pytest.raises(ConfigError, match="S must be"):
+        run_study(DETECTION, tmp_path, overrides={"S": "0"}, workers=0)
+    with pytest.raises(ConfigError, match="scheduler"):
+        run_study(DETECTION, tmp_path, scheduler="http://x:1")
+    with pytest.raises(ConfigError, match="not both"):
+        run_study(DETECTION, tmp_path, scheduler="tcp://x:1", workers=2)
