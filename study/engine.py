@@ -504,8 +504,13 @@ class _Dask(_Executor):
             self.description = f"dask scheduler {scheduler}"
         else:
             n = workers if workers is not None else (os.cpu_count() or 1)
+            # no dashboard; the scheduler's small HTTP server (health, metrics) on a free
+            # loopback port rather than 8787, which another cluster may hold
             self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                         dashboard_address=None, silence_logs=logging.ERROR)
+                                         host="127.0.0.1" if processes else None,
+                                         dashboard_address="127.0.0.1:0",
+                                         scheduler_kwargs={"dashboard": False},
+                                         silence_logs=logging.ERROR)
             self.client = Client(self._cluster, set_as_default=False)
             self.description = (f"dask LocalCluster, {n} worker "
                                 f"{'processes' if processes else 'threads'}")

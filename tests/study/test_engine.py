@@ -167,3 +167,23 @@ def test_bad_grids_and_settings_are_config_errors(tmp_path):
         run_study(DETECTION, tmp_path, scheduler="http://x:1")
     with pytest.raises(ConfigError, match="not both"):
         run_study(DETECTION, tmp_path, scheduler="tcp://x:1", workers=2)
+
+
+def test_an_interrupted_run_keeps_the_finished_tasks_and_resume_does_the_rest(tmp_path):
+    state = {"interrupt_at": 3, "calls": 0}
+
+    def task(params, seed):
+        state["calls"] += 1
+        if params["x"] == state["interrupt_at"]:
+            raise KeyboardInterrupt  # Ctrl-C while this task runs
+        return {"y": 2 * params["x"]}
+
+    study = Study("ctrlc", "", grid=lambda o: grid_product(x=[1, 2, 3, 4, 5]), task=task)
+    with pytest.raises(KeyboardInterrupt):
+        run_study(study, tmp_path, workers=0, progress=False)
+    assert len(list((tmp_path / "tasks").glob("*.json"))) == 2  # x = 1, 2 finished
+    state["interrupt_at"] = None
+    state["calls"] = 0
+    res = run_study(study, tmp_path, workers=0, resume=True, progress=False)
+    assert (res.computed, res.cached, state["calls"]) == (3, 2, 3)
+    assert res.table.column("y").tolist() == [2, 4, 6, 8, 10]
