@@ -52,10 +52,8 @@ otherwise Dask: a ``LocalCluster`` of ``workers`` single-threaded worker process
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
-import io
 import json
 import logging
 import math
@@ -69,11 +67,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy.special import stdtrit
 from tqdm import tqdm
 
 from cdma_lidar.errors import ConfigError, LinkError
 from cdma_lidar.fileio import atomic_write_text
+from cdma_lidar.study.table import Scalar, Table, plain, read_csv
 
 __all__ = [
     "COMMON_SETTINGS",
@@ -101,7 +100,6 @@ log = logging.getLogger(__name__)
 #: Part of every task key: bump when the storage format changes.
 ENGINE_VERSION = 1
 
-Scalar = int | float | str | bool | None
 Params = dict[str, Scalar]
 Headline = dict[str, Any]
 
@@ -181,119 +179,6 @@ def parse_set(items: Iterable[str]) -> dict[str, str]:
     return out
 
 
-# ------------------------------------------------------------------ the table
-
-
-class Table:
-    """A tidy table: named columns of equal length (lists of JSON scalars), in order."""
-
-    def __init__(self, columns: Sequence[str] = (), rows: Iterable[Mapping[str, Any]] = ()):
-        self.columns: list[str] = list(columns)
-        self.rows: list[dict[str, Any]] = []
-        for row in rows:
-            self.append(row)
-
-    def append(self, row: Mapping[str, Any]) -> None:
-        for k in row:
-            if k not in self.columns:
-                self.columns.append(k)
-        self.rows.append(dict(row))
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    def column(self, name: str) -> np.ndarray:
-        """One column as a numpy array (float64 where numeric; missing cells are NaN)."""
-        vals = [r.get(name) for r in self.rows]
-        if all(v is None or (isinstance(v, int | float | np.number) and not isinstance(v, bool))
-               for v in vals):
-            return np.array([np.nan if v is None else v for v in vals], dtype=np.float64)
-        return np.array(vals, dtype=object)
-
-    def add_column(self, name: str, values: Iterable[Any]) -> None:
-        values = list(values)
-        if len(values) != len(self.rows):
-            raise ValueError(f"column {name!r}: {len(values)} values for {len(self.rows)} rows")
-        if name not in self.columns:
-            self.columns.append(name)
-        for row, v in zip(self.rows, values, strict=True):
-            row[name] = _plain(v)
-
-    def where(self, **equal: Any) -> Table:
-        """The rows whose columns equal the given values."""
-        return Table(self.columns, [r for r in self.rows
-                                    if all(r.get(k) == v for k, v in equal.items())])
-
-    def to_csv(self) -> str:
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(self.columns)
-        for r in self.rows:
-            w.writerow([_csv_cell(r.get(c)) for c in self.columns])
-        return buf.getvalue()
-
-    def to_markdown(self, columns: Sequence[str] | None = None, digits: int = 4) -> str:
-        """A Markdown table (numbers to ``digits`` significant digits)."""
-        cols = list(columns) if columns is not None else self.columns
-        lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-        for r in self.rows:
-            lines.append("| " + " | ".join(_fmt(r.get(c), digits) for c in cols) + " |")
-        return "\n".join(lines) + "\n"
-
-
-def _plain(v: Any) -> Scalar:
-    """numpy scalars -> Python scalars (JSON-able)."""
-    if isinstance(v, np.bool_):
-        return bool(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, np.floating):
-        return float(v)
-    return v
-
-
-def _csv_cell(v: Any) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else str(v))
-    return str(v)
-
-
-def _fmt(v: Any, digits: int) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return "nan" if math.isnan(v) else f"{v:.{digits}g}"
-    return str(v)
-
-
-def read_csv(path: str | os.PathLike[str]) -> Table:
-    """Read a table written by :meth:`Table.to_csv` (numbers parsed back; '' is None)."""
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh)
-        header = next(reader)
-        table = Table(header)
-        for row in reader:
-            table.rows.append({c: _parse_cell(v) for c, v in zip(header, row, strict=True)})
-    return table
-
-
-def _parse_cell(text: str) -> Scalar:
-    if text == "":
-        return None
-    if text in ("True", "False"):
-        return text == "True"
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
 # ------------------------------------------------------------------ the study
 
 
@@ -366,12 +251,12 @@ def grid_product(**axes: Sequence[Scalar]) -> list[Params]:
     for name, values in axes.items():
         if len(values) == 0:
             raise ConfigError(f"grid axis {name!r} has no values", name)
-        points = [{**p, name: _plain(v)} for p in points for v in values]
+        points = [{**p, name: plain(v)} for p in points for v in values]
     return points
 
 
 def _canonical(params: Mapping[str, Any]) -> str:
-    return json.dumps({k: _plain(v) for k, v in params.items()}, sort_keys=True,
+    return json.dumps({k: plain(v) for k, v in params.items()}, sort_keys=True,
                       separators=(",", ":"))
 
 
@@ -447,7 +332,7 @@ def _execute_task(task: Callable[[Params, np.random.SeedSequence], Mapping[str, 
     """What runs on a worker: one seeded task, its result made JSON-plain."""
     seed = task_seed(root, params, replicate)
     result = task(dict(params), seed)
-    return {k: _plain(v) for k, v in result.items()}
+    return {k: plain(v) for k, v in result.items()}
 
 
 class _Executor:
@@ -729,7 +614,7 @@ def _aggregate(points: list[Params], reps: Table, n_reps: int,
                    and v is not None]
             if vals and len(num) == len(vals):
                 arr = np.asarray(num, dtype=np.float64)
-                out[c] = float(np.mean(arr)) if len(arr) > 1 else _plain(num[0])
+                out[c] = float(np.mean(arr)) if len(arr) > 1 else plain(num[0])
                 if n_reps > 1:
                     out[f"{c}_ci95"] = _ci95(arr)
                     if c in machine:
@@ -747,7 +632,7 @@ def _ci95(values: np.ndarray) -> float | None:
     if len(finite) < 2:
         return None
     sem = float(np.std(finite, ddof=1) / math.sqrt(len(finite)))
-    return float(stats.t.ppf(0.975, len(finite) - 1) * sem)
+    return float(stdtrit(len(finite) - 1, 0.975) * sem)
 
 
 def _progress(total: int, name: str, enabled: bool):  # type: ignore[no-untyped-def]
