@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -97,10 +98,21 @@ def test_registry_refuses_a_taken_name():
 
 
 def _free_port() -> int:
-    import socket
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _wait_for_port(port: int, timeout_s: float = 60.0) -> None:
+    """Until something listens on 127.0.0.1:port (a loaded CI machine starts Dask slowly)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            time.sleep(0.2)
+    pytest.fail(f"the dask scheduler did not listen on port {port} within {timeout_s} s")
 
 
 def test_separately_started_scheduler_and_worker_give_the_same_table(capsys, tmp_path):
@@ -115,7 +127,7 @@ def test_separately_started_scheduler_and_worker_give_the_same_table(capsys, tmp
                                "--no-dashboard"], stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, env=env)]
     try:
-        time.sleep(1.0)
+        _wait_for_port(port)
         procs.append(subprocess.Popen([dask_cli, "worker", address, "--nthreads", "1",
                                        "--nworkers", "2", "--no-dashboard"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
