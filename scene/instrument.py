@@ -222,6 +222,50 @@ class Instrument:
             rx = self.budget.rx_per_w[:, column]
         return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip)))
 
+    def link_figures(self, cfg: RenderSettings | None = None,
+                     power_w: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
+        """Per-pixel (K, C) link budget and the paper's SNRs; NaN where nothing is hit.
+
+        ``rx_power_w`` received optical power (W); ``amplitude_v`` echo amplitude (V);
+        ``signal_power_v2`` P_s = A^2 * (mean square of the unit filtered code), V^2 at the
+        ADC; ``noise_power_v2`` sigma_eta^2, the column's noise variance per sample with the
+        ADC's lsb^2/12 (V^2); ``snr_db`` eq. 30, P_s / (sigma^2 + sum of the column's other
+        echoes' P_i); ``snr_ss_db`` eq. 43, N P_s / (sigma^2 + 2/3 sum P_i) for one code
+        period; ``snr_ss_avg_db`` the same with the noise averaged over the R * n periods
+        a column accumulates; ``footprint_m`` the beam diameter at the target (m).
+        Ghosts and other users are not counted as interference.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        p = self.default_power_w if power_w is None else np.asarray(power_w, dtype=np.float64)
+        lit = self.truth.hits.lit
+        amp = self.gain_v_per_w * p
+        ps = amp**2 * self.unit_signal_power(cfg)
+        noise = self.noise_rms_columns_v(cfg, p) ** 2
+        lsb = self.spec.adc_full_scale_v / (1 << (self.spec.adc_bits - 1)) / self.spec.adc_gain
+        sigma2 = (noise + lsb**2 / 12)[None, :]
+        others = ps.sum(axis=0, keepdims=True) - ps
+        n = (1 << cfg.poly_u[0]) - 1
+        periods = cfg.averages * cfg.uid_bits
+        with np.errstate(divide="ignore"):
+            snr = 10 * np.log10(ps / (sigma2 + others))
+            snr_ss = 10 * np.log10(n * ps / (sigma2 + 2 / 3 * others))
+            snr_ss_avg = 10 * np.log10(n * ps / (sigma2 / periods + 2 / 3 * others))
+        rng = self.truth.range_m
+
+        def masked(a: NDArray) -> NDArray[np.float64]:
+            return np.where(lit, a, np.nan)
+
+        return {
+            "rx_power_w": masked(self.budget.rx_per_w * p),
+            "amplitude_v": masked(amp),
+            "signal_power_v2": masked(ps),
+            "noise_power_v2": np.broadcast_to(sigma2, lit.shape).copy(),
+            "snr_db": masked(snr), "snr_ss_db": masked(snr_ss),
+            "snr_ss_avg_db": masked(snr_ss_avg),
+            "footprint_m": masked(self.spec.beam_waist_m + np.nan_to_num(rng)
+                                  * self.spec.beam_divergence_rad),
+        }
+
     def lit_channels(self, column: int) -> NDArray[np.int64]:
         """Channels whose ray hits an object at ``column``."""
         return np.flatnonzero(self.truth.hits.lit[:, column])
