@@ -2,9 +2,14 @@
 
     python -m bench scene
 
-1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11): render every column's ADC
-   codes and run the bit-exact fast receiver on them, as the virtual device does. The
-   instrument's own acquisition time is 160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms.
+1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level:
+   render every column (cold: the first frame, echoes synthesised; warm: a later frame of
+   the static scene, echoes kept), the receive chain alone on the same samples (all 160
+   columns in one call, its default kernel: the baseline), and the virtual device's whole
+   scan (rendering, receive chain in the board's batches, ColumnResults). Ratios: scan /
+   receive chain alone, exact render / level's render, and the real-time factor: the
+   instrument's own acquisition time (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms)
+   over the scan's time.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -13,7 +18,8 @@
    draws and the ADC (fixed: every sample of every frame has its own noise and is
    quantised on its own), the whole rendering, the receive chain (fixed: the device
    correlates every configured channel, lit or not), and the virtual device's scan
-   (rendering, receive chain and ColumnResults, in its batches of columns).
+   (rendering, receive chain and ColumnResults, in its batches of columns). Rendering and
+   scan are timed cold (echoes synthesised, as in a first frame).
 
 Times are CPU seconds of this process, best of several runs (see ``_best``).
 """
@@ -26,6 +32,7 @@ import numpy as np
 
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -48,7 +55,7 @@ def _best(fn, repeat: int = 5) -> float:
 
 def _wall(strip_channels: int | None, columns: int = 32, dark: bool = False) -> object:
     inst = {"wavelengths": {"count": 40}, "azimuth_deg": [-1.0, 1.0], "columns": columns,
-            "incidence_deg": 60.02, "link_gain_v_m2_per_w": 100.0, "snr_db": -10.0}
+            "incidence_deg": 60.02}
     plane = {"kind": "plane", "name": "wall", "position_m": [5.0, 0.0, 0.0],
              "size_m": [20.0, 20.0], "reflectivity": 0.5}
     if strip_channels is not None:
@@ -111,11 +118,12 @@ def _cost(scene) -> dict[str, float]:
         "echo": _best(lambda: [inst.echo(c, cfg) for c in cols]),
         "noise": _best(noise),
         "adc": t_adc,
-        "render": _best(lambda: [inst.render(c, cfg, 1) for c in cols]),
+        # the first frame: echoes synthesised, not taken from the previous frame
+        "render": _best(lambda: (inst.forget(), [inst.render(c, cfg, 1) for c in cols])),
         # The receive chain's GEMMs run on BLAS threads, whose CPU time swings most
         # when other jobs share the cores: more runs for these two.
         "rx": _best(lambda: rx.frame(samples), 11),
-        "scan": _best(lambda: list(fw.scan(1, 0, inst.columns)), 11),
+        "scan": _best(lambda: (inst.forget(), list(fw.scan(1, 0, inst.columns))), 11),
     }
     out = {k: v / inst.columns for k, v in t.items()}
     lit = inst.truth.hits.lit.sum(axis=0)
@@ -124,27 +132,70 @@ def _cost(scene) -> dict[str, float]:
     return out
 
 
-def main() -> None:
-    scene = load_scene("paper-scene1")
+def _frame_costs(level: str, repeat: int) -> dict[str, float]:
+    """CPU seconds of one paper-scene1 frame at fidelity ``level`` (best of ``repeat``)."""
+    scene = load_scene(f"paper-scene1?fidelity={level}")
     fw = VirtualFirmware(scene, 0)
     inst = fw.instrument
     cfg = fw.render_settings()
     rx = fw.receiver()
-    list(fw.scan(0, 0, 160))  # warm up caches
-    t_render = _best(lambda: [inst.render(c, cfg, 1) for c in range(160)], 2)
-    samples = np.stack([inst.render(c, cfg, 1) for c in range(160)])
-    t_rx = _best(lambda: rx.frame(samples), 2)
-    t_scan = _best(lambda: list(fw.scan(2, 0, 160)), 2)
-    lit = inst.truth.hits.lit
+    cols = range(inst.columns)
+    list(fw.scan(0, 0, inst.columns))  # warm up spectra, receivers, allocator
+
+    def render() -> list:
+        if level == "accumulated":
+            return [inst.render_accumulated(c, cfg, 1) for c in cols]
+        return [inst.render_exact(c, cfg, 1) for c in cols]
+
+    def cold() -> None:
+        inst.forget()
+        render()
+
+    t_cold = _best(cold, repeat)
+    t_warm = _best(render, repeat)
+    if level == "accumulated":
+        acc = np.stack(render())
+        t_rx = _best(lambda: rx.from_accumulators(acc), repeat)
+    else:
+        samples = np.stack(render())
+        t_rx = _best(lambda: rx.frame(samples), repeat)
+
+    def scan_cold() -> None:
+        inst.forget()
+        list(fw.scan(2, 0, inst.columns))
+
+    t_scan_cold = _best(scan_cold, repeat)
+    t_scan = _best(lambda: list(fw.scan(2, 0, inst.columns)), repeat)
+    return {"cold": t_cold, "warm": t_warm, "rx": t_rx, "scan_cold": t_scan_cold,
+            "scan": t_scan}
+
+
+def main() -> None:
+    scene = load_scene("paper-scene1")
+    fw = VirtualFirmware(scene, 0)
+    lit = fw.instrument.truth.hits.lit
     print(f"paper-scene1: 40 x 160 pixels, {int(lit.sum())} lit "
           f"({lit.sum(axis=0).mean():.1f} lit channels per column on average), "
-          f"gate {fw.get_config()['gate_len']} lags")
-    print(f"  render one frame (160 columns x {samples.shape[1]} samples): "
-          f"{t_render * 1e3:8.1f} ms")
-    print(f"  receive chain on it (fast, bit-exact):              {t_rx * 1e3:8.1f} ms")
-    print(f"  VirtualFirmware.scan, all 160 ColumnResults:         {t_scan * 1e3:8.1f} ms")
-    print(f"  instrument acquisition time {ACQ_S * 1e3:.1f} ms -> real-time factor "
-          f"{ACQ_S / t_scan:.2f}")
+          f"gate {fw.get_config()['gate_len']} lags; CPU ms per frame, best of 5")
+    costs = {level: _frame_costs(level, 5) for level in FIDELITY_LEVELS}
+    ex = costs["exact"]
+    print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in FIDELITY_LEVELS))
+    rows = (("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
+            ("receive chain alone (baseline)", "rx"), ("VirtualFirmware.scan, cold", "scan_cold"),
+            ("VirtualFirmware.scan, warm", "scan"))
+    for label, key in rows:
+        print(f"  {label:34s}" + "".join(f"{costs[lv][key] * 1e3:13.1f}"
+                                         for lv in FIDELITY_LEVELS))
+    print(f"  {'scan cold / receive chain alone':34s}" + "".join(
+        f"{costs[lv]['scan_cold'] / ex['rx']:13.2f}" for lv in FIDELITY_LEVELS)
+        + "   (baseline: the exact level's receive chain)")
+    print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
+        f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
+    print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
+        f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in FIDELITY_LEVELS))
+    print(f"  {'real-time factor (52.4 ms / scan)':34s}" + "".join(
+        f"{ACQ_S / costs[lv]['scan_cold']:13.3f}" for lv in FIDELITY_LEVELS)
+        + "   (cold scan)")
 
     full = _cost(_wall(None))
     strip = _cost(_wall(5))

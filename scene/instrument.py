@@ -521,6 +521,11 @@ class Instrument:
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
 
+    def forget(self) -> None:
+        """Drop the echoes kept between frames (to measure a cold first frame, or free memory)."""
+        self._columns.clear()
+        self._columns_bytes = 0
+
     def column_model(self, column: int, cfg: RenderSettings,
                      power_w: NDArray[np.float64] | None = None, calibration: bool = False
                      ) -> tuple[NDArray[np.float64], float]:
