@@ -7,8 +7,9 @@ Signal model (Supplementary Notes 4, 5, 9, 11)::
     v(t) = sum_k A_k c_k(t - tau_k)                 echoes of the lit channels
          + sum_g A_g c_k(t - tau_g)                 grating ghosts (fixed distance, own code)
          + sum_u A_u c_u(t - tau_u)                 other LiDARs (same family, their own UID)
-         + e(t)                                     thermal/ASE noise, white Gaussian
-    A_k   = link_gain * P[k, col] * reflectivity * cos(incidence) / r^2        (V)
+         + e(t)                                     receiver noise, white Gaussian
+    A_k   = G_tia R_resp M P_rx[k, col]   (cdma_lidar.scene.linkbudget)      (V)
+    e     : thermal, dark, shot, ambient, ASE of the link budget, per column
     tau_k = 2 r / c + system_delay                                             (s)
     codes = clip(round_half_up(adc_gain * v / lsb + adc_offset), adc_bits)     (ADC)
 
@@ -33,8 +34,10 @@ echo with ``tau = d / (S * chip_rate)`` peaks exactly at lag d in the receive ch
 
 Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely;
 the per-channel work is one phase ramp (an outer product of two short exponentials) and
-one multiply-add over L/2 bins. R frames share the deterministic echo; each frame gets
-independent noise and is quantised on its own.
+one multiply-add over L/2 bins. R repetitions share the deterministic echo, which is kept
+between frames (a static scene). At ``exact`` fidelity each repetition gets independent
+noise and is quantised on its own; at ``accumulated`` the repetitions' sum is drawn at
+once (:meth:`Instrument.render_accumulated`, docs/scene.md for its validity and error).
 
 Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
 with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
