@@ -71,6 +71,7 @@ __all__ = [
     "RenderSettings",
     "detector_response",
     "speckle_factors",
+    "split_sum",
 ]
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,20 @@ _STREAM_SPECKLE = 2
 #: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
 #: in every frame; only the noise is new).
 ECHO_CACHE_BYTES = 128 << 20
+
+
+def split_sum(acc: NDArray[np.integer], repetitions: int) -> NDArray[np.int16]:
+    """(R, L) int16 frames summing to ``acc`` (L,) exactly, as even as integers allow.
+
+    Frame r holds ``acc // R + (r < acc % R)``: every frame lies between
+    ``floor(acc / R)`` and ``ceil(acc / R)``, so sums of R codes in [lo, hi] split into
+    codes in [lo, hi].
+    """
+    q, rem = np.divmod(np.asarray(acc, dtype=np.int64), repetitions)
+    out = np.empty((repetitions, q.size), dtype=np.int16)
+    for i in range(repetitions):
+        np.add(q, rem > i, out=out[i], casting="unsafe")
+    return out
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -609,12 +624,7 @@ class Instrument:
         acc = self.render_accumulated(column, cfg, frame, power_w, calibration=calibration,
                                       shot=shot) if self.fidelity == "accumulated" else None
         if acc is not None:
-            r = cfg.averages
-            q, rem = np.divmod(acc.reshape(-1), r)
-            out = np.empty((r, q.size), dtype=np.int16)
-            for i in range(r):
-                np.add(q, rem > i, out=out[i], casting="unsafe")
-            return out.reshape(-1)
+            return split_sum(acc.reshape(-1), cfg.averages).reshape(-1)
         return self.render_exact(column, cfg, frame, power_w, calibration=calibration, shot=shot)
 
     def render_exact(self, column: int, cfg: RenderSettings, frame: int = 0,

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from cdma_lidar.host.frame import FrameData
@@ -13,7 +15,7 @@ from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import summarise
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import FRAC_BITS, Instrument, RenderSettings
+from cdma_lidar.scene.instrument import FRAC_BITS, Instrument, RenderSettings, split_sum
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -137,3 +139,16 @@ def test_calibration_and_capture_at_accumulated_fidelity():
     again = fw.receiver().column(raw)
     np.testing.assert_array_equal(again.peak_lag, col.peak_lag)
     np.testing.assert_array_equal(again.peak, col.peak)
+
+
+@given(st.integers(1, 1024), st.integers(8, 16), st.data())
+@settings(max_examples=200, deadline=None)
+def test_split_sum_gives_valid_codes_that_sum_exactly(r, bits, data):
+    lo, hi = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    drawn = data.draw(st.lists(st.integers(r * lo, r * hi), min_size=1, max_size=50))
+    acc = np.array([*drawn, r * lo, r * hi], dtype=np.int64)  # with both extremes
+    frames = split_sum(acc, r)
+    assert frames.shape == (r, acc.size) and frames.dtype == np.int16
+    np.testing.assert_array_equal(frames.astype(np.int64).sum(axis=0), acc)
+    assert frames.min() >= lo and frames.max() <= hi
+    assert np.all(frames.max(axis=0).astype(np.int64) - frames.min(axis=0) <= 1)
