@@ -702,19 +702,20 @@ class Instrument:
     def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
                                power: NDArray[np.float64], calibration: bool
                                ) -> tuple[NDArray[np.float32], np.float32] | None:
-        echo, sigma_v = self.column_model(col, cfg, power, calibration, single=True)
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
         offset_lsb = offset / (1 << FRAC_BITS)
-        sigma = sigma_v * lsb_per_v  # LSB
+        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v  # LSB
         if sigma < ACCUMULATED_MIN_NOISE_LSB:
             return None
         r = cfg.averages
-        length = echo.size
-        peak = float(np.abs(echo).max()) * lsb_per_v + abs(offset_lsb)
+        # the echo is synthesised here, not kept: the plan (its scaled copy) is what is kept
+        mean = self.echo(col, cfg, power, calibration=calibration, single=True)
+        length = mean.size
+        peak = float(np.abs(mean).max()) * lsb_per_v + abs(offset_lsb)
         # single precision: the sum's values stay below 2**15 * R, resolved to about
         # 1e-3 LSB, against a noise rms of sqrt(R) sigma >= 3 LSB
-        mean = echo * np.float32(r * lsb_per_v)
+        mean *= np.float32(r * lsb_per_v)
         mean += np.float32(r * offset_lsb + 0.5)
         if not calibration:
             users = self.other_users_signal(col, cfg, length * r)
