@@ -161,10 +161,12 @@ def _frame_costs(level: str, repeat: int) -> dict[str, float]:
     t_warm = _best(render, repeat)
     if level == "accumulated":
         acc = np.stack(render())
-        t_rx = _best(lambda: rx.from_accumulators(acc), repeat)
+        t_rx = _best(lambda: rx.from_accumulators(acc), 2 * repeat + 1)
     else:
         samples = np.stack(render())
-        t_rx = _best(lambda: rx.frame(samples), repeat)
+        # the receive chain's GEMMs run on BLAS threads, whose CPU time swings most when
+        # other jobs share the cores: more runs for the baseline
+        t_rx = _best(lambda: rx.frame(samples), 2 * repeat + 1)
 
     def scan_cold() -> None:
         inst.forget()

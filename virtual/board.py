@@ -72,10 +72,15 @@ LIMITS = {
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
 
-#: Columns rendered and correlated together: the endpoint is silent while a batch is
-#: computed, so batches start small (quick first column) and stay short of the host's
-#: silence timeout (32 columns of paper-scene1: about 0.1 s).
-_BATCHES = (4, 8, 16, 32)
+#: Columns rendered and correlated together: a small first batch (the first column
+#: arrives quickly), then larger ones, which the receive chain's matrix kernel needs to be
+#: efficient. The endpoint's worker keeps sending heartbeats and answering STATUS while a
+#: batch is computed, but an abort waits for it: a batch of 160 paper-scene1 columns
+#: takes about 0.35 s.
+_BATCHES = (4, 16, 160)
+
+#: At most this many ADC samples per batch (int16: 32 MB), whatever the column length.
+_BATCH_SAMPLES = 1 << 24
 
 #: Smallest batch handed to the receive chain's default (matrix-product) kernel. It reads
 #: its constant Hankel blocks (about 90 MB for paper-scene1) once per call, which costs
@@ -86,11 +91,13 @@ _BATCHES = (4, 8, 16, 32)
 _MATRIX_MIN_BATCH = 128
 
 
-def _batches(first: int, count: int) -> Iterator[list[int]]:
-    """Consecutive index lists covering first..first+count-1, sizes 4, 8, 16, then 32."""
+def _batches(first: int, count: int, column_samples: int = 1) -> Iterator[list[int]]:
+    """Consecutive index lists covering first..first+count-1: sizes 4, 16, then 160,
+    each at most _BATCH_SAMPLES samples of ``column_samples`` (and at least one column)."""
+    cap = max(1, _BATCH_SAMPLES // max(1, column_samples))
     pos, k, end = first, 0, first + count
     while pos < end:
-        size = _BATCHES[min(k, len(_BATCHES) - 1)]
+        size = min(_BATCHES[min(k, len(_BATCHES) - 1)], cap)
         yield list(range(pos, min(pos + size, end)))
         pos += size
         k += 1
@@ -352,7 +359,7 @@ class VirtualFirmware(DeviceApp):
         calibration = self._config["mode"] == "calibration"
         power = self.power_w()
         angles = self.spec.rotations_deg
-        for cols in _batches(first, count):
+        for cols in _batches(first, count, cfg.averages * cfg.frame_samples):
             outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration,
                                  shots=False)
             for c, out in zip(cols, outs, strict=True):
@@ -371,7 +378,7 @@ class VirtualFirmware(DeviceApp):
     def _calibrate_gen(self, frame: int, shots: int,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.instrument.default_power_w[:, 0]
-        for idx in _batches(0, shots):
+        for idx in _batches(0, shots, cfg.averages * cfg.frame_samples):
             outs = self._receive(frame, idx, [power] * len(idx), cfg, True, shots=True)
             for s, out in zip(idx, outs, strict=True):
                 yield ColumnResult.from_receiver(frame, s, CALIBRATION_ANGLE_DEG, out,
