@@ -7,8 +7,9 @@ Signal model (Supplementary Notes 4, 5, 9, 11)::
     v(t) = sum_k A_k c_k(t - tau_k)                 echoes of the lit channels
          + sum_g A_g c_k(t - tau_g)                 grating ghosts (fixed distance, own code)
          + sum_u A_u c_u(t - tau_u)                 other LiDARs (same family, their own UID)
-         + e(t)                                     thermal/ASE noise, white Gaussian
-    A_k   = link_gain * P[k, col] * reflectivity * cos(incidence) / r^2        (V)
+         + e(t)                                     receiver noise, white Gaussian
+    A_k   = G_tia R_resp M P_rx[k, col]   (cdma_lidar.scene.linkbudget)      (V)
+    e     : thermal, dark, shot, ambient, ASE of the link budget, per column
     tau_k = 2 r / c + system_delay                                             (s)
     codes = clip(round_half_up(adc_gain * v / lsb + adc_offset), adc_bits)     (ADC)
 
@@ -33,8 +34,10 @@ echo with ``tau = d / (S * chip_rate)`` peaks exactly at lag d in the receive ch
 
 Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely;
 the per-channel work is one phase ramp (an outer product of two short exponentials) and
-one multiply-add over L/2 bins. R frames share the deterministic echo; each frame gets
-independent noise and is quantised on its own.
+one multiply-add over L/2 bins. R repetitions share the deterministic echo, which is kept
+between frames (a static scene). At ``exact`` fidelity each repetition gets independent
+noise and is quantised on its own; at ``accumulated`` the repetitions' sum is drawn at
+once (:meth:`Instrument.render_accumulated`, docs/scene.md for its validity and error).
 
 Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
 with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
@@ -47,25 +50,74 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import quantise
 from cdma_lidar.firmware_model.gold import gold_codes
+from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import InstrumentSpec, Scene
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response"]
+__all__ = [
+    "ACCUMULATED_CLIP_MARGIN",
+    "ACCUMULATED_MIN_NOISE_LSB",
+    "ECHO_CACHE_BYTES",
+    "FRAC_BITS",
+    "Instrument",
+    "RenderSettings",
+    "detector_response",
+    "speckle_factors",
+    "split_sum",
+]
 
 log = logging.getLogger(__name__)
 
 #: Fine grid of the analog value handed to the ADC model: 2**-FRAC_BITS LSB.
 FRAC_BITS = 8
 
+#: ``accumulated`` fidelity draws the R-repetition sum directly only where the noise
+#: rms is at least this many LSB (the quantiser's bias then stays below
+#: exp(-2 pi^2 sigma^2) / pi < 1e-9 LSB per sample, see docs/scene.md) ...
+ACCUMULATED_MIN_NOISE_LSB = 1.0
+#: ... and the column's largest echo stays this many noise rms inside the ADC's range.
+ACCUMULATED_CLIP_MARGIN = 6.0
+
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
+_STREAM_SPECKLE = 2
+
+#: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
+#: in every frame; only the noise is new).
+ECHO_CACHE_BYTES = 128 << 20
+
+
+def split_sum(acc: NDArray[np.integer], repetitions: int) -> NDArray[np.int16]:
+    """(R, L) int16 frames summing to ``acc`` (L,) exactly, as even as integers allow.
+
+    Frame r holds ``acc // R + (r < acc % R)``: every frame lies between
+    ``floor(acc / R)`` and ``ceil(acc / R)``, so sums of R codes in [lo, hi] split into
+    codes in [lo, hi].
+    """
+    q, rem = np.divmod(np.asarray(acc, dtype=np.int64), repetitions)
+    out = np.empty((repetitions, q.size), dtype=np.int16)
+    for i in range(repetitions):
+        np.add(q, rem > i, out=out[i], casting="unsafe")
+    return out
+
+
+def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
+    """Per-pixel speckle power fading: Gamma(cells, 1/cells) (mean 1, variance 1/cells).
+
+    Fully developed speckle integrated over ``cells`` correlation cells of the aperture;
+    fixed for a static scene (seeded by the noise seed only, not the frame), so averaging
+    frames does not remove it.
+    """
+    rng = np.random.default_rng([seed, _STREAM_SPECKLE])
+    return rng.gamma(cells, 1.0 / cells, size=shape)
 
 
 @dataclass(frozen=True)
@@ -140,23 +192,110 @@ class Instrument:
         self.default_power_w = np.repeat(self.spec.laser_power_w[:, None], c, axis=1)
         lit = h.lit
         r = np.where(lit, h.range_m, 1.0)
+        #: per-pixel speckle fading of the received power (None: no speckle)
+        self.speckle = (speckle_factors(self.spec.speckle_cells, (k, c), self.seed)
+                        if self.spec.speckle_cells > 0 else None)
+        #: the physical link budget of every pixel (cdma_lidar.scene.linkbudget)
+        self.budget = LinkBudget.of(self.spec, h.reflectivity, h.cos_incidence, h.range_m,
+                                    self.speckle)
         #: per-pixel amplitude (V) per watt of laser power; 0 where nothing is hit
-        self.gain_v_per_w = np.where(
-            lit, self.spec.link_gain_v_m2_per_w * np.nan_to_num(h.reflectivity)
-            * h.cos_incidence / r**2, 0.0)
+        self.gain_v_per_w = self.budget.amplitude_per_w
         #: per-pixel round-trip delay (s) including the hidden system delay
         self.delay_s = np.where(lit, 2.0 * r / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s,
                                 np.nan)
+        #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
+        self.fidelity = scene.fidelity
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
-        self.noise_rms_v = self._noise_rms(RenderSettings.from_spec(self.spec))
+        self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
+        self._columns_bytes = 0
+        self._coefficients: dict[int, dict[str, float]] = {}
+        self._fixed_noise_v = self._fixed_noise(RenderSettings.from_spec(self.spec))
+        #: per-sample noise rms (V) at the scene's own settings and power, median over columns
+        self.noise_rms_v = float(np.median(self.noise_rms_columns_v()))
 
     # -- the scene's needs ---------------------------------------------------------------
 
     def calibration_gain_v_per_w(self) -> float:
         """Amplitude (V) per watt of one channel's echo from the zeroth-order target."""
         cal = self.scene.calibration
-        return (self.spec.link_gain_v_m2_per_w * cal.reflectivity * cal.zeroth_order_efficiency
+        return (link_gain_v_m2_per_w(self.spec) * cal.reflectivity * cal.zeroth_order_efficiency
                 / cal.target_distance_m**2)
+
+    def noise_rms_columns_v(self, cfg: RenderSettings | None = None,
+                            power_w: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """(C,) per-sample noise rms (V) of every column at laser power ``power_w`` (K, C)."""
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        if self._fixed_noise_v is not None:
+            return np.full(self.columns, self._fixed_noise_v)
+        p = self.default_power_w if power_w is None else np.asarray(power_w, dtype=np.float64)
+        return np.sqrt(self.budget.noise_variance_v2(p, self.budget.rx_per_w,
+                                                     cfg.samples_per_chip))
+
+    def noise_rms_v_at(self, column: int, cfg: RenderSettings,
+                       power_w: NDArray[np.float64] | None = None,
+                       calibration: bool = False) -> float:
+        """Per-sample noise rms (V) of one column (or calibration shot) at power ``power_w`` (K,).
+
+        The signal's own shot noise and the ASE beat depend on what the column receives;
+        the other sources do not. A fixed ``noise_rms_v`` or ``snr_db`` replaces all.
+        """
+        if self._fixed_noise_v is not None:
+            return self._fixed_noise_v
+        p = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
+        if calibration:
+            rx = np.full(self.channels, self.calibration_gain_v_per_w()
+                         / self.budget.volts_per_rx_w)
+        else:
+            rx = self.budget.rx_per_w[:, column]
+        coef = self._coefficients.get(cfg.samples_per_chip)
+        if coef is None:
+            coef = self._coefficients[cfg.samples_per_chip] = self.budget.coefficients(
+                cfg.samples_per_chip)
+        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip, coef)))
+
+    def link_figures(self, cfg: RenderSettings | None = None,
+                     power_w: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
+        """Per-pixel (K, C) link budget and the paper's SNRs; NaN where nothing is hit.
+
+        ``rx_power_w`` received optical power (W); ``amplitude_v`` echo amplitude (V);
+        ``signal_power_v2`` P_s = A^2 * (mean square of the unit filtered code), V^2 at the
+        ADC; ``noise_power_v2`` sigma_eta^2, the column's noise variance per sample with the
+        ADC's lsb^2/12 (V^2); ``snr_db`` eq. 30, P_s / (sigma^2 + sum of the column's other
+        echoes' P_i); ``snr_ss_db`` eq. 43, N P_s / (sigma^2 + 2/3 sum P_i) for one code
+        period; ``snr_ss_avg_db`` the same with the noise averaged over the R * n periods
+        a column accumulates; ``footprint_m`` the beam diameter at the target (m).
+        Ghosts and other users are not counted as interference.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        p = self.default_power_w if power_w is None else np.asarray(power_w, dtype=np.float64)
+        lit = self.truth.hits.lit
+        amp = self.gain_v_per_w * p
+        ps = amp**2 * self.unit_signal_power(cfg)
+        noise = self.noise_rms_columns_v(cfg, p) ** 2
+        lsb = self.spec.adc_full_scale_v / (1 << (self.spec.adc_bits - 1)) / self.spec.adc_gain
+        sigma2 = (noise + lsb**2 / 12)[None, :]
+        others = ps.sum(axis=0, keepdims=True) - ps
+        n = (1 << cfg.poly_u[0]) - 1
+        periods = cfg.averages * cfg.uid_bits
+        with np.errstate(divide="ignore"):
+            snr = 10 * np.log10(ps / (sigma2 + others))
+            snr_ss = 10 * np.log10(n * ps / (sigma2 + 2 / 3 * others))
+            snr_ss_avg = 10 * np.log10(n * ps / (sigma2 / periods + 2 / 3 * others))
+        rng = self.truth.range_m
+
+        def masked(a: NDArray) -> NDArray[np.float64]:
+            return np.where(lit, a, np.nan)
+
+        return {
+            "rx_power_w": masked(self.budget.rx_per_w * p),
+            "amplitude_v": masked(amp),
+            "signal_power_v2": masked(ps),
+            "noise_power_v2": np.broadcast_to(sigma2, lit.shape).copy(),
+            "snr_db": masked(snr), "snr_ss_db": masked(snr_ss),
+            "snr_ss_avg_db": masked(snr_ss_avg),
+            "footprint_m": masked(self.spec.beam_waist_m + np.nan_to_num(rng)
+                                  * self.spec.beam_divergence_rad),
+        }
 
     def lit_channels(self, column: int) -> NDArray[np.int64]:
         """Channels whose ray hits an object at ``column``."""
@@ -217,16 +356,24 @@ class Instrument:
         return np.stack([rows[i] for i in indices])
 
     def _spectrum_rows(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
-                       uid_bits: int) -> dict[int, NDArray[np.complex128]]:
+                       uid_bits: int, single: bool = False) -> dict[int, NDArray]:
         """Spectra by Gold member, computed once per (settings, member, UID).
 
         A column's lit subset then costs nothing to gather; the cache is dropped when
-        the settings change.
+        the settings change. ``single``: complex64 copies (made once from the complex128).
         """
+        if single:
+            wide = self._spectrum_rows(cfg, indices, uid, uid_bits)
+            key32 = ("single", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
+            rows32 = self._spectra.setdefault(key32, {})
+            for i in indices:
+                if i not in rows32:
+                    rows32[i] = wide[i].astype(np.complex64)
+            return rows32
         key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
         rows = self._spectra.get(key)
         if rows is None:
-            if len(self._spectra) >= 4:
+            if len(self._spectra) >= 8:
                 self._spectra.clear()
             rows = self._spectra[key] = {}
         missing = tuple(sorted({i for i in indices if i not in rows}))
@@ -257,16 +404,20 @@ class Instrument:
 
     def echo(self, column: int, cfg: RenderSettings,
              power_w: NDArray[np.float64] | None = None,
-             calibration: bool = False) -> NDArray[np.float64]:
+             calibration: bool = False, single: bool = False) -> NDArray[np.floating]:
         """Noise-free photodiode voltage (V) of one frame (L samples) at ``column``.
 
         Our own channels (lit ones only) and the ghosts configured for this column; other
         users are not periodic in our frame in general and are added by :meth:`render`.
         ``power_w``: laser power per channel (W) at this column. In ``calibration`` mode every
-        channel sees the zeroth-order target.
+        channel sees the zeroth-order target. ``single``: computed in single precision
+        (complex64 spectra, float32 result, relative error about 1e-7 of the largest
+        echo, i.e. below 1e-4 LSB for echoes inside the ADC's range), for ``accumulated``
+        fidelity; about half the cost.
         """
-        f, length = self._frame_bins(cfg)
-        m = f.size
+        length = cfg.frame_samples
+        m = length // 2 + 1
+        f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0  # bin spacing (Hz)
         power = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
         if calibration:
             cal = self.scene.calibration
@@ -278,6 +429,21 @@ class Instrument:
             chans = self.lit_channels(column)
             amps = self.gain_v_per_w[chans, column] * power[chans]
             taus = self.delay_s[chans, column]
+        if self.spec.ghosts:
+            amps, taus, chans = self._with_ghosts(column, amps, taus, chans)
+        keep = amps != 0
+        if not np.any(keep):
+            return np.zeros(length, dtype=np.float32 if single else np.float64)
+        amps, taus, chans = amps[keep], taus[keep], chans[keep]
+        members = tuple(int(cfg.code_index[c]) for c in chans)
+        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
+        total = self._sum_delayed(f0, m, amps, taus + self._sample_shift_s(cfg),
+                                  [rows[i] for i in members])
+        return scipy.fft.irfft(total, n=length, overwrite_x=True)
+
+    def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
+                     chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
+        """The column's echoes plus the grating ghosts configured for it."""
         amps_l, taus_l, chans_l = [amps], [taus], [chans]
         for g in self.spec.ghosts:
             if g.columns and column not in g.columns:
@@ -287,18 +453,7 @@ class Instrument:
             taus_l.append(np.full(gch.size, 2 * g.distance_m / SPEED_OF_LIGHT_M_S
                                   + self.spec.system_delay_s))
             chans_l.append(gch)
-        amps = np.concatenate(amps_l)
-        taus = np.concatenate(taus_l)
-        chans = np.concatenate(chans_l)
-        keep = amps != 0
-        if not np.any(keep):
-            return np.zeros(length)
-        amps, taus, chans = amps[keep], taus[keep], chans[keep]
-        members = tuple(int(cfg.code_index[c]) for c in chans)
-        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-        return np.fft.irfft(self._sum_delayed(f[1] if m > 1 else 0.0, m, amps,
-                                              taus + self._sample_shift_s(cfg),
-                                              [rows[i] for i in members]), n=length)
+        return np.concatenate(amps_l), np.concatenate(taus_l), np.concatenate(chans_l)
 
     @staticmethod
     def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
@@ -311,10 +466,11 @@ class Instrument:
         b = int(np.ceil(np.sqrt(m)))
         a = -(-m // b)
         w = -2.0 * np.pi * f0_hz * taus
-        lo = np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]
-        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :])
-        total = np.zeros(m, dtype=np.complex128)
-        tmp = np.empty((a, b), dtype=np.complex128)
+        dtype = spectra[0].dtype  # complex64 in single precision
+        lo = (np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]).astype(dtype)
+        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :]).astype(dtype)
+        total = np.zeros(m, dtype=dtype)
+        tmp = np.empty((a, b), dtype=dtype)
         flat = tmp.reshape(-1)[:m]
         for k, spec in enumerate(spectra):
             np.multiply.outer(hi[k], lo[k], out=tmp)
@@ -324,10 +480,28 @@ class Instrument:
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
                            total_samples: int) -> NDArray[np.float64] | None:
-        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none)."""
-        users = [u for u in self.spec.other_users if not u.columns or column in u.columns]
-        if not users:
+        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none).
+
+        The same for every column that sees the same users: computed once per set of
+        users and settings (read-only result).
+        """
+        seen = tuple(i for i, u in enumerate(self.spec.other_users)
+                     if not u.columns or column in u.columns)
+        if not seen:
             return None
+        users = [self.spec.other_users[i] for i in seen]
+        key = ("users", seen, cfg, total_samples)
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit[0]
+        out = self._users_signal(users, cfg, total_samples)
+        out.flags.writeable = False
+        self._columns[key] = (out, 0.0)
+        self._columns_bytes += out.nbytes
+        return out
+
+    def _users_signal(self, users: list, cfg: RenderSettings,
+                      total_samples: int) -> NDArray[np.float64]:
         out = np.zeros(total_samples)
         idx = np.arange(total_samples)
         for u in users:
@@ -343,10 +517,13 @@ class Instrument:
 
     # -- noise and ADC -----------------------------------------------------------------------
 
-    def _noise_rms(self, cfg: RenderSettings) -> float:
+    def _fixed_noise(self, cfg: RenderSettings) -> float | None:
+        """The noise rms (V) a scene fixes (``noise_rms_v``, ``snr_db``), None: physical."""
         spec = self.spec
+        if spec.noise_rms_v is not None:
+            return float(spec.noise_rms_v)
         if spec.snr_db is None:
-            return float(spec.noise_rms_v or 0.0)
+            return None
         amp = self.gain_v_per_w * self.default_power_w
         lit = self.truth.hits.lit
         if not np.any(lit):
@@ -385,6 +562,51 @@ class Instrument:
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
 
+    def forget(self) -> None:
+        """Drop the echoes kept between frames (to measure a cold first frame, or free memory)."""
+        self._columns.clear()
+        self._columns_bytes = 0
+
+    def column_model(self, column: int, cfg: RenderSettings,
+                     power_w: NDArray[np.float64] | None = None, calibration: bool = False,
+                     single: bool = False) -> tuple[NDArray[np.floating], float]:
+        """(noise-free echo of one repetition (V, L samples, read-only), noise rms (V)).
+
+        Kept between frames (up to ECHO_CACHE_BYTES): the scene is static, so a column's
+        echo and noise level depend only on the column, the settings and the power.
+        """
+        power = self.default_power_w[:, column] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = (column, calibration, cfg, power.tobytes(), single)
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit
+        echo = self.echo(column, cfg, power, calibration=calibration, single=single)
+        echo.flags.writeable = False
+        hit = (echo, self.noise_rms_v_at(column, cfg, power, calibration))
+        if self._columns_bytes + echo.nbytes > ECHO_CACHE_BYTES:
+            self._columns.clear()
+            self._columns_bytes = 0
+        self._columns[key] = hit
+        self._columns_bytes += echo.nbytes
+        return hit
+
+    def _column_inputs(self, column: int, cfg: RenderSettings, frame: int,
+                       power_w: NDArray[np.float64] | None, calibration: bool, shot: int
+                       ) -> tuple[NDArray[np.float64], float, np.random.Generator, int]:
+        """(one repetition's echo on the fine grid incl. offset, noise rms in fine units,
+        the column's noise generator, the column index rendered)."""
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
+        col = 0 if calibration else column
+        scale, offset = self._fine_scale()
+        echo, sigma = self.column_model(col, cfg, power_w, calibration)
+        one = echo * scale
+        one += offset
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        return one, sigma * scale, rng, col
+
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
                shot: int = 0) -> NDArray[np.int16]:
@@ -393,27 +615,115 @@ class Instrument:
 
         ``frame`` is the scan's frame counter (noise seed); ``power_w`` the per-channel laser
         power (W) at this column; ``calibration`` renders shot ``shot`` of the zeroth-order
-        target instead of the scene.
+        target instead of the scene. At ``accumulated`` fidelity the column's R repetitions
+        are :meth:`render_accumulated`'s sums split evenly into R frames of valid codes
+        (their sum, which is all the receive chain uses, is the drawn one; the single
+        frames are not what an ADC would give).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
-        if not calibration:
-            check_int("column", column, 0, self.columns - 1)
-        col = 0 if calibration else column
-        scale, offset = self._fine_scale()
-        one = self.echo(col, cfg, power_w, calibration=calibration) * scale + offset
+        acc = self.render_accumulated(column, cfg, frame, power_w, calibration=calibration,
+                                      shot=shot) if self.fidelity == "accumulated" else None
+        if acc is not None:
+            return split_sum(acc.reshape(-1), cfg.averages).reshape(-1)
+        return self.render_exact(column, cfg, frame, power_w, calibration=calibration, shot=shot)
+
+    def render_exact(self, column: int, cfg: RenderSettings, frame: int = 0,
+                     power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
+                     shot: int = 0) -> NDArray[np.int16]:
+        """:meth:`render` at ``exact`` fidelity: every repetition drawn and quantised alone."""
+        one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
+                                                   shot)
         length = one.size
         total = length * cfg.averages
-        if self.noise_rms_v > 0:
+        if sigma > 0:
             # float32 Gaussians (half the cost of float64), widened while scaling
-            stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-            rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
-            fine = np.multiply(rng.standard_normal(total, dtype=np.float32),
-                               self.noise_rms_v * scale, dtype=np.float64)
+            fine = np.multiply(rng.standard_normal(total, dtype=np.float32), sigma,
+                               dtype=np.float64)
             fine.reshape(cfg.averages, length)[...] += one
         else:
             fine = np.tile(one, cfg.averages)
         if not calibration:
             users = self.other_users_signal(col, cfg, total)
             if users is not None:
-                fine += users * scale
+                fine += users * self._fine_scale()[0]
         return self._quantise_fine(fine)
+
+    def render_accumulated(self, column: int, cfg: RenderSettings | None = None,
+                           frame: int = 0, power_w: NDArray[np.float64] | None = None, *,
+                           calibration: bool = False, shot: int = 0
+                           ) -> NDArray[np.int64] | None:
+        """The sum of the R quantised repetitions, drawn directly: (n, N S) int64, or None.
+
+        ``sum_r Q(x + e_r)`` for noise e_r of rms sigma is, when sigma >= 1 LSB, the value
+        ``R x + e`` with ``e`` Gaussian of variance ``R (sigma^2 + 1/12)`` up to the
+        quantiser's periodic bias (below 1e-9 LSB); it is drawn as
+        ``floor(R x + sqrt(R (sigma^2 + 1/12) - 1/12) z + 1/2)`` (the last rounding adds
+        the missing 1/12). L draws instead of R L, no per-repetition ADC. Returns None
+        (the caller renders ``exact``) when sigma < ACCUMULATED_MIN_NOISE_LSB or the
+        column's echo comes within ACCUMULATED_CLIP_MARGIN sigma of the ADC's clip.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
+        col = 0 if calibration else column
+        plan = self._accumulated_plan(col, cfg, power_w, calibration)
+        if plan is None:
+            return None
+        mean, std = plan
+        r = cfg.averages
+        lo = -(1 << (self.spec.adc_bits - 1))
+        hi = (1 << (self.spec.adc_bits - 1)) - 1
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        draw = rng.standard_normal(mean.size, dtype=np.float32)
+        draw *= std
+        draw += mean
+        acc = np.floor(draw, out=draw).astype(np.int64)
+        np.clip(acc, r * lo, r * hi, out=acc)
+        return acc.reshape(cfg.uid_bits, mean.size // cfg.uid_bits)
+
+    def _accumulated_plan(self, col: int, cfg: RenderSettings,
+                          power_w: NDArray[np.float64] | None, calibration: bool
+                          ) -> tuple[NDArray[np.float32], np.float32] | None:
+        """(R x + R offset + 1/2 in LSB (float32, read-only), the draw's rms in LSB) of a
+        column, kept with its echo; None where the level does not apply."""
+        power = self.default_power_w[:, col] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = ("accumulated", col, calibration, cfg, power.tobytes())
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit[0]
+        plan = self._make_accumulated_plan(col, cfg, power, calibration)
+        self._columns[key] = (plan, 0.0)
+        if plan is not None:
+            self._columns_bytes += plan[0].nbytes
+        return plan
+
+    def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
+                               power: NDArray[np.float64], calibration: bool
+                               ) -> tuple[NDArray[np.float32], np.float32] | None:
+        scale, offset = self._fine_scale()
+        lsb_per_v = scale / (1 << FRAC_BITS)
+        offset_lsb = offset / (1 << FRAC_BITS)
+        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v  # LSB
+        if sigma < ACCUMULATED_MIN_NOISE_LSB:
+            return None
+        r = cfg.averages
+        # the echo is synthesised here, not kept: the plan (its scaled copy) is what is kept
+        mean = self.echo(col, cfg, power, calibration=calibration, single=True)
+        length = mean.size
+        peak = float(np.abs(mean).max()) * lsb_per_v + abs(offset_lsb)
+        # single precision: the sum's values stay below 2**15 * R, resolved to about
+        # 1e-3 LSB, against a noise rms of sqrt(R) sigma >= 3 LSB
+        mean *= np.float32(r * lsb_per_v)
+        mean += np.float32(r * offset_lsb + 0.5)
+        if not calibration:
+            users = self.other_users_signal(col, cfg, length * r)
+            if users is not None:
+                peak += float(np.abs(users).max()) * lsb_per_v
+                mean += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
+        half = 1 << (self.spec.adc_bits - 1)
+        if peak + ACCUMULATED_CLIP_MARGIN * sigma > half - 1.5:
+            return None
+        mean.flags.writeable = False
+        return mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12))
