@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.checks import check_int, is_int
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.correlators import (
     AUTO,
@@ -111,6 +111,17 @@ class Widths:
     noise_sum: int
     noise_sumsq: int
     float_exact: bool
+
+    @property
+    def wide_sumsq(self) -> bool:
+        """True when ``noise_sumsq`` may exceed int64 (> 63 bits): the receivers then report
+        it as an object array of exact Python integers instead of int64."""
+        return self.noise_sumsq > INT64_BITS
+
+    @property
+    def sumsq_dtype(self) -> type:
+        """dtype of the reported ``noise_sumsq``: ``np.int64``, or ``object`` when wide."""
+        return object if self.wide_sumsq else np.int64
 
 
 @dataclass(frozen=True)
@@ -188,9 +199,9 @@ class ReceiverConfig:
         """Check the config against code length ``n_chips`` and derive every width.
 
         Raises ConfigError when the gate or a ghost window does not fit in the
-        period, or when a derived width cannot be held in int64 (only
-        ``noise_sumsq`` can: lower ``out_bits``, raise ``out_shift`` or shorten
-        ``gate_len``).
+        period. Every configuration of the parameter ranges is accepted: the only
+        width that can exceed int64, ``noise_sumsq`` (up to 89 bits), is carried
+        exactly as Python integers (:attr:`Widths.wide_sumsq`).
         """
         check_int("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
         ns = self.period_samples(n_chips)
@@ -222,13 +233,6 @@ class ReceiverConfig:
             noise_sumsq=2 * out - 2 + _bitlen(g),
             float_exact=ns * r * n_uid * (1 << (b - 1)) < 2**53,
         )
-        if w.noise_sumsq > INT64_BITS:
-            raise ConfigError(
-                f"out_bits/out_shift/gate_len give a noise_sumsq accumulator of "
-                f"2*{out}-2+bitlen({g}) = {w.noise_sumsq} bits; it must be <= {INT64_BITS}: "
-                f"lower out_bits, raise out_shift or shorten gate_len",
-                field="out_bits",
-            )
         return w
 
 
@@ -379,7 +383,7 @@ class ReferenceReceiver:
             neighbours=np.array(rows["neighbours"], dtype=np.int64).reshape(k, 2),
             noise_count=np.array(rows["noise_count"], dtype=np.int64),
             noise_sum=np.array(rows["noise_sum"], dtype=np.int64),
-            noise_sumsq=np.array(rows["noise_sumsq"], dtype=np.int64),
+            noise_sumsq=np.array(rows["noise_sumsq"], dtype=self.widths.sumsq_dtype).reshape(k),
             uid_signs=np.array(rows["uid_signs"], dtype=np.int8).reshape(k, n),
             uid_observed=np.array(rows["uid_observed"], dtype=np.int64),
             uid_match=np.array(rows["uid_match"], dtype=np.bool_),
@@ -563,7 +567,7 @@ class FastReceiver:
         cnt = noise.sum(axis=-1, dtype=np.int64)
         nsum = corr.sum(axis=-1, dtype=np.int64, where=noise)
         np.multiply(corr, corr, out=mag, where=noise)  # mag is free now; reuse its memory
-        nsq = mag.sum(axis=-1, dtype=np.int64, where=noise)  # exact: widths.noise_sumsq <= 63
+        nsq = _sum_squares(mag, noise, self.widths.wide_sumsq)
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
@@ -608,6 +612,24 @@ class FastReceiver:
             lags = self._lags[1:-1][jsafe]  # (C, K, P)
             s = np.sign(correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
         return np.where(found[..., None], s, 0).astype(np.int8)
+
+
+def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_], wide: bool) -> NDArray:
+    """Exact ``sum(sq, axis=-1, where=where)`` of squares ``sq`` (each < 2^63).
+
+    When ``wide`` (Widths.noise_sumsq > 63) the sum may not fit int64: the squares are
+    split at bit 31, ``sq = hi 2^31 + lo``, both halves summed in int64 (at most 2^26
+    lags of < 2^32: no overflow) and recombined as Python integers (object array).
+    """
+    if not wide:
+        return sq.sum(axis=-1, dtype=np.int64, where=where)  # exact: noise_sumsq <= 63 bits
+    lo = (sq & ((1 << 31) - 1)).sum(axis=-1, dtype=np.int64, where=where)
+    hi = (sq >> 31).sum(axis=-1, dtype=np.int64, where=where)
+    out = np.empty(lo.shape, dtype=object)
+    flat = out.reshape(-1)
+    for i, (h, v) in enumerate(zip(hi.ravel().tolist(), lo.ravel().tolist(), strict=True)):
+        flat[i] = (h << 31) + v
+    return out
 
 
 def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> NDArray[np.int64]:

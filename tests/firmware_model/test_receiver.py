@@ -26,6 +26,7 @@ from cdma_lidar.firmware_model.correlators import (
     register_correlator,
     unregister_correlator,
 )
+from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
@@ -347,12 +348,56 @@ def test_config_validation_names_the_field():
         fast(ReceiverConfig(), np.full((1, 7), 2), np.zeros(280, np.int16))
 
 
-def test_noise_sumsq_too_wide_is_rejected_with_its_fields():
+def test_wide_noise_sumsq_is_accepted_and_exact():
+    """A noise_sumsq wider than int64 (RTL: SQ_W = 2 OUT_W + G_W) is carried exactly."""
     cfg = ReceiverConfig(gate_len=2047 * 4)  # out_bits = 32, whole period of a degree-11 code
-    with pytest.raises(ConfigError, match="out_bits/out_shift/gate_len") as err:
-        cfg.widths(2047)
-    assert err.value.field == "out_bits"
-    assert cfg.replace(out_bits=26).widths(2047).noise_sumsq <= 63
+    w = cfg.widths(2047)
+    assert w.noise_sumsq == 2 * 29 - 2 + 13 and w.wide_sumsq and w.sumsq_dtype is object
+    assert not cfg.replace(out_bits=26).widths(2047).wide_sumsq
+    # saturating full-scale data: every out is +-2^31 -> sum of squares ~ 62 * 2^62 > 2^63
+    n, s, r, n_uid = 31, 2, 1024, 16
+    codes = mseq((5, 2))[None, :]
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=s, averages=r, uid_bits=n_uid, uid=0,
+                         gate_len=n * s, peak_exclude=0, out_bits=32)
+    assert cfg.widths(n).noise_sumsq == 68
+    lo, hi = -(1 << 15), (1 << 15) - 1
+    ref = np.repeat(1 - 2 * codes[0].astype(np.int64), s)
+    x = np.tile(np.where(np.roll(ref, 3) > 0, hi, lo), r * n_uid).astype(np.int16)
+    want = reference(cfg, codes, x)
+    assert want.noise_sumsq.dtype == object
+    total = int(want.noise_sumsq[0])
+    assert total > 2**63
+    assert total == sum(int(v) ** 2 for j, v in enumerate(want.corr[0].tolist()) if j != 3)
+    for method in ("matmul", "fft"):
+        got = FastReceiver(cfg, codes, method=method).column(x)
+        assert got.mismatches(want) == [], method
+    assert np.isfinite(want.snr_db()).all()
+
+
+def test_the_widest_noise_sumsq_is_accepted():
+    # 16-bit ADC, S = 64, R = 1024, n = 16, degree 20, whole-period gate, 32-bit output:
+    # out^2 <= 2^62 summed over 67108800 < 2^26 lags needs 2*32-2+26 = 88 bits
+    big = ReceiverConfig(adc_bits=16, samples_per_chip=64, averages=1024, uid_bits=16,
+                         gate_len=(2**20 - 1) * 64, out_bits=32)
+    assert big.widths(2**20 - 1).noise_sumsq == 88
+
+
+def test_two_word_sum_of_squares_is_exact_at_the_largest_terms():
+    from cdma_lidar.firmware_model.receiver import _sum_squares
+
+    # the largest square (2^62, out = -2^31) and its neighbours, 2^20 of each per row:
+    # the int64 halves stay far from overflow (2^26 lags * 2^31 < 2^58); the result is exact
+    terms = np.array([2**62, 2**62 - 1, (2**31 - 1) ** 2, 0, 1], dtype=np.int64)
+    sq = np.tile(terms, (2, 2**20))
+    where = np.ones(sq.shape, dtype=bool)
+    where[1, ::3] = False
+    got = _sum_squares(sq, where, wide=True)
+    assert got.dtype == object
+    for row in range(2):
+        assert got[row] == sum(v for v, ok in zip(sq[row].tolist(), where[row].tolist(),
+                                                  strict=True) if ok)
+    narrow = _sum_squares(sq[:, :5] >> 8, where[:, :5], wide=False)
+    assert narrow.dtype == np.int64
 
 
 def test_widths_of_the_default_and_the_largest_config():
