@@ -50,7 +50,7 @@ from cdma_lidar.firmware_model.correlators import (
     correlator_methods,
     make_correlator,
 )
-from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at
+from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
@@ -462,10 +462,20 @@ class FastReceiver:
             [-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], dtype=np.int64
         )
         self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
-        plan = GatePlan(self._bip, cfg.samples_per_chip, self._lag_lo, g + 2,
-                        float_bits=self.float_bits)
+        wd = self.widths
+        s = cfg.samples_per_chip
+        # integer types of the work, each the narrowest that holds its signal exactly
+        self._acc_type = int_type(wd.acc)
+        self._desp_type = int_type(wd.desp)
+        y_bits = wd.desp + _clog2(s) if s <= 8 else wd.desp + _bitlen(ns + s)  # prefix sums
+        self._y_type = int_type(y_bits)
+        y_bound = s * cfg.uid_bits * cfg.averages * (1 << (cfg.adc_bits - 1))  # max |Y|
+        plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
+                        y_bound=y_bound)
         self._corr = make_correlator(self.method, plan)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
+        # out = raw exactly (no copy) when there is no shift and saturation cannot happen
+        self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
 
     @property
     def correlator_method(self) -> str:
@@ -485,8 +495,12 @@ class FastReceiver:
         x = _as_samples(samples, 2)
         return self._finish(self.accumulate(x))
 
-    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.int64]:
-        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS) int64."""
+    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.signedinteger]:
+        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS).
+
+        The dtype is the narrowest of int16/int32/int64 holding ``W_acc`` bits (or the
+        input's, if wider): every partial sum of R codes fits it, so no overflow.
+        """
         cfg = self.cfg
         c = samples.shape[0]
         need = cfg.column_samples(self.n_chips)
@@ -499,8 +513,10 @@ class FastReceiver:
                 bad = lo if lo < self._lo else hi
                 raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
         x = samples.reshape(c, cfg.averages, cfg.uid_bits * self._ns)
-        acc_type = np.int32 if self.widths.acc <= 31 else np.int64
-        acc = x.sum(axis=1, dtype=acc_type).astype(np.int64, copy=False)
+        acc_type = self._acc_type
+        if samples.dtype.itemsize > np.dtype(acc_type).itemsize:
+            acc_type = np.int64  # a narrower sum would need a converted copy of the input
+        acc = np.add.reduce(x, axis=1, dtype=acc_type)
         return acc.reshape(c, cfg.uid_bits, self._ns)
 
     def from_accumulators(self, acc: ArrayLike) -> list[ReceiverOutput]:
@@ -515,20 +531,30 @@ class FastReceiver:
             raise out_of_range(
                 "acc", f"a (C, {cfg.uid_bits}, {self._ns}) integer array", f"{a.shape} {a.dtype}"
             )
-        a = a.astype(np.int64, copy=False)
+        if a.dtype.kind == "u" or a.dtype.itemsize > 8:
+            a = a.astype(np.int64)
         r = cfg.averages
         if a.size and (int(a.min()) < r * self._lo or int(a.max()) > r * self._hi):
             raise out_of_range("acc", f"sums of {r} ADC codes", f"{int(a.min())}..{int(a.max())}")
         return self._finish(a)
 
-    def _finish(self, a: NDArray[np.int64]) -> list[ReceiverOutput]:
+    def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
         cfg = self.cfg
-        d = np.einsum("cpi,p->ci", a, self._despread) if cfg.uid_bits > 1 else a[:, 0, :] * (
-            self._despread[0]
-        )
-        y = chip_sums(d, cfg.samples_per_chip)  # (C, S, N)
+        if cfg.uid_bits == 1:  # d = (-1)^uid acc[0]: the sign is folded into the chip sums
+            d, sign = a[:, 0, :], int(self._despread[0])
+        else:
+            d, sign = np.zeros((a.shape[0], self._ns), dtype=self._desp_type), 1
+            for p, q in enumerate(self._despread.tolist()):
+                if q > 0:
+                    d += a[:, p, :]
+                else:
+                    d -= a[:, p, :]
+        y = chip_sums(d, cfg.samples_per_chip, sign, self._y_type)  # (C, S, N)
         raw = self._corr(y)  # (C, K, G+2) int64
-        out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
+        if self._identity_scale:
+            out = raw
+        else:
+            out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
         return self._post(raw, out, a)
 
     # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)

@@ -56,6 +56,8 @@ class GatePlan:
     ``(lag_lo + m) mod N*S`` for m < ``count`` (samples), and ``float_bits``: the
     largest magnitude, in bits, a float64 kernel may let its exact integers reach
     before it splits the operands into limbs (``n.bit_length() + 2 .. 53``).
+    ``y_bound``, when known, is an upper bound of ``|Y|`` the chip sums can reach
+    (``S n R 2^(b-1)``): a kernel may then skip looking at the data to decide on limbs.
 
     Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
     the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
@@ -63,7 +65,7 @@ class GatePlan:
     """
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
-                 float_bits: int = 53) -> None:
+                 float_bits: int = 53, y_bound: int | None = None) -> None:
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -72,6 +74,7 @@ class GatePlan:
         if not n.bit_length() + 2 <= float_bits <= 53:
             raise out_of_range("float_bits", f"{n.bit_length() + 2}..53", float_bits)
         self.float_bits = float_bits
+        self.y_bound = None if y_bound is None else int(y_bound)
         self.lag_lo = int(lag_lo)
         self.q0, self.r0 = divmod(self.lag_lo, s)
         m = np.arange(count)
@@ -103,8 +106,8 @@ class Correlator(ABC):
         return math.inf
 
     @abstractmethod
-    def __call__(self, y: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Chip sums ``y`` (C, S, N) int64 -> exact ``raw`` (C, K, count) int64."""
+    def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
+        """Chip sums ``y`` (C, S, N), int16/32/64 -> exact ``raw`` (C, K, count) int64."""
 
 
 _REGISTRY: dict[str, type[Correlator]] = {}
@@ -176,6 +179,8 @@ def limbs(
     """
     out: list[tuple[NDArray[np.int64], int]] = []
     shift = 0
+    if not fits(y):
+        y = y.astype(np.int64)  # the masks and shifts below are int64 constants
     while not fits(y):
         out.append((y & ((1 << h) - 1), shift))
         y = y >> h
