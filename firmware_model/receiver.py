@@ -430,17 +430,21 @@ class FastReceiver:
     """Vectorised receive chain for one configuration and code set; reuse it across columns.
 
     ``method`` names the correlation kernel, one of :func:`correlator_methods`
-    (default ``"auto"``: the registered kernel with the lowest cost estimate,
-    "matmul" for short gates, "fft" for long ones); ``float_bits`` (default 53) is
-    the largest magnitude, in bits, the float64 kernels' products may reach before
+    (default ``"auto"``: the kernel the calibrated cost model predicts fastest among
+    those within 2x of the leanest memory, :mod:`.correlators.costs`); ``float_bits``
+    (default 53) is the largest magnitude, in bits, the float64 kernels' products may reach before
     operands are split into limbs. Both only choose how the same integers are
     computed. An unknown ``method`` raises ConfigError listing the registered names.
+    ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
+    carry: it only steers ``"auto"`` (a product over many columns amortises more).
+    ``plan`` is the :class:`GatePlan` the kernel was prepared for.
     """
 
     cfg: ReceiverConfig
     codes: ArrayLike
     method: str = AUTO
     float_bits: int = 53
+    columns: int = 1
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
@@ -470,9 +474,10 @@ class FastReceiver:
         y_bits = wd.desp + _clog2(s) if s <= 8 else wd.desp + _bitlen(ns + s)  # prefix sums
         self._y_type = int_type(y_bits)
         y_bound = s * cfg.uid_bits * cfg.averages * (1 << (cfg.adc_bits - 1))  # max |Y|
-        plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
-                        y_bound=y_bound)
-        self._corr = make_correlator(self.method, plan)
+        check_int("columns", self.columns, 1, 1 << 30)
+        self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
+                             y_bound=y_bound, columns=self.columns)
+        self._corr = make_correlator(self.method, self.plan)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
         # out = raw exactly (no copy) when there is no shift and saturation cannot happen
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits

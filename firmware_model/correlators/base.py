@@ -26,6 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.correlators import costs
+from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate
 
 __all__ = [
     "AUTO",
@@ -34,6 +36,7 @@ __all__ = [
     "GatePlan",
     "choose_correlator",
     "correlator_methods",
+    "estimates",
     "limbs",
     "make_correlator",
     "register_correlator",
@@ -58,6 +61,8 @@ class GatePlan:
     before it splits the operands into limbs (``n.bit_length() + 2 .. 53``).
     ``y_bound``, when known, is an upper bound of ``|Y|`` the chip sums can reach
     (``S n R 2^(b-1)``): a kernel may then skip looking at the data to decide on limbs.
+    ``columns`` is the number of columns expected per call; it only steers the cost
+    estimates (a product over many columns amortises its constant operand).
 
     Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
     the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
@@ -65,7 +70,7 @@ class GatePlan:
     """
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
-                 float_bits: int = 53, y_bound: int | None = None) -> None:
+                 float_bits: int = 53, y_bound: int | None = None, columns: int = 1) -> None:
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -75,6 +80,7 @@ class GatePlan:
             raise out_of_range("float_bits", f"{n.bit_length() + 2}..53", float_bits)
         self.float_bits = float_bits
         self.y_bound = None if y_bound is None else int(y_bound)
+        self.columns = max(1, int(columns))
         self.lag_lo = int(lag_lo)
         self.q0, self.r0 = divmod(self.lag_lo, s)
         m = np.arange(count)
@@ -82,6 +88,16 @@ class GatePlan:
         self.r_m = (self.r0 + m) % s
         self.nq = int(self.u_m[-1]) + 1
         self.sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]  # lags m of phase r
+
+    def matmul_limbs(self) -> int:
+        """Limbs a float64 product kernel splits Y into (1 when ``N y_bound < 2^float_bits``)."""
+        if self.y_bound is None:
+            return 1
+        need = (self.n * self.y_bound).bit_length() - self.float_bits
+        if need <= 0:
+            return 1
+        h = self.float_bits - self.n.bit_length()
+        return 1 + math.ceil(need / h)
 
 
 class Correlator(ABC):
@@ -98,12 +114,18 @@ class Correlator(ABC):
         self.method = ""
 
     @classmethod
-    def cost(cls, plan: GatePlan) -> float:
-        """Estimated cost (arbitrary common unit: BLAS multiply-adds) of one column.
+    def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
+        """Predicted seconds per call (``plan.columns`` columns) and peak bytes.
 
-        ``math.inf`` (the default) means "only when asked for by name".
+        Written in the machine primitives of :class:`.costs.Coefficients`. The default
+        (infinite time) means "only when asked for by name".
         """
-        return math.inf
+        return Estimate(math.inf, 0.0)
+
+    @classmethod
+    def cost(cls, plan: GatePlan) -> float:
+        """Predicted seconds per call with the calibrated coefficients (inf: never auto)."""
+        return cls.estimate(plan, costs.coefficients()).seconds
 
     @abstractmethod
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
@@ -141,13 +163,19 @@ def correlator_methods() -> tuple[str, ...]:
     return (AUTO, *_REGISTRY)
 
 
-def choose_correlator(plan: GatePlan) -> str:
-    """The kernel ``"auto"`` picks: the lowest :meth:`Correlator.cost`, ties to the first."""
-    best, best_cost = "", math.inf
-    for name, cls in _REGISTRY.items():
-        c = cls.cost(plan)
-        if c < best_cost:
-            best, best_cost = name, c
+def estimates(plan: GatePlan, co: Coefficients | None = None) -> dict[str, Estimate]:
+    """Every registered kernel's :class:`.costs.Estimate` for ``plan`` (registration order)."""
+    co = costs.coefficients() if co is None else co
+    return {name: cls.estimate(plan, co) for name, cls in _REGISTRY.items()}
+
+
+def choose_correlator(plan: GatePlan, co: Coefficients | None = None) -> str:
+    """The kernel ``"auto"`` picks (:func:`.costs.choose`): the fastest predicted among
+    those within 2x of the leanest peak memory, ties to the first registered.
+
+    ``co``: the coefficients (default: the calibration cache, else the built-in ones).
+    """
+    best = costs.choose(estimates(plan, co))
     if not best:
         raise ConfigError("no registered correlator has a finite cost for this plan",
                           field="method")

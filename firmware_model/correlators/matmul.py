@@ -12,6 +12,8 @@ fits: W_raw <= 56 bits, docs/firmware.md section 3).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -21,11 +23,15 @@ from cdma_lidar.firmware_model.correlators.base import (
     GatePlan,
     limbs,
 )
+from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
 
 __all__ = ["MatmulCorrelator", "stacked_layout"]
 
-#: Largest Hankel matrix (bytes) ``"auto"`` will build; beyond it the FFT is chosen.
-_MATMUL_BMAT_BYTES = 128 << 20
+
+def _block(plan: GatePlan) -> int:
+    """Columns per block: chip sums, float operands and output within BLOCK_BYTES."""
+    return max(1, BLOCK_BYTES // (plan.s * plan.n * 8 * 2 + plan.k * (plan.count + 2 * plan.s)
+                                  * 16))
 
 
 def stacked_layout(plan: GatePlan) -> bool:
@@ -48,11 +54,23 @@ class MatmulCorrelator(Correlator):
     """
 
     @classmethod
-    def cost(cls, plan: GatePlan) -> float:
-        """Multiply-adds per column, ``N K count``; inf when the Hankel blocks are too big."""
-        mm_ops = plan.n * plan.k * plan.count
-        mm_bytes = plan.n * plan.k * plan.count * 8
-        return mm_ops if mm_bytes <= _MATMUL_BMAT_BYTES else float("inf")
+    def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
+        """The products of the chosen layout, the operand copies and the output scatter."""
+        c, n, k, s = plan.columns, plan.n, plan.k, plan.s
+        cb = min(c, _block(plan))
+        blocks = math.ceil(c / cb)
+        parts = plan.matmul_limbs()
+        if stacked_layout(plan):
+            width = plan.s * plan.nq
+            prods = gemm_seconds(s * cb, n, k * plan.nq, co)
+        else:
+            width = plan.count
+            prods = sum(gemm_seconds(cb, n, k * len(sel), co) for sel in plan.sel if len(sel))
+        moves = co.byte * (16.0 * s * cb * n + 24.0 * cb * k * width) + 2 * s * co.call
+        seconds = blocks * parts * (prods + moves)
+        peak = 8.0 * n * k * width + 8.0 * s * cb * n + 8.0 * cb * k * width \
+            + 8.0 * c * k * plan.count
+        return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
         super().__init__(plan)
@@ -80,8 +98,7 @@ class MatmulCorrelator(Correlator):
         k, count = plan.k, plan.count
         limit = 1 << plan.float_bits
         h = plan.float_bits - n.bit_length()
-        per_col = s * n * 8 * 2 + k * (count + 2 * s) * 16
-        block = max(1, BLOCK_BYTES // per_col)
+        block = _block(plan)
         out = np.empty((c, k, count), dtype=np.int64)
         # lags of phase r are m = m_r, m_r + S, ...: a strided slice of the output
         sl = [slice(int(sel[0]), None, s) if len(sel) else None for sel in plan.sel]

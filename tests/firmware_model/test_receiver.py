@@ -130,7 +130,8 @@ def toy_kernel():
 
 
 #: Float limits low enough that the float kernels split their operands into limbs.
-LIMB_FLOAT_BITS = {"matmul": lambda n: n.bit_length() + 2, "fft": lambda n: 30}
+LIMB_FLOAT_BITS = {"matmul": lambda n: n.bit_length() + 2, "fft": lambda n: 30,
+                   "direct": lambda n: n.bit_length() + 3}
 
 
 def _fast_variants(cfg, codes):
@@ -167,7 +168,7 @@ def test_fast_paths_equal_chunked_reference(case):
 def test_every_method_is_listed_auto_first():
     methods = correlator_methods()
     assert methods[0] == "auto"
-    assert {"matmul", "fft"} <= set(methods[1:])
+    assert {"matmul", "fft", "direct"} <= set(methods[1:])
 
 
 @settings(max_examples=40)
@@ -188,7 +189,7 @@ def test_a_registered_kernel_is_usable_by_name(case):
         rx = FastReceiver(cfg, codes, method=name)
         assert rx.correlator_method == name
         # its cost is the default (infinite): "auto" never picks a kernel that did not ask
-        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft")
+        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft", "direct")
         acc = rx.accumulate(x[None, :])
         assert fast_from_accumulators(cfg, codes, acc, method=name)[0].same_as(want)
     assert name not in correlator_methods()
@@ -225,17 +226,19 @@ def test_unknown_method_is_a_config_error_listing_the_methods(run):
 
 
 def test_auto_choice_follows_the_cost_estimates():
-    """"auto" is the lowest cost of the registered kernels, ties to the first registered."""
-    from cdma_lidar.firmware_model.correlators import choose_correlator
-    from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
-    from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
+    """"auto" is the fastest estimate among kernels within 2x of the leanest memory."""
+    from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
+    from cdma_lidar.firmware_model.correlators.costs import DEFAULT_COEFFICIENTS, choose
 
     rng = np.random.default_rng(5)
     for n, k, s, count in [(2047, 40, 4, 66), (511, 5, 2, 1024), (31, 3, 1, 31), (8191, 40, 4,
                                                                                    32766)]:
         plan = GatePlan((1 - 2 * rng.integers(0, 2, (k, n))).astype(np.int8), s, 0, count)
-        mm, ff = MatmulCorrelator.cost(plan), FFTCorrelator.cost(plan)
-        assert choose_correlator(plan) == ("matmul" if mm <= ff else "fft")
+        est = estimates(plan, DEFAULT_COEFFICIENTS)
+        lean = min(e.peak_bytes for e in est.values())
+        want = min((e.seconds, i, name) for i, (name, e) in enumerate(est.items())
+                   if e.peak_bytes <= 2 * lean)[2]
+        assert choose_correlator(plan, DEFAULT_COEFFICIENTS) == want == choose(est)
 
 
 @settings(max_examples=15)
@@ -434,8 +437,9 @@ def test_reference_rejects_overfeeding_and_early_finish():
     assert rx.finish().corr.shape == (1, 3)
 
 
-@pytest.mark.parametrize(("degree", "gate_len", "method"), [(7, 40, "matmul"), (9, 1022, "fft")])
-def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
+@pytest.mark.parametrize(("degree", "gate_len"), [(7, 40), (9, 1022)])
+def test_automatic_correlator_choice_on_gold_codes(degree, gate_len):
+    from cdma_lidar.firmware_model.correlators import choose_correlator
     from cdma_lidar.firmware_model.gold import gold_family
     from cdma_lidar.firmware_model.pairs import preferred_pairs
 
@@ -446,12 +450,12 @@ def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
     rng = np.random.default_rng(gate_len)
     x = rng.integers(-2048, 2048, cfg.column_samples(n))
     rx = FastReceiver(cfg, codes)
-    assert rx.correlator_method == method
+    assert rx.correlator_method == choose_correlator(rx.plan)
     got = rx.column(x)
-    if method == "matmul":
+    if degree == 7:
         assert got.mismatches(reference(cfg, codes, x)) == []
-    else:  # the reference would take seconds here; the other exact path must agree
-        assert got.mismatches(FastReceiver(cfg, codes, method="matmul").column(x)) == []
+    for method in correlator_methods()[1:]:  # the reference would take seconds at degree 9
+        assert got.mismatches(FastReceiver(cfg, codes, method=method).column(x)) == [], method
 
 
 @settings(max_examples=40)
