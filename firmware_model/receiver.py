@@ -74,7 +74,7 @@ log = logging.getLogger(__name__)
 
 MAX_CODE_LENGTH = 2**20 - 1  # degree 20; any length 3..MAX_CODE_LENGTH is accepted
 MIN_CODE_LENGTH = 3
-MAX_CHANNELS = 1024
+MAX_CHANNELS = 2048
 MAX_GHOST_WINDOWS = 8
 INT64_BITS = 63  # magnitude bits of an int64
 

@@ -13,14 +13,14 @@ cached as JSON in :func:`cache_path`:
 
 Rerun the calibration with ``python -m cdma_lidar.firmware_model.correlators.costs
 --calibrate`` (``--show`` prints the table in use). Without a cache the built-in
-:data:`DEFAULT_COEFFICIENTS` apply (measured on the 2-core development machine); a
+:data:`DEFAULT_COEFFICIENTS` apply (fitted on the 2-core development machine); a
 cache that cannot be read is logged and ignored. Nothing here runs a benchmark
 implicitly: the choice of ``method="auto"`` never depends on the machine's load at
 the moment a receiver is built.
 
-:func:`choose` is the rule of ``"auto"``: among the kernels with a finite cost, those
-whose peak memory is within 2x of the leanest kernel's, the fastest predicted one
-(ties to the first registered).
+`choose` is the rule of ``"auto"``: among the kernels with a finite cost, those
+whose peak memory is within 2x of the leanest kernel's (or at most 64 MiB above it),
+the fastest predicted one (ties to the first registered).
 """
 
 from __future__ import annotations
@@ -43,8 +43,10 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text
 
 __all__ = [
+    "CACHE_BYTES",
     "COSTS_ENV",
     "DEFAULT_COEFFICIENTS",
+    "MEMORY_FLOOR",
     "MEMORY_SLACK",
     "Coefficients",
     "Estimate",
@@ -55,6 +57,7 @@ __all__ = [
     "gemm_seconds",
     "main",
     "set_coefficients",
+    "stream_bytes",
 ]
 
 log = logging.getLogger(__name__)
@@ -62,8 +65,10 @@ log = logging.getLogger(__name__)
 #: Environment variable naming the calibration file (overrides the default location).
 COSTS_ENV = "CDMA_LIDAR_KERNEL_COSTS"
 
-#: "auto" only considers kernels whose peak memory is at most this times the leanest's.
+#: "auto" only considers kernels whose peak memory is at most this times the leanest's ...
 MEMORY_SLACK = 2.0
+#: ... or at most this many bytes above it (a few MiB more is no reason to run 20x slower).
+MEMORY_FLOOR = 64 << 20
 
 _FORMAT = 1  # version of the JSON layout
 
@@ -92,8 +97,9 @@ class Coefficients:
                                   f"got {v!r}", field=f.name)
 
 
-#: Measured on the development machine (2 cores, OpenBLAS, quiet) by :func:`calibrate`.
-DEFAULT_COEFFICIENTS = Coefficients(mac=1.9e-11, byte=1.5e-10, fft=1.1e-9, call=4e-6)
+#: Fitted on the development machine (2 cores, OpenBLAS): the kernel grid of
+#: ``python -m bench kernels`` with the seconds-per-primitive ratios that chose best there.
+DEFAULT_COEFFICIENTS = Coefficients(mac=2e-11, byte=1e-11, fft=3e-11, call=5e-7)
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,16 @@ class Estimate:
 
     seconds: float
     peak_bytes: float
+
+
+#: Operands up to this size are taken to stay in cache when a kernel reuses them.
+CACHE_BYTES = 8 << 20
+
+
+def stream_bytes(size: float, uses: float) -> float:
+    """Bytes moved through memory by ``uses`` reads of a ``size``-byte operand:
+    once when it fits :data:`CACHE_BYTES` (later reads hit the cache), else every time."""
+    return size if size <= CACHE_BYTES else size * uses
 
 
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
@@ -155,7 +171,8 @@ def set_coefficients(co: Coefficients | None) -> None:
 
 
 def choose(estimates: Mapping[str, Estimate]) -> str:
-    """The rule of ``"auto"``: the fastest of the kernels within 2x of the leanest's memory.
+    """The rule of ``"auto"``: the fastest of the kernels within 2x of the leanest's memory
+    (or within :data:`MEMORY_FLOOR`, 64 MiB, of it).
 
     ``estimates`` maps kernel names (registration order) to their estimates; infinite
     times are skipped. Ties go to the first. Returns "" when none is finite.
@@ -164,9 +181,10 @@ def choose(estimates: Mapping[str, Estimate]) -> str:
     if not finite:
         return ""
     lean = min(e.peak_bytes for e in finite.values())
+    cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
     best, best_t = "", math.inf
     for name, e in finite.items():
-        if e.peak_bytes <= MEMORY_SLACK * lean and e.seconds < best_t:
+        if e.peak_bytes <= cap and e.seconds < best_t:
             best, best_t = name, e.seconds
     return best
 
@@ -187,19 +205,26 @@ def _best(fn: Callable[[], object], repeats: int) -> float:
 def calibrate(repeats: int = 5) -> Coefficients:
     """Measure the primitives on this machine (best of ``repeats``; about 2 s in all)."""
     rng = np.random.default_rng(0)
-    # call: a tiny product, dominated by the Python -> BLAS overhead
-    a1, b1 = rng.random((4, 8)), rng.random((8, 4))
-    call = _best(lambda: [a1 @ b1 for _ in range(200)], repeats) / 200
+    # call: the kernels' inner loops on tiny operands (slice, product, strided store),
+    # dominated by the Python -> numpy/BLAS overhead; per statement
+    y2, bt, dst = rng.random((2, 16)), rng.random((8, 3)), np.empty((2, 3, 50))
+
+    def loop() -> None:
+        for m in range(50):
+            o = y2[:, m % 8 : m % 8 + 8] @ bt
+            dst[:, :, m] = o
+
+    call = _best(loop, repeats) / 150
     # byte: matrix-vector products over a matrix well beyond the caches (memory-bound)
     big = rng.random((8192, 2048))  # 128 MiB
     vec = rng.random((2048, 1))
     t_mv = _best(lambda: big @ vec, repeats)
-    byte = max(t_mv - call, 1e-9) / (8.0 * big.size)
+    byte = t_mv / (8.0 * big.size)
     # mac: a large square-ish product (compute-bound, all BLAS threads)
     m = 768
     a, b = rng.random((m, m)), rng.random((m, m))
     t_mm = _best(lambda: a @ b, repeats)
-    mac = max(t_mm - byte * 8.0 * 3 * m * m - call, 1e-12) / float(m) ** 3
+    mac = t_mm / float(m) ** 3
     # fft: a batch of real transforms and their inverses, per L log2 L point
     big_l, rows = 1 << 15, 16
     x = rng.random((rows, big_l))
@@ -208,8 +233,7 @@ def calibrate(repeats: int = 5) -> Coefficients:
         sfft.irfft(sfft.rfft(x, axis=1), big_l, axis=1)
 
     t_fft = _best(fwd_inv, repeats)
-    fft_pt = max(t_fft - byte * 8.0 * rows * big_l * 4 - 2 * call, 1e-12) / (
-        2 * rows * big_l * math.log2(big_l))
+    fft_pt = t_fft / (2 * rows * big_l * math.log2(big_l))
     co = Coefficients(mac=mac, byte=byte, fft=fft_pt, call=call)
     log.info("kernel cost calibration: %s", co)
     return co

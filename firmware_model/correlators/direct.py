@@ -25,7 +25,7 @@ from cdma_lidar.firmware_model.correlators.base import (
     GatePlan,
     limbs,
 )
-from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
+from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, stream_bytes
 
 __all__ = ["DirectCorrelator"]
 
@@ -46,10 +46,13 @@ class DirectCorrelator(Correlator):
         blocks = math.ceil(c / cb)
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
-        per_block = (plan.count * gemm_seconds(cb, n, k, co)
+        codes = stream_bytes(8.0 * n * k, plan.count)  # one (N, K) matrix read per lag
+        per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
+                                   + 3 * co.call)  # slice, product, store
+                     + co.byte * codes
                      + active * (co.byte * 8.0 * 3 * cb * n + 2 * co.call)
                      + co.byte * 16.0 * cb * k * plan.count)
-        seconds = blocks * parts * per_block
+        seconds = blocks * parts * per_block + 4 * co.call
         peak = 8.0 * n * k + 16.0 * cb * n + 8.0 * c * k * plan.count + 8.0 * cb * k
         return Estimate(seconds, peak)
 

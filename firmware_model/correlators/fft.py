@@ -80,7 +80,7 @@ class FFTCorrelator(Correlator):
                     + co.call * (math.ceil(active / sb) * (2 + 3 * math.ceil(k / kb))
                                  + 4 * active * math.ceil(k / kb)))
         parts = _fft_limbs(plan)
-        seconds = plan.columns * parts * per_limb
+        seconds = plan.columns * parts * (per_limb + 8 * co.call)
         spectra = 16.0 * k * half
         peak = (spectra if spectra <= BLOCK_BYTES else 16.0 * kb * half) \
             + 16.0 * sb * half * (1 + kb) + 8.0 * sb * kb * big + 16.0 * sb * plan.n \

@@ -61,14 +61,15 @@ class MatmulCorrelator(Correlator):
         blocks = math.ceil(c / cb)
         parts = plan.matmul_limbs()
         if stacked_layout(plan):
-            width = plan.s * plan.nq
+            width, hankel = plan.s * plan.nq, plan.nq  # output and Hankel columns / channel
             prods = gemm_seconds(s * cb, n, k * plan.nq, co)
         else:
-            width = plan.count
+            width = hankel = plan.count
             prods = sum(gemm_seconds(cb, n, k * len(sel), co) for sel in plan.sel if len(sel))
-        moves = co.byte * (16.0 * s * cb * n + 24.0 * cb * k * width) + 2 * s * co.call
-        seconds = blocks * parts * (prods + moves)
-        peak = 8.0 * n * k * width + 8.0 * s * cb * n + 8.0 * cb * k * width \
+        active = sum(1 for sel in plan.sel if len(sel))
+        moves = co.byte * (16.0 * s * cb * n + 24.0 * cb * k * width) + 4 * active * co.call
+        seconds = blocks * parts * (prods + moves) + 4 * co.call
+        peak = 8.0 * n * k * hankel + 8.0 * s * cb * n + 8.0 * cb * k * width \
             + 8.0 * c * k * plan.count
         return Estimate(seconds, peak)
 
