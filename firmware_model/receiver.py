@@ -32,9 +32,14 @@ Two implementations give the same integers:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import itertools
 import logging
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -46,7 +51,9 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.correlators import (
     AUTO,
+    Correlator,
     GatePlan,
+    choose_correlator,
     correlator_methods,
     make_correlator,
 )
@@ -477,15 +484,38 @@ class FastReceiver:
         check_int("columns", self.columns, 1, 1 << 30)
         self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
                              y_bound=y_bound, columns=self.columns)
-        self._corr = make_correlator(self.method, self.plan)
+        self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
+        self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
+        self._corr = self.kernel_for(self.columns)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
         # out = raw exactly (no copy) when there is no shift and saturation cannot happen
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
 
     @property
     def correlator_method(self) -> str:
-        """The registered kernel computing the gated correlation ("matmul", "fft", ...)."""
+        """The kernel a call of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
         return self._corr.method
+
+    def kernel_for(self, columns: int) -> Correlator:
+        """The prepared kernel for calls of ``columns`` columns (built on first use).
+
+        A named ``method`` is used for every call; ``"auto"`` asks the cost model once
+        per power-of-two bucket of columns (one column and a 160-column frame may want
+        different kernels) and keeps each kernel it prepared.
+        """
+        if self.method == AUTO:
+            bucket = 1 << (max(1, int(columns)) - 1).bit_length()
+            name = self._auto.get(bucket)
+            if name is None:
+                plan = copy.copy(self.plan)
+                plan.columns = bucket
+                name = self._auto[bucket] = choose_correlator(plan)
+        else:
+            name = self.method
+        kernel = self._kernels.get(name)
+        if kernel is None:
+            kernel = self._kernels[name] = make_correlator(name, self.plan)
+        return kernel
 
     def column(self, samples: ArrayLike) -> ReceiverOutput:
         """One column: ``samples`` 1-D, R*n*N*S ADC codes."""
@@ -498,17 +528,23 @@ class FastReceiver:
         Returns one output per column.
         """
         x = _as_samples(samples, 2)
-        return self._finish(self.accumulate(x))
+        self._check_samples(x)
+        c = x.shape[0]
+        acc_type = self._acc_type
+        if x.dtype.itemsize > np.dtype(acc_type).itemsize:
+            acc_type = np.int64  # a narrower sum would need a converted copy of the input
+        acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
+        w = np.empty((c, self._ns), dtype=self._y_type)
 
-    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.signedinteger]:
-        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS).
+        def prepare(c0: int, c1: int) -> None:  # accumulate, despread, chip sums
+            self._accumulate_into(x[c0:c1], acc[c0:c1])
+            self._chip_domain(acc[c0:c1], w[c0:c1])
 
-        The dtype is the narrowest of int16/int32/int64 holding ``W_acc`` bits (or the
-        input's, if wider): every partial sum of R codes fits it, so no overflow.
-        """
-        cfg = self.cfg
-        c = samples.shape[0]
-        need = cfg.column_samples(self.n_chips)
+        _parallel(prepare, c, x.size)
+        return self._correlate_and_post(acc, w)
+
+    def _check_samples(self, samples: NDArray[np.integer]) -> None:
+        need = self.cfg.column_samples(self.n_chips)
         if samples.shape[1] != need:
             raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
         info = np.iinfo(samples.dtype)
@@ -517,12 +553,25 @@ class FastReceiver:
             if lo < self._lo or hi > self._hi:
                 bad = lo if lo < self._lo else hi
                 raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
-        x = samples.reshape(c, cfg.averages, cfg.uid_bits * self._ns)
+
+    def _accumulate_into(self, x: NDArray[np.integer], acc: NDArray[np.signedinteger]) -> None:
+        cfg = self.cfg
+        xr = x.reshape(x.shape[0], cfg.averages, cfg.uid_bits * self._ns)
+        np.add.reduce(xr, axis=1, dtype=acc.dtype, out=acc.reshape(x.shape[0], -1))
+
+    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.signedinteger]:
+        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS).
+
+        The dtype is the narrowest of int16/int32/int64 holding ``W_acc`` bits (or the
+        input's, if wider): every partial sum of R codes fits it, so no overflow.
+        """
+        self._check_samples(samples)
         acc_type = self._acc_type
         if samples.dtype.itemsize > np.dtype(acc_type).itemsize:
             acc_type = np.int64  # a narrower sum would need a converted copy of the input
-        acc = np.add.reduce(x, axis=1, dtype=acc_type)
-        return acc.reshape(c, cfg.uid_bits, self._ns)
+        acc = np.empty((samples.shape[0], self.cfg.uid_bits, self._ns), dtype=acc_type)
+        self._accumulate_into(samples, acc)
+        return acc
 
     def from_accumulators(self, acc: ArrayLike) -> list[ReceiverOutput]:
         """Finish the chain from accumulated periods ``acc`` (C, n, NS) integers.
@@ -544,6 +593,12 @@ class FastReceiver:
         return self._finish(a)
 
     def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
+        w = np.empty((a.shape[0], self._ns), dtype=self._y_type)
+        _parallel(lambda c0, c1: self._chip_domain(a[c0:c1], w[c0:c1]), a.shape[0], a.size)
+        return self._correlate_and_post(a, w)
+
+    def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger]) -> None:
+        """Despread the accumulators ``a`` (C, n, NS) and write the window sums into ``w``."""
         cfg = self.cfg
         if cfg.uid_bits == 1:  # d = (-1)^uid acc[0]: the sign is folded into the chip sums
             d, sign = a[:, 0, :], int(self._despread[0])
@@ -554,13 +609,26 @@ class FastReceiver:
                     d += a[:, p, :]
                 else:
                     d -= a[:, p, :]
-        y = chip_sums(d, cfg.samples_per_chip, sign, self._y_type)  # (C, S, N)
-        raw = self._corr(y)  # (C, K, G+2) int64
+        chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w)
+
+    def _correlate_and_post(self, a: NDArray[np.signedinteger],
+                            w: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
+        cfg = self.cfg
+        c = a.shape[0]
+        s = cfg.samples_per_chip
+        y = w.reshape(c, self.n_chips, s).transpose(0, 2, 1)  # (C, S, N) chip sums, a view
+        raw = self.kernel_for(c)(y)  # (C, K, G+2) int64
         if self._identity_scale:
             out = raw
         else:
             out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
-        return self._post(raw, out, a)
+        parts: dict[int, list[ReceiverOutput]] = {}
+
+        def post(c0: int, c1: int) -> None:
+            parts[c0] = self._post(raw[c0:c1], out[c0:c1], a[c0:c1])
+
+        _parallel(post, c, raw.size * 4)
+        return [o for c0 in sorted(parts) for o in parts[c0]]
 
     # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)
 
@@ -643,6 +711,33 @@ class FastReceiver:
             lags = self._lags[1:-1][jsafe]  # (C, K, P)
             s = np.sign(correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
         return np.where(found[..., None], s, 0).astype(np.int8)
+
+
+#: Columns are split across this many threads for the passes outside the kernel (numpy
+#: releases the GIL in them); the kernels' BLAS and FFT calls use their own threads.
+_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Below this many elements per call the passes run in the calling thread.
+_PARALLEL_MIN = 1 << 18
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _parallel(task: Callable[[int, int], None], columns: int, size: int) -> None:
+    """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
+
+    Several threads when the work is large enough and there are several columns,
+    else one call in the calling thread. Exceptions propagate.
+    """
+    global _POOL
+    parts = min(_THREADS, columns)
+    if parts <= 1 or size < _PARALLEL_MIN:
+        task(0, columns)
+        return
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="cdma-rx")
+    bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
+    futures = [_POOL.submit(task, c0, c1) for c0, c1 in itertools.pairwise(bounds)]
+    for f in futures:
+        f.result()
 
 
 def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_], wide: bool) -> NDArray:

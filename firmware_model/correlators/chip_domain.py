@@ -26,7 +26,8 @@ def int_type(bits: int) -> type[np.signedinteger]:
 
 
 def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
-              dtype: type[np.signedinteger] = np.int64) -> NDArray[np.signedinteger]:
+              dtype: type[np.signedinteger] = np.int64,
+              out: NDArray[np.signedinteger] | None = None) -> NDArray[np.signedinteger]:
     """Integrate-and-dump (C, N*S) -> (C, S, N): ``Y[c,r,m] = sign sum_{t<S} d[(mS+r+t) mod NS]``.
 
     First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
@@ -35,12 +36,13 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
     each phase once, into their float operands, anyway). ``sign`` (+1 or -1)
     is the despread of a one-period UID, folded into the first pass. ``dtype`` is the
     integer type of the work and the result: the caller makes it wide enough for
-    ``S max|d|`` (and for ``S NS max|d|`` when S > 8, the prefix sums).
+    ``S max|d|`` (and for ``S NS max|d|`` when S > 8, the prefix sums). ``out``, if
+    given, is a (C, N*S) array of ``dtype`` that receives W (the result is its view).
     """
     c, ns = d.shape
     n = ns // s
     if s <= 8:
-        w = np.empty((c, ns), dtype=dtype)
+        w = np.empty((c, ns), dtype=dtype) if out is None else out
         if sign < 0:
             np.negative(d, out=w, casting="unsafe")  # exact: |d| fits dtype
         else:
@@ -56,7 +58,7 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
         ext[:, 1 : ns + 1] = d
         ext[:, ns + 1 :] = d[:, : s - 1]
         cs = np.cumsum(ext, axis=1, out=ext)
-        w = cs[:, s : s + ns] - cs[:, :ns]
+        w = np.subtract(cs[:, s : s + ns], cs[:, :ns], out=out)
         if sign < 0:
             np.negative(w, out=w)
     return w.reshape(c, n, s).transpose(0, 2, 1)  # a strided view: no transpose copy

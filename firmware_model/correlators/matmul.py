@@ -13,6 +13,7 @@ fits: W_raw <= 56 bits, docs/firmware.md section 3).
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,13 +86,14 @@ class MatmulCorrelator(Correlator):
             self.bmat.append(np.ascontiguousarray(
                 bip[:, idx].transpose(1, 0, 2).reshape(n, plan.k * len(u)), dtype=np.float64
             ))
-        self._work = np.empty(0)
+        self._local = threading.local()  # per-thread operand buffer: calls may overlap
 
     def _buffer(self, rows: int, n: int) -> NDArray[np.float64]:
         """A (rows, n) float64 operand buffer, reused across calls (no fresh pages)."""
-        if self._work.size < rows * n:
-            self._work = np.empty(rows * n)
-        return self._work[: rows * n].reshape(rows, n)
+        work = getattr(self._local, "work", None)
+        if work is None or work.size < rows * n:
+            work = self._local.work = np.empty(rows * n)
+        return work[: rows * n].reshape(rows, n)
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan

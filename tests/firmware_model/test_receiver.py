@@ -494,3 +494,37 @@ def test_uid_echo_straddling_period_boundaries(n_uid, s, r, data):
         assert out.uid_signs.tolist() == [np.sign(c).tolist()]
         if 2 * d < ns:
             assert out.uid_match.tolist() == [True]
+
+
+def test_a_large_frame_split_across_threads_equals_its_columns():
+    # 16 columns of 32512 samples: the passes outside the kernel run in several threads
+    rng = np.random.default_rng(11)
+    codes = rng.integers(0, 2, (3, 127))
+    cfg = ReceiverConfig(samples_per_chip=4, averages=64, uid_bits=2, uid=2, gate_start=500,
+                         gate_len=40, peaks=2, out_shift=3, rounding="convergent")
+    frame = rng.integers(-2048, 2048, (16, cfg.column_samples(127))).astype(np.int16)
+    rx = FastReceiver(cfg, codes)
+    outs = rx.frame(frame)
+    acc_outs = rx.from_accumulators(rx.accumulate(frame))
+    for col, out, acc_out in zip(frame, outs, acc_outs, strict=True):
+        single = rx.column(col)
+        assert out.same_as(single) and acc_out.same_as(single)
+    assert outs[3].same_as(reference(cfg, codes, frame[3]))
+
+
+def test_auto_chooses_per_number_of_columns_and_keeps_its_kernels():
+    from cdma_lidar.firmware_model.correlators import choose_correlator
+
+    rng = np.random.default_rng(12)
+    codes = rng.integers(0, 2, (40, 2047))
+    cfg = ReceiverConfig(gate_start=100, gate_len=64)
+    rx = FastReceiver(cfg, codes)
+    assert rx.correlator_method == choose_correlator(rx.plan)  # plan.columns = 1
+    k160 = rx.kernel_for(160)
+    assert k160.method == "matmul"  # the paper frame's class: one large product
+    assert rx.kernel_for(129) is k160  # same power-of-two bucket, same prepared kernel
+    assert FastReceiver(cfg, codes, columns=160).correlator_method == "matmul"
+    named = FastReceiver(cfg, codes, method="fft")
+    assert named.kernel_for(1).method == named.kernel_for(1000).method == "fft"
+    with pytest.raises(ConfigError, match="columns"):
+        FastReceiver(cfg, codes, columns=0)
