@@ -34,10 +34,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import itertools
 import logging
 import math
 import os
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -56,6 +59,7 @@ from cdma_lidar.firmware_model.correlators import (
     choose_correlator,
     correlator_methods,
     make_correlator,
+    registry_version,
 )
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput
@@ -64,12 +68,14 @@ from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 __all__ = [
     "MAX_CHANNELS",
     "MAX_CODE_LENGTH",
+    "RECEIVER_CACHE_SIZE",
     "FastReceiver",
     "ReceiverConfig",
     "ReceiverOutput",
     "ReferenceReceiver",
     "Widths",
     "check_codes",
+    "clear_receiver_cache",
     "correlator_methods",
     "fast",
     "fast_frame",
@@ -775,13 +781,50 @@ def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> 
     return np.clip(r, -top - 1, top)
 
 
+#: Receivers kept by :func:`fast`, :func:`fast_frame` and :func:`fast_from_accumulators`.
+RECEIVER_CACHE_SIZE = 4
+_CACHE: OrderedDict[tuple, FastReceiver] = OrderedDict()
+_CACHE_LOCK = threading.Lock()
+
+
+def _receiver(cfg: ReceiverConfig, codes: ArrayLike, method: str) -> FastReceiver:
+    """A prepared receiver for (cfg, codes, method): the plan (Hankel blocks, spectra)
+    costs tens of ms, so the last :data:`RECEIVER_CACHE_SIZE` are kept, keyed by the
+    configuration, the method and a digest of the chip bits."""
+    bits = check_codes(codes)
+    if not isinstance(method, str) or method not in correlator_methods():
+        raise out_of_range("method", "one of " + ", ".join(correlator_methods()), method)
+    key = (cfg, method, registry_version(), bits.shape,
+           hashlib.blake2b(bits.tobytes(), digest_size=16).digest())
+    with _CACHE_LOCK:
+        rx = _CACHE.get(key)
+        if rx is not None:
+            _CACHE.move_to_end(key)
+            return rx
+    rx = FastReceiver(cfg, bits, method=method)
+    with _CACHE_LOCK:
+        _CACHE[key] = rx
+        while len(_CACHE) > RECEIVER_CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return rx
+
+
+def clear_receiver_cache() -> None:
+    """Forget the receivers :func:`fast` and friends kept (frees their plans' memory)."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
+
+
 def fast(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
          method: str = AUTO) -> ReceiverOutput:
     """One column through the vectorised chain; bit-identical to :func:`reference`.
 
+    The prepared receiver is kept (:func:`clear_receiver_cache`), so repeated calls with
+    the same configuration and codes do not rebuild the plan.
+
     ``method``: the correlation kernel, one of :func:`correlator_methods`.
     """
-    return FastReceiver(cfg, codes, method=method).column(samples)
+    return _receiver(cfg, codes, method).column(samples)
 
 
 def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
@@ -790,11 +833,11 @@ def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
 
     ``method``: the correlation kernel, one of :func:`correlator_methods`.
     """
-    return FastReceiver(cfg, codes, method=method).frame(samples)
+    return _receiver(cfg, codes, method).frame(samples)
 
 
 def fast_from_accumulators(
     cfg: ReceiverConfig, codes: ArrayLike, acc: ArrayLike, *, method: str = AUTO
 ) -> list[ReceiverOutput]:
     """Finish the chain from accumulated periods ``acc`` (C, n, N*S): see FastReceiver."""
-    return FastReceiver(cfg, codes, method=method).from_accumulators(acc)
+    return _receiver(cfg, codes, method).from_accumulators(acc)

@@ -27,6 +27,7 @@ from cdma_lidar.firmware_model.correlators.base import (
     estimates,
     make_correlator,
     register_correlator,
+    registry_version,
     unregister_correlator,
 )
 from cdma_lidar.firmware_model.correlators.direct import DirectCorrelator
@@ -50,5 +51,6 @@ __all__ = [
     "estimates",
     "make_correlator",
     "register_correlator",
+    "registry_version",
     "unregister_correlator",
 ]

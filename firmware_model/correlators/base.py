@@ -40,6 +40,7 @@ __all__ = [
     "limbs",
     "make_correlator",
     "register_correlator",
+    "registry_version",
     "unregister_correlator",
 ]
 
@@ -133,6 +134,12 @@ class Correlator(ABC):
 
 
 _REGISTRY: dict[str, type[Correlator]] = {}
+_VERSION = [0]  # bumped by every (un)registration: prepared receivers keyed on it go stale
+
+
+def registry_version() -> int:
+    """A counter that changes whenever a kernel is registered or unregistered."""
+    return _VERSION[0]
 
 
 def register_correlator(name: str, factory: type[Correlator], *, replace: bool = False) -> None:
@@ -149,6 +156,7 @@ def register_correlator(name: str, factory: type[Correlator], *, replace: bool =
     if name in _REGISTRY and not replace:
         raise ConfigError(f"correlator {name!r} is already registered", field="name")
     _REGISTRY[name] = factory
+    _VERSION[0] += 1
 
 
 def unregister_correlator(name: str) -> None:
@@ -156,6 +164,7 @@ def unregister_correlator(name: str) -> None:
     if name not in _REGISTRY:
         raise out_of_range("name", "one of " + ", ".join(_REGISTRY), name)
     del _REGISTRY[name]
+    _VERSION[0] += 1
 
 
 def correlator_methods() -> tuple[str, ...]:

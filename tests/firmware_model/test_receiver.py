@@ -195,6 +195,8 @@ def test_a_registered_kernel_is_usable_by_name(case):
     assert name not in correlator_methods()
     with pytest.raises(ConfigError, match="method"):
         FastReceiver(cfg, codes, method=name)
+    with pytest.raises(ConfigError, match="method"):  # not served from fast()'s kept receivers
+        fast(cfg, codes, x, method=name)
 
 
 def test_registration_rejects_taken_and_reserved_names():
@@ -528,3 +530,25 @@ def test_auto_chooses_per_number_of_columns_and_keeps_its_kernels():
     assert named.kernel_for(1).method == named.kernel_for(1000).method == "fft"
     with pytest.raises(ConfigError, match="columns"):
         FastReceiver(cfg, codes, columns=0)
+
+
+def test_fast_keeps_the_prepared_receiver():
+    from cdma_lidar.firmware_model import receiver as rxmod
+
+    rxmod.clear_receiver_cache()
+    rng = np.random.default_rng(13)
+    codes = rng.integers(0, 2, (2, 31))
+    cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_len=10)
+    x = rng.integers(-2048, 2048, cfg.column_samples(31))
+    first = fast(cfg, codes, x)
+    kept = rxmod._receiver(cfg, codes, "auto")
+    assert rxmod._receiver(cfg, codes.copy(), "auto") is kept  # same bits, same receiver
+    assert fast(cfg, codes, x).same_as(first)
+    other = codes.copy()
+    other[0, 0] ^= 1
+    assert rxmod._receiver(cfg, other, "auto") is not kept  # different codes: a new plan
+    assert fast(cfg, other, x).same_as(reference(cfg, other, x))
+    for i in range(rxmod.RECEIVER_CACHE_SIZE + 1):
+        rxmod._receiver(cfg.replace(gate_len=3 + i), codes, "auto")
+    assert rxmod._receiver(cfg, codes, "auto") is not kept  # evicted, least recently used
+    rxmod.clear_receiver_cache()
