@@ -8,10 +8,9 @@ peak traced memory (tracemalloc, the prepared kernel plus one call), the kernel
 ``auto`` chose, the fastest, ``auto / fastest`` (target <= 1.25) and ``auto's memory /
 leanest`` (target <= 2).
 
-A kernel whose *predicted* time is over 20x the best prediction, or over 60 s, is
-not run (``-``: it would only show how slow it is); a configuration whose best
-prediction is over 60 s is skipped. Memory is not measured for kernels predicted
-above 4 GiB.
+A kernel whose *predicted* time is over 20x the best prediction, or over 60 s, or
+whose predicted memory is over 2 GiB (a shared machine), is not run (``-``); a
+configuration whose best prediction is over 60 s is skipped.
 
 Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
 S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
@@ -45,7 +44,7 @@ from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, cor
 
 SKIP_FACTOR = 20.0
 SKIP_SECONDS = 60.0
-SKIP_BYTES = 4 << 30
+SKIP_BYTES = 2 << 30
 
 
 @dataclass(frozen=True)
@@ -105,10 +104,11 @@ def run_case(case: Case, repeats: int) -> str:
     mems: dict[str, float] = {}
     want = None
     for m, e in finite.items():
-        if e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS:
+        if e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS \
+                or e.peak_bytes > SKIP_BYTES:
             continue
         gc.collect()
-        measure_mem = e.peak_bytes <= SKIP_BYTES
+        measure_mem = True
         if measure_mem:
             tracemalloc.start()
         rx = FastReceiver(cfg, codes, method=m, columns=case.columns)

@@ -83,9 +83,10 @@ class MatmulCorrelator(Correlator):
         self.bmat = []
         for u in offsets:
             idx = (np.arange(n)[:, None] - plan.q0 - u[None, :]) % n  # (N, nq_r)
-            self.bmat.append(np.ascontiguousarray(
-                bip[:, idx].transpose(1, 0, 2).reshape(n, plan.k * len(u)), dtype=np.float64
-            ))
+            b = np.empty((n, plan.k, len(u)))  # filled channel by channel: no int8 copies
+            for kk in range(plan.k):
+                b[:, kk, :] = bip[kk][idx]
+            self.bmat.append(b.reshape(n, plan.k * len(u)))
         self._local = threading.local()  # per-thread operand buffer: calls may overlap
 
     def _buffer(self, rows: int, n: int) -> NDArray[np.float64]:
