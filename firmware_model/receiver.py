@@ -475,6 +475,10 @@ class FastReceiver:
         for start, length in cfg.ghost_windows:
             ghost |= (gate_lags - start) % ns < length
         self._ghost = ghost
+        # the peak exclusion |j - j_peak| <= W as rows of a table, when it is small
+        w = cfg.peak_exclude
+        jj = np.arange(g)
+        self._window = (np.abs(jj[:, None] - jj[None, :]) <= w) if g <= 2048 else None
         self._despread = np.array(
             [-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], dtype=np.int64
         )
@@ -534,7 +538,7 @@ class FastReceiver:
         Returns one output per column.
         """
         x = _as_samples(samples, 2)
-        self._check_samples(x)
+        self._check_samples(x, values=False)
         c = x.shape[0]
         acc_type = self._acc_type
         if x.dtype.itemsize > np.dtype(acc_type).itemsize:
@@ -542,19 +546,22 @@ class FastReceiver:
         acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
         w = np.empty((c, self._ns), dtype=self._y_type)
 
-        def prepare(c0: int, c1: int) -> None:  # accumulate, despread, chip sums
+        def prepare(c0: int, c1: int) -> None:  # check, accumulate, despread, chip sums
+            self._check_samples(x[c0:c1], shape=False)
             self._accumulate_into(x[c0:c1], acc[c0:c1])
             self._chip_domain(acc[c0:c1], w[c0:c1])
 
         _parallel(prepare, c, x.size)
         return self._correlate_and_post(acc, w)
 
-    def _check_samples(self, samples: NDArray[np.integer]) -> None:
+    def _check_samples(self, samples: NDArray[np.integer], shape: bool = True,
+                       values: bool = True) -> None:
+        """The column length, and every code inside the ADC range (unless its dtype is)."""
         need = self.cfg.column_samples(self.n_chips)
-        if samples.shape[1] != need:
+        if shape and samples.shape[1] != need:
             raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
         info = np.iinfo(samples.dtype)
-        if samples.size and (info.min < self._lo or info.max > self._hi):
+        if values and samples.size and (info.min < self._lo or info.max > self._hi):
             lo, hi = int(samples.min()), int(samples.max())
             if lo < self._lo or hi > self._hi:
                 bad = lo if lo < self._lo else hi
@@ -646,7 +653,8 @@ class FastReceiver:
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
         corr = out[:, :, 1:-1]
         mag = np.abs(corr)
-        mag[..., self._ghost] = -1
+        if self._ghost.any():
+            mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
         near_any = np.zeros((c, k, g), dtype=bool)
@@ -654,9 +662,13 @@ class FastReceiver:
             j = np.argmax(mag, axis=-1)  # first (lowest j) among equal maxima
             ok = np.take_along_axis(mag, j[..., None], axis=-1)[..., 0] >= 0
             pk_j[..., p] = np.where(ok, j, -1)
-            near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
+            if self._window is not None:  # rows |jj - j| <= W of a precomputed table
+                near = self._window[j]
+                near &= ok[..., None]
+            else:
+                near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
             near_any |= near
-            mag[near] = -1
+            np.putmask(mag, near, -1)
         found = pk_j >= 0
         jsafe = np.where(found, pk_j, 0)
         pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
@@ -668,11 +680,14 @@ class FastReceiver:
             axis=-1,
         )
         nb = np.where(found[..., :1], nb, 0)
-        noise = ~self._ghost & ~near_any
-        cnt = noise.sum(axis=-1, dtype=np.int64)
-        nsum = corr.sum(axis=-1, dtype=np.int64, where=noise)
-        np.multiply(corr, corr, out=mag, where=noise)  # mag is free now; reuse its memory
-        nsq = _sum_squares(mag, noise, self.widths.wide_sumsq)
+        noise = ~near_any
+        if self._ghost.any():
+            noise &= ~self._ghost
+        cnt = np.count_nonzero(noise, axis=-1).astype(np.int64)
+        cz = np.multiply(corr, noise, out=mag)  # out over the noise lags, 0 elsewhere
+        nsum = cz.sum(axis=-1, dtype=np.int64)
+        np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
+        nsq = _sum_squares(cz, None, self.widths.wide_sumsq)
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
@@ -746,13 +761,14 @@ def _parallel(task: Callable[[int, int], None], columns: int, size: int) -> None
         f.result()
 
 
-def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_], wide: bool) -> NDArray:
+def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_] | None, wide: bool) -> NDArray:
     """Exact ``sum(sq, axis=-1, where=where)`` of squares ``sq`` (each < 2^63).
 
     When ``wide`` (Widths.noise_sumsq > 63) the sum may not fit int64: the squares are
     split at bit 31, ``sq = hi 2^31 + lo``, both halves summed in int64 (at most 2^26
     lags of < 2^32: no overflow) and recombined as Python integers (object array).
     """
+    where = True if where is None else where
     if not wide:
         return sq.sum(axis=-1, dtype=np.int64, where=where)  # exact: noise_sumsq <= 63 bits
     lo = (sq & ((1 << 31) - 1)).sum(axis=-1, dtype=np.int64, where=where)

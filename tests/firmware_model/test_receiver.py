@@ -552,3 +552,13 @@ def test_fast_keeps_the_prepared_receiver():
         rxmod._receiver(cfg.replace(gate_len=3 + i), codes, "auto")
     assert rxmod._receiver(cfg, codes, "auto") is not kept  # evicted, least recently used
     rxmod.clear_receiver_cache()
+
+
+def test_a_large_frame_with_a_code_out_of_range_is_refused():
+    rng = np.random.default_rng(14)
+    codes = rng.integers(0, 2, (2, 127))
+    cfg = ReceiverConfig(samples_per_chip=4, averages=64, gate_len=40)
+    frame = rng.integers(-2048, 2048, (16, cfg.column_samples(127))).astype(np.int16)
+    frame[11, 5] = 2048  # one code past the 12-bit range, in a later thread's columns
+    with pytest.raises(ConfigError, match="samples"):
+        FastReceiver(cfg, codes).frame(frame)
