@@ -665,8 +665,11 @@ class FastReceiver:
             if self._window is not None:  # rows |jj - j| <= W of a precomputed table
                 near = self._window[j]
                 near &= ok[..., None]
-            else:
-                near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
+            else:  # two comparisons straight to bool: no (C, K, G) integer temporaries
+                jc = j[..., None]
+                near = jj >= jc - w
+                near &= jj <= jc + w
+                near &= ok[..., None]
             near_any |= near
             np.putmask(mag, near, -1)
         found = pk_j >= 0
@@ -768,11 +771,11 @@ def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_] | None, wide: b
     split at bit 31, ``sq = hi 2^31 + lo``, both halves summed in int64 (at most 2^26
     lags of < 2^32: no overflow) and recombined as Python integers (object array).
     """
-    where = True if where is None else where
+    kw = {} if where is None else {"where": where}
     if not wide:
-        return sq.sum(axis=-1, dtype=np.int64, where=where)  # exact: noise_sumsq <= 63 bits
-    lo = (sq & ((1 << 31) - 1)).sum(axis=-1, dtype=np.int64, where=where)
-    hi = (sq >> 31).sum(axis=-1, dtype=np.int64, where=where)
+        return sq.sum(axis=-1, dtype=np.int64, **kw)  # exact: noise_sumsq <= 63 bits
+    lo = (sq & ((1 << 31) - 1)).sum(axis=-1, dtype=np.int64, **kw)
+    hi = (sq >> 31).sum(axis=-1, dtype=np.int64, **kw)
     out = np.empty(lo.shape, dtype=object)
     flat = out.reshape(-1)
     for i, (h, v) in enumerate(zip(hi.ravel().tolist(), lo.ravel().tolist(), strict=True)):

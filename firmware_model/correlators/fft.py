@@ -132,7 +132,15 @@ class FFTCorrelator(Correlator):
         sb, kb = self.blocks()
         out = np.zeros((c, plan.k, plan.count), dtype=np.int64)
         active = [r for r in range(s) if len(plan.sel[r])]  # phases holding gated lags
-        qs = {r: (plan.q0 + plan.u_m[plan.sel[r]]) % n for r in active}
+        # phase r's lags m = m_r, m_r + S, ... (a strided slice of out) need the chip
+        # offsets q = (q0 + u_m) mod N, consecutive mod N: at most two runs of x
+        runs = {}
+        for r in active:
+            sel = plan.sel[r]
+            q_start = int((plan.q0 + plan.u_m[sel[0]]) % n)
+            first = min(len(sel), n - q_start)
+            runs[r] = (slice(int(sel[0]), int(sel[0]) + s * first, s), q_start, first,
+                       slice(int(sel[0]) + s * first, None, s), len(sel) - first)
         for ci in range(c):
             yc = y[ci]  # (S, N)
             for limb, shift in limbs(yc, lambda v: self._bound(v) < guard, h):
@@ -144,9 +152,14 @@ class FFTCorrelator(Correlator):
                         k1 = min(plan.k, k0 + kb)
                         a = self._spectra(k0, k1)
                         x = sfft.irfft(a[None, :, :] * spec[:, None, :], big, axis=2)
+                        np.rint(x, out=x)
                         for j, r in enumerate(rs):  # x[j]: (Kb, L), lags of phase r
-                            vals = np.rint(x[j][:, qs[r]]).astype(np.int64)
-                            if shift:
-                                vals <<= shift
-                            out[ci][k0:k1, plan.sel[r]] += vals
+                            sl1, q1, n1, sl2, n2 = runs[r]
+                            for sl, q, cnt in ((sl1, q1, n1), (sl2, 0, n2)):
+                                if cnt:
+                                    dst = out[ci, k0:k1, sl]
+                                    if shift:
+                                        dst += x[j, :, q : q + cnt].astype(np.int64) << shift
+                                    else:
+                                        dst += x[j, :, q : q + cnt].astype(np.int64)
         return out
