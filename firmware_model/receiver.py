@@ -35,14 +35,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
-import itertools
 import logging
 import math
-import os
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -61,6 +57,7 @@ from cdma_lidar.firmware_model.correlators import (
     make_correlator,
     registry_version,
 )
+from cdma_lidar.firmware_model.correlators.base import parallel_columns
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
@@ -551,7 +548,7 @@ class FastReceiver:
             self._accumulate_into(x[c0:c1], acc[c0:c1])
             self._chip_domain(acc[c0:c1], w[c0:c1])
 
-        _parallel(prepare, c, x.size)
+        parallel_columns(prepare, c, x.size)
         return self._correlate_and_post(acc, w)
 
     def _check_samples(self, samples: NDArray[np.integer], shape: bool = True,
@@ -607,7 +604,7 @@ class FastReceiver:
 
     def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
         w = np.empty((a.shape[0], self._ns), dtype=self._y_type)
-        _parallel(lambda c0, c1: self._chip_domain(a[c0:c1], w[c0:c1]), a.shape[0], a.size)
+        parallel_columns(lambda c0, c1: self._chip_domain(a[c0:c1], w[c0:c1]), a.shape[0], a.size)
         return self._correlate_and_post(a, w)
 
     def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger]) -> None:
@@ -640,7 +637,7 @@ class FastReceiver:
         def post(c0: int, c1: int) -> None:
             parts[c0] = self._post(raw[c0:c1], out[c0:c1], a[c0:c1])
 
-        _parallel(post, c, raw.size * 4)
+        parallel_columns(post, c, raw.size * 4)
         return [o for c0 in sorted(parts) for o in parts[c0]]
 
     # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)
@@ -735,33 +732,6 @@ class FastReceiver:
             lags = self._lags[1:-1][jsafe]  # (C, K, P)
             s = np.sign(correlate_at(self._bip, acc, lags, cfg.samples_per_chip))
         return np.where(found[..., None], s, 0).astype(np.int8)
-
-
-#: Columns are split across this many threads for the passes outside the kernel (numpy
-#: releases the GIL in them); the kernels' BLAS and FFT calls use their own threads.
-_THREADS = max(1, min(4, os.cpu_count() or 1))
-#: Below this many elements per call the passes run in the calling thread.
-_PARALLEL_MIN = 1 << 18
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _parallel(task: Callable[[int, int], None], columns: int, size: int) -> None:
-    """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
-
-    Several threads when the work is large enough and there are several columns,
-    else one call in the calling thread. Exceptions propagate.
-    """
-    global _POOL
-    parts = min(_THREADS, columns)
-    if parts <= 1 or size < _PARALLEL_MIN:
-        task(0, columns)
-        return
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="cdma-rx")
-    bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
-    futures = [_POOL.submit(task, c0, c1) for c0, c1 in itertools.pairwise(bounds)]
-    for f in futures:
-        f.result()
 
 
 def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_] | None, wide: bool) -> NDArray:

@@ -17,10 +17,13 @@ definition: it is bit-identical to the streaming reference or it is a bug.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,6 +42,7 @@ __all__ = [
     "estimates",
     "limbs",
     "make_correlator",
+    "parallel_columns",
     "register_correlator",
     "registry_version",
     "unregister_correlator",
@@ -204,6 +208,33 @@ def make_correlator(method: str, plan: GatePlan) -> Correlator:
     log.debug("gate correlator: N=%d S=%d K=%d lags=%d via %s",
               plan.n, plan.s, plan.k, plan.count, name)
     return kernel
+
+
+#: Columns are split across this many threads for the passes outside the kernel (numpy
+#: releases the GIL in them); the kernels' BLAS and FFT calls use their own threads.
+_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Below this many elements per call the passes run in the calling thread.
+_PARALLEL_MIN = 1 << 18
+_POOL: ThreadPoolExecutor | None = None
+
+
+def parallel_columns(task: Callable[[int, int], None], columns: int, size: int) -> None:
+    """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
+
+    Several threads when the work is large enough and there are several columns,
+    else one call in the calling thread. Exceptions propagate.
+    """
+    global _POOL
+    parts = min(_THREADS, columns)
+    if parts <= 1 or size < _PARALLEL_MIN:
+        task(0, columns)
+        return
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="cdma-rx")
+    bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
+    futures = [_POOL.submit(task, c0, c1) for c0, c1 in itertools.pairwise(bounds)]
+    for f in futures:
+        f.result()
 
 
 def limbs(

@@ -23,6 +23,7 @@ from cdma_lidar.firmware_model.correlators.base import (
     Correlator,
     GatePlan,
     limbs,
+    parallel_columns,
 )
 from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
 
@@ -130,7 +131,10 @@ class MatmulCorrelator(Correlator):
                 # exact: |limb| < 2^53 and every partial sum < 2^float_bits
                 if self.stacked:
                     lf = self._buffer(s * cb, n)
-                    np.copyto(lf.reshape(s, cb, n), limb.transpose(1, 0, 2))
+                    l3, src = lf.reshape(s, cb, n), limb.transpose(1, 0, 2)
+                    parallel_columns(lambda a, b, l3=l3, src=src: np.copyto(l3[:, a:b],
+                                                                            src[:, a:b]),
+                                     cb, l3.size)
                     o = (lf @ self.bmat[0]).reshape(s, cb, k, plan.nq)
                     for r, sel in enumerate(plan.sel):
                         if len(sel):
