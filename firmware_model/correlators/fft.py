@@ -75,16 +75,19 @@ class FFTCorrelator(Correlator):
         active = sum(1 for sel in plan.sel if len(sel))
         sb, kb = _blocks(plan.k, big)
         pts = big * math.log2(big)
-        per_limb = (co.fft * pts * (active + active * k)
-                    + co.byte * (16.0 * 3 * active * k * half + 8.0 * active * k * big)
-                    + co.call * (math.ceil(active / sb) * (2 + 3 * math.ceil(k / kb))
-                                 + 4 * active * math.ceil(k / kb)))
+        spectra = 16.0 * k * half
+        cached = spectra <= BLOCK_BYTES  # code spectra made once, else per phase pass
+        whole = active * half * 16 <= BLOCK_BYTES
+        passes = 1 if whole else math.ceil(active / sb)
+        per_limb = (co.fft * pts * (active + active * k + (0 if cached else k * passes))
+                    + co.byte * (16.0 * 3 * active * k * half + 8.0 * 3 * active * k * big)
+                    + co.call * (passes * (2 + 3 * math.ceil(k / kb))
+                                 + 6 * active * math.ceil(k / kb)))
         parts = _fft_limbs(plan)
         seconds = plan.columns * parts * (per_limb + 8 * co.call)
-        spectra = 16.0 * k * half
-        peak = (spectra if spectra <= BLOCK_BYTES else 16.0 * kb * half) \
-            + 16.0 * sb * half * (1 + kb) + 8.0 * sb * kb * big + 16.0 * sb * plan.n \
-            + 8.0 * plan.columns * k * plan.count
+        peak = (spectra if cached else 16.0 * kb * half) \
+            + 16.0 * (active if whole else sb) * half + 16.0 * sb * kb * half \
+            + 8.0 * sb * kb * big + 16.0 * sb * plan.n + 8.0 * plan.columns * k * plan.count
         return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
@@ -97,9 +100,11 @@ class FFTCorrelator(Correlator):
         nbytes = self.plan.k * (self.fft_len // 2 + 1) * 16
         if nbytes <= BLOCK_BYTES:
             if self._spec is None:
-                self._spec = np.conj(sfft.rfft(bip.astype(np.float64), self.fft_len, axis=1))
+                spec = sfft.rfft(bip.astype(np.float64), self.fft_len, axis=1)
+                self._spec = np.conjugate(spec, out=spec)
             return self._spec[k0:k1]
-        return np.conj(sfft.rfft(bip[k0:k1].astype(np.float64), self.fft_len, axis=1))
+        spec = sfft.rfft(bip[k0:k1].astype(np.float64), self.fft_len, axis=1)
+        return np.conjugate(spec, out=spec)
 
     def _bound(self, v: NDArray[np.int64]) -> float:
         """Upper bound of |computed - exact| for correlating bip with [v, v] (each row)."""
@@ -118,6 +123,20 @@ class FFTCorrelator(Correlator):
         if h < 1:
             raise out_of_range("float_bits", "large enough for an exact FFT", plan.float_bits)
         return h
+
+    @staticmethod
+    def _extract(dst: NDArray[np.int64], x: NDArray[np.float64], rs: list[int],
+                 runs: dict, shift: int) -> None:
+        """Add the rounded lags of phases ``rs`` from ``x`` (len(rs), Kb, L) into ``dst``."""
+        for j, r in enumerate(rs):  # x[j]: (Kb, L), lags of phase r
+            sl1, q1, n1, sl2, n2 = runs[r]
+            for sl, q, cnt in ((sl1, q1, n1), (sl2, 0, n2)):
+                if cnt:
+                    d = dst[:, sl]
+                    if shift:
+                        d += x[j, :, q : q + cnt].astype(np.int64) << shift
+                    else:
+                        d += x[j, :, q : q + cnt].astype(np.int64)
 
     def blocks(self) -> tuple[int, int]:
         """(phases, channels) per inverse-FFT batch: the batch stays within 16 MiB."""
@@ -144,22 +163,21 @@ class FFTCorrelator(Correlator):
         for ci in range(c):
             yc = y[ci]  # (S, N)
             for limb, shift in limbs(yc, lambda v: self._bound(v) < guard, h):
-                for i0 in range(0, len(active), sb):
-                    rs = active[i0 : i0 + sb]
-                    part = limb[rs].astype(np.float64)
-                    spec = sfft.rfft(np.concatenate([part, part], axis=1), big, axis=1)
+                # the phases' spectra: all at once when they fit (then each block of code
+                # spectra is made once per column), else in batches of sb phases
+                whole = len(active) * (big // 2 + 1) * 16 <= BLOCK_BYTES
+                pb = len(active) if whole else sb
+                for i0 in range(0, len(active), pb):
+                    rs_all = active[i0 : i0 + pb]
+                    part = limb[rs_all].astype(np.float64)
+                    spec_all = sfft.rfft(np.concatenate([part, part], axis=1), big, axis=1)
+                    del part
                     for k0 in range(0, plan.k, kb):
                         k1 = min(plan.k, k0 + kb)
                         a = self._spectra(k0, k1)
-                        x = sfft.irfft(a[None, :, :] * spec[:, None, :], big, axis=2)
-                        np.rint(x, out=x)
-                        for j, r in enumerate(rs):  # x[j]: (Kb, L), lags of phase r
-                            sl1, q1, n1, sl2, n2 = runs[r]
-                            for sl, q, cnt in ((sl1, q1, n1), (sl2, 0, n2)):
-                                if cnt:
-                                    dst = out[ci, k0:k1, sl]
-                                    if shift:
-                                        dst += x[j, :, q : q + cnt].astype(np.int64) << shift
-                                    else:
-                                        dst += x[j, :, q : q + cnt].astype(np.int64)
+                        for j0 in range(0, len(rs_all), sb):
+                            rs, spec = rs_all[j0 : j0 + sb], spec_all[j0 : j0 + sb]
+                            x = sfft.irfft(a[None, :, :] * spec[:, None, :], big, axis=2)
+                            np.rint(x, out=x)
+                            self._extract(out[ci, k0:k1], x, rs, runs, shift)
         return out
