@@ -48,6 +48,7 @@ __all__ = [
     "DEFAULT_COEFFICIENTS",
     "MEMORY_FLOOR",
     "MEMORY_SLACK",
+    "RAM_FACTOR",
     "Coefficients",
     "Estimate",
     "cache_path",
@@ -114,10 +115,16 @@ class Estimate:
 CACHE_BYTES = 8 << 20
 
 
+#: A byte streamed from main memory costs this many cache bytes (``byte`` is calibrated
+#: on an operand that stays in the large last-level cache of the development machine).
+RAM_FACTOR = 4.0
+
+
 def stream_bytes(size: float, uses: float) -> float:
-    """Bytes moved through memory by ``uses`` reads of a ``size``-byte operand:
-    once when it fits :data:`CACHE_BYTES` (later reads hit the cache), else every time."""
-    return size if size <= CACHE_BYTES else size * uses
+    """Cache-byte equivalents of ``uses`` reads of a ``size``-byte operand: read once
+    when it fits :data:`CACHE_BYTES` (later reads hit the cache), else every read
+    streams it from main memory (:data:`RAM_FACTOR` each)."""
+    return size if size <= CACHE_BYTES else size * uses * RAM_FACTOR
 
 
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
@@ -125,7 +132,8 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
 
     Thin products (p or m small) are memory-bound: the byte term dominates them.
     """
-    return co.mac * m * n * p + co.byte * 8.0 * (m * n + n * p + m * p) + co.call
+    moved = sum(stream_bytes(8.0 * size, 1) for size in (m * n, n * p, m * p))
+    return co.mac * m * n * p + co.byte * moved + co.call
 
 
 def cache_path() -> Path:
