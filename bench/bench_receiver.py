@@ -1,17 +1,21 @@
-"""Receive chain benchmark: the paper's frame against scipy.signal.correlate, and long codes.
+"""Receive chain benchmark: the paper frame against the machine's GEMM floor, and per-kernel tables.
 
 1. Paper frame: K = 40 degree-11 Gold codes, S = 4, R = 10, 160 columns, 64-lag
-   gate (12-bit ADC). Fast path time per frame, real-time factor against the
-   instrument's acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms),
-   and the ratio against ``scipy.signal.correlate`` applied per channel and
-   column (circular, on the R-averaged period) measured in the same run on a
-   subset of columns and scaled to the frame. The baseline's gated values are
-   checked equal to the fast path's. Then every registered correlation kernel
-   (``correlator_methods()``) on the same frame, each checked equal to "auto".
-2. Degrees 13 and 15 with the whole period as the gate (FFT path): time per
-   column and peak traced memory (tracemalloc), with the scipy baseline beside.
+   gate (12-bit ADC). ``FastReceiver.frame`` interleaved with the GEMM floor: one
+   bare float64 product doing the frame's multiply-adds (160 x 2047 x 40 x 66 =
+   0.865 G), best of 9 each, ratio (target <= 1.5). Also the real-time factor against
+   the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms), the plan
+   build, and ``scipy.signal.correlate`` per channel and column (circular, on the
+   R-summed period) on 8 columns scaled to the frame, its gated values checked equal.
+   Then every registered kernel on the same frame, each checked equal to "auto".
+2. Per configuration class (short gate / whole period, one column / a frame, 40 /
+   400 / 1200 channels, degrees 11-15) and kernel: time per column, peak traced
+   memory, the GEMM floor of the same correlation (N K G multiply-adds at this
+   run's GEMM rate), the scipy baseline and the ratio of K one-channel calls to one
+   K-channel call. Kernels predicted 20x slower than the best, or over 1 GiB, are
+   left out.
 
-Run: ``.venv/bin/python -m bench receiver``.
+The grid of auto's choices is ``bench_kernels``. Run: ``.venv/bin/python -m bench receiver``.
 """
 
 from __future__ import annotations
@@ -21,13 +25,14 @@ import os
 import statistics
 import time
 import tracemalloc
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
 
 from cdma_lidar.firmware_model.adc import quantise
 from cdma_lidar.firmware_model.gold import gold_code
-from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 CHIP_RATE_HZ = 62.5e6
@@ -87,17 +92,30 @@ def _time(fn, repeats: int) -> list[float]:
     return times
 
 
+def _floor_product(c: int, n: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    return rng.random((c, n)), rng.random((n, width))
+
+
 def paper_frame() -> None:
+    """The paper frame against the GEMM floor and scipy, interleaved in one run."""
     k, columns = 40, 160
     cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=10, gate_start=100,
                          gate_len=64)
     codes = _codes(PAPER_PAIR, k)
     n = codes.shape[1]
     x = _columns(codes, cfg, columns, seed=1)
-    rx = FastReceiver(cfg, codes)
+    rx = FastReceiver(cfg, codes, columns=columns)
     rx.frame(x[:2])  # warm up BLAS threads
-    t_fast = _time(lambda: rx.frame(x), 7)
-    t_plan = _time(lambda: FastReceiver(cfg, codes), 3)
+    rx.frame(x)
+    macs = columns * n * k * (cfg.gate_len + 2)
+    # the floor: one bare float64 product doing the frame's multiply-adds (4C x N x K(G+2)/4)
+    fa, fb = _floor_product(4 * columns, n, k * (cfg.gate_len + 2) // 4)
+    t_fast, t_floor = [], []
+    for _ in range(REPEATS):
+        t_fast += _time(lambda: rx.frame(x), 1)
+        t_floor += _time(lambda: fa @ fb, 1)
+    t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
     sub = 8
     t_base = _time(lambda: [_scipy_column(codes, cfg, x[c]) for c in range(sub)], 2)
     outs = rx.frame(x[:sub])
@@ -105,12 +123,17 @@ def paper_frame() -> None:
         np.array_equal(o.corr, _scipy_column(codes, cfg, x[c])) for c, o in enumerate(outs)
     )
     acq = columns * cfg.averages * n / CHIP_RATE_HZ
-    best, med = min(t_fast), statistics.median(t_fast)
+    best, med, floor = min(t_fast), statistics.median(t_fast), min(t_floor)
     base_frame = min(t_base) / sub * columns
     print(f"paper frame: K={k} N={n} S=4 R=10 columns={columns} gate=64 "
-          f"({x.size / 1e6:.1f} M samples, correlator={rx.correlator_method})")
-    print(f"  fast path       : {best * 1e3:8.1f} ms/frame (median {med * 1e3:.1f} ms over 7)")
-    print(f"  plan build      : {min(t_plan) * 1e3:8.1f} ms (once per config)")
+          f"({x.size / 1e6:.1f} M samples, correlator={rx.correlator_method}), "
+          f"best of {REPEATS} interleaved")
+    print(f"  fast path       : {best * 1e3:8.1f} ms/frame (median {med * 1e3:.1f} ms)")
+    print(f"  GEMM floor      : {floor * 1e3:8.1f} ms ({fa.shape[0]}x{n})@({n}x{fb.shape[1]}) "
+          f"float64 = the frame's {macs / 1e9:.3f} G multiply-adds "
+          f"({2 * macs / floor / 1e9:.0f} GFLOP/s)")
+    print(f"  fast / floor    : {best / floor:8.2f}x (target <= 1.5)")
+    print(f"  plan build      : {min(t_plan) * 1e3:8.1f} ms (once per config; fast() keeps it)")
     print(f"  scipy.correlate : {base_frame * 1e3:8.1f} ms/frame "
           f"(measured on {sub} columns: {min(t_base) / sub * 1e3:.1f} ms/column)")
     print(f"  speed-up vs scipy: {base_frame / best:.0f}x; gated values equal: {same}")
@@ -121,61 +144,107 @@ def paper_frame() -> None:
         rxm = FastReceiver(cfg, codes, method=method)
         tm = _time(lambda rxm=rxm: rxm.frame(x), 3)
         equal = all(a.same_as(b) for a, b in zip(rxm.frame(x), want, strict=True))
-        print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3), "
-              f"equal to auto: {equal}")
+        print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3, "
+              f"{min(tm) / floor:.2f}x the floor), equal to auto: {equal}")
 
 
-def long_codes() -> None:
-    for degree in (13, 15):
-        pair = preferred_pairs(degree)[0]
-        k = 40
-        codes = _codes(pair, k)
-        n = codes.shape[1]
-        base = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=10, gate_start=0,
-                              gate_len=n * 4)
-        cfg = next(base.replace(out_bits=ob) for ob in range(32, 7, -1)
-                   if _fits(base.replace(out_bits=ob), n))
-        x = _columns(codes, cfg, 1, seed=degree)
-        tracemalloc.start()
-        rx = FastReceiver(cfg, codes)
-        out = rx.column(x[0])
-        _, peak = tracemalloc.get_traced_memory()
-        tracemalloc.stop()
-        t = _time(lambda rx=rx, x=x: rx.column(x[0]), 3)
-        tb = _time(lambda codes=codes, cfg=cfg, x=x: _scipy_column(codes, cfg, x[0]), 1)
-        same = np.array_equal(out.corr, _scipy_column(codes, cfg, x[0]))
-        acq = cfg.averages * n / CHIP_RATE_HZ
-        print(f"degree {degree}: K={k} N={n} S=4 R=10 gate = whole period ({n * 4} lags), "
-              f"out_bits={cfg.out_bits}, correlator={rx.correlator_method}")
-        print(f"  fast path {min(t) * 1e3:8.1f} ms/column, peak traced memory "
-              f"{peak / 2**20:.0f} MiB; scipy.correlate {min(tb) * 1e3:.1f} ms/column "
-              f"(ratio {min(tb) / min(t):.1f}x, equal: {same}); acquisition "
-              f"{acq * 1e3:.2f} ms/column")
+REPEATS = 9
+#: Kernels other than auto's choice predicted to need more memory are not run (shared machine).
+MAX_BYTES = 1 << 30
 
 
-def _fits(cfg: ReceiverConfig, n: int) -> bool:
-    try:
-        cfg.widths(n)
-    except ValueError:
-        return False
-    return True
+@dataclass(frozen=True)
+class Row:
+    """One configuration class of the per-kernel tables."""
+
+    label: str
+    degree: int
+    k: int
+    gate: int  # 0: the whole period
+    columns: int = 1
 
 
-def blas_rate() -> None:
-    """Same-run calibration: float64 GEMM throughput of the paper frame's shape."""
-    rng = np.random.default_rng(0)
-    a, b = rng.random((640, 2047)), rng.random((2047, 660))
-    t = min(_time(lambda: a @ b, 5))
-    rate = 2 * a.size * 660 / t / 1e9
-    print(f"dgemm (640x2047)@(2047x660): {t * 1e3:.1f} ms = {rate:.0f} GFLOP/s "
-          "(the frame's correlation is 4 such products over 1/4 of the rows each)")
+#: Configuration classes: short gates and whole periods, one column and frames, many channels.
+CLASSES = (
+    Row("paper frame, 64-lag gate", 11, 40, 64, 160),
+    Row("one column, 64-lag gate", 13, 40, 64),
+    Row("one column, whole period", 13, 40, 0),
+    Row("one column, whole period", 15, 40, 0),
+    Row("many channels, 64-lag gate", 13, 400, 64),
+    Row("many channels, whole period", 13, 400, 0),
+    Row("many channels, 64-lag gate", 15, 1200, 64),
+    Row("many channels, whole period", 15, 1200, 0),
+)
+
+
+def _scipy_channels(codes: np.ndarray, cfg: ReceiverConfig, d: np.ndarray,
+                    channels: int) -> float:
+    """Best time of scipy.signal.correlate (circular via a doubled period) on ``channels``."""
+    ns = d.size
+    ext = np.concatenate([d, d]).astype(np.float64)
+    lags = (cfg.gate_start + np.arange(cfg.gate_len)) % ns
+
+    def run() -> None:
+        for i in range(channels):
+            ref = np.repeat(1 - 2 * codes[i].astype(np.float64), cfg.samples_per_chip)
+            np.rint(signal.correlate(ext, ref, mode="valid")[:ns][lags])
+
+    return min(_time(run, 2))
+
+
+def kernel_tables() -> None:
+    """Per configuration class and kernel: time per column, memory, GEMM floor, scipy."""
+    from cdma_lidar.firmware_model.correlators import estimates
+
+    rng = np.random.default_rng(3)
+    fa, fb = _floor_product(512, 2048, 512)
+    rate = min(_time(lambda: fa @ fb, 5)) / (512 * 2048 * 512)  # s per multiply-add
+    print(f"per-kernel tables (S=4, R=10, 12-bit; GEMM rate this run "
+          f"{2 / rate / 1e9:.0f} GFLOP/s; floor = the correlation's N K G multiply-adds "
+          "at that rate; scipy: signal.correlate per channel, measured on <= 8 channels "
+          "and scaled; '1 ch x K': the same kernel on one channel, times K)")
+    print(f"{'class':<30} {'deg':>3} {'K':>5} {'lags':>6} {'C':>4} {'kernel':<7} "
+          f"{'ms/column':>10} {'MiB':>7} {'floor ms':>9} {'x floor':>8} {'scipy ms':>9} "
+          f"{'x scipy':>8} {'1ch x K':>8}")
+    for row in CLASSES:
+        n = (1 << row.degree) - 1
+        ns = n * 4
+        gate = ns if row.gate == 0 else row.gate
+        cfg = ReceiverConfig(samples_per_chip=4, averages=10, gate_start=0 if row.gate == 0
+                             else 1000, gate_len=gate, out_bits=24)
+        codes = rng.integers(0, 2, (row.k, n), dtype=np.uint8)
+        acc = rng.integers(-20480, 20471, (row.columns, 1, ns))
+        auto = FastReceiver(cfg, codes, columns=row.columns)
+        est = estimates(auto.plan)
+        best_pred = min(e.seconds for e in est.values())
+        floor = rate * n * row.k * gate
+        sub = min(8, row.k)
+        scipy_col = _scipy_channels(codes, cfg, acc[0, 0], sub) * row.k / sub
+        for method, e in est.items():
+            if method != auto.correlator_method and (e.seconds > 20 * best_pred
+                                                     or e.peak_bytes > MAX_BYTES):
+                continue
+            tracemalloc.start()
+            rx = FastReceiver(cfg, codes, method=method, columns=row.columns)
+            rx.from_accumulators(acc)
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+            t = min(_time(lambda rx=rx, a=acc: rx.from_accumulators(a), 3)) / row.columns
+            one = FastReceiver(cfg, codes[:1], method=method, columns=row.columns)
+            t1 = min(_time(lambda o=one, a=acc: o.from_accumulators(a), 3)) / row.columns
+            tag = "*" if method == auto.correlator_method else " "
+            print(f"{row.label:<30} {row.degree:>3} {row.k:>5} {gate:>6} {row.columns:>4} "
+                  f"{method + tag:<7} {t * 1e3:10.2f} {peak / 2**20:7.1f} {floor * 1e3:9.2f} "
+                  f"{t / floor:8.2f} {scipy_col * 1e3:9.1f} {scipy_col / t:8.1f} "
+                  f"{t1 * row.k / t:7.1f}x", flush=True)
+    print("(* = auto's choice; '1ch x K' > 1: the K-channel call is that much cheaper than "
+          "K one-channel calls)")
 
 
 def main() -> None:
     print(f"cores: {os.cpu_count()}, load average: {os.getloadavg()[0]:.2f}")
-    blas_rate()
     paper_frame()
-    long_codes()
+    kernel_tables()
 
 
 if __name__ == "__main__":

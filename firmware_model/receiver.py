@@ -32,9 +32,13 @@ Two implementations give the same integers:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import hashlib
 import logging
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -42,27 +46,33 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.checks import check_int, is_int
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.correlators import (
     AUTO,
+    Correlator,
     GatePlan,
+    choose_correlator,
     correlator_methods,
     make_correlator,
+    registry_version,
 )
-from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at
+from cdma_lidar.firmware_model.correlators.base import parallel_columns
+from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
 __all__ = [
     "MAX_CHANNELS",
     "MAX_CODE_LENGTH",
+    "RECEIVER_CACHE_SIZE",
     "FastReceiver",
     "ReceiverConfig",
     "ReceiverOutput",
     "ReferenceReceiver",
     "Widths",
     "check_codes",
+    "clear_receiver_cache",
     "correlator_methods",
     "fast",
     "fast_frame",
@@ -74,7 +84,7 @@ log = logging.getLogger(__name__)
 
 MAX_CODE_LENGTH = 2**20 - 1  # degree 20; any length 3..MAX_CODE_LENGTH is accepted
 MIN_CODE_LENGTH = 3
-MAX_CHANNELS = 1024
+MAX_CHANNELS = 2048
 MAX_GHOST_WINDOWS = 8
 INT64_BITS = 63  # magnitude bits of an int64
 
@@ -111,6 +121,17 @@ class Widths:
     noise_sum: int
     noise_sumsq: int
     float_exact: bool
+
+    @property
+    def wide_sumsq(self) -> bool:
+        """True when ``noise_sumsq`` may exceed int64 (> 63 bits): the receivers then report
+        it as an object array of exact Python integers instead of int64."""
+        return self.noise_sumsq > INT64_BITS
+
+    @property
+    def sumsq_dtype(self) -> type:
+        """dtype of the reported ``noise_sumsq``: ``np.int64``, or ``object`` when wide."""
+        return object if self.wide_sumsq else np.int64
 
 
 @dataclass(frozen=True)
@@ -188,9 +209,9 @@ class ReceiverConfig:
         """Check the config against code length ``n_chips`` and derive every width.
 
         Raises ConfigError when the gate or a ghost window does not fit in the
-        period, or when a derived width cannot be held in int64 (only
-        ``noise_sumsq`` can: lower ``out_bits``, raise ``out_shift`` or shorten
-        ``gate_len``).
+        period. Every configuration of the parameter ranges is accepted: the only
+        width that can exceed int64, ``noise_sumsq`` (up to 89 bits), is carried
+        exactly as Python integers (:attr:`Widths.wide_sumsq`).
         """
         check_int("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
         ns = self.period_samples(n_chips)
@@ -222,13 +243,6 @@ class ReceiverConfig:
             noise_sumsq=2 * out - 2 + _bitlen(g),
             float_exact=ns * r * n_uid * (1 << (b - 1)) < 2**53,
         )
-        if w.noise_sumsq > INT64_BITS:
-            raise ConfigError(
-                f"out_bits/out_shift/gate_len give a noise_sumsq accumulator of "
-                f"2*{out}-2+bitlen({g}) = {w.noise_sumsq} bits; it must be <= {INT64_BITS}: "
-                f"lower out_bits, raise out_shift or shorten gate_len",
-                field="out_bits",
-            )
         return w
 
 
@@ -379,7 +393,7 @@ class ReferenceReceiver:
             neighbours=np.array(rows["neighbours"], dtype=np.int64).reshape(k, 2),
             noise_count=np.array(rows["noise_count"], dtype=np.int64),
             noise_sum=np.array(rows["noise_sum"], dtype=np.int64),
-            noise_sumsq=np.array(rows["noise_sumsq"], dtype=np.int64),
+            noise_sumsq=np.array(rows["noise_sumsq"], dtype=self.widths.sumsq_dtype).reshape(k),
             uid_signs=np.array(rows["uid_signs"], dtype=np.int8).reshape(k, n),
             uid_observed=np.array(rows["uid_observed"], dtype=np.int64),
             uid_match=np.array(rows["uid_match"], dtype=np.bool_),
@@ -426,17 +440,21 @@ class FastReceiver:
     """Vectorised receive chain for one configuration and code set; reuse it across columns.
 
     ``method`` names the correlation kernel, one of :func:`correlator_methods`
-    (default ``"auto"``: the registered kernel with the lowest cost estimate,
-    "matmul" for short gates, "fft" for long ones); ``float_bits`` (default 53) is
-    the largest magnitude, in bits, the float64 kernels' products may reach before
+    (default ``"auto"``: the kernel the calibrated cost model predicts fastest among
+    those within 2x of the leanest memory, :mod:`.correlators.costs`); ``float_bits``
+    (default 53) is the largest magnitude, in bits, the float64 kernels' products may reach before
     operands are split into limbs. Both only choose how the same integers are
     computed. An unknown ``method`` raises ConfigError listing the registered names.
+    ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
+    carry: it only steers ``"auto"`` (a product over many columns amortises more).
+    ``plan`` is the :class:`GatePlan` the kernel was prepared for.
     """
 
     cfg: ReceiverConfig
     codes: ArrayLike
     method: str = AUTO
     float_bits: int = 53
+    columns: int = 1
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
@@ -454,19 +472,57 @@ class FastReceiver:
         for start, length in cfg.ghost_windows:
             ghost |= (gate_lags - start) % ns < length
         self._ghost = ghost
+        # the peak exclusion |j - j_peak| <= W as rows of a table, when it is small
+        w = cfg.peak_exclude
+        jj = np.arange(g)
+        self._window = (np.abs(jj[:, None] - jj[None, :]) <= w) if g <= 2048 else None
         self._despread = np.array(
             [-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], dtype=np.int64
         )
         self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
-        plan = GatePlan(self._bip, cfg.samples_per_chip, self._lag_lo, g + 2,
-                        float_bits=self.float_bits)
-        self._corr = make_correlator(self.method, plan)
+        wd = self.widths
+        s = cfg.samples_per_chip
+        # integer types of the work, each the narrowest that holds its signal exactly
+        self._acc_type = int_type(wd.acc)
+        self._desp_type = int_type(wd.desp)
+        y_bits = wd.desp + _clog2(s) if s <= 8 else wd.desp + _bitlen(ns + s)  # prefix sums
+        self._y_type = int_type(y_bits)
+        y_bound = s * cfg.uid_bits * cfg.averages * (1 << (cfg.adc_bits - 1))  # max |Y|
+        check_int("columns", self.columns, 1, 1 << 30)
+        self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
+                             y_bound=y_bound, columns=self.columns)
+        self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
+        self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
+        self._corr = self.kernel_for(self.columns)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
+        # out = raw exactly (no copy) when there is no shift and saturation cannot happen
+        self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
 
     @property
     def correlator_method(self) -> str:
-        """The registered kernel computing the gated correlation ("matmul", "fft", ...)."""
+        """The kernel a call of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
         return self._corr.method
+
+    def kernel_for(self, columns: int) -> Correlator:
+        """The prepared kernel for calls of ``columns`` columns (built on first use).
+
+        A named ``method`` is used for every call; ``"auto"`` asks the cost model once
+        per power-of-two bucket of columns (one column and a 160-column frame may want
+        different kernels) and keeps each kernel it prepared.
+        """
+        if self.method == AUTO:
+            bucket = 1 << (max(1, int(columns)) - 1).bit_length()
+            name = self._auto.get(bucket)
+            if name is None:
+                plan = copy.copy(self.plan)
+                plan.columns = bucket
+                name = self._auto[bucket] = choose_correlator(plan)
+        else:
+            name = self.method
+        kernel = self._kernels.get(name)
+        if kernel is None:
+            kernel = self._kernels[name] = make_correlator(name, self.plan)
+        return kernel
 
     def column(self, samples: ArrayLike) -> ReceiverOutput:
         """One column: ``samples`` 1-D, R*n*N*S ADC codes."""
@@ -479,25 +535,53 @@ class FastReceiver:
         Returns one output per column.
         """
         x = _as_samples(samples, 2)
-        return self._finish(self.accumulate(x))
+        self._check_samples(x, values=False)
+        c = x.shape[0]
+        acc_type = self._acc_type
+        if x.dtype.itemsize > np.dtype(acc_type).itemsize:
+            acc_type = np.int64  # a narrower sum would need a converted copy of the input
+        acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
+        w = np.empty((c, self._ns), dtype=self._y_type)
 
-    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.int64]:
-        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS) int64."""
-        cfg = self.cfg
-        c = samples.shape[0]
-        need = cfg.column_samples(self.n_chips)
-        if samples.shape[1] != need:
+        def prepare(c0: int, c1: int) -> None:  # check, accumulate, despread, chip sums
+            self._check_samples(x[c0:c1], shape=False)
+            self._accumulate_into(x[c0:c1], acc[c0:c1])
+            self._chip_domain(acc[c0:c1], w[c0:c1])
+
+        parallel_columns(prepare, c, x.size)
+        return self._correlate_and_post(acc, w)
+
+    def _check_samples(self, samples: NDArray[np.integer], shape: bool = True,
+                       values: bool = True) -> None:
+        """The column length, and every code inside the ADC range (unless its dtype is)."""
+        need = self.cfg.column_samples(self.n_chips)
+        if shape and samples.shape[1] != need:
             raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
         info = np.iinfo(samples.dtype)
-        if samples.size and (info.min < self._lo or info.max > self._hi):
+        if values and samples.size and (info.min < self._lo or info.max > self._hi):
             lo, hi = int(samples.min()), int(samples.max())
             if lo < self._lo or hi > self._hi:
                 bad = lo if lo < self._lo else hi
                 raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
-        x = samples.reshape(c, cfg.averages, cfg.uid_bits * self._ns)
-        acc_type = np.int32 if self.widths.acc <= 31 else np.int64
-        acc = x.sum(axis=1, dtype=acc_type).astype(np.int64, copy=False)
-        return acc.reshape(c, cfg.uid_bits, self._ns)
+
+    def _accumulate_into(self, x: NDArray[np.integer], acc: NDArray[np.signedinteger]) -> None:
+        cfg = self.cfg
+        xr = x.reshape(x.shape[0], cfg.averages, cfg.uid_bits * self._ns)
+        np.add.reduce(xr, axis=1, dtype=acc.dtype, out=acc.reshape(x.shape[0], -1))
+
+    def accumulate(self, samples: NDArray[np.integer]) -> NDArray[np.signedinteger]:
+        """Sum the R repetitions: (C, R*n*NS) ADC codes -> acc (C, n, NS).
+
+        The dtype is the narrowest of int16/int32/int64 holding ``W_acc`` bits (or the
+        input's, if wider): every partial sum of R codes fits it, so no overflow.
+        """
+        self._check_samples(samples)
+        acc_type = self._acc_type
+        if samples.dtype.itemsize > np.dtype(acc_type).itemsize:
+            acc_type = np.int64  # a narrower sum would need a converted copy of the input
+        acc = np.empty((samples.shape[0], self.cfg.uid_bits, self._ns), dtype=acc_type)
+        self._accumulate_into(samples, acc)
+        return acc
 
     def from_accumulators(self, acc: ArrayLike) -> list[ReceiverOutput]:
         """Finish the chain from accumulated periods ``acc`` (C, n, NS) integers.
@@ -511,21 +595,50 @@ class FastReceiver:
             raise out_of_range(
                 "acc", f"a (C, {cfg.uid_bits}, {self._ns}) integer array", f"{a.shape} {a.dtype}"
             )
-        a = a.astype(np.int64, copy=False)
+        if a.dtype.kind == "u" or a.dtype.itemsize > 8:
+            a = a.astype(np.int64)
         r = cfg.averages
         if a.size and (int(a.min()) < r * self._lo or int(a.max()) > r * self._hi):
             raise out_of_range("acc", f"sums of {r} ADC codes", f"{int(a.min())}..{int(a.max())}")
         return self._finish(a)
 
-    def _finish(self, a: NDArray[np.int64]) -> list[ReceiverOutput]:
+    def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
+        w = np.empty((a.shape[0], self._ns), dtype=self._y_type)
+        parallel_columns(lambda c0, c1: self._chip_domain(a[c0:c1], w[c0:c1]), a.shape[0], a.size)
+        return self._correlate_and_post(a, w)
+
+    def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger]) -> None:
+        """Despread the accumulators ``a`` (C, n, NS) and write the window sums into ``w``."""
         cfg = self.cfg
-        d = np.einsum("cpi,p->ci", a, self._despread) if cfg.uid_bits > 1 else a[:, 0, :] * (
-            self._despread[0]
-        )
-        y = chip_sums(d, cfg.samples_per_chip)  # (C, S, N)
-        raw = self._corr(y)  # (C, K, G+2) int64
-        out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
-        return self._post(raw, out, a)
+        if cfg.uid_bits == 1:  # d = (-1)^uid acc[0]: the sign is folded into the chip sums
+            d, sign = a[:, 0, :], int(self._despread[0])
+        else:
+            d, sign = np.zeros((a.shape[0], self._ns), dtype=self._desp_type), 1
+            for p, q in enumerate(self._despread.tolist()):
+                if q > 0:
+                    d += a[:, p, :]
+                else:
+                    d -= a[:, p, :]
+        chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w)
+
+    def _correlate_and_post(self, a: NDArray[np.signedinteger],
+                            w: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
+        cfg = self.cfg
+        c = a.shape[0]
+        s = cfg.samples_per_chip
+        y = w.reshape(c, self.n_chips, s).transpose(0, 2, 1)  # (C, S, N) chip sums, a view
+        raw = self.kernel_for(c)(y)  # (C, K, G+2) int64
+        if self._identity_scale:
+            out = raw
+        else:
+            out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
+        parts: dict[int, list[ReceiverOutput]] = {}
+
+        def post(c0: int, c1: int) -> None:
+            parts[c0] = self._post(raw[c0:c1], out[c0:c1], a[c0:c1])
+
+        parallel_columns(post, c, raw.size * 4)
+        return [o for c0 in sorted(parts) for o in parts[c0]]
 
     # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)
 
@@ -537,7 +650,8 @@ class FastReceiver:
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
         corr = out[:, :, 1:-1]
         mag = np.abs(corr)
-        mag[..., self._ghost] = -1
+        if self._ghost.any():
+            mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
         near_any = np.zeros((c, k, g), dtype=bool)
@@ -545,9 +659,16 @@ class FastReceiver:
             j = np.argmax(mag, axis=-1)  # first (lowest j) among equal maxima
             ok = np.take_along_axis(mag, j[..., None], axis=-1)[..., 0] >= 0
             pk_j[..., p] = np.where(ok, j, -1)
-            near = (np.abs(jj - j[..., None]) <= w) & ok[..., None]
+            if self._window is not None:  # rows |jj - j| <= W of a precomputed table
+                near = self._window[j]
+                near &= ok[..., None]
+            else:  # two comparisons straight to bool: no (C, K, G) integer temporaries
+                jc = j[..., None]
+                near = jj >= jc - w
+                near &= jj <= jc + w
+                near &= ok[..., None]
             near_any |= near
-            mag[near] = -1
+            np.putmask(mag, near, -1)
         found = pk_j >= 0
         jsafe = np.where(found, pk_j, 0)
         pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
@@ -559,11 +680,14 @@ class FastReceiver:
             axis=-1,
         )
         nb = np.where(found[..., :1], nb, 0)
-        noise = ~self._ghost & ~near_any
-        cnt = noise.sum(axis=-1, dtype=np.int64)
-        nsum = corr.sum(axis=-1, dtype=np.int64, where=noise)
-        np.multiply(corr, corr, out=mag, where=noise)  # mag is free now; reuse its memory
-        nsq = mag.sum(axis=-1, dtype=np.int64, where=noise)  # exact: widths.noise_sumsq <= 63
+        noise = ~near_any
+        if self._ghost.any():
+            noise &= ~self._ghost
+        cnt = np.count_nonzero(noise, axis=-1).astype(np.int64)
+        cz = np.multiply(corr, noise, out=mag)  # out over the noise lags, 0 elsewhere
+        nsum = cz.sum(axis=-1, dtype=np.int64)
+        np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
+        nsq = _sum_squares(cz, None, self.widths.wide_sumsq)
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
@@ -610,6 +734,25 @@ class FastReceiver:
         return np.where(found[..., None], s, 0).astype(np.int8)
 
 
+def _sum_squares(sq: NDArray[np.int64], where: NDArray[np.bool_] | None, wide: bool) -> NDArray:
+    """Exact ``sum(sq, axis=-1, where=where)`` of squares ``sq`` (each < 2^63).
+
+    When ``wide`` (Widths.noise_sumsq > 63) the sum may not fit int64: the squares are
+    split at bit 31, ``sq = hi 2^31 + lo``, both halves summed in int64 (at most 2^26
+    lags of < 2^32: no overflow) and recombined as Python integers (object array).
+    """
+    kw = {} if where is None else {"where": where}
+    if not wide:
+        return sq.sum(axis=-1, dtype=np.int64, **kw)  # exact: noise_sumsq <= 63 bits
+    lo = (sq & ((1 << 31) - 1)).sum(axis=-1, dtype=np.int64, **kw)
+    hi = (sq >> 31).sum(axis=-1, dtype=np.int64, **kw)
+    out = np.empty(lo.shape, dtype=object)
+    flat = out.reshape(-1)
+    for i, (h, v) in enumerate(zip(hi.ravel().tolist(), lo.ravel().tolist(), strict=True)):
+        flat[i] = (h << 31) + v
+    return out
+
+
 def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> NDArray[np.int64]:
     """out = sat(round(raw / 2^shift)) with integer shifts (docs/firmware.md §3)."""
     if shift == 0:
@@ -627,13 +770,50 @@ def _scale(raw: NDArray[np.int64], shift: int, rounding: str, out_bits: int) -> 
     return np.clip(r, -top - 1, top)
 
 
+#: Receivers kept by :func:`fast`, :func:`fast_frame` and :func:`fast_from_accumulators`.
+RECEIVER_CACHE_SIZE = 4
+_CACHE: OrderedDict[tuple, FastReceiver] = OrderedDict()
+_CACHE_LOCK = threading.Lock()
+
+
+def _receiver(cfg: ReceiverConfig, codes: ArrayLike, method: str) -> FastReceiver:
+    """A prepared receiver for (cfg, codes, method): the plan (Hankel blocks, spectra)
+    costs tens of ms, so the last :data:`RECEIVER_CACHE_SIZE` are kept, keyed by the
+    configuration, the method and a digest of the chip bits."""
+    bits = check_codes(codes)
+    if not isinstance(method, str) or method not in correlator_methods():
+        raise out_of_range("method", "one of " + ", ".join(correlator_methods()), method)
+    key = (cfg, method, registry_version(), bits.shape,
+           hashlib.blake2b(bits.tobytes(), digest_size=16).digest())
+    with _CACHE_LOCK:
+        rx = _CACHE.get(key)
+        if rx is not None:
+            _CACHE.move_to_end(key)
+            return rx
+    rx = FastReceiver(cfg, bits, method=method)
+    with _CACHE_LOCK:
+        _CACHE[key] = rx
+        while len(_CACHE) > RECEIVER_CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return rx
+
+
+def clear_receiver_cache() -> None:
+    """Forget the receivers :func:`fast` and friends kept (frees their plans' memory)."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
+
+
 def fast(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
          method: str = AUTO) -> ReceiverOutput:
     """One column through the vectorised chain; bit-identical to :func:`reference`.
 
+    The prepared receiver is kept (:func:`clear_receiver_cache`), so repeated calls with
+    the same configuration and codes do not rebuild the plan.
+
     ``method``: the correlation kernel, one of :func:`correlator_methods`.
     """
-    return FastReceiver(cfg, codes, method=method).column(samples)
+    return _receiver(cfg, codes, method).column(samples)
 
 
 def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
@@ -642,11 +822,11 @@ def fast_frame(cfg: ReceiverConfig, codes: ArrayLike, samples: ArrayLike, *,
 
     ``method``: the correlation kernel, one of :func:`correlator_methods`.
     """
-    return FastReceiver(cfg, codes, method=method).frame(samples)
+    return _receiver(cfg, codes, method).frame(samples)
 
 
 def fast_from_accumulators(
     cfg: ReceiverConfig, codes: ArrayLike, acc: ArrayLike, *, method: str = AUTO
 ) -> list[ReceiverOutput]:
     """Finish the chain from accumulated periods ``acc`` (C, n, N*S): see FastReceiver."""
-    return FastReceiver(cfg, codes, method=method).from_accumulators(acc)
+    return _receiver(cfg, codes, method).from_accumulators(acc)

@@ -24,26 +24,33 @@ from cdma_lidar.firmware_model.correlators.base import (
     GatePlan,
     choose_correlator,
     correlator_methods,
+    estimates,
     make_correlator,
     register_correlator,
+    registry_version,
     unregister_correlator,
 )
+from cdma_lidar.firmware_model.correlators.direct import DirectCorrelator
 from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
 from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
 
 # The built-in kernels, in this order: it is auto's tie-break (equal costs -> matmul).
 register_correlator("matmul", MatmulCorrelator)
 register_correlator("fft", FFTCorrelator)
+register_correlator("direct", DirectCorrelator)
 
 __all__ = [
     "AUTO",
     "Correlator",
+    "DirectCorrelator",
     "FFTCorrelator",
     "GatePlan",
     "MatmulCorrelator",
     "choose_correlator",
     "correlator_methods",
+    "estimates",
     "make_correlator",
     "register_correlator",
+    "registry_version",
     "unregister_correlator",
 ]

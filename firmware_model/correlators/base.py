@@ -17,15 +17,20 @@ definition: it is bit-identical to the streaming reference or it is a bug.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.correlators import costs
+from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate
 
 __all__ = [
     "AUTO",
@@ -34,9 +39,12 @@ __all__ = [
     "GatePlan",
     "choose_correlator",
     "correlator_methods",
+    "estimates",
     "limbs",
     "make_correlator",
+    "parallel_columns",
     "register_correlator",
+    "registry_version",
     "unregister_correlator",
 ]
 
@@ -56,6 +64,10 @@ class GatePlan:
     ``(lag_lo + m) mod N*S`` for m < ``count`` (samples), and ``float_bits``: the
     largest magnitude, in bits, a float64 kernel may let its exact integers reach
     before it splits the operands into limbs (``n.bit_length() + 2 .. 53``).
+    ``y_bound``, when known, is an upper bound of ``|Y|`` the chip sums can reach
+    (``S n R 2^(b-1)``): a kernel may then skip looking at the data to decide on limbs.
+    ``columns`` is the number of columns expected per call; it only steers the cost
+    estimates (a product over many columns amortises its constant operand).
 
     Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
     the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
@@ -63,7 +75,7 @@ class GatePlan:
     """
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
-                 float_bits: int = 53) -> None:
+                 float_bits: int = 53, y_bound: int | None = None, columns: int = 1) -> None:
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -72,6 +84,8 @@ class GatePlan:
         if not n.bit_length() + 2 <= float_bits <= 53:
             raise out_of_range("float_bits", f"{n.bit_length() + 2}..53", float_bits)
         self.float_bits = float_bits
+        self.y_bound = None if y_bound is None else int(y_bound)
+        self.columns = max(1, int(columns))
         self.lag_lo = int(lag_lo)
         self.q0, self.r0 = divmod(self.lag_lo, s)
         m = np.arange(count)
@@ -79,6 +93,16 @@ class GatePlan:
         self.r_m = (self.r0 + m) % s
         self.nq = int(self.u_m[-1]) + 1
         self.sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]  # lags m of phase r
+
+    def matmul_limbs(self) -> int:
+        """Limbs a float64 product kernel splits Y into (1 when ``N y_bound < 2^float_bits``)."""
+        if self.y_bound is None:
+            return 1
+        need = (self.n * self.y_bound).bit_length() - self.float_bits
+        if need <= 0:
+            return 1
+        h = self.float_bits - self.n.bit_length()
+        return 1 + math.ceil(need / h)
 
 
 class Correlator(ABC):
@@ -95,19 +119,31 @@ class Correlator(ABC):
         self.method = ""
 
     @classmethod
-    def cost(cls, plan: GatePlan) -> float:
-        """Estimated cost (arbitrary common unit: BLAS multiply-adds) of one column.
+    def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
+        """Predicted seconds per call (``plan.columns`` columns) and peak bytes.
 
-        ``math.inf`` (the default) means "only when asked for by name".
+        Written in the machine primitives of :class:`.costs.Coefficients`. The default
+        (infinite time) means "only when asked for by name".
         """
-        return math.inf
+        return Estimate(math.inf, 0.0)
+
+    @classmethod
+    def cost(cls, plan: GatePlan) -> float:
+        """Predicted seconds per call with the calibrated coefficients (inf: never auto)."""
+        return cls.estimate(plan, costs.coefficients()).seconds
 
     @abstractmethod
-    def __call__(self, y: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Chip sums ``y`` (C, S, N) int64 -> exact ``raw`` (C, K, count) int64."""
+    def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
+        """Chip sums ``y`` (C, S, N), int16/32/64 -> exact ``raw`` (C, K, count) int64."""
 
 
 _REGISTRY: dict[str, type[Correlator]] = {}
+_VERSION = [0]  # bumped by every (un)registration: prepared receivers keyed on it go stale
+
+
+def registry_version() -> int:
+    """A counter that changes whenever a kernel is registered or unregistered."""
+    return _VERSION[0]
 
 
 def register_correlator(name: str, factory: type[Correlator], *, replace: bool = False) -> None:
@@ -124,6 +160,7 @@ def register_correlator(name: str, factory: type[Correlator], *, replace: bool =
     if name in _REGISTRY and not replace:
         raise ConfigError(f"correlator {name!r} is already registered", field="name")
     _REGISTRY[name] = factory
+    _VERSION[0] += 1
 
 
 def unregister_correlator(name: str) -> None:
@@ -131,6 +168,7 @@ def unregister_correlator(name: str) -> None:
     if name not in _REGISTRY:
         raise out_of_range("name", "one of " + ", ".join(_REGISTRY), name)
     del _REGISTRY[name]
+    _VERSION[0] += 1
 
 
 def correlator_methods() -> tuple[str, ...]:
@@ -138,13 +176,19 @@ def correlator_methods() -> tuple[str, ...]:
     return (AUTO, *_REGISTRY)
 
 
-def choose_correlator(plan: GatePlan) -> str:
-    """The kernel ``"auto"`` picks: the lowest :meth:`Correlator.cost`, ties to the first."""
-    best, best_cost = "", math.inf
-    for name, cls in _REGISTRY.items():
-        c = cls.cost(plan)
-        if c < best_cost:
-            best, best_cost = name, c
+def estimates(plan: GatePlan, co: Coefficients | None = None) -> dict[str, Estimate]:
+    """Every registered kernel's :class:`.costs.Estimate` for ``plan`` (registration order)."""
+    co = costs.coefficients() if co is None else co
+    return {name: cls.estimate(plan, co) for name, cls in _REGISTRY.items()}
+
+
+def choose_correlator(plan: GatePlan, co: Coefficients | None = None) -> str:
+    """The kernel ``"auto"`` picks (:func:`.costs.choose`): the fastest predicted among
+    those within 2x of the leanest peak memory, ties to the first registered.
+
+    ``co``: the coefficients (default: the calibration cache, else the built-in ones).
+    """
+    best = costs.choose(estimates(plan, co))
     if not best:
         raise ConfigError("no registered correlator has a finite cost for this plan",
                           field="method")
@@ -166,6 +210,33 @@ def make_correlator(method: str, plan: GatePlan) -> Correlator:
     return kernel
 
 
+#: Columns are split across this many threads for the passes outside the kernel (numpy
+#: releases the GIL in them); the kernels' BLAS and FFT calls use their own threads.
+_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Below this many elements per call the passes run in the calling thread.
+_PARALLEL_MIN = 1 << 18
+_POOL: ThreadPoolExecutor | None = None
+
+
+def parallel_columns(task: Callable[[int, int], None], columns: int, size: int) -> None:
+    """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
+
+    Several threads when the work is large enough and there are several columns,
+    else one call in the calling thread. Exceptions propagate.
+    """
+    global _POOL
+    parts = min(_THREADS, columns)
+    if parts <= 1 or size < _PARALLEL_MIN:
+        task(0, columns)
+        return
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="cdma-rx")
+    bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
+    futures = [_POOL.submit(task, c0, c1) for c0, c1 in itertools.pairwise(bounds)]
+    for f in futures:
+        f.result()
+
+
 def limbs(
     y: NDArray[np.int64], fits: Callable[[NDArray[np.int64]], bool], h: int
 ) -> list[tuple[NDArray[np.int64], int]]:
@@ -176,6 +247,8 @@ def limbs(
     """
     out: list[tuple[NDArray[np.int64], int]] = []
     shift = 0
+    if not fits(y):
+        y = y.astype(np.int64)  # the masks and shifts below are int64 constants
     while not fits(y):
         out.append((y & ((1 << h) - 1), shift))
         y = y >> h

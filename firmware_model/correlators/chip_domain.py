@@ -17,28 +17,51 @@ from numpy.typing import NDArray
 
 from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES
 
-__all__ = ["chip_sums", "correlate_at"]
+__all__ = ["chip_sums", "correlate_at", "int_type"]
 
 
-def chip_sums(d: NDArray[np.int64], s: int) -> NDArray[np.int64]:
-    """Integrate-and-dump: (C, N*S) -> (C, S, N), ``Y[c, r, m] = sum_{t<S} d[(mS+r+t) mod NS]``.
+def int_type(bits: int) -> type[np.signedinteger]:
+    """The narrowest of int16, int32, int64 holding a signed ``bits``-bit word (bits <= 64)."""
+    return np.int16 if bits <= 16 else np.int32 if bits <= 32 else np.int64
+
+
+def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
+              dtype: type[np.signedinteger] = np.int64,
+              out: NDArray[np.signedinteger] | None = None) -> NDArray[np.signedinteger]:
+    """Integrate-and-dump (C, N*S) -> (C, S, N): ``Y[c,r,m] = sign sum_{t<S} d[(mS+r+t) mod NS]``.
 
     First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
     sample (S - 1 shifted adds for small S, a prefix sum otherwise), then
-    ``Y[c, r, m] = W[c, m S + r]`` as one contiguous transpose.
+    ``Y[c, r, m] = W[c, m S + r]``, returned as a strided view of W (the kernels copy
+    each phase once, into their float operands, anyway). ``sign`` (+1 or -1)
+    is the despread of a one-period UID, folded into the first pass. ``dtype`` is the
+    integer type of the work and the result: the caller makes it wide enough for
+    ``S max|d|`` (and for ``S NS max|d|`` when S > 8, the prefix sums). ``out``, if
+    given, is a (C, N*S) array of ``dtype`` that receives W (the result is its view).
     """
     c, ns = d.shape
     n = ns // s
     if s <= 8:
-        w = d.astype(np.int64, copy=True)
-        for t in range(1, s):
-            w[:, :-t] += d[:, t:]
-            w[:, -t:] += d[:, :t]
+        w = np.empty((c, ns), dtype=dtype) if out is None else out
+        if sign < 0:
+            np.negative(d, out=w, casting="unsafe")  # exact: |d| fits dtype
+        else:
+            w[...] = d
+        if s > 1:
+            src = d if sign > 0 else w.copy()
+            for t in range(1, s):
+                w[:, :-t] += src[:, t:]
+                w[:, -t:] += src[:, :t]
     else:
-        ext = np.concatenate([np.zeros((c, 1), np.int64), d, d[:, : s - 1]], axis=1)
-        cs = np.cumsum(ext, axis=1)
-        w = cs[:, s : s + ns] - cs[:, :ns]
-    return np.ascontiguousarray(w.reshape(c, n, s).transpose(0, 2, 1))
+        ext = np.empty((c, ns + s), dtype=dtype)
+        ext[:, 0] = 0
+        ext[:, 1 : ns + 1] = d
+        ext[:, ns + 1 :] = d[:, : s - 1]
+        cs = np.cumsum(ext, axis=1, out=ext)
+        w = np.subtract(cs[:, s : s + ns], cs[:, :ns], out=out)
+        if sign < 0:
+            np.negative(w, out=w)
+    return w.reshape(c, n, s).transpose(0, 2, 1)  # a strided view: no transpose copy
 
 
 def correlate_at(

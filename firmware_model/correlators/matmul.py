@@ -2,7 +2,8 @@
 
 Per phase r: ``Y_r (C, N) @ B_r (N, K * nq_r)`` in float64 with the constant Hankel
 block ``B_r[m, k, u] = bip_k[(m - q0 - u) mod N]`` holding only the chip lags that
-phase needs. Every product is +-y and every partial sum is bounded by ``N * max|y|``;
+phase needs (or the S phases stacked into one product, :func:`stacked_layout`).
+Every product is +-y and every partial sum is bounded by ``N * max|y|``;
 when that is below ``2^float_bits`` (<= 2^53) the BLAS result is the exact integer
 whatever the summation order. Otherwise ``y`` is split into limbs of h bits
 (``N * 2^h < 2^float_bits``), each product exact, recombined in int64 (the result
@@ -10,6 +11,9 @@ fits: W_raw <= 56 bits, docs/firmware.md section 3).
 """
 
 from __future__ import annotations
+
+import math
+import threading
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,55 +23,129 @@ from cdma_lidar.firmware_model.correlators.base import (
     Correlator,
     GatePlan,
     limbs,
+    parallel_columns,
 )
+from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
 
-__all__ = ["MatmulCorrelator"]
+__all__ = ["MatmulCorrelator", "stacked_layout"]
 
-#: Largest Hankel matrix (bytes) ``"auto"`` will build; beyond it the FFT is chosen.
-_MATMUL_BMAT_BYTES = 128 << 20
+
+def _block(plan: GatePlan) -> int:
+    """Columns per block: chip sums, float operands and output within BLOCK_BYTES."""
+    return max(1, BLOCK_BYTES // (plan.s * plan.n * 8 * 2 + plan.k * (plan.count + 2 * plan.s)
+                                  * 16))
+
+
+def stacked_layout(plan: GatePlan) -> bool:
+    """Whether one product of the S phases stacked beats S per-phase products.
+
+    Stacked: ``[Y_0; ...; Y_{S-1}] (S C, N) @ B (N, K nq)`` with one Hankel block of
+    every chip offset u < nq, ``S nq`` output columns per channel for ``count`` lags.
+    It wastes ``S nq - count`` columns (at most 2 S - 1) but makes one large product
+    instead of S small ones: taken when the waste is under 1/16 of the work.
+    """
+    return plan.s > 1 and 16 * (plan.s * plan.nq - plan.count) <= plan.count
 
 
 class MatmulCorrelator(Correlator):
-    """Hankel blocks per phase, float64 GEMM, limb splitting for the 2^53 bound."""
+    """Hankel blocks, float64 GEMM, limb splitting for the 2^53 bound.
+
+    Two layouts of the same products (:func:`stacked_layout`): per phase r,
+    ``Y_r (C, N) @ B_r (N, K nq_r)`` holding only the chip lags phase r needs; or the
+    S phases stacked into one ``(S C, N) @ (N, K nq)`` product when that wastes little.
+    """
 
     @classmethod
-    def cost(cls, plan: GatePlan) -> float:
-        """Multiply-adds per column, ``N K count / S``; inf when the Hankel blocks are too big."""
-        mm_ops = plan.n * plan.k * plan.count / plan.s
-        mm_bytes = plan.n * plan.k * plan.count * 8
-        return mm_ops if mm_bytes <= _MATMUL_BMAT_BYTES else float("inf")
+    def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
+        """The products of the chosen layout, the operand copies and the output scatter."""
+        c, n, k, s = plan.columns, plan.n, plan.k, plan.s
+        cb = min(c, _block(plan))
+        blocks = math.ceil(c / cb)
+        parts = plan.matmul_limbs()
+        if stacked_layout(plan):
+            width, hankel = plan.s * plan.nq, plan.nq  # output and Hankel columns / channel
+            prods = gemm_seconds(s * cb, n, k * plan.nq, co)
+        else:
+            width = hankel = plan.count
+            prods = sum(gemm_seconds(cb, n, k * len(sel), co) for sel in plan.sel if len(sel))
+        active = sum(1 for sel in plan.sel if len(sel))
+        moves = co.byte * (16.0 * s * cb * n + 24.0 * cb * k * width) + 4 * active * co.call
+        seconds = blocks * parts * (prods + moves) + 4 * co.call
+        peak = 8.0 * n * k * hankel + 8.0 * s * cb * n + 8.0 * cb * k * width \
+            + 8.0 * c * k * plan.count
+        return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
         super().__init__(plan)
         n, bip = plan.n, plan.bip
-        # one Hankel block per phase r holding only the chip lags that phase needs
+        self.stacked = stacked_layout(plan)
+        offsets = [np.arange(plan.nq)] if self.stacked else [plan.u_m[sel] for sel in plan.sel]
+        # one Hankel block per phase r (or one for all) holding only the chip offsets needed
         self.bmat = []
-        for sel in plan.sel:
-            u = plan.u_m[sel]
+        for u in offsets:
             idx = (np.arange(n)[:, None] - plan.q0 - u[None, :]) % n  # (N, nq_r)
-            self.bmat.append(np.ascontiguousarray(
-                bip[:, idx].transpose(1, 0, 2).reshape(n, plan.k * len(u)), dtype=np.float64
-            ))
+            b = np.empty((n, plan.k, len(u)))  # filled channel by channel: no int8 copies
+            for kk in range(plan.k):
+                b[:, kk, :] = bip[kk][idx]
+            self.bmat.append(b.reshape(n, plan.k * len(u)))
+        self._local = threading.local()  # per-thread operand buffer: calls may overlap
 
-    def __call__(self, y: NDArray[np.int64]) -> NDArray[np.int64]:
+    def _buffer(self, rows: int, n: int) -> NDArray[np.float64]:
+        """A (rows, n) float64 operand buffer, reused across calls (no fresh pages)."""
+        work = getattr(self._local, "work", None)
+        if work is None or work.size < rows * n:
+            work = self._local.work = np.empty(rows * n)
+        return work[: rows * n].reshape(rows, n)
+
+    def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan
         c, s, n = y.shape
-        count = plan.count
+        k, count = plan.k, plan.count
         limit = 1 << plan.float_bits
         h = plan.float_bits - n.bit_length()
-        per_col = s * n * 8 * 2 + plan.k * count * 16
-        block = max(1, BLOCK_BYTES // per_col)
-        out = np.zeros((c, plan.k, count), dtype=np.int64)
+        block = _block(plan)
+        out = np.empty((c, k, count), dtype=np.int64)
+        # lags of phase r are m = m_r, m_r + S, ...: a strided slice of the output
+        sl = [slice(int(sel[0]), None, s) if len(sel) else None for sel in plan.sel]
+        bound_ok = plan.y_bound is not None and n * plan.y_bound < limit
+
+        def fits(v: NDArray[np.signedinteger]) -> bool:
+            return bound_ok or n * int(np.abs(v).max(initial=0)) < limit
+
+        def put(dst: NDArray[np.int64], o: NDArray[np.float64], i: int, shift: int,
+                single: bool) -> None:
+            if single:
+                dst[...] = o  # exact integers: the cast to int64 is exact
+            elif i == 0:
+                dst[...] = o.astype(np.int64) << shift
+            else:
+                dst += o.astype(np.int64) << shift
+
         for c0 in range(0, c, block):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
             acc = out[c0 : c0 + cb]
-            for limb, shift in limbs(yb, lambda v: n * int(np.abs(v).max(initial=0)) < limit, h):
-                lf = limb.astype(np.float64)  # exact: |limb| < 2^53
+            parts = limbs(yb, fits, h)
+            single = len(parts) == 1
+            for i, (limb, shift) in enumerate(parts):
+                # exact: |limb| < 2^53 and every partial sum < 2^float_bits
+                if self.stacked:
+                    lf = self._buffer(s * cb, n)
+                    l3, src = lf.reshape(s, cb, n), limb.transpose(1, 0, 2)
+                    parallel_columns(lambda a, b, l3=l3, src=src: np.copyto(l3[:, a:b],
+                                                                            src[:, a:b]),
+                                     cb, l3.size)
+                    o = (lf @ self.bmat[0]).reshape(s, cb, k, plan.nq)
+                    for r, sel in enumerate(plan.sel):
+                        if len(sel):
+                            u0 = int(plan.u_m[sel[0]])
+                            put(acc[:, :, sl[r]], o[r, :, :, u0 : u0 + len(sel)], i, shift,
+                                single)
+                    continue
+                lf = self._buffer(cb, n)
                 for r, sel in enumerate(plan.sel):
                     if len(sel):
-                        o = lf[:, r, :] @ self.bmat[r]  # (cb, K * nq_r), exact integers
-                        o = o.reshape(cb, plan.k, len(sel)).astype(np.int64)
-                        acc[:, :, sel] += o << shift
+                        np.copyto(lf, limb[:, r, :])
+                        o = (lf @ self.bmat[r]).reshape(cb, k, len(sel))  # (cb, K, nq_r)
+                        put(acc[:, :, sl[r]], o, i, shift, single)
         return out
-

@@ -26,6 +26,7 @@ from cdma_lidar.firmware_model.correlators import (
     register_correlator,
     unregister_correlator,
 )
+from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
@@ -129,7 +130,8 @@ def toy_kernel():
 
 
 #: Float limits low enough that the float kernels split their operands into limbs.
-LIMB_FLOAT_BITS = {"matmul": lambda n: n.bit_length() + 2, "fft": lambda n: 30}
+LIMB_FLOAT_BITS = {"matmul": lambda n: n.bit_length() + 2, "fft": lambda n: 30,
+                   "direct": lambda n: n.bit_length() + 3}
 
 
 def _fast_variants(cfg, codes):
@@ -166,7 +168,7 @@ def test_fast_paths_equal_chunked_reference(case):
 def test_every_method_is_listed_auto_first():
     methods = correlator_methods()
     assert methods[0] == "auto"
-    assert {"matmul", "fft"} <= set(methods[1:])
+    assert {"matmul", "fft", "direct"} <= set(methods[1:])
 
 
 @settings(max_examples=40)
@@ -187,12 +189,14 @@ def test_a_registered_kernel_is_usable_by_name(case):
         rx = FastReceiver(cfg, codes, method=name)
         assert rx.correlator_method == name
         # its cost is the default (infinite): "auto" never picks a kernel that did not ask
-        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft")
+        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft", "direct")
         acc = rx.accumulate(x[None, :])
         assert fast_from_accumulators(cfg, codes, acc, method=name)[0].same_as(want)
     assert name not in correlator_methods()
     with pytest.raises(ConfigError, match="method"):
         FastReceiver(cfg, codes, method=name)
+    with pytest.raises(ConfigError, match="method"):  # not served from fast()'s kept receivers
+        fast(cfg, codes, x, method=name)
 
 
 def test_registration_rejects_taken_and_reserved_names():
@@ -224,17 +228,24 @@ def test_unknown_method_is_a_config_error_listing_the_methods(run):
 
 
 def test_auto_choice_follows_the_cost_estimates():
-    """"auto" is the lowest cost of the registered kernels, ties to the first registered."""
-    from cdma_lidar.firmware_model.correlators import choose_correlator
-    from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
-    from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
+    """"auto" is the fastest estimate among kernels within 2x of the leanest memory."""
+    from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
+    from cdma_lidar.firmware_model.correlators.costs import (
+        DEFAULT_COEFFICIENTS,
+        MEMORY_FLOOR,
+        choose,
+    )
 
     rng = np.random.default_rng(5)
     for n, k, s, count in [(2047, 40, 4, 66), (511, 5, 2, 1024), (31, 3, 1, 31), (8191, 40, 4,
                                                                                    32766)]:
         plan = GatePlan((1 - 2 * rng.integers(0, 2, (k, n))).astype(np.int8), s, 0, count)
-        mm, ff = MatmulCorrelator.cost(plan), FFTCorrelator.cost(plan)
-        assert choose_correlator(plan) == ("matmul" if mm <= ff else "fft")
+        est = estimates(plan, DEFAULT_COEFFICIENTS)
+        lean = min(e.peak_bytes for e in est.values())
+        cap = max(2 * lean, lean + MEMORY_FLOOR)
+        want = min((e.seconds, i, name) for i, (name, e) in enumerate(est.items())
+                   if e.peak_bytes <= cap)[2]
+        assert choose_correlator(plan, DEFAULT_COEFFICIENTS) == want == choose(est)
 
 
 @settings(max_examples=15)
@@ -347,12 +358,56 @@ def test_config_validation_names_the_field():
         fast(ReceiverConfig(), np.full((1, 7), 2), np.zeros(280, np.int16))
 
 
-def test_noise_sumsq_too_wide_is_rejected_with_its_fields():
+def test_wide_noise_sumsq_is_accepted_and_exact():
+    """A noise_sumsq wider than int64 (RTL: SQ_W = 2 OUT_W + G_W) is carried exactly."""
     cfg = ReceiverConfig(gate_len=2047 * 4)  # out_bits = 32, whole period of a degree-11 code
-    with pytest.raises(ConfigError, match="out_bits/out_shift/gate_len") as err:
-        cfg.widths(2047)
-    assert err.value.field == "out_bits"
-    assert cfg.replace(out_bits=26).widths(2047).noise_sumsq <= 63
+    w = cfg.widths(2047)
+    assert w.noise_sumsq == 2 * 29 - 2 + 13 and w.wide_sumsq and w.sumsq_dtype is object
+    assert not cfg.replace(out_bits=26).widths(2047).wide_sumsq
+    # saturating full-scale data: every out is +-2^31 -> sum of squares ~ 62 * 2^62 > 2^63
+    n, s, r, n_uid = 31, 2, 1024, 16
+    codes = mseq((5, 2))[None, :]
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=s, averages=r, uid_bits=n_uid, uid=0,
+                         gate_len=n * s, peak_exclude=0, out_bits=32)
+    assert cfg.widths(n).noise_sumsq == 68
+    lo, hi = -(1 << 15), (1 << 15) - 1
+    ref = np.repeat(1 - 2 * codes[0].astype(np.int64), s)
+    x = np.tile(np.where(np.roll(ref, 3) > 0, hi, lo), r * n_uid).astype(np.int16)
+    want = reference(cfg, codes, x)
+    assert want.noise_sumsq.dtype == object
+    total = int(want.noise_sumsq[0])
+    assert total > 2**63
+    assert total == sum(int(v) ** 2 for j, v in enumerate(want.corr[0].tolist()) if j != 3)
+    for method in ("matmul", "fft"):
+        got = FastReceiver(cfg, codes, method=method).column(x)
+        assert got.mismatches(want) == [], method
+    assert np.isfinite(want.snr_db()).all()
+
+
+def test_the_widest_noise_sumsq_is_accepted():
+    # 16-bit ADC, S = 64, R = 1024, n = 16, degree 20, whole-period gate, 32-bit output:
+    # out^2 <= 2^62 summed over 67108800 < 2^26 lags needs 2*32-2+26 = 88 bits
+    big = ReceiverConfig(adc_bits=16, samples_per_chip=64, averages=1024, uid_bits=16,
+                         gate_len=(2**20 - 1) * 64, out_bits=32)
+    assert big.widths(2**20 - 1).noise_sumsq == 88
+
+
+def test_two_word_sum_of_squares_is_exact_at_the_largest_terms():
+    from cdma_lidar.firmware_model.receiver import _sum_squares
+
+    # the largest square (2^62, out = -2^31) and its neighbours, 2^20 of each per row:
+    # the int64 halves stay far from overflow (2^26 lags * 2^31 < 2^58); the result is exact
+    terms = np.array([2**62, 2**62 - 1, (2**31 - 1) ** 2, 0, 1], dtype=np.int64)
+    sq = np.tile(terms, (2, 2**20))
+    where = np.ones(sq.shape, dtype=bool)
+    where[1, ::3] = False
+    got = _sum_squares(sq, where, wide=True)
+    assert got.dtype == object
+    for row in range(2):
+        assert got[row] == sum(v for v, ok in zip(sq[row].tolist(), where[row].tolist(),
+                                                  strict=True) if ok)
+    narrow = _sum_squares(sq[:, :5] >> 8, where[:, :5], wide=False)
+    assert narrow.dtype == np.int64
 
 
 def test_widths_of_the_default_and_the_largest_config():
@@ -389,8 +444,9 @@ def test_reference_rejects_overfeeding_and_early_finish():
     assert rx.finish().corr.shape == (1, 3)
 
 
-@pytest.mark.parametrize(("degree", "gate_len", "method"), [(7, 40, "matmul"), (9, 1022, "fft")])
-def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
+@pytest.mark.parametrize(("degree", "gate_len"), [(7, 40), (9, 1022)])
+def test_automatic_correlator_choice_on_gold_codes(degree, gate_len):
+    from cdma_lidar.firmware_model.correlators import choose_correlator
     from cdma_lidar.firmware_model.gold import gold_family
     from cdma_lidar.firmware_model.pairs import preferred_pairs
 
@@ -401,12 +457,12 @@ def test_automatic_correlator_choice_on_gold_codes(degree, gate_len, method):
     rng = np.random.default_rng(gate_len)
     x = rng.integers(-2048, 2048, cfg.column_samples(n))
     rx = FastReceiver(cfg, codes)
-    assert rx.correlator_method == method
+    assert rx.correlator_method == choose_correlator(rx.plan)
     got = rx.column(x)
-    if method == "matmul":
+    if degree == 7:
         assert got.mismatches(reference(cfg, codes, x)) == []
-    else:  # the reference would take seconds here; the other exact path must agree
-        assert got.mismatches(FastReceiver(cfg, codes, method="matmul").column(x)) == []
+    for method in correlator_methods()[1:]:  # the reference would take seconds at degree 9
+        assert got.mismatches(FastReceiver(cfg, codes, method=method).column(x)) == [], method
 
 
 @settings(max_examples=40)
@@ -440,3 +496,69 @@ def test_uid_echo_straddling_period_boundaries(n_uid, s, r, data):
         assert out.uid_signs.tolist() == [np.sign(c).tolist()]
         if 2 * d < ns:
             assert out.uid_match.tolist() == [True]
+
+
+def test_a_large_frame_split_across_threads_equals_its_columns():
+    # 16 columns of 32512 samples: the passes outside the kernel run in several threads
+    rng = np.random.default_rng(11)
+    codes = rng.integers(0, 2, (3, 127))
+    cfg = ReceiverConfig(samples_per_chip=4, averages=64, uid_bits=2, uid=2, gate_start=500,
+                         gate_len=40, peaks=2, out_shift=3, rounding="convergent")
+    frame = rng.integers(-2048, 2048, (16, cfg.column_samples(127))).astype(np.int16)
+    rx = FastReceiver(cfg, codes)
+    outs = rx.frame(frame)
+    acc_outs = rx.from_accumulators(rx.accumulate(frame))
+    for col, out, acc_out in zip(frame, outs, acc_outs, strict=True):
+        single = rx.column(col)
+        assert out.same_as(single) and acc_out.same_as(single)
+    assert outs[3].same_as(reference(cfg, codes, frame[3]))
+
+
+def test_auto_chooses_per_number_of_columns_and_keeps_its_kernels():
+    from cdma_lidar.firmware_model.correlators import choose_correlator
+
+    rng = np.random.default_rng(12)
+    codes = rng.integers(0, 2, (40, 2047))
+    cfg = ReceiverConfig(gate_start=100, gate_len=64)
+    rx = FastReceiver(cfg, codes)
+    assert rx.correlator_method == choose_correlator(rx.plan)  # plan.columns = 1
+    k160 = rx.kernel_for(160)
+    assert k160.method == "matmul"  # the paper frame's class: one large product
+    assert rx.kernel_for(129) is k160  # same power-of-two bucket, same prepared kernel
+    assert FastReceiver(cfg, codes, columns=160).correlator_method == "matmul"
+    named = FastReceiver(cfg, codes, method="fft")
+    assert named.kernel_for(1).method == named.kernel_for(1000).method == "fft"
+    with pytest.raises(ConfigError, match="columns"):
+        FastReceiver(cfg, codes, columns=0)
+
+
+def test_fast_keeps_the_prepared_receiver():
+    from cdma_lidar.firmware_model import receiver as rxmod
+
+    rxmod.clear_receiver_cache()
+    rng = np.random.default_rng(13)
+    codes = rng.integers(0, 2, (2, 31))
+    cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_len=10)
+    x = rng.integers(-2048, 2048, cfg.column_samples(31))
+    first = fast(cfg, codes, x)
+    kept = rxmod._receiver(cfg, codes, "auto")
+    assert rxmod._receiver(cfg, codes.copy(), "auto") is kept  # same bits, same receiver
+    assert fast(cfg, codes, x).same_as(first)
+    other = codes.copy()
+    other[0, 0] ^= 1
+    assert rxmod._receiver(cfg, other, "auto") is not kept  # different codes: a new plan
+    assert fast(cfg, other, x).same_as(reference(cfg, other, x))
+    for i in range(rxmod.RECEIVER_CACHE_SIZE + 1):
+        rxmod._receiver(cfg.replace(gate_len=3 + i), codes, "auto")
+    assert rxmod._receiver(cfg, codes, "auto") is not kept  # evicted, least recently used
+    rxmod.clear_receiver_cache()
+
+
+def test_a_large_frame_with_a_code_out_of_range_is_refused():
+    rng = np.random.default_rng(14)
+    codes = rng.integers(0, 2, (2, 127))
+    cfg = ReceiverConfig(samples_per_chip=4, averages=64, gate_len=40)
+    frame = rng.integers(-2048, 2048, (16, cfg.column_samples(127))).astype(np.int16)
+    frame[11, 5] = 2048  # one code past the 12-bit range, in a later thread's columns
+    with pytest.raises(ConfigError, match="samples"):
+        FastReceiver(cfg, codes).frame(frame)

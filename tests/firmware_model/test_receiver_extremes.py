@@ -19,6 +19,7 @@ from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
     ReceiverConfig,
+    correlator_methods,
     fast,
     fast_from_accumulators,
     reference,
@@ -39,7 +40,7 @@ def _raw_definition(codes, s, d, lags):
 
 def _both(cfg, codes, x):
     want = reference(cfg, codes, x)
-    for method in ("matmul", "fft"):
+    for method in correlator_methods()[1:]:
         got = FastReceiver(cfg, codes, method=method).column(x)
         assert got.mismatches(want) == [], method
     return want
@@ -90,7 +91,7 @@ def test_maximum_averages_with_a_long_code():
     assert (out.corr == (lo * r * -1) >> 12).all()
 
 
-@pytest.mark.parametrize("method", ["matmul", "fft"])
+@pytest.mark.parametrize("method", ["matmul", "fft", "direct"])
 def test_largest_degree_at_maximum_averages_and_width(method):
     # Degree 20 (N = 2^20 - 1), R = 1024 and 16-bit full-scale data in the accumulators,
     # gate wrapping past the end; float limit lowered so the operands must be split.
@@ -105,7 +106,7 @@ def test_largest_degree_at_maximum_averages_and_width(method):
     lags = [(n - 3 + m) % n for m in range(6)]
     raw = _raw_definition(codes, 1, acc[0, 0], lags)
     assert np.abs(raw).max() > 2**44  # the operands really are wide
-    for fb in (53, 28 if method == "matmul" else 50):
+    for fb in (53, 50 if method == "fft" else 28):
         out = FastReceiver(cfg, codes, method=method, float_bits=fb).from_accumulators(acc)[0]
         want = np.array([round(v / 2**16) for v in raw[0].tolist()])  # exact: |v| < 2^53
         assert out.corr[0].tolist() == want[1:5].tolist()

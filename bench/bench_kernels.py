@@ -1,0 +1,185 @@
+"""Correlation kernels: does ``method="auto"`` pick the fastest exact kernel, everywhere?
+
+For each configuration of a grid (degree, S, K, gate, R, UID bits, columns per
+call) every registered kernel finishes the same random accumulators
+(``FastReceiver.from_accumulators``, the whole chain after the accumulator); the
+results must be identical. Per row: each kernel's time per call (best of N) and
+peak traced memory (tracemalloc, the prepared kernel plus one call), the kernel
+``auto`` chose, the fastest, ``auto / fastest`` (target <= 1.25) and ``auto's memory /
+leanest`` (target <= 2).
+
+A kernel whose *predicted* time is over 20x the best prediction, or over 60 s, or
+whose predicted memory is over 2 GiB (a shared machine), is not run (``-``); a
+configuration whose best prediction is over 60 s is skipped.
+
+Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
+S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
+and many-channel rows. Full grid: ``CDMA_LIDAR_BENCH_FULL=1 python -m bench kernels``
+(degrees 5-20, S 1-64, K 1-2048; long).
+
+The cost model's coefficients are the calibration cache's or the built-in ones
+(``python -m cdma_lidar.firmware_model.correlators.costs --show``).
+"""
+
+from __future__ import annotations
+
+import gc
+import itertools
+import math
+import os
+import time
+import tracemalloc
+from dataclasses import dataclass
+
+import numpy as np
+
+from cdma_lidar.firmware_model.correlators import estimates
+from cdma_lidar.firmware_model.correlators.costs import (
+    MEMORY_FLOOR,
+    MEMORY_SLACK,
+    cache_path,
+    coefficients,
+)
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
+
+SKIP_FACTOR = 20.0
+SKIP_SECONDS = 60.0
+SKIP_BYTES = 2 << 30
+
+
+@dataclass(frozen=True)
+class Case:
+    """One grid point. ``gate``: 1, 64 or 0 (the whole period)."""
+
+    degree: int
+    s: int
+    k: int
+    gate: int
+    r: int = 10
+    uid_bits: int = 1
+    adc_bits: int = 12
+    columns: int = 1
+
+    def label(self) -> str:
+        g = "all" if self.gate == 0 else str(self.gate)
+        return (f"d{self.degree:<2} S{self.s:<2} K{self.k:<4} G{g:<4} R{self.r:<4} "
+                f"n{self.uid_bits:<2} b{self.adc_bits:<2} C{self.columns:<3}")
+
+
+def _setup(case: Case) -> tuple[ReceiverConfig, np.ndarray, np.ndarray]:
+    n = (1 << case.degree) - 1
+    ns = n * case.s
+    gate = ns if case.gate == 0 else min(case.gate, ns)
+    cfg = ReceiverConfig(adc_bits=case.adc_bits, samples_per_chip=case.s, averages=case.r,
+                         uid_bits=case.uid_bits, gate_start=ns // 3 if gate < ns else 0,
+                         gate_len=gate, out_bits=32)
+    rng = np.random.default_rng(case.degree * 1000 + case.s)
+    codes = rng.integers(0, 2, (case.k, n), dtype=np.uint8)
+    lo, hi = -(1 << (case.adc_bits - 1)), (1 << (case.adc_bits - 1)) - 1
+    acc = rng.integers(case.r * lo, case.r * hi + 1, (case.columns, case.uid_bits, ns),
+                       dtype=np.int64)
+    return cfg, codes, acc
+
+
+def _best_time(fn, repeats: int) -> float:
+    t = math.inf
+    for _ in range(repeats):
+        gc.collect()
+        t0 = time.perf_counter()
+        fn()
+        t = min(t, time.perf_counter() - t0)
+    return t
+
+
+def run_case(case: Case, repeats: int) -> str:
+    """Measure every kernel on one grid point; returns the table row."""
+    cfg, codes, acc = _setup(case)
+    auto = FastReceiver(cfg, codes, columns=case.columns)
+    est = estimates(auto.plan)
+    finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
+    best_pred = min(e.seconds for e in finite.values())
+    if best_pred > SKIP_SECONDS:
+        return f"{case.label()} | skipped: best predicted {best_pred:.0f} s"
+    times: dict[str, float] = {}
+    mems: dict[str, float] = {}
+    want = None
+    for m, e in finite.items():
+        if e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS \
+                or e.peak_bytes > SKIP_BYTES:
+            continue
+        gc.collect()
+        measure_mem = True
+        if measure_mem:
+            tracemalloc.start()
+        rx = FastReceiver(cfg, codes, method=m, columns=case.columns)
+        got = rx.from_accumulators(acc)
+        if measure_mem:
+            mems[m] = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+        if want is None:
+            want = got
+        elif not all(a.same_as(b) for a, b in zip(got, want, strict=True)):
+            raise AssertionError(f"{case.label()}: kernel {m} differs")
+        times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
+        del rx
+    chosen = auto.correlator_method
+    fastest = min(times, key=times.__getitem__)
+    cells = " ".join(
+        f"{m}={times[m] * 1e3:9.2f}ms/{mems.get(m, math.nan) / 2**20:6.1f}MiB" if m in times
+        else f"{m}={'-':>9}  {'':>9}" for m in correlator_methods()[1:])
+    ratio = times[chosen] / times[fastest] if chosen in times else math.inf
+    lean = min(mems.values()) if mems else math.nan
+    mem_ratio = mems.get(chosen, math.nan) / lean if mems else math.nan
+    mem_ok = not mem_ratio > MEMORY_SLACK or mems[chosen] - lean <= MEMORY_FLOOR
+    flag = "" if ratio <= 1.25 and mem_ok else "  <-- off target"
+    return (f"{case.label()} | {cells} | auto={chosen:<6} best={fastest:<6} "
+            f"time x{ratio:5.2f} mem x{mem_ratio:4.2f}{flag}")
+
+
+def quick_grid() -> list[Case]:
+    cases = [Case(d, s, k, g) for d, s, k, g in itertools.product(
+        (5, 11, 13), (1, 4, 16), (1, 40), (1, 64, 0))]
+    cases += [
+        Case(11, 4, 40, 64, r=1024, uid_bits=16, adc_bits=16),  # wide data: limbs
+        Case(13, 4, 40, 0, r=1024, uid_bits=16, adc_bits=16),
+        Case(11, 4, 40, 64, columns=160),  # the paper frame's class
+        Case(11, 16, 40, 1024, columns=32),
+        Case(13, 4, 400, 64), Case(13, 4, 400, 0),  # many channels
+        Case(15, 4, 1200, 64),
+        Case(18, 64, 1, 64), Case(18, 64, 4, 64), Case(18, 16, 4, 64),  # the issue's cases
+    ]
+    return cases
+
+
+def full_grid() -> list[Case]:
+    cases = []
+    rs = itertools.cycle([(10, 1, 12), (1024, 16, 16), (100, 4, 14)])
+    for d, s, k, g in itertools.product((5, 8, 11, 13, 15, 18, 20), (1, 4, 16, 64),
+                                        (1, 40, 400, 2048), (1, 64, 0)):
+        r, n, b = next(rs)
+        cases.append(Case(d, s, k, g, r=r, uid_bits=n, adc_bits=b))
+    return cases
+
+
+def main() -> None:
+    full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
+    src = cache_path() if cache_path().is_file() else "built-in defaults"
+    print(f"kernel grid ({'full' if full else 'quick'}); cost coefficients {coefficients()} "
+          f"from {src}; load average {os.getloadavg()[0]:.2f}")
+    print("times per call (from_accumulators: despread .. peaks), best of 3; memory: "
+          "tracemalloc peak of preparing the kernel plus one call")
+    worst, worst_mem, n_rows = 0.0, 0.0, 0
+    for case in full_grid() if full else quick_grid():
+        row = run_case(case, repeats=3)
+        print(row, flush=True)
+        if "time x" in row:
+            n_rows += 1
+            worst = max(worst, float(row.split("time x")[1].split()[0]))
+            m = float(row.split("mem x")[1].split()[0])
+            worst_mem = max(worst_mem, m if math.isfinite(m) else 0.0)
+    print(f"{n_rows} rows: worst auto/fastest time x{worst:.2f} (target 1.25), "
+          f"worst auto/leanest memory x{worst_mem:.2f} (target 2)")
+
+
+if __name__ == "__main__":
+    main()
