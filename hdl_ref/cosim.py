@@ -497,7 +497,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     ``samples``: R n N S, the clocks a column's samples take at one per clock;
     ``stream``: the correlation streams, groups * n * (N + L - 1);
     ``process``: from the ``col_start`` clock to the clock of the column's last
-    ``res_valid``: stream + K L + 10 + K (P (G + 2) + G + 6);
+    ``res_valid``: stream + K L + 12 + K (P (G + 4) + G + 7);
     ``first_take``: the clock (counted from 0 after the ``start`` edge) whose edge takes
     the first sample;
     ``last_to_col_start``: from the edge taking a column's last sample to its
@@ -509,11 +509,11 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     g, p = ports["cfg_gate_len"], ports["cfg_peaks"]
     k, lanes = params.channels, params.lanes
     stream = top_groups(ports, lanes) * n * (n_chips + lanes - 1)
-    post = k * (p * (g + 2) + g + 6)
+    post = k * (p * (g + 4) + g + 7)
     return {
         "samples": r * n * n_chips * s,
         "stream": stream,
-        "process": stream + k * lanes + 10 + post,
+        "process": stream + k * lanes + 12 + post,
         "first_take": 2,
         "last_to_col_start": 2,
     }

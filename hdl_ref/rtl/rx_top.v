@@ -206,6 +206,11 @@ module rx_top #(
     assign busy    = (tstate != T_IDLE);
     wire a_take    = s_valid && s_ready;
 
+    reg               r_v, r_first, r_buf;   // read issued last clock (data on rd)
+    reg [S_W-1:0]     r_bank;
+    reg [ADDR_W-1:0]  r_addr;
+    reg signed [ADC_W-1:0] r_x;
+    reg [AVG_W-1:0]   w_old;                 // RAM word, registered
     reg               w_v, w_first, w_buf;
     reg [S_W-1:0]     w_bank;
     reg [ADDR_W-1:0]  w_addr;
@@ -215,7 +220,6 @@ module rx_top #(
     wire [AVG_W-1:0]  rd [0:2*MAX_S-1];            // bank (b, s) at b*MAX_S + s
     reg  [ADDR_W-1:0] corr_addr [0:MAX_S-1];
     wire signed [AVG_W-1:0] w_x_ext = {{(AVG_W-ADC_W+1){w_x[ADC_W-1]}}, w_x[ADC_W-2:0]};
-    wire [AVG_W-1:0]  w_old = w_buf ? rd[MAX_S + w_bank] : rd[w_bank];
 
     genvar gb, gs;
     generate
@@ -295,14 +299,19 @@ module rx_top #(
     reg [JJ_W-1:0]    gjj2;
     reg signed [BOX_W-1:0] box2;
 
+    reg               vq, fq, eq, aq, gendq;   // stage 1b: RAM words registered
+    reg [UID_W-1:0]   pq;
+    reg [K-1:0]       codeq;
+    reg [JJ_W-1:0]    gjjq;
+    reg [MAX_S*AVG_W-1:0] rdq;
     reg signed [BOX_W-1:0] box1;
     integer si;
     always @(*) begin
         box1 = {BOX_W{1'b0}};
         for (si = 0; si < MAX_S; si = si + 1)
             if (si < c_spc)
-                box1 = box1 + {{(BOX_W-AVG_W){rd[(proc_buf ? MAX_S : 0) + si][AVG_W-1]}},
-                               rd[(proc_buf ? MAX_S : 0) + si]};
+                box1 = box1 + {{(BOX_W-AVG_W){rdq[si*AVG_W + AVG_W-1]}},
+                               rdq[si*AVG_W +: AVG_W]};
     end
 
     // ---- lane control delay line: entry j = step k - j ----
@@ -345,25 +354,36 @@ module rx_top #(
                 reg  signed [PER_W-1:0] per;
                 reg  signed [RAW_W-1:0] tot;
                 reg  [MAX_UID-1:0]      neg, nz;
+                reg                     fv;             // fold fval into the total
+                reg  signed [PER_W-1:0] fval;           // the period's sum c_p
+                reg  [UID_W-1:0]        fp;
                 wire [UID_W-1:0]        lp    = e_p[gj*UID_W +: UID_W];
                 wire signed [PER_W-1:0] bx    = {{(PER_W-BOX_W){box2[BOX_W-1]}}, box2};
                 wire signed [PER_W-1:0] term  = e_code[IX] ? -bx : bx;
                 wire signed [PER_W-1:0] psum  = (e_f[gj] ? {PER_W{1'b0}} : per) + term;
-                wire signed [RAW_W-1:0] pext  = {{(RAW_W-PER_W){psum[PER_W-1]}}, psum};
-                wire [MAX_UID-1:0]      psel  = {{(MAX_UID-1){1'b0}}, 1'b1} << lp;
+                wire signed [RAW_W-1:0] pext  = {{(RAW_W-PER_W){fval[PER_W-1]}}, fval};
+                wire [MAX_UID-1:0]      psel  = {{(MAX_UID-1){1'b0}}, 1'b1} << fp;
                 wire                    pflip = |(c_uid & psel);
-                wire                    p0    = (lp == {UID_W{1'b0}});
+                wire                    p0    = (fp == {UID_W{1'b0}});
                 always @(posedge clk) begin
+                    fv <= 1'b0;
                     if (v2 && e_a[gj]) begin
                         per <= psum;
                         if (e_e[gj]) begin
-                            tot <= (p0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
-                            neg <= (p0 ? {MAX_UID{1'b0}} : neg)
-                                   | (psum[PER_W-1] ? psel : {MAX_UID{1'b0}});
-                            nz  <= (p0 ? {MAX_UID{1'b0}} : nz)
-                                   | ((psum != {PER_W{1'b0}}) ? psel : {MAX_UID{1'b0}});
+                            fv   <= 1'b1;
+                            fval <= psum;
+                            fp   <= lp;
                         end
                     end
+                    if (fv) begin
+                        tot <= (p0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
+                        neg <= (p0 ? {MAX_UID{1'b0}} : neg)
+                               | (fval[PER_W-1] ? psel : {MAX_UID{1'b0}});
+                        nz  <= (p0 ? {MAX_UID{1'b0}} : nz)
+                               | ((fval != {PER_W{1'b0}}) ? psel : {MAX_UID{1'b0}});
+                    end
+                    if (rst)
+                        fv <= 1'b0;
                 end
                 assign ln_tot[IX*RAW_W +: RAW_W]     = tot;
                 assign ln_neg[IX*MAX_UID +: MAX_UID] = neg;
@@ -373,7 +393,7 @@ module rx_top #(
     endgenerate
 
     // ---- hold chain and serializer ----
-    reg                     latch_v;
+    reg                     latch_v0, latch_v;  // last fold, then copy
     reg  [JJ_W-1:0]         latch_jj;
     reg  [KL*RAW_W-1:0]     h_raw;          // entry 0 at the bottom
     reg  [KL*MAX_UID-1:0]   h_neg, h_nz;
@@ -417,8 +437,6 @@ module rx_top #(
         .raddr(cr_raddr), .rdata(cr_rdata)
     );
     wire signed [OUT_W-1:0] cr_out = cr_rdata[OUT_W-1:0];
-    wire [MAG_W-1:0]        cr_mag = cr_out[OUT_W-1] ? -{cr_out[OUT_W-1], cr_out}
-                                                     : {1'b0, cr_out};
 
     // ------------------------------------------------------------------
     // Post-processing scan (per channel): as rx_chain
@@ -464,7 +482,15 @@ module rx_top #(
     reg  [2:0]        wait_cnt;
     reg  [1:0]        f_cnt;
 
-    wire signed [2*OUT_W-1:0] sq = cr_out * cr_out;
+    reg               s2_v, s2_ok, s3_v, s3_ok;
+    reg  [G_W-1:0]    s2_j, s3_j;
+    reg  [LAG_W-1:0]  s2_lag, s3_lag;
+    reg  [CW-1:0]     s2_word, s3_word;
+    reg  [MAG_W-1:0]  s3_mag;
+    reg  [2*OUT_W-1:0] s3_sq;
+    wire signed [OUT_W-1:0]   s2_out = s2_word[OUT_W-1:0];
+    wire signed [OUT_W-1:0]   s3_out = s3_word[OUT_W-1:0];
+    wire signed [2*OUT_W-1:0] sq = s2_out * s2_out;
     wire [MAX_UID-1:0]  b_neg = b_word[OUT_W +: MAX_UID] & uid_mask;
     wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
     wire signed [OUT_W-1:0] b_out = b_word[OUT_W-1:0];
@@ -496,7 +522,9 @@ module rx_top #(
         col_start  <= 1'b0;
         w_v        <= 1'b0;
         v1         <= 1'b0;
+        vq         <= 1'b0;
         v2         <= 1'b0;
+        latch_v0   <= 1'b0;
         latch_v    <= 1'b0;
         s1_v       <= 1'b0;
 
@@ -565,13 +593,23 @@ module rx_top #(
         end
 
         // ---- accumulation ----
-        if (a_take) begin
+        r_v <= 1'b0;
+        if (r_v) begin
             w_v     <= 1'b1;
-            w_buf   <= acc_buf;
-            w_bank  <= a_s;
-            w_addr  <= a_addr;
-            w_first <= (a_r == {R_W{1'b0}});
-            w_x     <= s_data;
+            w_buf   <= r_buf;
+            w_bank  <= r_bank;
+            w_addr  <= r_addr;
+            w_first <= r_first;
+            w_x     <= r_x;
+            w_old   <= r_buf ? rd[MAX_S + r_bank] : rd[r_bank];
+        end
+        if (a_take) begin
+            r_v     <= 1'b1;
+            r_buf   <= acc_buf;
+            r_bank  <= a_s;
+            r_addr  <= a_addr;
+            r_first <= (a_r == {R_W{1'b0}});
+            r_x     <= s_data;
             if (a_s != c_spc - 1'b1) begin
                 a_s <= a_s + 1'b1;
             end else begin
@@ -611,14 +649,26 @@ module rx_top #(
             gjj1  <= g_jj;
         end
         if (v1) begin
+            vq    <= 1'b1;
+            fq    <= f1;
+            eq    <= e1;
+            aq    <= a1;
+            pq    <= p1;
+            codeq <= code1;
+            gendq <= gend1;
+            gjjq  <= gjj1;
+            for (si = 0; si < MAX_S; si = si + 1)
+                rdq[si*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + si];
+        end
+        if (vq) begin
             v2    <= 1'b1;
-            f2    <= f1;
-            e2    <= e1;
-            a2    <= a1;
-            p2    <= p1;
-            code2 <= code1;
-            gend2 <= gend1;
-            gjj2  <= gjj1;
+            f2    <= fq;
+            e2    <= eq;
+            a2    <= aq;
+            p2    <= pq;
+            code2 <= codeq;
+            gend2 <= gendq;
+            gjj2  <= gjjq;
             box2  <= box1;
         end
         if (v2) begin
@@ -630,10 +680,11 @@ module rx_top #(
                 sr_code <= e_code;
             end
             if (gend2) begin
-                latch_v  <= 1'b1;
+                latch_v0 <= 1'b1;
                 latch_jj <= gjj2;
             end
         end
+        latch_v <= latch_v0;
         if (latch_v) begin
             if (ser_busy)
                 err_overrun <= 1'b1;
@@ -711,7 +762,7 @@ module rx_top #(
         end
         P_FLUSH: begin
             // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
-            if (!v1 && !v2 && !latch_v && !ser_busy && !ser_ok) begin
+            if (!v1 && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
                 wait_cnt <= wait_cnt + 1'b1;
                 if (wait_cnt == 3'd4) begin
                     pk_ch  <= {K_W{1'b0}};
@@ -747,7 +798,7 @@ module rx_top #(
         end
         P_PWAIT: begin
             wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd1) begin
+            if (wait_cnt == 3'd3) begin
                 pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
                 pk_j[q_k*G_W +: G_W]          <= b_j;
                 res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
@@ -800,7 +851,7 @@ module rx_top #(
         end
         P_NWAIT: begin
             wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd1)
+            if (wait_cnt == 3'd2)
                 pstate <= P_EMIT;
         end
         P_EMIT: begin
@@ -825,28 +876,39 @@ module rx_top #(
         default: pstate <= P_IDLE;
         endcase
 
-        // ---- scan stage 1 ----
-        if (s1_v) begin
+        // ---- scan stages: s1 RAM word, s2 registered, s3 magnitude and square ----
+        s2_v    <= s1_v;
+        s2_ok   <= s1_ok;
+        s2_j    <= s1_j;
+        s2_lag  <= s1_lag;
+        s2_word <= cr_rdata;
+        s3_v    <= s2_v;
+        s3_ok   <= s2_ok;
+        s3_j    <= s2_j;
+        s3_lag  <= s2_lag;
+        s3_word <= s2_word;
+        s3_mag  <= s2_out[OUT_W-1] ? -{s2_out[OUT_W-1], s2_out} : {1'b0, s2_out};
+        s3_sq   <= sq;
+        if (s3_v) begin
             if (pstate == P_NOISE || pstate == P_NWAIT) begin
                 corr_valid   <= 1'b1;
                 corr_channel <= pk_ch;
-                corr_index   <= s1_j;
-                corr_data    <= cr_out;
+                corr_index   <= s3_j;
+                corr_data    <= s3_out;
             end
-            if (s1_ok) begin
+            if (s3_ok) begin
                 if (pstate == P_PEAK || pstate == P_PWAIT) begin
-                    if (!b_have || cr_mag > b_mag) begin
+                    if (!b_have || s3_mag > b_mag) begin
                         b_have <= 1'b1;
-                        b_mag  <= cr_mag;
-                        b_j    <= s1_j;
-                        b_lag  <= s1_lag;
-                        b_word <= cr_rdata;
+                        b_mag  <= s3_mag;
+                        b_j    <= s3_j;
+                        b_lag  <= s3_lag;
+                        b_word <= s3_word;
                     end
                 end else begin
                     res_noise_count <= res_noise_count + 1'b1;
-                    res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){cr_out[OUT_W-1]}}, cr_out};
-                    res_noise_sumsq <= res_noise_sumsq
-                                       + {{(SQ_W-2*OUT_W){1'b0}}, sq[2*OUT_W-1:0]};
+                    res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){s3_out[OUT_W-1]}}, s3_out};
+                    res_noise_sumsq <= res_noise_sumsq + {{(SQ_W-2*OUT_W){1'b0}}, s3_sq};
                 end
             end
         end
@@ -860,9 +922,14 @@ module rx_top #(
             w_v         <= 1'b0;
             v1          <= 1'b0;
             v2          <= 1'b0;
+            latch_v0    <= 1'b0;
             latch_v     <= 1'b0;
+            vq          <= 1'b0;
+            r_v         <= 1'b0;
             ser_busy    <= 1'b0;
             s1_v        <= 1'b0;
+            s2_v        <= 1'b0;
+            s3_v        <= 1'b0;
             div_run     <= 1'b0;
             div_done    <= 1'b0;
             err_overrun <= 1'b0;
@@ -872,7 +939,7 @@ module rx_top #(
         end
     end
 
-    wire unused_ok = &{1'b0, s1_lag, ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
+    wire unused_ok = &{1'b0, s3_lag, ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
                        g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
                        sq[2*OUT_W-1], div_q[LAG_W-1:MAX_DEG], pk_j, q_j};
 endmodule

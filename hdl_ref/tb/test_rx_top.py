@@ -64,7 +64,7 @@ async def _run_case(dut, case: dict) -> dict:
                 taken += 1
                 if taken % per_col == 0:
                     last_take.append(clock)
-            else:
+            elif first_take is not None:
                 stalls.append(clock)
         if dut.corr_valid.value:
             ch = int(dut.corr_channel.value)
