@@ -7,6 +7,9 @@
 // then saturation to a signed `out_bits` word.
 // Stage 1: floor shift and remainder (low s bits); stage 2: round-up decision
 // and increment; stage 3: saturation. Latency 3 clocks, one word per clock.
+// The constants that depend only on the configuration (remainder mask, half
+// LSB, saturation rails) are registered: shift, rounding and out_bits must be
+// stable from one clock before the first word (rx_top holds them from start).
 // The shift is clamped to RAW_W + 1, which gives the same result for every
 // larger shift (the quotient is 0 or -1 and the remainder below one half).
 `default_nettype none
@@ -34,7 +37,10 @@ module out_scale #(
     wire signed [EXT_W-1:0] rx    = {{(EXT_W-RAW_W){in_raw[RAW_W-1]}}, in_raw};
     wire [SH_W-1:0]         sh_c  = ({{(32-SH_W){1'b0}}, shift} > RAW_W + 1)
                                     ? RAW_W[SH_W-1:0] + 1'b1 : shift;
-    wire [EXT_W-1:0]        lowm  = ({{(EXT_W-1){1'b0}}, 1'b1} << sh_c) - 1'b1;
+    reg  [SH_W-1:0]         k_sh;                   // registered configuration constants
+    reg  [EXT_W-1:0]        k_low, k_half;
+    reg                     k_zero;
+    reg  signed [EXT_W-1:0] smax, smin;
 
     // ---- stage 1: floor quotient and remainder ----
     reg                     s1_v;
@@ -54,18 +60,22 @@ module out_scale #(
     wire r_up = !s1_zero && (((rounding == 2'd1) && (r_gt || r_eq)) ||
                              ((rounding == 2'd2) && (r_gt || (r_eq && s1_q[0]))));
 
-    wire signed [EXT_W-1:0] smax = ({{(EXT_W-1){1'b0}}, 1'b1} << (out_bits - 1'b1))
-                                   - {{(EXT_W-1){1'b0}}, 1'b1};
-    wire signed [EXT_W-1:0] smin = ~smax;
 
     always @(posedge clk) begin
+        k_sh   <= sh_c;
+        k_low  <= ({{(EXT_W-1){1'b0}}, 1'b1} << sh_c) - 1'b1;
+        k_half <= (sh_c == {SH_W{1'b0}}) ? {EXT_W{1'b0}}
+                  : ({{(EXT_W-1){1'b0}}, 1'b1} << (sh_c - 1'b1));
+        k_zero <= (sh_c == {SH_W{1'b0}});
+        smax   <= ({{(EXT_W-1){1'b0}}, 1'b1} << (out_bits - 1'b1)) - {{(EXT_W-1){1'b0}}, 1'b1};
+        smin   <= ~(({{(EXT_W-1){1'b0}}, 1'b1} << (out_bits - 1'b1)) - {{(EXT_W-1){1'b0}}, 1'b1});
+
         s1_v    <= in_v;
         s1_tag  <= in_tag;
-        s1_q    <= rx >>> sh_c;
-        s1_rem  <= rx & lowm;
-        s1_half <= (sh_c == {SH_W{1'b0}}) ? {EXT_W{1'b0}}
-                   : ({{(EXT_W-1){1'b0}}, 1'b1} << (sh_c - 1'b1));
-        s1_zero <= (sh_c == {SH_W{1'b0}});
+        s1_q    <= rx >>> k_sh;
+        s1_rem  <= rx & k_low;
+        s1_half <= k_half;
+        s1_zero <= k_zero;
 
         s2_v    <= s1_v;
         s2_tag  <= s1_tag;
