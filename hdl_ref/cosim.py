@@ -329,8 +329,12 @@ def to_receiver_output(decoded: Mapping[str, Any]) -> ReceiverOutput:
     return ReceiverOutput(**values)
 
 
-def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str]) -> Path:
+def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str],
+          rtl_dir: str | os.PathLike[str] = RTL_DIR) -> Path:
     """Compile the RTL with Icarus for ``top`` and ``generics`` into ``build_dir``.
+
+    ``rtl_dir`` holds the sources (default the package's ``rtl``; the mutation
+    tests point it at a changed copy).
 
     Reuses an up-to-date build (cocotb's runner compares source times). Returns
     the build folder. Raises ``SimulatorMissing`` without Icarus or without the
@@ -350,7 +354,7 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
     build_dir.mkdir(parents=True, exist_ok=True)
     runner = get_runner("icarus")
     runner.build(
-        sources=[RTL_DIR / name for name in RTL_SOURCES],
+        sources=[Path(rtl_dir) / name for name in RTL_SOURCES],
         hdl_toplevel=top,
         parameters=dict(generics),
         build_dir=build_dir,
