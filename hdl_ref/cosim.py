@@ -502,7 +502,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     ``samples``: R n N S, the clocks a column's samples take at one per clock;
     ``stream``: the correlation streams, groups * n * (N + L - 1);
     ``process``: from the ``col_start`` clock to the clock of the column's last
-    ``res_valid``: stream + K L + 12 + K (P (G + 4) + G + 7);
+    ``res_valid``: stream + K L + 13 + K (P (G + 4) + G + 7);
     ``first_take``: the clock (counted from 0 after the ``start`` edge) whose edge takes
     the first sample;
     ``last_to_col_start``: from the edge taking a column's last sample to its
@@ -518,7 +518,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     return {
         "samples": r * n * n_chips * s,
         "stream": stream,
-        "process": stream + k * lanes + 12 + post,
+        "process": stream + k * lanes + 13 + post,
         "first_take": 2,
         "last_to_col_start": 2,
     }

@@ -219,6 +219,7 @@ module rx_top #(
 
     wire [AVG_W-1:0]  rd [0:2*MAX_S-1];            // bank (b, s) at b*MAX_S + s
     reg  [ADDR_W-1:0] corr_addr [0:MAX_S-1];
+    reg  [MAX_S*ADDR_W-1:0] addr0;           // stage 0 (below): registered corr_addr
     wire signed [AVG_W-1:0] w_x_ext = {{(AVG_W-ADC_W+1){w_x[ADC_W-1]}}, w_x[ADC_W-2:0]};
 
     genvar gb, gs;
@@ -226,7 +227,8 @@ module rx_top #(
         for (gb = 0; gb < 2; gb = gb + 1) begin : g_buf
             for (gs = 0; gs < MAX_S; gs = gs + 1) begin : g_bank
                 wire we = w_v && (w_buf == gb) && (w_bank == gs);
-                wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? corr_addr[gs] : a_addr;
+                wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? addr0[gs*ADDR_W +: ADDR_W]
+                                                                   : a_addr;
                 sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N)) bank (
                     .clk(clk), .we(we), .waddr(w_addr),
                     .wdata(w_first ? w_x_ext : w_old + w_x_ext),
@@ -287,6 +289,11 @@ module rx_top #(
         end
     endgenerate
 
+    // ---- stage 0: registered RAM addresses ----
+    reg               v0, f0, e0, a0, gend0;
+    reg [UID_W-1:0]   p0;
+    reg [K-1:0]       code0;
+    reg [JJ_W-1:0]    gjj0;
     // ---- stage 1: RAM data ----
     reg               v1, f1, e1, a1, gend1;
     reg [UID_W-1:0]   p1;
@@ -521,6 +528,7 @@ module rx_top #(
         corr_valid <= 1'b0;
         col_start  <= 1'b0;
         w_v        <= 1'b0;
+        v0         <= 1'b0;
         v1         <= 1'b0;
         vq         <= 1'b0;
         v2         <= 1'b0;
@@ -639,14 +647,26 @@ module rx_top #(
 
         // ---- correlation pipeline ----
         if (pstate == P_STREAM) begin
+            v0    <= 1'b1;
+            f0    <= (st_k == {KST_W{1'b0}});
+            e0    <= (st_k == {{(KST_W-MAX_DEG){1'b0}}, nn} - 1'b1);
+            a0    <= (st_k < {{(KST_W-MAX_DEG){1'b0}}, nn});
+            p0    <= st_p;
+            code0 <= chip;
+            gend0 <= st_end && st_lastp;
+            gjj0  <= g_jj;
+            for (si = 0; si < MAX_S; si = si + 1)
+                addr0[si*ADDR_W +: ADDR_W] <= corr_addr[si];
+        end
+        if (v0) begin
             v1    <= 1'b1;
-            f1    <= (st_k == {KST_W{1'b0}});
-            e1    <= (st_k == {{(KST_W-MAX_DEG){1'b0}}, nn} - 1'b1);
-            a1    <= (st_k < {{(KST_W-MAX_DEG){1'b0}}, nn});
-            p1    <= st_p;
-            code1 <= chip;
-            gend1 <= st_end && st_lastp;
-            gjj1  <= g_jj;
+            f1    <= f0;
+            e1    <= e0;
+            a1    <= a0;
+            p1    <= p0;
+            code1 <= code0;
+            gend1 <= gend0;
+            gjj1  <= gjj0;
         end
         if (v1) begin
             vq    <= 1'b1;
@@ -762,7 +782,7 @@ module rx_top #(
         end
         P_FLUSH: begin
             // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
-            if (!v1 && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
+            if (!v0 && !v1 && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
                 wait_cnt <= wait_cnt + 1'b1;
                 if (wait_cnt == 3'd4) begin
                     pk_ch  <= {K_W{1'b0}};
@@ -925,6 +945,7 @@ module rx_top #(
             latch_v0    <= 1'b0;
             latch_v     <= 1'b0;
             vq          <= 1'b0;
+            v0          <= 1'b0;
             r_v         <= 1'b0;
             ser_busy    <= 1'b0;
             s1_v        <= 1'b0;
