@@ -48,14 +48,14 @@ from cdma_lidar.rounding import ROUNDING_MODES, rounding_code
 
 __all__ = [
     "GOLD_TOP",
+    "MULTI_TOP",
     "RTL_DIR",
     "RTL_SOURCES",
     "RX_TOP",
-    "MULTI_TOP",
     "GoldParams",
     "RxParams",
-    "TopParams",
     "SimulatorMissing",
+    "TopParams",
     "build",
     "decode_rx_result",
     "gold_ports",

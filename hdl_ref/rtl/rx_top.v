@@ -822,8 +822,8 @@ module rx_top #(
                 pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
                 pk_j[q_k*G_W +: G_W]          <= b_j;
                 res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
-                res_lag[q_k*LAG_W +: LAG_W]   <= b_lag;
-                res_index[q_k*G_W +: G_W]     <= b_j;
+                res_lag[q_k*LAG_W +: LAG_W]   <= b_have ? b_lag : {LAG_W{1'b0}};
+                res_index[q_k*G_W +: G_W]     <= b_have ? b_j : {G_W{1'b0}};
                 res_peak[q_k*OUT_W +: OUT_W]    <= b_have ? b_word[OUT_W-1:0] : {OUT_W{1'b0}};
                 res_neg[q_k*MAX_UID +: MAX_UID] <= b_have ? b_neg : {MAX_UID{1'b0}};
                 res_nz[q_k*MAX_UID +: MAX_UID]  <= b_have ? b_nz : {MAX_UID{1'b0}};
