@@ -530,11 +530,15 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
 
     ``raw``: ``{"corr": [[column, channel, j, word], ...], "res": [[column, channel,
     {port: word}], ...]}``. Format conversion only, channel by channel through
-    :func:`decode_rx_result`.
+    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null).
     """
     cols = ports["cfg_columns"]
     k = params.channels
     rx = params.rx()
+    unresolved = [w for w in raw["corr"] if w[3] is None] + \
+        [r for r in raw["res"] if None in r[2].values()]
+    if unresolved:
+        raise ConfigError(f"rx_top words with X/Z bits: {unresolved[:3]}", field="res")
     corr: dict[tuple[int, int], list] = {}
     for col, ch, j, word in raw["corr"]:
         corr.setdefault((col, ch), []).append([j, word])

@@ -8,7 +8,8 @@ bench streams all columns back to back, one sample per clock whenever
 edge that ends it): every ``corr_*`` word, every ``res_*`` word at ``res_valid``,
 the clocks of ``col_start`` and of every column's last sample, the clocks where
 the source offered a sample that was not taken (back-pressure), and
-``err_overrun``. Comparison with the model happens in the caller.
+``err_overrun``. Words with X or Z bits are recorded as null. Comparison with
+the model happens in the caller.
 """
 
 from __future__ import annotations
@@ -28,6 +29,12 @@ RESULT_PORTS = (
     "res_nb_hi", "res_noise_count", "res_noise_sum", "res_noise_sumsq", "res_uid_observed",
     "res_uid_match", "res_saturated",
 )
+
+
+def _int(signal) -> int | None:
+    """The signal's value, or None when it has X or Z bits (recorded, not raised)."""
+    value = signal.value
+    return int(value) if value.is_resolvable else None
 
 
 async def _run_case(dut, case: dict) -> dict:
@@ -69,12 +76,12 @@ async def _run_case(dut, case: dict) -> dict:
         if dut.corr_valid.value:
             ch = int(dut.corr_channel.value)
             corr.append([len(col_start) - 1, ch, int(dut.corr_index.value),
-                         int(dut.corr_data.value)])
+                         _int(dut.corr_data)])
         if dut.res_valid.value:
             ch = int(dut.res_channel.value)
             col = res_count.get(ch, 0)
             res_count[ch] = col + 1
-            res.append([col, ch, {name: int(getattr(dut, name).value) for name in RESULT_PORTS},
+            res.append([col, ch, {name: _int(getattr(dut, name)) for name in RESULT_PORTS},
                         clock])
         if dut.col_start.value:
             col_start.append(clock)

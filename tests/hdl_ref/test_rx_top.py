@@ -21,10 +21,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
 from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
 from cdma_lidar.rounding import ROUNDING_MODES
 
@@ -277,3 +279,33 @@ def test_paper_configuration(hdl_build_root):
     (run,) = simulate(build, PAPER_TOP, [case], "paper")
     check(case, run, PAPER_TOP)
     assert run["raw"]["stalls"] == []
+
+
+MUTANT_CASES = {  # mutant -> the crafted case that must expose it
+    "uid-match-ignores-zero-sign": "uid-period-zero-sign",
+    "ties-to-last": "zero-input-ties",
+    "ghost-window-one-long": "wrapping-gate-ghost-edge",
+    "box-sum-no-chip-wrap": "wrapping-gate-ghost-edge",
+    "lane-code-delay-off-by-one": "uid-period-zero-sign",
+}
+
+
+def test_every_rx_top_mutant_has_a_case():
+    assert set(MUTANT_CASES) == {m.name for m in MUTANTS if m.file == "rx_top.v"}
+    assert set(MUTANT_CASES.values()) <= {c.name for c in FIXED}
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("mutant", [m for m in MUTANTS if m.file == "rx_top.v"],
+                         ids=lambda m: m.name)
+def test_rx_top_mutant_is_caught(hdl_build_root, fixed_runs, mutant):
+    """The deliberately broken RTL disagrees with the model on its case; the real one agrees."""
+    k = next(i for i, c in enumerate(FIXED) if c.name == MUTANT_CASES[mutant.name])
+    case = FIXED[k]
+    check(case, fixed_runs[k], TOP4)          # the unchanged RTL passes this case
+    rtl = mutated_copy(mutant, hdl_build_root / f"rtl_{mutant.name}")
+    build = cosim.build(cosim.MULTI_TOP, TOP4.generics(), hdl_build_root / f"top_{mutant.name}",
+                        rtl_dir=rtl)
+    (run,) = simulate(build, TOP4, [case], "mutant")
+    with pytest.raises((AssertionError, ConfigError)):   # a wrong word, or X/Z bits
+        check(case, run, TOP4)
