@@ -468,6 +468,9 @@ def top_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
     _need("columns", columns, (1 << 16) - 1, 1)
     ports = rx_ports(cfg, poly_u, poly_v, indices[0], params.rx())
     n_chips = (1 << int(poly_u[0])) - 1
+    if int(poly_u[0]) < 3:
+        raise out_of_range("degree", "3.. on rx_top (its 4-clock read-modify-write needs "
+                           "n N S >= 4)", int(poly_u[0]))
     if params.channels * params.lanes > n_chips - 2:
         raise out_of_range("degree", f"N - 2 >= K*L = {params.channels * params.lanes} "
                            "(the result serializer keeps up)", int(poly_u[0]))
@@ -502,7 +505,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     ``samples``: R n N S, the clocks a column's samples take at one per clock;
     ``stream``: the correlation streams, groups * n * (N + L - 1);
     ``process``: from the ``col_start`` clock to the clock of the column's last
-    ``res_valid``: stream + K L + 13 + K (P (G + 4) + G + 7);
+    ``res_valid``: stream + K L + 14 + K (P (G + 4) + G + 7);
     ``first_take``: the clock (counted from 0 after the ``start`` edge) whose edge takes
     the first sample;
     ``last_to_col_start``: from the edge taking a column's last sample to its
@@ -518,7 +521,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     return {
         "samples": r * n * n_chips * s,
         "stream": stream,
-        "process": stream + k * lanes + 13 + post,
+        "process": stream + k * lanes + 14 + post,
         "first_take": 2,
         "last_to_col_start": 2,
     }

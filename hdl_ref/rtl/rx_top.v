@@ -206,10 +206,14 @@ module rx_top #(
     assign busy    = (tstate != T_IDLE);
     wire a_take    = s_valid && s_ready;
 
-    reg               r_v, r_first, r_buf;   // read issued last clock (data on rd)
+    reg               r_v, r_first, r_buf;   // read issued last clock
     reg [S_W-1:0]     r_bank;
     reg [ADDR_W-1:0]  r_addr;
     reg signed [ADC_W-1:0] r_x;
+    reg               rr_v, rr_first, rr_buf; // read data on rd (output register)
+    reg [S_W-1:0]     rr_bank;
+    reg [ADDR_W-1:0]  rr_addr;
+    reg signed [ADC_W-1:0] rr_x;
     reg [AVG_W-1:0]   w_old;                 // RAM word, registered
     reg               w_v, w_first, w_buf;
     reg [S_W-1:0]     w_bank;
@@ -229,7 +233,7 @@ module rx_top #(
                 wire we = w_v && (w_buf == gb) && (w_bank == gs);
                 wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? addr0[gs*ADDR_W +: ADDR_W]
                                                                    : a_addr;
-                sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N)) bank (
+                sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N), .OUTREG(1)) bank (
                     .clk(clk), .we(we), .waddr(w_addr),
                     .wdata(w_first ? w_x_ext : w_old + w_x_ext),
                     .raddr(ra), .rdata(rd[gb * MAX_S + gs])
@@ -306,6 +310,10 @@ module rx_top #(
     reg [JJ_W-1:0]    gjj2;
     reg signed [BOX_W-1:0] box2;
 
+    reg               vr, fr, er, ar, gendr;   // stage 1a: RAM output register
+    reg [UID_W-1:0]   pr;
+    reg [K-1:0]       coder;
+    reg [JJ_W-1:0]    gjjr;
     reg               vq, fq, eq, aq, gendq;   // stage 1b: RAM words registered
     reg [UID_W-1:0]   pq;
     reg [K-1:0]       codeq;
@@ -530,6 +538,7 @@ module rx_top #(
         w_v        <= 1'b0;
         v0         <= 1'b0;
         v1         <= 1'b0;
+        vr         <= 1'b0;
         vq         <= 1'b0;
         v2         <= 1'b0;
         latch_v0   <= 1'b0;
@@ -601,15 +610,24 @@ module rx_top #(
         end
 
         // ---- accumulation ----
-        r_v <= 1'b0;
+        r_v  <= 1'b0;
+        rr_v <= 1'b0;
         if (r_v) begin
+            rr_v     <= 1'b1;
+            rr_buf   <= r_buf;
+            rr_bank  <= r_bank;
+            rr_addr  <= r_addr;
+            rr_first <= r_first;
+            rr_x     <= r_x;
+        end
+        if (rr_v) begin
             w_v     <= 1'b1;
-            w_buf   <= r_buf;
-            w_bank  <= r_bank;
-            w_addr  <= r_addr;
-            w_first <= r_first;
-            w_x     <= r_x;
-            w_old   <= r_buf ? rd[MAX_S + r_bank] : rd[r_bank];
+            w_buf   <= rr_buf;
+            w_bank  <= rr_bank;
+            w_addr  <= rr_addr;
+            w_first <= rr_first;
+            w_x     <= rr_x;
+            w_old   <= rr_buf ? rd[MAX_S + rr_bank] : rd[rr_bank];
         end
         if (a_take) begin
             r_v     <= 1'b1;
@@ -669,14 +687,24 @@ module rx_top #(
             gjj1  <= gjj0;
         end
         if (v1) begin
+            vr    <= 1'b1;
+            fr    <= f1;
+            er    <= e1;
+            ar    <= a1;
+            pr    <= p1;
+            coder <= code1;
+            gendr <= gend1;
+            gjjr  <= gjj1;
+        end
+        if (vr) begin
             vq    <= 1'b1;
-            fq    <= f1;
-            eq    <= e1;
-            aq    <= a1;
-            pq    <= p1;
-            codeq <= code1;
-            gendq <= gend1;
-            gjjq  <= gjj1;
+            fq    <= fr;
+            eq    <= er;
+            aq    <= ar;
+            pq    <= pr;
+            codeq <= coder;
+            gendq <= gendr;
+            gjjq  <= gjjr;
             for (si = 0; si < MAX_S; si = si + 1)
                 rdq[si*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + si];
         end
@@ -782,7 +810,7 @@ module rx_top #(
         end
         P_FLUSH: begin
             // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
-            if (!v0 && !v1 && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
+            if (!v0 && !v1 && !vr && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
                 wait_cnt <= wait_cnt + 1'b1;
                 if (wait_cnt == 3'd4) begin
                     pk_ch  <= {K_W{1'b0}};
@@ -945,7 +973,9 @@ module rx_top #(
             latch_v0    <= 1'b0;
             latch_v     <= 1'b0;
             vq          <= 1'b0;
+            vr          <= 1'b0;
             v0          <= 1'b0;
+            rr_v        <= 1'b0;
             r_v         <= 1'b0;
             ser_busy    <= 1'b0;
             s1_v        <= 1'b0;
