@@ -625,7 +625,7 @@ module rx_chain #(
 
     // Sink for bits that are wider than any legal value needs (lint).
     // (c3_jj and cr_raddr carry G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
-    wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W],
+    wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W], o_max[OUT_W],
                        c3_jj, cr_raddr,
                        ns_full[MAX_DEG+S_W:LAG_W]};
 endmodule
