@@ -226,6 +226,7 @@ def test_extremes_reach_their_extremes():
     by = {c.name: c.model() for c in extreme_cases()}
     sat = by["saturation-both-rails"]
     assert (sat[0].peak == 127).any() and (sat[1].peak == -128).any()
+    assert sat[0].saturated.any() and sat[1].saturated.any()
     assert (by["zero-input-ties"][0].peak_lag == 7).all()
     z = by["uid-period-zero-sign"][0]
     assert (z.uid_signs[:, 1] == 0).all() and z.uid_observed[0] == 0  # channel 0: our echo
