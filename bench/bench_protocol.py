@@ -52,6 +52,7 @@ def make_column(channels: int = K, peaks: int = 1, uid_bits: int = 1) -> ColumnR
         uid_signs=rng.choice([-1, 1], (channels, uid_bits)),
         uid_observed=rng.integers(0, 1 << uid_bits, channels),
         uid_match=rng.integers(0, 2, channels).astype(bool),
+        saturated=rng.integers(0, 2, channels).astype(bool),
         extra_lag=rng.integers(0, 8188, (channels, e)) if e else None,
         extra_peak=rng.integers(-(2**20), 2**20, (channels, e)) if e else None,
         extra_signs=rng.choice([-1, 1], (channels, e, uid_bits)) if e else None)

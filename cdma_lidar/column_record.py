@@ -201,6 +201,10 @@ RECORD: tuple[RecordField, ...] = (
     _field("uid_match", np.bool_, (), "", "no sign is 0 and uid_observed == uid", "False, True",
            "u8", encoding="flag", wire_doc="1 when no sign is 0 and uid_observed == uid",
            wire_allowed="0..1"),
+    _field("saturated", np.bool_, (), "", "peak is at a rail of out_bits (it may have been "
+           "clipped, so peak_lag can sit early on a plateau)", "False, True", "u8",
+           encoding="flag", wire_doc="1 when peak is +-(2^(out_bits-1)) or 2^(out_bits-1)-1 "
+           "(a clipped peak: peak_lag may be early)", wire_allowed="0..1"),
     _field("extra_lag", np.int64, ("P-1",), "samples", "lags of peaks 2..P; -1: no such peak",
            "0..N*S-1 or -1", "u32", encoding="lag",
            wire_doc=f"lags of peaks 2..P; {_NO_PEAK_TEXT}: no such peak",
@@ -218,14 +222,14 @@ FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in RECORD)
 #: The wire fields of one channel record, in wire order.
 WIRE_FIELDS: tuple[WireField, ...] = tuple(w for f in RECORD for w in f.wire)
 
-#: Bytes of a channel record that do not depend on P (40).
+#: Bytes of a channel record that do not depend on P (41).
 RECORD_FIXED_SIZE: int = sum(w.fixed_size for w in WIRE_FIELDS)
 #: Bytes a channel record grows by per extra peak (10).
 RECORD_EXTRA_SIZE: int = sum(w.extra_size for w in WIRE_FIELDS)
 
 
 def record_size(peaks: int) -> int:
-    """Bytes of one channel record with P = ``peaks`` peaks: ``40 + 10 (P - 1)``."""
+    """Bytes of one channel record with P = ``peaks`` peaks: ``41 + 10 (P - 1)``."""
     return RECORD_FIXED_SIZE + RECORD_EXTRA_SIZE * (peaks - 1)
 
 

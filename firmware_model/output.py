@@ -13,12 +13,12 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.column_record import record_fields
 from cdma_lidar.firmware_model.snr import snr_xc_db
 
-__all__ = ["ReceiverOutput"]
+__all__ = ["ReceiverOutput", "saturated_flags"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,3 +50,17 @@ class ReceiverOutput:
     def same_as(self, other: ReceiverOutput) -> bool:
         """True when every field is bit-identical (values, shapes and dtypes)."""
         return not self.mismatches(other)
+
+
+def saturated_flags(peak_lag: ArrayLike, peak: ArrayLike, out_bits: int) -> NDArray[np.bool_]:
+    """The record's ``saturated`` field: a peak exists and its ``out`` word is at a rail.
+
+    ``out`` saturates to -2^(out_bits-1) .. 2^(out_bits-1)-1 (docs/firmware.md section 3);
+    a peak at either end may have been clipped, and then every lag of the plateau
+    ties and the search reports the lowest gate index: the lag can be early. An
+    exact value at the rail is flagged too (the word cannot tell them apart).
+    Elementwise over any shape of ``peak_lag``/``peak`` (lag -1: no peak).
+    """
+    top = (1 << (int(out_bits) - 1)) - 1
+    p = np.asarray(peak, dtype=np.int64)
+    return (np.asarray(peak_lag) >= 0) & ((p >= top) | (p <= -top - 1))

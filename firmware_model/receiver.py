@@ -59,7 +59,7 @@ from cdma_lidar.firmware_model.correlators import (
 )
 from cdma_lidar.firmware_model.correlators.base import parallel_columns
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
-from cdma_lidar.firmware_model.output import ReceiverOutput
+from cdma_lidar.firmware_model.output import ReceiverOutput, saturated_flags
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
 __all__ = [
@@ -386,6 +386,7 @@ class ReferenceReceiver:
             rows["extra_peak"].append(peak_vals[1:])
             rows["extra_signs"].append(signs[1:])
         k, p1 = len(self._ref), cfg.peaks - 1
+        rows["saturated"] = saturated_flags(rows["peak_lag"], rows["peak"], cfg.out_bits).tolist()
         return ReceiverOutput(
             corr=np.array(rows["corr"], dtype=np.int64).reshape(k, g),
             peak_lag=np.array(rows["peak_lag"], dtype=np.int64),
@@ -397,6 +398,7 @@ class ReferenceReceiver:
             uid_signs=np.array(rows["uid_signs"], dtype=np.int8).reshape(k, n),
             uid_observed=np.array(rows["uid_observed"], dtype=np.int64),
             uid_match=np.array(rows["uid_match"], dtype=np.bool_),
+            saturated=np.array(rows["saturated"], dtype=np.bool_),
             extra_lag=np.array(rows["extra_lag"], dtype=np.int64).reshape(k, p1),
             extra_peak=np.array(rows["extra_peak"], dtype=np.int64).reshape(k, p1),
             extra_signs=np.array(rows["extra_signs"], dtype=np.int8).reshape(k, p1, n),
@@ -696,6 +698,7 @@ class FastReceiver:
         extra_signs = np.ascontiguousarray(signs[:, :, 1:, :])
         lag0, val0 = np.ascontiguousarray(pk_lag[..., 0]), np.ascontiguousarray(pk_val[..., 0])
         lag1, val1 = np.ascontiguousarray(pk_lag[..., 1:]), np.ascontiguousarray(pk_val[..., 1:])
+        sat = saturated_flags(lag0, val0, cfg.out_bits)
         return [  # per-column views into the batch's arrays
             ReceiverOutput(
                 corr=corr[ci],
@@ -708,6 +711,7 @@ class FastReceiver:
                 uid_signs=uid0[ci],
                 uid_observed=observed[ci],
                 uid_match=match[ci],
+                saturated=sat[ci],
                 extra_lag=lag1[ci],
                 extra_peak=val1[ci],
                 extra_signs=extra_signs[ci],

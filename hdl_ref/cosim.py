@@ -48,12 +48,14 @@ from cdma_lidar.rounding import ROUNDING_MODES, rounding_code
 
 __all__ = [
     "GOLD_TOP",
+    "MULTI_TOP",
     "RTL_DIR",
     "RTL_SOURCES",
     "RX_TOP",
     "GoldParams",
     "RxParams",
     "SimulatorMissing",
+    "TopParams",
     "build",
     "decode_rx_result",
     "gold_ports",
@@ -63,13 +65,18 @@ __all__ = [
     "rx_ports",
     "seed_bits",
     "to_receiver_output",
+    "top_decode",
+    "top_groups",
+    "top_ports",
+    "top_timing",
 ]
 
 log = logging.getLogger(__name__)
 
 RTL_DIR = Path(__file__).resolve().parent / "rtl"
-RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "rx_chain.v")
+RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_chain.v", "rx_top.v")
 RX_TOP = "rx_chain"
+MULTI_TOP = "rx_top"
 GOLD_TOP = "gold_gen"
 
 
@@ -299,6 +306,7 @@ def decode_rx_result(raw: Mapping[str, Any], ports: Mapping[str, int],
         "uid_signs": peaks[0][2],
         "uid_observed": res["res_uid_observed"],
         "uid_match": bool(res["res_uid_match"]),
+        "saturated": bool(res.get("res_saturated", 0)),
         "extra_lag": [pk[0] for pk in peaks[1:]],
         "extra_peak": [pk[1] for pk in peaks[1:]],
         "extra_signs": [pk[2] for pk in peaks[1:]],
@@ -321,8 +329,12 @@ def to_receiver_output(decoded: Mapping[str, Any]) -> ReceiverOutput:
     return ReceiverOutput(**values)
 
 
-def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str]) -> Path:
+def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str],
+          rtl_dir: str | os.PathLike[str] = RTL_DIR) -> Path:
     """Compile the RTL with Icarus for ``top`` and ``generics`` into ``build_dir``.
+
+    ``rtl_dir`` holds the sources (default the package's ``rtl``; the mutation
+    tests point it at a changed copy).
 
     Reuses an up-to-date build (cocotb's runner compares source times). Returns
     the build folder. Raises ``SimulatorMissing`` without Icarus or without the
@@ -342,7 +354,7 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
     build_dir.mkdir(parents=True, exist_ok=True)
     runner = get_runner("icarus")
     runner.build(
-        sources=[RTL_DIR / name for name in RTL_SOURCES],
+        sources=[Path(rtl_dir) / name for name in RTL_SOURCES],
         hdl_toplevel=top,
         parameters=dict(generics),
         build_dir=build_dir,
@@ -389,3 +401,161 @@ def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
         raise RuntimeError(f"simulation {name} failed ({failed} of {total} cocotb tests); "
                            f"see {build_dir / (name + '.log')}")
     return json.loads(result_file.read_text())
+
+
+# --------------------------------------------------------------------------------------
+# rx_top: K channels, L lanes per channel, double-buffered averaging
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TopParams:
+    """Synthesis-time parameters of ``rx_top`` (channels, lanes and the maxima).
+
+    ``channels`` K Gold members are correlated at once by ``lanes`` L lanes each
+    (docs/hdl.md, "rx_top"); the other fields are the maxima of :class:`RxParams`.
+    """
+
+    channels: int = 4
+    lanes: int = 2
+    max_deg: int = 11
+    max_s: int = 4
+    max_uid: int = 1
+    max_r: int = 16
+    max_g: int = 64
+    max_p: int = 1
+    nghost: int = 1
+    adc_w: int = 12
+    out_w: int = 32
+
+    def generics(self) -> dict[str, int]:
+        """Verilog parameter overrides for ``rx_top``."""
+        return {
+            "K": self.channels, "L": self.lanes, "MAX_DEG": self.max_deg, "MAX_S": self.max_s,
+            "MAX_UID": self.max_uid, "MAX_R": self.max_r, "MAX_G": self.max_g,
+            "MAX_P": self.max_p, "NGHOST": self.nghost, "ADC_W": self.adc_w,
+            "OUT_W": self.out_w,
+        }
+
+    def rx(self) -> RxParams:
+        """The same maxima as an :class:`RxParams` (port widths and encodings are shared)."""
+        return RxParams(self.max_deg, self.max_s, self.max_uid, self.max_r, self.max_g,
+                        self.max_p, self.nghost, self.adc_w, self.out_w)
+
+    @property
+    def k_w(self) -> int:
+        """Width of channel-number ports, bits."""
+        return max(1, _clog2(self.channels))
+
+    def tag(self) -> str:
+        """Short name of this parameter set (used for build folders)."""
+        return "top_" + "_".join(f"{k}{v}" for k, v in asdict(self).items())
+
+
+def top_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
+              indices: Sequence[int], params: TopParams, columns: int = 1) -> dict[str, int]:
+    """``rx_top`` configuration port values: ``cfg`` for the Gold members ``indices``.
+
+    Channel k correlates member ``indices[k]`` (seeds packed at bit k*MAX_DEG);
+    ``len(indices)`` must equal the build's K. ``columns`` columns are taken after
+    ``start``. Raises ``ConfigError`` naming the field when the configuration is
+    outside the build or when the K*L results of a group cannot be serialised
+    before the next group ends (K*L <= N - 2, docs/hdl.md).
+    """
+    if len(indices) != params.channels:
+        raise out_of_range("code_indices", f"{params.channels} members (K of this build)",
+                           len(indices))
+    _need("columns", columns, (1 << 16) - 1, 1)
+    ports = rx_ports(cfg, poly_u, poly_v, indices[0], params.rx())
+    n_chips = (1 << int(poly_u[0])) - 1
+    if int(poly_u[0]) < 3:
+        raise out_of_range("degree", "3.. on rx_top (its 4-clock read-modify-write needs "
+                           "n N S >= 4)", int(poly_u[0]))
+    if params.channels * params.lanes > n_chips - 2:
+        raise out_of_range("degree", f"N - 2 >= K*L = {params.channels * params.lanes} "
+                           "(the result serializer keeps up)", int(poly_u[0]))
+    su = sv = 0
+    for k, index in enumerate(indices):
+        seed_u, seed_v = gold_seeds(tuple(poly_u), tuple(poly_v), int(index))
+        su |= seed_bits(seed_u) << (k * params.max_deg)
+        sv |= seed_bits(seed_v) << (k * params.max_deg)
+    ports["cfg_seed_u"], ports["cfg_seed_v"] = su, sv
+    ports["cfg_columns"] = columns
+    return ports
+
+
+def top_groups(ports: Mapping[str, int], lanes: int) -> int:
+    """Lane groups per UID period: sum over phases of ceil(lags of the phase / L).
+
+    The G + 2 lags gate_start-1 .. gate_start+G split into min(S, G+2) phases
+    (lags S apart, ceil((G + 2 - phase) / S) of them); each group correlates L
+    lags of one phase.
+    """
+    s, gp = ports["cfg_spc"], ports["cfg_gate_len"] + 2
+    groups = 0
+    for ph in range(min(s, gp)):
+        lags = (gp - ph + s - 1) // s
+        groups += (lags + lanes - 1) // lanes
+    return groups
+
+
+def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
+    """Clock counts of one ``rx_top`` column (docs/hdl.md), as the co-simulation measures them.
+
+    ``samples``: R n N S, the clocks a column's samples take at one per clock;
+    ``stream``: the correlation streams, groups * n * (N + L - 1);
+    ``process``: from the ``col_start`` clock to the clock of the column's last
+    ``res_valid``: stream + K L + 14 + K (P (G + 4) + G + 7);
+    ``first_take``: the clock (counted from 0 after the ``start`` edge) whose edge takes
+    the first sample;
+    ``last_to_col_start``: from the edge taking a column's last sample to its
+    ``col_start`` clock when the engine is idle.
+    Real time (no back-pressure) holds when ``process + 1 <= samples``.
+    """
+    n_chips = (1 << ports["cfg_degree"]) - 1
+    s, n, r = ports["cfg_spc"], ports["cfg_uid_bits"], ports["cfg_averages"]
+    g, p = ports["cfg_gate_len"], ports["cfg_peaks"]
+    k, lanes = params.channels, params.lanes
+    stream = top_groups(ports, lanes) * n * (n_chips + lanes - 1)
+    post = k * (p * (g + 4) + g + 7)
+    return {
+        "samples": r * n * n_chips * s,
+        "stream": stream,
+        "process": stream + k * lanes + 14 + post,
+        "first_take": 2,
+        "last_to_col_start": 2,
+    }
+
+
+def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
+               params: TopParams) -> list[ReceiverOutput]:
+    """One K-channel ``ReceiverOutput`` per column from an ``rx_top`` bench result.
+
+    ``raw``: ``{"corr": [[column, channel, j, word], ...], "res": [[column, channel,
+    {port: word}], ...]}``. Format conversion only, channel by channel through
+    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null).
+    """
+    cols = ports["cfg_columns"]
+    k = params.channels
+    rx = params.rx()
+    unresolved = [w for w in raw["corr"] if w[3] is None] + \
+        [r for r in raw["res"] if None in r[2].values()]
+    if unresolved:
+        raise ConfigError(f"rx_top words with X/Z bits: {unresolved[:3]}", field="res")
+    corr: dict[tuple[int, int], list] = {}
+    for col, ch, j, word in raw["corr"]:
+        corr.setdefault((col, ch), []).append([j, word])
+    res: dict[tuple[int, int], dict] = {}
+    for col, ch, words in raw["res"]:
+        if (col, ch) in res or not (0 <= col < cols and 0 <= ch < k):
+            raise ConfigError(f"rx_top results: unexpected or repeated column {col} channel {ch}",
+                              field="res")
+        res[(col, ch)] = words
+    outs = []
+    for col in range(cols):
+        rows = [to_receiver_output(decode_rx_result(
+            {"corr": corr.get((col, ch), []), "res": res[(col, ch)]}, ports, rx))
+            for ch in range(k)]
+        outs.append(ReceiverOutput(**{
+            f: np.concatenate([getattr(r, f) for r in rows]) for f in ("corr", *FIELD_NAMES)}))
+    return outs

@@ -3,7 +3,7 @@
 The payload is a 19-byte column header (:data:`COLUMN_HEADER`) followed by one
 fixed-size record per channel (array of structs, little-endian, packed, no
 padding). The channel record is the one declared in :mod:`cdma_lidar.column_record`
-(its wire fields, in order); with P peaks it is ``40 + 10 * (P - 1)`` bytes. Every
+(its wire fields, in order); with P peaks it is ``41 + 10 * (P - 1)`` bytes. Every
 view here is derived from that declaration: the construct record, the numpy
 dtype, the encoder's range checks, the payload size and the per-field properties
 of :class:`ColumnResult`. ``docs/protocol.md`` (generated) shows the layout.
@@ -127,7 +127,7 @@ def record_dtype(peaks: int) -> np.dtype:
 
 
 def column_payload_size(channels: int, peaks: int) -> int:
-    """Bytes of a COLUMN_RESULT payload for K channels and P peaks: ``19 + K*(40+10(P-1))``."""
+    """Bytes of a COLUMN_RESULT payload for K channels and P peaks: ``19 + K*(41+10(P-1))``."""
     return _HEAD.size + channels * record_size(peaks)
 
 

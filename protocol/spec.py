@@ -190,6 +190,7 @@ def examples() -> str:
                                                                                 [-7, 2]],
              noise_count=[120, 120], noise_sum=[-35, 16], noise_sumsq=[9100, 8800],
              uid_signs=[[1, -1], [1, 0]], uid_observed=[2, 0], uid_match=[True, False],
+             saturated=[False, False],
              timestamp_us=1_000_000)),
     ]
     out = []

@@ -108,7 +108,8 @@ module rx_chain #(
     output reg  signed [SUM_W-1:0]      res_noise_sum,
     output reg  [SQ_W-1:0]              res_noise_sumsq,
     output reg  [MAX_UID-1:0]           res_uid_observed,
-    output reg                          res_uid_match
+    output reg                          res_uid_match,
+    output reg                          res_saturated   // peak 0's out word at a rail
 );
     // ------------------------------------------------------------------
     // Widths
@@ -340,6 +341,9 @@ module rx_chain #(
     wire signed [2*OUT_W-1:0] sq = cr_out * cr_out;
     wire [MAX_UID-1:0]  b_neg = b_word[OUT_W +: MAX_UID] & uid_mask;
     wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
+    wire signed [OUT_W-1:0] b_out = b_word[OUT_W-1:0];
+    wire [OUT_W:0]      o_max = ({{OUT_W{1'b0}}, 1'b1} << (c_out_bits - 1'b1)) - 1'b1;
+    wire                b_rail = (b_out == o_max[OUT_W-1:0]) || (b_out == ~o_max[OUT_W-1:0]);
 
     wire [P_W-1:0]    q_k_last = c_peaks - 1'b1;
     localparam [MAX_P-1:0] P_ONE = 1;
@@ -526,6 +530,7 @@ module rx_chain #(
                     res_uid_observed <= b_have ? b_neg : {MAX_UID{1'b0}};
                     res_uid_match    <= b_have && (b_nz == uid_mask)
                                         && (b_neg == (c_uid & uid_mask));
+                    res_saturated    <= b_have && b_rail;
                 end
                 q_j    <= {G_W{1'b0}};
                 q_lag  <= c_gate_start;
@@ -620,7 +625,7 @@ module rx_chain #(
 
     // Sink for bits that are wider than any legal value needs (lint).
     // (c3_jj and cr_raddr carry G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
-    wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W],
+    wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W], o_max[OUT_W],
                        c3_jj, cr_raddr,
                        ns_full[MAX_DEG+S_W:LAG_W]};
 endmodule

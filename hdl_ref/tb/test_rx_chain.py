@@ -25,7 +25,7 @@ PERIOD_NS = 10
 RESULT_PORTS = (
     "res_found", "res_lag", "res_index", "res_peak", "res_neg", "res_nz", "res_nb_lo",
     "res_nb_hi", "res_noise_count", "res_noise_sum", "res_noise_sumsq", "res_uid_observed",
-    "res_uid_match",
+    "res_uid_match", "res_saturated",
 )
 
 

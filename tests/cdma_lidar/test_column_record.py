@@ -70,6 +70,7 @@ def _random_output(rng: np.random.Generator, k: int, n: int, peaks: int) -> dict
         "uid_signs": rng.integers(-1, 2, (k, n)).astype(np.int8),
         "uid_observed": rng.integers(0, 1 << n, k),
         "uid_match": rng.integers(0, 2, k).astype(bool),
+        "saturated": rng.integers(0, 2, k).astype(bool),
         "extra_lag": lags[:, 1:], "extra_peak": rng.integers(-(2**31), 2**31, (k, e)),
         "extra_signs": rng.integers(-1, 2, (k, e, n)).astype(np.int8),
     }
@@ -100,8 +101,8 @@ def test_wire_fields_follow_the_record_order() -> None:
     """Each logical field becomes its wire field(s) in place: signs become two masks."""
     assert WIRE_NAMES == [
         "peak_lag", "peak", "neighbours", "noise_count", "noise_sum", "noise_sumsq",
-        "uid_neg", "uid_zero", "uid_observed", "uid_match", "extra_lag", "extra_peak",
-        "extra_neg", "extra_zero"]
+        "uid_neg", "uid_zero", "uid_observed", "uid_match", "saturated", "extra_lag",
+        "extra_peak", "extra_neg", "extra_zero"]
     assert [w.name for f in RECORD for w in f.wire] == WIRE_NAMES
 
 
@@ -133,7 +134,7 @@ def test_cosim_decode_lists_the_record_and_builds_the_model_output() -> None:
         "res_neg": 0b010 | 0b001 << uw, "res_nz": 0b111 | 0b101 << uw,
         "res_nb_lo": (1 << ow) - 2, "res_nb_hi": 3, "res_noise_count": 2,
         "res_noise_sum": (1 << (ow + params.g_w)) - 7, "res_noise_sumsq": 29,
-        "res_uid_observed": 0b010, "res_uid_match": 1,
+        "res_uid_observed": 0b010, "res_uid_match": 1, "res_saturated": 0,
     }
     raw = {"corr": [[j, j] for j in range(gate)], "res": res}
     decoded = cosim.decode_rx_result(raw, ports, params)
@@ -148,7 +149,7 @@ def test_cosim_decode_lists_the_record_and_builds_the_model_output() -> None:
     assert out.extra_lag.tolist() == [[40, -1]] and out.extra_peak.tolist() == [[9, 0]]
     assert out.extra_signs[0, 0].tolist() == [-1, 0, 1]
     assert out.neighbours.tolist() == [[-2, 3]] and out.noise_sum.tolist() == [-7]
-    assert out.uid_match.tolist() == [True]
+    assert out.uid_match.tolist() == [True] and out.saturated.tolist() == [False]
 
 
 def test_spec_table_lists_the_wire_fields_with_their_offsets() -> None:
@@ -170,7 +171,7 @@ def test_spec_table_lists_the_wire_fields_with_their_offsets() -> None:
 @pytest.mark.parametrize("peaks", PEAKS)
 def test_payload_size_formula_matches_the_dtype(peaks: int) -> None:
     dt = record_dtype(peaks)
-    assert record_size(peaks) == dt.itemsize == 40 + 10 * (peaks - 1)
+    assert record_size(peaks) == dt.itemsize == 41 + 10 * (peaks - 1)
     for k in (1, 7, 40):
         assert column_payload_size(k, peaks) == 19 + k * dt.itemsize
     for at in wire_layout():

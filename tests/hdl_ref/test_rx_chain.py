@@ -31,6 +31,7 @@ from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
 from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
 from cdma_lidar.rounding import ROUNDING_MODES
 
@@ -307,3 +308,49 @@ def test_small_parameter_set(rx_builder):
     cases = _small_cases()
     for case, run in zip(cases, _simulate(rx_builder, SMALL, cases, "small"), strict=True):
         _check(case, run, SMALL)
+
+
+def _chain_mutant_cases() -> list[Case]:
+    """A period whose correlation is 0 at the peak; rounding at out_shift 17..20 (half_up)."""
+    rng = np.random.default_rng(9)
+    pair5 = preferred_pairs(5)[0]
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=2, averages=2, uid_bits=2, uid=0,
+                         gate_start=20, gate_len=16, peak_exclude=2)
+    x = echo_column(gold_code(*pair5, 1), spc=2, averages=2, uid_bits=2, tx_uid=0, adc_bits=12,
+                    delay=25, amplitude=600.0, noise_rms=40.0, rng=rng).reshape(2, 2, 62)
+    x[:, 1, :] = 0
+    cases = [Case("uid-period-zero-sign", cfg, pair5, 1, tuple(x.reshape(-1).tolist()))]
+    full = full_scale_column(gold_code(*pair5, 3), spc=4, averages=4, uid_bits=1, tx_uid=1,
+                             adc_bits=16, delay=17)
+    for shift in (17, 19):  # |raw| reaches 124 * 4 * 2^15 = 2^24
+        cfg = ReceiverConfig(adc_bits=16, samples_per_chip=4, averages=4, uid_bits=1, uid=1,
+                             gate_start=10, gate_len=16, peak_exclude=2, out_shift=shift,
+                             rounding="half_up", out_bits=32)
+        cases.append(Case(f"half-up-shift-{shift}", cfg, pair5, 3, tuple(full.tolist())))
+    return cases
+
+
+@pytest.fixture(scope="module")
+def chain_mutant_cases(rx_builder) -> list[Case]:
+    """The mutants' cases, checked on the unchanged RTL first."""
+    cases = _chain_mutant_cases()
+    for case, run in zip(cases, _simulate(rx_builder, PARAMS, cases, "mutant-cases"),
+                         strict=True):
+        _check(case, run, PARAMS)
+    return cases
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("mutant", [m for m in MUTANTS if m.file == "rx_chain.v"],
+                         ids=lambda m: m.name)
+def test_rx_chain_mutant_is_caught(chain_mutant_cases, hdl_build_root, mutant):
+    """rx_chain with a deliberate fault disagrees with the model; unchanged, it agrees."""
+    cases = chain_mutant_cases
+    rtl = mutated_copy(mutant, hdl_build_root / f"rtl_{mutant.name}")
+    built = cosim.build(cosim.RX_TOP, PARAMS.generics(), hdl_build_root / f"rx_{mutant.name}",
+                        rtl_dir=rtl)
+    bad = []
+    for case, run in zip(cases, _simulate(lambda _: built, PARAMS, cases, "mutant"),
+                         strict=True):
+        bad += case.model().mismatches(_rtl_output(run, PARAMS))
+    assert bad, f"{mutant.name} was not caught"

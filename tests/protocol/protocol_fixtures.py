@@ -35,6 +35,7 @@ def expected_column(frame: int, column: int, channels: int, peaks: int, uid_bits
         noise_sum=rng.integers(-(2**40), 2**40, k), noise_sumsq=rng.integers(0, 2**62, k),
         uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 1 << n, k),
         uid_match=rng.integers(0, 2, k).astype(bool),
+        saturated=rng.integers(0, 2, k).astype(bool),
         extra_lag=rng.integers(0, 8000, (k, e)) if e else None,
         extra_peak=rng.integers(-1000, 1000, (k, e)) if e else None,
         extra_signs=rng.integers(-1, 2, (k, e, n)) if e else None,

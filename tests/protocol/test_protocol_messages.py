@@ -264,7 +264,8 @@ def test_column_from_arrays_keeps_every_receiver_field() -> None:
         neighbours=rng.integers(-9, 9, (k, 2)), noise_count=rng.integers(0, 9, k),
         noise_sum=rng.integers(-9, 9, k), noise_sumsq=rng.integers(0, 99, k),
         uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 8, k),
-        uid_match=rng.integers(0, 2, k).astype(bool), extra_lag=rng.integers(0, 100, (k, 2)),
+        uid_match=rng.integers(0, 2, k).astype(bool), saturated=rng.integers(0, 2, k).astype(bool),
+        extra_lag=rng.integers(0, 100, (k, 2)),
         extra_peak=rng.integers(-9, 9, (k, 2)), extra_signs=rng.integers(-1, 2, (k, 2, n)))
     col = decode_column(encode_column(ColumnResult.from_arrays(1, 2, 12.345678, **arrays)))
     for name, value in arrays.items():
@@ -282,7 +283,7 @@ def test_column_from_arrays_names_bad_field(name: str, bad: int) -> None:
                   neighbours=np.zeros((k, 2), int), noise_count=np.zeros(k, int),
                   noise_sum=np.zeros(k, int), noise_sumsq=np.zeros(k, int),
                   uid_signs=np.ones((k, n), int), uid_observed=np.zeros(k, int),
-                  uid_match=np.zeros(k, int))
+                  uid_match=np.zeros(k, int), saturated=np.zeros(k, int))
     arr = np.array(arrays[name], dtype=object)
     arr.flat[0] = bad
     arrays[name] = arr.astype(np.int64) if abs(bad) < 2**63 else arr

@@ -1,0 +1,998 @@
+// rx_top -- K-channel receive chain that keeps up with the ADC: one sample per
+// clock in, K channels' peak / neighbours / noise floor / UID results out per
+// column, bit for bit firmware_model.receiver.reference (docs/hdl.md).
+//
+// Architecture (the arithmetic is in docs/hdl.md, "rx_top"):
+//   * Coherent averaging into a double-buffered RAM: while column c+1 is
+//     accumulated (read-modify-write, one sample per clock) into one buffer,
+//     column c is correlated from the other. Each buffer is MAX_S banks:
+//     bank s holds acc[p][c*S + s] at address p*N + c (chip c, period p).
+//   * Chip-domain sums: lag l = q*S + s' needs box(t, s') = sum of the S
+//     samples acc[t*S + s' .. t*S + s' + S - 1], i.e. banks s >= s' at chip t
+//     and banks s < s' at chip t + 1: the S banks are read in parallel and
+//     summed by one adder tree shared by every lane, so S samples cost one add
+//     per lane.  raw(q*S + s') = sum_c b_c box(c + q, s').
+//   * Lanes: each channel has L lanes. A "group" is L lags of one phase s'
+//     (chip shifts q0..q0+L-1, i.e. lags S apart); the box stream t = q0 + k
+//     (k = 0..N+L-2) is broadcast to all K*L lanes; lane j of channel k adds
+//     +-box with chip b_(k-j) of channel k's Gold code (a delay line of the
+//     generator's chips) for k = j..j+N-1. Per UID period p one stream; the
+//     lane folds (-1)^uid_p c_p into its despread total and keeps the sign
+//     bits of c_p. The G+2 lags gate_start-1 .. gate_start+G are covered by
+//     sum over phases of ceil(lags of the phase / L) groups.
+//   * At the end of a group the K*L totals move into a shift chain that
+//     feeds one shared out_scale (round, saturate) and the correlation RAM
+//     ({channel, gate index} addressed); it must drain (K*L clocks) before
+//     the next group ends (checked: err_overrun).
+//   * Post-processing per channel (peaks, neighbours, noise floor, UID,
+//     saturation flag) scans the correlation RAM as rx_chain does, and emits
+//     the channel's results with a res_valid pulse and its gate trace on corr_*.
+// Result order: per column, channels 0..K-1; per channel corr words j = 0..G-1
+// then res_valid.
+//
+// Configuration is sampled at `start`; then cfg_columns columns are taken
+// (samples in the order repetition r, period p, sample i) and `done` pulses
+// after the last column's last channel.
+`default_nettype none
+
+module rx_top #(
+    parameter integer K         = 4,    // channels (Gold members)
+    parameter integer L         = 2,    // lanes (parallel lags) per channel
+    parameter integer MAX_DEG   = 11,
+    parameter integer MAX_S     = 4,
+    parameter integer MAX_UID   = 1,
+    parameter integer MAX_R     = 16,
+    parameter integer MAX_G     = 64,
+    parameter integer MAX_P     = 1,
+    parameter integer NGHOST    = 1,
+    parameter integer ADC_W     = 12,
+    parameter integer OUT_W     = 32,
+    // ---- derived, do not override ----
+    parameter integer DEG_W     = $clog2(MAX_DEG + 1),
+    parameter integer MAX_N     = (1 << MAX_DEG) - 1,
+    parameter integer MAX_NS    = MAX_N * MAX_S,
+    parameter integer LAG_W     = $clog2(MAX_NS + 1),
+    parameter integer S_W       = $clog2(MAX_S + 1),
+    parameter integer UID_W     = $clog2(MAX_UID + 1),
+    parameter integer R_W       = $clog2(MAX_R + 1),
+    parameter integer G_W       = $clog2(MAX_G + 1),
+    parameter integer P_W       = $clog2(MAX_P + 1),
+    parameter integer K_W       = (K > 1) ? $clog2(K) : 1,
+    parameter integer SH_W      = 6,
+    parameter integer OB_W      = 6,
+    parameter integer COL_W     = 16,
+    parameter integer CNT_W     = G_W,
+    parameter integer SUM_W     = OUT_W + G_W,
+    parameter integer SQ_W      = 2 * OUT_W + G_W
+) (
+    input  wire                         clk,
+    input  wire                         rst,
+
+    input  wire                         start,
+    input  wire [COL_W-1:0]             cfg_columns,    // columns to take, >= 1
+    input  wire [DEG_W-1:0]             cfg_degree,
+    input  wire [MAX_DEG-1:0]           cfg_taps_u,
+    input  wire [MAX_DEG-1:0]           cfg_taps_v,
+    input  wire [K*MAX_DEG-1:0]         cfg_seed_u,     // channel k at [k*MAX_DEG +: MAX_DEG]
+    input  wire [K*MAX_DEG-1:0]         cfg_seed_v,
+    input  wire [S_W-1:0]               cfg_spc,
+    input  wire [R_W-1:0]               cfg_averages,
+    input  wire [UID_W-1:0]             cfg_uid_bits,
+    input  wire [MAX_UID-1:0]           cfg_uid,
+    input  wire [LAG_W-1:0]             cfg_gate_start,
+    input  wire [G_W-1:0]               cfg_gate_len,
+    input  wire [G_W-1:0]               cfg_peak_exclude,
+    input  wire [NGHOST*LAG_W-1:0]      cfg_ghost_start,
+    input  wire [NGHOST*LAG_W-1:0]      cfg_ghost_len,
+    input  wire [SH_W-1:0]              cfg_out_shift,
+    input  wire [1:0]                   cfg_rounding,
+    input  wire [OB_W-1:0]              cfg_out_bits,
+    input  wire [P_W-1:0]               cfg_peaks,
+
+    input  wire                         s_valid,
+    input  wire signed [ADC_W-1:0]      s_data,
+    output wire                         s_ready,
+
+    output reg                          corr_valid,
+    output reg  [K_W-1:0]               corr_channel,
+    output reg  [G_W-1:0]               corr_index,
+    output reg  signed [OUT_W-1:0]      corr_data,
+
+    output reg                          res_valid,      // one pulse per channel and column
+    output reg  [K_W-1:0]               res_channel,
+    output reg  [MAX_P-1:0]             res_found,
+    output reg  [MAX_P*LAG_W-1:0]       res_lag,
+    output reg  [MAX_P*G_W-1:0]         res_index,
+    output reg  [MAX_P*OUT_W-1:0]       res_peak,
+    output reg  [MAX_P*MAX_UID-1:0]     res_neg,
+    output reg  [MAX_P*MAX_UID-1:0]     res_nz,
+    output reg  signed [OUT_W-1:0]      res_nb_lo,
+    output reg  signed [OUT_W-1:0]      res_nb_hi,
+    output reg  [CNT_W-1:0]             res_noise_count,
+    output reg  signed [SUM_W-1:0]      res_noise_sum,
+    output reg  [SQ_W-1:0]              res_noise_sumsq,
+    output reg  [MAX_UID-1:0]           res_uid_observed,
+    output reg                          res_uid_match,
+    output reg                          res_saturated,  // first peak's out word at a rail
+
+    output wire                         busy,
+    output reg                          done,
+    output reg                          col_start,      // pulse: a column's processing starts
+    output reg                          err_overrun     // sticky: lanes outran the serializer
+);
+    // ------------------------------------------------------------------
+    // Widths
+    // ------------------------------------------------------------------
+    localparam integer AVG_W  = ADC_W + $clog2(MAX_R);
+    localparam integer BOX_W  = AVG_W + $clog2(MAX_S);
+    localparam integer PER_W  = BOX_W + MAX_DEG + 1;
+    localparam integer RAW_W  = PER_W + $clog2(MAX_UID);
+    localparam integer ADDR_W = $clog2(MAX_UID * MAX_N);
+    localparam integer KST_W  = $clog2(MAX_N + L + 1);      // stream step
+    localparam integer JJ_W   = G_W + 1;                     // extended gate index 0..G+1
+    localparam integer CA_W   = $clog2(MAX_G + 2);
+    localparam integer CW     = OUT_W + 2 * MAX_UID;         // correlation RAM word
+    localparam integer MAG_W  = OUT_W + 1;
+    localparam integer KL     = K * L;
+    localparam integer TAG_W  = 2 * MAX_UID + K_W + CA_W;
+    localparam integer DIV_W  = $clog2(LAG_W + 1);
+
+    localparam [1:0] T_IDLE = 2'd0, T_INIT1 = 2'd1, T_INIT2 = 2'd2, T_RUN = 2'd3;
+    localparam [3:0] P_IDLE  = 4'd0, P_SETUP = 4'd1, P_STREAM = 4'd2, P_FLUSH = 4'd3,
+                     P_PEAK  = 4'd4, P_PWAIT = 4'd5, P_FETCH  = 4'd6, P_NOISE = 4'd7,
+                     P_NWAIT = 4'd8, P_EMIT  = 4'd9, P_START  = 4'd10;
+
+    reg [1:0] tstate;
+    reg [3:0] pstate;
+
+    // ------------------------------------------------------------------
+    // Configuration
+    // ------------------------------------------------------------------
+    reg [COL_W-1:0]        c_columns;
+    reg [DEG_W-1:0]        c_degree;
+    reg [MAX_DEG-1:0]      c_taps_u, c_taps_v;
+    reg [K*MAX_DEG-1:0]    c_seed_u, c_seed_v;
+    reg [S_W-1:0]          c_spc;
+    reg [R_W-1:0]          c_averages;
+    reg [UID_W-1:0]        c_uid_bits;
+    reg [MAX_UID-1:0]      c_uid;
+    reg [LAG_W-1:0]        c_gate_start;
+    reg [G_W-1:0]          c_gate_len, c_excl;
+    reg [NGHOST*LAG_W-1:0] c_gh_start, c_gh_len;
+    reg [SH_W-1:0]         c_shift;
+    reg [1:0]              c_round;
+    reg [OB_W-1:0]         c_out_bits;
+    reg [P_W-1:0]          c_peaks;
+
+    reg [MAX_DEG-1:0]      nn;          // N chips
+    reg [LAG_W-1:0]        ns;          // N * S
+    reg [LAG_W-1:0]        lo;          // gate_start - 1 mod NS
+    wire [MAX_DEG:0]       n_chips = ({{MAX_DEG{1'b0}}, 1'b1} << c_degree) - {{MAX_DEG{1'b0}}, 1'b1};
+    wire [MAX_DEG+S_W:0]   ns_full = n_chips * {{MAX_DEG{1'b0}}, c_spc};
+    wire [MAX_UID-1:0]     uid_mask = ({{(MAX_UID-1){1'b0}}, 1'b1} << c_uid_bits)
+                                      - {{(MAX_UID-1){1'b0}}, 1'b1};
+    wire [JJ_W-1:0]        jj_last = {1'b0, c_gate_len} + 1'b1;   // G + 1
+
+    function [LAG_W-1:0] lag_inc(input [LAG_W-1:0] x, input [LAG_W-1:0] m);
+        lag_inc = (x == m - 1'b1) ? {LAG_W{1'b0}} : x + 1'b1;
+    endfunction
+    function [MAX_DEG-1:0] chip_inc(input [MAX_DEG-1:0] x, input [MAX_DEG-1:0] m);
+        chip_inc = (x == m - 1'b1) ? {MAX_DEG{1'b0}} : x + 1'b1;
+    endfunction
+
+    // ---- lo = q_lo * S + s_lo: restoring division, one quotient bit per clock ----
+    reg              div_run, div_done;
+    reg [DIV_W-1:0]  div_i;
+    reg [LAG_W-1:0]  div_q;
+    reg [S_W:0]      div_r;
+    wire [S_W+1:0]   div_t = {div_r, lo[div_i - 1'b1]};
+    wire             div_ge = div_t >= {2'b00, c_spc};
+
+    // ------------------------------------------------------------------
+    // Averaging: two buffers of MAX_S banks (n * N words of AVG_W bits each)
+    // ------------------------------------------------------------------
+    reg               acc_buf;          // buffer being accumulated
+    reg               proc_buf;         // buffer being correlated
+    reg  [1:0]        full;             // buffer b holds a complete column not yet processed
+    reg               proc_on;          // the engine is reading proc_buf
+    reg [COL_W-1:0]   cols_in, cols_out;
+    reg [S_W-1:0]     a_s;
+    reg [MAX_DEG-1:0] a_c;
+    reg [UID_W-1:0]   a_p;
+    reg [ADDR_W-1:0]  a_base;
+    reg [R_W-1:0]     a_r;
+
+    assign s_ready = (tstate == T_RUN) && !full[acc_buf] && (cols_in != c_columns);
+    assign busy    = (tstate != T_IDLE);
+    wire a_take    = s_valid && s_ready;
+
+    reg               r_v, r_first, r_buf;   // read issued last clock
+    reg [S_W-1:0]     r_bank;
+    reg [ADDR_W-1:0]  r_addr;
+    reg signed [ADC_W-1:0] r_x;
+    reg               rr_v, rr_first, rr_buf; // read data on rd (output register)
+    reg [S_W-1:0]     rr_bank;
+    reg [ADDR_W-1:0]  rr_addr;
+    reg signed [ADC_W-1:0] rr_x;
+    reg [AVG_W-1:0]   w_old;                 // RAM word, registered
+    reg               w_v, w_first, w_buf;
+    reg [S_W-1:0]     w_bank;
+    reg [ADDR_W-1:0]  w_addr;
+    reg signed [ADC_W-1:0] w_x;
+    wire [ADDR_W-1:0] a_addr = a_base + {{(ADDR_W-MAX_DEG){1'b0}}, a_c};
+
+    wire [AVG_W-1:0]  rd [0:2*MAX_S-1];            // bank (b, s) at b*MAX_S + s
+    reg  [ADDR_W-1:0] corr_addr [0:MAX_S-1];
+    reg  [MAX_S*ADDR_W-1:0] addr0;           // stage 0 (below): registered corr_addr
+    wire signed [AVG_W-1:0] w_x_ext = {{(AVG_W-ADC_W+1){w_x[ADC_W-1]}}, w_x[ADC_W-2:0]};
+
+    genvar gb, gs;
+    generate
+        for (gb = 0; gb < 2; gb = gb + 1) begin : g_buf
+            for (gs = 0; gs < MAX_S; gs = gs + 1) begin : g_bank
+                wire we = w_v && (w_buf == gb) && (w_bank == gs);
+                wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? addr0[gs*ADDR_W +: ADDR_W]
+                                                                   : a_addr;
+                sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N), .OUTREG(1)) bank (
+                    .clk(clk), .we(we), .waddr(w_addr),
+                    .wdata(w_first ? w_x_ext : w_old + w_x_ext),
+                    .raddr(ra), .rdata(rd[gb * MAX_S + gs])
+                );
+            end
+        end
+    endgenerate
+
+    // ------------------------------------------------------------------
+    // Correlation streams (stage 0: issue)
+    // ------------------------------------------------------------------
+    reg  [S_W-1:0]     ph;              // phase index: lags lo+ph, lo+ph+S, ...
+    reg  [MAX_DEG-1:0] ph_q;            // lag lo+ph = ph_q * S + ph_s
+    reg  [S_W-1:0]     ph_s;
+    reg  [MAX_DEG-1:0] g_q;             // chip shift of lane 0 of the group
+    reg  [JJ_W-1:0]    g_jj;            // extended gate index of lane 0
+    reg  [UID_W-1:0]   st_p;
+    reg  [ADDR_W-1:0]  st_base;         // st_p * N
+    reg  [KST_W-1:0]   st_k;            // 0 .. N+L-2
+    reg  [MAX_DEG-1:0] st_t;            // (g_q + k) mod N
+    wire [MAX_DEG-1:0] st_t1 = chip_inc(st_t, nn);
+    wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0] - 2'd2;
+    wire               st_end   = (st_k == k_last);
+    wire               st_lastp = (st_p == c_uid_bits - 1'b1);
+    wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L * {{(JJ_W+1){1'b0}}, c_spc};
+    wire               g_more   = g_jj_nx <= {{(S_W+1){1'b0}}, jj_last};
+    wire [MAX_DEG:0]   g_q_sum  = {1'b0, g_q} + L[MAX_DEG:0];
+    wire [MAX_DEG-1:0] g_q_nx   = (g_q_sum >= {1'b0, nn}) ? g_q_sum - {1'b0, nn}
+                                                          : g_q_sum[MAX_DEG-1:0];
+    wire [S_W-1:0]     ph_nx    = ph + 1'b1;
+    wire               ph_more  = (ph_nx < c_spc) && ({{(JJ_W-S_W){1'b0}}, ph_nx} <= jj_last);
+    wire               ph_s_wrap = (ph_s == c_spc - 1'b1);
+
+    integer bi;
+    always @(*) begin
+        for (bi = 0; bi < MAX_S; bi = bi + 1)
+            corr_addr[bi] = st_base + {{(ADDR_W-MAX_DEG){1'b0}},
+                                       (bi >= ph_s) ? st_t : st_t1};
+    end
+
+    // Gold generators, one pair per channel
+    reg               gen_load, gen_en;
+    wire [K-1:0]      chip;
+    genvar gk;
+    generate
+        for (gk = 0; gk < K; gk = gk + 1) begin : g_gen
+            wire cu, cv;
+            wire [MAX_DEG-1:0] su, sv;
+            lfsr_fib #(.MAX_DEG(MAX_DEG)) gu (
+                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_u[gk*MAX_DEG +: MAX_DEG]),
+                .taps(c_taps_u), .degree(c_degree), .out(cu), .state(su));
+            lfsr_fib #(.MAX_DEG(MAX_DEG)) gv (
+                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_v[gk*MAX_DEG +: MAX_DEG]),
+                .taps(c_taps_v), .degree(c_degree), .out(cv), .state(sv));
+            assign chip[gk] = cu ^ cv;
+            wire unused_gen = &{1'b0, su, sv};
+        end
+    endgenerate
+
+    // ---- stage 0: registered RAM addresses ----
+    reg               v0, f0, e0, a0, gend0;
+    reg [UID_W-1:0]   p0;
+    reg [K-1:0]       code0;
+    reg [JJ_W-1:0]    gjj0;
+    // ---- stage 1: RAM data ----
+    reg               v1, f1, e1, a1, gend1;
+    reg [UID_W-1:0]   p1;
+    reg [K-1:0]       code1;
+    reg [JJ_W-1:0]    gjj1;
+    // ---- stage 2: box sum ----
+    reg               v2, f2, e2, a2, gend2;
+    reg [UID_W-1:0]   p2;
+    reg [K-1:0]       code2;
+    reg [JJ_W-1:0]    gjj2;
+    reg signed [BOX_W-1:0] box2;
+
+    reg               vr, fr, er, ar, gendr;   // stage 1a: RAM output register
+    reg [UID_W-1:0]   pr;
+    reg [K-1:0]       coder;
+    reg [JJ_W-1:0]    gjjr;
+    reg               vq, fq, eq, aq, gendq;   // stage 1b: RAM words registered
+    reg [UID_W-1:0]   pq;
+    reg [K-1:0]       codeq;
+    reg [JJ_W-1:0]    gjjq;
+    reg [MAX_S*AVG_W-1:0] rdq;
+    reg signed [BOX_W-1:0] box1;
+    integer si;
+    always @(*) begin
+        box1 = {BOX_W{1'b0}};
+        for (si = 0; si < MAX_S; si = si + 1)
+            if (si < c_spc)
+                box1 = box1 + {{(BOX_W-AVG_W){rdq[si*AVG_W + AVG_W-1]}},
+                               rdq[si*AVG_W +: AVG_W]};
+    end
+
+    // ---- lane control delay line: entry j = step k - j ----
+    wire [L-1:0]       e_f, e_e, e_a;
+    wire [L*UID_W-1:0] e_p;
+    wire [K*L-1:0]     e_code;              // [k*L + j]
+    reg  [L-1:0]       sr_f, sr_e, sr_a;    // sr[j] = step k - 1 - j
+    reg  [L*UID_W-1:0] sr_p;
+    reg  [K*L-1:0]     sr_code;
+
+    genvar gj;
+    generate
+        if (L == 1) begin : g_l1
+            assign e_f = f2;
+            assign e_e = e2;
+            assign e_a = a2;
+            assign e_p = p2;
+            for (gk = 0; gk < K; gk = gk + 1) begin : g_c
+                assign e_code[gk] = code2[gk];
+            end
+        end else begin : g_ln
+            assign e_f = {sr_f[L-2:0], f2};
+            assign e_e = {sr_e[L-2:0], e2};
+            assign e_a = {sr_a[L-2:0], a2};
+            assign e_p = {sr_p[(L-1)*UID_W-1:0], p2};
+            for (gk = 0; gk < K; gk = gk + 1) begin : g_c
+                assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};
+            end
+        end
+    endgenerate
+
+    // ---- lanes: flat outputs, lane k*L + j at [(k*L + j)*W +: W] ----
+    wire [KL*RAW_W-1:0]   ln_tot;
+    wire [KL*MAX_UID-1:0] ln_neg, ln_nz;
+
+    generate
+        for (gk = 0; gk < K; gk = gk + 1) begin : g_lk
+            for (gj = 0; gj < L; gj = gj + 1) begin : g_lj
+                localparam integer IX = gk * L + gj;
+                reg  signed [PER_W-1:0] per;
+                reg  signed [RAW_W-1:0] tot;
+                reg  [MAX_UID-1:0]      neg, nz;
+                reg                     fv;             // fold fval into the total
+                reg  signed [PER_W-1:0] fval;           // the period's sum c_p
+                reg  [UID_W-1:0]        fp;
+                wire [UID_W-1:0]        lp    = e_p[gj*UID_W +: UID_W];
+                wire signed [PER_W-1:0] bx    = {{(PER_W-BOX_W){box2[BOX_W-1]}}, box2};
+                wire signed [PER_W-1:0] term  = e_code[IX] ? -bx : bx;
+                wire signed [PER_W-1:0] psum  = (e_f[gj] ? {PER_W{1'b0}} : per) + term;
+                wire signed [RAW_W-1:0] pext  = {{(RAW_W-PER_W){fval[PER_W-1]}}, fval};
+                wire [MAX_UID-1:0]      psel  = {{(MAX_UID-1){1'b0}}, 1'b1} << fp;
+                wire                    pflip = |(c_uid & psel);
+                wire                    p0    = (fp == {UID_W{1'b0}});
+                always @(posedge clk) begin
+                    fv <= 1'b0;
+                    if (v2 && e_a[gj]) begin
+                        per <= psum;
+                        if (e_e[gj]) begin
+                            fv   <= 1'b1;
+                            fval <= psum;
+                            fp   <= lp;
+                        end
+                    end
+                    if (fv) begin
+                        tot <= (p0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
+                        neg <= (p0 ? {MAX_UID{1'b0}} : neg)
+                               | (fval[PER_W-1] ? psel : {MAX_UID{1'b0}});
+                        nz  <= (p0 ? {MAX_UID{1'b0}} : nz)
+                               | ((fval != {PER_W{1'b0}}) ? psel : {MAX_UID{1'b0}});
+                    end
+                    if (rst)
+                        fv <= 1'b0;
+                end
+                assign ln_tot[IX*RAW_W +: RAW_W]     = tot;
+                assign ln_neg[IX*MAX_UID +: MAX_UID] = neg;
+                assign ln_nz[IX*MAX_UID +: MAX_UID]  = nz;
+            end
+        end
+    endgenerate
+
+    // ---- hold chain and serializer ----
+    reg                     latch_v0, latch_v;  // last fold, then copy
+    reg  [JJ_W-1:0]         latch_jj;
+    reg  [KL*RAW_W-1:0]     h_raw;          // entry 0 at the bottom
+    reg  [KL*MAX_UID-1:0]   h_neg, h_nz;
+    reg                     ser_busy;
+    reg  [K_W-1:0]          ser_k;
+    reg  [$clog2(L+1)-1:0]  ser_j;
+    reg  [JJ_W+S_W:0]       ser_jj;
+    reg  [JJ_W-1:0]         ser_base;
+    wire                    ser_ok = ser_busy && (ser_jj <= {{(S_W+1){1'b0}}, jj_last});
+    wire                    sc_v;
+    wire signed [OUT_W-1:0] sc_word;
+    wire [TAG_W-1:0]        sc_tag;
+
+    out_scale #(.RAW_W(RAW_W), .OUT_W(OUT_W), .TAG_W(TAG_W), .SH_W(SH_W), .OB_W(OB_W)) scale (
+        .clk(clk), .in_v(ser_ok), .in_raw(h_raw[RAW_W-1:0]),
+        .in_tag({h_nz[MAX_UID-1:0], h_neg[MAX_UID-1:0], ser_k, ser_jj[CA_W-1:0]}),
+        .shift(c_shift), .rounding(c_round), .out_bits(c_out_bits),
+        .out_v(sc_v), .out_word(sc_word), .out_tag(sc_tag)
+    );
+
+    always @(posedge clk) begin
+        if (latch_v) begin
+            h_raw <= ln_tot;
+            h_neg <= ln_neg;
+            h_nz  <= ln_nz;
+        end else if (ser_busy) begin
+            h_raw <= h_raw >> RAW_W;
+            h_neg <= h_neg >> MAX_UID;
+            h_nz  <= h_nz >> MAX_UID;
+        end
+    end
+
+    // ------------------------------------------------------------------
+    // Correlation RAM: K * 2^CA_W words {nz, neg, out}, address {channel, jj}
+    // ------------------------------------------------------------------
+    reg  [K_W+CA_W-1:0] cr_raddr;
+    wire [CW-1:0]       cr_rdata;
+    sdp_ram #(.WIDTH(CW), .DEPTH(((K > 1) ? K : 2) << CA_W)) corr_ram (
+        .clk(clk), .we(sc_v), .waddr(sc_tag[K_W+CA_W-1:0]),
+        .wdata({sc_tag[TAG_W-1:K_W+CA_W], sc_word}),
+        .raddr(cr_raddr), .rdata(cr_rdata)
+    );
+    wire signed [OUT_W-1:0] cr_out = cr_rdata[OUT_W-1:0];
+
+    // ------------------------------------------------------------------
+    // Post-processing scan (per channel): as rx_chain
+    // ------------------------------------------------------------------
+    reg  [K_W-1:0]    pk_ch;
+    reg  [G_W-1:0]    q_j;
+    reg  [LAG_W-1:0]  q_lag;
+    reg  [P_W-1:0]    q_k;
+    reg  [MAX_P-1:0]  pk_found;
+    reg  [MAX_P*G_W-1:0] pk_j;
+
+    reg ghost, excl;
+    integer w, q;
+    reg [LAG_W:0] gd;
+    reg [G_W-1:0] pj, dj;
+    always @(*) begin
+        ghost = 1'b0;
+        for (w = 0; w < NGHOST; w = w + 1) begin
+            gd = {1'b0, q_lag} - {1'b0, c_gh_start[w*LAG_W +: LAG_W]};
+            if (gd[LAG_W])
+                gd = gd + {1'b0, ns};
+            if (gd[LAG_W-1:0] < c_gh_len[w*LAG_W +: LAG_W])
+                ghost = 1'b1;
+        end
+        excl = 1'b0;
+        for (q = 0; q < MAX_P; q = q + 1) begin
+            pj = pk_j[q*G_W +: G_W];
+            dj = (q_j > pj) ? q_j - pj : pj - q_j;
+            if (pk_found[q] && ((pstate == P_NOISE) || (q < {{(32-P_W){1'b0}}, q_k}))
+                && dj <= c_excl)
+                excl = 1'b1;
+        end
+    end
+
+    reg               s1_v, s1_ok;
+    reg  [G_W-1:0]    s1_j;
+    reg  [LAG_W-1:0]  s1_lag;
+    reg               b_have;
+    reg  [MAG_W-1:0]  b_mag;
+    reg  [G_W-1:0]    b_j;
+    reg  [LAG_W-1:0]  b_lag;
+    reg  [CW-1:0]     b_word;
+    reg  [2:0]        wait_cnt;
+    reg  [1:0]        f_cnt;
+
+    reg               s2_v, s2_ok, s3_v, s3_ok;
+    reg  [G_W-1:0]    s2_j, s3_j;
+    reg  [LAG_W-1:0]  s2_lag, s3_lag;
+    reg  [CW-1:0]     s2_word, s3_word;
+    reg  [MAG_W-1:0]  s3_mag;
+    reg  [2*OUT_W-1:0] s3_sq;
+    wire signed [OUT_W-1:0]   s2_out = s2_word[OUT_W-1:0];
+    wire signed [OUT_W-1:0]   s3_out = s3_word[OUT_W-1:0];
+    wire signed [2*OUT_W-1:0] sq = s2_out * s2_out;
+    wire [MAX_UID-1:0]  b_neg = b_word[OUT_W +: MAX_UID] & uid_mask;
+    wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
+    wire signed [OUT_W-1:0] b_out = b_word[OUT_W-1:0];
+    wire [OUT_W:0]      o_max = ({{OUT_W{1'b0}}, 1'b1} << (c_out_bits - 1'b1)) - 1'b1;
+    wire                b_rail = (b_out == o_max[OUT_W-1:0]) || (b_out == ~o_max[OUT_W-1:0]);
+    wire [P_W-1:0]      q_k_last = c_peaks - 1'b1;
+    localparam [MAX_P-1:0] P_ONE = 1;
+    wire [MAX_P-1:0]    q_bit    = P_ONE << q_k;
+    wire [G_W-1:0]      q_j_last = c_gate_len - 1'b1;
+    localparam [CA_W-1:0] CA_ONE = 1, CA_TWO = 2;
+    wire [CA_W-1:0]     j0 = pk_j[CA_W-1:0];
+
+    always @(*) begin
+        gen_load = (pstate == P_SETUP) || (pstate == P_STREAM && st_end);
+        gen_en   = (pstate == P_STREAM) && !st_end;
+        case (pstate)
+        P_FETCH: cr_raddr = {pk_ch, (f_cnt == 2'd0) ? j0 : j0 + CA_TWO};
+        default: cr_raddr = {pk_ch, q_j[CA_W-1:0] + CA_ONE};
+        endcase
+    end
+
+    // ------------------------------------------------------------------
+    // Sequencers
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
+        done       <= 1'b0;
+        res_valid  <= 1'b0;
+        corr_valid <= 1'b0;
+        col_start  <= 1'b0;
+        w_v        <= 1'b0;
+        v0         <= 1'b0;
+        v1         <= 1'b0;
+        vr         <= 1'b0;
+        vq         <= 1'b0;
+        v2         <= 1'b0;
+        latch_v0   <= 1'b0;
+        latch_v    <= 1'b0;
+        s1_v       <= 1'b0;
+
+        // ---- top: configuration and column count ----
+        case (tstate)
+        T_IDLE: if (start) begin
+            c_columns    <= cfg_columns;
+            c_degree     <= cfg_degree;
+            c_taps_u     <= cfg_taps_u;
+            c_taps_v     <= cfg_taps_v;
+            c_seed_u     <= cfg_seed_u;
+            c_seed_v     <= cfg_seed_v;
+            c_spc        <= cfg_spc;
+            c_averages   <= cfg_averages;
+            c_uid_bits   <= cfg_uid_bits;
+            c_uid        <= cfg_uid;
+            c_gate_start <= cfg_gate_start;
+            c_gate_len   <= cfg_gate_len;
+            c_excl       <= cfg_peak_exclude;
+            c_gh_start   <= cfg_ghost_start;
+            c_gh_len     <= cfg_ghost_len;
+            c_shift      <= cfg_out_shift;
+            c_round      <= cfg_rounding;
+            c_out_bits   <= cfg_out_bits;
+            c_peaks      <= cfg_peaks;
+            tstate       <= T_INIT1;
+        end
+        T_INIT1: begin
+            nn     <= n_chips[MAX_DEG-1:0];
+            ns     <= ns_full[LAG_W-1:0];
+            tstate <= T_INIT2;
+        end
+        T_INIT2: begin
+            lo          <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
+            div_run     <= 1'b1;
+            div_done    <= 1'b0;
+            div_i       <= LAG_W[DIV_W-1:0];
+            div_q       <= {LAG_W{1'b0}};
+            div_r       <= {(S_W+1){1'b0}};
+            acc_buf     <= 1'b0;
+            proc_buf    <= 1'b0;
+            full        <= 2'b00;
+            cols_in     <= {COL_W{1'b0}};
+            cols_out    <= {COL_W{1'b0}};
+            a_s <= {S_W{1'b0}}; a_c <= {MAX_DEG{1'b0}}; a_p <= {UID_W{1'b0}};
+            a_base <= {ADDR_W{1'b0}}; a_r <= {R_W{1'b0}};
+            tstate      <= T_RUN;
+        end
+        T_RUN: begin
+            if (cols_out == c_columns) begin
+                done   <= 1'b1;
+                tstate <= T_IDLE;
+            end
+        end
+        default: tstate <= T_IDLE;
+        endcase
+
+        if (div_run) begin
+            div_r <= div_ge ? div_t - {2'b00, c_spc} : div_t[S_W:0];
+            div_q <= {div_q[LAG_W-2:0], div_ge};
+            div_i <= div_i - 1'b1;
+            if (div_i == {{(DIV_W-1){1'b0}}, 1'b1}) begin
+                div_run  <= 1'b0;
+                div_done <= 1'b1;
+            end
+        end
+
+        // ---- accumulation ----
+        r_v  <= 1'b0;
+        rr_v <= 1'b0;
+        if (r_v) begin
+            rr_v     <= 1'b1;
+            rr_buf   <= r_buf;
+            rr_bank  <= r_bank;
+            rr_addr  <= r_addr;
+            rr_first <= r_first;
+            rr_x     <= r_x;
+        end
+        if (rr_v) begin
+            w_v     <= 1'b1;
+            w_buf   <= rr_buf;
+            w_bank  <= rr_bank;
+            w_addr  <= rr_addr;
+            w_first <= rr_first;
+            w_x     <= rr_x;
+            w_old   <= rr_buf ? rd[MAX_S + rr_bank] : rd[rr_bank];
+        end
+        if (a_take) begin
+            r_v     <= 1'b1;
+            r_buf   <= acc_buf;
+            r_bank  <= a_s;
+            r_addr  <= a_addr;
+            r_first <= (a_r == {R_W{1'b0}});
+            r_x     <= s_data;
+            if (a_s != c_spc - 1'b1) begin
+                a_s <= a_s + 1'b1;
+            end else begin
+                a_s <= {S_W{1'b0}};
+                if (a_c != nn - 1'b1) begin
+                    a_c <= a_c + 1'b1;
+                end else begin
+                    a_c <= {MAX_DEG{1'b0}};
+                    if (a_p != c_uid_bits - 1'b1) begin
+                        a_p    <= a_p + 1'b1;
+                        a_base <= a_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
+                    end else begin
+                        a_p    <= {UID_W{1'b0}};
+                        a_base <= {ADDR_W{1'b0}};
+                        if (a_r != c_averages - 1'b1) begin
+                            a_r <= a_r + 1'b1;
+                        end else begin
+                            a_r           <= {R_W{1'b0}};
+                            full[acc_buf] <= 1'b1;
+                            acc_buf       <= ~acc_buf;
+                            cols_in       <= cols_in + 1'b1;
+                        end
+                    end
+                end
+            end
+        end
+
+        // ---- correlation pipeline ----
+        if (pstate == P_STREAM) begin
+            v0    <= 1'b1;
+            f0    <= (st_k == {KST_W{1'b0}});
+            e0    <= (st_k == {{(KST_W-MAX_DEG){1'b0}}, nn} - 1'b1);
+            a0    <= (st_k < {{(KST_W-MAX_DEG){1'b0}}, nn});
+            p0    <= st_p;
+            code0 <= chip;
+            gend0 <= st_end && st_lastp;
+            gjj0  <= g_jj;
+            for (si = 0; si < MAX_S; si = si + 1)
+                addr0[si*ADDR_W +: ADDR_W] <= corr_addr[si];
+        end
+        if (v0) begin
+            v1    <= 1'b1;
+            f1    <= f0;
+            e1    <= e0;
+            a1    <= a0;
+            p1    <= p0;
+            code1 <= code0;
+            gend1 <= gend0;
+            gjj1  <= gjj0;
+        end
+        if (v1) begin
+            vr    <= 1'b1;
+            fr    <= f1;
+            er    <= e1;
+            ar    <= a1;
+            pr    <= p1;
+            coder <= code1;
+            gendr <= gend1;
+            gjjr  <= gjj1;
+        end
+        if (vr) begin
+            vq    <= 1'b1;
+            fq    <= fr;
+            eq    <= er;
+            aq    <= ar;
+            pq    <= pr;
+            codeq <= coder;
+            gendq <= gendr;
+            gjjq  <= gjjr;
+            for (si = 0; si < MAX_S; si = si + 1)
+                rdq[si*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + si];
+        end
+        if (vq) begin
+            v2    <= 1'b1;
+            f2    <= fq;
+            e2    <= eq;
+            a2    <= aq;
+            p2    <= pq;
+            code2 <= codeq;
+            gend2 <= gendq;
+            gjj2  <= gjjq;
+            box2  <= box1;
+        end
+        if (v2) begin
+            if (L > 1) begin
+                sr_f <= e_f[L-1:0];
+                sr_e <= e_e[L-1:0];
+                sr_a <= e_a[L-1:0];
+                sr_p <= e_p;
+                sr_code <= e_code;
+            end
+            if (gend2) begin
+                latch_v0 <= 1'b1;
+                latch_jj <= gjj2;
+            end
+        end
+        latch_v <= latch_v0;
+        if (latch_v) begin
+            if (ser_busy)
+                err_overrun <= 1'b1;
+            ser_busy <= 1'b1;
+            ser_k    <= {K_W{1'b0}};
+            ser_j    <= 0;
+            ser_jj   <= {{(S_W+1){1'b0}}, latch_jj};
+            ser_base <= latch_jj;
+        end else if (ser_busy) begin
+            if (ser_j == L - 1) begin
+                ser_j  <= 0;
+                ser_jj <= {{(S_W+1){1'b0}}, ser_base};
+                ser_k  <= ser_k + 1'b1;
+                if (ser_k == K - 1)
+                    ser_busy <= 1'b0;
+            end else begin
+                ser_j  <= ser_j + 1'b1;
+                ser_jj <= ser_jj + {{(JJ_W+1){1'b0}}, c_spc};
+            end
+        end
+
+        // ---- processing engine ----
+        case (pstate)
+        P_IDLE: if (tstate == T_RUN && full[proc_buf] && div_done) begin
+            proc_on     <= 1'b1;
+            col_start   <= 1'b1;
+            pstate      <= P_START;
+        end
+        P_START: begin
+            // first phase: lag lo = q_lo * S + s_lo
+            ph      <= {S_W{1'b0}};
+            ph_q    <= div_q[MAX_DEG-1:0];
+            ph_s    <= div_r[S_W-1:0];
+            g_q     <= div_q[MAX_DEG-1:0];
+            g_jj    <= {JJ_W{1'b0}};
+            pstate  <= P_SETUP;
+        end
+        P_SETUP: begin
+            st_p    <= {UID_W{1'b0}};
+            st_base <= {ADDR_W{1'b0}};
+            st_k    <= {KST_W{1'b0}};
+            st_t    <= g_q;
+            pstate  <= P_STREAM;
+        end
+        P_STREAM: begin
+            if (!st_end) begin
+                st_k <= st_k + 1'b1;
+                st_t <= st_t1;
+            end else begin
+                st_k <= {KST_W{1'b0}};
+                if (!st_lastp) begin
+                    st_p    <= st_p + 1'b1;
+                    st_base <= st_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
+                    st_t    <= g_q;
+                end else begin
+                    st_p    <= {UID_W{1'b0}};
+                    st_base <= {ADDR_W{1'b0}};
+                    if (g_more) begin
+                        g_q  <= g_q_nx;
+                        st_t <= g_q_nx;
+                        g_jj <= g_jj_nx[JJ_W-1:0];
+                    end else if (ph_more) begin
+                        ph   <= ph_nx;
+                        ph_s <= ph_s_wrap ? {S_W{1'b0}} : ph_s + 1'b1;
+                        ph_q <= ph_s_wrap ? chip_inc(ph_q, nn) : ph_q;
+                        g_q  <= ph_s_wrap ? chip_inc(ph_q, nn) : ph_q;
+                        st_t <= ph_s_wrap ? chip_inc(ph_q, nn) : ph_q;
+                        g_jj <= {{(JJ_W-S_W){1'b0}}, ph_nx};
+                    end else begin
+                        pstate   <= P_FLUSH;
+                        wait_cnt <= 3'd0;
+                    end
+                end
+            end
+        end
+        P_FLUSH: begin
+            // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
+            if (!v0 && !v1 && !vr && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
+                wait_cnt <= wait_cnt + 1'b1;
+                if (wait_cnt == 3'd4) begin
+                    pk_ch  <= {K_W{1'b0}};
+                    pstate <= P_PEAK;
+                    q_k      <= {P_W{1'b0}};
+                    q_j      <= {G_W{1'b0}};
+                    q_lag    <= c_gate_start;
+                    pk_found <= {MAX_P{1'b0}};
+                    b_have   <= 1'b0;
+                end
+            end
+        end
+        P_PEAK: begin
+            if (q_k == {P_W{1'b0}} && q_j == {G_W{1'b0}}) begin
+                // a channel's first clock (the previous channel's res_valid clock)
+                res_found <= {MAX_P{1'b0}};
+                res_lag   <= {(MAX_P*LAG_W){1'b0}};
+                res_index <= {(MAX_P*G_W){1'b0}};
+                res_peak  <= {(MAX_P*OUT_W){1'b0}};
+                res_neg   <= {(MAX_P*MAX_UID){1'b0}};
+                res_nz    <= {(MAX_P*MAX_UID){1'b0}};
+            end
+            s1_v   <= 1'b1;
+            s1_ok  <= !ghost && !excl;
+            s1_j   <= q_j;
+            s1_lag <= q_lag;
+            q_j    <= q_j + 1'b1;
+            q_lag  <= lag_inc(q_lag, ns);
+            if (q_j == q_j_last) begin
+                pstate   <= P_PWAIT;
+                wait_cnt <= 3'd0;
+            end
+        end
+        P_PWAIT: begin
+            wait_cnt <= wait_cnt + 1'b1;
+            if (wait_cnt == 3'd3) begin
+                pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
+                pk_j[q_k*G_W +: G_W]          <= b_j;
+                res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
+                res_lag[q_k*LAG_W +: LAG_W]   <= b_have ? b_lag : {LAG_W{1'b0}};
+                res_index[q_k*G_W +: G_W]     <= b_have ? b_j : {G_W{1'b0}};
+                res_peak[q_k*OUT_W +: OUT_W]    <= b_have ? b_word[OUT_W-1:0] : {OUT_W{1'b0}};
+                res_neg[q_k*MAX_UID +: MAX_UID] <= b_have ? b_neg : {MAX_UID{1'b0}};
+                res_nz[q_k*MAX_UID +: MAX_UID]  <= b_have ? b_nz : {MAX_UID{1'b0}};
+                if (q_k == {P_W{1'b0}}) begin
+                    res_uid_observed <= b_have ? b_neg : {MAX_UID{1'b0}};
+                    res_uid_match    <= b_have && (b_nz == uid_mask)
+                                        && (b_neg == (c_uid & uid_mask));
+                    res_saturated    <= b_have && b_rail;
+                end
+                q_j    <= {G_W{1'b0}};
+                q_lag  <= c_gate_start;
+                b_have <= 1'b0;
+                if (q_k == q_k_last) begin
+                    pstate <= P_FETCH;
+                    f_cnt  <= 2'd0;
+                end else begin
+                    q_k    <= q_k + 1'b1;
+                    pstate <= P_PEAK;
+                end
+            end
+        end
+        P_FETCH: begin
+            f_cnt <= f_cnt + 1'b1;
+            if (f_cnt == 2'd1)
+                res_nb_lo <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
+            if (f_cnt == 2'd2) begin
+                res_nb_hi       <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
+                res_noise_count <= {CNT_W{1'b0}};
+                res_noise_sum   <= {SUM_W{1'b0}};
+                res_noise_sumsq <= {SQ_W{1'b0}};
+                pstate          <= P_NOISE;
+            end
+        end
+        P_NOISE: begin
+            s1_v   <= 1'b1;
+            s1_ok  <= !ghost && !excl;
+            s1_j   <= q_j;
+            s1_lag <= q_lag;
+            q_j    <= q_j + 1'b1;
+            q_lag  <= lag_inc(q_lag, ns);
+            if (q_j == q_j_last) begin
+                pstate   <= P_NWAIT;
+                wait_cnt <= 3'd0;
+            end
+        end
+        P_NWAIT: begin
+            wait_cnt <= wait_cnt + 1'b1;
+            if (wait_cnt == 3'd2)
+                pstate <= P_EMIT;
+        end
+        P_EMIT: begin
+            res_valid   <= 1'b1;
+            res_channel <= pk_ch;
+            q_k      <= {P_W{1'b0}};
+            q_j      <= {G_W{1'b0}};
+            q_lag    <= c_gate_start;
+            pk_found <= {MAX_P{1'b0}};
+            b_have   <= 1'b0;
+            if (pk_ch == K - 1) begin
+                cols_out <= cols_out + 1'b1;
+                full[proc_buf] <= 1'b0;
+                proc_buf <= ~proc_buf;
+                proc_on  <= 1'b0;
+                pstate   <= P_IDLE;
+            end else begin
+                pk_ch     <= pk_ch + 1'b1;
+                pstate    <= P_PEAK;
+            end
+        end
+        default: pstate <= P_IDLE;
+        endcase
+
+        // ---- scan stages: s1 RAM word, s2 registered, s3 magnitude and square ----
+        s2_v    <= s1_v;
+        s2_ok   <= s1_ok;
+        s2_j    <= s1_j;
+        s2_lag  <= s1_lag;
+        s2_word <= cr_rdata;
+        s3_v    <= s2_v;
+        s3_ok   <= s2_ok;
+        s3_j    <= s2_j;
+        s3_lag  <= s2_lag;
+        s3_word <= s2_word;
+        s3_mag  <= s2_out[OUT_W-1] ? -{s2_out[OUT_W-1], s2_out} : {1'b0, s2_out};
+        s3_sq   <= sq;
+        if (s3_v) begin
+            if (pstate == P_NOISE || pstate == P_NWAIT) begin
+                corr_valid   <= 1'b1;
+                corr_channel <= pk_ch;
+                corr_index   <= s3_j;
+                corr_data    <= s3_out;
+            end
+            if (s3_ok) begin
+                if (pstate == P_PEAK || pstate == P_PWAIT) begin
+                    if (!b_have || s3_mag > b_mag) begin
+                        b_have <= 1'b1;
+                        b_mag  <= s3_mag;
+                        b_j    <= s3_j;
+                        b_lag  <= s3_lag;
+                        b_word <= s3_word;
+                    end
+                end else begin
+                    res_noise_count <= res_noise_count + 1'b1;
+                    res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){s3_out[OUT_W-1]}}, s3_out};
+                    res_noise_sumsq <= res_noise_sumsq + {{(SQ_W-2*OUT_W){1'b0}}, s3_sq};
+                end
+            end
+        end
+
+        if (rst) begin
+            tstate      <= T_IDLE;
+            pstate      <= P_IDLE;
+            done        <= 1'b0;
+            res_valid   <= 1'b0;
+            corr_valid  <= 1'b0;
+            w_v         <= 1'b0;
+            v1          <= 1'b0;
+            v2          <= 1'b0;
+            latch_v0    <= 1'b0;
+            latch_v     <= 1'b0;
+            vq          <= 1'b0;
+            vr          <= 1'b0;
+            v0          <= 1'b0;
+            rr_v        <= 1'b0;
+            r_v         <= 1'b0;
+            ser_busy    <= 1'b0;
+            s1_v        <= 1'b0;
+            s2_v        <= 1'b0;
+            s3_v        <= 1'b0;
+            div_run     <= 1'b0;
+            div_done    <= 1'b0;
+            err_overrun <= 1'b0;
+            full        <= 2'b00;
+            proc_on     <= 1'b0;
+            sr_a        <= {L{1'b0}};
+        end
+    end
+
+    wire unused_ok = &{1'b0, s3_lag, ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
+                       g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
+                       sq[2*OUT_W-1], div_q[LAG_W-1:MAX_DEG], pk_j, q_j};
+endmodule
+
+`default_nettype wire

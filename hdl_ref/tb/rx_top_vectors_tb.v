@@ -1,0 +1,149 @@
+// rx_top_vectors_tb -- plays `cdma-lidar hdl vectors` files into rx_top and compares.
+//
+// Plain Verilog-2005, no Python: compile with -I <vector folder> (for params.vh)
+// and run with +VEC=<vector folder>/ . Prints one line
+//   rx_top vectors: PASS <words> words compared
+// or
+//   rx_top vectors: FAIL <errors> of <words> words differ
+// (the first few differences before it) and finishes.
+`timescale 1ns/1ps
+`default_nettype none
+`include "params.vh"
+
+module rx_top_vectors_tb;
+    localparam integer K = `VEC_K, MAX_DEG = `VEC_MAX_DEG, MAX_S = `VEC_MAX_S;
+    localparam integer MAX_UID = `VEC_MAX_UID, MAX_R = `VEC_MAX_R, MAX_G = `VEC_MAX_G;
+    localparam integer MAX_P = `VEC_MAX_P, NGHOST = `VEC_NGHOST;
+    localparam integer ADC_W = `VEC_ADC_W, OUT_W = `VEC_OUT_W;
+    localparam integer DEG_W = $clog2(MAX_DEG + 1);
+    localparam integer MAX_NS = ((1 << MAX_DEG) - 1) * MAX_S;
+    localparam integer LAG_W = $clog2(MAX_NS + 1);
+    localparam integer S_W = $clog2(MAX_S + 1), UID_W = $clog2(MAX_UID + 1);
+    localparam integer R_W = $clog2(MAX_R + 1), G_W = $clog2(MAX_G + 1);
+    localparam integer P_W = $clog2(MAX_P + 1), K_W = (K > 1) ? $clog2(K) : 1;
+    localparam integer NRP = `VEC_N_RES_PORTS;
+
+    reg [`VEC_CFG_W-1:0] cfg_mem  [0:`VEC_N_CFG-1];
+    reg [ADC_W-1:0]      adc_mem  [0:`VEC_N_ADC-1];
+    reg [OUT_W-1:0]      corr_mem [0:`VEC_N_CORR-1];
+    reg [`VEC_RES_W-1:0] res_mem  [0:`VEC_N_RES-1];
+
+    reg clk = 1'b0, rst = 1'b1, start = 1'b0, s_valid = 1'b0;
+    reg [ADC_W-1:0] s_data = {ADC_W{1'b0}};
+    wire s_ready, corr_valid, res_valid, busy, done, col_start, err_overrun;
+    wire [K_W-1:0] corr_channel, res_channel;
+    wire [G_W-1:0] corr_index;
+    wire [OUT_W-1:0] corr_data;
+    wire [MAX_P-1:0] res_found;
+    wire [MAX_P*LAG_W-1:0] res_lag;
+    wire [MAX_P*G_W-1:0] res_index;
+    wire [MAX_P*OUT_W-1:0] res_peak;
+    wire [MAX_P*MAX_UID-1:0] res_neg, res_nz;
+    wire [OUT_W-1:0] res_nb_lo, res_nb_hi;
+    wire [G_W-1:0] res_noise_count;
+    wire [OUT_W+G_W-1:0] res_noise_sum;
+    wire [2*OUT_W+G_W-1:0] res_noise_sumsq;
+    wire [MAX_UID-1:0] res_uid_observed;
+    wire res_uid_match, res_saturated;
+
+    rx_top #(.K(K), .L(`VEC_L), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID),
+             .MAX_R(MAX_R), .MAX_G(MAX_G), .MAX_P(MAX_P), .NGHOST(NGHOST), .ADC_W(ADC_W),
+             .OUT_W(OUT_W)) dut (
+        .clk(clk), .rst(rst), .start(start),
+        .cfg_columns(cfg_mem[0][15:0]), .cfg_degree(cfg_mem[1][DEG_W-1:0]),
+        .cfg_taps_u(cfg_mem[2][MAX_DEG-1:0]), .cfg_taps_v(cfg_mem[3][MAX_DEG-1:0]),
+        .cfg_seed_u(cfg_mem[4][K*MAX_DEG-1:0]), .cfg_seed_v(cfg_mem[5][K*MAX_DEG-1:0]),
+        .cfg_spc(cfg_mem[6][S_W-1:0]), .cfg_averages(cfg_mem[7][R_W-1:0]),
+        .cfg_uid_bits(cfg_mem[8][UID_W-1:0]), .cfg_uid(cfg_mem[9][MAX_UID-1:0]),
+        .cfg_gate_start(cfg_mem[10][LAG_W-1:0]), .cfg_gate_len(cfg_mem[11][G_W-1:0]),
+        .cfg_peak_exclude(cfg_mem[12][G_W-1:0]),
+        .cfg_ghost_start(cfg_mem[13][NGHOST*LAG_W-1:0]),
+        .cfg_ghost_len(cfg_mem[14][NGHOST*LAG_W-1:0]),
+        .cfg_out_shift(cfg_mem[15][5:0]), .cfg_rounding(cfg_mem[16][1:0]),
+        .cfg_out_bits(cfg_mem[17][5:0]), .cfg_peaks(cfg_mem[18][P_W-1:0]),
+        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready),
+        .corr_valid(corr_valid), .corr_channel(corr_channel), .corr_index(corr_index),
+        .corr_data(corr_data),
+        .res_valid(res_valid), .res_channel(res_channel), .res_found(res_found),
+        .res_lag(res_lag), .res_index(res_index), .res_peak(res_peak), .res_neg(res_neg),
+        .res_nz(res_nz), .res_nb_lo(res_nb_lo), .res_nb_hi(res_nb_hi),
+        .res_noise_count(res_noise_count), .res_noise_sum(res_noise_sum),
+        .res_noise_sumsq(res_noise_sumsq), .res_uid_observed(res_uid_observed),
+        .res_uid_match(res_uid_match), .res_saturated(res_saturated),
+        .busy(busy), .done(done), .col_start(col_start), .err_overrun(err_overrun)
+    );
+
+    always #5 clk = ~clk;
+
+    integer n_adc = 0, n_corr = 0, n_res = 0, errors = 0, words = 0, p;
+    reg [`VEC_RES_W-1:0] got [0:NRP-1];
+    reg [8*512-1:0] dir;
+
+    task check(input [`VEC_RES_W-1:0] have, input [`VEC_RES_W-1:0] want, input integer line,
+               input [8*8-1:0] what);
+        begin
+            words = words + 1;
+            if (have !== want) begin
+                errors = errors + 1;
+                if (errors <= 10)
+                    $display("rx_top vectors: %0s line %0d: got %h, expected %h", what, line,
+                             have, want);
+            end
+        end
+    endtask
+
+    initial begin
+        if (!$value$plusargs("VEC=%s", dir))
+            dir = "";
+        $readmemh({dir, "config.hex"}, cfg_mem);
+        $readmemh({dir, "adc.hex"}, adc_mem);
+        $readmemh({dir, "corr.hex"}, corr_mem);
+        $readmemh({dir, "results.hex"}, res_mem);
+        repeat (3) @(posedge clk);
+        rst <= 1'b0;
+        @(posedge clk);
+        start <= 1'b1;
+        @(posedge clk);
+        start <= 1'b0;
+    end
+
+    // source: one sample per clock while s_ready
+    always @(posedge clk) begin
+        if (!rst && !start && busy) begin
+            if (s_valid && s_ready)
+                n_adc = n_adc + 1;
+            s_valid <= (n_adc < `VEC_N_ADC);
+            s_data  <= adc_mem[(n_adc < `VEC_N_ADC) ? n_adc : 0];
+        end
+    end
+
+    // sinks
+    always @(posedge clk) begin
+        if (corr_valid) begin
+            check({{(`VEC_RES_W-OUT_W){1'b0}}, corr_data},
+                  {{(`VEC_RES_W-OUT_W){1'b0}}, corr_mem[n_corr]}, n_corr + 1, "corr");
+            n_corr = n_corr + 1;
+        end
+        if (res_valid) begin
+            got[0] = res_found;  got[1] = res_lag;  got[2] = res_index;  got[3] = res_peak;
+            got[4] = res_neg;    got[5] = res_nz;   got[6] = res_nb_lo;  got[7] = res_nb_hi;
+            got[8] = res_noise_count;  got[9] = res_noise_sum;  got[10] = res_noise_sumsq;
+            got[11] = res_uid_observed;  got[12] = res_uid_match;  got[13] = res_saturated;
+            for (p = 0; p < NRP; p = p + 1)
+                check(got[p], res_mem[n_res + p], n_res + p + 1, "results");
+            n_res = n_res + NRP;
+        end
+        if (done || err_overrun) begin
+            if (n_corr != `VEC_N_CORR || n_res != `VEC_N_RES || err_overrun)
+                errors = errors + 1;
+            if (errors == 0)
+                $display("rx_top vectors: PASS %0d words compared", words);
+            else
+                $display("rx_top vectors: FAIL %0d of %0d words differ (corr %0d of %0d, results %0d of %0d)",
+                         errors, words, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES);
+            $finish;
+        end
+    end
+endmodule
+
+`default_nettype wire

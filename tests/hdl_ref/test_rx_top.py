@@ -1,0 +1,312 @@
+"""rx_top (K channels, L lanes each) against cdma_lidar.firmware_model.receiver.reference.
+
+Every case streams several columns back to back into one Icarus build
+(configurations are run-time ports) and compares, per column, the K-channel
+``ReceiverOutput`` word for word (every ``corr`` word, peaks, neighbours, noise
+floor, UID signs and match, saturation) and the clock counts with
+``cosim.top_timing`` (the formula of docs/hdl.md): the measured processing clocks
+of every column, the first sample's clock, and back-pressure exactly when the
+formula says the column cannot be processed in the time its samples take.
+
+Which test covers what is listed in docs/hdl.md ("Coverage").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cdma_lidar.errors import ConfigError
+from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
+from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
+from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
+from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
+from cdma_lidar.rounding import ROUNDING_MODES
+
+TOP4 = cosim.TopParams(channels=4, lanes=2, max_deg=7, max_s=4, max_uid=3, max_r=4, max_g=32,
+                       max_p=3, nghost=2, adc_w=16, out_w=32)
+#: The paper's instrument: K = 40, G = 64, S = 4, R = 10, degree 11, 12-bit ADC.
+PAPER_TOP = cosim.TopParams(channels=40, lanes=2, max_deg=11, max_s=4, max_uid=1, max_r=16,
+                            max_g=64, max_p=1, nghost=1, adc_w=12, out_w=32)
+BENCH = "cdma_lidar.hdl_ref.tb.test_rx_top"
+
+
+@dataclasses.dataclass(frozen=True)
+class TopCase:
+    """Configuration, K Gold members and the columns of one rx_top run."""
+
+    name: str
+    cfg: ReceiverConfig
+    pair: tuple[tuple[int, ...], tuple[int, ...]]
+    indices: tuple[int, ...]
+    columns: tuple[tuple[int, ...], ...]
+    gap: int = 0
+
+    def model(self) -> list:
+        codes = np.stack([gold_code(self.pair[0], self.pair[1], i) for i in self.indices])
+        return [reference(self.cfg, codes, np.array(c, dtype=np.int64)) for c in self.columns]
+
+
+def _echo(case_pair, index: int, cfg: ReceiverConfig, delay: int, amp: float, noise: float,
+          rng: np.random.Generator, tx_uid: int | None = None) -> tuple[int, ...]:
+    x = echo_column(gold_code(*case_pair, index), spc=cfg.samples_per_chip,
+                    averages=cfg.averages, uid_bits=cfg.uid_bits,
+                    tx_uid=cfg.uid if tx_uid is None else tx_uid, adc_bits=cfg.adc_bits,
+                    delay=delay, amplitude=amp, noise_rms=noise, rng=rng)
+    return tuple(x.tolist())
+
+
+def random_case(pick: Callable[[int, int], int], name: str, params: cosim.TopParams) -> TopCase:
+    """A configuration within ``params`` and 2-3 echo columns; ``pick(lo, hi)`` draws integers."""
+    m = pick(max(5, (params.channels * params.lanes + 3).bit_length()), params.max_deg)
+    pairs = preferred_pairs(m)
+    pair = pairs[pick(0, len(pairs) - 1)]
+    n_chips = (1 << m) - 1
+    s = pick(1, params.max_s)
+    ns = n_chips * s
+    n = pick(1, params.max_uid)
+    b = pick(8, params.adc_w)
+    g = min(pick(4, params.max_g), ns)
+    ghosts = tuple((pick(0, ns - 1), pick(1, 6)) for _ in range(pick(0, params.nghost)))
+    cfg = ReceiverConfig(
+        adc_bits=b, samples_per_chip=s, averages=pick(1, params.max_r), uid_bits=n,
+        uid=pick(0, (1 << n) - 1), gate_start=pick(0, ns - 1), gate_len=g,
+        peak_exclude=pick(0, 4), ghost_windows=ghosts, out_shift=pick(0, 14),
+        rounding=ROUNDING_MODES[pick(0, 2)], out_bits=pick(8, params.out_w),
+        peaks=pick(1, params.max_p))
+    indices = tuple(pick(0, n_chips + 1) for _ in range(params.channels))
+    rng = np.random.default_rng(pick(0, 2**32 - 1))
+    full = 1 << (b - 1)
+    cols = []
+    for _ in range(pick(2, 3)):
+        k = pick(0, params.channels - 1)
+        delay = (cfg.gate_start + pick(0, g - 1)) % ns
+        cols.append(_echo(pair, indices[k], cfg, delay, pick(1, 60) / 100 * full,
+                          pick(1, 30) / 100 * full, rng))
+    return TopCase(name, cfg, pair, indices, tuple(cols), gap=pick(0, 1) * pick(2, 9))
+
+
+def extreme_cases() -> list[TopCase]:
+    """Crafted cases: saturation both sides, ties, zero-sign periods, ghosts, wrapping gates."""
+    rng = np.random.default_rng(16)
+    pair7 = preferred_pairs(7)[0]
+    pair5 = preferred_pairs(5)[0]
+    pair6 = preferred_pairs(6)[1]
+    cases = []
+
+    # Full scale, positive and inverted (negative) echoes: 8-bit output saturates on both
+    # rails; the largest raw values of the build (16-bit ADC, R = 4, n = 3).
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=4, averages=4, uid_bits=3, uid=5,
+                         gate_start=100, gate_len=32, peak_exclude=2, out_bits=8, peaks=3,
+                         out_shift=20, rounding="half_up")
+    idx = (3, 4, 5, 6)
+    pos = full_scale_column(gold_code(*pair7, 3), spc=4, averages=4, uid_bits=3, tx_uid=5,
+                            adc_bits=16, delay=117)
+    neg = full_scale_column(gold_code(*pair7, 4), spc=4, averages=4, uid_bits=3, tx_uid=2,
+                            adc_bits=16, delay=110)
+    cases.append(TopCase("saturation-both-rails", cfg, pair7, idx,
+                         (tuple(pos.tolist()), tuple(neg.tolist()))))
+    # The same at 32-bit output: largest |raw| exactly (no saturation), convergent.
+    cases.append(TopCase("full-scale-32-bit", cfg.replace(out_bits=32, out_shift=0,
+                                                            rounding="convergent"),
+                         pair7, idx, (tuple(pos.tolist()),)))
+
+    # Zero input: every out is 0 (ties everywhere: peak at j = 0), signs 0, no match.
+    cfg = ReceiverConfig(adc_bits=8, samples_per_chip=2, averages=2, uid_bits=2, uid=0,
+                         gate_start=7, gate_len=12, peaks=2, peak_exclude=1)
+    cases.append(TopCase("zero-input-ties", cfg, pair5, (0, 1, 2, 3), ((0,) * (2 * 2 * 62),)))
+
+    # A UID period that is all zero: its sign is 0 at every lag, so no channel matches
+    # even though the observed bits equal the UID (period 1 bit 0 = uid bit 1 = 0).
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=2, averages=2, uid_bits=2, uid=0,
+                         gate_start=20, gate_len=16, peak_exclude=2)
+    x = np.array(_echo(pair5, 1, cfg, 25, 600.0, 40.0, rng)).reshape(2, 2, 62)
+    x[:, 1, :] = 0
+    cases.append(TopCase("uid-period-zero-sign", cfg, pair5, (1, 2, 3, 4),
+                         (tuple(x.reshape(-1).tolist()),)))
+
+    # Gate wrapping through lag 0 (and the peak's neighbour at NS - 1), a ghost window
+    # ending right before the echo, S = 3 so every phase of the box sums is used.
+    ns6 = 63 * 3
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=3, averages=2, uid_bits=1,
+                         gate_start=ns6 - 10, gate_len=24, peak_exclude=3, peaks=2,
+                         out_shift=3, rounding="convergent", ghost_windows=((ns6 - 4, 4),),
+                         out_bits=16)
+    cols = (_echo(pair6, 10, cfg, 0, 600.0, 80.0, rng), _echo(pair6, 11, cfg, ns6 - 5, 600.0,
+                                                               80.0, rng))
+    cases.append(TopCase("wrapping-gate-ghost-edge", cfg, pair6, (10, 11, 12, 13), cols, gap=5))
+
+    # Every gate lag in a ghost window: no peak anywhere (empty gate for the search).
+    cfg = ReceiverConfig(adc_bits=10, samples_per_chip=1, averages=1, uid_bits=2, uid=3,
+                         gate_start=10, gate_len=8, ghost_windows=((8, 5), (13, 6)), peaks=2)
+    cases.append(TopCase("empty-gate-all-ghost", cfg, pair5, (4, 5, 6, 7),
+                         (_echo(pair5, 4, cfg, 12, 100.0, 20.0, rng),)))
+
+    # Exclusion wider than the gate: later peaks missing; one-lag gate.
+    cfg = ReceiverConfig(adc_bits=10, samples_per_chip=2, averages=2, uid_bits=1,
+                         gate_start=5, gate_len=1, peak_exclude=40, peaks=3)
+    cases.append(TopCase("one-lag-gate", cfg, pair5, (6, 7, 8, 9),
+                         (_echo(pair5, 6, cfg, 5, 100.0, 20.0, rng),)))
+    return cases
+
+
+def _fixed_cases() -> list[TopCase]:
+    rng = np.random.default_rng(20261123)
+
+    def pick(lo: int, hi: int) -> int:
+        return int(rng.integers(lo, hi + 1))
+
+    return [random_case(pick, f"random-{k}", TOP4) for k in range(6)] + extreme_cases()
+
+
+FIXED = _fixed_cases()
+
+
+def simulate(build_dir, params: cosim.TopParams, cases: list[TopCase], name: str,
+             top: str = cosim.MULTI_TOP) -> list[dict]:
+    """Run ``cases`` in one simulation; per case the ports and the bench's raw record."""
+    ports = [cosim.top_ports(c.cfg, c.pair[0], c.pair[1], c.indices, params,
+                             columns=len(c.columns)) for c in cases]
+    job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap}
+                     for p, c in zip(ports, cases, strict=True)]}
+    raw = cosim.run_job(top, BENCH, build_dir, job, name=name)
+    return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
+
+
+def check(case: TopCase, run: dict, params: cosim.TopParams) -> None:
+    """The RTL's words are the model's, and its clocks are those of cosim.top_timing."""
+    raw, ports = run["raw"], run["ports"]
+    outs = cosim.top_decode(raw, ports, params)
+    for col, (model, rtl) in enumerate(zip(case.model(), outs, strict=True)):
+        bad = model.mismatches(rtl)
+        assert not bad, (col, {f: (getattr(model, f).tolist(), getattr(rtl, f).tolist())
+                               for f in bad})
+    assert raw["overrun"] == 0
+    t = cosim.top_timing(ports, params)
+    k = params.channels
+    ends = raw["res_clocks"][k - 1::k]
+    assert [e - s for s, e in zip(raw["col_start"], ends, strict=True)] == \
+        [t["process"]] * len(case.columns)
+    first = t["first_take"]
+    while case.gap and first % case.gap == case.gap - 1:
+        first += 1
+    assert raw["first_take"] == first
+    assert raw["col_start"][0] - raw["last_take"][0] == t["last_to_col_start"]
+    if not case.gap and t["process"] + 1 <= t["samples"]:
+        assert raw["stalls"] == [], "back-pressure although the formula says real time"
+    if t["process"] + 1 > t["samples"] and len(case.columns) > 2:
+        assert raw["stalls"], "no back-pressure although processing is slower than the ADC"
+
+
+@pytest.fixture(scope="module")
+def top4_build(hdl_build_root):
+    return cosim.build(cosim.MULTI_TOP, TOP4.generics(), hdl_build_root / TOP4.tag())
+
+
+@pytest.fixture(scope="module")
+def fixed_runs(top4_build) -> list[dict]:
+    return simulate(top4_build, TOP4, FIXED, "fixed")
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("k", range(len(FIXED)), ids=[c.name for c in FIXED])
+def test_top_equals_model(fixed_runs, k):
+    check(FIXED[k], fixed_runs[k], TOP4)
+
+
+def test_extremes_reach_their_extremes():
+    """The crafted stimuli do what their names say (checked on the model)."""
+    by = {c.name: c.model() for c in extreme_cases()}
+    sat = by["saturation-both-rails"]
+    assert (sat[0].peak == 127).any() and (sat[1].peak == -128).any()
+    assert sat[0].saturated.any() and sat[1].saturated.any()
+    assert (by["zero-input-ties"][0].peak_lag == 7).all()
+    z = by["uid-period-zero-sign"][0]
+    assert (z.uid_signs[:, 1] == 0).all() and z.uid_observed[0] == 0  # channel 0: our echo
+    assert not z.uid_match.any()
+    assert (by["empty-gate-all-ghost"][0].peak_lag == -1).all()
+    assert (by["wrapping-gate-ghost-edge"][0].peak_lag[0] == 0)
+
+
+def test_real_time_formula_paper_configuration():
+    """The paper's instrument keeps up: processing clocks <= samples per column - 1."""
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=10, gate_len=64,
+                         gate_start=1000, peaks=1)
+    ports = cosim.top_ports(cfg, PAPER_PAIR[0], PAPER_PAIR[1], range(40), PAPER_TOP)
+    t = cosim.top_timing(ports, PAPER_TOP)
+    assert t["samples"] == 10 * 2047 * 4
+    assert t["process"] + 1 <= t["samples"]
+    # one lane per channel would not: the formula says so
+    one = dataclasses.replace(PAPER_TOP, lanes=1)
+    assert cosim.top_timing(ports, one)["process"] + 1 > t["samples"]
+
+
+@st.composite
+def _batches(draw) -> list[TopCase]:
+    def pick(lo: int, hi: int) -> int:
+        return draw(st.integers(lo, hi))
+
+    return [random_case(pick, f"hyp-{k}", TOP4) for k in range(draw(st.integers(2, 3)))]
+
+
+@pytest.mark.hdl
+@settings(max_examples=2, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                HealthCheck.function_scoped_fixture])
+@given(batch=_batches())
+def test_top_equals_model_hypothesis(top4_build, batch):
+    for case, run in zip(batch, simulate(top4_build, TOP4, batch, "hypothesis"), strict=True):
+        check(case, run, TOP4)
+
+
+@pytest.mark.hdl
+@pytest.mark.slow
+def test_paper_configuration(hdl_build_root):
+    """K = 40, G = 64, S = 4, R = 10, degree 11: bit for bit and in real time (3 columns)."""
+    rng = np.random.default_rng(40)
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=10, gate_len=64,
+                         gate_start=3000, peak_exclude=4, out_shift=6, rounding="convergent",
+                         out_bits=16, ghost_windows=((3010, 3),))
+    indices = tuple(range(40))
+    cols = tuple(_echo(PAPER_PAIR, 7 + c, cfg, 3040 + c, 60.0, 200.0, rng) for c in range(3))
+    case = TopCase("paper", cfg, PAPER_PAIR, indices, cols)
+    build = cosim.build(cosim.MULTI_TOP, PAPER_TOP.generics(), hdl_build_root / PAPER_TOP.tag())
+    (run,) = simulate(build, PAPER_TOP, [case], "paper")
+    check(case, run, PAPER_TOP)
+    assert run["raw"]["stalls"] == []
+
+
+MUTANT_CASES = {  # mutant -> the crafted case that must expose it
+    "uid-match-ignores-zero-sign": "uid-period-zero-sign",
+    "ties-to-last": "zero-input-ties",
+    "ghost-window-one-long": "wrapping-gate-ghost-edge",
+    "box-sum-no-chip-wrap": "wrapping-gate-ghost-edge",
+    "lane-code-delay-off-by-one": "uid-period-zero-sign",
+}
+
+
+def test_every_rx_top_mutant_has_a_case():
+    assert set(MUTANT_CASES) == {m.name for m in MUTANTS if m.file == "rx_top.v"}
+    assert set(MUTANT_CASES.values()) <= {c.name for c in FIXED}
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("mutant", [m for m in MUTANTS if m.file == "rx_top.v"],
+                         ids=lambda m: m.name)
+def test_rx_top_mutant_is_caught(hdl_build_root, fixed_runs, mutant):
+    """The deliberately broken RTL disagrees with the model on its case; the real one agrees."""
+    k = next(i for i, c in enumerate(FIXED) if c.name == MUTANT_CASES[mutant.name])
+    case = FIXED[k]
+    check(case, fixed_runs[k], TOP4)          # the unchanged RTL passes this case
+    rtl = mutated_copy(mutant, hdl_build_root / f"rtl_{mutant.name}")
+    build = cosim.build(cosim.MULTI_TOP, TOP4.generics(), hdl_build_root / f"top_{mutant.name}",
+                        rtl_dir=rtl)
+    (run,) = simulate(build, TOP4, [case], "mutant")
+    with pytest.raises((AssertionError, ConfigError)):   # a wrong word, or X/Z bits
+        check(case, run, TOP4)
