@@ -55,6 +55,7 @@ from cdma_lidar.errors import (
     ScanAborted,
     out_of_range,
 )
+from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
@@ -68,16 +69,20 @@ from cdma_lidar.protocol.framing import (
 from cdma_lidar.protocol.messages import (
     REPLY_TO,
     SCHEMA_CRC,
+    Auth,
     CaptureKind,
     ErrorCode,
+    HelloFlags,
     MsgKind,
     MsgType,
     ScanEndReason,
+    SessionLostReason,
     State,
     decode_payload,
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config, check_info, escape
 from cdma_lidar.protocol.views import Info, Status
 
 __all__ = [
@@ -89,6 +94,7 @@ __all__ = [
     "DIAG_WRONG_SESSION",
     "HostLink",
     "LinkStats",
+    "SessionLost",
 ]
 
 log = logging.getLogger(__name__)
@@ -109,6 +115,14 @@ DIAG_HINTS = {
 }
 
 
+class SessionLost(LinkError):
+    """The device ended this host's session (another host took over, or it expired)."""
+
+    def __init__(self, message: str, reason: int = 0) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 @dataclass
 class LinkStats:
     """Counters of a :class:`HostLink` (decoder errors are in ``HostLink.decoder.stats``)."""
@@ -123,6 +137,7 @@ class LinkStats:
     duplicates: int = 0
     resend_requests: int = 0
     resent_columns: int = 0
+    unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
 @dataclass
@@ -151,6 +166,13 @@ class HostLink:
         poll_s: longest blocking read (s), greater than 0 so that waiting never spins;
             default ``min(0.05, timeout_s / 4)``.
         max_frame: largest frame the host accepts (bytes), announced in HELLO.
+        key: shared secret of a device that requires one (32 bytes,
+            :func:`cdma_lidar.protocol.auth.load_key`); then HELLO answers the device's
+            challenge, the device must prove it holds the key too, and every frame of the
+            session is signed. None: the device must not ask for a key.
+        take_over: HELLO ends another host's live session instead of failing BUSY.
+        keep_config: the new session keeps the previous session's configuration and
+            power instead of starting from the device's defaults.
         clock: monotonic clock (s), replaceable in tests.
 
     One HostLink per port, used from one thread at a time.
@@ -158,7 +180,8 @@ class HostLink:
 
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, poll_s: float | None = None,
-                 max_frame: int = FRAME_LIMIT,
+                 max_frame: int = FRAME_LIMIT, key: bytes | None = None,
+                 take_over: bool = False, keep_config: bool = False,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -178,8 +201,17 @@ class HostLink:
         self.last_status: Status | None = None
         self.max_frame = 4096  # until INFO says more; every request fits
         self._host_max = max_frame
-        self._nonce = secrets.randbits(32)
-        self._seq = self._nonce & 0xFFFF
+        if key is not None and len(key) != auth.KEY_BYTES:
+            raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
+        self.key = key
+        self.take_over = bool(take_over)
+        self.keep_config = bool(keep_config)
+        self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
+        self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
+        self._seq = int.from_bytes(self._nonce[:2], "little")
+        self._tx: auth.FrameSigner | None = None  # signs our requests (keyed session)
+        self._rx: auth.FrameVerifier | None = None  # checks the device's frames
+        self._reply_frame: Frame | None = None
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
@@ -206,34 +238,102 @@ class HostLink:
 
     # ---- public requests --------------------------------------------------------------
     def hello(self) -> Info:
-        """Open a session: learn the device's identity, limits, geometry and session id."""
-        seq = self._new_seq()
-        self._hello_seq = seq
+        """Open a session: learn the device's identity, limits, geometry and session id.
+
+        With a key, answers the device's CHALLENGE and checks that INFO is signed with
+        the session key (so the device holds the key too). Raises DeviceError (code
+        BUSY, field ``session``) when another host owns the device and ``take_over``
+        is off; DeviceLied when INFO contradicts itself.
+        """
+        self.session = None
+        self._tx = self._rx = None
+        self.info = None
+        self.config = None
+        flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
+            (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
+        fields_ = {"host_max_frame": self._host_max, "flags": int(flags),
+                   "host_nonce": self._nonce, "device_nonce": bytes(auth.NONCE_BYTES),
+                   "mac": bytes(auth.MAC_BYTES)}
+        for _ in range(2):
+            reply = self._hello_once(fields_)
+            if self._reply_frame is not None and self._reply_frame.msg_type == MsgType.INFO:
+                break
+            if self.key is None:
+                raise LinkError(f"device on {self._port_name} requires a key: pass --key-file "
+                                "FILE or set CDMA_LIDAR_KEY_FILE to the device's key file")
+            fields_["device_nonce"] = bytes(reply["device_nonce"])
+            fields_["mac"] = auth.hello_mac(self.key, fields_["device_nonce"], self._nonce,
+                                            int(flags), self._host_max)
+        else:
+            raise LinkError("device answered the authenticated HELLO with another CHALLENGE: "
+                            "it does not accept this host's key")
         try:
-            reply = self._transact(MsgType.HELLO, {"host_nonce": self._nonce,
-                                                   "host_max_frame": self._host_max}, seq)
-        finally:
-            self._hello_seq = None
-        info = Info.from_fields(reply)
+            info = Info.from_fields(reply)
+        except (TypeError, ValueError) as exc:
+            raise DeviceLied(f"device sent an invalid INFO: {exc}") from None
         if info.protocol_version != PROTOCOL_VERSION:
             raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
                             f"{PROTOCOL_VERSION}; update the host or the firmware")
+        if self.key is not None:
+            self._authenticate(info, bytes(fields_["device_nonce"]))
+        elif info.auth != Auth.NONE:
+            raise DeviceLied("device announced signed frames (INFO.auth = "
+                             f"{info.auth}) without asking this host for a key", "auth")
+        info = check_info(info)
         if info.schema_crc != SCHEMA_CRC:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
         self.info = info
         self.session = info.session_id
         self.max_frame = info.max_frame
-        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d)",
+        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
                  self.session, info.serial, info.firmware_version, info.channels,
-                 info.max_frame)
+                 info.max_frame, ", signed" if self._tx else "")
         return info
+
+    def _hello_once(self, fields_: dict[str, Any]) -> dict[str, Any]:
+        seq = self._new_seq()
+        self._hello_seq = seq
+        try:
+            return self._transact(MsgType.HELLO, fields_, seq)
+        finally:
+            self._hello_seq = None
+
+    def _authenticate(self, info: Info, device_nonce: bytes) -> None:
+        """Check the device's proof and INFO's signature; set up the session's signing."""
+        frame = self._reply_frame
+        assert frame is not None and self.key is not None
+        if info.auth != Auth.HMAC_SHA256 or not auth.equal(
+                info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
+                                                 info.session_id)):
+            raise LinkError(f"device on {self._port_name} did not prove it holds the key "
+                            f"(INFO.auth = {info.auth}): it is not the device the key file "
+                            "belongs to, or it holds no key (then drop --key-file)")
+        to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
+                                            info.session_id)
+        rx = auth.FrameVerifier(to_host)
+        if frame.session != info.session_id or not rx.check(frame):
+            raise LinkError(f"device on {self._port_name} sent an INFO not signed with the "
+                            "session key")
+        self._tx, self._rx = auth.FrameSigner(to_dev), rx
 
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""
         keys = [config_key(n).id for n in names]
         reply = self._request(MsgType.CONFIG_GET, {"keys": keys})
-        return decode_config(reply["items"]).values
+        try:
+            values = decode_config(reply["items"]).values
+        except Exception as exc:  # FrameError from the strict decoder
+            raise DeviceLied(f"device sent an invalid CONFIG: {exc}") from None
+        if not names:
+            assert self.info is not None
+            check_config(values, self.info)
+            self.config = dict(values)
+        elif self.config is not None:
+            merged = {**self.config, **values}
+            check_config(merged, self.info)  # type: ignore[arg-type]
+            self.config = merged
+        return values
 
     def set_config(self, **values: Any) -> None:
         """Set configuration keys (python values, see ``CONFIG_KEYS``); all or none.
@@ -243,6 +343,7 @@ class HostLink:
         """
         if not values:
             return
+        self.config = None  # read again (checked) before the next stream
         self._request(MsgType.CONFIG_SET, {"items": encode_config(values,
                                                                   allow_read_only=False)})
 
@@ -354,6 +455,11 @@ class HostLink:
         the end), every column it did send is still delivered before the error is raised.
         """
         end = first + count
+        if self.config is None:
+            self.get_config()
+        assert self.info is not None and self.config is not None
+        checker = ColumnChecker(self.info, self.config, fid, first, end,
+                                req == MsgType.CALIBRATE)
         self._stream.clear()
         self._streaming = True
         finished = False
@@ -375,6 +481,7 @@ class HostLink:
                         if c.frame != fid or not nxt <= c.column < end or c.column in received:
                             self.stats.duplicates += 1
                             continue
+                        checker.check(c)
                         received[c.column] = c
                         horizon = max(horizon, c.column + 1)
                     elif mtype == MsgType.HEARTBEAT:
@@ -419,7 +526,7 @@ class HostLink:
         finally:
             self._streaming = False
             self._stream.clear()
-            if not finished:
+            if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
 
@@ -475,26 +582,28 @@ class HostLink:
 
     def _transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int) -> dict[str, Any]:
         payload = encode_payload(msg_type, fields_)
-        wire = encode_frame(msg_type, payload, seq, self.session or 0,
-                            max_frame=self.max_frame)
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
                       self.stats.wrong_session, self._other_version())
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
+        self._reply_frame = None
         self._reply_version = None
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
                     self.stats.retries += 1
                     log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
-                self._write(wire)
+                # Signed afresh on every try: a new counter, the same seq and payload.
+                self._write(encode_frame(msg_type, payload, seq, self.session or 0,
+                                         max_frame=self.max_frame, signer=self._tx))
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
                     self._pump()
                 if self._reply is not None:
+                    self._reply_frame = self._reply
                     return self._accept_reply(msg_type, self._reply)
                 if self._reply_version is not None:
                     f = self._reply_version
@@ -540,15 +649,35 @@ class HostLink:
                 cname = code.name
             except ValueError:
                 cname = f"error {body['code']}"
-            where = f" (field {body['field']})" if body["field"] else ""
-            detail = f": {body['detail']}" if body["detail"] else ""
+            fld = escape(body["field"])
+            where = f" (field {fld})" if fld else ""
+            detail = f": {escape(body['detail'])}" if body["detail"] else ""
+            if body["code"] == ErrorCode.WRONG_SESSION:
+                detail += " (the device restarted, or another host took it over)"
             raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                              code=body["code"], field=body["field"] or None)
+                              code=body["code"], field=fld or None)
         expected = REPLY_TO[msg_type]
+        if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
+            return body
         if frame.msg_type != expected or (expected == MsgType.ACK and
                                           body["request_type"] != msg_type):
             raise LinkError(f"device answered {msg_type.name} with {frame.msg_type:#04x}")
         return body
+
+    def _session_lost(self, frame: Frame) -> None:
+        """The device ended our session: forget it and raise SessionLost (one line)."""
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+            assert isinstance(body, dict)
+            reason, detail = int(body["reason"]), escape(body["detail"])
+        except Exception:  # FrameError: still lost, say so without the device's words
+            reason, detail = 0, "no reason given"
+        self.session = None
+        self.info = None
+        self._tx = self._rx = None
+        what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+                SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
+        raise SessionLost(f"session lost on {self._port_name}: {what} ({detail})", reason)
 
     def _write(self, wire: bytes) -> None:
         try:
@@ -579,14 +708,20 @@ class HostLink:
             self.stats.ignored += 1
             return
         hello_reply = (kind is MsgKind.REPLY and frame.seq == self._hello_seq and
-                       frame.msg_type in (MsgType.INFO, MsgType.NAK))
+                       frame.msg_type in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE))
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and
-                    frame.seq == self._pending and self._reply is None and
+                    frame.seq == self._pending and self._reply is None and self._rx is None and
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
                 self._reply = frame  # the device says it restarted: fail fast
             return
+        if self._rx is not None and not hello_reply and not self._rx.check(frame):
+            self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
+            log.debug("dropped an unauthenticated %#04x frame", frame.msg_type)
+            return
+        if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
+            self._session_lost(frame)
         if kind is MsgKind.REPLY:
             # ACK and NAK echo the request type: a reply to another request that happens
             # to carry the same seq (a previous link, a wrapped counter) is not ours.
@@ -603,6 +738,7 @@ class HostLink:
             self.stats.malformed += 1
             return
         if frame.msg_type == MsgType.HEARTBEAT:
+            assert isinstance(body, dict)
             body = Status(**body)
             self.last_status = body
         if self._streaming:

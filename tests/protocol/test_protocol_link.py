@@ -9,7 +9,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import serial
-from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, expected_column
+from protocol_fixtures import (
+    RunningDevice,
+    SyntheticApp,
+    capture_expected,
+    expected_column,
+    hello_fields,
+)
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
 from cdma_lidar.protocol import framing
@@ -83,7 +89,7 @@ def raw() -> Iterator[tuple[Raw, DeviceEndpoint, SyntheticApp]]:
     app = SyntheticApp()
     with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         r = Raw(host)
-        r.send(MsgType.HELLO, {"host_nonce": 5, "host_max_frame": 65535}, seq=100)
+        r.send(MsgType.HELLO, hello_fields(5, 65535), seq=100)
         (info,) = r.recv()
         assert info.msg_type == MsgType.INFO and info.session == 0xABCD
         r.session = 0xABCD
@@ -258,7 +264,7 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
     r.port.write(encode_frame(0x7E, b"", 125, r.session))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
-    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=2))
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=3))
     (f,) = r.recv()
     assert nak(f)["code"] == ErrorCode.VERSION and f.version == framing.PROTOCOL_VERSION
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
@@ -339,7 +345,7 @@ def test_device_restart_is_reported_at_once(rig) -> None:
         link.status()
     assert exc.value.code == ErrorCode.WRONG_SESSION
     assert link.stats.retries == 0
-    assert link.hello().session_id == 0x7777
+    assert link.hello().session_id not in (0, 0x7777)  # a fresh session per HELLO
     assert link.status().state_name == "idle"
 
 
