@@ -207,7 +207,7 @@ class DeviceCore:
         clock: monotonic clock (s).
     """
 
-    def __init__(self, app: DeviceApp, *, key: bytes | None = None, session_idle_s: float = 30.0,
+    def __init__(self, app: DeviceApp, *, key: bytes | None = None, session_idle_s: float = 10.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not 0.001 <= session_idle_s <= 4_294_967.295:
             raise out_of_range("session_idle_s", "0.001 to 4294967 s (INFO.session_idle_ms)",
@@ -287,7 +287,7 @@ class DeviceEndpoint:
 
     def __init__(self, port: Any, app: DeviceApp | None = None, *,
                  core: DeviceCore | None = None, key: bytes | None = None,
-                 session_id: int | None = None, session_idle_s: float = 30.0,
+                 session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
                  poll_s: float = 0.01, replay_depth: int = 32,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -357,6 +357,7 @@ class DeviceEndpoint:
             MsgType.CALIBRATE: self._on_calibrate,
             MsgType.CAPTURE: self._on_capture,
             MsgType.STATUS_GET: self._on_status_get,
+            MsgType.SESSION_END: self._on_session_end,
         }
         port.timeout = poll_s
 
@@ -739,6 +740,18 @@ class DeviceEndpoint:
             self._finish(self._latest)
         if self.core.owner is self:
             self.core.owner = None
+
+    def _on_session_end(self, req: Frame, f: dict, after: list) -> _Reply:
+        """The host closes its link: ACK (signed), then forget the session."""
+        def end() -> None:
+            self._end_session()
+            if self._latest is not None:
+                self._finish(self._latest)
+            self.core.release(self)
+            log.info("session 0x%08x ended by its host", self.session)
+
+        after.append(end)
+        return self._ack(req)
 
     def _on_config_get(self, req: Frame, f: dict, after: list) -> _Reply:
         if self._stream is not None and self._config is not None:

@@ -232,7 +232,18 @@ class HostLink:
         self.close()
 
     def close(self) -> None:
-        """Close the port."""
+        """End the session (SESSION_END, one short try: another host may then say HELLO
+        without take-over) and close the port."""
+        if self.session is not None:
+            timeout, retries = self.timeout_s, self.retries
+            self.timeout_s, self.retries = min(timeout, 0.2), 0
+            try:
+                self._transact(MsgType.SESSION_END, {}, self._new_seq())
+            except Exception:  # LinkError, SessionLost: the device forgets us when idle
+                log.debug("SESSION_END got no answer; the session expires when idle")
+            finally:
+                self.timeout_s, self.retries = timeout, retries
+                self.session = None
         with contextlib.suppress(Exception):
             self.port.close()
 

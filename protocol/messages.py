@@ -87,6 +87,7 @@ class MsgType(enum.IntEnum):
     CAPTURE = 0x09
     STATUS_GET = 0x0A
     POWER_GET = 0x0B
+    SESSION_END = 0x0C
     ACK = 0x80
     NAK = 0x81
     INFO = 0x82
@@ -287,6 +288,9 @@ _MESSAGE_LIST = [
          u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
          u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
          reply=MsgType.POWER),
+    _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
+         "without SCAN_END, another host's HELLO then needs no take-over.",
+         reply=MsgType.ACK),
     _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
          u("request_type", 8, "type of the request answered")),
     _msg(MsgType.NAK, "Request refused (header seq = request seq).",

@@ -65,7 +65,7 @@ class Info:
     column_start_udeg: int = 0
     column_step_udeg: int = 100_000
     column_count: int = 1
-    session_idle_ms: int = 30_000
+    session_idle_ms: int = 10_000
     auth: int = 0
     device_mac: bytes = bytes(32)
     pixel_power_max_uw: int = 0
