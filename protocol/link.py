@@ -212,6 +212,7 @@ class HostLink:
         self._tx: auth.FrameSigner | None = None  # signs our requests (keyed session)
         self._rx: auth.FrameVerifier | None = None  # checks the device's frames
         self._reply_frame: Frame | None = None
+        self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
@@ -260,6 +261,7 @@ class HostLink:
         self._tx = self._rx = None
         self.info = None
         self.config = None
+        self._early = []
         flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
             (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
         fields_ = {"host_max_frame": self._host_max, "flags": int(flags),
@@ -297,6 +299,9 @@ class HostLink:
         self.info = info
         self.session = info.session_id
         self.max_frame = info.max_frame
+        early, self._early = self._early, []
+        for frame in early:  # e.g. SESSION_LOST right behind INFO
+            self._dispatch(frame)
         log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
                  self.session, info.serial, info.firmware_version, info.channels,
                  info.max_frame, ", signed" if self._tx else "")
@@ -688,7 +693,7 @@ class HostLink:
         self._tx = self._rx = None
         what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
                 SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-        raise SessionLost(f"session lost on {self._port_name}: {what} ({detail})", reason)
+        raise SessionLost(f"session lost on {self._port_name}: {detail or what}", reason)
 
     def _write(self, wire: bytes) -> None:
         try:
@@ -720,6 +725,10 @@ class HostLink:
             return
         hello_reply = (kind is MsgKind.REPLY and frame.seq == self._hello_seq and
                        frame.msg_type in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE))
+        if not hello_reply and self._hello_seq is not None and self._reply is not None and \
+                frame.session == self._reply.session:
+            self._early.append(frame)  # of the session INFO is opening: read once it is ours
+            return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and

@@ -90,6 +90,9 @@ class SyntheticApp(DeviceApp):
                                f"{self.columns})", (channel_start, column_start, r, c))
         self.power[channel_start:channel_start + r, column_start:column_start + c] = power
 
+    def get_power(self) -> np.ndarray:
+        return self.power.copy()
+
     def _columns(self, frame: int, first: int, count: int,
                  calibration: bool) -> Iterator[ColumnResult]:
         for col in range(first, first + count):
