@@ -42,7 +42,7 @@ import threading
 import time
 import zlib
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,6 +87,10 @@ log = logging.getLogger(__name__)
 
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
 _CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
+#: FRAGMENT payload bytes before the data.
+FRAGMENT_HEADER = 11
+#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
+MAX_PIECES = 254
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
@@ -414,15 +418,26 @@ class DeviceEndpoint:
                     data += self.port.read(more)
         with self._lock:
             if data:
+                damaged = self._damaged()
                 for frame in self.decoder.feed(data):
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
+                if self._damaged() > damaged and self.session_open:
+                    # Say so at once: a host waiting for a reply sends its request again
+                    # now rather than after its timeout.
+                    self._send_stream(MsgType.LINE_ERROR, encode_payload(
+                        MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
+                                             & 0xFFFFFFFF}))
             now = self.clock()
             if self._stream is not None and now - self._last_heartbeat >= self.heartbeat_s:
                 self._last_heartbeat = now
                 self._send_stream(MsgType.HEARTBEAT,
                                   encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
+
+    def _damaged(self) -> int:
+        st = self.decoder.stats
+        return st.crc + st.cobs + st.length + st.short
 
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT)."""
@@ -461,11 +476,53 @@ class DeviceEndpoint:
         self._write(encode_frame(msg_type, payload, self._stream_seq, self.session,
                                  compat=compat, max_frame=self.tx_max_frame, signer=self._tx))
 
+    def _piece_room(self, signed: bool) -> int:
+        """Payload bytes one FRAGMENT carries in this session."""
+        return self.tx_max_frame - frame_size(FRAGMENT_HEADER, signed)
+
+    def _pieces(self, payload: bytes, signed: bool) -> int:
+        """Frames a payload takes: 1 if it fits the max frame, else its FRAGMENT count."""
+        if frame_size(len(payload), signed) <= self.tx_max_frame:
+            return 1
+        return -(-len(payload) // self._piece_room(signed))
+
     def _send_reply(self, req: Frame, reply: _Reply) -> None:
         msg_type, payload, signed = reply
-        self._write(encode_frame(msg_type, payload, req.seq, self.session,
-                                 max_frame=max(self.tx_max_frame, MIN_MAX_FRAME),
-                                 signer=self._tx if signed else None))
+        signer = self._tx if signed else None
+        if self._pieces(payload, signed) == 1:
+            self._write(encode_frame(msg_type, payload, req.seq, self.session,
+                                     max_frame=self.tx_max_frame, signer=signer))
+            return
+        self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None)
+
+    def _send_pieces(self, msg_type: MsgType, payload: bytes, seq: int, frame: int,
+                     column: int, signer: auth.FrameSigner | None, only: Iterable[int] | None,
+                     compat: int = 0) -> None:
+        """Send ``payload`` as FRAGMENTs (all of them, or the indexes in ``only``)."""
+        room = self._piece_room(signer is not None)
+        count = -(-len(payload) // room)
+        if count > MAX_PIECES:
+            raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
+                              f"fragments at max frame {self.tx_max_frame} (at most "
+                              f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
+        for k in range(count) if only is None else only:
+            if not 0 <= k < count:
+                continue
+            self._stream_seq = (self._stream_seq + 1) & 0xFFFF
+            body = encode_payload(MsgType.FRAGMENT, {
+                "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
+                "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
+            self._write(encode_frame(MsgType.FRAGMENT, body, self._stream_seq, self.session,
+                                     compat=compat, max_frame=self.tx_max_frame, signer=signer))
+
+    def _send_column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
+                     only: Iterable[int] | None = None) -> None:
+        """One COLUMN_RESULT, or its FRAGMENTs when it does not fit the max frame."""
+        if self._pieces(payload, self._tx is not None) == 1:
+            self._send_stream(MsgType.COLUMN_RESULT, payload, compat)
+        else:
+            self._send_pieces(MsgType.COLUMN_RESULT, payload, 0, key[0], key[1], self._tx,
+                              only, compat)
 
     def _reply(self, req: Frame, msg_type: MsgType, payload: bytes) -> _Reply:
         return (msg_type, payload, self._tx is not None and bool(req.sig))
@@ -768,7 +825,7 @@ class DeviceEndpoint:
                     return self._nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
             values = {n: values[n] for n in want if n in values}
         payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values)})
-        if frame_size(len(payload), self._tx is not None) > self.tx_max_frame:
+        if self._pieces(payload, self._tx is not None) > MAX_PIECES:
             return self._nak(req, ErrorCode.TOO_LARGE, "keys",
                              "ask for fewer keys per CONFIG_GET")
         return self._reply(req, MsgType.CONFIG, payload)
@@ -804,7 +861,7 @@ class DeviceEndpoint:
         payload = encode_payload(MsgType.POWER, {
             "channel_start": r0, "column_start": c0, "channels": nr, "columns": nc,
             "power": m[r0:r0 + nr, c0:c0 + nc]})
-        if frame_size(len(payload), self._tx is not None) > self.tx_max_frame:
+        if self._pieces(payload, self._tx is not None) > MAX_PIECES:
             return self._nak(req, ErrorCode.TOO_LARGE, "columns",
                              "ask for a smaller rectangle per POWER_GET")
         return self._reply(req, MsgType.POWER, payload)
@@ -820,11 +877,12 @@ class DeviceEndpoint:
         info = self._info or self.app.info()
         self._config = self.app.get_config()
         peaks = int(self._config.get("peaks", 1))
-        need = frame_size(column_payload_size(info.channels, peaks), self._tx is not None)
-        if need > self.tx_max_frame:
+        size = column_payload_size(info.channels, peaks)
+        if self._pieces(bytes(size), self._tx is not None) > MAX_PIECES:
             return self._nak(req, ErrorCode.TOO_LARGE, "peaks",
-                             f"a column of {info.channels} channels x {peaks} peaks needs "
-                             f"{need} bytes, max frame is {self.tx_max_frame}")
+                             f"a column of {info.channels} channels x {peaks} peaks ({size} "
+                             f"bytes) needs more than {MAX_PIECES} fragments at max frame "
+                             f"{self.tx_max_frame}")
         gen = iter(gen_factory())
         st = _Stream(gen, frame, first, count, calibration)
         self._stream = self._latest = st
@@ -852,21 +910,26 @@ class DeviceEndpoint:
     def _on_resend(self, req: Frame, f: dict, after: list) -> _Reply:
         frame = f["frame"]
         st = self._stream
-        todo = []
-        for k, col in enumerate(f["columns"]):
-            wire = self._ring.get((frame, col))
-            if wire is not None:
-                todo.append(wire)
+        todo: list[tuple[tuple[int, int], bytes, list[int] | None]] = []
+        if not f["columns"] and not f["fragments"]:
+            return self._nak(req, ErrorCode.MALFORMED, "columns",
+                             "name at least one column or fragment")
+        wanted = [(f"columns[{k}]", col, None) for k, col in enumerate(f["columns"])] + \
+            [(f"fragments[{k}]", p["column"], p["index"]) for k, p in enumerate(f["fragments"])]
+        for name, col, piece in wanted:
+            payload = self._ring.get((frame, col))
+            if payload is not None:
+                todo.append(((frame, col), payload, None if piece is None else [piece]))
             elif not (st is not None and st.frame == frame and
                       st.next_column <= col < st.first + st.count):
-                return self._nak(req, ErrorCode.NOT_AVAILABLE, f"columns[{k}]",
+                return self._nak(req, ErrorCode.NOT_AVAILABLE, name,
                                  f"column {col} of frame {frame} is no longer kept")
 
         def resend() -> None:
-            for payload in todo:
+            for key, payload, only in todo:
                 self.stats.resent += 1
                 self.stats.columns_sent += 1
-                self._send_stream(MsgType.COLUMN_RESULT, payload, COMPAT_RETRANSMIT)
+                self._send_column(key, payload, COMPAT_RETRANSMIT, only)
 
         after.append(resend)
         return self._ack(req)
@@ -919,10 +982,10 @@ class DeviceEndpoint:
                         col = dataclasses.replace(col, frame=st.frame,
                                                   calibration=st.calibration)
                     payload = encode_column(col)
-                    need = frame_size(len(payload), self._tx is not None)
-                    if need > self.tx_max_frame:
-                        log.error("frame %d column %d: %d bytes do not fit the max frame %d",
-                                  st.frame, col.column, need, self.tx_max_frame)
+                    if self._pieces(payload, self._tx is not None) > MAX_PIECES:
+                        log.error("frame %d column %d: %d bytes need more than %d fragments "
+                                  "at max frame %d", st.frame, col.column, len(payload),
+                                  MAX_PIECES, self.tx_max_frame)
                         reason = ScanEndReason.ERROR
                         break
                 except StopIteration:
@@ -944,7 +1007,7 @@ class DeviceEndpoint:
                         self._ring.popitem(last=False)
                     st.produced += 1
                     self.stats.columns_sent += 1
-                    self._send_stream(MsgType.COLUMN_RESULT, payload)
+                    self._send_column(key, payload)
                     if st.produced >= st.count:
                         # End the stream under the same lock that sent its last column:
                         # a SCAN_START arriving right after must not find it still busy.

@@ -91,8 +91,9 @@ CRC_SIZE = 4
 OVERHEAD = HEADER_SIZE + CRC_SIZE  # 16 bytes around every payload
 #: Largest decoded frame (header + payload + CRC, bytes) any device may announce.
 FRAME_LIMIT = 65535
-#: Smallest max frame size a device may announce (bytes): every control message fits.
-MIN_MAX_FRAME = 512
+#: Smallest max frame size (bytes): every request fits; longer replies and columns are sent
+#: as FRAGMENTs.
+MIN_MAX_FRAME = 256
 #: compat flag bit 0: this frame is a retransmission (a resent column); informational.
 COMPAT_RETRANSMIT = 0x01
 #: incompat flag bit 0: the frame carries a signature between payload and CRC.

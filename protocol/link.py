@@ -40,7 +40,7 @@ import secrets
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,13 +50,14 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import (
     DeviceError,
     FieldError,
+    FrameError,
     LinkError,
     LinkTimeout,
     ScanAborted,
     out_of_range,
 )
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
@@ -88,6 +89,7 @@ from cdma_lidar.protocol.views import Info, Status
 __all__ = [
     "DIAG_GARBAGE",
     "DIAG_HINTS",
+    "DIAG_NOISY",
     "DIAG_NO_ANSWER",
     "DIAG_SILENT",
     "DIAG_VERSION",
@@ -104,6 +106,7 @@ DIAG_GARBAGE = "bytes but no valid frame"
 DIAG_WRONG_SESSION = "frames but wrong session"
 DIAG_NO_ANSWER = "frames but no answer"
 DIAG_VERSION = "frames of another protocol version"
+DIAG_NOISY = "damaged frames"
 
 #: What to do about each diagnosis (one line, for error messages).
 DIAG_HINTS = {
@@ -112,6 +115,7 @@ DIAG_HINTS = {
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
+    DIAG_NOISY: "the line damages frames: a smaller max frame or a better cable",
 }
 
 
@@ -138,6 +142,16 @@ class LinkStats:
     resend_requests: int = 0
     resent_columns: int = 0
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
+    quick_retries: int = 0  #: requests sent again at once because the line showed damage
+
+
+@dataclass
+class _Pieces:
+    """FRAGMENTs of one message received so far."""
+
+    count: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    frames: list[Frame] = field(default_factory=list)
 
 
 @dataclass
@@ -212,6 +226,9 @@ class HostLink:
         self._tx: auth.FrameSigner | None = None  # signs our requests (keyed session)
         self._rx: auth.FrameVerifier | None = None  # checks the device's frames
         self._reply_frame: Frame | None = None
+        self._reply_parts: list[Frame] = []  # the FRAGMENTs the pending reply came in
+        self._partial: dict[tuple[int, int], _Pieces] = {}  # replies arriving in fragments
+        self._line_errors = 0  # LINE_ERRORs of our session heard so far
         self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
@@ -467,6 +484,8 @@ class HostLink:
                         count: int) -> Iterator[ColumnResult]:
         """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
 
+        Columns arrive whole (COLUMN_RESULT) or in FRAGMENTs; a missing fragment is asked
+        for alone (RESEND ``fragments``), a column of which nothing arrived as a whole.
         If the device ends the stream early (SCAN_END aborted or error, or idle short of
         the end), every column it did send is still delivered before the error is raised.
         """
@@ -483,22 +502,54 @@ class HostLink:
         try:
             self._request(req, fields_)
             received: dict[int, ColumnResult] = {}
-            asked: dict[int, tuple[float, int]] = {}
+            parts: dict[int, _Pieces] = {}  # columns that are arriving in fragments
+            asked: dict[Any, tuple[float, int]] = {}  # column or (column, index) -> (t, tries)
             nxt = first
-            horizon = first  # columns below this have been sent by the device
+            horizon = first  # every fragment of the columns below this has been sent
+            edge: tuple[int, int] = (first, 0)  # fragments below edge[1] of column edge[0] too
             last_rx = self.clock()
             while nxt < end:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
                     mtype, item = self._stream.popleft()
+                    if mtype == MsgType.FRAGMENT:
+                        if item["frame"] != fid:
+                            continue
+                        got = True
+                        c, k = item["column"], item["index"]
+                        horizon = max(horizon, c)
+                        if (c, k + 1) > edge:
+                            edge = (c, k + 1)
+                        if not nxt <= c < end or c in received:
+                            self.stats.duplicates += 1
+                            continue
+                        pc = parts.get(c)
+                        if pc is None or pc.count != item["count"]:
+                            pc = parts[c] = _Pieces(item["count"])
+                        pc.data[k] = item["data"]
+                        if len(pc.data) < pc.count:
+                            continue
+                        del parts[c]
+                        try:
+                            item = decode_column(b"".join(pc.data[i] for i in range(pc.count)))
+                        except FrameError:
+                            self.stats.malformed += 1
+                            continue
+                        mtype = MsgType.COLUMN_RESULT
                     if mtype == MsgType.COLUMN_RESULT:
                         c = item
                         got = got or c.frame == fid
                         if c.frame != fid or not nxt <= c.column < end or c.column in received:
                             self.stats.duplicates += 1
                             continue
-                        checker.check(c)
+                        try:
+                            checker.check(c)
+                        except DeviceLied as exc:  # deliver the columns before it, then fail
+                            if failure is None:
+                                end, failure = c.column, exc
+                            continue
                         received[c.column] = c
+                        parts.pop(c.column, None)
                         horizon = max(horizon, c.column + 1)
                     elif mtype == MsgType.HEARTBEAT:
                         if item.frame == fid:
@@ -529,10 +580,10 @@ class HostLink:
                         end, failure = sent, self._early_end(fid, st.last_end, sent)
                     last_rx = self.clock()
                     continue
-                due = [c for c in range(nxt, horizon) if c not in received and
-                       (c not in asked or now - asked[c][0] >= self.timeout_s)]
+                due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
+                                    received, parts, asked, now)
                 if due:
-                    self._resend(fid, due[:255], asked, now)
+                    self._resend(fid, due, asked, now)
                     last_rx = self.clock()
                     continue
                 self._pump()
@@ -545,6 +596,28 @@ class HostLink:
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
+
+    def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
+                 received: dict[int, ColumnResult], parts: dict[int, _Pieces],
+                 asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
+        """Columns (int) and fragments ((column, index)) sent, not received, due to ask."""
+        due: list[Any] = []
+        for c in range(nxt, stop):
+            if c in received:
+                continue
+            pc = parts.get(c)
+            if c < horizon and pc is None:
+                keys: list[Any] = [c]
+            elif pc is None:
+                keys = []  # the column in progress, nothing of it arrived yet
+            else:
+                sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
+                    else 0
+                keys = [(c, k) for k in range(sent) if k not in pc.data]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.timeout_s]
+            if len(due) >= 255:
+                break
+        return due
 
     @staticmethod
     def _early_end(fid: int, reason: int, sent: int) -> Exception:
@@ -561,24 +634,35 @@ class HostLink:
                             "it lost the scan (restarted or another host took over)")
         return st
 
-    def _resend(self, fid: int, cols: list[int], asked: dict[int, tuple[float, int]],
+    def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
                 now: float) -> None:
-        for c in cols:
-            tries = asked.get(c, (0.0, 0))[1]
+        """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
+        cols = [k for k in due if isinstance(k, int)][:255]
+        pieces = [k for k in due if not isinstance(k, int)][:255]
+        for key in cols + pieces:
+            tries = asked.get(key, (0.0, 0))[1]
             if tries >= self.column_retries:
                 st = self.decoder.stats
                 damaged = st.crc + st.cobs + st.length + st.short
-                diag = DIAG_GARBAGE if damaged else DIAG_NO_ANSWER
-                hint = (f"{damaged} damaged frames so far: the line corrupts long frames"
-                        if damaged else DIAG_HINTS[DIAG_NO_ANSWER])
+                what = f"column {key}" if isinstance(key, int) else \
+                    f"fragment {key[1]} of column {key[0]}"
+                if damaged:
+                    raise LinkTimeout(
+                        f"{what} of frame {fid} never arrived intact after {tries} resend "
+                        f"requests on {self._port_name}: a noisy line, {damaged} damaged "
+                        f"frames of {damaged + st.frames}; use a smaller --max-frame or a "
+                        "better cable", DIAG_NOISY)
                 raise LinkTimeout(
-                    f"column {c} of frame {fid} never arrived intact after {tries} resend "
-                    f"requests on {self._port_name}: {diag}; {hint}", diag)
-            asked[c] = (now, tries + 1)
+                    f"{what} of frame {fid} never arrived after {tries} resend requests on "
+                    f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
+                    DIAG_NO_ANSWER)
+            asked[key] = (now, tries + 1)
         self.stats.resend_requests += 1
-        self.stats.resent_columns += len(cols)
-        log.debug("frame %d: asking again for %d columns from %d", fid, len(cols), cols[0])
-        self._request(MsgType.RESEND, {"frame": fid, "columns": cols})
+        self.stats.resent_columns += len(cols) + len(pieces)
+        log.debug("frame %d: asking again for %d columns and %d fragments", fid, len(cols),
+                  len(pieces))
+        self._request(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
+            {"column": c, "index": k} for c, k in pieces]})
 
     # ---- request machinery -------------------------------------------------------------------
     def _need_info(self) -> Info:
@@ -605,19 +689,29 @@ class HostLink:
         self._pending_type = int(msg_type)
         self._reply = None
         self._reply_frame = None
+        self._reply_parts = []
+        self._partial.clear()
         self._reply_version = None
+        quick = 2 * (self.retries + 1)  # extra tries sent at once when the line shows damage
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
                     self.stats.retries += 1
                     log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
-                # Signed afresh on every try: a new counter, the same seq and payload.
-                self._write(encode_frame(msg_type, payload, seq, self.session or 0,
-                                         max_frame=self.max_frame, signer=self._tx))
+                self._send_request(msg_type, payload, seq)
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
+                    damage = (self._damaged(), self._line_errors)
                     self._pump()
+                    if quick and self._reply is None and \
+                            (self._damaged(), self._line_errors) != damage:
+                        # A damaged chunk on either side (ours, or the device's LINE_ERROR):
+                        # the request or its reply was probably hit, so try again now.
+                        quick -= 1
+                        self.stats.quick_retries += 1
+                        self._send_request(msg_type, payload, seq)
+                        deadline = self.clock() + self.timeout_s
                 if self._reply is not None:
                     self._reply_frame = self._reply
                     return self._accept_reply(msg_type, self._reply)
@@ -634,6 +728,16 @@ class HostLink:
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {DIAG_HINTS[diag]}", diag)
+
+    def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
+        """Write one try of a request, signed afresh (new counter, same seq and payload)."""
+        self._write(encode_frame(msg_type, payload, seq, self.session or 0,
+                                 max_frame=self.max_frame, signer=self._tx))
+
+    def _damaged(self) -> int:
+        """Chunks our decoder rejected as damaged (COBS, CRC, length, short)."""
+        st = self.decoder.stats
+        return st.crc + st.cobs + st.length + st.short
 
     def _diagnose(self, win: _Window) -> str:
         """What the line showed since ``win``: one of the DIAG_* strings."""
@@ -695,6 +799,39 @@ class HostLink:
                 SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
         raise SessionLost(f"session lost on {self._port_name}: {detail or what}", reason)
 
+    def _fragment_body(self, frame: Frame) -> dict[str, Any] | None:
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+        except Exception:  # FrameError: a malformed fragment is dropped
+            self.stats.malformed += 1
+            return None
+        assert isinstance(body, dict)
+        if body["index"] >= body["count"] or not body["data"]:
+            self.stats.malformed += 1
+            return None
+        return body
+
+    def _collect(self, frame: Frame, body: dict[str, Any]) -> None:
+        """A fragment of a reply: once all are in, handle the whole reply."""
+        key = (body["msg_type"], body["seq"])
+        if key[1] != self._pending:
+            self.stats.stale_replies += 1
+            return
+        pc = self._partial.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._partial[key] = _Pieces(body["count"])
+        if body["index"] not in pc.data:
+            pc.frames.append(frame)
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
+            return
+        del self._partial[key]
+        whole = Frame(key[0], key[1], frame.session,
+                      b"".join(pc.data[i] for i in range(pc.count)), 0, 0, frame.version)
+        if self._reply is None and key[1] == self._pending:
+            self._reply_parts = pc.frames
+        self._reply_reply(MsgKind.REPLY, whole)
+
     def _write(self, wire: bytes) -> None:
         try:
             self.port.write(wire)
@@ -725,6 +862,13 @@ class HostLink:
             return
         hello_reply = (kind is MsgKind.REPLY and frame.seq == self._hello_seq and
                        frame.msg_type in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE))
+        if frame.msg_type == MsgType.FRAGMENT and self._hello_seq is not None and \
+                self._reply is None:
+            body = self._fragment_body(frame)
+            if body is not None and body["seq"] == self._hello_seq and \
+                    body["msg_type"] in (MsgType.INFO, MsgType.NAK):
+                self._collect(frame, body)  # INFO of a session we do not know yet
+                return
         if not hello_reply and self._hello_seq is not None and self._reply is not None and \
                 frame.session == self._reply.session:
             self._early.append(frame)  # of the session INFO is opening: read once it is ours
@@ -742,6 +886,23 @@ class HostLink:
             return
         if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
             self._session_lost(frame)
+        if frame.msg_type == MsgType.LINE_ERROR:
+            self._line_errors += 1
+            return
+        if frame.msg_type == MsgType.FRAGMENT:
+            body = self._fragment_body(frame)
+            if body is None:
+                return
+            if body["msg_type"] == MsgType.COLUMN_RESULT:
+                if self._streaming:
+                    self._stream.append((MsgType.FRAGMENT, body))
+            elif kind_of(body["msg_type"]) is MsgKind.REPLY:
+                self._collect(frame, body)
+            return
+        self._reply_reply(kind, frame)
+
+    def _reply_reply(self, kind: MsgKind, frame: Frame) -> None:
+        """A reply or stream frame of our session, authenticated."""
         if kind is MsgKind.REPLY:
             # ACK and NAK echo the request type: a reply to another request that happens
             # to carry the same seq (a previous link, a wrapped counter) is not ours.

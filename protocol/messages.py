@@ -100,6 +100,8 @@ class MsgType(enum.IntEnum):
     HEARTBEAT = 0xC1
     SCAN_END = 0xC2
     SESSION_LOST = 0xC3
+    FRAGMENT = 0xC4
+    LINE_ERROR = 0xC5
 
 
 class ErrorCode(enum.IntEnum):
@@ -227,7 +229,8 @@ _STATUS_FIELDS = (
 _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
          "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
-         u("host_max_frame", 16, "largest frame the host accepts", "bytes", 512, 65535),
+         u("host_max_frame", 16, "largest frame the device may send in this session; longer "
+           "messages come as FRAGMENTs", "bytes", 256, 65535),
          u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
            "session's configuration and power", lo=0, hi=3),
          nbytes("host_nonce", 16, "random per host link: tells a new host from a "
@@ -262,11 +265,16 @@ _MESSAGE_LIST = [
          reply=MsgType.ACK),
     _msg(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
          reply=MsgType.ACK),
-    _msg(MsgType.RESEND, "Send listed columns of a frame again from the ring buffer. ACK "
-         "when each is resent or still to come; NAK NOT_AVAILABLE names the first lost one.",
+    _msg(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
+         "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
+         "NOT_AVAILABLE names the first lost one.",
          u("frame", 32, "frame id"),
-         array("columns", 8, "u", 16, "column indexes", lo=0, hi=65535, max_items=255,
-               allowed="1..255 items"),
+         array("columns", 8, "u", 16, "whole columns to send again", lo=0, hi=65535,
+               max_items=255, allowed="0..255 items"),
+         blob("fragments", cs.PrefixedArray(cs.Int8ul, cs.Struct("column" / cs.Int16ul,
+                                                                 "index" / cs.Int8ul)),
+              "u8 n + n x (u16 column, u8 index)", "single fragments to send again",
+              allowed="0..255 items; columns + fragments >= 1"),
          reply=MsgType.ACK),
     _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
          "the calibration flag (column = shot index), then SCAN_END.",
@@ -314,7 +322,7 @@ _MESSAGE_LIST = [
            "0: none", "µW"),
          u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
          u("max_frame", 16, "largest frame either side sends in this session "
-           "(header + payload + CRC)", "bytes", 512, 65535),
+           "(header + payload + signature + CRC)", "bytes", 256, 65535),
          u("ring_columns", 16, "recent columns kept for RESEND", "columns"),
          u("heartbeat_ms", 16, "HEARTBEAT interval while scanning", "ms", 1, 65535),
          u("max_degree", 8, "largest LFSR degree m of the code family", "", 2, 32),
@@ -375,6 +383,20 @@ _MESSAGE_LIST = [
          u("columns", 16, "columns (or shots) produced"),
          u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
          u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
+    _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
+         "COLUMN_RESULT, or a reply such as INFO): `count` pieces, in order, of "
+         "ceil(len / (max_frame - 27 - signature)) bytes each but the last.",
+         u("msg_type", 8, "type of the whole message"),
+         u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
+         u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
+         u("column", 16, "COLUMN_RESULT: column index; else 0"),
+         u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
+         u("count", 8, "pieces of the whole message", lo=2, hi=254),
+         blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
+              allowed="1..max_frame-27 bytes")),
+    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
+         "a host waiting for a reply sends its request again at once.",
+         u("rx_errors", 32, "rejected chunks since boot")),
     _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
          "answer its requests NAK WRONG_SESSION.",
          u("reason", 8, "1 another host took over, 2 expired after session_idle_ms", lo=1,

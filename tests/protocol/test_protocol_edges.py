@@ -204,17 +204,17 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
 
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
-    """A column too large for the frame size: SCAN_END reason 2, and the device stays usable."""
+    """A column too large for 254 fragments: SCAN_END reason 2, and the device stays usable."""
     host, dev = pipe_pair()
 
     class Growing(SyntheticApp):
         def _columns(self, frame, first, count, calibration):  # type: ignore[override]
             yield from super()._columns(frame, first, 1, calibration)
-            self.channels = 40  # a misbehaving app: columns grow beyond what was checked
+            self.channels = 1500  # a misbehaving app: columns grow beyond what was checked
             yield from super()._columns(frame, first + 1, count - 1, calibration)
 
     app = Growing(channels=8, columns=10)
-    with RunningDevice(dev, app, max_frame=1024, heartbeat_s=0.02):
+    with RunningDevice(dev, app, max_frame=256, heartbeat_s=0.02):
         link = HostLink(host, timeout_s=0.05, retries=2)
         got = []
         with pytest.raises(LinkError):

@@ -93,7 +93,7 @@ def test_requests_and_heartbeats_are_served_while_a_column_is_computed() -> None
                                           (MsgType.STATUS_GET, MsgType.STATUS),
                                           (MsgType.RESEND, MsgType.ACK)] * 3, start=3):
             fields = {"keys": []} if t == MsgType.CONFIG_GET else \
-                {"frame": 4, "columns": [0]} if t == MsgType.RESEND else {}
+                {"frame": 4, "columns": [0], "fragments": []} if t == MsgType.RESEND else {}
             send(t, fields, seq)
             f = wait_for(lambda f, s=seq, r=reply: f.seq == s and f.msg_type == r)
             if reply == MsgType.STATUS:

@@ -54,7 +54,10 @@ def _field_strategy(msg: MsgType, sc) -> st.SearchStrategy:
         "items": st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
                                                  "value": st.binary(max_size=40)}),
                           max_size=6),
-        "data": st.binary(max_size=300),
+        "data": st.binary(min_size=1, max_size=300),
+        "fragments": st.lists(st.fixed_dictionaries({"column": st.integers(0, 65535),
+                                                     "index": st.integers(0, 255)}),
+                              max_size=10),
     }
     return special[sc.name]
 
@@ -114,7 +117,7 @@ def _minimal(msg: MsgType) -> dict:
                         "bytes": bytes(m.max_items or 0)}.get(m.kind, None)
     if msg in (MsgType.POWER_SET, MsgType.POWER):
         out.update(channels=1, columns=1, power=[7])
-    for name in ("keys", "items"):
+    for name in ("keys", "items", "fragments"):
         if name in out:
             out[name] = []
     if "data" in out:
