@@ -423,7 +423,7 @@ class DeviceEndpoint:
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
-                if self._damaged() > damaged and self.session_open:
+                if self._damaged() > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
                     self._send_stream(MsgType.LINE_ERROR, encode_payload(
@@ -761,7 +761,7 @@ class DeviceEndpoint:
             mac = auth.device_mac(core.key, nonce, device_nonce, self.session)
         self._info = info = dataclasses.replace(
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.session,
-            schema_crc=SCHEMA_CRC, max_frame=self.tx_max_frame,
+            schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
             ring_columns=min(self.ring_columns, 65535),
             heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))),
             session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),

@@ -61,8 +61,10 @@ from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
+    MIN_MAX_FRAME,
     OVERHEAD,
     PROTOCOL_VERSION,
+    SIGNATURE_SIZE,
     Frame,
     FrameDecoder,
     encode_frame,
@@ -162,6 +164,8 @@ class _Window:
     frames: int
     wrong_session: int
     other_version: int
+    damaged: int
+    line_errors: int
 
 
 class HostLink:
@@ -179,7 +183,10 @@ class HostLink:
             (at a bit error rate of 1e-4 a 1.6 KB frame gets through 27 % of the time).
         poll_s: longest blocking read (s), greater than 0 so that waiting never spins;
             default ``min(0.05, timeout_s / 4)``.
-        max_frame: largest frame the host accepts (bytes), announced in HELLO.
+        max_frame: largest frame the device may send (bytes, 64..65535), announced in
+            HELLO: longer replies and columns come in FRAGMENTs, so a noisy line can be
+            given short frames. Requests stay within min(INFO.max_frame, max(max_frame,
+            256)).
         key: shared secret of a device that requires one (32 bytes,
             :func:`cdma_lidar.protocol.auth.load_key`); then HELLO answers the device's
             challenge, the device must prove it holds the key too, and every frame of the
@@ -208,7 +215,7 @@ class HostLink:
             raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
                                "would make every wait spin)", poll_s)
         self.clock = clock
-        self.decoder = FrameDecoder(max_frame)
+        self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.stats = LinkStats()
         self.info: Info | None = None
         self.session: int | None = None
@@ -315,7 +322,8 @@ class HostLink:
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
         self.info = info
         self.session = info.session_id
-        self.max_frame = info.max_frame
+        # Requests: what the device accepts, within what this host asked for the line.
+        self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -398,7 +406,7 @@ class HostLink:
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self.max_frame - OVERHEAD - 8) // 2  # values per request
+        room = (self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -637,8 +645,10 @@ class HostLink:
     def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
                 now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
-        cols = [k for k in due if isinstance(k, int)][:255]
-        pieces = [k for k in due if not isinstance(k, int)][:255]
+        room = self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
+        cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
+        pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
+                                                                 // 3)]
         for key in cols + pieces:
             tries = asked.get(key, (0.0, 0))[1]
             if tries >= self.column_retries:
@@ -684,7 +694,8 @@ class HostLink:
         payload = encode_payload(msg_type, fields_)
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
-                      self.stats.wrong_session, self._other_version())
+                      self.stats.wrong_session, self._other_version(), self._damaged(),
+                      self._line_errors)
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
@@ -725,9 +736,15 @@ class HostLink:
         finally:
             self._pending = None
         diag = self._diagnose(win)
+        what = diag
+        if diag in (DIAG_NOISY, DIAG_GARBAGE):
+            damaged = self._damaged() - win.damaged
+            what += (f" ({damaged} damaged frames of "
+                     f"{damaged + self.decoder.stats.frames - win.frames} received, "
+                     f"{self._line_errors - win.line_errors} reported by the device)")
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
-            f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {DIAG_HINTS[diag]}", diag)
+            f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
 
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
@@ -744,11 +761,14 @@ class HostLink:
         st = self.decoder.stats
         if st.bytes == win.bytes:
             return DIAG_SILENT
-        if st.frames == win.frames:
+        reported = self._line_errors - win.line_errors  # the device saw our frames damaged
+        if st.frames == win.frames and not reported:
             return DIAG_VERSION if self._other_version() > win.other_version else DIAG_GARBAGE
         wrong = self.stats.wrong_session - win.wrong_session
-        if wrong and st.frames - win.frames == wrong:
+        if wrong and st.frames - win.frames == wrong and not reported:
             return DIAG_WRONG_SESSION
+        if reported or self._damaged() > win.damaged:
+            return DIAG_NOISY
         return DIAG_NO_ANSWER
 
     def _other_version(self) -> int:
@@ -873,6 +893,9 @@ class HostLink:
                 frame.session == self._reply.session:
             self._early.append(frame)  # of the session INFO is opening: read once it is ours
             return
+        if frame.msg_type == MsgType.LINE_ERROR:
+            self._line_errors += 1  # only a hint to retry now, from any session
+            return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and
@@ -886,9 +909,6 @@ class HostLink:
             return
         if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
             self._session_lost(frame)
-        if frame.msg_type == MsgType.LINE_ERROR:
-            self._line_errors += 1
-            return
         if frame.msg_type == MsgType.FRAGMENT:
             body = self._fragment_body(frame)
             if body is None:

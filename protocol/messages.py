@@ -230,7 +230,7 @@ _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
          "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
          u("host_max_frame", 16, "largest frame the device may send in this session; longer "
-           "messages come as FRAGMENTs", "bytes", 256, 65535),
+           "messages come as FRAGMENTs", "bytes", 64, 65535),
          u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
            "session's configuration and power", lo=0, hi=3),
          nbytes("host_nonce", 16, "random per host link: tells a new host from a "
@@ -321,8 +321,9 @@ _MESSAGE_LIST = [
          u("column_power_cap_uw", 32, "eye-safety cap on the sum over a column's channels; "
            "0: none", "µW"),
          u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
-         u("max_frame", 16, "largest frame either side sends in this session "
-           "(header + payload + signature + CRC)", "bytes", 256, 65535),
+         u("max_frame", 16, "largest frame the device accepts (header + payload + "
+           "signature + CRC); the host's requests stay within min(max_frame, "
+           "max(host_max_frame, 256))", "bytes", 256, 65535),
          u("ring_columns", 16, "recent columns kept for RESEND", "columns"),
          u("heartbeat_ms", 16, "HEARTBEAT interval while scanning", "ms", 1, 65535),
          u("max_degree", 8, "largest LFSR degree m of the code family", "", 2, 32),

@@ -141,7 +141,7 @@ def test_kinds_and_replies() -> None:
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 0}, "SCAN_START.columns"),
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0}, "SCAN_START.columns"),
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 1, "x": 2}, "SCAN_START.x"),
-    (MsgType.HELLO, hello_fields(1, 100), "HELLO.host_max_frame"),
+    (MsgType.HELLO, hello_fields(1, 63), "HELLO.host_max_frame"),
     (MsgType.RESEND, {"frame": 1, "columns": list(range(256))}, "RESEND.columns"),
     (MsgType.RESEND, {"frame": 1, "columns": [1, 70000]}, "RESEND.columns[1]"),
     (MsgType.NAK, {"request_type": 1, "code": 4, "field": "é" * 200, "detail": ""},
