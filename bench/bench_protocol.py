@@ -160,12 +160,14 @@ def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int) -> tuple[fl
     return dt, got, counters
 
 
-def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3) -> None:
+def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3,
+                reference: tuple[str, float] | None = None) -> float:
     """Scan time on lines with bit errors, as a ratio to the clean line, same settings.
 
     The host asks for ``max_frame``-byte frames (a 40-channel column becomes a few
     FRAGMENTs); clean and noisy scans run in this process one after another, best of
-    ``runs`` each, and every noisy scan must give the clean scan's bytes.
+    ``runs`` each, and every noisy scan must give the clean scan's bytes. Returns the
+    clean time (s); ``reference`` (label, seconds) adds a ratio to another clean time.
     """
     clean_t, clean, _ = min(_noisy_scan(0.0, max_frame, columns, s) for s in range(runs))
     print(f"noisy line, {K} channels, {columns} columns, max frame {max_frame} B: clean "
@@ -181,7 +183,9 @@ def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3) -> None
         print(f"  bit error rate {ber:g}: {best * 1e3:.0f} ms = x{best / clean_t:.2f} the clean "
               f"time, byte-identical; {info['damaged']} damaged frames of "
               f"{info['damaged'] + info['frames']}, {info['resends']} RESENDs, "
-              f"{info['quick']} immediate retries")
+              f"{info['quick']} immediate retries" + (
+                  f"; x{best / reference[1]:.2f} of {reference[0]}" if reference else ""))
+    return clean_t
 
 
 def _bench_link(label: str, dev_port, host_port, columns: int) -> None:
@@ -257,7 +261,8 @@ def main() -> None:
     bench_in_process()
     bench_pty()
     bench_tcp()
-    bench_noisy()
+    clean_256 = bench_noisy(max_frame=256)
+    bench_noisy(max_frame=80, reference=("the clean 256-byte scan", clean_256))
 
 
 if __name__ == "__main__":

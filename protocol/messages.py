@@ -36,6 +36,7 @@ from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
 
 __all__ = [
+    "DEVICE_RULES",
     "ERROR_DOCS",
     "MESSAGES",
     "REPLY_TO",
@@ -409,6 +410,48 @@ _MESSAGE_LIST = [
 MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
 #: Reply type of each request.
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
+
+
+#: What a device checks beyond each field's wire range, and the NAK code a violation
+#: gets (a value outside the wire range of the tables is always MALFORMED). The spec's
+#: table "Wire ranges and NAK codes" is generated from this and the declarations.
+DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
+    (MsgType.HELLO, "flags"): ("another host owns a live session and bit 0 (take over) is "
+                               "clear", ErrorCode.BUSY),
+    (MsgType.HELLO, "mac"): ("with a key: not HMAC(key, ...) of this HELLO and the last "
+                             "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
+                             ErrorCode.AUTH_FAILED),
+    (MsgType.CONFIG_GET, "keys"): ("a key id this device does not know", ErrorCode.UNKNOWN_KEY),
+    (MsgType.CONFIG_SET, "items"): ("a key unknown and not optional: UNKNOWN_KEY; read-only: "
+                                    "READ_ONLY; a key twice or a value outside the key's wire "
+                                    "range: MALFORMED; outside the key's device range "
+                                    "(CONFIG keys table, range column): OUT_OF_RANGE; while "
+                                    "a scan runs: BUSY", ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "channel_start"): ("channel_start + channels > K",
+                                           ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "column_start"): ("column_start + columns > INFO.column_count",
+                                          ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "power"): ("the sum over a column's channels above the cap "
+                                   "(INFO.column_power_cap_uw; field `power`)",
+                                   ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_GET, "channels"): ("channel_start + channels > K", ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_GET, "columns"): ("column_start + columns > INFO.column_count",
+                                     ErrorCode.OUT_OF_RANGE),
+    (MsgType.SCAN_START, "first_column"): ("first_column >= INFO.column_count",
+                                           ErrorCode.OUT_OF_RANGE),
+    (MsgType.SCAN_START, "columns"): ("first_column + columns > INFO.column_count, or columns "
+                                      "> INFO.max_columns; while a scan runs: BUSY",
+                                      ErrorCode.OUT_OF_RANGE),
+    (MsgType.RESEND, "columns"): ("neither kept in the ring nor still to come in the running "
+                                  "scan (field `columns[i]` / `fragments[i]`); both lists "
+                                  "empty: MALFORMED", ErrorCode.NOT_AVAILABLE),
+    (MsgType.CALIBRATE, "shots"): ("while a scan runs: BUSY", ErrorCode.BUSY),
+    (MsgType.CAPTURE, "column"): ("column >= INFO.column_count", ErrorCode.OUT_OF_RANGE),
+    (MsgType.CAPTURE, "channel"): ("kind 1 and channel >= K", ErrorCode.OUT_OF_RANGE),
+    (MsgType.CAPTURE, "offset"): ("offset > total: OUT_OF_RANGE; offset > 0 with no capture of "
+                                  "this (kind, column, channel) held: NOT_AVAILABLE",
+                                  ErrorCode.OUT_OF_RANGE),
+}
 
 
 # ---- encode / decode ------------------------------------------------------------------
