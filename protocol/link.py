@@ -459,14 +459,18 @@ class HostLink:
         """Scan ``frames`` frames of ``columns`` columns from ``first_column``.
 
         Yields ColumnResults in column order, each exactly once, repairing gaps. By
-        default a frame is the device's full ``column_count`` (see INFO). Leaving the
-        loop early aborts the scan on the device.
+        default a frame is a full scan: ``columns_per_frame`` columns (configuration).
+        Leaving the loop early aborts the scan on the device.
         """
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
         info = self._need_info()
-        if columns is None:
-            columns = info.column_count - first_column
+        if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
+            if self.config is None:
+                self.get_config()
+            assert self.config is not None
+            columns = min(int(self.config["columns_per_frame"]), info.column_count) - \
+                first_column
         for k in range(frames):
             fid = self._frame_id(frame if k == 0 else None)
             yield from self._stream_columns(

@@ -15,7 +15,8 @@ The checks on a column (K channels, P peaks, n UID bits, N*S lags per period)::
     calibration flag == the stream's  column inside the scan   frame == the scan's
     lag fields: 0 <= lag < N*S or NO_PEAK
     sign masks: < 2^n, the -1 and 0 masks disjoint;  uid_observed < 2^n
-    flags: 0 or 1;  noise_count <= gate_len, and >= 1 where a peak is reported
+    flags: 0 or 1;  noise_count <= gate_len, and >= 1 where a peak is reported;
+    noise_count * noise_sumsq >= noise_sum^2
 """
 
 from __future__ import annotations
@@ -184,6 +185,11 @@ class ColumnChecker:
                    f"at most gate_len = {self.gate_len}")
         self._none(lie, "noise_count", count, (count == 0) & (rec["peak_lag"] != NO_PEAK),
                    "at least 1 where a peak is reported (the SNR needs a noise floor)")
+        # Cauchy-Schwarz: count * sumsq >= sum^2 for any real noise floor (exact integers).
+        lhs = count.astype(object) * rec["noise_sumsq"].astype(object)
+        rhs = rec["noise_sum"].astype(object) ** 2
+        self._none(lie, "noise_sumsq", rec["noise_sumsq"], np.asarray(lhs < rhs, dtype=bool),
+                   "at least noise_sum^2 / noise_count")
 
     @staticmethod
     def _none(lie: Any, field: str, values: np.ndarray, bad: np.ndarray, allowed: str) -> None:

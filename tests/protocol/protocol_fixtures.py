@@ -32,7 +32,7 @@ def expected_column(frame: int, column: int, channels: int, peaks: int, uid_bits
         frame, column, (column * 0.05 % 360.0 - 20.0) if not calibration else 0.0,
         peak_lag=rng.integers(0, 8000, k), peak=rng.integers(-(2**31), 2**31, k),
         neighbours=rng.integers(-(2**31), 2**31, (k, 2)), noise_count=rng.integers(1, 65, k),
-        noise_sum=rng.integers(-(2**40), 2**40, k), noise_sumsq=rng.integers(0, 2**62, k),
+        noise_sum=rng.integers(-(2**20), 2**20, k), noise_sumsq=rng.integers(2**40, 2**62, k),
         uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 1 << n, k),
         uid_match=rng.integers(0, 2, k).astype(bool),
         extra_lag=rng.integers(0, 8000, (k, e)) if e else None,
