@@ -54,8 +54,8 @@ def make_column(channels: int = K, peaks: int = 1, uid_bits: int = 1) -> ColumnR
         peak=rng.integers(-(2**28), 2**28, channels),
         neighbours=rng.integers(-(2**28), 2**28, (channels, 2)),
         noise_count=rng.integers(4000, 8000, channels),
-        noise_sum=rng.integers(-(2**36), 2**36, channels),
-        noise_sumsq=rng.integers(0, 2**60, channels),
+        noise_sum=rng.integers(-(2**24), 2**24, channels),
+        noise_sumsq=rng.integers(2**50, 2**60, channels),  # >= noise_sum^2 / count
         uid_signs=rng.choice([-1, 1], (channels, uid_bits)),
         uid_observed=rng.integers(0, 1 << uid_bits, channels),
         uid_match=rng.integers(0, 2, channels).astype(bool),
