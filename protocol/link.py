@@ -417,6 +417,27 @@ class HostLink:
                     "channels": block.shape[0], "columns": block.shape[1],
                     "power": block.ravel()})
 
+    def get_power(self) -> NDArray[np.uint16]:
+        """The device's (K, C) power matrix (1/65535 of the per-pixel maximum), read back.
+
+        C is INFO.column_count; read in rectangles of whole rows that fit a reply (a
+        longer reply would come in FRAGMENTs anyway).
+        """
+        info = self._need_info()
+        k, c = info.channels, info.column_count
+        out = np.zeros((k, c), dtype=np.uint16)
+        rows = max(1, min(k, 16384 // max(c, 1)))
+        for r0 in range(0, k, rows):
+            n = min(rows, k - r0)
+            d = self._request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
+                                                  "channels": n, "columns": c})
+            if (d["channel_start"], d["column_start"], d["channels"], d["columns"]) != \
+                    (r0, 0, n, c):
+                raise DeviceLied(f"device answered POWER_GET of rows {r0}..{r0 + n - 1} with "
+                                 f"rows {d['channel_start']}.. x {d['channels']}", "power")
+            out[r0:r0 + n] = np.asarray(d["power"], dtype=np.uint16).reshape(n, c)
+        return out
+
     def status(self) -> Status:
         """Device status."""
         return Status(**self._request(MsgType.STATUS_GET, {}))
