@@ -127,7 +127,7 @@ class _FastApp(DeviceApp):
                             column_count=self.columns, max_channels=K)
 
     def get_config(self) -> dict:
-        return dict(CONFIG)
+        return dict(CONFIG, columns_per_frame=self.columns)  # a full scan: every column
 
     def set_config(self, values: dict) -> None:
         pass
@@ -137,7 +137,8 @@ class _FastApp(DeviceApp):
                 for c in range(first_column, first_column + columns))
 
 
-def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int) -> tuple[float, list, dict]:
+def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int,
+                auto: bool = False) -> tuple[float, list, dict]:
     """(seconds, column payloads, link counters) of one scan over a line with bit errors."""
     host, dev = pipe_pair(Faults(bit_error_rate=ber), Faults(bit_error_rate=ber), seed=seed)
     ep = DeviceEndpoint(dev, _FastApp(columns), heartbeat_s=0.05, ring_columns=4096)
@@ -145,14 +146,16 @@ def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int) -> tuple[fl
     th = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
     th.start()
     try:
-        link = HostLink(host, timeout_s=0.05, retries=20, max_frame=max_frame)
+        link = HostLink(host, timeout_s=0.05, retries=20, max_frame=max_frame,
+                        auto_frame=auto)
         t0 = time.perf_counter()
         link.hello()
         got = [encode_column(c) for c in link.scan(frame=5)]
         dt = time.perf_counter() - t0
         st = link.decoder.stats
         counters = {"damaged": st.crc + st.cobs + st.length + st.short, "frames": st.frames,
-                    "resends": link.stats.resend_requests, "quick": link.stats.quick_retries}
+                    "resends": link.stats.resend_requests, "quick": link.stats.quick_retries,
+                    "frame": link.device_frame}
         link.close()
     finally:
         stop.set()
@@ -161,7 +164,7 @@ def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int) -> tuple[fl
 
 
 def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3,
-                reference: tuple[str, float] | None = None) -> float:
+                reference: tuple[str, float] | None = None, auto: bool = False) -> float:
     """Scan time on lines with bit errors, as a ratio to the clean line, same settings.
 
     The host asks for ``max_frame``-byte frames (a 40-channel column becomes a few
@@ -169,13 +172,15 @@ def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3,
     ``runs`` each, and every noisy scan must give the clean scan's bytes. Returns the
     clean time (s); ``reference`` (label, seconds) adds a ratio to another clean time.
     """
-    clean_t, clean, _ = min(_noisy_scan(0.0, max_frame, columns, s) for s in range(runs))
-    print(f"noisy line, {K} channels, {columns} columns, max frame {max_frame} B: clean "
+    clean_t, clean, _ = min(_noisy_scan(0.0, max_frame, columns, s, auto)
+                            for s in range(runs))
+    how = "frames sized to the line (auto_frame)" if auto else f"max frame {max_frame} B"
+    print(f"noisy line, {K} channels, {columns} columns, {how}: clean "
           f"{clean_t * 1e3:.0f} ms")
     for ber in (1e-4, 3e-4, 1e-3):
         best, info = float("inf"), {}
         for s in range(runs):
-            dt, got, counters = _noisy_scan(ber, max_frame, columns, 100 + s)
+            dt, got, counters = _noisy_scan(ber, max_frame, columns, 100 + s, auto)
             if got != clean:
                 raise RuntimeError(f"bit error rate {ber:g}: the scan differs from the clean one")
             if dt < best:
@@ -183,7 +188,7 @@ def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3,
         print(f"  bit error rate {ber:g}: {best * 1e3:.0f} ms = x{best / clean_t:.2f} the clean "
               f"time, byte-identical; {info['damaged']} damaged frames of "
               f"{info['damaged'] + info['frames']}, {info['resends']} RESENDs, "
-              f"{info['quick']} immediate retries" + (
+              f"{info['quick']} immediate retries, last frame size {info['frame']} B" + (
                   f"; x{best / reference[1]:.2f} of {reference[0]}" if reference else ""))
     return clean_t
 
@@ -261,6 +266,7 @@ def main() -> None:
     bench_in_process()
     bench_pty()
     bench_tcp()
+    bench_noisy(max_frame=65535, auto=True)
     clean_256 = bench_noisy(max_frame=256)
     bench_noisy(max_frame=80, reference=("the clean 256-byte scan", clean_256))
 

@@ -58,6 +58,7 @@ from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
     FRAME_LIMIT,
     MIN_MAX_FRAME,
+    OVERHEAD,
     PROTOCOL_VERSION,
     Frame,
     FrameDecoder,
@@ -92,7 +93,8 @@ FRAGMENT_HEADER = 11
 #: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
 MAX_PIECES = 254
 # Requests answered without calling the application (never wait for a column to compute).
-_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
+_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT,
+                          MsgType.FRAME_SIZE})
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
 
@@ -362,6 +364,7 @@ class DeviceEndpoint:
             MsgType.CAPTURE: self._on_capture,
             MsgType.STATUS_GET: self._on_status_get,
             MsgType.SESSION_END: self._on_session_end,
+            MsgType.FRAME_SIZE: self._on_frame_size,
         }
         port.timeout = poll_s
 
@@ -505,9 +508,9 @@ class DeviceEndpoint:
             raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
                               f"fragments at max frame {self.tx_max_frame} (at most "
                               f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
+        if only is not None and any(not 0 <= k < count for k in only):
+            only = None  # pieces of another size (the frame size changed): send them all
         for k in range(count) if only is None else only:
-            if not 0 <= k < count:
-                continue
             self._stream_seq = (self._stream_seq + 1) & 0xFFFF
             body = encode_payload(MsgType.FRAGMENT, {
                 "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
@@ -808,6 +811,25 @@ class DeviceEndpoint:
             log.info("session 0x%08x ended by its host", self.session)
 
         after.append(end)
+        return self._ack(req)
+
+    def _on_frame_size(self, req: Frame, f: dict, after: list) -> _Reply:
+        """New largest frame this device sends; the ACK still goes out at the old size."""
+        new = min(self.max_frame, f["host_max_frame"])
+        st = self._stream
+        if st is not None and self._info is not None and self._config is not None:
+            size = column_payload_size(self._info.channels, int(self._config.get("peaks", 1)))
+            room = new - frame_size(FRAGMENT_HEADER, self._tx is not None)
+            if size + OVERHEAD > new and -(-size // room) > MAX_PIECES:
+                return self._nak(req, ErrorCode.TOO_LARGE, "host_max_frame",
+                                 f"a column of {size} bytes would need more than "
+                                 f"{MAX_PIECES} fragments at {new} bytes")
+
+        def apply() -> None:
+            self.tx_max_frame = new
+            log.debug("frames of session 0x%08x now at most %d bytes", self.session, new)
+
+        after.append(apply)
         return self._ack(req)
 
     def _on_config_get(self, req: Frame, f: dict, after: list) -> _Reply:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import secrets
 import time
 from collections import deque
@@ -103,6 +104,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Smallest frame the device may be asked to send (HELLO / FRAME_SIZE host_max_frame).
+MIN_HOST_FRAME = 64
+
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
 DIAG_WRONG_SESSION = "frames but wrong session"
@@ -154,6 +158,7 @@ class _Pieces:
     count: int
     data: dict[int, bytes] = field(default_factory=dict)
     frames: list[Frame] = field(default_factory=list)
+    size: int = 0  # the device's frame size when they were cut
 
 
 @dataclass
@@ -194,6 +199,10 @@ class HostLink:
         take_over: HELLO ends another host's live session instead of failing BUSY.
         keep_config: the new session keeps the previous session's configuration and
             power instead of starting from the device's defaults.
+        auto_frame: size the device's frames to the line during scans (FRAME_SIZE):
+            from the share of damaged frames the host estimates the bit error rate and
+            asks for the frame length that carries the most intact bytes, between 64
+            bytes and ``max_frame``. A clean line never changes anything.
         clock: monotonic clock (s), replaceable in tests.
 
     One HostLink per port, used from one thread at a time.
@@ -202,7 +211,7 @@ class HostLink:
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, poll_s: float | None = None,
                  max_frame: int = FRAME_LIMIT, key: bytes | None = None,
-                 take_over: bool = False, keep_config: bool = False,
+                 take_over: bool = False, keep_config: bool = False, auto_frame: bool = False,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -226,6 +235,9 @@ class HostLink:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.key = key
         self.take_over = bool(take_over)
+        self.auto_frame = bool(auto_frame)
+        self.device_frame = 0  # largest frame the device sends in this session (bytes)
+        self._sizing = (0, 0)  # (damaged, frames) when the frame size was last judged
         self.keep_config = bool(keep_config)
         self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
@@ -324,6 +336,8 @@ class HostLink:
         self.session = info.session_id
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
+        self.device_frame = min(info.max_frame, self._host_max)
+        self._sizing = (self._damaged(), self.decoder.stats.frames)
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -558,7 +572,7 @@ class HostLink:
                             continue
                         pc = parts.get(c)
                         if pc is None or pc.count != item["count"]:
-                            pc = parts[c] = _Pieces(item["count"])
+                            pc = parts[c] = _Pieces(item["count"], size=self.device_frame)
                         pc.data[k] = item["data"]
                         if len(pc.data) < pc.count:
                             continue
@@ -613,6 +627,8 @@ class HostLink:
                         end, failure = sent, self._early_end(fid, st.last_end, sent)
                     last_rx = self.clock()
                     continue
+                if self.auto_frame:
+                    self._size_frames()
                 due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
                                     received, parts, asked, now)
                 if due:
@@ -630,6 +646,40 @@ class HostLink:
                 with contextlib.suppress(LinkError):
                     self.abort()
 
+    def _size_frames(self) -> None:
+        """Ask for frames sized to the line once 32 chunks show how damaged it is.
+
+        With a share ``q`` of damaged chunks at the current frame length ``L`` (bytes on
+        the wire, ~8 L bits), the bit error rate is ``b = -ln(1 - q) / (8 L)``; a frame of
+        ``D`` data bytes and ``H`` overhead survives with ``(1 - b)^(8 (D + H))``, so the
+        intact data per byte sent is largest at ``D (D + H) = H / (8 b)``.
+        """
+        damaged, frames = self._damaged(), self.decoder.stats.frames
+        d, g = damaged - self._sizing[0], frames - self._sizing[1]
+        if d + g < 32:
+            return
+        self._sizing = (damaged, frames)
+        q, cur = d / (d + g), self.device_frame
+        ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
+        if q == 0:
+            new = min(ceiling, 2 * cur) if g >= 256 else cur
+        else:
+            ber = -math.log(max(1e-9, 1 - min(q, 0.999))) / (8 * cur)
+            h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
+            data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
+            new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
+        if abs(new - cur) * 4 <= cur:
+            return  # within 25 %: not worth a request
+        try:
+            self._request(MsgType.FRAME_SIZE, {"host_max_frame": new})
+        except DeviceError as exc:  # TOO_LARGE: keep the size that works
+            log.debug("device keeps %d-byte frames: %s", cur, exc)
+            return
+        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", d,
+                 d + g, new, cur)
+        self.device_frame = new
+        self._sizing = (self._damaged(), self.decoder.stats.frames)
+
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
                  asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
@@ -639,6 +689,9 @@ class HostLink:
             if c in received:
                 continue
             pc = parts.get(c)
+            if pc is not None and pc.size != self.device_frame and c < horizon:
+                del parts[c]  # cut at another frame size: ask for the whole column again
+                pc = None
             if c < horizon and pc is None:
                 keys: list[Any] = [c]
             elif pc is None:
@@ -670,7 +723,9 @@ class HostLink:
     def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
                 now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
-        room = self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
+        # Short requests on a line whose frames were made short (auto_frame).
+        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
+        room = limit - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
                                                                  // 3)]
