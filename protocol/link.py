@@ -300,7 +300,24 @@ class HostLink:
         self._early = []
         flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
             (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
-        fields_ = {"host_max_frame": self._host_max, "flags": int(flags),
+        # auto_frame: if INFO never gets through intact, ask for shorter frames.
+        sizes = [self._host_max] + ([s for s in (256, 96) if s < self._host_max]
+                                    if self.auto_frame else [])
+        for k, size in enumerate(sizes):
+            try:
+                reply, fields_ = self._hello_exchange(size, int(flags))
+                break
+            except LinkTimeout as exc:
+                if exc.diagnosis != DIAG_NOISY or k + 1 == len(sizes):
+                    raise
+                log.info("HELLO: INFO damaged on the way, asking for %d-byte frames",
+                         sizes[k + 1])
+        return self._open(reply, fields_, sizes[k])
+
+    def _hello_exchange(self, host_max: int, flags: int) -> tuple[dict[str, Any],
+                                                                 dict[str, Any]]:
+        """HELLO (and, with a key, its CHALLENGE round): (INFO fields, HELLO fields)."""
+        fields_ = {"host_max_frame": host_max, "flags": flags,
                    "host_nonce": self._nonce, "device_nonce": bytes(auth.NONCE_BYTES),
                    "mac": bytes(auth.MAC_BYTES)}
         for _ in range(2):
@@ -312,10 +329,14 @@ class HostLink:
                                 "FILE or set CDMA_LIDAR_KEY_FILE to the device's key file")
             fields_["device_nonce"] = bytes(reply["device_nonce"])
             fields_["mac"] = auth.hello_mac(self.key, fields_["device_nonce"], self._nonce,
-                                            int(flags), self._host_max)
+                                            flags, host_max)
         else:
             raise LinkError("device answered the authenticated HELLO with another CHALLENGE: "
                             "it does not accept this host's key")
+        return reply, fields_
+
+    def _open(self, reply: dict[str, Any], fields_: dict[str, Any], host_max: int) -> Info:
+        """Check INFO and make its session ours."""
         try:
             info = Info.from_fields(reply)
         except (TypeError, ValueError) as exc:
@@ -336,7 +357,7 @@ class HostLink:
         self.session = info.session_id
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
-        self.device_frame = min(info.max_frame, self._host_max)
+        self.device_frame = min(info.max_frame, host_max)
         self._sizing = (self._damaged(), self.decoder.stats.frames)
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
