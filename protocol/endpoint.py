@@ -1,25 +1,33 @@
-"""Device end of the link: framing, sessions, ACK/NAK, replay cache and the column ring.
+"""Device end of the link: sessions, signing, ACK/NAK, replay cache, fragments, column ring.
 
 The device application (:class:`DeviceApp`, e.g. ``cdma_lidar.virtual.board`` for the
 virtual device) only answers decoded requests and produces columns.
 :class:`DeviceEndpoint` does everything that touches the wire::
 
-    port bytes -> FrameDecoder -> request? --no--> ignored (counted)
-                                     | yes
+    port bytes -> FrameDecoder -> damaged chunk? --> LINE_ERROR at once
+                                     | a request
                  session ok? --no--> NAK WRONG_SESSION (HELLO always passes)
                                      | yes
-         same seq + same bytes as a  --yes--> replay the stored reply (act once)
+          signed session: MAC and counter ok? --no--> dropped (unsigned: NAK AUTH_REQUIRED)
+                                     | yes
+         same seq + same bytes as a  --yes--> replay the stored reply (re-signed; act once)
          cached request?             | no
          older seq than the last?    --yes--> dropped as stale duplicate
                                      | no
-                 act -> reply (ACK / NAK / data) with the request's seq, cache it
+        needs the application? --yes--> request worker (in arrival order)
+                                     | no (STATUS_GET, RESEND, SCAN_ABORT, FRAME_SIZE, ...)
+                 act -> reply (ACK / NAK / data; FRAGMENTs if long) with the request's seq
+
+HELLO opens a session owned by one host (:class:`DeviceCore` knows the owner across
+the connections of one device): another host gets NAK BUSY unless it takes over or
+the session expired, and the old owner then gets SESSION_LOST. With a key, HELLO is a
+challenge-response and every later frame is signed (:mod:`cdma_lidar.protocol.auth`).
 
 While a scan or calibration runs, a worker thread pulls columns from the app's
 generator, keeps each in a ring of recent columns for RESEND and sends it; the
-polling thread meanwhile answers requests (STATUS_GET, RESEND and SCAN_ABORT
-without waiting for the application) and sends a HEARTBEAT every ``heartbeat_s``
-seconds, so the host hears from the device even while a column takes long to
-compute. The application is only ever called by one thread at a time.
+polling thread meanwhile answers requests and sends a HEARTBEAT every
+``heartbeat_s`` seconds, so the host hears from the device even while a column takes
+long to compute. The application is only ever called by one thread at a time.
 
 Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
 ``in_waiting``, ``timeout``): a pty or an accepted TCP socket
