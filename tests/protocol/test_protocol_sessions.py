@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 import threading
@@ -16,7 +17,7 @@ from cdma_lidar.protocol.endpoint import DeviceCore
 from cdma_lidar.protocol.link import HostLink, SessionLost
 from cdma_lidar.protocol.messages import ErrorCode, SessionLostReason
 from cdma_lidar.protocol.pipes import pipe_pair
-from cdma_lidar.protocol.ports import open_port
+from cdma_lidar.protocol.ports import FdPort, open_port
 
 TIMEOUT = 0.2
 
@@ -155,7 +156,7 @@ def test_cli_busy_and_take_over_over_tcp() -> None:
 def test_lost_session_stops_a_cli_scan_with_exit_2_and_one_line(tmp_path) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "cdma_lidar.cli", "-v", "device", "--scene",
-         "flat-wall?instrument.wavelengths.count=4&instrument.columns=400", "--tcp",
+         "flat-wall?instrument.wavelengths.count=4&instrument.columns=1500", "--tcp",
          "127.0.0.1:0", "--insecure"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
     try:
@@ -191,3 +192,16 @@ def test_requests_keep_flowing_on_an_owned_device(device) -> None:
             b.hello()
     t.join(10)
     assert results == list(range(40))
+
+
+def test_a_peer_that_stops_reading_cannot_hold_the_device_up() -> None:
+    """FdPort.write gives up (OSError) instead of blocking the device's threads forever."""
+    a, b = socket.socketpair()
+    port = FdPort(a.detach(), write_timeout=0.2)
+    try:
+        with pytest.raises(OSError, match="does not read"):
+            for _ in range(10_000):  # b never reads: the socket buffers fill up
+                port.write(b"\x55" * 65536)
+    finally:
+        port.close()
+        b.close()
