@@ -10,12 +10,13 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp
+from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.endpoint import DeviceCore
+from cdma_lidar.protocol.framing import encode_frame
 from cdma_lidar.protocol.link import HostLink, SessionLost
-from cdma_lidar.protocol.messages import ErrorCode, SessionLostReason
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, SessionLostReason, encode_payload
 from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.ports import FdPort, open_port
 
@@ -205,3 +206,26 @@ def test_a_peer_that_stops_reading_cannot_hold_the_device_up() -> None:
     finally:
         port.close()
         b.close()
+
+
+def test_two_hosts_on_one_serial_line_are_told_apart_by_their_nonce() -> None:
+    """A second host's HELLO on the same line no longer aborts the first host's scan."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=4, columns=30, column_delay_s=0.005)
+    with RunningDevice(dev, app, heartbeat_s=0.05) as ep:
+        a = HostLink(host, timeout_s=TIMEOUT, retries=2)
+        a.hello()
+        scan = a.scan(frame=3)
+        first = [next(scan) for _ in range(2)]
+        other = hello_fields(0xB0B)  # another host on the same wire
+        host.write(encode_frame(MsgType.HELLO, encode_payload(MsgType.HELLO, other), 77, 0))
+        rest = list(scan)  # the first host's scan carries on, untouched
+        assert [c.column for c in first + rest] == list(range(30))
+        assert ep.stats.naks >= 1 and app.aborts == 0
+        a.status()
+        host.write(encode_frame(MsgType.HELLO, encode_payload(
+            MsgType.HELLO, hello_fields(0xB0B, flags=1)), 78, 0))  # now it takes over
+        with pytest.raises(SessionLost):
+            for _ in range(20):
+                a.status()
+                time.sleep(0.02)
