@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -14,9 +15,15 @@ from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.endpoint import DeviceCore
-from cdma_lidar.protocol.framing import encode_frame
+from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink, SessionLost
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, SessionLostReason, encode_payload
+from cdma_lidar.protocol.messages import (
+    ErrorCode,
+    MsgType,
+    SessionLostReason,
+    decode_payload,
+    encode_payload,
+)
 from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.ports import FdPort, open_port
 
@@ -229,3 +236,22 @@ def test_two_hosts_on_one_serial_line_are_told_apart_by_their_nonce() -> None:
             for _ in range(20):
                 a.status()
                 time.sleep(0.02)
+
+
+def test_a_version_1_host_gets_nak_version_in_version_2() -> None:
+    """What a v1 peer gets (docs/protocol.md): its HELLO is answered NAK VERSION, not acted on."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=4, columns=8)
+    with RunningDevice(dev, app, heartbeat_s=0.05) as ep:
+        v1_hello = struct.pack("<IH", 0x1234, 4096)  # version 1: host_nonce u32, max frame
+        host.write(encode_frame(MsgType.HELLO, v1_hello, 5, 0, version=1))
+        dec = FrameDecoder()
+        got: list = []
+        deadline = time.monotonic() + 5
+        while not got and time.monotonic() < deadline:
+            got = dec.feed(host.read(max(1, host.in_waiting)))
+        (nak,) = got
+        body = decode_payload(nak.msg_type, nak.payload)
+        assert nak.version == 2 and nak.msg_type == MsgType.NAK and nak.seq == 5
+        assert body["code"] == ErrorCode.VERSION
+        assert not ep.session_open and ep.stats.sessions == 0
