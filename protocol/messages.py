@@ -526,12 +526,12 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
     Unknown types, short or long payloads and out-of-range values are all errors.
     Returns a plain dict (lists for arrays) or, for COLUMN_RESULT, a ColumnResult.
     """
+    if msg_type == MsgType.COLUMN_RESULT:  # the hot path: no enum lookup
+        return decode_column(payload)
     try:
         spec = MESSAGES[MsgType(msg_type)]
     except ValueError:
         raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
-    if spec.type == MsgType.COLUMN_RESULT:
-        return decode_column(payload)
     try:
         c = spec.struct.parse(payload)
     except (cs.ConstructError, UnicodeDecodeError, ValueError) as exc:
