@@ -91,6 +91,16 @@ def _add_port(p: argparse.ArgumentParser) -> None:
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
     p.add_argument("--timeout", type=_positive_float, default=1.0, metavar="S",
                    help="seconds to wait for each answer (default 1)")
+    # Access to a shared device (protocol v2 sessions and keys, docs/protocol.md).
+    p.add_argument("--take-over", action="store_true",
+                   help="end another host's session on the device instead of failing busy")
+    p.add_argument("--key-file", metavar="FILE",
+                   help="the device's key (socket:// default: $CDMA_LIDAR_KEY_FILE)")
+
+
+def _access(args: argparse.Namespace) -> dict[str, Any]:
+    """connect() options from --timeout, --take-over and --key-file."""
+    return {"timeout_s": args.timeout, "take_over": args.take_over, "key_file": args.key_file}
 
 
 def _add_set(p: argparse.ArgumentParser) -> None:
@@ -165,7 +175,7 @@ def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
 def cmd_info(args: argparse.Namespace) -> int:
     """Print identity, limits, geometry and configuration."""
 
-    with connect(args.port, timeout_s=args.timeout) as dev:
+    with connect(args.port, **_access(args)) as dev:
         info, cfg = dev.info, dev.config
         wl = dev.wavelengths_m
         ang = dev.column_angles_deg
@@ -217,7 +227,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
                           interpolate=args.interpolate,
                           ghost_windows=tuple(ghosts), power_cap=args.power_cap,
                           offset_m=cal.offset_m if cal else 0.0)
-    with connect(args.port, timeout_s=args.timeout) as dev:
+    with connect(args.port, **_access(args)) as dev:
         _configure(dev, args.set)
         if cal is not None:
             cal.check_applies(dev.identity(), dev.calibration_config())
@@ -282,7 +292,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     check_writable(out, "--out")
     if not 1 <= args.shots <= 65535:
         raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
-    with connect(args.port, timeout_s=args.timeout) as dev:
+    with connect(args.port, **_access(args)) as dev:
         _configure(dev, args.set)
         cal = calibrate_device(dev, args.target_distance, shots=args.shots,
                                snr_threshold_db=args.snr_threshold,

@@ -11,19 +11,22 @@ configuration a calibration is tied to.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import LinkError, LinkTimeout
+from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.protocol.auth import load_key
 from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
+from cdma_lidar.protocol.messages import ErrorCode
 from cdma_lidar.protocol.ports import open_port
 
-__all__ = ["Device", "connect"]
+__all__ = ["KEY_FILE_ENV", "Device", "connect", "resolve_key"]
 
 log = logging.getLogger(__name__)
 
@@ -105,15 +108,40 @@ class Device:
         return replace(base, **changes)
 
 
-def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
+#: Environment variable naming the key file of a device reached over a network.
+KEY_FILE_ENV = "CDMA_LIDAR_KEY_FILE"
+
+
+def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
+    """The key for ``url``: from ``key_file``, else from $CDMA_LIDAR_KEY_FILE for network URLs.
+
+    The environment variable applies to ``socket://`` URLs only, so serial ports, ptys
+    and ``virtual://`` (which hold no key) keep working with it set. Raises ConfigError
+    naming the file when it cannot be read or is not private (mode 0600).
+    """
+    if key_file:
+        return load_key(key_file)
+    env = os.environ.get(KEY_FILE_ENV)
+    if env and url.lower().startswith("socket://"):
+        return load_key(env)
+    return None
+
+
+def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str | None = None,
+            take_over: bool = False, keep_config: bool = False) -> Device:
     """Open ``url``, say HELLO and read the configuration.
 
+    ``key_file`` (or $CDMA_LIDAR_KEY_FILE for ``socket://``) holds the device's key;
+    ``take_over`` ends another host's session instead of failing BUSY; ``keep_config``
+    keeps the previous session's configuration instead of the device's defaults.
     Raises LinkError with one line that says what to do when the port cannot be
-    opened or the device does not answer.
+    opened, the device does not answer, or another host owns it.
     """
 
+    key = resolve_key(url, key_file)
     port = open_port(url)
-    link = HostLink(port, timeout_s=timeout_s, retries=retries)
+    link = HostLink(port, timeout_s=timeout_s, retries=retries, key=key, take_over=take_over,
+                    keep_config=keep_config, auto_frame=True)  # frames sized to the line
     try:
         info = link.hello()
         config = link.get_config()
@@ -122,6 +150,11 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3) -> Device:
         diagnosis = getattr(exc, "diagnosis", "") or DIAG_SILENT
         hint = DIAG_HINTS.get(diagnosis, DIAG_HINTS[DIAG_SILENT])
         raise LinkError(f"no answer from {url} ({diagnosis}); {hint}") from exc
+    except DeviceError as exc:
+        link.close()
+        if exc.code == ErrorCode.BUSY and exc.field == "session":
+            raise LinkError(f"{url} is busy: {exc}; or use --take-over") from None
+        raise
     except BaseException:
         link.close()
         raise

@@ -13,12 +13,17 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
 * :mod:`cdma_lidar.protocol.messages` -- every message type, error codes, states, the
   payload codec and the schema CRC.
 * :mod:`cdma_lidar.protocol.views` -- typed INFO and STATUS.
+* :mod:`cdma_lidar.protocol.auth` -- key files, HELLO challenge-response (HMAC-SHA256),
+  per-session frame signing with replay protection.
+* :mod:`cdma_lidar.protocol.trust` -- what the host checks in everything a device sends
+  (INFO, CONFIG, every column) and escaping of device strings.
 * :mod:`cdma_lidar.protocol.ports` -- :func:`~cdma_lidar.protocol.ports.open_port`
   (pyserial URLs), :class:`~cdma_lidar.protocol.ports.FdPort` (pty, socket).
 * :mod:`cdma_lidar.protocol.pipes` -- in-process line with injectable faults
   (tests, ``virtual://``).
 * :mod:`cdma_lidar.protocol.endpoint` -- the device end
-  :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` in front of a
+  :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection, sharing a
+  :class:`~cdma_lidar.protocol.endpoint.DeviceCore`: the session owner) in front of a
   :class:`~cdma_lidar.protocol.endpoint.DeviceApp`.
 * :mod:`cdma_lidar.protocol.link` -- the host end :class:`~cdma_lidar.protocol.link.HostLink`
   and its timeout diagnoses.

@@ -249,7 +249,10 @@ class DecodedConfig:
 
 
 def decode_config(items: list[dict]) -> DecodedConfig:
-    """Python values of KLV items; raises FrameError (``field`` = the key) on a bad value."""
+    """Python values of KLV items; raises FrameError (``field`` = the key) on a bad value.
+
+    A key given twice is malformed (a device answers NAK MALFORMED naming it).
+    """
     out = DecodedConfig()
     for it in items:
         kid, data = int(it["key"]), bytes(it["value"])
@@ -257,6 +260,8 @@ def decode_config(items: list[dict]) -> DecodedConfig:
         if key is None:
             (out.ignored if kid & CONFIG_OPTIONAL else out.unknown).append(kid)
             continue
+        if key.name in out.values:
+            raise FrameError(f"{key.name}: key given twice", field=key.name)
         out.values[key.name] = key.decode(data)
     return out
 

@@ -6,13 +6,17 @@ One frame on the wire::
 
     header, little-endian (frozen in every protocol version):
     off size field
-      0   1  version          PROTOCOL_VERSION (1)
+      0   1  version          PROTOCOL_VERSION (2)
       1   1  incompat_flags   a receiver drops a frame with an unknown bit set
       2   1  compat_flags     unknown bits are ignored
       3   1  msg_type         see cdma_lidar.protocol.messages.MsgType
       4   2  seq              request: host counter; reply: its request's; stream: device counter
       6   2  payload_len      bytes of payload
       8   4  session_id       chosen at random by the device at boot; 0 from a host before HELLO
+
+    incompat bit 0 (INCOMPAT_SIGNED): a 24-byte signature (u64 counter, 16-byte
+    truncated HMAC-SHA256, see cdma_lidar.protocol.auth) sits between payload and CRC;
+    payload_len still counts the payload only.
 
     crc32 = CRC-32/ISO-HDLC (zlib.crc32: reflected poly 0xEDB88320, init and xorout
             0xFFFFFFFF) over header and payload, stored little-endian.
@@ -33,7 +37,7 @@ import logging
 import struct
 import zlib
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
@@ -48,31 +52,38 @@ __all__ = [
     "HEADER_FIELDS",
     "HEADER_SIZE",
     "INCOMPAT_KNOWN",
+    "INCOMPAT_SIGNED",
     "MIN_MAX_FRAME",
     "OVERHEAD",
     "PROTOCOL_VERSION",
+    "SIGNATURE_SIZE",
     "DecoderStats",
     "Frame",
     "FrameDecoder",
+    "Signer",
     "crc32",
     "decode_frame",
     "encode_frame",
+    "frame_size",
     "max_wire_len",
 ]
 
 log = logging.getLogger(__name__)
 
-PROTOCOL_VERSION = 1
+#: Version 2: sessions per HELLO, signed frames, fragmented columns (docs/protocol.md).
+PROTOCOL_VERSION = 2
 DELIMITER = b"\x00"
 #: Header fields in wire order: (name, struct format, description). Frozen in every version.
 HEADER_FIELDS = (
-    ("version", "B", "protocol version; this document: 1"),
-    ("incompat_flags", "B", "a receiver drops (device: NAKs) a frame with an unknown bit set"),
+    ("version", "B", "protocol version; this document: 2"),
+    ("incompat_flags", "B", "bit 0: signed (24-byte signature before the CRC); a receiver "
+     "drops (device: NAKs) a frame with an unknown bit set"),
     ("compat_flags", "B", "bit 0: retransmitted (a resent column); unknown bits are ignored"),
     ("msg_type", "B", "message type (table below)"),
     ("seq", "H", "request: host counter; reply: the request's seq; stream: device counter"),
     ("payload_len", "H", "payload bytes that follow the header"),
-    ("session_id", "I", "device session, random at boot, never 0; host sends 0 before HELLO"),
+    ("session_id", "I", "session, random per HELLO the device accepts, never 0; host sends 0 "
+     "before HELLO"),
 )
 HEADER = struct.Struct("<" + "".join(f for _, f, _ in HEADER_FIELDS))
 HEADER_SIZE = HEADER.size  # 12
@@ -80,12 +91,17 @@ CRC_SIZE = 4
 OVERHEAD = HEADER_SIZE + CRC_SIZE  # 16 bytes around every payload
 #: Largest decoded frame (header + payload + CRC, bytes) any device may announce.
 FRAME_LIMIT = 65535
-#: Smallest max frame size a device may announce (bytes): every control message fits.
-MIN_MAX_FRAME = 512
+#: Smallest max frame size (bytes): every request fits; longer replies and columns are sent
+#: as FRAGMENTs.
+MIN_MAX_FRAME = 256
 #: compat flag bit 0: this frame is a retransmission (a resent column); informational.
 COMPAT_RETRANSMIT = 0x01
-#: incompat flag bits this implementation understands (none in version 1).
-INCOMPAT_KNOWN = 0x00
+#: incompat flag bit 0: the frame carries a signature between payload and CRC.
+INCOMPAT_SIGNED = 0x01
+#: incompat flag bits this implementation understands.
+INCOMPAT_KNOWN = INCOMPAT_SIGNED
+#: Bytes of a frame signature: u64 counter (little-endian) + 16 bytes of HMAC-SHA256.
+SIGNATURE_SIZE = 24
 
 _CRC = struct.Struct("<I")
 
@@ -110,20 +126,42 @@ class Frame(NamedTuple):
     compat: int = 0
     incompat: int = 0
     version: int = PROTOCOL_VERSION
+    #: signature (counter + MAC, SIGNATURE_SIZE bytes) of a signed frame, else b"".
+    sig: bytes = b""
+
+    def signed_bytes(self) -> bytes:
+        """What a signature covers: the header as sent and the payload."""
+        return HEADER.pack(self.version, self.incompat, self.compat, self.msg_type, self.seq,
+                           len(self.payload), self.session) + self.payload
+
+
+class Signer(Protocol):
+    """Signs outgoing frames: ``sign(header + payload)`` returns SIGNATURE_SIZE bytes."""
+
+    def sign(self, data: bytes) -> bytes: ...
+
+
+def frame_size(payload_len: int, signed: bool = False) -> int:
+    """Decoded bytes of a frame with ``payload_len`` payload bytes (header, CRC, signature)."""
+    return OVERHEAD + payload_len + (SIGNATURE_SIZE if signed else 0)
 
 
 def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
                  compat: int = 0, incompat: int = 0, version: int = PROTOCOL_VERSION,
-                 max_frame: int = FRAME_LIMIT) -> bytes:
+                 max_frame: int = FRAME_LIMIT, signer: Signer | None = None) -> bytes:
     """Build the wire bytes of one frame, both 0x00 delimiters included.
 
-    Raises FieldError naming the header field that cannot hold its value, or
-    ``payload`` when the frame would exceed ``max_frame`` bytes (decoded size).
+    With a ``signer`` the frame is signed (incompat bit INCOMPAT_SIGNED, signature
+    between payload and CRC). Raises FieldError naming the header field that cannot
+    hold its value, or ``payload`` when the frame would exceed ``max_frame`` bytes
+    (decoded size).
     """
-    size = OVERHEAD + len(payload)
+    if signer is not None:
+        incompat |= INCOMPAT_SIGNED
+    size = frame_size(len(payload), signer is not None)
     if size > max_frame:
-        raise out_of_range("payload", f"at most {max_frame - OVERHEAD} bytes (max frame "
-                           f"{max_frame})", f"{len(payload)} bytes", FieldError)
+        raise out_of_range("payload", f"at most {max_frame - size + len(payload)} bytes (max "
+                           f"frame {max_frame})", f"{len(payload)} bytes", FieldError)
     try:
         head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
     except struct.error as exc:
@@ -137,6 +175,8 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
             check_int(f"frame.{name}", value, 0, hi, cls=FieldError)
         raise packing
     body = head + payload
+    if signer is not None:
+        body += signer.sign(body)
     return b"".join((DELIMITER, cobs.encode(body + _CRC.pack(zlib.crc32(body))), DELIMITER))
 
 
@@ -153,10 +193,13 @@ def decode_frame(body: bytes) -> Frame:
     if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) & 0xFFFFFFFF != crc:
         raise FrameError("crc: CRC-32 mismatch")
     version, incompat, compat, msg_type, seq, plen, session = HEADER.unpack_from(body)
-    if plen != n - OVERHEAD:
-        raise FrameError(f"length: header says {plen} payload bytes, frame has {n - OVERHEAD}")
-    frame = Frame(msg_type, seq, session, body[HEADER_SIZE: n - CRC_SIZE], compat,
-                  incompat, version)
+    sig_len = SIGNATURE_SIZE if incompat & INCOMPAT_SIGNED else 0
+    if plen != n - OVERHEAD - sig_len:
+        raise FrameError(f"length: header says {plen} payload bytes, frame has "
+                         f"{n - OVERHEAD - sig_len}")
+    end = HEADER_SIZE + plen
+    frame = Frame(msg_type, seq, session, body[HEADER_SIZE:end], compat, incompat, version,
+                  body[end:end + sig_len])
     if version != PROTOCOL_VERSION:
         raise _Rejected("version", frame)
     if incompat & ~INCOMPAT_KNOWN:
@@ -220,6 +263,7 @@ class FrameDecoder:
         self.rejected: list[Frame] = []
         self._buf = bytearray()
         self._skipping = False  # inside an oversize chunk: drop until the next delimiter
+        self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         self.max_frame = max_frame
 
     @property
@@ -238,27 +282,41 @@ class FrameDecoder:
         return len(self._buf)
 
     def feed(self, data: bytes) -> list[Frame]:
-        """Add received bytes; return the frames they complete, in order. Never raises."""
+        """Add received bytes; return the frames they complete, in order. Never raises.
+
+        Linear in the bytes fed whatever the read sizes: each byte is searched for a
+        delimiter once and copied into the receive buffer at most once (``copied``
+        counts those copies, so a test can check it without a clock).
+        """
         st = self.stats
         st.bytes += len(data)
-        if self._buf:
-            data = bytes(self._buf) + data
-            self._buf.clear()
-        pieces = bytes(data).split(DELIMITER)
+        data = bytes(data)
         out: list[Frame] = []
-        for chunk in pieces[:-1]:  # every piece but the last ended at a delimiter
-            if self._skipping:
+        start = 0
+        while True:
+            end = data.find(DELIMITER, start)
+            if end < 0:
+                break
+            if self._skipping:  # the delimiter ends an oversize chunk
                 self._skipping = False
-            elif chunk:
+            elif self._buf:
+                self._buf += data[start:end]
+                self.copied += end - start
+                chunk = bytes(self._buf)
+                self._buf.clear()
                 self._chunk(chunk, out)
-        tail = pieces[-1]
-        if self._skipping:
-            pass  # still inside an oversize chunk: drop
-        elif len(tail) > self._max_chunk:
+            elif end > start:
+                self._chunk(data[start:end], out)
+            start = end + 1
+        if self._skipping or start >= len(data):
+            return out  # inside an oversize chunk (dropped), or nothing left over
+        if len(self._buf) + len(data) - start > self._max_chunk:
             st.oversize += 1
             self._skipping = True
+            self._buf.clear()
         else:
-            self._buf += tail
+            self._buf += data[start:] if start else data
+            self.copied += len(data) - start
         return out
 
     def _chunk(self, chunk: bytes, out: list[Frame]) -> None:

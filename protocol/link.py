@@ -36,11 +36,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import secrets
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,17 +51,21 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import (
     DeviceError,
     FieldError,
+    FrameError,
     LinkError,
     LinkTimeout,
     ScanAborted,
     out_of_range,
 )
-from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol import auth
+from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
+    MIN_MAX_FRAME,
     OVERHEAD,
     PROTOCOL_VERSION,
+    SIGNATURE_SIZE,
     Frame,
     FrameDecoder,
     encode_frame,
@@ -68,36 +73,46 @@ from cdma_lidar.protocol.framing import (
 from cdma_lidar.protocol.messages import (
     REPLY_TO,
     SCHEMA_CRC,
+    Auth,
     CaptureKind,
     ErrorCode,
+    HelloFlags,
     MsgKind,
     MsgType,
     ScanEndReason,
+    SessionLostReason,
     State,
     decode_payload,
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config, check_info, escape
 from cdma_lidar.protocol.views import Info, Status
 
 __all__ = [
     "DIAG_GARBAGE",
     "DIAG_HINTS",
+    "DIAG_NOISY",
     "DIAG_NO_ANSWER",
     "DIAG_SILENT",
     "DIAG_VERSION",
     "DIAG_WRONG_SESSION",
     "HostLink",
     "LinkStats",
+    "SessionLost",
 ]
 
 log = logging.getLogger(__name__)
+
+#: Smallest frame the device may be asked to send (HELLO / FRAME_SIZE host_max_frame).
+MIN_HOST_FRAME = 64
 
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
 DIAG_WRONG_SESSION = "frames but wrong session"
 DIAG_NO_ANSWER = "frames but no answer"
 DIAG_VERSION = "frames of another protocol version"
+DIAG_NOISY = "damaged frames"
 
 #: What to do about each diagnosis (one line, for error messages).
 DIAG_HINTS = {
@@ -106,7 +121,16 @@ DIAG_HINTS = {
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
+    DIAG_NOISY: "the line damages frames: a smaller max frame or a better cable",
 }
+
+
+class SessionLost(LinkError):
+    """The device ended this host's session (another host took over, or it expired)."""
+
+    def __init__(self, message: str, reason: int = 0) -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 @dataclass
@@ -123,6 +147,18 @@ class LinkStats:
     duplicates: int = 0
     resend_requests: int = 0
     resent_columns: int = 0
+    unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
+    quick_retries: int = 0  #: requests sent again at once because the line showed damage
+
+
+@dataclass
+class _Pieces:
+    """FRAGMENTs of one message received so far."""
+
+    count: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    frames: list[Frame] = field(default_factory=list)
+    size: int = 0  # the device's frame size when they were cut
 
 
 @dataclass
@@ -133,6 +169,8 @@ class _Window:
     frames: int
     wrong_session: int
     other_version: int
+    damaged: int
+    line_errors: int
 
 
 class HostLink:
@@ -150,7 +188,21 @@ class HostLink:
             (at a bit error rate of 1e-4 a 1.6 KB frame gets through 27 % of the time).
         poll_s: longest blocking read (s), greater than 0 so that waiting never spins;
             default ``min(0.05, timeout_s / 4)``.
-        max_frame: largest frame the host accepts (bytes), announced in HELLO.
+        max_frame: largest frame the device may send (bytes, 64..65535), announced in
+            HELLO: longer replies and columns come in FRAGMENTs, so a noisy line can be
+            given short frames. Requests stay within min(INFO.max_frame, max(max_frame,
+            256)).
+        key: shared secret of a device that requires one (32 bytes,
+            :func:`cdma_lidar.protocol.auth.load_key`); then HELLO answers the device's
+            challenge, the device must prove it holds the key too, and every frame of the
+            session is signed. None: the device must not ask for a key.
+        take_over: HELLO ends another host's live session instead of failing BUSY.
+        keep_config: the new session keeps the previous session's configuration and
+            power instead of starting from the device's defaults.
+        auto_frame: size the device's frames to the line during scans (FRAME_SIZE):
+            from the share of damaged frames the host estimates the bit error rate and
+            asks for the frame length that carries the most intact bytes, between 64
+            bytes and ``max_frame``. A clean line never changes anything.
         clock: monotonic clock (s), replaceable in tests.
 
     One HostLink per port, used from one thread at a time.
@@ -158,7 +210,8 @@ class HostLink:
 
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, poll_s: float | None = None,
-                 max_frame: int = FRAME_LIMIT,
+                 max_frame: int = FRAME_LIMIT, key: bytes | None = None,
+                 take_over: bool = False, keep_config: bool = False, auto_frame: bool = False,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -171,15 +224,31 @@ class HostLink:
             raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
                                "would make every wait spin)", poll_s)
         self.clock = clock
-        self.decoder = FrameDecoder(max_frame)
+        self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.stats = LinkStats()
         self.info: Info | None = None
         self.session: int | None = None
         self.last_status: Status | None = None
         self.max_frame = 4096  # until INFO says more; every request fits
         self._host_max = max_frame
-        self._nonce = secrets.randbits(32)
-        self._seq = self._nonce & 0xFFFF
+        if key is not None and len(key) != auth.KEY_BYTES:
+            raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
+        self.key = key
+        self.take_over = bool(take_over)
+        self.auto_frame = bool(auto_frame)
+        self.device_frame = 0  # largest frame the device sends in this session (bytes)
+        self._sizing = (0, 0)  # (damaged, frames) when the frame size was last judged
+        self.keep_config = bool(keep_config)
+        self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
+        self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
+        self._seq = int.from_bytes(self._nonce[:2], "little")
+        self._tx: auth.FrameSigner | None = None  # signs our requests (keyed session)
+        self._rx: auth.FrameVerifier | None = None  # checks the device's frames
+        self._reply_frame: Frame | None = None
+        self._reply_parts: list[Frame] = []  # the FRAGMENTs the pending reply came in
+        self._partial: dict[tuple[int, int], _Pieces] = {}  # replies arriving in fragments
+        self._line_errors = 0  # LINE_ERRORs of our session heard so far
+        self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
@@ -200,40 +269,147 @@ class HostLink:
         self.close()
 
     def close(self) -> None:
-        """Close the port."""
+        """End the session (SESSION_END, one short try: another host may then say HELLO
+        without take-over) and close the port."""
+        if self.session is not None:
+            timeout, retries = self.timeout_s, self.retries
+            self.timeout_s, self.retries = min(timeout, 0.2), 0
+            try:
+                self._transact(MsgType.SESSION_END, {}, self._new_seq())
+            except Exception:  # LinkError, SessionLost: the device forgets us when idle
+                log.debug("SESSION_END got no answer; the session expires when idle")
+            finally:
+                self.timeout_s, self.retries = timeout, retries
+                self.session = None
         with contextlib.suppress(Exception):
             self.port.close()
 
     # ---- public requests --------------------------------------------------------------
     def hello(self) -> Info:
-        """Open a session: learn the device's identity, limits, geometry and session id."""
-        seq = self._new_seq()
-        self._hello_seq = seq
+        """Open a session: learn the device's identity, limits, geometry and session id.
+
+        With a key, answers the device's CHALLENGE and checks that INFO is signed with
+        the session key (so the device holds the key too). Raises DeviceError (code
+        BUSY, field ``session``) when another host owns the device and ``take_over``
+        is off; DeviceLied when INFO contradicts itself.
+        """
+        self.session = None
+        self._tx = self._rx = None
+        self.info = None
+        self.config = None
+        self._early = []
+        flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
+            (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
+        # auto_frame: if INFO never gets through intact, ask for shorter frames.
+        sizes = [self._host_max] + ([s for s in (256, 96) if s < self._host_max]
+                                    if self.auto_frame else [])
+        for k, size in enumerate(sizes):
+            try:
+                reply, fields_ = self._hello_exchange(size, int(flags))
+                break
+            except LinkTimeout as exc:
+                if exc.diagnosis != DIAG_NOISY or k + 1 == len(sizes):
+                    raise
+                log.info("HELLO: INFO damaged on the way, asking for %d-byte frames",
+                         sizes[k + 1])
+        return self._open(reply, fields_, sizes[k])
+
+    def _hello_exchange(self, host_max: int, flags: int) -> tuple[dict[str, Any],
+                                                                 dict[str, Any]]:
+        """HELLO (and, with a key, its CHALLENGE round): (INFO fields, HELLO fields)."""
+        fields_ = {"host_max_frame": host_max, "flags": flags,
+                   "host_nonce": self._nonce, "device_nonce": bytes(auth.NONCE_BYTES),
+                   "mac": bytes(auth.MAC_BYTES)}
+        for _ in range(2):
+            reply = self._hello_once(fields_)
+            if self._reply_frame is not None and self._reply_frame.msg_type == MsgType.INFO:
+                break
+            if self.key is None:
+                raise LinkError(f"device on {self._port_name} requires a key: pass --key-file "
+                                "FILE or set CDMA_LIDAR_KEY_FILE to the device's key file")
+            fields_["device_nonce"] = bytes(reply["device_nonce"])
+            fields_["mac"] = auth.hello_mac(self.key, fields_["device_nonce"], self._nonce,
+                                            flags, host_max)
+        else:
+            raise LinkError("device answered the authenticated HELLO with another CHALLENGE: "
+                            "it does not accept this host's key")
+        return reply, fields_
+
+    def _open(self, reply: dict[str, Any], fields_: dict[str, Any], host_max: int) -> Info:
+        """Check INFO and make its session ours."""
         try:
-            reply = self._transact(MsgType.HELLO, {"host_nonce": self._nonce,
-                                                   "host_max_frame": self._host_max}, seq)
-        finally:
-            self._hello_seq = None
-        info = Info.from_fields(reply)
+            info = Info.from_fields(reply)
+        except (TypeError, ValueError) as exc:
+            raise DeviceLied(f"device sent an invalid INFO: {exc}") from None
         if info.protocol_version != PROTOCOL_VERSION:
             raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
                             f"{PROTOCOL_VERSION}; update the host or the firmware")
+        if self.key is not None:
+            self._authenticate(info, bytes(fields_["device_nonce"]))
+        elif info.auth != Auth.NONE:
+            raise DeviceLied("device announced signed frames (INFO.auth = "
+                             f"{info.auth}) without asking this host for a key", "auth")
+        info = check_info(info)
         if info.schema_crc != SCHEMA_CRC:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
         self.info = info
         self.session = info.session_id
-        self.max_frame = info.max_frame
-        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d)",
+        # Requests: what the device accepts, within what this host asked for the line.
+        self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
+        self.device_frame = min(info.max_frame, host_max)
+        self._sizing = (self._damaged(), self.decoder.stats.frames)
+        early, self._early = self._early, []
+        for frame in early:  # e.g. SESSION_LOST right behind INFO
+            self._dispatch(frame)
+        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
                  self.session, info.serial, info.firmware_version, info.channels,
-                 info.max_frame)
+                 info.max_frame, ", signed" if self._tx else "")
         return info
+
+    def _hello_once(self, fields_: dict[str, Any]) -> dict[str, Any]:
+        seq = self._new_seq()
+        self._hello_seq = seq
+        try:
+            return self._transact(MsgType.HELLO, fields_, seq)
+        finally:
+            self._hello_seq = None
+
+    def _authenticate(self, info: Info, device_nonce: bytes) -> None:
+        """Check the device's proof and INFO's signature; set up the session's signing."""
+        frame = self._reply_frame
+        assert frame is not None and self.key is not None
+        if info.auth != Auth.HMAC_SHA256 or not auth.equal(
+                info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
+                                                 info.session_id)):
+            raise LinkError(f"device on {self._port_name} did not prove it holds the key "
+                            f"(INFO.auth = {info.auth}): it is not the device the key file "
+                            "belongs to, or it holds no key (then drop --key-file)")
+        to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
+                                            info.session_id)
+        rx = auth.FrameVerifier(to_host)
+        if frame.session != info.session_id or not rx.check(frame):
+            raise LinkError(f"device on {self._port_name} sent an INFO not signed with the "
+                            "session key")
+        self._tx, self._rx = auth.FrameSigner(to_dev), rx
 
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""
         keys = [config_key(n).id for n in names]
         reply = self._request(MsgType.CONFIG_GET, {"keys": keys})
-        return decode_config(reply["items"]).values
+        try:
+            values = decode_config(reply["items"]).values
+        except Exception as exc:  # FrameError from the strict decoder
+            raise DeviceLied(f"device sent an invalid CONFIG: {exc}") from None
+        if not names:
+            assert self.info is not None
+            check_config(values, self.info)
+            self.config = dict(values)
+        elif self.config is not None:
+            merged = {**self.config, **values}
+            check_config(merged, self.info)  # type: ignore[arg-type]
+            self.config = merged
+        return values
 
     def set_config(self, **values: Any) -> None:
         """Set configuration keys (python values, see ``CONFIG_KEYS``); all or none.
@@ -243,6 +419,7 @@ class HostLink:
         """
         if not values:
             return
+        self.config = None  # read again (checked) before the next stream
         self._request(MsgType.CONFIG_SET, {"items": encode_config(values,
                                                                   allow_read_only=False)})
 
@@ -264,7 +441,7 @@ class HostLink:
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self.max_frame - OVERHEAD - 8) // 2  # values per request
+        room = (self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -274,6 +451,27 @@ class HostLink:
                     "channel_start": channel_start + r0, "column_start": column_start + c0,
                     "channels": block.shape[0], "columns": block.shape[1],
                     "power": block.ravel()})
+
+    def get_power(self) -> NDArray[np.uint16]:
+        """The device's (K, C) power matrix (1/65535 of the per-pixel maximum), read back.
+
+        C is INFO.column_count; read in rectangles of whole rows that fit a reply (a
+        longer reply would come in FRAGMENTs anyway).
+        """
+        info = self._need_info()
+        k, c = info.channels, info.column_count
+        out = np.zeros((k, c), dtype=np.uint16)
+        rows = max(1, min(k, 16384 // max(c, 1)))
+        for r0 in range(0, k, rows):
+            n = min(rows, k - r0)
+            d = self._request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
+                                                  "channels": n, "columns": c})
+            if (d["channel_start"], d["column_start"], d["channels"], d["columns"]) != \
+                    (r0, 0, n, c):
+                raise DeviceLied(f"device answered POWER_GET of rows {r0}..{r0 + n - 1} with "
+                                 f"rows {d['channel_start']}.. x {d['channels']}", "power")
+            out[r0:r0 + n] = np.asarray(d["power"], dtype=np.uint16).reshape(n, c)
+        return out
 
     def status(self) -> Status:
         """Device status."""
@@ -317,14 +515,18 @@ class HostLink:
         """Scan ``frames`` frames of ``columns`` columns from ``first_column``.
 
         Yields ColumnResults in column order, each exactly once, repairing gaps. By
-        default a frame is the device's full ``column_count`` (see INFO). Leaving the
-        loop early aborts the scan on the device.
+        default a frame is a full scan: ``columns_per_frame`` columns (configuration).
+        Leaving the loop early aborts the scan on the device.
         """
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
         info = self._need_info()
-        if columns is None:
-            columns = info.column_count - first_column
+        if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
+            if self.config is None:
+                self.get_config()
+            assert self.config is not None
+            columns = min(int(self.config["columns_per_frame"]), info.column_count) - \
+                first_column
         for k in range(frames):
             fid = self._frame_id(frame if k == 0 else None)
             yield from self._stream_columns(
@@ -350,10 +552,17 @@ class HostLink:
                         count: int) -> Iterator[ColumnResult]:
         """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
 
+        Columns arrive whole (COLUMN_RESULT) or in FRAGMENTs; a missing fragment is asked
+        for alone (RESEND ``fragments``), a column of which nothing arrived as a whole.
         If the device ends the stream early (SCAN_END aborted or error, or idle short of
         the end), every column it did send is still delivered before the error is raised.
         """
         end = first + count
+        if self.config is None:
+            self.get_config()
+        assert self.info is not None and self.config is not None
+        checker = ColumnChecker(self.info, self.config, fid, first, end,
+                                req == MsgType.CALIBRATE)
         self._stream.clear()
         self._streaming = True
         finished = False
@@ -361,21 +570,54 @@ class HostLink:
         try:
             self._request(req, fields_)
             received: dict[int, ColumnResult] = {}
-            asked: dict[int, tuple[float, int]] = {}
+            parts: dict[int, _Pieces] = {}  # columns that are arriving in fragments
+            asked: dict[Any, tuple[float, int]] = {}  # column or (column, index) -> (t, tries)
             nxt = first
-            horizon = first  # columns below this have been sent by the device
+            horizon = first  # every fragment of the columns below this has been sent
+            edge: tuple[int, int] = (first, 0)  # fragments below edge[1] of column edge[0] too
             last_rx = self.clock()
             while nxt < end:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
                     mtype, item = self._stream.popleft()
+                    if mtype == MsgType.FRAGMENT:
+                        if item["frame"] != fid:
+                            continue
+                        got = True
+                        c, k = item["column"], item["index"]
+                        horizon = max(horizon, c)
+                        if (c, k + 1) > edge:
+                            edge = (c, k + 1)
+                        if not nxt <= c < end or c in received:
+                            self.stats.duplicates += 1
+                            continue
+                        pc = parts.get(c)
+                        if pc is None or pc.count != item["count"]:
+                            pc = parts[c] = _Pieces(item["count"], size=self.device_frame)
+                        pc.data[k] = item["data"]
+                        if len(pc.data) < pc.count:
+                            continue
+                        del parts[c]
+                        try:
+                            item = decode_column(b"".join(pc.data[i] for i in range(pc.count)))
+                        except FrameError:
+                            self.stats.malformed += 1
+                            continue
+                        mtype = MsgType.COLUMN_RESULT
                     if mtype == MsgType.COLUMN_RESULT:
                         c = item
                         got = got or c.frame == fid
                         if c.frame != fid or not nxt <= c.column < end or c.column in received:
                             self.stats.duplicates += 1
                             continue
+                        try:
+                            checker.check(c)
+                        except DeviceLied as exc:  # deliver the columns before it, then fail
+                            if failure is None:
+                                end, failure = c.column, exc
+                            continue
                         received[c.column] = c
+                        parts.pop(c.column, None)
                         horizon = max(horizon, c.column + 1)
                     elif mtype == MsgType.HEARTBEAT:
                         if item.frame == fid:
@@ -406,10 +648,12 @@ class HostLink:
                         end, failure = sent, self._early_end(fid, st.last_end, sent)
                     last_rx = self.clock()
                     continue
-                due = [c for c in range(nxt, horizon) if c not in received and
-                       (c not in asked or now - asked[c][0] >= self.timeout_s)]
+                if self.auto_frame:
+                    self._size_frames()
+                due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
+                                    received, parts, asked, now)
                 if due:
-                    self._resend(fid, due[:255], asked, now)
+                    self._resend(fid, due, asked, now)
                     last_rx = self.clock()
                     continue
                 self._pump()
@@ -419,9 +663,68 @@ class HostLink:
         finally:
             self._streaming = False
             self._stream.clear()
-            if not finished:
+            if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
+
+    def _size_frames(self) -> None:
+        """Ask for frames sized to the line once 32 chunks show how damaged it is.
+
+        With a share ``q`` of damaged chunks at the current frame length ``L`` (bytes on
+        the wire, ~8 L bits), the bit error rate is ``b = -ln(1 - q) / (8 L)``; a frame of
+        ``D`` data bytes and ``H`` overhead survives with ``(1 - b)^(8 (D + H))``, so the
+        intact data per byte sent is largest at ``D (D + H) = H / (8 b)``.
+        """
+        damaged, frames = self._damaged(), self.decoder.stats.frames
+        d, g = damaged - self._sizing[0], frames - self._sizing[1]
+        if d + g < 32:
+            return
+        self._sizing = (damaged, frames)
+        q, cur = d / (d + g), self.device_frame
+        ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
+        if q == 0:
+            new = min(ceiling, 2 * cur) if g >= 256 else cur
+        else:
+            ber = -math.log(max(1e-9, 1 - min(q, 0.999))) / (8 * cur)
+            h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
+            data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
+            new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
+        if abs(new - cur) * 4 <= cur:
+            return  # within 25 %: not worth a request
+        try:
+            self._request(MsgType.FRAME_SIZE, {"host_max_frame": new})
+        except DeviceError as exc:  # TOO_LARGE: keep the size that works
+            log.debug("device keeps %d-byte frames: %s", cur, exc)
+            return
+        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", d,
+                 d + g, new, cur)
+        self.device_frame = new
+        self._sizing = (self._damaged(), self.decoder.stats.frames)
+
+    def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
+                 received: dict[int, ColumnResult], parts: dict[int, _Pieces],
+                 asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
+        """Columns (int) and fragments ((column, index)) sent, not received, due to ask."""
+        due: list[Any] = []
+        for c in range(nxt, stop):
+            if c in received:
+                continue
+            pc = parts.get(c)
+            if pc is not None and pc.size != self.device_frame and c < horizon:
+                del parts[c]  # cut at another frame size: ask for the whole column again
+                pc = None
+            if c < horizon and pc is None:
+                keys: list[Any] = [c]
+            elif pc is None:
+                keys = []  # the column in progress, nothing of it arrived yet
+            else:
+                sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
+                    else 0
+                keys = [(c, k) for k in range(sent) if k not in pc.data]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.timeout_s]
+            if len(due) >= 255:
+                break
+        return due
 
     @staticmethod
     def _early_end(fid: int, reason: int, sent: int) -> Exception:
@@ -438,24 +741,41 @@ class HostLink:
                             "it lost the scan (restarted or another host took over)")
         return st
 
-    def _resend(self, fid: int, cols: list[int], asked: dict[int, tuple[float, int]],
+    def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
                 now: float) -> None:
-        for c in cols:
-            tries = asked.get(c, (0.0, 0))[1]
+        """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
+        # Short requests on a line whose frames were made short (auto_frame).
+        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
+        room = limit - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
+        if self._damaged():  # a line that damages frames: short requests get through
+            room = min(room, 48)
+        cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
+        pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
+                                                                 // 3)]
+        for key in cols + pieces:
+            tries = asked.get(key, (0.0, 0))[1]
             if tries >= self.column_retries:
                 st = self.decoder.stats
                 damaged = st.crc + st.cobs + st.length + st.short
-                diag = DIAG_GARBAGE if damaged else DIAG_NO_ANSWER
-                hint = (f"{damaged} damaged frames so far: the line corrupts long frames"
-                        if damaged else DIAG_HINTS[DIAG_NO_ANSWER])
+                what = f"column {key}" if isinstance(key, int) else \
+                    f"fragment {key[1]} of column {key[0]}"
+                if damaged:
+                    raise LinkTimeout(
+                        f"{what} of frame {fid} never arrived intact after {tries} resend "
+                        f"requests on {self._port_name}: a noisy line, {damaged} damaged "
+                        f"frames of {damaged + st.frames}; use a smaller --max-frame or a "
+                        "better cable", DIAG_NOISY)
                 raise LinkTimeout(
-                    f"column {c} of frame {fid} never arrived intact after {tries} resend "
-                    f"requests on {self._port_name}: {diag}; {hint}", diag)
-            asked[c] = (now, tries + 1)
+                    f"{what} of frame {fid} never arrived after {tries} resend requests on "
+                    f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
+                    DIAG_NO_ANSWER)
+            asked[key] = (now, tries + 1)
         self.stats.resend_requests += 1
-        self.stats.resent_columns += len(cols)
-        log.debug("frame %d: asking again for %d columns from %d", fid, len(cols), cols[0])
-        self._request(MsgType.RESEND, {"frame": fid, "columns": cols})
+        self.stats.resent_columns += len(cols) + len(pieces)
+        log.debug("frame %d: asking again for %d columns and %d fragments", fid, len(cols),
+                  len(pieces))
+        self._request(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
+            {"column": c, "index": k} for c, k in pieces]})
 
     # ---- request machinery -------------------------------------------------------------------
     def _need_info(self) -> Info:
@@ -475,26 +795,39 @@ class HostLink:
 
     def _transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int) -> dict[str, Any]:
         payload = encode_payload(msg_type, fields_)
-        wire = encode_frame(msg_type, payload, seq, self.session or 0,
-                            max_frame=self.max_frame)
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
-                      self.stats.wrong_session, self._other_version())
+                      self.stats.wrong_session, self._other_version(), self._damaged(),
+                      self._line_errors)
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
+        self._reply_frame = None
+        self._reply_parts = []
+        self._partial.clear()
         self._reply_version = None
+        quick = 2 * (self.retries + 1)  # extra tries sent at once when the line shows damage
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
                     self.stats.retries += 1
                     log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
-                self._write(wire)
+                self._send_request(msg_type, payload, seq)
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
+                    damage = (self._damaged(), self._line_errors)
                     self._pump()
+                    if quick and self._reply is None and \
+                            (self._damaged(), self._line_errors) != damage:
+                        # A damaged chunk on either side (ours, or the device's LINE_ERROR):
+                        # the request or its reply was probably hit, so try again now.
+                        quick -= 1
+                        self.stats.quick_retries += 1
+                        self._send_request(msg_type, payload, seq)
+                        deadline = self.clock() + self.timeout_s
                 if self._reply is not None:
+                    self._reply_frame = self._reply
                     return self._accept_reply(msg_type, self._reply)
                 if self._reply_version is not None:
                     f = self._reply_version
@@ -506,20 +839,39 @@ class HostLink:
         finally:
             self._pending = None
         diag = self._diagnose(win)
+        what = diag
+        if diag in (DIAG_NOISY, DIAG_GARBAGE):
+            damaged = self._damaged() - win.damaged
+            what += (f" ({damaged} damaged frames of "
+                     f"{damaged + self.decoder.stats.frames - win.frames} received, "
+                     f"{self._line_errors - win.line_errors} reported by the device)")
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
-            f"{self.retries + 1} tries of {self.timeout_s:g} s: {diag}; {DIAG_HINTS[diag]}", diag)
+            f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
+
+    def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
+        """Write one try of a request, signed afresh (new counter, same seq and payload)."""
+        self._write(encode_frame(msg_type, payload, seq, self.session or 0,
+                                 max_frame=self.max_frame, signer=self._tx))
+
+    def _damaged(self) -> int:
+        """Chunks our decoder rejected as damaged (COBS, CRC, length, short)."""
+        st = self.decoder.stats
+        return st.crc + st.cobs + st.length + st.short
 
     def _diagnose(self, win: _Window) -> str:
         """What the line showed since ``win``: one of the DIAG_* strings."""
         st = self.decoder.stats
         if st.bytes == win.bytes:
             return DIAG_SILENT
-        if st.frames == win.frames:
+        reported = self._line_errors - win.line_errors  # the device saw our frames damaged
+        if st.frames == win.frames and not reported:
             return DIAG_VERSION if self._other_version() > win.other_version else DIAG_GARBAGE
         wrong = self.stats.wrong_session - win.wrong_session
-        if wrong and st.frames - win.frames == wrong:
+        if wrong and st.frames - win.frames == wrong and not reported:
             return DIAG_WRONG_SESSION
+        if reported or self._damaged() > win.damaged:
+            return DIAG_NOISY
         return DIAG_NO_ANSWER
 
     def _other_version(self) -> int:
@@ -540,15 +892,68 @@ class HostLink:
                 cname = code.name
             except ValueError:
                 cname = f"error {body['code']}"
-            where = f" (field {body['field']})" if body["field"] else ""
-            detail = f": {body['detail']}" if body["detail"] else ""
+            fld = escape(body["field"])
+            where = f" (field {fld})" if fld else ""
+            detail = f": {escape(body['detail'])}" if body["detail"] else ""
+            if body["code"] == ErrorCode.WRONG_SESSION:
+                detail += " (the device restarted, or another host took it over)"
             raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                              code=body["code"], field=body["field"] or None)
+                              code=body["code"], field=fld or None)
         expected = REPLY_TO[msg_type]
+        if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
+            return body
         if frame.msg_type != expected or (expected == MsgType.ACK and
                                           body["request_type"] != msg_type):
             raise LinkError(f"device answered {msg_type.name} with {frame.msg_type:#04x}")
         return body
+
+    def _session_lost(self, frame: Frame) -> None:
+        """The device ended our session: forget it and raise SessionLost (one line)."""
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+            assert isinstance(body, dict)
+            reason, detail = int(body["reason"]), escape(body["detail"])
+        except Exception:  # FrameError: still lost, say so without the device's words
+            reason, detail = 0, "no reason given"
+        self.session = None
+        self.info = None
+        self._tx = self._rx = None
+        what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+                SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
+        raise SessionLost(f"session lost on {self._port_name}: {detail or what}", reason)
+
+    def _fragment_body(self, frame: Frame) -> dict[str, Any] | None:
+        try:
+            body = decode_payload(frame.msg_type, frame.payload)
+        except Exception:  # FrameError: a malformed fragment is dropped
+            self.stats.malformed += 1
+            return None
+        assert isinstance(body, dict)
+        if body["index"] >= body["count"] or not body["data"]:
+            self.stats.malformed += 1
+            return None
+        return body
+
+    def _collect(self, frame: Frame, body: dict[str, Any]) -> None:
+        """A fragment of a reply: once all are in, handle the whole reply."""
+        key = (body["msg_type"], body["seq"])
+        if key[1] != self._pending:
+            self.stats.stale_replies += 1
+            return
+        pc = self._partial.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._partial[key] = _Pieces(body["count"])
+        if body["index"] not in pc.data:
+            pc.frames.append(frame)
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
+            return
+        del self._partial[key]
+        whole = Frame(key[0], key[1], frame.session,
+                      b"".join(pc.data[i] for i in range(pc.count)), 0, 0, frame.version)
+        if self._reply is None and key[1] == self._pending:
+            self._reply_parts = pc.frames
+        self._reply_reply(MsgKind.REPLY, whole)
 
     def _write(self, wire: bytes) -> None:
         try:
@@ -579,14 +984,48 @@ class HostLink:
             self.stats.ignored += 1
             return
         hello_reply = (kind is MsgKind.REPLY and frame.seq == self._hello_seq and
-                       frame.msg_type in (MsgType.INFO, MsgType.NAK))
+                       frame.msg_type in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE))
+        if frame.msg_type == MsgType.FRAGMENT and self._hello_seq is not None and \
+                self._reply is None:
+            body = self._fragment_body(frame)
+            if body is not None and body["seq"] == self._hello_seq and \
+                    body["msg_type"] in (MsgType.INFO, MsgType.NAK):
+                self._collect(frame, body)  # INFO of a session we do not know yet
+                return
+        if not hello_reply and self._hello_seq is not None and self._reply is not None and \
+                frame.session == self._reply.session:
+            self._early.append(frame)  # of the session INFO is opening: read once it is ours
+            return
+        if frame.msg_type == MsgType.LINE_ERROR:
+            self._line_errors += 1  # only a hint to retry now, from any session
+            return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and
-                    frame.seq == self._pending and self._reply is None and
+                    frame.seq == self._pending and self._reply is None and self._rx is None and
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
                 self._reply = frame  # the device says it restarted: fail fast
             return
+        if self._rx is not None and not hello_reply and not self._rx.check(frame):
+            self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
+            log.debug("dropped an unauthenticated %#04x frame", frame.msg_type)
+            return
+        if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
+            self._session_lost(frame)
+        if frame.msg_type == MsgType.FRAGMENT:
+            body = self._fragment_body(frame)
+            if body is None:
+                return
+            if body["msg_type"] == MsgType.COLUMN_RESULT:
+                if self._streaming:
+                    self._stream.append((MsgType.FRAGMENT, body))
+            elif kind_of(body["msg_type"]) is MsgKind.REPLY:
+                self._collect(frame, body)
+            return
+        self._reply_reply(kind, frame)
+
+    def _reply_reply(self, kind: MsgKind, frame: Frame) -> None:
+        """A reply or stream frame of our session, authenticated."""
         if kind is MsgKind.REPLY:
             # ACK and NAK echo the request type: a reply to another request that happens
             # to carry the same seq (a previous link, a wrapped counter) is not ours.
@@ -603,6 +1042,7 @@ class HostLink:
             self.stats.malformed += 1
             return
         if frame.msg_type == MsgType.HEARTBEAT:
+            assert isinstance(body, dict)
             body = Status(**body)
             self.last_status = body
         if self._streaming:

@@ -33,19 +33,23 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, text, u
+from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
 
 __all__ = [
+    "DEVICE_RULES",
     "ERROR_DOCS",
     "MESSAGES",
     "REPLY_TO",
     "SCHEMA_CRC",
+    "Auth",
     "CaptureKind",
     "ErrorCode",
+    "HelloFlags",
     "MessageSpec",
     "MsgKind",
     "MsgType",
     "ScanEndReason",
+    "SessionLostReason",
     "State",
     "decode_payload",
     "encode_payload",
@@ -83,15 +87,23 @@ class MsgType(enum.IntEnum):
     CALIBRATE = 0x08
     CAPTURE = 0x09
     STATUS_GET = 0x0A
+    POWER_GET = 0x0B
+    SESSION_END = 0x0C
+    FRAME_SIZE = 0x0D
     ACK = 0x80
     NAK = 0x81
     INFO = 0x82
     CONFIG = 0x83
     STATUS = 0x84
     CAPTURE_DATA = 0x85
+    CHALLENGE = 0x86
+    POWER = 0x87
     COLUMN_RESULT = 0xC0
     HEARTBEAT = 0xC1
     SCAN_END = 0xC2
+    SESSION_LOST = 0xC3
+    FRAGMENT = 0xC4
+    LINE_ERROR = 0xC5
 
 
 class ErrorCode(enum.IntEnum):
@@ -102,13 +114,15 @@ class ErrorCode(enum.IntEnum):
     UNKNOWN_KEY = 3  #: CONFIG key not known and not flagged optional
     OUT_OF_RANGE = 4  #: a value is outside what this device supports (field names it)
     READ_ONLY = 5  #: CONFIG_SET of a read-only key
-    BUSY = 6  #: not allowed while a scan or calibration runs (abort it first)
+    BUSY = 6  #: a scan runs (abort it first), or HELLO: another host owns the session
     NOT_AVAILABLE = 7  #: RESEND of a column no longer kept, or CAPTURE data not available
     TOO_LARGE = 8  #: the result would not fit in the max frame size
     VERSION = 9  #: protocol version not supported (the NAK carries the device's version)
     UNSUPPORTED_FLAGS = 10  #: an incompat flag bit this device does not know
     WRONG_SESSION = 11  #: request carries another session id: send HELLO again
     INTERNAL = 12  #: the device failed while acting on the request
+    AUTH_REQUIRED = 13  #: unsigned request to a device that requires signed frames
+    AUTH_FAILED = 14  #: HELLO's MAC does not match: the host holds another key
 
 
 ERROR_DOCS = {
@@ -117,13 +131,17 @@ ERROR_DOCS = {
     ErrorCode.UNKNOWN_KEY: "CONFIG key unknown and not flagged optional (field: `key N`)",
     ErrorCode.OUT_OF_RANGE: "value outside what this device supports (field names it)",
     ErrorCode.READ_ONLY: "CONFIG_SET of a read-only key",
-    ErrorCode.BUSY: "not allowed while a scan or calibration runs: abort it first",
+    ErrorCode.BUSY: "not allowed while a scan or calibration runs: abort it first; for HELLO "
+    "(field `session`): another host owns a live session, the detail gives its age and idle "
+    "time (seconds)",
     ErrorCode.NOT_AVAILABLE: "RESEND of a column no longer kept, or capture not available",
     ErrorCode.TOO_LARGE: "the result would exceed the max frame size",
     ErrorCode.VERSION: "protocol version not supported; header carries the device's version",
     ErrorCode.UNSUPPORTED_FLAGS: "an incompat flag bit this device does not know",
     ErrorCode.WRONG_SESSION: "request carries another session id: send HELLO again",
     ErrorCode.INTERNAL: "the device failed while acting on the request",
+    ErrorCode.AUTH_REQUIRED: "the device requires signed frames: HELLO with its key first",
+    ErrorCode.AUTH_FAILED: "HELLO's MAC is wrong (the host's key differs from the device's)",
 }
 
 
@@ -141,6 +159,27 @@ class ScanEndReason(enum.IntEnum):
     COMPLETE = 0
     ABORTED = 1
     ERROR = 2
+
+
+class HelloFlags(enum.IntFlag):
+    """HELLO.flags bits."""
+
+    TAKE_OVER = 0x01  #: end another host's live session and take the device
+    KEEP_CONFIG = 0x02  #: keep configuration and power of the previous session
+
+
+class SessionLostReason(enum.IntEnum):
+    """SESSION_LOST.reason."""
+
+    TAKEN_OVER = 1  #: another host said HELLO with TAKE_OVER
+    EXPIRED = 2  #: the session was idle longer than INFO.session_idle_ms
+
+
+class Auth(enum.IntEnum):
+    """INFO.auth: how the session is protected."""
+
+    NONE = 0  #: no key (serial port, pty, loopback with --insecure)
+    HMAC_SHA256 = 1  #: challenge-response HELLO, every frame signed
 
 
 class CaptureKind(enum.IntEnum):
@@ -190,10 +229,16 @@ _STATUS_FIELDS = (
 )
 
 _MESSAGE_LIST = [
-    _msg(MsgType.HELLO, "Open a session: the device answers INFO, aborts any scan and "
-         "clears its replay cache (except this HELLO's own entry).",
-         u("host_nonce", 32, "random per host link; tells a new host from a retransmission"),
-         u("host_max_frame", 16, "largest frame the host accepts", "bytes", 512, 65535),
+    _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
+         "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
+         u("host_max_frame", 16, "largest frame the device may send in this session; longer "
+           "messages come as FRAGMENTs", "bytes", 64, 65535),
+         u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
+           "session's configuration and power", lo=0, hi=3),
+         nbytes("host_nonce", 16, "random per host link: tells a new host from a "
+                "retransmission or the owner's own new HELLO; the host's challenge"),
+         nbytes("device_nonce", 16, "the nonce of the device's last CHALLENGE; zeros if none"),
+         nbytes("mac", 32, "HMAC-SHA256 proof of the key (see Access control); zeros if none"),
          reply=MsgType.INFO),
     _msg(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
          blob("keys", cs.GreedyRange(cs.Int8ul), "u8 x n (rest)", "key ids to read"),
@@ -222,11 +267,16 @@ _MESSAGE_LIST = [
          reply=MsgType.ACK),
     _msg(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
          reply=MsgType.ACK),
-    _msg(MsgType.RESEND, "Send listed columns of a frame again from the ring buffer. ACK "
-         "when each is resent or still to come; NAK NOT_AVAILABLE names the first lost one.",
+    _msg(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
+         "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
+         "NOT_AVAILABLE names the first lost one.",
          u("frame", 32, "frame id"),
-         array("columns", 8, "u", 16, "column indexes", lo=0, hi=65535, max_items=255,
-               allowed="1..255 items"),
+         array("columns", 8, "u", 16, "whole columns to send again", lo=0, hi=65535,
+               max_items=255, allowed="0..255 items"),
+         blob("fragments", cs.PrefixedArray(cs.Int8ul, cs.Struct("column" / cs.Int16ul,
+                                                                 "index" / cs.Int8ul)),
+              "u8 n + n x (u16 column, u8 index)", "single fragments to send again",
+              allowed="0..255 items; columns + fragments >= 1"),
          reply=MsgType.ACK),
     _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
          "the calibration flag (column = shot index), then SCAN_END.",
@@ -242,6 +292,19 @@ _MESSAGE_LIST = [
          u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
          reply=MsgType.CAPTURE_DATA),
     _msg(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
+    _msg(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
+         u("channel_start", 16, "first channel of the rectangle"),
+         u("column_start", 16, "first column of the rectangle"),
+         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
+         u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
+         reply=MsgType.POWER),
+    _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
+         "without SCAN_END, another host's HELLO then needs no take-over.",
+         reply=MsgType.ACK),
+    _msg(MsgType.FRAME_SIZE, "Change the largest frame the device sends from the ACK on (a "
+         "host sizing frames to its line); also while a scan runs.",
+         u("host_max_frame", 16, "new largest frame the device may send", "bytes", 64, 65535),
+         reply=MsgType.ACK),
     _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
          u("request_type", 8, "type of the request answered")),
     _msg(MsgType.NAK, "Request refused (header seq = request seq).",
@@ -250,12 +313,23 @@ _MESSAGE_LIST = [
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         u("protocol_version", 8, "protocol version spoken (1)"),
-         u("session_id", 32, "session id chosen at boot, also in every frame header",
+         u("protocol_version", 8, "protocol version spoken (2)"),
+         u("session_id", 32, "session id chosen for this HELLO, also in every frame header",
            lo=1, hi=2**32 - 1),
+         u("session_idle_ms", 32, "a session idle this long may be taken by another host "
+           "without take-over", "ms", 1),
+         u("auth", 8, "0 no key; 1 HMAC-SHA256 challenge-response, every frame signed",
+           lo=0, hi=1),
+         nbytes("device_mac", 32, "HMAC-SHA256 proof that the device holds the key; zeros "
+                "when auth is 0"),
+         u("pixel_power_max_uw", 32, "laser power of one pixel at power 65535; 0: no power "
+           "control", "µW"),
+         u("column_power_cap_uw", 32, "eye-safety cap on the sum over a column's channels; "
+           "0: none", "µW"),
          u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
-         u("max_frame", 16, "largest frame either side sends in this session "
-           "(header + payload + CRC)", "bytes", 512, 65535),
+         u("max_frame", 16, "largest frame the device accepts (header + payload + "
+           "signature + CRC); the host's requests stay within min(max_frame, "
+           "max(host_max_frame, 256))", "bytes", 256, 65535),
          u("ring_columns", 16, "recent columns kept for RESEND", "columns"),
          u("heartbeat_ms", 16, "HEARTBEAT interval while scanning", "ms", 1, 65535),
          u("max_degree", 8, "largest LFSR degree m of the code family", "", 2, 32),
@@ -279,7 +353,7 @@ _MESSAGE_LIST = [
          text("firmware_version", "firmware version string"),
          text("serial", "device serial number"),
          array("wavelengths_pm", 16, "u", 32, "nominal wavelength of each channel (count K)",
-               "pm", 1, max_items=65535, allowed="K = 1..max_channels items"),
+               "pm", 1, max_items=65535, allowed="K = 1..max_channels items", min_items=1),
          ),
     _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
          blob("items", cs.GreedyRange(cs.Struct("key" / cs.Int8ul,
@@ -295,6 +369,17 @@ _MESSAGE_LIST = [
          u("total", 32, "elements in the whole capture", "elements"),
          u("offset", 32, "index of the first element in this chunk", "elements"),
          blob("data", cs.GreedyBytes, "bytes (rest)", "elements, signed little-endian")),
+    _msg(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
+         "a key: say HELLO again with this nonce and the MAC.",
+         nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
+    _msg(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
+         u("channel_start", 16, "first channel of the rectangle"),
+         u("column_start", 16, "first column of the rectangle"),
+         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
+         u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
+         blob("power", cs.Array(cs.this.channels * cs.this.columns, cs.Int16ul),
+              "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
+              "0..65535")),
     MessageSpec(MsgType.COLUMN_RESULT, COLUMN_STRUCT,
                 "Receiver outputs of one column, all channels (layout below)."),
     _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
@@ -305,12 +390,75 @@ _MESSAGE_LIST = [
          u("columns", 16, "columns (or shots) produced"),
          u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
          u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
+    _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
+         "COLUMN_RESULT, or a reply such as INFO): `count` pieces, in order, of "
+         "ceil(len / (max_frame - 27 - signature)) bytes each but the last.",
+         u("msg_type", 8, "type of the whole message"),
+         u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
+         u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
+         u("column", 16, "COLUMN_RESULT: column index; else 0"),
+         u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
+         u("count", 8, "pieces of the whole message", lo=2, hi=254),
+         blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
+              allowed="1..max_frame-27 bytes")),
+    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
+         "a host waiting for a reply sends its request again at once.",
+         u("rx_errors", 32, "rejected chunks since boot")),
+    _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
+         "answer its requests NAK WRONG_SESSION.",
+         u("reason", 8, "1 another host took over, 2 expired after session_idle_ms", lo=1,
+           hi=2),
+         text("detail", "human-readable reason")),
 ]
 
 #: Every message type, by type.
 MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
 #: Reply type of each request.
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
+
+
+#: What a device checks beyond each field's wire range, and the NAK code a violation
+#: gets (a value outside the wire range of the tables is always MALFORMED). The spec's
+#: table "Wire ranges and NAK codes" is generated from this and the declarations.
+DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
+    (MsgType.HELLO, "flags"): ("another host owns a live session and bit 0 (take over) is "
+                               "clear", ErrorCode.BUSY),
+    (MsgType.HELLO, "mac"): ("with a key: not HMAC(key, ...) of this HELLO and the last "
+                             "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
+                             ErrorCode.AUTH_FAILED),
+    (MsgType.CONFIG_GET, "keys"): ("a key id this device does not know", ErrorCode.UNKNOWN_KEY),
+    (MsgType.CONFIG_SET, "items"): ("a key unknown and not optional: UNKNOWN_KEY; read-only: "
+                                    "READ_ONLY; a key twice or a value outside the key's wire "
+                                    "range: MALFORMED; outside the key's device range "
+                                    "(CONFIG keys table, range column): OUT_OF_RANGE; while "
+                                    "a scan runs: BUSY", ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "channel_start"): ("channel_start + channels > K",
+                                           ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "column_start"): ("column_start + columns > INFO.column_count",
+                                          ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_SET, "power"): ("the sum over a column's channels above the cap "
+                                   "(INFO.column_power_cap_uw; field `power`)",
+                                   ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_GET, "channels"): ("channel_start + channels > K", ErrorCode.OUT_OF_RANGE),
+    (MsgType.POWER_GET, "columns"): ("column_start + columns > INFO.column_count",
+                                     ErrorCode.OUT_OF_RANGE),
+    (MsgType.SCAN_START, "first_column"): ("first_column >= INFO.column_count",
+                                           ErrorCode.OUT_OF_RANGE),
+    (MsgType.SCAN_START, "columns"): ("first_column + columns > INFO.column_count, or columns "
+                                      "> INFO.max_columns; while a scan runs: BUSY",
+                                      ErrorCode.OUT_OF_RANGE),
+    (MsgType.RESEND, "columns"): ("neither kept in the ring nor still to come in the running "
+                                  "scan (field `columns[i]` / `fragments[i]`); both lists "
+                                  "empty: MALFORMED", ErrorCode.NOT_AVAILABLE),
+    (MsgType.CALIBRATE, "shots"): ("while a scan runs: BUSY", ErrorCode.BUSY),
+    (MsgType.FRAME_SIZE, "host_max_frame"): ("a column of the running scan would need more "
+                                             "than MAX_PIECES fragments", ErrorCode.TOO_LARGE),
+    (MsgType.CAPTURE, "column"): ("column >= INFO.column_count", ErrorCode.OUT_OF_RANGE),
+    (MsgType.CAPTURE, "channel"): ("kind 1 and channel >= K", ErrorCode.OUT_OF_RANGE),
+    (MsgType.CAPTURE, "offset"): ("offset > total: OUT_OF_RANGE; offset > 0 with no capture of "
+                                  "this (kind, column, channel) held: NOT_AVAILABLE",
+                                  ErrorCode.OUT_OF_RANGE),
+}
 
 
 # ---- encode / decode ------------------------------------------------------------------
@@ -320,13 +468,17 @@ def _check_value(path: str, meta: FieldMeta, value: Any) -> None:
     elif meta.kind == "text":
         if not isinstance(value, str) or len(value.encode("utf-8")) > 255:
             raise out_of_range(path, "a string of at most 255 UTF-8 bytes", value, FieldError)
+    elif meta.kind == "bytes":
+        if not isinstance(value, bytes | bytearray) or len(value) != meta.max_items:
+            raise out_of_range(path, f"{meta.max_items} bytes", value, FieldError)
     elif meta.kind == "array":
         try:
             items = list(value)
         except TypeError:
             raise out_of_range(path, "a sequence of integers", value, FieldError) from None
-        if len(items) > (meta.max_items or 0):
-            raise out_of_range(path, f"at most {meta.max_items} items", len(items), FieldError)
+        if not meta.min_items <= len(items) <= (meta.max_items or 0):
+            raise out_of_range(path, f"{meta.min_items} to {meta.max_items} items",
+                               len(items), FieldError)
         for k, v in enumerate(items):
             check_int(f"{path}[{k}]", v, meta.lo, meta.hi, cls=FieldError)
 
@@ -352,12 +504,12 @@ def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None 
     if extra:
         raise out_of_range(f"{name}.{sorted(extra)[0]}", "a declared field of " + name,
                            "unknown field", FieldError)
-    if spec.type == MsgType.POWER_SET:
+    if spec.type in (MsgType.POWER_SET, MsgType.POWER):
         n = values["channels"] * values["columns"]
         power = np.asarray(values["power"]).ravel()
         if power.size != n or power.dtype.kind not in "iu" or \
                 (n and (power.min() < 0 or power.max() > 65535)):
-            raise out_of_range("POWER_SET.power", f"{n} integers from 0 to 65535",
+            raise out_of_range(f"{name}.power", f"{n} integers from 0 to 65535",
                                f"{power.size} values of {power.dtype}", FieldError)
         values["power"] = power.tolist()
     try:
@@ -374,12 +526,12 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
     Unknown types, short or long payloads and out-of-range values are all errors.
     Returns a plain dict (lists for arrays) or, for COLUMN_RESULT, a ColumnResult.
     """
+    if msg_type == MsgType.COLUMN_RESULT:  # the hot path: no enum lookup
+        return decode_column(payload)
     try:
         spec = MESSAGES[MsgType(msg_type)]
     except ValueError:
         raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
-    if spec.type == MsgType.COLUMN_RESULT:
-        return decode_column(payload)
     try:
         c = spec.struct.parse(payload)
     except (cs.ConstructError, UnicodeDecodeError, ValueError) as exc:

@@ -81,9 +81,11 @@ class FdPort:
     closes it in :meth:`close` (for a socket, pass ``sock.detach()``).
     """
 
-    def __init__(self, fd: int, timeout: float | None = 0.05) -> None:
+    def __init__(self, fd: int, timeout: float | None = 0.05,
+                 write_timeout: float = 5.0) -> None:
         self.fd = fd
         self.timeout = timeout
+        self.write_timeout = write_timeout
         os.set_blocking(fd, False)
         self._closed = False
 
@@ -115,13 +117,20 @@ class FdPort:
         return bytes(out)
 
     def write(self, data: bytes) -> int:
-        """Write all of ``data`` (waits while the pty or socket buffer is full)."""
+        """Write all of ``data``, waiting while the pty or socket buffer is full.
+
+        Raises OSError when no byte could be written for ``write_timeout`` seconds: a
+        peer that stopped reading must not hold the device (and every other host) up.
+        """
         view = memoryview(data)
         while view:
             try:
                 k = os.write(self.fd, view)
             except BlockingIOError:
-                select.select([], [self.fd], [], 1.0)
+                _, w, _ = select.select([], [self.fd], [], self.write_timeout)
+                if not w:
+                    raise OSError(f"fd {self.fd}: no byte written for {self.write_timeout:g} "
+                                  "s (the other side does not read)") from None
                 continue
             view = view[k:]
         return len(data)

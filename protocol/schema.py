@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import construct as cs
 
-__all__ = ["FieldMeta", "array", "blob", "i", "text", "u"]
+__all__ = ["FieldMeta", "array", "blob", "i", "nbytes", "text", "u"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +28,7 @@ class FieldMeta:
     kind: str = "int"  # int | text | array | blob
     max_items: int | None = None
     allowed: str = ""  # range text for the spec; derived from lo/hi when empty
+    min_items: int = 0
 
     @property
     def range_text(self) -> str:
@@ -93,7 +94,7 @@ def text(name: str, doc: str) -> cs.Renamed:
 
 def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit: str = "",
           lo: int | None = None, hi: int | None = None, max_items: int | None = None,
-          allowed: str = "") -> cs.Renamed:
+          allowed: str = "", min_items: int = 0) -> cs.Renamed:
     """Count-prefixed array of integers: ``u<count_bits>`` count, then the elements."""
     csub, cctype, _, cmax = _INT[("u", count_bits)]
     esub, ectype, nlo, nhi = _INT[(elem, elem_bits)]
@@ -101,7 +102,7 @@ def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit:
                   FieldMeta(f"{cctype} n + n x {ectype}", unit, nlo if lo is None else lo,
                             nhi if hi is None else hi, doc, kind="array",
                             max_items=cmax if max_items is None else max_items,
-                            allowed=allowed))
+                            allowed=allowed, min_items=min_items))
 
 
 def blob(name: str, sub: cs.Construct, ctype: str, doc: str, unit: str = "",
@@ -109,3 +110,10 @@ def blob(name: str, sub: cs.Construct, ctype: str, doc: str, unit: str = "",
     """Any other construct (validated by construct itself)."""
     return _named(name, sub, FieldMeta(ctype, unit, None, None, doc, kind="blob",
                                        allowed=allowed))
+
+
+def nbytes(name: str, size: int, doc: str) -> cs.Renamed:
+    """Fixed-size opaque bytes (nonces, MACs): ``size`` bytes, any values."""
+    return _named(name, cs.Bytes(size), FieldMeta(f"u8 x {size}", "", None, None, doc,
+                                                  kind="bytes", max_items=size,
+                                                  allowed=f"{size} bytes"))

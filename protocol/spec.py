@@ -31,9 +31,12 @@ from cdma_lidar.protocol.columns import (
     NO_PEAK,
     RECORD_STRUCT,
     ColumnResult,
+    column_payload_size,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL
+from cdma_lidar.protocol.endpoint import FRAGMENT_HEADER, MAX_PIECES
 from cdma_lidar.protocol.messages import (
+    DEVICE_RULES,
     ERROR_DOCS,
     MESSAGES,
     SCHEMA_CRC,
@@ -78,11 +81,20 @@ def constants_table() -> str:
         ("`CRC_SIZE`", framing.CRC_SIZE, "bytes, CRC-32 little-endian after the payload"),
         ("`FRAME_LIMIT`", framing.FRAME_LIMIT,
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
-        ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME, "smallest max frame size (bytes)"),
+        ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
+         "smallest max frame a device announces; every request fits (bytes)"),
+        ("`MIN_HOST_FRAME`", _hello_min(), "smallest HELLO.host_max_frame (bytes)"),
+        ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
+         "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
+        ("`FRAGMENT_OVERHEAD`", framing.OVERHEAD + FRAGMENT_HEADER,
+         "bytes of a FRAGMENT frame besides its data (+ SIGNATURE_SIZE when signed)"),
+        ("`MAX_PIECES`", MAX_PIECES, "most FRAGMENTs of one message"),
         ("`COMPAT_RETRANSMIT`", f"0x{framing.COMPAT_RETRANSMIT:02x}",
          "compat flag: frame is a retransmission"),
+        ("`INCOMPAT_SIGNED`", f"0x{framing.INCOMPAT_SIGNED:02x}",
+         "incompat flag: the frame is signed (signature before the CRC)"),
         ("`INCOMPAT_KNOWN`", f"0x{framing.INCOMPAT_KNOWN:02x}",
-         "incompat flags understood by version 1 (none)"),
+         f"incompat flags understood by version {framing.PROTOCOL_VERSION}"),
         ("`CONFIG_OPTIONAL`", f"0x{CONFIG_OPTIONAL:02x}", "key id bit: ignorable if unknown"),
         ("`FLAG_CALIBRATION`", f"0x{FLAG_CALIBRATION:02x}", "COLUMN_RESULT flags bit"),
         ("`NO_PEAK`", f"0x{NO_PEAK:08X}",
@@ -90,6 +102,31 @@ def constants_table() -> str:
         ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
     ]
     return _table(("name", "value", "meaning"), rows)
+
+
+def _hello_min() -> int:
+    (sc,) = [sc for sc in MESSAGES[MsgType.HELLO].fields if sc.name == "host_max_frame"]
+    return int(sc.meta.lo)
+
+
+def ranges_table() -> str:
+    """Every request field and CONFIG key: wire range (else MALFORMED), device rule, code."""
+    rows = []
+    for t, m in MESSAGES.items():
+        if m.kind is not MsgKind.REQUEST:
+            continue
+        for sc in m.fields:
+            rule, code = DEVICE_RULES.get((t, sc.name), ("", None))
+            wire = sc.meta.range_text or "any"
+            rows.append((t.name, f"`{sc.name}`", wire, rule or "none",
+                         f"`{code.name}`" if code is not None else ""))
+    for k in CONFIG_KEYS:
+        wire = f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses"
+        rows.append((f"CONFIG_SET key {k.id}", f"`{k.name}`", wire,
+                     "read-only" if k.read_only else k.allowed,
+                     "`READ_ONLY`" if k.read_only else "`OUT_OF_RANGE`"))
+    return _table(("message", "field", "wire range (outside: `MALFORMED`)",
+                   "device check", "NAK code"), rows)
 
 
 def messages_table() -> str:
@@ -161,11 +198,21 @@ def column_table() -> str:
             f"them, channel 0 first):\n\n{rec}")
 
 
+def column_size() -> str:
+    """The payload size sentence of COLUMN_RESULT (derived from the record declaration)."""
+    head = COLUMN_HEADER.sizeof()
+    return (f"`{head} + K ({RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} (P-1))` bytes "
+            f"(40 channels, 1 peak: {column_payload_size(40, 1)} bytes; 40 channels, 8 "
+            f"peaks: {column_payload_size(40, 8)} bytes)")
+
+
 def config_table() -> str:
     """CONFIG keys."""
-    rows = [(k.id, f"`{k.name}`", k.ctype, k.unit, k.allowed, "yes" if k.read_only else "",
-             k.doc) for k in CONFIG_KEYS]
-    return _table(("key", "name", "value type", "unit", "range", "read-only", "meaning"), rows)
+    rows = [(k.id, f"`{k.name}`", k.ctype, k.unit,
+             f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses", k.allowed,
+             "yes" if k.read_only else "", k.doc) for k in CONFIG_KEYS]
+    return _table(("key", "name", "value type", "unit", "wire range (else MALFORMED)",
+                   "device range (else OUT_OF_RANGE)", "read-only", "meaning"), rows)
 
 
 def errors_table() -> str:
@@ -212,8 +259,10 @@ SECTIONS: dict[str, Callable[[], str]] = {
     "messages": messages_table,
     "fields": message_fields,
     "column": column_table,
+    "column_size": column_size,
     "config": config_table,
     "errors": errors_table,
+    "ranges": ranges_table,
     "examples": examples,
 }
 

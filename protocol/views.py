@@ -41,7 +41,7 @@ class Info:
     firmware_version: str
     serial: str
     wavelengths_pm: tuple[int, ...]
-    protocol_version: int = 1
+    protocol_version: int = 2
     session_id: int = 1
     schema_crc: int = 0
     max_frame: int = 16384
@@ -65,6 +65,11 @@ class Info:
     column_start_udeg: int = 0
     column_step_udeg: int = 100_000
     column_count: int = 1
+    session_idle_ms: int = 10_000
+    auth: int = 0
+    device_mac: bytes = bytes(32)
+    pixel_power_max_uw: int = 0
+    column_power_cap_uw: int = 0
 
     @classmethod
     def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],

@@ -132,9 +132,12 @@ class VirtualFirmware(DeviceApp):
             "columns_per_frame": c, "mode": "ranging",
         }
         self._check(self._config)
-        self.power_code = np.clip(np.round(self.instrument.default_power_w
-                                           / self.spec.max_pixel_power_w * 65535), 0, 65535
-                                  ).astype(np.uint16)
+        # Power in exact integers: codes (1/65535 of the pixel maximum) and whole µW.
+        self._pixel_uw = round(self.spec.max_pixel_power_w * 1e6)
+        self._cap_uw = round(self.spec.total_power_cap_w * 1e6)
+        self.power_code = _within_cap(np.clip(np.round(
+            self.instrument.default_power_w / self.spec.max_pixel_power_w * 65535), 0, 65535
+        ).astype(np.int64), self._pixel_uw, self._cap_uw).astype(np.uint16)
         self._receiver: tuple[tuple, dict[str, FastReceiver]] | None = None
         self._last_frame = 0
         #: the device clock as an exact count of chips since power-up (integer: no rounding
@@ -161,7 +164,8 @@ class VirtualFirmware(DeviceApp):
             adc_bits=spec.adc_bits, spc_min=LIMITS["spc_min"], spc_max=LIMITS["spc_max"],
             max_averages=LIMITS["max_averages"], max_uid_bits=LIMITS["max_uid_bits"],
             max_peaks=LIMITS["max_peaks"], max_gate_len=n * LIMITS["spc_max"],
-            max_columns=self.columns)
+            max_columns=self.columns, pixel_power_max_uw=self._pixel_uw,
+            column_power_cap_uw=self._cap_uw)
 
     # ---- configuration --------------------------------------------------------------
     def get_config(self) -> dict[str, Any]:
@@ -310,14 +314,19 @@ class VirtualFirmware(DeviceApp):
                                f"a rectangle inside columns 0..{self.columns - 1}", column_start)
         new = self.power_code.copy()
         new[channel_start:channel_start + rows, column_start:column_start + cols] = p
-        totals = new.astype(np.float64).sum(axis=0) / 65535 * self.spec.max_pixel_power_w
-        worst = int(np.argmax(totals))
-        if totals[worst] > self.spec.total_power_cap_w * (1 + 1e-9):
+        # Exact: sum(codes) * pixel_uw <= cap_uw * 65535 (no float rounding refusals).
+        scaled = new.astype(np.int64).sum(axis=0) * self._pixel_uw
+        worst = int(np.argmax(scaled))
+        if int(scaled[worst]) > self._cap_uw * 65535:
             raise out_of_range(
-                "power", f"at most {self.spec.total_power_cap_w} W in total per column "
-                f"(eye-safety cap; column {worst} would get {totals[worst]:.4g} W)",
-                f"{totals[worst]:.4g} W")
+                "power", f"at most {self._cap_uw} µW in total per column (eye-safety cap; "
+                f"column {worst} would get {int(scaled[worst]) / 65535:.3f} µW)",
+                f"{int(scaled[worst]) / 65535:.3f} µW")
         self.power_code = new
+
+    def get_power(self) -> NDArray[np.uint16]:
+        """The (K, C) power matrix (1/65535 of the per-pixel maximum)."""
+        return self.power_code.copy()
 
     def power_w(self) -> NDArray[np.float64]:
         """(K, C) laser power per pixel (W)."""
@@ -377,7 +386,7 @@ class VirtualFirmware(DeviceApp):
 
     def _calibrate_gen(self, frame: int, shots: int,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
-        power = self.instrument.default_power_w[:, 0]
+        power = self.power_w()[:, 0]  # the configured power, as a scan of column 0 would use
         for idx in _batches(0, shots, cfg.averages * cfg.frame_samples):
             outs = self._receive(frame, idx, [power] * len(idx), cfg, True, shots=True)
             for s, out in zip(idx, outs, strict=True):
@@ -403,6 +412,24 @@ class VirtualFirmware(DeviceApp):
     def health(self) -> tuple[int, int]:
         """A virtual board at a steady 35 degrees C, no faults."""
         return 35_000, 0
+
+
+def _within_cap(codes: NDArray[np.int64], pixel_uw: int, cap_uw: int) -> NDArray[np.int64]:
+    """``codes`` lowered where needed so every column sum is within the cap (exact integers).
+
+    A column over ``cap_uw * 65535 / pixel_uw`` codes loses the excess from its largest
+    codes, one code at a time, so rounding never leaves the boot matrix over the cap.
+    """
+    out = codes.copy()
+    limit = cap_uw * 65535 // max(pixel_uw, 1)
+    for c in np.flatnonzero(out.sum(axis=0) > limit):
+        excess = int(out[:, c].sum()) - limit
+        while excess > 0:
+            k = int(np.argmax(out[:, c]))
+            step = min(excess, int(out[k, c]))
+            out[k, c] -= step
+            excess -= step
+    return out
 
 
 def _out_bits(gate_len: int) -> int:

@@ -1,7 +1,14 @@
 """``cdma-lidar device ...``: serve the virtual device on a pty or a TCP port.
 
     cdma-lidar device --scene SCENE --pty               serve the virtual device on a pty
-    cdma-lidar device --scene SCENE --tcp HOST:PORT     ... or on a TCP socket (socket://)
+    cdma-lidar device --scene SCENE --tcp HOST:PORT --key-file FILE
+                                                        ... or on a TCP socket (socket://),
+                                                        hosts must hold the key in FILE
+    cdma-lidar device --scene SCENE --tcp 127.0.0.1:PORT --insecure
+                                                        ... loopback only, no access control
+
+The key file is created (a fresh random key, mode 0600) if it does not exist; give the
+same file to the host (``--key-file FILE`` or ``CDMA_LIDAR_KEY_FILE``).
 
 In-process use needs no command: ``virtual://SCENE?seed=N`` works in any ``--port``.
 """
@@ -9,9 +16,12 @@ In-process use needs no command: ``virtual://SCENE?seed=N`` works in any ``--por
 from __future__ import annotations
 
 import argparse
+import ipaddress
+import socket
 import sys
 
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.protocol.auth import load_or_create_key
 from cdma_lidar.scene import load_scene
 from cdma_lidar.virtual.serve import serve_pty, serve_tcp
 
@@ -27,6 +37,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     where = dev.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pty and print its path")
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on a TCP socket")
+    dev.add_argument("--key-file", metavar="FILE",
+                     help="TCP: hosts must prove they hold the key in FILE (created, mode "
+                     "0600, with a fresh random key if absent); every frame is signed")
+    dev.add_argument("--insecure", action="store_true",
+                     help="TCP without a key: anyone who can connect controls the device, "
+                     "so only a loopback address is allowed")
+    dev.add_argument("--session-idle", type=float, default=10.0, metavar="S",
+                     help="seconds after which an idle host's session may be taken by "
+                     "another host without --take-over (default 10)")
     dev.set_defaults(func=_cmd_device)
 
 
@@ -37,15 +56,49 @@ def _parse_hostport(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def _is_loopback(host: str) -> bool:
+    try:
+        return all(ipaddress.ip_address(info[4][0]).is_loopback
+                   for info in socket.getaddrinfo(host, None))
+    except (OSError, ValueError):
+        return False
+
+
 def _cmd_device(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise out_of_range("--seed", "a non-negative integer", args.seed)
-    scene = load_scene(args.scene)
+    if not 0.001 <= args.session_idle <= 4_294_967:
+        raise out_of_range("--session-idle", "0.001 to 4294967 seconds", args.session_idle)
     if args.pty:
-        return serve_pty(scene, args.seed, announce=_announce)
+        if args.key_file or args.insecure:
+            raise ConfigError("--key-file and --insecure apply to --tcp only (a pty is "
+                              "reachable only by local users who may open it)", "--key-file")
+        scene = load_scene(args.scene)
+        return serve_pty(scene, args.seed, announce=_announce,
+                         session_idle_s=args.session_idle)
     host, port = _parse_hostport(args.tcp)
+    key = None
+    if args.key_file and args.insecure:
+        raise ConfigError("--key-file and --insecure exclude each other", "--insecure")
+    if args.key_file:
+        key, created = load_or_create_key(args.key_file)
+        if created:
+            sys.stderr.write(f"cdma-lidar device: created key file {args.key_file} (mode "
+                             "0600); give it to the host with --key-file\n")
+    elif not args.insecure:
+        raise ConfigError("--tcp needs --key-file FILE (hosts must prove they hold the key); "
+                          "--insecure serves without access control on a loopback address "
+                          "only", "--key-file")
+    elif not _is_loopback(host):
+        raise out_of_range("--tcp", "a loopback address (127.0.0.1, ::1, localhost) with "
+                           "--insecure", host)
+    else:
+        sys.stderr.write(f"cdma-lidar device: INSECURE: no access control on {host}:{port}; "
+                         "any local process can control the device\n")
+    scene = load_scene(args.scene)
     try:
-        return serve_tcp(scene, args.seed, host, port, announce=_announce)
+        return serve_tcp(scene, args.seed, host, port, announce=_announce, key=key,
+                         session_idle_s=args.session_idle)
     except OSError as exc:
         raise ConfigError(f"--tcp {args.tcp}: cannot listen ({exc.strerror})", "--tcp") from exc
 

@@ -31,8 +31,8 @@ def expected_column(frame: int, column: int, channels: int, peaks: int, uid_bits
     return ColumnResult.from_arrays(
         frame, column, (column * 0.05 % 360.0 - 20.0) if not calibration else 0.0,
         peak_lag=rng.integers(0, 8000, k), peak=rng.integers(-(2**31), 2**31, k),
-        neighbours=rng.integers(-(2**31), 2**31, (k, 2)), noise_count=rng.integers(0, 5000, k),
-        noise_sum=rng.integers(-(2**40), 2**40, k), noise_sumsq=rng.integers(0, 2**62, k),
+        neighbours=rng.integers(-(2**31), 2**31, (k, 2)), noise_count=rng.integers(1, 65, k),
+        noise_sum=rng.integers(-(2**20), 2**20, k), noise_sumsq=rng.integers(2**40, 2**62, k),
         uid_signs=rng.integers(-1, 2, (k, n)), uid_observed=rng.integers(0, 1 << n, k),
         uid_match=rng.integers(0, 2, k).astype(bool),
         saturated=rng.integers(0, 2, k).astype(bool),
@@ -91,6 +91,9 @@ class SyntheticApp(DeviceApp):
                                f"{self.columns})", (channel_start, column_start, r, c))
         self.power[channel_start:channel_start + r, column_start:column_start + c] = power
 
+    def get_power(self) -> np.ndarray:
+        return self.power.copy()
+
     def _columns(self, frame: int, first: int, count: int,
                  calibration: bool) -> Iterator[ColumnResult]:
         for col in range(first, first + count):
@@ -143,3 +146,10 @@ class RunningDevice:
     def __exit__(self, *exc: object) -> None:
         self.stop.set()
         self.thread.join(2.0)
+
+
+def hello_fields(nonce: int, max_frame: int = 65535, flags: int = 0) -> dict[str, Any]:
+    """HELLO payload fields of a keyless host whose nonce is derived from ``nonce``."""
+    return {"host_max_frame": max_frame, "flags": flags,
+            "host_nonce": nonce.to_bytes(16, "little"), "device_nonce": bytes(16),
+            "mac": bytes(32)}

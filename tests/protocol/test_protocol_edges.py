@@ -8,7 +8,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp
+from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.protocol import cobs, framing
@@ -42,16 +42,16 @@ def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
     nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
                                        "code": int(ErrorCode.VERSION), "field": "version",
                                        "detail": ""})
-    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=2))
+    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=3))
     link = HostLink(host, timeout_s=0.5, retries=3)
     t0 = time.monotonic()
     try:
-        with pytest.raises(LinkError, match="protocol version 2") as exc:
+        with pytest.raises(LinkError, match="protocol version 3") as exc:
             link.hello()
     finally:
         stop.set()
     assert not isinstance(exc.value, LinkTimeout)
-    assert "version 1" in str(exc.value)
+    assert "version 2" in str(exc.value)
     assert link.stats.retries == 0 and time.monotonic() - t0 < 0.5
 
 
@@ -173,7 +173,7 @@ def test_an_ended_stream_is_cleaned_up_before_the_next_one_starts() -> None:
         def send(t: MsgType, fields: dict, seq: int) -> bytes:
             return encode_frame(t, encode_payload(t, fields), seq, 0xABCD)
 
-        host.write(send(MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 65535}, 1))
+        host.write(send(MsgType.HELLO, hello_fields(1, 65535), 1))
         host.write(send(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 50}, 2))
         time.sleep(0.05)  # the worker is inside a column of frame 1
         host.write(send(MsgType.SCAN_ABORT, {}, 3) +
@@ -204,17 +204,17 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
 
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
-    """A column too large for the frame size: SCAN_END reason 2, and the device stays usable."""
+    """A column too large for 254 fragments: SCAN_END reason 2, and the device stays usable."""
     host, dev = pipe_pair()
 
     class Growing(SyntheticApp):
         def _columns(self, frame, first, count, calibration):  # type: ignore[override]
             yield from super()._columns(frame, first, 1, calibration)
-            self.channels = 40  # a misbehaving app: columns grow beyond what was checked
+            self.channels = 1500  # a misbehaving app: columns grow beyond what was checked
             yield from super()._columns(frame, first + 1, count - 1, calibration)
 
     app = Growing(channels=8, columns=10)
-    with RunningDevice(dev, app, max_frame=1024, heartbeat_s=0.02):
+    with RunningDevice(dev, app, max_frame=256, heartbeat_s=0.02):
         link = HostLink(host, timeout_s=0.05, retries=2)
         got = []
         with pytest.raises(LinkError):
@@ -262,6 +262,7 @@ def test_heartbeats_of_another_frame_do_not_keep_a_scan_waiting_forever() -> Non
     link = HostLink(host, timeout_s=0.05, retries=1)
     link.session = 0x42
     link.info = SyntheticApp().info()
+    link.config = SyntheticApp().get_config()
     try:
         with pytest.raises(LinkError, match="frame 999"):
             list(link.scan(columns=5, frame=7))
@@ -278,7 +279,7 @@ def test_scan_names_a_bad_frame_count(frames) -> None:
 
 
 def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> None:
-    """A new host says HELLO mid-scan: by the time INFO arrives the app has aborted it."""
+    """A new host takes over mid-scan: by the time INFO arrives the app has aborted it."""
     host, dev = pipe_pair()
     host.timeout = 0.02
     app = _RecordingApp()
@@ -287,10 +288,10 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
         host.write(encode_frame(t, encode_payload(t, fields), seq, session))
 
     with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
-        send(MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 65535}, 1, 0)
+        send(MsgType.HELLO, hello_fields(1, 65535), 1, 0)
         send(MsgType.SCAN_START, {"frame": 5, "first_column": 0, "columns": 50}, 2, 0xABCD)
         time.sleep(0.05)
-        send(MsgType.HELLO, {"host_nonce": 2, "host_max_frame": 65535}, 900, 0)
+        send(MsgType.HELLO, hello_fields(2, 65535, flags=1), 900, 0)  # take over
         dec = FrameDecoder()
         info: list[Frame] = []
         deadline = time.monotonic() + 3.0

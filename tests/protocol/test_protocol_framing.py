@@ -21,6 +21,7 @@ frames_st = st.builds(
     compat=st.integers(0, 255),
     incompat=st.just(0),
     version=st.just(framing.PROTOCOL_VERSION),
+    sig=st.just(b""),
 )
 
 
@@ -160,9 +161,9 @@ def test_decoder_counts_each_error_kind() -> None:
     bad_crc[-1] ^= 0xFF
     bad_len = framing.HEADER.pack(1, 0, 0, 0x80, 7, 5, 9) + b"\x05"
     bad_len += crc32(bad_len).to_bytes(4, "little")
-    v2 = framing.HEADER.pack(2, 0, 0, 0x01, 7, 0, 9)
+    v2 = framing.HEADER.pack(framing.PROTOCOL_VERSION + 1, 0, 0, 0x01, 7, 0, 9)
     v2 += crc32(v2).to_bytes(4, "little")
-    inc = framing.HEADER.pack(1, 0x01, 0, 0x01, 8, 0, 9)
+    inc = framing.HEADER.pack(framing.PROTOCOL_VERSION, 0x02, 0, 0x01, 8, 0, 9)
     inc += crc32(inc).to_bytes(4, "little")
     stream = b"".join([
         b"\x00\x00\x00",                                   # empty chunks: ignored
@@ -180,7 +181,8 @@ def test_decoder_counts_each_error_kind() -> None:
     s = dec.stats
     assert (s.cobs, s.short, s.crc, s.length, s.oversize, s.version, s.incompat) == \
         (1, 1, 1, 1, 1, 1, 1)
-    assert [(f.version, f.incompat, f.seq) for f in dec.rejected] == [(2, 0, 7), (1, 1, 8)]
+    v = framing.PROTOCOL_VERSION
+    assert [(f.version, f.incompat, f.seq) for f in dec.rejected] == [(v + 1, 0, 7), (v, 2, 8)]
 
 
 def test_decoder_bounds_memory_on_endless_garbage() -> None:

@@ -12,7 +12,7 @@ import threading
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from protocol_fixtures import RunningDevice, SyntheticApp
+from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import CdmaLidarError, FrameError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -56,7 +56,7 @@ def test_device_survives_hostile_frames_and_still_answers(frames: list, noise: b
         # A new host: HELLO is always answered, then STATUS_GET in its session.
         dec = FrameDecoder()
         host.write(encode_frame(MsgType.HELLO, encode_payload(
-            MsgType.HELLO, {"host_nonce": 77, "host_max_frame": 65535}), 40000, 0))
+            MsgType.HELLO, hello_fields(77, 65535)), 40000, 0))
         host.write(encode_frame(MsgType.STATUS_GET, b"", 40001, SESSION))
         got = []
         for _ in range(50):

@@ -9,7 +9,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import serial
-from protocol_fixtures import RunningDevice, SyntheticApp, capture_expected, expected_column
+from protocol_fixtures import (
+    RunningDevice,
+    SyntheticApp,
+    capture_expected,
+    expected_column,
+    hello_fields,
+)
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
 from cdma_lidar.protocol import framing
@@ -19,6 +25,7 @@ from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import (
     DIAG_GARBAGE,
     DIAG_NO_ANSWER,
+    DIAG_NOISY,
     DIAG_SILENT,
     DIAG_WRONG_SESSION,
     HostLink,
@@ -83,7 +90,7 @@ def raw() -> Iterator[tuple[Raw, DeviceEndpoint, SyntheticApp]]:
     app = SyntheticApp()
     with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         r = Raw(host)
-        r.send(MsgType.HELLO, {"host_nonce": 5, "host_max_frame": 65535}, seq=100)
+        r.send(MsgType.HELLO, hello_fields(5, 65535), seq=100)
         (info,) = r.recv()
         assert info.msg_type == MsgType.INFO and info.session == 0xABCD
         r.session = 0xABCD
@@ -192,12 +199,19 @@ def test_busy_and_too_large(rig) -> None:
     it.close()
     app.column_delay_s = 0.0
     host, dev = pipe_pair()
-    big = SyntheticApp(channels=40)
-    with RunningDevice(dev, big, max_frame=2048):
+    big = SyntheticApp(channels=40, columns=6)
+    with RunningDevice(dev, big, max_frame=2048):  # a 4419-byte column: three fragments
         link2 = HostLink(host, timeout_s=TIMEOUT)
         link2.set_config(peaks=8)
+        assert list(link2.scan(frame=4)) == [expected_column(4, c, 40, 8, 1) for c in range(6)]
+    host, dev = pipe_pair()
+    huge = SyntheticApp(channels=1500, columns=2)
+    with RunningDevice(dev, huge, max_frame=256):  # INFO itself comes in 27 fragments
+        link3 = HostLink(host, timeout_s=TIMEOUT, max_frame=256)
+        assert link3.hello().channels == 1500
+        link3.set_config(peaks=8)  # a column of 1500 x 110 bytes: 721 fragments
         with pytest.raises(DeviceError) as exc:
-            list(link2.scan())
+            list(link3.scan())
         assert exc.value.code == ErrorCode.TOO_LARGE and exc.value.field == "peaks"
 
 
@@ -206,7 +220,8 @@ def test_resend_of_a_column_no_longer_kept(rig) -> None:
     ep.ring_columns = 4
     cols = list(link.scan(columns=10))
     with pytest.raises(DeviceError) as exc:
-        link._request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0]})
+        link._request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0],
+                                       "fragments": []})
     assert exc.value.code == ErrorCode.NOT_AVAILABLE and exc.value.field == "columns[1]"
 
 
@@ -258,7 +273,7 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
     r.port.write(encode_frame(0x7E, b"", 125, r.session))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
-    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=2))
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=3))
     (f,) = r.recv()
     assert nak(f)["code"] == ErrorCode.VERSION and f.version == framing.PROTOCOL_VERSION
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
@@ -288,7 +303,9 @@ def test_device_survives_line_garbage(raw) -> None:
     noise = np.random.default_rng(11).integers(1, 256, 5000, dtype=np.uint8).tobytes()
     r.port.write(noise + b"\x00\x00")
     r.send(MsgType.STATUS_GET, seq=140)
-    (f,) = r.recv()
+    got = r.recv()
+    assert any(f.msg_type == MsgType.LINE_ERROR for f in got)  # damage is reported at once
+    (f,) = [f for f in got if f.msg_type != MsgType.LINE_ERROR]
     assert f.msg_type == MsgType.STATUS
     assert decode_payload(MsgType.STATUS, f.payload)["rx_errors"] >= 1
 
@@ -339,7 +356,7 @@ def test_device_restart_is_reported_at_once(rig) -> None:
         link.status()
     assert exc.value.code == ErrorCode.WRONG_SESSION
     assert link.stats.retries == 0
-    assert link.hello().session_id == 0x7777
+    assert link.hello().session_id not in (0, 0x7777)  # a fresh session per HELLO
     assert link.status().state_name == "idle"
 
 
@@ -484,5 +501,6 @@ def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
             for c in link.scan(columns=6):
                 got.append(c.column)
         assert got == [0, 1]
-        assert exc.value.diagnosis == DIAG_GARBAGE and "column 2" in str(exc.value)
+        assert exc.value.diagnosis == DIAG_NOISY and "column 2" in str(exc.value)
+        assert "damaged frames of" in str(exc.value)
         assert link.stats.resent_columns >= 3

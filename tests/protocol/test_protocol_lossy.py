@@ -15,10 +15,16 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
-from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_SILENT, HostLink
+from cdma_lidar.protocol.link import (
+    DIAG_GARBAGE,
+    DIAG_NO_ANSWER,
+    DIAG_NOISY,
+    DIAG_SILENT,
+    HostLink,
+)
 from cdma_lidar.protocol.pipes import Faults, pipe_pair
 
-DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER}
+DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_NOISY}
 K, C = 6, 40
 
 
@@ -179,3 +185,47 @@ def test_scan_through_bit_errors_is_repaired() -> None:
         assert all(c == expected_column(c.frame, c.column, K, 1, 1) for c in cols)
         assert link.stats.resend_requests >= 1
         assert link.decoder.stats.crc + link.decoder.stats.cobs >= 1
+
+
+@pytest.mark.parametrize(("ber", "max_frame"), [(1e-3, 80), (3e-4, 256), (1e-4, 65535)])
+def test_a_noisy_line_scans_byte_identical_in_fragments(ber: float, max_frame: int) -> None:
+    """40-channel columns through bit errors on both directions, frames sized to the line."""
+    f = Faults(bit_error_rate=ber)
+    host, dev = pipe_pair(f, f, seed=7)
+    app = SyntheticApp(channels=40, columns=25)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.05, retries=20, max_frame=max_frame)
+        assert link.hello().channels == 40
+        link.set_config(peaks=2)
+        cols = list(link.scan(frame=11))
+        link.close()
+    assert cols == [expected_column(11, c, 40, 2, 1) for c in range(25)]
+    st = link.decoder.stats
+    assert st.crc + st.cobs + st.length + st.short > 0  # the line really was noisy
+
+
+def test_a_line_that_damages_everything_is_diagnosed_as_noisy_not_as_a_baud_rate() -> None:
+    f = Faults(bit_error_rate=3e-3)
+    host, dev = pipe_pair(f, f, seed=3)
+    with RunningDevice(dev, SyntheticApp(channels=40, columns=4), heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.03, retries=3, column_retries=2)
+        with pytest.raises(LinkTimeout) as exc:
+            link.hello()
+            list(link.scan())
+    msg = str(exc.value)
+    assert "damaged frames of" in msg and "\n" not in msg, msg
+
+
+def test_frames_sized_to_the_line_by_the_host() -> None:
+    """auto_frame: large frames never pass at 1e-3; the host shrinks them and completes."""
+    f = Faults(bit_error_rate=1e-3)
+    host, dev = pipe_pair(f, f, seed=5)
+    app = SyntheticApp(channels=40, columns=12)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.05, retries=20, auto_frame=True)
+        link.hello()
+        assert link.device_frame == 16384
+        cols = list(link.scan(frame=2))
+        link.close()
+    assert cols == [expected_column(2, c, 40, 1, 1) for c in range(12)]
+    assert 64 <= link.device_frame <= 400  # sized to a 1e-3 line: ~100 bytes

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from protocol_fixtures import expected_column
+from protocol_fixtures import expected_column, hello_fields
 
 from cdma_lidar.errors import FieldError, FrameError
 from cdma_lidar.protocol.columns import (
@@ -45,13 +45,19 @@ def _field_strategy(msg: MsgType, sc) -> st.SearchStrategy:
     if meta.kind == "text":
         return st.text(max_size=40).filter(lambda s: len(s.encode()) <= 255)
     if meta.kind == "array":
-        return st.lists(st.integers(meta.lo, meta.hi), max_size=min(meta.max_items, 30))
+        return st.lists(st.integers(meta.lo, meta.hi), min_size=meta.min_items,
+                        max_size=min(meta.max_items, 30))
+    if meta.kind == "bytes":
+        return st.binary(min_size=meta.max_items, max_size=meta.max_items)
     special = {
         "keys": st.lists(st.integers(0, 255), max_size=20),
         "items": st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
                                                  "value": st.binary(max_size=40)}),
                           max_size=6),
-        "data": st.binary(max_size=300),
+        "data": st.binary(min_size=1, max_size=300),
+        "fragments": st.lists(st.fixed_dictionaries({"column": st.integers(0, 65535),
+                                                     "index": st.integers(0, 255)}),
+                              max_size=10),
     }
     return special[sc.name]
 
@@ -59,7 +65,7 @@ def _field_strategy(msg: MsgType, sc) -> st.SearchStrategy:
 @st.composite
 def message_fields(draw, msg: MsgType) -> dict:
     spec = MESSAGES[msg]
-    if msg == MsgType.POWER_SET:
+    if msg in (MsgType.POWER_SET, MsgType.POWER):
         r, c = draw(st.integers(1, 6)), draw(st.integers(1, 6))
         return {"channel_start": draw(st.integers(0, 65535)),
                 "column_start": draw(st.integers(0, 65535)), "channels": r, "columns": c,
@@ -107,10 +113,11 @@ def _minimal(msg: MsgType) -> dict:
     out = {}
     for sc in MESSAGES[msg].fields:
         m = sc.meta
-        out[sc.name] = {"int": m.lo, "text": "x", "array": [m.lo or 0]}.get(m.kind, None)
-    if msg == MsgType.POWER_SET:
+        out[sc.name] = {"int": m.lo, "text": "x", "array": [m.lo or 0],
+                        "bytes": bytes(m.max_items or 0)}.get(m.kind, None)
+    if msg in (MsgType.POWER_SET, MsgType.POWER):
         out.update(channels=1, columns=1, power=[7])
-    for name in ("keys", "items"):
+    for name in ("keys", "items", "fragments"):
         if name in out:
             out[name] = []
     if "data" in out:
@@ -126,7 +133,7 @@ def test_kinds_and_replies() -> None:
         assert (t in REPLY_TO) == (expected is MsgKind.REQUEST)
         if spec.kind is MsgKind.REQUEST:
             assert REPLY_TO[t] in (MsgType.ACK, MsgType.INFO, MsgType.CONFIG, MsgType.STATUS,
-                                   MsgType.CAPTURE_DATA)
+                                   MsgType.CAPTURE_DATA, MsgType.POWER)
 
 
 @pytest.mark.parametrize(("msg", "fields", "name"), [
@@ -134,7 +141,7 @@ def test_kinds_and_replies() -> None:
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 0}, "SCAN_START.columns"),
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0}, "SCAN_START.columns"),
     (MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 1, "x": 2}, "SCAN_START.x"),
-    (MsgType.HELLO, {"host_nonce": 1, "host_max_frame": 100}, "HELLO.host_max_frame"),
+    (MsgType.HELLO, hello_fields(1, 63), "HELLO.host_max_frame"),
     (MsgType.RESEND, {"frame": 1, "columns": list(range(256))}, "RESEND.columns"),
     (MsgType.RESEND, {"frame": 1, "columns": [1, 70000]}, "RESEND.columns[1]"),
     (MsgType.NAK, {"request_type": 1, "code": 4, "field": "é" * 200, "detail": ""},

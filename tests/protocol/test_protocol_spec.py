@@ -15,6 +15,7 @@ from cdma_lidar.protocol.link import (
     DIAG_GARBAGE,
     DIAG_HINTS,
     DIAG_NO_ANSWER,
+    DIAG_NOISY,
     DIAG_SILENT,
     DIAG_VERSION,
     DIAG_WRONG_SESSION,
@@ -76,21 +77,22 @@ def test_example_wire_bytes_in_the_page_decode() -> None:
 def test_hand_written_numbers_of_the_page_match_the_code() -> None:
     """The prose outside the generated blocks: CRC example, diagnoses, default timing."""
     text = spec.DOC_PATH.read_text(encoding="utf-8")
-    head = bytes.fromhex("01 00 00 0a 02 01 00 00 d4 c3 b2 a1")
+    head = bytes.fromhex("02 00 00 0a 02 01 00 00 d4 c3 b2 a1")
     assert f"give CRC 0x{crc32(head):08X}" in text
     wire = encode_frame(MsgType.STATUS_GET, b"", 0x0102, 0xA1B2C3D4)
     assert f"COBS-encode to `{wire[1:-1].hex(' ')}`" in text
-    for diag in (DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION, DIAG_NO_ANSWER):
+    for diag in (DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION, DIAG_NO_ANSWER,
+                 DIAG_NOISY):
         assert f"| `{diag}` |" in text
     sig = inspect.signature(HostLink.__init__).parameters
     timeout, retries = sig["timeout_s"].default, sig["retries"].default
     assert f"| {timeout:g} s per try, {retries} retries;" in text
     assert f"(default {10 * (retries + 1)})" in text
-    assert f"{column_payload_size(40, 1)} bytes)" in text  # "40 channels, 1 peak: ..."
+    assert f"40 channels, 1 peak: {column_payload_size(40, 1)} bytes" in text
 
 
 def test_every_diagnosis_has_a_hint_and_a_row_in_the_page() -> None:
     text = spec.DOC_PATH.read_text(encoding="utf-8")
     assert set(DIAG_HINTS) == {DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION,
-                               DIAG_NO_ANSWER}
+                               DIAG_NO_ANSWER, DIAG_NOISY}
     assert all(hint and f"| `{d}` |" in text for d, hint in DIAG_HINTS.items())

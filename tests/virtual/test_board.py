@@ -266,7 +266,7 @@ def test_pty_device_end_to_end():
 def test_tcp_device_end_to_end():
     cmd = [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
            "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--tcp",
-           "127.0.0.1:0"]
+           "127.0.0.1:0", "--insecure"]
     with _device_process(cmd) as proc:
         url = _readline(proc)
         assert url.startswith("socket://127.0.0.1:")

@@ -1,0 +1,189 @@
+"""Access control: the shared key, HELLO's challenge-response and per-session frame signing.
+
+A device reachable over a network holds a 32-byte key (a file created mode 0600 with
+:func:`load_or_create_key`); a host must hold the same key. No key ever travels.
+
+HELLO (version 2) is a challenge-response with HMAC-SHA256::
+
+    host   HELLO(host_nonce16, mac = 0)               -> device
+    device CHALLENGE(device_nonce16)                  -> host    (fresh per challenge)
+    host   HELLO(host_nonce16, device_nonce16,
+                 mac = HMAC(key, "cdma-lidar hello" | device_nonce | host_nonce
+                            | flags | host_max_frame))   -> device
+    device INFO(..., device_mac = HMAC(key, "cdma-lidar device" | host_nonce
+                                       | device_nonce | session_id))  -> host
+
+Both sides then derive one key per direction from the exchange
+(:func:`session_keys`) and sign **every** later frame of the session, in the spirit
+of MAVLink 2 signing: incompat bit 0 set, and 24 bytes between payload and CRC::
+
+    counter  u64 LE   strictly increasing per direction within the session
+    mac      16 B     HMAC-SHA256(direction key, header | payload | counter)[:16]
+
+A receiver drops (and counts) a signed frame whose MAC is wrong or whose counter is
+not above the last one it accepted in that direction, so a recorded frame cannot be
+replayed and a frame of one direction cannot be reflected back. Retransmissions are
+signed afresh (new counter, same seq and payload), so the replay cache still
+recognises them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+import os
+import secrets
+import stat
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+from cdma_lidar.errors import ConfigError
+from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
+
+__all__ = [
+    "KEY_BYTES",
+    "MAC_BYTES",
+    "NONCE_BYTES",
+    "FrameSigner",
+    "FrameVerifier",
+    "device_mac",
+    "hello_mac",
+    "load_key",
+    "load_or_create_key",
+    "session_keys",
+]
+
+log = logging.getLogger(__name__)
+
+#: Bytes of the shared key.
+KEY_BYTES = 32
+#: Bytes of a nonce in HELLO and CHALLENGE.
+NONCE_BYTES = 16
+#: Bytes of the HELLO and INFO MACs (full HMAC-SHA256).
+MAC_BYTES = 32
+#: Bytes of the truncated MAC in a frame signature.
+SIG_MAC_BYTES = SIGNATURE_SIZE - 8
+_COUNTER = struct.Struct("<Q")
+
+
+# ---- key file --------------------------------------------------------------------------------
+def load_key(path: str | Path) -> bytes:
+    """Read a key file: 64 hex digits (32 bytes), whitespace ignored.
+
+    Raises ConfigError naming the file when it is missing, unreadable, not a key,
+    or readable by group or others (the key would not be secret).
+    """
+    p = Path(path)
+    try:
+        mode = p.stat().st_mode
+        text = p.read_text(encoding="ascii").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"key file {str(p)!r} cannot be read ({exc})", "key_file") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ConfigError(f"key file {str(p)!r} must be readable by its owner only (mode 0600), "
+                          f"not mode {stat.S_IMODE(mode):04o}: chmod 600 it", "key_file")
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        key = b""
+    if len(key) != KEY_BYTES:
+        raise ConfigError(f"key file {str(p)!r} must hold {2 * KEY_BYTES} hex digits "
+                          f"({KEY_BYTES} bytes), not {len(text)} characters", "key_file")
+    return key
+
+
+def load_or_create_key(path: str | Path) -> tuple[bytes, bool]:
+    """The key in ``path``; if absent, a fresh random key written there with mode 0600.
+
+    Returns (key, created). The file is created exclusively (never overwritten) and
+    only ever has mode 0600.
+    """
+    p = Path(path)
+    if not p.exists():
+        key = secrets.token_bytes(KEY_BYTES)
+        try:
+            fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            return load_key(p), False
+        except OSError as exc:
+            raise ConfigError(f"key file {str(p)!r} cannot be created ({exc.strerror})",
+                              "key_file") from None
+        with os.fdopen(fd, "w", encoding="ascii") as fh:
+            fh.write(key.hex() + "\n")
+        log.info("created key file %s", p)
+        return key, True
+    return load_key(p), False
+
+
+# ---- HELLO challenge-response ------------------------------------------------------------------
+def _mac(key: bytes, *parts: bytes) -> bytes:
+    return hmac.new(key, b"".join(parts), hashlib.sha256).digest()
+
+
+def hello_mac(key: bytes, device_nonce: bytes, host_nonce: bytes, flags: int,
+              host_max_frame: int) -> bytes:
+    """The host's proof in HELLO (32 bytes)."""
+    return _mac(key, b"cdma-lidar hello", device_nonce, host_nonce,
+                struct.pack("<BH", flags, host_max_frame))
+
+
+def device_mac(key: bytes, host_nonce: bytes, device_nonce: bytes, session: int) -> bytes:
+    """The device's proof in INFO (32 bytes): it holds the key too."""
+    return _mac(key, b"cdma-lidar device", host_nonce, device_nonce, struct.pack("<I", session))
+
+
+def session_keys(key: bytes, host_nonce: bytes, device_nonce: bytes,
+                 session: int) -> tuple[bytes, bytes]:
+    """(host -> device key, device -> host key) of one session."""
+    s = struct.pack("<I", session)
+    return (_mac(key, b"cdma-lidar to device", host_nonce, device_nonce, s),
+            _mac(key, b"cdma-lidar to host", host_nonce, device_nonce, s))
+
+
+def equal(a: bytes, b: bytes) -> bool:
+    """Constant-time comparison."""
+    return hmac.compare_digest(a, b)
+
+
+# ---- frame signing ---------------------------------------------------------------------------
+@dataclass
+class FrameSigner:
+    """Signs the frames of one direction of a session (counter starts at 1)."""
+
+    key: bytes
+    counter: int = 0
+
+    def sign(self, data: bytes) -> bytes:
+        """Signature of ``data`` (header + payload): counter + truncated HMAC."""
+        self.counter += 1
+        c = _COUNTER.pack(self.counter)
+        return c + _mac(self.key, data, c)[:SIG_MAC_BYTES]
+
+
+@dataclass
+class FrameVerifier:
+    """Checks the frames of one direction of a session: MAC, then a rising counter."""
+
+    key: bytes
+    last: int = 0
+    forged: int = 0
+    replayed: int = 0
+    unsigned: int = 0
+
+    def check(self, frame: Frame) -> bool:
+        """True if ``frame`` is signed with this key and newer than every frame accepted."""
+        if len(frame.sig) != SIGNATURE_SIZE:
+            self.unsigned += 1
+            return False
+        c = frame.sig[:8]
+        if not equal(_mac(self.key, frame.signed_bytes(), c)[:SIG_MAC_BYTES], frame.sig[8:]):
+            self.forged += 1
+            return False
+        (counter,) = _COUNTER.unpack(c)
+        if counter <= self.last:
+            self.replayed += 1
+            return False
+        self.last = counter
+        return True

@@ -1,0 +1,175 @@
+"""Access control: key files, challenge-response HELLO, signed frames, refused forgeries."""
+
+from __future__ import annotations
+
+import os
+import stat
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+
+from cdma_lidar.errors import ConfigError, DeviceError, LinkError
+from cdma_lidar.host.connection import connect
+from cdma_lidar.protocol import auth
+from cdma_lidar.protocol.columns import encode_column
+from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
+from cdma_lidar.protocol.pipes import pipe_pair
+
+KEY = bytes(range(32))
+TIMEOUT = 0.2
+
+
+def test_key_file_is_created_private_and_read_back(tmp_path) -> None:
+    path = tmp_path / "device.key"
+    key, created = auth.load_or_create_key(path)
+    assert created and len(key) == auth.KEY_BYTES
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert auth.load_or_create_key(path) == (key, False)
+    assert auth.load_key(path) == key
+    os.chmod(path, 0o644)
+    with pytest.raises(ConfigError, match="0600"):
+        auth.load_key(path)
+    path.write_text("not hex")
+    os.chmod(path, 0o600)
+    with pytest.raises(ConfigError, match="hex digits"):
+        auth.load_key(path)
+
+
+def _rig(key: bytes | None, host_key: bytes | None, app: SyntheticApp | None = None):
+    host, dev = pipe_pair()
+    app = app or SyntheticApp(channels=4, columns=20)
+    rd = RunningDevice(dev, app, key=key, heartbeat_s=0.05)
+    return rd, HostLink(host, timeout_s=TIMEOUT, retries=2, key=host_key), host, dev, app
+
+
+def test_signed_session_scans_and_nothing_travels_unsigned() -> None:
+    rd, link, host, _dev, _app = _rig(KEY, KEY)
+    sent: list[bytes] = []
+    write = host.write
+    host.write = lambda data: (sent.append(bytes(data)), write(data))[1]  # type: ignore[method-assign]
+    with rd as ep:
+        info = link.hello()
+        assert info.auth == 1
+        cols = list(link.scan(frame=3))
+        assert [c for c in cols] == [expected_column(3, c, 4, 1, 1) for c in range(20)]
+        assert ep.stats.auth_rejected == 0 and link.stats.unauthenticated == 0
+    frames = [f for w in sent for f in FrameDecoder().feed(w)]
+    assert all(f.sig for f in frames if f.msg_type != MsgType.HELLO)
+    assert not any(KEY in w or KEY.hex().encode() in w for w in sent)  # no key on the wire
+
+
+def test_keyless_host_is_refused_with_one_line() -> None:
+    rd, link, *_ = _rig(KEY, None)
+    with rd, pytest.raises(LinkError, match="requires a key") as exc:
+        link.hello()
+    assert "\n" not in str(exc.value) and "--key-file" in str(exc.value)
+
+
+def test_unsigned_requests_are_refused_auth_required() -> None:
+    rd, link, host, _dev, app = _rig(KEY, KEY)
+    with rd:
+        info = link.hello()
+        wire = encode_frame(MsgType.CONFIG_SET, encode_payload(MsgType.CONFIG_SET, {
+            "items": [{"key": 16, "value": b"\x03"}]}), 999, info.session_id)
+        host.write(wire)  # a local process without the key, in the right session
+        time.sleep(0.2)
+        assert link.get_config()["peaks"] == 1 and app.set_config_calls == 0
+
+
+def test_wrong_key_is_refused_auth_failed() -> None:
+    rd, link, *_ = _rig(KEY, bytes(32))
+    with rd, pytest.raises(DeviceError) as exc:
+        link.hello()
+    assert exc.value.code == ErrorCode.AUTH_FAILED
+
+
+def test_a_keyed_host_refuses_a_device_without_the_key() -> None:
+    rd, link, *_ = _rig(None, KEY)
+    with rd, pytest.raises(LinkError, match="did not prove"):
+        link.hello()
+
+
+def test_forged_and_replayed_frames_are_dropped() -> None:
+    rd, link, host, _dev, app = _rig(KEY, KEY)
+    sent: list[bytes] = []
+    write = host.write
+    host.write = lambda data: (sent.append(bytes(data)), write(data))[1]  # type: ignore[method-assign]
+    with rd as ep:
+        info = link.hello()
+        link.set_config(peaks=2)
+        set_wire = sent[-1]
+        assert app.set_config_calls == 1
+        link.set_config(peaks=1)
+        assert app.set_config_calls == 2
+        write(set_wire)  # replayed: a valid signature, an old counter
+        forged = encode_frame(MsgType.SCAN_ABORT, b"", 500, info.session_id,
+                              signer=auth.FrameSigner(bytes(32), counter=10**6))
+        write(forged)  # signed with another key
+        time.sleep(0.2)
+        assert ep.stats.auth_rejected == 2
+        assert app.set_config_calls == 2 and link.get_config()["peaks"] == 1
+
+
+def test_a_column_injected_mid_scan_is_refused() -> None:
+    app = SyntheticApp(channels=4, columns=30, column_delay_s=0.01)
+    rd, link, host, _dev, _app = _rig(KEY, KEY, app)
+    with rd:
+        info = link.hello()
+        scan = link.scan(frame=8)
+        first = next(scan)
+        bad = expected_column(8, 5, 4, 1, 1)
+        rec = bad.records.copy()
+        rec["peak_lag"][:] = 7  # a plausible lie: every channel at lag 7
+        lie = replace(bad, records=rec)
+        for signer in (None, auth.FrameSigner(bytes(32), counter=10**6)):
+            host.rx.write(encode_frame(MsgType.COLUMN_RESULT, encode_column(lie), 1,
+                                       info.session_id, signer=signer))
+        rest = list(scan)
+    got = [first, *rest]
+    assert [c.column for c in got] == list(range(30))
+    assert np.array_equal(got[5].peak_lag, expected_column(8, 5, 4, 1, 1).peak_lag)
+    assert link.stats.unauthenticated >= 2
+
+
+def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cdma_lidar.cli", *args], capture_output=True,
+                          text=True, timeout=120, env=env)
+
+
+def test_tcp_device_needs_a_key_file_or_insecure_loopback() -> None:
+    r = _cli("device", "--scene", "flat-wall", "--tcp", "127.0.0.1:0")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--key-file" in r.stderr
+    r = _cli("device", "--scene", "flat-wall", "--tcp", "0.0.0.0:0", "--insecure")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "loopback" in r.stderr
+
+
+def test_tcp_device_with_a_key_file_end_to_end(tmp_path) -> None:
+    key_file = tmp_path / "dev.key"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+         "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--tcp",
+         "127.0.0.1:0", "--key-file", str(key_file)], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+        with pytest.raises(LinkError, match="requires a key"):
+            connect(url, timeout_s=2.0)
+        with connect(url, timeout_s=2.0, key_file=str(key_file)) as dev:
+            assert dev.info.auth == 1
+            assert [c.column for c in dev.link.scan(frame=2)] == [0, 1]
+        env = {**os.environ, "CDMA_LIDAR_KEY_FILE": str(key_file)}
+        r = _cli("info", "--port", url, env=env)
+        assert r.returncode == 0, r.stderr
+        r = _cli("info", "--port", url)
+        assert r.returncode == 2 and "requires a key" in r.stderr
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -1,0 +1,191 @@
+"""A second, independent host: written from docs/protocol.md alone, it scans the virtual device.
+
+Nothing of ``cdma_lidar.protocol`` is used by the client: its COBS and CRC follow the
+page's text and C snippets, and every layout it packs or parses (frame header, HELLO,
+SCAN_START, FRAGMENT, SCAN_END, the COLUMN_RESULT header and channel record) is read
+at test time from the page's generated tables. Its columns must equal, field by
+field, what the reference host decodes from the same scan.
+"""
+
+from __future__ import annotations
+
+import re
+import secrets
+import struct
+from pathlib import Path
+
+import numpy as np
+import serial
+
+import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
+from cdma_lidar.protocol.link import HostLink  # the reference host, for comparison only
+from cdma_lidar.protocol.ports import open_port
+
+PAGE = (Path(__file__).resolve().parents[2] / "docs" / "protocol.md").read_text("utf-8")
+URL = "virtual://flat-wall?instrument.wavelengths.count=5&instrument.columns=4&seed=2"
+_CT = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "i8": "b", "i16": "h", "i32": "i",
+       "i64": "q"}
+
+
+# ---- the page's tables ---------------------------------------------------------------------
+def _rows(after: str) -> list[list[str]]:
+    """Rows of the first table after the heading or sentence ``after``."""
+    text = PAGE[PAGE.index(after):]
+    lines = text.split("\n| --- ", 1)[1].split("\n")[1:]
+    rows = []
+    for line in lines:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]])
+    return rows
+
+
+def _fmt(section: str) -> tuple[str, list[str]]:
+    """struct format and names of a message table of fixed-size integer fields."""
+    fmt, names = "<", []
+    for row in _rows(section):
+        field, ctype = row[1].strip("`"), row[2]
+        m = re.fullmatch(r"u8 x (\d+)", ctype)
+        fmt += f"{m.group(1)}s" if m else _CT.get(ctype, "")
+        if m or ctype in _CT:
+            names.append(field)
+    return fmt, names
+
+
+HEADER_FMT = "<" + "".join(_CT[r[3]] for r in _rows("### 2.1 Header"))
+HELLO = _fmt("#### HELLO")
+SCAN_START = _fmt("#### SCAN_START")
+FRAGMENT = _fmt("#### FRAGMENT")
+SCAN_END = _fmt("#### SCAN_END")
+COLUMN_HEADER = _fmt("Column header (")
+TYPES = {re.sub(r"\[(\w+)\].*", r"\1", r[1]): int(r[0], 16) for r in _rows("## 3. Messages")}
+VERSION = int(next(r[1] for r in _rows("### 2.4 Constants") if r[0] == "`PROTOCOL_VERSION`"))
+
+
+def record_dtype(peaks: int) -> np.dtype:
+    """The channel record as the page's table says, for P = ``peaks``."""
+    fields = []
+    for row in _rows("Channel record ("):
+        name, ctype = row[1].strip("`"), row[2]
+        m = re.fullmatch(r"(\w+?)(?:\[(.+)\])?", ctype)
+        base, count = m.group(1), m.group(2)
+        dt = np.dtype("<" + _CT[base])
+        if count is None:
+            fields.append((name, dt))
+        else:
+            n = peaks - 1 if count == "P-1" else int(count)
+            fields.append((name, dt, (n,)))
+    return np.dtype(fields)
+
+
+# ---- CRC-32 and COBS, as section 2 describes them -----------------------------------------------
+def crc32(data: bytes) -> int:
+    c = 0xFFFFFFFF
+    for b in data:
+        c ^= b
+        for _ in range(8):
+            c = (c >> 1) ^ (0xEDB88320 & -(c & 1))
+    return c ^ 0xFFFFFFFF
+
+
+def cobs_encode(data: bytes) -> bytes:
+    out, block = bytearray(), bytearray()
+    for b in data:
+        if b == 0:
+            out += bytes([len(block) + 1]) + block
+            block.clear()
+        else:
+            block.append(b)
+            if len(block) == 254:
+                out += b"\xff" + block
+                block.clear()
+    return bytes(out + bytes([len(block) + 1]) + block)
+
+
+def cobs_decode(data: bytes) -> bytes:
+    out, i = bytearray(), 0
+    while i < len(data):
+        code = data[i]
+        out += data[i + 1:i + code]
+        i += code
+        if code != 0xFF and i < len(data):
+            out.append(0)
+    return bytes(out)
+
+
+class Client:
+    def __init__(self, port) -> None:
+        self.port, self.buf, self.seq, self.session = port, b"", 7, 0
+
+    def send(self, name: str, payload: bytes) -> None:
+        self.seq += 1
+        head = struct.pack(HEADER_FMT, VERSION, 0, 0, TYPES[name], self.seq, len(payload),
+                           self.session)
+        body = head + payload
+        self.port.write(b"\x00" + cobs_encode(body + struct.pack("<I", crc32(body))) + b"\x00")
+
+    def frames(self):
+        """Decoded frames (type, seq, session, payload); checks the CRC."""
+        while True:
+            while b"\x00" not in self.buf:
+                self.buf += self.port.read(max(1, self.port.in_waiting)) or b""
+            chunk, self.buf = self.buf.split(b"\x00", 1)
+            if not chunk:
+                continue
+            body = cobs_decode(chunk)
+            assert struct.unpack("<I", body[-4:])[0] == crc32(body[:-4])
+            version, _inc, _comp, mtype, seq, plen, session = struct.unpack_from(HEADER_FMT, body)
+            assert version == VERSION
+            yield mtype, seq, session, body[12:12 + plen]
+
+    def messages(self):
+        """Whole messages, FRAGMENTs put together (section 6.3)."""
+        parts: dict = {}
+        for mtype, seq, session, payload in self.frames():
+            if mtype != TYPES["FRAGMENT"]:
+                yield mtype, seq, session, payload
+                continue
+            size = struct.calcsize(FRAGMENT[0])
+            f = dict(zip(FRAGMENT[1], struct.unpack_from(FRAGMENT[0], payload), strict=True))
+            key = (f["msg_type"], f["seq"], f["frame"], f["column"])
+            got = parts.setdefault(key, {})
+            got[f["index"]] = payload[size:]
+            if len(got) == f["count"]:
+                del parts[key]
+                yield f["msg_type"], f["seq"], session, b"".join(got[i] for i in range(f["count"]))
+
+
+def test_a_client_written_from_the_page_scans_the_virtual_device() -> None:
+    port = serial.serial_for_url(URL, timeout=0.05)
+    client = Client(port)
+    msgs = client.messages()
+    fields = {"host_max_frame": 96, "flags": 0, "host_nonce": secrets.token_bytes(16),
+              "device_nonce": bytes(16), "mac": bytes(32)}  # 96 bytes: INFO comes in pieces
+    client.send("HELLO", struct.pack(HELLO[0], *(fields[n] for n in HELLO[1])))
+    mtype, _seq, session, _info = next(msgs)
+    assert mtype == TYPES["INFO"]
+    client.session = session
+    client.send("SCAN_START", struct.pack(SCAN_START[0], 9, 0, 4))
+    columns = []
+    for mtype, _seq, _session, payload in msgs:
+        if mtype == TYPES["COLUMN_RESULT"]:
+            size = struct.calcsize(COLUMN_HEADER[0])
+            head = dict(zip(COLUMN_HEADER[1], struct.unpack_from(COLUMN_HEADER[0], payload),
+                            strict=True))
+            rec = np.frombuffer(payload, record_dtype(head["peaks"]), head["channels"], size)
+            columns.append((head, rec))
+        elif mtype == TYPES["SCAN_END"]:
+            end = dict(zip(SCAN_END[1], struct.unpack(SCAN_END[0], payload), strict=True))
+            assert end["columns"] == 4 and end["reason"] == 0
+            break
+    port.close()
+
+    with HostLink(open_port(URL), timeout_s=1.0) as link:
+        reference = list(link.scan(frame=9, columns=4))
+    assert [h["column"] for h, _ in columns] == [0, 1, 2, 3]
+    for (head, rec), col in zip(columns, reference, strict=True):
+        assert (head["frame"], head["angle_udeg"], head["uid_bits"]) == \
+            (col.frame, col.angle_udeg, col.uid_bits)
+        assert rec.dtype.names == col.records.dtype.names  # every field the page names
+        for name in rec.dtype.names:
+            assert np.array_equal(rec[name], col.records[name]), name
