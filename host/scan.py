@@ -38,7 +38,7 @@ from cdma_lidar.host.calibration import Calibration, toml_safe
 from cdma_lidar.host.cloud_formats import FORMATS, write
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.nearfar import NearFarController, PowerLimits
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
 
@@ -189,20 +189,51 @@ def _runs(missing: NDArray[np.bool_]) -> list[tuple[int, int]]:
     return [(int(a), int(b - a + 1)) for a, b in zip(starts, ends, strict=True)]
 
 
-def _set_power(device: Device, matrix: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Send a power matrix (fractions of the per-pixel maximum); back off if the cap refuses."""
+def _set_power(device: Device, matrix: NDArray[np.float64],
+               previous: NDArray[np.float64] | None = None,
+               raised: NDArray[np.bool_] | None = None
+               ) -> tuple[NDArray[np.float64], float | None]:
+    """Send a power matrix (fractions of the per-pixel maximum); returns (applied, cap).
 
-    m = np.clip(matrix, 0.0, 1.0)
+    The matrix is rounded down to the device's 1/65535 grid (rounding up could push a
+    column over its cap by one LSB). The device checks its eye-safety cap after every
+    rectangle of a chunked POWER_SET, so ``min(previous, matrix)`` goes first: every
+    intermediate state is then at most the final one, element by element. When the
+    device refuses anyway (its cap is lower than ours), the cap is learned as 0.97 of
+    the largest column sum just refused and applied as the controller would (raised
+    pixels give way first); ``cap`` is that learned cap, or None.
+    """
+    m = np.floor(np.clip(matrix, 0.0, 1.0) * 65535.0)
+    prev = None if previous is None else np.floor(np.clip(previous, 0.0, 1.0) * 65535.0)
+    up = np.zeros(m.shape, bool) if raised is None else raised
+    learned: float | None = None
     for _ in range(20):
         try:
-            device.link.set_power(m)
-            return m
+            if prev is not None and prev.shape == m.shape and np.any(prev > m):
+                device.link.set_power(np.minimum(prev, m).astype(np.int64))
+            device.link.set_power(m.astype(np.int64))
+            return m / 65535.0, learned
         except DeviceError as exc:
             if getattr(exc, "field", None) != "power":
                 raise
-            log.info("device refused the power matrix (%s); scaling it by 0.8", exc)
-            m = m * 0.8
+            log_ = log.warning if learned is None else log.debug
+            learned = 0.8 * float(m.sum(axis=0).max()) / 65535.0
+            log_("device refused the power matrix (%s); capping columns at %.4g of the "
+                 "per-pixel maximum", exc, learned)
+            m = np.floor(apply_cap(m / 65535.0, learned, None if previous is None else previous,
+                                   (up,)) * 65535.0)
+            prev = None
     raise LinkError("the device refuses every power matrix; check its eye-safety settings")
+
+
+def _apply_power(device: Device, controller: NearFarController,
+                 previous: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """Send the controller's next matrix; a cap learned from a refusal becomes its cap."""
+    raised = None if previous is None else controller.power > previous
+    applied, cap = _set_power(device, controller.power, previous, raised)
+    if cap is not None:
+        controller.limits = dataclasses.replace(controller.limits, total_cap=cap)
+    return applied
 
 
 def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
@@ -252,13 +283,16 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                           data=FrameData.empty(k, c, uid_bits, peaks))
     controller = None
     if options.near_far:
-        limits = PowerLimits(max_power=1.0, total_cap=options.power_cap)
+        # Default cap: the starting column sum, so the loop moves power between pixels
+        # and never raises a column's total (the paper's "without increasing overall power").
+        cap = options.power_cap if options.power_cap is not None else k * options.initial_power
+        limits = PowerLimits(max_power=1.0, total_cap=cap)
         controller = NearFarController((k, c), ranging.snr_threshold_db, limits,
                                        initial_power=options.initial_power)
         if state.powers:
             controller.powers[:] = [np.asarray(p) for p in state.powers]
             controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
-        controller.powers[-1] = _set_power(device, controller.power)
+        controller.powers[-1] = _apply_power(device, controller, None)
 
     total = options.frames * c
     done_before = state.frame_index * c + int(state.data.done.sum())
@@ -294,7 +328,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                 controller.snr_maps[:] = state.snr_maps[:-1]
                 nxt = controller.update(image.snr_xc_db, image.peak)
                 if not last:
-                    controller.powers[-1] = _set_power(device, nxt)
+                    controller.powers[-1] = _apply_power(device, controller,
+                                                         controller.powers[-2])
                 state.powers = list(controller.powers)
             state.frame_index += 1
             if not last:
