@@ -326,7 +326,7 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
             last = state.frame_index + 1 >= options.frames
             if controller is not None:
                 controller.snr_maps[:] = state.snr_maps[:-1]
-                nxt = controller.update(image.snr_xc_db, image.peak)
+                controller.update(image.snr_xc_db, image.peak)
                 if not last:
                     controller.powers[-1] = _apply_power(device, controller,
                                                          controller.powers[-2])
