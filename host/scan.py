@@ -35,12 +35,15 @@ from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkEr
 from cdma_lidar.fileio import atomic_open, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
-from cdma_lidar.host.cloud_formats import FORMATS, write
+from cdma_lidar.host.cloud_formats import FORMATS, MULTI_FRAME_FORMATS, write_frames
+from cdma_lidar.host.combine import COMBINE_MODES, combine
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.intensity import intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
+from cdma_lidar.host.uid_filter import ForeignReturns
 
 __all__ = [
     "STATE_SUFFIX",
@@ -78,7 +81,7 @@ class ScanOptions:
     """What a scan does besides scanning (all recorded in the partial-scan file).
 
     Attributes:
-        frames: frames to scan; the point cloud is made from the last one.
+        frames: frames to scan; the point cloud is made from them by ``combine``.
         near_far: adjust the per-pixel power between frames (Note 12).
         snr_threshold_db: SNR_XC threshold (dB); None: the default (16 dB).
         min_support: a pixel above the threshold is kept only if at least this many of
@@ -90,6 +93,11 @@ class ScanOptions:
             (None: only the device enforces its cap; refused matrices are scaled down).
         initial_power: near-far start power, as a fraction of the per-pixel maximum.
         offset_m: calibration offset (m).
+        combine: how the frames become one cloud (:mod:`cdma_lidar.host.combine`):
+            ``last``, ``mean`` (SNR-weighted) or ``median``.
+        keep_foreign: keep other users' returns as extra points with their ``user_id``.
+        intensity_gain: the calibrated intensity gain (:mod:`cdma_lidar.host.intensity`);
+            None: relative intensity.
     """
 
     frames: int = 1
@@ -101,8 +109,18 @@ class ScanOptions:
     power_cap: float | None = None
     initial_power: float = 0.25
     offset_m: float = 0.0
+    combine: str = "last"
+    keep_foreign: bool = False
+    intensity_gain: float | None = None
 
     def __post_init__(self) -> None:
+        if self.combine not in COMBINE_MODES:
+            raise ConfigError(f"combine must be one of {', '.join(COMBINE_MODES)}, not "
+                              f"{self.combine!r}", field="combine")
+        if self.near_far and self.frames < 2:
+            raise ConfigError(f"near_far needs at least 2 frames (the first one measures, "
+                              f"the next ones are corrected), not {self.frames}",
+                              field="frames")
         if not 1 <= self.frames <= 10000:
             raise ConfigError(f"frames must be from 1 to 10000, not {self.frames!r}",
                               field="frames")
@@ -124,6 +142,8 @@ class ScanState:
     data: FrameData
     powers: list[NDArray[np.float64]] = field(default_factory=list)
     snr_maps: list[NDArray[np.float64]] = field(default_factory=list)
+    past: list[NDArray] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the state atomically (NPZ)."""
@@ -135,6 +155,9 @@ class ScanState:
             arrays["powers"] = np.stack(self.powers)
         if self.snr_maps:
             arrays["snr_maps"] = np.stack(self.snr_maps)
+        if self.past:
+            arrays["past"] = np.stack(self.past)
+            arrays["stamps"] = np.array(self.stamps, dtype=np.float64)
         with atomic_open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -153,7 +176,10 @@ class ScanState:
                            frame_index=int(z["frame_index"]), frame_base=int(z["frame_base"]),
                            data=frame,
                            powers=list(z["powers"]) if "powers" in z.files else [],
-                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [])
+                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [],
+                           past=list(z["past"]) if "past" in z.files else [],
+                           stamps=[float(v) for v in z["stamps"]] if "stamps" in z.files
+                           else [])
         except (OSError, ValueError, KeyError) as exc:
             raise ConfigError(f"partial scan {str(p)!r} is damaged ({exc}); delete it and "
                               "scan again without --resume", field="resume") from exc
@@ -161,7 +187,12 @@ class ScanState:
 
 @dataclass
 class ScanResult:
-    """What a scan produced: the last frame's cloud and ranges, and the per-frame history."""
+    """What a scan produced: the (combined) cloud and ranges, and the per-frame history.
+
+    ``image`` and ``cloud`` are the combination of the frames (``--combine``; the last
+    frame for ``last``), ``clouds`` every frame's cloud, ``data`` the last frame's
+    receiver results.
+    """
 
     cloud: PointCloud
     image: RangeImage
@@ -170,6 +201,7 @@ class ScanResult:
     powers: list[NDArray[np.float64]]
     columns_scanned: int
     files: list[Path]
+    clouds: list[PointCloud] = field(default_factory=list)
 
 
 def _header(device: Device, options: ScanOptions, out: Path) -> dict[str, Any]:
@@ -293,7 +325,16 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
             controller.powers[:] = [np.asarray(p) for p in state.powers]
             controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
         controller.powers[-1] = _apply_power(device, controller, None)
+    elif not resume:
+        # A known, uniform power: the intensity needs it (the device default may differ).
+        _set_power(device, np.full((k, c), options.initial_power))
 
+    geometry, wavelengths = device.geometry(), device.wavelengths_m
+    device_cfg = dict(device.config)
+    clouds: list[PointCloud] = [_cloud_from_records(r, st, wavelengths, state.data.angle_deg)
+                                for r, st in zip(state.past, state.stamps, strict=True)]
+    images: list[RangeImage] = [_image_from_cloud(cl, ranging) for cl in clouds]
+    stamp = time.time()
     total = options.frames * c
     done_before = state.frame_index * c + int(state.data.done.sum())
     bar = None
@@ -307,6 +348,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         while state.frame_index < options.frames:
             fid = state.frame_base + state.frame_index
             data = state.data
+            if not data.done.any():
+                stamp = time.time()
             for first, count in _runs(~data.done):
                 for col in device.link.scan(first_column=first, columns=count, frames=1,
                                             frame=fid):
@@ -324,6 +367,16 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
             image = estimate_ranges(data, ranging)
             state.snr_maps.append(image.snr_xc_db)
             last = state.frame_index + 1 >= options.frames
+            power = controller.power if controller is not None else options.initial_power
+            inten = intensity(image.peak, image.range_m, power, device_cfg,
+                              options.intensity_gain)
+            cloud = assemble(image, geometry, wavelengths, data.angle_deg,
+                             timestamps_us=data.timestamp_us, done=data.done, intensity=inten,
+                             keep_foreign=options.keep_foreign, stamp_unix_s=stamp)
+            clouds.append(cloud)
+            images.append(image)
+            state.past.append(cloud.grid_records())
+            state.stamps.append(stamp)
             if controller is not None:
                 controller.snr_maps[:] = state.snr_maps[:-1]
                 controller.update(image.snr_xc_db, image.peak)
@@ -347,17 +400,27 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     finally:
         if bar is not None:
             bar.close()
-    assert image is not None
-    cloud = assemble(image, device.geometry(), device.wavelengths_m, state.data.angle_deg)
-    write(cloud, out)
+    assert image is not None and clouds
+    image, cloud = images[-1], clouds[-1]
+    if options.combine != "last" and len(images) > 1:
+        image = combine(images, options.combine)
+        cloud = assemble(image, geometry, wavelengths, state.data.angle_deg,
+                         timestamps_us=state.data.timestamp_us, done=state.data.done,
+                         keep_foreign=options.keep_foreign, stamp_unix_s=clouds[-1].stamp_unix_s)
+        with np.errstate(all="ignore"):
+            per_frame = np.stack([cl.intensity for cl in clouds])
+            cloud.intensity = np.where(cloud.has_range, np.nanmedian(
+                np.where(np.isfinite(per_frame), per_frame, np.nan), axis=0), np.nan)
+    if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
+        write_frames(clouds, out)
+    else:
+        write_frames([cloud], out)
     files = [out]
     if pictures_too:
         paths = picture_paths(out)
         maps = (state.snr_maps if options.near_far and len(state.snr_maps) > 1
                 else [image.snr_xc_db])
         titles = ([f"frame {i}" for i in range(len(maps))] if len(maps) > 1 else ["SNR_XC"])
-        if len(maps) > 2:
-            maps, titles = [maps[0], maps[-1]], ["first frame", "last frame"]
         pictures.snr_heatmaps(maps, ranging.snr_threshold_db, paths["snr"], titles)
         pictures.depth_image(cloud, paths["depth"])
         pictures.view_3d(cloud, paths["view"])
@@ -365,7 +428,29 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     spath.unlink(missing_ok=True)
     return ScanResult(cloud=cloud, image=image, data=state.data,
                       snr_maps=list(state.snr_maps),
-                      powers=list(state.powers), columns_scanned=scanned, files=files)
+                      powers=list(state.powers), columns_scanned=scanned, files=files,
+                      clouds=clouds)
+
+
+def _cloud_from_records(rec: NDArray, stamp: float, wavelengths_m: NDArray[np.float64],
+                        angles_deg: NDArray[np.float64]) -> PointCloud:
+    """A finished frame's cloud back from the grid records a partial scan keeps."""
+    k, c = wavelengths_m.size, angles_deg.size
+    grid = {name: np.asarray(rec[name]).reshape(k, c) for name in rec.dtype.names}
+    return PointCloud(**{n: grid[n].astype(np.float64) if grid[n].dtype.kind == "f"
+                         else grid[n].astype(np.int64) for n in grid},
+                      wavelengths_m=wavelengths_m, angles_deg=np.asarray(angles_deg),
+                      stamp_unix_s=float(stamp))
+
+
+def _image_from_cloud(cloud: PointCloud, config: Any) -> RangeImage:
+    """The ranges of a finished frame (for --combine after --resume)."""
+    empty = np.zeros(0, np.int64)
+    return RangeImage(range_m=np.where(cloud.flags == 0, cloud.range, np.nan),
+                      lag=np.zeros(cloud.shape), snr_xc_db=cloud.snr_xc,
+                      peak=cloud.peak, flags=cloud.flags.astype(np.uint8),
+                      foreign=ForeignReturns(empty, empty, empty, empty, empty, empty,
+                                             np.zeros(0)), config=config)
 
 
 def calibrate_device(device: Device, target_distance_m: float, *, shots: int = 20,
