@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import Callable
@@ -51,6 +52,8 @@ __all__ = [
     "ScanResult",
     "ScanState",
     "calibrate_device",
+    "max_snr_xc_db",
+    "multi_user_peaks",
     "picture_paths",
     "run_scan",
     "state_path",
@@ -221,6 +224,42 @@ def _runs(missing: NDArray[np.bool_]) -> list[tuple[int, int]]:
     return [(int(a), int(b - a + 1)) for a, b in zip(starts, ends, strict=True)]
 
 
+def max_snr_xc_db(config: dict[str, Any]) -> float:
+    """The largest SNR_XC (dB) a configuration can report: ``10 log10(12 peak_max^2)``.
+
+    The peak is a signed ``out_bits`` value and the noise variance is floored at 1/12
+    LSB^2 (:mod:`cdma_lidar.firmware_model.snr`), so no threshold above this can ever pass.
+    """
+    bits = int(config.get("out_bits", 32))
+    return 10.0 * math.log10(12.0) + 20.0 * (bits - 1) * math.log10(2.0)
+
+
+#: Peaks per channel asked for when a UID is configured (see :func:`multi_user_peaks`).
+MULTI_USER_PEAKS = 4
+
+
+def multi_user_peaks(device: Device, user_set: set[str] | frozenset[str] = frozenset()
+                     ) -> int:
+    """Ask for enough peaks to find our own return among other users'; returns the new P.
+
+    With a UID configured (``uid_bits > 1``) another user on the same code can be
+    stronger than us and take the single peak a channel reports; then our pixel is lost.
+    When the configuration has ``peaks = 1`` and the user did not set ``peaks``
+    (``user_set``), the device is asked for :data:`MULTI_USER_PEAKS` (at most its
+    ``max_peaks``). Returns 0 when nothing was changed.
+    """
+    cfg = device.config
+    if int(cfg.get("uid_bits", 1)) <= 1 or int(cfg.get("peaks", 1)) != 1 or "peaks" in user_set:
+        return 0
+    want = min(MULTI_USER_PEAKS, int(getattr(device.info, "max_peaks", MULTI_USER_PEAKS)))
+    if want <= 1:
+        return 0
+    device.link.set_config(peaks=want)
+    device.refresh_config()
+    log.info("UID configured: asked the device for %d peaks per channel", want)
+    return want
+
+
 def _set_power(device: Device, matrix: NDArray[np.float64],
                previous: NDArray[np.float64] | None = None,
                raised: NDArray[np.bool_] | None = None
@@ -325,7 +364,7 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
             controller.powers[:] = [np.asarray(p) for p in state.powers]
             controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
         controller.powers[-1] = _apply_power(device, controller, None)
-    elif not resume:
+    else:
         # A known, uniform power: the intensity needs it (the device default may differ).
         _set_power(device, np.full((k, c), options.initial_power))
 

@@ -32,8 +32,7 @@ def write(cloud: PointCloud, path: str | os.PathLike[str],
               f"comment cdma-lidar point cloud; flags bits: {flags}",
               "comment x y z range in m (x forward, y left, z up); t in s from the frame's "
               "first column; snr_xc in dB",
-              f"comment channels {cloud.shape[0]} columns {cloud.shape[1]} "
-              f"stamp_unix_s {cloud.stamp_unix_s:.6f}",
+              f"comment channels {cloud.shape[0]} columns {cloud.shape[1]}",
               f"element vertex {rec.size}"]
     header += [f"property {PLY_TYPES[t]} {name}" for name, t in POINT_FIELDS]
     header.append("end_header")
