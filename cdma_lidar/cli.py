@@ -22,6 +22,7 @@ from types import ModuleType
 from cdma_lidar import __version__, demo
 from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.firmware_model import cli as codes_cli
+from cdma_lidar.host import capture as capture_cli
 from cdma_lidar.host import cli as host_cli
 from cdma_lidar.scene import cli as scene_cli
 from cdma_lidar.virtual import cli as device_cli
@@ -31,8 +32,9 @@ __all__ = ["build_parser", "main"]
 log = logging.getLogger("cdma_lidar.cli")
 
 #: Modules that contribute subcommands, in help order: codes; scene; device; info, scan,
-#: calibrate; demo.
-COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, demo)
+#: calibrate; capture; demo.
+COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, capture_cli,
+                                            demo)
 
 
 class _OneLineParser(argparse.ArgumentParser):

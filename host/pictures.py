@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 from cdma_lidar.fileio import atomic_open
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["depth_image", "snr_heatmap", "snr_heatmaps", "view_3d"]
+__all__ = ["capture_plot", "depth_image", "snr_heatmap", "snr_heatmaps", "view_3d"]
 
 log = logging.getLogger(__name__)
 
@@ -104,3 +105,54 @@ def view_3d(cloud: PointCloud, path: str | os.PathLike[str]) -> None:
     ax.set_zlabel("z up (m)")
     ax.view_init(elev=12, azim=-160)
     _save(fig, path)
+
+
+def capture_plot(cap: Mapping[str, Any], path: str | os.PathLike[str]) -> None:
+    """A capture (:mod:`cdma_lidar.host.capture`) as a PNG.
+
+    ``corr``: the correlation trace against range (m, lag in samples on top) with the
+    reported peak marked, like the paper's Fig. 3d. ``raw``: the ADC codes against time
+    (us), the first 2000 samples and the whole column's histogram beside them.
+    """
+    data = np.asarray(cap["data"])
+    kind = str(cap["kind"])
+    title = f"column {int(cap['column'])}"
+    if kind == "corr":
+        fig = _figure(7.5, 3.6)
+        ax = fig.subplots()
+        r = np.asarray(cap["range_m"])
+        ax.plot(r, data, lw=0.7, color="tab:blue")
+        pk = int(cap.get("peak_lag", -1))
+        lag = np.asarray(cap["lag"])
+        if pk >= 0 and lag[0] <= pk <= lag[-1]:
+            i = pk - int(lag[0])
+            ax.plot(r[i], data[i], "v", color="tab:red", ms=7)
+            ax.annotate(f"peak: lag {pk}, {r[i]:.3f} m", (r[i], data[i]),
+                        xytext=(8, -14), textcoords="offset points", fontsize=8)
+        ax.set_xlabel("range (m)")
+        ax.set_ylabel("correlation out (LSB)")
+        ax.set_title(f"cross-correlation, {title} channel {int(cap['channel'])}")
+        sec = ax.secondary_xaxis("top", functions=_lag_axis(r, lag))
+        sec.set_xlabel("lag (samples)")
+    else:
+        fig = _figure(9, 3.4)
+        ax, hx = fig.subplots(1, 2, width_ratios=[3, 1])
+        n = min(data.size, 2000)
+        t = np.arange(n) / float(cap["sample_rate_hz"]) * 1e6
+        ax.plot(t, data[:n], lw=0.5, color="tab:blue")
+        ax.set_xlabel("time (us)")
+        ax.set_ylabel("ADC code")
+        ax.set_title(f"raw ADC, {title} (first {n} of {data.size} samples)")
+        hx.hist(data, bins=64, orientation="horizontal", color="tab:gray")
+        hx.set_xlabel("samples")
+        hx.set_title("all samples")
+    _save(fig, path)
+
+
+def _lag_axis(r: NDArray, lag: NDArray):
+    """Forward and inverse maps between range (m) and lag (samples), both linear."""
+    if r.size < 2:
+        return (lambda x: x), (lambda x: x)
+    a = (lag[-1] - lag[0]) / (r[-1] - r[0])
+    return (lambda x: lag[0] + a * (np.asarray(x) - r[0]),
+            lambda x: r[0] + (np.asarray(x) - lag[0]) / a)
