@@ -52,6 +52,7 @@ __all__ = [
     "ScanResult",
     "ScanState",
     "calibrate_device",
+    "image_from_cloud",
     "max_snr_xc_db",
     "multi_user_peaks",
     "picture_paths",
@@ -372,7 +373,7 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     device_cfg = dict(device.config)
     clouds: list[PointCloud] = [_cloud_from_records(r, st, wavelengths, state.data.angle_deg)
                                 for r, st in zip(state.past, state.stamps, strict=True)]
-    images: list[RangeImage] = [_image_from_cloud(cl, ranging) for cl in clouds]
+    images: list[RangeImage] = [image_from_cloud(cl, ranging) for cl in clouds]
     stamp = time.time()
     total = options.frames * c
     done_before = state.frame_index * c + int(state.data.done.sum())
@@ -482,8 +483,8 @@ def _cloud_from_records(rec: NDArray, stamp: float, wavelengths_m: NDArray[np.fl
                       stamp_unix_s=float(stamp))
 
 
-def _image_from_cloud(cloud: PointCloud, config: Any) -> RangeImage:
-    """The ranges of a finished frame (for --combine after --resume)."""
+def image_from_cloud(cloud: PointCloud, config: Any) -> RangeImage:
+    """The ranges of a finished frame from its cloud (to combine frames, also after --resume)."""
     empty = np.zeros(0, np.int64)
     return RangeImage(range_m=np.where(cloud.flags == 0, cloud.range, np.nan),
                       lag=np.zeros(cloud.shape), snr_xc_db=cloud.snr_xc,
