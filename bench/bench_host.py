@@ -11,6 +11,8 @@ in the same run:
   (the baseline); and what ``--interpolate`` fills at a stricter threshold;
 * near-far: object pixels above the threshold per frame of the closed loop over ten
   frames on near-far, paper-scene1 and flat-wall, against uniform power (baseline);
+* --combine: frame-to-frame precision and the deterministic bias against N on
+  flat-wall (baseline: one frame);
 * speed: the vectorised range pipeline against a per-pixel Python loop; point-cloud
   assembly and the PLY writer.
 """
@@ -138,6 +140,43 @@ def bench_near_far(frames: int = 10) -> None:
             + f"{max(float(p.sum(axis=0).max()) for p in pw):.2f} (cap {pw[0].shape[0] * 0.25:g})")
 
 
+def bench_combine(frames: int = 8) -> None:
+    """Precision and bias of --combine mean/median against N on flat-wall (baseline N = 1)."""
+    import cdma_lidar.virtual  # noqa: F401 - registers virtual:// (bench only, not a layer)
+    from cdma_lidar.host.combine import combine
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.scan import ScanOptions, image_from_cloud, run_scan
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.truth import compute_truth
+
+    scene = load_scene("flat-wall")
+    truth = compute_truth(scene).range_m
+    offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
+    runs = []
+    with tempfile.TemporaryDirectory() as d:
+        for fid in (100, 200):
+            with connect("virtual://flat-wall?seed=1") as dev:
+                res = run_scan(dev, Path(d) / "w.npz", ScanOptions(frames=frames,
+                                                                 offset_m=offset),
+                               progress=False, frame_id=fid)
+            runs.append([image_from_cloud(c, res.image.config) for c in res.clouds])
+    print(f"--combine on flat-wall (two independent {frames}-frame scans, perfect calibration):"
+          " precision = std(A - B) / sqrt(2) over pixels, bias = median |(A + B)/2 - truth|")
+    base = None
+    for mode in ("mean", "median"):
+        for n in (1, 2, 4, 8):
+            if n > frames or (mode == "median" and n < 3 and n != 1):
+                continue
+            ra, rb = (combine(r[:n], mode).range_m for r in runs)
+            ok = np.isfinite(ra) & np.isfinite(rb)
+            prec = float(np.std((ra - rb)[ok]) / np.sqrt(2))
+            bias = float(np.median(np.abs(0.5 * (ra + rb) - truth)[ok]))
+            base = prec if base is None else base
+            print(f"  {mode:6s} N={n}: precision {1e3 * prec:6.2f} mm ({base / prec:4.2f}x "
+                  f"better than N=1; 1/sqrt(N) predicts {np.sqrt(n):4.2f}x), bias "
+                  f"{1e3 * bias:6.2f} mm")
+
+
 def _loop_ranges(frame, cfg: RangingConfig) -> np.ndarray:
     """Baseline: the same range conversion, one pixel at a time."""
     k, c = frame.shape
@@ -180,6 +219,7 @@ def main() -> None:
     bench_refinement()
     bench_support()
     bench_near_far()
+    bench_combine()
     bench_speed()
 
 
