@@ -150,3 +150,24 @@ def test_multi_user_defaults_and_keep_foreign(capsys, tmp_path):
     assert set(cloud.extra["user_id"].tolist()) <= {0, 3} and cloud.extra.size > 0
     assert (cloud.extra["flags"] & 4).all()
     assert (cloud.user_id == 1).all()          # our UID
+
+
+def test_scan_to_mcap_writes_one_pointcloud2_per_frame(capsys, tmp_path):
+    from mcap.reader import make_reader  # mcap extra, in the test extra
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = tmp_path / "s.mcap"
+    code, _, _ = _run(capsys, "scan", "--port", "virtual://flat-wall?seed=1", "--out", str(out),
+                      "--frames", "3", "--no-progress", "--frame-id", "9")
+    assert code == 0
+    with open(out, "rb") as fh:
+        msgs = [m for *_, m in make_reader(fh, decoder_factories=[DecoderFactory()])
+                .iter_decoded_messages(topics=["/cdma_lidar/points"])]
+    assert len(msgs) == 3
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs]
+    assert stamps == sorted(stamps) and stamps[0] > 1.6e9
+    for m in msgs:
+        assert (m.height, m.width) == (40, 16) and m.header.frame_id == "cdma_lidar"
+        names = [f.name for f in m.fields]
+        assert {"t", "ring", "intensity", "user_id"} <= set(names)
+        assert len(m.data) == m.point_step * m.height * m.width
