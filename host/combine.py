@@ -26,15 +26,23 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.host.ranging import FLAG_REJECTED, RangeImage
 
-__all__ = ["COMBINE_MODES", "combine"]
+__all__ = ["COMBINE_MODES", "combine", "nan_median"]
 
 log = logging.getLogger(__name__)
 
 COMBINE_MODES = ("last", "mean", "median")
+
+
+def nan_median(stack: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Median over axis 0 ignoring NaN; NaN where a pixel has no finite value (no warning)."""
+    some = np.isfinite(stack).any(axis=0)
+    filled = np.where(some[None], stack, 0.0)
+    return np.where(some, np.nanmedian(filled, axis=0), np.nan)
 
 
 def combine(images: Sequence[RangeImage], mode: str = "last") -> RangeImage:
@@ -60,8 +68,8 @@ def combine(images: Sequence[RangeImage], mode: str = "last") -> RangeImage:
             rng = (np.where(ok, r, 0.0) * w).sum(axis=0) / w.sum(axis=0)
             snr = 10.0 * np.log10(w.sum(axis=0))
         else:
-            rng = np.nanmedian(np.where(ok, r, np.nan), axis=0)
-            snr = np.nanmedian(np.where(ok, s, np.nan), axis=0)
+            rng = nan_median(np.where(ok, r, np.nan))
+            snr = nan_median(np.where(ok, s, np.nan))
     rng = np.where(keep, rng, np.nan)
     snr = np.where(keep, snr, last.snr_xc_db)
     peak = np.where(keep, np.rint(np.mean(np.abs(np.stack([im.peak for im in images])),

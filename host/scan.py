@@ -37,7 +37,7 @@ from cdma_lidar.fileio import atomic_open, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
 from cdma_lidar.host.cloud_formats import FORMATS, MULTI_FRAME_FORMATS, write_frames
-from cdma_lidar.host.combine import COMBINE_MODES, combine
+from cdma_lidar.host.combine import COMBINE_MODES, combine, nan_median
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.intensity import intensity
@@ -447,10 +447,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         cloud = assemble(image, geometry, wavelengths, state.data.angle_deg,
                          timestamps_us=state.data.timestamp_us, done=state.data.done,
                          keep_foreign=options.keep_foreign, stamp_unix_s=clouds[-1].stamp_unix_s)
-        with np.errstate(all="ignore"):
-            per_frame = np.stack([cl.intensity for cl in clouds])
-            cloud.intensity = np.where(cloud.has_range, np.nanmedian(
-                np.where(np.isfinite(per_frame), per_frame, np.nan), axis=0), np.nan)
+        per_frame = np.stack([cl.intensity for cl in clouds])
+        cloud.intensity = np.where(cloud.has_range, nan_median(per_frame), np.nan)
     if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
         write_frames(clouds, out)
     else:
