@@ -297,6 +297,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
         fr = [100 * float(np.mean(m >= thr)) for m in res.snr_maps]
         _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
              + ", ".join(f"{f:.1f} %" for f in fr))
+        cap = args.power_cap if args.power_cap is not None else \
+            dev.channels * ScanOptions().initial_power
+        _say(f"largest column power sum per frame (cap {cap:g} x the per-pixel maximum): "
+             + ", ".join(f"{float(p.sum(axis=0).max()):.2f}" for p in res.powers[:-1]))
     if len(img.foreign):
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
         fate = ("kept in the cloud with their user_id" if args.keep_foreign
