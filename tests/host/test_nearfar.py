@@ -147,3 +147,21 @@ def test_limits_checked():
         next_power(np.ones((2, 2)), np.ones((2, 3)), 10.0)
     with pytest.raises(ConfigError, match="band"):
         next_power(np.ones((2, 2)), np.ones((2, 2)), 10.0, band_low_db=5, band_high_db=3)
+
+
+@given(st.integers(min_value=0, max_value=2**31 - 1), st.floats(min_value=0.5, max_value=8.0))
+def test_limits_hold_for_any_frame(seed: int, cap: float):
+    """Whatever the SNR map and peaks say (noise, NaN, zeros), the matrix stays legal."""
+    rng = np.random.default_rng(seed)
+    k, c = 8, 5
+    p = rng.uniform(1e-4, 1.0, (k, c))
+    p *= np.minimum(1.0, cap / p.sum(axis=0))[None, :]
+    snr = rng.uniform(-20, 90, (k, c))
+    snr[rng.random((k, c)) < 0.1] = np.nan
+    peak = rng.integers(-10**7, 10**7, (k, c))
+    peak[rng.random((k, c)) < 0.1] = 0
+    limits = PowerLimits(max_power=1.0, total_cap=cap)
+    new = next_power(p, snr, THRESHOLD_DB, limits, peak=peak)
+    assert np.all(np.isfinite(new))
+    assert np.all(new <= 1.0) and np.all(new >= 0.0)
+    assert np.all(new.sum(axis=0) <= cap * (1 + 1e-9))
