@@ -9,7 +9,10 @@ in the same run:
 * the neighbour-consistency rule on top of the SNR_XC threshold: false pixels and
   object pixels kept over ten frames of paper-scene1, against the threshold alone
   (the baseline); and what ``--interpolate`` fills at a stricter threshold;
-* near-far: object pixels above the threshold per frame of the closed loop;
+* near-far: object pixels above the threshold per frame of the closed loop over ten
+  frames on near-far, paper-scene1 and flat-wall, against uniform power (baseline);
+* --combine: frame-to-frame precision and the deterministic bias against N on
+  flat-wall (baseline: one frame);
 * speed: the vectorised range pipeline against a per-pixel Python loop; point-cloud
   assembly and the PLY writer.
 """
@@ -24,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from cdma_lidar.host.cloud_formats.ply import write as write_ply
-from cdma_lidar.host.nearfar import NearFarController, PowerLimits
 from cdma_lidar.host.pointcloud import assemble
 from cdma_lidar.host.ranging import (
     RangingConfig,
@@ -105,24 +107,74 @@ def bench_support(frames: int = 10) -> None:
           f"{np.median([f[2] for f in fill]):.4f} m)")
 
 
-def bench_near_far() -> None:
+def bench_near_far(frames: int = 10) -> None:
+    """Per-frame trajectory of the closed loop through virtual:// against uniform power."""
+    import cdma_lidar.virtual  # noqa: F401 - registers virtual:// (bench only, not a layer)
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.scan import ScanOptions, run_scan
     from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.truth import compute_truth
 
-    spec = load_scene("near-far").instrument
-    k, c = spec.channels, spec.columns
-    cap = spec.total_power_cap_w / spec.max_pixel_power_w
-    ctl = NearFarController((k, c), 16.0, PowerLimits(max_power=1.0, total_cap=cap),
-                            initial_power=float(spec.laser_power_w[0] / spec.max_pixel_power_w))
-    fractions = []
-    for n in range(3):
-        sim = simulate_frame("near-far", power_w=ctl.power * spec.max_pixel_power_w, frame=n)
-        img = estimate_ranges(sim.frame, dataclasses.replace(sim.ranging,
-                                                             offset_m=sim.true_offset_m))
-        obj = np.isfinite(sim.truth_range_m)
-        fractions.append(100 * float(np.mean(img.snr_xc_db[obj] >= 16.0)))
-        ctl.update(img.snr_xc_db, img.peak)
-    print("near-far closed loop, object pixels above 16 dB per frame (baseline: frame 0, "
-          "uniform power): " + ", ".join(f"{f:.1f} %" for f in fractions))
+    print(f"near-far closed loop over {frames} frames (virtual://SCENE?seed=1, frame ids "
+          "11..): object pixels above 16 dB per frame; baseline: the same frames at uniform "
+          "power")
+    for scene in ("near-far", "paper-scene1", "flat-wall"):
+        obj = np.isfinite(compute_truth(load_scene(scene)).range_m)
+        rows = {}
+        with tempfile.TemporaryDirectory() as d:
+            for loop in (False, True):
+                with connect(f"virtual://{scene}?seed=1") as dev:
+                    res = run_scan(dev, Path(d) / "nf.npz",
+                                   ScanOptions(frames=frames, near_far=loop),
+                                   progress=False, frame_id=11)
+                rows[loop] = res
+        thr = rows[True].image.config.snr_threshold_db
+        for loop, label in ((False, "uniform"), (True, "loop")):
+            fr = [100 * float(np.mean(m[obj] >= thr)) for m in rows[loop].snr_maps]
+            print(f"  {scene:12s} {label:8s} " + " ".join(f"{f:5.1f}" for f in fr)
+                  + f"   worst after frame 2: {min(fr[2:]):.1f} % (best {max(fr):.1f} %)")
+        pw = rows[True].powers
+        print(f"  {scene:12s} {'power':8s} " + " ".join(
+            f"{float(np.median(p[obj])):5.3f}" for p in pw[:frames])
+            + "   median object pixel (x max); largest column sum "
+            + f"{max(float(p.sum(axis=0).max()) for p in pw):.2f} (cap {pw[0].shape[0] * 0.25:g})")
+
+
+def bench_combine(frames: int = 8) -> None:
+    """Precision and bias of --combine mean/median against N on flat-wall (baseline N = 1)."""
+    import cdma_lidar.virtual  # noqa: F401 - registers virtual:// (bench only, not a layer)
+    from cdma_lidar.host.combine import combine
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.scan import ScanOptions, image_from_cloud, run_scan
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.truth import compute_truth
+
+    scene = load_scene("flat-wall")
+    truth = compute_truth(scene).range_m
+    offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
+    runs = []
+    with tempfile.TemporaryDirectory() as d:
+        for fid in (100, 200):
+            with connect("virtual://flat-wall?seed=1") as dev:
+                res = run_scan(dev, Path(d) / "w.npz", ScanOptions(frames=frames,
+                                                                 offset_m=offset),
+                               progress=False, frame_id=fid)
+            runs.append([image_from_cloud(c, res.image.config) for c in res.clouds])
+    print(f"--combine on flat-wall (two independent {frames}-frame scans, perfect calibration):"
+          " precision = std(A - B) / sqrt(2) over pixels, bias = median |(A + B)/2 - truth|")
+    base = None
+    for mode in ("mean", "median"):
+        for n in (1, 2, 4, 8):
+            if n > frames or (mode == "median" and n < 3 and n != 1):
+                continue
+            ra, rb = (combine(r[:n], mode).range_m for r in runs)
+            ok = np.isfinite(ra) & np.isfinite(rb)
+            prec = float(np.std((ra - rb)[ok]) / np.sqrt(2))
+            bias = float(np.median(np.abs(0.5 * (ra + rb) - truth)[ok]))
+            base = prec if base is None else base
+            print(f"  {mode:6s} N={n}: precision {1e3 * prec:6.2f} mm ({base / prec:4.2f}x "
+                  f"better than N=1; 1/sqrt(N) predicts {np.sqrt(n):4.2f}x), bias "
+                  f"{1e3 * bias:6.2f} mm")
 
 
 def _loop_ranges(frame, cfg: RangingConfig) -> np.ndarray:
@@ -167,6 +219,7 @@ def main() -> None:
     bench_refinement()
     bench_support()
     bench_near_far()
+    bench_combine()
     bench_speed()
 
 

@@ -23,6 +23,7 @@ from cdma_lidar import __version__, demo
 from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.firmware_model import cli as codes_cli
 from cdma_lidar.hdl_ref import vectors as hdl_cli
+from cdma_lidar.host import capture as capture_cli
 from cdma_lidar.host import cli as host_cli
 from cdma_lidar.scene import cli as scene_cli
 from cdma_lidar.study import cli as study_cli
@@ -33,9 +34,9 @@ __all__ = ["build_parser", "main"]
 log = logging.getLogger("cdma_lidar.cli")
 
 #: Modules that contribute subcommands, in help order: codes; scene; device; info, scan,
-#: calibrate; study; demo; hdl.
-COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, study_cli,
-                                          demo, hdl_cli)
+#: calibrate; capture; study; demo; hdl.
+COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, capture_cli,
+                                          study_cli, demo, hdl_cli)
 
 
 class _OneLineParser(argparse.ArgumentParser):

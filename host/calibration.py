@@ -21,6 +21,7 @@ The result is a TOML file (written atomically with tomli_w, read with tomllib)::
     shots = 100
     samples = 4000             # range values in the histogram (shots x channels)
     date = "2026-11-21T09:30:00+00:00"
+    intensity_gain = 2.1e9     # optional: scan --calibrate-intensity R on a flat target
     [device]      ...          # identity reported by the device (INFO)
     [configuration] ...        # the configuration the calibration holds for
 """
@@ -142,7 +143,12 @@ def _norm(value: Any) -> Any:
 
 @dataclass
 class Calibration:
-    """A system-delay calibration: offset (m) for one device and configuration."""
+    """A system-delay calibration: offset (m) for one device and configuration.
+
+    ``intensity_gain`` (optional) makes the per-point intensity a reflectance estimate
+    (:mod:`cdma_lidar.host.intensity`); ``scan --calibrate-intensity R`` measures it on a
+    flat target of reflectivity R and adds it to the file.
+    """
 
     offset_m: float
     spread_m: float
@@ -152,6 +158,7 @@ class Calibration:
     device: dict[str, Any] = field(default_factory=dict)
     configuration: dict[str, Any] = field(default_factory=dict)
     date: str = ""
+    intensity_gain: float | None = None
 
     @classmethod
     def from_ranges(cls, ranges_m: ArrayLike, target_distance_m: float, *, shots: int,
@@ -178,7 +185,8 @@ class Calibration:
             "target_distance_m": float(self.target_distance_m), "shots": int(self.shots),
             "samples": int(self.samples), "date": self.date,
             "device": toml_safe(self.device), "configuration": toml_safe(self.configuration),
-        }
+        } | ({} if self.intensity_gain is None
+             else {"intensity_gain": float(self.intensity_gain)})
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the calibration as TOML, atomically."""
@@ -203,7 +211,9 @@ class Calibration:
                        shots=int(doc["shots"]), samples=int(doc.get("samples", 0)),
                        device=dict(doc.get("device", {})),
                        configuration=dict(doc.get("configuration", {})),
-                       date=str(doc.get("date", "")))
+                       date=str(doc.get("date", "")),
+                       intensity_gain=(float(doc["intensity_gain"])
+                                       if "intensity_gain" in doc else None))
         except KeyError as exc:
             raise ConfigError(f"calibration file {str(p)!r} lacks the field {exc}; make a new "
                               "one with 'cdma-lidar calibrate'", field="calibration") from exc

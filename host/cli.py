@@ -24,10 +24,19 @@ import tomli_w
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
 from cdma_lidar.host.calibration import Calibration
-from cdma_lidar.host.cloud_formats import FORMATS
+from cdma_lidar.host.cloud_formats import FORMATS, OPTIONAL_LIBRARIES
+from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
+from cdma_lidar.host.intensity import intensity_gain
 from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
-from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, state_path
+from cdma_lidar.host.scan import (
+    ScanOptions,
+    calibrate_device,
+    max_snr_xc_db,
+    multi_user_peaks,
+    run_scan,
+    state_path,
+)
 
 __all__ = ["register"]
 
@@ -58,6 +67,13 @@ def _finite_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"must be a number, not {text!r}") from None
     if not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"must be a finite number, not {text!r}")
+    return v
+
+
+def _reflectivity(text: str) -> float:
+    v = _finite_float(text)
+    if not 0 < v <= 1:
+        raise argparse.ArgumentTypeError(f"must be a reflectivity in (0, 1], not {text!r}")
     return v
 
 
@@ -117,12 +133,25 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
     _add_port(p)
     p.add_argument("--out", required=True, metavar="FILE",
-                   help="point cloud: .ply, .pcd, .npz or .las (by extension)")
+                   help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
+                        "one message per frame), by extension")
     p.add_argument("--frames", type=int, default=1, metavar="N",
-                   help="frames to scan; the cloud is the last one (default 1)")
+                   help="frames to scan (default 1)")
+    p.add_argument("--combine", choices=COMBINE_MODES, default="last",
+                   help="how N frames become one cloud: last (default; the only choice for "
+                        "N = 1), mean (SNR-weighted; the better one for a still scene: the "
+                        "random error falls as 1/sqrt(N)), median (ignores a frame that "
+                        "locked on a wrong peak)")
+    p.add_argument("--keep-foreign", action="store_true",
+                   help="keep other users' returns in the cloud (flag 4, their UID in "
+                        "user_id) instead of only reporting them")
+    p.add_argument("--calibrate-intensity", type=_reflectivity, metavar="R",
+                   help="this scan sees a flat target of reflectivity R (0..1]: measure the "
+                        "intensity gain and store it in the --calibration file")
     p.add_argument("--calibration", metavar="FILE", help="calibration TOML from 'calibrate'")
     p.add_argument("--near-far", action="store_true",
-                   help="adjust per-pixel power between frames (use with --frames 3)")
+                   help="adjust per-pixel power between frames (needs --frames 2 or more; "
+                        "one update usually settles it)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
                    help="SNR_XC threshold in dB: pixels below it are rejected (default 16)")
     p.add_argument("--min-support", type=int, default=1, metavar="N",
@@ -204,9 +233,22 @@ def cmd_scan(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
                           f"{out.suffix or '(no extension)'!r}", field="out")
     check_writable(out, "--out")
-    if out.suffix.lower() == ".las" and importlib.util.find_spec("laspy") is None:
-        raise ConfigError("--out .las needs laspy: pip install 'cdma-lidar[las]' (or write "
-                          ".ply, .pcd or .npz)", field="out")
+    lib = OPTIONAL_LIBRARIES.get(out.suffix.lower())
+    if lib is not None and importlib.util.find_spec(lib[0]) is None:
+        raise ConfigError(f"--out {out.suffix.lower()} needs {lib[0]}: pip install "
+                          f"'cdma-lidar[{lib[1]}]' (or write .ply, .pcd or .npz)", field="out")
+    if not 1 <= args.frames <= 10000:
+        raise ConfigError(f"--frames must be from 1 to 10000, not {args.frames}",
+                          field="frames")
+    if args.near_far and args.frames < 2:
+        raise ConfigError(f"--near-far needs --frames 2 or more (the first frame measures, "
+                          f"the next are corrected), not {args.frames}", field="frames")
+    if args.combine != "last" and args.frames < 2:
+        raise ConfigError(f"--combine {args.combine} needs --frames 2 or more, not "
+                          f"{args.frames}", field="combine")
+    if args.calibrate_intensity is not None and not args.calibration:
+        raise ConfigError("--calibrate-intensity needs --calibration FILE to store the gain "
+                          "in", field="calibrate_intensity")
     if args.resume and not state_path(out).is_file():
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")
@@ -226,9 +268,22 @@ def cmd_scan(args: argparse.Namespace) -> int:
                           snr_threshold_db=args.snr_threshold, min_support=args.min_support,
                           interpolate=args.interpolate,
                           ghost_windows=tuple(ghosts), power_cap=args.power_cap,
-                          offset_m=cal.offset_m if cal else 0.0)
+                          offset_m=cal.offset_m if cal else 0.0, combine=args.combine,
+                          keep_foreign=args.keep_foreign,
+                          intensity_gain=cal.intensity_gain if cal else None)
     with connect(args.port, **_access(args)) as dev:
         _configure(dev, args.set)
+        if args.snr_threshold is not None:
+            top = max_snr_xc_db(dev.config)
+            if not 0.0 <= args.snr_threshold <= top:
+                raise ConfigError(f"--snr-threshold must be from 0 to {top:.1f} dB (the "
+                                  f"SNR_XC this configuration can report), not "
+                                  f"{args.snr_threshold:g}", field="snr_threshold")
+        peaks = multi_user_peaks(dev, {key for key, _ in args.set})
+        if peaks:
+            _say(f"UID configured ({dev.config.get('uid_bits')} bits): asking for {peaks} "
+                 "peaks per channel so other users' returns cannot hide ours (--set peaks=1 "
+                 "to turn this off)")
         if cal is not None:
             cal.check_applies(dev.identity(), dev.calibration_config())
         else:
@@ -252,9 +307,25 @@ def cmd_scan(args: argparse.Namespace) -> int:
         fr = [100 * float(np.mean(m >= thr)) for m in res.snr_maps]
         _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
              + ", ".join(f"{f:.1f} %" for f in fr))
+        cap = args.power_cap if args.power_cap is not None else \
+            dev.channels * ScanOptions().initial_power
+        _say(f"largest column power sum per frame (cap {cap:g} x the per-pixel maximum): "
+             + ", ".join(f"{float(p.sum(axis=0).max()):.2f}" for p in res.powers[:-1]))
     if len(img.foreign):
         users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
-        _say(f"other users' returns: {len(img.foreign)} ({users})")
+        fate = ("kept in the cloud with their user_id" if args.keep_foreign
+                else "rejected; --keep-foreign keeps them")
+        _say(f"other users' returns: {len(img.foreign)} ({users}), {fate}")
+    if args.calibrate_intensity is not None:
+        assert cal is not None
+        power = res.powers[-2] if args.near_far and len(res.powers) > 1 else \
+            ScanOptions().initial_power
+        cal.intensity_gain = intensity_gain(res.clouds[-1].peak, res.clouds[-1].range, power,
+                                            dev.config, args.calibrate_intensity,
+                                            res.clouds[-1].flags == 0)
+        cal.save(args.calibration)
+        _say(f"intensity gain {cal.intensity_gain:.6g} (a flat target of reflectivity "
+             f"{args.calibrate_intensity:g}); added to {args.calibration}")
     if args.save_ghost_map:
 
         windows = ghost_windows_from_image(img)

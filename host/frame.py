@@ -16,7 +16,7 @@ units (``out`` of the receive chain), grating angles in degrees.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,8 @@ class FrameData:
 
     angle_deg (C,) float64: grating rotation of each column (deg), NaN until it arrives.
     done (C,) bool: True for columns that have arrived.
+    timestamp_us (C,) int64: the device clock when each column was measured (us, the
+    wire's u32 that wraps every 71.6 min; 0 until it arrives).
     frame: frame number.
 
     The record's arrays (the ``ReceiverOutput`` shapes with the column axis C added):
@@ -46,7 +48,12 @@ class FrameData:
 
     angle_deg: NDArray[np.float64]
     done: NDArray[np.bool_]
+    timestamp_us: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     frame: int = 0
+
+    def __post_init__(self) -> None:
+        if self.timestamp_us.shape != self.done.shape:
+            self.timestamp_us = np.zeros(self.done.shape, np.int64)
 
     @classmethod
     def empty(cls, channels: int, columns: int, uid_bits: int = 1, peaks: int = 1,
@@ -106,6 +113,9 @@ class FrameData:
             if arr.shape != want:
                 raise out_of_range(f"{name} shape", f"{want}", arr.shape)
             target[:, index] = arr
+        ts = get("timestamp_us")
+        if ts is not None:
+            self.timestamp_us[index] = int(ts)
         if angle_deg is None:
             angle_deg = get("angle_deg")
         if angle_deg is not None:
@@ -120,10 +130,12 @@ class FrameData:
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any]) -> FrameData:
         """Rebuild a frame from :meth:`to_arrays` output (e.g. an opened ``.npz``)."""
-        missing = [f.name for f in fields(cls) if f.name not in arrays]
+        optional = ("timestamp_us",)  # partial scans saved before it existed lack it
+        missing = [f.name for f in fields(cls) if f.name not in arrays
+                   and f.name not in optional]
         if missing:
             raise ConfigError(f"frame data lacks {', '.join(missing)}", field=missing[0])
-        kw = {f.name: np.array(arrays[f.name]) for f in fields(cls)}
+        kw = {f.name: np.array(arrays[f.name]) for f in fields(cls) if f.name in arrays}
         kw["frame"] = int(kw["frame"])
         return cls(**kw)
 

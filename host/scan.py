@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import Callable
@@ -35,12 +36,15 @@ from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkEr
 from cdma_lidar.fileio import atomic_open, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
-from cdma_lidar.host.cloud_formats import FORMATS, write
+from cdma_lidar.host.cloud_formats import FORMATS, MULTI_FRAME_FORMATS, write_frames
+from cdma_lidar.host.combine import COMBINE_MODES, combine, nan_median
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.nearfar import NearFarController, PowerLimits
+from cdma_lidar.host.intensity import intensity
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
+from cdma_lidar.host.uid_filter import ForeignReturns
 
 __all__ = [
     "STATE_SUFFIX",
@@ -48,6 +52,9 @@ __all__ = [
     "ScanResult",
     "ScanState",
     "calibrate_device",
+    "image_from_cloud",
+    "max_snr_xc_db",
+    "multi_user_peaks",
     "picture_paths",
     "run_scan",
     "state_path",
@@ -78,7 +85,7 @@ class ScanOptions:
     """What a scan does besides scanning (all recorded in the partial-scan file).
 
     Attributes:
-        frames: frames to scan; the point cloud is made from the last one.
+        frames: frames to scan; the point cloud is made from them by ``combine``.
         near_far: adjust the per-pixel power between frames (Note 12).
         snr_threshold_db: SNR_XC threshold (dB); None: the default (16 dB).
         min_support: a pixel above the threshold is kept only if at least this many of
@@ -90,6 +97,11 @@ class ScanOptions:
             (None: only the device enforces its cap; refused matrices are scaled down).
         initial_power: near-far start power, as a fraction of the per-pixel maximum.
         offset_m: calibration offset (m).
+        combine: how the frames become one cloud (:mod:`cdma_lidar.host.combine`):
+            ``last``, ``mean`` (SNR-weighted) or ``median``.
+        keep_foreign: keep other users' returns as extra points with their ``user_id``.
+        intensity_gain: the calibrated intensity gain (:mod:`cdma_lidar.host.intensity`);
+            None: relative intensity.
     """
 
     frames: int = 1
@@ -101,8 +113,18 @@ class ScanOptions:
     power_cap: float | None = None
     initial_power: float = 0.25
     offset_m: float = 0.0
+    combine: str = "last"
+    keep_foreign: bool = False
+    intensity_gain: float | None = None
 
     def __post_init__(self) -> None:
+        if self.combine not in COMBINE_MODES:
+            raise ConfigError(f"combine must be one of {', '.join(COMBINE_MODES)}, not "
+                              f"{self.combine!r}", field="combine")
+        if self.near_far and self.frames < 2:
+            raise ConfigError(f"near_far needs at least 2 frames (the first one measures, "
+                              f"the next ones are corrected), not {self.frames}",
+                              field="frames")
         if not 1 <= self.frames <= 10000:
             raise ConfigError(f"frames must be from 1 to 10000, not {self.frames!r}",
                               field="frames")
@@ -124,6 +146,8 @@ class ScanState:
     data: FrameData
     powers: list[NDArray[np.float64]] = field(default_factory=list)
     snr_maps: list[NDArray[np.float64]] = field(default_factory=list)
+    past: list[NDArray] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the state atomically (NPZ)."""
@@ -135,6 +159,9 @@ class ScanState:
             arrays["powers"] = np.stack(self.powers)
         if self.snr_maps:
             arrays["snr_maps"] = np.stack(self.snr_maps)
+        if self.past:
+            arrays["past"] = np.stack(self.past)
+            arrays["stamps"] = np.array(self.stamps, dtype=np.float64)
         with atomic_open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -153,7 +180,10 @@ class ScanState:
                            frame_index=int(z["frame_index"]), frame_base=int(z["frame_base"]),
                            data=frame,
                            powers=list(z["powers"]) if "powers" in z.files else [],
-                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [])
+                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [],
+                           past=list(z["past"]) if "past" in z.files else [],
+                           stamps=[float(v) for v in z["stamps"]] if "stamps" in z.files
+                           else [])
         except (OSError, ValueError, KeyError) as exc:
             raise ConfigError(f"partial scan {str(p)!r} is damaged ({exc}); delete it and "
                               "scan again without --resume", field="resume") from exc
@@ -161,7 +191,12 @@ class ScanState:
 
 @dataclass
 class ScanResult:
-    """What a scan produced: the last frame's cloud and ranges, and the per-frame history."""
+    """What a scan produced: the (combined) cloud and ranges, and the per-frame history.
+
+    ``image`` and ``cloud`` are the combination of the frames (``--combine``; the last
+    frame for ``last``), ``clouds`` every frame's cloud, ``data`` the last frame's
+    receiver results.
+    """
 
     cloud: PointCloud
     image: RangeImage
@@ -170,6 +205,7 @@ class ScanResult:
     powers: list[NDArray[np.float64]]
     columns_scanned: int
     files: list[Path]
+    clouds: list[PointCloud] = field(default_factory=list)
 
 
 def _header(device: Device, options: ScanOptions, out: Path) -> dict[str, Any]:
@@ -189,20 +225,87 @@ def _runs(missing: NDArray[np.bool_]) -> list[tuple[int, int]]:
     return [(int(a), int(b - a + 1)) for a, b in zip(starts, ends, strict=True)]
 
 
-def _set_power(device: Device, matrix: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Send a power matrix (fractions of the per-pixel maximum); back off if the cap refuses."""
+def max_snr_xc_db(config: dict[str, Any]) -> float:
+    """The largest SNR_XC (dB) a configuration can report: ``10 log10(12 peak_max^2)``.
 
-    m = np.clip(matrix, 0.0, 1.0)
+    The peak is a signed ``out_bits`` value and the noise variance is floored at 1/12
+    LSB^2 (:mod:`cdma_lidar.firmware_model.snr`), so no threshold above this can ever pass.
+    """
+    bits = int(config.get("out_bits", 32))
+    return 10.0 * math.log10(12.0) + 20.0 * (bits - 1) * math.log10(2.0)
+
+
+#: Peaks per channel asked for when a UID is configured (see :func:`multi_user_peaks`).
+MULTI_USER_PEAKS = 4
+
+
+def multi_user_peaks(device: Device, user_set: set[str] | frozenset[str] = frozenset()
+                     ) -> int:
+    """Ask for enough peaks to find our own return among other users'; returns the new P.
+
+    With a UID configured (``uid_bits > 1``) another user on the same code can be
+    stronger than us and take the single peak a channel reports; then our pixel is lost.
+    When the configuration has ``peaks = 1`` and the user did not set ``peaks``
+    (``user_set``), the device is asked for :data:`MULTI_USER_PEAKS` (at most its
+    ``max_peaks``). Returns 0 when nothing was changed.
+    """
+    cfg = device.config
+    if int(cfg.get("uid_bits", 1)) <= 1 or int(cfg.get("peaks", 1)) != 1 or "peaks" in user_set:
+        return 0
+    want = min(MULTI_USER_PEAKS, int(getattr(device.info, "max_peaks", MULTI_USER_PEAKS)))
+    if want <= 1:
+        return 0
+    device.link.set_config(peaks=want)
+    device.refresh_config()
+    log.info("UID configured: asked the device for %d peaks per channel", want)
+    return want
+
+
+def _set_power(device: Device, matrix: NDArray[np.float64],
+               previous: NDArray[np.float64] | None = None,
+               raised: NDArray[np.bool_] | None = None
+               ) -> tuple[NDArray[np.float64], float | None]:
+    """Send a power matrix (fractions of the per-pixel maximum); returns (applied, cap).
+
+    The matrix is rounded down to the device's 1/65535 grid (rounding up could push a
+    column over its cap by one LSB). The device checks its eye-safety cap after every
+    rectangle of a chunked POWER_SET, so ``min(previous, matrix)`` goes first: every
+    intermediate state is then at most the final one, element by element. When the
+    device refuses anyway (its cap is lower than ours), the cap is learned as 0.97 of
+    the largest column sum just refused and applied as the controller would (raised
+    pixels give way first); ``cap`` is that learned cap, or None.
+    """
+    m = np.floor(np.clip(matrix, 0.0, 1.0) * 65535.0)
+    prev = None if previous is None else np.floor(np.clip(previous, 0.0, 1.0) * 65535.0)
+    up = np.zeros(m.shape, bool) if raised is None else raised
+    learned: float | None = None
     for _ in range(20):
         try:
-            device.link.set_power(m)
-            return m
+            if prev is not None and prev.shape == m.shape and np.any(prev > m):
+                device.link.set_power(np.minimum(prev, m).astype(np.int64))
+            device.link.set_power(m.astype(np.int64))
+            return m / 65535.0, learned
         except DeviceError as exc:
             if getattr(exc, "field", None) != "power":
                 raise
-            log.info("device refused the power matrix (%s); scaling it by 0.8", exc)
-            m = m * 0.8
+            log_ = log.warning if learned is None else log.debug
+            learned = 0.8 * float(m.sum(axis=0).max()) / 65535.0
+            log_("device refused the power matrix (%s); capping columns at %.4g of the "
+                 "per-pixel maximum", exc, learned)
+            m = np.floor(apply_cap(m / 65535.0, learned, None if previous is None else previous,
+                                   (up,)) * 65535.0)
+            prev = None
     raise LinkError("the device refuses every power matrix; check its eye-safety settings")
+
+
+def _apply_power(device: Device, controller: NearFarController,
+                 previous: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """Send the controller's next matrix; a cap learned from a refusal becomes its cap."""
+    raised = None if previous is None else controller.power > previous
+    applied, cap = _set_power(device, controller.power, previous, raised)
+    if cap is not None:
+        controller.limits = dataclasses.replace(controller.limits, total_cap=cap)
+    return applied
 
 
 def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
@@ -252,14 +355,26 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                           data=FrameData.empty(k, c, uid_bits, peaks))
     controller = None
     if options.near_far:
-        limits = PowerLimits(max_power=1.0, total_cap=options.power_cap)
+        # Default cap: the starting column sum, so the loop moves power between pixels
+        # and never raises a column's total (the paper's "without increasing overall power").
+        cap = options.power_cap if options.power_cap is not None else k * options.initial_power
+        limits = PowerLimits(max_power=1.0, total_cap=cap)
         controller = NearFarController((k, c), ranging.snr_threshold_db, limits,
                                        initial_power=options.initial_power)
         if state.powers:
             controller.powers[:] = [np.asarray(p) for p in state.powers]
             controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
-        controller.powers[-1] = _set_power(device, controller.power)
+        controller.powers[-1] = _apply_power(device, controller, None)
+    else:
+        # A known, uniform power: the intensity needs it (the device default may differ).
+        _set_power(device, np.full((k, c), options.initial_power))
 
+    geometry, wavelengths = device.geometry(), device.wavelengths_m
+    device_cfg = dict(device.config)
+    clouds: list[PointCloud] = [_cloud_from_records(r, st, wavelengths, state.data.angle_deg)
+                                for r, st in zip(state.past, state.stamps, strict=True)]
+    images: list[RangeImage] = [image_from_cloud(cl, ranging) for cl in clouds]
+    stamp = time.time()
     total = options.frames * c
     done_before = state.frame_index * c + int(state.data.done.sum())
     bar = None
@@ -273,6 +388,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         while state.frame_index < options.frames:
             fid = state.frame_base + state.frame_index
             data = state.data
+            if not data.done.any():
+                stamp = time.time()
             for first, count in _runs(~data.done):
                 for col in device.link.scan(first_column=first, columns=count, frames=1,
                                             frame=fid):
@@ -290,11 +407,22 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
             image = estimate_ranges(data, ranging)
             state.snr_maps.append(image.snr_xc_db)
             last = state.frame_index + 1 >= options.frames
+            power = controller.power if controller is not None else options.initial_power
+            inten = intensity(image.peak, image.range_m, power, device_cfg,
+                              options.intensity_gain)
+            cloud = assemble(image, geometry, wavelengths, data.angle_deg,
+                             timestamps_us=data.timestamp_us, done=data.done, intensity=inten,
+                             keep_foreign=options.keep_foreign, stamp_unix_s=stamp)
+            clouds.append(cloud)
+            images.append(image)
+            state.past.append(cloud.grid_records())
+            state.stamps.append(stamp)
             if controller is not None:
                 controller.snr_maps[:] = state.snr_maps[:-1]
-                nxt = controller.update(image.snr_xc_db, image.peak)
+                controller.update(image.snr_xc_db, image.peak)
                 if not last:
-                    controller.powers[-1] = _set_power(device, nxt)
+                    controller.powers[-1] = _apply_power(device, controller,
+                                                         controller.powers[-2])
                 state.powers = list(controller.powers)
             state.frame_index += 1
             if not last:
@@ -312,17 +440,25 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     finally:
         if bar is not None:
             bar.close()
-    assert image is not None
-    cloud = assemble(image, device.geometry(), device.wavelengths_m, state.data.angle_deg)
-    write(cloud, out)
+    assert image is not None and clouds
+    image, cloud = images[-1], clouds[-1]
+    if options.combine != "last" and len(images) > 1:
+        image = combine(images, options.combine)
+        cloud = assemble(image, geometry, wavelengths, state.data.angle_deg,
+                         timestamps_us=state.data.timestamp_us, done=state.data.done,
+                         keep_foreign=options.keep_foreign, stamp_unix_s=clouds[-1].stamp_unix_s)
+        per_frame = np.stack([cl.intensity for cl in clouds])
+        cloud.intensity = np.where(cloud.has_range, nan_median(per_frame), np.nan)
+    if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
+        write_frames(clouds, out)
+    else:
+        write_frames([cloud], out)
     files = [out]
     if pictures_too:
         paths = picture_paths(out)
         maps = (state.snr_maps if options.near_far and len(state.snr_maps) > 1
                 else [image.snr_xc_db])
         titles = ([f"frame {i}" for i in range(len(maps))] if len(maps) > 1 else ["SNR_XC"])
-        if len(maps) > 2:
-            maps, titles = [maps[0], maps[-1]], ["first frame", "last frame"]
         pictures.snr_heatmaps(maps, ranging.snr_threshold_db, paths["snr"], titles)
         pictures.depth_image(cloud, paths["depth"])
         pictures.view_3d(cloud, paths["view"])
@@ -330,7 +466,29 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     spath.unlink(missing_ok=True)
     return ScanResult(cloud=cloud, image=image, data=state.data,
                       snr_maps=list(state.snr_maps),
-                      powers=list(state.powers), columns_scanned=scanned, files=files)
+                      powers=list(state.powers), columns_scanned=scanned, files=files,
+                      clouds=clouds)
+
+
+def _cloud_from_records(rec: NDArray, stamp: float, wavelengths_m: NDArray[np.float64],
+                        angles_deg: NDArray[np.float64]) -> PointCloud:
+    """A finished frame's cloud back from the grid records a partial scan keeps."""
+    k, c = wavelengths_m.size, angles_deg.size
+    grid = {name: np.asarray(rec[name]).reshape(k, c) for name in rec.dtype.names}
+    return PointCloud(**{n: grid[n].astype(np.float64) if grid[n].dtype.kind == "f"
+                         else grid[n].astype(np.int64) for n in grid},
+                      wavelengths_m=wavelengths_m, angles_deg=np.asarray(angles_deg),
+                      stamp_unix_s=float(stamp))
+
+
+def image_from_cloud(cloud: PointCloud, config: Any) -> RangeImage:
+    """The ranges of a finished frame from its cloud (to combine frames, also after --resume)."""
+    empty = np.zeros(0, np.int64)
+    return RangeImage(range_m=np.where(cloud.flags == 0, cloud.range, np.nan),
+                      lag=np.zeros(cloud.shape), snr_xc_db=cloud.snr_xc,
+                      peak=cloud.peak, flags=cloud.flags.astype(np.uint8),
+                      foreign=ForeignReturns(empty, empty, empty, empty, empty, empty,
+                                             np.zeros(0)), config=config)
 
 
 def calibrate_device(device: Device, target_distance_m: float, *, shots: int = 20,

@@ -5,7 +5,14 @@
 .pcd    PCD v0.7 binary, organised: WIDTH = columns, HEIGHT = channels (:mod:`.pcd`)
 .npz    every (K, C) array plus wavelengths (m) and angles (deg) (:mod:`.npz`)
 .las    LAS 1.4 point format 6 through laspy, optional extra ``las`` (:mod:`.las`)
+.mcap   ROS 2 sensor_msgs/PointCloud2, one message per frame, optional extra
+        ``mcap`` (:mod:`.mcap`)
 ======  =========================================================================
+
+Every format carries the same per-point fields under the same names
+(:data:`cdma_lidar.host.pointcloud.POINT_FIELDS`). A format module with
+``MULTI_FRAME = True`` also has ``write_frames(clouds, path)`` and gets every frame of
+a scan (:func:`write_frames`); the others get the last frame.
 
 Adding a format is one new module here with ``EXTENSION`` and
 ``write(cloud, path) -> int`` (points written), listed in :data:`FORMATS`. A module
@@ -16,22 +23,31 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import check_writable
-from cdma_lidar.host.cloud_formats import las, npz, pcd, ply
+from cdma_lidar.host.cloud_formats import las, mcap, npz, pcd, ply
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["FORMATS", "write"]
+__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "write", "write_frames"]
 
 log = logging.getLogger(__name__)
 
 #: Extension (lower case, with the dot) -> writer ``(cloud, path) -> points written``.
 FORMATS: dict[str, Callable[[PointCloud, str | os.PathLike[str]], int]] = {
-    m.EXTENSION: m.write for m in (ply, pcd, npz, las)
+    m.EXTENSION: m.write for m in (ply, pcd, npz, las, mcap)
 }
+
+#: Extension -> writer of a sequence of frames, for the formats that hold several.
+MULTI_FRAME_FORMATS: dict[str, Callable[[Sequence[PointCloud], str | os.PathLike[str]], int]] = {
+    m.EXTENSION: m.write_frames for m in (mcap,) if getattr(m, "MULTI_FRAME", False)
+}
+
+#: Extension -> (import name, extra) of the optional library a format needs.
+OPTIONAL_LIBRARIES: dict[str, tuple[str, str]] = {".las": ("laspy", "las"),
+                                                  ".mcap": ("mcap_ros2", "mcap")}
 
 
 def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
@@ -44,4 +60,18 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     check_writable(p)
     n = writer(cloud, p)
     log.info("wrote %d points to %s", n, p)
+    return n
+
+
+def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str]) -> int:
+    """Write every frame where the format holds several (.mcap), else the last one."""
+    if not clouds:
+        raise ConfigError("no frame to write", field="out")
+    p = Path(path)
+    writer = MULTI_FRAME_FORMATS.get(p.suffix.lower())
+    if writer is None:
+        return write(clouds[-1], p)
+    check_writable(p)
+    n = writer(clouds, p)
+    log.info("wrote %d frames, %d points to %s", len(clouds), n, p)
     return n

@@ -1,7 +1,13 @@
 """LAS 1.4 point format 6 through laspy (the optional extra ``las``).
 
-Coordinates with a 0.1 mm scale; range, snr_xc, peak, channel, column and flags as extra
-dimensions. laspy is imported only when a .las is written.
+Coordinates with a 0.1 mm scale. ``gps_time`` is the point's time: the frame's host
+stamp plus ``t``, as *adjusted standard GPS time* (GPS seconds minus 1e9; global
+encoding bit 0 set), or just ``t`` when the cloud has no stamp (global encoding bit 0
+clear). The standard ``intensity`` (uint16) holds the reflectance estimate times
+32768 (1.0 reads 32768; clipped at 65535). Every other field of
+:data:`cdma_lidar.host.pointcloud.POINT_FIELDS` (``t`` too) is an extra-bytes
+dimension of the same name and type. laspy is imported only when a .las is written.
+An empty cloud is a valid file with no points.
 """
 
 from __future__ import annotations
@@ -12,19 +18,30 @@ import numpy as np
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open
-from cdma_lidar.host.pointcloud import PointCloud
+from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud
 
-__all__ = ["EXTENSION", "write"]
+__all__ = ["EXTENSION", "INTENSITY_SCALE", "gps_time", "write"]
 
 #: File extension this module writes.
 EXTENSION = ".las"
+
+#: LAS intensity counts per unit of reflectance.
+INTENSITY_SCALE = 32768.0
+
+_GPS_EPOCH_UNIX_S = 315_964_800.0   # 1980-01-06T00:00:00Z
+_GPS_MINUS_UTC_S = 18.0             # leap seconds since 1980 (unchanged since 2017)
+_NATIVE = ("x", "y", "z", "intensity")
+
+
+def gps_time(unix_s: float | np.ndarray) -> float | np.ndarray:
+    """Adjusted standard GPS time (s): GPS seconds since 1980-01-06 minus 1e9."""
+    return unix_s - _GPS_EPOCH_UNIX_S + _GPS_MINUS_UTC_S - 1e9
 
 
 def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     """Write LAS 1.4 (point format 6) through laspy; returns the number of points.
 
-    Coordinates are stored with a 0.1 mm scale; the per-pixel fields go in extra
-    dimensions. Needs the optional extra ``las`` (``pip install cdma-lidar[las]``).
+    Needs the optional extra ``las`` (``pip install cdma-lidar[las]``).
     """
     try:
         import laspy  # optional extra `las`: loaded only when a .las is written
@@ -35,14 +52,19 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales = np.array([1e-4, 1e-4, 1e-4])
     header.offsets = np.zeros(3)
-    extras = [("range", np.float32), ("snr_xc", np.float32), ("peak", np.int32),
-              ("channel", np.uint16), ("column", np.uint16), ("flags", np.uint8)]
+    stamped = cloud.stamp_unix_s > 0
+    header.global_encoding.gps_time_type = (laspy.header.GpsTimeType.STANDARD if stamped
+                                            else laspy.header.GpsTimeType.WEEK_TIME)
+    extras = [(n, np.dtype(t).type) for n, t in POINT_FIELDS if n not in _NATIVE]
     header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=t) for n, t in extras])
     las = laspy.LasData(header)
     las.x, las.y, las.z = rec["x"], rec["y"], rec["z"]
     for name, _ in extras:
         setattr(las, name, rec[name])
-    las.intensity = np.clip(rec["snr_xc"] * 100.0, 0, 65535).astype(np.uint16)
+    base = gps_time(cloud.stamp_unix_s) if stamped else 0.0
+    las.gps_time = base + rec["t"].astype(np.float64)
+    inten = np.nan_to_num(rec["intensity"].astype(np.float64), nan=0.0) * INTENSITY_SCALE
+    las.intensity = np.clip(np.rint(inten), 0, 65535).astype(np.uint16)
     with atomic_open(path, "wb") as fh:
         las.write(fh)
     return int(rec.size)

@@ -30,4 +30,6 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
 def read(path: str | os.PathLike[str]) -> PointCloud:
     """Read a cloud written by :func:`write`."""
     with np.load(path) as data:
-        return PointCloud(**{f.name: data[f.name] for f in fields(PointCloud)})
+        kw = {f.name: data[f.name] for f in fields(PointCloud) if f.name in data.files}
+    kw["stamp_unix_s"] = float(kw.get("stamp_unix_s", 0.0))
+    return PointCloud(**kw)

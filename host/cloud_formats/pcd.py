@@ -1,6 +1,9 @@
-"""PCD v0.7 binary, organised: WIDTH = columns, HEIGHT = channels, row-major by channel.
+"""PCD v0.7 binary. Organised (WIDTH = columns, HEIGHT = channels, row-major by channel)
+unless extra points (kept foreign returns) are present, then unorganised (HEIGHT 1).
 
-Pixels without a range have NaN x y z; the fields are those of the PLY writer.
+Every field of :data:`cdma_lidar.host.pointcloud.POINT_FIELDS` under its own name;
+pixels without a range have NaN x y z. An empty cloud (no pixels) is WIDTH 0,
+HEIGHT 1, POINTS 0.
 """
 
 from __future__ import annotations
@@ -10,32 +13,34 @@ import os
 from cdma_lidar.fileio import atomic_open
 from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud
 
-__all__ = ["EXTENSION", "write"]
+__all__ = ["EXTENSION", "PCD_TYPES", "write"]
 
 #: File extension this module writes.
 EXTENSION = ".pcd"
 
+#: numpy type -> (SIZE, TYPE) of a PCD field.
+PCD_TYPES = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<u2": ("2", "U"), "u1": ("1", "U")}
+
 
 def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
-    """Write an organised binary PCD v0.7 (WIDTH columns, HEIGHT channels); returns K*C."""
+    """Write a binary PCD v0.7; returns the number of points written."""
     rec = cloud.records(keep_rejected=True)
-    pcd_type = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<u2": ("2", "U"), "u1": ("1", "U")}
     k, c = cloud.shape
-    names = [n for n, _ in POINT_FIELDS]
+    width, height = (c, k) if not cloud.extra.size and rec.size else (rec.size, 1)
     header = [
         "# .PCD v0.7 - Point Cloud Data file format (cdma-lidar; rows are channels)",
         "VERSION 0.7",
-        "FIELDS " + " ".join(names),
-        "SIZE " + " ".join(pcd_type[t][0] for _, t in POINT_FIELDS),
-        "TYPE " + " ".join(pcd_type[t][1] for _, t in POINT_FIELDS),
+        "FIELDS " + " ".join(n for n, _ in POINT_FIELDS),
+        "SIZE " + " ".join(PCD_TYPES[t][0] for _, t in POINT_FIELDS),
+        "TYPE " + " ".join(PCD_TYPES[t][1] for _, t in POINT_FIELDS),
         "COUNT " + " ".join("1" for _ in POINT_FIELDS),
-        f"WIDTH {c}",
-        f"HEIGHT {k}",
+        f"WIDTH {width}",
+        f"HEIGHT {height}",
         "VIEWPOINT 0 0 0 1 0 0 0",
-        f"POINTS {k * c}",
+        f"POINTS {rec.size}",
         "DATA binary",
     ]
     with atomic_open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rec.tobytes())
-    return k * c
+    return int(rec.size)

@@ -108,7 +108,7 @@ def test_wire_fields_follow_the_record_order() -> None:
 
 def test_frame_arrays_are_the_record_then_angle_done_frame() -> None:
     names = [f.name for f in dataclasses.fields(FrameData)]
-    assert names == [*FIELD_NAMES, "angle_deg", "done", "frame"]
+    assert names == [*FIELD_NAMES, "angle_deg", "done", "timestamp_us", "frame"]
     frame = FrameData.empty(3, 5, uid_bits=2, peaks=4)
     for f in RECORD:
         arr = getattr(frame, f.name)

@@ -250,7 +250,16 @@ def test_ctrl_c_leaves_a_partial_scan_that_resume_finishes(capsys, tmp_path, mon
                          "--resume")
     assert code == 0 and "scanned 5 columns" in text  # 3..7, not 0..2 again
     assert not state_path(out).exists()
-    assert out.read_bytes() == whole.read_bytes()
+    import plyfile  # in the test extra
+
+    # Same points; only the time of the columns measured after the resume differs (the
+    # device clock of a new session), so t is compared on the columns of the first run.
+    a, b = plyfile.PlyData.read(str(out))["vertex"], plyfile.PlyData.read(str(whole))["vertex"]
+    for prop in a.properties:
+        if prop.name != "t":
+            np.testing.assert_array_equal(a[prop.name], b[prop.name], err_msg=prop.name)
+    first = a["column"] < 3
+    np.testing.assert_array_equal(a["t"][first], b["t"][first])
 
 
 def test_scan_in_calibration_mode_says_what_to_do(capsys, tmp_path):

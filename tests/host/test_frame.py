@@ -7,6 +7,7 @@ import io
 import numpy as np
 import pytest
 
+from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_family
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
@@ -62,3 +63,15 @@ def test_shape_and_field_checks():
         FrameData.empty(0, 2)
     with pytest.raises(ConfigError, match="lacks"):
         FrameData.from_arrays({"peak": np.zeros((1, 1))})
+
+
+def test_column_timestamps_are_kept_and_old_partial_files_still_load():
+    data = FrameData.empty(2, 3)
+    data.set_column(1, {**{f.name: np.zeros((2, *f.shape(1, 1)), f.dtype) for f in RECORD},
+                        "timestamp_us": 123456, "angle_deg": 0.5})
+    assert data.timestamp_us.tolist() == [0, 123456, 0]
+    arrays = data.to_arrays()
+    back = FrameData.from_arrays(arrays)
+    assert back.timestamp_us.tolist() == [0, 123456, 0]
+    del arrays["timestamp_us"]                 # a partial scan saved before the field
+    assert FrameData.from_arrays(arrays).timestamp_us.tolist() == [0, 0, 0]

@@ -8,7 +8,7 @@ import pytest
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.host.cloud_formats import write
 from cdma_lidar.host.cloud_formats.npz import read as read_npz
-from cdma_lidar.host.pointcloud import assemble
+from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud, assemble, column_times_s
 from cdma_lidar.host.ranging import FLAG_INTERPOLATED, FLAG_REJECTED, RangeImage
 from cdma_lidar.host.uid_filter import ForeignReturns
 from cdma_lidar.optics.grating import GratingGeometry, paper_wavelengths_m
@@ -33,8 +33,27 @@ def _image(seed: int = 3) -> RangeImage:
 
 @pytest.fixture
 def cloud():
+    ts = 1_000_000 + 250 * np.arange(C)          # us, one column every 0.25 ms
     return assemble(_image(), GratingGeometry(), paper_wavelengths_m(K),
-                    np.linspace(-5, 5, C))
+                    np.linspace(-5, 5, C), timestamps_us=ts,
+                    intensity=np.full((K, C), 0.5), stamp_unix_s=1.7e9)
+
+
+NAMES = [n for n, _ in POINT_FIELDS]
+
+
+def test_point_fields_are_the_ones_lidar_tools_look_for():
+    assert NAMES == ["x", "y", "z", "intensity", "t", "ring", "range", "snr_xc", "flags",
+                     "column", "user_id", "peak"]
+
+
+def test_time_and_ring(cloud):
+    np.testing.assert_allclose(cloud.t[0], 250e-6 * np.arange(C))
+    np.testing.assert_array_equal(cloud.ring[:, 0], np.arange(K))
+    # The device clock wraps at 2^32 us: times keep increasing across the wrap.
+    ts = (2**32 - 500 + 250 * np.arange(4)) % 2**32
+    np.testing.assert_allclose(column_times_s(ts, np.ones(4, bool)), 250e-6 * np.arange(4))
+    assert np.isnan(column_times_s(ts, np.array([True, False, True, True]))[1])
 
 
 def test_assemble_places_points_at_range(cloud):
@@ -67,7 +86,7 @@ def test_ply_opens_with_plyfile(cloud, tmp_path):
     v = ply["vertex"]
     assert v.count == n
     names = [p.name for p in v.properties]
-    assert names == ["x", "y", "z", "range", "snr_xc", "peak", "channel", "column", "flags"]
+    assert names == NAMES
     ok = cloud.has_range.ravel()
     np.testing.assert_allclose(v["x"], cloud.x.ravel()[ok].astype(np.float32))
     np.testing.assert_array_equal(v["column"], cloud.column.ravel()[ok])
@@ -83,7 +102,8 @@ def _read_pcd(path):
         if line and not line.startswith("#"):
             key, *vals = line.split()
             meta[key] = vals
-    code = {("F", "4"): "<f4", ("I", "4"): "<i4", ("U", "2"): "<u2", ("U", "1"): "u1"}
+    code = {("F", "4"): "<f4", ("I", "4"): "<i4", ("U", "2"): "<u2", ("U", "1"): "u1",
+            ("I", "2"): "<i2"}
     dt = np.dtype([(n, code[t, s]) for n, t, s in
                    zip(meta["FIELDS"], meta["TYPE"], meta["SIZE"], strict=True)])
     return meta, np.frombuffer(body, dtype=dt)
@@ -97,7 +117,7 @@ def test_pcd_is_organised_and_opens_with_open3d(cloud, tmp_path):
     assert meta["WIDTH"] == [str(C)] and meta["HEIGHT"] == [str(K)]
     assert rec.size == K * C
     grid = rec.reshape(K, C)
-    np.testing.assert_array_equal(grid["channel"], cloud.channel)
+    np.testing.assert_array_equal(grid["ring"], cloud.ring)
     np.testing.assert_array_equal(grid["column"], cloud.column)
     assert np.isnan(grid["x"][1, 2])
     np.testing.assert_allclose(grid["range"][0], cloud.range[0].astype(np.float32))
@@ -131,7 +151,14 @@ def test_las_round_trip(cloud, tmp_path):
     ok = cloud.has_range.ravel()
     np.testing.assert_allclose(np.asarray(las.x), cloud.x.ravel()[ok], atol=1e-4)
     np.testing.assert_array_equal(np.asarray(las.flags), cloud.flags.ravel()[ok])
-    np.testing.assert_array_equal(np.asarray(las.channel), cloud.channel.ravel()[ok])
+    np.testing.assert_array_equal(np.asarray(las.ring), cloud.ring.ravel()[ok])
+    assert set(las.point_format.extra_dimension_names) == set(NAMES) - {"x", "y", "z",
+                                                                         "intensity"}
+    # gps_time: adjusted standard GPS time of the host stamp plus t (bit 0 of the encoding)
+    assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    t = np.asarray(las.gps_time) - (1.7e9 - 315_964_800 + 18 - 1e9)
+    np.testing.assert_allclose(t, cloud.t.ravel()[ok], atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(las.intensity), 16384)   # 0.5 reflectance
 
 
 def test_bad_extension_and_folder(cloud, tmp_path):
@@ -140,3 +167,97 @@ def test_bad_extension_and_folder(cloud, tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         write(cloud, tmp_path / "missing" / "c.ply")
     assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+def test_ply_fields_survive_open3d_tensor_reader(cloud, tmp_path):
+    import open3d as o3d  # open3d-cpu in the test extra
+
+    path = tmp_path / "c.ply"
+    n = write(cloud, path)
+    pc = o3d.t.io.read_point_cloud(str(path))
+    ok = cloud.has_range.ravel()
+    assert pc.point.positions.shape[0] == n
+    for name in NAMES[3:]:
+        assert name in pc.point, name
+        got = pc.point[name].numpy().ravel()
+        np.testing.assert_allclose(got, getattr(cloud, name).ravel()[ok].astype(got.dtype))
+
+
+def test_pcd_fields_survive_open3d_tensor_reader(cloud, tmp_path):
+    import open3d as o3d  # open3d-cpu in the test extra
+
+    path = tmp_path / "c.pcd"
+    write(cloud, path)
+    pc = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False)
+    for name in ("t", "ring", "column", "flags", "user_id", "intensity"):
+        got = pc.point[name].numpy().ravel()
+        np.testing.assert_allclose(got, getattr(cloud, name).ravel().astype(got.dtype))
+
+
+def read_mcap(path):
+    """(schema, channel, message, decoded) of every message, with the mcap reader."""
+    from mcap.reader import make_reader  # mcap extra, in the test extra
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        return list(reader.iter_decoded_messages())
+
+
+def _empty() -> PointCloud:
+    img = _image()
+    img.range_m[:] = np.nan
+    img.flags[:] = FLAG_REJECTED
+    return assemble(img, GratingGeometry(), paper_wavelengths_m(K), np.linspace(-5, 5, C))
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".las", ".npz", ".mcap"])
+def test_empty_cloud_writes_a_valid_file(tmp_path, ext):
+    import laspy
+    import open3d as o3d
+    import plyfile
+    path = tmp_path / f"e{ext}"
+    n = write(_empty(), path)
+    if ext == ".ply":
+        assert n == 0 and plyfile.PlyData.read(str(path))["vertex"].count == 0
+        pc = o3d.t.io.read_point_cloud(str(path))
+        assert pc.point.positions.shape[0] == 0 if "positions" in pc.point else True
+    elif ext == ".pcd":
+        # Every pixel is still there (organised, NaN coordinates).
+        pc = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False)
+        assert pc.point.positions.shape[0] == K * C
+    elif ext == ".las":
+        assert len(laspy.read(str(path)).points) == 0
+    elif ext == ".npz":
+        assert read_npz(path).range.shape == (K, C)
+    else:
+        msgs = read_mcap(path)
+        assert len(msgs) == 1 and msgs[0][3].height * msgs[0][3].width == K * C
+
+
+def test_mcap_one_pointcloud2_per_frame(cloud, tmp_path):
+    from cdma_lidar.host.cloud_formats import mcap, write_frames
+
+    second = assemble(_image(seed=4), GratingGeometry(), paper_wavelengths_m(K),
+                      np.linspace(-5, 5, C), stamp_unix_s=1.7e9 + 0.1)
+    path = tmp_path / "s.mcap"
+    assert write_frames([cloud, second], path) == 2 * K * C
+    msgs = read_mcap(path)
+    assert [ch.topic for _, ch, _, _ in msgs] == [mcap.TOPIC] * 2
+    assert msgs[0][0].name == "sensor_msgs/msg/PointCloud2"
+    assert [m.log_time for _, _, m, _ in msgs] == [1_700_000_000 * 10**9,
+                                                   1_700_000_000 * 10**9 + 10**8]
+    first = msgs[0][3]
+    assert first.header.frame_id == mcap.FRAME_ID
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (1_700_000_000, 0)
+    assert msgs[1][3].header.stamp.nanosec == pytest.approx(1e8, abs=1e3)
+    assert (first.height, first.width) == (K, C)
+    assert [f.name for f in first.fields] == NAMES
+    dt = np.dtype({"names": [f.name for f in first.fields],
+                   "formats": [{7: "<f4", 5: "<i4", 4: "<u2"}[f.datatype] for f in first.fields],
+                   "offsets": [f.offset for f in first.fields], "itemsize": first.point_step})
+    rec = np.frombuffer(bytes(first.data), dtype=dt).reshape(K, C)
+    np.testing.assert_array_equal(rec["ring"], cloud.ring)
+    np.testing.assert_allclose(rec["t"], cloud.t.astype(np.float32))
+    np.testing.assert_array_equal(rec["flags"], cloud.flags)
+    assert not first.is_dense
