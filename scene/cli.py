@@ -11,6 +11,8 @@ import argparse
 import logging
 import sys
 
+import numpy as np
+
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import check_writable
 from cdma_lidar.scene.instrument import Instrument
@@ -38,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("truth", help="write per-pixel ground truth (range, point, ...) as NPZ")
     p.add_argument("scene", help="preset name or .toml file")
     p.add_argument("--out", required=True, help="output .npz file")
+    p.add_argument("--seed", type=int, default=0,
+                   help="noise seed (the speckle pattern, when the scene has speckle)")
     p.set_defaults(func=_cmd_truth)
 
 
@@ -60,7 +64,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
         f"rotations {spec.rotations_deg.min():.3f}..{spec.rotations_deg.max():.3f} deg",
         f"  code degree {spec.code_degree}, {spec.chip_rate_hz / 1e6:g} Mchip/s, "
         f"S={spec.samples_per_chip}, R={spec.averages}, uid {spec.uid}/{spec.uid_bits} bits",
-        f"  noise rms {inst.noise_rms_v * 1e3:.3f} mV, default gate {inst.default_gate()}",
+        f"  noise rms {inst.noise_rms_v * 1e3:.3f} mV (median column), fidelity "
+        f"{scene.fidelity}, default gate {inst.default_gate()}",
         f"  calibration target (zeroth order) at {scene.calibration.target_distance_m:g} m: "
         f"calibrate with --target-distance {scene.calibration.target_distance_m:g}",
     ]
@@ -79,14 +84,19 @@ def _cmd_truth(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
     check_writable(args.out, "--out")
     scene = load_scene(args.scene)
+    figures = Instrument(scene, args.seed).link_figures()
     try:
-        truth = save_truth(scene, args.out)
+        truth = save_truth(scene, args.out, figures)
     except OSError as exc:  # the folder changed under us after the check
         raise ConfigError(f"--out {args.out!r}: cannot write it ({exc.strerror}); choose a "
                           "writable folder", "out") from None
     lit = truth.hits.lit
     rng = truth.range_m[lit]
     summary = f"{rng.min():.3f}..{rng.max():.3f} m" if rng.size else "no hits"
+    snr = figures["snr_db"][lit]
+    if snr.size:
+        summary += (f", SNR (eq. 30) median {np.median(snr):.1f} dB, SNR_SS (eq. 43) median "
+                    f"{np.median(figures['snr_ss_db'][lit]):.1f} dB")
     sys.stdout.write(f"{args.out}: {lit.shape[0]} x {lit.shape[1]} pixels, "
                      f"{int(lit.sum())} hit ({summary})\n")
     return 0

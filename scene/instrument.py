@@ -53,19 +53,47 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import quantise
 from cdma_lidar.firmware_model.gold import gold_codes
+from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import InstrumentSpec, Scene
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["FRAC_BITS", "Instrument", "RenderSettings", "detector_response"]
+__all__ = [
+    "ACCUMULATED_CLIP_MARGIN",
+    "ACCUMULATED_MIN_NOISE_LSB",
+    "FRAC_BITS",
+    "Instrument",
+    "RenderSettings",
+    "detector_response",
+    "speckle_factors",
+]
 
 log = logging.getLogger(__name__)
 
 #: Fine grid of the analog value handed to the ADC model: 2**-FRAC_BITS LSB.
 FRAC_BITS = 8
 
+#: ``accumulated`` fidelity draws the R-repetition sum directly only where the noise
+#: rms is at least this many LSB (the quantiser's bias then stays below
+#: exp(-2 pi^2 sigma^2) / pi < 1e-9 LSB per sample, see docs/scene.md) ...
+ACCUMULATED_MIN_NOISE_LSB = 1.0
+#: ... and the column's largest echo stays this many noise rms inside the ADC's range.
+ACCUMULATED_CLIP_MARGIN = 6.0
+
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
+_STREAM_SPECKLE = 2
+
+
+def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
+    """Per-pixel speckle power fading: Gamma(cells, 1/cells) (mean 1, variance 1/cells).
+
+    Fully developed speckle integrated over ``cells`` correlation cells of the aperture;
+    fixed for a static scene (seeded by the noise seed only, not the frame), so averaging
+    frames does not remove it.
+    """
+    rng = np.random.default_rng([seed, _STREAM_SPECKLE])
+    return rng.gamma(cells, 1.0 / cells, size=shape)
 
 
 @dataclass(frozen=True)
@@ -140,23 +168,103 @@ class Instrument:
         self.default_power_w = np.repeat(self.spec.laser_power_w[:, None], c, axis=1)
         lit = h.lit
         r = np.where(lit, h.range_m, 1.0)
+        #: per-pixel speckle fading of the received power (None: no speckle)
+        self.speckle = (speckle_factors(self.spec.speckle_cells, (k, c), self.seed)
+                        if self.spec.speckle_cells > 0 else None)
+        #: the physical link budget of every pixel (cdma_lidar.scene.linkbudget)
+        self.budget = LinkBudget.of(self.spec, h.reflectivity, h.cos_incidence, h.range_m,
+                                    self.speckle)
         #: per-pixel amplitude (V) per watt of laser power; 0 where nothing is hit
-        self.gain_v_per_w = np.where(
-            lit, self.spec.link_gain_v_m2_per_w * np.nan_to_num(h.reflectivity)
-            * h.cos_incidence / r**2, 0.0)
+        self.gain_v_per_w = self.budget.amplitude_per_w
         #: per-pixel round-trip delay (s) including the hidden system delay
         self.delay_s = np.where(lit, 2.0 * r / SPEED_OF_LIGHT_M_S + self.spec.system_delay_s,
                                 np.nan)
+        #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
+        self.fidelity = scene.fidelity
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
-        self.noise_rms_v = self._noise_rms(RenderSettings.from_spec(self.spec))
+        self._fixed_noise_v = self._fixed_noise(RenderSettings.from_spec(self.spec))
+        #: per-sample noise rms (V) at the scene's own settings and power, median over columns
+        self.noise_rms_v = float(np.median(self.noise_rms_columns_v()))
 
     # -- the scene's needs ---------------------------------------------------------------
 
     def calibration_gain_v_per_w(self) -> float:
         """Amplitude (V) per watt of one channel's echo from the zeroth-order target."""
         cal = self.scene.calibration
-        return (self.spec.link_gain_v_m2_per_w * cal.reflectivity * cal.zeroth_order_efficiency
+        return (link_gain_v_m2_per_w(self.spec) * cal.reflectivity * cal.zeroth_order_efficiency
                 / cal.target_distance_m**2)
+
+    def noise_rms_columns_v(self, cfg: RenderSettings | None = None,
+                            power_w: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """(C,) per-sample noise rms (V) of every column at laser power ``power_w`` (K, C)."""
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        if self._fixed_noise_v is not None:
+            return np.full(self.columns, self._fixed_noise_v)
+        p = self.default_power_w if power_w is None else np.asarray(power_w, dtype=np.float64)
+        return np.sqrt(self.budget.noise_variance_v2(p, self.budget.rx_per_w,
+                                                     cfg.samples_per_chip))
+
+    def noise_rms_v_at(self, column: int, cfg: RenderSettings,
+                       power_w: NDArray[np.float64] | None = None,
+                       calibration: bool = False) -> float:
+        """Per-sample noise rms (V) of one column (or calibration shot) at power ``power_w`` (K,).
+
+        The signal's own shot noise and the ASE beat depend on what the column receives;
+        the other sources do not. A fixed ``noise_rms_v`` or ``snr_db`` replaces all.
+        """
+        if self._fixed_noise_v is not None:
+            return self._fixed_noise_v
+        p = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
+        if calibration:
+            rx = np.full(self.channels, self.calibration_gain_v_per_w()
+                         / self.budget.volts_per_rx_w)
+        else:
+            rx = self.budget.rx_per_w[:, column]
+        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip)))
+
+    def link_figures(self, cfg: RenderSettings | None = None,
+                     power_w: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
+        """Per-pixel (K, C) link budget and the paper's SNRs; NaN where nothing is hit.
+
+        ``rx_power_w`` received optical power (W); ``amplitude_v`` echo amplitude (V);
+        ``signal_power_v2`` P_s = A^2 * (mean square of the unit filtered code), V^2 at the
+        ADC; ``noise_power_v2`` sigma_eta^2, the column's noise variance per sample with the
+        ADC's lsb^2/12 (V^2); ``snr_db`` eq. 30, P_s / (sigma^2 + sum of the column's other
+        echoes' P_i); ``snr_ss_db`` eq. 43, N P_s / (sigma^2 + 2/3 sum P_i) for one code
+        period; ``snr_ss_avg_db`` the same with the noise averaged over the R * n periods
+        a column accumulates; ``footprint_m`` the beam diameter at the target (m).
+        Ghosts and other users are not counted as interference.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        p = self.default_power_w if power_w is None else np.asarray(power_w, dtype=np.float64)
+        lit = self.truth.hits.lit
+        amp = self.gain_v_per_w * p
+        ps = amp**2 * self.unit_signal_power(cfg)
+        noise = self.noise_rms_columns_v(cfg, p) ** 2
+        lsb = self.spec.adc_full_scale_v / (1 << (self.spec.adc_bits - 1)) / self.spec.adc_gain
+        sigma2 = (noise + lsb**2 / 12)[None, :]
+        others = ps.sum(axis=0, keepdims=True) - ps
+        n = (1 << cfg.poly_u[0]) - 1
+        periods = cfg.averages * cfg.uid_bits
+        with np.errstate(divide="ignore"):
+            snr = 10 * np.log10(ps / (sigma2 + others))
+            snr_ss = 10 * np.log10(n * ps / (sigma2 + 2 / 3 * others))
+            snr_ss_avg = 10 * np.log10(n * ps / (sigma2 / periods + 2 / 3 * others))
+        rng = self.truth.range_m
+
+        def masked(a: NDArray) -> NDArray[np.float64]:
+            return np.where(lit, a, np.nan)
+
+        return {
+            "rx_power_w": masked(self.budget.rx_per_w * p),
+            "amplitude_v": masked(amp),
+            "signal_power_v2": masked(ps),
+            "noise_power_v2": np.broadcast_to(sigma2, lit.shape).copy(),
+            "snr_db": masked(snr), "snr_ss_db": masked(snr_ss),
+            "snr_ss_avg_db": masked(snr_ss_avg),
+            "footprint_m": masked(self.spec.beam_waist_m + np.nan_to_num(rng)
+                                  * self.spec.beam_divergence_rad),
+        }
 
     def lit_channels(self, column: int) -> NDArray[np.int64]:
         """Channels whose ray hits an object at ``column``."""
@@ -343,10 +451,13 @@ class Instrument:
 
     # -- noise and ADC -----------------------------------------------------------------------
 
-    def _noise_rms(self, cfg: RenderSettings) -> float:
+    def _fixed_noise(self, cfg: RenderSettings) -> float | None:
+        """The noise rms (V) a scene fixes (``noise_rms_v``, ``snr_db``), None: physical."""
         spec = self.spec
+        if spec.noise_rms_v is not None:
+            return float(spec.noise_rms_v)
         if spec.snr_db is None:
-            return float(spec.noise_rms_v or 0.0)
+            return None
         amp = self.gain_v_per_w * self.default_power_w
         lit = self.truth.hits.lit
         if not np.any(lit):
@@ -385,6 +496,24 @@ class Instrument:
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
 
+    def _column_inputs(self, column: int, cfg: RenderSettings, frame: int,
+                       power_w: NDArray[np.float64] | None, calibration: bool, shot: int
+                       ) -> tuple[NDArray[np.float64], float, np.random.Generator, int]:
+        """(one repetition's echo on the fine grid incl. offset, noise rms in fine units,
+        the column's noise generator, the column index rendered)."""
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
+        col = 0 if calibration else column
+        scale, offset = self._fine_scale()
+        one = self.echo(col, cfg, power_w, calibration=calibration)
+        one *= scale
+        one += offset
+        sigma = self.noise_rms_v_at(col, cfg, power_w, calibration) * scale
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        rng = np.random.default_rng([self.seed, stream, frame, shot
+                                     if calibration else col])
+        return one, sigma, rng, col
+
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
                shot: int = 0) -> NDArray[np.int16]:
@@ -393,27 +522,84 @@ class Instrument:
 
         ``frame`` is the scan's frame counter (noise seed); ``power_w`` the per-channel laser
         power (W) at this column; ``calibration`` renders shot ``shot`` of the zeroth-order
-        target instead of the scene.
+        target instead of the scene. At ``accumulated`` fidelity the column's R repetitions
+        are :meth:`render_accumulated`'s sums split evenly into R frames of valid codes
+        (their sum, which is all the receive chain uses, is the drawn one; the single
+        frames are not what an ADC would give).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
-        if not calibration:
-            check_int("column", column, 0, self.columns - 1)
-        col = 0 if calibration else column
-        scale, offset = self._fine_scale()
-        one = self.echo(col, cfg, power_w, calibration=calibration) * scale + offset
+        acc = self.render_accumulated(column, cfg, frame, power_w, calibration=calibration,
+                                      shot=shot) if self.fidelity == "accumulated" else None
+        if acc is not None:
+            r = cfg.averages
+            q, rem = np.divmod(acc.reshape(-1), r)
+            out = np.empty((r, q.size), dtype=np.int16)
+            for i in range(r):
+                np.add(q, rem > i, out=out[i], casting="unsafe")
+            return out.reshape(-1)
+        return self._render_exact(column, cfg, frame, power_w, calibration, shot)
+
+    def _render_exact(self, column: int, cfg: RenderSettings, frame: int,
+                      power_w: NDArray[np.float64] | None, calibration: bool,
+                      shot: int) -> NDArray[np.int16]:
+        """Every repetition's samples drawn and quantised on their own."""
+        one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
+                                                   shot)
         length = one.size
         total = length * cfg.averages
-        if self.noise_rms_v > 0:
+        if sigma > 0:
             # float32 Gaussians (half the cost of float64), widened while scaling
-            stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-            rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
-            fine = np.multiply(rng.standard_normal(total, dtype=np.float32),
-                               self.noise_rms_v * scale, dtype=np.float64)
+            fine = np.multiply(rng.standard_normal(total, dtype=np.float32), sigma,
+                               dtype=np.float64)
             fine.reshape(cfg.averages, length)[...] += one
         else:
             fine = np.tile(one, cfg.averages)
         if not calibration:
             users = self.other_users_signal(col, cfg, total)
             if users is not None:
-                fine += users * scale
+                fine += users * self._fine_scale()[0]
         return self._quantise_fine(fine)
+
+    def render_accumulated(self, column: int, cfg: RenderSettings | None = None,
+                           frame: int = 0, power_w: NDArray[np.float64] | None = None, *,
+                           calibration: bool = False, shot: int = 0
+                           ) -> NDArray[np.int64] | None:
+        """The sum of the R quantised repetitions, drawn directly: (n, N S) int64, or None.
+
+        ``sum_r Q(x + e_r)`` for noise e_r of rms sigma is, when sigma >= 1 LSB, the value
+        ``R x + e`` with ``e`` Gaussian of variance ``R (sigma^2 + 1/12)`` up to the
+        quantiser's periodic bias (below 1e-9 LSB); it is drawn as
+        ``floor(R x + sqrt(R (sigma^2 + 1/12) - 1/12) z + 1/2)`` (the last rounding adds
+        the missing 1/12). L draws instead of R L, no per-repetition ADC. Returns None
+        (the caller renders ``exact``) when sigma < ACCUMULATED_MIN_NOISE_LSB or the
+        column's echo comes within ACCUMULATED_CLIP_MARGIN sigma of the ADC's clip.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
+                                                   shot)
+        unit = float(1 << FRAC_BITS)
+        sigma_lsb = sigma / unit
+        if sigma_lsb < ACCUMULATED_MIN_NOISE_LSB:
+            return None
+        r = cfg.averages
+        length = one.size
+        mean = one * r
+        peak = float(np.abs(one).max())
+        if not calibration:
+            users = self.other_users_signal(col, cfg, length * r)
+            if users is not None:
+                u = users * self._fine_scale()[0]
+                peak += float(np.abs(u).max())
+                mean += u.reshape(r, length).sum(axis=0)
+        lo = -(1 << (self.spec.adc_bits - 1))
+        hi = (1 << (self.spec.adc_bits - 1)) - 1
+        if peak / unit + ACCUMULATED_CLIP_MARGIN * sigma_lsb > min(-lo - 0.5, hi - 0.5):
+            return None
+        std = np.sqrt(r * (sigma_lsb**2 + 1.0 / 12) - 1.0 / 12)
+        draw = np.multiply(rng.standard_normal(length, dtype=np.float32), std,
+                           dtype=np.float64)
+        draw += mean / unit
+        draw += 0.5
+        acc = np.floor(draw, out=draw).astype(np.int64)
+        np.clip(acc, r * lo, r * hi, out=acc)
+        return acc.reshape(cfg.uid_bits, length // cfg.uid_bits)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from cdma_lidar.optics.grating import GratingGeometry
 
 __all__ = [
+    "FIDELITY_LEVELS",
     "OBJECT_KINDS",
     "Calibration",
     "Ghost",
@@ -39,6 +40,14 @@ __all__ = [
 
 #: The kinds of :class:`ObjectSpec`.
 OBJECT_KINDS = ("plane", "box", "sphere", "text")
+
+#: How faithfully the instrument renders a column (scene option ``fidelity``), most
+#: faithful first: ``exact`` draws and quantises every repetition's samples on their own;
+#: ``accumulated`` draws the sum of the R quantised repetitions directly, where the noise
+#: spans at least :data:`cdma_lidar.scene.instrument.ACCUMULATED_MIN_NOISE_LSB` LSB and
+#: nothing clips (other columns fall back to ``exact``). docs/scene.md gives each
+#: level's validity condition and measured error.
+FIDELITY_LEVELS = ("exact", "accumulated")
 
 
 def field_default(cls: type, name: str) -> Any:
@@ -118,11 +127,21 @@ class Calibration:
 class InstrumentSpec:
     """True parameters of the simulated instrument; ``nominal_*`` is what it announces.
 
-    Signal chain per pixel: received modulated amplitude (V at the ADC input)
-    ``A = link_gain_v_m2_per_w * P_tx * reflectivity * cos(incidence) / r**2``; the detector
+    Signal chain per pixel (:mod:`cdma_lidar.scene.linkbudget` has the equations): the
+    received optical power ``P_rx = P_tx * reflectivity * cos(incidence) / pi * A_rx / r**2
+    * rx_efficiency`` (Lambertian target), the echo amplitude at the ADC input
+    ``A = tia_gain_ohm * responsivity * apd_gain * P_rx`` (V), and white Gaussian noise
+    from the TIA, the APD's shot and dark-current noise (with excess noise), ambient
+    light and the EDFA's ASE, none of which depends on the scene's distance. The detector
     output is ``A * code(t - tau)`` (bipolar NRZ, AC coupled) filtered by the detector's
     transfer function; the ADC maps volts to codes with ``round(gain * v / lsb + offset)``,
     ``lsb = adc_full_scale_v / 2**(adc_bits - 1)``, clipped to ``adc_bits``.
+
+    Overrides of the physical budget: ``link_gain_v_m2_per_w`` replaces the product of the
+    receive chain's gains, ``noise_rms_v`` fixes the noise rms (V per sample) and
+    ``snr_db`` sets it relative to the median lit pixel's echo (both replace the physical
+    noise; ``snr_db`` rescales the noise to the scene, so a range sweep with it shows no
+    range limit).
 
     The arrays (wavelengths, rotations, laser power) and the nominal grating have no
     default here: a scene file gives them in shorthand (a wavelength comb, a field of
@@ -154,11 +173,45 @@ class InstrumentSpec:
     laser_power_w: NDArray[np.float64]
     max_pixel_power_w: float = 10e-3
     total_power_cap_w: float = 0.2
-    link_gain_v_m2_per_w: float = 500.0
+    # -- the link budget (cdma_lidar.scene.linkbudget) --
+    #: collimated beam diameter at the grating (m) and full divergence angle (rad): the
+    #: footprint ``beam_waist_m + r * beam_divergence_rad`` reported in the truth
+    beam_waist_m: float = 0.87e-3
+    beam_divergence_rad: float = 2.3e-3
+    #: receive aperture diameter (m; the parabolic mirror) and optical efficiency of the
+    #: receive path (grating, mirror, filter; 0..1)
+    rx_aperture_m: float = 25.4e-3
+    rx_efficiency: float = 0.5
+    #: photodiode responsivity (A/W), APD gain M and ionisation ratio k (excess noise)
+    responsivity_a_per_w: float = 0.9
+    apd_gain: float = 10.0
+    apd_k_ratio: float = 0.5
+    #: primary dark current (A)
+    dark_current_a: float = 10e-9
+    #: transimpedance (ohm, to the ADC input) and its input current noise (A/sqrt(Hz))
+    tia_gain_ohm: float = 1.4e5
+    tia_noise_a_per_rthz: float = 10e-12
+    #: EDFA gain (dB) and noise figure (dB): the ASE that travels with the signal
+    edfa_gain_db: float = 30.0
+    edfa_noise_figure_db: float = 5.0
+    # -- effects (each off by default) --
+    #: ambient light reaching the photodiode (W, DC): its shot noise
+    ambient_power_w: float = 0.0
+    #: speckle: per-pixel power fading, Gamma distributed with this many speckle cells
+    #: averaged over the aperture (mean 1, variance 1/cells); 0: no speckle
+    speckle_cells: float = 0.0
+    #: emulate the paper's sequential mixing (Supplementary Note 4): the channels were
+    #: recorded one at a time and summed, so the signal-independent noise is added K times
+    sequential_mixing: bool = False
+    # -- overrides of the physical budget --
+    #: echo amplitude per (W * reflectivity * cos / r^2) in V m^2/W; None: from the budget
+    link_gain_v_m2_per_w: float | None = None
     #: per-sample SNR (dB) of the median lit pixel's echo (at the scene's laser power)
-    #: against the Gaussian noise; exclusive with noise_rms_v
+    #: against the Gaussian noise (rescales the noise to the scene); exclusive with
+    #: noise_rms_v
     snr_db: float | None = None
-    noise_rms_v: float | None = 0.0
+    #: fixed noise rms (V per sample); None: from the budget
+    noise_rms_v: float | None = None
     system_delay_s: float = 37.3e-9
     detector_bandwidth_hz: float = 200e6
     min_range_m: float | None = None
@@ -242,6 +295,8 @@ class Scene:
     objects: tuple[ObjectSpec, ...]
     calibration: Calibration = Calibration()
     description: str = ""
+    #: one of :data:`FIDELITY_LEVELS`
+    fidelity: str = "exact"
 
     def with_instrument(self, **changes: Any) -> Scene:
         """A copy with instrument fields replaced (no re-validation: callers pass valid values)."""

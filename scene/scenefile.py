@@ -42,8 +42,10 @@ from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.pairs import pair_degrees, preferred_pairs
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.scene.model import (
+    FIDELITY_LEVELS,
     OBJECT_KINDS,
     Calibration,
     Ghost,
@@ -126,6 +128,12 @@ class _Reader:
         if not isinstance(value, str) or (choices is not None and value not in choices):
             allowed = "a string" if choices is None else "one of " + ", ".join(choices)
             raise out_of_range(self.name(key), allowed, value)
+        return value
+
+    def bool(self, key: str, default: bool) -> bool:
+        value = self.raw(key, default)
+        if not isinstance(value, bool):
+            raise out_of_range(self.name(key), "true or false", value)
         return value
 
     def vec(self, key: str, n: int, lo: float, hi: float, default: Any = None,
@@ -260,6 +268,15 @@ def _parse_poly(r: _Reader, key: str) -> tuple[int, ...] | None:
     return poly
 
 
+def _speckle_cells(r: _Reader) -> float:
+    """0 (no speckle) or at least 1 speckle cell averaged over the aperture."""
+    cells = r.num("speckle_cells", 0.0, 1e6, field_default(InstrumentSpec, "speckle_cells"))
+    if 0 < cells < 1:
+        raise out_of_range("instrument.speckle_cells", "0 (off) or a number from 1 to 1e+06",
+                           cells)
+    return cells
+
+
 def _parse_instrument(table: Any) -> InstrumentSpec:
     r = _Reader(table if table is not None else {}, "instrument")
 
@@ -277,8 +294,21 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
     nominal_tilt = optional_num("nominal_tilt_deg", -180.0, 180.0, "deg")
     rot = _parse_rotations(r, grooves, incidence, tilt)
     c = rot.size
-    poly_u = _parse_poly(r, "poly_u")
-    poly_v = _parse_poly(r, "poly_v")
+    if r.has("code_degree"):
+        # shorthand for the code pair: the first preferred pair of that degree
+        degree = r.int("code_degree", min(pair_degrees()), max(pair_degrees()))
+        if r.has("poly_u") or r.has("poly_v"):
+            raise out_of_range("instrument.code_degree", "absent when poly_u/poly_v are given",
+                               degree)
+        if degree not in pair_degrees():
+            raise out_of_range("instrument.code_degree", "one of " + ", ".join(
+                str(m) for m in pair_degrees()) + " (degrees with preferred pairs)", degree)
+        poly_u, poly_v = preferred_pairs(degree)[0]
+        r.used.update(("poly_u", "poly_v"))
+    else:
+        r.used.add("code_degree")
+        poly_u = _parse_poly(r, "poly_u")
+        poly_v = _parse_poly(r, "poly_v")
     if poly_u[0] != poly_v[0]:
         raise out_of_range("instrument.poly_v", f"of the same degree as poly_u ({poly_u[0]})",
                            list(poly_v))
@@ -302,12 +332,10 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
         raise out_of_range("instrument.laser_power_w", f"summing to at most the total cap {cap} W",
                            float(power.sum()))
     snr_db = optional_num("snr_db", -80.0, 120.0, "dB")
-    noise_rms = None
-    if snr_db is None:
-        noise_rms = r.num("noise_rms_v", 0.0, 1e3, d("noise_rms_v"), unit="V")
-    elif r.has("noise_rms_v"):
+    noise_rms = optional_num("noise_rms_v", 0.0, 1e3, "V")
+    if snr_db is not None and noise_rms is not None:
         raise out_of_range("instrument.noise_rms_v", "absent when instrument.snr_db is given",
-                           r.raw("noise_rms_v"))
+                           noise_rms)
     min_r = optional_num("min_range_m", 0.0, 1e5, "m")
     max_r = optional_num("max_range_m", 0.0, 1e5, "m")
     if min_r is not None and max_r is not None and max_r < min_r:
@@ -330,8 +358,28 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
         adc_full_scale_v=r.num("adc_full_scale_v", 0.0, 1e3, d("adc_full_scale_v"), unit="V",
                                open_lo=True),
         laser_power_w=power, max_pixel_power_w=max_pixel, total_power_cap_w=cap,
-        link_gain_v_m2_per_w=r.num("link_gain_v_m2_per_w", 0.0, 1e12, d("link_gain_v_m2_per_w"),
-                                   unit="V m^2/W"),
+        beam_waist_m=r.num("beam_waist_m", 0.0, 1.0, d("beam_waist_m"), unit="m"),
+        beam_divergence_rad=r.num("beam_divergence_rad", 0.0, 1.0, d("beam_divergence_rad"),
+                                  unit="rad"),
+        rx_aperture_m=r.num("rx_aperture_m", 0.0, 10.0, d("rx_aperture_m"), unit="m",
+                            open_lo=True),
+        rx_efficiency=r.num("rx_efficiency", 0.0, 1.0, d("rx_efficiency"), open_lo=True),
+        responsivity_a_per_w=r.num("responsivity_a_per_w", 0.0, 10.0, d("responsivity_a_per_w"),
+                                   unit="A/W", open_lo=True),
+        apd_gain=r.num("apd_gain", 1.0, 1e4, d("apd_gain")),
+        apd_k_ratio=r.num("apd_k_ratio", 0.0, 1.0, d("apd_k_ratio")),
+        dark_current_a=r.num("dark_current_a", 0.0, 1.0, d("dark_current_a"), unit="A"),
+        tia_gain_ohm=r.num("tia_gain_ohm", 0.0, 1e12, d("tia_gain_ohm"), unit="ohm",
+                           open_lo=True),
+        tia_noise_a_per_rthz=r.num("tia_noise_a_per_rthz", 0.0, 1e-3, d("tia_noise_a_per_rthz"),
+                                   unit="A/sqrt(Hz)"),
+        edfa_gain_db=r.num("edfa_gain_db", 0.0, 60.0, d("edfa_gain_db"), unit="dB"),
+        edfa_noise_figure_db=r.num("edfa_noise_figure_db", 3.0, 30.0, d("edfa_noise_figure_db"),
+                                   unit="dB"),
+        ambient_power_w=r.num("ambient_power_w", 0.0, 1.0, d("ambient_power_w"), unit="W"),
+        speckle_cells=_speckle_cells(r),
+        sequential_mixing=r.bool("sequential_mixing", d("sequential_mixing")),
+        link_gain_v_m2_per_w=optional_num("link_gain_v_m2_per_w", 0.0, 1e12, "V m^2/W"),
         snr_db=snr_db, noise_rms_v=noise_rms,
         system_delay_s=r.num("system_delay_s", 0.0, 1e-3, d("system_delay_s"), unit="s"),
         detector_bandwidth_hz=r.num("detector_bandwidth_hz", 0.0, 1e12,
@@ -406,7 +454,8 @@ def parse_scene(doc: dict[str, Any], name: str = "scene") -> Scene:
     cal = _parse_calibration(r.raw("calibration", {}))
     scene = Scene(name=r.str("name", default=name), instrument=inst, objects=objects,
                   calibration=cal,
-                  description=r.str("description", default=field_default(Scene, "description")))
+                  description=r.str("description", default=field_default(Scene, "description")),
+                  fidelity=r.str("fidelity", FIDELITY_LEVELS, field_default(Scene, "fidelity")))
     r.done()
     return scene
 
@@ -461,17 +510,33 @@ def _set_dotted(doc: dict[str, Any], key: str, value: Any) -> None:
                 node = node[ix]
 
 
+def _shortcut_targets(key: str, target: Any, value: Any) -> list[str]:
+    """The dotted fields a shortcut stands for, after checking ``value`` against its bounds.
+
+    A shortcut is a dotted field, a list of them, or a table ``{ field = "...", min = 0.1,
+    max = 1e4, unit = "m" }`` whose value must be a number in [min, max] (a distance of
+    -3 m or 0 m names no physical scene).
+    """
+    if isinstance(target, dict):
+        lo, hi = float(target.get("min", -math.inf)), float(target.get("max", math.inf))
+        unit = str(target.get("unit", ""))
+        allowed = f"a number from {lo:g} to {hi:g} {unit}".rstrip()
+        if isinstance(value, bool) or not isinstance(value, int | float) \
+                or not math.isfinite(value) or not lo <= value <= hi:
+            raise out_of_range(f"scene option {key}", allowed, value)
+        target = target["field"]
+    return target if isinstance(target, list) else [target]
+
+
 def apply_options(doc: dict[str, Any], options: dict[str, Any]) -> None:
     """Replace fields of ``doc`` in place; removes its ``[shortcuts]`` table.
 
-    A key is one of the document's shortcuts (which may stand for a list of dotted fields)
-    or a dotted field itself.
+    A key is one of the document's shortcuts (which may stand for a list of dotted fields,
+    and may bound the value) or a dotted field itself.
     """
     shortcuts = doc.pop("shortcuts", {})
     for key, value in options.items():
-        target = shortcuts.get(key, key)
-        targets = target if isinstance(target, list) else [target]
-        for t in targets:
+        for t in _shortcut_targets(key, shortcuts.get(key, key), value):
             try:
                 _set_dotted(doc, t, value)
             except (KeyError, IndexError, ValueError, TypeError) as exc:

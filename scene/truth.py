@@ -11,6 +11,12 @@ ones), so the truth is what a perfect host would measure. ``save_truth`` writes 
     wavelengths_m  (K,), rotations_deg (C,), directions (K, C, 3)
     object_names   (n_objects,) str
     scene          the scene's name
+
+and, when the caller passes the link budget (``cdma-lidar scene truth`` does, from
+:meth:`cdma_lidar.scene.instrument.Instrument.link_figures`), per pixel (K, C):
+
+    rx_power_w, amplitude_v, signal_power_v2, noise_power_v2    the link budget
+    snr_db (eq. 30), snr_ss_db (eq. 43), snr_ss_avg_db, footprint_m
 """
 
 from __future__ import annotations
@@ -49,8 +55,9 @@ def compute_truth(scene: Scene) -> Truth:
     return Truth(directions=dirs, hits=cast(scene, dirs))
 
 
-def save_truth(scene: Scene, path: str | Path) -> Truth:
-    """Compute the truth and write it atomically to ``path`` (.npz)."""
+def save_truth(scene: Scene, path: str | Path,
+               extra: dict[str, NDArray] | None = None) -> Truth:
+    """Compute the truth and write it atomically to ``path`` (.npz), with ``extra`` arrays."""
     out = check_writable(path)
     truth = compute_truth(scene)
     h = truth.hits
@@ -61,6 +68,6 @@ def save_truth(scene: Scene, path: str | Path) -> Truth:
         wavelengths_m=scene.instrument.wavelengths_m, rotations_deg=scene.instrument.rotations_deg,
         directions=truth.directions,
         object_names=np.array([o.name for o in scene.objects], dtype=str),
-        scene=np.array(scene.name))
+        scene=np.array(scene.name), **(extra or {}))
     atomic_write_bytes(out, buf.getvalue())
     return truth

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -121,7 +122,10 @@ class VirtualFirmware(DeviceApp):
                                   ).astype(np.uint16)
         self._receiver: tuple[tuple, FastReceiver] | None = None
         self._last_frame = 0
-        self._clock_us = 0
+        #: the device clock as an exact count of chips since power-up (integer: no rounding
+        #: accumulates); the wire's microseconds are derived from it by flooring
+        self._clock_chips = 0
+        self._chip_rate = Fraction(self.spec.chip_rate_hz)
 
     # ---- identity -------------------------------------------------------------------
     def info(self) -> Info:
@@ -265,10 +269,14 @@ class VirtualFirmware(DeviceApp):
 
     # ---- measurements ---------------------------------------------------------------
     def _timestamp(self, cfg: RenderSettings) -> int:
-        """Simulated device clock (us): advances by one column's acquisition time."""
-        samples = cfg.averages * cfg.frame_samples
-        self._clock_us += round(samples / (self.spec.chip_rate_hz * cfg.samples_per_chip) * 1e6)
-        return self._clock_us & 0xFFFFFFFF
+        """Simulated device clock (us, 32 bits): advances by one column's acquisition time.
+
+        The clock counts chips exactly (R * n * N per column); the timestamp is the floor of
+        that total in microseconds, so a frame of C columns spans C * R * n * N / chip rate
+        to within 1 us however many columns went before (eq. 29's frame rate).
+        """
+        self._clock_chips += cfg.averages * cfg.frame_chips
+        return int(self._clock_chips * 1_000_000 // self._chip_rate) & 0xFFFFFFFF
 
     def column_samples(self, frame: int, column: int) -> NDArray[np.int16]:
         """ADC codes of one scan column under the current configuration and power."""

@@ -26,7 +26,10 @@ from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
 FS = 62.5e6 * 4
-URL = "virtual://flat-wall?seed=3&distance=7.5&instrument.wavelengths.count=8&instrument.columns=4"
+# a quieter receiver than the default (about 6 mV of noise against 2 mV echoes at 7.5 m),
+# so that echo ratios are measured to a few per cent in one column
+URL = ("virtual://flat-wall?seed=3&distance=7.5&instrument.wavelengths.count=8&instrument.columns=4"
+       "&instrument.tia_noise_a_per_rthz=3e-12")
 
 
 @pytest.fixture
@@ -286,3 +289,20 @@ def test_paper_scene1_lit_pixels_stand_out_from_empty_ones():
     assert lit.sum() > 200 and (~lit).sum() > 1000
     assert np.mean(np.abs(lag[lit] - true[lit]) <= 1) >= 0.97
     assert np.percentile(snr[lit], 5) > snr[~lit].max() + 1.0
+
+
+def test_the_column_clock_keeps_eq29s_frame_rate():
+    """Eq. 29: 1 Gchip/s, a degree-13 code (N = 8191), 1000 columns -> 122 Hz, not the 125 Hz
+    of a clock that rounds each column (8.191 us) to whole microseconds."""
+    scene = load_scene("flat-wall", overrides={
+        "instrument.chip_rate_hz": 1e9, "code_degree": 13, "averages": 1,
+        "instrument.columns": 1000, "instrument.wavelengths.count": 2})
+    fw = VirtualFirmware(scene, 0)
+    cfg = fw.render_settings()
+    stamps = [fw._timestamp(cfg) for _ in range(2000)]
+    frame_us = stamps[999]  # the end of the first frame of 1000 columns
+    assert frame_us == 8191  # floor(1000 * 8191 chips / 1 Gchip/s) exactly
+    assert 1e6 / frame_us == pytest.approx(122.08, abs=0.01)
+    assert stamps[1999] == 16382  # no drift: the second frame ends at twice the time
+    assert stamps[0] == 8  # a column's own time, floored
+    assert np.all(np.diff(stamps) >= 8) and np.all(np.diff(stamps) <= 9)
