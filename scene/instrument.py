@@ -61,6 +61,7 @@ from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 __all__ = [
     "ACCUMULATED_CLIP_MARGIN",
     "ACCUMULATED_MIN_NOISE_LSB",
+    "ECHO_CACHE_BYTES",
     "FRAC_BITS",
     "Instrument",
     "RenderSettings",
@@ -83,6 +84,10 @@ ACCUMULATED_CLIP_MARGIN = 6.0
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
 _STREAM_SPECKLE = 2
+
+#: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
+#: in every frame; only the noise is new).
+ECHO_CACHE_BYTES = 128 << 20
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -182,6 +187,8 @@ class Instrument:
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
+        self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
+        self._columns_bytes = 0
         self._fixed_noise_v = self._fixed_noise(RenderSettings.from_spec(self.spec))
         #: per-sample noise rms (V) at the scene's own settings and power, median over columns
         self.noise_rms_v = float(np.median(self.noise_rms_columns_v()))
@@ -432,10 +439,28 @@ class Instrument:
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
                            total_samples: int) -> NDArray[np.float64] | None:
-        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none)."""
-        users = [u for u in self.spec.other_users if not u.columns or column in u.columns]
-        if not users:
+        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none).
+
+        The same for every column that sees the same users: computed once per set of
+        users and settings (read-only result).
+        """
+        seen = tuple(i for i, u in enumerate(self.spec.other_users)
+                     if not u.columns or column in u.columns)
+        if not seen:
             return None
+        users = [self.spec.other_users[i] for i in seen]
+        key = ("users", seen, cfg, total_samples)
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit[0]
+        out = self._users_signal(users, cfg, total_samples)
+        out.flags.writeable = False
+        self._columns[key] = (out, 0.0)
+        self._columns_bytes += out.nbytes
+        return out
+
+    def _users_signal(self, users: list, cfg: RenderSettings,
+                      total_samples: int) -> NDArray[np.float64]:
         out = np.zeros(total_samples)
         idx = np.arange(total_samples)
         for u in users:
@@ -496,6 +521,30 @@ class Instrument:
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
 
+    def column_model(self, column: int, cfg: RenderSettings,
+                     power_w: NDArray[np.float64] | None = None, calibration: bool = False
+                     ) -> tuple[NDArray[np.float64], float]:
+        """(noise-free echo of one repetition (V, L samples, read-only), noise rms (V)).
+
+        Kept between frames (up to ECHO_CACHE_BYTES): the scene is static, so a column's
+        echo and noise level depend only on the column, the settings and the power.
+        """
+        power = self.default_power_w[:, column] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = (column, calibration, cfg, power.tobytes())
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit
+        echo = self.echo(column, cfg, power, calibration=calibration)
+        echo.flags.writeable = False
+        hit = (echo, self.noise_rms_v_at(column, cfg, power, calibration))
+        if self._columns_bytes + echo.nbytes > ECHO_CACHE_BYTES:
+            self._columns.clear()
+            self._columns_bytes = 0
+        self._columns[key] = hit
+        self._columns_bytes += echo.nbytes
+        return hit
+
     def _column_inputs(self, column: int, cfg: RenderSettings, frame: int,
                        power_w: NDArray[np.float64] | None, calibration: bool, shot: int
                        ) -> tuple[NDArray[np.float64], float, np.random.Generator, int]:
@@ -505,14 +554,12 @@ class Instrument:
             check_int("column", column, 0, self.columns - 1)
         col = 0 if calibration else column
         scale, offset = self._fine_scale()
-        one = self.echo(col, cfg, power_w, calibration=calibration)
-        one *= scale
+        echo, sigma = self.column_model(col, cfg, power_w, calibration)
+        one = echo * scale
         one += offset
-        sigma = self.noise_rms_v_at(col, cfg, power_w, calibration) * scale
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-        rng = np.random.default_rng([self.seed, stream, frame, shot
-                                     if calibration else col])
-        return one, sigma, rng, col
+        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        return one, sigma * scale, rng, col
 
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
@@ -537,12 +584,12 @@ class Instrument:
             for i in range(r):
                 np.add(q, rem > i, out=out[i], casting="unsafe")
             return out.reshape(-1)
-        return self._render_exact(column, cfg, frame, power_w, calibration, shot)
+        return self.render_exact(column, cfg, frame, power_w, calibration=calibration, shot=shot)
 
-    def _render_exact(self, column: int, cfg: RenderSettings, frame: int,
-                      power_w: NDArray[np.float64] | None, calibration: bool,
-                      shot: int) -> NDArray[np.int16]:
-        """Every repetition's samples drawn and quantised on their own."""
+    def render_exact(self, column: int, cfg: RenderSettings, frame: int = 0,
+                     power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
+                     shot: int = 0) -> NDArray[np.int16]:
+        """:meth:`render` at ``exact`` fidelity: every repetition drawn and quantised alone."""
         one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
                                                    shot)
         length = one.size
