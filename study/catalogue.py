@@ -15,7 +15,8 @@ from cdma_lidar.study.engine import Study
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
-BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY, fig2e.STUDY, fig11.STUDY)
+BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
+                              fig2e.STUDY, fig11.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 

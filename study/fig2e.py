@@ -36,7 +36,7 @@ import numpy as np
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.study.engine import RunContext, RunOptions, Setting, Study, Table, headline
-from cdma_lidar.study.fig11 import ERROR_THRESHOLD, FIDELITIES, crossing
+from cdma_lidar.study.fig11 import FIDELITIES, crossing
 from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.mai import code_bits, run_trials, sga_error_rate, snr_ss_eq43
 
@@ -54,15 +54,16 @@ REPORT_NOTE = (
     "At 10 % error our SNR_XC (eq. 44 exactly as written: peak squared over the variance "
     "of the correlation's noise floor) is about 14 dB, where eq. 43 predicts it and where "
     "a Gaussian noise floor of about N independent lags must put it; the paper reads "
-    "32.5 dB. The paper does not say how its noise floor was taken. Its own eq. 43 at "
-    "its own Fig. 11 capacity (125 channels, N = 2047) gives 13.9 dB, on our scale; only a "
+    "32.5 dB. The paper does not say how its noise floor was taken. Its own eq. 43 at its "
+    "own Fig. 11 capacity (125 channels, N = 2047) gives 13.9 dB, on our scale; only a "
     "floor variance about S = 50 times smaller than eq. 44's would put ours near 32.5 dB "
     "(ours + 10 log10 S is in the summary as a labelled hypothesis, not a finding). The "
     "difference is one of scale, not of performance. The lowest workable SNR depends on "
-    "the processing gain N S R: with one code period (R = 1) ours is about -34 dB; the paper's -50 dB was measured with its "
-    "oscilloscope's record length and with the sequential-mixing noise of Supp. Note 4 "
-    "(each channel's noise added 40 times), neither of which the paper quantifies, so the "
-    "two are not on the same footing; averages=R moves ours by 10 log10 R."
+    "the processing gain N S R: with one code period (R = 1) ours is about -34 dB. The "
+    "paper's -50 dB was measured with its oscilloscope's record length and with the "
+    "sequential-mixing noise of Supp. Note 4 (each channel's noise added 40 times), "
+    "neither of which it quantifies, so the two are not on the same footing; "
+    "averages=R moves ours by about 10 log10 R."
 )
 
 
