@@ -23,6 +23,16 @@ whiskers), ``snr_ss_eq43_db``, ``noise_rms_lsb``, ``time_per_trial_s`` (machine)
 Headlines: ``snr_xc_threshold_db`` (median SNR_XC where the error rate crosses 10 %;
 paper 32.5 dB), ``min_workable_snr_db`` (eq. 30 SNR there; paper: "still workable in
 -50 dB"). See :data:`REPORT_NOTE` for why both differ.
+
+Differences from the paper. Our SNR_XC at 10 % error is about 14 dB, the paper's 32.5 dB:
+a difference of scale. Ours is eq. 44 as written (peak^2 over the noise floor's variance);
+its expectation is eq. 43's SNR_SS, the paper's own eq. 43 at its own Fig. 11 capacity
+gives 13.9 dB, and a Gaussian floor of about N lags puts a noise peak near 12 dB, so 10 %
+error must sit near 14 dB on this scale. The paper does not say how it took its floor;
+``snr_xc_threshold_db_plus_10log10_s`` (ours + 10 log10 S) is reported as a labelled
+hypothesis. The lowest workable SNR (about -34 dB at R = 1) depends on the processing gain
+N S R; the paper's -50 dB came from its oscilloscope record and Supp. Note 4's
+sequential-mixing noise, neither quantified in the paper.
 """
 
 from __future__ import annotations
