@@ -9,13 +9,15 @@ unique: registering a second study under a taken name is an error unless
 from __future__ import annotations
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import detection, extremes, tradeoff
+from cdma_lidar.study import detection, extremes, fig2c, fig2d, fig2e, fig2f, fig11, tradeoff
 from cdma_lidar.study.engine import Study
 
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
-BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY)
+BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
+                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY,
+                              fig2f.STUDY, fig11.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 
