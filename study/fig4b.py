@@ -189,9 +189,9 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     ax.legend(fontsize=8)
     save_figure(fig, ctx.out / "fig4b.png")
 
-    def pick(k: int, col: str) -> float | None:
+    def pick(k: int, col: str) -> int | None:
         t = table.where(channels=k)
-        return float(t.column(col)[0]) if len(t) else None
+        return round(float(t.column(col)[0])) if len(t) else None
 
     first = int(chans.min())
     acc = table.column("foreign_ranges_accepted")
@@ -199,7 +199,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         # Paper: Fig. 4b / Note 11, four users sharing one code, all identified.
         "users_identified": headline(pick(first, "users_identified"), PAPER_USERS, "users"),
         # Paper: Note 11, "each user can only correctly identify its own ... delay".
-        "foreign_ranges_accepted": headline(float(np.nansum(acc)), PAPER_FOREIGN_ACCEPTED,
+        "foreign_ranges_accepted": headline(round(float(np.nansum(acc))), PAPER_FOREIGN_ACCEPTED,
                                             "pixels"),
     }
     if int(chans.max()) != first:
