@@ -14,7 +14,8 @@ always has a row for every result of the paper. A study that fails is reported w
 its error and the others go on.
 
 ``sub_set`` passes settings to the parts: ``--set sub_set=eq42.trials=1000,fig4d.frames=2``
-(``NAME.KEY=VALUE`` items, comma-separated; each must name a setting of that study).
+(``NAME.KEY=VALUE`` items, comma-separated; each must name a setting of that study; a
+list value continues over the commas: ``sub_set=eq42.degrees=9,11,eq42.pairs=50``).
 """
 
 from __future__ import annotations
@@ -69,8 +70,14 @@ NOT_AVAILABLE = "not available in this build"
 
 def parse_sub_set(items: tuple[str, ...], names: list[str]) -> dict[str, dict[str, str]]:
     """``("eq42.trials=1000", ...)`` -> ``{"eq42": {"trials": "1000"}}`` (ConfigError if bad)."""
+    joined: list[str] = []
+    for item in items:  # "eq42.degrees=9,11" arrives split at the comma: "11" continues it
+        if "=" not in item and joined:
+            joined[-1] += "," + item
+        else:
+            joined.append(item)
     out: dict[str, dict[str, str]] = {}
-    for item in items:
+    for item in joined:
         key, sep, value = item.partition("=")
         name, dot, setting = key.strip().partition(".")
         if not sep or not dot or not setting:
