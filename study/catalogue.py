@@ -9,14 +9,27 @@ unique: registering a second study under a taken name is an error unless
 from __future__ import annotations
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import detection, eq29, eq42, fig4b, fig4d, fig17, paper, table1
+from cdma_lidar.study import (
+    detection,
+    eq29,
+    eq42,
+    extremes,
+    fig4b,
+    fig4d,
+    fig17,
+    paper,
+    table1,
+    tradeoff,
+)
 from cdma_lidar.study.engine import Study
 
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
-BUILTIN: tuple[Study, ...] = (detection.STUDY, fig17.STUDY, eq42.STUDY, eq29.STUDY,
-                              fig4b.STUDY, fig4d.STUDY, table1.STUDY, paper.STUDY)
+BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
+                              # the paper's results (docs/paper.md); `paper` runs them all
+                              fig17.STUDY, eq42.STUDY, eq29.STUDY, fig4b.STUDY, fig4d.STUDY,
+                              table1.STUDY, paper.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 

@@ -30,7 +30,8 @@ Storage (``--out DIR``)::
     DIR/replicates.csv    one row per task (the tidy raw table)
     DIR/results.csv       one row per point: parameters, then measured columns (the mean
                           over replicates, with ``<col>_ci95`` half-widths when there
-                          are at least two replicates); units in the column names
+                          are at least two replicates, and ``<col>_best``, the minimum,
+                          for machine columns); units in the column names
     DIR/summary.json      headline numbers, each {"ours": x, "paper": y or null, "unit": u}
     DIR/run.json          what ran: study, settings, engine, counts, failures, the columns
                           that measure the machine (time, memory) rather than the model
@@ -503,8 +504,13 @@ class _Dask(_Executor):
             self.description = f"dask scheduler {scheduler}"
         else:
             n = workers if workers is not None else (os.cpu_count() or 1)
+            # no dashboard; the scheduler's small HTTP server (health, metrics) on a free
+            # loopback port rather than 8787, which another cluster may hold
             self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                         dashboard_address=None, silence_logs=logging.ERROR)
+                                         host="127.0.0.1" if processes else None,
+                                         dashboard_address="127.0.0.1:0",
+                                         scheduler_kwargs={"dashboard": False},
+                                         silence_logs=logging.ERROR)
             self.client = Client(self._cluster, set_as_default=False)
             self.description = (f"dask LocalCluster, {n} worker "
                                 f"{'processes' if processes else 'threads'}")
@@ -657,7 +663,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
     for key, p, r in order:
         if key in results:
             rep_table.append({**p, "replicate": r, **results[key]})
-    table = _aggregate(points, rep_table, reps)
+    table = _aggregate(points, rep_table, reps, study.machine_columns)
     ctx = RunContext(study, out, options, executor, resume, progress)
     summary = dict(study.reduce(table, ctx)) if study.reduce is not None else {}
 
@@ -701,8 +707,13 @@ def _check_grid(study: Study, points: list[Params]) -> None:
         seen.add(c)
 
 
-def _aggregate(points: list[Params], reps: Table, n_reps: int) -> Table:
-    """One row per point: numeric columns averaged over replicates, with 95 % CIs."""
+def _aggregate(points: list[Params], reps: Table, n_reps: int,
+               machine: Sequence[str] = ()) -> Table:
+    """One row per point: numeric columns averaged over replicates, with 95 % CIs.
+
+    A machine column (time, memory) also gets ``<col>_best``, its minimum over the
+    replicates: the figure least disturbed by other load on the machine.
+    """
     names = list(points[0]) if points else []
     measured = [c for c in reps.columns if c not in names and c != "replicate"]
     groups: dict[str, list[dict[str, Any]]] = {_canonical(p): [] for p in points}
@@ -721,6 +732,8 @@ def _aggregate(points: list[Params], reps: Table, n_reps: int) -> Table:
                 out[c] = float(np.mean(arr)) if len(arr) > 1 else _plain(num[0])
                 if n_reps > 1:
                     out[f"{c}_ci95"] = _ci95(arr)
+                    if c in machine:
+                        out[f"{c}_best"] = float(np.min(arr))
             else:
                 distinct = {json.dumps(v) for v in vals}
                 out[c] = vals[0] if len(distinct) == 1 else ";".join(sorted(distinct))

@@ -25,7 +25,15 @@ from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["SimulatedScan", "eq27_from_configuration", "simulate_frame"]
+__all__ = [
+    "SimulatedScan",
+    "eq27_from_configuration",
+    "ranging_config",
+    "receiver_setup",
+    "simulate_frame",
+    "smallest_out_shift",
+    "true_offset_m",
+]
 
 
 @dataclass
@@ -45,6 +53,54 @@ class SimulatedScan:
     true_offset_m: float
 
 
+def smallest_out_shift(cfg: ReceiverConfig, n_chips: int) -> ReceiverConfig:
+    """``cfg`` with the smallest ``out_shift`` whose derived widths fit (noise_sumsq in int64).
+
+    A long code, many samples per chip or many repetitions make the 32-bit output's
+    noise accumulator too wide at shift 0; the device would be configured the same way.
+    Raises the receiver's ConfigError when no shift fits.
+    """
+    for shift in range(63):
+        try:
+            cfg.replace(out_shift=shift).widths(n_chips)
+        except ConfigError:
+            continue
+        return cfg.replace(out_shift=shift)
+    cfg.widths(n_chips)  # raises the receiver's own error
+    return cfg
+
+
+def receiver_setup(inst: Instrument, *, peaks: int = 1, gate: tuple[int, int] | None = None
+                   ) -> tuple[ReceiverConfig, NDArray[np.uint8]]:
+    """The receive-chain configuration and Gold codes (K, N) the instrument's device uses.
+
+    ``gate`` (start, length) in samples defaults to the instrument's
+    :meth:`~cdma_lidar.scene.instrument.Instrument.default_gate`; the output shift is the
+    smallest that fits (:func:`smallest_out_shift`).
+    """
+    spec = inst.spec
+    gate_start, gate_len = gate if gate is not None else inst.default_gate()
+    codes = np.stack([gold_code(spec.poly_u, spec.poly_v, k) for k in spec.code_indices])
+    cfg = ReceiverConfig(adc_bits=spec.adc_bits,
+                         samples_per_chip=spec.samples_per_chip,
+                         averages=spec.averages, uid_bits=spec.uid_bits, uid=spec.uid,
+                         gate_start=gate_start, gate_len=gate_len, peaks=peaks)
+    return smallest_out_shift(cfg, codes.shape[1]), codes
+
+
+def ranging_config(inst: Instrument) -> RangingConfig:
+    """What the host knows of the instrument's configuration (nominal values, no offset)."""
+    spec = inst.spec
+    return RangingConfig(samples_per_chip=spec.samples_per_chip,
+                         chip_rate_hz=spec.chip_rate_hz, code_length=spec.code_length,
+                         uid=spec.uid)
+
+
+def true_offset_m(inst: Instrument) -> float:
+    """The hidden system delay as a range (m): what a perfect calibration finds."""
+    return inst.spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2.0
+
+
 def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
                    power_w: NDArray[np.float64] | None = None, frame: int = 0,
                    gate: tuple[int, int] | None = None) -> SimulatedScan:
@@ -53,32 +109,18 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
     scene = load_scene(scene_name)
     inst = Instrument(scene, seed=seed)
     spec = inst.spec
-    gate_start, gate_len = gate if gate is not None else inst.default_gate()
-    codes = np.stack([gold_code(spec.poly_u, spec.poly_v, k) for k in spec.code_indices])
-    cfg = ReceiverConfig(adc_bits=spec.adc_bits, samples_per_chip=spec.samples_per_chip,
-                         averages=spec.averages, uid_bits=spec.uid_bits, uid=spec.uid,
-                         gate_start=gate_start, gate_len=gate_len, peaks=peaks)
-    for shift in range(63):  # the smallest output shift whose noise accumulator fits int64
-        try:
-            cfg.replace(out_shift=shift).widths(codes.shape[1])
-        except ConfigError:
-            continue
-        cfg = cfg.replace(out_shift=shift)
-        break
+    cfg, codes = receiver_setup(inst, peaks=peaks, gate=gate)
     rx = FastReceiver(cfg, codes)
     data = FrameData.empty(inst.channels, inst.columns, spec.uid_bits, peaks, frame)
     for col in range(inst.columns):
         pw = None if power_w is None else power_w[:, col]
         data.set_column(col, rx.column(inst.render(col, frame=frame, power_w=pw)),
                         angle_deg=float(spec.rotations_deg[col]))
-    ranging = RangingConfig(samples_per_chip=spec.samples_per_chip,
-                            chip_rate_hz=spec.chip_rate_hz, code_length=spec.code_length,
-                            uid=spec.uid)
-    return SimulatedScan(frame=data, truth_range_m=inst.truth.range_m, ranging=ranging,
-                         geometry=spec.geometry(nominal=True),
+    return SimulatedScan(frame=data, truth_range_m=inst.truth.range_m,
+                         ranging=ranging_config(inst), geometry=spec.geometry(nominal=True),
                          wavelengths_m=np.asarray(spec.wavelengths_m),
                          rotations_deg=np.asarray(spec.rotations_deg),
-                         true_offset_m=spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2.0)
+                         true_offset_m=true_offset_m(inst))
 
 
 def eq27_from_configuration(scene_name: str) -> float:

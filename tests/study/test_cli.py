@@ -64,7 +64,7 @@ def test_run_writes_table_summary_run_info_and_figure(capsys, tmp_path):
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["study", "run", "nope", "--out", "X"], "unknown study 'nope'; known: detection"),
+    (["study", "run", "nope", "--out", "X"], "unknown study 'nope'; known: tradeoff, extremes"),
     (["study", "run", "detection", "--out", "X", "--set", "bogus=1"], "no such setting"),
     (["study", "run", "detection", "--out", "X", "--set", "S=0"], "S must be"),
     (["study", "run", "detection", "--out", "X", "--set", "S=x"], "expected int"),
