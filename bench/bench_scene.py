@@ -2,9 +2,14 @@
 
     python -m bench scene
 
-1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11): render every column's ADC
-   codes and run the bit-exact fast receiver on them, as the virtual device does. The
-   instrument's own acquisition time is 160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms.
+1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level:
+   render every column (cold: the first frame, echoes synthesised; warm: a later frame of
+   the static scene, echoes kept), the receive chain alone on the same samples (all 160
+   columns in one call, its default kernel: the baseline), and the virtual device's whole
+   scan (rendering, receive chain in the board's batches, ColumnResults). Ratios: scan /
+   receive chain alone, exact render / level's render, and the real-time factor: the
+   instrument's own acquisition time (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms)
+   over the scan's time.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -13,7 +18,8 @@
    draws and the ADC (fixed: every sample of every frame has its own noise and is
    quantised on its own), the whole rendering, the receive chain (fixed: the device
    correlates every configured channel, lit or not), and the virtual device's scan
-   (rendering, receive chain and ColumnResults, in its batches of columns).
+   (rendering, receive chain and ColumnResults, in its batches of columns). Rendering and
+   scan are timed cold (echoes synthesised, as in a first frame).
 
 Times are CPU seconds of this process, best of several runs (see ``_best``).
 """
@@ -24,9 +30,16 @@ import time
 
 import numpy as np
 
+import cdma_lidar.virtual  # noqa: F401  (registers the virtual:// URL scheme)
+from cdma_lidar.host.connection import connect
+from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
+from cdma_lidar.host.scan import calibrate_device
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
 ACQ_S = 160 * 10 * 2047 / 62.5e6
@@ -48,7 +61,7 @@ def _best(fn, repeat: int = 5) -> float:
 
 def _wall(strip_channels: int | None, columns: int = 32, dark: bool = False) -> object:
     inst = {"wavelengths": {"count": 40}, "azimuth_deg": [-1.0, 1.0], "columns": columns,
-            "incidence_deg": 60.02, "link_gain_v_m2_per_w": 100.0, "snr_db": -10.0}
+            "incidence_deg": 60.02}
     plane = {"kind": "plane", "name": "wall", "position_m": [5.0, 0.0, 0.0],
              "size_m": [20.0, 20.0], "reflectivity": 0.5}
     if strip_channels is not None:
@@ -111,11 +124,12 @@ def _cost(scene) -> dict[str, float]:
         "echo": _best(lambda: [inst.echo(c, cfg) for c in cols]),
         "noise": _best(noise),
         "adc": t_adc,
-        "render": _best(lambda: [inst.render(c, cfg, 1) for c in cols]),
+        # the first frame: echoes synthesised, not taken from the previous frame
+        "render": _best(lambda: (inst.forget(), [inst.render(c, cfg, 1) for c in cols])),
         # The receive chain's GEMMs run on BLAS threads, whose CPU time swings most
         # when other jobs share the cores: more runs for these two.
         "rx": _best(lambda: rx.frame(samples), 11),
-        "scan": _best(lambda: list(fw.scan(1, 0, inst.columns)), 11),
+        "scan": _best(lambda: (inst.forget(), list(fw.scan(1, 0, inst.columns))), 11),
     }
     out = {k: v / inst.columns for k, v in t.items()}
     lit = inst.truth.hits.lit.sum(axis=0)
@@ -124,27 +138,70 @@ def _cost(scene) -> dict[str, float]:
     return out
 
 
-def main() -> None:
-    scene = load_scene("paper-scene1")
+def _frame_costs(level: str, repeat: int) -> dict[str, float]:
+    """CPU seconds of one paper-scene1 frame at fidelity ``level`` (best of ``repeat``)."""
+    scene = load_scene(f"paper-scene1?fidelity={level}")
     fw = VirtualFirmware(scene, 0)
     inst = fw.instrument
     cfg = fw.render_settings()
     rx = fw.receiver()
-    list(fw.scan(0, 0, 160))  # warm up caches
-    t_render = _best(lambda: [inst.render(c, cfg, 1) for c in range(160)], 2)
-    samples = np.stack([inst.render(c, cfg, 1) for c in range(160)])
-    t_rx = _best(lambda: rx.frame(samples), 2)
-    t_scan = _best(lambda: list(fw.scan(2, 0, 160)), 2)
-    lit = inst.truth.hits.lit
+    cols = range(inst.columns)
+    list(fw.scan(0, 0, inst.columns))  # warm up spectra, receivers, allocator
+
+    def render() -> list:
+        if level == "accumulated":
+            return [inst.render_accumulated(c, cfg, 1) for c in cols]
+        return [inst.render_exact(c, cfg, 1) for c in cols]
+
+    def cold() -> None:
+        inst.forget()
+        render()
+
+    t_cold = _best(cold, repeat)
+    t_warm = _best(render, repeat)
+    if level == "accumulated":
+        acc = np.stack(render())
+        t_rx = _best(lambda: rx.from_accumulators(acc), repeat)
+    else:
+        samples = np.stack(render())
+        t_rx = _best(lambda: rx.frame(samples), repeat)
+
+    def scan_cold() -> None:
+        inst.forget()
+        list(fw.scan(2, 0, inst.columns))
+
+    t_scan_cold = _best(scan_cold, repeat)
+    t_scan = _best(lambda: list(fw.scan(2, 0, inst.columns)), repeat)
+    return {"cold": t_cold, "warm": t_warm, "rx": t_rx, "scan_cold": t_scan_cold,
+            "scan": t_scan}
+
+
+def main() -> None:
+    scene = load_scene("paper-scene1")
+    fw = VirtualFirmware(scene, 0)
+    lit = fw.instrument.truth.hits.lit
     print(f"paper-scene1: 40 x 160 pixels, {int(lit.sum())} lit "
           f"({lit.sum(axis=0).mean():.1f} lit channels per column on average), "
-          f"gate {fw.get_config()['gate_len']} lags")
-    print(f"  render one frame (160 columns x {samples.shape[1]} samples): "
-          f"{t_render * 1e3:8.1f} ms")
-    print(f"  receive chain on it (fast, bit-exact):              {t_rx * 1e3:8.1f} ms")
-    print(f"  VirtualFirmware.scan, all 160 ColumnResults:         {t_scan * 1e3:8.1f} ms")
-    print(f"  instrument acquisition time {ACQ_S * 1e3:.1f} ms -> real-time factor "
-          f"{ACQ_S / t_scan:.2f}")
+          f"gate {fw.get_config()['gate_len']} lags; CPU ms per frame, best of 5")
+    costs = {level: _frame_costs(level, 5) for level in FIDELITY_LEVELS}
+    ex = costs["exact"]
+    print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in FIDELITY_LEVELS))
+    rows = (("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
+            ("receive chain alone (baseline)", "rx"), ("VirtualFirmware.scan, cold", "scan_cold"),
+            ("VirtualFirmware.scan, warm", "scan"))
+    for label, key in rows:
+        print(f"  {label:34s}" + "".join(f"{costs[lv][key] * 1e3:13.1f}"
+                                         for lv in FIDELITY_LEVELS))
+    print(f"  {'scan cold / receive chain alone':34s}" + "".join(
+        f"{costs[lv]['scan_cold'] / ex['rx']:13.2f}" for lv in FIDELITY_LEVELS)
+        + "   (baseline: the exact level's receive chain)")
+    print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
+        f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
+    print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
+        f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in FIDELITY_LEVELS))
+    print(f"  {'real-time factor (52.4 ms / scan)':34s}" + "".join(
+        f"{ACQ_S / costs[lv]['scan_cold']:13.3f}" for lv in FIDELITY_LEVELS)
+        + "   (cold scan)")
 
     full = _cost(_wall(None))
     strip = _cost(_wall(5))
@@ -171,6 +228,82 @@ def main() -> None:
           f"{100 * (strip['noise'] + strip['adc']) / strip['render']:.0f} % of the 5-lit one; "
           "they are the same for any scene (R x L independent samples, each frame "
           "quantised on its own)")
+    print_error_budget()
+
+
+
+
+# ---------------------------------------------------------------------------------------
+# error budget of a paper-scene1 pixel
+
+def _ranges(fw: VirtualFirmware, frame: int) -> np.ndarray:
+    """(K, C) host ranges of one frame (calibrated with the TRUE offset), NaN if rejected."""
+    spec = fw.spec
+    c = fw.get_config()
+    data = FrameData.from_columns(fw.scan(frame, 0, fw.columns), fw.channels, fw.columns,
+                                  frame=frame)
+    rc = RangingConfig(samples_per_chip=c["samples_per_chip"], chip_rate_hz=spec.chip_rate_hz,
+                       code_length=spec.code_length,
+                       offset_m=spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2)
+    img = estimate_ranges(data, rc)
+    return np.where(img.valid, img.range_m, np.nan)
+
+
+def error_budget(frames: int = 10) -> dict[str, float]:
+    """Measured error terms of paper-scene1's object pixels (m; std over pixels or frames).
+
+    noise: per-pixel std over ``frames`` frames (median over pixels); total bias: per-pixel
+    mean error over the frames; sub-sample estimator: the error of each channel alone
+    (all other channels' power 0, no noise: what the triangle estimator leaves of the
+    true fractional delay); cross-talk bias: total bias minus the estimator's (the other
+    channels' cross-correlation under the peak); calibration: the zeroth-order
+    calibration's offset minus the true system delay (20 shots, as the demo).
+    """
+    truth = load_scene("paper-scene1")
+    fw = VirtualFirmware(truth, 1)
+    true_r = fw.instrument.truth.range_m
+    obj = np.isfinite(true_r)
+    err = np.stack([_ranges(fw, f) - true_r for f in range(1, frames + 1)])
+    ok = obj & np.all(np.isfinite(err), axis=0)
+    noise = np.std(err[:, ok], axis=0, ddof=1)
+    bias = np.mean(err[:, ok], axis=0)
+    quiet = VirtualFirmware(load_scene("paper-scene1?instrument.noise_rms_v=0"), 1)
+    alone = np.full(true_r.shape, np.nan)
+    base = quiet.power_code.copy()
+    for k in np.flatnonzero(obj.any(axis=1)):
+        code = np.zeros_like(base)
+        code[k] = base[k]
+        quiet.power_code = code
+        alone[k] = (_ranges(quiet, 1) - true_r)[k]
+    est = alone[ok]
+    xtalk = bias - est
+    with connect("virtual://paper-scene1?seed=1") as dev:
+        cal = calibrate_device(dev, truth.calibration.target_distance_m, shots=20, frame_id=0)
+    true_off = truth.instrument.system_delay_s * SPEED_OF_LIGHT_M_S / 2
+    fin = np.isfinite(est)
+    return {"pixels": int(ok.sum()), "noise_median": float(np.median(noise)),
+            "bias_std": float(np.std(bias)), "bias_mean": float(np.mean(bias)),
+            "estimator_std": float(np.std(est[fin])), "estimator_max": float(
+                np.max(np.abs(est[fin]))), "estimator_mean": float(np.mean(est[fin])),
+            "xtalk_std": float(np.std(xtalk[fin])), "xtalk_max": float(
+                np.max(np.abs(xtalk[fin]))),
+            "calibration": float(cal.offset_m - true_off),
+            "total_rms": float(np.sqrt(np.mean(err[:, ok] ** 2)))}
+
+
+def print_error_budget() -> None:
+    b = error_budget()
+    print(f"error budget of paper-scene1 object pixels ({b['pixels']} valid in all 10 frames, "
+          "seed 1, frames 1-10, true offset), cm:")
+    print(f"  noise (per-pixel std over frames, median)      {100 * b['noise_median']:6.2f}")
+    print(f"  cross-talk bias (std over pixels; max |.|)     {100 * b['xtalk_std']:6.2f}"
+          f"  {100 * b['xtalk_max']:6.2f}")
+    print(f"  sub-sample estimator (std; max |.|; mean)      {100 * b['estimator_std']:6.2f}"
+          f"  {100 * b['estimator_max']:6.2f}  {100 * b['estimator_mean']:6.2f}")
+    print(f"  total bias (std over pixels; mean)             {100 * b['bias_std']:6.2f}"
+          f"  {100 * b['bias_mean']:6.2f}")
+    print(f"  calibration (offset - true, 20 shots)          {100 * b['calibration']:6.2f}")
+    print(f"  rms error of all (pixel, frame)                {100 * b['total_rms']:6.2f}")
 
 
 if __name__ == "__main__":

@@ -47,6 +47,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int, is_int
@@ -61,6 +62,7 @@ from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 __all__ = [
     "ACCUMULATED_CLIP_MARGIN",
     "ACCUMULATED_MIN_NOISE_LSB",
+    "ECHO_CACHE_BYTES",
     "FRAC_BITS",
     "Instrument",
     "RenderSettings",
@@ -83,6 +85,10 @@ ACCUMULATED_CLIP_MARGIN = 6.0
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
 _STREAM_SPECKLE = 2
+
+#: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
+#: in every frame; only the noise is new).
+ECHO_CACHE_BYTES = 128 << 20
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -182,6 +188,9 @@ class Instrument:
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
+        self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
+        self._columns_bytes = 0
+        self._coefficients: dict[int, dict[str, float]] = {}
         self._fixed_noise_v = self._fixed_noise(RenderSettings.from_spec(self.spec))
         #: per-sample noise rms (V) at the scene's own settings and power, median over columns
         self.noise_rms_v = float(np.median(self.noise_rms_columns_v()))
@@ -220,7 +229,11 @@ class Instrument:
                          / self.budget.volts_per_rx_w)
         else:
             rx = self.budget.rx_per_w[:, column]
-        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip)))
+        coef = self._coefficients.get(cfg.samples_per_chip)
+        if coef is None:
+            coef = self._coefficients[cfg.samples_per_chip] = self.budget.coefficients(
+                cfg.samples_per_chip)
+        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip, coef)))
 
     def link_figures(self, cfg: RenderSettings | None = None,
                      power_w: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
@@ -325,16 +338,24 @@ class Instrument:
         return np.stack([rows[i] for i in indices])
 
     def _spectrum_rows(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
-                       uid_bits: int) -> dict[int, NDArray[np.complex128]]:
+                       uid_bits: int, single: bool = False) -> dict[int, NDArray]:
         """Spectra by Gold member, computed once per (settings, member, UID).
 
         A column's lit subset then costs nothing to gather; the cache is dropped when
-        the settings change.
+        the settings change. ``single``: complex64 copies (made once from the complex128).
         """
+        if single:
+            wide = self._spectrum_rows(cfg, indices, uid, uid_bits)
+            key32 = ("single", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
+            rows32 = self._spectra.setdefault(key32, {})
+            for i in indices:
+                if i not in rows32:
+                    rows32[i] = wide[i].astype(np.complex64)
+            return rows32
         key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
         rows = self._spectra.get(key)
         if rows is None:
-            if len(self._spectra) >= 4:
+            if len(self._spectra) >= 8:
                 self._spectra.clear()
             rows = self._spectra[key] = {}
         missing = tuple(sorted({i for i in indices if i not in rows}))
@@ -365,16 +386,20 @@ class Instrument:
 
     def echo(self, column: int, cfg: RenderSettings,
              power_w: NDArray[np.float64] | None = None,
-             calibration: bool = False) -> NDArray[np.float64]:
+             calibration: bool = False, single: bool = False) -> NDArray[np.floating]:
         """Noise-free photodiode voltage (V) of one frame (L samples) at ``column``.
 
         Our own channels (lit ones only) and the ghosts configured for this column; other
         users are not periodic in our frame in general and are added by :meth:`render`.
         ``power_w``: laser power per channel (W) at this column. In ``calibration`` mode every
-        channel sees the zeroth-order target.
+        channel sees the zeroth-order target. ``single``: computed in single precision
+        (complex64 spectra, float32 result, relative error about 1e-7 of the largest
+        echo, i.e. below 1e-4 LSB for echoes inside the ADC's range), for ``accumulated``
+        fidelity; about half the cost.
         """
-        f, length = self._frame_bins(cfg)
-        m = f.size
+        length = cfg.frame_samples
+        m = length // 2 + 1
+        f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0  # bin spacing (Hz)
         power = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
         if calibration:
             cal = self.scene.calibration
@@ -386,6 +411,21 @@ class Instrument:
             chans = self.lit_channels(column)
             amps = self.gain_v_per_w[chans, column] * power[chans]
             taus = self.delay_s[chans, column]
+        if self.spec.ghosts:
+            amps, taus, chans = self._with_ghosts(column, amps, taus, chans)
+        keep = amps != 0
+        if not np.any(keep):
+            return np.zeros(length, dtype=np.float32 if single else np.float64)
+        amps, taus, chans = amps[keep], taus[keep], chans[keep]
+        members = tuple(int(cfg.code_index[c]) for c in chans)
+        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
+        total = self._sum_delayed(f0, m, amps, taus + self._sample_shift_s(cfg),
+                                  [rows[i] for i in members])
+        return scipy.fft.irfft(total, n=length, overwrite_x=True)
+
+    def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
+                     chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
+        """The column's echoes plus the grating ghosts configured for it."""
         amps_l, taus_l, chans_l = [amps], [taus], [chans]
         for g in self.spec.ghosts:
             if g.columns and column not in g.columns:
@@ -395,18 +435,7 @@ class Instrument:
             taus_l.append(np.full(gch.size, 2 * g.distance_m / SPEED_OF_LIGHT_M_S
                                   + self.spec.system_delay_s))
             chans_l.append(gch)
-        amps = np.concatenate(amps_l)
-        taus = np.concatenate(taus_l)
-        chans = np.concatenate(chans_l)
-        keep = amps != 0
-        if not np.any(keep):
-            return np.zeros(length)
-        amps, taus, chans = amps[keep], taus[keep], chans[keep]
-        members = tuple(int(cfg.code_index[c]) for c in chans)
-        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-        return np.fft.irfft(self._sum_delayed(f[1] if m > 1 else 0.0, m, amps,
-                                              taus + self._sample_shift_s(cfg),
-                                              [rows[i] for i in members]), n=length)
+        return np.concatenate(amps_l), np.concatenate(taus_l), np.concatenate(chans_l)
 
     @staticmethod
     def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
@@ -419,10 +448,11 @@ class Instrument:
         b = int(np.ceil(np.sqrt(m)))
         a = -(-m // b)
         w = -2.0 * np.pi * f0_hz * taus
-        lo = np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]
-        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :])
-        total = np.zeros(m, dtype=np.complex128)
-        tmp = np.empty((a, b), dtype=np.complex128)
+        dtype = spectra[0].dtype  # complex64 in single precision
+        lo = (np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]).astype(dtype)
+        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :]).astype(dtype)
+        total = np.zeros(m, dtype=dtype)
+        tmp = np.empty((a, b), dtype=dtype)
         flat = tmp.reshape(-1)[:m]
         for k, spec in enumerate(spectra):
             np.multiply.outer(hi[k], lo[k], out=tmp)
@@ -432,10 +462,28 @@ class Instrument:
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
                            total_samples: int) -> NDArray[np.float64] | None:
-        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none)."""
-        users = [u for u in self.spec.other_users if not u.columns or column in u.columns]
-        if not users:
+        """Other LiDARs' light at our photodiode (V) over ``total_samples`` (None if none).
+
+        The same for every column that sees the same users: computed once per set of
+        users and settings (read-only result).
+        """
+        seen = tuple(i for i, u in enumerate(self.spec.other_users)
+                     if not u.columns or column in u.columns)
+        if not seen:
             return None
+        users = [self.spec.other_users[i] for i in seen]
+        key = ("users", seen, cfg, total_samples)
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit[0]
+        out = self._users_signal(users, cfg, total_samples)
+        out.flags.writeable = False
+        self._columns[key] = (out, 0.0)
+        self._columns_bytes += out.nbytes
+        return out
+
+    def _users_signal(self, users: list, cfg: RenderSettings,
+                      total_samples: int) -> NDArray[np.float64]:
         out = np.zeros(total_samples)
         idx = np.arange(total_samples)
         for u in users:
@@ -496,6 +544,35 @@ class Instrument:
         scale, offset = self._fine_scale()
         return self._quantise_fine(np.asarray(volts, dtype=np.float64) * scale + offset)
 
+    def forget(self) -> None:
+        """Drop the echoes kept between frames (to measure a cold first frame, or free memory)."""
+        self._columns.clear()
+        self._columns_bytes = 0
+
+    def column_model(self, column: int, cfg: RenderSettings,
+                     power_w: NDArray[np.float64] | None = None, calibration: bool = False,
+                     single: bool = False) -> tuple[NDArray[np.floating], float]:
+        """(noise-free echo of one repetition (V, L samples, read-only), noise rms (V)).
+
+        Kept between frames (up to ECHO_CACHE_BYTES): the scene is static, so a column's
+        echo and noise level depend only on the column, the settings and the power.
+        """
+        power = self.default_power_w[:, column] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = (column, calibration, cfg, power.tobytes(), single)
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit
+        echo = self.echo(column, cfg, power, calibration=calibration, single=single)
+        echo.flags.writeable = False
+        hit = (echo, self.noise_rms_v_at(column, cfg, power, calibration))
+        if self._columns_bytes + echo.nbytes > ECHO_CACHE_BYTES:
+            self._columns.clear()
+            self._columns_bytes = 0
+        self._columns[key] = hit
+        self._columns_bytes += echo.nbytes
+        return hit
+
     def _column_inputs(self, column: int, cfg: RenderSettings, frame: int,
                        power_w: NDArray[np.float64] | None, calibration: bool, shot: int
                        ) -> tuple[NDArray[np.float64], float, np.random.Generator, int]:
@@ -505,14 +582,12 @@ class Instrument:
             check_int("column", column, 0, self.columns - 1)
         col = 0 if calibration else column
         scale, offset = self._fine_scale()
-        one = self.echo(col, cfg, power_w, calibration=calibration)
-        one *= scale
+        echo, sigma = self.column_model(col, cfg, power_w, calibration)
+        one = echo * scale
         one += offset
-        sigma = self.noise_rms_v_at(col, cfg, power_w, calibration) * scale
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-        rng = np.random.default_rng([self.seed, stream, frame, shot
-                                     if calibration else col])
-        return one, sigma, rng, col
+        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        return one, sigma * scale, rng, col
 
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
@@ -537,12 +612,12 @@ class Instrument:
             for i in range(r):
                 np.add(q, rem > i, out=out[i], casting="unsafe")
             return out.reshape(-1)
-        return self._render_exact(column, cfg, frame, power_w, calibration, shot)
+        return self.render_exact(column, cfg, frame, power_w, calibration=calibration, shot=shot)
 
-    def _render_exact(self, column: int, cfg: RenderSettings, frame: int,
-                      power_w: NDArray[np.float64] | None, calibration: bool,
-                      shot: int) -> NDArray[np.int16]:
-        """Every repetition's samples drawn and quantised on their own."""
+    def render_exact(self, column: int, cfg: RenderSettings, frame: int = 0,
+                     power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
+                     shot: int = 0) -> NDArray[np.int16]:
+        """:meth:`render` at ``exact`` fidelity: every repetition drawn and quantised alone."""
         one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
                                                    shot)
         length = one.size
@@ -575,31 +650,66 @@ class Instrument:
         column's echo comes within ACCUMULATED_CLIP_MARGIN sigma of the ADC's clip.
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
-        one, sigma, rng, col = self._column_inputs(column, cfg, frame, power_w, calibration,
-                                                   shot)
-        unit = float(1 << FRAC_BITS)
-        sigma_lsb = sigma / unit
-        if sigma_lsb < ACCUMULATED_MIN_NOISE_LSB:
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
+        col = 0 if calibration else column
+        plan = self._accumulated_plan(col, cfg, power_w, calibration)
+        if plan is None:
+            return None
+        mean, std = plan
+        r = cfg.averages
+        lo = -(1 << (self.spec.adc_bits - 1))
+        hi = (1 << (self.spec.adc_bits - 1)) - 1
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        draw = rng.standard_normal(mean.size, dtype=np.float32)
+        draw *= std
+        draw += mean
+        acc = np.floor(draw, out=draw).astype(np.int64)
+        np.clip(acc, r * lo, r * hi, out=acc)
+        return acc.reshape(cfg.uid_bits, mean.size // cfg.uid_bits)
+
+    def _accumulated_plan(self, col: int, cfg: RenderSettings,
+                          power_w: NDArray[np.float64] | None, calibration: bool
+                          ) -> tuple[NDArray[np.float32], np.float32] | None:
+        """(R x + R offset + 1/2 in LSB (float32, read-only), the draw's rms in LSB) of a
+        column, kept with its echo; None where the level does not apply."""
+        power = self.default_power_w[:, col] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = ("accumulated", col, calibration, cfg, power.tobytes())
+        hit = self._columns.get(key)
+        if hit is not None:
+            return hit[0]
+        plan = self._make_accumulated_plan(col, cfg, power, calibration)
+        self._columns[key] = (plan, 0.0)
+        if plan is not None:
+            self._columns_bytes += plan[0].nbytes
+        return plan
+
+    def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
+                               power: NDArray[np.float64], calibration: bool
+                               ) -> tuple[NDArray[np.float32], np.float32] | None:
+        echo, sigma_v = self.column_model(col, cfg, power, calibration, single=True)
+        scale, offset = self._fine_scale()
+        lsb_per_v = scale / (1 << FRAC_BITS)
+        offset_lsb = offset / (1 << FRAC_BITS)
+        sigma = sigma_v * lsb_per_v  # LSB
+        if sigma < ACCUMULATED_MIN_NOISE_LSB:
             return None
         r = cfg.averages
-        length = one.size
-        mean = one * r
-        peak = float(np.abs(one).max())
+        length = echo.size
+        peak = float(np.abs(echo).max()) * lsb_per_v + abs(offset_lsb)
+        # single precision: the sum's values stay below 2**15 * R, resolved to about
+        # 1e-3 LSB, against a noise rms of sqrt(R) sigma >= 3 LSB
+        mean = echo * np.float32(r * lsb_per_v)
+        mean += np.float32(r * offset_lsb + 0.5)
         if not calibration:
             users = self.other_users_signal(col, cfg, length * r)
             if users is not None:
-                u = users * self._fine_scale()[0]
-                peak += float(np.abs(u).max())
-                mean += u.reshape(r, length).sum(axis=0)
-        lo = -(1 << (self.spec.adc_bits - 1))
-        hi = (1 << (self.spec.adc_bits - 1)) - 1
-        if peak / unit + ACCUMULATED_CLIP_MARGIN * sigma_lsb > min(-lo - 0.5, hi - 0.5):
+                peak += float(np.abs(users).max()) * lsb_per_v
+                mean += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
+        half = 1 << (self.spec.adc_bits - 1)
+        if peak + ACCUMULATED_CLIP_MARGIN * sigma > half - 1.5:
             return None
-        std = np.sqrt(r * (sigma_lsb**2 + 1.0 / 12) - 1.0 / 12)
-        draw = np.multiply(rng.standard_normal(length, dtype=np.float32), std,
-                           dtype=np.float64)
-        draw += mean / unit
-        draw += 0.5
-        acc = np.floor(draw, out=draw).astype(np.int64)
-        np.clip(acc, r * lo, r * hi, out=acc)
-        return acc.reshape(cfg.uid_bits, length // cfg.uid_bits)
+        mean.flags.writeable = False
+        return mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12))

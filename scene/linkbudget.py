@@ -139,6 +139,31 @@ class LinkBudget:
         """Transimpedance times APD gain (V per A of primary photocurrent)."""
         return self.volts_per_rx_w / self.spec.responsivity_a_per_w
 
+    def coefficients(self, samples_per_chip: int) -> dict[str, float]:
+        """The noise sources' variances (V^2 per sample) at sample rate S * chip rate.
+
+        ``thermal``, ``dark``, ``ambient``, ``quantisation`` in V^2; ``signal_shot`` in
+        V^2 per W of the column's received power sum_k P_rx; ``ase`` in V^2 per W of
+        sum_k P_rx^2 / P_tx. Sequential mixing is included.
+        """
+        spec = self.spec
+        b = noise_bandwidth_hz(spec, samples_per_chip)
+        q = ELEMENTARY_CHARGE_C
+        gm = self._current_gain()  # V per A of primary photocurrent (G_tia * M)
+        g_tia = gm / spec.apd_gain
+        f = apd_excess_noise(spec.apd_gain, spec.apd_k_ratio)
+        resp = spec.responsivity_a_per_w
+        mix = float(spec.channels) if spec.sequential_mixing else 1.0
+        lsb = spec.adc_full_scale_v / (1 << (spec.adc_bits - 1)) / spec.adc_gain
+        return {
+            "thermal": mix * (g_tia * spec.tia_noise_a_per_rthz) ** 2 * b,
+            "dark": mix * gm**2 * 2 * q * f * spec.dark_current_a * b,
+            "ambient": mix * gm**2 * 2 * q * f * resp * spec.ambient_power_w * b,
+            "signal_shot": gm**2 * 2 * q * f * resp * b,
+            "ase": mix * gm**2 * 4 * resp**2 * b * ase_density_w_per_hz(spec),
+            "quantisation": lsb**2 / 12,
+        }
+
     def noise_terms(self, power_w: NDArray[np.float64], rx_per_w: NDArray[np.float64],
                     samples_per_chip: int) -> dict[str, NDArray[np.float64]]:
         """Noise variance (V^2 per sample) of each source, per column.
@@ -148,38 +173,25 @@ class LinkBudget:
         arrays of the columns' shape, (C,) or (), for ``thermal``, ``dark``, ``ambient``,
         ``signal_shot``, ``ase`` (signal-ASE beat) and ``quantisation``.
         """
-        spec = self.spec
+        c = self.coefficients(samples_per_chip)
         p = np.asarray(power_w, dtype=np.float64)
         rx = np.asarray(rx_per_w, dtype=np.float64)
-        b = noise_bandwidth_hz(spec, samples_per_chip)
-        q = ELEMENTARY_CHARGE_C
-        gm = self._current_gain()  # V per A of primary photocurrent (G_tia * M)
-        m = spec.apd_gain
-        g_tia = gm / m
-        f = apd_excess_noise(m, spec.apd_k_ratio)
-        resp = spec.responsivity_a_per_w
-        p_rx = rx * p  # (K, C) W
-        p_sig = p_rx.sum(axis=0)
-        shape = p_sig.shape
-        mix = float(spec.channels) if spec.sequential_mixing else 1.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ase_ratio = np.where(p > 0, p_rx**2 / p, 0.0).sum(axis=0)
-        lsb = spec.adc_full_scale_v / (1 << (spec.adc_bits - 1)) / spec.adc_gain
-        return {
-            "thermal": np.full(shape, mix * (g_tia * spec.tia_noise_a_per_rthz) ** 2 * b),
-            "dark": np.full(shape, mix * gm**2 * 2 * q * f * spec.dark_current_a * b),
-            "ambient": np.full(shape, mix * gm**2 * 2 * q * f * resp * spec.ambient_power_w * b),
-            "signal_shot": gm**2 * 2 * q * f * resp * p_sig * b,
-            "ase": mix * gm**2 * 4 * resp**2 * b * ase_density_w_per_hz(spec) * ase_ratio,
-            "quantisation": np.full(shape, lsb**2 / 12),
-        }
+        p_rx = rx * p  # W
+        shape = p_rx.shape[1:]
+        out = {k: np.full(shape, v) for k, v in c.items()}
+        out["signal_shot"] = c["signal_shot"] * p_rx.sum(axis=0)
+        out["ase"] = c["ase"] * (p_rx * rx).sum(axis=0)  # sum P_rx^2 / P_tx
+        return out
 
     def noise_variance_v2(self, power_w: NDArray[np.float64], rx_per_w: NDArray[np.float64],
-                          samples_per_chip: int) -> NDArray[np.float64]:
+                          samples_per_chip: int,
+                          coefficients: dict[str, float] | None = None) -> NDArray[np.float64]:
         """Variance (V^2 per sample) of the Gaussian noise drawn per column ((C,) or ()).
 
         All sources but quantisation (which the ADC itself makes); arguments as
-        :meth:`noise_terms`.
+        :meth:`noise_terms` (``coefficients``: :meth:`coefficients`, if already computed).
         """
-        t = self.noise_terms(power_w, rx_per_w, samples_per_chip)
-        return sum(v for k, v in t.items() if k != "quantisation")
+        c = coefficients or self.coefficients(samples_per_chip)
+        p_rx = np.asarray(rx_per_w) * np.asarray(power_w)
+        return (c["thermal"] + c["dark"] + c["ambient"] + c["signal_shot"] * p_rx.sum(axis=0)
+                + c["ase"] * (p_rx * rx_per_w).sum(axis=0))

@@ -72,14 +72,22 @@ LIMITS = {
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
 
-#: Columns rendered and correlated together: the fast receiver's GEMMs are several times
-#: cheaper per column in batches, but the endpoint is silent while a batch is computed, so
-#: batches start small (quick first column) and stay short of the host's silence timeout.
-_BATCHES = (4, 8, 16)
+#: Columns rendered and correlated together: the endpoint is silent while a batch is
+#: computed, so batches start small (quick first column) and stay short of the host's
+#: silence timeout (32 columns of paper-scene1: about 0.1 s).
+_BATCHES = (4, 8, 16, 32)
+
+#: Smallest batch handed to the receive chain's default (matrix-product) kernel. It reads
+#: its constant Hankel blocks (about 90 MB for paper-scene1) once per call, which costs
+#: more than the arithmetic for a few columns; the FFT kernel costs the same per column
+#: at any batch size, so smaller batches use it. Both give the same integers
+#: (firmware_model's tests). Measured on paper-scene1 (CPU ms per frame of 160 columns,
+#: matrix / FFT): batches of 4 1462 / 271, 32 507 / 258, 64 303 / 259, 160 188 / 266.
+_MATRIX_MIN_BATCH = 128
 
 
 def _batches(first: int, count: int) -> Iterator[list[int]]:
-    """Consecutive index lists covering first..first+count-1, sizes 4, 8, then 16."""
+    """Consecutive index lists covering first..first+count-1, sizes 4, 8, 16, then 32."""
     pos, k, end = first, 0, first + count
     while pos < end:
         size = _BATCHES[min(k, len(_BATCHES) - 1)]
@@ -120,7 +128,7 @@ class VirtualFirmware(DeviceApp):
         self.power_code = np.clip(np.round(self.instrument.default_power_w
                                            / self.spec.max_pixel_power_w * 65535), 0, 65535
                                   ).astype(np.uint16)
-        self._receiver: tuple[tuple, FastReceiver] | None = None
+        self._receiver: tuple[tuple, dict[str, FastReceiver]] | None = None
         self._last_frame = 0
         #: the device clock as an exact count of chips since power-up (integer: no rounding
         #: accumulates); the wire's microseconds are derived from it by flooring
@@ -229,15 +237,56 @@ class VirtualFirmware(DeviceApp):
                               code_index=tuple(int(x) for x in c["code_index"]),
                               poly_u=tuple(c["poly_u"]), poly_v=tuple(c["poly_v"]))
 
-    def receiver(self) -> FastReceiver:
-        """The receive chain for the current configuration (built once per configuration)."""
+    def receiver(self, method: str = "auto") -> FastReceiver:
+        """The receive chain for the current configuration (built once per configuration).
+
+        ``method``: the correlation kernel (see ``firmware_model.receiver``); every kernel
+        gives the same integers.
+        """
         c = self._config
         key = tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in sorted(c.items()))
         if self._receiver is None or self._receiver[0] != key:
+            self._receiver = (key, {})
+        chains = self._receiver[1]
+        if method not in chains:
             codes = gold_codes(tuple(c["poly_u"]), tuple(c["poly_v"]),
                                tuple(int(x) for x in c["code_index"]))
-            self._receiver = (key, FastReceiver(self._receiver_config(c), codes))
-        return self._receiver[1]
+            chains[method] = FastReceiver(self._receiver_config(c), codes, method=method)
+        return chains[method]
+
+    def _chain_for(self, batch: int) -> FastReceiver:
+        """The receive chain's kernel for a batch of ``batch`` columns (see _MATRIX_MIN_BATCH)."""
+        rx = self.receiver()
+        if batch < _MATRIX_MIN_BATCH and rx.correlator_method == "matmul":
+            return self.receiver("fft")
+        return rx
+
+    def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],
+                 cfg: RenderSettings, calibration: bool, shots: bool) -> list[Any]:
+        """Render ``columns`` (or calibration shots) and run the receive chain on them.
+
+        At ``accumulated`` fidelity the instrument draws each column's repetition sum and
+        the chain starts from the accumulators; a column the level does not cover (noise
+        under one LSB, echoes near the clip) is rendered exactly and accumulated here.
+        """
+        inst = self.instrument
+        rx = self._chain_for(len(columns))
+        if inst.fidelity == "accumulated":
+            accs = []
+            for c, p in zip(columns, powers, strict=True):
+                col = 0 if shots else c
+                acc = inst.render_accumulated(col, cfg, frame, p, calibration=calibration,
+                                              shot=c)
+                if acc is None:
+                    raw = inst.render_exact(col, cfg, frame, p, calibration=calibration,
+                                            shot=c)
+                    acc = rx.accumulate(raw[None, :])[0]
+                accs.append(acc)
+            return rx.from_accumulators(np.stack(accs))
+        samples = np.stack([inst.render_exact(0 if shots else c, cfg, frame, p,
+                                              calibration=calibration, shot=c)
+                            for c, p in zip(columns, powers, strict=True)])
+        return rx.frame(samples)
 
     # ---- power ----------------------------------------------------------------------
     def set_power(self, channel_start: int, column_start: int,
@@ -294,21 +343,20 @@ class VirtualFirmware(DeviceApp):
             raise out_of_range("columns", f"1 to {self.columns - first_column} from column "
                                f"{first_column}", columns)
         self._last_frame = frame
-        rx = self.receiver()
+        self.receiver()  # a configuration the chain refuses fails now, not mid-scan
         cfg = self.render_settings()
-        return self._scan_gen(frame, first_column, columns, rx, cfg)
+        return self._scan_gen(frame, first_column, columns, cfg)
 
-    def _scan_gen(self, frame: int, first: int, count: int, rx: FastReceiver,
+    def _scan_gen(self, frame: int, first: int, count: int,
                   cfg: RenderSettings) -> Iterator[ColumnResult]:
         calibration = self._config["mode"] == "calibration"
         power = self.power_w()
+        angles = self.spec.rotations_deg
         for cols in _batches(first, count):
-            samples = np.stack([self.instrument.render(c, cfg, frame, power[:, c],
-                                                       calibration=calibration, shot=c)
-                                for c in cols])
-            outs = rx.frame(samples)
+            outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration,
+                                 shots=False)
             for c, out in zip(cols, outs, strict=True):
-                angle = CALIBRATION_ANGLE_DEG if calibration else float(self.spec.rotations_deg[c])
+                angle = CALIBRATION_ANGLE_DEG if calibration else float(angles[c])
                 yield ColumnResult.from_receiver(frame, c, angle, out, calibration=calibration,
                                                  timestamp_us=self._timestamp(cfg))
 
@@ -316,17 +364,16 @@ class VirtualFirmware(DeviceApp):
         """Zeroth-order mode: ``shots`` results of the calibration target (column = shot)."""
         if not 1 <= shots <= 65535:
             raise out_of_range("shots", "1 to 65535", shots)
-        rx = self.receiver()
+        self.receiver()
         cfg = self.render_settings()
-        return self._calibrate_gen(frame, shots, rx, cfg)
+        return self._calibrate_gen(frame, shots, cfg)
 
-    def _calibrate_gen(self, frame: int, shots: int, rx: FastReceiver,
+    def _calibrate_gen(self, frame: int, shots: int,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.instrument.default_power_w[:, 0]
         for idx in _batches(0, shots):
-            samples = np.stack([self.instrument.render(0, cfg, frame, power, calibration=True,
-                                                       shot=s) for s in idx])
-            for s, out in zip(idx, rx.frame(samples), strict=True):
+            outs = self._receive(frame, idx, [power] * len(idx), cfg, True, shots=True)
+            for s, out in zip(idx, outs, strict=True):
                 yield ColumnResult.from_receiver(frame, s, CALIBRATION_ANGLE_DEG, out,
                                                  calibration=True,
                                                  timestamp_us=self._timestamp(cfg))
