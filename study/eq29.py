@@ -30,6 +30,7 @@ import numpy as np
 
 import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
 from cdma_lidar.checks import check_int
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.host.connection import connect
 from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
 from cdma_lidar.study.figures import new_figure, save_figure
@@ -66,7 +67,7 @@ def _grid(options: Any) -> list[dict]:
     s = check_int("samples_per_chip", options["samples_per_chip"], 1, 16)
     rate = float(options["chip_rate_hz"])
     if not 1e6 <= rate <= 1e10:
-        raise ValueError(f"chip_rate_hz must be from 1e6 to 1e10, not {rate}")
+        raise out_of_range("chip_rate_hz", "from 1e6 to 1e10 chips/s", rate)
     return grid_product(chip_rate_hz=[rate], degree=[deg], pixels=[pixels], columns=[cols],
                         samples_per_chip=[s])
 

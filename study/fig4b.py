@@ -39,6 +39,7 @@ import numpy as np
 
 import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
 from cdma_lidar.checks import check_int
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import bipolar, gold_codes
 from cdma_lidar.firmware_model.uid import canonical_necklace, uid_to_str
 from cdma_lidar.host.connection import connect
@@ -85,7 +86,7 @@ def _grid(options: Any) -> list[dict]:
     chans = [check_int("channels", k, 1, 40) for k in options["channels"]]
     tol = float(options["tolerance_m"])
     if not 0 < tol <= 10:
-        raise ValueError(f"tolerance_m must be in (0, 10] m, not {tol}")
+        raise out_of_range("tolerance_m", "in (0, 10] m", tol)
     return grid_product(channels=chans, tolerance_m=[tol])
 
 

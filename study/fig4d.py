@@ -35,6 +35,7 @@ import numpy as np
 
 import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
 from cdma_lidar.checks import check_int
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.host import pictures
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.scan import ScanOptions, run_scan
@@ -99,7 +100,7 @@ def _grid(options: Any) -> list[dict]:
     cases = list(options["cases"])
     for c in cases:
         if c not in CASES:
-            raise ValueError(f"cases: {c!r} is not one of {', '.join(CASES)}")
+            raise out_of_range("cases", f"each one of {', '.join(CASES)}", c)
     return grid_product(case=cases, frames=[frames])
 
 
@@ -137,6 +138,12 @@ def fig4d_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
 
 
 def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
+    """Headlines from the table; the heatmaps from replicate 0's scans, repeated here.
+
+    A task returns scalars only (its maps would not fit a CSV row), so the figure scans
+    each case again with replicate 0's device seed: the same frames, bit for bit (the
+    virtual device is deterministic in its seed and frame ids), for a few seconds more.
+    """
     maps, titles, thr = [], [], 16.0
     with tempfile.TemporaryDirectory() as tmp:
         for row in table.rows:
