@@ -5,7 +5,8 @@
 :meth:`cdma_lidar.study.engine.RunContext.run_sub` -- each on the same executor, with the
 same ``--quick``, ``--resume`` and ``seed``, into ``DIR/<name>/`` -- and writes
 ``DIR/report.md``: per headline the paper's number, ours, the ratio, the figure (a
-relative link to the study's PNG), each study's explanatory paragraph (its module's
+relative link to the study's PNG; for decibels the difference, since a ratio of
+logarithms means nothing), each study's explanatory paragraph (its module's
 ``REPORT_NOTE``), and how long each study took on which executor.
 
 A study that is not registered in this build (the catalogue has no such name) is
@@ -123,6 +124,15 @@ def _ratio(h: Headline) -> float | None:
     return r if math.isfinite(r) else None
 
 
+def _compare(h: Headline) -> str:
+    """The comparison cell: ours / paper, or for decibels (a log scale) ours - paper."""
+    ours, paper = h.get("ours"), h.get("paper")
+    if h.get("unit") == "dB" and isinstance(ours, int | float) and isinstance(paper, int | float):
+        return f"{float(ours) - float(paper):+.1f} dB (difference)"
+    r = _ratio(h)
+    return _fmt(r) if r is not None else "--"
+
+
 def _fmt(x: Any) -> str:
     if x is None:
         return "--"
@@ -182,10 +192,9 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
                 lines.append(f"| {e['name']} ({e['where']}) | `{key}` | -- | {status} | -- "
                              f"| -- | -- |")
                 continue
-            r = _ratio(h)
             lines.append(f"| {e['name']} ({e['where']}) | `{key}` | {_fmt(h.get('paper'))} | "
-                         f"{_fmt(h.get('ours'))} | {_fmt(r) if r is not None else '--'} | "
-                         f"{h.get('unit', '')} | {fig} |")
+                         f"{_fmt(h.get('ours'))} | {_compare(h)} | {h.get('unit', '')} | "
+                         f"{fig} |")
     lines += ["", "## Time", "", "| study | wall time (s) | tasks | failed | executor |",
               "|---|---|---|---|---|"]
     for e in entries:
@@ -201,9 +210,8 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
         if e["summary"]:
             lines += ["| quantity | paper | ours | ours / paper | unit |", "|---|---|---|---|---|"]
             for key, h in e["summary"].items():
-                r = _ratio(h)
                 lines.append(f"| `{key}` | {_fmt(h.get('paper'))} | {_fmt(h.get('ours'))} | "
-                             f"{_fmt(r) if r is not None else '--'} | {h.get('unit', '')} |")
+                             f"{_compare(h)} | {h.get('unit', '')} |")
             lines.append("")
         for f in e["figures"]:
             lines += [f"![{e['name']}]({f})", ""]

@@ -143,3 +143,15 @@ def test_paper_refuses_bad_parts(tmp_path):
     with pytest.raises(ConfigError, match="has no such setting"):
         run_study(paper.STUDY, tmp_path / "c", workers=0, progress=False,
                   overrides={"studies": "eq42", "sub_set": "eq42.bogus=1"})
+
+
+def test_report_compares_decibels_by_difference(tmp_path):
+    entry = {"name": "fig2e", "where": "Fig. 2e", "what": "threshold", "keys": ("a_db", "b"),
+             "status": "ok", "figures": [], "note": None, "wall_time_s": 1.0,
+             "engine": "in-process (no Dask)", "tasks": 1, "failed": 0, "settings": {},
+             "summary": {"a_db": {"ours": 14.5, "paper": 32.5, "unit": "dB"},
+                         "b": {"ours": 3, "paper": 4, "unit": "users"}}}
+    paper.write_report([entry], tmp_path / "r.md", quick=True, seed=1, engine="x")
+    text = (tmp_path / "r.md").read_text()
+    assert "| 32.5 | 14.5 | -18.0 dB (difference) | dB |" in text
+    assert "| 4 | 3 | 0.75 | users |" in text
