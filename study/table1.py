@@ -105,7 +105,7 @@ def table1_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
 
 def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     rows = len(table)
-    fig, ax = new_figure(8, 3.2)
+    fig, ax = new_figure(10.5, 3.2)
     ax.axis("off")
     cells = []
     for i in range(rows):
