@@ -155,3 +155,22 @@ def test_report_compares_decibels_by_difference(tmp_path):
     text = (tmp_path / "r.md").read_text()
     assert "| 32.5 | 14.5 | -18.0 dB (difference) | dB |" in text
     assert "| 4 | 3 | 0.75 | users |" in text
+
+
+#: The studies of this file; the ranging ones have their own tests (test_paper_ranging.py).
+SYSTEM = ("fig17", "eq42", "eq29", "fig4b", "fig4d", "table1")
+
+
+@pytest.mark.slow
+def test_paper_quick_covers_every_system_result(tmp_path):
+    """``study run paper --quick`` on the system studies at their quick settings (about 15 s;
+    all eleven take a few minutes: ``cdma-lidar study run paper --out DIR --quick``)."""
+    res = run_study(paper.STUDY, tmp_path / "p", quick=True, workers=0, progress=False,
+                    overrides={"studies": ",".join(SYSTEM)})
+    report = (tmp_path / "p" / "report.md").read_text()
+    for name in SYSTEM:
+        for key in paper.PAPER_STUDIES[name][2]:
+            assert f"`{key}`" in report
+            assert res.summary[f"{name}.{key}"]["ours"] is not None, (name, key)
+        assert f"({name}/{name}.png)" in report
+    assert res.summary["studies_reproduced"]["ours"] == len(SYSTEM)
