@@ -65,11 +65,12 @@ REPORT_NOTE = (
     "on one detector) the host names all three other users by their UIDs and never "
     "accepts one of their delays as a range, as in Fig. 4b. With the preset's 40 channels "
     "one user (UID 111, 45 m away, 3.9 mV) is not found: our own 40 channels leak into "
-    "channel 0 through the Gold codes' cross-correlation, which raises the correlation "
-    "noise floor by about 10 dB, and the weakest user's peak -- one third of its amplitude "
-    "after the UID-modulated correlation, since its UID differs from ours in two of three "
-    "periods -- stays under the 12 dB reporting threshold. More averaging does not help "
-    "(the cross-talk is deterministic; averages=64 finds the same two users). That is an "
+    "channel 0 through the Gold codes' cross-correlation and raise its correlation noise "
+    "floor, and the weakest user's peak -- like every foreign peak, a third of its "
+    "amplitude after the correlation with our UID-modulated reference (three periods, "
+    "UIDs that differ) -- stays under the host's 12 dB reporting threshold. "
+    "More averaging does not help: the cross-talk is deterministic (`study run fig4b "
+    "--set averages=64` finds the same two users). That is an "
     "interference limit of a many-channel instrument that the paper's one-channel "
     "experiment did not probe, not a failure of the UID scheme: in both configurations "
     "no foreign range is accepted (the foreign_returns column counts the other users' "
@@ -77,8 +78,11 @@ REPORT_NOTE = (
 )
 
 
-def _url(channels: int, seed: int) -> tuple[str, str]:
+def _url(channels: int, seed: int, averages: int = 0) -> tuple[str, str]:
+    """(scene name with options, virtual:// URL); ``averages`` 0 keeps the preset's."""
     query = f"instrument.wavelengths.count={channels}"
+    if averages:
+        query += f"&instrument.averages={averages}"
     return f"{PRESET}?{query}", f"virtual://{PRESET}?seed={seed}&{query}"
 
 
@@ -87,7 +91,8 @@ def _grid(options: Any) -> list[dict]:
     tol = float(options["tolerance_m"])
     if not 0 < tol <= 10:
         raise out_of_range("tolerance_m", "in (0, 10] m", tol)
-    return grid_product(channels=chans, tolerance_m=[tol])
+    averages = check_int("averages", options["averages"], 0, 1024)
+    return grid_product(channels=chans, tolerance_m=[tol], averages=[averages])
 
 
 def fig4b_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
@@ -95,7 +100,7 @@ def fig4b_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     t0 = time.perf_counter()
     dev_seed = int(seed.generate_state(1)[0] % (2**31 - 2))
     k, tol = int(params["channels"]), float(params["tolerance_m"])
-    scene_name, url = _url(k, dev_seed)
+    scene_name, url = _url(k, dev_seed, int(params["averages"]))
     scene = load_scene(scene_name)
     truth = compute_truth(scene).range_m
     others = {canonical_necklace(u.uid, u.uid_bits) for u in scene.instrument.other_users}
@@ -124,7 +129,7 @@ def fig4b_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
             "foreign_returns": len(img.foreign),
             "own_valid_fraction": float(np.mean(valid)),
             "own_median_error_m": float(np.nanmedian(err[valid])) if valid.any() else None,
-            "users_found": " ".join(uid_to_str(u, 3) for u in sorted(found)),
+            "users_found": " ".join(uid_to_str(u, res.data.uid_bits) for u in sorted(found)),
             "wall_time_s": time.perf_counter() - t0}
 
 
@@ -219,6 +224,7 @@ STUDY = Study(
                 "40: the preset)"),
         Setting("tolerance_m", 0.5, "a valid range further than this from the truth is "
                 "someone else's (m)"),
+        Setting("averages", 0, "code repetitions summed per column (0: the preset's, 4)"),
     ),
     machine_columns=("wall_time_s",),
     version="1",
