@@ -34,7 +34,7 @@ import cdma_lidar.virtual  # noqa: F401  (registers the virtual:// URL scheme)
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
-from cdma_lidar.host.scan import calibrate_device
+from cdma_lidar.host.scan import calibrate_device, summarise
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.scene.model import FIDELITY_LEVELS
@@ -228,7 +228,9 @@ def main() -> None:
           f"{100 * (strip['noise'] + strip['adc']) / strip['render']:.0f} % of the 5-lit one; "
           "they are the same for any scene (R x L independent samples, each frame "
           "quantised on its own)")
+    print_presets()
     print_error_budget()
+    print_range_sweep()
 
 
 
@@ -308,3 +310,68 @@ def print_error_budget() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+# ---------------------------------------------------------------------------------------
+# range sweep at fixed power (Fig. 2f)
+
+def _flat_wall_valid(distance_m: float, **options: object) -> float:
+    """Fraction of flat-wall pixels accepted within 30 cm of the truth (8 columns, seed 1)."""
+    scene = load_scene("flat-wall", overrides={"distance": distance_m, "instrument.columns": 8,
+                                               **options})
+    fw = VirtualFirmware(scene, 1)
+    r = _ranges(fw, 1)
+    ok = np.isfinite(r) & (np.abs(r - fw.instrument.truth.range_m) < 0.3)
+    return float(np.mean(ok))
+
+
+def print_range_sweep() -> None:
+    distances = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 60.0, 80.0)
+    one = {"instrument.wavelengths.count": 1, "power": 0.01}
+    cases = (("default (degree 11, R = 10)", {}), ("R = 40", {"averages": 40}),
+             ("degree 13 (N = 8191)", {"code_degree": 13}),
+             ("degree 13, R = 40", {"code_degree": 13, "averages": 40}),
+             ("1 channel, 10 mW, degree 11", one),
+             ("1 channel, 10 mW, degree 13", {**one, "code_degree": 13}))
+    print("flat-wall range sweep at fixed power (2.5 mW per channel, 40 channels lit unless "
+          "said), valid fraction within 30 cm (8 columns, seed 1):")
+    print(f"  {'distance (m)':28s}" + "".join(f"{d:6.0f}" for d in distances))
+    for label, opts in cases:
+        print(f"  {label:28s}" + "".join(f"{_flat_wall_valid(d, **opts):6.2f}"
+                                         for d in distances))
+
+
+# ---------------------------------------------------------------------------------------
+# the presets' scans (what the link budget must keep)
+
+PRESET_SCANS = ("paper-scene1", "paper-scene2", "near-far", "multi-user")
+
+
+def preset_figures(name: str, seeds: tuple[int, ...] = (1, 2, 3)) -> dict[str, float]:
+    """Object pixels valid and median range error (m) of frame 1, mean over ``seeds``.
+
+    Through the virtual board and the host's range pipeline with the true offset.
+    """
+    rows = []
+    for seed in seeds:
+        scene = load_scene(name)
+        fw = VirtualFirmware(scene, seed)
+        spec = scene.instrument
+        c = fw.get_config()
+        data = FrameData.from_columns(fw.scan(1, 0, fw.columns), fw.channels, fw.columns,
+                                      uid_bits=c["uid_bits"], peaks=c["peaks"], frame=1)
+        rc = RangingConfig(samples_per_chip=c["samples_per_chip"],
+                           chip_rate_hz=spec.chip_rate_hz, code_length=spec.code_length,
+                           uid=c["uid"], offset_m=spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2)
+        rows.append(summarise(estimate_ranges(data, rc), fw.instrument.truth.range_m))
+    return {k: float(np.mean([r[k] for r in rows]))
+            for k in ("object_valid_fraction", "median_error_m", "p95_error_m")}
+
+
+def print_presets() -> None:
+    print("presets, frame 1, mean of seeds 1-3 (object pixels valid, median / p95 range error):")
+    for name in PRESET_SCANS:
+        for level in FIDELITY_LEVELS:
+            f = preset_figures(f"{name}?fidelity={level}")
+            print(f"  {name:14s} {level:12s} {100 * f['object_valid_fraction']:7.2f} %  "
+                  f"{100 * f['median_error_m']:5.2f} cm  {100 * f['p95_error_m']:5.2f} cm")

@@ -7,8 +7,9 @@ Signal model (Supplementary Notes 4, 5, 9, 11)::
     v(t) = sum_k A_k c_k(t - tau_k)                 echoes of the lit channels
          + sum_g A_g c_k(t - tau_g)                 grating ghosts (fixed distance, own code)
          + sum_u A_u c_u(t - tau_u)                 other LiDARs (same family, their own UID)
-         + e(t)                                     thermal/ASE noise, white Gaussian
-    A_k   = link_gain * P[k, col] * reflectivity * cos(incidence) / r^2        (V)
+         + e(t)                                     receiver noise, white Gaussian
+    A_k   = G_tia R_resp M P_rx[k, col]   (cdma_lidar.scene.linkbudget)      (V)
+    e     : thermal, dark, shot, ambient, ASE of the link budget, per column
     tau_k = 2 r / c + system_delay                                             (s)
     codes = clip(round_half_up(adc_gain * v / lsb + adc_offset), adc_bits)     (ADC)
 
@@ -33,8 +34,10 @@ echo with ``tau = d / (S * chip_rate)`` peaks exactly at lag d in the receive ch
 
 Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely;
 the per-channel work is one phase ramp (an outer product of two short exponentials) and
-one multiply-add over L/2 bins. R frames share the deterministic echo; each frame gets
-independent noise and is quantised on its own.
+one multiply-add over L/2 bins. R repetitions share the deterministic echo, which is kept
+between frames (a static scene). At ``exact`` fidelity each repetition gets independent
+noise and is quantised on its own; at ``accumulated`` the repetitions' sum is drawn at
+once (:meth:`Instrument.render_accumulated`, docs/scene.md for its validity and error).
 
 Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
 with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
@@ -68,6 +71,7 @@ __all__ = [
     "RenderSettings",
     "detector_response",
     "speckle_factors",
+    "split_sum",
 ]
 
 log = logging.getLogger(__name__)
@@ -89,6 +93,20 @@ _STREAM_SPECKLE = 2
 #: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
 #: in every frame; only the noise is new).
 ECHO_CACHE_BYTES = 128 << 20
+
+
+def split_sum(acc: NDArray[np.integer], repetitions: int) -> NDArray[np.int16]:
+    """(R, L) int16 frames summing to ``acc`` (L,) exactly, as even as integers allow.
+
+    Frame r holds ``acc // R + (r < acc % R)``: every frame lies between
+    ``floor(acc / R)`` and ``ceil(acc / R)``, so sums of R codes in [lo, hi] split into
+    codes in [lo, hi].
+    """
+    q, rem = np.divmod(np.asarray(acc, dtype=np.int64), repetitions)
+    out = np.empty((repetitions, q.size), dtype=np.int16)
+    for i in range(repetitions):
+        np.add(q, rem > i, out=out[i], casting="unsafe")
+    return out
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -606,12 +624,7 @@ class Instrument:
         acc = self.render_accumulated(column, cfg, frame, power_w, calibration=calibration,
                                       shot=shot) if self.fidelity == "accumulated" else None
         if acc is not None:
-            r = cfg.averages
-            q, rem = np.divmod(acc.reshape(-1), r)
-            out = np.empty((r, q.size), dtype=np.int16)
-            for i in range(r):
-                np.add(q, rem > i, out=out[i], casting="unsafe")
-            return out.reshape(-1)
+            return split_sum(acc.reshape(-1), cfg.averages).reshape(-1)
         return self.render_exact(column, cfg, frame, power_w, calibration=calibration, shot=shot)
 
     def render_exact(self, column: int, cfg: RenderSettings, frame: int = 0,
@@ -689,19 +702,20 @@ class Instrument:
     def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
                                power: NDArray[np.float64], calibration: bool
                                ) -> tuple[NDArray[np.float32], np.float32] | None:
-        echo, sigma_v = self.column_model(col, cfg, power, calibration, single=True)
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
         offset_lsb = offset / (1 << FRAC_BITS)
-        sigma = sigma_v * lsb_per_v  # LSB
+        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v  # LSB
         if sigma < ACCUMULATED_MIN_NOISE_LSB:
             return None
         r = cfg.averages
-        length = echo.size
-        peak = float(np.abs(echo).max()) * lsb_per_v + abs(offset_lsb)
+        # the echo is synthesised here, not kept: the plan (its scaled copy) is what is kept
+        mean = self.echo(col, cfg, power, calibration=calibration, single=True)
+        length = mean.size
+        peak = float(np.abs(mean).max()) * lsb_per_v + abs(offset_lsb)
         # single precision: the sum's values stay below 2**15 * R, resolved to about
         # 1e-3 LSB, against a noise rms of sqrt(R) sigma >= 3 LSB
-        mean = echo * np.float32(r * lsb_per_v)
+        mean *= np.float32(r * lsb_per_v)
         mean += np.float32(r * offset_lsb + 0.5)
         if not calibration:
             users = self.other_users_signal(col, cfg, length * r)

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import summarise
+from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import FRAC_BITS, Instrument, RenderSettings
+from cdma_lidar.scene.instrument import FRAC_BITS, Instrument, RenderSettings, split_sum
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -115,3 +118,37 @@ def test_near_the_clip_the_level_falls_back_to_exact():
     echo, sigma = inst.column_model(0, cfg)
     assert np.abs(echo).max() + 6 * sigma > inst.spec.adc_full_scale_v
     assert inst.render_accumulated(0, cfg, 0) is None
+
+
+def test_calibration_and_capture_at_accumulated_fidelity():
+    """CALIBRATE draws each shot's sum too; CAPTURE RAW gives frames whose receive-chain
+    result is exactly the scan's."""
+    fw = VirtualFirmware(load_scene("paper-scene1?fidelity=accumulated"), 4)
+    exact = VirtualFirmware(load_scene("paper-scene1"), 4)
+    target = fw.scene.calibration.target_distance_m
+    lags = []
+    for dev in (fw, exact):
+        shots = list(dev.calibrate(0, 8))
+        lags.append(np.stack([s.peak_lag for s in shots]).astype(float))
+    # the same target: every channel's peak at the same lag in both levels (+-1 lag)
+    assert np.abs(np.median(lags[0], axis=0) - np.median(lags[1], axis=0)).max() <= 1
+    want = (2 * target / SPEED_OF_LIGHT_M_S + fw.spec.system_delay_s) * 250e6
+    assert abs(np.median(lags[0]) - want) <= 1
+    (col,) = list(fw.scan(3, 17, 1))
+    raw = fw.capture(CaptureKind.RAW, 17, 0)
+    again = fw.receiver().column(raw)
+    np.testing.assert_array_equal(again.peak_lag, col.peak_lag)
+    np.testing.assert_array_equal(again.peak, col.peak)
+
+
+@given(st.integers(1, 1024), st.integers(8, 16), st.data())
+@settings(max_examples=200, deadline=None)
+def test_split_sum_gives_valid_codes_that_sum_exactly(r, bits, data):
+    lo, hi = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    drawn = data.draw(st.lists(st.integers(r * lo, r * hi), min_size=1, max_size=50))
+    acc = np.array([*drawn, r * lo, r * hi], dtype=np.int64)  # with both extremes
+    frames = split_sum(acc, r)
+    assert frames.shape == (r, acc.size) and frames.dtype == np.int16
+    np.testing.assert_array_equal(frames.astype(np.int64).sum(axis=0), acc)
+    assert frames.min() >= lo and frames.max() <= hi
+    assert np.all(frames.max(axis=0).astype(np.int64) - frames.min(axis=0) <= 1)
