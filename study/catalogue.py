@@ -9,15 +9,33 @@ unique: registering a second study under a taken name is an error unless
 from __future__ import annotations
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import detection, extremes, fig2c, fig2d, fig2e, fig2f, fig11, tradeoff
+from cdma_lidar.study import (
+    detection,
+    eq29,
+    eq42,
+    extremes,
+    fig2c,
+    fig2d,
+    fig2e,
+    fig2f,
+    fig4b,
+    fig4d,
+    fig11,
+    fig17,
+    paper,
+    table1,
+    tradeoff,
+)
 from cdma_lidar.study.engine import Study
 
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
 BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
-                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY,
-                              fig2f.STUDY, fig11.STUDY)
+                              # the paper's results (docs/paper.md); `paper` runs them all
+                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY, fig2f.STUDY, fig11.STUDY,
+                              fig17.STUDY, eq42.STUDY, eq29.STUDY, fig4b.STUDY, fig4d.STUDY,
+                              table1.STUDY, paper.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 
