@@ -37,6 +37,7 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open, atomic_write_text, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
+from cdma_lidar.host.cli import add_port_options, connect_options
 from cdma_lidar.host.connection import Device, connect
 from cdma_lidar.host.ranging import lag_to_range_m
 
@@ -111,10 +112,7 @@ def register(subparsers: Any) -> None:
     """Add the ``capture`` subcommand."""
     p = subparsers.add_parser("capture", help="capture a correlation trace or raw ADC codes "
                                               "of one column (npz, SigMF, plot)")
-    p.add_argument("--port", required=True, metavar="URL",
-                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
-    p.add_argument("--timeout", type=float, default=1.0, metavar="S",
-                   help="seconds to wait for each answer (default 1)")
+    add_port_options(p)
     p.add_argument("--kind", choices=KINDS, required=True,
                    help="corr: one channel's correlation over the gate; raw: the column's ADC "
                         "codes (also written as SigMF)")
@@ -135,14 +133,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".npz":
         raise ConfigError(f"--out must be a .npz file, not {str(out)!r}", field="out")
     check_writable(out, "--out")
-    if not (np.isfinite(args.timeout) and args.timeout > 0):
-        raise ConfigError(f"--timeout must be a positive number of seconds, not "
-                          f"{args.timeout}", field="timeout")
     if args.frame_id is not None and not 0 <= args.frame_id <= 2**31 - 1:
         raise ConfigError(f"--frame-id must be from 0 to {2**31 - 1}, not {args.frame_id}",
                           field="frame_id")
     cal = Calibration.load(args.calibration) if args.calibration else None
-    with connect(args.port, timeout_s=args.timeout) as dev:
+    with connect(args.port, **connect_options(args)) as dev:
         if cal is not None:
             cal.check_applies(dev.identity(), dev.calibration_config())
         cap = capture(dev, args.kind, args.column, args.channel, frame_id=args.frame_id,

@@ -102,7 +102,8 @@ def _setting(text: str) -> tuple[str, Any]:
     return key.strip(), (tuple(vals) if len(vals) > 1 else vals[0])
 
 
-def _add_port(p: argparse.ArgumentParser) -> None:
+def add_port_options(p: argparse.ArgumentParser) -> None:
+    """--port, --timeout and the session/access options every device command takes."""
     p.add_argument("--port", required=True, metavar="URL",
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
     p.add_argument("--timeout", type=_positive_float, default=1.0, metavar="S",
@@ -114,7 +115,7 @@ def _add_port(p: argparse.ArgumentParser) -> None:
                    help="the device's key (socket:// default: $CDMA_LIDAR_KEY_FILE)")
 
 
-def _access(args: argparse.Namespace) -> dict[str, Any]:
+def connect_options(args: argparse.Namespace) -> dict[str, Any]:
     """connect() options from --timeout, --take-over and --key-file."""
     return {"timeout_s": args.timeout, "take_over": args.take_over, "key_file": args.key_file}
 
@@ -127,11 +128,11 @@ def _add_set(p: argparse.ArgumentParser) -> None:
 def register(subparsers: Any) -> None:
     """Add the host's subcommands to the ``cdma-lidar`` parser."""
     p = subparsers.add_parser("info", help="show a device's identity, geometry and configuration")
-    _add_port(p)
+    add_port_options(p)
     p.set_defaults(func=cmd_info)
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
-    _add_port(p)
+    add_port_options(p)
     p.add_argument("--out", required=True, metavar="FILE",
                    help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
                         "one message per frame), by extension")
@@ -181,7 +182,7 @@ def register(subparsers: Any) -> None:
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
-    _add_port(p)
+    add_port_options(p)
     p.add_argument("--target-distance", type=_positive_float, required=True, metavar="METRES",
                    help="known distance from the grating to the calibration target (m)")
     p.add_argument("--shots", type=int, default=20, metavar="N",
@@ -204,7 +205,7 @@ def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
 def cmd_info(args: argparse.Namespace) -> int:
     """Print identity, limits, geometry and configuration."""
 
-    with connect(args.port, **_access(args)) as dev:
+    with connect(args.port, **connect_options(args)) as dev:
         info, cfg = dev.info, dev.config
         wl = dev.wavelengths_m
         ang = dev.column_angles_deg
@@ -271,7 +272,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
                           offset_m=cal.offset_m if cal else 0.0, combine=args.combine,
                           keep_foreign=args.keep_foreign,
                           intensity_gain=cal.intensity_gain if cal else None)
-    with connect(args.port, **_access(args)) as dev:
+    with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
         if args.snr_threshold is not None:
             top = max_snr_xc_db(dev.config)
@@ -363,7 +364,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     check_writable(out, "--out")
     if not 1 <= args.shots <= 65535:
         raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
-    with connect(args.port, **_access(args)) as dev:
+    with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
         cal = calibrate_device(dev, args.target_distance, shots=args.shots,
                                snr_threshold_db=args.snr_threshold,

@@ -62,7 +62,7 @@ FLAG_BITS: dict[str, int] = {
     "rejected": FLAG_REJECTED,           # 2: below the threshold or unsupported: no range
     "foreign": FLAG_FOREIGN,             # 4: another user's return (UID not ours)
     "ghost": FLAG_GHOST,                 # 8: inside a known grating-ghost lag window
-    "saturated": FLAG_SATURATED,         # 16: the ADC clipped in this pixel's column
+    "saturated": FLAG_SATURATED,         # 16: the peak's out word at a rail: lag may be early
 }
 
 _WRAP = 2**32

@@ -39,8 +39,8 @@ record. Correlating over N_s samples gives SNR_XC = N_s * SNR (processing gain),
 :func:`precision_eq27_m` accepts either.
 
 Pixel flags (bitfield): 0 valid measured, 1 interpolated, 2 rejected, 4 foreign UID,
-8 ghost, 16 saturated (the ADC clipped in that column; set when the column record
-carries a ``saturated`` field). A rejected pixel keeps its cause bits (4, 8, 16); a
+8 ghost, 16 saturated (the record's ``saturated`` field: the strongest peak's ``out``
+word sat at a rail, so its lag may be early along the clipped plateau; docs/hdl.md). A rejected pixel keeps its cause bits (4, 8, 16); a
 filled one has bit 1 set and bit 2 cleared.
 """
 
@@ -85,7 +85,7 @@ FLAG_INTERPOLATED = 1
 FLAG_REJECTED = 2
 FLAG_FOREIGN = 4
 FLAG_GHOST = 8
-#: The ADC clipped in the pixel's column (reserved: set once the column record carries it).
+#: The record's ``saturated`` field: the strongest peak's out word at a rail (lag may be early).
 FLAG_SATURATED = 16
 METHODS = ("none", "parabolic", "triangle")
 
@@ -353,9 +353,7 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     flags = np.where(ok, 0, FLAG_REJECTED).astype(np.uint8)
     flags |= np.where(own.foreign, FLAG_FOREIGN, 0).astype(np.uint8)
     flags |= np.where(ghost, FLAG_GHOST, 0).astype(np.uint8)
-    saturated = getattr(frame, "saturated", None)  # a column-record field from issue 16 on
-    if saturated is not None:
-        flags |= np.where(np.asarray(saturated, bool), FLAG_SATURATED, 0).astype(np.uint8)
+    flags |= np.where(frame.saturated, FLAG_SATURATED, 0).astype(np.uint8)
     out_range = np.where(ok, rng, np.nan)
     if config.interpolate:
         out_range, filled = fill_columns(out_range, ok, config.max_gap)

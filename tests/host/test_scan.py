@@ -201,3 +201,17 @@ def test_interpolation_fills_rejected_object_pixels(paper_scan):
     # Filled pixels lie between measured neighbours of the same letter: close to the truth.
     err = np.abs(filled.range_m - truth)[new & obj]
     assert np.median(err) < 0.05 and np.mean(new[obj]) > np.mean(new[~obj])
+
+
+def test_saturated_pixels_are_flagged(tmp_path):
+    """An 8-bit output with a small shift clips the strong peaks only: flag 16 marks exactly
+    the pixels whose column record says ``saturated`` (a clipped plateau's lag may be early)."""
+    from cdma_lidar.host.ranging import FLAG_SATURATED
+
+    with connect("virtual://paper-scene1?seed=2") as dev:
+        dev.link.set_config(out_bits=8, out_shift=8)
+        dev.refresh_config()
+        res = run_scan(dev, tmp_path / "sat.npz", ScanOptions(), progress=False)
+    sat = np.asarray(res.data.saturated, bool)
+    assert sat.any() and not sat.all()  # the test needs both kinds of pixel
+    np.testing.assert_array_equal((res.image.flags & FLAG_SATURATED) != 0, sat)
