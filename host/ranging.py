@@ -40,7 +40,8 @@ record. Correlating over N_s samples gives SNR_XC = N_s * SNR (processing gain),
 
 Pixel flags (bitfield): 0 valid measured, 1 interpolated, 2 rejected, 4 foreign UID,
 8 ghost, 16 saturated (the record's ``saturated`` field: the strongest peak's ``out``
-word sat at a rail, so its lag may be early along the clipped plateau; docs/hdl.md). A rejected pixel keeps its cause bits (4, 8, 16); a
+word sat at a rail, so its lag may be early along the clipped plateau; docs/hdl.md).
+A rejected pixel keeps its cause bits (4, 8, 16); a
 filled one has bit 1 set and bit 2 cleared.
 """
 
