@@ -67,6 +67,7 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import METHODS, estimate_ranges
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.scene.model import FIDELITY_LEVELS  # the scene's levels (docs/scene.md)
 from cdma_lidar.study.engine import RunContext, RunOptions, Setting, Study, Table, headline
 from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.simulate import ranging_config, receiver_setup, true_offset_m
@@ -75,8 +76,6 @@ __all__ = ["BASELINE", "FIDELITY_LEVELS", "OUTLIER_M", "STUDY", "pareto_front", 
 
 log = logging.getLogger(__name__)
 
-#: Simulation fidelity levels the grid may use ("exact": the instrument model as it is).
-FIDELITY_LEVELS: tuple[str, ...] = ("exact",)
 
 #: The paper's configuration, the centre of the grid.
 BASELINE: dict[str, Any] = {"S": 4, "R": 10, "degree": 11, "adc_bits": 12, "gate": 128,
