@@ -550,7 +550,12 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
             rep_table.append({**p, "replicate": r, **results[key]})
     table = _aggregate(points, rep_table, reps, study.machine_columns)
     ctx = RunContext(study, out, options, executor, resume, progress)
-    summary = dict(study.reduce(table, ctx)) if study.reduce is not None else {}
+    # A reducer needs measured columns: when every task failed there are none, and the
+    # run reports its failures (exit 1) with an empty summary instead of a reducer's crash.
+    if study.reduce is None or (points and not results):
+        summary: dict[str, Any] = {}
+    else:
+        summary = dict(study.reduce(table, ctx))
 
     atomic_write_text(out / "replicates.csv", rep_table.to_csv())
     atomic_write_text(out / "results.csv", table.to_csv())

@@ -126,6 +126,22 @@ def test_a_failing_task_is_reported_with_its_parameters_and_the_others_finish(tm
     assert rows[0]["y"] // 10 == 1 and rows[2]["y"] // 10 == 3
 
 
+def _always_fails(params: dict, seed: np.random.SeedSequence) -> dict:
+    raise RuntimeError(f"x = {params['x']} is refused")
+
+
+def _reduce_needs_y(table: Table, ctx: RunContext) -> dict:
+    return {"y": headline(float(table.column("y")[0]), None, "1")}
+
+
+def test_when_every_task_fails_the_reducer_is_not_run_and_failures_are_reported(tmp_path):
+    study = Study("all-fail", "every task raises", grid=lambda o: grid_product(x=[1, 2]),
+                  task=_always_fails, reduce=_reduce_needs_y)
+    res = run_study(study, tmp_path, workers=0, progress=False)
+    assert len(res.failures) == 2 and res.computed == 0 and res.summary == {}
+    assert json.loads((tmp_path / "summary.json").read_text()) == {}
+
+
 def _sub_reduce(table: Table, ctx: RunContext) -> dict:
     return {"total": headline(float(np.nansum(table.column("y"))), None, "1")}
 
