@@ -158,9 +158,9 @@ def test_multi_user_reports_only_own_ranges(tmp_path):
     assert np.mean(img.valid) >= 0.95
     err = np.abs(img.range_m - truth)[img.valid]
     assert np.median(err) < 0.1  # our wall at 8 m, not the other users' delays
-    # The other users share our channel 0's Gold code; users 0 (UID 000, 3 m) and 3
-    # (UID 011, 12 m) are named in every column, and nowhere else. User 7 (20 m,
-    # 1.5 mV) stays under the noise.
+    # The other users share our channel 0's Gold code; users 0 (UID 000, 4.5 m) and 3
+    # (UID 011, 15 m) are named in every column, and nowhere else. User 7 (45 m,
+    # 3.9 mV) stays under the noise (scene/presets/multi-user.toml).
     users = img.foreign.users()
     assert users == {0: 8, 3: 8}
     assert set(img.foreign.channel.tolist()) == {0}
