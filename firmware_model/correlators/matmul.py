@@ -23,7 +23,6 @@ from cdma_lidar.firmware_model.correlators.base import (
     Correlator,
     GatePlan,
     limbs,
-    parallel_columns,
 )
 from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
 
@@ -131,10 +130,8 @@ class MatmulCorrelator(Correlator):
                 # exact: |limb| < 2^53 and every partial sum < 2^float_bits
                 if self.stacked:
                     lf = self._buffer(s * cb, n)
-                    l3, src = lf.reshape(s, cb, n), limb.transpose(1, 0, 2)
-                    parallel_columns(lambda a, b, l3=l3, src=src: np.copyto(l3[:, a:b],
-                                                                            src[:, a:b]),
-                                     cb, l3.size)
+                    # one pass (0.3 ms for the paper frame; split across threads it was 0.6)
+                    np.copyto(lf.reshape(s, cb, n), limb.transpose(1, 0, 2))
                     o = (lf @ self.bmat[0]).reshape(s, cb, k, plan.nq)
                     for r, sel in enumerate(plan.sel):
                         if len(sel):
