@@ -32,10 +32,11 @@ def test_small_cases_are_bit_exact_in_every_rounding_mode(tmp_path):
 
 
 def test_a_refused_configuration_is_a_row_with_the_reason():
+    # a gate longer than the period (N*S = 127*4 = 508 lags) is outside what the RTL allows
     params = {"case": "custom", "degree": 7, "S": 4, "R": 64, "out_bits": 32, "out_shift": 0,
-              "gate_len": 64, "uid_bits": 1, "rounding": "truncate"}
+              "gate_len": 509, "uid_bits": 1, "rounding": "truncate"}
     row = extremes_task(params, np.random.SeedSequence(1))
-    assert row["status"] == "refused" and "noise_sumsq" in row["reason"]
+    assert row["status"] == "refused" and "gate_len must be 1..508" in row["reason"]
 
 
 def test_the_full_grid_covers_every_case_and_rounding_and_bad_names_are_refused():

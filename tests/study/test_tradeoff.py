@@ -20,7 +20,7 @@ from cdma_lidar.study.tradeoff import (
 
 #: flat-wall only: the baseline, S=2 x R=1 and the integer lag (3 points, about a second).
 SMALL = {"scenes": "flat-wall", "S": "2", "R": "1", "degree": "11", "adc_bits": "12",
-         "gate": "128", "method": "none"}
+         "gate": "128", "method": "none", "fidelity": "exact"}
 
 
 def test_full_grid_has_at_least_50_configurations_on_both_scenes():
