@@ -25,7 +25,24 @@ from numpy.typing import NDArray
 from cdma_lidar.column_record import RECORD, record_fields
 from cdma_lidar.errors import ConfigError, out_of_range
 
-__all__ = ["FrameData"]
+__all__ = ["SUMSQ_UNKNOWN", "FrameData", "clamp_sumsq"]
+
+
+#: ``noise_sumsq`` at or above this (int64's maximum) means "the noise floor is unknown":
+#: the exact sum passed the host's int64 word (it can need up to 88 bits, and travels
+#: saturated to 2^64 - 1 on the wire, docs/firmware.md section 3). Such a pixel has no SNR.
+SUMSQ_UNKNOWN = np.iinfo(np.int64).max
+
+
+def clamp_sumsq(values: Any) -> NDArray[np.int64]:
+    """``noise_sumsq`` values as int64, anything above :data:`SUMSQ_UNKNOWN` clamped to it."""
+    arr = np.asarray(values)
+    if arr.dtype == np.int64:
+        return arr
+    if arr.dtype == np.uint64:  # the wire's u64
+        return np.minimum(arr, np.uint64(SUMSQ_UNKNOWN)).astype(np.int64)
+    return np.array([min(int(v), SUMSQ_UNKNOWN) for v in arr.ravel()],
+                    dtype=np.int64).reshape(arr.shape)
 
 
 @dataclass
@@ -112,6 +129,8 @@ class FrameData:
                 continue
             if arr.shape != want:
                 raise out_of_range(f"{name} shape", f"{want}", arr.shape)
+            if name == "noise_sumsq":
+                arr = clamp_sumsq(arr)
             target[:, index] = arr
         ts = get("timestamp_us")
         if ts is not None:

@@ -55,7 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.snr import snr_xc_db
-from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.frame import SUMSQ_UNKNOWN, FrameData
 from cdma_lidar.host.uid_filter import ForeignReturns, find_foreign, select_own
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -338,8 +338,11 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
         return in_windows(lags, config.ghost_windows, ns)
 
     own = select_own(frame, config.uid, in_ghost if config.ghost_windows else None)
+    # a noise floor past the host's word (SUMSQ_UNKNOWN) gives no SNR: rejected, flagged 16
+    unknown_floor = frame.noise_sumsq >= SUMSQ_UNKNOWN
     snr = np.asarray(snr_xc_db(own.peak, frame.noise_count, frame.noise_sum,
                                frame.noise_sumsq), dtype=np.float64)
+    snr[unknown_floor] = np.nan
     delta = subsample_delta(own.peak, own.neighbours, config.method)
     delta = np.where(own.has_neighbours, delta, 0.0)
     lag = own.lag.astype(np.float64) + delta
@@ -354,7 +357,7 @@ def estimate_ranges(frame: FrameData, config: RangingConfig) -> RangeImage:
     flags = np.where(ok, 0, FLAG_REJECTED).astype(np.uint8)
     flags |= np.where(own.foreign, FLAG_FOREIGN, 0).astype(np.uint8)
     flags |= np.where(ghost, FLAG_GHOST, 0).astype(np.uint8)
-    flags |= np.where(frame.saturated, FLAG_SATURATED, 0).astype(np.uint8)
+    flags |= np.where(frame.saturated | unknown_floor, FLAG_SATURATED, 0).astype(np.uint8)
     out_range = np.where(ok, rng, np.nan)
     if config.interpolate:
         out_range, filled = fill_columns(out_range, ok, config.max_gap)

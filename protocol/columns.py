@@ -322,8 +322,17 @@ def _lags_from_wire(lags: NDArray[np.uint32]) -> NDArray[np.int64]:
     return out
 
 
+#: Fields whose exact value may exceed the wire word: the model carries noise_sumsq as exact
+#: Python ints when its width passes 63 bits (docs/firmware.md section 3); the u64 wire field
+#: then carries it saturated to 2^64 - 1, which the host reads as "noise floor unknown".
+_WIRE_SATURATES = frozenset({"noise_sumsq"})
+
+
 def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
     arr = np.asarray(value)
+    if name in _WIRE_SATURATES and arr.dtype == object:
+        hi = _INT_LIMITS[name][1]
+        arr = np.array([min(int(v), hi) for v in arr.ravel()], dtype=np.uint64).reshape(arr.shape)
     if name in _LAG_FIELDS and arr.dtype.kind == "i" and arr.size and int(arr.min()) == -1:
         arr = np.where(arr == -1, NO_PEAK, arr).astype(np.int64)  # "no peak" on the wire
     if arr.shape != shape:

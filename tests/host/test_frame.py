@@ -75,3 +75,32 @@ def test_column_timestamps_are_kept_and_old_partial_files_still_load():
     assert back.timestamp_us.tolist() == [0, 123456, 0]
     del arrays["timestamp_us"]                 # a partial scan saved before the field
     assert FrameData.from_arrays(arrays).timestamp_us.tolist() == [0, 0, 0]
+
+
+def test_noise_sums_wider_than_the_wire_saturate_and_the_host_gives_them_no_snr():
+    """The model carries noise_sumsq past 63 bits as exact ints (docs/firmware.md section 3):
+    the wire's u64 carries it saturated, the host clamps to SUMSQ_UNKNOWN and such a pixel
+    is rejected and flagged 16 instead of getting an SNR from a wrong floor."""
+    import dataclasses
+
+    from cdma_lidar.host.frame import SUMSQ_UNKNOWN
+    from cdma_lidar.host.ranging import (
+        FLAG_REJECTED,
+        FLAG_SATURATED,
+        RangingConfig,
+        estimate_ranges,
+    )
+
+    out = _receiver_output(0, peaks=1, uid_bits=1)
+    wide = np.array([2**70, 2**64 - 1, 2**63, int(out.noise_sumsq[3])], dtype=object)
+    out = dataclasses.replace(out, noise_sumsq=wide)
+    wire = decode_column(encode_column(ColumnResult.from_receiver(0, 0, 0.0, out)))
+    assert wire.noise_sumsq.tolist()[:3] == [2**64 - 1, 2**64 - 1, 2**63]
+    f = FrameData.empty(4, 1, uid_bits=1, peaks=1)
+    f.set_column(0, wire)
+    assert f.noise_sumsq[:, 0].tolist() == [SUMSQ_UNKNOWN] * 3 + [int(wide[3])]
+    img = estimate_ranges(f, RangingConfig(samples_per_chip=2, chip_rate_hz=62.5e6,
+                                           snr_threshold_db=-100.0, min_support=0))
+    unknown = img.flags[:3, 0]
+    assert np.all(unknown & FLAG_REJECTED) and np.all(unknown & FLAG_SATURATED)
+    assert np.all(np.isnan(img.range_m[:3, 0]))
