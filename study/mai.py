@@ -28,6 +28,7 @@ import logging
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.integrate import trapezoid
 from scipy.special import ndtr
 
 from cdma_lidar.firmware_model.adc import adc_limits
@@ -148,7 +149,7 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001) -> float
     inside = np.clip(2.0 * ndtr(np.abs(x)) - 1.0, 0.0, 1.0)
     with np.errstate(divide="ignore"):
         log_in = competitors * np.log(inside)
-    correct = float(np.trapezoid(pdf * np.exp(log_in), x))
+    correct = float(trapezoid(pdf * np.exp(log_in), x))  # scipy: numpy 1.26 lacks trapezoid
     return float(min(max(1.0 - correct, 0.0), 1.0))
 
 
