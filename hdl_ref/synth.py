@@ -155,7 +155,7 @@ def _cached(design: Design, flow: str, version: str, run) -> dict[str, float]:
 def _yosys_script(design: Design, flow: str, json_path: str, stat: str) -> str:
     chparam = " ".join(f"-set {k} {v}" for k, v in design.params.items())
     return "; ".join([
-        "read_verilog -defer " + " ".join(str(RTL_DIR / s) for s in design.sources),
+        "read_verilog -defer " + " ".join(Path(s).name for s in design.sources),
         f"chparam {chparam} {design.top}" if chparam else "",
         FLOWS[flow].format(top=design.top, json=json_path),
         f"tee -q -o {stat} stat -json",
@@ -163,8 +163,11 @@ def _yosys_script(design: Design, flow: str, json_path: str, stat: str) -> str:
 
 
 def _synth_in(folder: Path, design: Design, flow: str) -> dict[str, float]:
-    # YoWASP tools see the working folder: run there with relative output names
-    # (ABC's temporary files too).
+    # YoWASP tools see the working folder: run there with relative names (ABC's temporary
+    # files too). The sources are copied in: YoWASP maps /tmp to a private folder, so an
+    # absolute path under /tmp (a checkout there) would not be found.
+    for src in design.sources:
+        shutil.copyfile(RTL_DIR / src, folder / Path(src).name)
     proc = subprocess.run([tool("yosys"), "-q", "-p",
                            _yosys_script(design, flow, "netlist.json", "stat.json")],
                           capture_output=True, text=True, check=False, cwd=folder)
