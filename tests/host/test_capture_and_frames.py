@@ -6,30 +6,15 @@ import json
 
 import numpy as np
 import pytest
+from cli_helpers import one_line_error as _one_line_error
+from cli_helpers import run_cli as _run
 
-from cdma_lidar.cli import main
 from cdma_lidar.host.cloud_formats.npz import read as read_npz
 from cdma_lidar.host.combine import combine
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.scan import ScanOptions, image_from_cloud, run_scan
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
-
-
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:  # argparse usage errors
-        code = int(exc.code or 0)
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
-
-
-def _one_line_error(capsys, *argv: str) -> str:
-    code, _, err = _run(capsys, *argv)
-    lines = [ln for ln in err.splitlines() if not ln.startswith(("WARNING", "INFO"))]
-    assert code == 2 and len(lines) == 1, err
-    return lines[0]
 
 
 def test_capture_corr_finds_the_echo(capsys, tmp_path):

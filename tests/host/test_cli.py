@@ -8,25 +8,8 @@ import tomllib
 
 import numpy as np
 import pytest
-
-from cdma_lidar.cli import main
-
-
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:  # argparse usage errors
-        code = int(exc.code or 0)
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
-
-
-def _one_line_error(capsys, *argv: str) -> str:
-    code, _, err = _run(capsys, *argv)
-    assert code == 2
-    lines = [ln for ln in err.splitlines() if not ln.startswith(("WARNING", "INFO"))]
-    assert len(lines) == 1, err
-    return lines[0]
+from cli_helpers import one_line_error as _one_line_error
+from cli_helpers import run_cli as _run
 
 
 def test_info_on_virtual_device(capsys):

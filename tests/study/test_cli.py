@@ -12,31 +12,15 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import one_line_error as _one_line_error
+from cli_helpers import run_cli as _run
 
-from cdma_lidar.cli import main
 from cdma_lidar.errors import LinkError
 from cdma_lidar.study.catalogue import get_study, register_study, studies
 from cdma_lidar.study.engine import read_csv, run_study
 
 TINY_SET = ["--set", "degrees=5", "--set", "S=1,2", "--set", "snr_db=-12,-6",
             "--set", "trials=20"]
-
-
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:  # argparse usage errors
-        code = int(exc.code or 0)
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
-
-
-def _one_line_error(capsys, *argv: str) -> str:
-    code, _, err = _run(capsys, *argv)
-    assert code == 2, err
-    lines = [ln for ln in err.splitlines() if not ln.startswith(("WARNING", "INFO"))]
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 def test_list_names_every_study_on_one_line_each(capsys):
