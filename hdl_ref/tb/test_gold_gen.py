@@ -8,12 +8,11 @@ edge, when the registers are settled). The caller compares with the model.
 
 from __future__ import annotations
 
-import json
-import os
-
 import cocotb
 from cocotb.clock import Clock
 from cocotb.triggers import FallingEdge, RisingEdge
+
+from cdma_lidar.hdl_ref.tb.jobs import read_job, write_result
 
 __all__ = ["play_job"]
 
@@ -21,8 +20,7 @@ __all__ = ["play_job"]
 @cocotb.test()
 async def play_job(dut) -> None:
     """Play the job named by HDL_REF_JOB; write the recorded outputs to HDL_REF_RESULT."""
-    with open(os.environ["HDL_REF_JOB"]) as f:
-        job = json.load(f)
+    job = read_job()
     cocotb.start_soon(Clock(dut.clk, 10, unit="ns").start())
     results = []
     for case in job["cases"]:
@@ -40,7 +38,4 @@ async def play_job(dut) -> None:
                 sink.append(int(getattr(dut, key).value))
             dut.en.value = int(en)
         results.append(rec)
-    tmp = os.environ["HDL_REF_RESULT"] + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump({"cases": results}, f)
-    os.replace(tmp, os.environ["HDL_REF_RESULT"])
+    write_result({"cases": results})

@@ -7,12 +7,11 @@ the raw words one per clock and records every ``out_word`` in order.
 
 from __future__ import annotations
 
-import json
-import os
-
 import cocotb
 from cocotb.clock import Clock
 from cocotb.triggers import RisingEdge
+
+from cdma_lidar.hdl_ref.tb.jobs import read_job, write_result
 
 __all__ = ["play_job"]
 
@@ -20,8 +19,7 @@ __all__ = ["play_job"]
 @cocotb.test()
 async def play_job(dut) -> None:
     """Play the job named by HDL_REF_JOB; write the words to HDL_REF_RESULT."""
-    with open(os.environ["HDL_REF_JOB"]) as f:
-        job = json.load(f)
+    job = read_job()
     cocotb.start_soon(Clock(dut.clk, 10, unit="ns").start())
     mask = (1 << len(dut.in_raw)) - 1
     out_bits = len(dut.out_word)
@@ -56,7 +54,4 @@ async def play_job(dut) -> None:
                 pending -= 1
         dut.in_v.value = 0
         results.append(words)
-    tmp = os.environ["HDL_REF_RESULT"] + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump({"batches": results}, f)
-    os.replace(tmp, os.environ["HDL_REF_RESULT"])
+    write_result({"batches": results})

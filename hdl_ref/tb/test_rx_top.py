@@ -14,12 +14,10 @@ the model happens in the caller.
 
 from __future__ import annotations
 
-import json
-import os
-
 import cocotb
-from cocotb.clock import Clock
 from cocotb.triggers import RisingEdge
+
+from cdma_lidar.hdl_ref.tb.jobs import play_stream_cases
 
 __all__ = ["play_job"]
 
@@ -109,19 +107,4 @@ async def _run_case(dut, case: dict) -> dict:
 @cocotb.test()
 async def play_job(dut) -> None:
     """Play the job named by HDL_REF_JOB; write the words to HDL_REF_RESULT."""
-    with open(os.environ["HDL_REF_JOB"]) as f:
-        job = json.load(f)
-    cocotb.start_soon(Clock(dut.clk, PERIOD_NS, unit="ns").start())
-    dut.rst.value = 1
-    dut.start.value = 0
-    dut.s_valid.value = 0
-    dut.s_data.value = 0
-    for _ in range(2):
-        await RisingEdge(dut.clk)
-    dut.rst.value = 0
-    await RisingEdge(dut.clk)
-    results = [await _run_case(dut, case) for case in job["cases"]]
-    tmp = os.environ["HDL_REF_RESULT"] + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump({"cases": results}, f)
-    os.replace(tmp, os.environ["HDL_REF_RESULT"])
+    await play_stream_cases(dut, _run_case, PERIOD_NS)
