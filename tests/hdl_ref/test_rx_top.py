@@ -246,6 +246,21 @@ def test_real_time_formula_paper_configuration():
     # one lane per channel would not: the formula says so
     one = dataclasses.replace(PAPER_TOP, lanes=1)
     assert cosim.top_timing(ports, one)["process"] + 1 > t["samples"]
+    # the docs/hdl.md "Clock counts" table: L -> (groups, process clocks)
+    table = {1: (66, 140_716), 2: (34, 75_286), 4: (18, 42_634), 5: (16, 38_590)}
+    for lanes, (groups, process) in table.items():
+        assert cosim.top_groups(ports, lanes) == groups
+        assert cosim.top_timing(ports, dataclasses.replace(PAPER_TOP, lanes=lanes))[
+            "process"] == process
+
+    # and its "Timing" paragraph: the fewest lanes for 2 (125 MHz) and 4 (62.5 MHz)
+    # samples per clock
+    def fewest(per_clock: int) -> int:
+        return next(lanes for lanes in range(1, 65) if cosim.top_timing(
+            ports, dataclasses.replace(PAPER_TOP, lanes=lanes))["process"] + 1
+            <= t["samples"] // per_clock)
+
+    assert (fewest(2), fewest(4)) == (5, 16)
 
 
 @st.composite
