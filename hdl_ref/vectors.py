@@ -182,7 +182,6 @@ def expected_words(out: ReceiverOutput, k: int, ports: Mapping[str, int],
         w["res_peak"] |= (val & ((1 << ow) - 1)) << (q * ow)
         w["res_neg"] |= sum(1 << p for p, s in enumerate(sg) if s < 0) << (q * uw)
         w["res_nz"] |= sum(1 << p for p, s in enumerate(sg) if s != 0) << (q * uw)
-    top = (1 << (ports["cfg_out_bits"] - 1)) - 1
     w["res_nb_lo"] = int(out.neighbours[k, 0]) & ((1 << ow) - 1)
     w["res_nb_hi"] = int(out.neighbours[k, 1]) & ((1 << ow) - 1)
     w["res_noise_count"] = int(out.noise_count[k])
@@ -190,7 +189,7 @@ def expected_words(out: ReceiverOutput, k: int, ports: Mapping[str, int],
     w["res_noise_sumsq"] = int(out.noise_sumsq[k])
     w["res_uid_observed"] = int(out.uid_observed[k])
     w["res_uid_match"] = int(bool(out.uid_match[k]))
-    w["res_saturated"] = int(lags[0] >= 0 and (vals[0] >= top or vals[0] <= -top - 1))
+    w["res_saturated"] = int(bool(out.saturated[k]))
     return w
 
 
