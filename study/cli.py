@@ -23,7 +23,6 @@ import json
 import logging
 import sys
 
-from cdma_lidar.checks import check_int
 from cdma_lidar.study.catalogue import get_study, studies
 from cdma_lidar.study.engine import parse_set, run_study
 
@@ -49,10 +48,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     """``study run NAME``: run a study and write its table, summary and figures."""
     study = get_study(args.name)
     overrides = parse_set(args.set or [])
-    study.options(args.quick, overrides)  # bad --set values fail before any cluster starts
-    workers = None if args.workers is None else check_int("--workers", args.workers, 0, 4096)
-    result = run_study(study, args.out, quick=args.quick, overrides=overrides, workers=workers,
-                       scheduler=args.scheduler, resume=args.resume,
+    # run_study checks the --set values, the grid and --workers before any cluster starts
+    result = run_study(study, args.out, quick=args.quick, overrides=overrides,
+                       workers=args.workers, scheduler=args.scheduler, resume=args.resume,
                        progress=not args.no_progress and sys.stderr.isatty())
     sys.stdout.write(f"{study.name}: {len(result.table)} points, {result.computed} tasks "
                      f"computed, {result.cached} reused -> {result.out}\n")

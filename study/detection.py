@@ -23,7 +23,7 @@ import numpy as np
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.firmware_model.adc import adc_limits
-from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.gold import bipolar, gold_code
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
@@ -50,7 +50,7 @@ def detection_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]
     u, v = preferred_pairs(m)[0]
     code = gold_code(u, v, 0)
     ns = code.size * s
-    ref = np.repeat(1.0 - 2.0 * code, s)
+    ref = np.repeat(bipolar(code).astype(np.float64), s)
     sigma = AMPLITUDE_LSB / 10 ** (float(params["snr_db"]) / 20)
     delays = rng.integers(0, ns, trials)
     idx = (np.arange(ns)[None, :] - delays[:, None]) % ns

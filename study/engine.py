@@ -615,8 +615,7 @@ def _aggregate(points: list[Params], reps: Table, n_reps: int,
         out: dict[str, Any] = {**p, "replicates": len(rows)}
         for c in measured:
             vals = [r.get(c) for r in rows]
-            num = [v for v in vals if isinstance(v, int | float) and not isinstance(v, bool)
-                   and v is not None]
+            num = [v for v in vals if isinstance(v, int | float) and not isinstance(v, bool)]
             if vals and len(num) == len(vals):
                 arr = np.asarray(num, dtype=np.float64)
                 out[c] = float(np.mean(arr)) if len(arr) > 1 else plain(num[0])

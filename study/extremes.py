@@ -46,7 +46,7 @@ import numpy as np
 
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
-from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.firmware_model.gold import bipolar, gold_code
 from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import (
@@ -136,13 +136,12 @@ def _config(params: dict, n_chips: int) -> ReceiverConfig:
 
 def _input(cfg: ReceiverConfig, codes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """One column of full-scale ADC codes (see the module docstring)."""
-    s, ns = cfg.samples_per_chip, codes.shape[1] * cfg.samples_per_chip
-    echo = np.roll(np.repeat(1 - 2 * codes[0].astype(np.int8), s), cfg.gate_start + 3)
+    s = cfg.samples_per_chip
+    echo = np.roll(np.repeat(bipolar(codes[0]), s), cfg.gate_start + 3)
     pol = np.array([-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)], np.int8)
     signs = np.tile((pol[:, None] * echo[None, :]).reshape(-1), cfg.averages)
     signs[rng.random(signs.size) < 0.1] *= -1
     lo, hi = adc_limits(cfg.adc_bits)
-    assert signs.size == cfg.averages * cfg.uid_bits * ns
     return np.where(signs > 0, hi, lo).astype(np.int16)
 
 

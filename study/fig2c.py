@@ -34,7 +34,7 @@ import numpy as np
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.fileio import atomic_open
-from cdma_lidar.host.ranging import METHODS
+from cdma_lidar.host.ranging import METHODS, sample_range_m
 from cdma_lidar.study.engine import (
     RunContext,
     RunOptions,
@@ -73,7 +73,7 @@ REPORT_NOTE = (
 def snr_for_resolution_db(resolution_m: float, chip_rate_hz: float,
                           samples_per_symbol: int) -> float:
     """The per-sample SNR (dB) at which eq. 28 gives ``resolution_m``."""
-    d_r = 299_792_458.0 / (2.0 * chip_rate_hz)
+    d_r = sample_range_m(1, chip_rate_hz)  # c / (2 f_chip): the range of one chip
     root = math.sqrt(6.0 / samples_per_symbol) / math.pi * d_r / resolution_m
     return 20 * math.log10(root)
 
@@ -102,8 +102,8 @@ def fig2c_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     t0 = time.perf_counter()
     r = repeat_ranges("flat-wall", _overrides(params), int(params["repeats"]),
                       int(seed.generate_state(1)[0]), method=str(params["method"]))
-    sigma = float(np.std(r.range_m, ddof=1))
-    return {"resolution_2sigma_m": 2 * sigma, "precision_sigma_m": sigma,
+    resolution = r.resolution_2sigma_m
+    return {"resolution_2sigma_m": resolution, "precision_sigma_m": resolution / 2,
             "precision_eq27_m": r.precision_eq27_m,
             "resolution_eq28_m": 2 * r.precision_eq27_m,
             "mean_error_m": float(np.mean(r.range_m) - r.truth_m),

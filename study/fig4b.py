@@ -49,7 +49,7 @@ from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
 from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
 from cdma_lidar.study.figures import new_figure, save_figure
-from cdma_lidar.units import SPEED_OF_LIGHT_M_S
+from cdma_lidar.units import delay_to_range_m, range_to_delay_s
 
 __all__ = ["REPORT_NOTE", "STUDY", "fig4b_task"]
 
@@ -109,7 +109,7 @@ def fig4b_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
         dev.refresh_config()
         ours = int(dev.config["uid"])
         # the system delay a calibration would find (the calibration is not what is tested)
-        offset = scene.instrument.system_delay_s * SPEED_OF_LIGHT_M_S / 2
+        offset = delay_to_range_m(scene.instrument.system_delay_s)
         res = run_scan(dev, Path(tmp) / "mu.ply", ScanOptions(offset_m=offset),
                        progress=False, frame_id=dev_seed % 1000)
     img = res.image
@@ -154,8 +154,7 @@ def _period_traces(seed: int) -> tuple[np.ndarray, dict[str, float], int]:
     lags = {f"user {uid_to_str(u.uid, u.uid_bits)}": u.delay_s * fs
             for u in scene.instrument.other_users}
     truth = compute_truth(scene).range_m
-    our_delay = 2 * float(np.nanmedian(truth)) / SPEED_OF_LIGHT_M_S \
-        + scene.instrument.system_delay_s
+    our_delay = range_to_delay_s(float(np.nanmedian(truth))) + scene.instrument.system_delay_s
     lags[f"us {uid_to_str(int(cfg['uid']), n_bits)}"] = our_delay * fs
     return corr, lags, ns
 

@@ -50,7 +50,7 @@ from cdma_lidar.study.engine import (
     headline,
     task_seed,
 )
-from cdma_lidar.units import SPEED_OF_LIGHT_M_S
+from cdma_lidar.units import delay_to_range_m
 
 __all__ = ["REPORT_NOTE", "STUDY", "fig4d_task", "near_far_scan"]
 
@@ -86,7 +86,7 @@ def near_far_scan(case: str, frames: int, dev_seed: int, out: Path
     scene = load_scene(f"{PRESET}?{query}" if query else PRESET)
     truth = compute_truth(scene).range_m
     url = f"virtual://{PRESET}?seed={dev_seed}" + (f"&{query}" if query else "")
-    offset = scene.instrument.system_delay_s * SPEED_OF_LIGHT_M_S / 2
+    offset = delay_to_range_m(scene.instrument.system_delay_s)
     loop = case == "near-far"
     with connect(url) as dev:
         res = run_scan(dev, out, ScanOptions(frames=frames if loop else 1, near_far=loop,

@@ -32,7 +32,7 @@ from scipy.integrate import trapezoid
 from scipy.special import ndtr
 
 from cdma_lidar.firmware_model.adc import adc_limits
-from cdma_lidar.firmware_model.gold import gold_codes
+from cdma_lidar.firmware_model.gold import bipolar, gold_codes
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.study.simulate import smallest_out_shift
@@ -57,11 +57,6 @@ def code_bits(degree: int, channels: int) -> NDArray[np.uint8]:
     """Gold members 0..channels-1 of the first preferred pair of ``degree``: (K, N) chip bits."""
     u, v = preferred_pairs(degree)[0]
     return gold_codes(u, v, range(channels), field="channels")
-
-
-def bipolar(bits: NDArray[np.uint8]) -> NDArray[np.int8]:
-    """Chip bits -> +-1 (bit 0 -> +1, the receive chain's convention)."""
-    return (1 - 2 * bits.astype(np.int8)).astype(np.int8)
 
 
 def mai_signal(bip: NDArray[np.int8], delays: NDArray[np.int64], s: int) -> NDArray[np.int32]:

@@ -23,7 +23,7 @@ from cdma_lidar.host.ranging import RangingConfig, precision_eq27_m
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
-from cdma_lidar.units import SPEED_OF_LIGHT_M_S
+from cdma_lidar.units import delay_to_range_m
 
 __all__ = [
     "SimulatedScan",
@@ -98,7 +98,7 @@ def ranging_config(inst: Instrument) -> RangingConfig:
 
 def true_offset_m(inst: Instrument) -> float:
     """The hidden system delay as a range (m): what a perfect calibration finds."""
-    return inst.spec.system_delay_s * SPEED_OF_LIGHT_M_S / 2.0
+    return delay_to_range_m(inst.spec.system_delay_s)
 
 
 def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
