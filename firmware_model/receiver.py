@@ -474,6 +474,7 @@ class FastReceiver:
         for start, length in cfg.ghost_windows:
             ghost |= (gate_lags - start) % ns < length
         self._ghost = ghost
+        self._has_ghost = bool(ghost.any())  # tested twice per _post call
         # the peak exclusion |j - j_peak| <= W as rows of a table, when it is small
         w = cfg.peak_exclude
         jj = np.arange(g)
@@ -652,7 +653,7 @@ class FastReceiver:
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
         corr = out[:, :, 1:-1]
         mag = np.abs(corr)
-        if self._ghost.any():
+        if self._has_ghost:
             mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
@@ -683,7 +684,7 @@ class FastReceiver:
         )
         nb = np.where(found[..., :1], nb, 0)
         noise = ~near_any
-        if self._ghost.any():
+        if self._has_ghost:
             noise &= ~self._ghost
         cnt = np.count_nonzero(noise, axis=-1).astype(np.int64)
         cz = np.multiply(corr, noise, out=mag)  # out over the noise lags, 0 elsewhere

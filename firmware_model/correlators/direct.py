@@ -61,6 +61,8 @@ class DirectCorrelator(Correlator):
         # (K, N) rows, used transposed: (C, N) @ (N, K) through BLAS's transposed operand
         # (a C-contiguous (N, K) matrix is ~50x slower for one column of a long code)
         self.bip_f = plan.bip.astype(np.float64)
+        # chip offset of each gated lag m, q_m = (q0 + u_m) mod N: fixed by the plan
+        self._q = [(plan.q0 + int(u)) % plan.n for u in plan.u_m]
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan
@@ -88,7 +90,7 @@ class DirectCorrelator(Correlator):
                     y2[:, :n] = limb[:, r, :]
                     y2[:, n:] = limb[:, r, :]
                     for m in sel.tolist():
-                        q = (plan.q0 + int(plan.u_m[m])) % n
+                        q = self._q[m]
                         o = y2[:, q : q + n] @ self.bip_f.T  # (cb, K), exact integers
                         if len(parts) == 1:
                             acc[:, :, m] = o

@@ -160,13 +160,13 @@ class FFTCorrelator(Correlator):
             first = min(len(sel), n - q_start)
             runs[r] = (slice(int(sel[0]), int(sel[0]) + s * first, s), q_start, first,
                        slice(int(sel[0]) + s * first, None, s), len(sel) - first)
+        # the phases' spectra: all at once when they fit (then each block of code
+        # spectra is made once per column), else in batches of sb phases
+        whole = len(active) * (big // 2 + 1) * 16 <= BLOCK_BYTES
+        pb = len(active) if whole else sb
         for ci in range(c):
             yc = y[ci]  # (S, N)
             for limb, shift in limbs(yc, lambda v: self._bound(v) < guard, h):
-                # the phases' spectra: all at once when they fit (then each block of code
-                # spectra is made once per column), else in batches of sb phases
-                whole = len(active) * (big // 2 + 1) * 16 <= BLOCK_BYTES
-                pb = len(active) if whole else sb
                 for i0 in range(0, len(active), pb):
                     rs_all = active[i0 : i0 + pb]
                     part = limb[rs_all].astype(np.float64)
