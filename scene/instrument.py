@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
-from cdma_lidar.firmware_model.adc import quantise
+from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import InstrumentSpec, Scene
@@ -496,8 +496,7 @@ class Instrument:
             return hit[0]
         out = self._users_signal(users, cfg, total_samples)
         out.flags.writeable = False
-        self._columns[key] = (out, 0.0)
-        self._columns_bytes += out.nbytes
+        self._keep(key, (out, 0.0), out.nbytes)
         return out
 
     def _users_signal(self, users: list, cfg: RenderSettings,
@@ -584,12 +583,23 @@ class Instrument:
         echo = self.echo(column, cfg, power, calibration=calibration, single=single)
         echo.flags.writeable = False
         hit = (echo, self.noise_rms_v_at(column, cfg, power, calibration))
-        if self._columns_bytes + echo.nbytes > ECHO_CACHE_BYTES:
+        self._keep(key, hit, echo.nbytes)
+        return hit
+
+    def _keep(self, key: tuple, value: tuple, nbytes: int) -> None:
+        """Store ``value`` (``nbytes`` large) in the column cache, emptied first when
+        the entry would take it past ECHO_CACHE_BYTES."""
+        if self._columns_bytes + nbytes > ECHO_CACHE_BYTES:
             self._columns.clear()
             self._columns_bytes = 0
-        self._columns[key] = hit
-        self._columns_bytes += echo.nbytes
-        return hit
+        self._columns[key] = value
+        self._columns_bytes += nbytes
+
+    def _noise_rng(self, frame: int, col: int, calibration: bool,
+                   shot: int) -> np.random.Generator:
+        """The noise generator of one rendered column (or calibration shot)."""
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        return np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
 
     def _column_inputs(self, column: int, cfg: RenderSettings, frame: int,
                        power_w: NDArray[np.float64] | None, calibration: bool, shot: int
@@ -603,9 +613,7 @@ class Instrument:
         echo, sigma = self.column_model(col, cfg, power_w, calibration)
         one = echo * scale
         one += offset
-        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
-        return one, sigma * scale, rng, col
+        return one, sigma * scale, self._noise_rng(frame, col, calibration, shot), col
 
     def render(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
@@ -671,10 +679,8 @@ class Instrument:
             return None
         mean, std = plan
         r = cfg.averages
-        lo = -(1 << (self.spec.adc_bits - 1))
-        hi = (1 << (self.spec.adc_bits - 1)) - 1
-        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-        rng = np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
+        lo, hi = adc_limits(self.spec.adc_bits)
+        rng = self._noise_rng(frame, col, calibration, shot)
         draw = rng.standard_normal(mean.size, dtype=np.float32)
         draw *= std
         draw += mean
@@ -694,9 +700,7 @@ class Instrument:
         if hit is not None:
             return hit[0]
         plan = self._make_accumulated_plan(col, cfg, power, calibration)
-        self._columns[key] = (plan, 0.0)
-        if plan is not None:
-            self._columns_bytes += plan[0].nbytes
+        self._keep(key, (plan, 0.0), 0 if plan is None else plan[0].nbytes)
         return plan
 
     def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
@@ -722,8 +726,7 @@ class Instrument:
             if users is not None:
                 peak += float(np.abs(users).max()) * lsb_per_v
                 mean += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
-        half = 1 << (self.spec.adc_bits - 1)
-        if peak + ACCUMULATED_CLIP_MARGIN * sigma > half - 1.5:
+        if peak + ACCUMULATED_CLIP_MARGIN * sigma > adc_limits(self.spec.adc_bits)[1] - 0.5:
             return None
         mean.flags.writeable = False
         return mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12))

@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdma_lidar.scene.model import InstrumentSpec
+from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = [
     "ELEMENTARY_CHARGE_C",
@@ -85,7 +86,7 @@ def ase_density_w_per_hz(spec: InstrumentSpec) -> float:
     """
     g = 10 ** (spec.edfa_gain_db / 10)
     nsp = 10 ** (spec.edfa_noise_figure_db / 10) / 2
-    nu = 299_792_458.0 / float(np.mean(spec.wavelengths_m))
+    nu = SPEED_OF_LIGHT_M_S / float(np.mean(spec.wavelengths_m))
     return float(nsp * PLANCK_J_S * nu * max(g - 1.0, 0.0))
 
 
