@@ -36,6 +36,7 @@ from cdma_lidar.host.ranging import (
     subsample_delta,
 )
 from cdma_lidar.study.simulate import eq27_from_configuration, simulate_frame
+from cdma_lidar.units import delay_to_range_m
 
 
 def _errors(sim, cfg: RangingConfig) -> tuple[float, float, float, float]:
@@ -151,7 +152,7 @@ def bench_combine(frames: int = 8) -> None:
 
     scene = load_scene("flat-wall")
     truth = compute_truth(scene).range_m
-    offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
+    offset = delay_to_range_m(scene.instrument.system_delay_s)
     runs = []
     with tempfile.TemporaryDirectory() as d:
         for fid in (100, 200):

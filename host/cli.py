@@ -309,7 +309,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
              + ", ".join(f"{f:.1f} %" for f in fr))
         cap = args.power_cap if args.power_cap is not None else \
-            dev.channels * ScanOptions().initial_power
+            dev.channels * options.initial_power
         _say(f"largest column power sum per frame (cap {cap:g} x the per-pixel maximum): "
              + ", ".join(f"{float(p.sum(axis=0).max()):.2f}" for p in res.powers[:-1]))
     if len(img.foreign):
@@ -320,7 +320,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.calibrate_intensity is not None:
         assert cal is not None
         power = res.powers[-2] if args.near_far and len(res.powers) > 1 else \
-            ScanOptions().initial_power
+            options.initial_power
         cal.intensity_gain = intensity_gain(res.clouds[-1].peak, res.clouds[-1].range, power,
                                             dev.config, args.calibrate_intensity,
                                             res.clouds[-1].flags == 0)

@@ -82,7 +82,6 @@ def column_times_s(timestamp_us: ArrayLike, done: ArrayLike) -> NDArray[np.float
         return out
     ref = ts[np.flatnonzero(ok)[0]]
     d = ((ts - ref + _WRAP // 2) % _WRAP) - _WRAP // 2
-    d = np.where(ok, d, 0)
     out[ok] = (d[ok] - d[ok].min()) * 1e-6
     return out
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
 import time
 from collections.abc import Callable
@@ -34,6 +33,7 @@ from tqdm import tqdm
 
 from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkError, ScanAborted
 from cdma_lidar.fileio import atomic_open, check_writable
+from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
 from cdma_lidar.host.cloud_formats import FORMATS, MULTI_FRAME_FORMATS, write_frames
@@ -232,7 +232,7 @@ def max_snr_xc_db(config: dict[str, Any]) -> float:
     LSB^2 (:mod:`cdma_lidar.firmware_model.snr`), so no threshold above this can ever pass.
     """
     bits = int(config.get("out_bits", 32))
-    return 10.0 * math.log10(12.0) + 20.0 * (bits - 1) * math.log10(2.0)
+    return float(snr_xc_db(1 << (bits - 1), 0, 0, 0))
 
 
 #: Peaks per channel asked for when a UID is configured (see :func:`multi_user_peaks`).
@@ -271,7 +271,7 @@ def _set_power(device: Device, matrix: NDArray[np.float64],
     column over its cap by one LSB). The device checks its eye-safety cap after every
     rectangle of a chunked POWER_SET, so ``min(previous, matrix)`` goes first: every
     intermediate state is then at most the final one, element by element. When the
-    device refuses anyway (its cap is lower than ours), the cap is learned as 0.97 of
+    device refuses anyway (its cap is lower than ours), the cap is learned as 0.8 of
     the largest column sum just refused and applied as the controller would (raised
     pixels give way first); ``cap`` is that learned cap, or None.
     """
@@ -292,8 +292,7 @@ def _set_power(device: Device, matrix: NDArray[np.float64],
             learned = 0.8 * float(m.sum(axis=0).max()) / 65535.0
             log_("device refused the power matrix (%s); capping columns at %.4g of the "
                  "per-pixel maximum", exc, learned)
-            m = np.floor(apply_cap(m / 65535.0, learned, None if previous is None else previous,
-                                   (up,)) * 65535.0)
+            m = np.floor(apply_cap(m / 65535.0, learned, previous, (up,)) * 65535.0)
             prev = None
     raise LinkError("the device refuses every power matrix; check its eye-safety settings")
 

@@ -73,7 +73,7 @@ uint8  datatype
 uint32 count
 """
 
-_DATATYPE = {"<f4": 7, "<i4": 5, "<u2": 4, "u1": 2, "<i2": 3}
+_DATATYPE = {"<f4": 7, "<i4": 5, "<u2": 4}
 
 
 def _message(cloud: PointCloud) -> dict:

@@ -19,7 +19,7 @@ __all__ = ["EXTENSION", "PCD_TYPES", "write"]
 EXTENSION = ".pcd"
 
 #: numpy type -> (SIZE, TYPE) of a PCD field.
-PCD_TYPES = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<u2": ("2", "U"), "u1": ("1", "U")}
+PCD_TYPES = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<u2": ("2", "U")}
 
 
 def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:

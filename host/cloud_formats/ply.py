@@ -20,7 +20,7 @@ __all__ = ["EXTENSION", "PLY_TYPES", "write"]
 EXTENSION = ".ply"
 
 #: numpy type -> PLY property type.
-PLY_TYPES = {"<f4": "float32", "<i4": "int32", "<u2": "uint16", "u1": "uint8"}
+PLY_TYPES = {"<f4": "float32", "<i4": "int32", "<u2": "uint16"}
 
 
 def write(cloud: PointCloud, path: str | os.PathLike[str],

@@ -15,6 +15,7 @@ from cdma_lidar.host.connection import connect
 from cdma_lidar.host.scan import ScanOptions, image_from_cloud, run_scan
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
+from cdma_lidar.units import delay_to_range_m
 
 
 def test_capture_corr_finds_the_echo(capsys, tmp_path):
@@ -31,7 +32,7 @@ def test_capture_corr_finds_the_echo(capsys, tmp_path):
         # The trace's maximum is the wall, at the lag the receiver reported; uncalibrated,
         # so the range is the wall's plus the system delay.
         assert int(lag[np.argmax(np.abs(data))]) == int(z["peak_lag"])
-        delay = load_scene("flat-wall").instrument.system_delay_s * 299_792_458.0 / 2
+        delay = delay_to_range_m(load_scene("flat-wall").instrument.system_delay_s)
         assert rng[np.argmax(np.abs(data))] == pytest.approx(truth[7, 3] + delay, abs=0.7)
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
 
@@ -76,7 +77,7 @@ def test_bad_inputs_exit_2_with_one_line(capsys, tmp_path, monkeypatch, argv, wo
 def wall_frames(tmp_path_factory):
     """Two independent 8-frame scans of flat-wall with perfect calibration."""
     scene = load_scene("flat-wall")
-    offset = scene.instrument.system_delay_s * 299_792_458.0 / 2
+    offset = delay_to_range_m(scene.instrument.system_delay_s)
     runs = []
     for fid in (100, 200):
         with connect("virtual://flat-wall?seed=1") as dev:
