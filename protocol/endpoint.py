@@ -429,12 +429,12 @@ class DeviceEndpoint:
                     data += self.port.read(more)
         with self._lock:
             if data:
-                damaged = self._damaged()
+                damaged = self.decoder.stats.damaged
                 for frame in self.decoder.feed(data):
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
-                if self._damaged() > damaged:
+                if self.decoder.stats.damaged > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
                     self._send_stream(MsgType.LINE_ERROR, encode_payload(
@@ -446,9 +446,6 @@ class DeviceEndpoint:
                 self._send_stream(MsgType.HEARTBEAT,
                                   encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
 
-    def _damaged(self) -> int:
-        st = self.decoder.stats
-        return st.crc + st.cobs + st.length + st.short
 
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT)."""

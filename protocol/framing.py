@@ -236,6 +236,11 @@ class DecoderStats:
     incompat: int = 0
 
     @property
+    def damaged(self) -> int:
+        """Chunks rejected as damaged on the line (COBS, CRC, length, short)."""
+        return self.crc + self.cobs + self.length + self.short
+
+    @property
     def errors(self) -> int:
         """All rejected chunks."""
         return self.cobs + self.short + self.crc + self.length + self.oversize + \

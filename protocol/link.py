@@ -358,7 +358,7 @@ class HostLink:
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         self.device_frame = min(info.max_frame, host_max)
-        self._sizing = (self._damaged(), self.decoder.stats.frames)
+        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames)
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -388,7 +388,8 @@ class HostLink:
         to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
                                             info.session_id)
         rx = auth.FrameVerifier(to_host)
-        if frame.session != info.session_id or not rx.check(frame):
+        parts = self._reply_parts or [frame]  # an INFO in FRAGMENTs: each one is signed
+        if any(p.session != info.session_id for p in parts) or not all(map(rx.check, parts)):
             raise LinkError(f"device on {self._port_name} sent an INFO not signed with the "
                             "session key")
         self._tx, self._rx = auth.FrameSigner(to_dev), rx
@@ -675,7 +676,7 @@ class HostLink:
         ``D`` data bytes and ``H`` overhead survives with ``(1 - b)^(8 (D + H))``, so the
         intact data per byte sent is largest at ``D (D + H) = H / (8 b)``.
         """
-        damaged, frames = self._damaged(), self.decoder.stats.frames
+        damaged, frames = self.decoder.stats.damaged, self.decoder.stats.frames
         d, g = damaged - self._sizing[0], frames - self._sizing[1]
         if d + g < 32:
             return
@@ -699,7 +700,7 @@ class HostLink:
         log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", d,
                  d + g, new, cur)
         self.device_frame = new
-        self._sizing = (self._damaged(), self.decoder.stats.frames)
+        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames)
 
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
@@ -747,7 +748,7 @@ class HostLink:
         # Short requests on a line whose frames were made short (auto_frame).
         limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
         room = limit - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
-        if self._damaged():  # a line that damages frames: short requests get through
+        if self.decoder.stats.damaged:  # a line that damages frames: short requests get through
             room = min(room, 48)
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
@@ -755,16 +756,15 @@ class HostLink:
         for key in cols + pieces:
             tries = asked.get(key, (0.0, 0))[1]
             if tries >= self.column_retries:
-                st = self.decoder.stats
-                damaged = st.crc + st.cobs + st.length + st.short
+                damaged = self.decoder.stats.damaged
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
                 if damaged:
                     raise LinkTimeout(
                         f"{what} of frame {fid} never arrived intact after {tries} resend "
                         f"requests on {self._port_name}: a noisy line, {damaged} damaged "
-                        f"frames of {damaged + st.frames}; use a smaller --max-frame or a "
-                        "better cable", DIAG_NOISY)
+                        f"frames of {damaged + self.decoder.stats.frames}; use a smaller "
+                        "--max-frame or a better cable", DIAG_NOISY)
                 raise LinkTimeout(
                     f"{what} of frame {fid} never arrived after {tries} resend requests on "
                     f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
@@ -797,7 +797,7 @@ class HostLink:
         payload = encode_payload(msg_type, fields_)
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
-                      self.stats.wrong_session, self._other_version(), self._damaged(),
+                      self.stats.wrong_session, self._other_version(), self.decoder.stats.damaged,
                       self._line_errors)
         self._pending = seq
         self._pending_type = int(msg_type)
@@ -816,10 +816,10 @@ class HostLink:
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
-                    damage = (self._damaged(), self._line_errors)
+                    damage = (self.decoder.stats.damaged, self._line_errors)
                     self._pump()
                     if quick and self._reply is None and \
-                            (self._damaged(), self._line_errors) != damage:
+                            (self.decoder.stats.damaged, self._line_errors) != damage:
                         # A damaged chunk on either side (ours, or the device's LINE_ERROR):
                         # the request or its reply was probably hit, so try again now.
                         quick -= 1
@@ -841,7 +841,7 @@ class HostLink:
         diag = self._diagnose(win)
         what = diag
         if diag in (DIAG_NOISY, DIAG_GARBAGE):
-            damaged = self._damaged() - win.damaged
+            damaged = self.decoder.stats.damaged - win.damaged
             what += (f" ({damaged} damaged frames of "
                      f"{damaged + self.decoder.stats.frames - win.frames} received, "
                      f"{self._line_errors - win.line_errors} reported by the device)")
@@ -854,10 +854,6 @@ class HostLink:
         self._write(encode_frame(msg_type, payload, seq, self.session or 0,
                                  max_frame=self.max_frame, signer=self._tx))
 
-    def _damaged(self) -> int:
-        """Chunks our decoder rejected as damaged (COBS, CRC, length, short)."""
-        st = self.decoder.stats
-        return st.crc + st.cobs + st.length + st.short
 
     def _diagnose(self, win: _Window) -> str:
         """What the line showed since ``win``: one of the DIAG_* strings."""
@@ -870,7 +866,7 @@ class HostLink:
         wrong = self.stats.wrong_session - win.wrong_session
         if wrong and st.frames - win.frames == wrong and not reported:
             return DIAG_WRONG_SESSION
-        if reported or self._damaged() > win.damaged:
+        if reported or self.decoder.stats.damaged > win.damaged:
             return DIAG_NOISY
         return DIAG_NO_ANSWER
 

@@ -65,6 +65,19 @@ def test_signed_session_scans_and_nothing_travels_unsigned() -> None:
     assert not any(KEY in w or KEY.hex().encode() in w for w in sent)  # no key on the wire
 
 
+def test_signed_info_in_fragments_opens_a_session() -> None:
+    """A 40-channel INFO is longer than a 96-byte frame: it arrives in FRAGMENTs, each
+    signed; the host checks those (the reassembled INFO carries no signature)."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=40, columns=3)
+    link = HostLink(host, timeout_s=TIMEOUT, retries=2, key=KEY, max_frame=96)
+    with RunningDevice(dev, app, key=KEY, heartbeat_s=0.05):
+        info = link.hello()
+        assert info.auth == 1 and len(link._reply_parts) > 1
+        assert [c for c in link.scan(frame=3)] == [expected_column(3, c, 40, 1, 1)
+                                                   for c in range(3)]
+
+
 def test_keyless_host_is_refused_with_one_line() -> None:
     rd, link, *_ = _rig(KEY, None)
     with rd, pytest.raises(LinkError, match="requires a key") as exc:
@@ -74,13 +87,14 @@ def test_keyless_host_is_refused_with_one_line() -> None:
 
 def test_unsigned_requests_are_refused_auth_required() -> None:
     rd, link, host, _dev, app = _rig(KEY, KEY)
-    with rd:
+    with rd as ep:
         info = link.hello()
         wire = encode_frame(MsgType.CONFIG_SET, encode_payload(MsgType.CONFIG_SET, {
             "items": [{"key": 16, "value": b"\x03"}]}), 999, info.session_id)
         host.write(wire)  # a local process without the key, in the right session
         time.sleep(0.2)
         assert link.get_config()["peaks"] == 1 and app.set_config_calls == 0
+        assert ep.stats.naks == 1  # refused AUTH_REQUIRED, not dropped unseen
 
 
 def test_wrong_key_is_refused_auth_failed() -> None:

@@ -201,7 +201,7 @@ def test_a_noisy_line_scans_byte_identical_in_fragments(ber: float, max_frame: i
         link.close()
     assert cols == [expected_column(11, c, 40, 2, 1) for c in range(25)]
     st = link.decoder.stats
-    assert st.crc + st.cobs + st.length + st.short > 0  # the line really was noisy
+    assert st.damaged > 0  # the line really was noisy
 
 
 def test_a_line_that_damages_everything_is_diagnosed_as_noisy_not_as_a_baud_rate() -> None:
