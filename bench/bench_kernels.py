@@ -108,14 +108,11 @@ def run_case(case: Case, repeats: int) -> str:
                 or e.peak_bytes > SKIP_BYTES:
             continue
         gc.collect()
-        measure_mem = True
-        if measure_mem:
-            tracemalloc.start()
+        tracemalloc.start()
         rx = FastReceiver(cfg, codes, method=m, columns=case.columns)
         got = rx.from_accumulators(acc)
-        if measure_mem:
-            mems[m] = tracemalloc.get_traced_memory()[1]
-            tracemalloc.stop()
+        mems[m] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
         if want is None:
             want = got
         elif not all(a.same_as(b) for a, b in zip(got, want, strict=True)):

@@ -35,7 +35,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
@@ -67,7 +67,6 @@ class Design:
     params: Mapping[str, int]
     note: str
     pnr: bool = False
-    flows: tuple[str, ...] = field(default=("ecp5", "xc7"))
 
 
 TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_top.v", "rx_top_pnr.v")
@@ -253,7 +252,7 @@ def run_all(only: Sequence[str] = (), skip: Sequence[str] = ()) -> tuple[dict, l
     for d in DESIGNS:
         if d.name in skip:
             continue
-        for flow in (*d.flows, *(("pnr",) if d.pnr else ())):
+        for flow in (*FLOWS, *(("pnr",) if d.pnr else ())):  # every design, every flow
             if d.name in only:
                 (CACHE / f"{flow}-{_key(d, flow, ' '.join(versions))}.json").unlink(
                     missing_ok=True)

@@ -2,14 +2,15 @@
 
 ``FastReceiver(cfg, codes, method=...)`` (and ``fast``, ``fast_frame``,
 ``fast_from_accumulators``) take ``method`` from :func:`correlator_methods`:
-``"auto"`` (the lowest :meth:`Correlator.cost`, ties to the first registered) and
+``"auto"`` (:func:`choose_correlator` over the kernels' :meth:`Correlator.estimate`,
+ties to the first registered) and
 every registered kernel name, in registration order. Built in:
 
 * ``"matmul"`` (:mod:`.matmul`): exact float64 Hankel products, limbs for the 2^53 bound;
 * ``"fft"`` (:mod:`.fft`): power-of-two real FFTs rounded under a rigorous error bound.
 
 Adding a kernel (a GPU one, a bit-packed one) is one module: subclass
-:class:`Correlator` (``__init__(plan)``, ``__call__(y) -> raw``, optionally ``cost``),
+:class:`Correlator` (``__init__(plan)``, ``__call__(y) -> raw``, optionally ``estimate``),
 then one :func:`register_correlator` call (below for a built-in one; a plug-in may
 register itself). It must give the exact integers;
 ``tests/firmware_model/test_receiver.py`` checks every registered method against

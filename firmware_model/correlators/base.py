@@ -10,9 +10,10 @@ raw correlation at ``count`` consecutive sample lags ``(lag_lo + m) mod N*S``::
 
 A kernel is a :class:`Correlator` subclass, registered under a name with
 :func:`register_correlator`; the receiver picks it by that name
-(``FastReceiver(cfg, codes, method=...)``), or by the lowest :meth:`Correlator.cost`
-with ``method="auto"``. Every kernel must return the exact int64 integers of the
-definition: it is bit-identical to the streaming reference or it is a bug.
+(``FastReceiver(cfg, codes, method=...)``), or by :func:`choose_correlator` over
+every kernel's :meth:`Correlator.estimate` with ``method="auto"``. Every kernel must
+return the exact int64 integers of the definition: it is bit-identical to the
+streaming reference or it is a bug.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ class Correlator(ABC):
 
     Subclasses implement ``__init__(plan)`` (build whatever the plan allows to
     precompute: Hankel blocks, spectra, ...), ``__call__(y)`` and, to take part in
-    ``method="auto"``, :meth:`cost`.
+    ``method="auto"``, :meth:`estimate`.
     """
 
     def __init__(self, plan: GatePlan) -> None:
@@ -126,11 +127,6 @@ class Correlator(ABC):
         (infinite time) means "only when asked for by name".
         """
         return Estimate(math.inf, 0.0)
-
-    @classmethod
-    def cost(cls, plan: GatePlan) -> float:
-        """Predicted seconds per call with the calibrated coefficients (inf: never auto)."""
-        return cls.estimate(plan, costs.coefficients()).seconds
 
     @abstractmethod
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
