@@ -15,6 +15,12 @@ repeatable:
   ``corrupt`` (one bit flipped);
 * per bit, :class:`LineNoise`: each bit flipped independently with a probability
   (``Faults.bit_error_rate``, or one LineNoise shared by both directions).
+
+A pipe may also keep a line's pace (``baud``): bytes then reach the reader no faster
+than a UART sends them (8N1: 10 bit times per byte, so 921600 baud is 92,160 bytes/s),
+and a writer waits while more than ``tx_buffer`` bytes are still on their way, as
+``write`` on a serial port blocks when the driver's buffer is full. Without a pace the
+pipe is as fast as memory, which measures the code, not the line.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import random
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +39,12 @@ __all__ = ["BytePipe", "Faults", "LineNoise", "PipePort", "pipe_pair"]
 
 #: Largest bit error rate: beyond one half, flipping is just another code.
 MAX_BIT_ERROR_RATE = 0.5
+#: Bit times per byte on a UART line with 8 data bits, no parity, 1 stop bit (8N1).
+BITS_PER_BYTE = 10
+#: Fastest pace a paced pipe takes (baud): beyond this the pace is below the pipe's own cost.
+MAX_BAUD = 1_000_000_000
+#: Bytes a paced writer may have on their way before ``write`` waits (a driver's buffer).
+TX_BUFFER = 1024
 
 
 @dataclass(frozen=True)
@@ -108,7 +121,12 @@ class BytePipe:
     """
 
     def __init__(self, faults: Faults | None = None, seed: int = 0,
-                 noise: LineNoise | None = None) -> None:
+                 noise: LineNoise | None = None, baud: int | None = None,
+                 tx_buffer: int = TX_BUFFER) -> None:
+        if baud is not None and not (isinstance(baud, int) and 1 <= baud <= MAX_BAUD):
+            raise out_of_range("baud", f"an integer from 1 to {MAX_BAUD} bit/s", baud)
+        if not (isinstance(tx_buffer, int) and tx_buffer >= 1):
+            raise out_of_range("tx_buffer", "an integer of at least 1 byte", tx_buffer)
         self._buf = bytearray()
         self._cv = threading.Condition()
         self.closed = False
@@ -117,6 +135,12 @@ class BytePipe:
             LineNoise(self.faults.bit_error_rate, seed)
         self._rng = random.Random(seed)
         self._held: bytes | None = None
+        self.baud = baud
+        self.tx_buffer = tx_buffer
+        self._byte_s = 0.0 if baud is None else BITS_PER_BYTE / baud  # s per byte
+        self._flight: deque[tuple[float, bytes]] = deque()  # (arrival time, bytes) on the line
+        self._in_flight = 0  # bytes in _flight
+        self._line_free = 0.0  # monotonic time the last byte on the line arrives
 
     def _impair(self, data: bytes) -> list[bytes]:
         """What reaches the buffer of one write of ``data``."""
@@ -141,18 +165,47 @@ class BytePipe:
         return out
 
     def write(self, data: bytes) -> None:
-        """Append ``data`` (through the faults); raises OSError once the pipe is closed."""
+        """Append ``data`` (through the faults); raises OSError once the pipe is closed.
+
+        On a paced pipe the bytes arrive after their time on the line, and ``write``
+        first waits while more than ``tx_buffer`` bytes are on their way.
+        """
         data = bytes(data)
         with self._cv:
             if self.closed:
                 raise OSError("pipe closed")
-            for chunk in self._impair(data):
-                self._buf += chunk
+            chunks = self._impair(data)
+            if not self._byte_s:
+                for chunk in chunks:
+                    self._buf += chunk
+                self._cv.notify_all()
+                return
+            while self._in_flight and self._in_flight + len(data) > self.tx_buffer:
+                self._arrive()
+                if self.closed:
+                    raise OSError("pipe closed")
+                if self._flight:
+                    self._cv.wait(max(0.0, self._flight[0][0] - time.monotonic()))
+            for chunk in chunks:  # a duplicate costs line time too
+                start = max(time.monotonic(), self._line_free)
+                self._line_free = start + len(chunk) * self._byte_s
+                self._flight.append((self._line_free, chunk))
+                self._in_flight += len(chunk)
+            self._cv.notify_all()
+
+    def _arrive(self) -> None:
+        """Move the bytes whose time on the line is over into the read buffer (lock held)."""
+        now = time.monotonic()
+        while self._flight and self._flight[0][0] <= now:
+            _, chunk = self._flight.popleft()
+            self._in_flight -= len(chunk)
+            self._buf += chunk
             self._cv.notify_all()
 
     def available(self) -> int:
         """Bytes ready to read."""
         with self._cv:
+            self._arrive()
             return len(self._buf)
 
     def read(self, n: int, timeout: float | None) -> bytes:
@@ -162,19 +215,27 @@ class BytePipe:
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cv:
+            self._arrive()
             while len(self._buf) < n and not self.closed:
-                left = None if deadline is None else deadline - time.monotonic()
+                now = time.monotonic()
+                left = None if deadline is None else deadline - now
                 if left is not None and left <= 0:
                     break
-                self._cv.wait(left)
+                if self._flight:  # wake when the next chunk is due
+                    due = self._flight[0][0] - now
+                    left = due if left is None else min(left, due)
+                self._cv.wait(max(0.0, left) if left is not None else None)
+                self._arrive()
             out = bytes(self._buf[:n])
             del self._buf[:n]
             return out
 
     def clear(self) -> None:
-        """Drop what is buffered."""
+        """Drop what is buffered (and what is still on the line)."""
         with self._cv:
             self._buf.clear()
+            self._flight.clear()
+            self._in_flight = 0
 
     def close(self) -> None:
         """Close: readers return what is left, then the port above raises OSError."""
@@ -231,9 +292,11 @@ class PipePort:
 
 
 def pipe_pair(to_device: Faults | None = None, to_host: Faults | None = None, seed: int = 0,
-              max_read: int | None = None) -> tuple[PipePort, PipePort]:
-    """(host end, device end) of an in-memory link, with optional faults per direction."""
-    down = BytePipe(to_device, seed)
-    up = BytePipe(to_host, seed + 1)
+              max_read: int | None = None, baud: int | None = None
+              ) -> tuple[PipePort, PipePort]:
+    """(host end, device end) of an in-memory link, with optional faults per direction and
+    an optional UART pace ``baud`` (bit/s, 8N1) both ways."""
+    down = BytePipe(to_device, seed, baud=baud)
+    up = BytePipe(to_host, seed + 1, baud=baud)
     return (PipePort(up, down, "pipe://host", max_read),
             PipePort(down, up, "pipe://device", max_read))

@@ -23,7 +23,7 @@ from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from cdma_lidar.errors import LinkError
 
-__all__ = ["FdPort", "TcpPort", "open_port"]
+__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "open_port"]
 
 
 def _bytes_ready(fd: int) -> int:
@@ -32,7 +32,11 @@ def _bytes_ready(fd: int) -> int:
     return struct.unpack("i", buf)[0]
 
 
-def open_port(url: str, baudrate: int = 921600, timeout: float = 0.05, **kw: Any) -> Any:
+#: Serial line rate the protocol uses unless told otherwise (bit/s, 8N1); USB CDC ignores it.
+DEFAULT_BAUD = 921600
+
+
+def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **kw: Any) -> Any:
     """Open any pyserial URL (device path, pty, ``socket://``, ``loop://``, registered schemes).
 
     ``socket://`` opens a :class:`TcpPort`. Raises LinkError with a one-line hint when
