@@ -29,6 +29,15 @@ polling thread meanwhile answers requests and sends a HEARTBEAT every
 ``heartbeat_s`` seconds, so the host hears from the device even while a column takes
 long to compute. The application is only ever called by one thread at a time.
 
+Frames leave through one transmit queue in three classes, each first-in first-out:
+replies and notices (ACK, NAK, INFO, STATUS, HEARTBEAT, LINE_ERROR, SESSION_LOST)
+first, then retransmitted columns, then new columns and SCAN_END. On a slow line
+(a UART at 921600 baud sends a 1.6 kB column in 18 ms) a reply or a repair therefore
+waits for at most the frame on the wire, not for the columns queued behind it.
+Frames are encoded and signed when they go out, so the signature counters rise in
+wire order whatever the class. The polling thread sends replies, notices and (a
+bounded share of) repairs; the column worker sends everything, new columns last.
+
 Run it in a thread behind any port-like object (``read(n)``, ``write(b)``,
 ``in_waiting``, ``timeout``): a pty or an accepted TCP socket
 (:class:`cdma_lidar.protocol.ports.FdPort`), a pyserial port or an in-process pipe
@@ -49,7 +58,7 @@ import secrets
 import threading
 import time
 import zlib
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -105,6 +114,25 @@ _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT
                           MsgType.FRAME_SIZE})
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
+#: Transmit classes, sent in this order: replies and notices, repairs, new columns.
+_CONTROL, _REPAIR, _FRESH = 0, 1, 2
+#: Repair bytes the polling thread sends per poll while a column worker runs (it then
+#: reads again; the worker sends the rest between its columns' frames).
+_POLL_REPAIR_BYTES = 2048
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One frame waiting to be sent; encoded (and signed) when it goes out."""
+
+    msg_type: MsgType
+    payload: bytes
+    seq: int | None  # None: the next stream seq, taken when sent
+    session: int
+    compat: int
+    max_frame: int
+    signer: auth.FrameSigner | None
+    repair: tuple[int, int, int] | None = None  # (frame, column, fragment or -1) of a repair
 
 
 class DeviceApp(abc.ABC):
@@ -341,6 +369,8 @@ class DeviceEndpoint:
         self._last_next = 0
         self._last_end = ScanEndReason.COMPLETE
         self._ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
+        # Piece length (bytes) each ring column was last cut at; 0: sent whole.
+        self._cuts: dict[tuple[int, int], int] = {}
         self._stream_seq = 0
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
@@ -356,6 +386,11 @@ class DeviceEndpoint:
         self._app_lock = core.app_lock
         self._health = (TEMPERATURE_UNKNOWN, 0)
         self._queue: queue.SimpleQueue[tuple[Frame, bool] | None] = queue.SimpleQueue()
+        # Transmit queue: one deque per class, guarded by _txcv; one writer at a time.
+        self._txq: tuple[deque[_Job], deque[_Job], deque[_Job]] = (deque(), deque(), deque())
+        self._txcv = threading.Condition()
+        self._writing = False
+        self._repairs: set[tuple[int, int, int]] = set()  # repairs queued, not yet sent
         self._queued = 0  # requests queued for the request worker and not yet handled
         self._worker: threading.Thread | None = None
         #: Request handler of each request type, ``(request, fields, after) -> reply``.
@@ -445,6 +480,11 @@ class DeviceEndpoint:
                 self._last_heartbeat = now
                 self._send_stream(MsgType.HEARTBEAT,
                                   encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
+            worker = self._stream is not None
+        # Replies and notices now; repairs in a bounded share while a column worker runs
+        # (it sends the rest); everything when no stream runs.
+        self._flush(_FRESH if not worker else _REPAIR,
+                    None if not worker else _POLL_REPAIR_BYTES)
 
 
     def status(self) -> Status:
@@ -464,7 +504,8 @@ class DeviceEndpoint:
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(st.frame if st else self._last_frame) & mask,
-            next_column=(st.next_column if st else self._last_next) & 0xFFFF,
+            next_column=(st.next_column - self._column_queued() if st else self._last_next)
+            & 0xFFFF,
             last_end=int(self._last_end),
             columns_sent=self.stats.columns_sent & mask,
             uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
@@ -475,14 +516,82 @@ class DeviceEndpoint:
             temperature_mc=temp, faults=faults & mask)
 
     # ---- sending --------------------------------------------------------------------
-    def _write(self, wire: bytes) -> None:
-        self.port.write(wire)
-        self.stats.tx_frames += 1
+    def _enqueue_tx(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None,
+                    compat: int = 0, signer: auth.FrameSigner | None = None,
+                    repair: tuple[int, int, int] | None = None, max_frame: int = 0) -> None:
+        """Queue one frame of class ``cls`` (encoded and signed when it is sent) of at
+        most ``max_frame`` bytes (0: the session's current max frame).
 
-    def _send_stream(self, msg_type: MsgType, payload: bytes, compat: int = 0) -> None:
-        self._stream_seq = (self._stream_seq + 1) & 0xFFFF
-        self._write(encode_frame(msg_type, payload, self._stream_seq, self.session,
-                                 compat=compat, max_frame=self.tx_max_frame, signer=self._tx))
+        A ``repair`` already queued is not queued twice: a host that asks again before
+        the first answer reached it costs the line nothing.
+        """
+        job = _Job(msg_type, payload, seq, self.session, compat,
+                   max_frame or self.tx_max_frame, signer, repair)
+        with self._txcv:
+            if repair is not None:
+                if repair in self._repairs:
+                    return
+                self._repairs.add(repair)
+            self._txq[cls].append(job)
+
+    def _flush(self, upto: int, budget: int | None = None, wait: bool = False) -> None:
+        """Send queued frames of classes 0..``upto``, highest priority first.
+
+        One thread writes at a time: if another is writing, return at once (it sends
+        these frames too) unless ``wait``. ``budget``: stop after about this many bytes
+        of classes above _CONTROL (replies and notices always all go).
+        """
+        with self._txcv:
+            if self._writing and not wait:
+                return
+            while self._writing:
+                self._txcv.wait()
+            self._writing = True
+        sent = 0
+        try:
+            while True:
+                with self._txcv:
+                    cls = next((c for c in range(upto + 1) if self._txq[c]), None)
+                    if cls is None or (cls > _CONTROL and budget is not None and
+                                       sent >= budget):
+                        return
+                    job = self._txq[cls].popleft()
+                    if job.repair is not None:
+                        self._repairs.discard(job.repair)
+                seq = job.seq
+                if seq is None:
+                    self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
+                try:
+                    wire = encode_frame(job.msg_type, job.payload, seq, job.session,
+                                        compat=job.compat, max_frame=job.max_frame,
+                                        signer=job.signer)
+                except FieldError:  # a bug must not take the device off the line
+                    log.exception("cannot send a %s frame", _type_name(job.msg_type))
+                    continue
+                self.port.write(wire)
+                self.stats.tx_frames += 1
+                if cls > _CONTROL:
+                    sent += len(wire)
+        finally:
+            with self._txcv:
+                self._writing = False
+                self._txcv.notify_all()
+
+    def _column_queued(self) -> int:
+        """1 while frames of a new column wait in the queue (that column is not sent yet)."""
+        with self._txcv:
+            return int(any(j.msg_type != MsgType.SCAN_END for j in self._txq[_FRESH]))
+
+    def _drop_tx(self, cls: int) -> None:
+        """Forget the queued frames of one class (an ended stream's new columns)."""
+        with self._txcv:
+            self._txq[cls].clear()
+            if cls == _REPAIR:
+                self._repairs.clear()
+
+    def _send_stream(self, msg_type: MsgType, payload: bytes, compat: int = 0,
+                     cls: int = _CONTROL, repair: tuple[int, int, int] | None = None) -> None:
+        self._enqueue_tx(cls, msg_type, payload, None, compat, self._tx, repair)
 
     def _piece_room(self, signed: bool) -> int:
         """Payload bytes one FRAGMENT carries in this session."""
@@ -498,39 +607,58 @@ class DeviceEndpoint:
         msg_type, payload, signed = reply
         signer = self._tx if signed else None
         if self._pieces(payload, signed) == 1:
-            self._write(encode_frame(msg_type, payload, req.seq, self.session,
-                                     max_frame=self.tx_max_frame, signer=signer))
+            self._enqueue_tx(_CONTROL, msg_type, payload, req.seq, 0, signer)
             return
         self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None)
 
     def _send_pieces(self, msg_type: MsgType, payload: bytes, seq: int, frame: int,
                      column: int, signer: auth.FrameSigner | None, only: Iterable[int] | None,
-                     compat: int = 0) -> None:
-        """Send ``payload`` as FRAGMENTs (all of them, or the indexes in ``only``)."""
-        room = self._piece_room(signer is not None)
+                     compat: int = 0, cls: int = _CONTROL, room: int = 0) -> int:
+        """Send ``payload`` as FRAGMENTs (all of them, or the indexes in ``only``) of
+        ``room`` bytes each (0: as many as the current max frame carries); returns the
+        piece length used."""
+        signed = signer is not None
+        cut = room
+        room = room or self._piece_room(signed)
         count = -(-len(payload) // room)
         if count > MAX_PIECES:
             raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
                               f"fragments at max frame {self.tx_max_frame} (at most "
                               f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
-        if only is not None and any(not 0 <= k < count for k in only):
-            only = None  # pieces of another size (the frame size changed): send them all
         for k in range(count) if only is None else only:
-            self._stream_seq = (self._stream_seq + 1) & 0xFFFF
             body = encode_payload(MsgType.FRAGMENT, {
                 "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
                 "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
-            self._write(encode_frame(MsgType.FRAGMENT, body, self._stream_seq, self.session,
-                                     compat=compat, max_frame=self.tx_max_frame, signer=signer))
+            self._enqueue_tx(cls, MsgType.FRAGMENT, body, None, compat, signer,
+                             (frame, column, k) if cls == _REPAIR else None,
+                             frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0)
+        return room
 
     def _send_column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
                      only: Iterable[int] | None = None) -> None:
-        """One COLUMN_RESULT, or its FRAGMENTs when it does not fit the max frame."""
+        """One COLUMN_RESULT, or its FRAGMENTs when it does not fit the max frame.
+
+        Queued as a repair when ``compat`` marks a retransmission, else as a new column.
+        Pieces asked for by index (``only``) are cut as the column last was, whatever
+        the frame size now, so the pieces the host holds stay good; a whole column is
+        cut at the current size.
+        """
+        cls = _REPAIR if compat & COMPAT_RETRANSMIT else _FRESH
+        cut = self._cuts.get(key, 0)
+        if only is not None and cut:
+            count = -(-len(payload) // cut)
+            if all(0 <= k < count for k in only):
+                self._send_pieces(MsgType.COLUMN_RESULT, payload, 0, key[0], key[1], self._tx,
+                                  only, compat, cls, cut)
+                return
+        # A whole column (or pieces of a column never cut, or of no cut: all of it).
         if self._pieces(payload, self._tx is not None) == 1:
-            self._send_stream(MsgType.COLUMN_RESULT, payload, compat)
+            self._cuts[key] = 0
+            self._send_stream(MsgType.COLUMN_RESULT, payload, compat, cls,
+                              (*key, -1) if cls == _REPAIR else None)
         else:
-            self._send_pieces(MsgType.COLUMN_RESULT, payload, 0, key[0], key[1], self._tx,
-                              only, compat)
+            self._cuts[key] = self._send_pieces(MsgType.COLUMN_RESULT, payload, 0, key[0],
+                                                key[1], self._tx, None, compat, cls)
 
     def _reply(self, req: Frame, msg_type: MsgType, payload: bytes) -> _Reply:
         return (msg_type, payload, self._tx is not None and bool(req.sig))
@@ -637,6 +765,8 @@ class DeviceEndpoint:
                         self._respond(frame, zlib.crc32(bytes([frame.msg_type]) + frame.payload))
                     else:
                         self._process(frame, True)
+                    idle = self._stream is None
+                self._flush(_FRESH if idle else _CONTROL)
             except OSError as exc:  # the port went away
                 log.warning("request worker stops: %s", exc)
                 return
@@ -782,7 +912,9 @@ class DeviceEndpoint:
     def _end_session(self) -> None:
         """Forget the current session's stream, ring, capture, keys (caller holds _lock)."""
         self._stop_stream(ScanEndReason.ABORTED, send_end=False)
+        self._drop_tx(_REPAIR)
         self._ring.clear()
+        self._cuts.clear()
         self._capture = None
         self._tx = self._rx = None
         self.session_open = False
@@ -1031,17 +1163,21 @@ class DeviceEndpoint:
                     self._ring[key] = payload
                     self._ring.move_to_end(key)
                     while len(self._ring) > self.ring_columns:
-                        self._ring.popitem(last=False)
+                        self._cuts.pop(self._ring.popitem(last=False)[0], None)
                     st.produced += 1
                     self.stats.columns_sent += 1
                     self._send_column(key, payload)
                     if st.produced >= st.count:
-                        # End the stream under the same lock that sent its last column:
+                        # End the stream under the same lock that queued its last column:
                         # a SCAN_START arriving right after must not find it still busy.
                         self._stop_stream(reason)
+                # On the line before the next column is computed: replies and repairs
+                # first, then this column (the worker never runs ahead of the line).
+                self._flush(_FRESH, wait=True)
             with self._lock:
                 if not st.stopped:
                     self._stop_stream(reason)
+            self._flush(_FRESH, wait=True)
         except OSError as exc:  # the port went away under us
             log.warning("column stream of frame %d stops: %s", st.frame, exc)
             with self._lock:
@@ -1090,10 +1226,12 @@ class DeviceEndpoint:
         self._last_next = st.next_column
         self._last_end = reason
         self.core.touch(self)  # idle time counts from the end of the stream
-        if send_end:
+        if reason != ScanEndReason.COMPLETE:
+            self._drop_tx(_FRESH)  # aborted: its queued columns need not go out (kept in ring)
+        if send_end:  # after the columns queued before it
             self._send_stream(MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
                 "frame": st.frame, "first_column": st.first, "columns": st.produced,
-                "calibration": int(st.calibration), "reason": int(reason)}))
+                "calibration": int(st.calibration), "reason": int(reason)}), cls=_FRESH)
 
 
 def _new_session(old: int = 0) -> int:
