@@ -39,7 +39,7 @@ import logging
 import math
 import secrets
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -158,7 +158,32 @@ class _Pieces:
     count: int
     data: dict[int, bytes] = field(default_factory=dict)
     frames: list[Frame] = field(default_factory=list)
-    size: int = 0  # the device's frame size when they were cut
+    size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
+
+
+class _Rto:
+    """Retransmission timeout of repairs from measured round trips (RFC 6298's estimator).
+
+    A sample is the time from a RESEND to the arrival of what it asked for, taken only
+    for a first request (Karn's rule: an answer to a repeated request is ambiguous).
+    ``value`` = SRTT + 4 RTTVAR, within [``floor``, ``ceiling``] s; ``ceiling`` (the
+    link's timeout) until the first sample.
+    """
+
+    def __init__(self, floor: float, ceiling: float) -> None:
+        self.floor, self.ceiling = floor, ceiling
+        self.srtt: float | None = None
+        self.rttvar = 0.0
+        self.value = ceiling
+
+    def sample(self, rtt: float) -> None:
+        """Fold one round trip (s) into the estimate."""
+        if self.srtt is None:
+            self.srtt, self.rttvar = rtt, rtt / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
+            self.srtt = 0.875 * self.srtt + 0.125 * rtt
+        self.value = min(self.ceiling, max(self.floor, self.srtt + 4 * self.rttvar))
 
 
 @dataclass
@@ -237,7 +262,7 @@ class HostLink:
         self.take_over = bool(take_over)
         self.auto_frame = bool(auto_frame)
         self.device_frame = 0  # largest frame the device sends in this session (bytes)
-        self._sizing = (0, 0)  # (damaged, frames) when the frame size was last judged
+        self._sizing = (0, 0, 0)  # (damaged, frames, bytes) when the frame size was judged
         self.keep_config = bool(keep_config)
         self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
@@ -257,6 +282,10 @@ class HostLink:
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._streaming = False
         self._stream: deque[tuple[int, Any]] = deque()
+        # Requests sent without waiting for their reply (RESEND in a scan): seq -> type.
+        self._unawaited: OrderedDict[int, MsgType] = OrderedDict()
+        self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
+        self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s)
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
         port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
@@ -358,7 +387,8 @@ class HostLink:
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         self.device_frame = min(info.max_frame, host_max)
-        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames)
+        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames,
+                        self.decoder.stats.bytes)
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -586,6 +616,7 @@ class HostLink:
                             continue
                         got = True
                         c, k = item["column"], item["index"]
+                        self._answered(asked, (c, k))
                         horizon = max(horizon, c)
                         if (c, k + 1) > edge:
                             edge = (c, k + 1)
@@ -593,8 +624,14 @@ class HostLink:
                             self.stats.duplicates += 1
                             continue
                         pc = parts.get(c)
-                        if pc is None or pc.count != item["count"]:
-                            pc = parts[c] = _Pieces(item["count"], size=self.device_frame)
+                        n = len(item["data"])
+                        if pc is None or pc.count != item["count"] or (
+                                (n != pc.size if k < pc.count - 1 else n > pc.size)
+                                and pc.size):
+                            # The first piece, or one of another cut: start over with it.
+                            pc = parts[c] = _Pieces(item["count"])
+                        if k < pc.count - 1:
+                            pc.size = n
                         pc.data[k] = item["data"]
                         if len(pc.data) < pc.count:
                             continue
@@ -617,6 +654,7 @@ class HostLink:
                             if failure is None:
                                 end, failure = c.column, exc
                             continue
+                        self._answered(asked, c.column)
                         received[c.column] = c
                         parts.pop(c.column, None)
                         horizon = max(horizon, c.column + 1)
@@ -630,6 +668,9 @@ class HostLink:
                         horizon = max(horizon, sent)
                         if item["reason"] != ScanEndReason.COMPLETE and failure is None:
                             end, failure = sent, self._early_end(fid, item["reason"], sent)
+                if self._refusal is not None:  # the device refused a RESEND: say why
+                    (mtype, frame), self._refusal = self._refusal, None
+                    self._accept_reply(mtype, frame)
                 while nxt in received:
                     self.stats.columns += 1
                     yield received.pop(nxt)
@@ -669,29 +710,41 @@ class HostLink:
                     self.abort()
 
     def _size_frames(self) -> None:
-        """Ask for frames sized to the line once 32 chunks show how damaged it is.
+        """Ask for frames sized to the line once enough chunks show how damaged it is.
 
         With a share ``q`` of damaged chunks at the current frame length ``L`` (bytes on
         the wire, ~8 L bits), the bit error rate is ``b = -ln(1 - q) / (8 L)``; a frame of
         ``D`` data bytes and ``H`` overhead survives with ``(1 - b)^(8 (D + H))``, so the
         intact data per byte sent is largest at ``D (D + H) = H / (8 b)``.
+
+        A judgement waits for 24 damaged and 24 intact chunks (``q`` then within about
+        20 %), or 16 damaged and none intact (the frames are far too long: a quarter of
+        the length), or 512 chunks without damage (twice the length). A change under
+        30 % is not asked for: each change makes the device cut columns anew, and the
+        host asks again for the columns it had in pieces of the old size.
         """
-        damaged, frames = self.decoder.stats.damaged, self.decoder.stats.frames
+        st = self.decoder.stats
+        damaged, frames, nbytes = st.damaged, st.frames, st.bytes
         d, g = damaged - self._sizing[0], frames - self._sizing[1]
-        if d + g < 32:
-            return
-        self._sizing = (damaged, frames)
-        q, cur = d / (d + g), self.device_frame
+        cur = self.device_frame
+        # The chunks' mean length on the wire: frames may be shorter than the largest.
+        length = max(1.0, (nbytes - self._sizing[2]) / max(1, d + g))
         ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
-        if q == 0:
-            new = min(ceiling, 2 * cur) if g >= 256 else cur
-        else:
-            ber = -math.log(max(1e-9, 1 - min(q, 0.999))) / (8 * cur)
+        if d >= 16 and g == 0:
+            new = max(MIN_HOST_FRAME, min(cur, int(length)) // 4)
+        elif d >= 24 and g >= 24:
+            q = d / (d + g)
+            ber = -math.log(1 - q) / (8 * length)
             h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
             data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
             new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
-        if abs(new - cur) * 4 <= cur:
-            return  # within 25 %: not worth a request
+        elif d == 0 and g >= 512:
+            new = min(ceiling, 2 * cur)
+        else:
+            return
+        self._sizing = (damaged, frames, nbytes)
+        if abs(new - cur) * 10 <= 3 * cur:
+            return  # within 30 %: not worth cutting the columns anew
         try:
             self._request(MsgType.FRAME_SIZE, {"host_max_frame": new})
         except DeviceError as exc:  # TOO_LARGE: keep the size that works
@@ -700,7 +753,7 @@ class HostLink:
         log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", d,
                  d + g, new, cur)
         self.device_frame = new
-        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames)
+        self._sizing = (st.damaged, st.frames, st.bytes)
 
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
@@ -711,18 +764,17 @@ class HostLink:
             if c in received:
                 continue
             pc = parts.get(c)
-            if pc is not None and pc.size != self.device_frame and c < horizon:
-                del parts[c]  # cut at another frame size: ask for the whole column again
-                pc = None
-            if c < horizon and pc is None:
-                keys: list[Any] = [c]
+            if c in asked and now - asked[c][0] < self._rto.value:
+                keys: list[Any] = []  # asked for whole: its fragments are on their way
+            elif c < horizon and pc is None:
+                keys = [c]
             elif pc is None:
                 keys = []  # the column in progress, nothing of it arrived yet
             else:
                 sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
                     else 0
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.timeout_s]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= self._rto.value]
             if len(due) >= 255:
                 break
         return due
@@ -774,8 +826,28 @@ class HostLink:
         self.stats.resent_columns += len(cols) + len(pieces)
         log.debug("frame %d: asking again for %d columns and %d fragments", fid, len(cols),
                   len(pieces))
-        self._request(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
+        # Not waited for: the columns are the answer, and the stream goes on meanwhile.
+        # A lost RESEND is asked again once the retransmission timeout passes.
+        self._send_unawaited(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
             {"column": c, "index": k} for c, k in pieces]})
+
+    def _answered(self, asked: dict[Any, tuple[float, int]], key: Any) -> None:
+        """A fragment or a whole column asked for arrived: one round-trip sample if it
+        was asked for once (a whole column's sample includes its time on the line)."""
+        t_tries = asked.pop(key, None)
+        if t_tries is not None and t_tries[1] == 1:
+            self._rto.sample(self.clock() - t_tries[0])
+
+    def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
+        """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
+        if self.session is None:
+            self.hello()
+        seq = self._new_seq()
+        self.stats.requests += 1
+        self._unawaited[seq] = msg_type
+        while len(self._unawaited) > 256:
+            self._unawaited.popitem(last=False)
+        self._send_request(msg_type, encode_payload(msg_type, fields_), seq)
 
     # ---- request machinery -------------------------------------------------------------------
     def _need_info(self) -> Info:
@@ -816,10 +888,9 @@ class HostLink:
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
-                    damage = (self.decoder.stats.damaged, self._line_errors)
+                    damage = self._damage_seen()
                     self._pump()
-                    if quick and self._reply is None and \
-                            (self.decoder.stats.damaged, self._line_errors) != damage:
+                    if quick and self._reply is None and self._damage_seen() != damage:
                         # A damaged chunk on either side (ours, or the device's LINE_ERROR):
                         # the request or its reply was probably hit, so try again now.
                         quick -= 1
@@ -848,6 +919,11 @@ class HostLink:
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
+
+    def _damage_seen(self) -> tuple[int, int]:
+        """Signs that a request or its reply was hit: the device's LINE_ERRORs, and (not
+        in a scan, where most damaged frames are columns) damaged frames here."""
+        return (0 if self._streaming else self.decoder.stats.damaged, self._line_errors)
 
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
@@ -1026,6 +1102,12 @@ class HostLink:
             # ACK and NAK echo the request type: a reply to another request that happens
             # to carry the same seq (a previous link, a wrapped counter) is not ours.
             echoed = frame.payload[:1] if frame.msg_type in (MsgType.ACK, MsgType.NAK) else b""
+            unawaited = self._unawaited.get(frame.seq)
+            if unawaited is not None and echoed == bytes([unawaited]):
+                del self._unawaited[frame.seq]
+                if frame.msg_type == MsgType.NAK and self._refusal is None:
+                    self._refusal = (unawaited, frame)
+                return
             if frame.seq == self._pending and self._reply is None and \
                     echoed in (b"", bytes([self._pending_type])):
                 self._reply = frame
