@@ -166,15 +166,15 @@ class _Rto:
 
     A sample is the time from a RESEND to the arrival of what it asked for, taken only
     for a first request (Karn's rule: an answer to a repeated request is ambiguous).
-    ``value`` = SRTT + 4 RTTVAR, within [``floor``, ``ceiling``] s; ``ceiling`` (the
+    ``value`` = SRTT + 4 RTTVAR, within [``floor``, ``ceiling``] s; ``initial`` (the
     link's timeout) until the first sample.
     """
 
-    def __init__(self, floor: float, ceiling: float) -> None:
+    def __init__(self, floor: float, ceiling: float, initial: float) -> None:
         self.floor, self.ceiling = floor, ceiling
         self.srtt: float | None = None
         self.rttvar = 0.0
-        self.value = ceiling
+        self.value = initial
 
     def sample(self, rtt: float) -> None:
         """Fold one round trip (s) into the estimate."""
@@ -285,7 +285,9 @@ class HostLink:
         # Requests sent without waiting for their reply (RESEND in a scan): seq -> type.
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s)
+        # Repairs are re-asked after the measured round trip, which on a slow line with
+        # a queue of repairs may exceed the reply timeout (up to 10 times it).
+        self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s, self.timeout_s)
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
         port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s

@@ -1,0 +1,222 @@
+"""A line with a UART's pace: the pipe keeps it, the device sends replies and repairs
+first, the host repairs without waiting for RESEND's ACK.
+
+No test here asserts a duration: the paced pipe is checked by what can and cannot
+have arrived yet (at 1000 baud ten bytes take 100 ms), and the device's priorities by
+the order of the frames it writes.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+
+from cdma_lidar.errors import ConfigError, DeviceError
+from cdma_lidar.protocol import auth
+from cdma_lidar.protocol.columns import encode_column
+from cdma_lidar.protocol.endpoint import _CONTROL, _FRESH, DeviceEndpoint
+from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
+from cdma_lidar.protocol.link import HostLink, _Rto
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
+from cdma_lidar.protocol.pipes import BytePipe, Faults, pipe_pair
+
+
+# ---- the paced pipe ---------------------------------------------------------------------------
+def test_paced_pipe_holds_bytes_for_their_time_on_the_line() -> None:
+    pipe = BytePipe(baud=1000)  # 100 bytes/s: 10 bytes take 100 ms
+    pipe.write(b"0123456789")
+    assert pipe.read(10, 0) == b""  # still on the line
+    assert pipe.read(10, 5.0) == b"0123456789"  # all of it, in order, once it arrived
+
+
+def test_paced_writer_waits_while_the_driver_buffer_is_full() -> None:
+    pipe = BytePipe(baud=1000, tx_buffer=4)
+    pipe.write(b"abcd")  # fills the buffer: returns at once
+    done = threading.Event()
+    threading.Thread(target=lambda: (pipe.write(b"efgh"), done.set()), daemon=True).start()
+    assert not done.wait(0.01)  # 4 bytes are 40 ms on the line: the writer still waits
+    assert pipe.read(8, 5.0) == b"abcdefgh"
+    assert done.wait(5.0)
+
+
+@pytest.mark.parametrize(("kw", "field"), [({"baud": 0}, "baud"), ({"baud": 1.5}, "baud"),
+                                            ({"tx_buffer": 0}, "tx_buffer")])
+def test_paced_pipe_refuses_bad_settings(kw, field) -> None:
+    with pytest.raises(ConfigError) as exc:
+        BytePipe(**kw)
+    assert exc.value.field == field
+
+
+# ---- device: the transmit queue ---------------------------------------------------------------
+class _Recorder:
+    """Port that keeps what the device writes."""
+
+    def __init__(self) -> None:
+        self.timeout = 0.01
+        self.out = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self.out += data
+        return len(data)
+
+    def frames(self, max_frame: int = 65535):
+        return FrameDecoder(max_frame).feed(bytes(self.out))
+
+    def lengths(self) -> list[int]:
+        """Bytes of each frame on the wire (COBS and both delimiters)."""
+        return [len(c) + 2 for c in bytes(self.out).split(b"\0") if c]
+
+
+def _device(max_frame: int = 256, key: bytes | None = None) -> tuple[DeviceEndpoint, _Recorder]:
+    port = _Recorder()
+    ep = DeviceEndpoint(port, SyntheticApp(channels=40, columns=4), max_frame=max_frame, key=key)
+    ep.session_open = True
+    return ep, port
+
+
+_NOTICE = encode_payload(MsgType.LINE_ERROR, {"rx_errors": 1})
+
+
+def _column(frame: int, column: int) -> bytes:
+    return encode_column(expected_column(frame, column, 40, 1, 1))
+
+
+def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
+    ep, port = _device(key=bytes(range(32)))
+    ep._tx = auth.FrameSigner(bytes(32))
+    verifier = auth.FrameVerifier(bytes(32))
+    ep._send_column((1, 0), _column(1, 0))  # new column: several fragments
+    ep._send_column((1, 9), _column(1, 9), COMPAT_RETRANSMIT)  # a repair
+    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
+    ep._flush(_FRESH)
+    frames = list(port.frames())
+    kinds = [("notice" if f.msg_type == MsgType.LINE_ERROR else
+              "repair" if f.compat & COMPAT_RETRANSMIT else "new") for f in frames]
+    n = kinds.count("new")
+    assert n > 1 and kinds == ["notice"] + ["repair"] * n + ["new"] * n
+    assert all(verifier.check(f) for f in frames)  # counters rise in wire order
+
+
+def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
+    ep, port = _device()
+    for c in range(10):
+        ep._send_column((1, c), _column(1, c), COMPAT_RETRANSMIT)
+    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)
+    ep._flush(_CONTROL + 1, budget=1000)
+    sent = list(port.frames())
+    assert sent[0].msg_type == MsgType.LINE_ERROR
+    assert 1 < len(sent) < 1 + 80  # some repairs, not all 80 fragments
+    ep._flush(_FRESH)
+    assert len(list(port.frames())) == 1 + 80
+
+
+def test_a_repair_already_queued_is_not_queued_twice() -> None:
+    ep, port = _device()
+    ep._ring[(1, 2)] = _column(1, 2)
+    ep._send_column((1, 2), _column(1, 2))  # first cut: 8 fragments
+    ep._flush(_FRESH)
+    port.out.clear()
+    for _ in range(3):  # the host asked three times before the first answer reached it
+        ep._send_column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3, 5])
+    ep._flush(_FRESH)
+    got = [decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()]
+    assert got == [3, 5]
+    ep._send_column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3])  # sent: may go again
+    ep._flush(_FRESH)
+    assert len(list(port.frames())) == 3
+
+
+def test_pieces_asked_by_index_keep_the_cut_of_the_column() -> None:
+    ep, port = _device(max_frame=256)
+    payload = _column(1, 0)
+    ep._send_column((1, 0), payload)
+    ep._flush(_FRESH)
+    first = {b["index"]: b for b in (decode_payload(f.msg_type, f.payload)
+                                     for f in port.frames())}
+    port.out.clear()
+    ep.tx_max_frame = 96  # the host asked for shorter frames meanwhile
+    ep._send_column((1, 0), payload, COMPAT_RETRANSMIT, [2])
+    ep._send_column((1, 1), _column(1, 1))  # a new column is cut at the new size
+    ep._flush(_FRESH)
+    frames = list(port.frames())
+    again = decode_payload(frames[0].msg_type, frames[0].payload)
+    assert (again["index"], again["count"], again["data"]) == \
+        (2, first[2]["count"], first[2]["data"])
+    assert len(frames) - 1 > len(first) and all(n <= max_wire_len(96) for n in port.lengths()[1:])
+
+
+def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
+    ep, port = _device()
+    ep._enqueue_tx(_CONTROL, MsgType.LINE_ERROR, bytes(300), None, max_frame=64)
+    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)
+    ep._flush(_FRESH)
+    assert [f.msg_type for f in port.frames()] == [MsgType.LINE_ERROR]
+    assert "cannot send" in caplog.text
+
+
+def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
+    ep, _port = _device()
+    ep._stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
+    assert ep.status().next_column == 5
+    ep._send_column((1, 4), _column(1, 4))  # column 4 waits in the queue
+    assert ep.status().next_column == 4
+    ep._stream = None
+
+
+# ---- host: RTO and unawaited RESEND -----------------------------------------------------------
+def test_rto_follows_round_trips_within_its_bounds() -> None:
+    rto = _Rto(0.005, 1.0, 0.5)
+    assert rto.value == 0.5  # no sample yet: the link's timeout
+    for _ in range(50):
+        rto.sample(0.020)
+    assert 0.019 < rto.value < 0.03  # SRTT + 4 RTTVAR -> the round trip as it steadies
+    rto.sample(0.200)
+    assert rto.value > 0.1  # one slow answer: back off at once
+    for _ in range(200):
+        rto.sample(0.0001)
+    assert rto.value == 0.005  # never under the floor
+    for _ in range(20):
+        rto.sample(50.0)
+    assert rto.value == 1.0  # never over the ceiling
+
+
+def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
+    """The host does not wait for RESEND's ACK, but a NAK still reaches the caller."""
+    host, dev = pipe_pair()
+    app = SyntheticApp(channels=4, columns=6)
+    with RunningDevice(dev, app, ring_columns=0):
+        link = HostLink(host, timeout_s=0.05)
+        link.hello()
+        link.get_config()
+        link._send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
+        link._streaming = True
+        for _ in range(100):
+            link._pump()
+            if link._refusal is not None:
+                break
+        mtype, frame = link._refusal
+        with pytest.raises(DeviceError) as exc:
+            link._accept_reply(mtype, frame)
+        assert exc.value.code == ErrorCode.NOT_AVAILABLE
+        link._streaming = False
+        link.close()
+
+
+@pytest.mark.parametrize("ber", [3e-4, 1e-3])
+def test_scan_on_a_paced_noisy_line_is_byte_identical(ber: float) -> None:
+    """A UART at 4 Mbaud with bit errors both ways: every column arrives intact, once."""
+    f = Faults(bit_error_rate=ber)
+    host, dev = pipe_pair(f, f, seed=11, baud=4_000_000)
+    app = SyntheticApp(channels=40, columns=30)
+    with RunningDevice(dev, app, heartbeat_s=0.02):
+        link = HostLink(host, timeout_s=0.05, retries=20, auto_frame=True)
+        link.hello()
+        cols = list(link.scan(frame=3))
+        link.close()
+    assert [encode_column(c) for c in cols] == \
+        [encode_column(expected_column(3, c, 40, 1, 1)) for c in range(30)]
+    assert link.device_frame < 1024  # sized down to the line
+    assert np.isfinite(link._rto.value)
