@@ -66,6 +66,7 @@ def test_importing_the_virtual_package_registers_its_url_scheme():
     ("line_seed=-2", "line_seed must be a non-negative integer"),
     ("seed=abc", "seed='abc' is not a number"),
     ("line_error_rate=2", "line_error_rate must be a probability from 0 to 0.5"),
+    ("line_baud=0", "baud must be an integer from 1 to"),
     ("bogus=3", "bogus is not a known field"),
 ])
 def test_bad_url_options_name_the_option(query, words):
@@ -202,6 +203,12 @@ def test_line_errors_lose_nothing():
         port = lk.port
         assert port._noise.flipped > 0  # errors really were injected
         assert lk.decoder.stats.errors > 0 or lk.stats.retries > 0
+    # The same through a line with a UART's pace (and errors): still the same results.
+    with HostLink(open_port(url + "&line_baud=2000000"), timeout_s=0.5, retries=8,
+                  auto_frame=True) as lk:
+        lk.hello()
+        assert lk.port._to_device.baud == 2_000_000
+        assert [c.records.tobytes() for c in lk.scan(frame=77)] == clean
 
 
 def test_uid_scene_reports_our_uid():

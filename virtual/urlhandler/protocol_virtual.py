@@ -19,6 +19,8 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
     line_error_rate=P    probability of flipping each bit on the line, both directions
                          (default 0), to prove the link loses nothing
     line_seed=N          seed of the line errors (default: seed)
+    line_baud=N          the line keeps a UART's pace, N bit/s 8N1 (default: none, as
+                         fast as memory), e.g. 921600 to see what a noisy serial line costs
     session=N            session id of the device (default: random, as at a real boot)
     anything else        a scene option (``distance=7.5``, ``instrument.snr_db=-5``)
 """
@@ -42,7 +44,7 @@ __all__ = ["Serial", "parse_url"]
 
 log = logging.getLogger(__name__)
 
-_OWN_OPTIONS = ("seed", "line_error_rate", "line_seed", "session")
+_OWN_OPTIONS = ("seed", "line_error_rate", "line_seed", "line_baud", "session")
 
 
 def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
@@ -102,8 +104,12 @@ class Serial(SerialBase):
             self.firmware = VirtualFirmware(scene, seed)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
-        self._to_device = BytePipe(noise=self._noise)
-        self._from_device = BytePipe(noise=self._noise)
+        baud = own.get("line_baud")
+        try:
+            self._to_device = BytePipe(noise=self._noise, baud=baud)
+            self._from_device = BytePipe(noise=self._noise, baud=baud)
+        except CdmaLidarError as exc:
+            raise SerialException(f"virtual://{name}: {exc}") from exc
         dev_port = PipePort(self._to_device, self._from_device, f"virtual://{name}")
         self.endpoint = DeviceEndpoint(dev_port, self.firmware, session_id=own.get("session"))
         self._stop.clear()
