@@ -261,11 +261,15 @@ class FrameDecoder:
     up to the next delimiter and counted as ``oversize`` without being buffered.
     ``rejected`` lists frames that passed the CRC but had another version or unknown
     incompatible flags (the device answers them with a NAK); the caller drains it.
+    ``chunk_log``, when set to a list, gets ``(wire bytes, intact)`` of every chunk that
+    was a frame or was damaged on the line (to judge the line's bit error rate); the
+    caller drains it.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT) -> None:
         self.stats = DecoderStats()
         self.rejected: list[Frame] = []
+        self.chunk_log: list[tuple[int, bool]] | None = None
         self._buf = bytearray()
         self._skipping = False  # inside an oversize chunk: drop until the next delimiter
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
@@ -329,10 +333,13 @@ class FrameDecoder:
         if len(chunk) > self._max_chunk:
             st.oversize += 1
             return
+        log = self.chunk_log
         try:
             body = cobs.decode(chunk)
         except FrameError:
             st.cobs += 1
+            if log is not None:
+                log.append((len(chunk) + 1, False))
             return
         if len(body) > self._max_frame:
             st.oversize += 1
@@ -347,8 +354,12 @@ class FrameDecoder:
         except FrameError as exc:
             reason = str(exc).split(":", 1)[0]
             setattr(st, reason, getattr(st, reason) + 1)
+            if log is not None:
+                log.append((len(chunk) + 1, False))
             return
         st.frames += 1
+        if log is not None:
+            log.append((len(chunk) + 1, True))
         out.append(frame)
 
     def reset(self) -> None:

@@ -161,6 +161,23 @@ class _Pieces:
     size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
 
 
+#: Bit error rates the line judgement considers (a grid 12 % apart from 1e-7 to 0.1).
+_BER_GRID = np.logspace(-7, -1, 121)
+
+
+def _bit_error_rate(chunks: list[tuple[int, bool]]) -> float:
+    """Maximum-likelihood bit error rate of chunks ``(bytes on the wire, intact)``.
+
+    A chunk of ``n`` bits is intact with probability ``(1 - b)^n``; the log-likelihood
+    ``sum_intact n ln(1 - b) + sum_damaged ln(1 - (1 - b)^n)`` is evaluated on a grid.
+    """
+    bits = 8.0 * np.array([n for n, _ in chunks])
+    ok = np.array([o for _, o in chunks])
+    lq = np.log1p(-_BER_GRID)[:, None] * bits[None, :]  # ln P(intact), per rate and chunk
+    ll = np.where(ok[None, :], lq, np.log(-np.expm1(np.minimum(lq, -1e-300)))).sum(axis=1)
+    return float(_BER_GRID[int(np.argmax(ll))])
+
+
 class _Rto:
     """Retransmission timeout of repairs from measured round trips (RFC 6298's estimator).
 
@@ -262,7 +279,6 @@ class HostLink:
         self.take_over = bool(take_over)
         self.auto_frame = bool(auto_frame)
         self.device_frame = 0  # largest frame the device sends in this session (bytes)
-        self._sizing = (0, 0, 0)  # (damaged, frames, bytes) when the frame size was judged
         self.keep_config = bool(keep_config)
         self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
@@ -288,6 +304,9 @@ class HostLink:
         # Repairs are re-asked after the measured round trip, which on a slow line with
         # a queue of repairs may exceed the reply timeout (up to 10 times it).
         self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s, self.timeout_s)
+        # A whole column's answer takes its time on the line too: its own estimate.
+        self._rto_column = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s,
+                                self.timeout_s)
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
         port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
@@ -389,8 +408,8 @@ class HostLink:
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         self.device_frame = min(info.max_frame, host_max)
-        self._sizing = (self.decoder.stats.damaged, self.decoder.stats.frames,
-                        self.decoder.stats.bytes)
+        if self.auto_frame:  # judge the line from the chunks of this session on
+            self.decoder.chunk_log = []
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -696,10 +715,9 @@ class HostLink:
                     self._size_frames()
                 due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
                                     received, parts, asked, now)
-                if due:
+                if due:  # one RESEND, then read: its answer is in the stream
                     self._resend(fid, due, asked, now)
                     last_rx = self.clock()
-                    continue
                 self._pump()
             if failure is not None:
                 raise failure
@@ -714,37 +732,39 @@ class HostLink:
     def _size_frames(self) -> None:
         """Ask for frames sized to the line once enough chunks show how damaged it is.
 
-        With a share ``q`` of damaged chunks at the current frame length ``L`` (bytes on
-        the wire, ~8 L bits), the bit error rate is ``b = -ln(1 - q) / (8 L)``; a frame of
-        ``D`` data bytes and ``H`` overhead survives with ``(1 - b)^(8 (D + H))``, so the
-        intact data per byte sent is largest at ``D (D + H) = H / (8 b)``.
+        Every chunk received since the last judgement is a trial: one of ``n`` bits
+        arrives intact with probability ``(1 - b)^n``. The bit error rate ``b`` is the
+        maximum-likelihood one over those chunks, whatever their lengths (columns,
+        replies and heartbeats mix). A frame of ``D`` data bytes and ``H`` overhead
+        survives with ``(1 - b)^(8 (D + H))``, so the intact data per byte sent is
+        largest at ``D (D + H) = H / (8 b)``.
 
-        A judgement waits for 24 damaged and 24 intact chunks (``q`` then within about
-        20 %), or 16 damaged and none intact (the frames are far too long: a quarter of
-        the length), or 512 chunks without damage (twice the length). A change under
-        30 % is not asked for: each change makes the device cut columns anew, and the
-        host asks again for the columns it had in pieces of the old size.
+        A judgement waits for 24 damaged and 24 intact chunks (``b`` then within
+        about 20 %), or 16 damaged and none intact (the frames are far too long: a
+        quarter of their length), or 512 chunks without damage (twice the length). A
+        change under 30 % is not asked for: the device would cut new columns anew.
         """
-        st = self.decoder.stats
-        damaged, frames, nbytes = st.damaged, st.frames, st.bytes
-        d, g = damaged - self._sizing[0], frames - self._sizing[1]
+        chunks = self.decoder.chunk_log
+        if chunks is None:
+            return
+        good = sum(1 for _, ok in chunks if ok)
+        bad = len(chunks) - good
         cur = self.device_frame
-        # The chunks' mean length on the wire: frames may be shorter than the largest.
-        length = max(1.0, (nbytes - self._sizing[2]) / max(1, d + g))
         ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
-        if d >= 16 and g == 0:
-            new = max(MIN_HOST_FRAME, min(cur, int(length)) // 4)
-        elif d >= 24 and g >= 24:
-            q = d / (d + g)
-            ber = -math.log(1 - q) / (8 * length)
+        if bad >= 16 and good == 0:
+            new = max(MIN_HOST_FRAME, min(cur, sorted(n for n, _ in chunks)[bad // 2]) // 4)
+        elif bad >= 24 and good >= 24:
+            ber = _bit_error_rate(chunks)
             h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
             data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
             new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
-        elif d == 0 and g >= 512:
+        elif bad == 0 and good >= 512:
             new = min(ceiling, 2 * cur)
         else:
+            if len(chunks) > 4096:  # a line that damages almost nothing: judge afresh
+                chunks.clear()
             return
-        self._sizing = (damaged, frames, nbytes)
+        chunks.clear()
         if abs(new - cur) * 10 <= 3 * cur:
             return  # within 30 %: not worth cutting the columns anew
         try:
@@ -752,10 +772,10 @@ class HostLink:
         except DeviceError as exc:  # TOO_LARGE: keep the size that works
             log.debug("device keeps %d-byte frames: %s", cur, exc)
             return
-        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", d,
-                 d + g, new, cur)
+        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", bad,
+                 bad + good, new, cur)
         self.device_frame = new
-        self._sizing = (st.damaged, st.frames, st.bytes)
+        chunks.clear()
 
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
@@ -766,7 +786,7 @@ class HostLink:
             if c in received:
                 continue
             pc = parts.get(c)
-            if c in asked and now - asked[c][0] < self._rto.value:
+            if c in asked and now - asked[c][0] < self._rto_column.value:
                 keys: list[Any] = []  # asked for whole: its fragments are on their way
             elif c < horizon and pc is None:
                 keys = [c]
@@ -776,7 +796,8 @@ class HostLink:
                 sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
                     else 0
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= self._rto.value]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= (
+                self._rto_column if isinstance(k, int) else self._rto).value]
             if len(due) >= 255:
                 break
         return due
@@ -838,7 +859,8 @@ class HostLink:
         was asked for once (a whole column's sample includes its time on the line)."""
         t_tries = asked.pop(key, None)
         if t_tries is not None and t_tries[1] == 1:
-            self._rto.sample(self.clock() - t_tries[0])
+            rto = self._rto_column if isinstance(key, int) else self._rto
+            rto.sample(self.clock() - t_tries[0])
 
     def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""

@@ -19,7 +19,7 @@ from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.endpoint import _CONTROL, _FRESH, DeviceEndpoint
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
-from cdma_lidar.protocol.link import HostLink, _Rto
+from cdma_lidar.protocol.link import HostLink, _bit_error_rate, _Rto
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
 from cdma_lidar.protocol.pipes import BytePipe, Faults, pipe_pair
 
@@ -220,3 +220,26 @@ def test_scan_on_a_paced_noisy_line_is_byte_identical(ber: float) -> None:
         [encode_column(expected_column(3, c, 40, 1, 1)) for c in range(30)]
     assert link.device_frame < 1024  # sized down to the line
     assert np.isfinite(link._rto.value)
+
+
+def test_bit_error_rate_from_chunks_of_mixed_lengths() -> None:
+    """The line judgement is unbiased when short replies and long columns mix."""
+    rng = np.random.default_rng(4)
+    for ber in (1e-4, 1e-3, 1e-2):
+        lengths = rng.choice([20, 80, 1700], 4000)
+        intact = rng.random(4000) < (1 - ber) ** (8 * lengths)
+        got = _bit_error_rate(list(zip(lengths.tolist(), intact.tolist(), strict=True)))
+        assert got == pytest.approx(ber, rel=0.25)
+
+
+def test_decoder_logs_chunks_only_when_asked() -> None:
+    from cdma_lidar.protocol.framing import encode_frame
+    wire = encode_frame(MsgType.LINE_ERROR, _NOTICE, 1, 2)
+    dec = FrameDecoder()
+    dec.feed(wire)
+    assert dec.chunk_log is None
+    dec.chunk_log = []
+    bad = bytearray(wire)
+    bad[5] ^= 0x10
+    dec.feed(wire + bytes(bad))
+    assert dec.chunk_log == [(len(wire) - 1, True), (len(wire) - 1, False)]
