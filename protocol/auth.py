@@ -148,8 +148,25 @@ def equal(a: bytes, b: bytes) -> bool:
 
 
 # ---- frame signing ---------------------------------------------------------------------------
+class _FrameMac:
+    """HMAC-SHA256 of one session key, keyed once: each frame copies the keyed state
+    (the key's two pad blocks are not hashed again per frame)."""
+
+    key: bytes
+
+    def __post_init__(self) -> None:
+        self._keyed = hmac.new(self.key, digestmod=hashlib.sha256)
+
+    def _frame_mac(self, data: bytes, counter: bytes) -> bytes:
+        """Truncated MAC of ``data`` (header + payload) and the packed counter."""
+        h = self._keyed.copy()
+        h.update(data)
+        h.update(counter)
+        return h.digest()[:SIG_MAC_BYTES]
+
+
 @dataclass
-class FrameSigner:
+class FrameSigner(_FrameMac):
     """Signs the frames of one direction of a session (counter starts at 1)."""
 
     key: bytes
@@ -159,11 +176,11 @@ class FrameSigner:
         """Signature of ``data`` (header + payload): counter + truncated HMAC."""
         self.counter += 1
         c = _COUNTER.pack(self.counter)
-        return c + _mac(self.key, data, c)[:SIG_MAC_BYTES]
+        return c + self._frame_mac(data, c)
 
 
 @dataclass
-class FrameVerifier:
+class FrameVerifier(_FrameMac):
     """Checks the frames of one direction of a session: MAC, then a rising counter."""
 
     key: bytes
@@ -178,7 +195,7 @@ class FrameVerifier:
             self.unsigned += 1
             return False
         c = frame.sig[:8]
-        if not equal(_mac(self.key, frame.signed_bytes(), c)[:SIG_MAC_BYTES], frame.sig[8:]):
+        if not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[8:]):
             self.forged += 1
             return False
         (counter,) = _COUNTER.unpack(c)
