@@ -537,9 +537,10 @@ class DeviceEndpoint:
     def _flush(self, upto: int, budget: int | None = None, wait: bool = False) -> None:
         """Send queued frames of classes 0..``upto``, highest priority first.
 
-        One thread writes at a time: if another is writing, return at once (it sends
-        these frames too) unless ``wait``. ``budget``: stop after about this many bytes
-        of classes above _CONTROL (replies and notices always all go).
+        One thread writes at a time: if another is writing, return at once unless
+        ``wait`` (that writer sends replies and notices before it gives up its role;
+        the column worker waits, so new columns always go). ``budget``: stop after
+        about this many bytes of classes above _CONTROL (replies and notices all go).
         """
         with self._txcv:
             if self._writing and not wait:
@@ -554,6 +555,11 @@ class DeviceEndpoint:
                     cls = next((c for c in range(upto + 1) if self._txq[c]), None)
                     if cls is None or (cls > _CONTROL and budget is not None and
                                        sent >= budget):
+                        # Give up the writer's role in the same breath as the last look
+                        # at the queue: a frame queued after it finds no writer and
+                        # its thread sends it; one queued before it was seen here.
+                        self._writing = False
+                        self._txcv.notify_all()
                         return
                     job = self._txq[cls].popleft()
                     if job.repair is not None:
@@ -572,10 +578,11 @@ class DeviceEndpoint:
                 self.stats.tx_frames += 1
                 if cls > _CONTROL:
                     sent += len(wire)
-        finally:
+        except BaseException:  # the port failed: let the next writer try
             with self._txcv:
                 self._writing = False
                 self._txcv.notify_all()
+            raise
 
     def _column_queued(self) -> int:
         """1 while frames of a new column wait in the queue (that column is not sent yet)."""
