@@ -243,3 +243,26 @@ def test_decoder_logs_chunks_only_when_asked() -> None:
     bad[5] ^= 0x10
     dec.feed(wire + bytes(bad))
     assert dec.chunk_log == [(len(wire) - 1, True), (len(wire) - 1, False)]
+
+
+def test_status_overtakes_the_column_stream_on_a_slow_line() -> None:
+    """At 921600 baud a column is 18 ms on the wire; STATUS must not wait for the scan.
+
+    Counted in frames, not seconds: between the request and its answer at most the
+    column on the wire and the one queued behind the line's buffer may arrive.
+    """
+    host, dev = pipe_pair(baud=921_600)
+    app = SyntheticApp(channels=40, columns=60)
+    with RunningDevice(dev, app, heartbeat_s=0.5):
+        link = HostLink(host, timeout_s=0.5)
+        link.hello()
+        scan = link.scan(frame=6)
+        first = [next(scan) for _ in range(3)]
+        before = len(link._stream)
+        status = link.status()
+        between = len(link._stream) - before
+        rest = list(scan)
+        link.close()
+    assert status.state_name == "scanning" and status.frame == 6
+    assert between <= 3, f"{between} stream frames arrived before the STATUS reply"
+    assert [c.column for c in first + rest] == list(range(60))
