@@ -106,6 +106,9 @@ log = logging.getLogger(__name__)
 
 #: Smallest frame the device may be asked to send (HELLO / FRAME_SIZE host_max_frame).
 MIN_HOST_FRAME = 64
+#: Longest request frame (bytes) an ``auto_frame`` host sends once the line has damaged
+#: a frame: a long POWER_SET or RESEND is cut into requests this short.
+DAMAGED_REQUEST_FRAME = 96
 
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
@@ -353,7 +356,10 @@ class HostLink:
         # auto_frame: if INFO never gets through intact, ask for shorter frames.
         sizes = [self._host_max] + ([s for s in (256, 96) if s < self._host_max]
                                     if self.auto_frame else [])
+        retries = self.retries
         for k, size in enumerate(sizes):
+            if k + 1 < len(sizes):  # a shorter size is left: try it after one timeout
+                self.retries = 0
             try:
                 reply, fields_ = self._hello_exchange(size, int(flags))
                 break
@@ -362,6 +368,8 @@ class HostLink:
                     raise
                 log.info("HELLO: INFO damaged on the way, asking for %d-byte frames",
                          sizes[k + 1])
+            finally:
+                self.retries = retries
         return self._open(reply, fields_, sizes[k])
 
     def _hello_exchange(self, host_max: int, flags: int) -> tuple[dict[str, Any],
@@ -493,7 +501,7 @@ class HostLink:
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
+        room = (self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -821,8 +829,7 @@ class HostLink:
                 now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
         # Short requests on a line whose frames were made short (auto_frame).
-        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
-        room = limit - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
+        room = self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
         if self.decoder.stats.damaged:  # a line that damages frames: short requests get through
             room = min(room, 48)
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
@@ -902,7 +909,7 @@ class HostLink:
         self._reply_parts = []
         self._partial.clear()
         self._reply_version = None
-        quick = 2 * (self.retries + 1)  # extra tries sent at once when the line shows damage
+        quick = 10 * (self.retries + 1)  # extra tries sent at once when the line shows damage
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
@@ -943,6 +950,15 @@ class HostLink:
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
+
+    def _request_limit(self) -> int:
+        """Longest request frame worth sending (bytes): as long as the device's frames,
+        which are sized to the line (``auto_frame``), so that a long request (POWER_SET
+        of a whole matrix, RESEND of many columns) is cut into pieces that get through."""
+        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
+        if self.auto_frame and (self.decoder.stats.damaged or self._line_errors):
+            limit = min(limit, DAMAGED_REQUEST_FRAME)  # ~46 % get through at 1e-3
+        return limit
 
     def _damage_seen(self) -> tuple[int, int]:
         """Signs that a request or its reply was hit: the device's LINE_ERRORs, and (not

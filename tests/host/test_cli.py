@@ -206,6 +206,22 @@ def test_same_seed_and_frame_id_same_cloud_bytes(capsys, tmp_path):
     assert "--frame-id must be from 0" in line
 
 
+def test_scan_over_a_noisy_serial_line_gives_the_clean_cloud(capsys, tmp_path):
+    """The CLI at a bit error rate of 1e-3 (a UART's pace, errors both ways): HELLO, the
+    power matrix (cut into short POWER_SETs) and the scan all get through, and the
+    cloud is byte for byte the clean line's."""
+    def scan(name: str, line: str) -> bytes:
+        out = tmp_path / name
+        code, _, err = _run(capsys, "scan", "--port", f"virtual://flat-wall?seed=2{line}",
+                               "--out", str(out), "--no-progress", "--frame-id", "8",
+                               "--timeout", "0.3")
+        assert code == 0, err
+        return out.read_bytes()
+
+    clean = scan("clean.ply", "")
+    assert scan("noisy.ply", "&line_error_rate=1e-3&line_seed=4&line_baud=4000000") == clean
+
+
 def test_ctrl_c_leaves_a_partial_scan_that_resume_finishes(capsys, tmp_path, monkeypatch):
     from cdma_lidar.host.frame import FrameData
     from cdma_lidar.host.scan import state_path
