@@ -624,6 +624,8 @@ class HostLink:
         checker = ColumnChecker(self.info, self.config, fid, first, end,
                                 req == MsgType.CALIBRATE)
         self._stream.clear()
+        self._unawaited.clear()  # a late NAK to a RESEND of an earlier stream is not ours
+        self._refusal = None
         self._streaming = True
         finished = False
         failure: Exception | None = None
