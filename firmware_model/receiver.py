@@ -445,7 +445,8 @@ class FastReceiver:
     (default ``"auto"``: the kernel the calibrated cost model predicts fastest among
     those within 2x of the leanest memory, :mod:`.correlators.costs`); ``float_bits``
     (default 53) is the largest magnitude, in bits, the float64 kernels' products may reach before
-    operands are split into limbs. Both only choose how the same integers are
+    operands are split into limbs, ``float32_bits`` (0..24, default 24) the same for
+    float32 products (0: never float32). All three only choose how the same integers are
     computed. An unknown ``method`` raises ConfigError listing the registered names.
     ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
     carry: it only steers ``"auto"`` (a product over many columns amortises more).
@@ -457,6 +458,7 @@ class FastReceiver:
     method: str = AUTO
     float_bits: int = 53
     columns: int = 1
+    float32_bits: int = 24
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
@@ -493,7 +495,8 @@ class FastReceiver:
         y_bound = s * cfg.uid_bits * cfg.averages * (1 << (cfg.adc_bits - 1))  # max |Y|
         check_int("columns", self.columns, 1, 1 << 30)
         self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
-                             y_bound=y_bound, columns=self.columns)
+                             y_bound=y_bound, columns=self.columns,
+                             float32_bits=self.float32_bits)
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
         self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
         self._corr = self.kernel_for(self.columns)

@@ -140,6 +140,9 @@ def _fast_variants(cfg, codes):
         yield FastReceiver(cfg, codes, method=method)
         if method in LIMB_FLOAT_BITS:
             yield FastReceiver(cfg, codes, method=method, float_bits=LIMB_FLOAT_BITS[method](n))
+        if method == "matmul":  # float64 products only, and a float32 limit the data straddles
+            for bits in (0, 10):
+                yield FastReceiver(cfg, codes, method=method, float32_bits=bits)
 
 
 def _chunked_reference(cfg, codes, x, cuts):
