@@ -10,12 +10,18 @@ leanest`` (target <= 2).
 
 A kernel whose *predicted* time is over 20x the best prediction, or over 60 s, or
 whose predicted memory is over 2 GiB (a shared machine), is not run (``-``); a
-configuration whose best prediction is over 60 s is skipped.
+configuration whose best prediction is over 60 s, or whose predicted working set (the
+chain's (C, K, G) arrays, the accumulators and the largest kernel run) is over 6 GiB,
+is skipped.
 
 Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
 S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
 and many-channel rows. Full grid: ``CDMA_LIDAR_BENCH_FULL=1 python -m bench kernels``
 (degrees 5-20, S 1-64, K 1-2048; long).
+
+Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
+``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits (e.g. 5 for a full grid
+that finishes in about an hour).
 
 The cost model's coefficients are the calibration cache's or the built-in ones
 (``python -m cdma_lidar.firmware_model.correlators.costs --show``).
@@ -43,8 +49,13 @@ from cdma_lidar.firmware_model.correlators.costs import (
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 SKIP_FACTOR = 20.0
-SKIP_SECONDS = 60.0
+SKIP_SECONDS = float(os.environ.get("CDMA_LIDAR_BENCH_MAX_SECONDS", "60"))
 SKIP_BYTES = 2 << 30
+#: A row predicted to need more than this in all is skipped (24 GB shared by two users).
+ROW_BYTES = 6 << 30
+#: (C, K, G + 2) int64 arrays the chain holds at once after the kernel (raw, the output,
+#: its magnitudes, the noise squares, the returned gate copy) plus the masks.
+CHAIN_ARRAYS = 6
 
 
 @dataclass(frozen=True)
@@ -93,20 +104,32 @@ def _best_time(fn, repeats: int) -> float:
 
 def run_case(case: Case, repeats: int) -> str:
     """Measure every kernel on one grid point; returns the table row."""
+    n = (1 << case.degree) - 1
+    ns = n * case.s
+    gate = ns if case.gate == 0 else min(case.gate, ns)
+    chain = 8.0 * case.columns * case.k * (gate + 2) * CHAIN_ARRAYS \
+        + 16.0 * case.columns * case.uid_bits * ns
+    if chain > ROW_BYTES:
+        return f"{case.label()} | skipped: the chain alone needs {chain / 2**30:.0f} GiB"
     cfg, codes, acc = _setup(case)
     auto = FastReceiver(cfg, codes, columns=case.columns)
-    est = estimates(auto.plan)
+    plan, chosen = auto.plan, auto.correlator_method
+    del auto  # its prepared kernel: not held while the others run
+    est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
     best_pred = min(e.seconds for e in finite.values())
     if best_pred > SKIP_SECONDS:
         return f"{case.label()} | skipped: best predicted {best_pred:.0f} s"
+    run = {m: e for m, e in finite.items()
+           if not (e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS
+                   or e.peak_bytes > SKIP_BYTES or chain + e.peak_bytes > ROW_BYTES)}
+    if chosen not in run:
+        return f"{case.label()} | skipped: auto's {chosen} predicted over the limits"
+    repeats = repeats if best_pred < 1.0 else min(repeats, 2)
     times: dict[str, float] = {}
     mems: dict[str, float] = {}
     want = None
-    for m, e in finite.items():
-        if e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS \
-                or e.peak_bytes > SKIP_BYTES:
-            continue
+    for m in run:
         gc.collect()
         tracemalloc.start()
         rx = FastReceiver(cfg, codes, method=m, columns=case.columns)
@@ -119,7 +142,6 @@ def run_case(case: Case, repeats: int) -> str:
             raise AssertionError(f"{case.label()}: kernel {m} differs")
         times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
         del rx
-    chosen = auto.correlator_method
     fastest = min(times, key=times.__getitem__)
     cells = " ".join(
         f"{m}={times[m] * 1e3:9.2f}ms/{mems.get(m, math.nan) / 2**20:6.1f}MiB" if m in times
@@ -163,10 +185,15 @@ def main() -> None:
     src = cache_path() if cache_path().is_file() else "built-in defaults"
     print(f"kernel grid ({'full' if full else 'quick'}); cost coefficients {coefficients()} "
           f"from {src}; load average {os.getloadavg()[0]:.2f}")
-    print("times per call (from_accumulators: despread .. peaks), best of 3; memory: "
-          "tracemalloc peak of preparing the kernel plus one call")
+    print("times per call (from_accumulators: despread .. peaks), best of 3 (2 when the best "
+          "prediction is over 1 s); memory: tracemalloc peak of preparing the kernel plus one "
+          f"call; kernels predicted over {SKIP_SECONDS:g} s not run")
     worst, worst_mem, n_rows = 0.0, 0.0, 0
+    only = os.environ.get("CDMA_LIDAR_BENCH_DEGREES")
+    degrees = {int(d) for d in only.split(",")} if only else None
     for case in full_grid() if full else quick_grid():
+        if degrees is not None and case.degree not in degrees:
+            continue
         row = run_case(case, repeats=3)
         print(row, flush=True)
         if "time x" in row:
