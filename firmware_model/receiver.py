@@ -503,6 +503,16 @@ class FastReceiver:
         self._lo, self._hi = adc_limits(cfg.adc_bits)
         # out = raw exactly (no copy) when there is no shift and saturation cannot happen
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
+        self._local = threading.local()  # per-thread scratch of the post passes
+
+    def _scratch(self, shape: tuple[int, ...]) -> NDArray[np.int64]:
+        """A reused int64 work array of ``shape`` for this thread (never returned to callers):
+        a fresh one would fault its pages in on every frame."""
+        size = math.prod(shape)
+        buf = getattr(self._local, "buf", None)
+        if buf is None or buf.size < size:
+            buf = self._local.buf = np.empty(size, dtype=np.int64)
+        return buf[:size].reshape(shape)
 
     @property
     def correlator_method(self) -> str:
@@ -548,10 +558,18 @@ class FastReceiver:
             acc_type = np.int64  # a narrower sum would need a converted copy of the input
         acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
         w = np.empty((c, self._ns), dtype=self._y_type)
+        info = np.iinfo(x.dtype)
+        check = info.min < self._lo or info.max > self._hi  # else the dtype is the range
+        # about 1 MiB of input per step: the range check's two reductions and the sum
+        # over the R repetitions then read it from the cache, not three times from memory
+        step = max(1, (1 << 20) // max(1, x.shape[1] * x.dtype.itemsize))
 
         def prepare(c0: int, c1: int) -> None:  # check, accumulate, despread, chip sums
-            self._check_samples(x[c0:c1], shape=False)
-            self._accumulate_into(x[c0:c1], acc[c0:c1])
+            for b0 in range(c0, c1, step):
+                xb = x[b0 : min(c1, b0 + step)]
+                if check and xb.size:
+                    self._check_range(xb)
+                self._accumulate_into(xb, acc[b0 : b0 + len(xb)])
             self._chip_domain(acc[c0:c1], w[c0:c1])
 
         parallel_columns(prepare, c, x.size)
@@ -565,10 +583,14 @@ class FastReceiver:
             raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
         info = np.iinfo(samples.dtype)
         if values and samples.size and (info.min < self._lo or info.max > self._hi):
-            lo, hi = int(samples.min()), int(samples.max())
-            if lo < self._lo or hi > self._hi:
-                bad = lo if lo < self._lo else hi
-                raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
+            self._check_range(samples)
+
+    def _check_range(self, samples: NDArray[np.integer]) -> None:
+        """Every code inside the ADC range (a non-empty array)."""
+        lo, hi = int(samples.min()), int(samples.max())
+        if lo < self._lo or hi > self._hi:
+            bad = lo if lo < self._lo else hi
+            raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
 
     def _accumulate_into(self, x: NDArray[np.integer], acc: NDArray[np.signedinteger]) -> None:
         cfg = self.cfg
@@ -654,13 +676,13 @@ class FastReceiver:
         cfg = self.cfg
         c, k, _ = out.shape
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
-        corr = out[:, :, 1:-1]
-        mag = np.abs(corr)
+        corr = out[:, :, 1:-1]  # the gate; the returned traces are views of it
+        mag = np.abs(corr, out=self._scratch((c, k, g)))  # |out| <= 2^31: no overflow
         if self._has_ghost:
             mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
-        near_any = np.zeros((c, k, g), dtype=bool)
+        near_any = None
         for p in range(npk):
             j = np.argmax(mag, axis=-1)  # first (lowest j) among equal maxima
             ok = np.take_along_axis(mag, j[..., None], axis=-1)[..., 0] >= 0
@@ -673,8 +695,12 @@ class FastReceiver:
                 near = jj >= jc - w
                 near &= jj <= jc + w
                 near &= ok[..., None]
-            near_any |= near
-            np.putmask(mag, near, -1)
+            if near_any is None:
+                near_any = near
+            else:
+                near_any |= near
+            if p + 1 < npk:  # the last peak's window only matters to the noise mask
+                np.putmask(mag, near, -1)
         found = pk_j >= 0
         jsafe = np.where(found, pk_j, 0)
         pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
@@ -686,24 +712,26 @@ class FastReceiver:
             axis=-1,
         )
         nb = np.where(found[..., :1], nb, 0)
-        noise = ~near_any
+        noise = np.logical_not(near_any, out=near_any)
         if self._has_ghost:
             noise &= ~self._ghost
         cnt = np.count_nonzero(noise, axis=-1).astype(np.int64)
         cz = np.multiply(corr, noise, out=mag)  # out over the noise lags, 0 elsewhere
         nsum = cz.sum(axis=-1, dtype=np.int64)
-        np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
-        nsq = _sum_squares(cz, None, self.widths.wide_sumsq)
+        if self.widths.wide_sumsq:
+            np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
+            nsq = _sum_squares(cz, None, True)
+        else:  # every square and their sum fit int64 (noise_sumsq <= 63 bits): one pass
+            nsq = np.einsum("ckj,ckj->ck", cz, cz)
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
-        corr = np.ascontiguousarray(corr)
         uid0 = np.ascontiguousarray(signs[:, :, 0, :])
         extra_signs = np.ascontiguousarray(signs[:, :, 1:, :])
         lag0, val0 = np.ascontiguousarray(pk_lag[..., 0]), np.ascontiguousarray(pk_val[..., 0])
         lag1, val1 = np.ascontiguousarray(pk_lag[..., 1:]), np.ascontiguousarray(pk_val[..., 1:])
         sat = saturated_flags(lag0, val0, cfg.out_bits)
-        return [  # per-column views into the batch's arrays
+        return [  # per-column views into the batch's arrays (``corr``: of the kernel's output)
             ReceiverOutput(
                 corr=corr[ci],
                 peak_lag=lag0[ci],
