@@ -38,6 +38,7 @@ from cdma_lidar.firmware_model.correlators.base import (
     Correlator,
     GatePlan,
     limbs,
+    parallel_columns,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
     Coefficients,
@@ -180,44 +181,63 @@ class MatmulCorrelator(Correlator):
         return work[:size].reshape(shape)
 
     def _fill(self, lf: NDArray[np.floating], yb: NDArray[np.signedinteger],
-              phases: list[int]) -> None:
-        """Operand rows of ``phases``: ``lf[i cb + c, j] = Y[c, r_i, (j + a_r) mod N]``."""
+              phases: list[int], c0: int, c1: int) -> None:
+        """Operand rows of ``phases`` for columns c0..c1-1:
+        ``lf[i cb + c, j] = Y[c, r_i, (j + a_r) mod N]``."""
         cb, _, n = yb.shape
         for i, r in enumerate(phases):
             a = self._rot[r]
-            rows = lf[i * cb : (i + 1) * cb]
-            np.copyto(rows[:, : n - a], yb[:, r, a:], casting="unsafe")
+            rows = lf[i * cb + c0 : i * cb + c1]
+            np.copyto(rows[:, : n - a], yb[c0:c1, r, a:], casting="unsafe")
             if a:
-                np.copyto(rows[:, n - a :], yb[:, r, :a], casting="unsafe")
+                np.copyto(rows[:, n - a :], yb[c0:c1, r, :a], casting="unsafe")
+
+    def _operands(self, yb: NDArray[np.signedinteger], dtype: type) -> list:
+        """Every group's operand in ``dtype``, the columns split across threads."""
+        cb, _, n = yb.shape
+        ops = [self._buffer(f"op{g}", (len(phases) * cb, n), dtype)
+               for g, (_, phases) in enumerate(self._groups)]
+
+        def fill(c0: int, c1: int) -> None:
+            for lf, (_, phases) in zip(ops, self._groups, strict=True):
+                self._fill(lf, yb, phases, c0, c1)
+
+        parallel_columns(fill, cb, yb.size)
+        return ops
 
     def _float32_operands(self, yb: NDArray[np.signedinteger]) -> list | None:
         """The float32 operands of every group when float32 products are exact, else None.
 
         Per column and phase the sum of ``|Y|`` over the N chips must stay below
-        :meth:`GatePlan.float32_limit`; checked phase by phase, so data too large for
-        float32 is usually found after copying one phase.
+        :meth:`GatePlan.float32_limit`. One row is looked at first: data too large for
+        float32 is usually refused there (a refusal is always safe: float64 is exact).
         """
         plan = self.plan
         limit = plan.float32_limit()
         if not limit:
             return None
+        if plan.float32_certain():
+            return self._operands(yb, np.float32)
+        r0 = self._groups[0][1][0]
+        if np.abs(yb[0, r0].astype(np.float64)).sum() >= limit:
+            return None
+        ops = self._operands(yb, np.float32)
         cb, _, n = yb.shape
-        certain = plan.float32_certain()
-        mag = None if certain else self._buffer("abs", (cb, n), np.float32)
-        out = []
-        for g, (_, phases) in enumerate(self._groups):
-            lf = self._buffer(f"op{g}", (len(phases) * cb, n), np.float32)
-            for i, r in enumerate(phases):
-                rows = lf[i * cb : (i + 1) * cb]
-                self._fill(rows, yb, [r])
-                if mag is not None:
-                    np.abs(rows, out=mag)
+        worst = []
+
+        def test(c0: int, c1: int) -> None:
+            mag = self._buffer("abs", (c1 - c0, n), np.float32)
+            top = 0.0
+            for lf, (_, phases) in zip(ops, self._groups, strict=True):
+                for i in range(len(phases)):
+                    np.abs(lf[i * cb + c0 : i * cb + c1], out=mag)
                     # float64 sums of float32 integers < 2^24: exact; a |Y| >= 2^24 cannot
                     # have rounded below 2^24, so the test never passes wrongly
-                    if np.add.reduce(mag, axis=-1, dtype=np.float64).max() >= limit:
-                        return None
-            out.append(lf)
-        return out
+                    top = max(top, float(np.add.reduce(mag, axis=-1, dtype=np.float64).max()))
+            worst.append(top)
+
+        parallel_columns(test, cb, yb.size)
+        return ops if max(worst) < limit else None
 
     def _run(self, operands: list, dst: NDArray[np.int64], dtype: type, shift: int,
              single: bool, first: bool) -> None:
@@ -264,10 +284,6 @@ class MatmulCorrelator(Correlator):
                 continue
             parts = limbs(yb, fits, h)
             for i, (limb, shift) in enumerate(parts):
-                ops = []
-                for g, (_, phases) in enumerate(self._groups):
-                    lf = self._buffer(f"op{g}", (len(phases) * cb, n), np.float64)
-                    self._fill(lf, limb, phases)
-                    ops.append(lf)
+                ops = self._operands(limb, np.float64)
                 self._run(ops, dst, np.float64, shift, len(parts) == 1, i == 0)
         return out
