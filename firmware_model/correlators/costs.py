@@ -71,7 +71,7 @@ MEMORY_SLACK = 2.0
 #: ... or at most this many bytes above it (a few MiB more is no reason to run 20x slower).
 MEMORY_FLOOR = 64 << 20
 
-_FORMAT = 1  # version of the JSON layout
+_FORMAT = 2  # version of the JSON layout (2: the ram ratio)
 
 
 @dataclass(frozen=True)
@@ -80,15 +80,17 @@ class Coefficients:
 
     ``mac``: one float64 multiply-add inside a large matrix product (BLAS, all
     threads); ``byte``: one byte read or written by a memory-bound pass (copies,
-    matrix-vector products, casts); ``fft``: one ``L log2 L`` point of a batched
-    real FFT (forward or inverse); ``call``: the fixed overhead of one numpy or BLAS
-    call from Python.
+    matrix-vector products, casts) on an operand that stays in the cache; ``fft``: one
+    ``L log2 L`` point of a batched real FFT (forward or inverse); ``call``: the fixed
+    overhead of one numpy or BLAS call from Python; ``ram``: how many times a byte
+    streamed from main memory costs more than ``byte`` (a ratio >= 1).
     """
 
     mac: float
     byte: float
     fft: float
     call: float
+    ram: float = 4.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -96,6 +98,9 @@ class Coefficients:
             if not (isinstance(v, float | int) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"kernel cost coefficient {f.name} must be a positive number, "
                                   f"got {v!r}", field=f.name)
+        if self.ram < 1:
+            raise ConfigError(f"kernel cost coefficient ram must be >= 1, got {self.ram!r}",
+                              field="ram")
 
 
 #: Fitted on the development machine (2 cores, OpenBLAS): the kernel grid of
@@ -115,16 +120,16 @@ class Estimate:
 CACHE_BYTES = 8 << 20
 
 
-#: A byte streamed from main memory costs this many cache bytes (``byte`` is calibrated
-#: on an operand that stays in the large last-level cache of the development machine).
+#: The built-in ``Coefficients.ram``: a byte streamed from main memory costs this many
+#: cache bytes (the calibration measures it: 2.2 on the development machine).
 RAM_FACTOR = 4.0
 
 
-def stream_bytes(size: float, uses: float) -> float:
+def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
     """Cache-byte equivalents of ``uses`` reads of a ``size``-byte operand: read once
     when it fits :data:`CACHE_BYTES` (later reads hit the cache), else every read
-    streams it from main memory (:data:`RAM_FACTOR` each)."""
-    return size if size <= CACHE_BYTES else size * uses * RAM_FACTOR
+    streams it from main memory (``ram`` cache bytes each, ``Coefficients.ram``)."""
+    return size if size <= CACHE_BYTES else size * uses * ram
 
 
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
@@ -135,7 +140,7 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     one more read and a write), which a one-row product (a matrix-vector product) does
     not: measured 1.7x slower for (3, 2047) @ (2047, 400) than three one-row products.
     """
-    moved = sum(stream_bytes(8.0 * size, 1) for size in (m * n, n * p, m * p))
+    moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
     if m > 1:
         moved += 16.0 * n * p
     return co.mac * m * n * p + co.byte * moved + co.call
@@ -228,11 +233,13 @@ def calibrate(repeats: int = 5) -> Coefficients:
             dst[:, :, m] = o
 
     call = _best(loop, repeats) / 150
-    # byte: matrix-vector products over a matrix well beyond the caches (memory-bound)
-    big = rng.random((8192, 2048))  # 128 MiB
+    # byte: matrix-vector products over a matrix that stays in the cache (4 MiB); ram:
+    # the same over one well beyond the caches (128 MiB), per byte, over that
     vec = rng.random((2048, 1))
-    t_mv = _best(lambda: big @ vec, repeats)
-    byte = t_mv / (8.0 * big.size)
+    small = rng.random((256, 2048))
+    byte = _best(lambda: small @ vec, 4 * repeats) / (8.0 * small.size)
+    big = rng.random((8192, 2048))
+    ram = max(1.0, _best(lambda: big @ vec, repeats) / (8.0 * big.size) / byte)
     # mac: a large square-ish product (compute-bound, all BLAS threads)
     m = 768
     a, b = rng.random((m, m)), rng.random((m, m))
@@ -247,7 +254,7 @@ def calibrate(repeats: int = 5) -> Coefficients:
 
     t_fft = _best(fwd_inv, repeats)
     fft_pt = t_fft / (2 * rows * big_l * math.log2(big_l))
-    co = Coefficients(mac=mac, byte=byte, fft=fft_pt, call=call)
+    co = Coefficients(mac=mac, byte=byte, fft=fft_pt, call=call, ram=ram)
     log.info("kernel cost calibration: %s", co)
     return co
 

@@ -86,6 +86,26 @@ def test_coefficients_must_be_positive_numbers():
         Coefficients(mac=0.0, byte=1.0, fft=1.0, call=1.0)
     with pytest.raises(ConfigError, match="call"):
         Coefficients(mac=1.0, byte=1.0, fft=1.0, call=math.nan)
+    with pytest.raises(ConfigError, match="ram"):
+        Coefficients(mac=1.0, byte=1.0, fft=1.0, call=1.0, ram=0.5)  # main memory < cache
+
+
+def test_streaming_from_main_memory_costs_the_ram_ratio():
+    """Codes far beyond the cache, read once per lag, cost ``ram`` times more per byte."""
+    plan = _plan(32767, 400, 1, 3)
+    cheap, dear = (Coefficients(mac=1e-11, byte=1e-11, fft=1e-10, call=5e-7, ram=r)
+                   for r in (1.0, 8.0))
+    assert estimates(plan, dear)["direct"].seconds > 4 * estimates(plan, cheap)["direct"].seconds
+
+
+def test_a_cache_of_the_first_format_is_ignored(tmp_path, monkeypatch, caplog):
+    path = tmp_path / "k.json"
+    monkeypatch.setenv(COSTS_ENV, str(path))
+    path.write_text(json.dumps({"format": 1, "coefficients": {
+        "mac": 1e-9, "byte": 1e-9, "fft": 1e-9, "call": 1e-6}}))
+    costs.set_coefficients(None)
+    assert costs.coefficients() == DEFAULT_COEFFICIENTS
+    assert "format 1" in caplog.text
 
 
 def test_the_cache_is_written_read_and_a_bad_one_ignored(tmp_path, monkeypatch, caplog):
