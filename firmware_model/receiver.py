@@ -57,7 +57,7 @@ from cdma_lidar.firmware_model.correlators import (
     make_correlator,
     registry_version,
 )
-from cdma_lidar.firmware_model.correlators.base import parallel_columns
+from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES, parallel_columns
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput, saturated_flags
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
@@ -496,7 +496,8 @@ class FastReceiver:
         check_int("columns", self.columns, 1, 1 << 30)
         self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
                              y_bound=y_bound, columns=self.columns,
-                             float32_bits=self.float32_bits)
+                             float32_bits=self.float32_bits,
+                             shared_bytes=self._shared_bytes(self.columns))
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
         self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
         self._corr = self.kernel_for(self.columns)
@@ -513,6 +514,23 @@ class FastReceiver:
         if buf is None or buf.size < size:
             buf = self._local.buf = np.empty(size, dtype=np.int64)
         return buf[:size].reshape(shape)
+
+    def _shared_bytes(self, columns: int) -> float:
+        """Bytes the chain around the kernel holds at its peak for ``columns`` columns
+        (estimate for auto's memory rule): the (C, K, G + 2) int64 outputs and their
+        post-processing copies, the accumulators and chip sums, and with n > 1 the
+        per-period UID dots at the peaks (one (K, P, N) int64 gather and product per
+        block of columns)."""
+        cfg = self.cfg
+        k, n, ns = self._bip.shape[0], self.n_chips, self._ns
+        out = 8.0 * columns * k * (cfg.gate_len + 2) * 4
+        work = 16.0 * columns * cfg.uid_bits * ns
+        dots = 0.0
+        if cfg.uid_bits > 1:
+            one = 16.0 * k * cfg.peaks * n  # one column's gather and product
+            dots = max(one, min(float(BLOCK_BYTES), one * columns)) + 8.0 * columns * \
+                cfg.uid_bits * ns
+        return out + work + dots
 
     @property
     def correlator_method(self) -> str:
@@ -532,6 +550,7 @@ class FastReceiver:
             if name is None:
                 plan = copy.copy(self.plan)
                 plan.columns = bucket
+                plan.shared_bytes = self._shared_bytes(bucket)
                 name = self._auto[bucket] = choose_correlator(plan)
         else:
             name = self.method

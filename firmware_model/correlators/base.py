@@ -75,12 +75,14 @@ class GatePlan:
     ``nq = u_m[-1] + 1``; ``sel[r]`` the lags m of phase r.
     ``float32_bits`` (0..24, default 24) is the same budget for a float32 product: a
     kernel may run one when every partial sum provably stays below
-    ``2^min(float32_bits, float_bits)`` (0: never).
+    ``2^min(float32_bits, float_bits)`` (0: never). ``shared_bytes``: what the rest of
+    the chain holds at its peak whatever the kernel (auto compares whole calls).
     """
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
                  float_bits: int = 53, y_bound: int | None = None, columns: int = 1,
-                 float32_bits: int = 24) -> None:
+                 float32_bits: int = 24, shared_bytes: float = 0.0) -> None:
+        self.shared_bytes = float(shared_bytes)
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -199,7 +201,7 @@ def choose_correlator(plan: GatePlan, co: Coefficients | None = None) -> str:
 
     ``co``: the coefficients (default: the calibration cache, else the built-in ones).
     """
-    best = costs.choose(estimates(plan, co))
+    best = costs.choose(estimates(plan, co), plan.shared_bytes)
     if not best:
         raise ConfigError("no registered correlator has a finite cost for this plan",
                           field="method")

@@ -196,21 +196,23 @@ def set_coefficients(co: Coefficients | None) -> None:
     _ACTIVE, _ACTIVE_FROM = co, None
 
 
-def choose(estimates: Mapping[str, Estimate]) -> str:
+def choose(estimates: Mapping[str, Estimate], shared: float = 0.0) -> str:
     """The rule of ``"auto"``: the fastest of the kernels within 2x of the leanest's memory
     (or within :data:`MEMORY_FLOOR`, 64 MiB, of it).
 
     ``estimates`` maps kernel names (registration order) to their estimates; infinite
-    times are skipped. Ties go to the first. Returns "" when none is finite.
+    times are skipped. ``shared``: bytes the rest of the chain holds at its peak
+    whatever the kernel (the memory compared is the whole call's). Ties go to the
+    first. Returns "" when none is finite.
     """
     finite = {k: e for k, e in estimates.items() if math.isfinite(e.seconds)}
     if not finite:
         return ""
-    lean = min(e.peak_bytes for e in finite.values())
+    lean = min(e.peak_bytes for e in finite.values()) + shared
     cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
     best, best_t = "", math.inf
     for name, e in finite.items():
-        if e.peak_bytes <= cap and e.seconds < best_t:
+        if e.peak_bytes + shared <= cap and e.seconds < best_t:
             best, best_t = name, e.seconds
     return best
 

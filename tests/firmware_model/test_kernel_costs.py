@@ -46,6 +46,23 @@ def test_small_absolute_memory_differences_do_not_count():
     assert choose(est) == "a"
 
 
+def test_memory_the_rest_of_the_chain_holds_counts_for_every_kernel():
+    est = {"lean": Estimate(2.0, 100e6), "fast": Estimate(1.0, 500e6)}
+    assert choose(est) == "lean"  # 5x the leanest kernel
+    assert choose(est, shared=300e6) == "fast"  # 800 MB against 400 MB for the whole call
+    assert choose(est, shared=100e6) == "lean"  # 600 against 200
+
+
+def test_the_receiver_tells_auto_what_the_chain_holds():
+    from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+
+    codes = np.random.default_rng(1).integers(0, 2, (40, 2047), dtype=np.uint8)
+    one = FastReceiver(ReceiverConfig(uid_bits=1), codes).plan.shared_bytes
+    many = FastReceiver(ReceiverConfig(uid_bits=8, averages=2), codes).plan.shared_bytes
+    frame = FastReceiver(ReceiverConfig(uid_bits=1), codes, columns=160).plan.shared_bytes
+    assert 0 < one < many and frame > 100 * one
+
+
 def test_ties_go_to_the_first_and_infinite_costs_never_win():
     est = {"first": Estimate(1.0, GIB), "second": Estimate(1.0, GIB),
            "never": Estimate(math.inf, 0.0)}
