@@ -23,7 +23,10 @@ is skipped.
 Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
 S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
 and many-channel rows. Full grid: ``CDMA_LIDAR_BENCH_FULL=1 python -m bench kernels``
-(degrees 5-20, S 1-64, K 1-2048; long).
+(degrees 5-20, S 1-64, K 1-2048; long). Rows where auto measured over 1.25x the
+fastest are timed again up to twice, 2 s apart, keeping each kernel's best (on the
+shared 2-core machine a threaded BLAS call stalls for 10-250 ms whenever another
+process holds a core).
 
 Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
 ``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits (e.g. 5 for a full grid
@@ -59,6 +62,11 @@ SKIP_SECONDS = float(os.environ.get("CDMA_LIDAR_BENCH_MAX_SECONDS", "60"))
 SKIP_BYTES = 2 << 30
 #: A row predicted to need more than this in all is skipped (24 GB shared by two users).
 ROW_BYTES = 6 << 30
+#: A row whose auto kernel measured over 1.25x the fastest is timed again this many
+#: times, RETRY_PAUSE s apart, keeping each kernel's best: threaded BLAS calls stall for
+#: 10-250 ms while another process holds a core, which no repeat within 50 ms escapes.
+RETRIES = 2
+RETRY_PAUSE = 2.0
 #: (C, K, G + 2) int64 arrays the chain holds at once after the kernel (raw, the output,
 #: its magnitudes, the noise squares, the returned gate copy) plus the masks.
 CHAIN_ARRAYS = 6
@@ -156,10 +164,19 @@ def run_case(case: Case, repeats: int) -> str:
         else:
             times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
         del rx
-    for _ in range(repeats):
-        for m, rx in kept.items():
-            times[m] = min(times.get(m, math.inf),
-                           _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+
+    def measure() -> None:
+        for _ in range(repeats):
+            for m, rx in kept.items():
+                times[m] = min(times.get(m, math.inf),
+                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+
+    measure()
+    for _ in range(RETRIES):  # a stall of the shared machine passes; a wrong choice stays
+        if not kept or times[chosen] <= 1.25 * min(times.values()):
+            break
+        time.sleep(RETRY_PAUSE)
+        measure()
     kept.clear()
     fastest = min(times, key=times.__getitem__)
     cells = " ".join(
