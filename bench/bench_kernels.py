@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdma_lidar.firmware_model.correlators import estimates
+from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
 from cdma_lidar.firmware_model.correlators.costs import (
     MEMORY_FLOOR,
     MEMORY_SLACK,
@@ -126,9 +126,8 @@ def run_case(case: Case, repeats: int) -> str:
     if chain > ROW_BYTES:
         return f"{case.label()} | skipped: the chain alone needs {chain / 2**30:.0f} GiB"
     cfg, codes, acc = _setup(case)
-    auto = FastReceiver(cfg, codes, columns=case.columns)
-    plan, chosen = auto.plan, auto.correlator_method
-    del auto  # its prepared kernel: not held while the others run
+    plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+    chosen = choose_correlator(plan)  # nothing prepared yet: a kernel may not fit
     est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
     best_pred = min(e.seconds for e in finite.values())

@@ -450,7 +450,9 @@ class FastReceiver:
     computed. An unknown ``method`` raises ConfigError listing the registered names.
     ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
     carry: it only steers ``"auto"`` (a product over many columns amortises more).
-    ``plan`` is the :class:`GatePlan` the kernel was prepared for.
+    ``plan`` is the :class:`GatePlan` the kernel was prepared for. ``prepare=False``
+    defers building the kernel to the first call (e.g. to look at ``plan`` and the
+    estimates of a configuration too large to prepare).
     """
 
     cfg: ReceiverConfig
@@ -459,6 +461,7 @@ class FastReceiver:
     float_bits: int = 53
     columns: int = 1
     float32_bits: int = 24
+    prepare: bool = True
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
@@ -500,7 +503,8 @@ class FastReceiver:
                              shared_bytes=self._shared_bytes(self.columns))
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
         self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
-        self._corr = self.kernel_for(self.columns)
+        if self.prepare:
+            self.kernel_for(self.columns)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
         # out = raw exactly (no copy) when there is no shift and saturation cannot happen
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
@@ -535,7 +539,7 @@ class FastReceiver:
     @property
     def correlator_method(self) -> str:
         """The kernel a call of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
-        return self._corr.method
+        return self.kernel_for(self.columns).method
 
     def kernel_for(self, columns: int) -> Correlator:
         """The prepared kernel for calls of ``columns`` columns (built on first use).
