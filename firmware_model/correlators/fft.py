@@ -84,7 +84,7 @@ class FFTCorrelator(Correlator):
                     + co.call * (passes * (2 + 3 * math.ceil(k / kb))
                                  + 6 * active * math.ceil(k / kb)))
         parts = _fft_limbs(plan)
-        seconds = plan.columns * parts * (per_limb + 8 * co.call)
+        seconds = plan.columns * parts * (per_limb + 40 * co.call)  # + its Python per call
         rows = active if whole else sb
         # + the doubled phases in float64 and scipy's zero-padded copy of them (3 x 8 L
         # per phase row), and the error bound's |Y| and |Y|^2 in float64 (2 x 8 S N)

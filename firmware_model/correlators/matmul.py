@@ -211,7 +211,8 @@ class MatmulCorrelator(Correlator):
 
         Per column and phase the sum of ``|Y|`` over the N chips must stay below
         :meth:`GatePlan.float32_limit`. One row is looked at first: data too large for
-        float32 is usually refused there (a refusal is always safe: float64 is exact).
+        float32 is usually refused there, on its first 4096 chips (a refusal is always safe:
+        float64 is exact).
         """
         plan = self.plan
         limit = plan.float32_limit()
@@ -220,7 +221,8 @@ class MatmulCorrelator(Correlator):
         if plan.float32_certain():
             return self._operands(yb, np.float32)
         r0 = self._groups[0][1][0]
-        if np.abs(yb[0, r0].astype(np.float64)).sum() >= limit:
+        # a part of one row whose sum of |Y| already reaches the limit refuses it cheaply
+        if np.abs(yb[0, r0, :4096].astype(np.float64)).sum() >= limit:
             return None
         ops = self._operands(yb, np.float32)
         cb, _, n = yb.shape
