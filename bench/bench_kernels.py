@@ -8,14 +8,29 @@ peak traced memory (tracemalloc, the prepared kernel plus one call), the kernel
 ``auto`` chose, the fastest, ``auto / fastest`` (target <= 1.25) and ``auto's memory /
 leanest`` (target <= 2).
 
+The two targets conflict where the fastest kernel needs more than 2x the leanest's
+memory (or 64 MiB more, auto's rule): auto cannot be both. ``time x`` is then auto
+over the fastest kernel *within* the memory target (the best auto may pick), and
+``all x`` auto over the fastest of all, printed with ``(fastest needs Nx memory)``;
+the summary counts those rows separately.
+
 A kernel whose *predicted* time is over 20x the best prediction, or over 60 s, or
 whose predicted memory is over 2 GiB (a shared machine), is not run (``-``); a
-configuration whose best prediction is over 60 s is skipped.
+configuration whose best prediction is over 60 s, or whose predicted working set (the
+chain's (C, K, G) arrays, the accumulators and the largest kernel run) is over 6 GiB,
+is skipped.
 
 Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
 S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
 and many-channel rows. Full grid: ``CDMA_LIDAR_BENCH_FULL=1 python -m bench kernels``
-(degrees 5-20, S 1-64, K 1-2048; long).
+(degrees 5-20, S 1-64, K 1-2048; long). Rows where auto measured over 1.25x the
+fastest are timed again up to twice, 2 s apart, keeping each kernel's best (on the
+shared 2-core machine a threaded BLAS call stalls for 10-250 ms whenever another
+process holds a core).
+
+Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
+``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits (e.g. 5 for a full grid
+that finishes in about an hour).
 
 The cost model's coefficients are the calibration cache's or the built-in ones
 (``python -m cdma_lidar.firmware_model.correlators.costs --show``).
@@ -33,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdma_lidar.firmware_model.correlators import estimates
+from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
 from cdma_lidar.firmware_model.correlators.costs import (
     MEMORY_FLOOR,
     MEMORY_SLACK,
@@ -43,8 +58,18 @@ from cdma_lidar.firmware_model.correlators.costs import (
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 SKIP_FACTOR = 20.0
-SKIP_SECONDS = 60.0
+SKIP_SECONDS = float(os.environ.get("CDMA_LIDAR_BENCH_MAX_SECONDS", "60"))
 SKIP_BYTES = 2 << 30
+#: A row predicted to need more than this in all is skipped (24 GB shared by two users).
+ROW_BYTES = 6 << 30
+#: A row whose auto kernel measured over 1.25x the fastest is timed again this many
+#: times, RETRY_PAUSE s apart, keeping each kernel's best: threaded BLAS calls stall for
+#: 10-250 ms while another process holds a core, which no repeat within 50 ms escapes.
+RETRIES = 2
+RETRY_PAUSE = 2.0
+#: (C, K, G + 2) int64 arrays the chain holds at once after the kernel (raw, the output,
+#: its magnitudes, the noise squares, the returned gate copy) plus the masks.
+CHAIN_ARRAYS = 6
 
 
 @dataclass(frozen=True)
@@ -93,20 +118,36 @@ def _best_time(fn, repeats: int) -> float:
 
 def run_case(case: Case, repeats: int) -> str:
     """Measure every kernel on one grid point; returns the table row."""
+    n = (1 << case.degree) - 1
+    ns = n * case.s
+    gate = ns if case.gate == 0 else min(case.gate, ns)
+    chain = 8.0 * case.columns * case.k * (gate + 2) * CHAIN_ARRAYS \
+        + 16.0 * case.columns * case.uid_bits * ns
+    if chain > ROW_BYTES:
+        return f"{case.label()} | skipped: the chain alone needs {chain / 2**30:.0f} GiB"
     cfg, codes, acc = _setup(case)
-    auto = FastReceiver(cfg, codes, columns=case.columns)
-    est = estimates(auto.plan)
+    plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+    chosen = choose_correlator(plan)  # nothing prepared yet: a kernel may not fit
+    est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
     best_pred = min(e.seconds for e in finite.values())
     if best_pred > SKIP_SECONDS:
         return f"{case.label()} | skipped: best predicted {best_pred:.0f} s"
+    run = {m: e for m, e in finite.items()  # auto's choice however slow it is predicted
+           if not ((e.seconds > SKIP_FACTOR * best_pred and m != chosen)
+                   or e.seconds > SKIP_SECONDS or e.peak_bytes > SKIP_BYTES
+                   or chain + e.peak_bytes > ROW_BYTES)}
+    if chosen not in run:
+        return f"{case.label()} | skipped: auto's {chosen} predicted over the limits"
+    # fast rows: more repeats, interleaved across the kernels (a stall of the shared
+    # machine then hits one repeat of each, not all of one kernel's)
+    repeats = 7 if best_pred < 0.05 else repeats if best_pred < 1.0 else min(repeats, 2)
+    together = chain + sum(run[m].peak_bytes for m in run) <= ROW_BYTES
     times: dict[str, float] = {}
     mems: dict[str, float] = {}
+    kept: dict[str, FastReceiver] = {}
     want = None
-    for m, e in finite.items():
-        if e.seconds > SKIP_FACTOR * best_pred or e.seconds > SKIP_SECONDS \
-                or e.peak_bytes > SKIP_BYTES:
-            continue
+    for m in run:
         gc.collect()
         tracemalloc.start()
         rx = FastReceiver(cfg, codes, method=m, columns=case.columns)
@@ -117,20 +158,42 @@ def run_case(case: Case, repeats: int) -> str:
             want = got
         elif not all(a.same_as(b) for a, b in zip(got, want, strict=True)):
             raise AssertionError(f"{case.label()}: kernel {m} differs")
-        times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
+        if together:
+            kept[m] = rx
+        else:
+            times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
         del rx
-    chosen = auto.correlator_method
+
+    def measure() -> None:
+        for _ in range(repeats):
+            for m, rx in kept.items():
+                times[m] = min(times.get(m, math.inf),
+                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+
+    measure()
+    for _ in range(RETRIES):  # a stall of the shared machine passes; a wrong choice stays
+        if not kept or times[chosen] <= 1.25 * min(times.values()):
+            break
+        time.sleep(RETRY_PAUSE)
+        measure()
+    kept.clear()
     fastest = min(times, key=times.__getitem__)
     cells = " ".join(
         f"{m}={times[m] * 1e3:9.2f}ms/{mems.get(m, math.nan) / 2**20:6.1f}MiB" if m in times
         else f"{m}={'-':>9}  {'':>9}" for m in correlator_methods()[1:])
-    ratio = times[chosen] / times[fastest] if chosen in times else math.inf
-    lean = min(mems.values()) if mems else math.nan
-    mem_ratio = mems.get(chosen, math.nan) / lean if mems else math.nan
-    mem_ok = not mem_ratio > MEMORY_SLACK or mems[chosen] - lean <= MEMORY_FLOOR
+    lean = min(mems.values())
+    cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
+    feasible = [m for m in times if mems[m] <= cap]
+    best = min(feasible, key=times.__getitem__)
+    ratio = times[chosen] / times[best]
+    ratio_all = times[chosen] / times[fastest]
+    mem_ratio = mems[chosen] / lean
+    mem_ok = mems[chosen] <= cap
     flag = "" if ratio <= 1.25 and mem_ok else "  <-- off target"
-    return (f"{case.label()} | {cells} | auto={chosen:<6} best={fastest:<6} "
-            f"time x{ratio:5.2f} mem x{mem_ratio:4.2f}{flag}")
+    note = "" if best == fastest else \
+        f" (fastest {fastest} needs {mems[fastest] / lean:.1f}x memory)"
+    return (f"{case.label()} | {cells} | auto={chosen:<6} best={best:<6} "
+            f"time x{ratio:5.2f} mem x{mem_ratio:4.2f} all x{ratio_all:5.2f}{note}{flag}")
 
 
 def quick_grid() -> list[Case]:
@@ -163,19 +226,29 @@ def main() -> None:
     src = cache_path() if cache_path().is_file() else "built-in defaults"
     print(f"kernel grid ({'full' if full else 'quick'}); cost coefficients {coefficients()} "
           f"from {src}; load average {os.getloadavg()[0]:.2f}")
-    print("times per call (from_accumulators: despread .. peaks), best of 3; memory: "
-          "tracemalloc peak of preparing the kernel plus one call")
-    worst, worst_mem, n_rows = 0.0, 0.0, 0
+    print("times per call (from_accumulators: despread .. peaks), best of 3 interleaved across "
+          "the kernels (7 when the best prediction is under 50 ms, 2 when over 1 s); memory: "
+          "tracemalloc peak of preparing the kernel plus one "
+          f"call; kernels predicted over {SKIP_SECONDS:g} s not run")
+    worst, worst_mem, worst_all, n_rows, conflicts, off = 0.0, 0.0, 0.0, 0, 0, 0
+    only = os.environ.get("CDMA_LIDAR_BENCH_DEGREES")
+    degrees = {int(d) for d in only.split(",")} if only else None
     for case in full_grid() if full else quick_grid():
+        if degrees is not None and case.degree not in degrees:
+            continue
         row = run_case(case, repeats=3)
         print(row, flush=True)
         if "time x" in row:
             n_rows += 1
             worst = max(worst, float(row.split("time x")[1].split()[0]))
-            m = float(row.split("mem x")[1].split()[0])
-            worst_mem = max(worst_mem, m if math.isfinite(m) else 0.0)
-    print(f"{n_rows} rows: worst auto/fastest time x{worst:.2f} (target 1.25), "
-          f"worst auto/leanest memory x{worst_mem:.2f} (target 2)")
+            worst_mem = max(worst_mem, float(row.split("mem x")[1].split()[0]))
+            worst_all = max(worst_all, float(row.split("all x")[1].split()[0]))
+            conflicts += "needs" in row
+            off += "off target" in row
+    print(f"{n_rows} rows measured, {off} off target: worst auto / fastest within the memory "
+          f"target x{worst:.2f} (target 1.25), worst auto / leanest memory x{worst_mem:.2f} "
+          f"(target 2; or within 64 MiB); {conflicts} rows where the fastest kernel needs over "
+          f"2x the leanest memory (auto / that fastest: worst x{worst_all:.2f})")
 
 
 if __name__ == "__main__":

@@ -2,9 +2,12 @@
 
 1. Paper frame: K = 40 degree-11 Gold codes, S = 4, R = 10, 160 columns, 64-lag
    gate (12-bit ADC). ``FastReceiver.frame`` interleaved with the same frame with the
-   column passes in one thread (``correlators.base._THREADS = 1``) and with the GEMM
-   floor: one bare float64 product doing the frame's multiply-adds (160 x 2047 x 40 x
-   66 = 0.865 G), best of 9 each, both ratios (target <= 1.5). Also the real-time factor against
+   column passes in one thread (``correlators.base._THREADS = 1``), with float32
+   products switched off (``float32_bits=0``), with full-scale data (every sample at an
+   ADC rail: chip sums far beyond float32's exact range, so float64 products), and
+   with the GEMM floors: one bare float64 product doing the frame's multiply-adds (160 x
+   2047 x 40 x 66 = 0.865 G; the issue's floor, target <= 1.5) and the same product in
+   float32, best of 9 each, every ratio within the run. Also the real-time factor against
    the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms), the plan
    build, and ``scipy.signal.correlate`` per channel and column (circular, on the
    R-summed period) on 8 columns scaled to the frame, its gated values checked equal.
@@ -31,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from cdma_lidar.firmware_model.adc import quantise
+from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.correlators import base as correlator_base
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR
@@ -108,21 +111,36 @@ def paper_frame() -> None:
     n = codes.shape[1]
     x = _columns(codes, cfg, columns, seed=1)
     rx = FastReceiver(cfg, codes, columns=columns)
+    rx64 = FastReceiver(cfg, codes, columns=columns, float32_bits=0)
+    rng = np.random.default_rng(2)
+    lo, hi = adc_limits(cfg.adc_bits)
+    x_full = np.where(rng.random(x.shape) < 0.5, lo, hi).astype(x.dtype)
     rx.frame(x[:2])  # warm up BLAS threads
     rx.frame(x)
+    rx.frame(x_full)
+    rx64.frame(x)
     macs = columns * n * k * (cfg.gate_len + 2)
     # the floor: one bare float64 product doing the frame's multiply-adds (4C x N x K(G+2)/4)
     fa, fb = _floor_product(4 * columns, n, k * (cfg.gate_len + 2) // 4)
+    fa32, fb32 = fa.astype(np.float32), fb.astype(np.float32)
     threads = correlator_base._THREADS
-    t_fast, t_one, t_floor = [], [], []
+    runs: dict[str, list[float]] = {name: [] for name in
+                                    ("fast", "one", "f64", "full", "floor", "floor32")}
+    kern = rx.kernel_for(columns)
+    before = dict(getattr(kern, "products", {}))
     for _ in range(REPEATS):
-        t_fast += _time(lambda: rx.frame(x), 1)
+        runs["fast"] += _time(lambda: rx.frame(x), 1)
         correlator_base._THREADS = 1  # the column passes in the calling thread (A/B)
         try:
-            t_one += _time(lambda: rx.frame(x), 1)
+            runs["one"] += _time(lambda: rx.frame(x), 1)
         finally:
             correlator_base._THREADS = threads
-        t_floor += _time(lambda: fa @ fb, 1)
+        runs["f64"] += _time(lambda: rx64.frame(x), 1)
+        runs["full"] += _time(lambda: rx.frame(x_full), 1)
+        runs["floor"] += _time(lambda: fa @ fb, 1)
+        runs["floor32"] += _time(lambda: fa32 @ fb32, 1)
+    used = {d: v - before.get(d, 0) for d, v in getattr(kern, "products", {}).items()}
+    t_fast, t_one = runs["fast"], runs["one"]
     t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
     sub = 8
     t_base = _time(lambda: [_scipy_column(codes, cfg, x[c]) for c in range(sub)], 2)
@@ -131,20 +149,27 @@ def paper_frame() -> None:
         np.array_equal(o.corr, _scipy_column(codes, cfg, x[c])) for c, o in enumerate(outs)
     )
     acq = columns * cfg.averages * n / CHIP_RATE_HZ
-    best, med, floor = min(t_fast), statistics.median(t_fast), min(t_floor)
+    best, med, floor = min(t_fast), statistics.median(t_fast), min(runs["floor"])
+    floor32 = min(runs["floor32"])
     base_frame = min(t_base) / sub * columns
     print(f"paper frame: K={k} N={n} S=4 R=10 columns={columns} gate=64 "
           f"({x.size / 1e6:.1f} M samples, correlator={rx.correlator_method}), "
-          f"best of {REPEATS} interleaved")
+          f"best of {REPEATS} interleaved; kernel products in the loop: {used}")
     print(f"  fast path       : {best * 1e3:8.1f} ms/frame (median {med * 1e3:.1f} ms, "
           f"{threads} column threads)")
     print(f"  ... 1 thread    : {min(t_one) * 1e3:8.1f} ms/frame "
           f"(median {statistics.median(t_one) * 1e3:.1f} ms)")
+    print(f"  ... float64 only: {min(runs['f64']) * 1e3:8.1f} ms/frame (float32_bits=0)")
+    print(f"  full-scale data : {min(runs['full']) * 1e3:8.1f} ms/frame (every sample at an "
+          "ADC rail: float64 products)")
     print(f"  GEMM floor      : {floor * 1e3:8.1f} ms ({fa.shape[0]}x{n})@({n}x{fb.shape[1]}) "
           f"float64 = the frame's {macs / 1e9:.3f} G multiply-adds "
-          f"({2 * macs / floor / 1e9:.0f} GFLOP/s)")
+          f"({2 * macs / floor / 1e9:.0f} GFLOP/s); float32: {floor32 * 1e3:.1f} ms")
     print(f"  fast / floor    : {best / floor:8.2f}x with {threads} column threads, "
-          f"{min(t_one) / floor:.2f}x with 1 (target <= 1.5)")
+          f"{min(t_one) / floor:.2f}x with 1 (target <= 1.5); "
+          f"{best / floor32:.2f}x / {min(t_one) / floor32:.2f}x the float32 floor")
+    print(f"  float64 only    : {min(runs['f64']) / floor:8.2f}x the float64 floor; "
+          f"full-scale data {min(runs['full']) / floor:.2f}x")
     print(f"  plan build      : {min(t_plan) * 1e3:8.1f} ms (once per config; fast() keeps it)")
     print(f"  scipy.correlate : {base_frame * 1e3:8.1f} ms/frame "
           f"(measured on {sub} columns: {min(t_base) / sub * 1e3:.1f} ms/column)")

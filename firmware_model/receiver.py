@@ -57,7 +57,7 @@ from cdma_lidar.firmware_model.correlators import (
     make_correlator,
     registry_version,
 )
-from cdma_lidar.firmware_model.correlators.base import parallel_columns
+from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES, parallel_columns
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput, saturated_flags
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
@@ -445,11 +445,14 @@ class FastReceiver:
     (default ``"auto"``: the kernel the calibrated cost model predicts fastest among
     those within 2x of the leanest memory, :mod:`.correlators.costs`); ``float_bits``
     (default 53) is the largest magnitude, in bits, the float64 kernels' products may reach before
-    operands are split into limbs. Both only choose how the same integers are
+    operands are split into limbs, ``float32_bits`` (0..24, default 24) the same for
+    float32 products (0: never float32). All three only choose how the same integers are
     computed. An unknown ``method`` raises ConfigError listing the registered names.
     ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
     carry: it only steers ``"auto"`` (a product over many columns amortises more).
-    ``plan`` is the :class:`GatePlan` the kernel was prepared for.
+    ``plan`` is the :class:`GatePlan` the kernel was prepared for. ``prepare=False``
+    defers building the kernel to the first call (e.g. to look at ``plan`` and the
+    estimates of a configuration too large to prepare).
     """
 
     cfg: ReceiverConfig
@@ -457,6 +460,8 @@ class FastReceiver:
     method: str = AUTO
     float_bits: int = 53
     columns: int = 1
+    float32_bits: int = 24
+    prepare: bool = True
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
@@ -493,18 +498,48 @@ class FastReceiver:
         y_bound = s * cfg.uid_bits * cfg.averages * (1 << (cfg.adc_bits - 1))  # max |Y|
         check_int("columns", self.columns, 1, 1 << 30)
         self.plan = GatePlan(self._bip, s, self._lag_lo, g + 2, float_bits=self.float_bits,
-                             y_bound=y_bound, columns=self.columns)
+                             y_bound=y_bound, columns=self.columns,
+                             float32_bits=self.float32_bits,
+                             shared_bytes=self._shared_bytes(self.columns))
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
         self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
-        self._corr = self.kernel_for(self.columns)
+        if self.prepare:
+            self.kernel_for(self.columns)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
         # out = raw exactly (no copy) when there is no shift and saturation cannot happen
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
+        self._local = threading.local()  # per-thread scratch of the post passes
+
+    def _scratch(self, shape: tuple[int, ...]) -> NDArray[np.int64]:
+        """A reused int64 work array of ``shape`` for this thread (never returned to callers):
+        a fresh one would fault its pages in on every frame."""
+        size = math.prod(shape)
+        buf = getattr(self._local, "buf", None)
+        if buf is None or buf.size < size:
+            buf = self._local.buf = np.empty(size, dtype=np.int64)
+        return buf[:size].reshape(shape)
+
+    def _shared_bytes(self, columns: int) -> float:
+        """Bytes the chain around the kernel holds at its peak for ``columns`` columns
+        (estimate for auto's memory rule): the (C, K, G + 2) int64 outputs and their
+        post-processing copies, the accumulators and chip sums, and with n > 1 the
+        per-period UID dots at the peaks (one (K, P, N) int64 gather and product per
+        block of columns)."""
+        cfg = self.cfg
+        k, n, ns = self._bip.shape[0], self.n_chips, self._ns
+        out = 8.0 * columns * k * (cfg.gate_len + 2) * 4
+        work = 16.0 * columns * cfg.uid_bits * ns
+        dots = 0.0
+        if cfg.uid_bits > 1:
+            one = 16.0 * k * cfg.peaks * n  # one column's gather and product
+            dots = max(one, min(float(BLOCK_BYTES), one * columns)) + 8.0 * columns * \
+                cfg.uid_bits * ns
+        return out + work + dots
 
     @property
     def correlator_method(self) -> str:
         """The kernel a call of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
-        return self._corr.method
+        return self.kernel_for(self.columns).method
 
     def kernel_for(self, columns: int) -> Correlator:
         """The prepared kernel for calls of ``columns`` columns (built on first use).
@@ -519,6 +554,7 @@ class FastReceiver:
             if name is None:
                 plan = copy.copy(self.plan)
                 plan.columns = bucket
+                plan.shared_bytes = self._shared_bytes(bucket)
                 name = self._auto[bucket] = choose_correlator(plan)
         else:
             name = self.method
@@ -545,10 +581,18 @@ class FastReceiver:
             acc_type = np.int64  # a narrower sum would need a converted copy of the input
         acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
         w = np.empty((c, self._ns), dtype=self._y_type)
+        info = np.iinfo(x.dtype)
+        check = info.min < self._lo or info.max > self._hi  # else the dtype is the range
+        # about 1 MiB of input per step: the range check's two reductions and the sum
+        # over the R repetitions then read it from the cache, not three times from memory
+        step = max(1, (1 << 20) // max(1, x.shape[1] * x.dtype.itemsize))
 
         def prepare(c0: int, c1: int) -> None:  # check, accumulate, despread, chip sums
-            self._check_samples(x[c0:c1], shape=False)
-            self._accumulate_into(x[c0:c1], acc[c0:c1])
+            for b0 in range(c0, c1, step):
+                xb = x[b0 : min(c1, b0 + step)]
+                if check and xb.size:
+                    self._check_range(xb)
+                self._accumulate_into(xb, acc[b0 : b0 + len(xb)])
             self._chip_domain(acc[c0:c1], w[c0:c1])
 
         parallel_columns(prepare, c, x.size)
@@ -562,10 +606,14 @@ class FastReceiver:
             raise out_of_range("samples", f"{need} ADC codes per column", samples.shape[1])
         info = np.iinfo(samples.dtype)
         if values and samples.size and (info.min < self._lo or info.max > self._hi):
-            lo, hi = int(samples.min()), int(samples.max())
-            if lo < self._lo or hi > self._hi:
-                bad = lo if lo < self._lo else hi
-                raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
+            self._check_range(samples)
+
+    def _check_range(self, samples: NDArray[np.integer]) -> None:
+        """Every code inside the ADC range (a non-empty array)."""
+        lo, hi = int(samples.min()), int(samples.max())
+        if lo < self._lo or hi > self._hi:
+            bad = lo if lo < self._lo else hi
+            raise out_of_range("samples", f"ADC codes in {self._lo}..{self._hi}", bad)
 
     def _accumulate_into(self, x: NDArray[np.integer], acc: NDArray[np.signedinteger]) -> None:
         cfg = self.cfg
@@ -651,13 +699,13 @@ class FastReceiver:
         cfg = self.cfg
         c, k, _ = out.shape
         g, w, npk, n = cfg.gate_len, cfg.peak_exclude, cfg.peaks, cfg.uid_bits
-        corr = out[:, :, 1:-1]
-        mag = np.abs(corr)
+        corr = out[:, :, 1:-1]  # the gate; the returned traces are views of it
+        mag = np.abs(corr, out=self._scratch((c, k, g)))  # |out| <= 2^31: no overflow
         if self._has_ghost:
             mag[..., self._ghost] = -1
         jj = np.arange(g)
         pk_j = np.full((c, k, npk), -1, dtype=np.int64)
-        near_any = np.zeros((c, k, g), dtype=bool)
+        near_any = None
         for p in range(npk):
             j = np.argmax(mag, axis=-1)  # first (lowest j) among equal maxima
             ok = np.take_along_axis(mag, j[..., None], axis=-1)[..., 0] >= 0
@@ -670,8 +718,12 @@ class FastReceiver:
                 near = jj >= jc - w
                 near &= jj <= jc + w
                 near &= ok[..., None]
-            near_any |= near
-            np.putmask(mag, near, -1)
+            if near_any is None:
+                near_any = near
+            else:
+                near_any |= near
+            if p + 1 < npk:  # the last peak's window only matters to the noise mask
+                np.putmask(mag, near, -1)
         found = pk_j >= 0
         jsafe = np.where(found, pk_j, 0)
         pk_lag = np.where(found, self._lags[1:-1][jsafe], -1)
@@ -683,42 +735,32 @@ class FastReceiver:
             axis=-1,
         )
         nb = np.where(found[..., :1], nb, 0)
-        noise = ~near_any
+        noise = np.logical_not(near_any, out=near_any)
         if self._has_ghost:
             noise &= ~self._ghost
         cnt = np.count_nonzero(noise, axis=-1).astype(np.int64)
         cz = np.multiply(corr, noise, out=mag)  # out over the noise lags, 0 elsewhere
         nsum = cz.sum(axis=-1, dtype=np.int64)
-        np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
-        nsq = _sum_squares(cz, None, self.widths.wide_sumsq)
+        if self.widths.wide_sumsq:
+            np.multiply(cz, cz, out=cz)  # |out| <= 2^31: each square fits int64
+            nsq = _sum_squares(cz, None, True)
+        else:  # every square and their sum fit int64 (noise_sumsq <= 63 bits): one pass
+            nsq = np.einsum("ckj,ckj->ck", cz, cz)
         signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
-        corr = np.ascontiguousarray(corr)
         uid0 = np.ascontiguousarray(signs[:, :, 0, :])
         extra_signs = np.ascontiguousarray(signs[:, :, 1:, :])
         lag0, val0 = np.ascontiguousarray(pk_lag[..., 0]), np.ascontiguousarray(pk_val[..., 0])
         lag1, val1 = np.ascontiguousarray(pk_lag[..., 1:]), np.ascontiguousarray(pk_val[..., 1:])
         sat = saturated_flags(lag0, val0, cfg.out_bits)
-        return [  # per-column views into the batch's arrays
-            ReceiverOutput(
-                corr=corr[ci],
-                peak_lag=lag0[ci],
-                peak=val0[ci],
-                neighbours=nb[ci],
-                noise_count=cnt[ci],
-                noise_sum=nsum[ci],
-                noise_sumsq=nsq[ci],
-                uid_signs=uid0[ci],
-                uid_observed=observed[ci],
-                uid_match=match[ci],
-                saturated=sat[ci],
-                extra_lag=lag1[ci],
-                extra_peak=val1[ci],
-                extra_signs=extra_signs[ci],
-            )
-            for ci in range(c)
-        ]
+        batch = {"corr": corr, "peak_lag": lag0, "peak": val0, "neighbours": nb,
+                 "noise_count": cnt, "noise_sum": nsum, "noise_sumsq": nsq, "uid_signs": uid0,
+                 "uid_observed": observed, "uid_match": match, "saturated": sat,
+                 "extra_lag": lag1, "extra_peak": val1, "extra_signs": extra_signs}
+        # per-column views into the batch's arrays (``corr``: of the kernel's output),
+        # positional in field order: list(a) makes the views faster than a[ci]
+        return [ReceiverOutput(*v) for v in zip(*(list(batch[f]) for f in _FIELDS), strict=True)]
 
     def _uid_signs(
         self,

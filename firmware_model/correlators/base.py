@@ -73,10 +73,16 @@ class GatePlan:
     Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
     the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
     ``nq = u_m[-1] + 1``; ``sel[r]`` the lags m of phase r.
+    ``float32_bits`` (0..24, default 24) is the same budget for a float32 product: a
+    kernel may run one when every partial sum provably stays below
+    ``2^min(float32_bits, float_bits)`` (0: never). ``shared_bytes``: what the rest of
+    the chain holds at its peak whatever the kernel (auto compares whole calls).
     """
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
-                 float_bits: int = 53, y_bound: int | None = None, columns: int = 1) -> None:
+                 float_bits: int = 53, y_bound: int | None = None, columns: int = 1,
+                 float32_bits: int = 24, shared_bytes: float = 0.0) -> None:
+        self.shared_bytes = float(shared_bytes)
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -85,6 +91,9 @@ class GatePlan:
         if not n.bit_length() + 2 <= float_bits <= 53:
             raise out_of_range("float_bits", f"{n.bit_length() + 2}..53", float_bits)
         self.float_bits = float_bits
+        if not (isinstance(float32_bits, int) and 0 <= float32_bits <= 24):
+            raise out_of_range("float32_bits", "0..24", float32_bits)
+        self.float32_bits = float32_bits
         self.y_bound = None if y_bound is None else int(y_bound)
         self.columns = max(1, int(columns))
         self.lag_lo = int(lag_lo)
@@ -94,6 +103,14 @@ class GatePlan:
         self.r_m = (self.r0 + m) % s
         self.nq = int(self.u_m[-1]) + 1
         self.sel = [np.nonzero(self.r_m == r)[0] for r in range(s)]  # lags m of phase r
+
+    def float32_limit(self) -> int:
+        """Partial sums of a float32 product must stay below this (0: no float32 products)."""
+        return 1 << min(self.float32_bits, self.float_bits) if self.float32_bits else 0
+
+    def float32_certain(self) -> bool:
+        """Whether ``N y_bound`` is below :meth:`float32_limit`: float32 whatever the data."""
+        return self.y_bound is not None and self.n * self.y_bound < self.float32_limit()
 
     def matmul_limbs(self) -> int:
         """Limbs a float64 product kernel splits Y into (1 when ``N y_bound < 2^float_bits``)."""
@@ -184,7 +201,7 @@ def choose_correlator(plan: GatePlan, co: Coefficients | None = None) -> str:
 
     ``co``: the coefficients (default: the calibration cache, else the built-in ones).
     """
-    best = costs.choose(estimates(plan, co))
+    best = costs.choose(estimates(plan, co), plan.shared_bytes)
     if not best:
         raise ConfigError("no registered correlator has a finite cost for this plan",
                           field="method")

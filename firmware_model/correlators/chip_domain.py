@@ -31,7 +31,9 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
     """Integrate-and-dump (C, N*S) -> (C, S, N): ``Y[c,r,m] = sign sum_{t<S} d[(mS+r+t) mod NS]``.
 
     First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
-    sample (S - 1 shifted adds for small S, a prefix sum otherwise), then
+    sample (for small S by doubling: windows of 1, 2, 4 samples, each the sum of two
+    of the previous, combined along the bits of S: 2 passes for S = 4 instead of 4;
+    a prefix sum otherwise), then
     ``Y[c, r, m] = W[c, m S + r]``, returned as a strided view of W (the kernels copy
     each phase once, into their float operands, anyway). ``sign`` (+1 or -1)
     is the despread of a one-period UID, folded into the first pass. ``dtype`` is the
@@ -43,15 +45,7 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
     n = ns // s
     if s <= 8:
         w = np.empty((c, ns), dtype=dtype) if out is None else out
-        if sign < 0:
-            np.negative(d, out=w, casting="unsafe")  # exact: |d| fits dtype
-        else:
-            w[...] = d
-        if s > 1:
-            src = d if sign > 0 else w.copy()
-            for t in range(1, s):
-                w[:, :-t] += src[:, t:]
-                w[:, -t:] += src[:, :t]
+        _window_sums(d, s, sign, w)
     else:
         ext = np.empty((c, ns + s), dtype=dtype)
         ext[:, 0] = 0
@@ -62,6 +56,50 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
         if sign < 0:
             np.negative(w, out=w)
     return w.reshape(c, n, s).transpose(0, 2, 1)  # a strided view: no transpose copy
+
+
+def _shifted_add(a: NDArray[np.integer], b: NDArray[np.integer], t: int,
+                 out: NDArray[np.signedinteger]) -> None:
+    """``out[:, i] = a[:, i] + b[:, (i + t) mod NS]`` (out may be a, not b)."""
+    np.add(a[:, :-t], b[:, t:], out=out[:, :-t], casting="unsafe")
+    np.add(a[:, -t:], b[:, :t], out=out[:, -t:], casting="unsafe")
+
+
+def _window_sums(d: NDArray[np.integer], s: int, sign: int,
+                 w: NDArray[np.signedinteger]) -> None:
+    """``w[:, i] = sign sum_{t<s} d[:, (i + t) mod NS]`` by doubling (s <= 8).
+
+    ``p`` holds windows of 1, 2, 4, ... samples (each two of the previous, one pass);
+    the windows of the set bits of s, from the largest down, are added into ``w`` at
+    the offsets that tile s samples. Every partial sum is a sum of at most s samples,
+    so ``dtype`` wide enough for ``S max|d|`` holds them all (the casts are exact).
+    """
+    if s == 1:
+        np.multiply(d, sign, out=w, casting="unsafe")
+        return
+    p = np.empty_like(w)
+    np.multiply(d, sign, out=p, casting="unsafe")  # window of 1 sample
+    width, top = 1, 1 << (s.bit_length() - 1)
+    while width < top:  # p: window of 2 width samples
+        nxt = np.empty_like(w) if width * 2 < top or s != top else w
+        _shifted_add(p, p, width, nxt)
+        p, width = nxt, width * 2
+    if s == top:
+        return  # p is w
+    # s = top + rest: the top window, then the remaining bits' windows after it
+    np.copyto(w, p)
+    offset, rest = top, s - top
+    while rest:
+        bit = 1 << (rest.bit_length() - 1)
+        _shifted_add(w, _window(d, bit, sign, w.dtype), offset, w)
+        offset, rest = offset + bit, rest - bit
+
+
+def _window(d: NDArray[np.integer], s: int, sign: int, dtype: np.dtype) -> NDArray:
+    """The window sums of ``s`` samples (a power of two) as a new array."""
+    w = np.empty(d.shape, dtype=dtype)
+    _window_sums(d, s, sign, w)
+    return w
 
 
 def correlate_at(

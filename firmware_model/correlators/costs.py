@@ -49,6 +49,7 @@ __all__ = [
     "MEMORY_FLOOR",
     "MEMORY_SLACK",
     "RAM_FACTOR",
+    "SMALL_ROWS",
     "Coefficients",
     "Estimate",
     "cache_path",
@@ -71,7 +72,7 @@ MEMORY_SLACK = 2.0
 #: ... or at most this many bytes above it (a few MiB more is no reason to run 20x slower).
 MEMORY_FLOOR = 64 << 20
 
-_FORMAT = 1  # version of the JSON layout
+_FORMAT = 2  # version of the JSON layout (2: the ram ratio)
 
 
 @dataclass(frozen=True)
@@ -80,15 +81,17 @@ class Coefficients:
 
     ``mac``: one float64 multiply-add inside a large matrix product (BLAS, all
     threads); ``byte``: one byte read or written by a memory-bound pass (copies,
-    matrix-vector products, casts); ``fft``: one ``L log2 L`` point of a batched
-    real FFT (forward or inverse); ``call``: the fixed overhead of one numpy or BLAS
-    call from Python.
+    matrix-vector products, casts) on an operand that stays in the cache; ``fft``: one
+    ``L log2 L`` point of a batched real FFT (forward or inverse); ``call``: the fixed
+    overhead of one numpy or BLAS call from Python; ``ram``: how many times a byte
+    streamed from main memory costs more than ``byte`` (a ratio >= 1).
     """
 
     mac: float
     byte: float
     fft: float
     call: float
+    ram: float = 4.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -96,6 +99,9 @@ class Coefficients:
             if not (isinstance(v, float | int) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"kernel cost coefficient {f.name} must be a positive number, "
                                   f"got {v!r}", field=f.name)
+        if self.ram < 1:
+            raise ConfigError(f"kernel cost coefficient ram must be >= 1, got {self.ram!r}",
+                              field="ram")
 
 
 #: Fitted on the development machine (2 cores, OpenBLAS): the kernel grid of
@@ -115,24 +121,38 @@ class Estimate:
 CACHE_BYTES = 8 << 20
 
 
-#: A byte streamed from main memory costs this many cache bytes (``byte`` is calibrated
-#: on an operand that stays in the large last-level cache of the development machine).
+#: The built-in ``Coefficients.ram``: a byte streamed from main memory costs this many
+#: cache bytes (the calibration measures it: 2.2 on the development machine).
 RAM_FACTOR = 4.0
 
 
-def stream_bytes(size: float, uses: float) -> float:
-    """Cache-byte equivalents of ``uses`` reads of a ``size``-byte operand: read once
-    when it fits :data:`CACHE_BYTES` (later reads hit the cache), else every read
-    streams it from main memory (:data:`RAM_FACTOR` each)."""
-    return size if size <= CACHE_BYTES else size * uses * RAM_FACTOR
+def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
+    """Cache-byte equivalents of ``uses`` reads of a ``size``-byte operand: every read
+    costs its bytes from the cache when it fits :data:`CACHE_BYTES`, else streams it
+    from main memory (``ram`` cache bytes each, ``Coefficients.ram``). (Counting the
+    re-reads of a cached operand as free made 66 one-row products over 2.6 MB of
+    codes look 2x cheaper than they measured.)"""
+    return size * uses * (1.0 if size <= CACHE_BYTES else ram)
+
+
+#: Products of fewer rows than this measured no faster than that many one-row products
+#: (OpenBLAS, 2 threads: (3, 2047) @ (2047, 400) took 1.7x three (1, 2047) products).
+SMALL_ROWS = 8
 
 
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
 
-    Thin products (p or m small) are memory-bound: the byte term dominates them.
+    Thin products (p or m small) are memory-bound: the byte term dominates them. A
+    product of several rows also packs its second operand (BLAS copies it into panels:
+    one more read and a write), which a one-row product (a matrix-vector product) does
+    not: measured 1.7x slower for (3, 2047) @ (2047, 400) than three one-row products.
     """
-    moved = sum(stream_bytes(8.0 * size, 1) for size in (m * n, n * p, m * p))
+    moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
+    if m > 1:
+        moved += 16.0 * n * p
+    if 1 < m < SMALL_ROWS:  # no faster than m one-row products: B streamed once per row
+        moved += (m - 1) * stream_bytes(8.0 * n * p, 1, co.ram)
     return co.mac * m * n * p + co.byte * moved + co.call
 
 
@@ -178,21 +198,23 @@ def set_coefficients(co: Coefficients | None) -> None:
     _ACTIVE, _ACTIVE_FROM = co, None
 
 
-def choose(estimates: Mapping[str, Estimate]) -> str:
+def choose(estimates: Mapping[str, Estimate], shared: float = 0.0) -> str:
     """The rule of ``"auto"``: the fastest of the kernels within 2x of the leanest's memory
     (or within :data:`MEMORY_FLOOR`, 64 MiB, of it).
 
     ``estimates`` maps kernel names (registration order) to their estimates; infinite
-    times are skipped. Ties go to the first. Returns "" when none is finite.
+    times are skipped. ``shared``: bytes the rest of the chain holds at its peak
+    whatever the kernel (the memory compared is the whole call's). Ties go to the
+    first. Returns "" when none is finite.
     """
     finite = {k: e for k, e in estimates.items() if math.isfinite(e.seconds)}
     if not finite:
         return ""
-    lean = min(e.peak_bytes for e in finite.values())
+    lean = min(e.peak_bytes for e in finite.values()) + shared
     cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
     best, best_t = "", math.inf
     for name, e in finite.items():
-        if e.peak_bytes <= cap and e.seconds < best_t:
+        if e.peak_bytes + shared <= cap and e.seconds < best_t:
             best, best_t = name, e.seconds
     return best
 
@@ -223,11 +245,13 @@ def calibrate(repeats: int = 5) -> Coefficients:
             dst[:, :, m] = o
 
     call = _best(loop, repeats) / 150
-    # byte: matrix-vector products over a matrix well beyond the caches (memory-bound)
-    big = rng.random((8192, 2048))  # 128 MiB
+    # byte: matrix-vector products over a matrix that stays in the cache (4 MiB); ram:
+    # the same over one well beyond the caches (128 MiB), per byte, over that
     vec = rng.random((2048, 1))
-    t_mv = _best(lambda: big @ vec, repeats)
-    byte = t_mv / (8.0 * big.size)
+    small = rng.random((256, 2048))
+    byte = _best(lambda: small @ vec, 4 * repeats) / (8.0 * small.size)
+    big = rng.random((8192, 2048))
+    ram = max(1.0, _best(lambda: big @ vec, repeats) / (8.0 * big.size) / byte)
     # mac: a large square-ish product (compute-bound, all BLAS threads)
     m = 768
     a, b = rng.random((m, m)), rng.random((m, m))
@@ -242,7 +266,7 @@ def calibrate(repeats: int = 5) -> Coefficients:
 
     t_fft = _best(fwd_inv, repeats)
     fft_pt = t_fft / (2 * rows * big_l * math.log2(big_l))
-    co = Coefficients(mac=mac, byte=byte, fft=fft_pt, call=call)
+    co = Coefficients(mac=mac, byte=byte, fft=fft_pt, call=call, ram=ram)
     log.info("kernel cost calibration: %s", co)
     return co
 

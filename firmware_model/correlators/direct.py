@@ -46,7 +46,7 @@ class DirectCorrelator(Correlator):
         blocks = math.ceil(c / cb)
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
-        codes = stream_bytes(8.0 * n * k, plan.count)  # one (N, K) matrix read per lag
+        codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # one (K, N) matrix read per lag
         per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
                                    + 3 * co.call)  # slice, product, store
                      + co.byte * codes

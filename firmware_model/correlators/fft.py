@@ -84,10 +84,14 @@ class FFTCorrelator(Correlator):
                     + co.call * (passes * (2 + 3 * math.ceil(k / kb))
                                  + 6 * active * math.ceil(k / kb)))
         parts = _fft_limbs(plan)
-        seconds = plan.columns * parts * (per_limb + 8 * co.call)
+        seconds = plan.columns * parts * (per_limb + 40 * co.call)  # + its Python per call
+        rows = active if whole else sb
+        # + the doubled phases in float64 and scipy's zero-padded copy of them (3 x 8 L
+        # per phase row), and the error bound's |Y| and |Y|^2 in float64 (2 x 8 S N)
         peak = (spectra if cached else 16.0 * kb * half) \
-            + 16.0 * (active if whole else sb) * half + 16.0 * sb * kb * half \
-            + 8.0 * sb * kb * big + 16.0 * sb * plan.n + 8.0 * plan.columns * k * plan.count
+            + 16.0 * rows * half + 16.0 * sb * kb * half \
+            + 8.0 * sb * kb * big + 16.0 * sb * plan.n + 8.0 * plan.columns * k * plan.count \
+            + 24.0 * rows * big + 16.0 * plan.s * plan.n
         return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:

@@ -1,17 +1,32 @@
-"""Exact float64 matrix-product kernel (``method="matmul"``): short gates, many columns.
+"""Exact matrix-product kernel (``method="matmul"``): short gates, many columns.
 
-Per phase r: ``Y_r (C, N) @ B_r (N, K * nq_r)`` in float64 with the constant Hankel
-block ``B_r[m, k, u] = bip_k[(m - q0 - u) mod N]`` holding only the chip lags that
-phase needs (or the S phases stacked into one product, :func:`stacked_layout`).
-Every product is +-y and every partial sum is bounded by ``N * max|y|``;
-when that is below ``2^float_bits`` (<= 2^53) the BLAS result is the exact integer
-whatever the summation order. Otherwise ``y`` is split into limbs of h bits
-(``N * 2^h < 2^float_bits``), each product exact, recombined in int64 (the result
-fits: W_raw <= 56 bits, docs/firmware.md section 3).
+The gated lags of phase r are the chip offsets ``u = a_r .. a_r + len_r - 1``
+(``a_r`` the first, ``len_r`` = L or L - 1 with ``L = ceil(count / S)`` when every
+phase has a lag). Each phase's chip sums ``Y_r`` (C, N) are copied once into a float
+operand, rotated by ``a_r`` chips, so that every phase needs the same Hankel block
+``B_L[i, k, t] = bip_k[(i - q0 - t) mod N]``, t < L: the phases with L lags are
+stacked into one product ``(|A| C, N) @ (N, K L)``, those with L - 1 into a second one
+with ``B_{L-1}`` (or into the first, computing one lag too many, when the cost model
+says one product is cheaper). Every output lag is computed exactly once (up to that
+one extra lag per phase), in at most two large products.
+
+Exactness: every product is +-y and every partial sum of one output is a sum of a
+subset of ``+-Y_r[i]``, bounded by ``sum_i |Y_r[i]|``, so whatever the summation
+order of the BLAS:
+
+* float32 products when that sum is below ``2^min(float32_bits, float_bits)``
+  (<= 2^24) for every column and phase of a block: measured on the float32 operand
+  itself (a value of 2^24 or more cannot round below 2^24, so a large value is never
+  missed), summed in float64 (exact), or proven for all data by ``N y_bound``;
+* else float64 when ``N max|y| < 2^float_bits`` (<= 2^53);
+* else ``y`` is split into limbs of h bits (``N 2^h < 2^float_bits``), each product
+  exact in float64, recombined in int64 (the result fits: W_raw <= 56 bits,
+  docs/firmware.md section 3).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 
@@ -23,10 +38,16 @@ from cdma_lidar.firmware_model.correlators.base import (
     Correlator,
     GatePlan,
     limbs,
+    parallel_columns,
 )
-from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, gemm_seconds
+from cdma_lidar.firmware_model.correlators.costs import (
+    Coefficients,
+    Estimate,
+    coefficients,
+    gemm_seconds,
+)
 
-__all__ = ["MatmulCorrelator", "stacked_layout"]
+__all__ = ["MatmulCorrelator", "phase_groups"]
 
 
 def _block(plan: GatePlan) -> int:
@@ -35,114 +56,237 @@ def _block(plan: GatePlan) -> int:
                                   * 16))
 
 
-def stacked_layout(plan: GatePlan) -> bool:
-    """Whether one product of the S phases stacked beats S per-phase products.
+def _lengths(plan: GatePlan) -> dict[int, int]:
+    """Lags per active phase r (phases without a gated lag left out)."""
+    return {r: len(sel) for r, sel in enumerate(plan.sel) if len(sel)}
 
-    Stacked: ``[Y_0; ...; Y_{S-1}] (S C, N) @ B (N, K nq)`` with one Hankel block of
-    every chip offset u < nq, ``S nq`` output columns per channel for ``count`` lags.
-    It wastes ``S nq - count`` columns (at most 2 S - 1) but makes one large product
-    instead of S small ones: taken when the waste is under 1/16 of the work.
+
+def _products(plan: GatePlan, merged: bool, rows: int) -> list[tuple[int, int]]:
+    """(operand rows, Hankel offsets) of each product for ``rows`` columns per block."""
+    lens = _lengths(plan)
+    top = max(lens.values())
+    if merged:
+        return [(rows * len(lens), top)]
+    groups = collections.Counter(lens.values())
+    return [(rows * groups[length], length) for length in sorted(groups, reverse=True)]
+
+
+def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, scale: float) -> float:
+    """Predicted time of the products of one block of ``rows`` columns (``scale``: 0.5 for
+    float32, whose multiply-adds and bytes cost half)."""
+    n, k = plan.n, plan.k
+    return sum(scale * gemm_seconds(m, n, k * width, co) for m, width in
+               _products(plan, merged, rows))
+
+
+def phase_groups(plan: GatePlan, co: Coefficients) -> bool:
+    """Whether the phases of L - 1 lags are merged into the product of those with L.
+
+    Merged: one product that computes one lag too many for each of those phases; split:
+    two products, nothing wasted. The cheaper by the cost model (ties: merged).
     """
-    return plan.s > 1 and 16 * (plan.s * plan.nq - plan.count) <= plan.count
+    if len(set(_lengths(plan).values())) == 1:
+        return True
+    rows = min(plan.columns, _block(plan))
+    return _seconds(plan, co, True, rows, 1.0) <= _seconds(plan, co, False, rows, 1.0)
 
 
 class MatmulCorrelator(Correlator):
-    """Hankel blocks, float64 GEMM, limb splitting for the 2^53 bound.
+    """Rotated phase operands, one or two stacked Hankel products, float32 when provably
+    exact, float64 otherwise, limb splitting for the 2^53 bound.
 
-    Two layouts of the same products (:func:`stacked_layout`): per phase r,
-    ``Y_r (C, N) @ B_r (N, K nq_r)`` holding only the chip lags phase r needs; or the
-    S phases stacked into one ``(S C, N) @ (N, K nq)`` product when that wastes little.
+    ``products`` counts the products run per dtype name ("float32", "float64"), for tests
+    and benchmarks.
     """
 
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
-        """The products of the chosen layout, the operand copies and the output scatter."""
-        c, n, k, s = plan.columns, plan.n, plan.k, plan.s
+        """The products, the operand copies and the output scatter.
+
+        float32 is only counted on when ``N y_bound`` proves it for all data; otherwise
+        the float64 products are predicted (the data may still allow float32).
+        """
+        c, n, k = plan.columns, plan.n, plan.k
         cb = min(c, _block(plan))
         blocks = math.ceil(c / cb)
-        parts = plan.matmul_limbs()
-        if stacked_layout(plan):
-            width, hankel = plan.s * plan.nq, plan.nq  # output and Hankel columns / channel
-            prods = gemm_seconds(s * cb, n, k * plan.nq, co)
-        else:
-            width = hankel = plan.count
-            prods = sum(gemm_seconds(cb, n, k * len(sel), co) for sel in plan.sel if len(sel))
-        active = sum(1 for sel in plan.sel if len(sel))
-        moves = co.byte * (16.0 * s * cb * n + 24.0 * cb * k * width) + 4 * active * co.call
-        seconds = blocks * parts * (prods + moves) + 4 * co.call
-        peak = 8.0 * n * k * hankel + 8.0 * s * cb * n + 8.0 * cb * k * width \
+        single = plan.float32_certain()
+        parts = 1 if single else plan.matmul_limbs()
+        item = 4.0 if single else 8.0
+        merged = phase_groups(plan, co)
+        prods = _seconds(plan, co, merged, cb, 0.5 if single else 1.0)
+        shapes = _products(plan, merged, cb)
+        active = len(_lengths(plan))
+        width = sum(m // cb * w for m, w in shapes)  # output columns per channel
+        moves = co.byte * ((4.0 + item) * active * cb * n + (item + 16.0) * cb * k * width) \
+            + 4 * active * co.call  # per phase: a rotated copy in, a strided copy out
+        # float32 bound test: on data too large for it, usually one phase copied and summed
+        check = 0.0 if single or not plan.float32_limit() else \
+            co.byte * 12.0 * cb * n + 6 * co.call
+        # + its Python: buffers, float32 test, groups (measured ~7 us over direct's per call)
+        seconds = blocks * (parts * (prods + moves) + check) + 20 * co.call
+        hankel = sum(w for _, w in shapes)
+        peak = item * n * k * hankel + item * active * cb * n + item * cb * k * width \
             + 8.0 * c * k * plan.count
         return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
         super().__init__(plan)
-        n, bip = plan.n, plan.bip
-        self.stacked = stacked_layout(plan)
-        offsets = [np.arange(plan.nq)] if self.stacked else [plan.u_m[sel] for sel in plan.sel]
-        # one Hankel block per phase r (or one for all) holding only the chip offsets needed
-        self.bmat = []
-        for u in offsets:
-            idx = (np.arange(n)[:, None] - plan.q0 - u[None, :]) % n  # (N, nq_r)
-            b = np.empty((n, plan.k, len(u)))  # filled channel by channel: no int8 copies
-            for kk in range(plan.k):
-                b[:, kk, :] = bip[kk][idx]
-            self.bmat.append(b.reshape(n, plan.k * len(u)))
-        self._local = threading.local()  # per-thread operand buffer: calls may overlap
+        lens = _lengths(plan)
+        self._phases = list(lens)  # active phases r
+        self._len = lens
+        # phase r's first chip offset: its operand is rotated by it
+        self._rot = {r: int(plan.u_m[plan.sel[r][0]]) % plan.n for r in lens}
+        merged = phase_groups(plan, coefficients())
+        top = max(lens.values())
+        # product groups: (offsets, phases), the phases of L lags first
+        if merged:
+            self._groups = [(top, list(lens))]
+        else:
+            self._groups = [(w, [r for r in lens if lens[r] == w])
+                            for w in sorted(set(lens.values()), reverse=True)]
+        self._hankels: dict[tuple[int, type], NDArray[np.floating]] = {}
+        self._lock = threading.Lock()
+        self._local = threading.local()  # per-thread operand and output buffers
+        self.products: collections.Counter[str] = collections.Counter()
+        for width, _ in self._groups:  # the float64 blocks now, float32 ones on first use
+            self._hankel(width, np.float32 if plan.float32_certain() else np.float64)
 
-    def _buffer(self, rows: int, n: int) -> NDArray[np.float64]:
-        """A (rows, n) float64 operand buffer, reused across calls (no fresh pages)."""
-        work = getattr(self._local, "work", None)
-        if work is None or work.size < rows * n:
-            work = self._local.work = np.empty(rows * n)
-        return work[: rows * n].reshape(rows, n)
+    def _hankel(self, width: int, dtype: type) -> NDArray[np.floating]:
+        """``B[i, k, t] = bip_k[(i - q0 - t) mod N]`` for t < width, as an (N, K width) view.
+
+        Stored as its C-contiguous transpose (K width, N): BLAS reads it as a transposed
+        operand, up to 1.7x faster than an (N, K width) matrix for products of few rows.
+        """
+        key = (width, dtype)
+        b = self._hankels.get(key)
+        if b is None:
+            with self._lock:
+                b = self._hankels.get(key)
+                if b is None:
+                    plan, n = self.plan, self.plan.n
+                    idx = (np.arange(n)[None, :] - plan.q0 - np.arange(width)[:, None]) % n
+                    b = np.empty((plan.k, width, n), dtype=dtype)
+                    for kk in range(plan.k):  # channel by channel: no (K, width, N) int8 copy
+                        b[kk] = plan.bip[kk][idx]
+                    b = self._hankels[key] = b.reshape(plan.k * width, n)
+        return b.T
+
+    def _buffer(self, name: str, shape: tuple[int, int], dtype: type) -> NDArray[np.floating]:
+        """A reused per-thread buffer (no fresh pages to fault in on every call)."""
+        key = (name, dtype)
+        bufs = self._local.__dict__.setdefault("bufs", {})
+        work = bufs.get(key)
+        size = shape[0] * shape[1]
+        if work is None or work.size < size:
+            work = bufs[key] = np.empty(size, dtype=dtype)
+        return work[:size].reshape(shape)
+
+    def _fill(self, lf: NDArray[np.floating], yb: NDArray[np.signedinteger],
+              phases: list[int], c0: int, c1: int) -> None:
+        """Operand rows of ``phases`` for columns c0..c1-1:
+        ``lf[i cb + c, j] = Y[c, r_i, (j + a_r) mod N]``."""
+        cb, _, n = yb.shape
+        for i, r in enumerate(phases):
+            a = self._rot[r]
+            rows = lf[i * cb + c0 : i * cb + c1]
+            np.copyto(rows[:, : n - a], yb[c0:c1, r, a:], casting="unsafe")
+            if a:
+                np.copyto(rows[:, n - a :], yb[c0:c1, r, :a], casting="unsafe")
+
+    def _operands(self, yb: NDArray[np.signedinteger], dtype: type) -> list:
+        """Every group's operand in ``dtype``, the columns split across threads."""
+        cb, _, n = yb.shape
+        ops = [self._buffer(f"op{g}", (len(phases) * cb, n), dtype)
+               for g, (_, phases) in enumerate(self._groups)]
+
+        def fill(c0: int, c1: int) -> None:
+            for lf, (_, phases) in zip(ops, self._groups, strict=True):
+                self._fill(lf, yb, phases, c0, c1)
+
+        parallel_columns(fill, cb, yb.size)
+        return ops
+
+    def _float32_operands(self, yb: NDArray[np.signedinteger]) -> list | None:
+        """The float32 operands of every group when float32 products are exact, else None.
+
+        Per column and phase the sum of ``|Y|`` over the N chips must stay below
+        :meth:`GatePlan.float32_limit`. One row is looked at first: data too large for
+        float32 is usually refused there, on its first 4096 chips (a refusal is always safe:
+        float64 is exact).
+        """
+        plan = self.plan
+        limit = plan.float32_limit()
+        if not limit:
+            return None
+        if plan.float32_certain():
+            return self._operands(yb, np.float32)
+        r0 = self._groups[0][1][0]
+        # a part of one row whose sum of |Y| already reaches the limit refuses it cheaply
+        if np.abs(yb[0, r0, :4096].astype(np.float64)).sum() >= limit:
+            return None
+        ops = self._operands(yb, np.float32)
+        cb, _, n = yb.shape
+        worst = []
+
+        def test(c0: int, c1: int) -> None:
+            mag = self._buffer("abs", (c1 - c0, n), np.float32)
+            top = 0.0
+            for lf, (_, phases) in zip(ops, self._groups, strict=True):
+                for i in range(len(phases)):
+                    np.abs(lf[i * cb + c0 : i * cb + c1], out=mag)
+                    # float64 sums of float32 integers < 2^24: exact; a |Y| >= 2^24 cannot
+                    # have rounded below 2^24, so the test never passes wrongly
+                    top = max(top, float(np.add.reduce(mag, axis=-1, dtype=np.float64).max()))
+            worst.append(top)
+
+        parallel_columns(test, cb, yb.size)
+        return ops if max(worst) < limit else None
+
+    def _run(self, operands: list, dst: NDArray[np.int64], dtype: type, shift: int,
+             single: bool, first: bool) -> None:
+        """Run each group's product and scatter its lags into ``dst`` (cb, K, count)."""
+        plan = self.plan
+        cb, k = dst.shape[0], plan.k
+        s = plan.s
+        for g, ((width, phases), lf) in enumerate(zip(self._groups, operands, strict=True)):
+            o = self._buffer(f"out{g}", (lf.shape[0], k * width), dtype)
+            np.matmul(lf, self._hankel(width, dtype), out=o)  # exact integers (module doc)
+            o4 = o.reshape(len(phases), cb, k, width)
+            for i, r in enumerate(phases):
+                sel = plan.sel[r]
+                d = dst[:, :, int(sel[0]) :: s]  # lags m of phase r: a strided view
+                src = o4[i, :, :, : self._len[r]]
+                if single:
+                    np.copyto(d, src, casting="unsafe")  # exact integers: an exact cast
+                elif first:
+                    np.left_shift(src.astype(np.int64), shift, out=d)
+                else:
+                    d += src.astype(np.int64) << shift
+            self.products[np.dtype(dtype).name] += 1
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan
-        c, s, n = y.shape
+        c, _, n = y.shape
         k, count = plan.k, plan.count
         limit = 1 << plan.float_bits
         h = plan.float_bits - n.bit_length()
         block = _block(plan)
         out = np.empty((c, k, count), dtype=np.int64)
-        # lags of phase r are m = m_r, m_r + S, ...: a strided slice of the output
-        sl = [slice(int(sel[0]), None, s) if len(sel) else None for sel in plan.sel]
         bound_ok = plan.y_bound is not None and n * plan.y_bound < limit
 
         def fits(v: NDArray[np.signedinteger]) -> bool:
             return bound_ok or n * int(np.abs(v).max(initial=0)) < limit
 
-        def put(dst: NDArray[np.int64], o: NDArray[np.float64], i: int, shift: int,
-                single: bool) -> None:
-            if single:
-                dst[...] = o  # exact integers: the cast to int64 is exact
-            elif i == 0:
-                dst[...] = o.astype(np.int64) << shift
-            else:
-                dst += o.astype(np.int64) << shift
-
         for c0 in range(0, c, block):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
-            acc = out[c0 : c0 + cb]
+            dst = out[c0 : c0 + cb]
+            ops32 = self._float32_operands(yb)
+            if ops32 is not None:
+                self._run(ops32, dst, np.float32, 0, True, True)
+                continue
             parts = limbs(yb, fits, h)
-            single = len(parts) == 1
             for i, (limb, shift) in enumerate(parts):
-                # exact: |limb| < 2^53 and every partial sum < 2^float_bits
-                if self.stacked:
-                    lf = self._buffer(s * cb, n)
-                    # one pass (0.3 ms for the paper frame; split across threads it was 0.6)
-                    np.copyto(lf.reshape(s, cb, n), limb.transpose(1, 0, 2))
-                    o = (lf @ self.bmat[0]).reshape(s, cb, k, plan.nq)
-                    for r, sel in enumerate(plan.sel):
-                        if len(sel):
-                            u0 = int(plan.u_m[sel[0]])
-                            put(acc[:, :, sl[r]], o[r, :, :, u0 : u0 + len(sel)], i, shift,
-                                single)
-                    continue
-                lf = self._buffer(cb, n)
-                for r, sel in enumerate(plan.sel):
-                    if len(sel):
-                        np.copyto(lf, limb[:, r, :])
-                        o = (lf @ self.bmat[r]).reshape(cb, k, len(sel))  # (cb, K, nq_r)
-                        put(acc[:, :, sl[r]], o, i, shift, single)
+                ops = self._operands(limb, np.float64)
+                self._run(ops, dst, np.float64, shift, len(parts) == 1, i == 0)
         return out

@@ -46,6 +46,23 @@ def test_small_absolute_memory_differences_do_not_count():
     assert choose(est) == "a"
 
 
+def test_memory_the_rest_of_the_chain_holds_counts_for_every_kernel():
+    est = {"lean": Estimate(2.0, 100e6), "fast": Estimate(1.0, 500e6)}
+    assert choose(est) == "lean"  # 5x the leanest kernel
+    assert choose(est, shared=300e6) == "fast"  # 800 MB against 400 MB for the whole call
+    assert choose(est, shared=100e6) == "lean"  # 600 against 200
+
+
+def test_the_receiver_tells_auto_what_the_chain_holds():
+    from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+
+    codes = np.random.default_rng(1).integers(0, 2, (40, 2047), dtype=np.uint8)
+    one = FastReceiver(ReceiverConfig(uid_bits=1), codes).plan.shared_bytes
+    many = FastReceiver(ReceiverConfig(uid_bits=8, averages=2), codes).plan.shared_bytes
+    frame = FastReceiver(ReceiverConfig(uid_bits=1), codes, columns=160).plan.shared_bytes
+    assert 0 < one < many and frame > 100 * one
+
+
 def test_ties_go_to_the_first_and_infinite_costs_never_win():
     est = {"first": Estimate(1.0, GIB), "second": Estimate(1.0, GIB),
            "never": Estimate(math.inf, 0.0)}
@@ -86,6 +103,26 @@ def test_coefficients_must_be_positive_numbers():
         Coefficients(mac=0.0, byte=1.0, fft=1.0, call=1.0)
     with pytest.raises(ConfigError, match="call"):
         Coefficients(mac=1.0, byte=1.0, fft=1.0, call=math.nan)
+    with pytest.raises(ConfigError, match="ram"):
+        Coefficients(mac=1.0, byte=1.0, fft=1.0, call=1.0, ram=0.5)  # main memory < cache
+
+
+def test_streaming_from_main_memory_costs_the_ram_ratio():
+    """Codes far beyond the cache, read once per lag, cost ``ram`` times more per byte."""
+    plan = _plan(32767, 400, 1, 3)
+    cheap, dear = (Coefficients(mac=1e-11, byte=1e-11, fft=1e-10, call=5e-7, ram=r)
+                   for r in (1.0, 8.0))
+    assert estimates(plan, dear)["direct"].seconds > 4 * estimates(plan, cheap)["direct"].seconds
+
+
+def test_a_cache_of_the_first_format_is_ignored(tmp_path, monkeypatch, caplog):
+    path = tmp_path / "k.json"
+    monkeypatch.setenv(COSTS_ENV, str(path))
+    path.write_text(json.dumps({"format": 1, "coefficients": {
+        "mac": 1e-9, "byte": 1e-9, "fft": 1e-9, "call": 1e-6}}))
+    costs.set_coefficients(None)
+    assert costs.coefficients() == DEFAULT_COEFFICIENTS
+    assert "format 1" in caplog.text
 
 
 def test_the_cache_is_written_read_and_a_bad_one_ignored(tmp_path, monkeypatch, caplog):

@@ -7,6 +7,8 @@ scale, raw words up to 56 bits, 32-bit outputs whose noise sums of squares pass 
 bits) and checks every registered kernel, also with the float limit lowered so the
 operands are split into limbs, against an independent int64 evaluation of the
 definition ``raw_k[l] = sum_i ref_k[i] d[(i + l) mod NS]`` in the sample domain.
+The matrix product also runs with float32 products off and with a float32 limit the
+drawn data may straddle (16 bits).
 """
 
 from __future__ import annotations
@@ -96,10 +98,13 @@ def test_every_kernel_is_exact_at_the_extremes(case):
     want = np.array([_scale(row, cfg) for row in raw], dtype=np.int64)
     first = None
     for method in correlator_methods():
-        variants = [53] + ([LOWERED[method](n)] if method in LOWERED else [])
-        for fb in variants:
-            got = FastReceiver(cfg, codes, method=method, float_bits=fb).from_accumulators(acc)[0]
-            assert got.corr.tolist() == want.tolist(), (method, fb)
+        variants = [(53, 24)] + ([(LOWERED[method](n), 24)] if method in LOWERED else [])
+        if method == "matmul":  # float64 only; float32 at a limit the data may straddle
+            variants += [(53, 0), (53, 16)]
+        for fb, fb32 in variants:
+            got = FastReceiver(cfg, codes, method=method, float_bits=fb,
+                               float32_bits=fb32).from_accumulators(acc)[0]
+            assert got.corr.tolist() == want.tolist(), (method, fb, fb32)
             if first is None:
                 first = got
             assert got.mismatches(first) == [], (method, fb)

@@ -140,6 +140,9 @@ def _fast_variants(cfg, codes):
         yield FastReceiver(cfg, codes, method=method)
         if method in LIMB_FLOAT_BITS:
             yield FastReceiver(cfg, codes, method=method, float_bits=LIMB_FLOAT_BITS[method](n))
+        if method == "matmul":  # float64 products only, and a float32 limit the data straddles
+            for bits in (0, 10):
+                yield FastReceiver(cfg, codes, method=method, float32_bits=bits)
 
 
 def _chunked_reference(cfg, codes, x, cuts):
@@ -562,3 +565,13 @@ def test_a_large_frame_with_a_code_out_of_range_is_refused():
     frame[11, 5] = 2048  # one code past the 12-bit range, in a later thread's columns
     with pytest.raises(ConfigError, match="samples"):
         FastReceiver(cfg, codes).frame(frame)
+
+
+def test_an_unprepared_receiver_builds_its_kernel_on_first_use():
+    rng = np.random.default_rng(8)
+    codes = rng.integers(0, 2, (3, 31), dtype=np.uint8)
+    cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_len=9)
+    x = rng.integers(-2048, 2048, cfg.column_samples(31))
+    lazy = FastReceiver(cfg, codes, prepare=False)
+    assert lazy._kernels == {} and lazy.plan.count == 11
+    assert lazy.column(x).same_as(reference(cfg, codes, x)) and len(lazy._kernels) == 1

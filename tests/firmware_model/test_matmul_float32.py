@@ -1,0 +1,111 @@
+"""The matrix-product kernel's float32 products: taken exactly when provably exact.
+
+float32 products run when, for every column and phase, ``sum_i |Y_r[i]| <
+2^min(float32_bits, float_bits)``; float64 otherwise. Checked against Python-integer
+evaluations of ``raw[c, k, m] = sum_j bip_k[j] Y[c, r_m, (j + q0 + u_m) mod N]``, both
+sides of the rule (which dtype ran, from the kernel's product counter) and the
+boundary: a sum of exactly 2^24 must not go to float32, and 2^24 + 1 would come out
+wrong there (float32 cannot hold it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cdma_lidar.firmware_model.correlators import GatePlan, MatmulCorrelator
+
+
+def _exact(plan: GatePlan, y: np.ndarray) -> list:
+    """The definition in Python integers."""
+    bip = plan.bip.tolist()
+    rows = y.tolist()
+    n = plan.n
+    return [[[sum(b[j] * rows[c][int(plan.r_m[m])][(j + plan.q0 + int(plan.u_m[m])) % n]
+                  for j in range(n)) for m in range(plan.count)] for b in bip]
+            for c in range(len(rows))]
+
+
+def _float32_allowed(plan: GatePlan, y: np.ndarray) -> bool:
+    """The rule, independently: every (column, phase) sum of |Y| below the float32 limit."""
+    limit = plan.float32_limit()
+    sums = [sum(abs(v) for v in row) for col in y.tolist() for row in col]
+    return bool(limit) and max(sums) < limit
+
+
+@st.composite
+def kernel_cases(draw):
+    n = draw(st.sampled_from([3, 7, 31, 97]))
+    s = draw(st.sampled_from([1, 2, 3, 4]))
+    k = draw(st.integers(1, 3))
+    ns = n * s
+    count = draw(st.integers(1, min(ns, 40)))
+    lag_lo = draw(st.integers(0, ns - 1))
+    columns = draw(st.integers(1, 3))
+    float32_bits = draw(st.sampled_from([0, 1, 8, 12, 24, 24]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    bip = np.where(rng.random((k, n)) < 0.5, -1, 1).astype(np.int8)
+    if draw(st.booleans()):
+        bip[0] = 1  # an all-(+1) code: partial sums reach the full sum of |Y| (the worst case)
+    # magnitudes around the float32 limit: sum |Y| over a row near 2^float32_bits
+    target = 1 << draw(st.sampled_from([0, 1, 8, 12, 24, 24, 30])) if float32_bits else 1 << 24
+    mag = max(1, target // n + draw(st.integers(-2, 2)))
+    y = rng.integers(-mag, mag + 1, (columns, s, n))
+    if draw(st.booleans()):
+        y = np.abs(y)  # all positive: with an all-(+1) code no cancellation at all
+    dtype = draw(st.sampled_from([np.int32, np.int64]))
+    plan = GatePlan(bip, s, lag_lo, count, float32_bits=float32_bits)
+    return plan, y.astype(dtype)
+
+
+@settings(max_examples=150, deadline=None)
+@given(kernel_cases())
+def test_float32_products_exactly_when_the_bound_allows(case):
+    plan, y = case
+    kern = MatmulCorrelator(plan)
+    got = kern(y)
+    assert got.dtype == np.int64 and got.tolist() == _exact(plan, y)
+    want = "float32" if _float32_allowed(plan, y) else "float64"
+    assert set(kern.products) == {want}, (dict(kern.products), want)
+
+
+def _boundary_case(total: int, s: int = 1) -> tuple[GatePlan, np.ndarray]:
+    """N = 97 chips, every row of Y positive with sum |Y| = ``total``; code 0 all +1 so
+    the correlation at every lag is ``total`` itself."""
+    n = 97  # 2^24 + 1 = 97 * 172961
+    rng = np.random.default_rng(total)
+    bip = np.ones((2, n), dtype=np.int8)
+    bip[1] = np.where(rng.random(n) < 0.5, -1, 1)
+    row = np.full(n, total // n, dtype=np.int64)
+    row[: total - row.sum()] += 1
+    y = np.broadcast_to(rng.permutation(row), (2, s, n)).copy()
+    return GatePlan(bip, s, 5, 2 * s + 1), y
+
+
+def test_the_float32_boundary_at_2_to_the_24():
+    for s in (1, 3):
+        for total, want in ((2**24 - 1, "float32"), (2**24, "float64"), (2**24 + 1, "float64")):
+            plan, y = _boundary_case(total, s)
+            kern = MatmulCorrelator(plan)
+            got = kern(y)
+            assert set(kern.products) == {want}, (total, s)
+            assert got.tolist() == _exact(plan, y), (total, s)
+            assert (got[:, 0, :] == total).all()
+    # the guard matters: 2^24 + 1 has no float32, so a float32 product there is wrong
+    plan, y = _boundary_case(2**24 + 1)
+    f32 = y[:, 0, :].astype(np.float32) @ plan.bip[0].astype(np.float32)
+    assert (f32.astype(np.int64) != 2**24 + 1).all()
+
+
+def test_float32_bits_zero_and_a_large_y_bound_mean_float64_everywhere():
+    plan, y = _boundary_case(1000)
+    kern = MatmulCorrelator(plan)
+    assert kern(y).tolist() == _exact(plan, y) and set(kern.products) == {"float32"}
+    kern = MatmulCorrelator(GatePlan(plan.bip, 1, 5, 3, float32_bits=0))
+    assert kern(y).tolist() == _exact(kern.plan, y) and set(kern.products) == {"float64"}
+    # y_bound proving float32 for all data: no per-call test, still exact
+    certain = GatePlan(plan.bip, 1, 5, 3, y_bound=(1 << 24) // 97 - 1)
+    assert certain.float32_certain()
+    kern = MatmulCorrelator(certain)
+    assert kern(y).tolist() == _exact(certain, y) and set(kern.products) == {"float32"}
