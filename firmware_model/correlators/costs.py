@@ -47,9 +47,11 @@ __all__ = [
     "COSTS_ENV",
     "DEFAULT_COEFFICIENTS",
     "MEMORY_FLOOR",
+    "MEMORY_HEADROOM",
     "MEMORY_SLACK",
     "RAM_FACTOR",
     "SMALL_ROWS",
+    "TRADE_SPEEDUP",
     "Coefficients",
     "Estimate",
     "cache_path",
@@ -71,6 +73,12 @@ COSTS_ENV = "CDMA_LIDAR_KERNEL_COSTS"
 MEMORY_SLACK = 2.0
 #: ... or at most this many bytes above it (a few MiB more is no reason to run 20x slower).
 MEMORY_FLOOR = 64 << 20
+#: A kernel at least TRADE_SPEEDUP times faster than the best within that cap is taken
+#: anyway when it needs at most MEMORY_HEADROOM bytes more than the leanest: on one-lag
+#: gates with many channels the lean FFT runs 30-200x slower than the direct product,
+#: which needs 2-3.5x its memory but only 0.1-0.7 GiB more (docs/firmware.md).
+TRADE_SPEEDUP = 4.0
+MEMORY_HEADROOM = 1 << 30
 
 _FORMAT = 2  # version of the JSON layout (2: the ram ratio)
 
@@ -200,7 +208,9 @@ def set_coefficients(co: Coefficients | None) -> None:
 
 def choose(estimates: Mapping[str, Estimate], shared: float = 0.0) -> str:
     """The rule of ``"auto"``: the fastest of the kernels within 2x of the leanest's memory
-    (or within :data:`MEMORY_FLOOR`, 64 MiB, of it).
+    (or within :data:`MEMORY_FLOOR`, 64 MiB, of it), unless a kernel at most
+    :data:`MEMORY_HEADROOM` (1 GiB) above the leanest is :data:`TRADE_SPEEDUP` (4) times
+    faster still: then that one (memory is traded for time only when both are worth it).
 
     ``estimates`` maps kernel names (registration order) to their estimates; infinite
     times are skipped. ``shared``: bytes the rest of the chain holds at its peak
@@ -213,10 +223,14 @@ def choose(estimates: Mapping[str, Estimate], shared: float = 0.0) -> str:
     lean = min(e.peak_bytes for e in finite.values()) + shared
     cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
     best, best_t = "", math.inf
+    trade, trade_t = "", math.inf
     for name, e in finite.items():
-        if e.peak_bytes + shared <= cap and e.seconds < best_t:
+        mem = e.peak_bytes + shared
+        if mem <= cap and e.seconds < best_t:
             best, best_t = name, e.seconds
-    return best
+        if mem <= lean + MEMORY_HEADROOM and e.seconds < trade_t:
+            trade, trade_t = name, e.seconds
+    return trade if trade_t * TRADE_SPEEDUP <= best_t else best
 
 
 # -- calibration -------------------------------------------------------------------------

@@ -18,6 +18,8 @@ from cdma_lidar.firmware_model.correlators.costs import (
     COSTS_ENV,
     DEFAULT_COEFFICIENTS,
     MEMORY_FLOOR,
+    MEMORY_HEADROOM,
+    TRADE_SPEEDUP,
     Coefficients,
     Estimate,
     choose,
@@ -44,6 +46,18 @@ def test_small_absolute_memory_differences_do_not_count():
     assert choose(est) == "b"  # 60x the leanest, but only 64 MiB above it
     est["b"] = Estimate(0.5, 1e6 + MEMORY_FLOOR + 1)
     assert choose(est) == "a"
+
+
+def test_memory_is_traded_for_time_only_when_both_are_worth_it():
+    lean = Estimate(40.0, 0.2 * GIB)
+    est = {"lean": lean, "direct": Estimate(1.0, 0.2 * GIB + MEMORY_HEADROOM)}
+    assert choose(est) == "direct"  # 40x faster for at most 1 GiB more: worth it
+    est["direct"] = Estimate(1.0, 0.2 * GIB + MEMORY_HEADROOM + 1)
+    assert choose(est) == "lean"  # over the headroom: never
+    est["direct"] = Estimate(40.0 / TRADE_SPEEDUP * 1.01, 0.8 * GIB)
+    assert choose(est) == "lean"  # under 4x faster: 4x the memory is not worth it
+    est["direct"] = Estimate(40.0 / TRADE_SPEEDUP, 0.8 * GIB)
+    assert choose(est) == "direct"
 
 
 def test_memory_the_rest_of_the_chain_holds_counts_for_every_kernel():

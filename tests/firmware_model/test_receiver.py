@@ -231,11 +231,14 @@ def test_unknown_method_is_a_config_error_listing_the_methods(run):
 
 
 def test_auto_choice_follows_the_cost_estimates():
-    """"auto" is the fastest estimate among kernels within 2x of the leanest memory."""
+    """"auto" is the fastest estimate among kernels within 2x of the leanest memory, or a
+    kernel 4x faster still within 1 GiB of it."""
     from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
     from cdma_lidar.firmware_model.correlators.costs import (
         DEFAULT_COEFFICIENTS,
         MEMORY_FLOOR,
+        MEMORY_HEADROOM,
+        TRADE_SPEEDUP,
         choose,
     )
 
@@ -246,8 +249,12 @@ def test_auto_choice_follows_the_cost_estimates():
         est = estimates(plan, DEFAULT_COEFFICIENTS)
         lean = min(e.peak_bytes for e in est.values())
         cap = max(2 * lean, lean + MEMORY_FLOOR)
-        want = min((e.seconds, i, name) for i, (name, e) in enumerate(est.items())
-                   if e.peak_bytes <= cap)[2]
+        want_t, _, want = min((e.seconds, i, name) for i, (name, e) in enumerate(est.items())
+                              if e.peak_bytes <= cap)
+        trade_t, _, trade = min((e.seconds, i, name) for i, (name, e) in enumerate(est.items())
+                                if e.peak_bytes <= lean + MEMORY_HEADROOM)
+        if trade_t * TRADE_SPEEDUP <= want_t:
+            want = trade
         assert choose_correlator(plan, DEFAULT_COEFFICIENTS) == want == choose(est)
 
 
