@@ -7,8 +7,10 @@ Through a pty and a loopback TCP socket, a DeviceEndpoint streams columns to a
 HostLink scan (gap repair and all); the baseline is the same connection carrying
 the same frame bytes with no protocol. On noisy in-process lines (bit errors both
 ways) the time to a byte-identical scan is reported as a ratio to the clean line with
-the same frame size: 256 and 80 bytes, and frames sized to the line by the host
-(``auto_frame``).
+the same settings: first on a line with a UART's pace (921600 baud, 8N1: the issue's
+targets, time is the line's), frames sized by the host (``auto_frame``) from 16 KB and
+up to 256 bytes; then on the unpaced line (time is the code's), ``auto_frame`` and
+fixed 256- and 80-byte frames.
 """
 
 from __future__ import annotations
