@@ -268,3 +268,16 @@ def limbs(
         shift += h
     out.append((y, shift))
     return out
+
+
+def product_limbs(plan: GatePlan, y: NDArray[np.int64]) -> list[tuple[NDArray[np.int64], int]]:
+    """:func:`limbs` of chip sums ``y`` (..., N) under the per-lag products' rule: a float
+    product with +-1 codes is exact when ``N max|limb| < 2^plan.float_bits`` (proven
+    without a look when ``plan.y_bound`` allows it); low limbs are ``float_bits -
+    bit_length(N)`` bits wide."""
+    n = y.shape[-1]
+    limit = 1 << plan.float_bits
+    if plan.y_bound is not None and n * plan.y_bound < limit:
+        return [(y, 0)]
+    return limbs(y, lambda v: n * int(np.abs(v).max(initial=0)) < limit,
+                 plan.float_bits - n.bit_length())

@@ -23,7 +23,7 @@ from cdma_lidar.firmware_model.correlators.base import (
     BLOCK_BYTES,
     Correlator,
     GatePlan,
-    limbs,
+    product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, stream_bytes
 
@@ -68,20 +68,13 @@ class DirectCorrelator(Correlator):
         plan = self.plan
         c, _, n = y.shape
         k = plan.k
-        limit = 1 << plan.float_bits
-        h = plan.float_bits - n.bit_length()
         block = _block(plan)
         out = np.empty((c, k, plan.count), dtype=np.int64)
-        bound_ok = plan.y_bound is not None and n * plan.y_bound < limit
-
-        def fits(v: NDArray[np.signedinteger]) -> bool:
-            return bound_ok or n * int(np.abs(v).max(initial=0)) < limit
-
         for c0 in range(0, c, block):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
             acc = out[c0 : c0 + cb]
-            parts = limbs(yb, fits, h)
+            parts = product_limbs(plan, yb)
             y2 = np.empty((cb, 2 * n))
             for i, (limb, shift) in enumerate(parts):
                 for r, sel in enumerate(plan.sel):

@@ -37,8 +37,8 @@ from cdma_lidar.firmware_model.correlators.base import (
     BLOCK_BYTES,
     Correlator,
     GatePlan,
-    limbs,
     parallel_columns,
+    product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
     Coefficients,
@@ -266,17 +266,10 @@ class MatmulCorrelator(Correlator):
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan
-        c, _, n = y.shape
+        c = y.shape[0]
         k, count = plan.k, plan.count
-        limit = 1 << plan.float_bits
-        h = plan.float_bits - n.bit_length()
         block = _block(plan)
         out = np.empty((c, k, count), dtype=np.int64)
-        bound_ok = plan.y_bound is not None and n * plan.y_bound < limit
-
-        def fits(v: NDArray[np.signedinteger]) -> bool:
-            return bound_ok or n * int(np.abs(v).max(initial=0)) < limit
-
         for c0 in range(0, c, block):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
@@ -285,7 +278,7 @@ class MatmulCorrelator(Correlator):
             if ops32 is not None:
                 self._run(ops32, dst, np.float32, 0, True, True)
                 continue
-            parts = limbs(yb, fits, h)
+            parts = product_limbs(plan, yb)
             for i, (limb, shift) in enumerate(parts):
                 ops = self._operands(limb, np.float64)
                 self._run(ops, dst, np.float64, shift, len(parts) == 1, i == 0)
