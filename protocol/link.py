@@ -306,6 +306,7 @@ class HostLink:
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         # Repairs are re-asked after the measured round trip, which on a slow line with
         # a queue of repairs may exceed the reply timeout (up to 10 times it).
+        self._logged_from = (0, 0)  # decoder (frames, damaged) when the chunk log was cleared
         self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s, self.timeout_s)
         # A whole column's answer takes its time on the line too: its own estimate.
         self._rto_column = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s,
@@ -418,6 +419,7 @@ class HostLink:
         self.device_frame = min(info.max_frame, host_max)
         if self.auto_frame:  # judge the line from the chunks of this session on
             self.decoder.chunk_log = []
+            self._clear_chunk_log()
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -757,8 +759,9 @@ class HostLink:
         chunks = self.decoder.chunk_log
         if chunks is None:
             return
-        good = sum(1 for _, ok in chunks if ok)
-        bad = len(chunks) - good
+        # The log holds exactly the frames and damaged chunks counted since it was cleared.
+        good = self.decoder.stats.frames - self._logged_from[0]
+        bad = self.decoder.stats.damaged - self._logged_from[1]
         cur = self.device_frame
         ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
         if bad >= 16 and good == 0:
@@ -772,9 +775,9 @@ class HostLink:
             new = min(ceiling, 2 * cur)
         else:
             if len(chunks) > 4096:  # a line that damages almost nothing: judge afresh
-                chunks.clear()
+                self._clear_chunk_log()
             return
-        chunks.clear()
+        self._clear_chunk_log()
         if abs(new - cur) * 10 <= 3 * cur:
             return  # within 30 %: not worth cutting the columns anew
         try:
@@ -785,7 +788,13 @@ class HostLink:
         log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", bad,
                  bad + good, new, cur)
         self.device_frame = new
-        chunks.clear()
+        self._clear_chunk_log()
+
+    def _clear_chunk_log(self) -> None:
+        """Start the line judgement afresh from the next chunk."""
+        assert self.decoder.chunk_log is not None
+        self.decoder.chunk_log.clear()
+        self._logged_from = (self.decoder.stats.frames, self.decoder.stats.damaged)
 
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
