@@ -972,9 +972,10 @@ class HostLink:
         return limit
 
     def _damage_seen(self) -> tuple[int, int]:
-        """Signs that a request or its reply was hit: the device's LINE_ERRORs, and (not
-        in a scan, where most damaged frames are columns) damaged frames here."""
-        return (0 if self._streaming else self.decoder.stats.damaged, self._line_errors)
+        """Signs that a request or its reply was hit: damaged chunks here and the
+        device's LINE_ERRORs. (In a scan, RESEND waits for no reply, so the damaged
+        columns there only hurry the rare awaited request: a STATUS probe, FRAME_SIZE.)"""
+        return (self.decoder.stats.damaged, self._line_errors)
 
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
