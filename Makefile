@@ -1,21 +1,31 @@
 # Two entry points for a fresh Debian machine with Python 3.11 (see README):
-#   make demo   set up .venv and run the main job (scan of a built-in scene on the virtual device)
-#   make test   set up .venv (and Icarus Verilog, libusb) and run every test
-# Both are idempotent: the venv is rebuilt only when pyproject.toml changes.
+#   make demo   set up .venv with the package alone and run the main job (scan of a built-in
+#               scene on the virtual device); the examples/ scripts run in it too
+#   make test   add the test extra (and Icarus Verilog, libusb) and run every test
+# Both are idempotent: each install is redone only when pyproject.toml changes, and the
+# test install (a superset) also satisfies the demo's.
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+HASH   := $(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+BASE   := $(VENV)/.installed-base-$(HASH)
+TESTED := $(VENV)/.installed-test-$(HASH)
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint bench sysdeps clean
 
-$(STAMP): pyproject.toml
-	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
+
+$(BASE): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e .
+	@rm -f $(VENV)/.installed-base-* && touch $@
+
+$(TESTED): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q -e '.[test]'
-	@rm -f $(VENV)/.installed-* && touch $@
+	@rm -f $(VENV)/.installed-* && touch $@ $(BASE)
 
 # Debian packages the tests need: Icarus Verilog (co-simulation) and libusb (Open3D imports it).
 sysdeps:
@@ -24,17 +34,17 @@ sysdeps:
 	if [ -n "$$missing" ]; then $(SUDO) apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null; fi
 
-demo: $(STAMP)
+demo: $(if $(wildcard $(TESTED)),$(TESTED),$(BASE))
 	$(BIN)/cdma-lidar demo --out out/demo
 
-test: $(STAMP) sysdeps
+test: $(TESTED) sysdeps
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-lint: $(STAMP)
+lint: $(TESTED)
 	$(BIN)/ruff check .
 
-bench: $(STAMP)
+bench: $(TESTED)
 	$(BIN)/python -m bench
 
 clean:

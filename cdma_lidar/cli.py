@@ -2,9 +2,13 @@
 
 Each package that has commands provides ``<package>.cli.register(subparsers)``,
 which adds its subcommands and sets ``func`` to a callable ``(args) -> int``;
-:data:`COMMAND_MODULES` lists them in help order. Importing
-:mod:`cdma_lidar.virtual` (through its ``cli``) registers the ``virtual://`` URL
-scheme, so every ``--port`` accepts it.
+:data:`COMMANDS` names, in help order, each command, the module that registers it and
+its one-line help. Only the module of the command being run is imported, so
+``cdma-lidar --help`` and every command start without loading the others (numpy,
+scipy, matplotlib and the study catalogue cost seconds). ``tests/test_cli_startup.py``
+checks that the table says what each module registers. Importing
+:mod:`cdma_lidar.virtual` (a few lines) registers the ``virtual://`` URL scheme, so
+every ``--port`` accepts it.
 
 Error contract (users and tests rely on it): a bad argument, file, port or
 configuration exits with status 2 and exactly one line on stderr that names
@@ -14,29 +18,49 @@ what is wrong and what is allowed. Ctrl-C exits with 130.
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 from collections.abc import Sequence
-from types import ModuleType
+from typing import NamedTuple
 
-from cdma_lidar import __version__, demo
+import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
+from cdma_lidar import __version__
 from cdma_lidar.errors import CdmaLidarError
-from cdma_lidar.firmware_model import cli as codes_cli
-from cdma_lidar.hdl_ref import vectors as hdl_cli
-from cdma_lidar.host import capture as capture_cli
-from cdma_lidar.host import cli as host_cli
-from cdma_lidar.scene import cli as scene_cli
-from cdma_lidar.study import cli as study_cli
-from cdma_lidar.virtual import cli as device_cli
 
-__all__ = ["build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "main"]
 
 log = logging.getLogger("cdma_lidar.cli")
 
-#: Modules that contribute subcommands, in help order: codes; scene; device; info, scan,
-#: calibrate; capture; study; demo; hdl.
-COMMAND_MODULES: tuple[ModuleType, ...] = (codes_cli, scene_cli, device_cli, host_cli, capture_cli,
-                                          study_cli, demo, hdl_cli)
+
+class Command(NamedTuple):
+    """A top-level command: its name, the module whose ``register`` adds it, its help."""
+
+    name: str
+    module: str
+    help: str
+
+
+#: Every top-level command in help order. The module is imported only when its
+#: command runs (or the full parser is built); the help is what ``--help`` lists.
+COMMANDS: tuple[Command, ...] = (
+    Command("codes", "cdma_lidar.firmware_model.cli",
+            "m-sequences, Gold codes, preferred pairs, UIDs"),
+    Command("scene", "cdma_lidar.scene.cli", "built-in scenes and their ground truth"),
+    Command("device", "cdma_lidar.virtual.cli",
+            "serve the virtual device (a simulated instrument) on a pty or TCP port"),
+    Command("info", "cdma_lidar.host.cli", "show a device's identity, geometry and configuration"),
+    Command("scan", "cdma_lidar.host.cli", "scan a device and write a point cloud"),
+    Command("calibrate", "cdma_lidar.host.cli",
+            "measure the system delay on the zeroth-order target"),
+    Command("capture", "cdma_lidar.host.capture",
+            "capture a correlation trace or raw ADC codes of one column (npz, SigMF, plot)"),
+    Command("study", "cdma_lidar.study.cli",
+            "sweeps of the speed/accuracy trade (docs/studies.md)"),
+    Command("demo", "cdma_lidar.demo",
+            "calibrate and scan paper-scene1 on the virtual device, with pictures"),
+    Command("hdl", "cdma_lidar.hdl_ref.vectors", "reference RTL: test vectors"),
+)
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -46,8 +70,17 @@ class _OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The full parser with every package's subcommands registered."""
+def _chosen(argv: Sequence[str]) -> str | None:
+    """The command word of ``argv`` (its first argument not starting with '-'), if any."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``cdma-lidar`` parser.
+
+    ``only``: register just the module of this command (the others are listed with
+    their help and no options); None registers every module.
+    """
     parser = _OneLineParser(
         prog="cdma-lidar",
         description="Identity-enabled CDMA LiDAR toolkit: codes, virtual device, scans.",
@@ -58,14 +91,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_OneLineParser)
     sub.required = True
-    for module in COMMAND_MODULES:
-        module.register(sub)
+    modules = {c.module for c in COMMANDS if only is None or c.name == only}
+    for module in dict.fromkeys(c.module for c in COMMANDS if c.module in modules):
+        importlib.import_module(module).register(sub)
+    for command in COMMANDS:
+        if command.module not in modules:
+            sub.add_parser(command.name, help=command.help, add_help=False)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the process exit status."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    word = _chosen(argv)
+    known = {c.name for c in COMMANDS}
+    parser = build_parser(only=word if word in known else "")
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

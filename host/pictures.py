@@ -11,18 +11,18 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.image import AxesImage
-from matplotlib.ticker import MaxNLocator
 from numpy.typing import NDArray
 
 from cdma_lidar.fileio import atomic_open
 from cdma_lidar.host.pointcloud import PointCloud
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.image import AxesImage
 
 __all__ = ["capture_plot", "depth_image", "snr_heatmap", "snr_heatmaps", "view_3d"]
 
@@ -31,6 +31,10 @@ log = logging.getLogger(__name__)
 
 def _figure(width_in: float, height_in: float) -> Figure:
     """A figure on its own Agg canvas (no pyplot state, safe in threads and tests)."""
+    # deferred: matplotlib costs 0.4 s, which every command would pay at start-up
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure  # (deferred, as above)
+
     fig = Figure(figsize=(width_in, height_in), layout="constrained")
     FigureCanvasAgg(fig)
     return fig
@@ -114,6 +118,8 @@ def view_3d(cloud: PointCloud, path: str | os.PathLike[str]) -> None:
     long on every axis); the front view looks along x (y to the left, z up), as the
     sensor sees the scene.
     """
+    from matplotlib import ticker  # deferred with the rest of matplotlib (see _figure)
+
     ok = cloud.has_range
     fig = _figure(11, 4.8)
     ax = fig.add_subplot(1, 2, 1, projection="3d")
@@ -142,7 +148,7 @@ def view_3d(cloud: PointCloud, path: str | os.PathLike[str]) -> None:
     for i, (axis, setter) in enumerate(zip((ax.xaxis, ax.yaxis, ax.zaxis),
                                            (ax.set_xlabel, ax.set_ylabel, ax.set_zlabel),
                                            strict=True)):
-        axis.set_major_locator(MaxNLocator(3))
+        axis.set_major_locator(ticker.MaxNLocator(3))
         if np.any(ok) and not short[i]:
             # Two ticks near the ends: the label in the middle never sits on one.
             axis.set_ticks(np.round(centre[i] + np.array([-0.3, 0.3]) * box[i], 2))

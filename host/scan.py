@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkError, ScanAborted
 from cdma_lidar.fileio import atomic_open, check_writable
@@ -378,6 +377,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     done_before = state.frame_index * c + int(state.data.done.sum())
     bar = None
     if progress:
+        from tqdm import tqdm  # deferred: 60 ms at start-up for a bar only a scan shows
+
         bar = tqdm(total=total, initial=done_before, unit="col", desc="scan", leave=False,
                    dynamic_ncols=True)
     scanned = 0

@@ -50,7 +50,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int, is_int
@@ -439,6 +438,8 @@ class Instrument:
         rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
         total = self._sum_delayed(f0, m, amps, taus + self._sample_shift_s(cfg),
                                   [rows[i] for i in members])
+        import scipy.fft  # deferred: 130 ms at start-up of every command that loads a scene
+
         return scipy.fft.irfft(total, n=length, overwrite_x=True)
 
     def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],

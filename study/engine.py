@@ -67,8 +67,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.special import stdtrit
-from tqdm import tqdm
 
 from cdma_lidar.errors import ConfigError, LinkError
 from cdma_lidar.fileio import atomic_write_text
@@ -636,10 +634,14 @@ def _ci95(values: np.ndarray) -> float | None:
     if len(finite) < 2:
         return None
     sem = float(np.std(finite, ddof=1) / math.sqrt(len(finite)))
+    from scipy.special import stdtrit  # deferred: scipy costs 0.3 s at start-up
+
     return float(stdtrit(len(finite) - 1, 0.975) * sem)
 
 
 def _progress(total: int, name: str, enabled: bool):  # type: ignore[no-untyped-def]
     if not enabled or total == 0:
         return None
+    from tqdm import tqdm  # deferred: 60 ms at start-up for a bar only a run shows
+
     return tqdm(total=total, desc=f"study {name}", unit="task", dynamic_ncols=True)

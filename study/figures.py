@@ -6,12 +6,13 @@ No pyplot (no global figure state, safe in Dask worker threads and in the CLI).
 from __future__ import annotations
 
 import os
-
-from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+from typing import TYPE_CHECKING
 
 from cdma_lidar.fileio import atomic_open
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 __all__ = ["new_figure", "save_figure"]
 
@@ -19,6 +20,10 @@ __all__ = ["new_figure", "save_figure"]
 def new_figure(width_in: float = 6.0, height_in: float = 4.0, nrows: int = 1,
                ncols: int = 1) -> tuple[Figure, Axes | list[Axes]]:
     """A figure on an Agg canvas and its axes (one Axes, or a flat list for a grid)."""
+    # deferred: matplotlib costs 0.4 s, which `study list` and every start-up would pay
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure  # (deferred, as above)
+
     fig = Figure(figsize=(width_in, height_in))
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, squeeze=False)

@@ -28,8 +28,6 @@ import logging
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.integrate import trapezoid
-from scipy.special import ndtr
 
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.gold import bipolar, gold_codes
@@ -138,6 +136,9 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001) -> float
     the largest |out|, so it is right with probability
     ``integral phi(x - mu) (2 Phi(|x|) - 1)^M dx`` (numerical, on a grid).
     """
+    from scipy.integrate import trapezoid  # deferred: scipy costs 0.3 s at start-up
+    from scipy.special import ndtr  # deferred (as above)
+
     mu = float(np.sqrt(max(snr_ss, 0.0)))
     x = np.linspace(mu - 10.0, mu + 10.0, points)
     pdf = np.exp(-0.5 * (x - mu) ** 2) / np.sqrt(2.0 * np.pi)

@@ -37,7 +37,6 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from scipy import fft as sfft
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text
@@ -274,6 +273,8 @@ def calibrate(repeats: int = 5) -> Coefficients:
     # fft: a batch of real transforms and their inverses, per L log2 L point
     big_l, rows = 1 << 15, 16
     x = rng.random((rows, big_l))
+
+    from scipy import fft as sfft  # deferred: 130 ms at start-up, used only here
 
     def fwd_inv() -> None:
         sfft.irfft(sfft.rfft(x, axis=1), big_l, axis=1)

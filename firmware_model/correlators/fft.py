@@ -14,7 +14,6 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import fft as sfft
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.correlators.base import (
@@ -100,6 +99,8 @@ class FFTCorrelator(Correlator):
         self._spec: NDArray[np.complex128] | None = None
 
     def _spectra(self, k0: int, k1: int) -> NDArray[np.complex128]:
+        from scipy import fft as sfft  # deferred: 130 ms at start-up for one kernel's use
+
         bip = self.plan.bip
         nbytes = self.plan.k * (self.fft_len // 2 + 1) * 16
         if nbytes <= BLOCK_BYTES:
@@ -147,6 +148,8 @@ class FFTCorrelator(Correlator):
         return _blocks(self.plan.k, self.fft_len)
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
+        from scipy import fft as sfft  # deferred: 130 ms at start-up for one kernel's use
+
         plan = self.plan
         c, s, n = y.shape
         big = self.fft_len
