@@ -28,6 +28,7 @@ __all__ = [
     "FrameError",
     "LinkError",
     "LinkTimeout",
+    "MissingExtra",
     "ScanAborted",
     "out_of_range",
 ]
@@ -98,6 +99,17 @@ class CalibrationError(CdmaLidarError):
 
 class ScanAborted(CdmaLidarError):
     """A scan stopped before its last column; the partial file can be resumed."""
+
+
+class MissingExtra(CdmaLidarError, ImportError):
+    """An optional library is not installed; the message names the extra that brings it.
+
+    ``extra`` is the name in ``pip install 'cdma-lidar[EXTRA]'``.
+    """
+
+    def __init__(self, what: str, library: str, extra: str) -> None:
+        super().__init__(f"{what} needs {library}: pip install 'cdma-lidar[{extra}]'")
+        self.extra = extra
 
 
 def out_of_range(field: str, allowed: str, value: object, cls: type[ConfigError] = ConfigError):

@@ -28,11 +28,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdma_lidar.errors import ConfigError
+from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.host.ranging import (
     FLAG_FOREIGN,
     FLAG_GHOST,
@@ -145,6 +146,44 @@ class PointCloud:
         if self.extra.size:
             rec = np.concatenate([rec, self.extra.astype(rec.dtype)])
         return rec
+
+    def to_numpy(self, fields: tuple[str, ...] = ("x", "y", "z"),
+                 keep_rejected: bool = False) -> NDArray[np.float64]:
+        """``(N, len(fields))`` float64 array of the points :meth:`records` holds.
+
+        Default: x y z in m of every point with a range (N rows, one per point, pixels
+        row-major then the extra points), as Open3D, numpy and most LiDAR code take them.
+        Any of :data:`POINT_FIELDS` may be named (``("x", "y", "z", "intensity")``).
+        """
+        names = [name for name, _ in POINT_FIELDS]
+        unknown = [f for f in fields if f not in names]
+        if unknown or not fields:
+            raise ConfigError(f"fields must be some of {', '.join(names)}, not "
+                              f"{list(fields)!r}", field="fields")
+        rec = self.records(keep_rejected)
+        return np.stack([rec[f].astype(np.float64) for f in fields], axis=1)
+
+    def to_open3d(self) -> Any:
+        """The points with a range as an ``open3d.t.geometry.PointCloud`` (tensor API).
+
+        ``positions`` are x y z (m, float32); every other field of :data:`POINT_FIELDS`
+        is an attribute of shape (N, 1) under its own name (``pcd.point.intensity``,
+        ``pcd.point.ring``, ...), as Open3D's own PCD and PLY readers name them.
+        ``.to_legacy()`` gives the ``open3d.geometry.PointCloud`` that
+        ``draw_geometries`` shows. Needs the extra ``open3d``.
+        """
+        try:
+            import open3d as o3d  # optional extra `open3d`: loaded only on the first call
+        except ImportError as exc:
+            raise MissingExtra("PointCloud.to_open3d()", "open3d", "open3d") from exc
+        rec = self.records()
+        pcd = o3d.t.geometry.PointCloud()
+        pcd.point.positions = o3d.core.Tensor(
+            np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float32))
+        for name, dtype in POINT_FIELDS[3:]:
+            column = np.ascontiguousarray(rec[name].astype(np.dtype(dtype).newbyteorder("=")))
+            pcd.point[name] = o3d.core.Tensor(column.reshape(-1, 1))
+        return pcd
 
 
 def assemble(image: RangeImage, geometry: GratingGeometry, wavelengths_m: ArrayLike,

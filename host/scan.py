@@ -309,13 +309,18 @@ def _apply_power(device: Device, controller: NearFarController,
 def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
              *, resume: bool = False, progress: bool = True, pictures_too: bool = False,
              frame_id: int | None = None,
-             on_column: Callable[[int, int], None] | None = None) -> ScanResult:
+             on_column: Callable[[int, int], None] | None = None,
+             on_frame: Callable[[int, PointCloud, NDArray[np.float64]], None] | None = None
+             ) -> ScanResult:
     """Scan, build the point cloud of the last frame and write it to ``out``.
 
     Frame n is requested with frame id ``frame_id + n`` (default: random), which seeds
     the virtual device's noise. ``on_column(frame_index, column)`` is called after each
-    stored column. Raises ScanAborted (after saving the partial scan) when the link is
-    lost; re-raises KeyboardInterrupt after saving.
+    stored column; ``on_frame(frame_index, cloud, power)`` after each finished frame, with
+    its cloud and the (K, C) power matrix it was scanned with (fractions of the per-pixel
+    maximum), e.g. for a live viewer (:mod:`cdma_lidar.host.view`). Raises ScanAborted
+    (after saving the partial scan) when the link is lost; re-raises KeyboardInterrupt
+    after saving.
     """
     out = Path(out)
     if out.suffix.lower() not in FORMATS:
@@ -415,6 +420,8 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                              keep_foreign=options.keep_foreign, stamp_unix_s=stamp)
             clouds.append(cloud)
             images.append(image)
+            if on_frame is not None:
+                on_frame(state.frame_index, cloud, np.broadcast_to(power, (k, c)).copy())
             state.past.append(cloud.grid_records())
             state.stamps.append(stamp)
             if controller is not None:

@@ -3,8 +3,14 @@
 * Every product module imports only the layers below its own (docs/interfaces.md draws
   them). Imports are read with ``ast``, function-local ones included, so a lazy import
   cannot hide a dependency.
-* A function-local import is allowed only for an optional third-party dependency, and
-  says so in a comment on its line or the line above.
+* A function-local import is allowed only for an optional (or heavy, deferred)
+  third-party dependency, and says so in a comment on its line or the line above.
+  ``importlib.import_module("name")`` counts as an import of ``name``.
+* One exception, :data:`LAZY_REEXPORTS`: ``cdma_lidar/__init__.py`` loads the Python
+  quick start (:mod:`cdma_lidar.api`, top layer) on first use of one of its names (PEP
+  562), so ``import cdma_lidar`` stays light and ``cdma_lidar.open(URL)`` works. The
+  CLI loads a command's module by the name in its ``COMMANDS`` table (top layer: it
+  may import every layer).
 * Nothing imports the repository's folder names as top-level packages (``protocol``,
   ``scene``, ...): from the repository root those would resolve to the folders and hide
   a missing ``cdma_lidar.`` prefix.
@@ -47,7 +53,10 @@ ALLOWED: dict[str, set[str]] = {
 }
 
 #: Modules of the cdma_lidar/ folder that sit at the top, composing the others.
-TOP_MODULES = {"cdma_lidar.cli", "cdma_lidar.demo"}
+TOP_MODULES = {"cdma_lidar.cli", "cdma_lidar.demo", "cdma_lidar.api"}
+
+#: (module, name it loads lazily): the only imports allowed against the table.
+LAZY_REEXPORTS = {("cdma_lidar", "cdma_lidar.api")}
 
 #: The repository's folder names, which must never be imported as top-level packages.
 FOLDER_NAMES = {Path(d).name for d in PACKAGE_DIR.values()} - {"cdma_lidar"}
@@ -85,6 +94,14 @@ def _imports(path: Path, module: str) -> list[tuple[str, int, bool]]:
     found = []
     is_package = path.name == "__init__.py"
     for node in ast.walk(tree):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "import_module" and node.args
+                and isinstance(node.args[0], ast.Constant)
+                and isinstance(node.args[0].value, str)):
+            local = any(isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda)
+                        and node in ast.walk(n) for n in ast.walk(tree))
+            found.append((node.args[0].value, node.lineno, local))
+            continue
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -134,6 +151,8 @@ def test_imports_follow_the_layers(module: str, path: Path) -> None:
     bad = []
     for name, line, _local in _imports(path, module):
         top = name.split(".")[0]
+        if (module, name) in LAZY_REEXPORTS:
+            continue
         if top in FOLDER_NAMES:
             bad.append(f"line {line}: imports {name!r}; write cdma_lidar.{name}")
         elif top == "cdma_lidar" and layer_of(name) not in ALLOWED[mine]:
@@ -150,6 +169,8 @@ def test_function_local_imports_are_optional_dependencies_that_say_so(
         if not local:
             continue
         said = "#" in lines[line - 1] or lines[line - 2].strip().startswith("#")
+        if (module, name) in LAZY_REEXPORTS:
+            continue
         if name.split(".")[0] in {"cdma_lidar", *FOLDER_NAMES}:
             bad.append(f"line {line}: function-local import of our own {name}")
         elif not said:
@@ -160,9 +181,11 @@ def test_function_local_imports_are_optional_dependencies_that_say_so(
 def test_the_layering_test_catches_a_bad_import(tmp_path: Path) -> None:
     """The checks above can fail: a protocol module importing the scene is caught."""
     bad = tmp_path / "bad.py"
-    bad.write_text("def f():\n    from cdma_lidar.scene import load_scene\n    import protocol\n")
+    bad.write_text("def f():\n    from cdma_lidar.scene import load_scene\n    import protocol\n"
+                   "    importlib.import_module('cdma_lidar.host')\n")
     found = _imports(bad, "cdma_lidar.protocol.bad")
     assert ("cdma_lidar.scene", 2, True) in found and ("protocol", 3, True) in found
+    assert ("cdma_lidar.host", 4, True) in found
     assert layer_of("cdma_lidar.scene") not in ALLOWED[layer_of("cdma_lidar.protocol.bad")]
     assert layer_of("cdma_lidar.demo") == "cli" and layer_of("cdma_lidar.errors") == "core"
 
@@ -196,3 +219,17 @@ def test_wheel_puts_only_cdma_lidar_at_the_top(tmp_path: Path) -> None:
                  "cdma_lidar/firmware_model/receiver.py",
                  "cdma_lidar/virtual/urlhandler/protocol_virtual.py"):
         assert data in names
+
+
+def test_import_cdma_lidar_loads_only_itself_until_the_api_is_used() -> None:
+    """The lazy re-export: the core loads nothing of ours (nor numpy) at import time."""
+    code = ("import sys, cdma_lidar\n"
+            "before = sorted(m for m in sys.modules if m.startswith(('cdma_lidar', 'numpy')))\n"
+            "import cdma_lidar.api\n"
+            "assert cdma_lidar.open is cdma_lidar.api.open\n"
+            "assert cdma_lidar.scan is cdma_lidar.api.scan\n"
+            "assert set(cdma_lidar.API_NAMES) == set(cdma_lidar.api.__all__)\n"
+            "print(before)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "['cdma_lidar']"
