@@ -27,10 +27,12 @@ $(TESTED): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q -e '.[test]'
 	@rm -f $(VENV)/.installed-* && touch $@ $(BASE)
 
-# Debian packages the tests need: Icarus Verilog (co-simulation) and libusb (Open3D imports it).
+# Debian packages the tests need: Icarus Verilog (co-simulation), libusb (Open3D imports it)
+# and a software Vulkan driver (rerun's headless viewer renders the live view's screenshot).
 sysdeps:
 	@missing=""; command -v iverilog >/dev/null || missing="$$missing iverilog"; \
 	{ /sbin/ldconfig -p 2>/dev/null || ldconfig -p; } | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
+	ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || missing="$$missing mesa-vulkan-drivers"; \
 	if [ -n "$$missing" ]; then $(SUDO) apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null; fi
 

@@ -51,6 +51,8 @@ COMMANDS: tuple[Command, ...] = (
             "serve the virtual device (a simulated instrument) on a pty or TCP port"),
     Command("info", "cdma_lidar.host.cli", "show a device's identity, geometry and configuration"),
     Command("scan", "cdma_lidar.host.cli", "scan a device and write a point cloud"),
+    Command("view", "cdma_lidar.host.cli",
+            "scan a device and watch the cloud, range and SNR_XC images live (rerun)"),
     Command("calibrate", "cdma_lidar.host.cli",
             "measure the system delay on the zeroth-order target"),
     Command("capture", "cdma_lidar.host.capture",

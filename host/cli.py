@@ -1,4 +1,4 @@
-"""The host commands: ``info``, ``scan`` and ``calibrate``.
+"""The host commands: ``info``, ``scan``, ``view`` and ``calibrate``.
 
 Every command checks what it can before it touches the device (output folder
 writable, extension known, numbers in range), so a bad argument costs nothing and
@@ -13,8 +13,10 @@ import importlib.util
 import logging
 import math
 import sys
+import tempfile
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +39,7 @@ from cdma_lidar.host.scan import (
     run_scan,
     state_path,
 )
+from cdma_lidar.host.view import LiveView, add_view_options, view_options, wait_forever
 
 __all__ = ["register"]
 
@@ -133,9 +136,9 @@ def register(subparsers: Any) -> None:
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
     add_port_options(p)
-    p.add_argument("--out", required=True, metavar="FILE",
+    p.add_argument("--out", metavar="FILE",
                    help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
-                        "one message per frame), by extension")
+                        "one message per frame), by extension (required by scan)")
     p.add_argument("--frames", type=int, default=1, metavar="N",
                    help="frames to scan (default 1)")
     p.add_argument("--combine", choices=COMBINE_MODES, default="last",
@@ -179,6 +182,16 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
     p.set_defaults(func=cmd_scan)
+    scan = p
+
+    # view: every scan option (--out optional) and where the live view goes
+    p = subparsers.add_parser(
+        "view", parents=[scan], add_help=False,
+        help="scan a device and watch the cloud, range and SNR_XC images live (rerun)",
+        description="Scan as `scan` does and watch each frame as it arrives: the point "
+                    "cloud, the range and SNR_XC images and the power matrix, in rerun.")
+    add_view_options(p)
+    p.set_defaults(func=cmd_view)
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
@@ -226,9 +239,13 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_scan(args: argparse.Namespace) -> int:
-    """Scan and write the point cloud."""
+def cmd_scan(args: argparse.Namespace,
+             on_frame: Callable[..., None] | None = None) -> int:
+    """Scan and write the point cloud; ``on_frame`` sees each frame (``view``)."""
 
+    if args.out is None:
+        raise ConfigError("scan needs --out FILE (.ply, .pcd, .npz, .las or .mcap)",
+                          field="out")
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:
         raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
@@ -293,7 +310,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         try:
             res = run_scan(dev, out, options, resume=args.resume,
                            progress=not args.no_progress, pictures_too=args.pictures,
-                           frame_id=args.frame_id)
+                           frame_id=args.frame_id, on_frame=on_frame)
         except KeyboardInterrupt:
             sys.stderr.write(f"partial scan saved to {state_path(out)}; run the same command "
                              "with --resume to finish it\n")
@@ -335,8 +352,34 @@ def cmd_scan(args: argparse.Namespace) -> int:
         atomic_write_text(args.save_ghost_map, text)
         _say(f"ghost map: {len(windows)} windows {list(windows)}; wrote {args.save_ghost_map}")
     for f in res.files:
-        _say(f"wrote {f}")
+        if not getattr(args, "temporary_out", False):
+            _say(f"wrote {f}")
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """Scan as ``scan`` does, logging every finished frame to a rerun viewer."""
+    if args.out is None and (args.pictures or args.resume):
+        raise ConfigError("--pictures and --resume need --out FILE in view", field="out")
+    threshold = 16.0 if args.snr_threshold is None else args.snr_threshold
+    live = LiveView(view_options(args, threshold), description=f"cdma-lidar view {args.port}")
+    if live.url:
+        _say(f"web viewer: {live.url}")
+    # Without --out the cloud goes to a temporary file (run_scan writes one); once the
+    # scan is split into open / acquire / finish, view will simply not call finish.
+    with tempfile.TemporaryDirectory(prefix="cdma-lidar-view-") as tmp:
+        if args.out is None:
+            args.out, args.temporary_out = str(Path(tmp) / "view.npz"), True
+        try:
+            code = cmd_scan(args, on_frame=live.log_frame)
+        except BaseException:
+            live.close()
+            raise
+    _say(f"viewed {live.frames} frames" + (f"; recording in {args.save}" if args.save else ""))
+    if live.url:
+        _say("serving the web viewer; Ctrl-C ends it")
+    live.close(wait=wait_forever)
+    return code
 
 
 def _load_ghost_map(path: str) -> list[tuple[int, int]]:

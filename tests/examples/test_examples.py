@@ -35,6 +35,7 @@ EXPECTED = {
     "distance_sweep.py": r"distance m .*\n\s+2\.0\s+\d",
     "study_table.py": r"4 rows, columns: degree, S, snr_db",
     "open3d_cloud.py": r"PointCloud on CPU:0 \[\d+ points",
+    "live_view.py": r"recorded 3 frames to .*near-far\.rrd",
 }
 
 _RUN_WITHOUT = """
@@ -89,15 +90,15 @@ def test_example_runs_in_a_demo_sized_install(name: str, tmp_path: Path) -> None
     assert re.search(EXPECTED[name], proc.stdout), proc.stdout
 
 
-@pytest.mark.parametrize("name", ["open3d_cloud.py"])
+@pytest.mark.parametrize("name", ["open3d_cloud.py", "live_view.py"])
 def test_example_of_an_extra_says_which_extra_and_exits_0_without_it(
         name: str, tmp_path: Path) -> None:
     proc = _run(name, tmp_path, demo_sized=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert re.search(r"skipped: .* needs \w+: pip install 'cdma-lidar\[\w+\]'", proc.stdout)
+    assert re.search(r"skipped: .* needs [\w-]+: pip install 'cdma-lidar\[\w+\]'", proc.stdout)
 
 
-@pytest.mark.parametrize("name", ["open3d_cloud.py"])
+@pytest.mark.parametrize("name", ["open3d_cloud.py", "live_view.py"])
 def test_example_of_an_extra_runs_with_it(name: str, tmp_path: Path) -> None:
     proc = _run(name, tmp_path, demo_sized=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
