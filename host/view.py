@@ -153,7 +153,8 @@ class LiveView:
                          rrb.TensorView(origin="power", name="power (of max)"),
                          rrb.TimeSeriesView(origin="valid_percent", name="valid (%)")),
             column_shares=[3, 2]),
-            rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
+            rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+            rrb.TimePanel(timeline="frame"))
 
     def log_frame(self, index: int, cloud: PointCloud, power: NDArray[np.float64]) -> None:
         """Log one finished frame (the ``on_frame`` signature of ``run_scan``)."""
