@@ -30,7 +30,11 @@ from cdma_lidar.host.cloud_formats import FORMATS, OPTIONAL_LIBRARIES
 from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.intensity import intensity_gain
-from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
+from cdma_lidar.host.ranging import (
+    DEFAULT_SNR_THRESHOLD_DB,
+    ghost_windows_from_image,
+    sample_range_m,
+)
 from cdma_lidar.host.scan import (
     ScanOptions,
     calibrate_device,
@@ -361,7 +365,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     """Scan as ``scan`` does, logging every finished frame to a rerun viewer."""
     if args.out is None and (args.pictures or args.resume):
         raise ConfigError("--pictures and --resume need --out FILE in view", field="out")
-    threshold = 16.0 if args.snr_threshold is None else args.snr_threshold
+    threshold = (DEFAULT_SNR_THRESHOLD_DB if args.snr_threshold is None
+                 else args.snr_threshold)
     live = LiveView(view_options(args, threshold), description=f"cdma-lidar view {args.port}")
     if live.url:
         _say(f"web viewer: {live.url}")

@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.fileio import check_writable
 from cdma_lidar.host.pointcloud import PointCloud
+from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB
 
 __all__ = ["COLOR_BY", "ENTITIES", "LiveView", "ViewOptions", "add_view_options"]
 
@@ -78,7 +79,7 @@ class ViewOptions:
     web: bool = False
     spawn: bool = False
     color_by: str = "range"
-    threshold_db: float = 16.0
+    threshold_db: float = DEFAULT_SNR_THRESHOLD_DB
     grpc_port: int = GRPC_PORT
     web_port: int = WEB_PORT
 
