@@ -112,3 +112,15 @@ def test_a_script_that_needs_the_test_extra_fails_here(tmp_path: Path) -> None:
     code = _RUN_WITHOUT.format(blocked=_blocked(), argv=[str(script)])
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode != 0 and "ModuleNotFoundError" in proc.stderr
+
+
+def test_the_readme_python_block_runs(tmp_path: Path) -> None:
+    """README's "Python" section, as written, in a fresh interpreter."""
+    readme = (ROOT / "README.md").read_text("utf-8")
+    block = re.search(r"## Python\n\n```python\n(.*?)```", readme, re.S)
+    assert block is not None
+    code = block.group(1) + "print(xyz.shape[1], len(table) > 0, 'positions' in pcd.point)\n"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split()[-3:] == ["3", "True", "True"]
