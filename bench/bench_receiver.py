@@ -187,6 +187,25 @@ def paper_frame() -> None:
         equal = all(a.same_as(b) for a, b in zip(rxm.frame(x), want, strict=True))
         print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3, "
               f"{min(tm) / floor:.2f}x the floor), equal to auto: {equal}")
+    gpu_vs_cpu(cfg, codes, x, rx, best)
+
+
+def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray, cpu: FastReceiver,
+               cpu_best: float) -> None:
+    """The "gpu" kernel against the CPU chain on the same frame, when a GPU exists."""
+    if "gpu" not in correlator_methods():
+        print("  GPU vs CPU      : no GPU (CuPy not installed, or no CUDA device found)")
+        return
+    gpu = FastReceiver(cfg, codes, method="gpu", columns=x.shape[0])
+    gpu.frame(x)  # compile and warm up
+    t_gpu, t_cpu = [], []
+    for _ in range(REPEATS):
+        t_gpu += _time(lambda: gpu.frame(x), 1)
+        t_cpu += _time(lambda: cpu.frame(x), 1)
+    equal = all(a.same_as(b) for a, b in zip(gpu.frame(x), cpu.frame(x), strict=True))
+    print(f"  GPU vs CPU      : gpu {min(t_gpu) * 1e3:.2f} ms/frame (copies included), "
+          f"CPU ({cpu.correlator_method}) {min(t_cpu) * 1e3:.2f} ms: "
+          f"{min(t_cpu) / min(t_gpu):.1f}x; equal: {equal}")
 
 
 REPEATS = 9
