@@ -187,11 +187,11 @@ def paper_frame() -> None:
         equal = all(a.same_as(b) for a, b in zip(rxm.frame(x), want, strict=True))
         print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3, "
               f"{min(tm) / floor:.2f}x the floor), equal to auto: {equal}")
-    gpu_vs_cpu(cfg, codes, x, rx, best)
+    gpu_vs_cpu(cfg, codes, x, rx)
 
 
-def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray, cpu: FastReceiver,
-               cpu_best: float) -> None:
+def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray,
+               cpu: FastReceiver) -> None:
     """The "gpu" kernel against the CPU chain on the same frame, when a GPU exists."""
     if "gpu" not in correlator_methods():
         print("  GPU vs CPU      : no GPU (CuPy not installed, or no CUDA device found)")
