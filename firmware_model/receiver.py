@@ -458,9 +458,10 @@ class FastReceiver:
     ``plan`` is the :class:`GatePlan` the kernel was prepared for. ``prepare=False``
     defers building the kernel to the first call (e.g. to look at ``plan`` and the
     estimates of a configuration too large to prepare).
-    ``threads`` (an integer >= 1; default None: ``$CDMA_LIDAR_THREADS`` if set, else the
-    CPUs this process may run on, looked up at every call) is how many threads a call
-    uses in all: column threads times BLAS threads (:func:`.correlators.base.parallel_columns`).
+    ``threads`` (an integer >= 1; default None: :func:`.correlators.base.default_threads`,
+    i.e. ``$CDMA_LIDAR_THREADS``, else ``$OMP_NUM_THREADS``, else the CPUs this process may
+    run on, looked up at every call) is how many threads a call uses in all: column
+    threads times BLAS threads (:func:`.correlators.base.parallel_columns`).
     """
 
     cfg: ReceiverConfig

@@ -262,14 +262,16 @@ def machine_threads() -> int:
 
 def default_threads() -> int:
     """Threads of the receive chain: ``$CDMA_LIDAR_THREADS`` when set, else
-    :func:`machine_threads`. Raises ConfigError naming the variable when it is not an
-    integer >= 1."""
-    env = os.environ.get(THREADS_ENV, "").strip()
-    if not env:
-        return machine_threads()
-    if not env.isdigit() or int(env) < 1:
-        raise out_of_range(THREADS_ENV, "an integer >= 1", env)
-    return int(env)
+    ``$OMP_NUM_THREADS`` (the share Dask's nanny, joblib and batch schedulers give a
+    worker process), else :func:`machine_threads`. Raises ConfigError naming the
+    variable when it is not an integer >= 1."""
+    for name in (THREADS_ENV, "OMP_NUM_THREADS"):
+        env = os.environ.get(name, "").strip()
+        if env:
+            if not env.isdigit() or int(env) < 1:
+                raise out_of_range(name, "an integer >= 1", env)
+            return int(env)
+    return machine_threads()
 
 
 def resolve_threads(threads: int | None) -> int:

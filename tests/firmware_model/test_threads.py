@@ -23,8 +23,11 @@ def _blas_threads() -> int:
 
 def test_default_follows_the_machine_unless_the_variable_is_set(monkeypatch):
     monkeypatch.delenv(base.THREADS_ENV, raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert base.default_threads() == base.machine_threads() >= 1
-    monkeypatch.setenv(base.THREADS_ENV, "3")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # a Dask worker's share
+    assert base.default_threads() == 1
+    monkeypatch.setenv(base.THREADS_ENV, "3")  # ours first
     assert base.default_threads() == 3
     for bad in ("0", "two", "-1", "1.5"):
         monkeypatch.setenv(base.THREADS_ENV, bad)
