@@ -261,16 +261,18 @@ def machine_threads() -> int:
 
 
 def default_threads() -> int:
-    """Threads of the receive chain: ``$CDMA_LIDAR_THREADS`` when set, else
-    ``$OMP_NUM_THREADS`` (the share Dask's nanny, joblib and batch schedulers give a
-    worker process), else :func:`machine_threads`. Raises ConfigError naming the
-    variable when it is not an integer >= 1."""
-    for name in (THREADS_ENV, "OMP_NUM_THREADS"):
-        env = os.environ.get(name, "").strip()
-        if env:
-            if not env.isdigit() or int(env) < 1:
-                raise out_of_range(name, "an integer >= 1", env)
-            return int(env)
+    """Threads of the receive chain: ``$CDMA_LIDAR_THREADS`` when set (ConfigError naming
+    it unless an integer >= 1), else the first entry of ``$OMP_NUM_THREADS`` when it is
+    one (the share Dask's nanny, joblib and batch schedulers give a worker process),
+    else :func:`machine_threads`."""
+    env = os.environ.get(THREADS_ENV, "").strip()
+    if env:
+        if not env.isdigit() or int(env) < 1:
+            raise out_of_range(THREADS_ENV, "an integer >= 1", env)
+        return int(env)
+    omp = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+    if omp.isdigit() and int(omp) >= 1:  # another library's variable: never an error here
+        return int(omp)
     return machine_threads()
 
 

@@ -27,6 +27,10 @@ def test_default_follows_the_machine_unless_the_variable_is_set(monkeypatch):
     assert base.default_threads() == base.machine_threads() >= 1
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # a Dask worker's share
     assert base.default_threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "3,1")  # OpenMP's nested form: the outer level
+    assert base.default_threads() == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "lots")  # not ours to refuse: the machine's
+    assert base.default_threads() == base.machine_threads()
     monkeypatch.setenv(base.THREADS_ENV, "3")  # ours first
     assert base.default_threads() == 3
     for bad in ("0", "two", "-1", "1.5"):
