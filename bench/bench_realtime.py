@@ -33,8 +33,9 @@ from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, cor
 CHIP_RATE_HZ = 1e9
 DEGREE = 13
 CHANNELS = (40, 400, 1000)
-#: Largest batch of periods per call (host memory: (C, K, G + 2) int64 outputs).
+#: Largest batch of periods per call, and of its (C, K, G + 2) int64 outputs (bytes).
 MAX_PERIODS = 1024
+MAX_OUTPUT_BYTES = 1 << 30
 #: A call is timed on a batch grown until it takes about this long (s).
 TARGET_SECONDS = 0.2
 #: The numpy twin is checked against the CPU chain only below this many multiply-adds.
@@ -62,10 +63,12 @@ def _samples(rng: np.random.Generator, periods: int, ns: int) -> np.ndarray:
 
 
 def _batch(rx: FastReceiver, x_one: np.ndarray) -> int:
-    """Periods per call so that a call takes about TARGET_SECONDS (1 .. MAX_PERIODS)."""
+    """Periods per call so that a call takes about TARGET_SECONDS (1 .. MAX_PERIODS, and
+    outputs within MAX_OUTPUT_BYTES)."""
     rx.frame(x_one)  # first use: buffers, thread pool
     t1 = _best(lambda: rx.frame(x_one), 2)
-    return int(np.clip(TARGET_SECONDS / max(t1, 1e-6), 1, MAX_PERIODS))
+    most = min(MAX_PERIODS, max(1, MAX_OUTPUT_BYTES // (8 * rx.plan.k * rx.plan.count)))
+    return int(np.clip(TARGET_SECONDS / max(t1, 1e-6), 1, most))
 
 
 def _row(codes: np.ndarray, gate: int, method: str,
