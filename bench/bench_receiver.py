@@ -24,6 +24,7 @@ The grid of auto's choices is ``bench_kernels``. Run: ``.venv/bin/python -m benc
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import statistics
@@ -35,6 +36,11 @@ import numpy as np
 from scipy import signal
 
 from cdma_lidar.firmware_model.adc import adc_limits, quantise
+from cdma_lidar.firmware_model.correlators import (
+    GPUCorrelator,
+    register_correlator,
+    unregister_correlator,
+)
 from cdma_lidar.firmware_model.correlators import base as correlator_base
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR
@@ -87,6 +93,20 @@ def _scipy_column(codes: np.ndarray, cfg: ReceiverConfig, x: np.ndarray) -> np.n
     return np.clip(res, -top - 1, top)
 
 
+@contextlib.contextmanager
+def cpu_only():
+    """Receivers built inside choose among the CPU kernels ("gpu" unregistered meanwhile),
+    so that "auto" means the CPU chain in a GPU-against-CPU comparison."""
+    gpu = "gpu" in correlator_methods()
+    if gpu:
+        unregister_correlator("gpu")
+    try:
+        yield
+    finally:
+        if gpu:
+            register_correlator("gpu", GPUCorrelator)
+
+
 def _time(fn, repeats: int) -> list[float]:
     times = []
     for _ in range(repeats):
@@ -110,12 +130,14 @@ def paper_frame() -> None:
     codes = _codes(PAPER_PAIR, k)
     n = codes.shape[1]
     x = _columns(codes, cfg, columns, seed=1)
-    rx = FastReceiver(cfg, codes, columns=columns)
-    rx64 = FastReceiver(cfg, codes, columns=columns, float32_bits=0)
+    with cpu_only():  # the CPU chain; the GPU, if any, is compared at the end
+        rx = FastReceiver(cfg, codes, columns=columns)
+        rx64 = FastReceiver(cfg, codes, columns=columns, float32_bits=0)
+        per = FastReceiver(cfg, codes, columns=columns)  # its thread count set per run
     rng = np.random.default_rng(2)
     lo, hi = adc_limits(cfg.adc_bits)
     x_full = np.where(rng.random(x.shape) < 0.5, lo, hi).astype(x.dtype)
-    rx.frame(x[:2])  # warm up BLAS threads
+    rx.frame(x)  # warm up: buffers, threads (every call keeps to the CPU kernel chosen)
     rx.frame(x)
     rx.frame(x_full)
     rx64.frame(x)
@@ -125,7 +147,6 @@ def paper_frame() -> None:
     fa32, fb32 = fa.astype(np.float32), fb.astype(np.float32)
     threads = correlator_base.default_threads()
     counts = range(1, threads + 1)
-    per = FastReceiver(cfg, codes, columns=columns)  # its thread count set per run below
     runs: dict[object, list[float]] = {name: [] for name in ("f64", "full", "floor32")}
     for t in counts:
         runs[t], runs[("floor", t)] = [], []
@@ -146,10 +167,11 @@ def paper_frame() -> None:
         runs["floor32"] += _time(lambda: fa32 @ fb32, 1)
     used = {d: v - before.get(d, 0) for d, v in getattr(kern, "products", {}).items()}
     t_fast = runs[threads]
-    t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
+    with cpu_only():
+        t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
     sub = 8
     t_base = _time(lambda: [_scipy_column(codes, cfg, x[c]) for c in range(sub)], 2)
-    outs = rx.frame(x[:sub])
+    outs = rx.frame(x)[:sub]
     same = all(
         np.array_equal(o.corr, _scipy_column(codes, cfg, x[c])) for c, o in enumerate(outs)
     )
