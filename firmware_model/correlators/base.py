@@ -30,6 +30,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import ThreadpoolController
 
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.correlators import costs
@@ -289,9 +290,7 @@ def resolve_threads(threads: int | None) -> int:
 def blas_threads(n: int) -> Iterator[None]:
     """Limit the BLAS libraries (OpenBLAS, MKL, ...) to ``n`` threads for the duration
     (threadpoolctl; restored after). Process-wide: BLAS has no per-thread setting."""
-    if not _BLAS:
-        from threadpoolctl import ThreadpoolController
-
+    if not _BLAS:  # made on first use: it lists the BLAS libraries loaded by then
         _BLAS.append(ThreadpoolController())
     with _BLAS[0].limit(limits=n, user_api="blas"):
         yield

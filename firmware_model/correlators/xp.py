@@ -58,7 +58,7 @@ GPU_CALL_S = 2e-4
 
 def _require_compat() -> ModuleType:
     try:
-        import array_api_compat
+        import array_api_compat  # optional (extra "gpu"): only the array-API kernels need it
     except ImportError as exc:  # an optional dependency: say how to get it
         raise ImportError("the array-API correlators need array-api-compat: "
                           "pip install 'cdma-lidar[gpu]'") from exc
@@ -76,6 +76,7 @@ class XPCorrelator(Correlator):
     def namespace(cls) -> ModuleType:
         """The array namespace the kernel computes in (``array_api_compat.numpy``)."""
         _require_compat()
+        # optional dependency, checked just above with a message naming the extra
         import array_api_compat.numpy as xnp
 
         return xnp
@@ -108,7 +109,7 @@ class XPCorrelator(Correlator):
         return out, xp.float64
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
-        import array_api_compat
+        import array_api_compat  # optional: present, or __init__ would have raised
 
         xp, plan = self.xp, self.plan
         c, s, n = y.shape
@@ -145,7 +146,7 @@ def gpu_available() -> bool:
         log.warning("CUPY_TF32 is set: the gpu correlator is not registered (TF32 is inexact)")
         return False
     try:
-        import cupy
+        import cupy  # optional (extra "gpu"), installed: find_spec saw it
 
         return cupy.cuda.runtime.getDeviceCount() > 0
     except Exception as exc:  # no driver, no device: the CPU kernels remain
@@ -162,6 +163,8 @@ class GPUCorrelator(XPCorrelator):
     def namespace(cls) -> ModuleType:
         """``array_api_compat.cupy``."""
         _require_compat()
+        # optional dependencies (extra "gpu"): array-api-compat checked above, CuPy
+        # present since gpu_available() registered this kernel
         import array_api_compat.cupy as xcp
 
         return xcp
