@@ -1,13 +1,13 @@
 """Receive chain benchmark: the paper frame against the machine's GEMM floor, and per-kernel tables.
 
 1. Paper frame: K = 40 degree-11 Gold codes, S = 4, R = 10, 160 columns, 64-lag
-   gate (12-bit ADC). ``FastReceiver.frame`` interleaved with the same frame with the
-   column passes in one thread (``correlators.base._THREADS = 1``), with float32
-   products switched off (``float32_bits=0``), with full-scale data (every sample at an
-   ADC rail: chip sums far beyond float32's exact range, so float64 products), and
-   with the GEMM floors: one bare float64 product doing the frame's multiply-adds (160 x
-   2047 x 40 x 66 = 0.865 G; the issue's floor, target <= 1.5) and the same product in
-   float32, best of 9 each, every ratio within the run. Also the real-time factor against
+   gate (12-bit ADC). ``FastReceiver(threads=t).frame`` for every thread count t = 1 ..
+   the machine's, each interleaved with its GEMM floor: one bare float64 product doing
+   the frame's multiply-adds (160 x 2047 x 40 x 66 = 0.865 G; the issue's floor, target
+   <= 1.5) with BLAS limited to t threads; then, at the machine's thread count, float32
+   products switched off (``float32_bits=0``), full-scale data (every sample at an ADC
+   rail: chip sums far beyond float32's exact range, so float64 products) and the
+   float32 floor; best of 9 each, every ratio within the run. Also the real-time factor against
    the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms), the plan
    build, and ``scipy.signal.correlate`` per channel and column (circular, on the
    R-summed period) on 8 columns scaled to the frame, its gated values checked equal.
@@ -24,6 +24,7 @@ The grid of auto's choices is ``bench_kernels``. Run: ``.venv/bin/python -m benc
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import statistics
@@ -35,6 +36,11 @@ import numpy as np
 from scipy import signal
 
 from cdma_lidar.firmware_model.adc import adc_limits, quantise
+from cdma_lidar.firmware_model.correlators import (
+    GPUCorrelator,
+    register_correlator,
+    unregister_correlator,
+)
 from cdma_lidar.firmware_model.correlators import base as correlator_base
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR
@@ -87,6 +93,20 @@ def _scipy_column(codes: np.ndarray, cfg: ReceiverConfig, x: np.ndarray) -> np.n
     return np.clip(res, -top - 1, top)
 
 
+@contextlib.contextmanager
+def cpu_only():
+    """Receivers built inside choose among the CPU kernels ("gpu" unregistered meanwhile),
+    so that "auto" means the CPU chain in a GPU-against-CPU comparison."""
+    gpu = "gpu" in correlator_methods()
+    if gpu:
+        unregister_correlator("gpu")
+    try:
+        yield
+    finally:
+        if gpu:
+            register_correlator("gpu", GPUCorrelator)
+
+
 def _time(fn, repeats: int) -> list[float]:
     times = []
     for _ in range(repeats):
@@ -110,12 +130,14 @@ def paper_frame() -> None:
     codes = _codes(PAPER_PAIR, k)
     n = codes.shape[1]
     x = _columns(codes, cfg, columns, seed=1)
-    rx = FastReceiver(cfg, codes, columns=columns)
-    rx64 = FastReceiver(cfg, codes, columns=columns, float32_bits=0)
+    with cpu_only():  # the CPU chain; the GPU, if any, is compared at the end
+        rx = FastReceiver(cfg, codes, columns=columns)
+        rx64 = FastReceiver(cfg, codes, columns=columns, float32_bits=0)
+        per = FastReceiver(cfg, codes, columns=columns)  # its thread count set per run
     rng = np.random.default_rng(2)
     lo, hi = adc_limits(cfg.adc_bits)
     x_full = np.where(rng.random(x.shape) < 0.5, lo, hi).astype(x.dtype)
-    rx.frame(x[:2])  # warm up BLAS threads
+    rx.frame(x)  # warm up: buffers, threads (every call keeps to the CPU kernel chosen)
     rx.frame(x)
     rx.frame(x_full)
     rx64.frame(x)
@@ -123,53 +145,57 @@ def paper_frame() -> None:
     # the floor: one bare float64 product doing the frame's multiply-adds (4C x N x K(G+2)/4)
     fa, fb = _floor_product(4 * columns, n, k * (cfg.gate_len + 2) // 4)
     fa32, fb32 = fa.astype(np.float32), fb.astype(np.float32)
-    threads = correlator_base._THREADS
-    runs: dict[str, list[float]] = {name: [] for name in
-                                    ("fast", "one", "f64", "full", "floor", "floor32")}
-    kern = rx.kernel_for(columns)
+    threads = correlator_base.default_threads()
+    counts = range(1, threads + 1)
+    runs: dict[object, list[float]] = {name: [] for name in ("f64", "full", "floor32")}
+    for t in counts:
+        runs[t], runs[("floor", t)] = [], []
+
+    def floor_at(t: int) -> None:
+        with correlator_base.blas_threads(t):
+            fa @ fb
+
+    kern = per.kernel_for(columns)
     before = dict(getattr(kern, "products", {}))
     for _ in range(REPEATS):
-        runs["fast"] += _time(lambda: rx.frame(x), 1)
-        correlator_base._THREADS = 1  # the column passes in the calling thread (A/B)
-        try:
-            runs["one"] += _time(lambda: rx.frame(x), 1)
-        finally:
-            correlator_base._THREADS = threads
+        for t in counts:
+            per.threads = t
+            runs[t] += _time(lambda: per.frame(x), 1)
+            runs[("floor", t)] += _time(lambda t=t: floor_at(t), 1)
         runs["f64"] += _time(lambda: rx64.frame(x), 1)
         runs["full"] += _time(lambda: rx.frame(x_full), 1)
-        runs["floor"] += _time(lambda: fa @ fb, 1)
         runs["floor32"] += _time(lambda: fa32 @ fb32, 1)
     used = {d: v - before.get(d, 0) for d, v in getattr(kern, "products", {}).items()}
-    t_fast, t_one = runs["fast"], runs["one"]
-    t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
+    t_fast = runs[threads]
+    with cpu_only():
+        t_plan = _time(lambda: FastReceiver(cfg, codes, columns=columns), 3)
     sub = 8
     t_base = _time(lambda: [_scipy_column(codes, cfg, x[c]) for c in range(sub)], 2)
-    outs = rx.frame(x[:sub])
+    outs = rx.frame(x)[:sub]
     same = all(
         np.array_equal(o.corr, _scipy_column(codes, cfg, x[c])) for c, o in enumerate(outs)
     )
     acq = columns * cfg.averages * n / CHIP_RATE_HZ
-    best, med, floor = min(t_fast), statistics.median(t_fast), min(runs["floor"])
+    best, med, floor = min(t_fast), statistics.median(t_fast), min(runs[("floor", threads)])
     floor32 = min(runs["floor32"])
     base_frame = min(t_base) / sub * columns
     print(f"paper frame: K={k} N={n} S=4 R=10 columns={columns} gate=64 "
           f"({x.size / 1e6:.1f} M samples, correlator={rx.correlator_method}), "
           f"best of {REPEATS} interleaved; kernel products in the loop: {used}")
-    print(f"  fast path       : {best * 1e3:8.1f} ms/frame (median {med * 1e3:.1f} ms, "
-          f"{threads} column threads)")
-    print(f"  ... 1 thread    : {min(t_one) * 1e3:8.1f} ms/frame "
-          f"(median {statistics.median(t_one) * 1e3:.1f} ms)")
-    print(f"  ... float64 only: {min(runs['f64']) * 1e3:8.1f} ms/frame (float32_bits=0)")
+    print(f"  GEMM floor: ({fa.shape[0]}x{n})@({n}x{fb.shape[1]}) float64 = the frame's "
+          f"{macs / 1e9:.3f} G multiply-adds, BLAS limited to the same threads "
+          "(target: frame / floor <= 1.5 at every thread count)")
+    print(f"  {'threads':>7} {'frame ms':>9} {'median':>7} {'floor ms':>9} {'ratio':>6} "
+          f"{'GFLOP/s':>8}")
+    for t in counts:
+        ft, fl = min(runs[t]), min(runs[("floor", t)])
+        print(f"  {t:>7} {ft * 1e3:9.1f} {statistics.median(runs[t]) * 1e3:7.1f} "
+              f"{fl * 1e3:9.1f} {ft / fl:6.2f} {2 * macs / fl / 1e9:8.0f}")
+    print(f"  float64 only    : {min(runs['f64']) * 1e3:8.1f} ms/frame (float32_bits=0), "
+          f"{min(runs['f64']) / floor:.2f}x the float64 floor ({threads} threads)")
     print(f"  full-scale data : {min(runs['full']) * 1e3:8.1f} ms/frame (every sample at an "
-          "ADC rail: float64 products)")
-    print(f"  GEMM floor      : {floor * 1e3:8.1f} ms ({fa.shape[0]}x{n})@({n}x{fb.shape[1]}) "
-          f"float64 = the frame's {macs / 1e9:.3f} G multiply-adds "
-          f"({2 * macs / floor / 1e9:.0f} GFLOP/s); float32: {floor32 * 1e3:.1f} ms")
-    print(f"  fast / floor    : {best / floor:8.2f}x with {threads} column threads, "
-          f"{min(t_one) / floor:.2f}x with 1 (target <= 1.5); "
-          f"{best / floor32:.2f}x / {min(t_one) / floor32:.2f}x the float32 floor")
-    print(f"  float64 only    : {min(runs['f64']) / floor:8.2f}x the float64 floor; "
-          f"full-scale data {min(runs['full']) / floor:.2f}x")
+          f"ADC rail: float64 products), {min(runs['full']) / floor:.2f}x")
+    print(f"  float32 floor   : {floor32 * 1e3:8.1f} ms: the frame is {best / floor32:.2f}x it")
     print(f"  plan build      : {min(t_plan) * 1e3:8.1f} ms (once per config; fast() keeps it)")
     print(f"  scipy.correlate : {base_frame * 1e3:8.1f} ms/frame "
           f"(measured on {sub} columns: {min(t_base) / sub * 1e3:.1f} ms/column)")
@@ -183,6 +209,25 @@ def paper_frame() -> None:
         equal = all(a.same_as(b) for a, b in zip(rxm.frame(x), want, strict=True))
         print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3, "
               f"{min(tm) / floor:.2f}x the floor), equal to auto: {equal}")
+    gpu_vs_cpu(cfg, codes, x, rx)
+
+
+def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray,
+               cpu: FastReceiver) -> None:
+    """The "gpu" kernel against the CPU chain on the same frame, when a GPU exists."""
+    if "gpu" not in correlator_methods():
+        print("  GPU vs CPU      : no GPU (CuPy not installed, or no CUDA device found)")
+        return
+    gpu = FastReceiver(cfg, codes, method="gpu", columns=x.shape[0])
+    gpu.frame(x)  # compile and warm up
+    t_gpu, t_cpu = [], []
+    for _ in range(REPEATS):
+        t_gpu += _time(lambda: gpu.frame(x), 1)
+        t_cpu += _time(lambda: cpu.frame(x), 1)
+    equal = all(a.same_as(b) for a, b in zip(gpu.frame(x), cpu.frame(x), strict=True))
+    print(f"  GPU vs CPU      : gpu {min(t_gpu) * 1e3:.2f} ms/frame (copies included), "
+          f"CPU ({cpu.correlator_method}) {min(t_cpu) * 1e3:.2f} ms: "
+          f"{min(t_cpu) / min(t_gpu):.1f}x; equal: {equal}")
 
 
 REPEATS = 9
@@ -279,7 +324,9 @@ def kernel_tables() -> None:
 
 
 def main() -> None:
-    print(f"cores: {os.cpu_count()}, load average: {os.getloadavg()[0]:.2f}")
+    print(f"cores: {os.cpu_count()} ({correlator_base.machine_threads()} usable, receive chain "
+          f"threads {correlator_base.default_threads()}), load average: "
+          f"{os.getloadavg()[0]:.2f}")
     paper_frame()
     kernel_tables()
 

@@ -39,6 +39,7 @@ import logging
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -57,7 +58,11 @@ from cdma_lidar.firmware_model.correlators import (
     make_correlator,
     registry_version,
 )
-from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES, parallel_columns
+from cdma_lidar.firmware_model.correlators.base import (
+    BLOCK_BYTES,
+    parallel_columns,
+    resolve_threads,
+)
 from cdma_lidar.firmware_model.correlators.chip_domain import chip_sums, correlate_at, int_type
 from cdma_lidar.firmware_model.output import ReceiverOutput, saturated_flags
 from cdma_lidar.rounding import ROUNDING_MODES, Rounding
@@ -453,6 +458,10 @@ class FastReceiver:
     ``plan`` is the :class:`GatePlan` the kernel was prepared for. ``prepare=False``
     defers building the kernel to the first call (e.g. to look at ``plan`` and the
     estimates of a configuration too large to prepare).
+    ``threads`` (an integer >= 1; default None: :func:`.correlators.base.default_threads`,
+    i.e. ``$CDMA_LIDAR_THREADS``, else ``$OMP_NUM_THREADS``, else the CPUs this process may
+    run on, looked up at every call) is how many threads a call uses in all: column
+    threads times BLAS threads (:func:`.correlators.base.parallel_columns`).
     """
 
     cfg: ReceiverConfig
@@ -462,11 +471,14 @@ class FastReceiver:
     columns: int = 1
     float32_bits: int = 24
     prepare: bool = True
+    threads: int | None = None
     widths: Widths = field(init=False)
 
     def __post_init__(self) -> None:
         bits = check_codes(self.codes)
         self.codes = bits
+        if self.threads is not None:
+            self.threads = resolve_threads(self.threads)
         cfg = self.cfg
         self.n_chips = int(bits.shape[1])
         self.widths = cfg.widths(self.n_chips)
@@ -580,23 +592,20 @@ class FastReceiver:
         if x.dtype.itemsize > np.dtype(acc_type).itemsize:
             acc_type = np.int64  # a narrower sum would need a converted copy of the input
         acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
-        w = np.empty((c, self._ns), dtype=self._y_type)
         info = np.iinfo(x.dtype)
         check = info.min < self._lo or info.max > self._hi  # else the dtype is the range
         # about 1 MiB of input per step: the range check's two reductions and the sum
         # over the R repetitions then read it from the cache, not three times from memory
         step = max(1, (1 << 20) // max(1, x.shape[1] * x.dtype.itemsize))
 
-        def prepare(c0: int, c1: int) -> None:  # check, accumulate, despread, chip sums
+        def accumulate(c0: int, c1: int) -> None:  # range check and R-sum, columns c0..c1-1
             for b0 in range(c0, c1, step):
                 xb = x[b0 : min(c1, b0 + step)]
                 if check and xb.size:
                     self._check_range(xb)
                 self._accumulate_into(xb, acc[b0 : b0 + len(xb)])
-            self._chip_domain(acc[c0:c1], w[c0:c1])
 
-        parallel_columns(prepare, c, x.size)
-        return self._correlate_and_post(acc, w)
+        return self._chain(acc, accumulate, x.size)
 
     def _check_samples(self, samples: NDArray[np.integer], shape: bool = True,
                        values: bool = True) -> None:
@@ -654,9 +663,40 @@ class FastReceiver:
         return self._finish(a)
 
     def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
-        w = np.empty((a.shape[0], self._ns), dtype=self._y_type)
-        parallel_columns(lambda c0, c1: self._chip_domain(a[c0:c1], w[c0:c1]), a.shape[0], a.size)
-        return self._correlate_and_post(a, w)
+        return self._chain(a, lambda c0, c1: None, a.size)
+
+    def _chain(self, acc: NDArray[np.signedinteger], accumulate: Callable[[int, int], None],
+               size: int) -> list[ReceiverOutput]:
+        """The chain after ``accumulate(c0, c1)`` has filled ``acc[c0:c1]`` (C, n, NS).
+
+        The columns are split into :attr:`threads` contiguous ranges, each run through
+        the whole chain (R-sum, despread, chip sums, the kernel, scaling, peaks) in its
+        own thread with BLAS limited to its share of the threads: no pass waits for
+        another range, and column threads times BLAS threads never exceed
+        :attr:`threads`. A ``whole_frame`` kernel (one batched call, a GPU) runs once
+        between the two halves instead.
+        """
+        c, s, n = acc.shape[0], self.cfg.samples_per_chip, self.n_chips
+        w = np.empty((c, self._ns), dtype=self._y_type)
+        kernel = self.kernel_for(c)
+        parts: dict[int, list[ReceiverOutput]] = {}
+
+        def chips(c0: int, c1: int) -> NDArray[np.signedinteger]:
+            accumulate(c0, c1)
+            self._chip_domain(acc[c0:c1], w[c0:c1])
+            return w[c0:c1].reshape(c1 - c0, n, s).transpose(0, 2, 1)  # (C, S, N), a view
+
+        def post(c0: int, c1: int, raw: NDArray[np.int64]) -> None:
+            parts[c0] = self._post(raw, self._scale_raw(raw), acc[c0:c1])
+
+        if kernel.whole_frame:
+            parallel_columns(chips, c, size, self.threads)
+            raw_all = kernel(w.reshape(c, n, s).transpose(0, 2, 1))
+            parallel_columns(lambda c0, c1: post(c0, c1, raw_all[c0:c1]), c, size, self.threads)
+        else:
+            parallel_columns(lambda c0, c1: post(c0, c1, kernel(chips(c0, c1))), c, size,
+                             self.threads)
+        return [o for c0 in sorted(parts) for o in parts[c0]]
 
     def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger]) -> None:
         """Despread the accumulators ``a`` (C, n, NS) and write the window sums into ``w``."""
@@ -672,24 +712,12 @@ class FastReceiver:
                     d -= a[:, p, :]
         chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w)
 
-    def _correlate_and_post(self, a: NDArray[np.signedinteger],
-                            w: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
-        cfg = self.cfg
-        c = a.shape[0]
-        s = cfg.samples_per_chip
-        y = w.reshape(c, self.n_chips, s).transpose(0, 2, 1)  # (C, S, N) chip sums, a view
-        raw = self.kernel_for(c)(y)  # (C, K, G+2) int64
+    def _scale_raw(self, raw: NDArray[np.int64]) -> NDArray[np.int64]:
+        """``out`` of the kernel's ``raw``: ``raw`` itself when the scaling is the identity."""
         if self._identity_scale:
-            out = raw
-        else:
-            out = _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
-        parts: dict[int, list[ReceiverOutput]] = {}
-
-        def post(c0: int, c1: int) -> None:
-            parts[c0] = self._post(raw[c0:c1], out[c0:c1], a[c0:c1])
-
-        parallel_columns(post, c, raw.size * 4)
-        return [o for c0 in sorted(parts) for o in parts[c0]]
+            return raw
+        cfg = self.cfg
+        return _scale(raw, cfg.out_shift, cfg.rounding, cfg.out_bits)
 
     # -- peak search, neighbours, noise floor, UID signs (vectorised over columns and channels)
 

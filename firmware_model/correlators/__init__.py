@@ -7,7 +7,12 @@ ties to the first registered) and
 every registered kernel name, in registration order. Built in:
 
 * ``"matmul"`` (:mod:`.matmul`): exact float64 Hankel products, limbs for the 2^53 bound;
-* ``"fft"`` (:mod:`.fft`): power-of-two real FFTs rounded under a rigorous error bound.
+* ``"fft"`` (:mod:`.fft`): power-of-two real FFTs rounded under a rigorous error bound;
+* ``"direct"`` (:mod:`.direct`): one thin product per gated lag, little memory;
+* ``"xp"`` (:mod:`.xp`, when ``array-api-compat`` is installed): the array-API kernel
+  on numpy, never chosen by ``"auto"``: the CI twin of ``"gpu"``;
+* ``"gpu"`` (:mod:`.xp`, when CuPy imports and finds a CUDA device): the same code on
+  CuPy, one batched call per frame; ``"auto"`` takes it where its estimate is faster.
 
 Adding a kernel (a GPU one, a bit-packed one) is one module: subclass
 :class:`Correlator` (``__init__(plan)``, ``__call__(y) -> raw``, optionally ``estimate``),
@@ -18,6 +23,8 @@ the streaming reference.
 """
 
 from __future__ import annotations
+
+import importlib.util
 
 from cdma_lidar.firmware_model.correlators.base import (
     AUTO,
@@ -34,22 +41,30 @@ from cdma_lidar.firmware_model.correlators.base import (
 from cdma_lidar.firmware_model.correlators.direct import DirectCorrelator
 from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
 from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
+from cdma_lidar.firmware_model.correlators.xp import GPUCorrelator, XPCorrelator, gpu_available
 
 # The built-in kernels, in this order: it is auto's tie-break (equal costs -> matmul).
 register_correlator("matmul", MatmulCorrelator)
 register_correlator("fft", FFTCorrelator)
 register_correlator("direct", DirectCorrelator)
+if importlib.util.find_spec("array_api_compat") is not None:  # the optional extra [gpu]
+    register_correlator("xp", XPCorrelator)
+    if gpu_available():
+        register_correlator("gpu", GPUCorrelator)
 
 __all__ = [
     "AUTO",
     "Correlator",
     "DirectCorrelator",
     "FFTCorrelator",
+    "GPUCorrelator",
     "GatePlan",
     "MatmulCorrelator",
+    "XPCorrelator",
     "choose_correlator",
     "correlator_methods",
     "estimates",
+    "gpu_available",
     "make_correlator",
     "register_correlator",
     "registry_version",

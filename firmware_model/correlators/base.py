@@ -18,16 +18,19 @@ streaming reference or it is a bug.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
 import os
+import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import ThreadpoolController
 
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.correlators import costs
@@ -36,16 +39,21 @@ from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate
 __all__ = [
     "AUTO",
     "BLOCK_BYTES",
+    "THREADS_ENV",
     "Correlator",
     "GatePlan",
+    "blas_threads",
     "choose_correlator",
     "correlator_methods",
+    "default_threads",
     "estimates",
     "limbs",
+    "machine_threads",
     "make_correlator",
     "parallel_columns",
     "register_correlator",
     "registry_version",
+    "resolve_threads",
     "unregister_correlator",
 ]
 
@@ -129,7 +137,16 @@ class Correlator(ABC):
     Subclasses implement ``__init__(plan)`` (build whatever the plan allows to
     precompute: Hankel blocks, spectra, ...), ``__call__(y)`` and, to take part in
     ``method="auto"``, :meth:`estimate`.
+
+    The receiver runs a frame's columns in contiguous ranges over its threads, each
+    range through the whole chain (chip sums, this kernel, peaks) with BLAS limited to
+    its share of the threads, so ``__call__`` must be thread-safe. A kernel that sets
+    ``whole_frame = True`` (a GPU: one batched launch, one copy) is instead called once
+    with every column, from the calling thread.
     """
+
+    #: called once per frame with every column (else once per column range and thread)
+    whole_frame: bool = False
 
     def __init__(self, plan: GatePlan) -> None:
         self.plan = plan
@@ -223,31 +240,101 @@ def make_correlator(method: str, plan: GatePlan) -> Correlator:
     return kernel
 
 
-#: Columns are split across this many threads for the passes outside the kernel (numpy
-#: releases the GIL in them); the kernels' BLAS and FFT calls use their own threads.
-_THREADS = max(1, min(4, os.cpu_count() or 1))
-#: Below this many elements per call the passes run in the calling thread.
+#: Environment variable that sets the receive chain's thread count (an integer >= 1).
+THREADS_ENV = "CDMA_LIDAR_THREADS"
+#: Below this many elements per call the column work runs in the calling thread.
 _PARALLEL_MIN = 1 << 18
-_POOL: ThreadPoolExecutor | None = None
+_POOL: list[tuple[ThreadPoolExecutor, int]] = []  # (the pool, its size): made, grown on demand
+_POOL_LOCK = threading.Lock()
+_WORKER = threading.local()  # .inside: this thread is running a column task
+_BLAS: list = []  # the threadpoolctl controller, made on first use
 
 
-def parallel_columns(task: Callable[[int, int], None], columns: int, size: int) -> None:
+def machine_threads() -> int:
+    """The CPUs this process may run on (its affinity mask; ``os.cpu_count`` elsewhere)."""
+    count = getattr(os, "process_cpu_count", None)  # Python 3.13+
+    if count is not None:
+        return max(1, count() or 1)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def default_threads() -> int:
+    """Threads of the receive chain: ``$CDMA_LIDAR_THREADS`` when set (ConfigError naming
+    it unless an integer >= 1), else the first entry of ``$OMP_NUM_THREADS`` when it is
+    one (the share Dask's nanny, joblib and batch schedulers give a worker process),
+    else :func:`machine_threads`."""
+    env = os.environ.get(THREADS_ENV, "").strip()
+    if env:
+        if not env.isdigit() or int(env) < 1:
+            raise out_of_range(THREADS_ENV, "an integer >= 1", env)
+        return int(env)
+    omp = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+    if omp.isdigit() and int(omp) >= 1:  # another library's variable: never an error here
+        return int(omp)
+    return machine_threads()
+
+
+def resolve_threads(threads: int | None) -> int:
+    """``threads`` checked (an integer >= 1), or :func:`default_threads` for None."""
+    if threads is None:
+        return default_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1:
+        raise out_of_range("threads", "an integer >= 1 or None (the machine's)", threads)
+    return int(threads)
+
+
+@contextlib.contextmanager
+def blas_threads(n: int) -> Iterator[None]:
+    """Limit the BLAS libraries (OpenBLAS, MKL, ...) to ``n`` threads for the duration
+    (threadpoolctl; restored after). Process-wide: BLAS has no per-thread setting."""
+    if not _BLAS:  # made on first use: it lists the BLAS libraries loaded by then
+        _BLAS.append(ThreadpoolController())
+    with _BLAS[0].limit(limits=n, user_api="blas"):
+        yield
+
+
+def parallel_columns(task: Callable[[int, int], None], columns: int, size: int,
+                     threads: int | None = None) -> None:
     """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
 
-    Several threads when the work is large enough and there are several columns,
-    else one call in the calling thread. Exceptions propagate.
+    ``min(threads, columns)`` ranges in as many threads when ``size`` (the elements the
+    call touches) is at least 2^18, else one call in the calling thread, as is a call
+    from inside a task (no nesting). The BLAS libraries are limited to
+    ``threads // ranges`` threads meanwhile, so that column threads times BLAS threads
+    never exceed ``threads`` (default :func:`default_threads`). Exceptions propagate.
     """
-    global _POOL
-    parts = min(_THREADS, columns)
-    if parts <= 1 or size < _PARALLEL_MIN:
+    threads = resolve_threads(threads)
+    if getattr(_WORKER, "inside", False):
         task(0, columns)
         return
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="cdma-rx")
-    bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
-    futures = [_POOL.submit(task, c0, c1) for c0, c1 in itertools.pairwise(bounds)]
-    for f in futures:
-        f.result()
+    parts = min(threads, columns) if size >= _PARALLEL_MIN else 1
+    with blas_threads(max(1, threads // max(1, parts))):
+        if parts <= 1:
+            _in_worker(task, 0, columns)
+            return
+        with _POOL_LOCK:
+            if not _POOL or _POOL[0][1] < parts:
+                if _POOL:
+                    _POOL.pop()[0].shutdown(wait=False)
+                _POOL.append((ThreadPoolExecutor(parts, thread_name_prefix="cdma-rx"), parts))
+            pool = _POOL[0][0]
+        bounds = np.linspace(0, columns, parts + 1).astype(int).tolist()
+        futures = [pool.submit(_in_worker, task, c0, c1)
+                   for c0, c1 in itertools.pairwise(bounds)]
+        for f in futures:
+            f.result()
+
+
+def _in_worker(task: Callable[[int, int], None], c0: int, c1: int) -> None:
+    """``task(c0, c1)`` marked as a column task (a nested parallel_columns runs inline)."""
+    _WORKER.inside = True
+    try:
+        task(c0, c1)
+    finally:
+        _WORKER.inside = False
 
 
 def limbs(

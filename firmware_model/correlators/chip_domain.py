@@ -36,7 +36,8 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
     a prefix sum otherwise), then
     ``Y[c, r, m] = W[c, m S + r]``, returned as a strided view of W (the kernels copy
     each phase once, into their float operands, anyway). ``sign`` (+1 or -1)
-    is the despread of a one-period UID, folded into the first pass. ``dtype`` is the
+    is the despread of a one-period UID, folded into the first pass (S > 1 and +1:
+    the first pass reads ``d`` directly). ``dtype`` is the
     integer type of the work and the result: the caller makes it wide enough for
     ``S max|d|`` (and for ``S NS max|d|`` when S > 8, the prefix sums). ``out``, if
     given, is a (C, N*S) array of ``dtype`` that receives W (the result is its view).
@@ -60,25 +61,28 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
 
 def _shifted_add(a: NDArray[np.integer], b: NDArray[np.integer], t: int,
                  out: NDArray[np.signedinteger]) -> None:
-    """``out[:, i] = a[:, i] + b[:, (i + t) mod NS]`` (out may be a, not b)."""
-    np.add(a[:, :-t], b[:, t:], out=out[:, :-t], casting="unsafe")
-    np.add(a[:, -t:], b[:, :t], out=out[:, -t:], casting="unsafe")
+    """``out[:, i] = a[:, i] + b[:, (i + t) mod NS]`` in ``out``'s type (out may be a, not b)."""
+    np.add(a[:, :-t], b[:, t:], out=out[:, :-t], dtype=out.dtype, casting="unsafe")
+    np.add(a[:, -t:], b[:, :t], out=out[:, -t:], dtype=out.dtype, casting="unsafe")
 
 
 def _window_sums(d: NDArray[np.integer], s: int, sign: int,
                  w: NDArray[np.signedinteger]) -> None:
     """``w[:, i] = sign sum_{t<s} d[:, (i + t) mod NS]`` by doubling (s <= 8).
 
-    ``p`` holds windows of 1, 2, 4, ... samples (each two of the previous, one pass);
+    ``p`` holds windows of 1, 2, 4, ... samples (each two of the previous, one pass;
+    the window of 1 is ``d`` itself when ``sign`` is +1, so no pass is spent on it);
     the windows of the set bits of s, from the largest down, are added into ``w`` at
     the offsets that tile s samples. Every partial sum is a sum of at most s samples,
-    so ``dtype`` wide enough for ``S max|d|`` holds them all (the casts are exact).
+    computed in ``w``'s type, so ``dtype`` wide enough for ``S max|d|`` holds them all.
     """
     if s == 1:
-        np.multiply(d, sign, out=w, casting="unsafe")
+        np.multiply(d, sign, out=w, dtype=w.dtype, casting="unsafe")  # -(-2^15): wide
         return
-    p = np.empty_like(w)
-    np.multiply(d, sign, out=p, casting="unsafe")  # window of 1 sample
+    p = d
+    if sign < 0:  # the window of 1 sample, negated
+        p = np.empty_like(w)
+        np.multiply(d, sign, out=p, dtype=p.dtype, casting="unsafe")
     width, top = 1, 1 << (s.bit_length() - 1)
     while width < top:  # p: window of 2 width samples
         nxt = np.empty_like(w) if width * 2 < top or s != top else w

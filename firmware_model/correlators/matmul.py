@@ -37,7 +37,6 @@ from cdma_lidar.firmware_model.correlators.base import (
     BLOCK_BYTES,
     Correlator,
     GatePlan,
-    parallel_columns,
     product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
@@ -182,28 +181,24 @@ class MatmulCorrelator(Correlator):
         return work[:size].reshape(shape)
 
     def _fill(self, lf: NDArray[np.floating], yb: NDArray[np.signedinteger],
-              phases: list[int], c0: int, c1: int) -> None:
-        """Operand rows of ``phases`` for columns c0..c1-1:
-        ``lf[i cb + c, j] = Y[c, r_i, (j + a_r) mod N]``."""
+              phases: list[int]) -> None:
+        """Operand rows of ``phases``: ``lf[i cb + c, j] = Y[c, r_i, (j + a_r) mod N]``."""
         cb, _, n = yb.shape
         for i, r in enumerate(phases):
             a = self._rot[r]
-            rows = lf[i * cb + c0 : i * cb + c1]
-            np.copyto(rows[:, : n - a], yb[c0:c1, r, a:], casting="unsafe")
+            rows = lf[i * cb : (i + 1) * cb]
+            np.copyto(rows[:, : n - a], yb[:, r, a:], casting="unsafe")
             if a:
-                np.copyto(rows[:, n - a :], yb[c0:c1, r, :a], casting="unsafe")
+                np.copyto(rows[:, n - a :], yb[:, r, :a], casting="unsafe")
 
     def _operands(self, yb: NDArray[np.signedinteger], dtype: type) -> list:
-        """Every group's operand in ``dtype``, the columns split across threads."""
+        """Every group's operand in ``dtype`` (the receiver spreads columns over threads)."""
         cb, _, n = yb.shape
-        ops = [self._buffer(f"op{g}", (len(phases) * cb, n), dtype)
-               for g, (_, phases) in enumerate(self._groups)]
-
-        def fill(c0: int, c1: int) -> None:
-            for lf, (_, phases) in zip(ops, self._groups, strict=True):
-                self._fill(lf, yb, phases, c0, c1)
-
-        parallel_columns(fill, cb, yb.size)
+        ops = []
+        for g, (_, phases) in enumerate(self._groups):
+            lf = self._buffer(f"op{g}", (len(phases) * cb, n), dtype)
+            self._fill(lf, yb, phases)
+            ops.append(lf)
         return ops
 
     def _float32_operands(self, yb: NDArray[np.signedinteger]) -> list | None:
@@ -226,21 +221,15 @@ class MatmulCorrelator(Correlator):
             return None
         ops = self._operands(yb, np.float32)
         cb, _, n = yb.shape
-        worst = []
-
-        def test(c0: int, c1: int) -> None:
-            mag = self._buffer("abs", (c1 - c0, n), np.float32)
-            top = 0.0
-            for lf, (_, phases) in zip(ops, self._groups, strict=True):
-                for i in range(len(phases)):
-                    np.abs(lf[i * cb + c0 : i * cb + c1], out=mag)
-                    # float64 sums of float32 integers < 2^24: exact; a |Y| >= 2^24 cannot
-                    # have rounded below 2^24, so the test never passes wrongly
-                    top = max(top, float(np.add.reduce(mag, axis=-1, dtype=np.float64).max()))
-            worst.append(top)
-
-        parallel_columns(test, cb, yb.size)
-        return ops if max(worst) < limit else None
+        mag = self._buffer("abs", (cb, n), np.float32)
+        for lf, (_, phases) in zip(ops, self._groups, strict=True):
+            for i in range(len(phases)):
+                np.abs(lf[i * cb : (i + 1) * cb], out=mag)
+                # float64 sums of float32 integers < 2^24: exact; a |Y| >= 2^24 cannot
+                # have rounded below 2^24, so the test never passes wrongly
+                if np.add.reduce(mag, axis=-1, dtype=np.float64).max() >= limit:
+                    return None
+        return ops
 
     def _run(self, operands: list, dst: NDArray[np.int64], dtype: type, shift: int,
              single: bool, first: bool) -> None:
@@ -262,7 +251,8 @@ class MatmulCorrelator(Correlator):
                     np.left_shift(src.astype(np.int64), shift, out=d)
                 else:
                     d += src.astype(np.int64) << shift
-            self.products[np.dtype(dtype).name] += 1
+            with self._lock:  # called from several column threads at once
+                self.products[np.dtype(dtype).name] += 1
 
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
         plan = self.plan
