@@ -23,7 +23,7 @@ import tomli_w
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
-from cdma_lidar.host.calibration import Calibration
+from cdma_lidar.host.calibration import TARGET_DISTANCE_M, Calibration
 from cdma_lidar.host.cloud_formats import FORMATS, OPTIONAL_LIBRARIES
 from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
@@ -58,6 +58,17 @@ def _positive_float(text: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number, not {text!r}")
     return v
+
+
+def _float_in(lo: float, hi: float, unit: str) -> Any:
+    """An argparse type: a number in (lo, hi] (``lo`` excluded when it is 0), in ``unit``."""
+    def parse(text: str) -> float:
+        v = _finite_float(text)
+        if not ((lo < v if lo == 0 else lo <= v) and v <= hi):
+            low = f"above {lo:g}" if lo == 0 else f"from {lo:g}"
+            raise argparse.ArgumentTypeError(f"must be {low} to {hi:g} {unit}, not {text!r}")
+        return v
+    return parse
 
 
 def _finite_float(text: str) -> float:
@@ -106,8 +117,8 @@ def add_port_options(p: argparse.ArgumentParser) -> None:
     """--port, --timeout and the session/access options every device command takes."""
     p.add_argument("--port", required=True, metavar="URL",
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
-    p.add_argument("--timeout", type=_positive_float, default=1.0, metavar="S",
-                   help="seconds to wait for each answer (default 1)")
+    p.add_argument("--timeout", type=_float_in(0, 3600, "s"), default=1.0, metavar="S",
+                   help="seconds to wait for each answer (default 1, at most 3600)")
     # Access to a shared device (protocol v2 sessions and keys, docs/protocol.md).
     p.add_argument("--take-over", action="store_true",
                    help="end another host's session on the device instead of failing busy")
@@ -168,11 +179,17 @@ def register(subparsers: Any) -> None:
     p.add_argument("--save-ghost-map", metavar="FILE",
                    help="this scan sees an empty field: save its detections as a ghost map")
     p.add_argument("--power-cap", type=_positive_float, metavar="X",
-                   help="near-far: cap per column, in units of the per-pixel maximum power")
+                   help="near-far: cap per column, in units of the per-pixel maximum power "
+                        "(at most the number of channels: every pixel at its maximum)")
     p.add_argument("--pictures", action="store_true",
                    help="also write SNR heatmap, depth image and 3D view PNGs beside --out")
-    p.add_argument("--resume", action="store_true",
-                   help="finish an interrupted scan (OUT.partial.npz) without redoing columns")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="finish an interrupted scan (OUT.partial.npz) without redoing "
+                            "columns")
+    again.add_argument("--force", action="store_true",
+                       help="start afresh even though OUT.partial.npz holds an interrupted "
+                            "scan (it is overwritten)")
     p.add_argument("--frame-id", type=int, metavar="N",
                    help="id of the first frame (default random); a virtual device seeds its "
                         "noise with it, so the same seed and id give the same cloud")
@@ -183,14 +200,16 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
     add_port_options(p)
-    p.add_argument("--target-distance", type=_positive_float, required=True, metavar="METRES",
-                   help="known distance from the grating to the calibration target (m)")
+    p.add_argument("--target-distance", type=_float_in(*TARGET_DISTANCE_M, "m"), required=True,
+                   metavar="METRES",
+                   help="known distance from the grating to the calibration target (m, "
+                        f"{TARGET_DISTANCE_M[0]:g} to {TARGET_DISTANCE_M[1]:g})")
     p.add_argument("--shots", type=int, default=20, metavar="N",
                    help="repeated shots (default 20)")
     p.add_argument("--out", required=True, metavar="FILE", help="calibration file (.toml)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
                    help="SNR_XC threshold in dB (default 16)")
-    p.add_argument("--max-spread", type=_positive_float, metavar="M",
+    p.add_argument("--max-spread", type=_float_in(0, 1000, "m"), metavar="M",
                    help="widest acceptable histogram standard deviation (m)")
     _add_set(p)
     p.set_defaults(func=cmd_calibrate)
@@ -253,6 +272,9 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.resume and not state_path(out).is_file():
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")
+    if args.power_cap is not None and not args.near_far:
+        raise ConfigError("--power-cap needs --near-far (a uniform scan uses one power)",
+                          field="power_cap")
     cal = Calibration.load(args.calibration) if args.calibration else None
     ghosts = list(args.ghost_window)
     if args.ghost_map:
@@ -291,7 +313,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
             log.warning("no --calibration: ranges include the system delay")
         t0 = time.monotonic()
         try:
-            res = run_scan(dev, out, options, resume=args.resume,
+            res = run_scan(dev, out, options, resume=args.resume, force=args.force,
                            progress=not args.no_progress, pictures_too=args.pictures,
                            frame_id=args.frame_id)
         except KeyboardInterrupt:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout
+from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.protocol.auth import load_key
@@ -26,7 +26,7 @@ from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
 from cdma_lidar.protocol.messages import ErrorCode
 from cdma_lidar.protocol.ports import open_port
 
-__all__ = ["KEY_FILE_ENV", "Device", "connect", "resolve_key"]
+__all__ = ["KEY_FILE_ENV", "Device", "check_socket_url", "connect", "resolve_key"]
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +127,23 @@ def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
     return None
 
 
+def check_socket_url(url: str) -> None:
+    """Refuse a ``socket://HOST:PORT`` URL without a host or with a port outside 1..65535.
+
+    pyserial's own message for these is Python internals; this one names the field.
+    """
+    if not url.lower().startswith("socket://"):
+        return
+    where = url[len("socket://"):].split("?", 1)[0].rstrip("/")
+    host, sep, port = where.rpartition(":")
+    if not sep or not host:
+        raise ConfigError(f"--port {url!r} must be socket://HOST:PORT with a port number",
+                          field="port")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"--port {url!r}: the TCP port must be from 1 to 65535, not "
+                          f"{port!r}", field="port")
+
+
 def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str | None = None,
             take_over: bool = False, keep_config: bool = False) -> Device:
     """Open ``url``, say HELLO and read the configuration.
@@ -138,6 +155,7 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str
     opened, the device does not answer, or another host owns it.
     """
 
+    check_socket_url(url)
     key = resolve_key(url, key_file)
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries, key=key, take_over=take_over,

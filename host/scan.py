@@ -308,7 +308,8 @@ def _apply_power(device: Device, controller: NearFarController,
 
 
 def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
-             *, resume: bool = False, progress: bool = True, pictures_too: bool = False,
+             *, resume: bool = False, force: bool = False, progress: bool = True,
+             pictures_too: bool = False,
              frame_id: int | None = None,
              on_column: Callable[[int, int], None] | None = None) -> ScanResult:
     """Scan, build the point cloud of the last frame and write it to ``out``.
@@ -316,7 +317,9 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
     Frame n is requested with frame id ``frame_id + n`` (default: random), which seeds
     the virtual device's noise. ``on_column(frame_index, column)`` is called after each
     stored column. Raises ScanAborted (after saving the partial scan) when the link is
-    lost; re-raises KeyboardInterrupt after saving.
+    lost or the device ends the frame early; re-raises KeyboardInterrupt after saving.
+    An existing partial scan is resumed (``resume``), overwritten (``force``) or, with
+    neither, left alone with a ConfigError: nothing is deleted without being asked.
     """
     out = Path(out)
     if out.suffix.lower() not in FORMATS:
@@ -328,6 +331,13 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                           "zeroth-order target at a 90 deg grating angle, not the scene; scan "
                           "with --set mode=ranging (or use 'cdma-lidar calibrate')", field="mode")
     spath = state_path(out)
+    if not resume and not force and spath.exists():
+        raise ConfigError(f"{str(spath)!r} holds an interrupted scan; finish it with --resume "
+                          "or start afresh with --force (which overwrites it)", field="resume")
+    if options.power_cap is not None and options.power_cap > device.channels:
+        raise ConfigError(f"power_cap must be at most {device.channels} (every pixel of a "
+                          f"column at its maximum), not {options.power_cap:g}",
+                          field="power_cap")
     threshold = options.snr_threshold_db
     ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,
                                     ghost_windows=options.ghost_windows,
@@ -432,7 +442,7 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
         state.save(spath)
         log.info("scan interrupted; partial scan saved to %s (resume=True finishes it)", spath)
         raise
-    except LinkError as exc:
+    except (LinkError, ScanAborted) as exc:
         state.save(spath)
         raise ScanAborted(f"scan stopped: {exc}; partial scan saved to {spath}, run the same "
                           "command with --resume to finish it") from exc

@@ -77,6 +77,7 @@ def _cmd_device(args: argparse.Namespace) -> int:
         return serve_pty(scene, args.seed, announce=_announce,
                          session_idle_s=args.session_idle)
     host, port = _parse_hostport(args.tcp)
+    scene = load_scene(args.scene)  # a bad scene is refused before a key or a warning
     key = None
     if args.key_file and args.insecure:
         raise ConfigError("--key-file and --insecure exclude each other", "--insecure")
@@ -95,7 +96,6 @@ def _cmd_device(args: argparse.Namespace) -> int:
     else:
         sys.stderr.write(f"cdma-lidar device: INSECURE: no access control on {host}:{port}; "
                          "any local process can control the device\n")
-    scene = load_scene(args.scene)
     try:
         return serve_tcp(scene, args.seed, host, port, announce=_announce, key=key,
                          session_idle_s=args.session_idle)
