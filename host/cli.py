@@ -9,7 +9,6 @@ exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import logging
 import math
 import sys
@@ -24,7 +23,7 @@ import tomli_w
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
 from cdma_lidar.host.calibration import TARGET_DISTANCE_M, Calibration
-from cdma_lidar.host.cloud_formats import FORMATS, OPTIONAL_LIBRARIES
+from cdma_lidar.host.cloud_formats import check_output
 from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.intensity import intensity_gain
@@ -32,7 +31,6 @@ from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
 from cdma_lidar.host.scan import (
     ScanOptions,
     calibrate_device,
-    max_snr_xc_db,
     multi_user_peaks,
     run_scan,
     state_path,
@@ -113,9 +111,12 @@ def _setting(text: str) -> tuple[str, Any]:
     return key.strip(), (tuple(vals) if len(vals) > 1 else vals[0])
 
 
-def add_port_options(p: argparse.ArgumentParser) -> None:
-    """--port, --timeout and the session/access options every device command takes."""
-    p.add_argument("--port", required=True, metavar="URL",
+def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> None:
+    """--port, --timeout and the session/access options every device command takes.
+
+    ``required=False`` where a ``--config`` profile may give the port instead.
+    """
+    p.add_argument("--port", required=required, metavar="URL",
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
     p.add_argument("--timeout", type=_float_in(0, 3600, "s"), default=1.0, metavar="S",
                    help="seconds to wait for each answer (default 1, at most 3600)")
@@ -143,8 +144,12 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=cmd_info)
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
-    add_port_options(p)
-    p.add_argument("--out", required=True, metavar="FILE",
+    p.add_argument("--config", metavar="FILE",
+                   help="scan profile (TOML): any option of this command as KEY = VALUE "
+                        "(port = \"virtual://paper-scene1\", frames = 4, set = "
+                        "[\"averages=20\"]); options on the command line win")
+    add_port_options(p, required=False)
+    p.add_argument("--out", metavar="FILE",
                    help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
                         "one message per frame), by extension")
     p.add_argument("--frames", type=int, default=1, metavar="N",
@@ -195,7 +200,7 @@ def register(subparsers: Any) -> None:
                         "noise with it, so the same seed and id give the same cloud")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
-    p.set_defaults(func=cmd_scan)
+    p.set_defaults(func=cmd_scan, profile_parser=p)
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
@@ -245,27 +250,74 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def apply_profile(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """Fill the options not given on the command line from ``args.config`` (TOML).
+
+    Keys are the command's long options without dashes (``snr-threshold`` or
+    ``snr_threshold``); values go through the same checks as on the command line
+    (repeatable options take a list, flags true or false). An option given on the
+    command line (any value but its default) wins over the file.
+    """
+    if not getattr(args, "config", None):
+        return
+    path = args.config
+    try:
+        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"--config {path!r} does not exist", field="config") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"--config {path!r} is not a readable TOML file ({exc})",
+                          field="config") from None
+    actions = {a.dest: a for a in parser._actions
+               if a.option_strings and a.dest not in ("help", "config")}
+    for key, value in doc.items():
+        action = actions.get(key.replace("-", "_"))
+        if action is None:
+            raise ConfigError(f"--config {path!r}: unknown option {key!r}; allowed: "
+                              + ", ".join(sorted(d.replace("_", "-") for d in actions)),
+                              field="config")
+        if getattr(args, action.dest) != action.default:
+            continue  # the command line wins
+        setattr(args, action.dest, _profile_value(action, key, value, path))
+
+
+def _profile_value(action: argparse.Action, key: str, value: Any, path: str) -> Any:
+    """One profile value, converted and checked as argparse would on the command line."""
+    def bad(allowed: str) -> ConfigError:
+        return ConfigError(f"--config {path!r}: {key} must be {allowed}, not {value!r}",
+                           field="config")
+
+    if action.nargs == 0:  # a flag
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    repeat = isinstance(action, argparse._AppendAction)
+    items = value if repeat and isinstance(value, list) else [value]
+    if any(isinstance(v, dict | list | bool) for v in items):
+        raise bad("a number or a string" + (" (or a list of them)" if repeat else ""))
+    out = []
+    for v in items:
+        try:
+            conv = action.type(str(v)) if action.type is not None else str(v)
+        except argparse.ArgumentTypeError as exc:  # says "must be ..., not ..."
+            raise ConfigError(f"--config {path!r}: {key} {exc}", field="config") from None
+        except ValueError:
+            raise bad("a whole number" if action.type is int else "valid") from None
+        if action.choices is not None and conv not in action.choices:
+            raise bad("one of " + ", ".join(map(str, action.choices)))
+        out.append(conv)
+    return out if repeat else out[0]
+
+
 def cmd_scan(args: argparse.Namespace) -> int:
     """Scan and write the point cloud."""
 
-    out = Path(args.out)
-    if out.suffix.lower() not in FORMATS:
-        raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
-                          f"{out.suffix or '(no extension)'!r}", field="out")
-    check_writable(out, "--out")
-    lib = OPTIONAL_LIBRARIES.get(out.suffix.lower())
-    if lib is not None and importlib.util.find_spec(lib[0]) is None:
-        raise ConfigError(f"--out {out.suffix.lower()} needs {lib[0]}: pip install "
-                          f"'cdma-lidar[{lib[1]}]' (or write .ply, .pcd or .npz)", field="out")
-    if not 1 <= args.frames <= 10000:
-        raise ConfigError(f"--frames must be from 1 to 10000, not {args.frames}",
-                          field="frames")
-    if args.near_far and args.frames < 2:
-        raise ConfigError(f"--near-far needs --frames 2 or more (the first frame measures, "
-                          f"the next are corrected), not {args.frames}", field="frames")
-    if args.combine != "last" and args.frames < 2:
-        raise ConfigError(f"--combine {args.combine} needs --frames 2 or more, not "
-                          f"{args.frames}", field="combine")
+    apply_profile(args, args.profile_parser)
+    for name in ("port", "out"):
+        if getattr(args, name) is None:
+            raise ConfigError(f"--{name} is required (on the command line or in --config)",
+                              field=name)
+    out = check_output(args.out)
     if args.calibrate_intensity is not None and not args.calibration:
         raise ConfigError("--calibrate-intensity needs --calibration FILE to store the gain "
                           "in", field="calibrate_intensity")
@@ -296,12 +348,6 @@ def cmd_scan(args: argparse.Namespace) -> int:
                           intensity_gain=cal.intensity_gain if cal else None)
     with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
-        if args.snr_threshold is not None:
-            top = max_snr_xc_db(dev.config)
-            if not 0.0 <= args.snr_threshold <= top:
-                raise ConfigError(f"--snr-threshold must be from 0 to {top:.1f} dB (the "
-                                  f"SNR_XC this configuration can report), not "
-                                  f"{args.snr_threshold:g}", field="snr_threshold")
         peaks = multi_user_peaks(dev, {key for key, _ in args.set})
         if peaks:
             _say(f"UID configured ({dev.config.get('uid_bits')} bits): asking for {peaks} "

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
@@ -26,16 +28,65 @@ from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
 from cdma_lidar.protocol.messages import ErrorCode
 from cdma_lidar.protocol.ports import open_port
 
-__all__ = ["KEY_FILE_ENV", "Device", "check_socket_url", "connect", "resolve_key"]
+__all__ = ["KEY_FILE_ENV", "Device", "DeviceLink", "check_socket_url", "connect",
+           "default_key_file", "resolve_key"]
 
 log = logging.getLogger(__name__)
 
 
+class DeviceLink(Protocol):
+    """What the host asks of a link to a device: :class:`cdma_lidar.protocol.link.HostLink`
+    is one, a replayed recording or a test double can be another.
+
+    Column results (``ColumnResult``) and INFO are the protocol's records
+    (:mod:`cdma_lidar.protocol.messages`); power matrices are uint16 counts of the
+    per-pixel maximum (65535 = the maximum).
+    """
+
+    def hello(self) -> Any:
+        """Open a session; returns INFO (identity, geometry, limits)."""
+        ...
+
+    def get_config(self, *names: str) -> dict[str, Any]:
+        """The configuration (all keys, or ``names``)."""
+        ...
+
+    def set_config(self, **values: Any) -> None:
+        """Change configuration keys; a refused value raises DeviceError naming it."""
+        ...
+
+    def set_power(self, matrix: ArrayLike, channel_start: int = 0,
+                  column_start: int = 0) -> None:
+        """Send a (K, C) power matrix (uint16 counts)."""
+        ...
+
+    def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
+             frame: int | None = None) -> Iterator[Any]:
+        """Column results of ``frames`` frames, in column order, each once."""
+        ...
+
+    def calibrate(self, shots: int, frame: int | None = None) -> list[Any]:
+        """``shots`` zeroth-order calibration columns."""
+        ...
+
+    def capture(self, kind: str | int = "raw", column: int = 0, channel: int = 0) -> NDArray:
+        """A debug capture: raw ADC samples or one channel's correlation trace."""
+        ...
+
+    def abort(self) -> None:
+        """Stop a running scan (harmless when idle)."""
+        ...
+
+    def close(self) -> None:
+        """End the session and close the port."""
+        ...
+
+
 @dataclass
 class Device:
-    """An open session with a device (``link`` is a :class:`cdma_lidar.protocol.link.HostLink`)."""
+    """An open session with a device over a :class:`DeviceLink`."""
 
-    link: Any
+    link: DeviceLink
     info: Any
     config: dict[str, Any]
     url: str = ""
@@ -112,19 +163,35 @@ class Device:
 KEY_FILE_ENV = "CDMA_LIDAR_KEY_FILE"
 
 
-def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
-    """The key for ``url``: from ``key_file``, else from $CDMA_LIDAR_KEY_FILE for network URLs.
+def default_key_file() -> Path:
+    """Where a device key belongs: outside any working tree, in
+    ``$XDG_CONFIG_HOME/cdma-lidar/device.key`` (default ``~/.config/cdma-lidar/device.key``).
 
-    The environment variable applies to ``socket://`` URLs only, so serial ports, ptys
-    and ``virtual://`` (which hold no key) keep working with it set. Raises ConfigError
+    A host reaching ``socket://`` without ``--key-file`` or $CDMA_LIDAR_KEY_FILE reads it
+    from there when it exists, so the README's commands leave no secret in the repository.
+    """
+    base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"),
+                                                              ".config")
+    return Path(base) / "cdma-lidar" / "device.key"
+
+
+def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
+    """The key for ``url``: ``key_file``, else for network URLs $CDMA_LIDAR_KEY_FILE, else
+    :func:`default_key_file` when it exists.
+
+    The fallbacks apply to ``socket://`` URLs only, so serial ports, ptys and
+    ``virtual://`` (which hold no key) keep working with them set. Raises ConfigError
     naming the file when it cannot be read or is not private (mode 0600).
     """
     if key_file:
         return load_key(key_file)
+    if not url.lower().startswith("socket://"):
+        return None
     env = os.environ.get(KEY_FILE_ENV)
-    if env and url.lower().startswith("socket://"):
+    if env:
         return load_key(env)
-    return None
+    default = default_key_file()
+    return load_key(default) if default.is_file() else None
 
 
 def check_socket_url(url: str) -> None:

@@ -87,7 +87,9 @@ def _cmd_device(args: argparse.Namespace) -> int:
             sys.stderr.write(f"cdma-lidar device: created key file {args.key_file} (mode "
                              "0600); give it to the host with --key-file\n")
     elif not args.insecure:
-        raise ConfigError("--tcp needs --key-file FILE (hosts must prove they hold the key); "
+        raise ConfigError("--tcp needs --key-file FILE (hosts must prove they hold the key; "
+                          "keep it outside the working tree, e.g. "
+                          "~/.config/cdma-lidar/device.key); "
                           "--insecure serves without access control on a loopback address "
                           "only", "--key-file")
     elif not _is_loopback(host):

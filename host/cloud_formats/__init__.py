@@ -21,6 +21,7 @@ whose library is optional imports it inside ``write`` and says so.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 from collections.abc import Callable, Sequence
@@ -31,7 +32,8 @@ from cdma_lidar.fileio import check_writable
 from cdma_lidar.host.cloud_formats import las, mcap, npz, pcd, ply
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "write", "write_frames"]
+__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "check_output", "write",
+           "write_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -50,15 +52,25 @@ OPTIONAL_LIBRARIES: dict[str, tuple[str, str]] = {".las": ("laspy", "las"),
                                                   ".mcap": ("mcap_ros2", "mcap")}
 
 
-def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
-    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las)."""
+def check_output(path: str | os.PathLike[str], option: str = "--out") -> Path:
+    """The one check of a cloud file to write: a known extension whose library is
+    installed, in a folder that takes new files. Returns ``path`` as a Path."""
     p = Path(path)
-    writer = FORMATS.get(p.suffix.lower())
-    if writer is None:
-        raise ConfigError(f"output file extension must be one of {', '.join(FORMATS)}, "
-                          f"not {p.suffix or '(none)'!r}", field="out")
-    check_writable(p)
-    n = writer(cloud, p)
+    ext = p.suffix.lower()
+    if ext not in FORMATS:
+        raise ConfigError(f"{option} must end in one of {', '.join(FORMATS)}, not "
+                          f"{p.suffix or '(no extension)'!r}", field=option.lstrip("-"))
+    lib = OPTIONAL_LIBRARIES.get(ext)
+    if lib is not None and importlib.util.find_spec(lib[0]) is None:
+        raise ConfigError(f"{option} {ext} needs {lib[0]}: pip install 'cdma-lidar[{lib[1]}]' "
+                          "(or write .ply, .pcd or .npz)", field=option.lstrip("-"))
+    return check_writable(p, option)
+
+
+def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
+    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las, .mcap)."""
+    p = check_output(path)
+    n = FORMATS[p.suffix.lower()](cloud, p)
     log.info("wrote %d points to %s", n, p)
     return n
 
@@ -71,7 +83,7 @@ def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str]) -> 
     writer = MULTI_FRAME_FORMATS.get(p.suffix.lower())
     if writer is None:
         return write(clouds[-1], p)
-    check_writable(p)
+    check_output(p)
     n = writer(clouds, p)
     log.info("wrote %d frames, %d points to %s", len(clouds), n, p)
     return n

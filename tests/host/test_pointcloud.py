@@ -162,7 +162,7 @@ def test_las_round_trip(cloud, tmp_path):
 
 
 def test_bad_extension_and_folder(cloud, tmp_path):
-    with pytest.raises(ConfigError, match="extension"):
+    with pytest.raises(ConfigError, match="must end in one of"):
         write(cloud, tmp_path / "c.xyz")
     with pytest.raises(ConfigError, match="does not exist"):
         write(cloud, tmp_path / "missing" / "c.ply")
