@@ -21,7 +21,7 @@ The result is a TOML file (written atomically with tomli_w, read with tomllib)::
     shots = 100
     samples = 4000             # range values in the histogram (shots x channels)
     date = "2026-11-21T09:30:00+00:00"
-    intensity_gain = 2.1e9     # optional: scan --calibrate-intensity R on a flat target
+    intensity_gain = 8.3       # optional: scan --calibrate-intensity R on a flat target
     [device]      ...          # identity reported by the device (INFO)
     [configuration] ...        # the configuration the calibration holds for
 """

@@ -158,7 +158,22 @@ def test_las_round_trip(cloud, tmp_path):
     assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
     t = np.asarray(las.gps_time) - (1.7e9 - 315_964_800 + 18 - 1e9)
     np.testing.assert_allclose(t, cloud.t.ravel()[ok], atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(las.intensity), 16384)   # 0.5 reflectance
+    np.testing.assert_array_equal(np.asarray(las.intensity), 2048)   # 0.5 x 4096
+    # point format 6 needs the WKT bit and a WKT coordinate system (LAS 1.4 R15, 2.4)
+    assert las.header.global_encoding.wkt
+    wkt = [v for v in las.header.vlrs if isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr)]
+    assert len(wkt) == 1 and wkt[0].string.startswith('LOCAL_CS["cdma_lidar sensor frame')
+
+
+def test_las_warns_where_intensity_saturates(cloud, tmp_path, caplog):
+    import laspy
+
+    cloud.intensity = np.where(cloud.has_range, 20.0, np.nan)
+    cloud.intensity[0, :3] = 1.0
+    write(cloud, tmp_path / "s.las")
+    assert f"{int(cloud.has_range.sum()) - 3} of {int(cloud.has_range.sum())} points" in \
+        caplog.text and "saturates" in caplog.text
+    assert int(np.asarray(laspy.read(str(tmp_path / "s.las")).intensity).max()) == 65535
 
 
 def test_bad_extension_and_folder(cloud, tmp_path):
