@@ -8,7 +8,8 @@ with ``G`` the link gain of the instrument (optics, detector, ADC: one number pe
 device and configuration), ``P`` the pixel's laser power, ``rho`` the target's
 reflectivity, ``theta`` its incidence angle and ``r`` the range. The correlation peak
 is proportional to ``A`` (the processing gain of the configured code, averages and UID
-periods, divided by ``2^out_shift``), so, dividing by that processing gain and by the ADC's full scale::
+periods, divided by ``2^out_shift``); dividing by that processing gain and by the
+ADC's full scale::
 
     intensity = |peak| * 2^out_shift * r^2 / (P * N * S * M * B * 2^(adc_bits-1) * g)
 
