@@ -1,9 +1,11 @@
-"""The host commands: ``info``, ``scan`` and ``calibrate``.
+"""The host commands: ``info``, ``scan``, ``convert`` and ``calibrate``.
 
 Every command checks what it can before it touches the device (output folder
 writable, extension known, numbers in range), so a bad argument costs nothing and
 exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
-``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device).
+``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device);
+``scan`` also takes ``replay://FILE``, a recorded cloud fed back through the host
+(:mod:`cdma_lidar.host.replay`).
 """
 
 from __future__ import annotations
@@ -23,11 +25,18 @@ import tomli_w
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
 from cdma_lidar.host.calibration import TARGET_DISTANCE_M, Calibration
-from cdma_lidar.host.cloud_formats import check_output
+from cdma_lidar.host.cloud_formats import (
+    MULTI_FRAME_FORMATS,
+    check_output,
+    read_frames,
+    write_frames,
+)
+from cdma_lidar.host.cloud_formats.mcap import read_metadata
 from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.intensity import intensity_gain
 from cdma_lidar.host.ranging import ghost_windows_from_image, sample_range_m
+from cdma_lidar.host.replay import Replay, is_replay
 from cdma_lidar.host.scan import (
     ScanOptions,
     calibrate_device,
@@ -117,7 +126,9 @@ def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> No
     ``required=False`` where a ``--config`` profile may give the port instead.
     """
     p.add_argument("--port", required=required, metavar="URL",
-                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
+                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N"
+                        + (" (scan: also replay://FILE, a recorded cloud)" if not required
+                           else ""))
     p.add_argument("--timeout", type=_float_in(0, 3600, "s"), default=1.0, metavar="S",
                    help="seconds to wait for each answer (default 1, at most 3600)")
     # Access to a shared device (protocol v2 sessions and keys, docs/protocol.md).
@@ -201,6 +212,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
     p.set_defaults(func=cmd_scan, profile_parser=p)
+
+    p = subparsers.add_parser("convert", help="convert a point cloud file to another format",
+                              description="Read a cloud cdma-lidar wrote (.ply, .pcd, .npz, "
+                              ".las, .mcap) and write it in the format OUT's extension names: "
+                              "every frame into .mcap, the last frame into the others; an "
+                              ".mcap's metadata record is kept.")
+    p.add_argument("in_file", metavar="IN", help="cloud file to read")
+    p.add_argument("out_file", metavar="OUT", help="cloud file to write")
+    p.set_defaults(func=cmd_convert)
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
@@ -346,6 +366,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
                           offset_m=cal.offset_m if cal else 0.0, combine=args.combine,
                           keep_foreign=args.keep_foreign,
                           intensity_gain=cal.intensity_gain if cal else None)
+    if is_replay(args.port):
+        return _replay(args, out, options)
     with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
         peaks = multi_user_peaks(dev, {key for key, _ in args.set})
@@ -404,6 +426,34 @@ def cmd_scan(args: argparse.Namespace) -> int:
         _say(f"ghost map: {len(windows)} windows {list(windows)}; wrote {args.save_ghost_map}")
     for f in res.files:
         _say(f"wrote {f}")
+    return 0
+
+
+def _replay(args: argparse.Namespace, out: Path, options: ScanOptions) -> int:
+    """``scan --port replay://FILE``: a recording through the host's writers and pictures."""
+    for name in ("set", "calibration", "calibrate_intensity", "save_ghost_map", "resume"):
+        if getattr(args, name):
+            raise ConfigError(f"--{name.replace('_', '-')} needs a device, not a replay "
+                              f"({args.port})", field=name)
+    replay = Replay(args.port, out, options)
+    res = replay.finish(pictures_too=args.pictures)
+    img = res.image
+    _say(f"replayed {len(res.clouds)} frames from {replay.source}; {int(img.valid.sum())} of "
+         f"{img.range_m.size} pixels valid in the last")
+    for f in res.files:
+        _say(f"wrote {f}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """Convert a cloud file between formats (every frame where the output holds several)."""
+    out = check_output(args.out_file, "OUT")
+    clouds = read_frames(args.in_file)
+    meta = read_metadata(args.in_file) if Path(args.in_file).suffix.lower() == ".mcap" else {}
+    n = write_frames(clouds, out, meta)
+    kept = len(clouds) if out.suffix.lower() in MULTI_FRAME_FORMATS else 1
+    _say(f"wrote {n} points of {kept} of {len(clouds)} frames to {out}"
+         + ("" if kept == len(clouds) else " (this format holds one frame: the last)"))
     return 0
 
 

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
-from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
 from cdma_lidar.protocol.auth import load_key
 from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
 from cdma_lidar.protocol.messages import ErrorCode
@@ -149,6 +149,15 @@ class Device:
                                incidence_deg=float(self.info.incidence_deg),
                                tilt_deg=self.info.tilt_deg,
                                reference_wavelength_m=float(self.info.reference_wavelength_m))
+
+    def beam_angles_deg(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(elevation, azimuth), each (K, C) deg, of every pixel's beam from the nominal
+        grating: elevation positive up (set by the channel's wavelength), azimuth positive
+        left (set by the column's rotation)."""
+        dirs = self.geometry().directions(self.wavelengths_m[:, None],
+                                          self.column_angles_deg[None, :])
+        az, el = azimuth_elevation_deg(dirs)
+        return np.asarray(el), np.asarray(az)
 
     def ranging_config(self, **changes: Any) -> RangingConfig:
         """RangingConfig for the current configuration; ``changes`` override fields."""

@@ -52,7 +52,7 @@ from cdma_lidar.host.cloud_formats import MULTI_FRAME_FORMATS, check_output, wri
 from cdma_lidar.host.combine import COMBINE_MODES, combine, nan_median
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.intensity import intensity
+from cdma_lidar.host.intensity import RAW_UNIT, intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
@@ -74,6 +74,7 @@ __all__ = [
     "open_scan",
     "picture_paths",
     "run_scan",
+    "scan_metadata",
     "state_path",
     "summarise",
 ]
@@ -508,10 +509,11 @@ class Scan:
                              stamp_unix_s=clouds[-1].stamp_unix_s)
             per_frame = np.stack([cl.intensity for cl in clouds])
             cloud.intensity = np.where(cloud.has_range, nan_median(per_frame), np.nan)
+        meta = scan_metadata(dev, options)
         if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
-            write_frames(clouds, out)
+            write_frames(clouds, out, meta)
         else:
-            write_frames([cloud], out)
+            write_frames([cloud], out, meta)
         files = [out]
         snr_maps = [f.image.snr_xc_db for f in self.done]
         if pictures_too:
@@ -529,6 +531,27 @@ class Scan:
         return ScanResult(cloud=cloud, image=image, data=data, snr_maps=snr_maps,
                           powers=powers, columns_scanned=self.columns_scanned, files=files,
                           clouds=clouds)
+
+
+def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
+    """What a recording should say about its instrument (string keys to JSON text).
+
+    ``wavelengths_m`` (K), ``angles_deg`` (C, grating rotations), ``beam_elevation_deg``
+    and ``beam_azimuth_deg`` (K x C, from the nominal grating; ring 0 is the top beam,
+    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and
+    ``intensity_unit`` (``reflectance`` with a calibrated gain, else
+    :data:`cdma_lidar.host.intensity.RAW_UNIT`).
+    """
+    el, az = device.beam_angles_deg()
+    doc = {"wavelengths_m": device.wavelengths_m.tolist(),
+           "angles_deg": device.column_angles_deg.tolist(),
+           "beam_elevation_deg": np.round(el, 6).tolist(),
+           "beam_azimuth_deg": np.round(az, 6).tolist(),
+           "device": toml_safe(device.identity()),
+           "configuration": toml_safe(device.calibration_config()),
+           "scan_options": toml_safe(dataclasses.asdict(options)),
+           "intensity_unit": "reflectance" if options.intensity_gain else RAW_UNIT}
+    return {k: json.dumps(v) for k, v in doc.items()}
 
 
 def _ranging(device: Device, options: ScanOptions) -> Any:

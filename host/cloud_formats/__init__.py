@@ -14,9 +14,16 @@ Every format carries the same per-point fields under the same names
 ``MULTI_FRAME = True`` also has ``write_frames(clouds, path)`` and gets every frame of
 a scan (:func:`write_frames`); the others get the last frame.
 
-Adding a format is one new module here with ``EXTENSION`` and
-``write(cloud, path) -> int`` (points written), listed in :data:`FORMATS`. A module
-whose library is optional imports it inside ``write`` and says so.
+Every module also reads back what it wrote, ``read_frames(path) -> [PointCloud, ...]``
+(:data:`READERS`, :func:`read_frames`; the records land in their pixels by ``ring`` and
+``column``, :mod:`.grid`), so ``cdma-lidar convert IN OUT`` goes between every pair and
+``replay://FILE`` (:mod:`cdma_lidar.host.replay`) feeds a recording back through the host.
+What a format cannot hold is lost on the way: PCD and LAS keep no wavelengths or column
+rotations, PCD no stamp, LAS quantises intensity to 1/4096.
+
+Adding a format is one new module here with ``EXTENSION``,
+``write(cloud, path) -> int`` (points written) and ``read_frames``, listed in
+:data:`FORMATS`. A module whose library is optional imports it inside ``write`` and says so.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
@@ -32,8 +39,8 @@ from cdma_lidar.fileio import check_writable
 from cdma_lidar.host.cloud_formats import las, mcap, npz, pcd, ply
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "check_output", "write",
-           "write_frames"]
+__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "READERS", "check_output",
+           "read_frames", "write", "write_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +50,14 @@ FORMATS: dict[str, Callable[[PointCloud, str | os.PathLike[str]], int]] = {
 }
 
 #: Extension -> writer of a sequence of frames, for the formats that hold several.
-MULTI_FRAME_FORMATS: dict[str, Callable[[Sequence[PointCloud], str | os.PathLike[str]], int]] = {
+MULTI_FRAME_FORMATS: dict[str, Callable[..., int]] = {
     m.EXTENSION: m.write_frames for m in (mcap,) if getattr(m, "MULTI_FRAME", False)
+}
+
+#: Extension -> reader ``path -> [PointCloud, ...]`` (one per frame; one for single-frame
+#: formats). Each reads what its writer wrote: :func:`read_frames` and ``convert``.
+READERS: dict[str, Callable[[str | os.PathLike[str]], list[PointCloud]]] = {
+    m.EXTENSION: m.read_frames for m in (ply, pcd, npz, las, mcap)
 }
 
 #: Extension -> (import name, extra) of the optional library a format needs.
@@ -75,8 +88,13 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     return n
 
 
-def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str]) -> int:
-    """Write every frame where the format holds several (.mcap), else the last one."""
+def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str],
+                 metadata: Mapping[str, str] | None = None) -> int:
+    """Write every frame where the format holds several (.mcap), else the last one.
+
+    ``metadata`` (string keys to JSON text: beam angles, wavelengths, configuration) goes
+    into the formats that keep it (.mcap); the others have their fixed header fields.
+    """
     if not clouds:
         raise ConfigError("no frame to write", field="out")
     p = Path(path)
@@ -84,6 +102,24 @@ def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str]) -> 
     if writer is None:
         return write(clouds[-1], p)
     check_output(p)
-    n = writer(clouds, p)
+    n = writer(clouds, p, metadata)
     log.info("wrote %d frames, %d points to %s", len(clouds), n, p)
     return n
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """Every frame of a cloud file cdma-lidar wrote, by extension; ConfigError otherwise."""
+    p = Path(path)
+    reader = READERS.get(p.suffix.lower())
+    if reader is None:
+        raise ConfigError(f"input must end in one of {', '.join(READERS)}, not "
+                          f"{p.suffix or '(no extension)'!r}", field="in")
+    if not p.is_file():
+        raise ConfigError(f"{str(p)!r} does not exist or is not a file", field="in")
+    try:
+        return reader(p)
+    except (ValueError, KeyError, OSError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"{str(p)!r} cannot be read as {p.suffix.lower()} ({exc})",
+                          field="in") from None

@@ -26,9 +26,10 @@ import numpy as np
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open
-from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud
+from cdma_lidar.host.cloud_formats.grid import cloud_from_records
+from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud, empty_records
 
-__all__ = ["EXTENSION", "INTENSITY_SCALE", "SENSOR_WKT", "gps_time", "write"]
+__all__ = ["EXTENSION", "INTENSITY_SCALE", "SENSOR_WKT", "gps_time", "read_frames", "write"]
 
 log = logging.getLogger(__name__)
 
@@ -90,3 +91,21 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
     with atomic_open(path, "wb") as fh:
         las.write(fh)
     return int(rec.size)
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """Read a LAS this module wrote as one frame (intensity back in units, not counts)."""
+    try:
+        import laspy  # optional extra `las`
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ConfigError("reading .las needs laspy: pip install 'cdma-lidar[las]'",
+                          field="in") from exc
+    las = laspy.read(str(path))
+    rec = empty_records(len(las.points))
+    for name, _ in POINT_FIELDS:
+        rec[name] = np.asarray(getattr(las, name))
+    rec["intensity"] = np.asarray(las.intensity, np.float64) / INTENSITY_SCALE
+    t0 = float(np.min(np.asarray(las.gps_time) - rec["t"])) if rec.size else 0.0
+    stamped = las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    stamp = t0 + _GPS_EPOCH_UNIX_S - _GPS_MINUS_UTC_S + 1e9 if stamped and rec.size else 0.0
+    return [cloud_from_records(rec, stamp_unix_s=stamp)]
