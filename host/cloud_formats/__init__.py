@@ -19,7 +19,8 @@ Every module also reads back what it wrote, ``read_frames(path) -> [PointCloud, 
 ``column``, :mod:`.grid`), so ``cdma-lidar convert IN OUT`` goes between every pair and
 ``replay://FILE`` (:mod:`cdma_lidar.host.replay`) feeds a recording back through the host.
 What a format cannot hold is lost on the way: PCD and LAS keep no wavelengths or column
-rotations, PCD no stamp, LAS quantises intensity to 1/4096.
+rotations, PLY and PCD no stamp (their bytes depend only on the
+scan), LAS quantises intensity to 1/4096.
 
 Adding a format is one new module here with ``EXTENSION``,
 ``write(cloud, path) -> int`` (points written) and ``read_frames``, listed in

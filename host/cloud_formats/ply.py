@@ -38,7 +38,6 @@ def write(cloud: PointCloud, path: str | os.PathLike[str],
               "comment x y z range in m (x forward, y left, z up); t in s from the frame's "
               "first column; snr_xc in dB",
               f"comment channels {cloud.shape[0]} columns {cloud.shape[1]}",
-              f"comment stamp_unix_s {cloud.stamp_unix_s!r}",
               "comment wavelengths_m " + " ".join(map(repr, map(float, cloud.wavelengths_m))),
               "comment angles_deg " + " ".join(map(repr, map(float, cloud.angles_deg))),
               f"element vertex {rec.size}"]
@@ -77,5 +76,4 @@ def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
         wavelengths_m=[float(v) for v in comments["wavelengths_m"]]
         if "wavelengths_m" in comments else None,
         angles_deg=[float(v) for v in comments["angles_deg"]]
-        if "angles_deg" in comments else None,
-        stamp_unix_s=float(comments.get("stamp_unix_s", ["0"])[0]))]
+        if "angles_deg" in comments else None)]
