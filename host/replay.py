@@ -12,6 +12,7 @@ stay), ``--combine`` other than ``last``, ``--near-far`` and device settings are
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from collections.abc import Callable, Iterator
@@ -88,12 +89,18 @@ class Replay:
         write_frames(clouds if multi else clouds[-1:], self.out, self.metadata)
         files = [self.out]
         if pictures_too:
-            paths = picture_paths(self.out)
-            pictures.snr_heatmaps([last.image.snr_xc_db], self.ranging.snr_threshold_db,
-                                  paths["snr"], ["SNR_XC"])
-            pictures.depth_image(last.cloud, paths["depth"])
-            pictures.view_3d(last.cloud, paths["view"])
-            files += list(paths.values())
+            angles = None
+            if "beam_elevation_deg" in self.metadata:
+                angles = pictures.Angles(
+                    np.array(json.loads(self.metadata["beam_elevation_deg"])),
+                    np.array(json.loads(self.metadata["beam_azimuth_deg"])))
+                if angles.elevation_deg.shape != last.cloud.shape:
+                    angles = None
+            title = f"replay of {self.source.name}, frame {last.index} of {len(self.done)}"
+            files += pictures.scan_pictures(
+                picture_paths(self.out), last.cloud, [last.image.snr_xc_db],
+                self.ranging.snr_threshold_db, title=title, frame_titles=["SNR_XC"],
+                angles=angles)
         return ScanResult(cloud=last.cloud, image=last.image, data=None,  # type: ignore[arg-type]
                           snr_maps=[f.image.snr_xc_db for f in self.done],
                           powers=[], columns_scanned=self.columns_scanned, files=files,

@@ -75,6 +75,7 @@ __all__ = [
     "picture_paths",
     "run_scan",
     "scan_metadata",
+    "scene_name",
     "state_path",
     "summarise",
 ]
@@ -92,11 +93,22 @@ def state_path(out: str | os.PathLike[str]) -> Path:
 
 
 def picture_paths(out: str | os.PathLike[str]) -> dict[str, Path]:
-    """PNG files written beside ``out``: SNR heatmap(s), depth image, 3D view."""
-    p = Path(out)
-    stem = p.with_suffix("")
+    """Files written beside ``out`` by ``--pictures`` (:func:`pictures.scan_pictures`):
+    SNR heatmap(s), depth image, 3D view, column profile (Fig. 3c), range histogram
+    (Fig. 3e) and, with near-far, the power matrices (PNG and NPZ)."""
+    stem = Path(out).with_suffix("")
     return {"snr": Path(f"{stem}_snr.png"), "depth": Path(f"{stem}_depth.png"),
-            "view": Path(f"{stem}_3d.png")}
+            "view": Path(f"{stem}_3d.png"), "column": Path(f"{stem}_column.png"),
+            "histogram": Path(f"{stem}_hist.png"), "power": Path(f"{stem}_power.png"),
+            "power_npz": Path(f"{stem}_power.npz")}
+
+
+def scene_name(device: Device) -> str:
+    """What a picture's title calls the scene: a virtual device's scene, else the serial."""
+    url = getattr(device, "url", "") or ""
+    if url.lower().startswith("virtual://"):
+        return url[len("virtual://"):].split("?", 1)[0]
+    return str(device.info.serial)
 
 
 @dataclass(frozen=True)
@@ -517,13 +529,19 @@ class Scan:
         files = [out]
         snr_maps = [f.image.snr_xc_db for f in self.done]
         if pictures_too:
-            paths = picture_paths(out)
-            maps = snr_maps if options.near_far and len(snr_maps) > 1 else [image.snr_xc_db]
-            titles = [f"frame {i}" for i in range(len(maps))] if len(maps) > 1 else ["SNR_XC"]
-            pictures.snr_heatmaps(maps, self.ranging.snr_threshold_db, paths["snr"], titles)
-            pictures.depth_image(cloud, paths["depth"])
-            pictures.view_3d(cloud, paths["view"])
-            files += list(paths.values())
+            base, n = self.frame_ids
+            last = f"frame {n - 1} of {n} (id {base + n - 1})"
+            if options.near_far:
+                maps, titles = snr_maps, [f"frame {i}" for i in range(n)]
+            else:
+                maps = [image.snr_xc_db]
+                titles = [last if options.combine == "last" else f"{n} frames, {options.combine}"]
+            el, az = dev.beam_angles_deg()
+            files += pictures.scan_pictures(
+                picture_paths(out), cloud, maps, self.ranging.snr_threshold_db,
+                title=f"{scene_name(dev)}, {titles[-1] if not options.near_far else last}",
+                frame_titles=titles, angles=pictures.Angles(el, az),
+                powers=[f.power for f in self.done] if options.near_far else None)
         state_path(out).unlink(missing_ok=True)
         shutil.rmtree(frames_path(out), ignore_errors=True)
         powers = (list(self._controller.powers) if self._controller is not None
