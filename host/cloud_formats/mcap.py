@@ -208,7 +208,7 @@ def write(cloud: PointCloud, path: str | os.PathLike[str],
 def _reader(fh: Any) -> Any:
     try:
         from mcap.reader import make_reader  # optional extra `mcap`
-        from mcap_ros2.decoder import DecoderFactory
+        from mcap_ros2.decoder import DecoderFactory  # optional extra `mcap` too
     except ImportError as exc:
         raise ConfigError("reading .mcap needs mcap and mcap-ros2-support: pip install "
                           "'cdma-lidar[mcap]'", field="in") from exc
