@@ -161,8 +161,9 @@ def register(subparsers: Any) -> None:
                         "[\"averages=20\"]); options on the command line win")
     add_port_options(p, required=False)
     p.add_argument("--out", metavar="FILE",
-                   help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
-                        "one message per frame), by extension")
+                   help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2: one "
+                        "message per frame with --combine last, else one combined message), "
+                        "by extension")
     p.add_argument("--frames", type=int, default=1, metavar="N",
                    help="frames to scan (default 1)")
     p.add_argument("--combine", choices=COMBINE_MODES, default="last",

@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from cdma_lidar.checks import is_int
 from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkError, ScanAborted
 from cdma_lidar.fileio import atomic_open
 from cdma_lidar.firmware_model.snr import snr_xc_db
@@ -157,7 +158,7 @@ class ScanOptions:
             return ConfigError(f"{name} must be {allowed}, not {getattr(self, name)!r}",
                                field=name)
 
-        if not (isinstance(self.frames, int) and 1 <= self.frames <= 10000):
+        if not (is_int(self.frames) and 1 <= self.frames <= 10000):
             raise bad("frames", "from 1 to 10000")
         if self.near_far and self.frames < 2:
             raise bad("frames", "at least 2 with near_far (the first frame measures, the next "
@@ -166,7 +167,7 @@ class ScanOptions:
             raise bad("combine", f"one of {', '.join(COMBINE_MODES)}")
         if self.combine != "last" and self.frames < 2:
             raise bad("frames", f"at least 2 with combine {self.combine!r}")
-        if not (isinstance(self.min_support, int) and 0 <= self.min_support <= 8):
+        if not (is_int(self.min_support) and 0 <= self.min_support <= 8):
             raise bad("min_support", "from 0 to 8 neighbours")
         if not 0 < self.initial_power <= 1:
             raise bad("initial_power", "in (0, 1] of the per-pixel maximum")

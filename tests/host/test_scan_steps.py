@@ -76,7 +76,8 @@ def test_a_consumer_that_stops_early_leaves_a_resumable_scan(tmp_path):
     ({"min_support": 9}, "min_support"), ({"initial_power": 0.0}, "initial_power"),
     ({"power_cap": float("inf")}, "power_cap"), ({"snr_threshold_db": -1.0}, "snr_threshold_db"),
     ({"offset_m": 1e12}, "offset_m"), ({"intensity_gain": 0.0}, "intensity_gain"),
-    ({"ghost_windows": ((-1, 2),)}, "ghost_windows"),
+    ({"ghost_windows": ((-1, 2),)}, "ghost_windows"), ({"frames": 2.0}, "frames"),
+    ({"frames": True}, "frames"),
 ])
 def test_scan_options_are_checked_at_construction(kwargs, field):
     with pytest.raises(ConfigError) as err:
@@ -122,3 +123,7 @@ def test_bad_scan_profile_is_one_line(capsys, tmp_path, text, words):
     line = one_line_error(capsys, "scan", "--config", str(prof), "--port",
                           "virtual://flat-wall", "--out", str(tmp_path / "a.ply"))
     assert all(w in line for w in words), line
+
+
+def test_scan_options_take_numpy_integers():
+    assert ScanOptions(frames=np.int64(3), min_support=np.int32(2)).frames == 3
