@@ -136,3 +136,17 @@ def test_docs_host_python_api_snippet_runs(tmp_path, monkeypatch, capsys):
     exec(compile(code, "docs/host.md", "exec"), {})
     assert (tmp_path / "scene.ply").is_file() and (tmp_path / "four.mcap").is_file()
     assert capsys.readouterr().out.count("valid pixels") == 4
+
+
+def test_scene_docs_write_uids_period_0_first_like_the_presets():
+    """docs/scene.md's preset table names every UID of a preset the way `codes uid` does."""
+    text = (ROOT / "docs" / "scene.md").read_text(encoding="utf-8")
+    for path in sorted((ROOT / "scene" / "presets").glob("*.toml")):
+        inst = tomllib.loads(path.read_text())["instrument"]
+        n = inst.get("uid_bits", 1)
+        if n <= 1:
+            continue
+        (row,) = [ln for ln in text.splitlines() if ln.startswith(f"| `{path.stem}` |")]
+        assert f"UID {inst['uid']} = {uid_to_str(inst['uid'], n)} period 0 first" in row
+        others = ", ".join(uid_to_str(u["uid"], n) for u in inst.get("other_users", []))
+        assert f"({others})" in row, row
