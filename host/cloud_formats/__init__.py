@@ -119,8 +119,9 @@ def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
         raise ConfigError(f"{str(p)!r} does not exist or is not a file", field="in")
     try:
         return reader(p)
-    except (ValueError, KeyError, OSError) as exc:
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(f"{str(p)!r} cannot be read as {p.suffix.lower()} ({exc})",
-                          field="in") from None
+    except ConfigError:
+        raise
+    except Exception as exc:  # laspy, mcap and struct raise their own kinds
+        raise ConfigError(f"{str(p)!r} cannot be read as {p.suffix.lower()} "
+                          f"({type(exc).__name__}: {str(exc)[:120]}); is it a file "
+                          "cdma-lidar wrote?", field="in") from None

@@ -101,3 +101,22 @@ def test_bad_convert_and_replay_inputs(capsys, tmp_path, argv, words):
     (tmp_path / "bad.ply").write_bytes(b"not a ply\n")
     line = one_line_error(capsys, *(a.format(tmp=tmp_path) for a in argv))
     assert words in line, line
+
+
+@pytest.mark.parametrize("name, content", [
+    ("g.las", b"garbage"), ("g.mcap", b"garbage"), ("g.pcd", b"# .PCD\nFIELDS x\nDATA binary\nxx"),
+    ("g.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float32 x\n"
+              b"end_header\nabcd"),
+    ("g.npz", b"PK garbage"),
+])
+def test_convert_refuses_garbage_in_one_line(capsys, tmp_path, name, content):
+    (tmp_path / name).write_bytes(content)
+    line = one_line_error(capsys, "convert", str(tmp_path / name), str(tmp_path / "o.ply"))
+    assert name in line and not (tmp_path / "o.ply").exists()
+
+
+def test_convert_refuses_an_npz_that_is_not_a_cloud(capsys, tmp_path):
+    np.savez(tmp_path / "other.npz", data=np.arange(3))
+    line = one_line_error(capsys, "convert", str(tmp_path / "other.npz"),
+                          str(tmp_path / "o.ply"))
+    assert "other.npz" in line
