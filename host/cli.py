@@ -465,6 +465,9 @@ def _load_ghost_map(path: str) -> list[tuple[int, int]]:
     except FileNotFoundError:
         raise ConfigError(f"ghost map {path!r} does not exist; make one with "
                           "--save-ghost-map on an empty field", field="ghost_map") from None
+    except OSError as exc:  # a folder, a symlink loop, no permission
+        raise ConfigError(f"ghost map {path!r} cannot be read ({exc.strerror})",
+                          field="ghost_map") from None
     except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"ghost map {path!r} is not a list of [start, length] windows "
                           f"({exc})", field="ghost_map") from None
