@@ -388,6 +388,7 @@ class Scan:
         self.device, self.out, self.options = device, out, options
         self.ranging = _ranging(device, options)
         self.done = done
+        self.data = state.data   # the receiver results of the frame in progress (or last)
         self.columns_scanned = 0
         self._state = state
         self._controller = None
@@ -402,7 +403,8 @@ class Scan:
                                                  PowerLimits(max_power=1.0, total_cap=cap),
                                                  initial_power=options.initial_power)
             if done:
-                self._controller.powers[:] = [f.power for f in done] + [state.power]
+                now = state.power if state.power is not None else done[-1].power
+                self._controller.powers[:] = [f.power for f in done] + [now]
                 self._controller.snr_maps[:] = [f.image.snr_xc_db for f in done]
             self._controller.powers[-1] = _apply_power(device, self._controller, None)
         else:
@@ -513,7 +515,7 @@ class Scan:
                               "frames() to the end first")
         images, clouds = [f.image for f in self.done], [f.cloud for f in self.done]
         image, cloud = images[-1], clouds[-1]
-        data = getattr(self, "data", self._state.data)
+        data = self.data
         if options.combine != "last":
             image = combine(images, options.combine)
             cloud = assemble(image, dev.geometry(), dev.wavelengths_m, data.angle_deg,
