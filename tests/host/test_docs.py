@@ -49,7 +49,7 @@ def _profile() -> str:
 
 
 def _serve(argv: list[str], home: Path) -> str:
-    env = {**os.environ, "HOME": str(home)}
+    env = {**os.environ, "HOME": str(home), "XDG_CONFIG_HOME": str(home / ".config")}
     proc = subprocess.Popen([sys.executable, "-m", "cdma_lidar.cli", *argv], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -64,7 +64,7 @@ def _serve(argv: list[str], home: Path) -> str:
 def test_every_readme_command_runs(capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     home = tmp_path / "home"
-    (home / ".config" / "cdma-lidar").mkdir(parents=True, mode=0o700)
+    home.mkdir()
     (tmp_path / "scan.toml").write_text(_profile())
     templates = 0
     lines = readme_lines()
@@ -77,6 +77,9 @@ def test_every_readme_command_runs(capsys, tmp_path, monkeypatch):
         if argv[0] == "device":
             first = _serve(argv, home)
             assert first.startswith(("/dev/", "socket://")), (line, first)
+            if "--key-file" in argv:   # the bare option: the key outside the working tree
+                key = home / ".config" / "cdma-lidar" / "device.key"
+                assert key.stat().st_mode & 0o777 == 0o600
             continue
         if argv[0] == "scan":
             argv += ["--no-progress"]
@@ -150,3 +153,15 @@ def test_scene_docs_write_uids_period_0_first_like_the_presets():
         assert f"UID {inst['uid']} = {uid_to_str(inst['uid'], n)} period 0 first" in row
         others = ", ".join(uid_to_str(u["uid"], n) for u in inst.get("other_users", []))
         assert f"({others})" in row, row
+
+
+def test_device_and_host_agree_on_the_default_key_file(monkeypatch, tmp_path):
+    from cdma_lidar.host.connection import default_key_file
+    from cdma_lidar.virtual.cli import _default_key_file
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    assert _default_key_file() == default_key_file() == tmp_path / "cdma-lidar" / "device.key"
+    monkeypatch.delenv("XDG_CONFIG_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert _default_key_file() == default_key_file() == (tmp_path / ".config" / "cdma-lidar"
+                                                         / "device.key")
