@@ -14,7 +14,10 @@ in the same run:
 * --combine: frame-to-frame precision and the deterministic bias against N on
   flat-wall (baseline: one frame);
 * speed: the vectorised range pipeline against a per-pixel Python loop; point-cloud
-  assembly and the PLY writer.
+  assembly and the PLY writer;
+* partial scans: the once-a-second save of a scan after F finished frames (the frame in
+  progress only, each finished frame having been written once) against the earlier
+  scheme that stacked every finished frame into that save (the baseline).
 """
 
 from __future__ import annotations
@@ -216,12 +219,44 @@ def bench_speed() -> None:
           f"fsync) {1e3 * t_write:.1f} ms")
 
 
+def bench_partial_save(counts: tuple[int, ...] = (10, 100, 1000)) -> None:
+    """Time and bytes of one periodic save after F finished frames, new and old scheme."""
+    from cdma_lidar.fileio import atomic_open
+    from cdma_lidar.host.frame import FrameData
+    from cdma_lidar.host.scan import ScanState
+
+    sim = simulate_frame("paper-scene1", seed=3)
+    img = estimate_ranges(sim.frame, sim.ranging)
+    rec = assemble(img, sim.geometry, sim.wavelengths_m, sim.rotations_deg).grid_records()
+    k, c = img.range_m.shape
+    data = FrameData.empty(k, c, 1, 1)
+    state = ScanState(header={"device": {}}, frame_index=0, frame_base=0, data=data)
+    with tempfile.TemporaryDirectory() as d:
+        new, old = Path(d) / "new.npz", Path(d) / "old.npz"
+
+        def stacked(frames: int) -> None:  # the baseline: every past frame in every save
+            arrays = {f"frame_{key}": v for key, v in data.to_arrays().items()}
+            arrays["past"] = np.stack([rec] * frames)
+            arrays["snr_maps"] = np.zeros((frames, k, c))
+            with atomic_open(old, "wb") as fh:
+                np.savez(fh, **arrays)
+
+        for frames in counts:
+            t_new = _best(lambda: state.save(new))
+            t_old = _best(lambda f=frames: stacked(f))
+            print(f"partial scan save after {frames} frames ({k} x {c}): {1e3 * t_new:.1f} ms, "
+                  f"{new.stat().st_size / 1e6:.2f} MB vs stacking every frame "
+                  f"{1e3 * t_old:.1f} ms, {old.stat().st_size / 1e6:.1f} MB: "
+                  f"{t_old / t_new:.0f}x")
+
+
 def main() -> None:
     bench_refinement()
     bench_support()
     bench_near_far()
     bench_combine()
     bench_speed()
+    bench_partial_save()
 
 
 if __name__ == "__main__":

@@ -53,6 +53,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("scan", "cdma_lidar.host.cli", "scan a device and write a point cloud"),
     Command("view", "cdma_lidar.host.cli",
             "scan a device and watch the cloud, range and SNR_XC images live (rerun)"),
+    Command("convert", "cdma_lidar.host.cli", "convert a point cloud file to another format"),
     Command("calibrate", "cdma_lidar.host.cli",
             "measure the system delay on the zeroth-order target"),
     Command("capture", "cdma_lidar.host.capture",

@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 
 from cdma_lidar.checks import check_int
-from cdma_lidar.errors import out_of_range
-from cdma_lidar.fileio import atomic_write_text
+from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.fileio import atomic_write_text, check_writable
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.pairs import preferred_pairs
@@ -322,11 +322,22 @@ vvp tb.vvp +VEC=<this folder>/
 """
 
 
+def _check_out_dir(out: str) -> None:
+    """Create ``out`` (with parents) and prove a file can be written in it, or ConfigError."""
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out!r}: cannot create the folder ({exc.strerror}); choose "
+                          "a writable folder", field="out") from None
+    check_writable(Path(out) / "probe", "--out")
+
+
 def cmd_vectors(args: argparse.Namespace) -> int:
     """``cdma-lidar hdl vectors``: write the files and say where."""
     spec = spec_from_settings(args.set or [])
     if args.seed < 0:
         raise out_of_range("--seed", ">= 0", args.seed)
+    _check_out_dir(args.out)
     out = write_vectors(spec, args.columns, args.seed, args.out)
     sys.stdout.write(f"wrote {args.columns} columns of rx_top vectors to {out}\n")
     return 0

@@ -21,7 +21,7 @@ The result is a TOML file (written atomically with tomli_w, read with tomllib)::
     shots = 100
     samples = 4000             # range values in the histogram (shots x channels)
     date = "2026-11-21T09:30:00+00:00"
-    intensity_gain = 2.1e9     # optional: scan --calibrate-intensity R on a flat target
+    intensity_gain = 8.3       # optional: scan --calibrate-intensity R on a flat target
     [device]      ...          # identity reported by the device (INFO)
     [configuration] ...        # the configuration the calibration holds for
 """
@@ -47,6 +47,7 @@ from cdma_lidar.fileio import atomic_write_text
 
 __all__ = [
     "CALIBRATION_KEYS",
+    "TARGET_DISTANCE_M",
     "Calibration",
     "HistogramResult",
     "analyse_histogram",
@@ -54,6 +55,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Calibration target distances (m) a zeroth-order beam trap can sit at (the scene file's
+#: ``calibration.target_distance_m`` range).
+TARGET_DISTANCE_M = (0.01, 1000.0)
 
 #: Configuration fields that change the system delay or the lag-to-range scale; a
 #: calibration applies only where all of those present in the file are equal.
@@ -165,9 +170,10 @@ class Calibration:
                     gap_m: float, max_spread_m: float, device: Mapping[str, Any] | None = None,
                     configuration: Mapping[str, Any] | None = None) -> Calibration:
         """Calibrate from uncalibrated ranges (m) of the zeroth-order target."""
-        if not (math.isfinite(target_distance_m) and target_distance_m > 0):
-            raise out_of_range("target_distance", "a positive distance in metres",
-                               target_distance_m)
+        if not (math.isfinite(target_distance_m)
+                and TARGET_DISTANCE_M[0] <= target_distance_m <= TARGET_DISTANCE_M[1]):
+            raise out_of_range("target_distance", f"from {TARGET_DISTANCE_M[0]:g} to "
+                               f"{TARGET_DISTANCE_M[1]:g} m", target_distance_m)
         hist = analyse_histogram(ranges_m, gap_m=gap_m, max_spread_m=max_spread_m)
         offset = hist.centre_m - target_distance_m
         log.info("calibration: centre %.4f m, spread %.4f m, offset %.4f m (%d values, %d "
@@ -205,6 +211,10 @@ class Calibration:
             raise ConfigError(f"calibration file {str(p)!r} is not valid TOML ({exc}); make "
                               "a new one with 'cdma-lidar calibrate'", field="calibration"
                               ) from exc
+        except OSError as exc:  # a folder, a symlink loop, no permission
+            raise ConfigError(f"calibration file {str(p)!r} cannot be read ({exc.strerror}); "
+                              "give the TOML file 'cdma-lidar calibrate' wrote",
+                              field="calibration") from None
         try:
             return cls(offset_m=float(doc["offset_m"]), spread_m=float(doc["spread_m"]),
                        target_distance_m=float(doc["target_distance_m"]),

@@ -14,8 +14,9 @@ reads the capture through the protocol's CAPTURE request
   and ``FILE.sigmf-meta``, JSON per SigMF 1.0), the format SDR tools read.
 
 The NPZ holds ``data`` plus ``kind``, ``column``, ``channel``, ``sample_rate_hz``,
-``frame_id`` and, for ``corr``, ``lag`` and ``range_m``; ``config`` is the device
-configuration as JSON.
+``frame_id``, ``calibrated`` (whether ``range_m`` has the calibration offset removed)
+and, for ``corr``, ``lag`` and ``range_m``; ``config`` is the device configuration as
+JSON.
 """
 
 from __future__ import annotations
@@ -53,8 +54,12 @@ class Capture(dict):
 
 
 def capture(device: Device, kind: str, column: int, channel: int, *,
-            frame_id: int | None = None, offset_m: float = 0.0) -> Capture:
-    """Scan ``column`` once, then capture it (``kind`` ``corr`` or ``raw``)."""
+            frame_id: int | None = None, offset_m: float | None = None) -> Capture:
+    """Scan ``column`` once, then capture it (``kind`` ``corr`` or ``raw``).
+
+    ``offset_m``: the calibration offset (m); None leaves the ranges raw (``calibrated``
+    False in the capture: they still hold the system delay).
+    """
     if kind not in KINDS:
         raise ConfigError(f"kind must be one of {', '.join(KINDS)}, not {kind!r}", field="kind")
     if not 0 <= column < device.columns:
@@ -71,11 +76,13 @@ def capture(device: Device, kind: str, column: int, channel: int, *,
     out = Capture(data=data, kind=np.array(kind), column=np.array(column),
                   channel=np.array(channel), sample_rate_hz=np.array(rate),
                   frame_id=np.array(int(results[0].frame) if results else -1),
-                  config=np.array(json.dumps(toml_safe(dict(cfg)), sort_keys=True)))
+                  config=np.array(json.dumps(toml_safe(dict(cfg)), sort_keys=True)),
+                  calibrated=np.array(offset_m is not None))
     if kind == "corr":
         lag = int(cfg.get("gate_start", 0)) + np.arange(data.size)
         out["lag"] = lag
-        out["range_m"] = lag_to_range_m(lag, spc, float(device.info.chip_rate_hz), offset_m)
+        out["range_m"] = lag_to_range_m(lag, spc, float(device.info.chip_rate_hz),
+                                        offset_m or 0.0)
         if results:
             out["peak_lag"] = np.array(int(results[0].records["peak_lag"][channel]))
     log.info("captured %s of column %d channel %d: %d values", kind, column, channel, data.size)
@@ -141,7 +148,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
         if cal is not None:
             cal.check_applies(dev.identity(), dev.calibration_config())
         cap = capture(dev, args.kind, args.column, args.channel, frame_id=args.frame_id,
-                      offset_m=cal.offset_m if cal else 0.0)
+                      offset_m=cal.offset_m if cal else None)
     with atomic_open(out, "wb") as fh:
         np.savez(fh, **cap)
     files = [out]

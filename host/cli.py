@@ -1,15 +1,16 @@
-"""The host commands: ``info``, ``scan``, ``view`` and ``calibrate``.
+"""The host commands: ``info``, ``scan``, ``view``, ``convert`` and ``calibrate``.
 
 Every command checks what it can before it touches the device (output folder
 writable, extension known, numbers in range), so a bad argument costs nothing and
 exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
-``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device).
+``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device);
+``scan`` also takes ``replay://FILE``, a recorded cloud fed back through the host
+(:mod:`cdma_lidar.host.replay`).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import logging
 import math
 import sys
@@ -25,8 +26,14 @@ import tomli_w
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text, check_writable
-from cdma_lidar.host.calibration import Calibration
-from cdma_lidar.host.cloud_formats import FORMATS, OPTIONAL_LIBRARIES
+from cdma_lidar.host.calibration import TARGET_DISTANCE_M, Calibration
+from cdma_lidar.host.cloud_formats import (
+    MULTI_FRAME_FORMATS,
+    check_output,
+    read_frames,
+    write_frames,
+)
+from cdma_lidar.host.cloud_formats.mcap import read_metadata
 from cdma_lidar.host.combine import COMBINE_MODES
 from cdma_lidar.host.connection import connect
 from cdma_lidar.host.intensity import intensity_gain
@@ -35,10 +42,10 @@ from cdma_lidar.host.ranging import (
     ghost_windows_from_image,
     sample_range_m,
 )
+from cdma_lidar.host.replay import Replay, is_replay
 from cdma_lidar.host.scan import (
     ScanOptions,
     calibrate_device,
-    max_snr_xc_db,
     multi_user_peaks,
     run_scan,
     state_path,
@@ -65,6 +72,17 @@ def _positive_float(text: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number, not {text!r}")
     return v
+
+
+def _float_in(lo: float, hi: float, unit: str) -> Any:
+    """An argparse type: a number in (lo, hi] (``lo`` excluded when it is 0), in ``unit``."""
+    def parse(text: str) -> float:
+        v = _finite_float(text)
+        if not ((lo < v if lo == 0 else lo <= v) and v <= hi):
+            low = f"above {lo:g}" if lo == 0 else f"from {lo:g}"
+            raise argparse.ArgumentTypeError(f"must be {low} to {hi:g} {unit}, not {text!r}")
+        return v
+    return parse
 
 
 def _finite_float(text: str) -> float:
@@ -109,12 +127,17 @@ def _setting(text: str) -> tuple[str, Any]:
     return key.strip(), (tuple(vals) if len(vals) > 1 else vals[0])
 
 
-def add_port_options(p: argparse.ArgumentParser) -> None:
-    """--port, --timeout and the session/access options every device command takes."""
-    p.add_argument("--port", required=True, metavar="URL",
-                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N")
-    p.add_argument("--timeout", type=_positive_float, default=1.0, metavar="S",
-                   help="seconds to wait for each answer (default 1)")
+def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> None:
+    """--port, --timeout and the session/access options every device command takes.
+
+    ``required=False`` where a ``--config`` profile may give the port instead.
+    """
+    p.add_argument("--port", required=required, metavar="URL",
+                   help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N"
+                        + (" (scan: also replay://FILE, a recorded cloud)" if not required
+                           else ""))
+    p.add_argument("--timeout", type=_float_in(0, 3600, "s"), default=1.0, metavar="S",
+                   help="seconds to wait for each answer (default 1, at most 3600)")
     # Access to a shared device (protocol v2 sessions and keys, docs/protocol.md).
     p.add_argument("--take-over", action="store_true",
                    help="end another host's session on the device instead of failing busy")
@@ -139,10 +162,15 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=cmd_info)
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
-    add_port_options(p)
+    p.add_argument("--config", metavar="FILE",
+                   help="scan profile (TOML): any option of this command as KEY = VALUE "
+                        "(port = \"virtual://paper-scene1\", frames = 4, set = "
+                        "[\"averages=20\"]); options on the command line win")
+    add_port_options(p, required=False)
     p.add_argument("--out", metavar="FILE",
-                   help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2, "
-                        "one message per frame), by extension (required by scan)")
+                   help="point cloud: .ply, .pcd, .npz, .las or .mcap (ROS 2 PointCloud2: one "
+                        "message per frame with --combine last, else one combined message), "
+                        "by extension")
     p.add_argument("--frames", type=int, default=1, metavar="N",
                    help="frames to scan (default 1)")
     p.add_argument("--combine", choices=COMBINE_MODES, default="last",
@@ -175,17 +203,23 @@ def register(subparsers: Any) -> None:
     p.add_argument("--save-ghost-map", metavar="FILE",
                    help="this scan sees an empty field: save its detections as a ghost map")
     p.add_argument("--power-cap", type=_positive_float, metavar="X",
-                   help="near-far: cap per column, in units of the per-pixel maximum power")
+                   help="near-far: cap per column, in units of the per-pixel maximum power "
+                        "(at most the number of channels: every pixel at its maximum)")
     p.add_argument("--pictures", action="store_true",
                    help="also write SNR heatmap, depth image and 3D view PNGs beside --out")
-    p.add_argument("--resume", action="store_true",
-                   help="finish an interrupted scan (OUT.partial.npz) without redoing columns")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="finish an interrupted scan (OUT.partial.npz) without redoing "
+                            "columns")
+    again.add_argument("--force", action="store_true",
+                       help="start afresh even though OUT.partial.npz holds an interrupted "
+                            "scan (it is overwritten)")
     p.add_argument("--frame-id", type=int, metavar="N",
                    help="id of the first frame (default random); a virtual device seeds its "
                         "noise with it, so the same seed and id give the same cloud")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
-    p.set_defaults(func=cmd_scan)
+    p.set_defaults(func=cmd_scan, profile_parser=p)
     scan = p
 
     # view: every scan option (--out optional) and where the live view goes
@@ -195,19 +229,30 @@ def register(subparsers: Any) -> None:
         description="Scan as `scan` does and watch each frame as it arrives: the point "
                     "cloud, the range and SNR_XC images and the power matrix, in rerun.")
     add_view_options(p)
-    p.set_defaults(func=cmd_view)
+    p.set_defaults(func=cmd_view, profile_parser=p)
+
+    p = subparsers.add_parser("convert", help="convert a point cloud file to another format",
+                              description="Read a cloud cdma-lidar wrote (.ply, .pcd, .npz, "
+                              ".las, .mcap) and write it in the format OUT's extension names: "
+                              "every frame into .mcap, the last frame into the others; an "
+                              ".mcap's metadata record is kept.")
+    p.add_argument("in_file", metavar="IN", help="cloud file to read")
+    p.add_argument("out_file", metavar="OUT", help="cloud file to write")
+    p.set_defaults(func=cmd_convert)
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
     add_port_options(p)
-    p.add_argument("--target-distance", type=_positive_float, required=True, metavar="METRES",
-                   help="known distance from the grating to the calibration target (m)")
+    p.add_argument("--target-distance", type=_float_in(*TARGET_DISTANCE_M, "m"), required=True,
+                   metavar="METRES",
+                   help="known distance from the grating to the calibration target (m, "
+                        f"{TARGET_DISTANCE_M[0]:g} to {TARGET_DISTANCE_M[1]:g})")
     p.add_argument("--shots", type=int, default=20, metavar="N",
                    help="repeated shots (default 20)")
     p.add_argument("--out", required=True, metavar="FILE", help="calibration file (.toml)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
                    help="SNR_XC threshold in dB (default 16)")
-    p.add_argument("--max-spread", type=_positive_float, metavar="M",
+    p.add_argument("--max-spread", type=_float_in(0, 1000, "m"), metavar="M",
                    help="widest acceptable histogram standard deviation (m)")
     _add_set(p)
     p.set_defaults(func=cmd_calibrate)
@@ -243,37 +288,84 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def apply_profile(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """Fill the options not given on the command line from ``args.config`` (TOML).
+
+    Keys are the command's long options without dashes (``snr-threshold`` or
+    ``snr_threshold``); values go through the same checks as on the command line
+    (repeatable options take a list, flags true or false). An option given on the
+    command line (any value but its default) wins over the file.
+    """
+    if not getattr(args, "config", None):
+        return
+    path = args.config
+    try:
+        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"--config {path!r} does not exist", field="config") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"--config {path!r} is not a readable TOML file ({exc})",
+                          field="config") from None
+    actions = {a.dest: a for a in parser._actions
+               if a.option_strings and a.dest not in ("help", "config")}
+    for key, value in doc.items():
+        action = actions.get(key.replace("-", "_"))
+        if action is None:
+            raise ConfigError(f"--config {path!r}: unknown option {key!r}; allowed: "
+                              + ", ".join(sorted(d.replace("_", "-") for d in actions)),
+                              field="config")
+        if getattr(args, action.dest) != action.default:
+            continue  # the command line wins
+        setattr(args, action.dest, _profile_value(action, key, value, path))
+
+
+def _profile_value(action: argparse.Action, key: str, value: Any, path: str) -> Any:
+    """One profile value, converted and checked as argparse would on the command line."""
+    def bad(allowed: str) -> ConfigError:
+        return ConfigError(f"--config {path!r}: {key} must be {allowed}, not {value!r}",
+                           field="config")
+
+    if action.nargs == 0:  # a flag
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    repeat = isinstance(action, argparse._AppendAction)
+    items = value if repeat and isinstance(value, list) else [value]
+    if any(isinstance(v, dict | list | bool) for v in items):
+        raise bad("a number or a string" + (" (or a list of them)" if repeat else ""))
+    out = []
+    for v in items:
+        try:
+            conv = action.type(str(v)) if action.type is not None else str(v)
+        except argparse.ArgumentTypeError as exc:  # says "must be ..., not ..."
+            raise ConfigError(f"--config {path!r}: {key} {exc}", field="config") from None
+        except ValueError:
+            raise bad("a whole number" if action.type is int else "valid") from None
+        if action.choices is not None and conv not in action.choices:
+            raise bad("one of " + ", ".join(map(str, action.choices)))
+        out.append(conv)
+    return out if repeat else out[0]
+
+
 def cmd_scan(args: argparse.Namespace,
              on_frame: Callable[..., None] | None = None) -> int:
     """Scan and write the point cloud; ``on_frame`` sees each frame (``view``)."""
 
-    if args.out is None:
-        raise ConfigError("scan needs --out FILE (.ply, .pcd, .npz, .las or .mcap)",
-                          field="out")
-    out = Path(args.out)
-    if out.suffix.lower() not in FORMATS:
-        raise ConfigError(f"--out must end in one of {', '.join(FORMATS)}, not "
-                          f"{out.suffix or '(no extension)'!r}", field="out")
-    check_writable(out, "--out")
-    lib = OPTIONAL_LIBRARIES.get(out.suffix.lower())
-    if lib is not None and importlib.util.find_spec(lib[0]) is None:
-        raise ConfigError(f"--out {out.suffix.lower()} needs {lib[0]}: pip install "
-                          f"'cdma-lidar[{lib[1]}]' (or write .ply, .pcd or .npz)", field="out")
-    if not 1 <= args.frames <= 10000:
-        raise ConfigError(f"--frames must be from 1 to 10000, not {args.frames}",
-                          field="frames")
-    if args.near_far and args.frames < 2:
-        raise ConfigError(f"--near-far needs --frames 2 or more (the first frame measures, "
-                          f"the next are corrected), not {args.frames}", field="frames")
-    if args.combine != "last" and args.frames < 2:
-        raise ConfigError(f"--combine {args.combine} needs --frames 2 or more, not "
-                          f"{args.frames}", field="combine")
+    apply_profile(args, args.profile_parser)
+    for name in ("port", "out"):
+        if getattr(args, name) is None:
+            raise ConfigError(f"--{name} is required (on the command line or in --config)",
+                              field=name)
+    out = check_output(args.out)
     if args.calibrate_intensity is not None and not args.calibration:
         raise ConfigError("--calibrate-intensity needs --calibration FILE to store the gain "
                           "in", field="calibrate_intensity")
     if args.resume and not state_path(out).is_file():
         raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
                           "without --resume", field="resume")
+    if args.power_cap is not None and not args.near_far:
+        raise ConfigError("--power-cap needs --near-far (a uniform scan uses one power)",
+                          field="power_cap")
     cal = Calibration.load(args.calibration) if args.calibration else None
     ghosts = list(args.ghost_window)
     if args.ghost_map:
@@ -293,14 +385,10 @@ def cmd_scan(args: argparse.Namespace,
                           offset_m=cal.offset_m if cal else 0.0, combine=args.combine,
                           keep_foreign=args.keep_foreign,
                           intensity_gain=cal.intensity_gain if cal else None)
+    if is_replay(args.port):
+        return _replay(args, out, options)
     with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
-        if args.snr_threshold is not None:
-            top = max_snr_xc_db(dev.config)
-            if not 0.0 <= args.snr_threshold <= top:
-                raise ConfigError(f"--snr-threshold must be from 0 to {top:.1f} dB (the "
-                                  f"SNR_XC this configuration can report), not "
-                                  f"{args.snr_threshold:g}", field="snr_threshold")
         peaks = multi_user_peaks(dev, {key for key, _ in args.set})
         if peaks:
             _say(f"UID configured ({dev.config.get('uid_bits')} bits): asking for {peaks} "
@@ -312,7 +400,7 @@ def cmd_scan(args: argparse.Namespace,
             log.warning("no --calibration: ranges include the system delay")
         t0 = time.monotonic()
         try:
-            res = run_scan(dev, out, options, resume=args.resume,
+            res = run_scan(dev, out, options, resume=args.resume, force=args.force,
                            progress=not args.no_progress, pictures_too=args.pictures,
                            frame_id=args.frame_id, on_frame=on_frame)
         except KeyboardInterrupt:
@@ -363,6 +451,7 @@ def cmd_scan(args: argparse.Namespace,
 
 def cmd_view(args: argparse.Namespace) -> int:
     """Scan as ``scan`` does, logging every finished frame to a rerun viewer."""
+    apply_profile(args, args.profile_parser)
     if args.out is None and (args.pictures or args.resume):
         raise ConfigError("--pictures and --resume need --out FILE in view", field="out")
     threshold = (DEFAULT_SNR_THRESHOLD_DB if args.snr_threshold is None
@@ -370,8 +459,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     live = LiveView(view_options(args, threshold), description=f"cdma-lidar view {args.port}")
     if live.url:
         _say(f"web viewer: {live.url}")
-    # Without --out the cloud goes to a temporary file (run_scan writes one); once the
-    # scan is split into open / acquire / finish, view will simply not call finish.
+    # Without --out the cloud goes to a temporary file that is never reported.
     with tempfile.TemporaryDirectory(prefix="cdma-lidar-view-") as tmp:
         if args.out is None:
             args.out, args.temporary_out = str(Path(tmp) / "view.npz"), True
@@ -387,6 +475,34 @@ def cmd_view(args: argparse.Namespace) -> int:
     return code
 
 
+def _replay(args: argparse.Namespace, out: Path, options: ScanOptions) -> int:
+    """``scan --port replay://FILE``: a recording through the host's writers and pictures."""
+    for name in ("set", "calibration", "calibrate_intensity", "save_ghost_map", "resume"):
+        if getattr(args, name):
+            raise ConfigError(f"--{name.replace('_', '-')} needs a device, not a replay "
+                              f"({args.port})", field=name)
+    replay = Replay(args.port, out, options)
+    res = replay.finish(pictures_too=args.pictures)
+    img = res.image
+    _say(f"replayed {len(res.clouds)} frames from {replay.source}; {int(img.valid.sum())} of "
+         f"{img.range_m.size} pixels valid in the last")
+    for f in res.files:
+        _say(f"wrote {f}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """Convert a cloud file between formats (every frame where the output holds several)."""
+    out = check_output(args.out_file, "OUT")
+    clouds = read_frames(args.in_file)
+    meta = read_metadata(args.in_file) if Path(args.in_file).suffix.lower() == ".mcap" else {}
+    n = write_frames(clouds, out, meta)
+    kept = len(clouds) if out.suffix.lower() in MULTI_FRAME_FORMATS else 1
+    _say(f"wrote {n} points of {kept} of {len(clouds)} frames to {out}"
+         + ("" if kept == len(clouds) else " (this format holds one frame: the last)"))
+    return 0
+
+
 def _load_ghost_map(path: str) -> list[tuple[int, int]]:
     try:
         doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
@@ -394,6 +510,9 @@ def _load_ghost_map(path: str) -> list[tuple[int, int]]:
     except FileNotFoundError:
         raise ConfigError(f"ghost map {path!r} does not exist; make one with "
                           "--save-ghost-map on an empty field", field="ghost_map") from None
+    except OSError as exc:  # a folder, a symlink loop, no permission
+        raise ConfigError(f"ghost map {path!r} cannot be read ({exc.strerror})",
+                          field="ghost_map") from None
     except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"ghost map {path!r} is not a list of [start, length] windows "
                           f"({exc})", field="ghost_map") from None

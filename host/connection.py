@@ -12,30 +12,81 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout
+from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
-from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
 from cdma_lidar.protocol.auth import load_key
 from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
 from cdma_lidar.protocol.messages import ErrorCode
 from cdma_lidar.protocol.ports import open_port
 
-__all__ = ["KEY_FILE_ENV", "Device", "connect", "resolve_key"]
+__all__ = ["KEY_FILE_ENV", "Device", "DeviceLink", "check_socket_url", "connect",
+           "default_key_file", "resolve_key"]
 
 log = logging.getLogger(__name__)
 
 
+class DeviceLink(Protocol):
+    """What the host asks of a link to a device: :class:`cdma_lidar.protocol.link.HostLink`
+    is one, a replayed recording or a test double can be another.
+
+    Column results (``ColumnResult``) and INFO are the protocol's records
+    (:mod:`cdma_lidar.protocol.messages`); power matrices are uint16 counts of the
+    per-pixel maximum (65535 = the maximum).
+    """
+
+    def hello(self) -> Any:
+        """Open a session; returns INFO (identity, geometry, limits)."""
+        ...
+
+    def get_config(self, *names: str) -> dict[str, Any]:
+        """The configuration (all keys, or ``names``)."""
+        ...
+
+    def set_config(self, **values: Any) -> None:
+        """Change configuration keys; a refused value raises DeviceError naming it."""
+        ...
+
+    def set_power(self, matrix: ArrayLike, channel_start: int = 0,
+                  column_start: int = 0) -> None:
+        """Send a (K, C) power matrix (uint16 counts)."""
+        ...
+
+    def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
+             frame: int | None = None) -> Iterator[Any]:
+        """Column results of ``frames`` frames, in column order, each once."""
+        ...
+
+    def calibrate(self, shots: int, frame: int | None = None) -> list[Any]:
+        """``shots`` zeroth-order calibration columns."""
+        ...
+
+    def capture(self, kind: str | int = "raw", column: int = 0, channel: int = 0) -> NDArray:
+        """A debug capture: raw ADC samples or one channel's correlation trace."""
+        ...
+
+    def abort(self) -> None:
+        """Stop a running scan (harmless when idle)."""
+        ...
+
+    def close(self) -> None:
+        """End the session and close the port."""
+        ...
+
+
 @dataclass
 class Device:
-    """An open session with a device (``link`` is a :class:`cdma_lidar.protocol.link.HostLink`)."""
+    """An open session with a device over a :class:`DeviceLink`."""
 
-    link: Any
+    link: DeviceLink
     info: Any
     config: dict[str, Any]
     url: str = ""
@@ -99,6 +150,15 @@ class Device:
                                tilt_deg=self.info.tilt_deg,
                                reference_wavelength_m=float(self.info.reference_wavelength_m))
 
+    def beam_angles_deg(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(elevation, azimuth), each (K, C) deg, of every pixel's beam from the nominal
+        grating: elevation positive up (set by the channel's wavelength), azimuth positive
+        left (set by the column's rotation)."""
+        dirs = self.geometry().directions(self.wavelengths_m[:, None],
+                                          self.column_angles_deg[None, :])
+        az, el = azimuth_elevation_deg(dirs)
+        return np.asarray(el), np.asarray(az)
+
     def ranging_config(self, **changes: Any) -> RangingConfig:
         """RangingConfig for the current configuration; ``changes`` override fields."""
         base = RangingConfig(samples_per_chip=int(self.config["samples_per_chip"]),
@@ -112,19 +172,52 @@ class Device:
 KEY_FILE_ENV = "CDMA_LIDAR_KEY_FILE"
 
 
-def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
-    """The key for ``url``: from ``key_file``, else from $CDMA_LIDAR_KEY_FILE for network URLs.
+def default_key_file() -> Path:
+    """Where a device key belongs: outside any working tree, in
+    ``$XDG_CONFIG_HOME/cdma-lidar/device.key`` (default ``~/.config/cdma-lidar/device.key``).
 
-    The environment variable applies to ``socket://`` URLs only, so serial ports, ptys
-    and ``virtual://`` (which hold no key) keep working with it set. Raises ConfigError
+    A host reaching ``socket://`` without ``--key-file`` or $CDMA_LIDAR_KEY_FILE reads it
+    from there when it exists, so the README's commands leave no secret in the repository.
+    """
+    base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"),
+                                                              ".config")
+    return Path(base) / "cdma-lidar" / "device.key"
+
+
+def resolve_key(url: str, key_file: str | None = None) -> bytes | None:
+    """The key for ``url``: ``key_file``, else for network URLs $CDMA_LIDAR_KEY_FILE, else
+    :func:`default_key_file` when it exists.
+
+    The fallbacks apply to ``socket://`` URLs only, so serial ports, ptys and
+    ``virtual://`` (which hold no key) keep working with them set. Raises ConfigError
     naming the file when it cannot be read or is not private (mode 0600).
     """
     if key_file:
         return load_key(key_file)
+    if not url.lower().startswith("socket://"):
+        return None
     env = os.environ.get(KEY_FILE_ENV)
-    if env and url.lower().startswith("socket://"):
+    if env:
         return load_key(env)
-    return None
+    default = default_key_file()
+    return load_key(default) if default.is_file() else None
+
+
+def check_socket_url(url: str) -> None:
+    """Refuse a ``socket://HOST:PORT`` URL without a host or with a port outside 1..65535.
+
+    pyserial's own message for these is Python internals; this one names the field.
+    """
+    if not url.lower().startswith("socket://"):
+        return
+    where = url[len("socket://"):].split("?", 1)[0].rstrip("/")
+    host, sep, port = where.rpartition(":")
+    if not sep or not host:
+        raise ConfigError(f"--port {url!r} must be socket://HOST:PORT with a port number",
+                          field="port")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"--port {url!r}: the TCP port must be from 1 to 65535, not "
+                          f"{port!r}", field="port")
 
 
 def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str | None = None,
@@ -138,6 +231,7 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str
     opened, the device does not answer, or another host owns it.
     """
 
+    check_socket_url(url)
     key = resolve_key(url, key_file)
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries, key=key, take_over=take_over,

@@ -8,17 +8,24 @@ with ``G`` the link gain of the instrument (optics, detector, ADC: one number pe
 device and configuration), ``P`` the pixel's laser power, ``rho`` the target's
 reflectivity, ``theta`` its incidence angle and ``r`` the range. The correlation peak
 is proportional to ``A`` (the processing gain of the configured code, averages and UID
-periods, divided by ``2^out_shift``), so::
+periods, divided by ``2^out_shift``); dividing by that processing gain and by the
+ADC's full scale::
 
-    intensity = |peak| * 2^out_shift * r^2 / (P * g)  ~=  rho * cos(theta)
+    intensity = |peak| * 2^out_shift * r^2 / (P * N * S * M * B * 2^(adc_bits-1) * g)
 
-``P`` is the fraction of the per-pixel maximum the pixel was scanned with (the
-near-far power matrix, or the uniform start power) and ``g`` the *intensity gain*
-measured once on a flat target of known reflectivity (``scan --calibrate-intensity R``
-stores it in the calibration file, :func:`intensity_gain`). Without a gain the
-intensity is in relative units (``g = 1``); with it, a flat white target reads about
-its reflectivity (flat-wall: 0.5). The gain holds for the configuration it was
-measured with (code, samples per chip, averages, UID bits).
+with ``N`` the code length (chips), ``S`` samples per chip, ``M`` averages and ``B`` the
+UID bits (code periods per symbol). ``P`` is the fraction of the per-pixel maximum the
+pixel was scanned with (the near-far power matrix, or the uniform start power).
+
+Without a gain (``g = 1``) the unit is :data:`RAW_UNIT`: the echo amplitude in ADC full
+scales that the target would give at 1 m and full pixel power. It does not depend on
+the code, samples per chip, averages, UID bits or ``out_shift``, only on the optics and
+the target: flat-wall's 0.5-reflectance wall reads about 4.2 x 0.5 = 2.1. A device does
+not announce its optical link gain (INFO carries powers, not responsivity or aperture),
+so a reflectance needs ``g`` measured once on a flat target of known reflectivity
+(``scan --calibrate-intensity R`` stores it in the calibration file,
+:func:`intensity_gain`); then a flat target reads about ``rho cos(theta)`` (flat-wall:
+0.5). The gain holds for the optics it was measured with.
 """
 
 from __future__ import annotations
@@ -32,15 +39,32 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError, out_of_range
 
-__all__ = ["intensity", "intensity_gain"]
+__all__ = ["RAW_UNIT", "intensity", "intensity_gain", "processing_gain"]
 
 log = logging.getLogger(__name__)
+
+
+#: The unit of an uncalibrated intensity (module docstring).
+RAW_UNIT = "ADC full scales at 1 m and full pixel power"
+
+
+def processing_gain(config: Mapping[str, Any]) -> float:
+    """Correlation peak (LSB) of a full-scale echo: ``N * S * M * B * 2^(adc_bits-1)``.
+
+    ``N = 2^degree - 1`` chips (``poly_u[0]``), ``S`` samples per chip, ``M`` averages,
+    ``B`` UID bits (one code period per UID bit), ``adc_bits`` signed ADC bits.
+    """
+    chips = (1 << int(config["poly_u"][0])) - 1
+    return float(chips * int(config["samples_per_chip"]) * int(config.get("averages", 1))
+                 * max(1, int(config.get("uid_bits", 1)))
+                 * (1 << (int(config.get("adc_bits", 12)) - 1)))
 
 
 def _raw(peak: ArrayLike, range_m: ArrayLike, power: ArrayLike,
          config: Mapping[str, Any]) -> NDArray[np.float64]:
     shift = int(config.get("out_shift", 0))
-    a = np.abs(np.asarray(peak, dtype=np.float64)) * float(2**shift)
+    a = (np.abs(np.asarray(peak, dtype=np.float64)) * float(2**shift)
+         / processing_gain(config))
     r = np.asarray(range_m, dtype=np.float64)
     p = np.asarray(power, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):

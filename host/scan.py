@@ -1,15 +1,25 @@
 """Scans and calibrations on a device: orchestration, progress, resumable partial scans.
 
-:func:`run_scan` scans ``frames`` frames column by column, turns each finished frame
-into ranges (:mod:`cdma_lidar.host.ranging`), optionally closes the near-far loop between
-frames (:mod:`cdma_lidar.host.nearfar`), and writes the last frame's point cloud (and pictures).
+A scan is three visible steps, the shape of ouster-sdk's ``ScanSource``::
 
-Resumable: while scanning, the frame in progress is saved every second to
-``OUT.partial.npz`` (atomically; NPZ with every :class:`cdma_lidar.host.frame.FrameData` array,
-the frame counter, the near-far history and a JSON header naming the device, its
-configuration and the scan options). Ctrl-C or a lost link leaves that file behind;
-``resume=True`` (``--resume``) reloads it, checks it belongs to the same device and
-configuration, scans only the columns that never arrived, and removes it at the end.
+    scan = open_scan(device, "scan.ply", ScanOptions(frames=4))   # checks, power set
+    for frame in scan.frames():     # ScanFrame: cloud, range image, power, per frame
+        ...                         # a viewer or recorder consumes the same iterator
+    result = scan.finish()          # combine, write the cloud (and pictures)
+
+:func:`run_scan` is that composition. Each finished frame is turned into ranges
+(:mod:`cdma_lidar.host.ranging`), the near-far loop is closed between frames
+(:mod:`cdma_lidar.host.nearfar`), and the frames are combined and written.
+
+Resumable: the frame in progress is saved every second to ``OUT.partial.npz``
+(atomically; NPZ with every :class:`cdma_lidar.host.frame.FrameData` array, the frame
+counter, the frame's power matrix and a JSON header naming the device, its configuration
+and the scan options), and each finished frame once to ``OUT.partial.frames/frame-NNNNN.npz``
+(so a long scan writes each frame once, not every past frame every second). Ctrl-C, a
+lost link or a frame the device ends early leaves both behind; ``resume=True``
+(``--resume``) reloads them, checks they belong to the same device, configuration and
+options, scans only the columns that never arrived, and removes them at the end. A new
+scan never overwrites them unless asked (``force=True``, ``--force``).
 
 :func:`calibrate_device` takes zeroth-order shots and builds a
 :class:`cdma_lidar.host.calibration.Calibration` (Supplementary Note 6).
@@ -20,9 +30,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
+import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,32 +42,40 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.checks import is_int
 from cdma_lidar.errors import CalibrationError, ConfigError, DeviceError, LinkError, ScanAborted
-from cdma_lidar.fileio import atomic_open, check_writable
+from cdma_lidar.fileio import atomic_open
 from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
-from cdma_lidar.host.cloud_formats import FORMATS, MULTI_FRAME_FORMATS, write_frames
+from cdma_lidar.host.cloud_formats import MULTI_FRAME_FORMATS, check_output, write_frames
 from cdma_lidar.host.combine import COMBINE_MODES, combine, nan_median
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.intensity import intensity
+from cdma_lidar.host.intensity import RAW_UNIT, intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
 from cdma_lidar.host.uid_filter import ForeignReturns
 
 __all__ = [
+    "FRAMES_SUFFIX",
     "STATE_SUFFIX",
+    "Scan",
+    "ScanFrame",
     "ScanOptions",
     "ScanResult",
     "ScanState",
     "calibrate_device",
+    "frames_path",
     "image_from_cloud",
     "max_snr_xc_db",
     "multi_user_peaks",
+    "open_scan",
     "picture_paths",
     "run_scan",
+    "scan_metadata",
+    "scene_name",
     "state_path",
     "summarise",
 ]
@@ -63,6 +83,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 STATE_SUFFIX = ".partial.npz"
+FRAMES_SUFFIX = ".partial.frames"
 _SAVE_EVERY_S = 1.0
 
 
@@ -72,35 +93,50 @@ def state_path(out: str | os.PathLike[str]) -> Path:
 
 
 def picture_paths(out: str | os.PathLike[str]) -> dict[str, Path]:
-    """PNG files written beside ``out``: SNR heatmap(s), depth image, 3D view."""
-    p = Path(out)
-    stem = p.with_suffix("")
+    """Files written beside ``out`` by ``--pictures`` (:func:`pictures.scan_pictures`):
+    SNR heatmap(s), depth image, 3D view, column profile (Fig. 3c), range histogram
+    (Fig. 3e) and, with near-far, the power matrices (PNG and NPZ)."""
+    stem = Path(out).with_suffix("")
     return {"snr": Path(f"{stem}_snr.png"), "depth": Path(f"{stem}_depth.png"),
-            "view": Path(f"{stem}_3d.png")}
+            "view": Path(f"{stem}_3d.png"), "column": Path(f"{stem}_column.png"),
+            "histogram": Path(f"{stem}_hist.png"), "power": Path(f"{stem}_power.png"),
+            "power_npz": Path(f"{stem}_power.npz")}
+
+
+def scene_name(device: Device) -> str:
+    """What a picture's title calls the scene: a virtual device's scene, else the serial."""
+    url = getattr(device, "url", "") or ""
+    if url.lower().startswith("virtual://"):
+        return url[len("virtual://"):].split("?", 1)[0]
+    return str(device.info.serial)
 
 
 @dataclass(frozen=True)
 class ScanOptions:
     """What a scan does besides scanning (all recorded in the partial-scan file).
 
+    Every field is checked here, once, at construction (a ConfigError naming the field);
+    only the limits that depend on the device (``power_cap`` at most K, the SNR_XC
+    threshold at most what ``out_bits`` can report) are checked by :func:`open_scan`.
+
     Attributes:
-        frames: frames to scan; the point cloud is made from them by ``combine``.
-        near_far: adjust the per-pixel power between frames (Note 12).
-        snr_threshold_db: SNR_XC threshold (dB); None: the default (16 dB).
+        frames: frames to scan (1..10000); the point cloud is made from them by ``combine``.
+        near_far: adjust the per-pixel power between frames (Note 12); needs 2 frames.
+        snr_threshold_db: SNR_XC threshold (dB, >= 0); None: the default (16 dB).
         min_support: a pixel above the threshold is kept only if at least this many of
             its 8 neighbours are above it too at a lag within 1.5 samples
             (:attr:`cdma_lidar.host.ranging.RangingConfig.min_support`); 0: the threshold alone.
         interpolate: fill rejected pixels from their column neighbours (flag 1).
         ghost_windows: ``(start, length)`` lag windows (samples) of known ghosts.
         power_cap: eye-safety cap per column, in units of the per-pixel maximum power
-            (None: only the device enforces its cap; refused matrices are scaled down).
-        initial_power: near-far start power, as a fraction of the per-pixel maximum.
-        offset_m: calibration offset (m).
+            (> 0; None: the starting column sum); used by ``near_far`` only.
+        initial_power: near-far start power, as a fraction of the per-pixel maximum (0, 1].
+        offset_m: calibration offset (m, |offset| <= 1000).
         combine: how the frames become one cloud (:mod:`cdma_lidar.host.combine`):
-            ``last``, ``mean`` (SNR-weighted) or ``median``.
+            ``last``, ``mean`` (SNR-weighted) or ``median``; the last two need 2 frames.
         keep_foreign: keep other users' returns as extra points with their ``user_id``.
-        intensity_gain: the calibrated intensity gain (:mod:`cdma_lidar.host.intensity`);
-            None: relative intensity.
+        intensity_gain: the calibrated intensity gain (:mod:`cdma_lidar.host.intensity`,
+            > 0); None: the gain predicted from the instrument's link budget.
     """
 
     frames: int = 1
@@ -117,36 +153,50 @@ class ScanOptions:
     intensity_gain: float | None = None
 
     def __post_init__(self) -> None:
-        if self.combine not in COMBINE_MODES:
-            raise ConfigError(f"combine must be one of {', '.join(COMBINE_MODES)}, not "
-                              f"{self.combine!r}", field="combine")
+        def bad(name: str, allowed: str) -> ConfigError:
+            return ConfigError(f"{name} must be {allowed}, not {getattr(self, name)!r}",
+                               field=name)
+
+        if not (is_int(self.frames) and 1 <= self.frames <= 10000):
+            raise bad("frames", "from 1 to 10000")
         if self.near_far and self.frames < 2:
-            raise ConfigError(f"near_far needs at least 2 frames (the first one measures, "
-                              f"the next ones are corrected), not {self.frames}",
-                              field="frames")
-        if not 1 <= self.frames <= 10000:
-            raise ConfigError(f"frames must be from 1 to 10000, not {self.frames!r}",
-                              field="frames")
-        if not 0 <= self.min_support <= 8:
-            raise ConfigError(f"min_support must be from 0 to 8 neighbours, not "
-                              f"{self.min_support!r}", field="min_support")
+            raise bad("frames", "at least 2 with near_far (the first frame measures, the next "
+                      "ones are corrected)")
+        if self.combine not in COMBINE_MODES:
+            raise bad("combine", f"one of {', '.join(COMBINE_MODES)}")
+        if self.combine != "last" and self.frames < 2:
+            raise bad("frames", f"at least 2 with combine {self.combine!r}")
+        if not (is_int(self.min_support) and 0 <= self.min_support <= 8):
+            raise bad("min_support", "from 0 to 8 neighbours")
         if not 0 < self.initial_power <= 1:
-            raise ConfigError(f"initial_power must be in (0, 1], not {self.initial_power!r}",
-                              field="initial_power")
+            raise bad("initial_power", "in (0, 1] of the per-pixel maximum")
+        if self.power_cap is not None and not (math.isfinite(self.power_cap)
+                                               and self.power_cap > 0):
+            raise bad("power_cap", "a positive number of per-pixel maxima")
+        if self.snr_threshold_db is not None and not (math.isfinite(self.snr_threshold_db)
+                                                      and self.snr_threshold_db >= 0):
+            raise bad("snr_threshold_db", "from 0 dB (to what the configuration can report)")
+        if not (math.isfinite(self.offset_m) and abs(self.offset_m) <= 1000):
+            raise bad("offset_m", "from -1000 to 1000 m")
+        if self.intensity_gain is not None and not (math.isfinite(self.intensity_gain)
+                                                    and self.intensity_gain > 0):
+            raise bad("intensity_gain", "a positive number")
+        if any(a < 0 or b < 1 for a, b in self.ghost_windows):
+            raise bad("ghost_windows", "(start >= 0, length >= 1) lag windows")
 
 
 @dataclass
 class ScanState:
-    """A scan in progress: enough to resume it (see the module docstring)."""
+    """The frame in progress of a scan: enough, with the finished frames, to resume it.
+
+    ``power`` is the power matrix this frame is scanned with (near-far only).
+    """
 
     header: dict[str, Any]
     frame_index: int
     frame_base: int
     data: FrameData
-    powers: list[NDArray[np.float64]] = field(default_factory=list)
-    snr_maps: list[NDArray[np.float64]] = field(default_factory=list)
-    past: list[NDArray] = field(default_factory=list)
-    stamps: list[float] = field(default_factory=list)
+    power: NDArray[np.float64] | None = None
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the state atomically (NPZ)."""
@@ -154,13 +204,8 @@ class ScanState:
         arrays["header"] = np.array(json.dumps(self.header, sort_keys=True))
         arrays["frame_index"] = np.array(self.frame_index)
         arrays["frame_base"] = np.array(self.frame_base)
-        if self.powers:
-            arrays["powers"] = np.stack(self.powers)
-        if self.snr_maps:
-            arrays["snr_maps"] = np.stack(self.snr_maps)
-        if self.past:
-            arrays["past"] = np.stack(self.past)
-            arrays["stamps"] = np.array(self.stamps, dtype=np.float64)
+        if self.power is not None:
+            arrays["power"] = np.asarray(self.power)
         with atomic_open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -177,15 +222,30 @@ class ScanState:
                                                if k.startswith("frame_")})
                 return cls(header=json.loads(str(z["header"])),
                            frame_index=int(z["frame_index"]), frame_base=int(z["frame_base"]),
-                           data=frame,
-                           powers=list(z["powers"]) if "powers" in z.files else [],
-                           snr_maps=list(z["snr_maps"]) if "snr_maps" in z.files else [],
-                           past=list(z["past"]) if "past" in z.files else [],
-                           stamps=[float(v) for v in z["stamps"]] if "stamps" in z.files
-                           else [])
+                           data=frame, power=z["power"] if "power" in z.files else None)
         except (OSError, ValueError, KeyError) as exc:
             raise ConfigError(f"partial scan {str(p)!r} is damaged ({exc}); delete it and "
                               "scan again without --resume", field="resume") from exc
+
+
+@dataclass
+class ScanFrame:
+    """One finished frame of a scan, as :meth:`Scan.frames` yields it.
+
+    ``power`` is the (K, C) power matrix it was scanned with (fractions of the per-pixel
+    maximum), ``stamp_unix_s`` the host's clock when its first column arrived.
+    """
+
+    index: int
+    cloud: PointCloud
+    image: RangeImage
+    power: NDArray[np.float64]
+
+    def save(self, folder: Path) -> None:
+        """Keep the frame for a resume: ``folder/frame-NNNNN.npz``, written once (atomic)."""
+        with atomic_open(folder / f"frame-{self.index:05d}.npz", "wb") as fh:
+            np.savez(fh, records=self.cloud.grid_records(), snr=self.image.snr_xc_db,
+                     stamp=np.array(self.cloud.stamp_unix_s), power=self.power)
 
 
 @dataclass
@@ -194,7 +254,8 @@ class ScanResult:
 
     ``image`` and ``cloud`` are the combination of the frames (``--combine``; the last
     frame for ``last``), ``clouds`` every frame's cloud, ``data`` the last frame's
-    receiver results.
+    receiver results, ``powers`` the power matrices of every frame and the next one
+    (near-far: the matrix the loop would apply after the last frame).
     """
 
     cloud: PointCloud
@@ -306,41 +367,255 @@ def _apply_power(device: Device, controller: NearFarController,
     return applied
 
 
-def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
-             *, resume: bool = False, progress: bool = True, pictures_too: bool = False,
-             frame_id: int | None = None,
-             on_column: Callable[[int, int], None] | None = None,
-             on_frame: Callable[[int, PointCloud, NDArray[np.float64]], None] | None = None
-             ) -> ScanResult:
-    """Scan, build the point cloud of the last frame and write it to ``out``.
+def frames_path(out: str | os.PathLike[str]) -> Path:
+    """Where the finished frames of a partial scan are kept: ``OUT.partial.frames/``."""
+    return Path(str(out) + FRAMES_SUFFIX)
+
+
+class Scan:
+    """An open scan: :func:`open_scan` makes it, :meth:`frames` scans, :meth:`finish` writes.
+
+    The three steps of ouster-sdk's ``ScanSource`` shape: a viewer, a recorder and
+    :func:`run_scan` consume the same iterator of :class:`ScanFrame`. Attributes a
+    consumer may read: ``device``, ``out``, ``options``, ``ranging`` (the
+    :class:`cdma_lidar.host.ranging.RangingConfig`), ``frame_ids`` (the first frame's id
+    and the count) and ``done`` (the finished frames, resumed ones included).
+    """
+
+    def __init__(self, device: Device, out: Path, options: ScanOptions, state: ScanState,
+                 done: list[ScanFrame]) -> None:
+        self.device, self.out, self.options = device, out, options
+        self.ranging = _ranging(device, options)
+        self.done = done
+        self.data = state.data   # the receiver results of the frame in progress (or last)
+        self.columns_scanned = 0
+        self._state = state
+        self._controller = None
+        k, c = device.channels, device.columns
+        if options.near_far:
+            # Default cap: the starting column sum, so the loop moves power between pixels
+            # and never raises a column's total (the paper's "without increasing overall
+            # power").
+            cap = options.power_cap if options.power_cap is not None else \
+                k * options.initial_power
+            self._controller = NearFarController((k, c), self.ranging.snr_threshold_db,
+                                                 PowerLimits(max_power=1.0, total_cap=cap),
+                                                 initial_power=options.initial_power)
+            if done:
+                now = state.power if state.power is not None else done[-1].power
+                self._controller.powers[:] = [f.power for f in done] + [now]
+                self._controller.snr_maps[:] = [f.image.snr_xc_db for f in done]
+            self._controller.powers[-1] = _apply_power(device, self._controller, None)
+        else:
+            # A known, uniform power: the intensity needs it (the device default may differ).
+            _set_power(device, np.full((k, c), options.initial_power))
+
+    @property
+    def frame_ids(self) -> tuple[int, int]:
+        """(id of frame 0, frames): frame n is requested with id ``first + n``."""
+        return self._state.frame_base, self.options.frames
+
+    def _power(self) -> NDArray[np.float64]:
+        if self._controller is not None:
+            return np.array(self._controller.power)
+        return np.full((self.device.channels, self.device.columns), self.options.initial_power)
+
+    def frames(self, *, progress: bool = True,
+               on_column: Callable[[int, int], None] | None = None) -> Iterator[ScanFrame]:
+        """Scan the frames still to do, yielding each as it is finished.
+
+        ``on_column(frame_index, column)`` is called after each stored column. The frame
+        in progress is saved every second (``OUT.partial.npz``) and each finished frame
+        once (``OUT.partial.frames/``). Ctrl-C, a lost link, an early end on the device
+        or a consumer that stops iterating leaves a partial scan that ``resume`` finishes:
+        KeyboardInterrupt is re-raised, the link failures become ScanAborted.
+        """
+        dev, options, state = self.device, self.options, self._state
+        k, c = dev.channels, dev.columns
+        uid_bits, peaks = int(dev.config.get("uid_bits", 1)), int(dev.config.get("peaks", 1))
+        spath, folder = state_path(self.out), frames_path(self.out)
+        folder.mkdir(exist_ok=True)
+        geometry, wavelengths, device_cfg = dev.geometry(), dev.wavelengths_m, dict(dev.config)
+        bar = None
+        if progress:
+            from tqdm import tqdm  # deferred: 60 ms at start-up for a bar only a scan shows
+
+            bar = tqdm(total=options.frames * c,
+                       initial=state.frame_index * c + int(state.data.done.sum()),
+                       unit="col", desc="scan", leave=False, dynamic_ncols=True)
+        last_save = time.monotonic()
+        stamp = time.time()
+        finished = True
+        try:
+            while state.frame_index < options.frames:
+                finished = False
+                data = state.data
+                if not data.done.any():
+                    stamp = time.time()
+                for first, count in _runs(~data.done):
+                    for col in dev.link.scan(first_column=first, columns=count, frames=1,
+                                             frame=state.frame_base + state.frame_index):
+                        data.set_column(int(col.column), col)
+                        self.columns_scanned += 1
+                        if bar is not None:
+                            bar.update(1)
+                        if on_column is not None:
+                            on_column(state.frame_index, int(col.column))
+                        if time.monotonic() - last_save > _SAVE_EVERY_S:
+                            state.save(spath)
+                            last_save = time.monotonic()
+                data.angle_deg = np.where(np.isfinite(data.angle_deg), data.angle_deg,
+                                          dev.column_angles_deg)
+                image = estimate_ranges(data, self.ranging)
+                power = self._power()
+                inten = intensity(image.peak, image.range_m, power, device_cfg,
+                                  options.intensity_gain)
+                cloud = assemble(image, geometry, wavelengths, data.angle_deg,
+                                 timestamps_us=data.timestamp_us, done=data.done,
+                                 intensity=inten, keep_foreign=options.keep_foreign,
+                                 stamp_unix_s=stamp)
+                frame = ScanFrame(index=state.frame_index, cloud=cloud, image=image,
+                                  power=power)
+                frame.save(folder)
+                self.done.append(frame)
+                state.frame_index += 1
+                if self._controller is not None:
+                    ctl = self._controller
+                    ctl.snr_maps[:] = [f.image.snr_xc_db for f in self.done[:-1]]
+                    ctl.update(image.snr_xc_db, image.peak)
+                    if state.frame_index < options.frames:
+                        ctl.powers[-1] = _apply_power(dev, ctl, ctl.powers[-2])
+                    state.power = np.array(ctl.power)
+                self.data = data
+                if state.frame_index < options.frames:
+                    state.data = FrameData.empty(k, c, uid_bits, peaks, frame=state.frame_index)
+                state.save(spath)
+                last_save = time.monotonic()
+                finished = state.frame_index >= options.frames
+                yield frame
+        except KeyboardInterrupt:
+            state.save(spath)
+            log.info("scan interrupted; partial scan saved to %s (resume=True finishes it)",
+                     spath)
+            raise
+        except (LinkError, ScanAborted) as exc:
+            state.save(spath)
+            raise ScanAborted(f"scan stopped: {exc}; partial scan saved to {spath}, run the "
+                              "same command with --resume to finish it") from exc
+        finally:
+            if bar is not None:
+                bar.close()
+            if not finished:  # the consumer stopped iterating: keep what was scanned
+                state.save(spath)
+
+    def finish(self, *, pictures_too: bool = False) -> ScanResult:
+        """Combine the frames, write the cloud (and pictures), remove the partial scan."""
+        options, dev, out = self.options, self.device, self.out
+        if len(self.done) < options.frames:
+            raise ScanAborted(f"{len(self.done)} of {options.frames} frames scanned; iterate "
+                              "frames() to the end first")
+        images, clouds = [f.image for f in self.done], [f.cloud for f in self.done]
+        image, cloud = images[-1], clouds[-1]
+        data = self.data
+        if options.combine != "last":
+            image = combine(images, options.combine)
+            cloud = assemble(image, dev.geometry(), dev.wavelengths_m, data.angle_deg,
+                             timestamps_us=data.timestamp_us, done=data.done,
+                             keep_foreign=options.keep_foreign,
+                             stamp_unix_s=clouds[-1].stamp_unix_s)
+            per_frame = np.stack([cl.intensity for cl in clouds])
+            cloud.intensity = np.where(cloud.has_range, nan_median(per_frame), np.nan)
+        meta = scan_metadata(dev, options)
+        if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
+            write_frames(clouds, out, meta)
+        else:
+            write_frames([cloud], out, meta)
+        files = [out]
+        snr_maps = [f.image.snr_xc_db for f in self.done]
+        if pictures_too:
+            base, n = self.frame_ids
+            last = f"frame {n - 1} of {n} (id {base + n - 1})"
+            if options.near_far:
+                maps, titles = snr_maps, [f"frame {i}" for i in range(n)]
+            else:
+                maps = [image.snr_xc_db]
+                titles = [last if options.combine == "last" else f"{n} frames, {options.combine}"]
+            el, az = dev.beam_angles_deg()
+            files += pictures.scan_pictures(
+                picture_paths(out), cloud, maps, self.ranging.snr_threshold_db,
+                title=f"{scene_name(dev)}, {titles[-1] if not options.near_far else last}",
+                frame_titles=titles, angles=pictures.Angles(el, az),
+                powers=[f.power for f in self.done] if options.near_far else None)
+        state_path(out).unlink(missing_ok=True)
+        shutil.rmtree(frames_path(out), ignore_errors=True)
+        powers = (list(self._controller.powers) if self._controller is not None
+                  else [f.power for f in self.done])
+        return ScanResult(cloud=cloud, image=image, data=data, snr_maps=snr_maps,
+                          powers=powers, columns_scanned=self.columns_scanned, files=files,
+                          clouds=clouds)
+
+
+def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
+    """What a recording should say about its instrument (string keys to JSON text).
+
+    ``wavelengths_m`` (K), ``angles_deg`` (C, grating rotations), ``beam_elevation_deg``
+    and ``beam_azimuth_deg`` (K x C, from the nominal grating; ring 0 is the top beam,
+    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and
+    ``intensity_unit`` (``reflectance`` with a calibrated gain, else
+    :data:`cdma_lidar.host.intensity.RAW_UNIT`).
+    """
+    el, az = device.beam_angles_deg()
+    doc = {"wavelengths_m": device.wavelengths_m.tolist(),
+           "angles_deg": device.column_angles_deg.tolist(),
+           "beam_elevation_deg": np.round(el, 6).tolist(),
+           "beam_azimuth_deg": np.round(az, 6).tolist(),
+           "device": toml_safe(device.identity()),
+           "configuration": toml_safe(device.calibration_config()),
+           "scan_options": toml_safe(dataclasses.asdict(options)),
+           "intensity_unit": "reflectance" if options.intensity_gain else RAW_UNIT}
+    return {k: json.dumps(v) for k, v in doc.items()}
+
+
+def _ranging(device: Device, options: ScanOptions) -> Any:
+    ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,
+                                    ghost_windows=options.ghost_windows,
+                                    min_support=options.min_support)
+    if options.snr_threshold_db is not None:
+        ranging = dataclasses.replace(ranging, snr_threshold_db=options.snr_threshold_db)
+    return ranging
+
+
+def open_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
+              *, resume: bool = False, force: bool = False, frame_id: int | None = None
+              ) -> Scan:
+    """Check what depends on the device and the output, set the power, and return the scan.
 
     Frame n is requested with frame id ``frame_id + n`` (default: random), which seeds
-    the virtual device's noise. ``on_column(frame_index, column)`` is called after each
-    stored column; ``on_frame(frame_index, cloud, power)`` after each finished frame, with
-    its cloud and the (K, C) power matrix it was scanned with (fractions of the per-pixel
-    maximum), e.g. for a live viewer (:mod:`cdma_lidar.host.view`). Raises ScanAborted
-    (after saving the partial scan) when the link is lost; re-raises KeyboardInterrupt
-    after saving.
+    the virtual device's noise. An existing partial scan is resumed (``resume``: it must
+    be of the same device, configuration and options), overwritten (``force``) or, with
+    neither, left alone with a ConfigError: nothing is deleted without being asked.
     """
-    out = Path(out)
-    if out.suffix.lower() not in FORMATS:
-        raise ConfigError(f"output file extension must be one of {', '.join(FORMATS)}, "
-                          f"not {out.suffix or '(none)'!r}", field="out")
-    check_writable(out)
+    out = check_output(out)
     if device.config.get("mode") == "calibration":
         raise ConfigError("the device is in calibration mode: its columns see the "
                           "zeroth-order target at a 90 deg grating angle, not the scene; scan "
                           "with --set mode=ranging (or use 'cdma-lidar calibrate')", field="mode")
-    spath = state_path(out)
-    threshold = options.snr_threshold_db
-    ranging = device.ranging_config(offset_m=options.offset_m, interpolate=options.interpolate,
-                                    ghost_windows=options.ghost_windows,
-                                    min_support=options.min_support)
-    if threshold is not None:
-        ranging = dataclasses.replace(ranging, snr_threshold_db=threshold)
-    k, c = device.channels, device.columns
-    uid_bits, peaks = int(device.config.get("uid_bits", 1)), int(device.config.get("peaks", 1))
+    if options.power_cap is not None and options.power_cap > device.channels:
+        raise ConfigError(f"power_cap must be at most {device.channels} (every pixel of a "
+                          f"column at its maximum), not {options.power_cap:g}",
+                          field="power_cap")
+    top = max_snr_xc_db(device.config)
+    if options.snr_threshold_db is not None and options.snr_threshold_db > top:
+        raise ConfigError(f"snr_threshold_db must be from 0 to {top:.1f} dB (the SNR_XC this "
+                          f"configuration can report), not {options.snr_threshold_db:g}",
+                          field="snr_threshold")
+    spath, folder = state_path(out), frames_path(out)
+    if not resume and not force and (spath.exists() or folder.exists()):
+        raise ConfigError(f"{str(spath)!r} holds an interrupted scan; finish it with --resume "
+                          "or start afresh with --force (which overwrites it)", field="resume")
     header = _header(device, options, out)
+    k, c = device.channels, device.columns
+    done: list[ScanFrame] = []
     if resume:
         state = ScanState.load(spath)
         for key in ("device", "configuration", "options"):
@@ -349,132 +624,59 @@ def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions =
                     f"the partial scan at {str(spath)!r} does not match this scan's {key}; "
                     "resume it with the same device and options, or scan again without "
                     "--resume", field="resume")
+        done = _load_frames(folder, state.frame_index, device, _ranging(device, options))
         log.info("resuming frame %d of %d: %d of %d columns already done",
                  state.frame_index + 1, options.frames, int(state.data.done.sum()), c)
     else:
+        shutil.rmtree(folder, ignore_errors=True)
+        spath.unlink(missing_ok=True)
         base = (int(np.random.default_rng().integers(0, 2**31 - options.frames - 1))
                 if frame_id is None else int(frame_id))
         state = ScanState(header=header, frame_index=0, frame_base=base,
-                          data=FrameData.empty(k, c, uid_bits, peaks))
-    controller = None
-    if options.near_far:
-        # Default cap: the starting column sum, so the loop moves power between pixels
-        # and never raises a column's total (the paper's "without increasing overall power").
-        cap = options.power_cap if options.power_cap is not None else k * options.initial_power
-        limits = PowerLimits(max_power=1.0, total_cap=cap)
-        controller = NearFarController((k, c), ranging.snr_threshold_db, limits,
-                                       initial_power=options.initial_power)
-        if state.powers:
-            controller.powers[:] = [np.asarray(p) for p in state.powers]
-            controller.snr_maps[:] = [np.asarray(s) for s in state.snr_maps]
-        controller.powers[-1] = _apply_power(device, controller, None)
-    else:
-        # A known, uniform power: the intensity needs it (the device default may differ).
-        _set_power(device, np.full((k, c), options.initial_power))
+                          data=FrameData.empty(k, c, int(device.config.get("uid_bits", 1)),
+                                               int(device.config.get("peaks", 1))))
+    return Scan(device, out, options, state, done)
 
-    geometry, wavelengths = device.geometry(), device.wavelengths_m
-    device_cfg = dict(device.config)
-    clouds: list[PointCloud] = [_cloud_from_records(r, st, wavelengths, state.data.angle_deg)
-                                for r, st in zip(state.past, state.stamps, strict=True)]
-    images: list[RangeImage] = [image_from_cloud(cl, ranging) for cl in clouds]
-    stamp = time.time()
-    total = options.frames * c
-    done_before = state.frame_index * c + int(state.data.done.sum())
-    bar = None
-    if progress:
-        from tqdm import tqdm  # deferred: 60 ms at start-up for a bar only a scan shows
 
-        bar = tqdm(total=total, initial=done_before, unit="col", desc="scan", leave=False,
-                   dynamic_ncols=True)
-    scanned = 0
-    image: RangeImage | None = None
-    last_save = time.monotonic()
-    try:
-        while state.frame_index < options.frames:
-            fid = state.frame_base + state.frame_index
-            data = state.data
-            if not data.done.any():
-                stamp = time.time()
-            for first, count in _runs(~data.done):
-                for col in device.link.scan(first_column=first, columns=count, frames=1,
-                                            frame=fid):
-                    data.set_column(int(col.column), col)
-                    scanned += 1
-                    if bar is not None:
-                        bar.update(1)
-                    if on_column is not None:
-                        on_column(state.frame_index, int(col.column))
-                    if time.monotonic() - last_save > _SAVE_EVERY_S:
-                        state.save(spath)
-                        last_save = time.monotonic()
-            data.angle_deg = np.where(np.isfinite(data.angle_deg), data.angle_deg,
-                                      device.column_angles_deg)
-            image = estimate_ranges(data, ranging)
-            state.snr_maps.append(image.snr_xc_db)
-            last = state.frame_index + 1 >= options.frames
-            power = controller.power if controller is not None else options.initial_power
-            inten = intensity(image.peak, image.range_m, power, device_cfg,
-                              options.intensity_gain)
-            cloud = assemble(image, geometry, wavelengths, data.angle_deg,
-                             timestamps_us=data.timestamp_us, done=data.done, intensity=inten,
-                             keep_foreign=options.keep_foreign, stamp_unix_s=stamp)
-            clouds.append(cloud)
-            images.append(image)
-            if on_frame is not None:
-                on_frame(state.frame_index, cloud, np.broadcast_to(power, (k, c)).copy())
-            state.past.append(cloud.grid_records())
-            state.stamps.append(stamp)
-            if controller is not None:
-                controller.snr_maps[:] = state.snr_maps[:-1]
-                controller.update(image.snr_xc_db, image.peak)
-                if not last:
-                    controller.powers[-1] = _apply_power(device, controller,
-                                                         controller.powers[-2])
-                state.powers = list(controller.powers)
-            state.frame_index += 1
-            if not last:
-                state.data = FrameData.empty(k, c, uid_bits, peaks, frame=state.frame_index)
-                state.save(spath)
-                last_save = time.monotonic()
-    except KeyboardInterrupt:
-        state.save(spath)
-        log.info("scan interrupted; partial scan saved to %s (resume=True finishes it)", spath)
-        raise
-    except LinkError as exc:
-        state.save(spath)
-        raise ScanAborted(f"scan stopped: {exc}; partial scan saved to {spath}, run the same "
-                          "command with --resume to finish it") from exc
-    finally:
-        if bar is not None:
-            bar.close()
-    assert image is not None and clouds
-    image, cloud = images[-1], clouds[-1]
-    if options.combine != "last" and len(images) > 1:
-        image = combine(images, options.combine)
-        cloud = assemble(image, geometry, wavelengths, state.data.angle_deg,
-                         timestamps_us=state.data.timestamp_us, done=state.data.done,
-                         keep_foreign=options.keep_foreign, stamp_unix_s=clouds[-1].stamp_unix_s)
-        per_frame = np.stack([cl.intensity for cl in clouds])
-        cloud.intensity = np.where(cloud.has_range, nan_median(per_frame), np.nan)
-    if out.suffix.lower() in MULTI_FRAME_FORMATS and options.combine == "last":
-        write_frames(clouds, out)
-    else:
-        write_frames([cloud], out)
-    files = [out]
-    if pictures_too:
-        paths = picture_paths(out)
-        maps = (state.snr_maps if options.near_far and len(state.snr_maps) > 1
-                else [image.snr_xc_db])
-        titles = ([f"frame {i}" for i in range(len(maps))] if len(maps) > 1 else ["SNR_XC"])
-        pictures.snr_heatmaps(maps, ranging.snr_threshold_db, paths["snr"], titles)
-        pictures.depth_image(cloud, paths["depth"])
-        pictures.view_3d(cloud, paths["view"])
-        files += list(paths.values())
-    spath.unlink(missing_ok=True)
-    return ScanResult(cloud=cloud, image=image, data=state.data,
-                      snr_maps=list(state.snr_maps),
-                      powers=list(state.powers), columns_scanned=scanned, files=files,
-                      clouds=clouds)
+def _load_frames(folder: Path, count: int, device: Device, ranging: Any) -> list[ScanFrame]:
+    """The ``count`` finished frames a partial scan kept in ``folder``."""
+    frames = []
+    for i in range(count):
+        path = folder / f"frame-{i:05d}.npz"
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                cloud = _cloud_from_records(z["records"], float(z["stamp"]),
+                                            device.wavelengths_m, device.column_angles_deg)
+                image = image_from_cloud(cloud, ranging)
+                image.snr_xc_db = np.asarray(z["snr"])
+                frames.append(ScanFrame(index=i, cloud=cloud, image=image,
+                                        power=np.asarray(z["power"])))
+        except (OSError, ValueError, KeyError) as exc:
+            raise ConfigError(f"partial scan frame {str(path)!r} is missing or damaged ({exc}); "
+                              "scan again with --force", field="resume") from exc
+    return frames
+
+
+def run_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
+             *, resume: bool = False, force: bool = False, progress: bool = True,
+             pictures_too: bool = False, frame_id: int | None = None,
+             on_column: Callable[[int, int], None] | None = None,
+             on_frame: Callable[[int, PointCloud, NDArray[np.float64]], None] | None = None
+             ) -> ScanResult:
+    """Scan, build the point cloud and write it to ``out``: open, acquire, finish.
+
+    See :func:`open_scan` (``resume``, ``force``, ``frame_id``), :meth:`Scan.frames`
+    (``progress``, ``on_column``; ScanAborted after saving the partial scan when the link
+    is lost or the device ends a frame early) and :meth:`Scan.finish` (``pictures_too``).
+    ``on_frame(frame_index, cloud, power)`` sees each finished frame with the (K, C) power
+    matrix it was scanned with (fractions of the per-pixel maximum), e.g. for a live viewer
+    (:mod:`cdma_lidar.host.view`).
+    """
+    scan = open_scan(device, out, options, resume=resume, force=force, frame_id=frame_id)
+    for frame in scan.frames(progress=progress, on_column=on_column):
+        if on_frame is not None:
+            on_frame(frame.index, frame.cloud, np.array(frame.power, dtype=np.float64))
+    return scan.finish(pictures_too=pictures_too)
 
 
 def _cloud_from_records(rec: NDArray, stamp: float, wavelengths_m: NDArray[np.float64],

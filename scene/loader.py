@@ -57,6 +57,9 @@ def load_scene(name_or_path: str | Path, overrides: dict[str, Any] | None = None
         except OSError as exc:
             raise ConfigError(f"scene file {base!r} cannot be read ({exc.strerror})",
                               field="scene") from exc
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"scene file {base!r} is not UTF-8 text (byte {exc.start}); save "
+                              "it as UTF-8 TOML", field="scene") from None
     else:
         raise out_of_range("scene", "a preset (" + ", ".join(PRESETS) + ") or a .toml file", base)
     doc = read_document(raw, base)

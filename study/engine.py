@@ -60,6 +60,7 @@ import math
 import os
 import re
 import shutil
+import socket
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -357,6 +358,34 @@ class _InProcess(_Executor):
                 yield key, None, exc
 
 
+def _probe_scheduler(address: str, timeout_s: float) -> None:
+    """Fail in at most ``timeout_s`` with one line when a tcp/tls scheduler cannot be reached.
+
+    Dask retries a refused or silent address for its whole connect timeout and then logs
+    many lines; one TCP connection attempt answers the common case (a wrong host or port).
+    """
+    scheme, _, where = address.partition("://")
+    if scheme not in ("tcp", "tls"):
+        return
+    host, _, port = where.rpartition(":")
+    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"--scheduler {address!r}: expected {scheme}://HOST:PORT with a "
+                          "port from 1 to 65535", "scheduler")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s) as sock:
+            if scheme == "tcp":  # a Dask server speaks first: an 8-byte little-endian length
+                head = sock.recv(8, socket.MSG_WAITALL)
+                if len(head) < 8 or int.from_bytes(head, "little") > 1 << 30:
+                    raise LinkError(f"--scheduler {address!r}: the server there is not a Dask "
+                                    "scheduler; check the address")
+    except OSError as exc:
+        if isinstance(exc, LinkError):
+            raise
+        raise LinkError(f"--scheduler {address!r}: cannot reach the Dask scheduler "
+                        f"({exc.strerror or 'no answer in ' + format(timeout_s, 'g') + ' s'}); "
+                        "check the address and that the scheduler runs") from None
+
+
 class _Dask(_Executor):
     """A dask.distributed Client on a LocalCluster or an existing scheduler."""
 
@@ -377,6 +406,7 @@ class _Dask(_Executor):
             if not _SCHEDULER_RE.match(scheduler):
                 raise ConfigError(f"--scheduler {scheduler!r}: expected tcp://HOST:PORT or "
                                   "tls://HOST:PORT", "scheduler")
+            _probe_scheduler(scheduler, min(connect_timeout_s, 3.0))
             try:
                 self.client = Client(scheduler, timeout=f"{connect_timeout_s}s", security=security,
                                      set_as_default=False)

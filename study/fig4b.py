@@ -1,7 +1,8 @@
 """The ``fig4b`` study: four users on one Gold code told apart by 3-bit UIDs (Fig. 4b, Note 11).
 
-The ``multi-user`` scene preset: our LiDAR (UID 001) ranges a wall at 8 m while three
-other LiDARs on the *same* Gold code (member 0) with UIDs 000, 011 and 111 reach our
+The ``multi-user`` scene preset: our LiDAR (UID 1, bits 100 written period 0 first as
+everywhere in cdma-lidar) ranges a wall at 8 m while three other LiDARs on the *same*
+Gold code (member 0) with UIDs 0, 3 and 7 (000, 110, 111) reach our
 detector at other delays and powers. The whole chain runs: the virtual device
 renders every column (our echoes plus the other users' signals plus noise), its
 bit-exact receiver reports the primary peak and up to 7 extra peaks with their

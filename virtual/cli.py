@@ -1,7 +1,7 @@
 """``cdma-lidar device ...``: serve the virtual device on a pty or a TCP port.
 
     cdma-lidar device --scene SCENE --pty               serve the virtual device on a pty
-    cdma-lidar device --scene SCENE --tcp HOST:PORT --key-file FILE
+    cdma-lidar device --scene SCENE --tcp HOST:PORT --key-file [FILE]
                                                         ... or on a TCP socket (socket://),
                                                         hosts must hold the key in FILE
     cdma-lidar device --scene SCENE --tcp 127.0.0.1:PORT --insecure
@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import os
 import socket
 import sys
+from pathlib import Path
 
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.protocol.auth import load_or_create_key
@@ -37,9 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     where = dev.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pty and print its path")
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on a TCP socket")
-    dev.add_argument("--key-file", metavar="FILE",
+    dev.add_argument("--key-file", metavar="FILE", nargs="?", const=str(_default_key_file()),
                      help="TCP: hosts must prove they hold the key in FILE (created, mode "
-                     "0600, with a fresh random key if absent); every frame is signed")
+                     "0600, with a fresh random key if absent); every frame is signed; "
+                     "without FILE: ~/.config/cdma-lidar/device.key, outside any working "
+                     "tree, where hosts on this machine find it")
     dev.add_argument("--insecure", action="store_true",
                      help="TCP without a key: anyone who can connect controls the device, "
                      "so only a loopback address is allowed")
@@ -64,6 +68,23 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+def _default_key_file() -> Path:
+    """``$XDG_CONFIG_HOME/cdma-lidar/device.key`` (``~/.config/...``): the same path as
+    :func:`cdma_lidar.host.connection.default_key_file`, which this layer cannot import
+    (a test keeps the two equal)."""
+    base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"),
+                                                              ".config")
+    return Path(base) / "cdma-lidar" / "device.key"
+
+
+def _make_private_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create {str(folder)!r} for the key file ({exc.strerror}); "
+                          "give --key-file FILE", "--key-file") from None
+
+
 def _cmd_device(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise out_of_range("--seed", "a non-negative integer", args.seed)
@@ -77,16 +98,21 @@ def _cmd_device(args: argparse.Namespace) -> int:
         return serve_pty(scene, args.seed, announce=_announce,
                          session_idle_s=args.session_idle)
     host, port = _parse_hostport(args.tcp)
+    scene = load_scene(args.scene)  # a bad scene is refused before a key or a warning
     key = None
     if args.key_file and args.insecure:
         raise ConfigError("--key-file and --insecure exclude each other", "--insecure")
     if args.key_file:
+        if args.key_file == str(_default_key_file()):
+            _make_private_folder(_default_key_file().parent)
         key, created = load_or_create_key(args.key_file)
         if created:
             sys.stderr.write(f"cdma-lidar device: created key file {args.key_file} (mode "
                              "0600); give it to the host with --key-file\n")
     elif not args.insecure:
-        raise ConfigError("--tcp needs --key-file FILE (hosts must prove they hold the key); "
+        raise ConfigError("--tcp needs --key-file [FILE] (hosts must prove they hold the "
+                          "key; without FILE it is ~/.config/cdma-lidar/device.key, outside "
+                          "the working tree); "
                           "--insecure serves without access control on a loopback address "
                           "only", "--key-file")
     elif not _is_loopback(host):
@@ -95,7 +121,6 @@ def _cmd_device(args: argparse.Namespace) -> int:
     else:
         sys.stderr.write(f"cdma-lidar device: INSECURE: no access control on {host}:{port}; "
                          "any local process can control the device\n")
-    scene = load_scene(args.scene)
     try:
         return serve_tcp(scene, args.seed, host, port, announce=_announce, key=key,
                          session_idle_s=args.session_idle)

@@ -14,16 +14,25 @@ Every format carries the same per-point fields under the same names
 ``MULTI_FRAME = True`` also has ``write_frames(clouds, path)`` and gets every frame of
 a scan (:func:`write_frames`); the others get the last frame.
 
-Adding a format is one new module here with ``EXTENSION`` and
-``write(cloud, path) -> int`` (points written), listed in :data:`FORMATS`. A module
-whose library is optional imports it inside ``write`` and says so.
+Every module also reads back what it wrote, ``read_frames(path) -> [PointCloud, ...]``
+(:data:`READERS`, :func:`read_frames`; the records land in their pixels by ``ring`` and
+``column``, :mod:`.grid`), so ``cdma-lidar convert IN OUT`` goes between every pair and
+``replay://FILE`` (:mod:`cdma_lidar.host.replay`) feeds a recording back through the host.
+What a format cannot hold is lost on the way: PCD and LAS keep no wavelengths or column
+rotations, PLY and PCD no stamp (their bytes depend only on the
+scan), LAS quantises intensity to 1/4096.
+
+Adding a format is one new module here with ``EXTENSION``,
+``write(cloud, path) -> int`` (points written) and ``read_frames``, listed in
+:data:`FORMATS`. A module whose library is optional imports it inside ``write`` and says so.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError
@@ -31,7 +40,8 @@ from cdma_lidar.fileio import check_writable
 from cdma_lidar.host.cloud_formats import las, mcap, npz, pcd, ply
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "write", "write_frames"]
+__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "READERS", "check_output",
+           "read_frames", "write", "write_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +51,14 @@ FORMATS: dict[str, Callable[[PointCloud, str | os.PathLike[str]], int]] = {
 }
 
 #: Extension -> writer of a sequence of frames, for the formats that hold several.
-MULTI_FRAME_FORMATS: dict[str, Callable[[Sequence[PointCloud], str | os.PathLike[str]], int]] = {
+MULTI_FRAME_FORMATS: dict[str, Callable[..., int]] = {
     m.EXTENSION: m.write_frames for m in (mcap,) if getattr(m, "MULTI_FRAME", False)
+}
+
+#: Extension -> reader ``path -> [PointCloud, ...]`` (one per frame; one for single-frame
+#: formats). Each reads what its writer wrote: :func:`read_frames` and ``convert``.
+READERS: dict[str, Callable[[str | os.PathLike[str]], list[PointCloud]]] = {
+    m.EXTENSION: m.read_frames for m in (ply, pcd, npz, las, mcap)
 }
 
 #: Extension -> (import name, extra) of the optional library a format needs.
@@ -50,28 +66,62 @@ OPTIONAL_LIBRARIES: dict[str, tuple[str, str]] = {".las": ("laspy", "las"),
                                                   ".mcap": ("mcap_ros2", "mcap")}
 
 
-def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
-    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las)."""
+def check_output(path: str | os.PathLike[str], option: str = "--out") -> Path:
+    """The one check of a cloud file to write: a known extension whose library is
+    installed, in a folder that takes new files. Returns ``path`` as a Path."""
     p = Path(path)
-    writer = FORMATS.get(p.suffix.lower())
-    if writer is None:
-        raise ConfigError(f"output file extension must be one of {', '.join(FORMATS)}, "
-                          f"not {p.suffix or '(none)'!r}", field="out")
-    check_writable(p)
-    n = writer(cloud, p)
+    ext = p.suffix.lower()
+    if ext not in FORMATS:
+        raise ConfigError(f"{option} must end in one of {', '.join(FORMATS)}, not "
+                          f"{p.suffix or '(no extension)'!r}", field=option.lstrip("-"))
+    lib = OPTIONAL_LIBRARIES.get(ext)
+    if lib is not None and importlib.util.find_spec(lib[0]) is None:
+        raise ConfigError(f"{option} {ext} needs {lib[0]}: pip install 'cdma-lidar[{lib[1]}]' "
+                          "(or write .ply, .pcd or .npz)", field=option.lstrip("-"))
+    return check_writable(p, option)
+
+
+def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
+    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las, .mcap)."""
+    p = check_output(path)
+    n = FORMATS[p.suffix.lower()](cloud, p)
     log.info("wrote %d points to %s", n, p)
     return n
 
 
-def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str]) -> int:
-    """Write every frame where the format holds several (.mcap), else the last one."""
+def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str],
+                 metadata: Mapping[str, str] | None = None) -> int:
+    """Write every frame where the format holds several (.mcap), else the last one.
+
+    ``metadata`` (string keys to JSON text: beam angles, wavelengths, configuration) goes
+    into the formats that keep it (.mcap); the others have their fixed header fields.
+    """
     if not clouds:
         raise ConfigError("no frame to write", field="out")
     p = Path(path)
     writer = MULTI_FRAME_FORMATS.get(p.suffix.lower())
     if writer is None:
         return write(clouds[-1], p)
-    check_writable(p)
-    n = writer(clouds, p)
+    check_output(p)
+    n = writer(clouds, p, metadata)
     log.info("wrote %d frames, %d points to %s", len(clouds), n, p)
     return n
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """Every frame of a cloud file cdma-lidar wrote, by extension; ConfigError otherwise."""
+    p = Path(path)
+    reader = READERS.get(p.suffix.lower())
+    if reader is None:
+        raise ConfigError(f"input must end in one of {', '.join(READERS)}, not "
+                          f"{p.suffix or '(no extension)'!r}", field="in")
+    if not p.is_file():
+        raise ConfigError(f"{str(p)!r} does not exist or is not a file", field="in")
+    try:
+        return reader(p)
+    except ConfigError:
+        raise
+    except Exception as exc:  # laspy, mcap and struct raise their own kinds
+        raise ConfigError(f"{str(p)!r} cannot be read as {p.suffix.lower()} "
+                          f"({type(exc).__name__}: {str(exc)[:120]}); is it a file "
+                          "cdma-lidar wrote?", field="in") from None

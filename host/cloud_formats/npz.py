@@ -13,7 +13,7 @@ import numpy as np
 from cdma_lidar.fileio import atomic_open
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["EXTENSION", "write"]
+__all__ = ["EXTENSION", "read", "read_frames", "write"]
 
 #: File extension this module writes.
 EXTENSION = ".npz"
@@ -33,3 +33,8 @@ def read(path: str | os.PathLike[str]) -> PointCloud:
         kw = {f.name: data[f.name] for f in fields(PointCloud) if f.name in data.files}
     kw["stamp_unix_s"] = float(kw.get("stamp_unix_s", 0.0))
     return PointCloud(**kw)
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """:func:`read` as a list of one frame (the readers' common shape)."""
+    return [read(path)]

@@ -9,11 +9,16 @@ HEIGHT 1, POINTS 0.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
+import numpy as np
+
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open
+from cdma_lidar.host.cloud_formats.grid import cloud_from_records
 from cdma_lidar.host.pointcloud import POINT_FIELDS, PointCloud
 
-__all__ = ["EXTENSION", "PCD_TYPES", "write"]
+__all__ = ["EXTENSION", "PCD_TYPES", "read_frames", "write"]
 
 #: File extension this module writes.
 EXTENSION = ".pcd"
@@ -44,3 +49,23 @@ def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rec.tobytes())
     return int(rec.size)
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """Read a binary PCD this module wrote as one frame (organised: HEIGHT x WIDTH)."""
+    raw = Path(path).read_bytes()
+    end = raw.find(b"DATA binary\n")
+    if end < 0:
+        raise ConfigError(f"{str(path)!r} is not a binary PCD file", field="in")
+    head = {ln.split()[0]: ln.split()[1:] for ln in
+            raw[:end].decode("ascii", "replace").splitlines() if ln and ln[0] != "#"}
+    types = {v: k for k, v in PCD_TYPES.items()}
+    try:
+        dt = np.dtype([(n, types[(s, t)]) for n, s, t in
+                       zip(head["FIELDS"], head["SIZE"], head["TYPE"], strict=True)])
+        width, height = int(head["WIDTH"][0]), int(head["HEIGHT"][0])
+    except (KeyError, ValueError) as exc:
+        raise ConfigError(f"{str(path)!r}: a PCD header cdma-lidar did not write ({exc})",
+                          field="in") from None
+    rec = np.frombuffer(raw[end + len(b"DATA binary\n"):], dtype=dt)
+    return [cloud_from_records(rec, shape=(height, width) if height > 1 else None)]

@@ -10,11 +10,16 @@ it skips ``ushort`` and ``short``. An empty cloud is a valid file with
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
+import numpy as np
+
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open
+from cdma_lidar.host.cloud_formats.grid import cloud_from_records
 from cdma_lidar.host.pointcloud import FLAG_BITS, POINT_FIELDS, PointCloud
 
-__all__ = ["EXTENSION", "PLY_TYPES", "write"]
+__all__ = ["EXTENSION", "PLY_TYPES", "read_frames", "write"]
 
 #: File extension this module writes.
 EXTENSION = ".ply"
@@ -33,6 +38,8 @@ def write(cloud: PointCloud, path: str | os.PathLike[str],
               "comment x y z range in m (x forward, y left, z up); t in s from the frame's "
               "first column; snr_xc in dB",
               f"comment channels {cloud.shape[0]} columns {cloud.shape[1]}",
+              "comment wavelengths_m " + " ".join(map(repr, map(float, cloud.wavelengths_m))),
+              "comment angles_deg " + " ".join(map(repr, map(float, cloud.angles_deg))),
               f"element vertex {rec.size}"]
     header += [f"property {PLY_TYPES[t]} {name}" for name, t in POINT_FIELDS]
     header.append("end_header")
@@ -40,3 +47,33 @@ def write(cloud: PointCloud, path: str | os.PathLike[str],
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rec.tobytes())
     return int(rec.size)
+
+
+def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
+    """Read a PLY this module wrote (binary little endian, our properties) as one frame."""
+    raw = Path(path).read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise ConfigError(f"{str(path)!r} is not a PLY file", field="in")
+    header = raw[:end].decode("ascii", "replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise ConfigError(f"{str(path)!r}: only binary little-endian PLY is read", field="in")
+    types = {v: k for k, v in PLY_TYPES.items()}
+    props = [ln.split()[1:] for ln in header if ln.startswith("property ")]
+    try:
+        dt = np.dtype([(name, types[t]) for t, name in props])
+    except KeyError as exc:
+        raise ConfigError(f"{str(path)!r}: property type {exc} is not one cdma-lidar writes",
+                          field="in") from None
+    comments = {ln.split()[1]: ln.split()[2:] for ln in header
+                if ln.startswith("comment ") and len(ln.split()) > 1}
+    shape = None
+    if "channels" in comments:
+        shape = (int(comments["channels"][0]), int(comments["channels"][2]))
+    rec = np.frombuffer(raw[end + len(b"end_header\n"):], dtype=dt)
+    return [cloud_from_records(
+        rec, shape=shape,
+        wavelengths_m=[float(v) for v in comments["wavelengths_m"]]
+        if "wavelengths_m" in comments else None,
+        angles_deg=[float(v) for v in comments["angles_deg"]]
+        if "angles_deg" in comments else None)]

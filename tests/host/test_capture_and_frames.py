@@ -59,11 +59,12 @@ def test_capture_raw_writes_sigmf(capsys, tmp_path):
     (["capture", "--kind", "corr", "--column", "0", "--channel", "40", "--out", "x.npz"],
      "--channel must be"),
     (["capture", "--kind", "raw", "--column", "0", "--out", "x.txt"], "--out must be a .npz"),
-    (["scan", "--out", "x.ply", "--snr-threshold", "1e9"], "--snr-threshold must be from 0"),
-    (["scan", "--out", "x.ply", "--snr-threshold", "-3"], "--snr-threshold must be from 0"),
-    (["scan", "--out", "x.ply", "--near-far"], "--near-far needs --frames 2"),
-    (["scan", "--out", "x.ply", "--frames", "0"], "--frames must be from 1"),
-    (["scan", "--out", "x.ply", "--combine", "mean"], "--combine mean needs --frames 2"),
+    # ScanOptions checks these once and names its field
+    (["scan", "--out", "x.ply", "--snr-threshold", "1e9"], "snr_threshold_db must be from 0"),
+    (["scan", "--out", "x.ply", "--snr-threshold", "-3"], "snr_threshold_db must be from 0"),
+    (["scan", "--out", "x.ply", "--near-far"], "frames must be at least 2 with near_far"),
+    (["scan", "--out", "x.ply", "--frames", "0"], "frames must be from 1"),
+    (["scan", "--out", "x.ply", "--combine", "mean"], "frames must be at least 2 with combine"),
     (["scan", "--out", "x.ply", "--calibrate-intensity", "0.5"], "needs --calibration"),
     (["scan", "--out", "x.ply", "--calibrate-intensity", "1.5"], "reflectivity in (0, 1]"),
 ])

@@ -29,7 +29,8 @@ def test_demo_summary_and_files(capsys, tmp_path):
     assert float(m.group(1)) <= float(m.group(2))
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["calibration.toml", "paper-scene1.ply", "paper-scene1_3d.png",
-                     "paper-scene1_depth.png", "paper-scene1_snr.png"]
+                     "paper-scene1_column.png", "paper-scene1_depth.png",
+                     "paper-scene1_hist.png", "paper-scene1_snr.png"]
 
 
 def test_calibrate_then_scan_with_calibration(capsys, tmp_path):

@@ -158,11 +158,26 @@ def test_las_round_trip(cloud, tmp_path):
     assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
     t = np.asarray(las.gps_time) - (1.7e9 - 315_964_800 + 18 - 1e9)
     np.testing.assert_allclose(t, cloud.t.ravel()[ok], atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(las.intensity), 16384)   # 0.5 reflectance
+    np.testing.assert_array_equal(np.asarray(las.intensity), 2048)   # 0.5 x 4096
+    # point format 6 needs the WKT bit and a WKT coordinate system (LAS 1.4 R15, 2.4)
+    assert las.header.global_encoding.wkt
+    wkt = [v for v in las.header.vlrs if isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr)]
+    assert len(wkt) == 1 and wkt[0].string.startswith('LOCAL_CS["cdma_lidar sensor frame')
+
+
+def test_las_warns_where_intensity_saturates(cloud, tmp_path, caplog):
+    import laspy
+
+    cloud.intensity = np.where(cloud.has_range, 20.0, np.nan)
+    cloud.intensity[0, :3] = 1.0
+    write(cloud, tmp_path / "s.las")
+    assert f"{int(cloud.has_range.sum()) - 3} of {int(cloud.has_range.sum())} points" in \
+        caplog.text and "saturates" in caplog.text
+    assert int(np.asarray(laspy.read(str(tmp_path / "s.las")).intensity).max()) == 65535
 
 
 def test_bad_extension_and_folder(cloud, tmp_path):
-    with pytest.raises(ConfigError, match="extension"):
+    with pytest.raises(ConfigError, match="must end in one of"):
         write(cloud, tmp_path / "c.xyz")
     with pytest.raises(ConfigError, match="does not exist"):
         write(cloud, tmp_path / "missing" / "c.ply")
@@ -194,14 +209,15 @@ def test_pcd_fields_survive_open3d_tensor_reader(cloud, tmp_path):
         np.testing.assert_allclose(got, getattr(cloud, name).ravel().astype(got.dtype))
 
 
-def read_mcap(path):
-    """(schema, channel, message, decoded) of every message, with the mcap reader."""
+def read_mcap(path, topic="/cdma_lidar/points"):
+    """(schema, channel, message, decoded) of every message on ``topic``, with the mcap
+    reader."""
     from mcap.reader import make_reader  # mcap extra, in the test extra
     from mcap_ros2.decoder import DecoderFactory
 
     with open(path, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        return list(reader.iter_decoded_messages())
+        return list(reader.iter_decoded_messages(topics=[topic]))
 
 
 def _empty() -> PointCloud:
@@ -245,6 +261,15 @@ def test_mcap_one_pointcloud2_per_frame(cloud, tmp_path):
     msgs = read_mcap(path)
     assert [ch.topic for _, ch, _, _ in msgs] == [mcap.TOPIC] * 2
     assert msgs[0][0].name == "sensor_msgs/msg/PointCloud2"
+    # fields aligned to their size: a reader may view them as float32 in place
+    assert all(f.offset % {7: 4, 5: 4, 4: 2}[f.datatype] == 0 for f in msgs[0][3].fields)
+    assert msgs[0][3].point_step == 44
+    # the identity transform base_link -> cdma_lidar on /tf_static, at the first stamp
+    (_, _, tfm, tf), = read_mcap(path, mcap.TF_TOPIC)
+    assert tfm.log_time == 1_700_000_000 * 10**9
+    (tr,) = tf.transforms
+    assert (tr.header.frame_id, tr.child_frame_id) == (mcap.PARENT_FRAME, mcap.FRAME_ID)
+    assert (tr.transform.rotation.w, tr.transform.translation.x) == (1.0, 0.0)
     assert [m.log_time for _, _, m, _ in msgs] == [1_700_000_000 * 10**9,
                                                    1_700_000_000 * 10**9 + 10**8]
     first = msgs[0][3]

@@ -65,7 +65,8 @@ def test_calibration_finds_the_hidden_delay(paper_scan):
 def test_scan_writes_cloud_and_pictures(paper_scan):
     _, res, _, _, out = paper_scan
     assert [f.name for f in res.files] == ["scene1.ply", "scene1_snr.png", "scene1_depth.png",
-                                           "scene1_3d.png"]
+                                           "scene1_3d.png", "scene1_column.png",
+                                           "scene1_hist.png"]
     for f in res.files[1:]:
         assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f.stat().st_size > 5000
     assert not state_path(out).exists()
