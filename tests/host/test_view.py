@@ -117,7 +117,7 @@ def test_bad_view_arguments_end_in_one_line(tmp_path, capsys) -> None:
         capsys, "view", "--port", URL, "--save", str(tmp_path / "x.txt"))
     assert "need --out FILE" in one_line_error(capsys, "view", "--port", URL, "--save",
                                                str(tmp_path / "x.rrd"), "--pictures")
-    assert "scan needs --out FILE" in one_line_error(capsys, "scan", "--port", URL)
+    assert "--out is required" in one_line_error(capsys, "scan", "--port", URL)
 
 
 def test_view_without_rerun_names_the_extra(tmp_path, capsys, monkeypatch) -> None:
