@@ -27,7 +27,10 @@ Axes (instrument parameters are scene overrides, so the rendering follows them):
 verified preferred pair), ``chip_mhz`` chip rate (MHz), ``K`` channels (the first K
 wavelengths of the scene's comb), ``power_mw`` laser power per channel (mW; the
 near-far lever: a column's channels share the detector, so power sets both a pixel's
-SNR and its interference with the others), ``adc_bits`` (full scale unchanged),
+SNR and its interference with the others), ``near_far`` (frames of the host's near-far
+closed loop, :class:`cdma_lidar.host.nearfar.NearFarController`, before the measured
+frame, starting from ``power_mw``: 0 is uniform power; in steady state the loop runs on
+every frame, so it costs no acquisition time), ``adc_bits`` (full scale unchanged),
 ``gate`` (minimum gate lags, ``Instrument.default_gate(minimum=gate)``), ``method``
 (sub-sample refinement) and ``fidelity`` (the simulation's level). The grid: the
 paper's configuration on each scene, the S x R plane around it, fidelity crossed with
@@ -65,6 +68,7 @@ from cdma_lidar.errors import CdmaLidarError, ConfigError, out_of_range
 from cdma_lidar.firmware_model.pairs import pair_degrees, preferred_pairs
 from cdma_lidar.firmware_model.receiver import FastReceiver
 from cdma_lidar.host.frame import FrameData
+from cdma_lidar.host.nearfar import NearFarController, PowerLimits
 from cdma_lidar.host.ranging import METHODS, estimate_ranges
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
@@ -94,7 +98,7 @@ log = logging.getLogger(__name__)
 
 #: The paper's configuration, the centre of the grid.
 BASELINE: dict[str, Any] = {"S": 4, "R": 10, "degree": 11, "chip_mhz": 62.5, "K": 40,
-                            "power_mw": 2.5, "adc_bits": 12, "gate": 128,
+                            "power_mw": 2.5, "near_far": 0, "adc_bits": 12, "gate": 128,
                             "method": "triangle", "fidelity": "exact"}
 
 #: A valid pixel further than this from the truth (m) counts as an outlier.
@@ -130,6 +134,7 @@ def _check_axes(options: RunOptions) -> dict[str, tuple]:
         "chip_mhz": tuple(float(c) for c in options["chip_mhz"]),
         "K": tuple(check_int("K", k, 1, 4096) for k in options["K"]),
         "power_mw": tuple(float(p) for p in options["power_mw"]),
+        "near_far": tuple(check_int("near_far", n, 0, 16) for n in options["near_far"]),
         "adc_bits": tuple(check_int("adc_bits", b, 8, 16) for b in options["adc_bits"]),
         "gate": tuple(check_int("gate", g, 16, 1 << 20) for g in options["gate"]),
         "method": tuple(options["method"]),
@@ -173,7 +178,8 @@ def _grid(options: RunOptions) -> list[dict]:
         for f in axes["fidelity"]:
             for r in axes["R"]:
                 add(scene, fidelity=f, R=r)
-        for name in ("degree", "chip_mhz", "K", "power_mw", "adc_bits", "gate", "method"):
+        for name in ("degree", "chip_mhz", "K", "power_mw", "near_far", "adc_bits", "gate",
+                     "method"):
             for v in axes[name]:
                 add(scene, **{name: v})
     return points
@@ -231,6 +237,38 @@ def _errors(img: Any, truth: np.ndarray) -> dict[str, float]:
     }
 
 
+def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
+           power_w: np.ndarray, ranging: Any) -> tuple[Any, int, float, float]:
+    """(range image, simulation work, CPU s rendering, CPU s receiving) of one frame at
+    laser power ``power_w`` (K, C) W, rendered as the virtual board does."""
+    spec = inst.spec
+    c, length = inst.columns, cfg.frame_samples
+    lit = inst.truth.hits.lit.sum(axis=0)
+    data = FrameData.empty(inst.channels, c, spec.uid_bits, 1, frame)
+    work = 0
+    cpu_render = cpu_rx = 0.0
+    batch = max(1, _BATCH_SAMPLES // (cfg.averages * length))
+    for c0 in range(0, c, batch):
+        accs = []
+        ta = time.process_time()
+        for col in range(c0, min(c, c0 + batch)):
+            acc = inst.render_sum(col, cfg, frame, power_w[:, col])
+            how = inst.fidelity
+            if acc is None:
+                raw = inst.render_exact(col, cfg, frame, power_w[:, col])
+                acc = rx.accumulate(raw[None, :])[0]
+                how = "repetitions"
+            accs.append(acc)
+            work += simulation_work(int(lit[col]), length, cfg.averages, how)
+        tb = time.process_time()
+        outs = rx.from_accumulators(np.stack(accs))
+        cpu_rx += time.process_time() - tb
+        cpu_render += tb - ta
+        for col, out in zip(range(c0, c0 + len(accs)), outs, strict=True):
+            data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
+    return estimate_ranges(data, ranging), work, cpu_render, cpu_rx
+
+
 def tradeoff_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     """One frame of ``params["scene"]`` at one configuration; see the module docstring.
 
@@ -246,35 +284,22 @@ def tradeoff_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
         return {"status": "refused", "reason": str(exc)}
     spec = inst.spec
     cfg = RenderSettings.from_spec(spec)
-    k, c = inst.channels, inst.columns
-    length = cfg.frame_samples
-    lit = inst.truth.hits.lit.sum(axis=0)
-    frame = FrameData.empty(k, c, spec.uid_bits, 1, 0)
-    work = 0
-    cpu_render = cpu_rx = 0.0
-    cpu0 = time.process_time()
-    batch = max(1, _BATCH_SAMPLES // (cfg.averages * length))
-    for c0 in range(0, c, batch):
-        accs = []
-        ta = time.process_time()
-        for col in range(c0, min(c, c0 + batch)):
-            acc = inst.render_sum(col, cfg)
-            how = inst.fidelity
-            if acc is None:
-                acc = rx.accumulate(inst.render_exact(col, cfg)[None, :])[0]
-                how = "repetitions"
-            accs.append(acc)
-            work += simulation_work(int(lit[col]), length, cfg.averages, how)
-        tb = time.process_time()
-        outs = rx.from_accumulators(np.stack(accs))
-        cpu_rx += time.process_time() - tb
-        cpu_render += tb - ta
-        for col, out in zip(range(c0, c0 + len(accs)), outs, strict=True):
-            frame.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     ranging = dataclasses.replace(ranging_config(inst), offset_m=true_offset_m(inst),
                                   method=str(params["method"]))
-    img = estimate_ranges(frame, ranging)
+    power = inst.default_power_w
+    loops = int(params["near_far"])
+    if loops:
+        limits = PowerLimits(max_power=spec.max_pixel_power_w, total_cap=spec.total_power_cap_w)
+        control = NearFarController(power.shape, ranging.snr_threshold_db, limits,
+                                    initial_power=float(params["power_mw"]) * 1e-3)
+        for f in range(1, loops + 1):
+            img = _frame(inst, rx, cfg, f, control.power, ranging)[0]
+            control.update(img.snr_xc_db, img.peak)
+        power = control.power
+    cpu0 = time.process_time()
+    img, work, cpu_render, cpu_rx = _frame(inst, rx, cfg, 0, power, ranging)
     cpu_scan = time.process_time() - cpu0
+    c = inst.columns
     return {
         "status": "ok", "reason": "",
         "out_shift": rcfg.out_shift, "gate_lags": rcfg.gate_len,
@@ -399,8 +424,7 @@ def _figure(table: Table, ok: np.ndarray, exact: np.ndarray, front: np.ndarray,
         for i in f:
             ax.annotate(_label(table.rows[i]), (t[i], e[i]), fontsize=6,
                         xytext=(4, 3), textcoords="offset points")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        _log_axes(ax, t[pts], e[pts])
         ax.set_xlabel("acquisition time per frame (s)")
         ax.set_ylabel("95th-percentile range error (m)")
         ax.set_title(f"{scene}: the instrument's trade")
@@ -414,14 +438,22 @@ def _figure(table: Table, ok: np.ndarray, exact: np.ndarray, front: np.ndarray,
         m = np.flatnonzero(has & modeller)
         m = m[np.argsort(w[m], kind="stable")]
         ax.plot(w[m], np.abs(dp[m]) + 1e-4, "-", color="C3", label="modeller's front")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        _log_axes(ax, w[has], np.abs(dp[has]) + 1e-4)
         ax.set_xlabel("simulation work per frame (values computed)")
         ax.set_ylabel("|p95 error - exact's| + 0.1 mm (m)")
         ax.set_title(f"{scene}: the modeller's trade")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
     save_figure(fig, ctx.out / "pareto.png")
+
+
+def _log_axes(ax: Any, x: np.ndarray, y: np.ndarray) -> None:
+    """Log scales where there are positive values to show; a note where there are none."""
+    if np.any((x > 0) & (y > 0) & np.isfinite(x) & np.isfinite(y)):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    else:
+        ax.text(0.5, 0.5, "nothing to show", ha="center", transform=ax.transAxes)
 
 
 def answers_markdown(table: Table, thresholds: tuple[float, ...] = ASK_THRESHOLDS_M,
@@ -583,6 +615,8 @@ def _settings() -> tuple[Setting, ...]:
         Setting("K", (10, 20, 40), "channel counts (one at a time)", quick=(20,)),
         Setting("power_mw", (1.25, 2.5, 5.0), "laser power per channel, mW (one at a time)",
                 quick=(5.0,)),
+        Setting("near_far", (0, 2), "near-far closed-loop frames before the measured one "
+                "(0: uniform power; one at a time)", quick=(2,)),
         Setting("adc_bits", (8, 10, 12, 14, 16), "ADC bits (one at a time)", quick=(8,)),
         Setting("gate", (64, 128, 256, 1024), "minimum gate lags (one at a time)",
                 quick=(64,)),

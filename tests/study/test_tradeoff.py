@@ -28,8 +28,8 @@ from cdma_lidar.study.tradeoff import (
 #: flat-wall only: the baseline, S=2 x R=1, R=1 at both fidelity levels and the integer
 #: lag (5 points, 2 frames each, a few seconds).
 SMALL = {"scenes": "flat-wall", "S": "2", "R": "1", "degree": "11", "chip_mhz": "62.5",
-         "K": "40", "power_mw": "2.5", "adc_bits": "12", "gate": "128", "method": "none",
-         "fidelity": "exact,accumulated", "replicates": "2"}
+         "K": "40", "power_mw": "2.5", "near_far": "0", "adc_bits": "12", "gate": "128",
+         "method": "none", "fidelity": "exact,accumulated", "replicates": "2"}
 
 PARAMS = ["scene", *BASELINE]
 
@@ -45,7 +45,8 @@ def test_full_grid_covers_every_axis_on_scenes_at_two_distances():
     assert len(points) >= 50
     assert {p["scene"] for p in points} == {"paper-scene1", "flat-wall", "flat-wall?distance=15"}
     for axis, lo, hi in (("S", 1, 16), ("R", 1, 100), ("degree", 9, 15), ("adc_bits", 8, 16),
-                         ("chip_mhz", 31.25, 125), ("K", 10, 40), ("power_mw", 1.25, 5)):
+                         ("chip_mhz", 31.25, 125), ("K", 10, 40), ("power_mw", 1.25, 5),
+                         ("near_far", 0, 2)):
         values = {p[axis] for p in points}
         assert min(values) == lo and max(values) == hi, axis
     assert {p["method"] for p in points} == {"none", "parabolic", "triangle"}
@@ -59,6 +60,7 @@ def test_full_grid_covers_every_axis_on_scenes_at_two_distances():
     ("degree", "12", "preferred pairs"), ("S", "0", "S must be"), ("method", "cubic", "method"),
     ("fidelity", "magic", "fidelity"), ("scenes", "no-such-scene", "scene"),
     ("chip_mhz", "0", "chip_mhz"), ("power_mw", "-1", "power_mw"), ("K", "0", "K must be"),
+    ("near_far", "-1", "near_far must be"),
 ])
 def test_bad_axis_values_are_refused_naming_the_axis(key, value, needle):
     with pytest.raises(ConfigError, match=needle):
@@ -117,6 +119,19 @@ def test_a_small_run_measures_both_trades_and_writes_the_report(small_run, tmp_p
     table = read_csv(res.out / "results.csv")
     assert table.columns[:len(PARAMS)] == PARAMS
     assert {"acquisition_time_per_frame_s", "simulation_work_per_frame"} <= set(table.columns)
+
+
+def test_the_near_far_loop_lights_the_far_wall(tmp_path):
+    """At 15 m and 2.5 mW half the wall is below the SNR_XC threshold; two frames of the
+    host's near-far loop (power raised where SNR_XC is low, up to the 0.2 W cap) light
+    most of it, at no acquisition time (the loop runs on every frame)."""
+    over = {**SMALL, "scenes": "flat-wall?distance=15", "S": "4", "R": "10",
+            "method": "triangle", "fidelity": "exact", "near_far": "0,2", "replicates": "1"}
+    res = run_study(STUDY, tmp_path, quick=True, overrides=over, workers=0, progress=False)
+    rows = {r["setting"]: r for r in res.table.rows}
+    base, loop = rows["paper baseline"], rows["near_far=2"]
+    assert base["valid_fraction"] < 0.7 and loop["valid_fraction"] > base["valid_fraction"] + 0.2
+    assert loop["acquisition_time_per_frame_s"] == base["acquisition_time_per_frame_s"]
 
 
 def test_the_fronts_are_identical_with_and_without_dask_workers(small_run, tmp_path):
