@@ -155,9 +155,12 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
     draw *= np.sqrt(r) * sigma_lsb
     draw += mean_lsb
     if r > 1:
-        n = (r - 1) * size
-        words = rng.bit_generator.random_raw(-(-n // 2)).view(np.uint32)[:n]
-        bits = np.add.reduce(words.reshape(r - 1, size), axis=0, dtype=np.uint64)
+        bits = np.zeros(size, dtype=np.uint64)
+        rows = max(1, (1 << 22) // size)  # at most about 16 MB of words at a time
+        for r0 in range(0, r - 1, rows):
+            n = min(rows, r - 1 - r0) * size
+            words = rng.bit_generator.random_raw(-(-n // 2)).view(np.uint32)[:n]
+            bits += np.add.reduce(words.reshape(-1, size), axis=0, dtype=np.uint64)
         uniforms = bits.astype(np.float64)  # exact: below 2**42 for R <= 1024
         uniforms += 0.5 * (r - 1)
         uniforms *= 2.0**-32
