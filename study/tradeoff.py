@@ -475,6 +475,27 @@ def answers_markdown(table: Table, thresholds: tuple[float, ...] = ASK_THRESHOLD
     return "\n".join(lines) + "\n"
 
 
+def results_markdown(table: Table) -> str:
+    """Every row: setting, acquisition time, ADC rate, simulation work, errors with their
+    95 % half-widths, valid fraction, false pixels and the two fronts (Markdown)."""
+    lines = ["| scene | setting | acquisition ms/frame | ADC MS/s | work (Mvalues) | "
+             "median error (m) | p95 error (m) | valid | false px | front | modeller |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in table.rows:
+        if r["status"] != "ok":
+            lines.append(f"| {r['scene']} | {r['setting']} | refused: {r['reason']} "
+                         "| | | | | | | | |")
+            continue
+        lines.append(
+            f"| {r['scene']} | {r['setting']} | {1e3 * r['acquisition_time_per_frame_s']:.4g} | "
+            f"{r['adc_rate_hz'] / 1e6:.4g} | {r['simulation_work_per_frame'] / 1e6:.4g} | "
+            f"{_interval(r, 'median_error_m')} | {_interval(r, 'p95_error_m')} | "
+            f"{_interval(r, 'valid_fraction')} | {r['false_pixels']:.3g} | "
+            f"{'**yes**' if r['on_pareto_front'] else ''} | "
+            f"{'yes' if r['on_modeller_front'] else ''} |")
+    return "\n".join(lines) + "\n"
+
+
 def _write_report(table: Table, front: np.ndarray, compared: np.ndarray,
                   ctx: RunContext) -> None:
     cols = ["scene", "setting", "acquisition_time_per_frame_s", "adc_rate_hz",
@@ -493,7 +514,8 @@ def _write_report(table: Table, front: np.ndarray, compared: np.ndarray,
             "scene's best valid fraction; none is both faster and more accurate.\n\n"
             + Table(cols, [{c: r[c] for c in cols} for r in rows]).to_markdown()
             + "\n## The modeller's trade: simulation work vs fidelity error against exact\n\n"
-            + Table(mcols, [{c: r[c] for c in mcols} for r in mrows]).to_markdown())
+            + Table(mcols, [{c: r[c] for c in mcols} for r in mrows]).to_markdown()
+            + "\n## Every configuration\n\n" + results_markdown(table))
     (ctx.out / "pareto.md").write_text(text)
 
 
