@@ -46,7 +46,9 @@ more than :data:`OUTLIER_M` off), ``valid_fraction`` (object pixels that are val
 
 The reducer adds ``setting``, ``on_pareto_front`` (the instrument's front, exact
 fidelity only), ``fidelity_p95_error_m`` and ``fidelity_valid_error`` (against exact at
-the same configuration), ``on_modeller_front``; writes ``pareto.md`` (led by the answers
+the same configuration), ``on_modeller_front`` (at each configuration run at more than
+one level: the levels no other level there beats on both simulation work and |fidelity
+p95 error|); writes ``pareto.md`` (led by the answers
 of :func:`ask` for a few thresholds) and ``pareto.png``.
 """
 
@@ -377,7 +379,10 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         best = np.nanmax(np.where(mine & exact, valid, np.nan))
         eligible = mine & exact & (valid >= PARETO_MIN_VALID_SHARE * best)
         front |= pareto_front(t, e, eligible)
-        modeller |= pareto_front(work, np.abs(dp), mine & compared)
+    # the modeller's choice is between levels at one configuration of the instrument
+    for key in {_instrument_key(r) for r, c in zip(table.rows, compared, strict=True) if c}:
+        same = compared & np.array([_instrument_key(r) == key for r in table.rows])
+        modeller |= pareto_front(work, np.abs(dp), same)
     table.add_column("setting", [_label(r) for r in table.rows])
     table.add_column("on_pareto_front", front)
     table.add_column("fidelity_p95_error_m", dp)
@@ -435,9 +440,9 @@ def _figure(table: Table, ok: np.ndarray, exact: np.ndarray, front: np.ndarray,
         for level, colour in zip(FIDELITY_LEVELS, ("C0", "C1", "C2", "C4"), strict=False):
             sel = has & (table.column("fidelity") == level)
             ax.scatter(w[sel], np.abs(dp[sel]) + 1e-4, s=18, color=colour, label=level)
-        m = np.flatnonzero(has & modeller)
-        m = m[np.argsort(w[m], kind="stable")]
-        ax.plot(w[m], np.abs(dp[m]) + 1e-4, "-", color="C3", label="modeller's front")
+        m = has & modeller
+        ax.scatter(w[m], np.abs(dp[m]) + 1e-4, s=60, facecolors="none", edgecolors="C3",
+                   label="undominated at its configuration")
         _log_axes(ax, w[has], np.abs(dp[has]) + 1e-4)
         ax.set_xlabel("simulation work per frame (values computed)")
         ax.set_ylabel("|p95 error - exact's| + 0.1 mm (m)")
