@@ -77,7 +77,8 @@ def cmd_ask(args: argparse.Namespace) -> int:
         raise ConfigError(f"study ask {args.name!r}: only 'tradeoff' answers questions", "name")
     answer = ask(args.dir, args.max_p95, scene=args.scene, min_valid=args.min_valid,
                  max_adc_rate_hz=args.max_adc_rate)
-    sys.stdout.write(_safe(answer.describe()[:-1]) + "\n")
+    for line in answer.describe().splitlines():
+        sys.stdout.write(_safe(line) + "\n")
     return 0 if answer.best is not None else 1
 
 

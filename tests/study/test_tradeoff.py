@@ -178,6 +178,7 @@ def test_study_ask_exit_status_and_one_line_errors(small_run, capsys, tmp_path):
     code, text, _ = _run(capsys, "study", "ask", "tradeoff", out, "--max-p95", "1",
                          "--min-valid", "0.5")
     assert code == 0 and "fastest:" in text and "runner-up:" in text
+    assert len(text.splitlines()) == 3
     code, text, _ = _run(capsys, "study", "ask", "tradeoff", out, "--max-p95", "0.0001",
                          "--scene", "flat-wall")
     assert code == 1 and "no configuration meets it" in text
