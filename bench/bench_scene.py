@@ -3,23 +3,27 @@
     python -m bench scene
 
 1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level:
-   render every column (cold: the first frame, echoes synthesised; warm: a later frame of
-   the static scene, echoes kept), the receive chain alone on the same samples (all 160
-   columns in one call, its default kernel: the baseline), and the virtual device's whole
-   scan (rendering, receive chain in the board's batches, ColumnResults). Ratios: scan /
-   receive chain alone, exact render / level's render, and the real-time factor: the
-   instrument's own acquisition time (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms)
-   over the scan's time.
+   render every column the way the scan does (each column's repetition sum,
+   ``Instrument.render_sum``; cold: the first frame, echoes synthesised; warm: a later
+   frame of the static scene, echoes kept), the receive chain alone on the R x L ADC
+   samples of the same frame (all 160 columns in one call, its default kernel: the
+   baseline), and the virtual device's whole scan (rendering, receive chain in the
+   board's batches, ColumnResults), cold and warm. Also, at ``exact``, the rendering of
+   every repetition on its own (``render_exact``: what CAPTURE RAW returns and what the
+   scan drew before it drew the sum). Ratios within the run: scan / receive chain
+   alone, exact render / level's render, and the real-time factor: the instrument's
+   own acquisition time (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms) over the
+   scan's time.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
    column: the per-channel echo kernel (the part that scales with lit channels), echo
-   synthesis (kernel plus one inverse FFT per lit column), the R x L Gaussian noise
-   draws and the ADC (fixed: every sample of every frame has its own noise and is
-   quantised on its own), the whole rendering, the receive chain (fixed: the device
-   correlates every configured channel, lit or not), and the virtual device's scan
-   (rendering, receive chain and ColumnResults, in its batches of columns). Rendering and
-   scan are timed cold (echoes synthesised, as in a first frame).
+   synthesis (kernel plus one inverse FFT per lit column), the noise of the repetition
+   sum (L Gaussians and (R - 1) L uniform words, the floor: fixed, every column), the
+   whole rendering, the receive chain (fixed: the device correlates every configured
+   channel, lit or not), and the virtual device's scan (rendering, receive chain and
+   ColumnResults, in its batches of columns). Rendering and scan are timed cold (echoes
+   synthesised, as in a first frame).
 
 Times are CPU seconds of this process, best of several runs (see ``_best``).
 """
@@ -36,7 +40,7 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import calibrate_device, summarise
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.instrument import Instrument, RenderSettings, draw_repetition_sum
 from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -98,34 +102,21 @@ def _cost(scene) -> dict[str, float]:
         inst.echo(c, cfg)
     rx = fw.receiver()
     args = [a for a in (_kernel_args(inst, cfg, c) for c in cols) if a is not None]
-    total = cfg.frame_samples * cfg.averages
-    scale = inst.noise_rms_v * inst._fine_scale()[0]
+    scale = inst._fine_scale()[0] / 256  # LSB per volt
+    means = [inst.echo(c, cfg) * scale * cfg.averages for c in cols]
+    sigma = inst.noise_rms_v * scale
 
     def noise() -> list:
-        return [np.multiply(np.random.default_rng([0, 0, 1, c]).standard_normal(
-            total, dtype=np.float32), scale, dtype=np.float64) for c in cols]
+        return [draw_repetition_sum(np.random.default_rng([0, 0, 1, c]), means[c], sigma,
+                                    cfg.averages) for c in cols]
 
-    fines = noise()
-    copies: list[list] = []
-
-    def adc() -> None:
-        batch = copies.pop()
-        for x in batch:
-            inst._quantise_fine(x)
-
-    def fresh() -> None:
-        copies[:] = [[x.copy() for x in fines] for _ in range(5)]
-
-    fresh()
-    t_adc = _best(adc)
-    samples = np.stack([inst.render(c, cfg, 1) for c in cols])
+    samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
     t = {
         "kernel": _best(lambda: [Instrument._sum_delayed(*a) for a in args]),
         "echo": _best(lambda: [inst.echo(c, cfg) for c in cols]),
         "noise": _best(noise),
-        "adc": t_adc,
         # the first frame: echoes synthesised, not taken from the previous frame
-        "render": _best(lambda: (inst.forget(), [inst.render(c, cfg, 1) for c in cols])),
+        "render": _best(lambda: (inst.forget(), [inst.render_sum(c, cfg, 1) for c in cols])),
         # The receive chain's GEMMs run on BLAS threads, whose CPU time swings most
         # when other jobs share the cores: more runs for these two.
         "rx": _best(lambda: rx.frame(samples), 11),
@@ -149,9 +140,7 @@ def _frame_costs(level: str, repeat: int) -> dict[str, float]:
     list(fw.scan(0, 0, inst.columns))  # warm up spectra, receivers, allocator
 
     def render() -> list:
-        if level == "accumulated":
-            return [inst.render_accumulated(c, cfg, 1) for c in cols]
-        return [inst.render_exact(c, cfg, 1) for c in cols]
+        return [inst.render_sum(c, cfg, 1) for c in cols]
 
     def cold() -> None:
         inst.forget()
@@ -159,23 +148,22 @@ def _frame_costs(level: str, repeat: int) -> dict[str, float]:
 
     t_cold = _best(cold, repeat)
     t_warm = _best(render, repeat)
-    if level == "accumulated":
-        acc = np.stack(render())
-        t_rx = _best(lambda: rx.from_accumulators(acc), 2 * repeat + 1)
-    else:
-        samples = np.stack(render())
-        # the receive chain's GEMMs run on BLAS threads, whose CPU time swings most when
-        # other jobs share the cores: more runs for the baseline
-        t_rx = _best(lambda: rx.frame(samples), 2 * repeat + 1)
+    out = {"cold": t_cold, "warm": t_warm}
+    samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
+    # the receive chain's GEMMs run on BLAS threads, whose CPU time swings most when
+    # other jobs share the cores: more runs for the baseline
+    out["rx"] = _best(lambda: rx.frame(samples), 2 * repeat + 1)
+    if level == "exact":
+        out["rep_cold"] = _best(lambda: (inst.forget(),
+                                         [inst.render_exact(c, cfg, 1) for c in cols]), repeat)
 
     def scan_cold() -> None:
         inst.forget()
         list(fw.scan(2, 0, inst.columns))
 
-    t_scan_cold = _best(scan_cold, repeat)
-    t_scan = _best(lambda: list(fw.scan(2, 0, inst.columns)), repeat)
-    return {"cold": t_cold, "warm": t_warm, "rx": t_rx, "scan_cold": t_scan_cold,
-            "scan": t_scan}
+    out["scan_cold"] = _best(scan_cold, repeat)
+    out["scan"] = _best(lambda: list(fw.scan(2, 0, inst.columns)), repeat)
+    return out
 
 
 def main() -> None:
@@ -194,16 +182,24 @@ def main() -> None:
     for label, key in rows:
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] * 1e3:13.1f}"
                                          for lv in FIDELITY_LEVELS))
-    print(f"  {'scan cold / receive chain alone':34s}" + "".join(
-        f"{costs[lv]['scan_cold'] / ex['rx']:13.2f}" for lv in FIDELITY_LEVELS)
-        + "   (baseline: the exact level's receive chain)")
+    print(f"  {'render repetition by repetition':34s}{ex['rep_cold'] * 1e3:13.1f}"
+          "   (exact, cold: CAPTURE RAW's R x L draws)")
+    for label, key in (("scan cold / receive chain alone", "scan_cold"),
+                       ("scan warm / receive chain alone", "scan")):
+        print(f"  {label:34s}" + "".join(f"{costs[lv][key] / costs[lv]['rx']:13.2f}"
+                                         for lv in FIDELITY_LEVELS)
+              + "   (baseline: the level's receive chain alone, this run)")
     print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
         f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
     print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
         f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in FIDELITY_LEVELS))
-    print(f"  {'real-time factor (52.4 ms / scan)':34s}" + "".join(
-        f"{ACQ_S / costs[lv]['scan_cold']:13.3f}" for lv in FIDELITY_LEVELS)
-        + "   (cold scan)")
+    print(f"  {'speed-up vs repetitions (cold)':34s}" + "".join(
+        f"{ex['rep_cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
+    for label, key in (("real-time factor, cold scan", "scan_cold"),
+                       ("real-time factor, warm scan", "scan")):
+        print(f"  {label:34s}" + "".join(f"{ACQ_S / costs[lv][key]:13.3f}"
+                                         for lv in FIDELITY_LEVELS)
+              + "   (52.4 ms acquisition / scan)")
 
     full = _cost(_wall(None))
     strip = _cost(_wall(5))
@@ -215,9 +211,8 @@ def main() -> None:
     rows = (
         ("kernel", "per-channel echo kernel (scales)"),
         ("echo", "echo synthesis (kernel + 1 inverse FFT)"),
-        ("noise", "noise: R x L Gaussian draws (fixed)"),
-        ("adc", "ADC of R x L samples (fixed)"),
-        ("render", "render = echo + noise + ADC"),
+        ("noise", "noise: the repetition sum (fixed)"),
+        ("render", "render = echo + noise"),
         ("rx", "receive chain, all 40 channels (fixed)"),
         ("scan", "VirtualFirmware.scan (all of it)"),
     )
@@ -225,11 +220,9 @@ def main() -> None:
         ratio = strip[key] / full[key] if full[key] > 0 else float("nan")
         print(f"  {label:40s}{full[key] * 1e6:9.0f}{strip[key] * 1e6:9.0f}{ratio:7.3f}"
               f"{dark[key] * 1e6:9.0f}")
-    fixed = full["noise"] + full["adc"]
-    print(f"  noise + ADC are {100 * fixed / full['render']:.0f} % of the 40-lit rendering and "
-          f"{100 * (strip['noise'] + strip['adc']) / strip['render']:.0f} % of the 5-lit one; "
-          "they are the same for any scene (R x L independent samples, each frame "
-          "quantised on its own)")
+    print(f"  the noise is {100 * full['noise'] / full['render']:.0f} % of the 40-lit rendering "
+          f"and {100 * strip['noise'] / strip['render']:.0f} % of the 5-lit one; it is the same "
+          "for any scene (L Gaussians and (R - 1) L uniform words per column)")
     print_presets()
     print_error_budget()
     print_range_sweep()

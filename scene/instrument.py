@@ -36,8 +36,11 @@ Cost: only what the column needs. Channels whose ray hits nothing are skipped en
 the per-channel work is one phase ramp (an outer product of two short exponentials) and
 one multiply-add over L/2 bins. R repetitions share the deterministic echo, which is kept
 between frames (a static scene). At ``exact`` fidelity each repetition gets independent
-noise and is quantised on its own; at ``accumulated`` the repetitions' sum is drawn at
-once (:meth:`Instrument.render_accumulated`, docs/scene.md for its validity and error).
+noise and is quantised on its own (:meth:`Instrument.render_exact`, CAPTURE RAW); what
+the receive chain reads, the repetitions' sum, is drawn from its exact distribution with
+L Gaussians (:meth:`Instrument.render_sum`, :func:`draw_repetition_sum`). At
+``accumulated`` the sum is drawn as one Gaussian (:meth:`Instrument.render_accumulated`,
+docs/scene.md for its validity and error).
 
 Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
 with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
@@ -65,10 +68,14 @@ __all__ = [
     "ACCUMULATED_CLIP_MARGIN",
     "ACCUMULATED_MIN_NOISE_LSB",
     "ECHO_CACHE_BYTES",
+    "EXACT_SUM_CLIP_MARGIN",
+    "EXACT_SUM_MIN_NOISE_LSB",
     "FRAC_BITS",
+    "ROUNDING_LSB",
     "Instrument",
     "RenderSettings",
     "detector_response",
+    "draw_repetition_sum",
     "speckle_factors",
     "split_sum",
 ]
@@ -84,6 +91,19 @@ FRAC_BITS = 8
 ACCUMULATED_MIN_NOISE_LSB = 1.0
 #: ... and the column's largest echo stays this many noise rms inside the ADC's range.
 ACCUMULATED_CLIP_MARGIN = 6.0
+
+#: ``exact`` fidelity draws the sum of a column's R quantised repetitions in one go (its
+#: distribution, to double precision: :func:`draw_repetition_sum`) where the noise rms is at
+#: least this many LSB (the lattice's aliasing terms are then below exp(-pi^2 sigma^2 / 2)
+#: = 4e-20) ...
+EXACT_SUM_MIN_NOISE_LSB = 3.0
+#: ... and every repetition's largest value stays this many noise rms inside the ADC's
+#: range (a clipped sample then has probability below 2e-19).
+EXACT_SUM_CLIP_MARGIN = 9.0
+
+#: The ADC rounds the fine grid first (rint) and then half up: for a continuous input y
+#: (LSB) its code is floor(y + ROUNDING_LSB) (docs/scene.md, "Fidelity levels").
+ROUNDING_LSB = 0.5 + 0.5 / (1 << FRAC_BITS)
 
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
@@ -106,6 +126,45 @@ def split_sum(acc: NDArray[np.integer], repetitions: int) -> NDArray[np.int16]:
     for i in range(repetitions):
         np.add(q, rem > i, out=out[i], casting="unsafe")
     return out
+
+
+def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
+                        sigma_lsb: float, repetitions: int) -> NDArray[np.int64]:
+    """The sum of R quantised noisy repetitions, drawn with L Gaussians instead of R L.
+
+    Wanted: ``A = sum_r floor(y_r + e_r)`` per sample, e_r independent Gaussian of rms
+    ``sigma_lsb`` (LSB), ``mean_lsb = sum_r y_r`` (L,). Drawn as
+
+        A = floor(mean_lsb + sqrt(R) sigma z - sum_{i<R-1} U_i)
+
+    z standard normal (float64), U_i uniform on [0, 1) (32-bit: (b + 1/2) 2**-32, b a
+    uint32 word of the generator). Why this is A's distribution: floor(y + e) takes the
+    value k with probability g(k), g the density of y + e - U; by Poisson summation the
+    lattice variable's characteristic function is g's Fourier transform plus aliases of
+    size exp(-sigma^2 pi^2 / 2) on [-pi, pi]; so the sum's probabilities are the density
+    of sum_r (y_r + e_r - U_r) at the integers, and one U turns that density at k into
+    P(floor(...) = k). Exact up to the aliases (below 4e-20 at sigma >= 3 LSB) and the
+    32-bit U (variance 1/12 - 2**-64 / 12); no clipping (the caller checks the range).
+    tests/scene/test_fidelity.py compares it with the R-fold convolution of the
+    per-repetition probabilities.
+    """
+    r = repetitions
+    size = mean_lsb.size
+    draw = rng.standard_normal(size)
+    draw *= np.sqrt(r) * sigma_lsb
+    draw += mean_lsb
+    if r > 1:
+        bits = np.zeros(size, dtype=np.uint64)
+        rows = max(1, (1 << 22) // size)  # at most about 16 MB of words at a time
+        for r0 in range(0, r - 1, rows):
+            n = min(rows, r - 1 - r0) * size
+            words = rng.bit_generator.random_raw(-(-n // 2)).view(np.uint32)[:n]
+            bits += np.add.reduce(words.reshape(-1, size), axis=0, dtype=np.uint64)
+        uniforms = bits.astype(np.float64)  # exact: below 2**42 for R <= 1024
+        uniforms += 0.5 * (r - 1)
+        uniforms *= 2.0**-32
+        draw -= uniforms
+    return np.floor(draw, out=draw).astype(np.int64)
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -731,3 +790,70 @@ class Instrument:
             return None
         mean.flags.writeable = False
         return mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12))
+
+    def render_sum(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
+                   power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
+                   shot: int = 0) -> NDArray[np.int64] | None:
+        """The sum of the column's R quantised repetitions at the scene's fidelity, (n, N S)
+        int64, drawn directly; None where the level must render the repetitions (then
+        :meth:`render_exact` and a sum give it).
+
+        What the receive chain reads of a scan column is this sum (it accumulates the R
+        repetitions before anything else). ``exact``: :func:`draw_repetition_sum`, the
+        sum's own distribution (not an approximation), where the noise rms is at least
+        EXACT_SUM_MIN_NOISE_LSB and nothing comes within EXACT_SUM_CLIP_MARGIN noise rms
+        of the ADC's clip; L Gaussian draws and (R - 1) L 32-bit words instead of R L
+        Gaussians and R L quantisations. ``accumulated``: :meth:`render_accumulated`.
+        """
+        cfg = cfg or RenderSettings.from_spec(self.spec)
+        if self.fidelity == "accumulated":
+            return self.render_accumulated(column, cfg, frame, power_w,
+                                           calibration=calibration, shot=shot)
+        if not calibration:
+            check_int("column", column, 0, self.columns - 1)
+        col = 0 if calibration else column
+        power = self.default_power_w[:, col] if power_w is None else np.asarray(
+            power_w, dtype=np.float64)
+        key = ("sum", col, calibration, cfg, power.tobytes())
+        hit = self._columns.get(key)
+        if hit is None:
+            plan = self._make_sum_plan(col, cfg, power, calibration)
+            self._keep(key, (plan, 0.0), 0 if plan is None else plan[0].nbytes)
+        else:
+            plan = hit[0]
+        if plan is None:
+            return None
+        mean, sigma = plan
+        acc = draw_repetition_sum(self._noise_rng(frame, col, calibration, shot), mean, sigma,
+                                  cfg.averages)
+        return acc.reshape(cfg.uid_bits, mean.size // cfg.uid_bits)
+
+    def _make_sum_plan(self, col: int, cfg: RenderSettings, power: NDArray[np.float64],
+                       calibration: bool) -> tuple[NDArray[np.float64], float] | None:
+        """(sum over the repetitions of echo + offset + ROUNDING_LSB in LSB (float64,
+        read-only), noise rms in LSB) of an ``exact`` column, or None (see render_sum)."""
+        scale, offset = self._fine_scale()
+        lsb_per_v = scale / (1 << FRAC_BITS)
+        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v
+        if sigma < EXACT_SUM_MIN_NOISE_LSB:
+            return None
+        r = cfg.averages
+        # the same float64 echo render_exact uses, on the same fine grid
+        one = self.echo(col, cfg, power, calibration=calibration)
+        one *= scale
+        one += offset
+        one *= 1.0 / (1 << FRAC_BITS)  # LSB (a power of two: exact)
+        one += ROUNDING_LSB
+        users = None if calibration else self.other_users_signal(col, cfg, one.size * r)
+        if users is None:
+            peak = float(np.abs(one).max())
+            mean = one * r
+        else:
+            each = users.reshape(r, one.size) * lsb_per_v
+            each += one
+            peak = float(np.abs(each).max())
+            mean = each.sum(axis=0)
+        if peak + EXACT_SUM_CLIP_MARGIN * sigma > adc_limits(self.spec.adc_bits)[1]:
+            return None
+        mean.flags.writeable = False
+        return mean, float(sigma)

@@ -42,7 +42,9 @@ __all__ = [
 OBJECT_KINDS = ("plane", "box", "sphere", "text")
 
 #: How faithfully the instrument renders a column (scene option ``fidelity``), most
-#: faithful first: ``exact`` draws and quantises every repetition's samples on their own;
+#: faithful first: ``exact`` gives every repetition's samples their own noise and
+#: quantisation (the scan draws their sum from its exact distribution,
+#: :func:`cdma_lidar.scene.instrument.draw_repetition_sum`);
 #: ``accumulated`` draws the sum of the R quantised repetitions directly, where the noise
 #: spans at least :data:`cdma_lidar.scene.instrument.ACCUMULATED_MIN_NOISE_LSB` LSB and
 #: nothing clips (other columns fall back to ``exact``). docs/scene.md gives each

@@ -5,6 +5,8 @@ Commands (a contract: users and tests rely on these forms)::
     cdma-lidar study list
     cdma-lidar study run NAME --out DIR [--quick] [--workers N | --scheduler ADDRESS]
                          [--resume] [--set KEY=VALUE ...] [--no-progress]
+    cdma-lidar study ask tradeoff DIR --max-p95 METRES [--scene NAME] [--min-valid F]
+                         [--max-adc-rate HZ]
 
 ``list`` prints one line per study: its name, then a one-line description.
 ``run`` writes DIR/results.csv, DIR/summary.json, DIR/run.json, DIR/replicates.csv,
@@ -14,6 +16,10 @@ processes (default: one per CPU); ``--scheduler tcp://HOST:PORT`` (or ``tls://``
 existing cluster. Exit status: 0 all tasks done, 1 some tasks failed (listed on stderr
 with their parameters, all others done and written), 2 bad name, setting, grid or
 address (one line), 130 interrupted (finished tasks are kept: rerun with --resume).
+``ask tradeoff`` answers from a finished run's folder with the fastest configuration
+meeting the constraints, its 95 % intervals and the runner-up
+(:func:`cdma_lidar.study.tradeoff.ask`): exit status 0 with an answer, 1 when no
+configuration meets them, 2 for a bad folder or option (one line).
 """
 
 from __future__ import annotations
@@ -23,8 +29,10 @@ import json
 import logging
 import sys
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.study.catalogue import get_study, studies
 from cdma_lidar.study.engine import parse_set, run_study
+from cdma_lidar.study.tradeoff import ask
 
 __all__ = ["register"]
 
@@ -63,6 +71,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 1 if result.failures else 0
 
 
+def cmd_ask(args: argparse.Namespace) -> int:
+    """``study ask tradeoff DIR``: the fastest configuration meeting the constraints."""
+    if args.name != "tradeoff":
+        raise ConfigError(f"study ask {args.name!r}: only 'tradeoff' answers questions", "name")
+    answer = ask(args.dir, args.max_p95, scene=args.scene, min_valid=args.min_valid,
+                 max_adc_rate_hz=args.max_adc_rate)
+    for line in answer.describe().splitlines():
+        sys.stdout.write(_safe(line) + "\n")
+    return 0 if answer.best is not None else 1
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``study list`` and ``study run``."""
     p = sub.add_parser("study", help="sweeps of the speed/accuracy trade (docs/studies.md)")
@@ -86,3 +105,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="change a study setting (repeatable; lists comma-separated)")
     pr.add_argument("--no-progress", action="store_true", help="no progress bar")
     pr.set_defaults(func=cmd_run)
+    pa = ssub.add_parser("ask", help="the fastest configuration of a finished run meeting "
+                         "an accuracy target")
+    pa.add_argument("name", help="the study asked (tradeoff)")
+    pa.add_argument("dir", help="the --out folder of a finished run")
+    pa.add_argument("--max-p95", type=float, required=True, metavar="METRES",
+                    help="95th-percentile range error at most this (m)")
+    pa.add_argument("--scene", default=None, help="the scene (needed when the run has several)")
+    pa.add_argument("--min-valid", type=float, default=0.95,
+                    help="valid fraction of object pixels at least this (default 0.95)")
+    pa.add_argument("--max-adc-rate", type=float, default=None, metavar="HZ",
+                    help="ADC sample rate (S x chip rate) at most this")
+    pa.set_defaults(func=cmd_ask)

@@ -276,28 +276,22 @@ class VirtualFirmware(DeviceApp):
                  cfg: RenderSettings, calibration: bool, shots: bool) -> list[Any]:
         """Render ``columns`` (or calibration shots) and run the receive chain on them.
 
-        At ``accumulated`` fidelity the instrument draws each column's repetition sum and
-        the chain starts from the accumulators; a column the level does not cover (noise
-        under one LSB, echoes near the clip) is rendered exactly and accumulated here.
+        The instrument draws each column's repetition sum (what the chain reads first) at
+        its fidelity and the chain starts from the accumulators; a column the level cannot
+        draw that way (noise under a few LSB, echoes near the clip) is rendered repetition
+        by repetition and accumulated here.
         """
         inst = self.instrument
         rx = self._chain_for(len(columns))
-        if inst.fidelity == "accumulated":
-            accs = []
-            for c, p in zip(columns, powers, strict=True):
-                col = 0 if shots else c
-                acc = inst.render_accumulated(col, cfg, frame, p, calibration=calibration,
-                                              shot=c)
-                if acc is None:
-                    raw = inst.render_exact(col, cfg, frame, p, calibration=calibration,
-                                            shot=c)
-                    acc = rx.accumulate(raw[None, :])[0]
-                accs.append(acc)
-            return rx.from_accumulators(np.stack(accs))
-        samples = np.stack([inst.render_exact(0 if shots else c, cfg, frame, p,
-                                              calibration=calibration, shot=c)
-                            for c, p in zip(columns, powers, strict=True)])
-        return rx.frame(samples)
+        accs = []
+        for c, p in zip(columns, powers, strict=True):
+            col = 0 if shots else c
+            acc = inst.render_sum(col, cfg, frame, p, calibration=calibration, shot=c)
+            if acc is None:
+                raw = inst.render_exact(col, cfg, frame, p, calibration=calibration, shot=c)
+                acc = rx.accumulate(raw[None, :])[0]
+            accs.append(acc)
+        return rx.from_accumulators(np.stack(accs))
 
     # ---- power ----------------------------------------------------------------------
     def set_power(self, channel_start: int, column_start: int,
@@ -395,15 +389,22 @@ class VirtualFirmware(DeviceApp):
                                                  timestamp_us=self._timestamp(cfg))
 
     def capture(self, kind: CaptureKind, column: int, channel: int) -> NDArray[np.integer]:
-        """Raw ADC codes of ``column`` (last scanned frame id) or channel's gated trace."""
+        """Raw ADC codes of ``column`` (last scanned frame id) or channel's gated trace.
+
+        The trace is the scan's own (the same drawn repetition sum). RAW at ``exact``
+        fidelity is the R repetitions drawn one by one (another noise realisation of the
+        same frame: the scan draws only their sum, scene.instrument.Instrument.render_sum).
+        """
         if not 0 <= column < self.columns:
             raise out_of_range("column", f"0 to {self.columns - 1}", column)
-        samples = self.column_samples(self._last_frame, column)
         if kind == CaptureKind.RAW:
-            return samples
+            return self.column_samples(self._last_frame, column)
         if not 0 <= channel < self.channels:
             raise out_of_range("channel", f"0 to {self.channels - 1}", channel)
-        return self.receiver().column(samples).corr[channel]
+        calibration = self._config["mode"] == "calibration"
+        (out,) = self._receive(self._last_frame, [column], [self.power_w()[:, column]],
+                               self.render_settings(), calibration, shots=False)
+        return out.corr[channel]
 
     def abort(self) -> None:
         """Nothing to undo: columns are rendered on demand."""
