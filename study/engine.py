@@ -544,6 +544,11 @@ class _InProcess(_Executor):
                 yield key, None, exc
 
 
+#: Environment of local worker processes: one single-threaded worker per core, so the
+#: receive chain runs one thread in each (Dask already sets the BLAS libraries to one).
+WORKER_ENV = {"CDMA_LIDAR_THREADS": "1"}
+
+
 class _Dask(_Executor):
     """A dask.distributed Client on a LocalCluster or an existing scheduler.
 
@@ -590,7 +595,8 @@ class _Dask(_Executor):
                                              host="127.0.0.1" if processes else None,
                                              dashboard_address="127.0.0.1:0",
                                              scheduler_kwargs={"dashboard": False},
-                                             silence_logs=logging.ERROR)
+                                             silence_logs=logging.ERROR,
+                                             **({"env": WORKER_ENV} if processes else {}))
             self.client = Client(self._cluster, set_as_default=False)
             if gpus:
                 self.client.wait_for_workers(gpus, timeout=60)
@@ -635,7 +641,7 @@ def _gpu_cluster(gpus: int) -> Any:
     from distributed import Nanny, Scheduler, SpecCluster  # optional dependency, as above
     workers = {f"gpu-{i}": {"cls": Nanny, "options": {
         "nthreads": 1, "host": "127.0.0.1", "silence_logs": logging.ERROR,
-        "env": {"CUDA_VISIBLE_DEVICES": str(i)}}} for i in range(gpus)}
+        "env": {**WORKER_ENV, "CUDA_VISIBLE_DEVICES": str(i)}}} for i in range(gpus)}
     scheduler = {"cls": Scheduler, "options": {"host": "127.0.0.1", "dashboard": False,
                                                "dashboard_address": "127.0.0.1:0"}}
     return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR)
@@ -648,10 +654,14 @@ class _Lazy(_Executor):
     def __init__(self, factory: Callable[[], _Executor]) -> None:
         self._factory = factory
         self._real: _Executor | None = None
+        #: seconds it took to start (0 until started)
+        self.start_s = 0.0
 
     def _get(self) -> _Executor:
         if self._real is None:
+            t0 = time.monotonic()
             self._real = self._factory()
+            self.start_s = time.monotonic() - t0
         return self._real
 
     @property
@@ -958,6 +968,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
         "engine": executor.description, "points": len(points), "replicates": reps,
         "tasks": computed + cached, "computed": computed, "cached": cached,
         "failed": len(failures), "wall_time_s": round(time.monotonic() - t0, 3),
+        "executor_start_s": round(getattr(executor, "start_s", 0.0), 3),
         "machine_columns": list(study.machine_columns),
         "sub_studies": sorted(ctx.subs),
     }
