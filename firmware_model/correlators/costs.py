@@ -50,14 +50,15 @@ class Coefficients:
     byte: float
     fft: float
     call: float
-    ram: float = 4.0
+    ram: float = 1.0
 
 
-#: The constants of the model, fitted on the development machine (2 cores, OpenBLAS):
-#: the kernel grid of ``python -m bench kernels`` and random configurations off it
-#: (``python -m bench kernels --random``) with the seconds-per-primitive ratios that
-#: chose best there.
-COEFFICIENTS = Coefficients(mac=2e-11, byte=1e-11, fft=3e-11, call=5e-7)
+#: The constants of the model: the development machine's (2 cores, OpenBLAS) seconds per
+#: primitive as measured by the micro-benchmarks the model was fitted with (a 768^3
+#: GEMM, matrix-vector products over 4 MiB and 128 MiB, batched FFTs, a loop of tiny
+#: calls), with which ``python -m bench kernels`` measured auto within 1.25x of the
+#: fastest kernel on the whole grid of docs/firmware.md.
+COEFFICIENTS = Coefficients(mac=1.78e-11, byte=6.8e-12, fft=1.57e-10, call=4.2e-7, ram=1.8)
 
 
 @dataclass(frozen=True)
