@@ -11,6 +11,9 @@ A :class:`Study` declares
   ``seed`` is a :class:`numpy.random.SeedSequence`; the task draws every random number
   from it (``np.random.default_rng(seed)``, or ``int(seed.generate_state(1)[0])`` for an
   API that takes an integer seed) and from nothing else;
+* or, for a study of many independent random trials per point, ``trials``: a
+  :class:`Trials` (``count``, ``run`` over one :class:`TrialChunk`, ``summarise`` of all
+  the point's per-trial values) that the engine runs in chunks spread over the workers;
 * ``reduce(table, ctx) -> summary``: turns the per-point table into figures (PNG, in
   ``ctx.out``) and the headline numbers (:func:`headline`); it may add columns to the
   table and write extra files; a composite study runs other studies from here with
@@ -20,13 +23,23 @@ Seeding (results never depend on where or in which order tasks ran): task (point
 replicate r) gets ``SeedSequence(root_seed, spawn_key=(h0, h1, h2, h3, r))`` where
 ``h`` are the first 128 bits of the SHA-256 of the point's canonical JSON: a spawned
 child of the study's root sequence named by the point itself, so adding points to a
-grid does not change the seeds (or the cached results) of the others.
+grid does not change the seeds (or the cached results) of the others. A :class:`Trials`
+study's block b of trials (``Trials.block`` trials each) draws from
+``SeedSequence(root_seed, spawn_key=(h0, h1, h2, h3, r, b))`` (:func:`block_seed`):
+chunks are whole blocks, so no chunking changes what any trial draws.
+
+Chunks: each (point, replicate) first runs one block (its seconds per trial measured);
+then the point with the most time left gets a chunk of about 1/(2 x workers) of all the
+time left, clamped to MIN_CHUNK_S..MAX_CHUNK_S (guided self-scheduling), or
+``chunk_trials`` trials when given.
 
 Storage (``--out DIR``)::
 
     DIR/tasks/<key>.json  one finished task: params, replicate, result (written atomically
                           as soon as the task returns; key = SHA-256 of study, version,
-                          params, replicate and root seed)
+                          params, replicate and root seed); for a Trials study one
+                          finished chunk: params, replicate, trials [start, stop), one
+                          list per column
     DIR/replicates.csv    one row per task (the tidy raw table)
     DIR/results.csv       one row per point: parameters, then measured columns (the mean
                           over replicates, with ``<col>_ci95`` half-widths when there
@@ -38,8 +51,10 @@ Storage (``--out DIR``)::
     DIR/failures.json     tasks that raised, with their parameters and the error
     DIR/*.png             the study's figures
 
-``resume=True`` keeps ``DIR/tasks`` and computes only the missing tasks; without it the
-folder's earlier task results are discarded first. A task that raises is recorded in
+``resume=True`` keeps ``DIR/tasks`` and computes only the missing tasks (the trials no
+kept chunk holds, whatever chunk size ran before); with nothing missing no executor is
+started (no Dask cluster). Without it the folder's earlier task results are discarded
+first. A task that raises is recorded in
 ``failures.json`` (parameters, replicate, error) and the others go on; failed tasks are
 not cached, so ``--resume`` retries them.
 
@@ -47,7 +62,8 @@ Executors: ``workers=0`` runs the tasks one after the other in this process (no 
 otherwise Dask: a ``LocalCluster`` of ``workers`` single-threaded worker processes
 (default: one per CPU), or the cluster whose scheduler listens at ``scheduler``
 (``tcp://`` or ``tls://HOST:PORT``; TLS settings come from Dask's configuration,
-``distributed.comm.tls.*``, or ``security=``).
+``distributed.comm.tls.*``, or ``security=``); ``gpus=N``: a local cluster of one worker
+per GPU (worker i sees only GPU i). Local worker processes get :data:`WORKER_ENV`.
 """
 
 from __future__ import annotations
