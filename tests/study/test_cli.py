@@ -58,6 +58,9 @@ def test_run_writes_table_summary_run_info_and_figure(capsys, tmp_path):
     (["study", "run", "detection", "--out", "X", "--workers", "2", "--scheduler", "tcp://a:1"],
      "not allowed with"),
     (["study", "run", "detection", "--out", "X", "--workers", "-1"], "--workers"),
+    (["study", "run", "detection", "--out", "X", "--gpus", "-1"], "--gpus"),
+    (["study", "run", "detection", "--out", "X", "--gpus", "1", "--workers", "2"],
+     "not allowed with"),
     (["study", "run", "detection"], "--out"),
     (["study"], "STUDY_COMMAND"),
 ])
