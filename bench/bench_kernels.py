@@ -1,42 +1,37 @@
 """Correlation kernels: does ``method="auto"`` pick the fastest exact kernel, everywhere?
 
-For each configuration of a grid (degree, S, K, gate, R, UID bits, columns per
-call) every registered kernel finishes the same random accumulators
-(``FastReceiver.from_accumulators``, the whole chain after the accumulator); the
-results must be identical. Per row: each kernel's time per call (best of N) and
-peak traced memory (tracemalloc, the prepared kernel plus one call), the kernel
-``auto`` chose, the fastest, ``auto / fastest`` (target <= 1.25) and ``auto's memory /
-leanest`` (target <= 2).
+For each configuration every registered kernel finishes the same random accumulators
+(``FastReceiver.from_accumulators``, the whole chain after the accumulator); the results
+must be identical. Per row: each kernel's time per call (best of N) and peak traced
+memory (tracemalloc, the prepared kernel plus one call), the kernel ``auto`` chose (the
+fixed operation-count constants of ``correlators/costs.py``), the fastest, and
+``auto / fastest`` (target <= 1.25); ``mem x`` (auto's memory over the leanest kernel's)
+is for information.
 
-The two targets conflict where the fastest kernel needs more than 2x the leanest's
-memory (or 64 MiB more): auto cannot be both. Its rule then takes the fastest kernel
-within 1 GiB of the leanest if that is at least 4x faster than the best within the
-memory target (``(memory traded: ...)``, the row's memory target is then that 1 GiB),
-else the best within the target: ``time x`` is auto over the kernel the rule names,
-measured; ``all x`` auto over the fastest of all, printed with ``(fastest needs Nx
-memory)`` where that one was not worth its memory. The summary counts both kinds.
+Two sets of configurations:
 
-A kernel whose *predicted* time is over 20x the best prediction (except auto's choice
-and the leanest kernel, always run), or over 60 s, or
-whose predicted memory is over 2 GiB (a shared machine), is not run (``-``); a
-configuration whose best prediction is over 60 s, or whose predicted working set (the
-chain's (C, K, G) arrays, the accumulators and the largest kernel run) is over 6 GiB,
-is skipped.
+* the kernel grid of docs/firmware.md (``python -m bench kernels``, part of ``make
+  bench``): degrees 5/11/13, S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus
+  wide-data, many-column (the virtual board's batches of 4, 16 and 160 paper-scene1
+  columns) and many-channel rows; the full grid with ``CDMA_LIDAR_BENCH_FULL=1`` (degrees
+  5-20, S 1-64, K 1-2048; long);
+* random configurations off that grid (``python -m bench kernels --random``, or
+  ``CDMA_LIDAR_BENCH_RANDOM=N``; default 24): degree 5-15, S 1-16, K 1-400 (log-uniform),
+  a gate of 1-300 lags or the whole period, 1-160 columns, (R, n, b) from three
+  classes, seeded (``CDMA_LIDAR_BENCH_SEED``, default 0); every kernel best of 7. To
+  stay short on a shared machine a draw is replaced when its accumulators exceed 32 MiB
+  or its best prediction 0.3 s (printed as skipped).
 
-Quick grid (``python -m bench kernels``, part of ``make bench``): degrees 5/11/13,
-S 1/4/16, K 1/40, gate 1 lag / 64 lags / whole period, plus wide-data, many-column
-and many-channel rows. Full grid: ``CDMA_LIDAR_BENCH_FULL=1 python -m bench kernels``
-(degrees 5-20, S 1-64, K 1-2048; long). Rows where auto measured over 1.25x the
-fastest are timed again up to twice, 2 s apart, keeping each kernel's best (on the
-shared 2-core machine a threaded BLAS call stalls for 10-250 ms whenever another
-process holds a core).
+A kernel whose *predicted* time is over 20x the best prediction (except auto's choice,
+always run), or over 60 s, or whose predicted memory is over 2 GiB (a shared machine),
+is not run (``-``); a configuration whose best prediction is over 60 s (random
+configurations: 0.3 s), or whose predicted working set is over 6 GiB, is skipped. Kernels'
+repeats are interleaved; a row where auto measured over 1.25x the fastest is timed again
+up to twice, 2 s apart (on the shared 2-core machine a threaded BLAS call stalls for
+10-250 ms whenever another process holds a core).
 
 Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
-``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits (e.g. 5 for a full grid
-that finishes in about an hour).
-
-The cost model's coefficients are the calibration cache's or the built-in ones
-(``python -m cdma_lidar.firmware_model.correlators.costs --show``).
+``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits.
 """
 
 from __future__ import annotations
@@ -45,26 +40,23 @@ import gc
 import itertools
 import math
 import os
+import sys
 import time
 import tracemalloc
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
-from cdma_lidar.firmware_model.correlators.costs import (
-    MEMORY_FLOOR,
-    MEMORY_HEADROOM,
-    MEMORY_SLACK,
-    TRADE_SPEEDUP,
-    cache_path,
-    coefficients,
-)
+from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 SKIP_FACTOR = 20.0
 SKIP_SECONDS = float(os.environ.get("CDMA_LIDAR_BENCH_MAX_SECONDS", "60"))
 SKIP_BYTES = 2 << 30
+#: Random configurations whose best prediction is over this (s) are drawn again.
+RANDOM_MAX_SECONDS = 0.3
 #: A row predicted to need more than this in all is skipped (24 GB shared by two users).
 ROW_BYTES = 6 << 30
 #: A row whose auto kernel measured over 1.25x the fastest is timed again this many
@@ -121,7 +113,7 @@ def _best_time(fn, repeats: int) -> float:
     return t
 
 
-def run_case(case: Case, repeats: int) -> str:
+def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS) -> str:
     """Measure every kernel on one grid point; returns the table row."""
     n = (1 << case.degree) - 1
     ns = n * case.s
@@ -136,18 +128,18 @@ def run_case(case: Case, repeats: int) -> str:
     est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
     best_pred = min(e.seconds for e in finite.values())
-    if best_pred > SKIP_SECONDS:
-        return f"{case.label()} | skipped: best predicted {best_pred:.0f} s"
-    leanest = min(finite, key=lambda m: finite[m].peak_bytes)
-    run = {m: e for m, e in finite.items()  # auto's choice and the leanest however slow
-           if not ((e.seconds > SKIP_FACTOR * best_pred and m not in (chosen, leanest))
+    if best_pred > max_pred:
+        return f"{case.label()} | skipped: best predicted {best_pred:.1f} s"
+    run = {m: e for m, e in finite.items()  # auto's choice however slow
+           if not ((e.seconds > SKIP_FACTOR * best_pred and m != chosen)
                    or e.seconds > SKIP_SECONDS or e.peak_bytes > SKIP_BYTES
                    or chain + e.peak_bytes > ROW_BYTES)}
     if chosen not in run:
         return f"{case.label()} | skipped: auto's {chosen} predicted over the limits"
     # fast rows: more repeats, interleaved across the kernels (a stall of the shared
     # machine then hits one repeat of each, not all of one kernel's)
-    repeats = 7 if best_pred < 0.05 else repeats if best_pred < 1.0 else min(repeats, 2)
+    if repeats < 7:
+        repeats = 7 if best_pred < 0.05 else repeats if best_pred < 1.0 else min(repeats, 2)
     together = chain + sum(run[m].peak_bytes for m in run) <= ROW_BYTES
     times: dict[str, float] = {}
     mems: dict[str, float] = {}
@@ -188,27 +180,10 @@ def run_case(case: Case, repeats: int) -> str:
         f"{m}={times[m] * 1e3:9.2f}ms/{mems.get(m, math.nan) / 2**20:6.1f}MiB" if m in times
         else f"{m}={'-':>9}  {'':>9}" for m in correlator_methods()[1:])
     lean = min(mems.values())
-    cap = max(MEMORY_SLACK * lean, lean + MEMORY_FLOOR)
-    feasible = [m for m in times if mems[m] <= cap]
-    best = min(feasible, key=times.__getitem__)
-    # auto's rule on the measured figures: memory is traded for a 4x speed-up within 1 GiB
-    roomy = [m for m in times if mems[m] <= lean + MEMORY_HEADROOM]
-    trade = min(roomy, key=times.__getitem__)
-    traded = trade != best and times[trade] * TRADE_SPEEDUP <= times[best]
-    speedup = times[best] / times[trade]
-    if traded:
-        best = trade
-    ratio = times[chosen] / times[best]
-    ratio_all = times[chosen] / times[fastest]
-    mem_ratio = mems[chosen] / lean
-    mem_ok = mems[chosen] <= (lean + MEMORY_HEADROOM if traded else cap)
-    flag = "" if ratio <= 1.25 and mem_ok else "  <-- off target"
-    note = (f" (memory traded: {best} x{mems[best] / lean:.1f} the leanest, "
-            f"+{(mems[best] - lean) / 2**20:.0f} MiB, for x{speedup:.0f} speed)" if traded
-            else "" if best == fastest else
-            f" (fastest {fastest} needs {mems[fastest] / lean:.1f}x memory)")
-    return (f"{case.label()} | {cells} | auto={chosen:<6} best={best:<6} "
-            f"time x{ratio:5.2f} mem x{mem_ratio:4.2f} all x{ratio_all:5.2f}{note}{flag}")
+    ratio = times[chosen] / times[fastest]
+    flag = "" if ratio <= 1.25 else "  <-- off target"
+    return (f"{case.label()} | {cells} | auto={chosen:<6} fastest={fastest:<6} "
+            f"time x{ratio:5.2f} mem x{mems[chosen] / lean:4.2f}{flag}")
 
 
 def quick_grid() -> list[Case]:
@@ -218,6 +193,7 @@ def quick_grid() -> list[Case]:
         Case(11, 4, 40, 64, r=1024, uid_bits=16, adc_bits=16),  # wide data: limbs
         Case(13, 4, 40, 0, r=1024, uid_bits=16, adc_bits=16),
         Case(11, 4, 40, 64, columns=160),  # the paper frame's class
+        Case(11, 4, 40, 64, columns=4), Case(11, 4, 40, 64, columns=16),  # the board's batches
         Case(11, 16, 40, 1024, columns=32),
         Case(13, 4, 400, 64), Case(13, 4, 400, 0),  # many channels
         Case(15, 4, 1200, 64),
@@ -236,36 +212,64 @@ def full_grid() -> list[Case]:
     return cases
 
 
+#: Random configurations whose accumulators exceed this are drawn again (a shared machine).
+RANDOM_ACC_BYTES = 32 << 20
+
+
+def random_cases(seed: int) -> Iterator[Case]:
+    """Configurations off the grid, drawn from ``seed`` (accumulators at most 32 MiB)."""
+    rng = np.random.default_rng(seed)
+    classes = [(10, 1, 12), (1024, 16, 16), (100, 4, 14)]
+    while True:
+        degree = int(rng.integers(5, 16))
+        r, n, b = classes[int(rng.integers(0, 3))]
+        gate = 0 if rng.random() < 0.25 else int(rng.integers(1, 301))
+        case = Case(degree, int(rng.integers(1, 17)), int(np.exp(rng.uniform(0, math.log(400)))),
+                    gate, r=r, uid_bits=n, adc_bits=b,
+                    columns=int(rng.choice([1, 2, 3, 8, 20, 64, 160])))
+        if 8 * case.columns * n * ((1 << degree) - 1) * case.s <= RANDOM_ACC_BYTES:
+            yield case
+
+
 def main() -> None:
     full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
-    src = cache_path() if cache_path().is_file() else "built-in defaults"
-    print(f"kernel grid ({'full' if full else 'quick'}); cost coefficients {coefficients()} "
-          f"from {src}; load average {os.getloadavg()[0]:.2f}")
-    print("times per call (from_accumulators: despread .. peaks), best of 3 interleaved across "
-          "the kernels (7 when the best prediction is under 50 ms, 2 when over 1 s); memory: "
-          "tracemalloc peak of preparing the kernel plus one "
+    random_n = os.environ.get("CDMA_LIDAR_BENCH_RANDOM")
+    if "--random" in sys.argv and random_n is None:
+        random_n = "24"
+    if random_n is not None:
+        seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
+        cases, label, repeats, max_pred = random_cases(seed), \
+            f"{random_n} random configurations (seed {seed})", 7, RANDOM_MAX_SECONDS
+    else:
+        cases, label, repeats, max_pred = full_grid() if full else quick_grid(), \
+            "full grid" if full else "quick grid", 3, SKIP_SECONDS
+    print(f"kernels on the {label}; cost constants {COEFFICIENTS}; load average "
+          f"{os.getloadavg()[0]:.2f}")
+    print(f"times per call (from_accumulators: despread .. peaks), best of {repeats} "
+          "interleaved across the kernels"
+          + ("" if repeats == 7 else " (7 when the best prediction is under 50 ms, 2 when "
+             "over 1 s)") + "; memory: tracemalloc peak of preparing the kernel plus one "
           f"call; kernels predicted over {SKIP_SECONDS:g} s not run")
-    worst, worst_mem, worst_all, n_rows, conflicts, traded, off = 0.0, 0.0, 0.0, 0, 0, 0, 0
+    worst, worst_case, n_rows, off = 0.0, "", 0, 0
     only = os.environ.get("CDMA_LIDAR_BENCH_DEGREES")
     degrees = {int(d) for d in only.split(",")} if only else None
-    for case in full_grid() if full else quick_grid():
+    want = int(random_n) if random_n is not None else None
+    for case in cases:
+        if want is not None and n_rows >= want:
+            break
         if degrees is not None and case.degree not in degrees:
             continue
-        row = run_case(case, repeats=3)
+        row = run_case(case, repeats, max_pred)
         print(row, flush=True)
         if "time x" in row:
             n_rows += 1
-            worst = max(worst, float(row.split("time x")[1].split()[0]))
-            worst_mem = max(worst_mem, float(row.split("mem x")[1].split()[0]))
-            worst_all = max(worst_all, float(row.split("all x")[1].split()[0]))
-            conflicts += "needs" in row
-            traded += "traded" in row
+            ratio = float(row.split("time x")[1].split()[0])
+            if ratio > worst:
+                worst, worst_case = ratio, case.label()
             off += "off target" in row
-    print(f"{n_rows} rows measured, {off} off target: worst auto / best kernel by the rule "
-          f"x{worst:.2f} (target 1.25), worst auto / leanest memory x{worst_mem:.2f} "
-          f"(target 2, or within 64 MiB; traded for a 4x speed-up within 1 GiB on {traded} "
-          f"rows); {conflicts} rows where the fastest kernel needs over 2x the leanest memory "
-          f"and is under 4x faster (auto / that fastest: worst x{worst_all:.2f})")
+    print(f"{n_rows} rows measured, {off} off target (auto over 1.25x the fastest); worst "
+          f"auto / fastest x{worst:.2f} ({worst_case.strip()}); load average "
+          f"{os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

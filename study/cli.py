@@ -3,7 +3,8 @@
 Commands (a contract: users and tests rely on these forms)::
 
     cdma-lidar study list
-    cdma-lidar study run NAME --out DIR [--quick] [--workers N | --scheduler ADDRESS]
+    cdma-lidar study run NAME --out DIR [--quick]
+                         [--workers N | --scheduler ADDRESS | --gpus N]
                          [--resume] [--set KEY=VALUE ...] [--no-progress]
     cdma-lidar study ask tradeoff DIR --max-p95 METRES [--scene NAME] [--min-valid F]
                          [--max-adc-rate HZ]
@@ -13,7 +14,10 @@ Commands (a contract: users and tests rely on these forms)::
 DIR/failures.json and the study's PNG figures (docs/studies.md). ``--workers 0`` runs
 in this process without Dask; ``--workers N`` a local Dask cluster of N worker
 processes (default: one per CPU); ``--scheduler tcp://HOST:PORT`` (or ``tls://``) an
-existing cluster. Exit status: 0 all tasks done, 1 some tasks failed (listed on stderr
+existing cluster; ``--gpus N`` a local cluster of one worker per GPU (worker i sees GPU i
+only, and the receive chain's ``auto`` kernel choice finds it). Trial-heavy studies run
+in chunks of trials; "M tasks computed" counts those chunks. A ``--resume`` with nothing
+missing starts no cluster. Exit status: 0 all tasks done, 1 some tasks failed (listed on stderr
 with their parameters, all others done and written), 2 bad name, setting, grid or
 address (one line), 130 interrupted (finished tasks are kept: rerun with --resume).
 ``ask tradeoff`` answers from a finished run's folder with the fastest configuration
@@ -59,6 +63,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     # run_study checks the --set values, the grid and --workers before any cluster starts
     result = run_study(study, args.out, quick=args.quick, overrides=overrides,
                        workers=args.workers, scheduler=args.scheduler, resume=args.resume,
+                       gpus=args.gpus or 0,
                        progress=not args.no_progress and sys.stderr.isatty())
     sys.stdout.write(f"{study.name}: {len(result.table)} points, {result.computed} tasks "
                      f"computed, {result.cached} reused -> {result.out}\n")
@@ -99,6 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="local Dask workers (default: one per CPU; 0: in this process)")
     where.add_argument("--scheduler", default=None,
                        help="address of a running Dask scheduler, tcp://HOST:PORT or tls://...")
+    where.add_argument("--gpus", type=int, default=None,
+                       help="a local Dask cluster of one worker per GPU (GPU i for worker i)")
     pr.add_argument("--resume", action="store_true",
                     help="reuse the finished tasks in --out, compute only the missing ones")
     pr.add_argument("--set", action="append", metavar="KEY=VALUE",

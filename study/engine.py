@@ -11,6 +11,9 @@ A :class:`Study` declares
   ``seed`` is a :class:`numpy.random.SeedSequence`; the task draws every random number
   from it (``np.random.default_rng(seed)``, or ``int(seed.generate_state(1)[0])`` for an
   API that takes an integer seed) and from nothing else;
+* or, for a study of many independent random trials per point, ``trials``: a
+  :class:`Trials` (``count``, ``run`` over one :class:`TrialChunk`, ``summarise`` of all
+  the point's per-trial values) that the engine runs in chunks spread over the workers;
 * ``reduce(table, ctx) -> summary``: turns the per-point table into figures (PNG, in
   ``ctx.out``) and the headline numbers (:func:`headline`); it may add columns to the
   table and write extra files; a composite study runs other studies from here with
@@ -20,13 +23,23 @@ Seeding (results never depend on where or in which order tasks ran): task (point
 replicate r) gets ``SeedSequence(root_seed, spawn_key=(h0, h1, h2, h3, r))`` where
 ``h`` are the first 128 bits of the SHA-256 of the point's canonical JSON: a spawned
 child of the study's root sequence named by the point itself, so adding points to a
-grid does not change the seeds (or the cached results) of the others.
+grid does not change the seeds (or the cached results) of the others. A :class:`Trials`
+study's block b of trials (``Trials.block`` trials each) draws from
+``SeedSequence(root_seed, spawn_key=(h0, h1, h2, h3, r, b))`` (:func:`block_seed`):
+chunks are whole blocks, so no chunking changes what any trial draws.
+
+Chunks: each (point, replicate) first runs one block (its seconds per trial measured);
+then the point with the most time left gets a chunk of about 1/(2 x workers) of all the
+time left, clamped to MIN_CHUNK_S..MAX_CHUNK_S (guided self-scheduling), or
+``chunk_trials`` trials when given.
 
 Storage (``--out DIR``)::
 
     DIR/tasks/<key>.json  one finished task: params, replicate, result (written atomically
                           as soon as the task returns; key = SHA-256 of study, version,
-                          params, replicate and root seed)
+                          params, replicate and root seed); for a Trials study one
+                          finished chunk: params, replicate, trials [start, stop), one
+                          list per column
     DIR/replicates.csv    one row per task (the tidy raw table)
     DIR/results.csv       one row per point: parameters, then measured columns (the mean
                           over replicates, with ``<col>_ci95`` half-widths when there
@@ -38,8 +51,10 @@ Storage (``--out DIR``)::
     DIR/failures.json     tasks that raised, with their parameters and the error
     DIR/*.png             the study's figures
 
-``resume=True`` keeps ``DIR/tasks`` and computes only the missing tasks; without it the
-folder's earlier task results are discarded first. A task that raises is recorded in
+``resume=True`` keeps ``DIR/tasks`` and computes only the missing tasks (the trials no
+kept chunk holds, whatever chunk size ran before); with nothing missing no executor is
+started (no Dask cluster). Without it the folder's earlier task results are discarded
+first. A task that raises is recorded in
 ``failures.json`` (parameters, replicate, error) and the others go on; failed tasks are
 not cached, so ``--resume`` retries them.
 
@@ -47,11 +62,13 @@ Executors: ``workers=0`` runs the tasks one after the other in this process (no 
 otherwise Dask: a ``LocalCluster`` of ``workers`` single-threaded worker processes
 (default: one per CPU), or the cluster whose scheduler listens at ``scheduler``
 (``tcp://`` or ``tls://HOST:PORT``; TLS settings come from Dask's configuration,
-``distributed.comm.tls.*``, or ``security=``).
+``distributed.comm.tls.*``, or ``security=``); ``gpus=N``: a local cluster of one worker
+per GPU (worker i sees only GPU i). Local worker processes get :data:`WORKER_ENV`.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import json
@@ -84,6 +101,9 @@ __all__ = [
     "Study",
     "Table",
     "TaskFailure",
+    "TrialChunk",
+    "Trials",
+    "block_seed",
     "grid_product",
     "headline",
     "make_executor",
@@ -218,6 +238,16 @@ class Study:
     settings: tuple[Setting, ...] = ()
     machine_columns: tuple[str, ...] = ()
     version: str = "1"
+    trials: Trials | None = None
+
+    def __post_init__(self) -> None:
+        if self.task is not None and self.trials is not None:
+            raise ConfigError(f"study {self.name!r}: give task or trials, not both", "task")
+
+    @property
+    def runs_tasks(self) -> bool:
+        """Whether the study measures its grid (False: a composite running sub-studies)."""
+        return self.task is not None or self.trials is not None
 
     def all_settings(self) -> dict[str, Setting]:
         out = {s.name: s for s in COMMON_SETTINGS}
@@ -274,6 +304,143 @@ def task_key(study: Study, params: Mapping[str, Any], replicate: int, root: int)
     return hashlib.sha256(ident.encode()).hexdigest()[:32]
 
 
+# ------------------------------------------------------------------ trials in chunks
+
+
+@dataclass(frozen=True)
+class TrialChunk:
+    """Trials ``start .. stop - 1`` of one (point, replicate), in blocks with their own seeds.
+
+    Block b holds trials ``b*block .. (b+1)*block - 1`` and draws from
+    :func:`block_seed` ``(seed, b)``; chunks start on a block boundary, so any chunking
+    of a point's trials draws the same random numbers for every trial.
+    """
+
+    seed: np.random.SeedSequence
+    start: int
+    stop: int
+    block: int
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def blocks(self) -> Iterator[tuple[np.random.Generator, int]]:
+        """(generator, trials in the block) for each block of the chunk, in trial order."""
+        for b in range(self.start // self.block, -(-self.stop // self.block)):
+            count = min(self.block, self.stop - b * self.block)
+            yield np.random.default_rng(block_seed(self.seed, b)), count
+
+
+def block_seed(seed: np.random.SeedSequence, block: int) -> np.random.SeedSequence:
+    """The SeedSequence of trial block ``block`` of the (point, replicate) ``seed``."""
+    return np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, block))
+
+
+@dataclass(frozen=True)
+class Trials:
+    """A task made of independent random trials, which the engine runs in chunks.
+
+    * ``count(params) -> int``: trials of one (point, replicate) (0: ``summarise`` alone);
+    * ``run(params, chunk: TrialChunk) -> {column: sequence}``: one value per trial of
+      the chunk in each column (JSON scalars), every random number drawn from
+      ``chunk.blocks()``;
+    * ``summarise(params, columns) -> row``: the point's measured columns from ALL its
+      trials (``columns``: numpy arrays in trial order, chunks concatenated), so counts,
+      means and percentiles are exact whatever the chunking.
+
+    ``block``: trials per seed (the unit of chunking; changing it changes the draws).
+    """
+
+    count: Callable[[Params], int]
+    run: Callable[[Params, TrialChunk], Mapping[str, Sequence[Any]]]
+    summarise: Callable[[Params, Mapping[str, np.ndarray]], Mapping[str, Any]]
+    block: int = 8
+
+
+#: Chunk durations the engine aims at (s): at most MAX_CHUNK_S (a Ctrl-C loses little,
+#: a worker's last chunk ends soon after the others'), at least MIN_CHUNK_S (a chunk's
+#: set-up, e.g. preparing a receiver, stays small against its trials).
+MAX_CHUNK_S = 2.0
+MIN_CHUNK_S = 0.25
+
+
+@dataclass
+class _Unit:
+    """One (point, replicate): its finished chunks, the trial ranges still to run, its
+    measured seconds per trial. ``total`` is None for a plain (unchunked) task."""
+
+    params: Params
+    replicate: int
+    total: int | None
+    block: int = 1
+    done: dict[int, tuple[int, dict[str, Any]]] = field(default_factory=dict)
+    todo: list[tuple[int, int]] = field(default_factory=list)
+    rate: float | None = None
+    inflight: int = 0
+    failed: bool = False
+
+    def missing(self) -> int:
+        return sum(b - a for a, b in self.todo)
+
+    def take(self, blocks: int) -> tuple[int, int]:
+        """The next ``blocks`` blocks (at most the first missing range) as (start, stop)."""
+        a, b = self.todo[0]
+        stop = min(b, a + blocks * self.block)
+        if stop < b:
+            self.todo[0] = (stop, b)
+        else:
+            self.todo.pop(0)
+        self.inflight += 1
+        return a, stop
+
+
+def _uncovered(total: int, chunks: Iterable[tuple[int, int]], block: int) -> list[tuple[int, int]]:
+    """Block-aligned ranges of 0..total not covered by the given (start, stop) chunks."""
+    covered = sorted(chunks)
+    gaps, pos = [], 0
+    for a, b in covered:
+        if a > pos:
+            gaps.append((pos, a))
+        pos = max(pos, b)
+    if pos < total:
+        gaps.append((pos, total))
+    return gaps if total else ([] if covered else [(0, 0)])
+
+
+def _next_job(units: list[_Unit], slots: int, chunk_trials: int | None = None
+              ) -> tuple[_Unit, int | None, int | None] | None:
+    """The next chunk to run, or None when nothing should start now.
+
+    Plain tasks and one-block probes of unmeasured points first (grid order), then the
+    point with the most estimated time left, in a chunk of about a 1/(2 slots) share of
+    all the time left, between MIN_CHUNK_S and MAX_CHUNK_S (guided self-scheduling).
+    ``chunk_trials``: chunks of that many trials (whole blocks) instead, in grid order.
+    """
+    live = [u for u in units if u.todo and not u.failed]
+    for u in live:
+        if u.total is None:
+            u.todo.clear()
+            u.inflight += 1
+            return u, None, None
+        if chunk_trials is not None:
+            return (u, *u.take(-(-chunk_trials // u.block)))
+        if u.rate is None and u.inflight == 0:
+            return (u, *u.take(1))
+    known = [u.rate for u in units if u.rate is not None]
+    if not live or not known:
+        return None  # wait for a probe
+    slow = max(known)
+
+    def left(u: _Unit) -> float:
+        return u.missing() * (slow if u.rate is None else u.rate)
+
+    target = min(MAX_CHUNK_S, max(MIN_CHUNK_S, sum(map(left, live)) / (2 * slots)))
+    u = max(live, key=left)
+    rate = slow if u.rate is None else u.rate
+    blocks = max(1, int(target / (rate * u.block))) if rate > 0 else u.missing()
+    return (u, *u.take(blocks))
+
+
 # ------------------------------------------------------------------ running
 
 
@@ -288,7 +455,11 @@ class TaskFailure:
 
 @dataclass
 class RunResult:
-    """What :func:`run_study` produced (the files are in ``out``)."""
+    """What :func:`run_study` produced (the files are in ``out``).
+
+    ``computed`` and ``cached`` count tasks: chunks of trials for a study with
+    :class:`Trials`, one per (point, replicate) otherwise.
+    """
 
     study: str
     out: Path
@@ -312,6 +483,7 @@ class RunContext:
     resume: bool
     progress: bool
     subs: dict[str, RunResult] = field(default_factory=dict)
+    chunk_trials: int | None = None
 
     def run_sub(self, study: Study, overrides: Mapping[str, Any] | None = None) -> RunResult:
         """Run ``study`` into ``out/<study.name>`` on the same executor, quick and resume.
@@ -321,26 +493,47 @@ class RunContext:
         inherited = {"seed": self.options.seed}
         inherited.update(overrides or {})
         result = _run(study, self.out / study.name, study.options(self.options.quick, inherited),
-                      self.executor, resume=self.resume, progress=self.progress)
+                      self.executor, resume=self.resume, progress=self.progress,
+                      chunk_trials=self.chunk_trials)
         self.subs[study.name] = result
         return result
 
 
 def _execute_task(task: Callable[[Params, np.random.SeedSequence], Mapping[str, Any]],
-                  params: Params, root: int, replicate: int) -> dict[str, Any]:
-    """What runs on a worker: one seeded task, its result made JSON-plain."""
-    seed = task_seed(root, params, replicate)
-    result = task(dict(params), seed)
-    return {k: plain(v) for k, v in result.items()}
+                  params: Params, root: int, replicate: int) -> tuple[dict[str, Any], float]:
+    """What runs on a worker: one seeded task, its result made JSON-plain, its seconds."""
+    t0 = time.perf_counter()
+    result = task(dict(params), task_seed(root, params, replicate))
+    return {k: plain(v) for k, v in result.items()}, time.perf_counter() - t0
+
+
+def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, start: int,
+                   stop: int) -> tuple[dict[str, list[Any]], float]:
+    """What runs on a worker: trials start..stop-1 of (point, replicate), one list per
+    column, and the seconds they took."""
+    t0 = time.perf_counter()
+    chunk = TrialChunk(task_seed(root, params, replicate), start, stop, trials.block)
+    columns = {k: [plain(v) for v in np.asarray(vals).tolist()]
+               for k, vals in trials.run(dict(params), chunk).items()}
+    bad = [k for k, v in columns.items() if len(v) != stop - start]
+    if bad:
+        raise ValueError(f"trial columns {bad} do not have one value per trial "
+                         f"({stop - start})")
+    return columns, time.perf_counter() - t0
 
 
 class _Executor:
-    """Runs (key, function, args) jobs and yields (key, result | exception) as they finish."""
+    """Runs submitted (key, function, args) jobs; :meth:`completed` yields (key, result |
+    None, exception | None) as they finish, including jobs submitted while it iterates."""
 
     description = ""
+    #: jobs that run at once
+    slots = 1
 
-    def map_unordered(self, jobs: list[tuple[str, Callable[..., Any], tuple]]
-                      ) -> Iterator[tuple[str, Any, BaseException | None]]:
+    def submit(self, key: str, fn: Callable[..., Any], args: tuple) -> None:
+        raise NotImplementedError
+
+    def completed(self) -> Iterator[tuple[str, Any, BaseException | None]]:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -350,8 +543,16 @@ class _Executor:
 class _InProcess(_Executor):
     description = "in-process (no Dask)"
 
-    def map_unordered(self, jobs):  # type: ignore[no-untyped-def]
-        for key, fn, args in jobs:
+    def __init__(self) -> None:
+        self._queue: collections.deque[tuple[str, Callable[..., Any], tuple]] = \
+            collections.deque()
+
+    def submit(self, key, fn, args):  # type: ignore[no-untyped-def]
+        self._queue.append((key, fn, args))
+
+    def completed(self):  # type: ignore[no-untyped-def]
+        while self._queue:
+            key, fn, args = self._queue.popleft()
             try:
                 yield key, fn(*args), None
             except Exception as exc:
@@ -386,15 +587,25 @@ def _probe_scheduler(address: str, timeout_s: float) -> None:
                         "check the address and that the scheduler runs") from None
 
 
+#: Environment of local worker processes: one single-threaded worker per core, so the
+#: receive chain runs one thread in each (Dask already sets the BLAS libraries to one).
+WORKER_ENV = {"CDMA_LIDAR_THREADS": "1"}
+
+
 class _Dask(_Executor):
-    """A dask.distributed Client on a LocalCluster or an existing scheduler."""
+    """A dask.distributed Client on a LocalCluster or an existing scheduler.
+
+    ``gpus`` > 0: a local cluster of that many single-threaded workers, worker i seeing
+    only GPU i (``CUDA_VISIBLE_DEVICES``), so the receive chain's ``method="auto"`` finds
+    one device per worker (one worker per GPU).
+    """
 
     def __init__(self, workers: int | None, scheduler: str | None,
                  security: Any = None, processes: bool = True,
-                 connect_timeout_s: float = 10.0) -> None:
+                 connect_timeout_s: float = 10.0, gpus: int = 0) -> None:
         try:
             # optional dependency (extra "study"): only sweeps on Dask need it
-            from distributed import Client, LocalCluster
+            from distributed import Client, LocalCluster, as_completed
         except ImportError:
             raise ConfigError("running a study on Dask needs dask.distributed: install "
                               "'cdma-lidar[study]' (or use --workers 0 to run in this process)",
@@ -415,31 +626,40 @@ class _Dask(_Executor):
                                 f"({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"
                                 ) from None
             self.description = f"dask scheduler {scheduler}"
+            self.slots = max(1, sum(self.client.nthreads().values()))
         else:
-            n = workers if workers is not None else (os.cpu_count() or 1)
+            n = gpus or (workers if workers is not None else (os.cpu_count() or 1))
             # no dashboard; the scheduler's small HTTP server (health, metrics) on a free
             # loopback port rather than 8787, which another cluster may hold
-            self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                         host="127.0.0.1" if processes else None,
-                                         dashboard_address="127.0.0.1:0",
-                                         scheduler_kwargs={"dashboard": False},
-                                         silence_logs=logging.ERROR)
+            if gpus:  # one worker process per device, each seeing only its own
+                self._cluster = _gpu_cluster(gpus)
+            else:
+                self._cluster = LocalCluster(n_workers=n, threads_per_worker=1,
+                                             processes=processes,
+                                             host="127.0.0.1" if processes else None,
+                                             dashboard_address="127.0.0.1:0",
+                                             scheduler_kwargs={"dashboard": False},
+                                             silence_logs=logging.ERROR,
+                                             **({"env": WORKER_ENV} if processes else {}))
             self.client = Client(self._cluster, set_as_default=False)
+            if gpus:
+                self.client.wait_for_workers(gpus, timeout=60)
+            self.slots = n
             self.description = (f"dask LocalCluster, {n} worker "
-                                f"{'processes' if processes else 'threads'}")
+                                f"{'processes' if processes else 'threads'}"
+                                + (", one per GPU" if gpus else ""))
+        self._done = as_completed(loop=self.client.loop)
+        self._keys: dict[Any, str] = {}
 
-    def map_unordered(self, jobs):  # type: ignore[no-untyped-def]
-        # optional dependency (extra "study"), present once __init__ succeeded
-        from distributed import as_completed
-        if not jobs:
-            return
-        futures = {}
-        for key, fn, args in jobs:
-            fut = self.client.submit(fn, *args, key=f"study-{key}", pure=False)
-            futures[fut] = key
+    def submit(self, key, fn, args):  # type: ignore[no-untyped-def]
+        fut = self.client.submit(fn, *args, key=f"study-{key}", pure=False)
+        self._keys[fut] = key
+        self._done.add(fut)
+
+    def completed(self):  # type: ignore[no-untyped-def]
         try:
-            for fut in as_completed(list(futures), loop=self.client.loop):
-                key = futures[fut]
+            for fut in self._done:
+                key = self._keys.pop(fut)
                 try:
                     yield key, fut.result(), None
                 except Exception as exc:
@@ -447,9 +667,11 @@ class _Dask(_Executor):
                 finally:
                     fut.release()
         finally:
-            for fut in futures:
+            for fut in list(self._keys):
                 if not fut.done():
                     fut.cancel()
+            self._keys.clear()
+            self._done.clear()
 
     def close(self) -> None:
         self.client.close()
@@ -457,41 +679,115 @@ class _Dask(_Executor):
             self._cluster.close()
 
 
-def make_executor(workers: int | None = None, scheduler: str | None = None, *,
-                  security: Any = None, processes: bool = True,
-                  connect_timeout_s: float = 10.0) -> _Executor:
-    """``workers=0``: in this process; otherwise Dask (local cluster or ``scheduler``)."""
+def _gpu_cluster(gpus: int) -> Any:
+    """A local Dask cluster of ``gpus`` single-threaded worker processes, worker i with
+    ``CUDA_VISIBLE_DEVICES=i``."""
+    from distributed import Nanny, Scheduler, SpecCluster  # optional dependency, as above
+    workers = {f"gpu-{i}": {"cls": Nanny, "options": {
+        "nthreads": 1, "host": "127.0.0.1", "silence_logs": logging.ERROR,
+        "env": {**WORKER_ENV, "CUDA_VISIBLE_DEVICES": str(i)}}} for i in range(gpus)}
+    scheduler = {"cls": Scheduler, "options": {"host": "127.0.0.1", "dashboard": False,
+                                               "dashboard_address": "127.0.0.1:0"}}
+    return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR)
+
+
+class _Lazy(_Executor):
+    """Starts its executor (a Dask cluster, say) only when the first job is submitted:
+    a resumed run with nothing missing starts nothing."""
+
+    def __init__(self, factory: Callable[[], _Executor]) -> None:
+        self._factory = factory
+        self._real: _Executor | None = None
+        #: seconds it took to start (0 until started)
+        self.start_s = 0.0
+
+    def _get(self) -> _Executor:
+        if self._real is None:
+            t0 = time.monotonic()
+            self._real = self._factory()
+            self.start_s = time.monotonic() - t0
+        return self._real
+
+    @property
+    def description(self) -> str:  # type: ignore[override]
+        return self._real.description if self._real is not None else "none (nothing to run)"
+
+    @property
+    def slots(self) -> int:  # type: ignore[override]
+        return self._get().slots
+
+    def submit(self, key, fn, args):  # type: ignore[no-untyped-def]
+        self._get().submit(key, fn, args)
+
+    def completed(self):  # type: ignore[no-untyped-def]
+        return iter(()) if self._real is None else self._real.completed()
+
+    def close(self) -> None:
+        if self._real is not None:
+            self._real.close()
+
+
+def _check_executor(workers: int | None, scheduler: str | None, gpus: int = 0) -> None:
     if workers is not None and scheduler is not None:
         raise ConfigError("give --workers or --scheduler, not both", "workers")
     if workers is not None and not (isinstance(workers, int) and 0 <= workers <= 4096):
         raise ConfigError(f"--workers {workers!r}: expected 0..4096 (0: in this process)",
                           "workers")
+    if not (isinstance(gpus, int) and 0 <= gpus <= 1024):
+        raise ConfigError(f"--gpus {gpus!r}: expected 0..1024", "gpus")
+    if gpus and (scheduler is not None or workers is not None):
+        raise ConfigError("--gpus starts one local worker per GPU: give it without "
+                          "--workers and --scheduler", "gpus")
+    if scheduler is not None and not _SCHEDULER_RE.match(scheduler):
+        raise ConfigError(f"--scheduler {scheduler!r}: expected tcp://HOST:PORT or "
+                          "tls://HOST:PORT", "scheduler")
+
+
+def make_executor(workers: int | None = None, scheduler: str | None = None, *,
+                  security: Any = None, processes: bool = True,
+                  connect_timeout_s: float = 10.0, gpus: int = 0) -> _Executor:
+    """``workers=0``: in this process; otherwise Dask (local cluster or ``scheduler``);
+    ``gpus`` > 0: a local cluster of one worker per GPU."""
+    _check_executor(workers, scheduler, gpus)
     if workers == 0:
         return _InProcess()
     return _Dask(workers, scheduler, security=security, processes=processes,
-                 connect_timeout_s=connect_timeout_s)
+                 connect_timeout_s=connect_timeout_s, gpus=gpus)
 
 
 def run_study(study: Study, out: str | os.PathLike[str], *, quick: bool = False,
               overrides: Mapping[str, Any] | None = None, workers: int | None = None,
               scheduler: str | None = None, resume: bool = False, progress: bool = True,
               security: Any = None, processes: bool = True,
-              connect_timeout_s: float = 10.0) -> RunResult:
+              connect_timeout_s: float = 10.0, gpus: int = 0,
+              chunk_trials: int | None = None) -> RunResult:
     """Run ``study`` into folder ``out`` and write its table, summary and figures.
 
     ``workers``: 0 runs in this process without Dask, N > 0 a local Dask cluster of N
     single-threaded worker processes (threads if ``processes`` is False), None one per
     CPU; ``scheduler`` sends the tasks to an existing Dask cluster instead (``security``:
     a ``distributed.security.Security`` for ``tls://``; default from Dask's configuration),
-    giving up after ``connect_timeout_s``.
+    giving up after ``connect_timeout_s``; ``gpus`` > 0 a local cluster of one worker per
+    GPU (worker i sees GPU i only). The cluster starts only when a task must run: a
+    resumed run with nothing missing starts none.
+
+    A study with :class:`Trials` runs in chunks of trials sized to take MIN_CHUNK_S to
+    MAX_CHUNK_S each on this machine, or of ``chunk_trials`` trials (rounded up to whole
+    blocks); the tables are the same either way.
     """
     options = study.options(quick, overrides)
     _check_grid(study, study.grid(options))  # a bad grid fails before any cluster starts
+    _check_executor(workers, scheduler, gpus)
+    if chunk_trials is not None and not (isinstance(chunk_trials, int) and chunk_trials >= 1):
+        raise ConfigError(f"chunk_trials {chunk_trials!r}: expected an integer >= 1 (None: "
+                          "follow the machine)", "chunk_trials")
     out_dir = Path(out)
-    executor = make_executor(workers, scheduler, security=security, processes=processes,
-                             connect_timeout_s=connect_timeout_s)
+    executor = _Lazy(lambda: make_executor(workers, scheduler, security=security,
+                                           processes=processes,
+                                           connect_timeout_s=connect_timeout_s, gpus=gpus))
     try:
-        return _run(study, out_dir, options, executor, resume=resume, progress=progress)
+        return _run(study, out_dir, options, executor, resume=resume, progress=progress,
+                    chunk_trials=chunk_trials)
     finally:
         executor.close()
 
@@ -522,65 +818,184 @@ def _load_cached(path: Path, params: Params, replicate: int) -> dict[str, Any] |
     return stored.get("result")
 
 
+def _load_chunks(tasks_dir: Path, study: Study, root: int
+                 ) -> dict[tuple[str, int], list[tuple[int, int, dict[str, list[Any]]]]]:
+    """Finished chunks of trials in ``tasks_dir`` of this study, version and root seed,
+    by (canonical point, replicate); unreadable or foreign files are skipped."""
+    found: dict[tuple[str, int], list[tuple[int, int, dict[str, list[Any]]]]] = {}
+    for path in sorted(tasks_dir.glob("*.json")):
+        try:
+            doc = json.loads(path.read_text())
+            if (doc.get("engine"), doc.get("study"), doc.get("version"), doc.get("seed")) \
+                    != (ENGINE_VERSION, study.name, study.version, root):
+                continue
+            a, b = (int(v) for v in doc["trials"])
+            cols = doc["columns"]
+            if not (0 <= a <= b and isinstance(cols, dict)
+                    and all(isinstance(v, list) and len(v) == b - a for v in cols.values())):
+                continue
+            found.setdefault((_canonical(doc["params"]), int(doc["replicate"])), []).append(
+                (a, b, cols))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return found
+
+
+def _chunk_key(study: Study, params: Params, replicate: int, root: int, start: int,
+               stop: int) -> str:
+    return task_key(study, {**params, "__trials__": f"{start}:{stop}"}, replicate, root)
+
+
+def _units(study: Study, points: list[Params], reps: int, root: int, tasks_dir: Path,
+           resume: bool) -> tuple[list[_Unit], int]:
+    """Every (point, replicate) with what is cached and what is left; and the cached count."""
+    units: list[_Unit] = []
+    cached = 0
+    chunks = _load_chunks(tasks_dir, study, root) if resume and study.trials else {}
+    for p in points:
+        for r in range(reps):
+            if study.trials is None:
+                u = _Unit(p, r, None)
+                hit = _load_cached(tasks_dir / f"{task_key(study, p, r, root)}.json", p, r) \
+                    if resume else None
+                if hit is None:
+                    u.todo.append((0, 1))
+                else:
+                    u.done[0] = (1, hit)
+                    cached += 1
+            else:
+                total = int(study.trials.count(p))
+                if total < 0:
+                    raise ConfigError(f"study {study.name!r}: {total} trials at "
+                                      f"{_canonical(p)}", "trials")
+                u = _Unit(p, r, total, block=study.trials.block)
+                pos = 0
+                block = study.trials.block
+                for a, b, cols in sorted(chunks.get((_canonical(p), r), []),
+                                         key=lambda c: (c[0], -c[1])):
+                    aligned = a % block == 0 and (b % block == 0 or b == total)
+                    if a >= pos and b <= total and aligned and (b > a or total == 0):
+                        u.done[a] = (b, cols)
+                        pos = b
+                        cached += 1
+                u.todo = _uncovered(total, [(a, b) for a, (b, _) in u.done.items()], block)
+            units.append(u)
+    return units, cached
+
+
+def _finish(study: Study, u: _Unit) -> dict[str, Any]:
+    """The row of a unit whose chunks are all done (raises what the study raises)."""
+    if study.trials is None:
+        return u.done[0][1]
+    parts = [u.done[a][1] for a in sorted(u.done)]
+    names = list(parts[0]) if parts else []
+    if any(list(c) != names for c in parts):
+        raise ValueError("the chunks of this point returned different trial columns")
+    columns = {k: np.asarray([v for c in parts for v in c[k]]) for k in names}
+    return {k: plain(v) for k, v in study.trials.summarise(dict(u.params), columns).items()}
+
+
 def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
-         resume: bool, progress: bool) -> RunResult:
+         resume: bool, progress: bool, chunk_trials: int | None = None) -> RunResult:
     t0 = time.monotonic()
     points = study.grid(options)
     _check_grid(study, points)
     tasks_dir = _prepare_out(out, resume)
     root, reps = options.seed, options.replicates
-
-    jobs = []
-    results: dict[str, dict[str, Any]] = {}
-    order: list[tuple[str, Params, int]] = []
-    cached = 0
-    if study.task is not None:
-        for p in points:
-            for r in range(reps):
-                key = task_key(study, p, r, root)
-                order.append((key, p, r))
-                hit = _load_cached(tasks_dir / f"{key}.json", p, r) if resume else None
-                if hit is not None:
-                    results[key] = hit
-                    cached += 1
-                else:
-                    jobs.append((key, _execute_task, (study.task, p, root, r)))
-    log.info("study %s: %d points x %d replicates, %d cached, %d to run on %s", study.name,
-             len(points), reps, cached, len(jobs), executor.description)
+    units, cached = _units(study, points, reps, root, tasks_dir, resume) \
+        if study.runs_tasks else ([], 0)
+    log.info("study %s: %d points x %d replicates, %d tasks cached", study.name,
+             len(points), reps, cached)
 
     failures: list[TaskFailure] = []
-    by_key = {k: (p, r) for k, p, r in order}
-    bar = _progress(len(jobs), study.name, progress)
+    rows: dict[int, dict[str, Any]] = {}
+
+    def fail(u: _Unit, exc: BaseException) -> None:
+        u.failed = True
+        msg = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        failures.append(TaskFailure(u.params, u.replicate, msg))
+        log.warning("study %s: task %s replicate %d failed: %s", study.name,
+                    _canonical(u.params), u.replicate, msg)
+
+    def complete(i: int, u: _Unit) -> None:
+        if not u.todo and not u.inflight and not u.failed:
+            try:
+                rows[i] = _finish(study, u)
+            except Exception as exc:
+                fail(u, exc)
+
+    for i, u in enumerate(units):
+        complete(i, u)
+    computed = 0
+    work = sum(1 if u.total is None else max(u.missing(), 1) if u.todo else 0 for u in units)
+    bar = _progress(work, study.name, progress, "task" if study.trials is None else "trial")
+    index = {id(u): i for i, u in enumerate(units)}
+    jobs: dict[str, tuple[_Unit, int, int]] = {}
     try:
-        for key, result, exc in executor.map_unordered(jobs):
-            p, r = by_key[key]
-            if exc is not None:
-                msg = f"{type(exc).__name__}: {exc}".splitlines()[0]
-                failures.append(TaskFailure(p, r, msg))
-                log.warning("study %s: task %s replicate %d failed: %s", study.name,
-                            _canonical(p), r, msg)
-            else:
-                results[key] = result
-                atomic_write_text(tasks_dir / f"{key}.json", json.dumps(
-                    {"study": study.name, "params": p, "replicate": r, "seed": root,
-                     "result": result}))  # not sorted: the result's order is the columns'
-            if bar is not None:
-                bar.update(1)
-                if failures:
-                    bar.set_postfix(failed=len(failures))
+        if any(u.todo for u in units):
+            slots = executor.slots
+            inflight = 2 * slots if slots > 1 else 1
+
+            def fill() -> None:
+                while len(jobs) < inflight:
+                    job = _next_job(units, slots, chunk_trials)
+                    if job is None:
+                        return
+                    u, a, b = job
+                    if a is None or b is None:  # a plain task
+                        key = task_key(study, u.params, u.replicate, root)
+                        jobs[key] = (u, 0, 1)
+                        executor.submit(key, _execute_task, (study.task, u.params, root,
+                                                             u.replicate))
+                    else:
+                        key = _chunk_key(study, u.params, u.replicate, root, a, b)
+                        jobs[key] = (u, a, b)
+                        executor.submit(key, _execute_chunk, (study.trials, u.params, root,
+                                                              u.replicate, a, b))
+
+            fill()
+            for key, result, exc in executor.completed():
+                u, a, b = jobs.pop(key)
+                u.inflight -= 1
+                if exc is not None:
+                    if not u.failed:
+                        fail(u, exc)
+                else:
+                    value, seconds = result
+                    u.done[a] = (b, value)
+                    computed += 1
+                    if u.total is None:
+                        doc = {"study": study.name, "params": u.params,
+                               "replicate": u.replicate, "seed": root, "result": value}
+                        name = task_key(study, u.params, u.replicate, root)
+                    else:
+                        u.rate = seconds / max(1, b - a)
+                        doc = {"engine": ENGINE_VERSION, "study": study.name,
+                               "version": study.version, "seed": root, "params": u.params,
+                               "replicate": u.replicate, "trials": [a, b], "columns": value}
+                        name = key
+                    # not sorted: the result's order is the columns'
+                    atomic_write_text(tasks_dir / f"{name}.json", json.dumps(doc))
+                    complete(index[id(u)], u)
+                if bar is not None:
+                    bar.update(1 if u.total is None else max(b - a, 1 if u.total == 0 else 0))
+                    if failures:
+                        bar.set_postfix(failed=len(failures))
+                fill()
     finally:
         if bar is not None:
             bar.close()
 
     rep_table = Table([*points[0], "replicate"] if points else [])
-    for key, p, r in order:
-        if key in results:
-            rep_table.append({**p, "replicate": r, **results[key]})
+    for i, u in enumerate(units):
+        if i in rows:
+            rep_table.append({**u.params, "replicate": u.replicate, **rows[i]})
     table = _aggregate(points, rep_table, reps, study.machine_columns)
-    ctx = RunContext(study, out, options, executor, resume, progress)
+    ctx = RunContext(study, out, options, executor, resume, progress,
+                     chunk_trials=chunk_trials)
     # A reducer needs measured columns: when every task failed there are none, and the
     # run reports its failures (exit 1) with an empty summary instead of a reducer's crash.
-    if study.reduce is None or (points and not results):
+    if study.reduce is None or (points and not rows):
         summary: dict[str, Any] = {}
     else:
         summary = dict(study.reduce(table, ctx))
@@ -595,18 +1010,19 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
         "settings": {k: list(v) if isinstance(v, tuple) else v
                      for k, v in options.values.items()},
         "engine": executor.description, "points": len(points), "replicates": reps,
-        "tasks": len(order), "computed": len(jobs) - len(failures), "cached": cached,
+        "tasks": computed + cached, "computed": computed, "cached": cached,
         "failed": len(failures), "wall_time_s": round(time.monotonic() - t0, 3),
+        "executor_start_s": round(getattr(executor, "start_s", 0.0), 3),
         "machine_columns": list(study.machine_columns),
         "sub_studies": sorted(ctx.subs),
     }
     atomic_write_text(out / "run.json", json.dumps(info, indent=2) + "\n")
     return RunResult(study.name, out, table, rep_table, summary, failures,
-                     computed=len(jobs) - len(failures), cached=cached, subs=ctx.subs)
+                     computed=computed, cached=cached, subs=ctx.subs)
 
 
 def _check_grid(study: Study, points: list[Params]) -> None:
-    if study.task is not None and not points:
+    if study.runs_tasks and not points:
         raise ConfigError(f"study {study.name!r}: the grid is empty; check the --set values",
                           "grid")
     seen: set[str] = set()
@@ -669,9 +1085,10 @@ def _ci95(values: np.ndarray) -> float | None:
     return float(stdtrit(len(finite) - 1, 0.975) * sem)
 
 
-def _progress(total: int, name: str, enabled: bool):  # type: ignore[no-untyped-def]
+def _progress(total: int, name: str, enabled: bool,  # type: ignore[no-untyped-def]
+              unit: str = "task"):
     if not enabled or total == 0:
         return None
     from tqdm import tqdm  # deferred: 60 ms at start-up for a bar only a run shows
 
-    return tqdm(total=total, desc=f"study {name}", unit="task", dynamic_ncols=True)
+    return tqdm(total=total, desc=f"study {name}", unit=unit, dynamic_ncols=True)

@@ -82,15 +82,6 @@ _BATCHES = (4, 16, 160)
 #: At most this many ADC samples per batch (int16: 32 MB), whatever the column length.
 _BATCH_SAMPLES = 1 << 24
 
-#: Smallest batch handed to the receive chain's default (matrix-product) kernel. It reads
-#: its constant Hankel blocks (about 90 MB for paper-scene1) once per call, which costs
-#: more than the arithmetic for a few columns; the FFT kernel costs the same per column
-#: at any batch size, so smaller batches use it. Both give the same integers
-#: (firmware_model's tests). Measured on paper-scene1 (CPU ms per frame of 160 columns,
-#: matrix / FFT): batches of 4 1462 / 271, 32 507 / 258, 64 303 / 259, 160 188 / 266.
-_MATRIX_MIN_BATCH = 128
-
-
 def _batches(first: int, count: int, column_samples: int = 1) -> Iterator[list[int]]:
     """Consecutive index lists covering first..first+count-1: sizes 4, 16, then 160,
     each at most _BATCH_SAMPLES samples of ``column_samples`` (and at least one column)."""
@@ -265,13 +256,6 @@ class VirtualFirmware(DeviceApp):
             chains[method] = FastReceiver(self._receiver_config(c), codes, method=method)
         return chains[method]
 
-    def _chain_for(self, batch: int) -> FastReceiver:
-        """The receive chain's kernel for a batch of ``batch`` columns (see _MATRIX_MIN_BATCH)."""
-        rx = self.receiver()
-        if batch < _MATRIX_MIN_BATCH and rx.correlator_method == "matmul":
-            return self.receiver("fft")
-        return rx
-
     def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],
                  cfg: RenderSettings, calibration: bool, shots: bool) -> list[Any]:
         """Render ``columns`` (or calibration shots) and run the receive chain on them.
@@ -282,7 +266,7 @@ class VirtualFirmware(DeviceApp):
         by repetition and accumulated here.
         """
         inst = self.instrument
-        rx = self._chain_for(len(columns))
+        rx = self.receiver()  # "auto" picks the kernel for each batch size
         accs = []
         for c, p in zip(columns, powers, strict=True):
             col = 0 if shots else c

@@ -24,6 +24,7 @@ import logging
 import math
 import os
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -50,6 +51,7 @@ __all__ = [
     "limbs",
     "machine_threads",
     "make_correlator",
+    "measure_correlators",
     "parallel_columns",
     "register_correlator",
     "registry_version",
@@ -207,18 +209,60 @@ def correlator_methods() -> tuple[str, ...]:
 
 
 def estimates(plan: GatePlan, co: Coefficients | None = None) -> dict[str, Estimate]:
-    """Every registered kernel's :class:`.costs.Estimate` for ``plan`` (registration order)."""
-    co = costs.coefficients() if co is None else co
+    """Every registered kernel's :class:`.costs.Estimate` for ``plan`` (registration order);
+    ``co``: the seconds per primitive (default :data:`.costs.COEFFICIENTS`)."""
+    co = costs.COEFFICIENTS if co is None else co
     return {name: cls.estimate(plan, co) for name, cls in _REGISTRY.items()}
 
 
-def choose_correlator(plan: GatePlan, co: Coefficients | None = None) -> str:
-    """The kernel ``"auto"`` picks (:func:`.costs.choose`): the fastest predicted among
-    those within 2x of the leanest peak memory, ties to the first registered.
+#: ``measure=True`` times only the kernels predicted at most this many times slower
+#: than the best prediction (the others are not worth minutes of a hopeless kernel).
+MEASURE_SPAN = 10.0
 
-    ``co``: the coefficients (default: the calibration cache, else the built-in ones).
+
+def measure_correlators(plan: GatePlan, repeats: int = 3, seed: int = 0) -> dict[str, float]:
+    """Seconds per call of each kernel worth timing on ``plan`` (best of ``repeats``).
+
+    The kernels with a finite estimate within :data:`MEASURE_SPAN` of the best one are
+    prepared and called on random chip sums of the plan's shape (``plan.columns``
+    columns, ``|Y|`` up to ``plan.y_bound``, or 2^11 when unknown).
     """
-    best = costs.choose(estimates(plan, co), plan.shared_bytes)
+    est = {k: e for k, e in estimates(plan).items() if math.isfinite(e.seconds)}
+    if not est:
+        return {}
+    fastest = min(e.seconds for e in est.values())
+    bound = plan.y_bound if plan.y_bound is not None else 1 << 11
+    y = np.random.default_rng(seed).integers(-bound, bound + 1,
+                                             (plan.columns, plan.s, plan.n), dtype=np.int64)
+    times: dict[str, float] = {}
+    for name, e in est.items():
+        if e.seconds > MEASURE_SPAN * fastest:
+            continue
+        kernel = _REGISTRY[name](plan)
+        kernel(y)  # warm up: buffers, plans, threads
+        best = math.inf
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            kernel(y)
+            best = min(best, time.perf_counter() - t0)
+        times[name] = best
+    return times
+
+
+def choose_correlator(plan: GatePlan, co: Coefficients | None = None, *,
+                      measure: bool = False) -> str:
+    """The kernel ``"auto"`` picks: the smallest predicted time (:func:`.costs.choose`,
+    fixed constants, ties to the first registered), or, with ``measure=True``, the
+    fastest by :func:`measure_correlators` on this machine (opt-in, takes the kernels'
+    time; nothing is stored).
+
+    ``co``: the seconds per primitive (default :data:`.costs.COEFFICIENTS`).
+    """
+    if measure:
+        times = measure_correlators(plan)
+        best = min(times, key=times.__getitem__) if times else ""
+    else:
+        best = costs.choose(estimates(plan, co))
     if not best:
         raise ConfigError("no registered correlator has a finite cost for this plan",
                           field="method")

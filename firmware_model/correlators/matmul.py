@@ -40,9 +40,9 @@ from cdma_lidar.firmware_model.correlators.base import (
     product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
+    COEFFICIENTS,
     Coefficients,
     Estimate,
-    coefficients,
     gemm_seconds,
 )
 
@@ -135,7 +135,7 @@ class MatmulCorrelator(Correlator):
         self._len = lens
         # phase r's first chip offset: its operand is rotated by it
         self._rot = {r: int(plan.u_m[plan.sel[r][0]]) % plan.n for r in lens}
-        merged = phase_groups(plan, coefficients())
+        merged = phase_groups(plan, COEFFICIENTS)
         top = max(lens.values())
         # product groups: (offsets, phases), the phases of L lags first
         if merged:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -59,6 +58,9 @@ def test_run_writes_table_summary_run_info_and_figure(capsys, tmp_path):
     (["study", "run", "detection", "--out", "X", "--workers", "2", "--scheduler", "tcp://a:1"],
      "not allowed with"),
     (["study", "run", "detection", "--out", "X", "--workers", "-1"], "--workers"),
+    (["study", "run", "detection", "--out", "X", "--gpus", "-1"], "--gpus"),
+    (["study", "run", "detection", "--out", "X", "--gpus", "1", "--workers", "2"],
+     "not allowed with"),
     (["study", "run", "detection"], "--out"),
     (["study"], "STUDY_COMMAND"),
 ])
@@ -101,18 +103,19 @@ def _wait_for_port(port: int, timeout_s: float = 60.0) -> None:
 
 def test_separately_started_scheduler_and_worker_give_the_same_table(capsys, tmp_path):
     """`dask scheduler` + `dask worker` as their own processes, the CLI as the client."""
-    dask_cli = shutil.which("dask", path=os.path.dirname(sys.executable))
-    if dask_cli is None:
-        pytest.skip("the dask command is not installed")
+    pytest.importorskip("distributed")
+    # this interpreter's Dask (and so this tree's cdma_lidar), not whatever `dask` is on PATH
+    def dask_cli(command: str) -> list[str]:
+        return [sys.executable, "-m", f"distributed.cli.dask_{command}"]
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
-    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], stdout=subprocess.DEVNULL,
+    procs = [subprocess.Popen([*dask_cli("scheduler"), "--host", "127.0.0.1", "--port",
+                               str(port), "--no-dashboard"], stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, env=env)]
     try:
         _wait_for_port(port)
-        procs.append(subprocess.Popen([dask_cli, "worker", address, "--nthreads", "1",
+        procs.append(subprocess.Popen([*dask_cli("worker"), address, "--nthreads", "1",
                                        "--nworkers", "2", "--no-dashboard"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                       env=env))

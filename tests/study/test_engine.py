@@ -2,25 +2,33 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
+from cdma_lidar.study import engine
 from cdma_lidar.study.detection import STUDY as DETECTION
 from cdma_lidar.study.engine import (
     RunContext,
     Setting,
     Study,
     Table,
+    TrialChunk,
+    Trials,
+    _Executor,
     grid_product,
     headline,
     read_csv,
     run_study,
     task_seed,
 )
+from cdma_lidar.study.fig11 import STUDY as FIG11
 
 #: The detection study shrunk to 4 points x 2 replicates of 20 trials (well under a second).
 TINY = {"degrees": "5", "S": "1,2", "snr_db": "-12,-6", "trials": "20", "replicates": "2"}
@@ -203,3 +211,165 @@ def test_an_interrupted_run_keeps_the_finished_tasks_and_resume_does_the_rest(tm
     res = run_study(study, tmp_path, workers=0, resume=True, progress=False)
     assert (res.computed, res.cached, state["calls"]) == (3, 2, 3)
     assert res.table.column("y").tolist() == [2, 4, 6, 8, 10]
+
+
+# -- trials in chunks ----------------------------------------------------------------------
+
+
+def _coin_trials(params, chunk: TrialChunk) -> dict:
+    out: dict[str, list] = {"v": [], "hit": []}
+    for rng, count in chunk.blocks():
+        v = rng.normal(params["x"], 1.0, count)
+        out["v"] += v.tolist()
+        out["hit"] += (v > params["x"] + 0.5).tolist()
+    return out
+
+
+def _coin_row(params, t) -> dict:
+    v = np.asarray(t["v"], dtype=float)
+    return {"trials_run": len(v), "hit_rate": float(np.mean(t["hit"])) if len(v) else None,
+            "median": float(np.median(v)) if len(v) else None,
+            "first": float(v[0]) if len(v) else None, "sum": float(np.sum(v))}
+
+
+#: Points of 0, 1, 5, 17 and 40 trials in blocks of 4: empty points, partial blocks.
+COIN = Study("coin", "chunked toy", grid=lambda o: grid_product(x=[1, 2], n=[0, 1, 5, 17, 40]),
+             task=None, trials=Trials(count=lambda p: p["n"], run=_coin_trials,
+                                      summarise=_coin_row, block=4))
+
+
+class _Shuffled(_Executor):
+    """``slots`` workers finishing their jobs in an order drawn by ``rnd``."""
+
+    description = "shuffled"
+
+    def __init__(self, slots: int, rnd) -> None:
+        self.slots, self.rnd, self.pending = slots, rnd, []
+
+    def submit(self, key, fn, args):
+        self.pending.append((key, fn, args))
+
+    def completed(self):
+        while self.pending:
+            key, fn, args = self.pending.pop(self.rnd.randrange(len(self.pending)))
+            yield key, fn(*args), None
+
+
+def _coin_reference() -> list[dict]:
+    """Each point's row from one pass over all its trials, without the engine."""
+    rows = []
+    for p in COIN.grid(COIN.options()):
+        seed = task_seed(COIN.options().seed, p, 0)
+        cols = _coin_trials(p, TrialChunk(seed, 0, p["n"], 4))
+        rows.append({**p, "replicates": 1, **_coin_row(p, cols)})
+    return rows
+
+
+@settings(max_examples=25)
+@given(chunk=st.one_of(st.none(), st.integers(1, 45)), slots=st.integers(1, 4),
+       rnd=st.randoms(use_true_random=False))
+def test_chunked_tables_do_not_depend_on_chunk_size_worker_count_or_order(
+        tmp_path_factory, chunk, slots, rnd):
+    out = tmp_path_factory.mktemp("coin")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(engine, "make_executor", lambda *a, **k: _Shuffled(slots, rnd))
+        res = run_study(COIN, out, workers=slots, progress=False, chunk_trials=chunk)
+    assert res.table.rows == _coin_reference()
+    assert res.computed == len(list((out / "tasks").glob("*.json")))
+    if chunk is not None:  # every point's trials in ceil(n / whole blocks) chunks
+        size = -(-chunk // 4) * 4
+        assert res.computed == 2 * sum(max(1, -(-n // size)) for n in (0, 1, 5, 17, 40))
+
+
+def test_chunks_follow_the_machine_and_stay_whole_blocks(tmp_path):
+    res = run_study(COIN, tmp_path, workers=0, progress=False)
+    assert res.table.rows == _coin_reference()
+    for path in (tmp_path / "tasks").glob("*.json"):
+        a, b = json.loads(path.read_text())["trials"]
+        assert a % 4 == 0 and (b % 4 == 0 or b in (1, 5, 17))
+
+
+def test_an_interrupted_chunked_run_resumes_from_its_chunks_with_any_chunk_size(tmp_path):
+    calls = {"n": 0, "stop_at": 6}
+
+    def run(params, chunk):
+        calls["n"] += 1
+        if calls["n"] == calls["stop_at"]:
+            raise KeyboardInterrupt  # Ctrl-C in the sixth chunk
+        return _coin_trials(params, chunk)
+
+    study = dataclasses.replace(COIN, trials=dataclasses.replace(COIN.trials, run=run))
+    with pytest.raises(KeyboardInterrupt):
+        run_study(study, tmp_path, workers=0, progress=False, chunk_trials=8)
+    kept = len(list((tmp_path / "tasks").glob("*.json")))
+    assert kept == 5
+    calls.update(n=0, stop_at=None)
+    res = run_study(study, tmp_path, workers=0, progress=False, resume=True, chunk_trials=12)
+    assert res.cached == kept and res.computed == calls["n"] > 0
+    assert res.table.rows == _coin_reference()
+    again = run_study(study, tmp_path, workers=0, progress=False, resume=True)
+    assert (again.computed, again.cached) == (0, res.computed + res.cached)
+
+
+def test_a_failing_chunk_fails_its_point_only_and_resume_keeps_its_finished_chunks(tmp_path):
+    def run(params, chunk):
+        if params["n"] == 40 and chunk.start >= 16:
+            raise RuntimeError("late chunk refused")
+        return _coin_trials(params, chunk)
+
+    study = dataclasses.replace(COIN, trials=dataclasses.replace(COIN.trials, run=run))
+    res = run_study(study, tmp_path, workers=0, progress=False, chunk_trials=8)
+    assert sorted(f.params["x"] for f in res.failures) == [1, 2]
+    assert {f.params["n"] for f in res.failures} == {40}
+    assert [r["replicates"] for r in res.table.rows].count(0) == 2
+    good = run_study(COIN, tmp_path, workers=0, progress=False, resume=True, chunk_trials=8)
+    assert good.cached == res.computed and not good.failures
+    assert good.table.rows == _coin_reference()
+
+
+def test_resume_with_nothing_missing_starts_no_cluster(tmp_path, monkeypatch):
+    first = run_study(COIN, tmp_path, workers=0, progress=False)
+    assert first.computed > 0
+    plain = tmp_path / "plain"
+    run_study(DETECTION, plain, overrides=TINY, workers=0, progress=False)
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("an executor was started with nothing to run")
+
+    monkeypatch.setattr(engine, "make_executor", no_cluster)
+    again = run_study(COIN, tmp_path, workers=2, resume=True, progress=False)
+    assert (again.computed, again.cached) == (0, first.computed)
+    assert json.loads((tmp_path / "run.json").read_text())["engine"].startswith("none")
+    done = run_study(DETECTION, plain, overrides=TINY, workers=2, resume=True, progress=False)
+    assert (done.computed, done.cached) == (0, 8)
+    with pytest.raises(AssertionError, match="nothing to run"):  # the factory is live
+        run_study(COIN, tmp_path / "new", workers=2, progress=False)
+
+
+def test_a_trial_study_checks_its_columns(tmp_path):
+    def run(params, chunk):
+        return {"v": [0.0] * (len(chunk) + 1)}
+
+    study = dataclasses.replace(COIN, trials=dataclasses.replace(COIN.trials, run=run))
+    res = run_study(study, tmp_path, workers=0, progress=False)
+    assert res.failures and "one value per trial" in res.failures[0].error
+    with pytest.raises(ConfigError, match="not both"):
+        Study("both", "", grid=COIN.grid, task=_flaky_task, trials=COIN.trials)
+    with pytest.raises(ConfigError, match="chunk_trials"):
+        run_study(COIN, tmp_path, workers=0, chunk_trials=0)
+
+
+def test_fig11_is_the_same_in_one_chunk_or_many(tmp_path):
+    small = {"channels_order11": (60,), "channels_order13": (), "channels_order15": (),
+             "trials": "10", "S": "4"}
+    one = run_study(FIG11, tmp_path / "one", overrides=small, workers=0, progress=False,
+                    chunk_trials=1000)
+    many = run_study(FIG11, tmp_path / "many", overrides=small, workers=0, progress=False,
+                     chunk_trials=1)
+    assert (one.computed, many.computed) == (1, 2)  # blocks of 8: 8 + 2 trials
+    assert model_columns(tmp_path / "one", FIG11) == model_columns(tmp_path / "many", FIG11)
+
+
+def test_chunked_study_on_a_dask_cluster_gives_the_reference_table(tmp_path):
+    res = run_study(COIN, tmp_path, workers=2, processes=False, progress=False, chunk_trials=4)
+    assert res.table.rows == _coin_reference() and res.computed == 38
