@@ -87,7 +87,9 @@ ASSUMPTIONS: tuple[Parameter, ...] = (
     Parameter("Fig. 11 simulation", "50 samples per chip, 1000 random delays, eq. 9's "
               "signed-maximum detector", True, "Supp. Note 8; Supp. Note 2, eq. 9 (argmax)"),
     Parameter("power per channel", "2.5 mW", False,
-              "assumed: the 100 mW shared over 40 channels (the toolkit's presets)"),
+              "assumed: the 100 mW shared over 40 channels, the power the toolkit's link "
+              "budget was set for (Fig. 3 scans); the paper's sequential recording gave each "
+              "wavelength the whole EDFA output, which the unpublished link budget absorbs"),
     Parameter("Fig. 2c averaging", "R = 1", False,
               "assumed: each of the 1000 measurements one record (the text names no "
               "averaging for Fig. 2c)"),
