@@ -39,6 +39,7 @@ __all__ = [
     "check_point",
     "crossing_ci",
     "entry",
+    "exact",
     "judge",
     "printed_value",
     "sigma_ci",
@@ -172,11 +173,12 @@ def crossing_ci(x: Any, errors: Any, trials: Any, level: float = 0.10
 # ------------------------------------------------------------------ judging
 
 
-_PRINTED = re.compile(r"^\s*(>|<|~)?\s*(-?[0-9.]+)\s*$")
+_PRINTED = re.compile(r"^\s*(>|<|~)?\s*(-?[0-9.]+)(?:/([0-9.]+))?\s*$")
 
 
 def printed_value(paper: Any) -> tuple[str, float] | None:
-    """``"> 125"`` -> ``(">", 125.0)``; a number -> ``("=", x)``; None if not numeric."""
+    """``"> 125"`` -> ``(">", 125.0)``, ``"2/3"`` -> ``("=", 0.667)``; a number ->
+    ``("=", x)``; None if not numeric."""
     if isinstance(paper, bool) or paper is None:
         return None
     if isinstance(paper, int | float):
@@ -184,7 +186,8 @@ def printed_value(paper: Any) -> tuple[str, float] | None:
     m = _PRINTED.match(str(paper))
     if not m:
         return None
-    return (m.group(1) or "="), float(m.group(2))
+    value = float(m.group(2)) / (float(m.group(3)) if m.group(3) else 1.0)
+    return (m.group(1) or "="), value
 
 
 def judge(paper: Any, value: float | None, ci95: list[float | None] | None,
@@ -256,3 +259,8 @@ def entry(ours: Any, paper: Any, unit: str, *, paper_point: Any = None,
     out.update({k: _clean(v) if not isinstance(v, dict | list) else v
                 for k, v in extra.items()})
     return out
+
+
+def exact(ours: Any, paper: Any, unit: str, **extra: Any) -> dict[str, Any]:
+    """An exact result (counted or computed, no sampling): its own paper point, no interval."""
+    return entry(ours, paper, unit, paper_point=ours, exact=True, **extra)
