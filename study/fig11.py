@@ -197,6 +197,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         cap_sga, _ = crossing(k, sga)
         med = t.column("snr_xc_median_db")
         thr, _ = crossing(k, err, med)
+        thr_signed, _ = crossing(k, t.column(_error_column("signed")), med)
         if not reached:
             log.warning("order %d: error rate stays below %g up to %d channels", d,
                         ERROR_THRESHOLD, int(k.max()))
@@ -237,7 +238,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         summary[f"workable_channels_order{d}_sga"] = entry(cap_sga, None, "channels",
                                                            derived="SGA")
         summary[f"snr_xc_threshold_db_order{d}"] = entry(
-            thr, PAPER_SNR_XC_THRESHOLD_DB if d == 11 else None, "dB",
+            thr, PAPER_SNR_XC_THRESHOLD_DB if d == 11 else None, "dB", paper_point=thr_signed,
             cause="eq. 44 as our receiver computes it; the paper's floor is not defined "
                   "(scale: a hypothesis, not a finding)" if d == 11 else None)
         n = (1 << d) - 1
