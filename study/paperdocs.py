@@ -28,7 +28,9 @@ from pathlib import Path
 from typing import Any
 
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.study import catalogue  # noqa: F401 (first: paper.py imports the catalogue)
+
+# the catalogue first: it imports paper.py, which imports the catalogue (run as __main__)
+from cdma_lidar.study import catalogue  # noqa: F401
 from cdma_lidar.study.paper import NOT_COVERED, PAPER_STUDIES, fmt_interval, fmt_value
 from cdma_lidar.study.paperlab import PAPER_CITATION, assumptions_markdown
 

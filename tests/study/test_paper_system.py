@@ -127,13 +127,20 @@ def test_paper_report_has_a_row_per_result(tmp_path, monkeypatch):
                     overrides={"studies": "eq42,fig17,table1",
                                "sub_set": "eq42.degrees=9,11,eq42.trials=2000,fig17.l=1"})
     report = (tmp_path / "p" / "report.md").read_text()
-    assert "| eq42 (Note 9, eq. 42) | `async_xcorr_power_times_n` | 0.6667 |" in report
-    assert "[eq42.png](eq42/eq42.png)" in report
+    words = paper.PAPER_WORDS[("eq42", "async_xcorr_power_times_n")]
+    assert f"| Note 9, eq. 42: `eq42.async_xcorr_power_times_n` | {words} | 2/3 |" in report
+    assert "![eq42, default](eq42/eq42.png)" in report
     assert (tmp_path / "p" / "eq42" / "eq42.png").is_file()
-    assert "`pairs_not_preferred` | -- | not available in this build" in report
+    assert "`table1.pairs_not_preferred` | Table 1: preferred pairs (every row one) | -- | " \
+        "not available in this build | -- | not covered |" in report
     assert eq42.REPORT_NOTE in report and fig17.REPORT_NOTE in report
+    assert "shared/seed" not in report and "Identity-enabled CDMA LiDAR" in report
+    for where, _, _ in paper.NOT_COVERED:
+        assert f"| {where} |" in report
     assert "fig17.candidates_uid_l1" in res.summary and "table1.pairs_checked" not in res.summary
-    assert res.summary["studies_reproduced"]["ours"] == 2
+    assert res.summary["results_exact"]["ours"] == 2  # fig17 at l = 1
+    # table1 (2) and fig17 beyond l = 1 (6) are not in this run
+    assert res.summary["results_not_covered"]["ours"] == 2 + 6 + len(paper.NOT_COVERED)
     # the settings given to a part were used
     eq42_table = read_csv(tmp_path / "p" / "eq42" / "results.csv")
     assert eq42_table.column("trials").tolist() == [2000, 2000]
@@ -152,16 +159,24 @@ def test_paper_refuses_bad_parts(tmp_path):
                   overrides={"studies": "eq42", "sub_set": "eq42.bogus=1"})
 
 
-def test_report_compares_decibels_by_difference(tmp_path):
-    entry = {"name": "fig2e", "where": "Fig. 2e", "what": "threshold", "keys": ("a_db", "b"),
-             "status": "ok", "figures": [], "note": None, "wall_time_s": 1.0,
-             "engine": "in-process (no Dask)", "tasks": 1, "failed": 0, "settings": {},
-             "summary": {"a_db": {"ours": 14.5, "paper": 32.5, "unit": "dB"},
-                         "b": {"ours": 3, "paper": 4, "unit": "users"}}}
+def test_report_row_shows_both_points_and_the_verdict(tmp_path):
+    h = {"ours": 0.017, "paper": 0.2568, "unit": "m", "paper_point": 0.25,
+         "paper_point_ci95": [0.23, 0.27], "ci95": [0.016, 0.018], "verdict": "reproduced",
+         "cause": "R = 1 at 10 m: 25 cm; R = 10 at 5 m: 1.7 cm"}
+    entry = {"name": "fig2c", "where": "Fig. 2c", "what": "resolution",
+             "keys": ("resolution_2sigma_m",), "status": "ok", "figures": [],
+             "paper_figures": ["fig2c-paper/fig2c.png"], "note": None, "wall_time_s": 1.0,
+             "paper_wall_time_s": 2.0, "engine": "in-process (no Dask)", "tasks": 1,
+             "failed": 0, "settings": {}, "summary": {"resolution_2sigma_m": h}}
     paper.write_report([entry], tmp_path / "r.md", quick=True, seed=1, engine="x")
     text = (tmp_path / "r.md").read_text()
-    assert "| 32.5 | 14.5 | -18.0 dB (difference) | dB |" in text
-    assert "| 4 | 3 | 0.75 | users |" in text
+    assert "| 0.2568 m | 0.25 [0.23, 0.27] | 0.017 [0.016, 0.018] | **reproduced** | " \
+        "R = 1 at 10 m: 25 cm; R = 10 at 5 m: 1.7 cm |" in text
+    assert f"**Results: 1 reproduced within their 95 % interval, 0 exact, 0 differ, 0 without " \
+        f"a number to compare (the paper shows a heatmap only), {len(paper.NOT_COVERED)} not " \
+        f"covered.**" in text
+    assert "![fig2c, at the paper's point](fig2c-paper/fig2c.png)" in text
+    assert "| **total** | 3.0 |" in text
 
 
 #: The studies of this file; the ranging ones have their own tests (test_paper_ranging.py).
@@ -180,4 +195,8 @@ def test_paper_quick_covers_every_system_result(tmp_path):
             assert f"`{key}`" in report
             assert res.summary[f"{name}.{key}"]["ours"] is not None, (name, key)
         assert f"({name}/{name}.png)" in report
-    assert res.summary["studies_reproduced"]["ours"] == len(SYSTEM)
+    assert res.summary["results_differing"]["ours"] == 1  # Table 1's errata
+    for name in SYSTEM:
+        for key in paper.PAPER_STUDIES[name][2]:
+            assert res.summary[f"{name}.{key}"]["verdict"] in ("exact", "reproduced", "differs",
+                                                               None)
