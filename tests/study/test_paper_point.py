@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
@@ -151,3 +152,16 @@ def test_docs_in_the_repository_have_their_blocks():
             assert f"<!-- generated:{n} " in text and f"<!-- end:{n} -->" in text
         assert "shared/seed" not in text
     assert catalogue.get_study("paper") is paper.STUDY
+
+
+def test_clusters_count_histogram_runs():
+    from cdma_lidar.study.fig3 import clusters
+
+    rng = np.random.default_rng(1)
+    three = np.concatenate([rng.normal(m, 0.01, n) for m, n in ((4.85, 500), (5.0, 100),
+                                                                 (5.15, 400))])
+    assert clusters(three, 0.025) == 3
+    stray = np.concatenate([three, rng.uniform(4.85, 5.15, 8)])  # a few between the depths
+    assert clusters(stray, 0.025) == 3
+    assert clusters(rng.normal(5.0, 0.01, 300), 0.025) == 1
+    assert clusters(np.array([np.nan]), 0.025) == 0
