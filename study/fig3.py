@@ -121,7 +121,9 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         if n == 1:
             out["clusters_scene1"] = entry(
                 int(row["clusters"]), PAPER_CLUSTERS_SCENE1, "clusters", exact=True,
-                cause=f"{where}: {row['valid_fraction']:.3f} of the object pixels accepted")
+                cause=f"{where}: {row['clusters']} clusters, {row['valid_fraction']:.3f} of the "
+                      f"object pixels accepted, median error "
+                      f"{row['median_error_m'] * 100:.1f} cm")
         out[f"valid_fraction_scene{n}"] = entry(
             row["valid_fraction"], None, "1", derived=f"{where}; of {row['object_pixels']} "
                                                       "object pixels")

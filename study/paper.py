@@ -237,6 +237,8 @@ def merge(default: dict[str, Headline], at_paper: dict[str, Headline] | None
             causes = [f"paper's point: {p['cause']}" if p.get("cause") else None,
                       f"default: {h['cause']}" if h.get("cause") else None]
             h["cause"] = "; ".join(c for c in causes if c) or None
+            if p.get("derived") and p.get("derived") != h.get("derived"):
+                h["derived"] = f"default: {h.get('derived')}; paper's point: {p['derived']}"
         out[key] = h
     return out
 

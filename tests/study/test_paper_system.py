@@ -180,7 +180,7 @@ def test_report_row_shows_both_points_and_the_verdict(tmp_path):
 
 
 #: The studies of this file; the ranging ones have their own tests (test_paper_ranging.py).
-SYSTEM = ("fig17", "eq42", "eq29", "fig4b", "fig4d", "table1")
+SYSTEM = ("fig17", "eq42", "eq29", "eq26", "fig4b", "fig4d", "table1")
 
 
 @pytest.mark.slow
