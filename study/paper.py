@@ -415,6 +415,8 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             if at_paper_too and name in PAPER_POINT_RUNS:
                 paper_study = dataclasses.replace(study, name=f"{name}-paper")
                 at_paper = ctx.run_sub(paper_study, {**own, **PAPER_POINT_RUNS[name]})
+            elif ctx.options["point"] == "paper" and name in PAPER_POINT_RUNS:
+                at_paper = result  # the part ran at the paper's point: that is its value
         except ConfigError:
             raise  # a bad sub_set value: the user's mistake, exit 2
         except Exception as exc:  # one broken part must not cost the others' results

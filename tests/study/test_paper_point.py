@@ -165,3 +165,16 @@ def test_clusters_count_histogram_runs():
     assert clusters(stray, 0.025) == 3
     assert clusters(rng.normal(5.0, 0.01, 300), 0.025) == 1
     assert clusters(np.array([np.nan]), 0.025) == 0
+
+
+def test_composite_at_the_paper_point_only(tmp_path):
+    res = run_study(paper.STUDY, tmp_path / "p", quick=True, workers=0, progress=False,
+                    overrides={"studies": "fig2c,eq26", "point": "paper",
+                               "sub_set": "fig2c.repeats=30"})
+    h = res.summary["fig2c.resolution_2sigma_m"]
+    assert h["paper_point"] == h["ours"] and "paper-lab at 10 m" in h["cause"]
+    assert not (tmp_path / "p" / "fig2c-paper").exists()
+    assert res.summary["eq26.angular_resolution_deg"]["verdict"] == "exact"
+    with pytest.raises(ConfigError, match="point"):
+        run_study(paper.STUDY, tmp_path / "q", overrides={"point": "lab"}, workers=0,
+                  progress=False)
