@@ -24,6 +24,7 @@ from cdma_lidar.study import (
     fig4d,
     fig11,
     fig17,
+    note5,
     paper,
     table1,
     tradeoff,
@@ -37,7 +38,8 @@ BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
                               # the paper's results (docs/paper.md); `paper` runs them all
                               fig2c.STUDY, fig2d.STUDY, fig2e.STUDY, fig2f.STUDY, fig3.STUDY,
                               fig11.STUDY, fig17.STUDY, eq42.STUDY, eq29.STUDY, eq26.STUDY,
-                              fig4b.STUDY, fig4d.STUDY, table1.STUDY, paper.STUDY)
+                              fig4b.STUDY, fig4d.STUDY, table1.STUDY, note5.STUDY,
+                              paper.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 

@@ -178,3 +178,16 @@ def test_composite_at_the_paper_point_only(tmp_path):
     with pytest.raises(ConfigError, match="point"):
         run_study(paper.STUDY, tmp_path / "q", overrides={"point": "lab"}, workers=0,
                   progress=False)
+
+
+def test_ghost_windows_remove_the_misjudged_pixels(tmp_path):
+    from cdma_lidar.study import note5
+
+    res = run_study(note5.STUDY, tmp_path, workers=0, progress=False)
+    row = res.table.rows[0]
+    assert row["misjudged_before"] > 0 and row["misjudged_after"] == 0
+    assert row["correct_before"] < row["correct_after"] <= row["correct_no_ghost"]
+    assert res.summary["ghost_misjudged_after_removal"]["verdict"] == "reproduced"
+    with pytest.raises(ConfigError, match="ghost_m"):
+        run_study(note5.STUDY, tmp_path / "bad", overrides={"ghost_m": "8"}, workers=0,
+                  progress=False)
