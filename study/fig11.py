@@ -239,6 +239,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                                                            derived="SGA")
         summary[f"snr_xc_threshold_db_order{d}"] = entry(
             thr, PAPER_SNR_XC_THRESHOLD_DB if d == 11 else None, "dB", paper_point=thr_signed,
+            ci95=_along(ci, k, med), paper_point_ci95=_along(signed[2], k, med),
             cause="eq. 44 as our receiver computes it; the paper's floor is not defined "
                   "(scale: a hypothesis, not a finding)" if d == 11 else None)
         n = (1 << d) - 1
@@ -248,6 +249,15 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                     f"{10 * math.log10(snr_ss_eq43(n, PAPER_CHANNELS[d])):.1f} dB")
     save_figure(fig, ctx.out / "fig11.png")
     return summary
+
+
+def _along(ci: tuple, k: np.ndarray, med: np.ndarray) -> tuple[float | None, float | None]:
+    """The median SNR_XC at the ends of a capacity interval: the threshold's interval."""
+    order = np.argsort(k)
+    ends = [None if e is None else float(np.interp(e, k[order], med[order])) for e in ci]
+    if None in ends:
+        return None, None
+    return min(ends), max(ends)  # type: ignore[type-var]
 
 
 def _span(ci: tuple) -> str:
