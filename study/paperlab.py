@@ -212,6 +212,8 @@ def judge(paper: Any, value: float | None, ci95: list[float | None] | None,
                 decimals = 0
         return "exact" if round(float(value), decimals) == round(p, decimals) else "differs"
     lo, hi = ci95
+    if lo is None and hi is None:
+        return None  # the run bounds nothing: no verdict either way
     lo = -math.inf if lo is None else lo
     hi = math.inf if hi is None else hi
     if op == ">":

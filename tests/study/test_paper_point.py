@@ -43,6 +43,7 @@ def test_printed_values_and_verdicts():
     assert judge(122, 122.085, None) == "exact" and judge(122, 125.0, None) == "differs"
     assert judge(2.4, 2.398, None) == "exact" and judge(0.03, 0.0302, None) == "exact"
     assert judge(None, 3.0, None) is None
+    assert judge(32.5, 14.5, [None, None]) is None  # bounded by nothing: no verdict
 
 
 def test_entry_keeps_the_contract():
