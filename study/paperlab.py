@@ -198,7 +198,8 @@ def judge(paper: Any, value: float | None, ci95: list[float | None] | None,
     (``decimals``: the printed precision; default: as many as the printed number shows),
     else ``"differs"``. Measured values: ``"reproduced"`` when the printed number lies in
     the interval (for ``"> P"``: when the interval reaches P; an unbounded end counts as
-    reaching), else ``"differs"``. None when the paper prints no number or we have none.
+    reaching), else ``"differs"``. None when the paper prints no number, we have none,
+    or the run bounds neither end of the interval.
     """
     pv = printed_value(paper)
     if pv is None or value is None or (isinstance(value, float) and not math.isfinite(value)):
