@@ -302,8 +302,9 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
            "full run's. " if quick else "Full trial counts. "),
         "",
         f"**Results: {n['reproduced']} reproduced within their 95 % interval, {n['exact']} "
-        f"exact, {n['differs']} differ, {n['no verdict']} without a number to compare "
-        f"(the paper shows a heatmap only), {n['not covered']} not covered.**",
+        f"exact, {n['differs']} differ, {n['no verdict']} without a verdict (the paper "
+        f"prints no number, or the run bounds neither end of the interval), "
+        f"{n['not covered']} not covered.**",
         "",
         "## Results",
         "",

@@ -173,8 +173,8 @@ def test_report_row_shows_both_points_and_the_verdict(tmp_path):
     assert "| 0.2568 m | 0.25 [0.23, 0.27] | 0.017 [0.016, 0.018] | **reproduced** | " \
         "R = 1 at 10 m: 25 cm; R = 10 at 5 m: 1.7 cm |" in text
     assert f"**Results: 1 reproduced within their 95 % interval, 0 exact, 0 differ, 0 without " \
-        f"a number to compare (the paper shows a heatmap only), {len(paper.NOT_COVERED)} not " \
-        f"covered.**" in text
+        f"a verdict (the paper prints no number, or the run bounds neither end of the " \
+        f"interval), {len(paper.NOT_COVERED)} not covered.**" in text
     assert "![fig2c, at the paper's point](fig2c-paper/fig2c.png)" in text
     assert "| **total** | 3.0 |" in text
 
