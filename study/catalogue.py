@@ -11,6 +11,7 @@ from __future__ import annotations
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.study import (
     detection,
+    eq26,
     eq29,
     eq42,
     extremes,
@@ -18,10 +19,12 @@ from cdma_lidar.study import (
     fig2d,
     fig2e,
     fig2f,
+    fig3,
     fig4b,
     fig4d,
     fig11,
     fig17,
+    note5,
     paper,
     table1,
     tradeoff,
@@ -33,9 +36,10 @@ __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
 BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
                               # the paper's results (docs/paper.md); `paper` runs them all
-                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY, fig2f.STUDY, fig11.STUDY,
-                              fig17.STUDY, eq42.STUDY, eq29.STUDY, fig4b.STUDY, fig4d.STUDY,
-                              table1.STUDY, paper.STUDY)
+                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY, fig2f.STUDY, fig3.STUDY,
+                              fig11.STUDY, fig17.STUDY, eq42.STUDY, eq29.STUDY, eq26.STUDY,
+                              fig4b.STUDY, fig4d.STUDY, table1.STUDY, note5.STUDY,
+                              paper.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 

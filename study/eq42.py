@@ -24,16 +24,19 @@ samples), so E[(1-f)^2 + f^2] is (2/3)(1 + 1/(2 S^2)) instead of 2/3.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
 import numpy as np
+from scipy.special import stdtrit
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.firmware_model.gold import gold_codes, periodic_xcorr
 from cdma_lidar.firmware_model.pairs import preferred_pairs
-from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
+from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product
 from cdma_lidar.study.figures import new_figure, save_figure
+from cdma_lidar.study.paperlab import check_point, entry
 
 __all__ = ["REPORT_NOTE", "STUDY", "async_power", "eq42_task"]
 
@@ -74,6 +77,24 @@ def async_power(theta: np.ndarray, n: int, rng: np.random.Generator, trials: int
     return float(n * np.mean(r * r))
 
 
+def async_power_half_width(theta: np.ndarray, n: int, rng: np.random.Generator, trials: int
+                           ) -> float:
+    """Half-width of the 95 % interval of N E[r^2] over the code pairs (the population).
+
+    ``trials`` random (k, f) spread over the pairs; the pairs' own means vary more than
+    single draws, so the interval is Student's t over the per-pair means, not the draws.
+    """
+    per = max(trials // theta.shape[0], 1)
+    k = rng.integers(0, n, (theta.shape[0], per))
+    f = rng.random((theta.shape[0], per))
+    rows = np.arange(theta.shape[0])[:, None]
+    r = ((1.0 - f) * theta[rows, k] + f * theta[rows, (k + 1) % n]) / n
+    means = n * np.mean(r * r, axis=1)
+    if means.size < 2:
+        return math.nan
+    return float(stdtrit(means.size - 1, 0.975) * np.std(means, ddof=1) / math.sqrt(means.size))
+
+
 def _grid(options: Any) -> list[dict]:
     degrees = [check_int("degrees", d, 5, 15) for d in options["degrees"]]
     for d in degrees:
@@ -101,12 +122,14 @@ def eq42_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     b = codes[[row[int(x)] for x in j]]
     theta = periodic_xcorr(a, b).astype(np.float64)          # (pairs, N), exact integers
     power = async_power(theta, n, rng, trials)
+    half = async_power_half_width(theta, n, rng, trials)
     sampled = async_power(theta, n, rng, trials, int(params["samples_per_chip"]))
     sync = float(np.mean(theta**2) / n)
     adjacent = float(np.mean(theta * np.roll(theta, -1, axis=1)) / n)
     rand = rng.integers(0, 2, (pairs, 2, n), dtype=np.uint8)
     theta_rand = periodic_xcorr(rand[:, 0], rand[:, 1]).astype(np.float64)
-    return {"async_power_times_n": power,
+    return {"async_power_times_n": power, "async_power_lo95": power - half,
+            "async_power_hi95": power + half,
             "sampled_power_times_n": sampled,
             "sync_power_times_n": sync,
             "adjacent_correlation_times_n": adjacent,
@@ -134,8 +157,14 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     if len(pick) == 0:
         pick = table.where(degree=int(m.max()))
     # Paper: Supplementary Note 9, eq. 42: E[r^2] = 2/(3N), i.e. N E[r^2] = 2/3.
-    return {"async_xcorr_power_times_n": headline(pick.column("async_power_times_n")[0],
-                                                  PAPER_VALUE, "1")}
+    check_point(ctx.options["point"])  # one point: the paper's (real Gold codes, eq. 42)
+    row = pick.rows[0]
+    return {"async_xcorr_power_times_n": entry(
+        row["async_power_times_n"], "2/3", "1", paper_point=row["async_power_times_n"],
+        ci95=(row["async_power_lo95"], row["async_power_hi95"]),
+        paper_point_ci95=(row["async_power_lo95"], row["async_power_hi95"]),
+        cause=f"real Gold codes of degree {row['degree']}, {row['pairs']} pairs (interval over "
+              f"the pairs); random +-1 codes give {row['random_codes_power_times_n']:.4f}")}
 
 
 STUDY = Study(
@@ -147,7 +176,8 @@ STUDY = Study(
         Setting("pairs", 1000, "random member pairs per task", quick=200),
         Setting("trials", 1_000_000, "random offsets per task", quick=100_000),
         Setting("samples_per_chip", 50, "S of the sampled variant (the paper's Fig. 11: 50)"),
+        Setting("point", "default", "default or paper: the same here (eq. 42's own question)"),
     ),
     machine_columns=("time_s",),
-    version="1",
+    version="2",
 )

@@ -44,8 +44,9 @@ from cdma_lidar.firmware_model.uid import (
     necklaces,
     uid_length,
 )
-from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
+from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product
 from cdma_lidar.study.figures import new_figure, save_figure
+from cdma_lidar.study.paperlab import check_point, exact
 
 __all__ = ["REPORT_NOTE", "STUDY", "distinct_up_to_shift", "fig17_task", "lyndon_count"]
 
@@ -120,6 +121,7 @@ def _family_candidates(m: int) -> int:
 
 
 def _grid(options: Any) -> list[dict]:
+    check_point(options["point"])
     m = check_int("degree", options["degree"], 5, 11)
     ls = [check_int("l", x, 1, 4) for x in options["l"]]
     check_int("max_enumerate_degree", options["max_enumerate_degree"], 5, 13)
@@ -181,12 +183,17 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     for row in table.rows:
         li = int(row["l"])
         # Paper: Supplementary Note 11, eqs. 52 and 53 at m = 9 (plotted in Fig. 17).
-        out[f"candidates_uid_l{li}"] = headline(row["candidates_uid_enumerated"],
-                                                candidates_uid(m, li), "sequences")
+        # The paper prints the formulas and plots them; the values are derived from them.
+        uid, eq52 = row["candidates_uid_enumerated"], candidates_uid(m, li)
+        out[f"candidates_uid_l{li}"] = exact(
+            uid, None, "sequences", verdict="exact" if uid == eq52 else "differs",
+            derived=f"eq. 52 at m = {m}, l = {li}: {eq52}")
         direct = row["candidates_direct_enumerated"]
-        out[f"candidates_direct_l{li}"] = headline(
-            direct if direct is not None else row["candidates_direct"],
-            candidates_direct(m, li), "sequences")
+        direct = direct if direct is not None else row["candidates_direct"]
+        eq53 = candidates_direct(m, li)
+        out[f"candidates_direct_l{li}"] = exact(
+            direct, None, "sequences", verdict="exact" if direct == eq53 else "differs",
+            derived=f"eq. 53 at m = {m}, l = {li}: {eq53}")
     return out
 
 
@@ -199,6 +206,7 @@ STUDY = Study(
         Setting("l", (1, 2, 3, 4), "UID widths n = 2^l bits (l = 1..4)"),
         Setting("max_enumerate_degree", 13, "enumerate direct-spread families up to this "
                 "degree (5..13); larger ones by eq. 53 alone", quick=11),
+        Setting("point", "default", "default or paper: one point here, the paper's own"),
     ),
     version="1",
 )

@@ -20,10 +20,11 @@ Columns: ``error_rate`` (fraction of the 640 x frames pixels), ``error_ci_lo`` /
 Maximum range = the distance where the error rate rises through 10 % (linear
 interpolation); its 95 % band is where the interval's bounds cross 10 %.
 
-Differences from the paper. The longer code reaches about sqrt(2) farther, as expected
-from 6 dB of processing gain on an echo amplitude falling as 1/r^2; the absolute distances
-depend on the link budget, which the paper does not publish in full. Ours was chosen for
-the Fig. 3 scans at 5 and 10 m, not fitted to Fig. 2f's 66 m (order 13).
+Settings: emitted power per channel, sequential mixing (Supp. Note 4), averaging and the
+link budget's terms (aperture, APD gain, TIA noise, EDFA noise figure, reflectivity);
+``point=paper`` ranges the ``paper-lab`` instrument with the paper's sequential mixing and
+ten records (:data:`PAPER_POINT`). The maximum range's 95 % interval spans the grid step
+(:func:`cdma_lidar.study.paperlab.crossing_ci`): between grid points nothing is known.
 """
 
 from __future__ import annotations
@@ -47,44 +48,57 @@ from cdma_lidar.study.engine import (
     Study,
     Table,
     grid_product,
-    headline,
 )
 from cdma_lidar.study.fig11 import ERROR_THRESHOLD, crossing
 from cdma_lidar.study.figures import new_figure, save_figure
+from cdma_lidar.study.paperlab import check_point, crossing_ci, entry, wilson
 from cdma_lidar.study.simulate import receiver_setup, true_offset_m
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["REPORT_NOTE", "STUDY", "fig2f_task", "wilson"]
+__all__ = ["LINK_FIELDS", "PAPER_POINT", "REPORT_NOTE", "STUDY", "fig2f_task", "point_settings",
+           "wilson"]
 
 #: Paper, main text under Fig. 2: "potentially achieving up to 66 m with a 13th-order code".
 PAPER_MAX_RANGE_ORDER13_M = 66.0
 
 REPORT_NOTE = (
-    "The maximum range comes from the simulated instrument with the paper's parameters and "
-    "a physical link budget (echo amplitude falling as 1/r^2 against a fixed receiver "
-    "noise), all 40 channels lit on a wall, through the whole receive chain. The longer "
-    "code reaches farther, as in the paper, because its 4x longer period averages the "
-    "noise 4x more (6 dB of processing gain moves an amplitude that falls as 1/r^2 by "
-    "sqrt(2) in range). The absolute distance depends on the link budget (aperture, APD "
-    "gain, noise, reflectivity), which the paper does not publish in full; our link "
-    "budget's parameters were chosen for its Fig. 3 scans at 5 and 10 m, not for Fig. 2f, "
-    "so the order-13 range is a consequence of those parameters, not a fit to 66 m. The "
-    "paper gives no number for order 11."
+    "The maximum range comes from the simulated instrument and a physical link budget (echo "
+    "amplitude falling as 1/r^2 against a fixed receiver noise), all 40 channels lit on a "
+    "wall, through the whole receive chain. The longer code reaches farther, as in the "
+    "paper: its 4x longer period averages the noise 4x more. The absolute distance depends "
+    "on the link budget (aperture, APD gain, noise, reflectivity), which the paper does not "
+    "publish; every term is a setting, so the 66 m claim can be tested against any budget "
+    "from the command line. At the paper's point the sequential mixing of Supp. Note 4 adds "
+    "each channel's signal-independent noise 40 times (16 dB), which the `cause` column "
+    "shows against the default run. The paper gives no number for order 11."
 )
 
 
-def wilson(errors: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a binomial fraction ``errors / n``."""
-    if n <= 0:
-        return math.nan, math.nan
-    p = errors / n
-    den = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(centre - half, 0.0), min(centre + half, 1.0)
+#: What ``point=paper`` changes (assumptions in cdma_lidar.study.paperlab): the paper-lab
+#: instrument (400 MHz APD, sequential mixing of Supp. Note 4), 2.5 mW per channel, ten
+#: records summed (the averaging of the paper's scans).
+PAPER_POINT = {"scene": "paper-lab", "power_mw": 2.5, "sequential_mixing": True,
+               "averages": 10}
+
+#: Link-budget settings -> scene fields (the instrument's InstrumentSpec names).
+LINK_FIELDS = {"rx_aperture_mm": ("instrument.rx_aperture_m", 1e-3),
+               "apd_gain": ("instrument.apd_gain", 1.0),
+               "tia_noise_pa_rthz": ("instrument.tia_noise_a_per_rthz", 1e-12),
+               "edfa_noise_figure_db": ("instrument.edfa_noise_figure_db", 1.0),
+               "reflectivity": ("reflectivity", 1.0)}
+
+
+def point_settings(options: RunOptions) -> dict[str, Any]:
+    """Scene, power, mixing, averaging and link budget: settings, or the paper's point."""
+    out = {k: options[k] for k in ("power_mw", "sequential_mixing", "averages", *LINK_FIELDS)}
+    out["scene"] = "flat-wall"
+    if check_point(options["point"]) == "paper":
+        out.update(PAPER_POINT)
+    return out
 
 
 def _grid(options: RunOptions) -> list[dict]:
+    p = point_settings(options)
     dists = [float(d) for d in options["distances"]]
     for d in dists:
         if not 1.0 <= d <= 1000.0:
@@ -95,18 +109,31 @@ def _grid(options: RunOptions) -> list[dict]:
     degrees = [check_int("degrees", d, 11, 13) for d in options["degrees"]]
     if not dists or not degrees:
         raise out_of_range("distances/degrees", "at least one value each", "none")
+    if not 0.0 < float(p["power_mw"]) <= 100.0:
+        raise out_of_range("power_mw", "0..100 mW per channel", p["power_mw"])
     return grid_product(degree=degrees, distance=dists,
                         frames=[check_int("frames", options["frames"], 1, 1000)],
-                        max_range=[max_range])
+                        max_range=[max_range], scene=[p["scene"]],
+                        power_mw=[float(p["power_mw"])],
+                        sequential_mixing=[bool(p["sequential_mixing"])],
+                        averages=[check_int("averages", p["averages"], 1, 1024)],
+                        **{k: [float(p[k])] for k in LINK_FIELDS})
 
 
 def fig2f_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     """One (degree, distance): ``frames`` frames of the wall, gross-error fraction."""
     t0 = time.perf_counter()
-    scene = load_scene("flat-wall", {"distance": float(params["distance"]),
-                                     "code_degree": int(params["degree"]),
-                                     "instrument.min_range_m": 1.0,
-                                     "instrument.max_range_m": float(params["max_range"])})
+    overrides = {"distance": float(params["distance"]), "code_degree": int(params["degree"]),
+                 "instrument.min_range_m": 1.0,
+                 "instrument.max_range_m": float(params["max_range"]),
+                 "instrument.laser_power_w": float(params["power_mw"]) * 1e-3,
+                 "instrument.sequential_mixing": bool(params["sequential_mixing"]),
+                 "instrument.averages": int(params["averages"]),
+                 "instrument.max_pixel_power_w": max(10e-3, float(params["power_mw"]) * 1e-3),
+                 "instrument.total_power_cap_w": max(0.2, float(params["power_mw"]) * 0.04)}
+    for key, (field, scale) in LINK_FIELDS.items():
+        overrides[field] = float(params[key]) * scale
+    scene = load_scene(str(params["scene"]), overrides)
     inst = Instrument(scene, seed=int(seed.generate_state(1)[0]))
     spec = inst.spec
     cfg, codes = receiver_setup(inst)
@@ -142,24 +169,29 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     fig, ax = new_figure(6.5, 4.2)
     summary: dict[str, Any] = {}
     colours = {11: "tab:blue", 13: "tab:red"}
+    row = table.rows[0]
+    where = (f"{row['scene']}, {row['power_mw']:g} mW per channel, R = {row['averages']}, "
+             f"sequential mixing {'on' if row['sequential_mixing'] else 'off'}")
+    found: dict[int, tuple[float, bool, tuple]] = {}
     for d in sorted(set(table.column("degree").astype(int))):
         t = table.where(degree=d)
         dist = t.column("distance")
         o = np.argsort(dist)
         err, lo, hi = (t.column(c) for c in ("error_rate", "error_ci_lo", "error_ci_hi"))
         rng, reached = crossing(dist, err)
-        # the band: where the interval's upper bound crosses first, its lower bound last
-        near, _ = crossing(dist, hi)
-        far, _ = crossing(dist, lo)
+        ci = crossing_ci(dist, err, t.column("pixels"))
+        found[d] = (rng, reached, ci)
         col = colours.get(d, "k")
         ax.fill_between(dist[o], lo[o], hi[o], color=col, alpha=0.2)
         ax.plot(dist[o], err[o], "o-", color=col, ms=4,
                 label=f"order {d}: {'>' if not reached else ''}{rng:.1f} m "
-                      f"(95 %: {near:.1f}-{far:.1f} m)")
-        paper = PAPER_MAX_RANGE_ORDER13_M if d == 13 else None
-        summary[f"max_range_m_order{d}"] = headline(rng, paper, "m")
-        summary[f"max_range_m_order{d}_lo95"] = headline(near, None, "m")
-        summary[f"max_range_m_order{d}_hi95"] = headline(far, None, "m")
+                      f"(95 %: {_span(ci)})")
+    for d, (rng, _, ci) in found.items():
+        other = "; ".join(f"order {k}: {'>' if not v[1] else ''}{v[0]:.1f} m ({_span(v[2])})"
+                          for k, v in found.items())
+        summary[f"max_range_m_order{d}"] = entry(
+            rng, PAPER_MAX_RANGE_ORDER13_M if d == 13 else None, "m", ci95=ci,
+            cause=f"{where}: {other}; the 95 % interval spans the grid step")
     ax.axhline(ERROR_THRESHOLD, color="tab:green", lw=0.8)
     ax.axvline(PAPER_MAX_RANGE_ORDER13_M, color="tab:red", ls=":", lw=0.8,
                label="paper, order 13: 66 m")
@@ -170,6 +202,12 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     ax.legend(fontsize=7)
     save_figure(fig, ctx.out / "fig2f.png")
     return summary
+
+
+def _span(ci: tuple) -> str:
+    lo, hi = ci
+    low = "below the grid" if lo is None else f"{lo:g}"
+    return f"{low}-{'open' if hi is None else f'{hi:g}'} m"
 
 
 STUDY = Study(
@@ -186,7 +224,18 @@ STUDY = Study(
         Setting("degrees", (11, 13), "code degrees"),
         Setting("frames", 4, "frames per point (640 pixels each)", quick=1),
         Setting("max_range", 150.0, "far end of the receiver's gate (m)"),
+        Setting("power_mw", 2.5, "emitted power per channel (mW; 40 channels)"),
+        Setting("sequential_mixing", False, "Supp. Note 4: signal-independent noise added "
+                "once per channel, as in the paper's sequential recording"),
+        Setting("averages", 10, "code periods R summed"),
+        Setting("rx_aperture_mm", 25.4, "receive aperture diameter (mm)"),
+        Setting("apd_gain", 10.0, "APD gain M"),
+        Setting("tia_noise_pa_rthz", 10.0, "TIA input current noise (pA/sqrt(Hz))"),
+        Setting("edfa_noise_figure_db", 5.0, "EDFA noise figure (dB)"),
+        Setting("reflectivity", 0.5, "the wall's reflectivity"),
+        Setting("point", "default", "default (the settings above) or paper (paper-lab, 2.5 mW, "
+                "sequential mixing, R = 10)"),
     ),
     machine_columns=("time_s",),
-    version="1",
+    version="2",
 )

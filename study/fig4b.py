@@ -48,8 +48,9 @@ from cdma_lidar.host.scan import ScanOptions, run_scan
 from cdma_lidar.host.uid_filter import observed_uids
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
-from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product, headline
+from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product
 from cdma_lidar.study.figures import new_figure, save_figure
+from cdma_lidar.study.paperlab import check_point, exact
 from cdma_lidar.units import delay_to_range_m, range_to_delay_s
 
 __all__ = ["REPORT_NOTE", "STUDY", "fig4b_task"]
@@ -88,6 +89,7 @@ def _url(channels: int, seed: int, averages: int = 0) -> tuple[str, str]:
 
 
 def _grid(options: Any) -> list[dict]:
+    check_point(options["point"])
     chans = [check_int("channels", k, 1, 40) for k in options["channels"]]
     tol = float(options["tolerance_m"])
     if not 0 < tol <= 10:
@@ -203,14 +205,15 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     acc = table.column("foreign_ranges_accepted")
     out = {
         # Paper: Fig. 4b / Note 11, four users sharing one code, all identified.
-        "users_identified": headline(pick(first, "users_identified"), PAPER_USERS, "users"),
+        "users_identified": exact(pick(first, "users_identified"), PAPER_USERS, "users"),
         # Paper: Note 11, "each user can only correctly identify its own ... delay".
-        "foreign_ranges_accepted": headline(round(float(np.nansum(acc))), PAPER_FOREIGN_ACCEPTED,
+        "foreign_ranges_accepted": exact(round(float(np.nansum(acc))), PAPER_FOREIGN_ACCEPTED,
                                             "pixels"),
     }
     if int(chans.max()) != first:
-        out[f"users_identified_{int(chans.max())}_channels"] = headline(
-            pick(int(chans.max()), "users_identified"), PAPER_USERS, "users")
+        out[f"users_identified_{int(chans.max())}_channels"] = exact(
+            pick(int(chans.max()), "users_identified"), None, "users",
+            derived="not in the paper: its Fig. 4b ranges one channel")
     return out
 
 
@@ -225,6 +228,7 @@ STUDY = Study(
         Setting("tolerance_m", 0.5, "a valid range further than this from the truth is "
                 "someone else's (m)"),
         Setting("averages", 0, "code repetitions summed per column (0: the preset's, 4)"),
+        Setting("point", "default", "default or paper: one point here, the paper's own"),
     ),
     machine_columns=("wall_time_s",),
     version="1",

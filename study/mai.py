@@ -29,6 +29,7 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.gold import bipolar, gold_codes
 from cdma_lidar.firmware_model.pairs import preferred_pairs
@@ -36,6 +37,7 @@ from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.study.simulate import smallest_out_shift
 
 __all__ = [
+    "DETECTORS",
     "bipolar",
     "code_bits",
     "direct_signal",
@@ -43,12 +45,18 @@ __all__ = [
     "mai_config",
     "mai_signal",
     "run_trials",
+    "run_trials_detectors",
     "sga_error_rate",
     "snr_per_sample_eq30",
     "snr_ss_eq43",
 ]
 
 log = logging.getLogger(__name__)
+
+#: Peak detectors: ``abs`` takes the largest |corr| (the receiver's rule: a UID bit of 1
+#: flips the code, so the peak may be negative); ``signed`` the largest corr, eq. 9's
+#: argmax of the cross-correlation (the paper's Fig. 11 simulation, no UID).
+DETECTORS = ("abs", "signed")
 
 
 def code_bits(degree: int, channels: int) -> NDArray[np.uint8]:
@@ -127,14 +135,16 @@ def snr_ss_eq43(n_chips: int, channels: int, noise_rms: float = 0.0, amplitude: 
     return n_chips * amplitude**2 / (noise + 2.0 / 3.0 * (channels - 1) * amplitude**2)
 
 
-def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001) -> float:
+def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001,
+                   detector: str = "abs") -> float:
     """Probability that the peak search misses, in the standard Gaussian approximation.
 
     The correlation at the true lag is Gaussian with mean sqrt(SNR_SS) and unit variance;
     ``competitors`` independent lags (one per chip outside the peak's +-1 chip: the
     correlation is smooth within a chip) are zero-mean, unit variance. The receiver picks
-    the largest |out|, so it is right with probability
-    ``integral phi(x - mu) (2 Phi(|x|) - 1)^M dx`` (numerical, on a grid).
+    the largest |out| (``detector="abs"``), so it is right with probability
+    ``integral phi(x - mu) (2 Phi(|x|) - 1)^M dx`` (numerical, on a grid); eq. 9's signed
+    maximum (``"signed"``) with ``integral phi(x - mu) Phi(x)^M dx``.
     """
     from scipy.integrate import trapezoid  # deferred: scipy costs 0.3 s at start-up
     from scipy.special import ndtr  # deferred (as above)
@@ -142,7 +152,9 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001) -> float
     mu = float(np.sqrt(max(snr_ss, 0.0)))
     x = np.linspace(mu - 10.0, mu + 10.0, points)
     pdf = np.exp(-0.5 * (x - mu) ** 2) / np.sqrt(2.0 * np.pi)
-    inside = np.clip(2.0 * ndtr(np.abs(x)) - 1.0, 0.0, 1.0)
+    if detector not in DETECTORS:
+        raise out_of_range("detector", " or ".join(DETECTORS), detector)
+    inside = np.clip(2.0 * ndtr(np.abs(x)) - 1.0 if detector == "abs" else ndtr(x), 0.0, 1.0)
     with np.errstate(divide="ignore"):
         log_in = competitors * np.log(inside)
     correct = float(trapezoid(pdf * np.exp(log_in), x))  # scipy: numpy 1.26 lacks trapezoid
@@ -151,7 +163,19 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001) -> float
 
 def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator, *,
                noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
-               adc_bits: int = 16, batch: int = 8) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+               adc_bits: int = 16, batch: int = 8, detector: str = "abs"
+               ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """:func:`run_trials_detectors` for one ``detector``: (gross error per trial, SNR_XC dB)."""
+    errors, snr = run_trials_detectors(bits, s, trials, rng, noise_rms=noise_rms,
+                                       amplitude=amplitude, averages=averages,
+                                       adc_bits=adc_bits, batch=batch)
+    return errors[detector], snr
+
+
+def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator,
+                         *, noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
+                         adc_bits: int = 16, batch: int = 8
+                         ) -> tuple[dict[str, NDArray[np.bool_]], NDArray[np.float64]]:
     """``trials`` random-delay trials through the whole receive chain; channel 0 is ranged.
 
     ``bits`` (K, N): every channel's code. Each trial draws K delays uniform over the
@@ -159,7 +183,11 @@ def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Gene
     Gaussian noise of ``noise_rms`` LSB per sample (independent in each of the R
     ``averages``), quantises (round half up, clip to ``adc_bits``) and runs the column
     through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``)
-    correlating with channel 0's code. Returns (gross error per trial, SNR_XC dB per trial).
+    correlating with channel 0's code. The same trials are judged with each of
+    :data:`DETECTORS`: ``abs`` is the receiver's own peak (largest |out|), ``signed`` the
+    largest ``out`` over the gate (the whole period, so gate index = lag; ties to the
+    lowest lag as the receiver's). Returns ({detector: gross error per trial}, SNR_XC dB
+    per trial as the receiver reports it).
     """
     bip = bipolar(bits)
     k, n = bip.shape
@@ -167,7 +195,7 @@ def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Gene
     cfg = mai_config(n, s, adc_bits=adc_bits, averages=averages)
     rx = FastReceiver(cfg, bits[:1])
     lo, hi = adc_limits(adc_bits)
-    errors = np.zeros(trials, dtype=bool)
+    errors = {d: np.zeros(trials, dtype=bool) for d in DETECTORS}
     snr = np.zeros(trials, dtype=np.float64)
     for start in range(0, trials, batch):
         count = min(batch, trials - start)
@@ -184,6 +212,8 @@ def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Gene
                 cols[c] = np.tile(np.clip(clean, lo, hi), averages)
         outs = rx.frame(cols)
         lags = np.array([int(o.peak_lag[0]) for o in outs])
-        errors[start:start + count] = gross_error(lags, truth, ns, s)
+        signed = np.array([int(np.argmax(o.corr[0])) for o in outs])  # gate_start 0: j = lag
+        errors["abs"][start:start + count] = gross_error(lags, truth, ns, s)
+        errors["signed"][start:start + count] = gross_error(signed, truth, ns, s)
         snr[start:start + count] = [float(o.snr_db()[0]) for o in outs]
     return errors, snr

@@ -4,10 +4,23 @@
 ``studies`` setting; by default all of :data:`PAPER_STUDIES`) one after the other with
 :meth:`cdma_lidar.study.engine.RunContext.run_sub` -- each on the same executor, with the
 same ``--quick``, ``--resume`` and ``seed``, into ``DIR/<name>/`` -- and writes
-``DIR/report.md``: per headline the paper's number, ours, the ratio, the figure (a
-relative link to the study's PNG; for decibels the difference, since a ratio of
-logarithms means nothing), each study's explanatory paragraph (its module's
-``REPORT_NOTE``), and how long each study took on which executor.
+``DIR/report.md``, written for a reviewer (:func:`write_report`): per result of the
+paper (:data:`PAPER_STUDIES` headline keys, :data:`NOT_COVERED`) a row with the paper's
+words and number exactly as printed (:data:`PAPER_WORDS`; ">" kept), ours at the paper's
+operating point and at the toolkit's default, each with its 95 % interval, the verdict
+(reproduced / differs / exact) and the cause the run demonstrates; quantities derived
+from the paper's equations in their own table; the operating point's assumptions
+(:mod:`cdma_lidar.study.paperlab`); the time of each study; each study's figures and
+explanatory paragraph (its module's ``REPORT_NOTE``).
+
+``point`` (default ``both``): every part runs at its default; a part whose paper point
+needs other settings (:data:`PAPER_POINT_RUNS`: fig2c, fig2d, fig2f, fig3) runs again with
+``point=paper`` into ``DIR/<name>-paper/``; fig11 and fig2e judge the same trials with
+eq. 9's detector, the others have one point. ``point=default`` skips the second runs;
+``point=paper`` runs every part at ``point=paper`` only. The summary has every part's
+entries (``<study>.<key>``, the contract of :func:`cdma_lidar.study.paperlab.entry`) and
+the counts ``results_reproduced``, ``results_exact``, ``results_differing`` and
+``results_not_covered``.
 
 A study that is not registered in this build (the catalogue has no such name) is
 listed as "not available in this build" with its expected headlines, so the report
@@ -21,36 +34,47 @@ list value continues over the commas: ``sub_set=eq42.degrees=9,11,eq42.pairs=50`
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Any
 
-from cdma_lidar.errors import ConfigError
+from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.study import catalogue
-from cdma_lidar.study.engine import Headline, RunContext, RunResult, Setting, Study, Table, headline
+from cdma_lidar.study.engine import Headline, RunContext, RunResult, Setting, Study, Table
+from cdma_lidar.study.paperlab import (
+    PAPER_CITATION,
+    POINTS,
+    PRESET,
+    assumptions_markdown,
+    entry,
+)
 
-__all__ = ["PAPER_STUDIES", "STUDY", "parse_sub_set", "write_report"]
+__all__ = ["NOT_COVERED", "PAPER_POINT_QUICK", "PAPER_POINT_RUNS", "PAPER_STUDIES", "PAPER_WORDS",
+           "STUDY", "counts", "fmt_interval", "fmt_value", "merge", "parse_sub_set",
+           "write_report"]
 
 log = logging.getLogger(__name__)
 
-#: The paper's results: study name -> (where in the paper, what it is, the headline keys).
+#: The paper's studies: study name -> (where in the paper, what it is, the headline keys).
 PAPER_STUDIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "fig2c": ("Fig. 2c, eq. 27", "histogram of 1000 repeated single-point ranges; "
-              "resolution = 2 sigma", ("resolution_2sigma_m", "precision_eq27_m")),
+              "resolution = 2 sigma", ("resolution_2sigma_m",)),
     "fig2d": ("Fig. 2d, eq. 28", "resolution vs chip rate and sample rate",
               ("resolution_m_at_62_5mhz", "resolution_m_at_200mhz")),
     "fig2e": ("Fig. 2e", "SNR_XC and error rate vs SNR (EDFA gain sweep); threshold at 10 % "
               "error", ("snr_xc_threshold_db", "min_workable_snr_db")),
     "fig2f": ("Fig. 2f", "maximum range vs code length at constant power (95 % band)",
-              ("max_range_m_order11", "max_range_m_order13")),
+              ("max_range_m_order13",)),
+    "fig3": ("Fig. 3", "the 40 x 160 scans at 5 m and 10 m, range clusters",
+             ("pixels_scene1", "clusters_scene1", "pixels_scene2")),
     "fig11": ("Fig. 11, Note 8", "channel capacity at 10 % error, orders 11/13/15, 50 samples "
               "per chip, 1000 random delays",
               ("workable_channels_order11", "workable_channels_order13",
-               "workable_channels_order15")),
+               "workable_channels_order15", "snr_xc_threshold_db_order11")),
     "fig17": ("Fig. 17, eqs. 52-53", "UID vs direct-spread candidate counts from a degree-9 "
               "code", tuple(f"candidates_{k}_l{i}" for k in ("uid", "direct")
                             for i in range(1, 5))),
@@ -58,13 +82,89 @@ PAPER_STUDIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
              ("async_xcorr_power_times_n",)),
     "eq29": ("Note 8, eq. 29", "frame rate at 1 GHz, degree 13, 1000 pixels",
              ("frame_rate_hz",)),
+    "eq26": ("Notes 2-4, 7, 10; Fig. 1e", "the instrument's exact figures",
+             ("range_resolution_eq26_m", "max_unambiguous_distance_m", "angular_resolution_deg",
+              "psd_main_lobe_null_hz", "sequential_mixing_noise_ratio")),
     "fig4b": ("Fig. 4b, Note 11", "four users on one code with 3-bit UIDs",
               ("users_identified", "foreign_ranges_accepted")),
     "fig4d": ("Fig. 4d, Note 12", "near-far heatmaps before and after power control",
               ("object_valid_fraction_before", "object_valid_fraction_after")),
     "table1": ("Table 1, Note 8", "the preferred-pair table, with the errata",
                ("pairs_checked", "pairs_not_preferred")),
+    "note5": ("Supp. Note 5", "grating ghosts identified by their delay and removed",
+              ("ghost_misjudged_after_removal",)),
 }
+
+#: The paper's words for each result row, exactly as printed (study, key) -> words.
+PAPER_WORDS: dict[tuple[str, str], str] = {
+    ("fig2c", "resolution_2sigma_m"): "the system attains a depth resolution of 25.68 cm",
+    ("fig2d", "resolution_m_at_62_5mhz"): "With a CDMA chip rate of 62.5 MHz [...] the "
+    "system attains a depth resolution of 25.68 cm",
+    ("fig2d", "resolution_m_at_200mhz"): "millimeter-level resolution can theoretically be "
+    "achieved with a 200 MHz chip rate",
+    ("fig2e", "snr_xc_threshold_db"): "An SNR_XC of approximately 32.5 dB, corresponding to "
+    "a 10% error rate, serves as the threshold for data quality",
+    ("fig2e", "min_workable_snr_db"): "still workable in -50 dB testing environment",
+    ("fig2f", "max_range_m_order13"): "potentially achieving up to 66 m with a 13th-order code",
+    ("fig3", "pixels_scene1"): "3D point clouds are captured with a 40 x 160 pixels "
+    "resolution (scene 1, approximately 5 m)",
+    ("fig3", "clusters_scene1"): "the objects are clearly categorized into three distinct "
+    "clusters based on their distance",
+    ("fig3", "pixels_scene2"): "(scene 2, approximately 10 m) 40 x 160 pixels",
+    ("fig11", "workable_channels_order11"): "the workable channel numbers for orders 11, 13, "
+    "and 15 are roughly more than 125, 400, and 1200",
+    ("fig11", "workable_channels_order13"): "(order 13) roughly more than [...] 400",
+    ("fig11", "workable_channels_order15"): "(order 15) roughly more than [...] 1200",
+    ("fig11", "snr_xc_threshold_db_order11"): "The cut-off SNR_XC of approximately 32.5 dB "
+    "for the 11th-order sequence",
+    ("eq42", "async_xcorr_power_times_n"): "E{[r_ij^a(d)]^2} = 1/(3N) + 1/(3N) + 0 = 2/(3N)",
+    ("eq29", "frame_rate_hz"): "f_frame = w_c / (N x 1000) ~ 122 Hz",
+    ("eq26", "range_resolution_eq26_m"): "our theoretical traditional resolution is limited "
+    "to 2.4 m",
+    ("eq26", "max_unambiguous_distance_m"): "d_max = c/2 argmax(xcorr[s_r, s_e]) < c/2 T_0 = "
+    "c/2 N/w_c",
+    ("eq26", "angular_resolution_deg"): "an angular resolution of 0.03 deg",
+    ("eq26", "psd_main_lobe_null_hz"): "the boundary of the main lobe occurs at 1/T_c",
+    ("eq26", "sequential_mixing_noise_ratio"): "the wideband ASE noise [...] is redundantly "
+    "accounted for 40 times",
+    ("fig4b", "users_identified"): "the differentiation based on UID enables the "
+    "identification of the four users",
+    ("fig4b", "foreign_ranges_accepted"): "each user can only correctly identify its own "
+    "time delay",
+    ("fig4d", "object_valid_fraction_before"): "(heatmap, Fig. 4d ii: before power control)",
+    ("fig4d", "object_valid_fraction_after"): "(heatmap, Fig. 4d iii: after power control)",
+    ("note5", "ghost_misjudged_after_removal"): "such extraneous correlation peaks can be "
+    "accurately identified in the time delay after correlation with the reference code, "
+    "allowing for the removal of any misjudgment from spurious peaks",
+    ("table1", "pairs_checked"): "Table 1: preferred pairs",
+    ("table1", "pairs_not_preferred"): "Table 1: preferred pairs (every row one)",
+}
+for _i in range(1, 5):
+    PAPER_WORDS[("fig17", f"candidates_uid_l{_i}")] = "UID: (2^m + 1) u(2^l) (eq. 52)"
+    PAPER_WORDS[("fig17", f"candidates_direct_l{_i}")] = "Direct spread: 2^(m+l) + 1 (eq. 53)"
+
+#: Quantitative results of the paper without a study in this toolkit: (where, the paper's
+#: words, why not and where to look instead).
+NOT_COVERED: tuple[tuple[str, str, str], ...] = (
+    ("Fig. 3b", "Comparison of sequential mixing and dual channel simultaneous ranging",
+     "no study: the toolkit has the sequential-mixing noise (Supp. Note 4) but no "
+     "two-laser record to compare"),
+    ("Supp. Note 10", "distortion correction in reconstruction",
+     "the host's grating geometry corrects it (docs/host.md); no study compares with the "
+     "paper's reconstruction"),
+)
+
+#: Studies whose paper point needs a run of its own (settings of that run); fig11 and
+#: fig2e judge the same trials with eq. 9's detector, the others have one point.
+PAPER_POINT_RUNS: dict[str, dict[str, str]] = {
+    "fig2c": {"point": "paper", "replicates": "4"},
+    "fig2d": {"point": "paper"},
+    "fig2f": {"point": "paper"},
+    "fig3": {"point": "paper"},
+}
+#: ``--quick`` settings of those runs (a part's own ``sub_set`` wins): fig2c's 4 replicates
+#: of 250 ranges still pool the paper's 1000.
+PAPER_POINT_QUICK: dict[str, dict[str, str]] = {"fig2c": {"repeats": "250"}}
 
 NOT_AVAILABLE = "not available in this build"
 
@@ -91,16 +191,6 @@ def parse_sub_set(items: tuple[str, ...], names: list[str]) -> dict[str, dict[st
     return out
 
 
-def _grid(options: Any) -> list[dict]:
-    names = list(options["studies"])
-    for n in names:
-        if n not in PAPER_STUDIES:
-            raise ConfigError(f"--set studies: {n!r} is not a paper study; known: "
-                              f"{', '.join(PAPER_STUDIES)}", "studies")
-    parse_sub_set(tuple(options["sub_set"]), names)
-    return []
-
-
 def _note(study: Study) -> str | None:
     """The study module's ``REPORT_NOTE`` (the paragraph explaining differences)."""
     fn = study.grid if study.task is None else study.task
@@ -116,24 +206,8 @@ def _run_json(folder: Path) -> dict[str, Any]:
         return {}
 
 
-def _ratio(h: Headline) -> float | None:
-    ours, paper = h.get("ours"), h.get("paper")
-    if not isinstance(ours, int | float) or not isinstance(paper, int | float) or paper == 0:
-        return None
-    r = float(ours) / float(paper)
-    return r if math.isfinite(r) else None
-
-
-def _compare(h: Headline) -> str:
-    """The comparison cell: ours / paper, or for decibels (a log scale) ours - paper."""
-    ours, paper = h.get("ours"), h.get("paper")
-    if h.get("unit") == "dB" and isinstance(ours, int | float) and isinstance(paper, int | float):
-        return f"{float(ours) - float(paper):+.1f} dB (difference)"
-    r = _ratio(h)
-    return _fmt(r) if r is not None else "--"
-
-
-def _fmt(x: Any) -> str:
+def fmt_value(x: Any) -> str:
+    """A number for a Markdown cell (4 significant digits; ``--`` for None)."""
     if x is None:
         return "--"
     if isinstance(x, bool | int):
@@ -143,78 +217,178 @@ def _fmt(x: Any) -> str:
     return str(x).replace("|", "\\|")
 
 
+def fmt_interval(value: Any, ci: Any) -> str:
+    """``0.25 [0.23, 0.27]``; an end the run does not bound is left open."""
+    if value is None:
+        return "--"
+    if not ci:
+        return fmt_value(value)
+    lo, hi = ci
+    return (f"{fmt_value(value)} [{'open' if lo is None else fmt_value(lo)}, "
+            f"{'open' if hi is None else fmt_value(hi)}]")
+
+
+def merge(default: dict[str, Headline], at_paper: dict[str, Headline] | None
+          ) -> dict[str, Headline]:
+    """One study's entries: ``ours`` from the default run, ``paper_point`` (with its interval,
+    verdict and cause) from the paper-point run when the study has one."""
+    out = {}
+    for key, h in default.items():
+        h = dict(h)
+        p = (at_paper or {}).get(key)
+        if p is not None:
+            h["paper_point"] = p.get("ours")
+            h["paper_point_ci95"] = p.get("ci95")
+            h["verdict"] = p.get("verdict")
+            causes = [f"paper's point: {p['cause']}" if p.get("cause") else None,
+                      f"default: {h['cause']}" if h.get("cause") else None]
+            h["cause"] = "; ".join(c for c in causes if c) or None
+            if p.get("derived") and p.get("derived") != h.get("derived"):
+                h["derived"] = f"default: {h.get('derived')}; paper's point: {p['derived']}"
+        out[key] = h
+    return out
+
+
 def _entry(name: str, result: RunResult | None, error: str | None, out: Path,
-           study: Study | None) -> dict[str, Any]:
+           study: Study | None, at_paper: RunResult | None = None) -> dict[str, Any]:
     where, what, keys = PAPER_STUDIES[name]
     folder = out / name
     run = _run_json(folder) if result is not None else {}
+    prun = _run_json(out / f"{name}-paper") if at_paper is not None else {}
     pngs = sorted(p.name for p in folder.glob("*.png")) if result is not None else []
-    summary = dict(result.summary) if result is not None else {}
+    ppngs = (sorted(p.name for p in (out / f"{name}-paper").glob("*.png"))
+             if at_paper is not None else [])
+    summary = merge(dict(result.summary), dict(at_paper.summary) if at_paper else None) \
+        if result is not None else {}
     return {"name": name, "where": where, "what": what, "keys": keys,
             "status": "ok" if result is not None and not result.failures else
             ("failed tasks" if result is not None else (error or NOT_AVAILABLE)),
             "summary": summary, "figures": [f"{name}/{p}" for p in pngs],
+            "paper_figures": [f"{name}-paper/{p}" for p in ppngs],
             "note": _note(study) if study is not None else None,
             "wall_time_s": run.get("wall_time_s"), "engine": run.get("engine"),
+            "paper_wall_time_s": prun.get("wall_time_s"),
             "tasks": run.get("tasks"), "failed": run.get("failed"),
-            "settings": run.get("settings", {})}
+            "settings": run.get("settings", {}), "paper_settings": prun.get("settings")}
+
+
+def counts(entries: list[dict[str, Any]]) -> dict[str, int]:
+    """Results by verdict over the paper's rows (headline keys), plus those not covered."""
+    c = {"reproduced": 0, "differs": 0, "exact": 0, "no verdict": 0,
+         "not covered": len(NOT_COVERED)}
+    for e in entries:
+        for key in e["keys"]:
+            h = e["summary"].get(key)
+            if h is None:
+                c["not covered"] += 1
+            else:
+                c[h.get("verdict") or "no verdict"] += 1
+    return c
 
 
 def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed: int,
                  engine: str) -> None:
     """Write ``report.md`` (see the module docstring) from the per-study entries."""
-    total = sum(e["wall_time_s"] or 0.0 for e in entries)
+    total = sum((e["wall_time_s"] or 0.0) + (e.get("paper_wall_time_s") or 0.0)
+                for e in entries)
+    n = counts(entries)
     lines = [
         "# The paper, reproduced",
+        "",
+        f"Paper: {PAPER_CITATION}.",
         "",
         "Generated by `cdma-lidar study run paper --out DIR"
         + (" --quick" if quick else "") + f"` (seed {seed}, {engine}); every number below "
         "comes from that run (the studies' own `summary.json`, `results.csv` and figures are "
-        "in the sub-folders). Paper: *Identity-enabled CDMA LiDAR* "
-        "(`shared/seed/identity-enabled-cdma-lidar.md`). "
-        + ("`--quick`: reduced trial counts and grids, so some numbers are noisier than the "
-           "full run's. " if quick else "Full trial counts. ")
-        + "The SNR_XC scale and the depth-resolution definitions are explained in "
-        "`docs/studies.md` (\"Paper reproduction: ranging\") and `docs/paper.md`.",
+        "in the sub-folders; a study's run at the paper's operating point is in "
+        "`<study>-paper/`). "
+        + ("`--quick`: reduced trial counts and grids, so the intervals are wider than the "
+           "full run's. " if quick else "Full trial counts. "),
+        "",
+        f"**Results: {n['reproduced']} reproduced within their 95 % interval, {n['exact']} "
+        f"exact, {n['differs']} differ, {n['no verdict']} without a verdict (the paper "
+        f"prints no number, or the run bounds neither end of the interval), "
+        f"{n['not covered']} not covered.**",
         "",
         "## Results",
         "",
-        "| result | quantity | paper | ours | ours / paper | unit | figure |",
+        "Verdict at the paper's operating point: *exact* (computed, equal to the printed "
+        "number at its printed precision), *reproduced* (the printed number lies in our 95 % "
+        "interval; for the paper's \"more than\" when the interval reaches it), *differs*. "
+        "Intervals count the trials and the grid step; an end the run does not bound is "
+        "`open`. The cause is what this run shows.",
+        "",
+        "| result | the paper's words | paper | ours at the paper's point [95 %] | "
+        "ours at the default [95 %] | verdict | cause (this run) |",
         "|---|---|---|---|---|---|---|",
     ]
     for e in entries:
-        fig = f"[{Path(e['figures'][0]).name}]({e['figures'][0]})" if e["figures"] else "--"
-        keys = list(e["keys"]) + [k for k in e["summary"] if k not in e["keys"]]
-        for key in keys:
+        for key in e["keys"]:
             h = e["summary"].get(key)
+            words = fmt_value(PAPER_WORDS.get((e["name"], key), ""))
+            label = f"{e['where']}: `{e['name']}.{key}`"
             if h is None:
                 status = e["status"] if e["status"] != "ok" else "missing from summary.json"
-                lines.append(f"| {e['name']} ({e['where']}) | `{key}` | -- | {status} | -- "
-                             f"| -- | -- |")
+                lines.append(f"| {label} | {words} | -- | {status} | -- | not covered | -- |")
                 continue
-            lines.append(f"| {e['name']} ({e['where']}) | `{key}` | {_fmt(h.get('paper'))} | "
-                         f"{_fmt(h.get('ours'))} | {_compare(h)} | {h.get('unit', '')} | "
-                         f"{fig} |")
-    lines += ["", "## Time", "", "| study | wall time (s) | tasks | failed | executor |",
-              "|---|---|---|---|---|"]
+            unit = (f" {h.get('unit')}" if h.get("unit") not in (None, "", "1")
+                    and isinstance(h.get("paper"), int | float) else "")
+            lines.append(
+                f"| {label} | {words} | {fmt_value(h.get('paper'))}{unit} | "
+                f"{fmt_interval(h.get('paper_point'), h.get('paper_point_ci95', h.get('ci95')))} | "
+                f"{fmt_interval(h.get('ours'), h.get('ci95'))} | **{h.get('verdict') or '--'}** | "
+                f"{fmt_value(h.get('cause') or '')} |")
+    for where, words, why in NOT_COVERED:
+        lines.append(f"| {where} | {fmt_value(words)} | -- | -- | -- | not covered | "
+                     f"{fmt_value(why)} |")
+    lines += ["", "## Derived from the paper's equations", "",
+              "Not printed by the paper: values its equations give at our operating point, "
+              "and the other quantities the studies report.", "",
+              "| study | quantity | ours (default) | at the paper's point | unit | derived how |",
+              "|---|---|---|---|---|---|"]
+    for e in entries:
+        for key, h in e["summary"].items():
+            if key in e["keys"]:
+                continue
+            lines.append(f"| {e['name']} | `{key}` | {fmt_value(h.get('ours'))} | "
+                         f"{fmt_value(h.get('paper_point'))} | {h.get('unit', '')} | "
+                         f"{fmt_value(h.get('derived') or h.get('cause') or '')} |")
+    for e in entries:
+        for key in e["keys"]:
+            h = e["summary"].get(key)
+            if h is not None and h.get("derived"):
+                lines.append(f"| {e['name']} | `{key}` | {fmt_value(h.get('ours'))} | "
+                             f"{fmt_value(h.get('paper_point'))} | {h.get('unit', '')} | "
+                             f"{fmt_value(h['derived'])} |")
+    lines += ["", "## The paper's operating point", "",
+              f"`--set point=paper` of every paper study, and the `{PRESET}` scene preset. "
+              "What the paper states, and what it leaves out (assumed, with the source of "
+              "each assumption):", "", *assumptions_markdown(), ""]
+    lines += ["## Time", "", "| study | wall time (s), default | at the paper's point | tasks | "
+              "failed | executor |", "|---|---|---|---|---|---|"]
     for e in entries:
         t = e["wall_time_s"]
-        lines.append(f"| {e['name']} | {_fmt(t) if t is not None else '--'} | "
-                     f"{_fmt(e['tasks'])} | {_fmt(e['failed'])} | "
-                     f"{e['engine'] or e['status']} |")
-    lines += [f"| **total** | {total:.1f} | | | |", ""]
+        lines.append(f"| {e['name']} | {fmt_value(t) if t is not None else '--'} | "
+                     f"{fmt_value(e.get('paper_wall_time_s'))} | {fmt_value(e['tasks'])} | "
+                     f"{fmt_value(e['failed'])} | {e['engine'] or e['status']} |")
+    lines += [f"| **total** | {total:.1f} | | | | |", ""]
     for e in entries:
         lines += [f"## {e['name']}: {e['what']} ({e['where']})", ""]
         if e["status"] != "ok":
             lines += [f"Status: **{e['status']}**.", ""]
         if e["summary"]:
-            lines += ["| quantity | paper | ours | ours / paper | unit |", "|---|---|---|---|---|"]
+            lines += ["| quantity | paper | at the paper's point | default | verdict | unit |",
+                      "|---|---|---|---|---|---|"]
             for key, h in e["summary"].items():
-                lines.append(f"| `{key}` | {_fmt(h.get('paper'))} | {_fmt(h.get('ours'))} | "
-                             f"{_compare(h)} | {h.get('unit', '')} |")
+                lines.append(f"| `{key}` | {fmt_value(h.get('paper'))} | "
+                             f"{fmt_interval(h.get('paper_point'), h.get('paper_point_ci95'))} | "
+                             f"{fmt_interval(h.get('ours'), h.get('ci95'))} | "
+                             f"{h.get('verdict') or '--'} | {h.get('unit', '')} |")
             lines.append("")
         for f in e["figures"]:
-            lines += [f"![{e['name']}]({f})", ""]
+            lines += [f"![{e['name']}, default]({f})", ""]
+        for f in e.get("paper_figures") or []:
+            lines += [f"![{e['name']}, at the paper's point]({f})", ""]
         if e["note"]:
             lines += [e["note"], ""]
         if e["wall_time_s"] is not None:
@@ -229,6 +403,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     del table
     names = list(ctx.options["studies"])
     sub_set = parse_sub_set(tuple(ctx.options["sub_set"]), names)
+    at_paper_too = ctx.options["point"] == "both"
     entries = []
     out: dict[str, Headline] = {}
     for name in names:
@@ -238,33 +413,59 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             log.warning("paper: study %s is %s", name, NOT_AVAILABLE)
             entries.append(_entry(name, None, None, ctx.out, None))
             continue
-        result, error = None, None
+        result, at_paper, error = None, None, None
+        own = dict(sub_set.get(name) or {})
+        if ctx.options["point"] == "paper":
+            own.setdefault("point", "paper")
         try:
-            result = ctx.run_sub(study, sub_set.get(name))
+            result = ctx.run_sub(study, own)
+            if at_paper_too and name in PAPER_POINT_RUNS:
+                paper_study = dataclasses.replace(study, name=f"{name}-paper")
+                quick = PAPER_POINT_QUICK.get(name, {}) if ctx.options.quick else {}
+                at_paper = ctx.run_sub(paper_study, {**quick, **own, **PAPER_POINT_RUNS[name]})
+            elif ctx.options["point"] == "paper" and name in PAPER_POINT_RUNS:
+                at_paper = result  # the part ran at the paper's point: that is its value
         except ConfigError:
             raise  # a bad sub_set value: the user's mistake, exit 2
         except Exception as exc:  # one broken part must not cost the others' results
             error = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
             log.warning("paper: study %s %s", name, error)
-        entries.append(_entry(name, result, error, ctx.out, study))
-        for key, h in (result.summary.items() if result is not None else ()):
+        e = _entry(name, result, error, ctx.out, study, at_paper)
+        entries.append(e)
+        for key, h in e["summary"].items():
             out[f"{name}.{key}"] = h
     write_report(entries, ctx.out / "report.md", quick=ctx.options.quick,
                  seed=ctx.options.seed, engine=ctx.executor.description)
-    missing = [e["name"] for e in entries if e["status"] != "ok"]
-    out["studies_reproduced"] = headline(len(names) - len(missing), len(PAPER_STUDIES),
-                                         "studies")
+    n = counts(entries)
+    total = sum(len(PAPER_STUDIES[e["name"]][2]) for e in entries) + len(NOT_COVERED)
+    for verdict, key in (("reproduced", "results_reproduced"), ("exact", "results_exact"),
+                         ("differs", "results_differing"), ("not covered", "results_not_covered")):
+        out[key] = entry(n[verdict], None, f"results of {total}", verdict=None)
     return out
+
+
+def _grid(options: Any) -> list[dict]:
+    names = list(options["studies"])
+    for n in names:
+        if n not in PAPER_STUDIES:
+            raise ConfigError(f"--set studies: {n!r} is not a paper study; known: "
+                              f"{', '.join(PAPER_STUDIES)}", "studies")
+    if options["point"] not in ("both", *POINTS):
+        raise out_of_range("point", "both, default or paper", options["point"])
+    parse_sub_set(tuple(options["sub_set"]), names)
+    return []
 
 
 STUDY = Study(
     name="paper",
-    description="every quantitative result of the paper (all paper studies) and "
-                "DIR/report.md with the paper's values beside ours",
+    description="every quantitative result of the paper (all paper studies, at the paper's "
+                "operating point and the default) and DIR/report.md with verdicts",
     grid=_grid, task=None, reduce=_reduce,
     settings=(
         Setting("studies", tuple(PAPER_STUDIES), "which paper studies to run"),
         Setting("sub_set", (), "settings for the parts, STUDY.KEY=VALUE items"),
+        Setting("point", "both", "both (default runs, plus the paper's point where it needs a "
+                "run of its own), default, or paper (every part at point=paper)"),
     ),
-    version="1",
+    version="2",
 )

@@ -26,8 +26,9 @@ import numpy as np
 from cdma_lidar.firmware_model.gold import family_size, is_preferred_pair, t_value, xcorr_values
 from cdma_lidar.firmware_model.lfsr import format_poly, is_primitive, reciprocal_poly
 from cdma_lidar.poly import Poly
-from cdma_lidar.study.engine import RunContext, Study, Table, headline
+from cdma_lidar.study.engine import RunContext, Setting, Study, Table
 from cdma_lidar.study.figures import new_figure, save_figure
+from cdma_lidar.study.paperlab import check_point, exact
 
 __all__ = ["PAPER_TABLE1", "REPORT_NOTE", "STUDY", "read_printed", "table1_task"]
 
@@ -75,6 +76,7 @@ def read_printed(printed: str) -> Poly:
 
 
 def _grid(options: Any) -> list[dict]:
+    check_point(options["point"])
     return [{"row": i, "degree": m, "printed_u": u, "printed_v": v, "starred": starred}
             for i, (m, u, v, _, starred) in enumerate(PAPER_TABLE1)]
 
@@ -130,12 +132,13 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     save_figure(fig, ctx.out / "table1.png")
     not_pref = int(rows - np.sum(table.column("preferred")))
     # Paper: Supplementary Note 8, Table 1 lists 7 pairs, all presented as preferred.
-    return {"pairs_checked": headline(rows, 7, "pairs"),
-            "pairs_not_preferred": headline(not_pref, 0, "pairs")}
+    return {"pairs_checked": exact(rows, 7, "pairs"),
+            "pairs_not_preferred": exact(not_pref, 0, "pairs")}
 
 
 STUDY = Study(
     name="table1",
     description="the paper's Table 1 of preferred pairs checked (errata: two rows are not)",
-    grid=_grid, task=table1_task, reduce=_reduce, settings=(), version="1",
+    grid=_grid, task=table1_task, reduce=_reduce, version="1",
+    settings=(Setting("point", "default", "default or paper: one point here, the paper's own"),),
 )
