@@ -29,7 +29,6 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy.special import stdtrit
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.firmware_model.gold import gold_codes, periodic_xcorr
@@ -92,6 +91,8 @@ def async_power_half_width(theta: np.ndarray, n: int, rng: np.random.Generator, 
     means = n * np.mean(r * r, axis=1)
     if means.size < 2:
         return math.nan
+    from scipy.special import stdtrit  # deferred: scipy costs 0.3 s at every CLI start-up
+
     return float(stdtrit(means.size - 1, 0.975) * np.std(means, ddof=1) / math.sqrt(means.size))
 
 

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from cdma_lidar.errors import out_of_range
 
@@ -142,6 +141,8 @@ def wilson(errors: int, n: int, z: float = 1.96) -> tuple[float, float]:
 def sigma_ci(sigma: float, n: int, level: float = 0.95) -> tuple[float, float]:
     """Interval of a Gaussian standard deviation estimated from ``n`` samples (chi-square)."""
     a = (1 - level) / 2
+    from scipy.stats import chi2  # deferred: scipy.stats costs 0.9 s at every CLI start-up
+
     return (sigma * math.sqrt((n - 1) / chi2.ppf(1 - a, n - 1)),
             sigma * math.sqrt((n - 1) / chi2.ppf(a, n - 1)))
 
