@@ -87,9 +87,7 @@ INFO_RANGES: dict[str, tuple[int, int, str]] = {
     "tilt_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg, or TILT_AUTO)"),
     "column_start_udeg": (-180_000_000, 180_000_000, "udeg (-180 to 180 deg)"),
     "column_step_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg)"),
-    "adc_bits": (1, 32, "bits"),
     "max_degree": (2, 32, "(LFSR degree)"),
-    "max_uid_bits": (1, 8, "bits (the wire's sign masks are u8)"),
     "max_frame": (256, 65535, "bytes"),
 }
 
