@@ -291,7 +291,7 @@ class HostLink:
         self._reply_frame: Frame | None = None
         self._reply_parts: list[Frame] = []  # the FRAGMENTs the pending reply came in
         self._partial: dict[tuple[int, int], _Pieces] = {}  # replies arriving in fragments
-        self._line_errors = 0  # LINE_ERRORs of our session heard so far
+        self.line_errors = 0  # LINE_ERRORs of our session heard so far
         self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
@@ -912,7 +912,7 @@ class HostLink:
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
                       self.stats.wrong_session, self._other_version(), self.decoder.stats.damaged,
-                      self._line_errors)
+                      self.line_errors)
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
@@ -957,7 +957,7 @@ class HostLink:
             damaged = self.decoder.stats.damaged - win.damaged
             what += (f" ({damaged} damaged frames of "
                      f"{damaged + self.decoder.stats.frames - win.frames} received, "
-                     f"{self._line_errors - win.line_errors} reported by the device)")
+                     f"{self.line_errors - win.line_errors} reported by the device)")
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
@@ -967,7 +967,7 @@ class HostLink:
         which are sized to the line (``auto_frame``), so that a long request (POWER_SET
         of a whole matrix, RESEND of many columns) is cut into pieces that get through."""
         limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
-        if self.auto_frame and (self.decoder.stats.damaged or self._line_errors):
+        if self.auto_frame and (self.decoder.stats.damaged or self.line_errors):
             limit = min(limit, DAMAGED_REQUEST_FRAME)  # ~46 % get through at 1e-3
         return limit
 
@@ -975,7 +975,7 @@ class HostLink:
         """Signs that a request or its reply was hit: damaged chunks here and the
         device's LINE_ERRORs. (In a scan, RESEND waits for no reply, so the damaged
         columns there only hurry the rare awaited request: a STATUS probe, FRAME_SIZE.)"""
-        return (self.decoder.stats.damaged, self._line_errors)
+        return (self.decoder.stats.damaged, self.line_errors)
 
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
@@ -988,7 +988,7 @@ class HostLink:
         st = self.decoder.stats
         if st.bytes == win.bytes:
             return DIAG_SILENT
-        reported = self._line_errors - win.line_errors  # the device saw our frames damaged
+        reported = self.line_errors - win.line_errors  # the device saw our frames damaged
         if st.frames == win.frames and not reported:
             return DIAG_VERSION if self._other_version() > win.other_version else DIAG_GARBAGE
         wrong = self.stats.wrong_session - win.wrong_session
@@ -1120,9 +1120,6 @@ class HostLink:
                 frame.session == self._reply.session:
             self._early.append(frame)  # of the session INFO is opening: read once it is ours
             return
-        if frame.msg_type == MsgType.LINE_ERROR:
-            self._line_errors += 1  # only a hint to retry now, from any session
-            return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and
@@ -1133,6 +1130,9 @@ class HostLink:
         if self._rx is not None and not hello_reply and not self._rx.check(frame):
             self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
             log.debug("dropped an unauthenticated %#04x frame", frame.msg_type)
+            return
+        if frame.msg_type == MsgType.LINE_ERROR:
+            self.line_errors += 1  # our session's, authenticated: the device saw damage
             return
         if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
             self._session_lost(frame)

@@ -1,0 +1,31 @@
+"""Defects a hostile or unlucky peer found in protocol v2, each fixed in v3 (issue 25).
+
+Time-dependent behaviour is driven by injected clocks; no test asserts an elapsed time.
+"""
+
+from __future__ import annotations
+
+from protocol_fixtures import RunningDevice, SyntheticApp
+
+from cdma_lidar.protocol.framing import encode_frame
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import MsgType, encode_payload
+from cdma_lidar.protocol.pipes import pipe_pair
+
+KEY = bytes(range(32))
+
+
+def test_an_unsigned_line_error_in_a_signed_session_is_not_counted() -> None:
+    """An injector's LINE_ERROR must not hurry the host: counted only once it verifies."""
+    host, dev = pipe_pair()
+    with RunningDevice(dev, SyntheticApp(channels=4, columns=8), key=KEY):
+        link = HostLink(host, timeout_s=1.0, retries=2, key=KEY)
+        link.hello()
+        before = (link.line_errors, link.stats.unauthenticated)
+        forged = encode_payload(MsgType.LINE_ERROR, {"rx_errors": 7})
+        for seq in range(5):
+            host.rx.write(encode_frame(MsgType.LINE_ERROR, forged, seq, link.session))
+        link.status()  # reads the injected frames on the way
+        assert link.line_errors == before[0]
+        assert link.stats.unauthenticated >= before[1] + 5
+        link.close()
