@@ -268,6 +268,10 @@ class DeviceCore:
         self.opened = 0.0
         self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
+        #: Since boot (the core's creation), over every connection: what STATUS reports.
+        self.booted = clock()
+        self.totals = EndpointStats()
+        self.rx_frames = self.rx_errors = 0
 
     def idle_s(self, now: float) -> float:
         """Seconds the owner's session has been idle (0 while it streams)."""
@@ -360,7 +364,6 @@ class DeviceEndpoint:
         self.clock = clock
         self.decoder = FrameDecoder(max_frame)
         self.stats = EndpointStats()
-        self._boot = clock()
         self._replay: OrderedDict[int, _Cached] = OrderedDict()
         self._last_seq: int | None = None
         self._stream: _Stream | None = None
@@ -464,11 +467,14 @@ class DeviceEndpoint:
                     data += self.port.read(more)
         with self._lock:
             if data:
-                damaged = self.decoder.stats.damaged
+                ds = self.decoder.stats
+                damaged, frames, errors = ds.damaged, ds.frames, ds.errors
                 for frame in self.decoder.feed(data):
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
+                self.core.rx_frames += ds.frames - frames
+                self.core.rx_errors += ds.errors - errors
                 if self.decoder.stats.damaged > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
@@ -499,6 +505,7 @@ class DeviceEndpoint:
             finally:
                 self._app_lock.release()
         temp, faults = self._health
+        core = self.core
         mask = 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
@@ -507,12 +514,10 @@ class DeviceEndpoint:
             next_column=(st.next_column - self._column_queued() if st else self._last_next)
             & 0xFFFF,
             last_end=int(self._last_end),
-            columns_sent=self.stats.columns_sent & mask,
-            uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
-            rx_frames=self.decoder.stats.frames & mask,
-            rx_errors=self.decoder.stats.errors & mask,
-            tx_frames=self.stats.tx_frames & mask,
-            replays=self.stats.replays & mask,
+            columns_sent=core.totals.columns_sent & mask,
+            uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
+            rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
+            tx_frames=core.totals.tx_frames & mask, replays=core.totals.replays & mask,
             temperature_mc=temp, faults=faults & mask)
 
     # ---- sending --------------------------------------------------------------------
@@ -576,6 +581,7 @@ class DeviceEndpoint:
                     continue
                 self.port.write(wire)
                 self.stats.tx_frames += 1
+                self.core.totals.tx_frames += 1
                 if cls > _CONTROL:
                     sent += len(wire)
         except BaseException:  # the port failed: let the next writer try
@@ -742,6 +748,7 @@ class DeviceEndpoint:
         cached = self._replay.get(frame.seq)
         if cached is not None and cached.key == key:
             self.stats.replays += 1
+            self.core.totals.replays += 1
             for reply in cached.replies:
                 self._send_reply(frame, reply)
             return
@@ -1095,6 +1102,7 @@ class DeviceEndpoint:
             for key, payload, only in todo:
                 self.stats.resent += 1
                 self.stats.columns_sent += 1
+                self.core.totals.columns_sent += 1
                 self._send_column(key, payload, COMPAT_RETRANSMIT, only)
 
         after.append(resend)
@@ -1173,6 +1181,7 @@ class DeviceEndpoint:
                         self._cuts.pop(self._ring.popitem(last=False)[0], None)
                     st.produced += 1
                     self.stats.columns_sent += 1
+                    self.core.totals.columns_sent += 1
                     self._send_column(key, payload)
                     if st.produced >= st.count:
                         # End the stream under the same lock that queued its last column:

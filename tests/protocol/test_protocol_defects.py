@@ -29,3 +29,26 @@ def test_an_unsigned_line_error_in_a_signed_session_is_not_counted() -> None:
         assert link.line_errors == before[0]
         assert link.stats.unauthenticated >= before[1] + 5
         link.close()
+
+
+def test_status_counters_run_since_boot_not_since_the_connection() -> None:
+    """Two connections to one device (as over TCP): the second sees the first's counts."""
+    from cdma_lidar.protocol.endpoint import DeviceCore
+
+    core = DeviceCore(SyntheticApp(channels=4, columns=8))
+    first_host, first_dev = pipe_pair()
+    with RunningDevice(first_dev, None, core=core):
+        link = HostLink(first_host, timeout_s=1.0)
+        link.hello()
+        list(link.scan(frame=1))
+        st1 = link.status()
+        link.close()
+    second_host, second_dev = pipe_pair()
+    with RunningDevice(second_dev, None, core=core):
+        link = HostLink(second_host, timeout_s=1.0)
+        link.hello()
+        st2 = link.status()
+        link.close()
+    assert st1.columns_sent == 8 and st2.columns_sent == 8
+    assert st2.rx_frames > st1.rx_frames and st2.tx_frames > st1.tx_frames
+    assert st2.uptime_ms >= st1.uptime_ms
