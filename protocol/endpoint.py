@@ -375,6 +375,7 @@ class DeviceEndpoint:
         # Piece length (bytes) each ring column was last cut at; 0: sent whole.
         self._cuts: dict[tuple[int, int], int] = {}
         self._stream_seq = 0
+        self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
         self._info: Info | None = None  # as sent in the last INFO
@@ -604,6 +605,11 @@ class DeviceEndpoint:
 
     def _send_stream(self, msg_type: MsgType, payload: bytes, compat: int = 0,
                      cls: int = _CONTROL, repair: tuple[int, int, int] | None = None) -> None:
+        if self._pieces(payload, self._tx is not None) > 1:  # a notice longer than a frame
+            self._notice_id = (self._notice_id + 1) & 0xFFFF
+            self._send_pieces(msg_type, payload, self._notice_id, 0, 0, self._tx, None, compat,
+                              cls)
+            return
         self._enqueue_tx(cls, msg_type, payload, None, compat, self._tx, repair)
 
     def _piece_room(self, signed: bool) -> int:

@@ -291,6 +291,7 @@ class HostLink:
         self._reply_frame: Frame | None = None
         self._reply_parts: list[Frame] = []  # the FRAGMENTs the pending reply came in
         self._partial: dict[tuple[int, int], _Pieces] = {}  # replies arriving in fragments
+        self._notices: dict[tuple[int, int], _Pieces] = {}  # notices arriving in fragments
         self.line_errors = 0  # LINE_ERRORs of our session heard so far
         self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
@@ -1102,7 +1103,8 @@ class HostLink:
                 if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
                     self._reply_version = frame
 
-    def _dispatch(self, frame: Frame) -> None:
+    def _dispatch(self, frame: Frame, checked: bool = False) -> None:
+        """Route one frame; ``checked``: a notice put together from authenticated pieces."""
         kind = kind_of(frame.msg_type)
         if kind is MsgKind.REQUEST:
             self.stats.ignored += 1
@@ -1127,7 +1129,8 @@ class HostLink:
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
                 self._reply = frame  # the device says it restarted: fail fast
             return
-        if self._rx is not None and not hello_reply and not self._rx.check(frame):
+        if self._rx is not None and not hello_reply and not checked and \
+                not self._rx.check(frame):
             self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
             log.debug("dropped an unauthenticated %#04x frame", frame.msg_type)
             return
@@ -1145,8 +1148,27 @@ class HostLink:
                     self._stream.append((MsgType.FRAGMENT, body))
             elif kind_of(body["msg_type"]) is MsgKind.REPLY:
                 self._collect(frame, body)
+            else:  # a notice longer than the frame size (HEARTBEAT, SESSION_LOST, ...)
+                whole = self._notice_piece(frame, body)
+                if whole is not None:
+                    self._dispatch(whole, checked=True)
             return
         self._reply_reply(kind, frame)
+
+    def _notice_piece(self, frame: Frame, body: dict[str, Any]) -> Frame | None:
+        """One FRAGMENT of a notice (already authenticated); the whole notice once all
+        pieces are in, as an unsigned frame of our session."""
+        key = (body["msg_type"], body["seq"])
+        pc = self._notices.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._notices[key] = _Pieces(body["count"])
+            while len(self._notices) > 8:  # pieces of lost notices are forgotten
+                self._notices.pop(next(iter(self._notices)))
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
+            return None
+        del self._notices[key]
+        return Frame(key[0], 0, frame.session, b"".join(pc.data[i] for i in range(pc.count)))
 
     def _reply_reply(self, kind: MsgKind, frame: Frame) -> None:
         """A reply or stream frame of our session, authenticated."""

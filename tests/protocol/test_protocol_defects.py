@@ -52,3 +52,31 @@ def test_status_counters_run_since_boot_not_since_the_connection() -> None:
     assert st1.columns_sent == 8 and st2.columns_sent == 8
     assert st2.rx_frames > st1.rx_frames and st2.tx_frames > st1.tx_frames
     assert st2.uptime_ms >= st1.uptime_ms
+
+
+def test_notices_longer_than_a_small_frame_go_out_in_fragments(caplog) -> None:
+    """64-byte frames in a signed session: heartbeats and SESSION_LOST still arrive whole."""
+    import logging
+
+    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.link import SessionLost
+
+    app = SyntheticApp(channels=2, columns=6, column_delay_s=0.05)
+    core = DeviceCore(app, key=KEY)
+    a_host, a_dev = pipe_pair()
+    b_host, b_dev = pipe_pair()
+    with caplog.at_level(logging.ERROR), RunningDevice(a_dev, None, core=core, heartbeat_s=0.01), \
+            RunningDevice(b_dev, None, core=core):
+        a = HostLink(a_host, timeout_s=1.0, key=KEY, max_frame=64)
+        a.hello()
+        assert len(list(a.scan(frame=2))) == 6
+        assert a.last_status is not None and a.last_status.frame == 2  # a heartbeat came
+        b = HostLink(b_host, timeout_s=1.0, key=KEY, take_over=True)
+        b.hello()
+        try:
+            a.status()
+            raise AssertionError("the taken-over host must hear SESSION_LOST")
+        except SessionLost as exc:
+            assert "took over" in str(exc)
+        b.close()
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
