@@ -201,6 +201,7 @@ class EndpointStats:
     columns_sent: int = 0
     resent: int = 0
     auth_rejected: int = 0  #: frames dropped for a wrong MAC or a replayed counter
+    auth_throttled: int = 0  #: HELLO MACs not checked: the peer's back-off was running
     sessions: int = 0  #: sessions opened on this connection
 
 
@@ -268,6 +269,7 @@ class DeviceCore:
         self.opened = 0.0
         self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
+        self.backoff = auth.Backoff(clock)  # failed authentication, per peer
         #: Since boot (the core's creation), over every connection: what STATUS reports.
         self.booted = clock()
         self.totals = EndpointStats()
@@ -328,6 +330,8 @@ class DeviceEndpoint:
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s).
         replay_depth: requests remembered for retransmission replay.
+        peer: who is on the other end (an IP address), for the per-peer back-off after
+            failed authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
     """
 
@@ -335,7 +339,7 @@ class DeviceEndpoint:
                  core: DeviceCore | None = None, key: bytes | None = None,
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
-                 poll_s: float = 0.01, replay_depth: int = 32,
+                 poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
         check_int("ring_columns", ring_columns, 0, 65535)
@@ -354,6 +358,8 @@ class DeviceEndpoint:
         self.core = core
         self.app = core.app
         self.port = port
+        #: Who is on the other end (an IP address over TCP), for the auth back-off and logs.
+        self.peer = peer or str(getattr(port, "name", None) or type(port).__name__)
         self.session = session_id if session_id else _new_session()
         self.session_open = False
         self.max_frame = max_frame
@@ -376,6 +382,7 @@ class DeviceEndpoint:
         self._cuts: dict[tuple[int, int], int] = {}
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
+        self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
         self._info: Info | None = None  # as sent in the last INFO
@@ -468,14 +475,12 @@ class DeviceEndpoint:
                     data += self.port.read(more)
         with self._lock:
             if data:
-                ds = self.decoder.stats
-                damaged, frames, errors = ds.damaged, ds.frames, ds.errors
+                damaged = self.decoder.stats.damaged
                 for frame in self.decoder.feed(data):
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
-                self.core.rx_frames += ds.frames - frames
-                self.core.rx_errors += ds.errors - errors
+                self._count_rx()
                 if self.decoder.stats.damaged > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
@@ -494,8 +499,16 @@ class DeviceEndpoint:
                     None if not worker else _POLL_REPAIR_BYTES)
 
 
+    def _count_rx(self) -> None:
+        """Add what the decoder counted since the last call to the core's totals."""
+        ds, (frames, errors) = self.decoder.stats, self._rx_counted
+        self.core.rx_frames += ds.frames - frames
+        self.core.rx_errors += ds.errors - errors
+        self._rx_counted = (ds.frames, ds.errors)
+
     def status(self) -> Status:
-        """Current status (as sent in STATUS and HEARTBEAT)."""
+        """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
+        self._count_rx()
         st = self._stream
         if self._app_lock.acquire(blocking=False):  # else: the last reading
             try:
@@ -746,8 +759,8 @@ class DeviceEndpoint:
                     return
                 if not self._rx.check(frame):  # forged or replayed: no answer at all
                     self.stats.auth_rejected += 1
-                    log.warning("dropped a %s frame that failed authentication (seq %d)",
-                                _type_name(frame.msg_type), frame.seq)
+                    self.core.backoff.failed(f"{self.peer} (session frames)",
+                                             "a frame failed authentication")
                     return
             self.core.touch(self)
         key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
@@ -763,6 +776,11 @@ class DeviceEndpoint:
             if 0 < age < 0x8000:
                 self.stats.stale += 1
                 log.debug("dropped stale request seq %d (last %d)", frame.seq, self._last_seq)
+                return
+        if is_hello and not in_worker:
+            refusal = self._hello_refusal(frame)
+            if refusal is not None:
+                self._respond(frame, key, refusal)
                 return
         if in_worker or frame.msg_type in _WITHOUT_APP or \
                 (frame.msg_type == MsgType.CONFIG_GET and self._stream is not None and
@@ -793,12 +811,23 @@ class DeviceEndpoint:
             except Exception:  # a bug must not take the device off the line
                 log.exception("request worker failed on %s", _type_name(frame.msg_type))
 
-    def _respond(self, frame: Frame, key: int) -> None:
-        """Act on one request, cache and send its reply (caller holds _lock, maybe app_lock)."""
+    def _hello_refusal(self, frame: Frame) -> _Reply | None:
+        """The gate's answer to a HELLO, from the polling thread (None: for the worker)."""
+        try:
+            f = decode_payload(MsgType.HELLO, frame.payload)
+        except FrameError:
+            return None  # the worker NAKs it MALFORMED
+        assert isinstance(f, dict)
+        return self._hello_gate(frame, f)
+
+    def _respond(self, frame: Frame, key: int, reply: _Reply | None = None) -> None:
+        """Act on one request (or send ``reply``, decided already), cache and send its
+        reply (caller holds _lock, maybe app_lock)."""
         is_hello = frame.msg_type == MsgType.HELLO
         after: list[Callable[[], None]] = []
         try:
-            reply = self._handle(frame, after)
+            if reply is None:
+                reply = self._handle(frame, after)
         except FrameError as exc:
             reply = self._nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except DeviceError as exc:
@@ -846,27 +875,61 @@ class DeviceEndpoint:
         return self._reply(req, MsgType.ACK,
                            encode_payload(MsgType.ACK, {"request_type": req.msg_type}))
 
-    def _on_hello(self, req: Frame, f: dict, after: list) -> _Reply:
-        """Challenge (with a key), check ownership, then open a fresh session.
+    def _hello_gate(self, req: Frame, f: dict) -> _Reply | None:
+        """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
+        or one sent during the peer's back-off) or BUSY; None: open a session.
 
-        Runs in the request worker, holding app_lock and _lock.
+        Runs in the polling thread (holding _lock), so a HELLO is refused at once
+        whatever the application is computing, and again in the request worker.
         """
         core = self.core
-        nonce = bytes(f["host_nonce"])
         if core.key is not None:
             if not any(f["mac"]) or self._challenge is None or \
                     not auth.equal(f["device_nonce"], self._challenge):
                 self._challenge = secrets.token_bytes(auth.NONCE_BYTES)
                 return (MsgType.CHALLENGE, encode_payload(
                     MsgType.CHALLENGE, {"device_nonce": self._challenge}), False)
-            want = auth.hello_mac(core.key, self._challenge, nonce, f["flags"],
-                                  f["host_max_frame"])
+            wait = core.backoff.wait_s(self.peer)
+            if wait > 0:
+                self._challenge = None
+                self.stats.auth_throttled += 1
+                return self._nak(req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
+                                 f"authentications from this peer: retry in {wait:.1f} s",
+                                 False)
+            want = auth.hello_mac(core.key, self._challenge, bytes(f["host_nonce"]),
+                                  f["flags"], f["host_max_frame"])
             if not auth.equal(want, f["mac"]):
                 self._challenge = None
                 self.stats.auth_rejected += 1
-                log.warning("HELLO with a wrong MAC: the host holds another key")
+                core.backoff.failed(self.peer, "HELLO with a wrong MAC (the host holds "
+                                               "another key)")
                 return self._nak(req, ErrorCode.AUTH_FAILED, "mac",
                                  "the MAC does not match this device's key", False)
+        owner = core.owner
+        if owner is None or (owner is self and core.owner_nonce == bytes(f["host_nonce"])):
+            return None
+        now = core.clock()
+        idle = core.idle_s(now)
+        if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
+            return None
+        return self._nak(
+            req, ErrorCode.BUSY, "session",
+            f"another host owns the device: its session opened {now - core.opened:.1f} "
+            f"s ago and has been idle {idle:.1f} s (expires after "
+            f"{core.session_idle_s:g} s idle); say HELLO with take-over to end it", False)
+
+    def _on_hello(self, req: Frame, f: dict, after: list) -> _Reply:
+        """Challenge (with a key), check ownership, then open a fresh session.
+
+        Runs in the request worker, holding app_lock and _lock.
+        """
+        refusal = self._hello_gate(req, f)
+        if refusal is not None:
+            return refusal
+        core = self.core
+        if core.key is not None:
+            core.backoff.passed(self.peer)
+        nonce = bytes(f["host_nonce"])
         now = core.clock()
         owner = core.owner
         flags = HelloFlags(f["flags"])
@@ -876,23 +939,14 @@ class DeviceEndpoint:
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
-            elif flags & HelloFlags.TAKE_OVER:
+            else:
                 lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
                         f"after {now - core.opened:.1f} s")
-            else:
-                lost = None
-            if lost is not None and owner is self:
+            if owner is self:
                 self._lose(*lost)
-            elif lost is not None:
+            else:
                 with owner._lock:  # lock order: app_lock, then one endpoint's _lock
                     owner._lose(*lost)
-            else:
-                return self._nak(
-                    req, ErrorCode.BUSY, "session",
-                    f"another host owns the device: its session opened {now - core.opened:.1f} "
-                    f"s ago and has been idle {idle:.1f} s (expires after "
-                    f"{core.session_idle_s:g} s idle); say HELLO with take-over to end it",
-                    False)
         # Open a fresh session on this connection.
         self._end_session()
         device_nonce = self._challenge or bytes(auth.NONCE_BYTES)

@@ -1122,6 +1122,9 @@ class HostLink:
                 frame.session == self._reply.session:
             self._early.append(frame)  # of the session INFO is opening: read once it is ours
             return
+        if frame.msg_type == MsgType.LINE_ERROR and self._rx is None:
+            self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
+            return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
             if (kind is MsgKind.REPLY and frame.msg_type == MsgType.NAK and

@@ -80,3 +80,73 @@ def test_notices_longer_than_a_small_frame_go_out_in_fragments(caplog) -> None:
             assert "took over" in str(exc)
         b.close()
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+class _Stuck(SyntheticApp):
+    """Its scan computes column 0 until ``release`` is set (holding the application)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        super().__init__(channels=2, columns=4)
+        self.release = threading.Event()
+
+    def scan(self, frame: int, first_column: int, columns: int):  # type: ignore[override]
+        def gen():
+            self.release.wait(30.0)
+            yield from super(_Stuck, self).scan(frame, first_column, columns)
+        return gen()
+
+
+def test_a_second_host_hears_busy_while_the_application_computes() -> None:
+    """HELLO is refused from the polling thread: it never waits for a column."""
+    import pytest
+
+    from cdma_lidar.errors import DeviceError
+    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.messages import ErrorCode
+
+    app = _Stuck()
+    core = DeviceCore(app)
+    a_host, a_dev = pipe_pair()
+    b_host, b_dev = pipe_pair()
+    try:
+        with RunningDevice(a_dev, None, core=core), RunningDevice(b_dev, None, core=core):
+            a = HostLink(a_host, timeout_s=2.0)
+            a.hello()
+            a._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
+            b = HostLink(b_host, timeout_s=2.0, retries=0)
+            with pytest.raises(DeviceError) as exc:
+                b.hello()
+            assert exc.value.code == ErrorCode.BUSY
+            app.release.set()
+    finally:
+        app.release.set()
+
+
+def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
+    """20 wrong MACs at one instant: one is checked, one WARNING; later the key holder gets in."""
+    import logging
+
+    import pytest
+
+    from cdma_lidar.errors import DeviceError
+    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.messages import ErrorCode
+
+    now = [100.0]
+    core = DeviceCore(SyntheticApp(channels=2, columns=4), key=KEY, clock=lambda: now[0])
+    host, dev = pipe_pair()
+    with caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol"), \
+            RunningDevice(dev, None, core=core) as ep:
+        guesser = HostLink(host, timeout_s=1.0, key=bytes(32))
+        for _ in range(20):
+            with pytest.raises(DeviceError) as exc:
+                guesser.hello()
+            assert exc.value.code == ErrorCode.AUTH_FAILED
+        assert ep.stats.auth_rejected == 1 and ep.stats.auth_throttled == 19
+        now[0] += 0.2  # past the first back-off (0.1 s)
+        holder = HostLink(host, timeout_s=1.0, key=KEY)
+        assert holder.hello().auth == 1
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1, [r.getMessage() for r in warnings]
