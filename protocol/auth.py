@@ -45,9 +45,9 @@ from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
 __all__ = [
     "KEY_BYTES",
-    "Backoff",
     "MAC_BYTES",
     "NONCE_BYTES",
+    "Backoff",
     "FrameSigner",
     "FrameVerifier",
     "device_mac",
