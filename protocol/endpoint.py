@@ -362,6 +362,8 @@ class DeviceEndpoint:
         self.peer = peer or str(getattr(port, "name", None) or type(port).__name__)
         self.session = session_id if session_id else _new_session()
         self.session_open = False
+        #: Since when this connection has had no session (core clock, s).
+        self.sessionless_since = core.clock()
         self.max_frame = max_frame
         self.tx_max_frame = max_frame
         self.ring_columns = ring_columns
@@ -991,6 +993,8 @@ class DeviceEndpoint:
         self._cuts.clear()
         self._capture = None
         self._tx = self._rx = None
+        if self.session_open:
+            self.sessionless_since = self.core.clock()
         self.session_open = False
 
     def _lose(self, reason: SessionLostReason, detail: str) -> None:

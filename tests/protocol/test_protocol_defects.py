@@ -150,3 +150,86 @@ def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
         assert holder.hello().auth == 1
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1, [r.getMessage() for r in warnings]
+
+
+class _Ep:
+    """What Connections reads of an endpoint."""
+
+    def __init__(self, since: float, session: bool = False) -> None:
+        self.sessionless_since, self.session_open, self.peer = since, session, "peer"
+
+
+def test_silent_connections_are_closed_after_the_hello_deadline_and_make_room() -> None:
+    import threading
+
+    from cdma_lidar.virtual.serve import HELLO_DEADLINE_S, Connections, _Conn
+
+    now = [0.0]
+    conns = Connections(limit=3, clock=lambda: now[0])
+    owner = _Conn(_Ep(0.0, session=True), threading.Event())  # type: ignore[arg-type]
+    silent = [_Conn(_Ep(t), threading.Event()) for t in (1.0, 2.0)]  # type: ignore[arg-type]
+    for c in (owner, *silent):
+        assert conns.admit(c)
+    # Full: a newcomer closes the longest-silent connection, never the session's owner.
+    newcomer = _Conn(_Ep(3.0), threading.Event())  # type: ignore[arg-type]
+    now[0] = 3.0
+    assert conns.admit(newcomer)
+    assert silent[0].stop.is_set() and not owner.stop.is_set()
+    # The deadline closes the rest.
+    now[0] = 2.0 + HELLO_DEADLINE_S
+    conns.sweep()
+    assert silent[1].stop.is_set() and not newcomer.stop.is_set()
+    now[0] = 3.0 + HELLO_DEADLINE_S
+    conns.sweep()
+    assert newcomer.stop.is_set() and conns.items == [owner]
+    # Only sessions fill the server for good.
+    full = Connections(limit=1, clock=lambda: now[0])
+    assert full.admit(owner)
+    assert not full.admit(_Conn(_Ep(now[0]), threading.Event()))  # type: ignore[arg-type]
+
+
+def _device(*args: str):
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+         "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, proc.stdout.readline().strip()
+
+
+def test_eight_silent_peers_cannot_lock_a_key_holder_out(tmp_path) -> None:
+    import socket
+    import urllib.parse
+
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.protocol.auth import load_or_create_key
+
+    key_file = tmp_path / "device.key"
+    load_or_create_key(key_file)
+    proc, url = _device("--tcp", "127.0.0.1:0", "--key-file", str(key_file))
+    silent = []
+    try:
+        where = urllib.parse.urlsplit(url)
+        silent = [socket.create_connection((where.hostname, where.port)) for _ in range(8)]
+        with connect(url, timeout_s=2.0, key_file=str(key_file)) as dev:
+            assert dev.info.auth == 1
+    finally:
+        for s in silent:
+            s.close()
+        proc.terminate()
+        proc.wait(10)
+
+
+def test_insecure_tcp_on_the_ipv6_loopback_is_accepted() -> None:
+    from cdma_lidar.host.connection import connect
+
+    proc, url = _device("--tcp", "[::1]:0", "--insecure")
+    try:
+        assert url.startswith("socket://[::1]:"), (url, proc.stderr.read() if not url else "")
+        with connect(url, timeout_s=2.0) as dev:
+            assert dev.info.channels == 4
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -141,7 +141,8 @@ def test_cli_busy_and_take_over_over_tcp() -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
          "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--tcp",
-         "127.0.0.1:0", "--insecure"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+         "127.0.0.1:0", "--insecure", "--session-idle", "600"], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE)  # long idle: two CLI starts on a loaded machine take > 10 s
     try:
         url = proc.stdout.readline().decode().strip()
         assert url.startswith("socket://127.0.0.1:")
