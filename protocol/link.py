@@ -54,7 +54,6 @@ from cdma_lidar.errors import (
     FrameError,
     LinkError,
     LinkTimeout,
-    ScanAborted,
     out_of_range,
 )
 from cdma_lidar.protocol import auth
@@ -99,7 +98,9 @@ __all__ = [
     "DIAG_WRONG_SESSION",
     "HostLink",
     "LinkStats",
+    "ScanStalled",
     "SessionLost",
+    "StreamEnded",
 ]
 
 log = logging.getLogger(__name__)
@@ -126,6 +127,30 @@ DIAG_HINTS = {
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
     DIAG_NOISY: "the line damages frames: a smaller max frame or a better cable",
 }
+
+
+class StreamEnded(DeviceError):
+    """A scan or calibration ended before its last column; every column before
+    ``next_column`` was delivered (yielded), none from it on.
+
+    ``frame``: the stream's frame id; ``reason``: the device's ScanEndReason (ABORTED,
+    ERROR), or None when the host gave up (:class:`ScanStalled`). ``code`` is
+    ErrorCode.INTERNAL when the device failed.
+    """
+
+    def __init__(self, message: str, *, frame: int, next_column: int,
+                 reason: int | None, code: int = 0) -> None:
+        super().__init__(message, code=code)
+        self.frame, self.next_column, self.reason = frame, next_column, reason
+
+
+class ScanStalled(StreamEnded, LinkTimeout):
+    """The device kept the stream alive (heartbeats, STATUS "scanning") but no column
+    and no ``next_column`` moved for ``HostLink.progress_timeout_s``."""
+
+    def __init__(self, message: str, *, frame: int, next_column: int) -> None:
+        StreamEnded.__init__(self, message, frame=frame, next_column=next_column, reason=None)
+        self.diagnosis = DIAG_NO_ANSWER
 
 
 class SessionLost(LinkError):
@@ -248,6 +273,9 @@ class HostLink:
             from the share of damaged frames the host estimates the bit error rate and
             asks for the frame length that carries the most intact bytes, between 64
             bytes and ``max_frame``. A clean line never changes anything.
+        progress_timeout_s: a stream whose device stays alive (heartbeats, STATUS
+            "scanning") but sends no new column or fragment and does not move
+            ``next_column`` for this long fails with :class:`ScanStalled` (s).
         clock: monotonic clock (s), replaceable in tests.
 
     One HostLink per port, used from one thread at a time.
@@ -257,6 +285,7 @@ class HostLink:
                  column_retries: int | None = None, poll_s: float | None = None,
                  max_frame: int = FRAME_LIMIT, key: bytes | None = None,
                  take_over: bool = False, keep_config: bool = False, auto_frame: bool = False,
+                 progress_timeout_s: float = 30.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -268,6 +297,10 @@ class HostLink:
         if poll_s is not None and not 0 < poll_s <= 10:
             raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
                                "would make every wait spin)", poll_s)
+        if not progress_timeout_s > 0:
+            raise out_of_range("progress_timeout_s", "a positive number of seconds",
+                               progress_timeout_s)
+        self.progress_timeout_s = float(progress_timeout_s)
         self.clock = clock
         self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.stats = LinkStats()
@@ -641,6 +674,8 @@ class HostLink:
             horizon = first  # every fragment of the columns below this has been sent
             edge: tuple[int, int] = (first, 0)  # fragments below edge[1] of column edge[0] too
             last_rx = self.clock()
+            stored = 0  # columns and fragments kept so far (progress, with nxt and horizon)
+            progress, moved = (nxt, horizon, edge, stored), last_rx
             while nxt < end:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
@@ -667,6 +702,7 @@ class HostLink:
                         if k < pc.count - 1:
                             pc.size = n
                         pc.data[k] = item["data"]
+                        stored += 1
                         if len(pc.data) < pc.count:
                             continue
                         del parts[c]
@@ -690,6 +726,7 @@ class HostLink:
                             continue
                         self._answered(asked, c.column)
                         received[c.column] = c
+                        stored += 1
                         parts.pop(c.column, None)
                         horizon = max(horizon, c.column + 1)
                     elif mtype == MsgType.HEARTBEAT:
@@ -712,6 +749,14 @@ class HostLink:
                 if nxt >= end:
                     break
                 now = self.clock()
+                if (nxt, horizon, edge, stored) != progress:
+                    progress, moved = (nxt, horizon, edge, stored), now
+                elif now - moved >= self.progress_timeout_s:
+                    raise ScanStalled(
+                        f"frame {fid} made no progress for {self.progress_timeout_s:g} s on "
+                        f"{self._port_name}: the device says it is still working but column "
+                        f"{nxt} never came; {nxt - first} columns were delivered",
+                        frame=fid, next_column=nxt)
                 if got:
                     last_rx = now
                 elif now - last_rx >= self.timeout_s:
@@ -825,9 +870,11 @@ class HostLink:
     @staticmethod
     def _early_end(fid: int, reason: int, sent: int) -> Exception:
         if reason == ScanEndReason.ERROR:
-            return DeviceError(f"device failed during frame {fid} after {sent} columns",
+            return StreamEnded(f"device failed during frame {fid} after {sent} columns",
+                               frame=fid, next_column=sent, reason=reason,
                                code=ErrorCode.INTERNAL)
-        return ScanAborted(f"frame {fid} was stopped on the device at column {sent}")
+        return StreamEnded(f"frame {fid} was stopped on the device at column {sent}",
+                           frame=fid, next_column=sent, reason=reason)
 
     def _probe(self, fid: int) -> Status:
         """STATUS_GET after a silent spell: how far the device got with frame ``fid``."""

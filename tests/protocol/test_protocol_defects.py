@@ -233,3 +233,55 @@ def test_insecure_tcp_on_the_ipv6_loopback_is_accepted() -> None:
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_scan_that_never_progresses_fails_with_what_was_delivered() -> None:
+    """Heartbeats and STATUS say "scanning" while column 0 never comes: ScanStalled."""
+    import pytest
+
+    from cdma_lidar.errors import LinkError
+    from cdma_lidar.protocol.link import ScanStalled
+
+    calls = [0]
+
+    def clock() -> float:  # 50 ms per reading; bounded, so a scan that never ends fails
+        calls[0] += 1
+        if calls[0] > 200_000:
+            raise RuntimeError("the host waited forever")
+        return calls[0] * 0.05
+
+    app = _Stuck()
+    host, dev = pipe_pair()
+    try:
+        with RunningDevice(dev, app, heartbeat_s=0.01):
+            link = HostLink(host, timeout_s=2.0, progress_timeout_s=20.0, clock=clock)
+            link.hello()
+            with pytest.raises(ScanStalled) as exc:
+                list(link.scan(frame=4))
+            assert isinstance(exc.value, LinkError)
+            assert exc.value.frame == 4 and exc.value.next_column == 0
+            assert "no progress for 20 s" in str(exc.value)
+    finally:
+        app.release.set()
+
+
+def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> None:
+    """host/scan.py saves a partial file on any LinkError: an early end must be one."""
+    import pytest
+
+    from cdma_lidar.errors import LinkError
+    from cdma_lidar.protocol.link import StreamEnded
+    from cdma_lidar.protocol.messages import ScanEndReason
+
+    app = SyntheticApp(channels=2, columns=8)
+    app.fail_at = 3
+    host, dev = pipe_pair()
+    got = []
+    with RunningDevice(dev, app):
+        link = HostLink(host, timeout_s=1.0)
+        link.hello()
+        with pytest.raises(StreamEnded) as exc:
+            got.extend(c.column for c in link.scan(frame=5))
+    assert isinstance(exc.value, LinkError) and got == [0, 1, 2]
+    assert (exc.value.frame, exc.value.next_column, exc.value.reason) == \
+        (5, 3, ScanEndReason.ERROR)
