@@ -133,6 +133,7 @@ class _Job:
     max_frame: int
     signer: auth.FrameSigner | None
     repair: tuple[int, int, int] | None = None  # (frame, column, fragment or -1) of a repair
+    coded: bool = False  # Reed-Solomon coded (the session's FEC, or a coded request's reply)
 
 
 class DeviceApp(abc.ABC):
@@ -330,6 +331,8 @@ class DeviceEndpoint:
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s).
         replay_depth: requests remembered for retransmission replay.
+        fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
+            (a serial line); False on TCP, where a damaged frame is not worth the CPU.
         peer: who is on the other end (an IP address), for the per-peer back-off after
             failed authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
@@ -340,6 +343,7 @@ class DeviceEndpoint:
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
                  poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
+                 fec: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
         check_int("ring_columns", ring_columns, 0, 65535)
@@ -370,7 +374,9 @@ class DeviceEndpoint:
         self.heartbeat_s = heartbeat_s
         self.replay_depth = replay_depth
         self.clock = clock
-        self.decoder = FrameDecoder(max_frame)
+        self.fec = fec
+        self.coded = False  # this session's frames are Reed-Solomon coded (HELLO flag FEC)
+        self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
         self._replay: OrderedDict[int, _Cached] = OrderedDict()
         self._last_seq: int | None = None
@@ -539,7 +545,8 @@ class DeviceEndpoint:
     # ---- sending --------------------------------------------------------------------
     def _enqueue_tx(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None,
                     compat: int = 0, signer: auth.FrameSigner | None = None,
-                    repair: tuple[int, int, int] | None = None, max_frame: int = 0) -> None:
+                    repair: tuple[int, int, int] | None = None, max_frame: int = 0,
+                    coded: bool | None = None) -> None:
         """Queue one frame of class ``cls`` (encoded and signed when it is sent) of at
         most ``max_frame`` bytes (0: the session's current max frame).
 
@@ -547,7 +554,8 @@ class DeviceEndpoint:
         the first answer reached it costs the line nothing.
         """
         job = _Job(msg_type, payload, seq, self.session, compat,
-                   max_frame or self.tx_max_frame, signer, repair)
+                   max_frame or self.tx_max_frame, signer, repair,
+                   self.coded if coded is None else coded)
         with self._txcv:
             if repair is not None:
                 if repair in self._repairs:
@@ -591,7 +599,7 @@ class DeviceEndpoint:
                 try:
                     wire = encode_frame(job.msg_type, job.payload, seq, job.session,
                                         compat=job.compat, max_frame=job.max_frame,
-                                        signer=job.signer)
+                                        signer=job.signer, coded=job.coded)
                 except FieldError:  # a bug must not take the device off the line
                     log.exception("cannot send a %s frame", _type_name(job.msg_type))
                     continue
@@ -640,14 +648,16 @@ class DeviceEndpoint:
     def _send_reply(self, req: Frame, reply: _Reply) -> None:
         msg_type, payload, signed = reply
         signer = self._tx if signed else None
+        coded = self.coded or req.fec  # a coded request gets a coded reply
         if self._pieces(payload, signed) == 1:
-            self._enqueue_tx(_CONTROL, msg_type, payload, req.seq, 0, signer)
+            self._enqueue_tx(_CONTROL, msg_type, payload, req.seq, 0, signer, coded=coded)
             return
-        self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None)
+        self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None, coded=coded)
 
     def _send_pieces(self, msg_type: MsgType, payload: bytes, seq: int, frame: int,
                      column: int, signer: auth.FrameSigner | None, only: Iterable[int] | None,
-                     compat: int = 0, cls: int = _CONTROL, room: int = 0) -> int:
+                     compat: int = 0, cls: int = _CONTROL, room: int = 0,
+                     coded: bool | None = None) -> int:
         """Send ``payload`` as FRAGMENTs (all of them, or the indexes in ``only``) of
         ``room`` bytes each (0: as many as the current max frame carries); returns the
         piece length used."""
@@ -665,7 +675,7 @@ class DeviceEndpoint:
                 "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
             self._enqueue_tx(cls, MsgType.FRAGMENT, body, None, compat, signer,
                              (frame, column, k) if cls == _REPAIR else None,
-                             frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0)
+                             frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0, coded)
         return room
 
     def _send_column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
@@ -968,6 +978,7 @@ class DeviceEndpoint:
         core.owner, core.owner_nonce = self, nonce
         core.opened = core.last_active = now
         self.tx_max_frame = min(self.max_frame, f["host_max_frame"])
+        self.coded = self.fec and bool(flags & HelloFlags.FEC)
         mac = bytes(auth.MAC_BYTES)
         if core.key is not None:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.session)
@@ -993,6 +1004,7 @@ class DeviceEndpoint:
         self._cuts.clear()
         self._capture = None
         self._tx = self._rx = None
+        self.coded = False
         if self.session_open:
             self.sessionless_since = self.core.clock()
         self.session_open = False

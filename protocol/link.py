@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import secrets
 import time
 from collections import OrderedDict, deque
@@ -60,6 +59,7 @@ from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
+    COMPAT_RETRANSMIT,
     FRAME_LIMIT,
     MIN_MAX_FRAME,
     OVERHEAD,
@@ -85,6 +85,7 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.ports import default_fec
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config, check_info, escape
 from cdma_lidar.protocol.views import Info, Status
 
@@ -105,11 +106,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Smallest frame the device may be asked to send (HELLO / FRAME_SIZE host_max_frame).
+#: Smallest frame the device may be asked to send (HELLO host_max_frame).
 MIN_HOST_FRAME = 64
-#: Longest request frame (bytes) an ``auto_frame`` host sends once the line has damaged
-#: a frame: a long POWER_SET or RESEND is cut into requests this short.
-DAMAGED_REQUEST_FRAME = 96
 
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
@@ -176,7 +174,6 @@ class LinkStats:
     resend_requests: int = 0
     resent_columns: int = 0
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
-    quick_retries: int = 0  #: requests sent again at once because the line showed damage
 
 
 @dataclass
@@ -187,48 +184,6 @@ class _Pieces:
     data: dict[int, bytes] = field(default_factory=dict)
     frames: list[Frame] = field(default_factory=list)
     size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
-
-
-#: Bit error rates the line judgement considers (a grid 12 % apart from 1e-7 to 0.1).
-_BER_GRID = np.logspace(-7, -1, 121)
-
-
-def _bit_error_rate(chunks: list[tuple[int, bool]]) -> float:
-    """Maximum-likelihood bit error rate of chunks ``(bytes on the wire, intact)``.
-
-    A chunk of ``n`` bits is intact with probability ``(1 - b)^n``; the log-likelihood
-    ``sum_intact n ln(1 - b) + sum_damaged ln(1 - (1 - b)^n)`` is evaluated on a grid.
-    """
-    bits = 8.0 * np.array([n for n, _ in chunks])
-    ok = np.array([o for _, o in chunks])
-    lq = np.log1p(-_BER_GRID)[:, None] * bits[None, :]  # ln P(intact), per rate and chunk
-    ll = np.where(ok[None, :], lq, np.log(-np.expm1(np.minimum(lq, -1e-300)))).sum(axis=1)
-    return float(_BER_GRID[int(np.argmax(ll))])
-
-
-class _Rto:
-    """Retransmission timeout of repairs from measured round trips (RFC 6298's estimator).
-
-    A sample is the time from a RESEND to the arrival of what it asked for, taken only
-    for a first request (Karn's rule: an answer to a repeated request is ambiguous).
-    ``value`` = SRTT + 4 RTTVAR, within [``floor``, ``ceiling``] s; ``initial`` (the
-    link's timeout) until the first sample.
-    """
-
-    def __init__(self, floor: float, ceiling: float, initial: float) -> None:
-        self.floor, self.ceiling = floor, ceiling
-        self.srtt: float | None = None
-        self.rttvar = 0.0
-        self.value = initial
-
-    def sample(self, rtt: float) -> None:
-        """Fold one round trip (s) into the estimate."""
-        if self.srtt is None:
-            self.srtt, self.rttvar = rtt, rtt / 2
-        else:
-            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
-            self.srtt = 0.875 * self.srtt + 0.125 * rtt
-        self.value = min(self.ceiling, max(self.floor, self.srtt + 4 * self.rttvar))
 
 
 @dataclass
@@ -269,10 +224,10 @@ class HostLink:
         take_over: HELLO ends another host's live session instead of failing BUSY.
         keep_config: the new session keeps the previous session's configuration and
             power instead of starting from the device's defaults.
-        auto_frame: size the device's frames to the line during scans (FRAME_SIZE):
-            from the share of damaged frames the host estimates the bit error rate and
-            asks for the frame length that carries the most intact bytes, between 64
-            bytes and ``max_frame``. A clean line never changes anything.
+        fec: Reed-Solomon coded frames both ways (:mod:`cdma_lidar.protocol.fec`), asked
+            for in HELLO; None: on for a serial line, off for ``socket://`` and USB
+            (``/dev/ttyACM*``), whose transports already deliver intact bytes
+            (:func:`cdma_lidar.protocol.ports.default_fec`).
         progress_timeout_s: a stream whose device stays alive (heartbeats, STATUS
             "scanning") but sends no new column or fragment and does not move
             ``next_column`` for this long fails with :class:`ScanStalled` (s).
@@ -284,7 +239,7 @@ class HostLink:
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, poll_s: float | None = None,
                  max_frame: int = FRAME_LIMIT, key: bytes | None = None,
-                 take_over: bool = False, keep_config: bool = False, auto_frame: bool = False,
+                 take_over: bool = False, keep_config: bool = False, fec: bool | None = None,
                  progress_timeout_s: float = 30.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
@@ -313,8 +268,9 @@ class HostLink:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.key = key
         self.take_over = bool(take_over)
-        self.auto_frame = bool(auto_frame)
-        self.device_frame = 0  # largest frame the device sends in this session (bytes)
+        self.fec = default_fec(port) if fec is None else bool(fec)
+        self.decoder.fec = self.fec
+        self.coded = False  # this session's frames are coded (the device agreed in HELLO)
         self.keep_config = bool(keep_config)
         self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
@@ -334,17 +290,11 @@ class HostLink:
         self._reply: Frame | None = None
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._streaming = False
-        self._stream: deque[tuple[int, Any]] = deque()
+        # Stream items: (type, decoded body, retransmitted).
+        self._stream: deque[tuple[int, Any, bool]] = deque()
         # Requests sent without waiting for their reply (RESEND in a scan): seq -> type.
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        # Repairs are re-asked after the measured round trip, which on a slow line with
-        # a queue of repairs may exceed the reply timeout (up to 10 times it).
-        self._logged_from = (0, 0)  # decoder (frames, damaged) when the chunk log was cleared
-        self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s, self.timeout_s)
-        # A whole column's answer takes its time on the line too: its own estimate.
-        self._rto_column = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s,
-                                self.timeout_s)
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
         port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
@@ -387,25 +337,11 @@ class HostLink:
         self.config = None
         self._early = []
         flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
-            (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
-        # auto_frame: if INFO never gets through intact, ask for shorter frames.
-        sizes = [self._host_max] + ([s for s in (256, 96) if s < self._host_max]
-                                    if self.auto_frame else [])
-        retries = self.retries
-        for k, size in enumerate(sizes):
-            if k + 1 < len(sizes):  # a shorter size is left: try it after one timeout
-                self.retries = 0
-            try:
-                reply, fields_ = self._hello_exchange(size, int(flags))
-                break
-            except LinkTimeout as exc:
-                if exc.diagnosis != DIAG_NOISY or k + 1 == len(sizes):
-                    raise
-                log.info("HELLO: INFO damaged on the way, asking for %d-byte frames",
-                         sizes[k + 1])
-            finally:
-                self.retries = retries
-        return self._open(reply, fields_, sizes[k])
+            (HelloFlags.KEEP_CONFIG if self.keep_config else 0) | \
+            (HelloFlags.FEC if self.fec else 0)
+        self.coded = False
+        reply, fields_ = self._hello_exchange(self._host_max, int(flags))
+        return self._open(reply, fields_)
 
     def _hello_exchange(self, host_max: int, flags: int) -> tuple[dict[str, Any],
                                                                  dict[str, Any]]:
@@ -428,7 +364,7 @@ class HostLink:
                             "it does not accept this host's key")
         return reply, fields_
 
-    def _open(self, reply: dict[str, Any], fields_: dict[str, Any], host_max: int) -> Info:
+    def _open(self, reply: dict[str, Any], fields_: dict[str, Any]) -> Info:
         """Check INFO and make its session ours."""
         try:
             info = Info.from_fields(reply)
@@ -450,10 +386,8 @@ class HostLink:
         self.session = info.session_id
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
-        self.device_frame = min(info.max_frame, host_max)
-        if self.auto_frame:  # judge the line from the chunks of this session on
-            self.decoder.chunk_log = []
-            self._clear_chunk_log()
+        # The device codes its INFO when it agreed to FEC: then so do we.
+        self.coded = self.fec and self._reply_frame is not None and self._reply_frame.fec
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -537,7 +471,7 @@ class HostLink:
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
+        room = (self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -679,7 +613,11 @@ class HostLink:
             while nxt < end:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
-                    mtype, item = self._stream.popleft()
+                    mtype, item, again = self._stream.popleft()
+                    if again and not self._asked_for(asked, item):
+                        # A repair this stream did not ask for: an earlier stream's, late.
+                        self.stats.duplicates += 1
+                        continue
                     if mtype == MsgType.FRAGMENT:
                         if item["frame"] != fid:
                             continue
@@ -769,8 +707,6 @@ class HostLink:
                         end, failure = sent, self._early_end(fid, st.last_end, sent)
                     last_rx = self.clock()
                     continue
-                if self.auto_frame:
-                    self._size_frames()
                 due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
                                     received, parts, asked, now)
                 if due:  # one RESEND, then read: its answer is in the stream
@@ -787,61 +723,6 @@ class HostLink:
                 with contextlib.suppress(LinkError):
                     self.abort()
 
-    def _size_frames(self) -> None:
-        """Ask for frames sized to the line once enough chunks show how damaged it is.
-
-        Every chunk received since the last judgement is a trial: one of ``n`` bits
-        arrives intact with probability ``(1 - b)^n``. The bit error rate ``b`` is the
-        maximum-likelihood one over those chunks, whatever their lengths (columns,
-        replies and heartbeats mix). A frame of ``D`` data bytes and ``H`` overhead
-        survives with ``(1 - b)^(8 (D + H))``, so the intact data per byte sent is
-        largest at ``D (D + H) = H / (8 b)``.
-
-        A judgement waits for 24 damaged and 24 intact chunks (``b`` then within
-        about 20 %), or 16 damaged and none intact (the frames are far too long: a
-        quarter of their length), or 512 chunks without damage (twice the length). A
-        change under 30 % is not asked for: the device would cut new columns anew.
-        """
-        chunks = self.decoder.chunk_log
-        if chunks is None:
-            return
-        # The log holds exactly the frames and damaged chunks counted since it was cleared.
-        good = self.decoder.stats.frames - self._logged_from[0]
-        bad = self.decoder.stats.damaged - self._logged_from[1]
-        cur = self.device_frame
-        ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
-        if bad >= 16 and good == 0:
-            new = max(MIN_HOST_FRAME, min(cur, sorted(n for n, _ in chunks)[bad // 2]) // 4)
-        elif bad >= 24 and good >= 24:
-            ber = _bit_error_rate(chunks)
-            h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
-            data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
-            new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
-        elif bad == 0 and good >= 512:
-            new = min(ceiling, 2 * cur)
-        else:
-            if len(chunks) > 4096:  # a line that damages almost nothing: judge afresh
-                self._clear_chunk_log()
-            return
-        self._clear_chunk_log()
-        if abs(new - cur) * 10 <= 3 * cur:
-            return  # within 30 %: not worth cutting the columns anew
-        try:
-            self._request(MsgType.FRAME_SIZE, {"host_max_frame": new})
-        except DeviceError as exc:  # TOO_LARGE: keep the size that works
-            log.debug("device keeps %d-byte frames: %s", cur, exc)
-            return
-        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", bad,
-                 bad + good, new, cur)
-        self.device_frame = new
-        self._clear_chunk_log()
-
-    def _clear_chunk_log(self) -> None:
-        """Start the line judgement afresh from the next chunk."""
-        assert self.decoder.chunk_log is not None
-        self.decoder.chunk_log.clear()
-        self._logged_from = (self.decoder.stats.frames, self.decoder.stats.damaged)
-
     def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
                  received: dict[int, ColumnResult], parts: dict[int, _Pieces],
                  asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
@@ -851,7 +732,7 @@ class HostLink:
             if c in received:
                 continue
             pc = parts.get(c)
-            if c in asked and now - asked[c][0] < self._rto_column.value:
+            if c in asked and now - asked[c][0] < self.timeout_s:
                 keys: list[Any] = []  # asked for whole: its fragments are on their way
             elif c < horizon and pc is None:
                 keys = [c]
@@ -861,8 +742,7 @@ class HostLink:
                 sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
                     else 0
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= (
-                self._rto_column if isinstance(k, int) else self._rto).value]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.timeout_s]
             if len(due) >= 255:
                 break
         return due
@@ -887,10 +767,7 @@ class HostLink:
     def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
                 now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
-        # Short requests on a line whose frames were made short (auto_frame).
-        room = self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
-        if self.decoder.stats.damaged:  # a line that damages frames: short requests get through
-            room = min(room, 48)
+        room = self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
                                                                  // 3)]
@@ -920,13 +797,17 @@ class HostLink:
         self._send_unawaited(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
             {"column": c, "index": k} for c, k in pieces]})
 
-    def _answered(self, asked: dict[Any, tuple[float, int]], key: Any) -> None:
-        """A fragment or a whole column asked for arrived: one round-trip sample if it
-        was asked for once (a whole column's sample includes its time on the line)."""
-        t_tries = asked.pop(key, None)
-        if t_tries is not None and t_tries[1] == 1:
-            rto = self._rto_column if isinstance(key, int) else self._rto
-            rto.sample(self.clock() - t_tries[0])
+    @staticmethod
+    def _asked_for(asked: dict[Any, tuple[float, int]], item: Any) -> bool:
+        """Whether this stream asked for the retransmitted column or fragment ``item``."""
+        if isinstance(item, ColumnResult):
+            return item.column in asked
+        return item["column"] in asked or (item["column"], item["index"]) in asked
+
+    @staticmethod
+    def _answered(asked: dict[Any, tuple[float, int]], key: Any) -> None:
+        """A fragment or a whole column asked for arrived: not due any more."""
+        asked.pop(key, None)
 
     def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
@@ -968,7 +849,6 @@ class HostLink:
         self._reply_parts = []
         self._partial.clear()
         self._reply_version = None
-        quick = 10 * (self.retries + 1)  # extra tries sent at once when the line shows damage
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
@@ -978,15 +858,7 @@ class HostLink:
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
-                    damage = self._damage_seen()
                     self._pump()
-                    if quick and self._reply is None and self._damage_seen() != damage:
-                        # A damaged chunk on either side (ours, or the device's LINE_ERROR):
-                        # the request or its reply was probably hit, so try again now.
-                        quick -= 1
-                        self.stats.quick_retries += 1
-                        self._send_request(msg_type, payload, seq)
-                        deadline = self.clock() + self.timeout_s
                 if self._reply is not None:
                     self._reply_frame = self._reply
                     return self._accept_reply(msg_type, self._reply)
@@ -1010,25 +882,16 @@ class HostLink:
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
 
-    def _request_limit(self) -> int:
-        """Longest request frame worth sending (bytes): as long as the device's frames,
-        which are sized to the line (``auto_frame``), so that a long request (POWER_SET
-        of a whole matrix, RESEND of many columns) is cut into pieces that get through."""
-        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
-        if self.auto_frame and (self.decoder.stats.damaged or self.line_errors):
-            limit = min(limit, DAMAGED_REQUEST_FRAME)  # ~46 % get through at 1e-3
-        return limit
-
-    def _damage_seen(self) -> tuple[int, int]:
-        """Signs that a request or its reply was hit: damaged chunks here and the
-        device's LINE_ERRORs. (In a scan, RESEND waits for no reply, so the damaged
-        columns there only hurry the rare awaited request: a STATUS probe, FRAME_SIZE.)"""
-        return (self.decoder.stats.damaged, self.line_errors)
-
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
-        self._write(encode_frame(msg_type, payload, seq, self.session or 0,
-                                 max_frame=self.max_frame, signer=self._tx))
+        wire = encode_frame(msg_type, payload, seq, self.session or 0, max_frame=self.max_frame,
+                            signer=self._tx, coded=self.coded)
+        if msg_type == MsgType.HELLO and self.fec:
+            # Coded (gets through a noisy line), then plain (a device that cannot decode
+            # it, or an older one, reads this copy): the device acts once, the replay
+            # cache answers the copy.
+            wire = encode_frame(msg_type, payload, seq, 0, coded=True) + wire
+        self._write(wire)
 
 
     def _diagnose(self, win: _Window) -> str:
@@ -1195,7 +1058,8 @@ class HostLink:
                 return
             if body["msg_type"] == MsgType.COLUMN_RESULT:
                 if self._streaming:
-                    self._stream.append((MsgType.FRAGMENT, body))
+                    self._stream.append((MsgType.FRAGMENT, body,
+                                         bool(frame.compat & COMPAT_RETRANSMIT)))
             elif kind_of(body["msg_type"]) is MsgKind.REPLY:
                 self._collect(frame, body)
             else:  # a notice longer than the frame size (HEARTBEAT, SESSION_LOST, ...)
@@ -1248,4 +1112,5 @@ class HostLink:
             body = Status(**body)
             self.last_status = body
         if self._streaming:
-            self._stream.append((frame.msg_type, body))
+            self._stream.append((frame.msg_type, body,
+                                 bool(frame.compat & COMPAT_RETRANSMIT)))

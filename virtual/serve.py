@@ -182,7 +182,7 @@ def serve_connections(server: socket.socket, core: DeviceCore, stop: threading.E
                 continue
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             port = FdPort(sock.detach())  # the port owns and closes the descriptor
-            conn = _Conn(DeviceEndpoint(port, core=core, peer=str(peer[0])),
+            conn = _Conn(DeviceEndpoint(port, core=core, peer=str(peer[0]), fec=False),
                          threading.Event())
             if not conns.admit(conn):
                 log.warning("refused %s:%d: %d connections hold sessions", *peer[:2],
