@@ -18,7 +18,8 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
     seed=N               noise seed (default 0)
     line_error_rate=P    probability of flipping each bit on the line, both directions
                          (default 0), to prove the link loses nothing
-    line_seed=N          seed of the line errors (default: seed)
+    line_seed=N          seed of the line errors (default: seed): the same N flips the
+                         same bit positions of each direction's byte stream
     line_baud=N          the line keeps a UART's pace, N bit/s 8N1 (default: none, as
                          fast as memory), e.g. 921600 to see what a noisy serial line costs
     session=N            session id of the device (default: random, as at a real boot)
@@ -79,7 +80,8 @@ class Serial(SerialBase):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._to_device: BytePipe | None = None
         self._from_device: BytePipe | None = None
-        self._noise: LineNoise | None = None
+        self._noise: LineNoise | None = None  # host -> device
+        self._noise_up: LineNoise | None = None  # device -> host
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.endpoint = None
@@ -99,15 +101,18 @@ class Serial(SerialBase):
         try:
             query = urllib.parse.urlencode(scene_opts)
             scene = load_scene(f"{name}?{query}" if query else name)
-            self._noise = LineNoise(own.get("line_error_rate", 0.0),
-                                    int(own.get("line_seed", seed)))
+            rate, line_seed = own.get("line_error_rate", 0.0), int(own.get("line_seed", seed))
+            # One noise per direction, each a function of its stream position only: the
+            # same line_seed damages the same bits whatever the threads' timing.
+            self._noise = LineNoise(rate, [line_seed, 0])
+            self._noise_up = LineNoise(rate, [line_seed, 1])
             self.firmware = VirtualFirmware(scene, seed)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         baud = own.get("line_baud")
         try:
             self._to_device = BytePipe(noise=self._noise, baud=baud)
-            self._from_device = BytePipe(noise=self._noise, baud=baud)
+            self._from_device = BytePipe(noise=self._noise_up, baud=baud)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         dev_port = PipePort(self._to_device, self._from_device, f"virtual://{name}")
