@@ -256,6 +256,9 @@ class HostLink:
             raise out_of_range("progress_timeout_s", "a positive number of seconds",
                                progress_timeout_s)
         self.progress_timeout_s = float(progress_timeout_s)
+        #: A column or fragment asked for again is asked once more after this long (s):
+        #: its answer comes ahead of new columns, so a quarter of the reply timeout.
+        self.resend_s = self.timeout_s / 4
         self.clock = clock
         self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.stats = LinkStats()
@@ -732,7 +735,7 @@ class HostLink:
             if c in received:
                 continue
             pc = parts.get(c)
-            if c in asked and now - asked[c][0] < self.timeout_s:
+            if c in asked and now - asked[c][0] < self.resend_s:
                 keys: list[Any] = []  # asked for whole: its fragments are on their way
             elif c < horizon and pc is None:
                 keys = [c]
@@ -742,7 +745,7 @@ class HostLink:
                 sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
                     else 0
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.timeout_s]
+            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.resend_s]
             if len(due) >= 255:
                 break
         return due

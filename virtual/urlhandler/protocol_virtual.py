@@ -28,6 +28,7 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import urllib.parse
@@ -39,6 +40,7 @@ from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.pipes import BytePipe, LineNoise, PipePort
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.model import Scene
 from cdma_lidar.virtual.board import VirtualFirmware
 
 __all__ = ["Serial", "parse_url"]
@@ -74,6 +76,18 @@ def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
     return scene, own, rest
 
 
+@functools.lru_cache(maxsize=16)
+def _preset(spec: str) -> Scene:
+    return load_scene(spec)
+
+
+def _load(spec: str) -> Scene:
+    """The scene of ``spec``; presets are built once per process (a Scene is frozen),
+    files are read each time (they may change)."""
+    name = spec.split("?", 1)[0]
+    return load_scene(spec) if "/" in name or name.endswith(".toml") else _preset(spec)
+
+
 class Serial(SerialBase):
     """pyserial port whose other end is the in-process virtual device."""
 
@@ -100,7 +114,7 @@ class Serial(SerialBase):
         seed = int(own.get("seed", 0))
         try:
             query = urllib.parse.urlencode(scene_opts)
-            scene = load_scene(f"{name}?{query}" if query else name)
+            scene = _load(f"{name}?{query}" if query else name)
             rate, line_seed = own.get("line_error_rate", 0.0), int(own.get("line_seed", seed))
             # One noise per direction, each a function of its stream position only: the
             # same line_seed damages the same bits whatever the threads' timing.
