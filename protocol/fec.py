@@ -194,6 +194,8 @@ def decode(coded: bytes) -> bytes:
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
     plain = np.frombuffer(whiten(coded), np.uint8).copy()
+    if not plain.size:
+        return b""
     codec = _need()
     for b in _damaged_blocks(plain):
         block = plain[b * BLOCK:(b + 1) * BLOCK]
