@@ -3,7 +3,7 @@
 A device reachable over a network holds a 32-byte key (a file created mode 0600 with
 :func:`load_or_create_key`); a host must hold the same key. No key ever travels.
 
-HELLO (version 2) is a challenge-response with HMAC-SHA256::
+HELLO (since version 2) is a challenge-response with HMAC-SHA256::
 
     host   HELLO(host_nonce16, mac = 0)               -> device
     device CHALLENGE(device_nonce16)                  -> host    (fresh per challenge)

@@ -134,6 +134,7 @@ class _Job:
     signer: auth.FrameSigner | None
     repair: tuple[int, int, int] | None = None  # (frame, column, fragment or -1) of a repair
     coded: bool = False  # Reed-Solomon coded (the session's FEC, or a coded request's reply)
+    version: int = PROTOCOL_VERSION  # another only for NAK VERSION to an older host
 
 
 class DeviceApp(abc.ABC):
@@ -546,7 +547,7 @@ class DeviceEndpoint:
     def _enqueue_tx(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None,
                     compat: int = 0, signer: auth.FrameSigner | None = None,
                     repair: tuple[int, int, int] | None = None, max_frame: int = 0,
-                    coded: bool | None = None) -> None:
+                    coded: bool | None = None, version: int = PROTOCOL_VERSION) -> None:
         """Queue one frame of class ``cls`` (encoded and signed when it is sent) of at
         most ``max_frame`` bytes (0: the session's current max frame).
 
@@ -555,7 +556,7 @@ class DeviceEndpoint:
         """
         job = _Job(msg_type, payload, seq, self.session, compat,
                    max_frame or self.tx_max_frame, signer, repair,
-                   self.coded if coded is None else coded)
+                   self.coded if coded is None else coded, version)
         with self._txcv:
             if repair is not None:
                 if repair in self._repairs:
@@ -599,7 +600,8 @@ class DeviceEndpoint:
                 try:
                     wire = encode_frame(job.msg_type, job.payload, seq, job.session,
                                         compat=job.compat, max_frame=job.max_frame,
-                                        signer=job.signer, coded=job.coded)
+                                        signer=job.signer, coded=job.coded,
+                                        version=job.version)
                 except FieldError:  # a bug must not take the device off the line
                     log.exception("cannot send a %s frame", _type_name(job.msg_type))
                     continue
@@ -723,12 +725,16 @@ class DeviceEndpoint:
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
             return
         if frame.version != PROTOCOL_VERSION:
+            # In the requester's version, so that an older host reads it: the header and
+            # the NAK payload are laid out alike in every version.
             reply = self._nak(frame, ErrorCode.VERSION, "version",
                               f"device speaks protocol version {PROTOCOL_VERSION}", False)
-        else:
-            reply = self._nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
-                              f"unknown incompat flags 0x{frame.incompat:02x}", False)
-        self._send_reply(frame, reply)
+            self._enqueue_tx(_CONTROL, MsgType.NAK, reply[1], frame.seq, coded=frame.fec,
+                             version=frame.version)
+            return
+        self._send_reply(frame, self._nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                                          f"unknown incompat flags 0x{frame.incompat:02x}",
+                                          False))
 
     def _on_frame(self, frame: Frame) -> None:
         """One decoded frame (caller holds _lock): check, then answer, replay or queue it.

@@ -6,7 +6,7 @@ One frame on the wire::
 
     header, little-endian (frozen in every protocol version):
     off size field
-      0   1  version          PROTOCOL_VERSION (2)
+      0   1  version          PROTOCOL_VERSION (3)
       1   1  incompat_flags   a receiver drops a frame with an unknown bit set
       2   1  compat_flags     unknown bits are ignored
       3   1  msg_type         see cdma_lidar.protocol.messages.MsgType
@@ -71,12 +71,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Version 2: sessions per HELLO, signed frames, fragmented columns (docs/protocol.md).
-PROTOCOL_VERSION = 2
+#: Version 3: v2 (sessions per HELLO, signed frames, fragmented columns) plus Reed-Solomon
+#: FEC negotiated in HELLO and notices in fragments (docs/protocol.md).
+PROTOCOL_VERSION = 3
 DELIMITER = b"\x00"
 #: Header fields in wire order: (name, struct format, description). Frozen in every version.
 HEADER_FIELDS = (
-    ("version", "B", "protocol version; this document: 2"),
+    ("version", "B", "protocol version; this document: 3"),
     ("incompat_flags", "B", "bit 0: signed (24-byte signature before the CRC); a receiver "
      "drops (device: NAKs) a frame with an unknown bit set"),
     ("compat_flags", "B", "bit 0: retransmitted (a resent column); unknown bits are ignored"),

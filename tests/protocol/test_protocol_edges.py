@@ -36,22 +36,23 @@ def _responder(port, stop: threading.Event, answer) -> threading.Thread:
 
 
 def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
-    """A version-2 device NAKs VERSION in its own version: the host says so, no timeout."""
+    """A device of another version NAKs VERSION in that version: the host says so, no
+    timeout."""
     host, dev = pipe_pair()
     stop = threading.Event()
     nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
                                        "code": int(ErrorCode.VERSION), "field": "version",
                                        "detail": ""})
-    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=3))
+    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=4))
     link = HostLink(host, timeout_s=0.5, retries=3)
     t0 = time.monotonic()
     try:
-        with pytest.raises(LinkError, match="protocol version 3") as exc:
+        with pytest.raises(LinkError, match="protocol version 4") as exc:
             link.hello()
     finally:
         stop.set()
     assert not isinstance(exc.value, LinkTimeout)
-    assert "version 2" in str(exc.value)
+    assert "version 3" in str(exc.value)
     assert link.stats.retries == 0 and time.monotonic() - t0 < 0.5
 
 
@@ -64,7 +65,7 @@ def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
     def talk() -> None:
         k = 0
         while not stop.is_set():
-            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=3))
+            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=4))
             k += 1
             time.sleep(0.005)
 
