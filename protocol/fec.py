@@ -16,7 +16,9 @@ length ``t`` gives the body length ``d`` back: ``t = d + 16 * ceil(d / 239)``.
 
 Code: narrow-sense RS over GF(2^8) with primitive polynomial 0x11D, generator
 roots alpha^0 .. alpha^15 (alpha = 2), as ``reedsolo.RSCodec(16, nsize=255)``
-builds it (its C extension ``creedsolo`` when installed, same code).
+builds it. Encoding and syndromes are table-driven numpy (the code is linear over
+GF(2^8); a test checks them against ``reedsolo``); locating and correcting the errors
+of a damaged block is ``reedsolo``'s.
 """
 
 from __future__ import annotations
@@ -39,13 +41,12 @@ BLOCK = 255
 DATA = BLOCK - NSYM
 
 try:  # pragma: no cover - depends on the installed package
-    from creedsolo import ReedSolomonError, RSCodec  # type: ignore[import-not-found]
-except ImportError:
-    try:
-        from reedsolo import ReedSolomonError, RSCodec
-    except ImportError:  # pragma: no cover
-        RSCodec = None  # type: ignore[assignment,misc]
-        ReedSolomonError = Exception  # type: ignore[assignment,misc]
+    import reedsolo
+    from reedsolo import ReedSolomonError, RSCodec
+except ImportError:  # pragma: no cover
+    reedsolo = None  # type: ignore[assignment]
+    RSCodec = None  # type: ignore[assignment,misc]
+    ReedSolomonError = Exception  # type: ignore[assignment,misc]
 
 _codec = RSCodec(NSYM, nsize=BLOCK) if RSCodec is not None else None
 
@@ -175,33 +176,39 @@ def strip(coded: bytes) -> bytes:
     return b"".join(plain[i:i + BLOCK][:-NSYM] for i in range(0, len(plain), BLOCK))
 
 
-def _damaged_blocks(plain: np.ndarray) -> np.ndarray:
-    """Indexes of the blocks of ``plain`` (unwhitened, coded) whose syndromes are not all
-    zero: a block is a codeword exactly when ``c(2^j) = 0`` for j < 16."""
+def _syndromes(plain: np.ndarray) -> np.ndarray:
+    """(blocks, 16) syndromes of ``plain`` (unwhitened, coded): ``c(2^j)`` per block; a
+    block is a codeword exactly when all are zero."""
     nb = -(-plain.size // BLOCK)
     blocks = np.zeros((nb, BLOCK), np.uint8)
     full = (nb - 1) * BLOCK
     blocks[:nb - 1] = plain[:full].reshape(nb - 1, BLOCK)
     blocks[nb - 1, BLOCK - (plain.size - full):] = plain[full:]  # right-aligned
-    syn = np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _POWERS[None, :, :]], axis=1)
-    return np.flatnonzero(syn.any(axis=1))
+    return np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _POWERS[None, :, :]], axis=1)
 
 
 def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the body; FrameError (only) when it cannot.
 
-    Only the blocks whose syndromes show damage go through ``reedsolo``'s decoder."""
+    The syndromes of every block are computed at once (tables); a block whose
+    syndromes show damage goes through ``reedsolo``'s Berlekamp-Massey, Chien search
+    and Forney steps with those syndromes. A block with more than 8 damaged bytes
+    fails there, or is miscorrected and then fails the frame's CRC."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
     plain = np.frombuffer(whiten(coded), np.uint8).copy()
     if not plain.size:
         return b""
-    codec = _need()
-    for b in _damaged_blocks(plain):
+    _need()
+    syn = _syndromes(plain)
+    for b in np.flatnonzero(syn.any(axis=1)):
         block = plain[b * BLOCK:(b + 1) * BLOCK]
+        synd = [0, *syn[b].tolist()]  # reedsolo's layout
         try:
-            block[:] = np.frombuffer(bytes(codec.decode(block.tobytes())[1]),  # type: ignore[attr-defined]
-                                     np.uint8)
-        except ReedSolomonError as exc:
+            loc = reedsolo.rs_find_error_locator(synd, NSYM)
+            pos = reedsolo.rs_find_errors(loc[::-1], block.size, 2)
+            fixed = reedsolo.rs_correct_errata(bytearray(block.tobytes()), synd, pos, 0, 2)
+        except (ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: block {b}: {exc}") from None
+        block[:] = np.frombuffer(bytes(fixed), np.uint8)
     return b"".join(plain[i:i + BLOCK][:-NSYM].tobytes() for i in range(0, plain.size, BLOCK))
