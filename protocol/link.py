@@ -123,7 +123,8 @@ DIAG_HINTS = {
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
-    DIAG_NOISY: "the line damages frames: a smaller max frame or a better cable",
+    DIAG_NOISY: "the line damages more than its error correction repairs: check the cable, "
+                "the baud rate and that FEC is on (a serial line)",
 }
 
 
@@ -784,8 +785,8 @@ class HostLink:
                     raise LinkTimeout(
                         f"{what} of frame {fid} never arrived intact after {tries} resend "
                         f"requests on {self._port_name}: a noisy line, {damaged} damaged "
-                        f"frames of {damaged + self.decoder.stats.frames}; use a smaller "
-                        "--max-frame or a better cable", DIAG_NOISY)
+                        f"frames of {damaged + self.decoder.stats.frames}; "
+                        f"{DIAG_HINTS[DIAG_NOISY]}", DIAG_NOISY)
                 raise LinkTimeout(
                     f"{what} of frame {fid} never arrived after {tries} resend requests on "
                     f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
