@@ -50,13 +50,12 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import (
     DeviceError,
     FieldError,
-    FrameError,
     LinkError,
     LinkTimeout,
     out_of_range,
 )
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.columns import ColumnResult, decode_column
+from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
@@ -78,7 +77,6 @@ from cdma_lidar.protocol.messages import (
     HelloFlags,
     MsgKind,
     MsgType,
-    ScanEndReason,
     SessionLostReason,
     State,
     decode_payload,
@@ -86,6 +84,7 @@ from cdma_lidar.protocol.messages import (
     kind_of,
 )
 from cdma_lidar.protocol.ports import default_fec
+from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config, check_info, escape
 from cdma_lidar.protocol.views import Info, Status
 
@@ -126,21 +125,6 @@ DIAG_HINTS = {
     DIAG_NOISY: "the line damages more than its error correction repairs: check the cable, "
                 "the baud rate and that FEC is on (a serial line)",
 }
-
-
-class StreamEnded(DeviceError):
-    """A scan or calibration ended before its last column; every column before
-    ``next_column`` was delivered (yielded), none from it on.
-
-    ``frame``: the stream's frame id; ``reason``: the device's ScanEndReason (ABORTED,
-    ERROR), or None when the host gave up (:class:`ScanStalled`). ``code`` is
-    ErrorCode.INTERNAL when the device failed.
-    """
-
-    def __init__(self, message: str, *, frame: int, next_column: int,
-                 reason: int | None, code: int = 0) -> None:
-        super().__init__(message, code=code)
-        self.frame, self.next_column, self.reason = frame, next_column, reason
 
 
 class ScanStalled(StreamEnded, LinkTimeout):
@@ -602,123 +586,51 @@ class HostLink:
         self._refusal = None
         self._streaming = True
         finished = False
-        failure: Exception | None = None
         try:
             self._request(req, fields_)
-            received: dict[int, ColumnResult] = {}
-            parts: dict[int, _Pieces] = {}  # columns that are arriving in fragments
-            asked: dict[Any, tuple[float, int]] = {}  # column or (column, index) -> (t, tries)
-            nxt = first
-            horizon = first  # every fragment of the columns below this has been sent
-            edge: tuple[int, int] = (first, 0)  # fragments below edge[1] of column edge[0] too
-            last_rx = self.clock()
-            stored = 0  # columns and fragments kept so far (progress, with nxt and horizon)
-            progress, moved = (nxt, horizon, edge, stored), last_rx
-            while nxt < end:
+            asm = ColumnReassembler(fid, first, end, checker, self.resend_s)
+            last_rx = moved = self.clock()
+            progress = asm.progress
+            while not asm.done:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
-                    mtype, item, again = self._stream.popleft()
-                    if again and not self._asked_for(asked, item):
-                        # A repair this stream did not ask for: an earlier stream's, late.
-                        self.stats.duplicates += 1
-                        continue
-                    if mtype == MsgType.FRAGMENT:
-                        if item["frame"] != fid:
-                            continue
-                        got = True
-                        c, k = item["column"], item["index"]
-                        self._answered(asked, (c, k))
-                        horizon = max(horizon, c)
-                        if (c, k + 1) > edge:
-                            edge = (c, k + 1)
-                        if not nxt <= c < end or c in received:
-                            self.stats.duplicates += 1
-                            continue
-                        pc = parts.get(c)
-                        n = len(item["data"])
-                        if pc is None or pc.count != item["count"] or (
-                                (n != pc.size if k < pc.count - 1 else n > pc.size)
-                                and pc.size):
-                            # The first piece, or one of another cut: start over with it.
-                            pc = parts[c] = _Pieces(item["count"])
-                        if k < pc.count - 1:
-                            pc.size = n
-                        pc.data[k] = item["data"]
-                        stored += 1
-                        if len(pc.data) < pc.count:
-                            continue
-                        del parts[c]
-                        try:
-                            item = decode_column(b"".join(pc.data[i] for i in range(pc.count)))
-                        except FrameError:
-                            self.stats.malformed += 1
-                            continue
-                        mtype = MsgType.COLUMN_RESULT
-                    if mtype == MsgType.COLUMN_RESULT:
-                        c = item
-                        got = got or c.frame == fid
-                        if c.frame != fid or not nxt <= c.column < end or c.column in received:
-                            self.stats.duplicates += 1
-                            continue
-                        try:
-                            checker.check(c)
-                        except DeviceLied as exc:  # deliver the columns before it, then fail
-                            if failure is None:
-                                end, failure = c.column, exc
-                            continue
-                        self._answered(asked, c.column)
-                        received[c.column] = c
-                        stored += 1
-                        parts.pop(c.column, None)
-                        horizon = max(horizon, c.column + 1)
-                    elif mtype == MsgType.HEARTBEAT:
-                        if item.frame == fid:
-                            got = True
-                            horizon = max(horizon, min(end, item.next_column))
-                    elif mtype == MsgType.SCAN_END and item["frame"] == fid:
-                        got = True
-                        sent = min(end, item["first_column"] + item["columns"])
-                        horizon = max(horizon, sent)
-                        if item["reason"] != ScanEndReason.COMPLETE and failure is None:
-                            end, failure = sent, self._early_end(fid, item["reason"], sent)
+                    got = asm.feed(*self._stream.popleft()) or got
+                self.stats.duplicates += asm.duplicates
+                self.stats.malformed += asm.malformed
+                asm.duplicates = asm.malformed = 0
                 if self._refusal is not None:  # the device refused a RESEND: say why
                     (mtype, frame), self._refusal = self._refusal, None
                     self._accept_reply(mtype, frame)
-                while nxt in received:
+                for col in asm.ready():
                     self.stats.columns += 1
-                    yield received.pop(nxt)
-                    nxt += 1
-                if nxt >= end:
+                    yield col
+                if asm.done:
                     break
                 now = self.clock()
-                if (nxt, horizon, edge, stored) != progress:
-                    progress, moved = (nxt, horizon, edge, stored), now
+                if asm.progress != progress:
+                    progress, moved = asm.progress, now
                 elif now - moved >= self.progress_timeout_s:
                     raise ScanStalled(
                         f"frame {fid} made no progress for {self.progress_timeout_s:g} s on "
                         f"{self._port_name}: the device says it is still working but column "
-                        f"{nxt} never came; {nxt - first} columns were delivered",
-                        frame=fid, next_column=nxt)
+                        f"{asm.nxt} never came; {asm.nxt - first} columns were delivered",
+                        frame=fid, next_column=asm.nxt)
                 if got:
                     last_rx = now
                 elif now - last_rx >= self.timeout_s:
                     # Silence: ask the device how far it got (raises LinkTimeout with a
                     # diagnosis if it does not answer either).
                     st = self._probe(fid)
-                    sent = min(end, st.next_column)
-                    horizon = max(horizon, sent)
-                    if st.state == State.IDLE and sent < end and failure is None:
-                        end, failure = sent, self._early_end(fid, st.last_end, sent)
+                    asm.sent(st.next_column, st.last_end if st.state == State.IDLE else None)
                     last_rx = self.clock()
                     continue
-                due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
-                                    received, parts, asked, now)
+                due = asm.due(now)
                 if due:  # one RESEND, then read: its answer is in the stream
-                    self._resend(fid, due, asked, now)
+                    self._resend(fid, due, asm, now)
                     last_rx = self.clock()
                 self._pump()
-            if failure is not None:
-                raise failure
+            if asm.failure is not None:
+                raise asm.failure
             finished = True
         finally:
             self._streaming = False
@@ -726,39 +638,6 @@ class HostLink:
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
-
-    def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
-                 received: dict[int, ColumnResult], parts: dict[int, _Pieces],
-                 asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
-        """Columns (int) and fragments ((column, index)) sent, not received, due to ask."""
-        due: list[Any] = []
-        for c in range(nxt, stop):
-            if c in received:
-                continue
-            pc = parts.get(c)
-            if c in asked and now - asked[c][0] < self.resend_s:
-                keys: list[Any] = []  # asked for whole: its fragments are on their way
-            elif c < horizon and pc is None:
-                keys = [c]
-            elif pc is None:
-                keys = []  # the column in progress, nothing of it arrived yet
-            else:
-                sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
-                    else 0
-                keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= self.resend_s]
-            if len(due) >= 255:
-                break
-        return due
-
-    @staticmethod
-    def _early_end(fid: int, reason: int, sent: int) -> Exception:
-        if reason == ScanEndReason.ERROR:
-            return StreamEnded(f"device failed during frame {fid} after {sent} columns",
-                               frame=fid, next_column=sent, reason=reason,
-                               code=ErrorCode.INTERNAL)
-        return StreamEnded(f"frame {fid} was stopped on the device at column {sent}",
-                           frame=fid, next_column=sent, reason=reason)
 
     def _probe(self, fid: int) -> Status:
         """STATUS_GET after a silent spell: how far the device got with frame ``fid``."""
@@ -768,15 +647,14 @@ class HostLink:
                             "it lost the scan (restarted or another host took over)")
         return st
 
-    def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
-                now: float) -> None:
+    def _resend(self, fid: int, due: list[Any], asm: ColumnReassembler, now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
         room = self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
                                                                  // 3)]
         for key in cols + pieces:
-            tries = asked.get(key, (0.0, 0))[1]
+            tries = asm.tries(key)
             if tries >= self.column_retries:
                 damaged = self.decoder.stats.damaged
                 what = f"column {key}" if isinstance(key, int) else \
@@ -791,7 +669,7 @@ class HostLink:
                     f"{what} of frame {fid} never arrived after {tries} resend requests on "
                     f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
                     DIAG_NO_ANSWER)
-            asked[key] = (now, tries + 1)
+        asm.ask(cols + pieces, now)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols) + len(pieces)
         log.debug("frame %d: asking again for %d columns and %d fragments", fid, len(cols),
@@ -800,18 +678,6 @@ class HostLink:
         # A lost RESEND is asked again once the retransmission timeout passes.
         self._send_unawaited(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
             {"column": c, "index": k} for c, k in pieces]})
-
-    @staticmethod
-    def _asked_for(asked: dict[Any, tuple[float, int]], item: Any) -> bool:
-        """Whether this stream asked for the retransmitted column or fragment ``item``."""
-        if isinstance(item, ColumnResult):
-            return item.column in asked
-        return item["column"] in asked or (item["column"], item["index"]) in asked
-
-    @staticmethod
-    def _answered(asked: dict[Any, tuple[float, int]], key: Any) -> None:
-        """A fragment or a whole column asked for arrived: not due any more."""
-        asked.pop(key, None)
 
     def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
