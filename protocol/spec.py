@@ -24,7 +24,7 @@ import construct as cs
 
 from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.protocol import framing
+from cdma_lidar.protocol import auth, fec, framing
 from cdma_lidar.protocol.columns import (
     COLUMN_HEADER,
     FLAG_CALIBRATION,
@@ -254,8 +254,6 @@ def examples() -> str:
 
 def vectors() -> str:
     """Test vectors of access control and FEC, computed by the code that runs the link."""
-    from cdma_lidar.protocol import auth, fec
-
     key = bytes(range(32))
     host_nonce, device_nonce = bytes(range(0x10, 0x20)), bytes(range(0x20, 0x30))
     session, flags, host_max = 0xA1B2C3D4, 0x04, 4096
