@@ -5,12 +5,11 @@ In process, one 40-channel column goes through the whole frame path both ways
 parser). The baseline is the same path with the construct-declared payload codec.
 Through a pty and a loopback TCP socket, a DeviceEndpoint streams columns to a
 HostLink scan (gap repair and all); the baseline is the same connection carrying
-the same frame bytes with no protocol. On noisy in-process lines (bit errors both
-ways) the time to a byte-identical scan is reported as a ratio to the clean line with
-the same settings: first on a line with a UART's pace (921600 baud, 8N1: the issue's
-targets, time is the line's), frames sized by the host (``auto_frame``) from 16 KB and
-up to 256 bytes; then on the unpaced line (time is the code's), ``auto_frame`` and
-fixed 256- and 80-byte frames.
+the same frame bytes with no protocol. On noisy ``virtual://`` lines (bit errors both
+ways, reproducible by ``line_seed``) :func:`bench_lines` prints issue 25's targets as a
+table: the time to a byte-identical scan as a ratio to the clean line with the same
+settings, on a line with a UART's pace (921600 baud, 8N1: time is the line's) and
+unpaced (time is the code's), and how many line seeds gave the clean bytes.
 """
 
 from __future__ import annotations
@@ -37,7 +36,6 @@ from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MsgType
-from cdma_lidar.protocol.pipes import Faults, pipe_pair
 from cdma_lidar.protocol.ports import DEFAULT_BAUD, FdPort, open_port
 from cdma_lidar.protocol.views import Info
 
@@ -143,72 +141,64 @@ class _FastApp(DeviceApp):
                 for c in range(first_column, first_column + columns))
 
 
-def _noisy_scan(ber: float, max_frame: int, columns: int, seed: int,
-                auto: bool = False, baud: int | None = None) -> tuple[float, list, dict]:
-    """(seconds, column payloads, link counters) of one scan over a line with bit errors."""
-    host, dev = pipe_pair(Faults(bit_error_rate=ber), Faults(bit_error_rate=ber), seed=seed,
-                          baud=baud)
-    ep = DeviceEndpoint(dev, _FastApp(columns), heartbeat_s=0.05, ring_columns=4096)
-    stop = threading.Event()
-    th = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
-    th.start()
-    try:
-        link = HostLink(host, timeout_s=0.05, retries=20, max_frame=max_frame,
-                        auto_frame=auto)
-        t0 = time.perf_counter()
+#: Targets of issue 25: time on the noisy line / time on the clean line, per line.
+NOISY_TARGETS = {("paced", 1e-3): 3.0, ("unpaced", 1e-3): 5.0, ("paced", 1e-4): 1.5,
+                 ("unpaced", 1e-4): 1.5}
+PAPER = "virtual://paper-scene1?seed=3"
+SHORT = "virtual://flat-wall?seed=3&instrument.columns=16"
+
+
+def virtual_scan(url: str, frame: int = 7) -> tuple[float, list[bytes]]:
+    """(seconds of the scan after HELLO, column payloads) of one scan of ``url``."""
+    import cdma_lidar.virtual  # noqa: F401 - registers virtual://
+
+    with HostLink(open_port(url), timeout_s=0.5) as link:
         link.hello()
-        got = [encode_column(c) for c in link.scan(frame=5)]
-        dt = time.perf_counter() - t0
-        st = link.decoder.stats
-        counters = {"damaged": st.crc + st.cobs + st.length + st.short, "frames": st.frames,
-                    "resends": link.stats.resend_requests, "quick": link.stats.quick_retries,
-                    "frame": link.device_frame}
-        link.close()
-    finally:
-        stop.set()
-        th.join(2.0)
-    return dt, got, counters
+        t0 = time.perf_counter()
+        cols = [encode_column(c) for c in link.scan(frame=frame)]
+        return time.perf_counter() - t0, cols
 
 
-#: Targets of the issue: time on the noisy line / time on the clean line.
-NOISY_TARGETS = {3e-4: 3.0, 1e-3: 5.0}
+def bench_lines(paper_seeds: int = 10, timing_seeds: int = 3, short_seeds: int = 100) -> None:
+    """The issue's targets as a table: noisy ``virtual://`` scans against the clean one.
 
-
-def bench_noisy(columns: int = 200, max_frame: int = 256, runs: int = 3,
-                reference: tuple[str, float] | None = None, auto: bool = False,
-                baud: int | None = None) -> float:
-    """Scan time on lines with bit errors, as a ratio to the clean line, same settings.
-
-    The host asks for ``max_frame``-byte frames (a 40-channel column becomes a few
-    FRAGMENTs), or sizes them to the line (``auto``); clean and noisy scans run in this
-    process one after another, best of ``runs`` each, and every noisy scan must give
-    the clean scan's bytes. ``baud``: the line is a UART at that rate (8N1), so the
-    time is the line's; None: as fast as memory, so the time is the code's. Returns
-    the clean time (s); ``reference`` (label, seconds) adds a ratio to another clean time.
+    paper-scene1 (160 columns of 40 channels) on an unpaced line (time is the code's)
+    and on a 921600-baud UART (time is the line's); at a bit error rate of 1e-3 every
+    one of ``paper_seeds`` line seeds (unpaced; ``timing_seeds`` paced) must give the
+    clean scan's bytes; at 1e-4 ``timing_seeds``. The short scans: flat-wall, 16
+    columns, ``short_seeds`` line seeds at 1e-3. Times are medians; the clean time is
+    the best of two scans in this run.
     """
-    clean_t, clean, _ = min(_noisy_scan(0.0, max_frame, columns, s, auto, baud)
-                            for s in range(runs))
-    how = "frames sized to the line (auto_frame)" if auto else f"max frame {max_frame} B"
-    line = f"a {baud:,}-baud UART" if baud else "an unpaced in-process line"
-    print(f"noisy line: {line}, {K} channels, {columns} columns, {how}: clean "
-          f"{clean_t * 1e3:.0f} ms")
-    for ber in (1e-4, 3e-4, 1e-3):
-        best, info = float("inf"), {}
-        for s in range(runs):
-            dt, got, counters = _noisy_scan(ber, max_frame, columns, 100 + s, auto, baud)
-            if got != clean:
-                raise RuntimeError(f"bit error rate {ber:g}: the scan differs from the clean one")
-            if dt < best:
-                best, info = dt, counters
-        target = NOISY_TARGETS.get(ber)
-        verdict = "" if target is None or not baud else \
-            f" (target {target:g}: {'met' if best / clean_t <= target else 'NOT met'})"
-        print(f"  bit error rate {ber:g}: {best * 1e3:.0f} ms = x{best / clean_t:.2f} the clean "
-              f"time{verdict}, byte-identical; {info['damaged']} damaged frames of "
-              f"{info['damaged'] + info['frames']}, {info['resends']} RESENDs, "
-              f"{info['quick']} immediate retries, last frame size {info['frame']} B" + (
-                  f"; x{best / reference[1]:.2f} of {reference[0]}" if reference else ""))
-    return clean_t
+    rows = []
+    for scene, base, seeds_1e3 in (("paper-scene1", PAPER, paper_seeds),
+                                   ("flat-wall 16 col", SHORT, short_seeds)):
+        lines = [("unpaced", "")] + ([("paced", f"&line_baud={DEFAULT_BAUD}")]
+                                     if scene == "paper-scene1" else [])
+        for line, pace in lines:
+            clean_t, clean = min(virtual_scan(base + pace) for _ in range(2))
+            rows.append((scene, line, 0.0, clean_t, 1.0, None, "reference"))
+            for ber in (1e-4, 1e-3):
+                n = seeds_1e3 if ber == 1e-3 and (line == "unpaced" or scene != "paper-scene1") \
+                    else timing_seeds
+                times, same = [], 0
+                for seed in range(n):
+                    dt, cols = virtual_scan(f"{base}{pace}&line_error_rate={ber:g}"
+                                            f"&line_seed={seed}")
+                    times.append(dt)
+                    same += cols == clean
+                med = float(np.median(times))
+                rows.append((scene, line, ber, med, med / clean_t,
+                             NOISY_TARGETS.get((line, ber)) if scene == "paper-scene1" else None,
+                             f"{same}/{n} byte-identical"))
+    print(f"{'scene':<17} {'line':<8} {'BER':>6} {'time s':>7} {'x clean':>8} {'target':>7}  "
+          "verdict")
+    for scene, line, ber, t, ratio, target, what in rows:
+        verdict = what if target is None else \
+            f"{what}, {'met' if ratio <= target else 'NOT met'}"
+        print(f"{scene:<17} {line:<8} {ber:>6g} {t:>7.2f} {ratio:>8.2f} "
+              f"{'' if target is None else f'<= {target:g}':>7}  {verdict}")
+    print(f"(paced: a {DEFAULT_BAUD:,}-baud 8N1 UART; Reed-Solomon FEC on, the default for "
+          "a serial line)")
 
 
 def _bench_link(label: str, dev_port, host_port, columns: int) -> None:
@@ -284,13 +274,7 @@ def main() -> None:
     bench_in_process()
     bench_pty()
     bench_tcp()
-    # The issue's targets are for a line: a UART at the protocol's default rate.
-    bench_noisy(max_frame=65535, auto=True, baud=DEFAULT_BAUD, runs=2)
-    bench_noisy(max_frame=256, auto=True, baud=DEFAULT_BAUD, runs=2)
-    # The same scans as fast as memory: what the code costs per frame.
-    bench_noisy(max_frame=65535, auto=True)
-    clean_256 = bench_noisy(max_frame=256)
-    bench_noisy(max_frame=80, reference=("the clean 256-byte scan", clean_256))
+    bench_lines()
 
 
 if __name__ == "__main__":

@@ -235,7 +235,7 @@ def connect(url: str, *, timeout_s: float = 1.0, retries: int = 3, key_file: str
     key = resolve_key(url, key_file)
     port = open_port(url)
     link = HostLink(port, timeout_s=timeout_s, retries=retries, key=key, take_over=take_over,
-                    keep_config=keep_config, auto_frame=True)  # frames sized to the line
+                    keep_config=keep_config)
     try:
         info = link.hello()
         config = link.get_config()

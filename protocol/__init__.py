@@ -4,6 +4,7 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
 
 * :mod:`cdma_lidar.protocol.cobs` -- COBS byte stuffing (C extension when installed,
   pure Python otherwise).
+* :mod:`cdma_lidar.protocol.fec` -- Reed-Solomon RS(255, 239) inside the COBS frame.
 * :mod:`cdma_lidar.protocol.framing` -- header, CRC-32, delimiters; the stream decoder
   :class:`~cdma_lidar.protocol.framing.FrameDecoder`.
 * :mod:`cdma_lidar.protocol.schema` -- field declarations (construct + units and ranges).
@@ -25,6 +26,8 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
   :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection, sharing a
   :class:`~cdma_lidar.protocol.endpoint.DeviceCore`: the session owner) in front of a
   :class:`~cdma_lidar.protocol.endpoint.DeviceApp`.
+* :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns put back together and
+  what to ask again (``feed``, ``ready``, ``due(now)``).
 * :mod:`cdma_lidar.protocol.link` -- the host end :class:`~cdma_lidar.protocol.link.HostLink`
   and its timeout diagnoses.
 * :mod:`cdma_lidar.protocol.spec` -- regenerates the tables of ``docs/protocol.md``.

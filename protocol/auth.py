@@ -3,7 +3,7 @@
 A device reachable over a network holds a 32-byte key (a file created mode 0600 with
 :func:`load_or_create_key`); a host must hold the same key. No key ever travels.
 
-HELLO (version 2) is a challenge-response with HMAC-SHA256::
+HELLO (since version 2) is a challenge-response with HMAC-SHA256::
 
     host   HELLO(host_nonce16, mac = 0)               -> device
     device CHALLENGE(device_nonce16)                  -> host    (fresh per challenge)
@@ -36,6 +36,7 @@ import os
 import secrets
 import stat
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +47,7 @@ __all__ = [
     "KEY_BYTES",
     "MAC_BYTES",
     "NONCE_BYTES",
+    "Backoff",
     "FrameSigner",
     "FrameVerifier",
     "device_mac",
@@ -204,3 +206,45 @@ class FrameVerifier(_FrameMac):
             return False
         self.last = counter
         return True
+
+
+class Backoff:
+    """Per-peer back-off after failed authentication, logged once per burst.
+
+    After ``n`` failures in a row from one peer (an IP address, a port), the peer's next
+    MAC is not even checked until ``min(max_s, base_s * 2**(n - 1))`` seconds after the
+    last failure: a guesser gets about ``log2(max_s / base_s)`` guesses, then one per
+    ``max_s``. A burst is the failures of one peer with less than ``quiet_s`` between
+    them; its first failure logs one WARNING (the count is in the caller's stats).
+    ``clock`` is monotonic seconds.
+    """
+
+    def __init__(self, clock: Callable[[], float], base_s: float = 0.1, max_s: float = 5.0,
+                 quiet_s: float = 60.0) -> None:
+        self.clock = clock
+        self.base_s, self.max_s, self.quiet_s = base_s, max_s, quiet_s
+        self._peers: dict[str, tuple[int, float]] = {}  # peer -> (failures in a row, last)
+
+    def wait_s(self, peer: str) -> float:
+        """Seconds ``peer`` must still wait before its next MAC is checked (0: go ahead)."""
+        n, last = self._peers.get(peer, (0, 0.0))
+        if not n:
+            return 0.0
+        return max(0.0, last + min(self.max_s, self.base_s * 2 ** (n - 1)) - self.clock())
+
+    def failed(self, peer: str, what: str) -> None:
+        """One more failure of ``peer`` (``what`` names it for the log)."""
+        now = self.clock()
+        n, last = self._peers.get(peer, (0, 0.0))
+        if not n or now - last >= self.quiet_s:
+            log.warning("%s from %s: further failures from it are delayed (up to %g s "
+                        "apart) and not logged until it is quiet for %g s", what, peer,
+                        self.max_s, self.quiet_s)
+            n = 0
+            while len(self._peers) >= 4096:  # bounded whatever the number of peers
+                self._peers.pop(next(iter(self._peers)))
+        self._peers[peer] = (n + 1, now)
+
+    def passed(self, peer: str) -> None:
+        """``peer`` authenticated: its back-off ends."""
+        self._peers.pop(peer, None)

@@ -133,6 +133,8 @@ class _Job:
     max_frame: int
     signer: auth.FrameSigner | None
     repair: tuple[int, int, int] | None = None  # (frame, column, fragment or -1) of a repair
+    coded: bool = False  # Reed-Solomon coded (the session's FEC, or a coded request's reply)
+    version: int = PROTOCOL_VERSION  # another only for NAK VERSION to an older host
 
 
 class DeviceApp(abc.ABC):
@@ -201,6 +203,7 @@ class EndpointStats:
     columns_sent: int = 0
     resent: int = 0
     auth_rejected: int = 0  #: frames dropped for a wrong MAC or a replayed counter
+    auth_throttled: int = 0  #: HELLO MACs not checked: the peer's back-off was running
     sessions: int = 0  #: sessions opened on this connection
 
 
@@ -268,6 +271,11 @@ class DeviceCore:
         self.opened = 0.0
         self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
+        self.backoff = auth.Backoff(clock)  # failed authentication, per peer
+        #: Since boot (the core's creation), over every connection: what STATUS reports.
+        self.booted = clock()
+        self.totals = EndpointStats()
+        self.rx_frames = self.rx_errors = 0
 
     def idle_s(self, now: float) -> float:
         """Seconds the owner's session has been idle (0 while it streams)."""
@@ -324,6 +332,10 @@ class DeviceEndpoint:
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s).
         replay_depth: requests remembered for retransmission replay.
+        fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
+            (a serial line); False on TCP, where a damaged frame is not worth the CPU.
+        peer: who is on the other end (an IP address), for the per-peer back-off after
+            failed authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
     """
 
@@ -331,7 +343,8 @@ class DeviceEndpoint:
                  core: DeviceCore | None = None, key: bytes | None = None,
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
-                 poll_s: float = 0.01, replay_depth: int = 32,
+                 poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
+                 fec: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
         check_int("ring_columns", ring_columns, 0, 65535)
@@ -350,17 +363,22 @@ class DeviceEndpoint:
         self.core = core
         self.app = core.app
         self.port = port
+        #: Who is on the other end (an IP address over TCP), for the auth back-off and logs.
+        self.peer = peer or str(getattr(port, "name", None) or type(port).__name__)
         self.session = session_id if session_id else _new_session()
         self.session_open = False
+        #: Since when this connection has had no session (core clock, s).
+        self.sessionless_since = core.clock()
         self.max_frame = max_frame
         self.tx_max_frame = max_frame
         self.ring_columns = ring_columns
         self.heartbeat_s = heartbeat_s
         self.replay_depth = replay_depth
         self.clock = clock
-        self.decoder = FrameDecoder(max_frame)
+        self.fec = fec
+        self.coded = False  # this session's frames are Reed-Solomon coded (HELLO flag FEC)
+        self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
-        self._boot = clock()
         self._replay: OrderedDict[int, _Cached] = OrderedDict()
         self._last_seq: int | None = None
         self._stream: _Stream | None = None
@@ -372,6 +390,8 @@ class DeviceEndpoint:
         # Piece length (bytes) each ring column was last cut at; 0: sent whole.
         self._cuts: dict[tuple[int, int], int] = {}
         self._stream_seq = 0
+        self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
+        self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
         self._last_heartbeat = 0.0
         self._capture: tuple[tuple[int, int, int], NDArray] | None = None
         self._info: Info | None = None  # as sent in the last INFO
@@ -469,6 +489,7 @@ class DeviceEndpoint:
                     self._on_frame(frame)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
+                self._count_rx()
                 if self.decoder.stats.damaged > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
@@ -487,8 +508,16 @@ class DeviceEndpoint:
                     None if not worker else _POLL_REPAIR_BYTES)
 
 
+    def _count_rx(self) -> None:
+        """Add what the decoder counted since the last call to the core's totals."""
+        ds, (frames, errors) = self.decoder.stats, self._rx_counted
+        self.core.rx_frames += ds.frames - frames
+        self.core.rx_errors += ds.errors - errors
+        self._rx_counted = (ds.frames, ds.errors)
+
     def status(self) -> Status:
-        """Current status (as sent in STATUS and HEARTBEAT)."""
+        """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
+        self._count_rx()
         st = self._stream
         if self._app_lock.acquire(blocking=False):  # else: the last reading
             try:
@@ -499,6 +528,7 @@ class DeviceEndpoint:
             finally:
                 self._app_lock.release()
         temp, faults = self._health
+        core = self.core
         mask = 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
@@ -507,18 +537,17 @@ class DeviceEndpoint:
             next_column=(st.next_column - self._column_queued() if st else self._last_next)
             & 0xFFFF,
             last_end=int(self._last_end),
-            columns_sent=self.stats.columns_sent & mask,
-            uptime_ms=int((self.clock() - self._boot) * 1000) & mask,
-            rx_frames=self.decoder.stats.frames & mask,
-            rx_errors=self.decoder.stats.errors & mask,
-            tx_frames=self.stats.tx_frames & mask,
-            replays=self.stats.replays & mask,
+            columns_sent=core.totals.columns_sent & mask,
+            uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
+            rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
+            tx_frames=core.totals.tx_frames & mask, replays=core.totals.replays & mask,
             temperature_mc=temp, faults=faults & mask)
 
     # ---- sending --------------------------------------------------------------------
     def _enqueue_tx(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None,
                     compat: int = 0, signer: auth.FrameSigner | None = None,
-                    repair: tuple[int, int, int] | None = None, max_frame: int = 0) -> None:
+                    repair: tuple[int, int, int] | None = None, max_frame: int = 0,
+                    coded: bool | None = None, version: int = PROTOCOL_VERSION) -> None:
         """Queue one frame of class ``cls`` (encoded and signed when it is sent) of at
         most ``max_frame`` bytes (0: the session's current max frame).
 
@@ -526,7 +555,8 @@ class DeviceEndpoint:
         the first answer reached it costs the line nothing.
         """
         job = _Job(msg_type, payload, seq, self.session, compat,
-                   max_frame or self.tx_max_frame, signer, repair)
+                   max_frame or self.tx_max_frame, signer, repair,
+                   self.coded if coded is None else coded, version)
         with self._txcv:
             if repair is not None:
                 if repair in self._repairs:
@@ -570,12 +600,14 @@ class DeviceEndpoint:
                 try:
                     wire = encode_frame(job.msg_type, job.payload, seq, job.session,
                                         compat=job.compat, max_frame=job.max_frame,
-                                        signer=job.signer)
+                                        signer=job.signer, coded=job.coded,
+                                        version=job.version)
                 except FieldError:  # a bug must not take the device off the line
                     log.exception("cannot send a %s frame", _type_name(job.msg_type))
                     continue
                 self.port.write(wire)
                 self.stats.tx_frames += 1
+                self.core.totals.tx_frames += 1
                 if cls > _CONTROL:
                     sent += len(wire)
         except BaseException:  # the port failed: let the next writer try
@@ -598,6 +630,11 @@ class DeviceEndpoint:
 
     def _send_stream(self, msg_type: MsgType, payload: bytes, compat: int = 0,
                      cls: int = _CONTROL, repair: tuple[int, int, int] | None = None) -> None:
+        if self._pieces(payload, self._tx is not None) > 1:  # a notice longer than a frame
+            self._notice_id = (self._notice_id + 1) & 0xFFFF
+            self._send_pieces(msg_type, payload, self._notice_id, 0, 0, self._tx, None, compat,
+                              cls)
+            return
         self._enqueue_tx(cls, msg_type, payload, None, compat, self._tx, repair)
 
     def _piece_room(self, signed: bool) -> int:
@@ -613,14 +650,16 @@ class DeviceEndpoint:
     def _send_reply(self, req: Frame, reply: _Reply) -> None:
         msg_type, payload, signed = reply
         signer = self._tx if signed else None
+        coded = self.coded or req.fec  # a coded request gets a coded reply
         if self._pieces(payload, signed) == 1:
-            self._enqueue_tx(_CONTROL, msg_type, payload, req.seq, 0, signer)
+            self._enqueue_tx(_CONTROL, msg_type, payload, req.seq, 0, signer, coded=coded)
             return
-        self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None)
+        self._send_pieces(msg_type, payload, req.seq, 0, 0, signer, None, coded=coded)
 
     def _send_pieces(self, msg_type: MsgType, payload: bytes, seq: int, frame: int,
                      column: int, signer: auth.FrameSigner | None, only: Iterable[int] | None,
-                     compat: int = 0, cls: int = _CONTROL, room: int = 0) -> int:
+                     compat: int = 0, cls: int = _CONTROL, room: int = 0,
+                     coded: bool | None = None) -> int:
         """Send ``payload`` as FRAGMENTs (all of them, or the indexes in ``only``) of
         ``room`` bytes each (0: as many as the current max frame carries); returns the
         piece length used."""
@@ -638,7 +677,7 @@ class DeviceEndpoint:
                 "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
             self._enqueue_tx(cls, MsgType.FRAGMENT, body, None, compat, signer,
                              (frame, column, k) if cls == _REPAIR else None,
-                             frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0)
+                             frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0, coded)
         return room
 
     def _send_column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
@@ -686,12 +725,16 @@ class DeviceEndpoint:
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
             return
         if frame.version != PROTOCOL_VERSION:
+            # In the requester's version, so that an older host reads it: the header and
+            # the NAK payload are laid out alike in every version.
             reply = self._nak(frame, ErrorCode.VERSION, "version",
                               f"device speaks protocol version {PROTOCOL_VERSION}", False)
-        else:
-            reply = self._nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
-                              f"unknown incompat flags 0x{frame.incompat:02x}", False)
-        self._send_reply(frame, reply)
+            self._enqueue_tx(_CONTROL, MsgType.NAK, reply[1], frame.seq, coded=frame.fec,
+                             version=frame.version)
+            return
+        self._send_reply(frame, self._nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                                          f"unknown incompat flags 0x{frame.incompat:02x}",
+                                          False))
 
     def _on_frame(self, frame: Frame) -> None:
         """One decoded frame (caller holds _lock): check, then answer, replay or queue it.
@@ -734,14 +777,15 @@ class DeviceEndpoint:
                     return
                 if not self._rx.check(frame):  # forged or replayed: no answer at all
                     self.stats.auth_rejected += 1
-                    log.warning("dropped a %s frame that failed authentication (seq %d)",
-                                _type_name(frame.msg_type), frame.seq)
+                    self.core.backoff.failed(f"{self.peer} (session frames)",
+                                             "a frame failed authentication")
                     return
             self.core.touch(self)
         key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
         cached = self._replay.get(frame.seq)
         if cached is not None and cached.key == key:
             self.stats.replays += 1
+            self.core.totals.replays += 1
             for reply in cached.replies:
                 self._send_reply(frame, reply)
             return
@@ -750,6 +794,11 @@ class DeviceEndpoint:
             if 0 < age < 0x8000:
                 self.stats.stale += 1
                 log.debug("dropped stale request seq %d (last %d)", frame.seq, self._last_seq)
+                return
+        if is_hello and not in_worker:
+            refusal = self._hello_refusal(frame)
+            if refusal is not None:
+                self._respond(frame, key, refusal)
                 return
         if in_worker or frame.msg_type in _WITHOUT_APP or \
                 (frame.msg_type == MsgType.CONFIG_GET and self._stream is not None and
@@ -780,12 +829,23 @@ class DeviceEndpoint:
             except Exception:  # a bug must not take the device off the line
                 log.exception("request worker failed on %s", _type_name(frame.msg_type))
 
-    def _respond(self, frame: Frame, key: int) -> None:
-        """Act on one request, cache and send its reply (caller holds _lock, maybe app_lock)."""
+    def _hello_refusal(self, frame: Frame) -> _Reply | None:
+        """The gate's answer to a HELLO, from the polling thread (None: for the worker)."""
+        try:
+            f = decode_payload(MsgType.HELLO, frame.payload)
+        except FrameError:
+            return None  # the worker NAKs it MALFORMED
+        assert isinstance(f, dict)
+        return self._hello_gate(frame, f)
+
+    def _respond(self, frame: Frame, key: int, reply: _Reply | None = None) -> None:
+        """Act on one request (or send ``reply``, decided already), cache and send its
+        reply (caller holds _lock, maybe app_lock)."""
         is_hello = frame.msg_type == MsgType.HELLO
         after: list[Callable[[], None]] = []
         try:
-            reply = self._handle(frame, after)
+            if reply is None:
+                reply = self._handle(frame, after)
         except FrameError as exc:
             reply = self._nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except DeviceError as exc:
@@ -833,27 +893,61 @@ class DeviceEndpoint:
         return self._reply(req, MsgType.ACK,
                            encode_payload(MsgType.ACK, {"request_type": req.msg_type}))
 
-    def _on_hello(self, req: Frame, f: dict, after: list) -> _Reply:
-        """Challenge (with a key), check ownership, then open a fresh session.
+    def _hello_gate(self, req: Frame, f: dict) -> _Reply | None:
+        """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
+        or one sent during the peer's back-off) or BUSY; None: open a session.
 
-        Runs in the request worker, holding app_lock and _lock.
+        Runs in the polling thread (holding _lock), so a HELLO is refused at once
+        whatever the application is computing, and again in the request worker.
         """
         core = self.core
-        nonce = bytes(f["host_nonce"])
         if core.key is not None:
             if not any(f["mac"]) or self._challenge is None or \
                     not auth.equal(f["device_nonce"], self._challenge):
                 self._challenge = secrets.token_bytes(auth.NONCE_BYTES)
                 return (MsgType.CHALLENGE, encode_payload(
                     MsgType.CHALLENGE, {"device_nonce": self._challenge}), False)
-            want = auth.hello_mac(core.key, self._challenge, nonce, f["flags"],
-                                  f["host_max_frame"])
+            wait = core.backoff.wait_s(self.peer)
+            if wait > 0:
+                self._challenge = None
+                self.stats.auth_throttled += 1
+                return self._nak(req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
+                                 f"authentications from this peer: retry in {wait:.1f} s",
+                                 False)
+            want = auth.hello_mac(core.key, self._challenge, bytes(f["host_nonce"]),
+                                  f["flags"], f["host_max_frame"])
             if not auth.equal(want, f["mac"]):
                 self._challenge = None
                 self.stats.auth_rejected += 1
-                log.warning("HELLO with a wrong MAC: the host holds another key")
+                core.backoff.failed(self.peer, "HELLO with a wrong MAC (the host holds "
+                                               "another key)")
                 return self._nak(req, ErrorCode.AUTH_FAILED, "mac",
                                  "the MAC does not match this device's key", False)
+        owner = core.owner
+        if owner is None or (owner is self and core.owner_nonce == bytes(f["host_nonce"])):
+            return None
+        now = core.clock()
+        idle = core.idle_s(now)
+        if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
+            return None
+        return self._nak(
+            req, ErrorCode.BUSY, "session",
+            f"another host owns the device: its session opened {now - core.opened:.1f} "
+            f"s ago and has been idle {idle:.1f} s (expires after "
+            f"{core.session_idle_s:g} s idle); say HELLO with take-over to end it", False)
+
+    def _on_hello(self, req: Frame, f: dict, after: list) -> _Reply:
+        """Challenge (with a key), check ownership, then open a fresh session.
+
+        Runs in the request worker, holding app_lock and _lock.
+        """
+        refusal = self._hello_gate(req, f)
+        if refusal is not None:
+            return refusal
+        core = self.core
+        if core.key is not None:
+            core.backoff.passed(self.peer)
+        nonce = bytes(f["host_nonce"])
         now = core.clock()
         owner = core.owner
         flags = HelloFlags(f["flags"])
@@ -863,23 +957,14 @@ class DeviceEndpoint:
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
-            elif flags & HelloFlags.TAKE_OVER:
+            else:
                 lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
                         f"after {now - core.opened:.1f} s")
-            else:
-                lost = None
-            if lost is not None and owner is self:
+            if owner is self:
                 self._lose(*lost)
-            elif lost is not None:
+            else:
                 with owner._lock:  # lock order: app_lock, then one endpoint's _lock
                     owner._lose(*lost)
-            else:
-                return self._nak(
-                    req, ErrorCode.BUSY, "session",
-                    f"another host owns the device: its session opened {now - core.opened:.1f} "
-                    f"s ago and has been idle {idle:.1f} s (expires after "
-                    f"{core.session_idle_s:g} s idle); say HELLO with take-over to end it",
-                    False)
         # Open a fresh session on this connection.
         self._end_session()
         device_nonce = self._challenge or bytes(auth.NONCE_BYTES)
@@ -899,6 +984,7 @@ class DeviceEndpoint:
         core.owner, core.owner_nonce = self, nonce
         core.opened = core.last_active = now
         self.tx_max_frame = min(self.max_frame, f["host_max_frame"])
+        self.coded = self.fec and bool(flags & HelloFlags.FEC)
         mac = bytes(auth.MAC_BYTES)
         if core.key is not None:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.session)
@@ -924,6 +1010,9 @@ class DeviceEndpoint:
         self._cuts.clear()
         self._capture = None
         self._tx = self._rx = None
+        self.coded = False
+        if self.session_open:
+            self.sessionless_since = self.core.clock()
         self.session_open = False
 
     def _lose(self, reason: SessionLostReason, detail: str) -> None:
@@ -1095,6 +1184,7 @@ class DeviceEndpoint:
             for key, payload, only in todo:
                 self.stats.resent += 1
                 self.stats.columns_sent += 1
+                self.core.totals.columns_sent += 1
                 self._send_column(key, payload, COMPAT_RETRANSMIT, only)
 
         after.append(resend)
@@ -1173,6 +1263,7 @@ class DeviceEndpoint:
                         self._cuts.pop(self._ring.popitem(last=False)[0], None)
                     st.produced += 1
                     self.stats.columns_sent += 1
+                    self.core.totals.columns_sent += 1
                     self._send_column(key, payload)
                     if st.produced >= st.count:
                         # End the stream under the same lock that queued its last column:

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import secrets
 import time
 from collections import OrderedDict, deque
@@ -51,16 +50,15 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import (
     DeviceError,
     FieldError,
-    FrameError,
     LinkError,
     LinkTimeout,
-    ScanAborted,
     out_of_range,
 )
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.columns import ColumnResult, decode_column
+from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import (
+    COMPAT_RETRANSMIT,
     FRAME_LIMIT,
     MIN_MAX_FRAME,
     OVERHEAD,
@@ -79,13 +77,14 @@ from cdma_lidar.protocol.messages import (
     HelloFlags,
     MsgKind,
     MsgType,
-    ScanEndReason,
     SessionLostReason,
     State,
     decode_payload,
     encode_payload,
     kind_of,
 )
+from cdma_lidar.protocol.ports import default_fec
+from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config, check_info, escape
 from cdma_lidar.protocol.views import Info, Status
 
@@ -99,16 +98,15 @@ __all__ = [
     "DIAG_WRONG_SESSION",
     "HostLink",
     "LinkStats",
+    "ScanStalled",
     "SessionLost",
+    "StreamEnded",
 ]
 
 log = logging.getLogger(__name__)
 
-#: Smallest frame the device may be asked to send (HELLO / FRAME_SIZE host_max_frame).
+#: Smallest frame the device may be asked to send (HELLO host_max_frame).
 MIN_HOST_FRAME = 64
-#: Longest request frame (bytes) an ``auto_frame`` host sends once the line has damaged
-#: a frame: a long POWER_SET or RESEND is cut into requests this short.
-DAMAGED_REQUEST_FRAME = 96
 
 DIAG_SILENT = "no bytes at all"
 DIAG_GARBAGE = "bytes but no valid frame"
@@ -124,8 +122,18 @@ DIAG_HINTS = {
     DIAG_WRONG_SESSION: "the device restarted: call hello() again",
     DIAG_NO_ANSWER: "the device is alive but does not answer this request",
     DIAG_VERSION: "host and firmware speak different protocol versions: update one of them",
-    DIAG_NOISY: "the line damages frames: a smaller max frame or a better cable",
+    DIAG_NOISY: "the line damages more than its error correction repairs: check the cable, "
+                "the baud rate and that FEC is on (a serial line)",
 }
+
+
+class ScanStalled(StreamEnded, LinkTimeout):
+    """The device kept the stream alive (heartbeats, STATUS "scanning") but no column
+    and no ``next_column`` moved for ``HostLink.progress_timeout_s``."""
+
+    def __init__(self, message: str, *, frame: int, next_column: int) -> None:
+        StreamEnded.__init__(self, message, frame=frame, next_column=next_column, reason=None)
+        self.diagnosis = DIAG_NO_ANSWER
 
 
 class SessionLost(LinkError):
@@ -151,7 +159,6 @@ class LinkStats:
     resend_requests: int = 0
     resent_columns: int = 0
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
-    quick_retries: int = 0  #: requests sent again at once because the line showed damage
 
 
 @dataclass
@@ -162,48 +169,6 @@ class _Pieces:
     data: dict[int, bytes] = field(default_factory=dict)
     frames: list[Frame] = field(default_factory=list)
     size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
-
-
-#: Bit error rates the line judgement considers (a grid 12 % apart from 1e-7 to 0.1).
-_BER_GRID = np.logspace(-7, -1, 121)
-
-
-def _bit_error_rate(chunks: list[tuple[int, bool]]) -> float:
-    """Maximum-likelihood bit error rate of chunks ``(bytes on the wire, intact)``.
-
-    A chunk of ``n`` bits is intact with probability ``(1 - b)^n``; the log-likelihood
-    ``sum_intact n ln(1 - b) + sum_damaged ln(1 - (1 - b)^n)`` is evaluated on a grid.
-    """
-    bits = 8.0 * np.array([n for n, _ in chunks])
-    ok = np.array([o for _, o in chunks])
-    lq = np.log1p(-_BER_GRID)[:, None] * bits[None, :]  # ln P(intact), per rate and chunk
-    ll = np.where(ok[None, :], lq, np.log(-np.expm1(np.minimum(lq, -1e-300)))).sum(axis=1)
-    return float(_BER_GRID[int(np.argmax(ll))])
-
-
-class _Rto:
-    """Retransmission timeout of repairs from measured round trips (RFC 6298's estimator).
-
-    A sample is the time from a RESEND to the arrival of what it asked for, taken only
-    for a first request (Karn's rule: an answer to a repeated request is ambiguous).
-    ``value`` = SRTT + 4 RTTVAR, within [``floor``, ``ceiling``] s; ``initial`` (the
-    link's timeout) until the first sample.
-    """
-
-    def __init__(self, floor: float, ceiling: float, initial: float) -> None:
-        self.floor, self.ceiling = floor, ceiling
-        self.srtt: float | None = None
-        self.rttvar = 0.0
-        self.value = initial
-
-    def sample(self, rtt: float) -> None:
-        """Fold one round trip (s) into the estimate."""
-        if self.srtt is None:
-            self.srtt, self.rttvar = rtt, rtt / 2
-        else:
-            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
-            self.srtt = 0.875 * self.srtt + 0.125 * rtt
-        self.value = min(self.ceiling, max(self.floor, self.srtt + 4 * self.rttvar))
 
 
 @dataclass
@@ -244,10 +209,13 @@ class HostLink:
         take_over: HELLO ends another host's live session instead of failing BUSY.
         keep_config: the new session keeps the previous session's configuration and
             power instead of starting from the device's defaults.
-        auto_frame: size the device's frames to the line during scans (FRAME_SIZE):
-            from the share of damaged frames the host estimates the bit error rate and
-            asks for the frame length that carries the most intact bytes, between 64
-            bytes and ``max_frame``. A clean line never changes anything.
+        fec: Reed-Solomon coded frames both ways (:mod:`cdma_lidar.protocol.fec`), asked
+            for in HELLO; None: on for a serial line, off for ``socket://`` and USB
+            (``/dev/ttyACM*``), whose transports already deliver intact bytes
+            (:func:`cdma_lidar.protocol.ports.default_fec`).
+        progress_timeout_s: a stream whose device stays alive (heartbeats, STATUS
+            "scanning") but sends no new column or fragment and does not move
+            ``next_column`` for this long fails with :class:`ScanStalled` (s).
         clock: monotonic clock (s), replaceable in tests.
 
     One HostLink per port, used from one thread at a time.
@@ -256,7 +224,8 @@ class HostLink:
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, poll_s: float | None = None,
                  max_frame: int = FRAME_LIMIT, key: bytes | None = None,
-                 take_over: bool = False, keep_config: bool = False, auto_frame: bool = False,
+                 take_over: bool = False, keep_config: bool = False, fec: bool | None = None,
+                 progress_timeout_s: float = 30.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
@@ -268,6 +237,13 @@ class HostLink:
         if poll_s is not None and not 0 < poll_s <= 10:
             raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
                                "would make every wait spin)", poll_s)
+        if not progress_timeout_s > 0:
+            raise out_of_range("progress_timeout_s", "a positive number of seconds",
+                               progress_timeout_s)
+        self.progress_timeout_s = float(progress_timeout_s)
+        #: A column or fragment asked for again is asked once more after this long (s):
+        #: its answer comes ahead of new columns, so a quarter of the reply timeout.
+        self.resend_s = self.timeout_s / 4
         self.clock = clock
         self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.stats = LinkStats()
@@ -280,8 +256,9 @@ class HostLink:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.key = key
         self.take_over = bool(take_over)
-        self.auto_frame = bool(auto_frame)
-        self.device_frame = 0  # largest frame the device sends in this session (bytes)
+        self.fec = default_fec(port) if fec is None else bool(fec)
+        self.decoder.fec = self.fec
+        self.coded = False  # this session's frames are coded (the device agreed in HELLO)
         self.keep_config = bool(keep_config)
         self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
@@ -291,7 +268,8 @@ class HostLink:
         self._reply_frame: Frame | None = None
         self._reply_parts: list[Frame] = []  # the FRAGMENTs the pending reply came in
         self._partial: dict[tuple[int, int], _Pieces] = {}  # replies arriving in fragments
-        self._line_errors = 0  # LINE_ERRORs of our session heard so far
+        self._notices: dict[tuple[int, int], _Pieces] = {}  # notices arriving in fragments
+        self.line_errors = 0  # LINE_ERRORs of our session heard so far
         self._early: list[Frame] = []  # frames that came with INFO, before hello() returned
         self._next_frame_id = secrets.randbits(31)
         self._pending: int | None = None  # seq of the request waiting for its reply
@@ -300,17 +278,11 @@ class HostLink:
         self._reply: Frame | None = None
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._streaming = False
-        self._stream: deque[tuple[int, Any]] = deque()
+        # Stream items: (type, decoded body, retransmitted).
+        self._stream: deque[tuple[int, Any, bool]] = deque()
         # Requests sent without waiting for their reply (RESEND in a scan): seq -> type.
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        # Repairs are re-asked after the measured round trip, which on a slow line with
-        # a queue of repairs may exceed the reply timeout (up to 10 times it).
-        self._logged_from = (0, 0)  # decoder (frames, damaged) when the chunk log was cleared
-        self._rto = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s, self.timeout_s)
-        # A whole column's answer takes its time on the line too: its own estimate.
-        self._rto_column = _Rto(min(0.005, self.timeout_s), 10 * self.timeout_s,
-                                self.timeout_s)
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
         port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
@@ -353,25 +325,11 @@ class HostLink:
         self.config = None
         self._early = []
         flags = (HelloFlags.TAKE_OVER if self.take_over else 0) | \
-            (HelloFlags.KEEP_CONFIG if self.keep_config else 0)
-        # auto_frame: if INFO never gets through intact, ask for shorter frames.
-        sizes = [self._host_max] + ([s for s in (256, 96) if s < self._host_max]
-                                    if self.auto_frame else [])
-        retries = self.retries
-        for k, size in enumerate(sizes):
-            if k + 1 < len(sizes):  # a shorter size is left: try it after one timeout
-                self.retries = 0
-            try:
-                reply, fields_ = self._hello_exchange(size, int(flags))
-                break
-            except LinkTimeout as exc:
-                if exc.diagnosis != DIAG_NOISY or k + 1 == len(sizes):
-                    raise
-                log.info("HELLO: INFO damaged on the way, asking for %d-byte frames",
-                         sizes[k + 1])
-            finally:
-                self.retries = retries
-        return self._open(reply, fields_, sizes[k])
+            (HelloFlags.KEEP_CONFIG if self.keep_config else 0) | \
+            (HelloFlags.FEC if self.fec else 0)
+        self.coded = False
+        reply, fields_ = self._hello_exchange(self._host_max, int(flags))
+        return self._open(reply, fields_)
 
     def _hello_exchange(self, host_max: int, flags: int) -> tuple[dict[str, Any],
                                                                  dict[str, Any]]:
@@ -394,7 +352,7 @@ class HostLink:
                             "it does not accept this host's key")
         return reply, fields_
 
-    def _open(self, reply: dict[str, Any], fields_: dict[str, Any], host_max: int) -> Info:
+    def _open(self, reply: dict[str, Any], fields_: dict[str, Any]) -> Info:
         """Check INFO and make its session ours."""
         try:
             info = Info.from_fields(reply)
@@ -416,10 +374,8 @@ class HostLink:
         self.session = info.session_id
         # Requests: what the device accepts, within what this host asked for the line.
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
-        self.device_frame = min(info.max_frame, host_max)
-        if self.auto_frame:  # judge the line from the chunks of this session on
-            self.decoder.chunk_log = []
-            self._clear_chunk_log()
+        # The device codes its INFO when it agreed to FEC: then so do we.
+        self.coded = self.fec and self._reply_frame is not None and self._reply_frame.fec
         early, self._early = self._early, []
         for frame in early:  # e.g. SESSION_LOST right behind INFO
             self._dispatch(frame)
@@ -503,7 +459,7 @@ class HostLink:
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
+        room = (self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -630,109 +586,51 @@ class HostLink:
         self._refusal = None
         self._streaming = True
         finished = False
-        failure: Exception | None = None
         try:
             self._request(req, fields_)
-            received: dict[int, ColumnResult] = {}
-            parts: dict[int, _Pieces] = {}  # columns that are arriving in fragments
-            asked: dict[Any, tuple[float, int]] = {}  # column or (column, index) -> (t, tries)
-            nxt = first
-            horizon = first  # every fragment of the columns below this has been sent
-            edge: tuple[int, int] = (first, 0)  # fragments below edge[1] of column edge[0] too
-            last_rx = self.clock()
-            while nxt < end:
+            asm = ColumnReassembler(fid, first, end, checker, self.resend_s)
+            last_rx = moved = self.clock()
+            progress = asm.progress
+            while not asm.done:
                 got = False  # heard something about this frame (other frames are no sign of life)
                 while self._stream:
-                    mtype, item = self._stream.popleft()
-                    if mtype == MsgType.FRAGMENT:
-                        if item["frame"] != fid:
-                            continue
-                        got = True
-                        c, k = item["column"], item["index"]
-                        self._answered(asked, (c, k))
-                        horizon = max(horizon, c)
-                        if (c, k + 1) > edge:
-                            edge = (c, k + 1)
-                        if not nxt <= c < end or c in received:
-                            self.stats.duplicates += 1
-                            continue
-                        pc = parts.get(c)
-                        n = len(item["data"])
-                        if pc is None or pc.count != item["count"] or (
-                                (n != pc.size if k < pc.count - 1 else n > pc.size)
-                                and pc.size):
-                            # The first piece, or one of another cut: start over with it.
-                            pc = parts[c] = _Pieces(item["count"])
-                        if k < pc.count - 1:
-                            pc.size = n
-                        pc.data[k] = item["data"]
-                        if len(pc.data) < pc.count:
-                            continue
-                        del parts[c]
-                        try:
-                            item = decode_column(b"".join(pc.data[i] for i in range(pc.count)))
-                        except FrameError:
-                            self.stats.malformed += 1
-                            continue
-                        mtype = MsgType.COLUMN_RESULT
-                    if mtype == MsgType.COLUMN_RESULT:
-                        c = item
-                        got = got or c.frame == fid
-                        if c.frame != fid or not nxt <= c.column < end or c.column in received:
-                            self.stats.duplicates += 1
-                            continue
-                        try:
-                            checker.check(c)
-                        except DeviceLied as exc:  # deliver the columns before it, then fail
-                            if failure is None:
-                                end, failure = c.column, exc
-                            continue
-                        self._answered(asked, c.column)
-                        received[c.column] = c
-                        parts.pop(c.column, None)
-                        horizon = max(horizon, c.column + 1)
-                    elif mtype == MsgType.HEARTBEAT:
-                        if item.frame == fid:
-                            got = True
-                            horizon = max(horizon, min(end, item.next_column))
-                    elif mtype == MsgType.SCAN_END and item["frame"] == fid:
-                        got = True
-                        sent = min(end, item["first_column"] + item["columns"])
-                        horizon = max(horizon, sent)
-                        if item["reason"] != ScanEndReason.COMPLETE and failure is None:
-                            end, failure = sent, self._early_end(fid, item["reason"], sent)
+                    got = asm.feed(*self._stream.popleft()) or got
+                self.stats.duplicates += asm.duplicates
+                self.stats.malformed += asm.malformed
+                asm.duplicates = asm.malformed = 0
                 if self._refusal is not None:  # the device refused a RESEND: say why
                     (mtype, frame), self._refusal = self._refusal, None
                     self._accept_reply(mtype, frame)
-                while nxt in received:
+                for col in asm.ready():
                     self.stats.columns += 1
-                    yield received.pop(nxt)
-                    nxt += 1
-                if nxt >= end:
+                    yield col
+                if asm.done:
                     break
                 now = self.clock()
+                if asm.progress != progress:
+                    progress, moved = asm.progress, now
+                elif now - moved >= self.progress_timeout_s:
+                    raise ScanStalled(
+                        f"frame {fid} made no progress for {self.progress_timeout_s:g} s on "
+                        f"{self._port_name}: the device says it is still working but column "
+                        f"{asm.nxt} never came; {asm.nxt - first} columns were delivered",
+                        frame=fid, next_column=asm.nxt)
                 if got:
                     last_rx = now
                 elif now - last_rx >= self.timeout_s:
                     # Silence: ask the device how far it got (raises LinkTimeout with a
                     # diagnosis if it does not answer either).
                     st = self._probe(fid)
-                    sent = min(end, st.next_column)
-                    horizon = max(horizon, sent)
-                    if st.state == State.IDLE and sent < end and failure is None:
-                        end, failure = sent, self._early_end(fid, st.last_end, sent)
+                    asm.sent(st.next_column, st.last_end if st.state == State.IDLE else None)
                     last_rx = self.clock()
                     continue
-                if self.auto_frame:
-                    self._size_frames()
-                due = self._missing(nxt, min(end, max(horizon, edge[0] + 1)), horizon, edge,
-                                    received, parts, asked, now)
+                due = asm.due(now)
                 if due:  # one RESEND, then read: its answer is in the stream
-                    self._resend(fid, due, asked, now)
+                    self._resend(fid, due, asm, now)
                     last_rx = self.clock()
                 self._pump()
-            if failure is not None:
-                raise failure
+            if asm.failure is not None:
+                raise asm.failure
             finished = True
         finally:
             self._streaming = False
@@ -740,93 +638,6 @@ class HostLink:
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
-
-    def _size_frames(self) -> None:
-        """Ask for frames sized to the line once enough chunks show how damaged it is.
-
-        Every chunk received since the last judgement is a trial: one of ``n`` bits
-        arrives intact with probability ``(1 - b)^n``. The bit error rate ``b`` is the
-        maximum-likelihood one over those chunks, whatever their lengths (columns,
-        replies and heartbeats mix). A frame of ``D`` data bytes and ``H`` overhead
-        survives with ``(1 - b)^(8 (D + H))``, so the intact data per byte sent is
-        largest at ``D (D + H) = H / (8 b)``.
-
-        A judgement waits for 24 damaged and 24 intact chunks (``b`` then within
-        about 20 %), or 16 damaged and none intact (the frames are far too long: a
-        quarter of their length), or 512 chunks without damage (twice the length). A
-        change under 30 % is not asked for: the device would cut new columns anew.
-        """
-        chunks = self.decoder.chunk_log
-        if chunks is None:
-            return
-        # The log holds exactly the frames and damaged chunks counted since it was cleared.
-        good = self.decoder.stats.frames - self._logged_from[0]
-        bad = self.decoder.stats.damaged - self._logged_from[1]
-        cur = self.device_frame
-        ceiling = min(self._host_max, self.info.max_frame if self.info else self._host_max)
-        if bad >= 16 and good == 0:
-            new = max(MIN_HOST_FRAME, min(cur, sorted(n for n, _ in chunks)[bad // 2]) // 4)
-        elif bad >= 24 and good >= 24:
-            ber = _bit_error_rate(chunks)
-            h = OVERHEAD + 11 + 2 + (SIGNATURE_SIZE if self._tx else 0)  # FRAGMENT + COBS
-            data = (-h + math.sqrt(h * h + 4 * h / (8 * ber))) / 2
-            new = int(min(ceiling, max(MIN_HOST_FRAME, round(data + h))))
-        elif bad == 0 and good >= 512:
-            new = min(ceiling, 2 * cur)
-        else:
-            if len(chunks) > 4096:  # a line that damages almost nothing: judge afresh
-                self._clear_chunk_log()
-            return
-        self._clear_chunk_log()
-        if abs(new - cur) * 10 <= 3 * cur:
-            return  # within 30 %: not worth cutting the columns anew
-        try:
-            self._request(MsgType.FRAME_SIZE, {"host_max_frame": new})
-        except DeviceError as exc:  # TOO_LARGE: keep the size that works
-            log.debug("device keeps %d-byte frames: %s", cur, exc)
-            return
-        log.info("%d of %d frames damaged: frames of %d bytes from now on (were %d)", bad,
-                 bad + good, new, cur)
-        self.device_frame = new
-        self._clear_chunk_log()
-
-    def _clear_chunk_log(self) -> None:
-        """Start the line judgement afresh from the next chunk."""
-        assert self.decoder.chunk_log is not None
-        self.decoder.chunk_log.clear()
-        self._logged_from = (self.decoder.stats.frames, self.decoder.stats.damaged)
-
-    def _missing(self, nxt: int, stop: int, horizon: int, edge: tuple[int, int],
-                 received: dict[int, ColumnResult], parts: dict[int, _Pieces],
-                 asked: dict[Any, tuple[float, int]], now: float) -> list[Any]:
-        """Columns (int) and fragments ((column, index)) sent, not received, due to ask."""
-        due: list[Any] = []
-        for c in range(nxt, stop):
-            if c in received:
-                continue
-            pc = parts.get(c)
-            if c in asked and now - asked[c][0] < self._rto_column.value:
-                keys: list[Any] = []  # asked for whole: its fragments are on their way
-            elif c < horizon and pc is None:
-                keys = [c]
-            elif pc is None:
-                keys = []  # the column in progress, nothing of it arrived yet
-            else:
-                sent = pc.count if c < horizon else min(pc.count, edge[1]) if c == edge[0] \
-                    else 0
-                keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys if k not in asked or now - asked[k][0] >= (
-                self._rto_column if isinstance(k, int) else self._rto).value]
-            if len(due) >= 255:
-                break
-        return due
-
-    @staticmethod
-    def _early_end(fid: int, reason: int, sent: int) -> Exception:
-        if reason == ScanEndReason.ERROR:
-            return DeviceError(f"device failed during frame {fid} after {sent} columns",
-                               code=ErrorCode.INTERNAL)
-        return ScanAborted(f"frame {fid} was stopped on the device at column {sent}")
 
     def _probe(self, fid: int) -> Status:
         """STATUS_GET after a silent spell: how far the device got with frame ``fid``."""
@@ -836,18 +647,14 @@ class HostLink:
                             "it lost the scan (restarted or another host took over)")
         return st
 
-    def _resend(self, fid: int, due: list[Any], asked: dict[Any, tuple[float, int]],
-                now: float) -> None:
+    def _resend(self, fid: int, due: list[Any], asm: ColumnReassembler, now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most."""
-        # Short requests on a line whose frames were made short (auto_frame).
-        room = self._request_limit() - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
-        if self.decoder.stats.damaged:  # a line that damages frames: short requests get through
-            room = min(room, 48)
+        room = self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0) - 6
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][:min(255, (room - 2 * len(cols))
                                                                  // 3)]
         for key in cols + pieces:
-            tries = asked.get(key, (0.0, 0))[1]
+            tries = asm.tries(key)
             if tries >= self.column_retries:
                 damaged = self.decoder.stats.damaged
                 what = f"column {key}" if isinstance(key, int) else \
@@ -856,13 +663,13 @@ class HostLink:
                     raise LinkTimeout(
                         f"{what} of frame {fid} never arrived intact after {tries} resend "
                         f"requests on {self._port_name}: a noisy line, {damaged} damaged "
-                        f"frames of {damaged + self.decoder.stats.frames}; use a smaller "
-                        "--max-frame or a better cable", DIAG_NOISY)
+                        f"frames of {damaged + self.decoder.stats.frames}; "
+                        f"{DIAG_HINTS[DIAG_NOISY]}", DIAG_NOISY)
                 raise LinkTimeout(
                     f"{what} of frame {fid} never arrived after {tries} resend requests on "
                     f"{self._port_name}: {DIAG_NO_ANSWER}; {DIAG_HINTS[DIAG_NO_ANSWER]}",
                     DIAG_NO_ANSWER)
-            asked[key] = (now, tries + 1)
+        asm.ask(cols + pieces, now)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols) + len(pieces)
         log.debug("frame %d: asking again for %d columns and %d fragments", fid, len(cols),
@@ -871,14 +678,6 @@ class HostLink:
         # A lost RESEND is asked again once the retransmission timeout passes.
         self._send_unawaited(MsgType.RESEND, {"frame": fid, "columns": cols, "fragments": [
             {"column": c, "index": k} for c, k in pieces]})
-
-    def _answered(self, asked: dict[Any, tuple[float, int]], key: Any) -> None:
-        """A fragment or a whole column asked for arrived: one round-trip sample if it
-        was asked for once (a whole column's sample includes its time on the line)."""
-        t_tries = asked.pop(key, None)
-        if t_tries is not None and t_tries[1] == 1:
-            rto = self._rto_column if isinstance(key, int) else self._rto
-            rto.sample(self.clock() - t_tries[0])
 
     def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
@@ -912,7 +711,7 @@ class HostLink:
         self.stats.requests += 1
         win = _Window(self.decoder.stats.bytes, self.decoder.stats.frames,
                       self.stats.wrong_session, self._other_version(), self.decoder.stats.damaged,
-                      self._line_errors)
+                      self.line_errors)
         self._pending = seq
         self._pending_type = int(msg_type)
         self._reply = None
@@ -920,7 +719,6 @@ class HostLink:
         self._reply_parts = []
         self._partial.clear()
         self._reply_version = None
-        quick = 10 * (self.retries + 1)  # extra tries sent at once when the line shows damage
         try:
             for attempt in range(self.retries + 1):
                 if attempt:
@@ -930,15 +728,7 @@ class HostLink:
                 deadline = self.clock() + self.timeout_s
                 while self._reply is None and self._reply_version is None and \
                         self.clock() < deadline:
-                    damage = self._damage_seen()
                     self._pump()
-                    if quick and self._reply is None and self._damage_seen() != damage:
-                        # A damaged chunk on either side (ours, or the device's LINE_ERROR):
-                        # the request or its reply was probably hit, so try again now.
-                        quick -= 1
-                        self.stats.quick_retries += 1
-                        self._send_request(msg_type, payload, seq)
-                        deadline = self.clock() + self.timeout_s
                 if self._reply is not None:
                     self._reply_frame = self._reply
                     return self._accept_reply(msg_type, self._reply)
@@ -957,30 +747,21 @@ class HostLink:
             damaged = self.decoder.stats.damaged - win.damaged
             what += (f" ({damaged} damaged frames of "
                      f"{damaged + self.decoder.stats.frames - win.frames} received, "
-                     f"{self._line_errors - win.line_errors} reported by the device)")
+                     f"{self.line_errors - win.line_errors} reported by the device)")
         raise LinkTimeout(
             f"{msg_type.name} got no answer from {self._port_name} after "
             f"{self.retries + 1} tries of {self.timeout_s:g} s: {what}; {DIAG_HINTS[diag]}", diag)
 
-    def _request_limit(self) -> int:
-        """Longest request frame worth sending (bytes): as long as the device's frames,
-        which are sized to the line (``auto_frame``), so that a long request (POWER_SET
-        of a whole matrix, RESEND of many columns) is cut into pieces that get through."""
-        limit = min(self.max_frame, max(self.device_frame or self.max_frame, MIN_HOST_FRAME))
-        if self.auto_frame and (self.decoder.stats.damaged or self._line_errors):
-            limit = min(limit, DAMAGED_REQUEST_FRAME)  # ~46 % get through at 1e-3
-        return limit
-
-    def _damage_seen(self) -> tuple[int, int]:
-        """Signs that a request or its reply was hit: damaged chunks here and the
-        device's LINE_ERRORs. (In a scan, RESEND waits for no reply, so the damaged
-        columns there only hurry the rare awaited request: a STATUS probe, FRAME_SIZE.)"""
-        return (self.decoder.stats.damaged, self._line_errors)
-
     def _send_request(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
         """Write one try of a request, signed afresh (new counter, same seq and payload)."""
-        self._write(encode_frame(msg_type, payload, seq, self.session or 0,
-                                 max_frame=self.max_frame, signer=self._tx))
+        wire = encode_frame(msg_type, payload, seq, self.session or 0, max_frame=self.max_frame,
+                            signer=self._tx, coded=self.coded)
+        if msg_type == MsgType.HELLO and self.fec:
+            # Coded (gets through a noisy line), then plain (a device that cannot decode
+            # it, or an older one, reads this copy): the device acts once, the replay
+            # cache answers the copy.
+            wire = encode_frame(msg_type, payload, seq, 0, coded=True) + wire
+        self._write(wire)
 
 
     def _diagnose(self, win: _Window) -> str:
@@ -988,7 +769,7 @@ class HostLink:
         st = self.decoder.stats
         if st.bytes == win.bytes:
             return DIAG_SILENT
-        reported = self._line_errors - win.line_errors  # the device saw our frames damaged
+        reported = self.line_errors - win.line_errors  # the device saw our frames damaged
         if st.frames == win.frames and not reported:
             return DIAG_VERSION if self._other_version() > win.other_version else DIAG_GARBAGE
         wrong = self.stats.wrong_session - win.wrong_session
@@ -1102,7 +883,8 @@ class HostLink:
                 if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
                     self._reply_version = frame
 
-    def _dispatch(self, frame: Frame) -> None:
+    def _dispatch(self, frame: Frame, checked: bool = False) -> None:
+        """Route one frame; ``checked``: a notice put together from authenticated pieces."""
         kind = kind_of(frame.msg_type)
         if kind is MsgKind.REQUEST:
             self.stats.ignored += 1
@@ -1120,8 +902,8 @@ class HostLink:
                 frame.session == self._reply.session:
             self._early.append(frame)  # of the session INFO is opening: read once it is ours
             return
-        if frame.msg_type == MsgType.LINE_ERROR:
-            self._line_errors += 1  # only a hint to retry now, from any session
+        if frame.msg_type == MsgType.LINE_ERROR and self._rx is None:
+            self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
             return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
@@ -1130,9 +912,13 @@ class HostLink:
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
                 self._reply = frame  # the device says it restarted: fail fast
             return
-        if self._rx is not None and not hello_reply and not self._rx.check(frame):
+        if self._rx is not None and not hello_reply and not checked and \
+                not self._rx.check(frame):
             self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
             log.debug("dropped an unauthenticated %#04x frame", frame.msg_type)
+            return
+        if frame.msg_type == MsgType.LINE_ERROR:
+            self.line_errors += 1  # our session's, authenticated: the device saw damage
             return
         if frame.msg_type == MsgType.SESSION_LOST and not hello_reply:
             self._session_lost(frame)
@@ -1142,11 +928,31 @@ class HostLink:
                 return
             if body["msg_type"] == MsgType.COLUMN_RESULT:
                 if self._streaming:
-                    self._stream.append((MsgType.FRAGMENT, body))
+                    self._stream.append((MsgType.FRAGMENT, body,
+                                         bool(frame.compat & COMPAT_RETRANSMIT)))
             elif kind_of(body["msg_type"]) is MsgKind.REPLY:
                 self._collect(frame, body)
+            else:  # a notice longer than the frame size (HEARTBEAT, SESSION_LOST, ...)
+                whole = self._notice_piece(frame, body)
+                if whole is not None:
+                    self._dispatch(whole, checked=True)
             return
         self._reply_reply(kind, frame)
+
+    def _notice_piece(self, frame: Frame, body: dict[str, Any]) -> Frame | None:
+        """One FRAGMENT of a notice (already authenticated); the whole notice once all
+        pieces are in, as an unsigned frame of our session."""
+        key = (body["msg_type"], body["seq"])
+        pc = self._notices.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._notices[key] = _Pieces(body["count"])
+            while len(self._notices) > 8:  # pieces of lost notices are forgotten
+                self._notices.pop(next(iter(self._notices)))
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
+            return None
+        del self._notices[key]
+        return Frame(key[0], 0, frame.session, b"".join(pc.data[i] for i in range(pc.count)))
 
     def _reply_reply(self, kind: MsgKind, frame: Frame) -> None:
         """A reply or stream frame of our session, authenticated."""
@@ -1176,4 +982,5 @@ class HostLink:
             body = Status(**body)
             self.last_status = body
         if self._streaming:
-            self._stream.append((frame.msg_type, body))
+            self._stream.append((frame.msg_type, body,
+                                 bool(frame.compat & COMPAT_RETRANSMIT)))

@@ -166,6 +166,8 @@ class HelloFlags(enum.IntFlag):
 
     TAKE_OVER = 0x01  #: end another host's live session and take the device
     KEEP_CONFIG = 0x02  #: keep configuration and power of the previous session
+    FEC = 0x04  #: Reed-Solomon coded frames both ways in this session (a device that
+    #: cannot code answers plain and the session stays plain)
 
 
 class SessionLostReason(enum.IntEnum):
@@ -234,7 +236,8 @@ _MESSAGE_LIST = [
          u("host_max_frame", 16, "largest frame the device may send in this session; longer "
            "messages come as FRAGMENTs", "bytes", 64, 65535),
          u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
-           "session's configuration and power", lo=0, hi=3),
+           "session's configuration and power; bit 2: Reed-Solomon coded frames (FEC) both "
+           "ways, if the device can", lo=0, hi=7),
          nbytes("host_nonce", 16, "random per host link: tells a new host from a "
                 "retransmission or the owner's own new HELLO; the host's challenge"),
          nbytes("device_nonce", 16, "the nonce of the device's last CHALLENGE; zeros if none"),

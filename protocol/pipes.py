@@ -78,33 +78,45 @@ class Faults:
 
 
 class LineNoise:
-    """Flips each bit independently with probability ``rate`` (seeded, reproducible).
+    """Flips each bit of one direction's byte stream independently with probability ``rate``.
 
-    Thread-safe, so one instance may serve both directions of a line; ``flipped``
-    counts the bits flipped so far.
+    Which bits flip depends only on their position in the stream and on ``seed``: the
+    gaps between flipped bits are drawn in order from a seeded generator (geometric,
+    mean ``1 / rate`` bits), so the same seed damages the same bit positions however
+    the stream is cut into writes and whatever the other direction does (a line is
+    two LineNoise, one per direction). ``flipped`` counts the bits flipped so far.
     """
 
-    def __init__(self, rate: float, seed: int = 0) -> None:
+    def __init__(self, rate: float, seed: int | list[int] = 0) -> None:
         if not (isinstance(rate, int | float) and 0.0 <= rate <= MAX_BIT_ERROR_RATE):
             raise out_of_range("line_error_rate", "a probability from 0 to 0.5", rate)
         self.rate = float(rate)
-        self._rng = np.random.default_rng([seed, 0x11E])
+        self._rng = np.random.default_rng([*np.atleast_1d(seed).tolist(), 0x11E])
         self._lock = threading.Lock()
+        self._pos = 0  # bits of the stream so far
+        self._next = self._gap() - 1 if self.rate else 0  # bit position of the next flip
         self.flipped = 0
+
+    def _gap(self) -> int:
+        return int(self._rng.geometric(self.rate))
 
     def __call__(self, data: bytes) -> bytes:
         """``data`` with its bit errors (the same object when none)."""
         if self.rate == 0.0 or not data:
             return data
         with self._lock:
-            nbits = 8 * len(data)
-            count = int(self._rng.binomial(nbits, self.rate))
-            if count == 0:
-                return data
-            pos = self._rng.choice(nbits, size=count, replace=False)
+            start, end = self._pos, self._pos + 8 * len(data)
+            pos = []
+            while self._next < end:
+                pos.append(self._next - start)
+                self._next += self._gap()
+            self._pos = end
+        if not pos:
+            return data
+        at = np.asarray(pos)
         arr = np.frombuffer(data, dtype=np.uint8).copy()
-        np.bitwise_xor.at(arr, pos // 8, (1 << (pos % 8)).astype(np.uint8))
-        self.flipped += count
+        np.bitwise_xor.at(arr, at // 8, (1 << (at % 8)).astype(np.uint8))
+        self.flipped += len(pos)
         return arr.tobytes()
 
 

@@ -23,7 +23,7 @@ from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from cdma_lidar.errors import LinkError
 
-__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "open_port"]
+__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "default_fec", "open_port"]
 
 
 def _bytes_ready(fd: int) -> int:
@@ -34,6 +34,19 @@ def _bytes_ready(fd: int) -> int:
 
 #: Serial line rate the protocol uses unless told otherwise (bit/s, 8N1); USB CDC ignores it.
 DEFAULT_BAUD = 921600
+
+
+def default_fec(port: Any) -> bool:
+    """Whether frames on ``port`` are Reed-Solomon coded by default: yes on a serial line
+    (a device path such as ``/dev/ttyUSB0`` or a pty, and ``virtual://``, which stands for
+    one), no where the transport delivers intact bytes (TCP ``socket://``, USB bulk
+    ``/dev/ttyACM*``) and on anything else (``loop://``, in-process pipes: the caller
+    says)."""
+    if isinstance(port, TcpPort):
+        return False
+    name = str(getattr(port, "portstr", None) or getattr(port, "name", None) or "")
+    return (name.startswith("/dev/") and "ttyACM" not in name) or \
+        name.lower().startswith("virtual://")
 
 
 def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **kw: Any) -> Any:

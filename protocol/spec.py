@@ -24,7 +24,7 @@ import construct as cs
 
 from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.protocol import framing
+from cdma_lidar.protocol import auth, fec, framing
 from cdma_lidar.protocol.columns import (
     COLUMN_HEADER,
     FLAG_CALIBRATION,
@@ -252,6 +252,42 @@ def examples() -> str:
     return "\n\n".join(out)
 
 
+def vectors() -> str:
+    """Test vectors of access control and FEC, computed by the code that runs the link."""
+    key = bytes(range(32))
+    host_nonce, device_nonce = bytes(range(0x10, 0x20)), bytes(range(0x20, 0x30))
+    session, flags, host_max = 0xA1B2C3D4, 0x04, 4096
+    to_dev, to_host = auth.session_keys(key, host_nonce, device_nonce, session)
+    payload = encode_payload(MsgType.STATUS_GET, {})
+    signer = auth.FrameSigner(to_dev)
+    signed = framing.encode_frame(int(MsgType.STATUS_GET), payload, 0x0102, session,
+                                  signer=signer)
+    head = framing.HEADER.pack(framing.PROTOCOL_VERSION, framing.INCOMPAT_SIGNED, 0,
+                               int(MsgType.STATUS_GET), 0x0102, 0, session)
+    sig = auth.FrameSigner(to_dev).sign(head)
+    ack = encode_payload(MsgType.ACK, {"request_type": int(MsgType.SCAN_START)})
+    coded = framing.encode_frame(int(MsgType.ACK), ack, 0x0102, session, coded=True)
+    lines = [
+        f"key (the key file's 64 hex digits, decoded: the key is these 32 bytes)\n"
+        f"             {key.hex()}",
+        f"host_nonce   {host_nonce.hex()}",
+        f"device_nonce {device_nonce.hex()}",
+        f"session_id   0x{session:08X}, HELLO flags 0x{flags:02X}, host_max_frame {host_max}",
+        f"HELLO mac    {auth.hello_mac(key, device_nonce, host_nonce, flags, host_max).hex()}",
+        f"INFO device_mac {auth.device_mac(key, host_nonce, device_nonce, session).hex()}",
+        f"key to device {to_dev.hex()}",
+        f"key to host   {to_host.hex()}",
+        f"STATUS_GET seq 0x0102, signed host -> device, counter 1:\n"
+        f"  header  {head.hex(' ')}\n"
+        f"  sig     {sig.hex(' ')}\n"
+        f"  wire    {signed.hex(' ')}",
+        f"ACK of SCAN_START, seq 0x0102, FEC-coded (RS parity, whitened, then COBS):\n"
+        f"  wire    {coded.hex(' ')}",
+        f"whitening bytes 0..7: {fec.whiten(bytes(8)).hex(' ')}",
+    ]
+    return "```text\n" + "\n".join(lines) + "\n```"
+
+
 #: Generated sections by marker name.
 SECTIONS: dict[str, Callable[[], str]] = {
     "constants": constants_table,
@@ -264,6 +300,7 @@ SECTIONS: dict[str, Callable[[], str]] = {
     "errors": errors_table,
     "ranges": ranges_table,
     "examples": examples,
+    "vectors": vectors,
 }
 
 _BLOCK = re.compile(r"(<!-- BEGIN GENERATED: (\w+) -->\n)(.*?)(<!-- END GENERATED: \2 -->)",

@@ -17,6 +17,11 @@ The checks on a column (K channels, P peaks, n UID bits, N*S lags per period)::
     sign masks: < 2^n, the -1 and 0 masks disjoint;  uid_observed < 2^n
     flags: 0 or 1;  noise_count <= gate_len, and >= 1 where a peak is reported;
     noise_count * noise_sumsq >= noise_sum^2
+    peak, neighbours, extra_peak: signed out_bits, -2^(out_bits-1) <= v < 2^(out_bits-1)
+    |noise_sum| <= noise_count * 2^(out_bits-1);  noise_sumsq <= noise_count * 4^(out_bits-1)
+
+INFO's fields with a unit are checked against their physical ranges
+(:data:`INFO_RANGES`: wavelengths 0.2 to 20 um, chip rate 1 kHz to 100 GHz, ...).
 """
 
 from __future__ import annotations
@@ -31,9 +36,9 @@ from cdma_lidar.column_record import NO_PEAK, RECORD
 from cdma_lidar.errors import LinkError
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.views import Info
+from cdma_lidar.protocol.views import TILT_AUTO, Info
 
-__all__ = ["ColumnChecker", "DeviceLied", "check_config", "check_info", "escape"]
+__all__ = ["INFO_RANGES", "ColumnChecker", "DeviceLied", "check_config", "check_info", "escape"]
 
 
 class DeviceLied(LinkError):
@@ -71,6 +76,22 @@ def _lie(what: str, field: str, value: object, allowed: str) -> DeviceLied:
                       f"{allowed}", field)
 
 
+#: Physical range of each INFO field with a unit (inclusive, wire units): a device that
+#: announces a value outside it is broken or lying, whatever the wire type can hold.
+INFO_RANGES: dict[str, tuple[int, int, str]] = {
+    "wavelengths_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
+    "reference_wavelength_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
+    "chip_rate_hz": (1_000, 4_294_967_295, "Hz (1 kHz up; the wire holds up to 4.3 GHz)"),
+    "grooves_per_mm_milli": (1_000, 10_000_000, "0.001 lines/mm (1 to 10000 lines/mm)"),
+    "incidence_udeg": (0, 90_000_000, "udeg (0 to 90 deg)"),
+    "tilt_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg, or TILT_AUTO)"),
+    "column_start_udeg": (-180_000_000, 180_000_000, "udeg (-180 to 180 deg)"),
+    "column_step_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg)"),
+    "max_degree": (2, 32, "(LFSR degree)"),
+    "max_frame": (256, 65535, "bytes"),
+}
+
+
 def check_info(info: Info) -> Info:
     """Check INFO's fields against each other; returns it with its strings escaped."""
     def need(ok: bool, field: str, allowed: str) -> None:
@@ -85,7 +106,13 @@ def check_info(info: Info) -> Info:
     need(info.column_count >= 1, "column_count", "at least 1")
     need(info.max_columns >= 1, "max_columns", "at least 1")
     need(info.heartbeat_ms >= 1, "heartbeat_ms", "at least 1")
-    need(info.chip_rate_hz >= 1, "chip_rate_hz", "at least 1")
+    for field, (lo, hi, unit) in INFO_RANGES.items():
+        value = getattr(info, field)
+        if field == "tilt_udeg" and value == TILT_AUTO:
+            continue
+        values = value if isinstance(value, tuple) else (value,)
+        if not all(lo <= v <= hi for v in values):
+            raise _lie("INFO", field, value, f"{lo} to {hi} {unit} (physical range)")
     need(info.column_power_cap_uw == 0 or info.pixel_power_max_uw > 0, "pixel_power_max_uw",
          "above 0 when a column power cap is announced")
     return replace(info, serial=escape(info.serial),
@@ -124,12 +151,15 @@ def check_config(config: dict[str, Any], info: Info) -> None:
          f"1 to column_count = {info.column_count}")
 
 
-def _field_groups(extra: bool) -> tuple[list[str], list[str], list[tuple[str, str]]]:
-    """(lag fields, flag fields, sign mask pairs) of the record, with or without extra peaks."""
+def _field_groups(extra: bool) -> tuple[list[str], list[str], list[tuple[str, str]],
+                                        list[str]]:
+    """(lag fields, flag fields, sign mask pairs, signed out_bits fields) of the record,
+    with or without extra peaks."""
     fs = [f for f in RECORD if extra or not f.per_extra_peak]
     return ([f.name for f in fs if f.encoding == "lag"],
             [f.name for f in fs if f.encoding == "flag"],
-            [(f.wire[0].name, f.wire[1].name) for f in fs if f.encoding == "signs"])
+            [(f.wire[0].name, f.wire[1].name) for f in fs if f.encoding == "signs"],
+            [f.name for f in fs if f.allowed == "signed out_bits"])
 
 
 _FIXED = _field_groups(False)
@@ -154,6 +184,7 @@ class ColumnChecker:
         self.uid_bits = int(config["uid_bits"])
         self.lags = ((1 << int(config["poly_u"][0])) - 1) * int(config["samples_per_chip"])
         self.gate_len = int(config["gate_len"])
+        self.out_max = 1 << (int(config["out_bits"]) - 1)  # outputs lie in [-out_max, out_max)
         self.frame, self.first, self.end = frame, first, end
         self.calibration = calibration
 
@@ -195,11 +226,24 @@ class ColumnChecker:
                            f"disjoint from {names[0]} (a sign is -1 or 0, not both)")
         self._none(lie, "uid_observed", rec["uid_observed"], rec["uid_observed"] >= n_mask,
                    f"below 2^n = {n_mask}")
+        for f in RECORD:
+            if f.allowed == "signed out_bits":
+                v = rec[f.name]
+                self._none(lie, f.name, v, (v < -self.out_max) | (v >= self.out_max),
+                           f"signed out_bits: {-self.out_max} to {self.out_max - 1}")
         count = rec["noise_count"]
         self._none(lie, "noise_count", count, count > self.gate_len,
                    f"at most gate_len = {self.gate_len}")
         self._none(lie, "noise_count", count, (count == 0) & (rec["peak_lag"] != NO_PEAK),
                    "at least 1 where a peak is reported (the SNR needs a noise floor)")
+        # Each noise lag is an output: |sum| <= count * out_max, sumsq <= count * out_max^2.
+        c_obj = count.astype(object)
+        self._none(lie, "noise_sum", rec["noise_sum"], np.asarray(
+            abs(rec["noise_sum"].astype(object)) > c_obj * self.out_max, dtype=bool),
+            f"at most noise_count * 2^(out_bits-1) = noise_count * {self.out_max} in magnitude")
+        self._none(lie, "noise_sumsq", rec["noise_sumsq"], np.asarray(
+            rec["noise_sumsq"].astype(object) > c_obj * self.out_max ** 2, dtype=bool),
+            f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {self.out_max ** 2}")
         # Cauchy-Schwarz: count * sumsq >= sum^2 for any real noise floor (exact integers).
         lhs = count.astype(object) * rec["noise_sumsq"].astype(object)
         rhs = rec["noise_sum"].astype(object) ** 2
@@ -210,9 +254,13 @@ class ColumnChecker:
         """True when every record field is within the session (fast path of check)."""
         n_mask = 1 << self.uid_bits
         if self.peaks == 1:  # the per-extra-peak fields are empty
-            lags, flags, signs = _FIXED
+            lags, flags, signs, outs = _FIXED
         else:
-            lags, flags, signs = _ALL
+            lags, flags, signs, outs = _ALL
+        for name in outs:
+            v = rec[name]
+            if v.size and (v.min() < -self.out_max or v.max() >= self.out_max):
+                return False
         for name in lags:
             v = rec[name]
             if v.max() >= self.lags and bool(((v >= self.lags) & (v != NO_PEAK)).any()):
@@ -229,7 +277,14 @@ class ColumnChecker:
             return False
         if count.min() == 0 and bool(((count == 0) & (rec["peak_lag"] != NO_PEAK)).any()):
             return False
-        lhs = count.astype(np.float64) * rec["noise_sumsq"].astype(np.float64)
+        cf = count.astype(np.float64)
+        # Bounds from the output range; float is within 1e-15, so a margin of 1e-9 is safe
+        # and a record near a bound is judged exactly by check().
+        if (np.abs(rec["noise_sum"].astype(np.float64)) > cf * self.out_max * (1 - 1e-9)).any() \
+                or (rec["noise_sumsq"].astype(np.float64) >
+                    cf * float(self.out_max) ** 2 * (1 - 1e-9)).any():
+            return False
+        lhs = cf * rec["noise_sumsq"].astype(np.float64)
         rhs = np.square(rec["noise_sum"].astype(np.float64))
         close = lhs <= rhs * (1 + 1e-9)  # decided exactly below; float is good to 1e-15
         if close.any():

@@ -41,7 +41,7 @@ class Info:
     firmware_version: str
     serial: str
     wavelengths_pm: tuple[int, ...]
-    protocol_version: int = 2
+    protocol_version: int = 3
     session_id: int = 1
     schema_crc: int = 0
     max_frame: int = 16384

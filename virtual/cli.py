@@ -57,6 +57,8 @@ def _parse_hostport(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise out_of_range("--tcp", "HOST:PORT with a port from 0 to 65535", text)
+    if host.startswith("[") and host.endswith("]"):  # an IPv6 literal: [::1]:7700
+        host = host[1:-1]
     return host or "127.0.0.1", int(port)
 
 

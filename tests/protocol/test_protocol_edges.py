@@ -36,23 +36,23 @@ def _responder(port, stop: threading.Event, answer) -> threading.Thread:
 
 
 def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
-    """A version-2 device NAKs VERSION in its own version: the host says so, no timeout."""
+    """A device of another version NAKs VERSION in that version: the host says so, no
+    timeout."""
     host, dev = pipe_pair()
     stop = threading.Event()
     nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
                                        "code": int(ErrorCode.VERSION), "field": "version",
                                        "detail": ""})
-    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=3))
+    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=4))
     link = HostLink(host, timeout_s=0.5, retries=3)
-    t0 = time.monotonic()
     try:
-        with pytest.raises(LinkError, match="protocol version 3") as exc:
+        with pytest.raises(LinkError, match="protocol version 4") as exc:
             link.hello()
     finally:
         stop.set()
     assert not isinstance(exc.value, LinkTimeout)
-    assert "version 2" in str(exc.value)
-    assert link.stats.retries == 0 and time.monotonic() - t0 < 0.5
+    assert "version 3" in str(exc.value)
+    assert link.stats.retries == 0  # at once: no retry, so no timeout was waited for
 
 
 def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
@@ -64,7 +64,7 @@ def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
     def talk() -> None:
         k = 0
         while not stop.is_set():
-            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=3))
+            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=4))
             k += 1
             time.sleep(0.005)
 
@@ -113,14 +113,12 @@ def test_device_endpoint_names_a_bad_argument(kw: dict, name: str) -> None:
 
 def test_fd_port_raises_at_end_of_file_instead_of_returning_nothing() -> None:
     r, w = os.pipe()
-    port = FdPort(r, timeout=1.0)
+    port = FdPort(r, timeout=None)  # no timeout: only end of file can end this read
     os.write(w, b"abc")
     assert port.read(3) == b"abc"
     os.close(w)
-    t0 = time.monotonic()
     with pytest.raises(OSError, match="end of file"):
         port.read(1)
-    assert time.monotonic() - t0 < 0.5  # at once, not after the timeout
     port.close()
 
 

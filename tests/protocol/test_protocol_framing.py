@@ -22,6 +22,7 @@ frames_st = st.builds(
     incompat=st.just(0),
     version=st.just(framing.PROTOCOL_VERSION),
     sig=st.just(b""),
+    fec=st.just(False),
 )
 
 

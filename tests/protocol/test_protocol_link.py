@@ -273,9 +273,11 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
     r.port.write(encode_frame(0x7E, b"", 125, r.session))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
-    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=3))
-    (f,) = r.recv()
-    assert nak(f)["code"] == ErrorCode.VERSION and f.version == framing.PROTOCOL_VERSION
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=4))
+    assert r.recv() == []  # the NAK is in the request's version: this decoder rejects it
+    (f,) = r.dec.rejected
+    r.dec.rejected.clear()
+    assert nak(f)["code"] == ErrorCode.VERSION and f.version == 4 != framing.PROTOCOL_VERSION
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNSUPPORTED_FLAGS
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 128, 0x5555))

@@ -213,3 +213,30 @@ def test_a_config_reply_with_garbage_values_is_a_one_line_error() -> None:
         assert "CONFIG" in str(exc.value) and "\n" not in str(exc.value)
     finally:
         stop.set()
+
+
+def test_a_peak_outside_the_signed_out_bits_range_is_a_lie() -> None:
+    """out_bits = 16: the synthetic columns' 32-bit peaks cannot be true."""
+    app = LyingApp(config=lambda cfg: {**cfg, "out_bits": 16})
+    with pytest.raises(DeviceLied, match=r"peak\[0\] = .*-32768 to 32767") as exc:
+        _run(app, _scan)
+    assert "\n" not in str(exc.value)
+
+
+def test_noise_sums_beyond_what_out_bits_outputs_can_add_up_to_are_a_lie() -> None:
+    def edit(rec: np.ndarray) -> None:
+        rec["noise_count"][1] = 1
+        rec["noise_sumsq"][1] = 2**62 + 1  # one output of at most 2^31 in magnitude
+    with pytest.raises(DeviceLied, match=r"noise_sumsq\[1\]"):
+        _run(LyingApp(column=edit), _scan)
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("chip_rate_hz", 1), ("chip_rate_hz", 999), ("wavelengths_pm", (5, 6, 7, 8)),
+    ("incidence_udeg", 95_000_000), ("grooves_per_mm_milli", 999),
+    ("column_step_udeg", 2**31 - 1)])
+def test_info_outside_its_physical_range_is_a_lie(field: str, value: Any) -> None:
+    app = LyingApp(info={field: value})
+    with pytest.raises(DeviceLied, match=f"{field} = .*physical range") as exc:
+        _run(app, lambda link: link.hello())
+    assert exc.value.field == field

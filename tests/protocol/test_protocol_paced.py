@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import threading
 
-import numpy as np
 import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
@@ -19,7 +18,7 @@ from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.endpoint import _CONTROL, _FRESH, DeviceEndpoint
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
-from cdma_lidar.protocol.link import HostLink, _bit_error_rate, _Rto
+from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
 from cdma_lidar.protocol.pipes import BytePipe, Faults, pipe_pair
 
@@ -166,23 +165,7 @@ def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
     ep._stream = None
 
 
-# ---- host: RTO and unawaited RESEND -----------------------------------------------------------
-def test_rto_follows_round_trips_within_its_bounds() -> None:
-    rto = _Rto(0.005, 1.0, 0.5)
-    assert rto.value == 0.5  # no sample yet: the link's timeout
-    for _ in range(50):
-        rto.sample(0.020)
-    assert 0.019 < rto.value < 0.03  # SRTT + 4 RTTVAR -> the round trip as it steadies
-    rto.sample(0.200)
-    assert rto.value > 0.1  # one slow answer: back off at once
-    for _ in range(200):
-        rto.sample(0.0001)
-    assert rto.value == 0.005  # never under the floor
-    for _ in range(20):
-        rto.sample(50.0)
-    assert rto.value == 1.0  # never over the ceiling
-
-
+# ---- host: unawaited RESEND -----------------------------------------------------------
 def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
     """The host does not wait for RESEND's ACK, but a NAK still reaches the caller."""
     host, dev = pipe_pair()
@@ -212,37 +195,14 @@ def test_scan_on_a_paced_noisy_line_is_byte_identical(ber: float) -> None:
     host, dev = pipe_pair(f, f, seed=11, baud=4_000_000)
     app = SyntheticApp(channels=40, columns=30)
     with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.05, retries=20, auto_frame=True)
+        link = HostLink(host, timeout_s=0.2, retries=20, fec=True)
         link.hello()
+        assert link.coded  # Reed-Solomon coded frames
         cols = list(link.scan(frame=3))
         link.close()
     assert [encode_column(c) for c in cols] == \
         [encode_column(expected_column(3, c, 40, 1, 1)) for c in range(30)]
-    assert link.device_frame < 1024  # sized down to the line
-    assert np.isfinite(link._rto.value)
-
-
-def test_bit_error_rate_from_chunks_of_mixed_lengths() -> None:
-    """The line judgement is unbiased when short replies and long columns mix."""
-    rng = np.random.default_rng(4)
-    for ber in (1e-4, 1e-3, 1e-2):
-        lengths = rng.choice([20, 80, 1700], 4000)
-        intact = rng.random(4000) < (1 - ber) ** (8 * lengths)
-        got = _bit_error_rate(list(zip(lengths.tolist(), intact.tolist(), strict=True)))
-        assert got == pytest.approx(ber, rel=0.25)
-
-
-def test_decoder_logs_chunks_only_when_asked() -> None:
-    from cdma_lidar.protocol.framing import encode_frame
-    wire = encode_frame(MsgType.LINE_ERROR, _NOTICE, 1, 2)
-    dec = FrameDecoder()
-    dec.feed(wire)
-    assert dec.chunk_log is None
-    dec.chunk_log = []
-    bad = bytearray(wire)
-    bad[5] ^= 0x10
-    dec.feed(wire + bytes(bad))
-    assert dec.chunk_log == [(len(wire) - 1, True), (len(wire) - 1, False)]
+    assert link.decoder.stats.corrected > 0
 
 
 def test_status_overtakes_the_column_stream_on_a_slow_line() -> None:

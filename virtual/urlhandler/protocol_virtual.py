@@ -18,7 +18,8 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
     seed=N               noise seed (default 0)
     line_error_rate=P    probability of flipping each bit on the line, both directions
                          (default 0), to prove the link loses nothing
-    line_seed=N          seed of the line errors (default: seed)
+    line_seed=N          seed of the line errors (default: seed): the same N flips the
+                         same bit positions of each direction's byte stream
     line_baud=N          the line keeps a UART's pace, N bit/s 8N1 (default: none, as
                          fast as memory), e.g. 921600 to see what a noisy serial line costs
     session=N            session id of the device (default: random, as at a real boot)
@@ -27,6 +28,7 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import urllib.parse
@@ -38,6 +40,7 @@ from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.pipes import BytePipe, LineNoise, PipePort
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.model import Scene
 from cdma_lidar.virtual.board import VirtualFirmware
 
 __all__ = ["Serial", "parse_url"]
@@ -73,13 +76,26 @@ def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
     return scene, own, rest
 
 
+@functools.lru_cache(maxsize=16)
+def _preset(spec: str) -> Scene:
+    return load_scene(spec)
+
+
+def _load(spec: str) -> Scene:
+    """The scene of ``spec``; presets are built once per process (a Scene is frozen),
+    files are read each time (they may change)."""
+    name = spec.split("?", 1)[0]
+    return load_scene(spec) if "/" in name or name.endswith(".toml") else _preset(spec)
+
+
 class Serial(SerialBase):
     """pyserial port whose other end is the in-process virtual device."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._to_device: BytePipe | None = None
         self._from_device: BytePipe | None = None
-        self._noise: LineNoise | None = None
+        self._noise: LineNoise | None = None  # host -> device
+        self._noise_up: LineNoise | None = None  # device -> host
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.endpoint = None
@@ -98,16 +114,19 @@ class Serial(SerialBase):
         seed = int(own.get("seed", 0))
         try:
             query = urllib.parse.urlencode(scene_opts)
-            scene = load_scene(f"{name}?{query}" if query else name)
-            self._noise = LineNoise(own.get("line_error_rate", 0.0),
-                                    int(own.get("line_seed", seed)))
+            scene = _load(f"{name}?{query}" if query else name)
+            rate, line_seed = own.get("line_error_rate", 0.0), int(own.get("line_seed", seed))
+            # One noise per direction, each a function of its stream position only: the
+            # same line_seed damages the same bits whatever the threads' timing.
+            self._noise = LineNoise(rate, [line_seed, 0])
+            self._noise_up = LineNoise(rate, [line_seed, 1])
             self.firmware = VirtualFirmware(scene, seed)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         baud = own.get("line_baud")
         try:
             self._to_device = BytePipe(noise=self._noise, baud=baud)
-            self._from_device = BytePipe(noise=self._noise, baud=baud)
+            self._from_device = BytePipe(noise=self._noise_up, baud=baud)
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         dev_port = PipePort(self._to_device, self._from_device, f"virtual://{name}")

@@ -1,0 +1,220 @@
+"""Host side of one stream: columns put back together, in order, and what to ask again.
+
+:class:`ColumnReassembler` holds the state of one scan or calibration stream and
+nothing else (no port, no clock of its own: the caller passes ``now``)::
+
+    feed(type, item, again)  a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END of the
+                             stream (decoded; ``again``: it carried COMPAT_RETRANSMIT)
+    ready()                  the columns now complete in order, each once
+    due(now)                 columns (int) and fragments ((column, index)) that were
+                             sent, have not arrived, and were not asked for in the last
+                             ``resend_s`` seconds: the next RESEND
+    ask(keys, now)           they were asked for (counts tries per key)
+
+``horizon``: every column below it was sent whole; ``edge`` = (column, k): fragments
+below k of that column were sent too. A later column or fragment, a HEARTBEAT's
+``next_column`` or SCAN_END's count moves them. An early end (SCAN_END aborted or
+error, a lying column) keeps the columns before it and leaves ``failure`` set.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from cdma_lidar.errors import DeviceError, FrameError
+from cdma_lidar.protocol.columns import ColumnResult, decode_column
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason
+from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
+
+__all__ = ["ColumnReassembler", "StreamEnded", "early_end"]
+
+
+class StreamEnded(DeviceError):
+    """A scan or calibration ended before its last column; every column before
+    ``next_column`` was delivered (yielded), none from it on.
+
+    ``frame``: the stream's frame id; ``reason``: the device's ScanEndReason (ABORTED,
+    ERROR), or None when the host gave up (``ScanStalled``). ``code`` is
+    ErrorCode.INTERNAL when the device failed.
+    """
+
+    def __init__(self, message: str, *, frame: int, next_column: int,
+                 reason: int | None, code: int = 0) -> None:
+        super().__init__(message, code=code)
+        self.frame, self.next_column, self.reason = frame, next_column, reason
+
+
+def early_end(fid: int, reason: int, sent: int) -> StreamEnded:
+    """The error of a stream the device ended after ``sent`` columns for ``reason``."""
+    if reason == ScanEndReason.ERROR:
+        return StreamEnded(f"device failed during frame {fid} after {sent} columns",
+                           frame=fid, next_column=sent, reason=reason, code=ErrorCode.INTERNAL)
+    return StreamEnded(f"frame {fid} was stopped on the device at column {sent}",
+                       frame=fid, next_column=sent, reason=reason)
+
+
+@dataclass
+class _Pieces:
+    """FRAGMENTs of one column received so far."""
+
+    count: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
+
+
+class ColumnReassembler:
+    """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``.
+
+    ``resend_s``: a key asked for is not due again for this long (s).
+    """
+
+    def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
+                 resend_s: float) -> None:
+        self.fid, self.first, self.end = fid, first, end
+        self.checker, self.resend_s = checker, resend_s
+        self.nxt = first  # next column to deliver
+        self.horizon = first
+        self.edge: tuple[int, int] = (first, 0)
+        self.received: dict[int, ColumnResult] = {}
+        self.parts: dict[int, _Pieces] = {}
+        self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
+        self.stored = 0  # columns and fragments kept (progress)
+        self.duplicates = self.malformed = 0
+        self.failure: Exception | None = None
+
+    @property
+    def done(self) -> bool:
+        """Every column up to the end (or to an early end) was delivered."""
+        return self.nxt >= self.end
+
+    @property
+    def progress(self) -> tuple:
+        """Changes whenever anything of the stream moves on."""
+        return (self.nxt, self.horizon, self.edge, self.stored)
+
+    def _stop(self, column: int, exc: Exception) -> None:
+        if self.failure is None:
+            self.end, self.failure = column, exc
+
+    def sent(self, count: int, idle_reason: int | None = None) -> None:
+        """The device sent columns below ``count``; ``idle_reason``: it is idle (a STATUS
+        probe), the stream ended for that reason."""
+        sent = min(self.end, count)
+        self.horizon = max(self.horizon, sent)
+        if idle_reason is not None and sent < self.end:
+            self._stop(sent, early_end(self.fid, idle_reason, sent))
+
+    def feed(self, mtype: int, item: Any, again: bool = False) -> bool:
+        """One stream item; True when it was of this stream (a sign of life)."""
+        if again and not self._asked_for(item):
+            self.duplicates += 1  # a repair this stream did not ask for: a late one
+            return False
+        if mtype == MsgType.FRAGMENT:
+            if item["frame"] != self.fid:
+                return False
+            col = self._piece(item)
+            if col is None:
+                return True
+            item, mtype = col, MsgType.COLUMN_RESULT
+        if mtype == MsgType.COLUMN_RESULT:
+            return self._column(item)
+        if mtype == MsgType.HEARTBEAT and item.frame == self.fid:
+            self.sent(item.next_column)
+            return True
+        if mtype == MsgType.SCAN_END and item["frame"] == self.fid:
+            self.sent(item["first_column"] + item["columns"])
+            if item["reason"] != ScanEndReason.COMPLETE:
+                sent = min(self.end, item["first_column"] + item["columns"])
+                self._stop(sent, early_end(self.fid, item["reason"], sent))
+            return True
+        return False
+
+    def _piece(self, item: dict[str, Any]) -> ColumnResult | None:
+        c, k = item["column"], item["index"]
+        self.asked.pop((c, k), None)
+        self.horizon = max(self.horizon, c)
+        self.edge = max(self.edge, (c, k + 1))
+        if not self.nxt <= c < self.end or c in self.received:
+            self.duplicates += 1
+            return None
+        pc = self.parts.get(c)
+        n = len(item["data"])
+        if pc is None or pc.count != item["count"] or (
+                (n != pc.size if k < pc.count - 1 else n > pc.size) and pc.size):
+            pc = self.parts[c] = _Pieces(item["count"])  # the first piece, or of another cut
+        if k < pc.count - 1:
+            pc.size = n
+        pc.data[k] = item["data"]
+        self.stored += 1
+        if len(pc.data) < pc.count:
+            return None
+        del self.parts[c]
+        try:
+            return decode_column(b"".join(pc.data[i] for i in range(pc.count)))
+        except FrameError:
+            self.malformed += 1
+            return None
+
+    def _column(self, c: ColumnResult) -> bool:
+        if c.frame != self.fid or not self.nxt <= c.column < self.end or \
+                c.column in self.received:
+            self.duplicates += 1
+            return c.frame == self.fid
+        try:
+            self.checker.check(c)
+        except DeviceLied as exc:  # deliver the columns before it, then fail
+            self._stop(c.column, exc)
+            return True
+        self.asked.pop(c.column, None)
+        self.received[c.column] = c
+        self.stored += 1
+        self.parts.pop(c.column, None)
+        self.horizon = max(self.horizon, c.column + 1)
+        return True
+
+    def _asked_for(self, item: Any) -> bool:
+        if isinstance(item, ColumnResult):
+            return item.column in self.asked
+        if isinstance(item, dict) and "index" in item:
+            return item["column"] in self.asked or (item["column"], item["index"]) in self.asked
+        return True
+
+    def ready(self) -> Iterator[ColumnResult]:
+        """The columns complete in order from the next one to deliver."""
+        while self.nxt in self.received:
+            yield self.received.pop(self.nxt)
+            self.nxt += 1
+
+    def due(self, now: float) -> list[Any]:
+        """Columns (int) and fragments ((column, index)) sent, missing, due to ask (at
+        most 255)."""
+        stop = min(self.end, max(self.horizon, self.edge[0] + 1))
+        due: list[Any] = []
+        for c in range(self.nxt, stop):
+            if c in self.received:
+                continue
+            pc = self.parts.get(c)
+            if c in self.asked and now - self.asked[c][0] < self.resend_s:
+                keys: list[Any] = []  # asked for whole: its fragments are on their way
+            elif pc is None:
+                keys = [c] if c < self.horizon else []  # else: in progress, nothing yet
+            else:
+                sent = pc.count if c < self.horizon else \
+                    min(pc.count, self.edge[1]) if c == self.edge[0] else 0
+                keys = [(c, k) for k in range(sent) if k not in pc.data]
+            due += [k for k in keys
+                    if k not in self.asked or now - self.asked[k][0] >= self.resend_s]
+            if len(due) >= 255:
+                break
+        return due
+
+    def tries(self, key: Any) -> int:
+        """How often ``key`` was asked for."""
+        return self.asked.get(key, (0.0, 0))[1]
+
+    def ask(self, keys: list[Any], now: float) -> None:
+        """``keys`` were asked for at ``now``."""
+        for key in keys:
+            self.asked[key] = (now, self.tries(key) + 1)

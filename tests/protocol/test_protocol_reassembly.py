@@ -1,0 +1,84 @@
+"""The host's column reassembler on its own: fed by hand, timed by the ``now`` it is given."""
+
+from __future__ import annotations
+
+from protocol_fixtures import SyntheticApp, expected_column
+
+from cdma_lidar.protocol.columns import encode_column
+from cdma_lidar.protocol.messages import MsgType, ScanEndReason
+from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
+from cdma_lidar.protocol.trust import ColumnChecker
+
+RESEND_S = 0.125
+
+
+def _asm(first: int = 0, end: int = 6) -> ColumnReassembler:
+    app = SyntheticApp(channels=4, columns=8)
+    checker = ColumnChecker(app.info(), app.get_config(), 9, first, end, False)
+    return ColumnReassembler(9, first, end, checker, RESEND_S)
+
+
+def _col(c: int):
+    return expected_column(9, c, 4, 1, 1)
+
+
+def _pieces(c: int, count: int = 3) -> list[dict]:
+    data = encode_column(_col(c))
+    size = -(-len(data) // count)
+    return [{"frame": 9, "column": c, "index": k, "count": count, "msg_type": 0xC0, "seq": 0,
+             "data": data[k * size:(k + 1) * size]} for k in range(count)]
+
+
+def test_columns_come_out_in_order_once_and_gaps_are_due_at_once_then_after_resend_s() -> None:
+    asm = _asm()
+    for c in (0, 2, 3):
+        assert asm.feed(MsgType.COLUMN_RESULT, _col(c))
+    assert [c.column for c in asm.ready()] == [0]
+    assert asm.due(10.0) == [1]  # column 2 arrived: 1 was sent and lost
+    asm.ask([1], 10.0)
+    assert asm.due(10.0 + RESEND_S / 2) == []  # asked, not yet due again
+    assert asm.due(10.0 + RESEND_S) == [1]
+    assert asm.tries(1) == 1
+    assert asm.feed(MsgType.COLUMN_RESULT, _col(1), again=True)  # the repair it asked for
+    assert [c.column for c in asm.ready()] == [1, 2, 3]
+    asm.feed(MsgType.COLUMN_RESULT, _col(3))
+    assert asm.duplicates == 1
+
+
+def test_a_missing_fragment_is_asked_for_alone_and_a_late_repair_is_not_taken() -> None:
+    asm = _asm()
+    p = _pieces(0)
+    asm.feed(MsgType.FRAGMENT, p[0])
+    asm.feed(MsgType.FRAGMENT, p[2])
+    assert asm.due(0.0) == [(0, 1)]
+    assert not asm.feed(MsgType.FRAGMENT, p[1], again=True)  # not asked for: an older scan's
+    asm.ask([(0, 1)], 0.0)
+    asm.feed(MsgType.FRAGMENT, p[1], again=True)
+    assert [c.column for c in asm.ready()] == [0]
+
+
+def test_heartbeat_and_scan_end_show_what_was_sent_and_an_early_end_fails_after_delivery() -> None:
+    from cdma_lidar.protocol.views import Status
+
+    asm = _asm()
+    asm.feed(MsgType.HEARTBEAT, Status(frame=9, next_column=2))
+    assert asm.due(0.0) == [0, 1]
+    asm.feed(MsgType.COLUMN_RESULT, _col(0))
+    asm.feed(MsgType.SCAN_END, {"frame": 9, "first_column": 0, "columns": 1,
+                                "reason": int(ScanEndReason.ABORTED)})
+    assert [c.column for c in asm.ready()] == [0] and asm.done
+    assert isinstance(asm.failure, StreamEnded) and asm.failure.next_column == 1
+
+
+def test_progress_changes_only_when_something_of_the_stream_moves() -> None:
+    asm = _asm()
+    before = asm.progress
+    asm.feed(MsgType.HEARTBEAT, _status(9, 0))
+    assert asm.progress == before  # alive, but nothing moved
+    asm.feed(MsgType.FRAGMENT, _pieces(0)[0])
+    assert asm.progress != before
+
+
+def _status(frame: int, nxt: int):
+    from cdma_lidar.protocol.views import Status
+    return Status(frame=frame, next_column=nxt)
