@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from typing import Any
 
 import numpy as np
@@ -53,7 +52,7 @@ from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.mai import (
     DETECTORS,
     code_bits,
-    run_trials_detectors,
+    run_trial_blocks,
     sga_error_rate,
     snr_per_sample_eq30,
     snr_ss_eq43,
@@ -128,16 +127,7 @@ def fig11_trials(params: dict, chunk: TrialChunk) -> dict[str, list]:
     |corr| (``error``) and by eq. 9's signed maximum (``error_signed``), SNR_XC (dB) and
     the seconds of each trial (its block's time shared equally)."""
     degree, k, s = int(params["degree"]), int(params["channels"]), int(params["S"])
-    out: dict[str, list] = {"error": [], "error_signed": [], "snr_xc_db": [], "seconds": []}
-    bits = code_bits(degree, k) if len(chunk) else None
-    for rng, count in chunk.blocks():
-        t0 = time.perf_counter()
-        errors, snr = run_trials_detectors(bits, s, count, rng)
-        out["error"] += errors["abs"].tolist()
-        out["error_signed"] += errors["signed"].tolist()
-        out["snr_xc_db"] += snr.tolist()
-        out["seconds"] += [(time.perf_counter() - t0) / count] * count
-    return out
+    return run_trial_blocks(code_bits(degree, k) if len(chunk) else None, s, chunk.blocks())
 
 
 def fig11_row(params: dict, trials: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -31,7 +31,6 @@ See :data:`REPORT_NOTE` for what the differences mean.
 from __future__ import annotations
 
 import math
-import time
 from typing import Any
 
 import numpy as np
@@ -49,7 +48,7 @@ from cdma_lidar.study.engine import (
 )
 from cdma_lidar.study.fig11 import FIDELITIES, crossing, detector_for
 from cdma_lidar.study.figures import new_figure, save_figure
-from cdma_lidar.study.mai import code_bits, run_trials_detectors, sga_error_rate, snr_ss_eq43
+from cdma_lidar.study.mai import code_bits, run_trial_blocks, sga_error_rate, snr_ss_eq43
 from cdma_lidar.study.paperlab import crossing_ci, entry
 
 __all__ = ["REPORT_NOTE", "STUDY", "TRIALS", "fig2e_row", "fig2e_task", "fig2e_trials",
@@ -119,17 +118,8 @@ def fig2e_trials(params: dict, chunk: TrialChunk) -> dict[str, list]:
     degree, k, s = int(params["degree"]), int(params["channels"]), int(params["S"])
     r, amp = int(params["averages"]), int(params["amplitude"])
     sigma = noise_for_snr(float(params["snr_db"]), k, amp)
-    out: dict[str, list] = {"error": [], "error_signed": [], "snr_xc_db": [], "seconds": []}
-    bits = code_bits(degree, k) if len(chunk) else None
-    for rng, count in chunk.blocks():
-        t0 = time.perf_counter()
-        errors, snr = run_trials_detectors(bits, s, count, rng, noise_rms=sigma,
-                                           amplitude=amp, averages=r)
-        out["error"] += errors["abs"].tolist()
-        out["error_signed"] += errors["signed"].tolist()
-        out["snr_xc_db"] += snr.tolist()
-        out["seconds"] += [(time.perf_counter() - t0) / count] * count
-    return out
+    return run_trial_blocks(code_bits(degree, k) if len(chunk) else None, s, chunk.blocks(),
+                            noise_rms=sigma, amplitude=amp, averages=r)
 
 
 def fig2e_row(params: dict, trials: dict[str, np.ndarray]) -> dict[str, Any]:
