@@ -587,7 +587,17 @@ class HostLink:
         self._streaming = True
         finished = False
         try:
-            self._request(req, fields_)
+            try:
+                self._request(req, fields_)
+            except DeviceError as exc:
+                if exc.code != ErrorCode.BUSY:
+                    raise
+                # In one session only our own previous stream can be running: its last
+                # columns reached us before the device had sent them all (repairs of the
+                # same frame id, asked for earlier). Let it end, then ask once more.
+                self._await_idle(exc)
+                self._stream.clear()
+                self._request(req, fields_)
             asm = ColumnReassembler(fid, first, end, checker, self.resend_s)
             last_rx = moved = self.clock()
             progress = asm.progress
@@ -638,6 +648,15 @@ class HostLink:
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
+
+    def _await_idle(self, busy: DeviceError) -> None:
+        """STATUS_GET until the device's running stream has ended (re-raise ``busy`` if it
+        has not within the reply timeout times the retries)."""
+        deadline = self.clock() + self.timeout_s * (self.retries + 1)
+        while self.status().state != State.IDLE:
+            if self.clock() >= deadline:
+                raise busy
+            self._pump()
 
     def _probe(self, fid: int) -> Status:
         """STATUS_GET after a silent spell: how far the device got with frame ``fid``."""
