@@ -469,9 +469,12 @@ def cmd_view(args: argparse.Namespace) -> int:
             live.close()
             raise
     _say(f"viewed {live.frames} frames" + (f"; recording in {args.save}" if args.save else ""))
-    if live.url:
-        _say("serving the web viewer; Ctrl-C ends it")
-    live.close(wait=wait_forever)
+    try:
+        if live.url:
+            _say("serving the web viewer; Ctrl-C ends it")
+        live.close(wait=wait_forever)
+    except KeyboardInterrupt:  # Ctrl-C between the line above and the wait: the same end
+        live.close()
     return code
 
 
