@@ -516,14 +516,17 @@ module rx_top #(
     wire [MAX_P-1:0]    q_bit    = P_ONE << q_k;
     wire [G_W-1:0]      q_j_last = c_gate_len - 1'b1;
     localparam [CA_W-1:0] CA_ONE = 1, CA_TWO = 2;
-    wire [CA_W-1:0]     j0 = pk_j[CA_W-1:0];
+    // gate indices as RAM addresses: CA_W = clog2(MAX_G + 2) is G_W + 1 when MAX_G = 2^k - 1
+    wire [G_W+CA_W-1:0] q_j_ext = {{CA_W{1'b0}}, q_j};
+    wire [G_W+CA_W-1:0] j0_ext  = {{CA_W{1'b0}}, pk_j[G_W-1:0]};
+    wire [CA_W-1:0]     j0 = j0_ext[CA_W-1:0];
 
     always @(*) begin
         gen_load = (pstate == P_SETUP) || (pstate == P_STREAM && st_end);
         gen_en   = (pstate == P_STREAM) && !st_end;
         case (pstate)
         P_FETCH: cr_raddr = {pk_ch, (f_cnt == 2'd0) ? j0 : j0 + CA_TWO};
-        default: cr_raddr = {pk_ch, q_j[CA_W-1:0] + CA_ONE};
+        default: cr_raddr = {pk_ch, q_j_ext[CA_W-1:0] + CA_ONE};
         endcase
     end
 
@@ -992,7 +995,7 @@ module rx_top #(
 
     wire unused_ok = &{1'b0, s3_lag, ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
                        g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
-                       sq[2*OUT_W-1], div_q[LAG_W-1:MAX_DEG], pk_j, q_j};
+                       sq[2*OUT_W-1], div_q, pk_j, q_j};
 endmodule
 
 `default_nettype wire
