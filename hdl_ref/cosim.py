@@ -74,7 +74,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 RTL_DIR = Path(__file__).resolve().parent / "rtl"
-RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_chain.v", "rx_top.v")
+RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_chain.v",
+               "rx_top.v")
 RX_TOP = "rx_chain"
 MULTI_TOP = "rx_top"
 GOLD_TOP = "gold_gen"
@@ -252,11 +253,12 @@ def rx_latency_clocks(ports: Mapping[str, int], gap: int = 0) -> dict[str, int]:
     g = ports["cfg_gate_len"]
     p = ports["cfg_peaks"]
     corr = (g + 2) * n * ns
-    # DRAIN 1, CORR corr, CWAIT 4, P x (PEAK g + PWAIT 2), FETCH 3, NOISE g, NWAIT 2, DONE 1
+    # DRAIN 1, CORR corr, CWAIT 4, then rx_post: P x (peak scan g + wait 4), FETCH 3,
+    # noise scan g + wait 4 (done is registered in its last clock)
     return {
         "start_to_ready": first + 1,
         "first_to_last": last - first,
-        "last_to_done": 1 + corr + 4 + p * (g + 2) + 3 + g + 2 + 1,
+        "last_to_done": 1 + corr + 4 + p * (g + 4) + 3 + g + 4,
     }
 
 

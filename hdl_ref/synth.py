@@ -44,7 +44,7 @@ from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = [
     "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "synthesise",
-    "table_row", "tool", "update_doc", "yosys_version",
+    "table_row", "tool", "update_doc", "yosys_check", "yosys_version",
 ]
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,8 @@ class Design:
     pnr: bool = False
 
 
-TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_top.v", "rx_top_pnr.v")
+TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_top.v",
+               "rx_top_pnr.v")
 #: The co-simulated builds: TOP4 of tests/hdl_ref/test_rx_top.py and its PAPER_TOP.
 SMALL_TOP = {"K": 4, "L": 2, "MAX_DEG": 7, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 4, "MAX_G": 32,
              "MAX_P": 3, "NGHOST": 2, "ADC_W": 16, "OUT_W": 32}
@@ -183,6 +184,28 @@ def synthesise(design: Design, flow: str) -> dict[str, float]:
         raise ConfigError(f"flow must be one of {', '.join(FLOWS)}, not {flow!r}", field="flow")
     with tempfile.TemporaryDirectory(prefix="hdl_synth_") as tmp:
         return _synth_in(Path(tmp), design, flow)
+
+
+def yosys_check(design: Design) -> str:
+    """Yosys ``check -assert`` after ``proc`` (multiple drivers, loops, undriven wires).
+
+    Returns Yosys' log; raises ``RuntimeError`` with the log's tail when the check
+    finds a problem (a signal driven from two processes, a combinational loop...).
+    """
+    chparam = " ".join(f"-set {k} {v}" for k, v in design.params.items())
+    script = "; ".join(filter(None, [
+        "read_verilog -defer " + " ".join(Path(s).name for s in design.sources),
+        f"chparam {chparam} {design.top}" if chparam else "",
+        f"hierarchy -check -top {design.top}", "proc", "check -assert"]))
+    with tempfile.TemporaryDirectory(prefix="hdl_check_") as tmp:
+        for src in design.sources:
+            shutil.copyfile(RTL_DIR / src, Path(tmp) / Path(src).name)
+        proc = subprocess.run([tool("yosys"), "-p", script], capture_output=True, text=True,
+                              check=False, cwd=tmp)
+    if proc.returncode != 0:
+        raise RuntimeError(f"yosys check failed on {design.name}:\n"
+                           f"{(proc.stdout + proc.stderr)[-3000:]}")
+    return proc.stdout
 
 
 def place_and_route(design: Design) -> dict[str, float]:
