@@ -31,13 +31,21 @@
 // then res_valid.
 //
 // Configuration is sampled at `start`; then cfg_columns columns are taken
-// (samples in the order repetition r, period p, sample i) and `done` pulses
-// after the last column's last channel.
+// (samples in the order repetition r, period p, sample i; P_IN of them per
+// clock, the earliest at s_data[ADC_W-1:0]) and `done` pulses after the last
+// column's last channel. cfg_columns = 0 runs free: columns follow each other
+// until `stop`, which lets the column already begun finish (any column count
+// is cut short the same way). ADC interface: s_valid/s_ready in the clk domain
+// (the clock-domain crossing from the converter is the integrator's). A source
+// that cannot wait (a fixed-rate strobe) loses every sample offered while
+// s_ready is low: s_refused marks each such clock, and the sticky err_refused
+// (like err_overrun) holds until clear_err.
 `default_nettype none
 
 module rx_top #(
     parameter integer K         = 4,    // channels (Gold members)
     parameter integer L         = 2,    // lanes (parallel lags) per channel
+    parameter integer P_IN      = 1,    // ADC samples per clock (divides MAX_S and cfg_spc)
     parameter integer MAX_DEG   = 11,
     parameter integer MAX_S     = 4,
     parameter integer MAX_UID   = 1,
@@ -69,7 +77,9 @@ module rx_top #(
     input  wire                         rst,
 
     input  wire                         start,
-    input  wire [COL_W-1:0]             cfg_columns,    // columns to take, >= 1
+    input  wire                         stop,           // finish the column being taken, then done
+    input  wire                         clear_err,      // clears err_refused and err_overrun
+    input  wire [COL_W-1:0]             cfg_columns,    // columns to take; 0 = until stop
     input  wire [DEG_W-1:0]             cfg_degree,
     input  wire [MAX_DEG-1:0]           cfg_taps_u,
     input  wire [MAX_DEG-1:0]           cfg_taps_v,
@@ -90,8 +100,10 @@ module rx_top #(
     input  wire [P_W-1:0]               cfg_peaks,
 
     input  wire                         s_valid,
-    input  wire signed [ADC_W-1:0]      s_data,
+    input  wire [P_IN*ADC_W-1:0]        s_data,         // sample k of the clock at [k*ADC_W]
     output wire                         s_ready,
+    output wire                         s_refused,      // s_valid && !s_ready while busy
+    output reg                          err_refused,    // sticky: a sample was refused
 
     output wire                         corr_valid,
     output reg  [K_W-1:0]               corr_channel,
@@ -151,6 +163,7 @@ module rx_top #(
     // Configuration
     // ------------------------------------------------------------------
     reg [COL_W-1:0]        c_columns;
+    reg                    c_free;      // cfg_columns = 0: columns until `stop`
     reg [DEG_W-1:0]        c_degree;
     reg [MAX_DEG-1:0]      c_taps_u, c_taps_v;
     reg [K*MAX_DEG-1:0]    c_seed_u, c_seed_v;
@@ -200,46 +213,55 @@ module rx_top #(
     reg  [1:0]        full;             // buffer b holds a complete column not yet processed
     reg               proc_on;          // the engine is reading proc_buf
     reg [COL_W-1:0]   cols_in, cols_out;
-    reg [S_W-1:0]     a_s;
+    reg [S_W-1:0]     a_s;              // bank of the clock's first sample (multiple of P_IN)
     reg [MAX_DEG-1:0] a_c;
     reg [UID_W-1:0]   a_p;
     reg [ADDR_W-1:0]  a_base;
     reg [R_W-1:0]     a_r;
 
-    assign s_ready = (tstate == T_RUN) && !full[acc_buf] && (cols_in != c_columns);
-    assign busy    = (tstate != T_IDLE);
-    wire a_take    = s_valid && s_ready;
+    assign s_ready   = (tstate == T_RUN) && !full[acc_buf] && (c_free || cols_in != c_columns);
+    assign busy      = (tstate != T_IDLE);
+    assign s_refused = busy && s_valid && !s_ready;
+    wire a_take      = s_valid && s_ready;
+    wire a_mid       = a_take || (a_s != {S_W{1'b0}}) || (a_c != {MAX_DEG{1'b0}})
+                       || (a_p != {UID_W{1'b0}}) || (a_r != {R_W{1'b0}});  // a column is open
+    localparam [31:0]    P_IN32 = P_IN;
+    localparam [S_W-1:0] P_STEP = P_IN32[S_W-1:0];
 
     reg               r_v, r_first, r_buf;   // read issued last clock
     reg [S_W-1:0]     r_bank;
     reg [ADDR_W-1:0]  r_addr;
-    reg signed [ADC_W-1:0] r_x;
+    reg [P_IN*ADC_W-1:0] r_x;
     reg               rr_v, rr_first, rr_buf; // read data on rd (output register)
     reg [S_W-1:0]     rr_bank;
     reg [ADDR_W-1:0]  rr_addr;
-    reg signed [ADC_W-1:0] rr_x;
-    reg [AVG_W-1:0]   w_old;                 // RAM word, registered
+    reg [P_IN*ADC_W-1:0] rr_x;
+    reg [MAX_S*AVG_W-1:0] w_old;             // the buffer's bank words, registered
     reg               w_v, w_first, w_buf;
     reg [S_W-1:0]     w_bank;
     reg [ADDR_W-1:0]  w_addr;
-    reg signed [ADC_W-1:0] w_x;
+    reg [P_IN*ADC_W-1:0] w_x;
     wire [ADDR_W-1:0] a_addr = a_base + {{(ADDR_W-MAX_DEG){1'b0}}, a_c};
 
     wire [AVG_W-1:0]  rd [0:2*MAX_S-1];            // bank (b, s) at b*MAX_S + s
     reg  [ADDR_W-1:0] corr_addr [0:MAX_S-1];
     reg  [MAX_S*ADDR_W-1:0] addr0;           // stage 0 (below): registered corr_addr
-    wire signed [AVG_W-1:0] w_x_ext = {{(AVG_W-ADC_W+1){w_x[ADC_W-1]}}, w_x[ADC_W-2:0]};
 
     genvar gb, gs;
     generate
         for (gb = 0; gb < 2; gb = gb + 1) begin : g_buf
             for (gs = 0; gs < MAX_S; gs = gs + 1) begin : g_bank
-                wire we = w_v && (w_buf == gb) && (w_bank == gs);
+                // bank gs takes sample gs % P_IN of a clock whose first bank is gs - gs % P_IN
+                localparam integer  SX = gs % P_IN;
+                localparam [31:0]   GB32 = gs - SX;
+                wire [ADC_W-1:0]    wx = w_x[SX*ADC_W +: ADC_W];
+                wire [AVG_W-1:0]    wx_ext = {{(AVG_W-ADC_W+1){wx[ADC_W-1]}}, wx[ADC_W-2:0]};
+                wire we = w_v && (w_buf == gb) && (w_bank == GB32[S_W-1:0]);
                 wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? addr0[gs*ADDR_W +: ADDR_W]
                                                                    : a_addr;
                 sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N), .OUTREG(1)) bank (
                     .clk(clk), .we(we), .waddr(w_addr),
-                    .wdata(w_first ? w_x_ext : w_old + w_x_ext),
+                    .wdata(w_first ? wx_ext : w_old[gs*AVG_W +: AVG_W] + wx_ext),
                     .raddr(ra), .rdata(rd[gb * MAX_S + gs])
                 );
             end
@@ -507,10 +529,19 @@ module rx_top #(
         latch_v0   <= 1'b0;
         latch_v    <= 1'b0;
 
+        // ---- sticky status (cleared by clear_err; an event in the same clock wins) ----
+        if (clear_err) begin
+            err_overrun <= 1'b0;
+            err_refused <= 1'b0;
+        end
+        if (s_refused)
+            err_refused <= 1'b1;
+
         // ---- top: configuration and column count ----
         case (tstate)
         T_IDLE: if (start) begin
             c_columns    <= cfg_columns;
+            c_free       <= (cfg_columns == {COL_W{1'b0}});
             c_degree     <= cfg_degree;
             c_taps_u     <= cfg_taps_u;
             c_taps_v     <= cfg_taps_v;
@@ -553,13 +584,19 @@ module rx_top #(
             tstate      <= T_RUN;
         end
         T_RUN: begin
-            if (cols_out == c_columns) begin
+            if (!c_free && cols_out == c_columns) begin
                 done   <= 1'b1;
                 tstate <= T_IDLE;
             end
         end
         default: tstate <= T_IDLE;
         endcase
+        if (stop && tstate != T_IDLE) begin
+            // take the column already begun (if any) to its end, then no more
+            c_free    <= 1'b0;
+            c_columns <= (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
+                                           : {COL_W{1'b0}};
+        end
 
         if (div_run) begin
             div_r <= div_ge ? div_d[S_W:0] : div_t[S_W:0];
@@ -589,7 +626,8 @@ module rx_top #(
             w_addr  <= rr_addr;
             w_first <= rr_first;
             w_x     <= rr_x;
-            w_old   <= rr_buf ? rd[MAX_S + {{(32-S_W){1'b0}}, rr_bank}] : rd[rr_bank];
+            for (si = 0; si < MAX_S; si = si + 1)
+                w_old[si*AVG_W +: AVG_W] <= rr_buf ? rd[MAX_S + si] : rd[si];
         end
         if (a_take) begin
             r_v     <= 1'b1;
@@ -598,8 +636,8 @@ module rx_top #(
             r_addr  <= a_addr;
             r_first <= (a_r == {R_W{1'b0}});
             r_x     <= s_data;
-            if (a_s != c_spc - 1'b1) begin
-                a_s <= a_s + 1'b1;
+            if (a_s != c_spc - P_STEP) begin
+                a_s <= a_s + P_STEP;
             end else begin
                 a_s <= {S_W{1'b0}};
                 if (a_c != nn - 1'b1) begin
@@ -697,7 +735,7 @@ module rx_top #(
         latch_v <= latch_v0;
         if (latch_v) begin
             if (ser_busy)
-                err_overrun <= 1'b1;
+                err_overrun <= 1'b1;        // (the clear above loses no event: set wins)
             ser_busy <= 1'b1;
             ser_k    <= {K_W{1'b0}};
             ser_j    <= 0;
@@ -815,6 +853,7 @@ module rx_top #(
             div_run     <= 1'b0;
             div_done    <= 1'b0;
             err_overrun <= 1'b0;
+            err_refused <= 1'b0;
             full        <= 2'b00;
             proc_on     <= 1'b0;
             sr_a        <= {L{1'b0}};

@@ -48,6 +48,9 @@ class TopCase:
     indices: tuple[int, ...]
     columns: tuple[tuple[int, ...], ...]
     gap: int = 0
+    free: bool = False              # cfg_columns = 0, ended by stop in clock stop_clock
+    stop_clock: int | None = None
+    spare: int = 0                  # samples offered after the columns (must be refused)
 
     def model(self) -> list:
         codes = np.stack([gold_code(self.pair[0], self.pair[1], i) for i in self.indices])
@@ -173,35 +176,48 @@ def simulate(build_dir, params: cosim.TopParams, cases: list[TopCase], name: str
              top: str = cosim.MULTI_TOP) -> list[dict]:
     """Run ``cases`` in one simulation; per case the ports and the bench's raw record."""
     ports = [cosim.top_ports(c.cfg, c.pair[0], c.pair[1], c.indices, params,
-                             columns=len(c.columns)) for c in cases]
-    job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap}
+                             columns=0 if c.free else len(c.columns)) for c in cases]
+    job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap,
+                      "p": params.samples_per_clock, "stop_clock": c.stop_clock,
+                      "spare": c.spare}
                      for p, c in zip(ports, cases, strict=True)]}
     raw = cosim.run_job(top, BENCH, build_dir, job, name=name)
     return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
 
 
 def check(case: TopCase, run: dict, params: cosim.TopParams) -> None:
-    """The RTL's words are the model's, and its clocks are those of cosim.top_timing."""
+    """The RTL's words are the model's, and its clocks are those of cosim.top_schedule.
+
+    Every column's last sample, ``col_start`` and last ``res_valid`` clock, every
+    refused offer (``s_refused``), the samples taken and the ``done`` clock equal the
+    handshake model's; the sticky flags are set exactly when an offer was refused
+    (never an overrun) and one ``clear_err`` clears them.
+    """
     raw, ports = run["raw"], run["ports"]
-    outs = cosim.top_decode(raw, ports, params)
+    outs = cosim.top_decode(raw, {**ports, "cfg_columns": len(case.columns)}, params)
     for col, (model, rtl) in enumerate(zip(case.model(), outs, strict=True)):
         bad = model.mismatches(rtl)
         assert not bad, (col, {f: (getattr(model, f).tolist(), getattr(rtl, f).tolist())
                                for f in bad})
-    assert raw["overrun"] == 0
-    t = cosim.top_timing(ports, params)
+    per_col = len(case.columns[0])
+    sched = cosim.top_schedule(
+        ports, params, per_col * len(case.columns) + case.spare,
+        lambda c: not (case.gap and c % case.gap == case.gap - 1), case.stop_clock)
     k = params.channels
-    ends = raw["res_clocks"][k - 1::k]
-    assert [e - s for s, e in zip(raw["col_start"], ends, strict=True)] == \
-        [t["process"]] * len(case.columns)
-    first = t["first_take"]
-    while case.gap and first % case.gap == case.gap - 1:
-        first += 1
-    assert raw["first_take"] == first
-    assert raw["col_start"][0] - raw["last_take"][0] == t["last_to_col_start"]
-    if not case.gap and t["process"] + 1 <= t["samples"]:
+    assert raw["taken"] == sched["taken"] == per_col * len(case.columns)
+    assert raw["last_take"] == sched["last_take"]
+    assert raw["col_start"] == sched["col_start"]
+    assert raw["res_clocks"][k - 1::k] == sched["res_last"]
+    assert raw["refused"] == sched["refused"]
+    assert raw["done"] == sched["done"]
+    assert (raw["overrun"], raw["err_refused"], raw["cleared"]) == (0, int(bool(
+        sched["refused"])), 0)
+    t = cosim.top_timing(ports, params)
+    assert [e - s for s, e in zip(raw["col_start"], raw["res_clocks"][k - 1::k],
+                                  strict=True)] == [t["process"]] * len(case.columns)
+    if not case.gap and t["process"] + 1 <= t["column_clocks"]:
         assert raw["stalls"] == [], "back-pressure although the formula says real time"
-    if t["process"] + 1 > t["samples"] and len(case.columns) > 2:
+    if t["process"] + 1 > t["column_clocks"] and len(case.columns) > 2:
         assert raw["stalls"], "no back-pressure although processing is slower than the ADC"
 
 

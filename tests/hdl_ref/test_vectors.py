@@ -77,12 +77,16 @@ EDGE_SETS = {
     "gate15-two-peaks": ["degree=5", "gate_len=15", "peaks=2", "samples_per_chip=1",
                          "channels=2", "gate_start=3"],
     "gate63-two-peaks": ["degree=6", "gate_len=63", "peaks=2", "uid_bits=2", "uid=2"],
+    # P samples per clock: the file is read P words at a time
+    "two-per-clock": ["samples_per_clock=2", "samples_per_chip=2", "lanes=3", "uid_bits=2"],
+    "four-per-clock": ["samples_per_clock=4", "samples_per_chip=4", "degree=5", "channels=3",
+                       "peaks=2"],
 }
 
 
 @pytest.mark.hdl
 @pytest.mark.parametrize("name", sorted(EDGE_SETS))
-def test_all_ones_gate_builds_pass_their_vectors(tmp_path, name):
+def test_edge_builds_pass_their_vectors(tmp_path, name):
     if not cosim.iverilog_available():
         pytest.skip("Icarus Verilog is not installed")
     vec = tmp_path / "vec"
@@ -95,6 +99,7 @@ def test_all_ones_gate_builds_pass_their_vectors(tmp_path, name):
 @pytest.mark.parametrize(("setting", "named"), [
     ("degree=3", "degree"), ("averages=x", "averages"), ("colour=1", "--set"),
     ("ghost=5", "ghost"), ("gate_len=999", "gate_len"),
+    ("samples_per_clock=3", "samples_per_clock"),
 ])
 def test_bad_setting_exits_2_with_one_line(tmp_path, capsys, setting, named):
     assert main(["hdl", "vectors", "--set", setting, "--out", str(tmp_path)]) == 2
