@@ -64,6 +64,12 @@ MUTANTS: tuple[Mutant, ...] = (
            "(bi >= ph_s) ? st_t : st_t1};",
            "(bi >= ph_s) ? st_t : st_t + 1'b1};",
            "the S-sample box sum of the last chip does not wrap to chip 0"),
+    Mutant("en-beats-load", "lfsr_fib.v",
+           "        if (load)\n            st <= seed;\n        else if (en)\n"
+           "            st <= {st[MAX_DEG-2:0], fb};",
+           "        if (en)\n            st <= {st[MAX_DEG-2:0], fb};\n        else if (load)\n"
+           "            st <= seed;",
+           "an enable in the clock of a load steps instead of loading"),
     Mutant("lane-code-delay-off-by-one", "rx_top.v",
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};",
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], sr_code[gk*L]};",
