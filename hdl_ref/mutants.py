@@ -70,6 +70,10 @@ MUTANTS: tuple[Mutant, ...] = (
            "        if (en)\n            st <= {st[MAX_DEG-2:0], fb};\n        else if (load)\n"
            "            st <= seed;",
            "an enable in the clock of a load steps instead of loading"),
+    Mutant("rdw-returns-new", "sdp_ram.v",
+           "        rd0 <= mem[raddr];",
+           "        rd0 <= (we && waddr == raddr) ? wdata : mem[raddr];",
+           "a read of the word being written returns the new word (write-first)"),
     Mutant("lane-code-delay-off-by-one", "rx_top.v",
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};",
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], sr_code[gk*L]};",
