@@ -407,7 +407,7 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
         parameters=dict(generics),
         build_dir=build_dir,
         timescale=("1ns", "1ps"),
-        # rx_top is not yet Verilator-lint clean (width warnings only): do not fail on them
+        # a warning never stops a simulation build (lint: python -m cdma_lidar.hdl_ref.lint)
         build_args=["-Wno-fatal"] if sim == "verilator" else [],
         log_file=build_dir / "build.log",
     )

@@ -59,6 +59,11 @@ LINT_SETS |= {
                                     "MAX_P": 2, "MAX_UID": 2}),
     "rx_top-g63": ("rx_top", _TOP, {"K": 3, "L": 4, "MAX_DEG": 7, "MAX_S": 4, "MAX_G": 63,
                                     "MAX_P": 3, "MAX_UID": 3, "NGHOST": 2}),
+    "rx_top-p2": ("rx_top", _TOP, {"K": 3, "L": 3, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 31,
+                                   "MAX_P": 2, "MAX_UID": 2, "OUT_W": 16}),
+    "rx_top-p4-paper": ("rx_top", _TOP, {
+        "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
+        "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
     "rx_top-wide": ("rx_top", _TOP, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
                                      "MAX_R": 1024, "MAX_G": 256, "MAX_P": 8, "NGHOST": 8,
                                      "ADC_W": 16, "OUT_W": 32}),

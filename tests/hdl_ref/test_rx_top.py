@@ -25,7 +25,7 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
-from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref import cosim, synth
 from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
 from cdma_lidar.rounding import ROUNDING_MODES
@@ -278,9 +278,12 @@ def test_real_time_formula_paper_configuration():
     # and its "Timing" paragraph: the fewest lanes for 2 (125 MHz) and 4 (62.5 MHz)
     # samples per clock
     def fewest(per_clock: int) -> int:
-        return next(lanes for lanes in range(1, 65) if cosim.top_timing(
-            ports, dataclasses.replace(PAPER_TOP, lanes=lanes))["process"] + 1
-            <= t["samples"] // per_clock)
+        def timing(lanes: int) -> dict[str, int]:
+            return cosim.top_timing(ports, dataclasses.replace(
+                PAPER_TOP, lanes=lanes, samples_per_clock=per_clock))
+
+        return next(lanes for lanes in range(1, 65)
+                    if timing(lanes)["process"] + 1 <= timing(lanes)["column_clocks"])
 
     assert (fewest(2), fewest(4)) == (5, 16)
 
@@ -337,6 +340,8 @@ def test_every_mutant_is_simulated():
     assert set(MUTANT_CASES) | set(SWEEP_MUTANTS) == {m.name for m in MUTANTS
                                                       if m.file in TOP_FILES}
     assert set(MUTANT_CASES.values()) <= {c.name for c in FIXED}
+    doc = synth.DOC_PATH.read_text()
+    assert all(f"| `{m.name}` |" in doc for m in MUTANTS), "docs/hdl.md lists every mutant"
     assert {m.file for m in MUTANTS} <= {*TOP_FILES, "rx_chain.v", "out_scale.v", "lfsr_fib.v",
                                          "sdp_ram.v"}
 
