@@ -90,10 +90,13 @@ DESIGNS: tuple[Design, ...] = (
     Design("rx_top paper", "rx_top_pnr", TOP_SOURCES, PAPER_TOP,
            "K=40 x L=2, m<=11, S<=4, R<=16, 64 lags, 1 peak, 1 ghost window, 12-bit ADC, "
            "32-bit out (the paper's instrument; co-simulated by the slow test)", pnr=True),
-    Design("rx_top paper P=4", "rx_top_pnr", TOP_SOURCES, PAPER_P4,
-           "the paper build taking 4 samples per clock with K=40 x L=16 lanes: real time at "
-           "a quarter of the sample rate", pnr=True),
 )
+#: Not in DESIGNS yet (its rows are not measured: hours of synthesis and place and route
+#: on a shared 2-core machine); add it to DESIGNS and run ``--write-doc`` to measure it.
+PAPER_P4_DESIGN = Design(
+    "rx_top paper P=4", "rx_top_pnr", TOP_SOURCES, PAPER_P4,
+    "the paper build taking 4 samples per clock with K=40 x L=16 lanes: real time at a "
+    "quarter of the sample rate", pnr=True)
 
 FLOWS: dict[str, str] = {
     "ecp5": "synth_ecp5 -top {top} -json {json}",
