@@ -109,7 +109,7 @@ COLUMNS: dict[str, list[tuple[str, str]]] = {
     "xc7": [("LUTs", r"LUT\d"), ("flip-flops", r"FD[CPRS]E?"), ("CARRY4", "CARRY4"),
             ("LUTRAM", r"RAM\d+[XM].*"), ("RAMB36E1", "RAMB36E1"), ("RAMB18E1", "RAMB18E1"),
             ("DSP48E1", "DSP48E1")],
-    "pnr": [("LUT4+carry (COMB)", "TRELLIS_COMB"), ("flip-flops", "TRELLIS_FF"),
+    "pnr": [("COMB (LUT4 or carry half)", "TRELLIS_COMB"), ("flip-flops", "TRELLIS_FF"),
             ("DP16KD", "DP16KD"), ("MULT18X18D", "MULT18X18D"), ("Fmax MHz", "fmax"),
             ("MS/s", "fmax")],
 }
@@ -259,8 +259,9 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
     titles = {"ecp5": "**ecp5** (`synth_ecp5`)",
               "xc7": "**xc7** (`synth_xilinx -family xc7 -noiopad`)",
               "pnr": "**placed and routed** (`nextpnr-ecp5 " + " ".join(PNR_ARGS[:6])
-                     + "`, LFE5U-85F speed grade 6: 83 640 LUT4/FF, 208 DP16KD, "
-                     "156 MULT18X18D)"}
+                     + "`, LFE5U-85F speed grade 6: 83 640 COMB and "
+                     "83 640 FF, 208 DP16KD, 156 MULT18X18D; MS/s = samples per clock "
+                     "P_IN x Fmax)"}
     for flow in ("ecp5", "xc7", "pnr"):
         cols = COLUMNS[flow]
         rows = [table_row(d, flow, results[(d.name, flow)]) for d in DESIGNS
