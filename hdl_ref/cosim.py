@@ -600,7 +600,8 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
 
     ``raw``: ``{"corr": [[column, channel, j, word], ...], "res": [[column, channel,
     {port: word}], ...]}``. Format conversion only, channel by channel through
-    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null).
+    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null) and
+    for a missing or repeated result.
     """
     cols = ports["cfg_columns"]
     k = params.channels
@@ -618,6 +619,10 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
             raise ConfigError(f"rx_top results: unexpected or repeated column {col} channel {ch}",
                               field="res")
         res[(col, ch)] = words
+    missing = [(col, ch) for col in range(cols) for ch in range(k) if (col, ch) not in res]
+    if missing:
+        raise ConfigError(f"rx_top results: no result for (column, channel) {missing[:3]}",
+                          field="res")
     outs = []
     for col in range(cols):
         rows = [to_receiver_output(decode_rx_result(
