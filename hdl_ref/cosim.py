@@ -703,7 +703,6 @@ def top_schedule(ports: Mapping[str, int], params: TopParams, n_samples: int,
 
             proc = 1 - proc
             later(end, freed)
-            engine_free_at = end
     else:
         raise RuntimeError(f"rx_top schedule: no done after {max_clocks} clocks")
     out["taken"] = taken
