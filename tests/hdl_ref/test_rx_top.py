@@ -353,7 +353,7 @@ _FAST_MUTANTS = ("uid-match-ignores-zero-sign", "box-sum-no-chip-wrap")
 @pytest.mark.hdl
 @pytest.mark.parametrize("mutant", [
     m if m.name in _FAST_MUTANTS else pytest.param(m, marks=pytest.mark.slow)
-    for m in MUTANTS if m.file in TOP_FILES], ids=lambda m: m.name)
+    for m in MUTANTS if m.name in MUTANT_CASES], ids=lambda m: m.name)
 def test_rx_top_mutant_is_caught(hdl_build_root, fixed_runs, mutant):
     """The deliberately broken RTL disagrees with the model on its case; the real one agrees."""
     k = next(i for i, c in enumerate(FIXED) if c.name == MUTANT_CASES[mutant.name])
