@@ -31,7 +31,7 @@ import logging
 import math
 import os
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -68,13 +68,15 @@ __all__ = [
     "top_decode",
     "top_groups",
     "top_ports",
+    "top_schedule",
     "top_timing",
 ]
 
 log = logging.getLogger(__name__)
 
 RTL_DIR = Path(__file__).resolve().parent / "rtl"
-RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_chain.v", "rx_top.v")
+RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_chain.v",
+               "rx_top.v")
 RX_TOP = "rx_chain"
 MULTI_TOP = "rx_top"
 GOLD_TOP = "gold_gen"
@@ -252,11 +254,12 @@ def rx_latency_clocks(ports: Mapping[str, int], gap: int = 0) -> dict[str, int]:
     g = ports["cfg_gate_len"]
     p = ports["cfg_peaks"]
     corr = (g + 2) * n * ns
-    # DRAIN 1, CORR corr, CWAIT 4, P x (PEAK g + PWAIT 2), FETCH 3, NOISE g, NWAIT 2, DONE 1
+    # DRAIN 1, CORR corr, CWAIT 4, then rx_post: P x (peak scan g + wait 4), FETCH 3,
+    # noise scan g + wait 4 (done is registered in its last clock)
     return {
         "start_to_ready": first + 1,
         "first_to_last": last - first,
-        "last_to_done": 1 + corr + 4 + p * (g + 2) + 3 + g + 2 + 1,
+        "last_to_done": 1 + corr + 4 + p * (g + 4) + 3 + g + 4,
     }
 
 
@@ -404,7 +407,7 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
         parameters=dict(generics),
         build_dir=build_dir,
         timescale=("1ns", "1ps"),
-        # rx_top is not yet Verilator-lint clean (width warnings only): do not fail on them
+        # a warning never stops a simulation build (lint: python -m cdma_lidar.hdl_ref.lint)
         build_args=["-Wno-fatal"] if sim == "verilator" else [],
         log_file=build_dir / "build.log",
     )
@@ -475,11 +478,18 @@ class TopParams:
     nghost: int = 1
     adc_w: int = 12
     out_w: int = 32
+    samples_per_clock: int = 1  # P_IN: ADC samples per clock (divides max_s)
+
+    def __post_init__(self) -> None:
+        if self.samples_per_clock < 1 or self.max_s % self.samples_per_clock:
+            raise out_of_range("samples_per_clock", f"a divisor of max_s = {self.max_s}",
+                               self.samples_per_clock)
 
     def generics(self) -> dict[str, int]:
         """Verilog parameter overrides for ``rx_top``."""
         return {
-            "K": self.channels, "L": self.lanes, "MAX_DEG": self.max_deg, "MAX_S": self.max_s,
+            "K": self.channels, "L": self.lanes, "P_IN": self.samples_per_clock,
+            "MAX_DEG": self.max_deg, "MAX_S": self.max_s,
             "MAX_UID": self.max_uid, "MAX_R": self.max_r, "MAX_G": self.max_g,
             "MAX_P": self.max_p, "NGHOST": self.nghost, "ADC_W": self.adc_w,
             "OUT_W": self.out_w,
@@ -501,25 +511,32 @@ class TopParams:
 
 
 def top_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
-              indices: Sequence[int], params: TopParams, columns: int = 1) -> dict[str, int]:
+              indices: Sequence[int], params: TopParams, columns: int = 1,
+              serializer: bool = True) -> dict[str, int]:
     """``rx_top`` configuration port values: ``cfg`` for the Gold members ``indices``.
 
     Channel k correlates member ``indices[k]`` (seeds packed at bit k*MAX_DEG);
     ``len(indices)`` must equal the build's K. ``columns`` columns are taken after
-    ``start``. Raises ``ConfigError`` naming the field when the configuration is
+    ``start`` (0: free-running until ``stop``); ``samples_per_chip`` must be a
+    multiple of the build's samples per clock. Raises ``ConfigError`` naming the
+    field when the configuration is
     outside the build or when the K*L results of a group cannot be serialised
-    before the next group ends (K*L <= N - 2, docs/hdl.md).
+    before the next group ends (K*L <= N - 2, docs/hdl.md; ``serializer=False`` skips
+    that check, for the test that the RTL flags the overrun).
     """
     if len(indices) != params.channels:
         raise out_of_range("code_indices", f"{params.channels} members (K of this build)",
                            len(indices))
-    _need("columns", columns, (1 << 16) - 1, 1)
+    _need("columns", columns, (1 << 16) - 1, 0)
     ports = rx_ports(cfg, poly_u, poly_v, indices[0], params.rx())
+    if cfg.samples_per_chip % params.samples_per_clock:
+        raise out_of_range("samples_per_chip", f"a multiple of {params.samples_per_clock} "
+                           "(samples per clock of this build)", cfg.samples_per_chip)
     n_chips = (1 << int(poly_u[0])) - 1
     if int(poly_u[0]) < 3:
         raise out_of_range("degree", "3.. on rx_top (its 4-clock read-modify-write needs "
                            "n N S >= 4)", int(poly_u[0]))
-    if params.channels * params.lanes > n_chips - 2:
+    if serializer and params.channels * params.lanes > n_chips - 2:
         raise out_of_range("degree", f"N - 2 >= K*L = {params.channels * params.lanes} "
                            "(the result serializer keeps up)", int(poly_u[0]))
     su = sv = 0
@@ -550,7 +567,8 @@ def top_groups(ports: Mapping[str, int], lanes: int) -> int:
 def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     """Clock counts of one ``rx_top`` column (docs/hdl.md), as the co-simulation measures them.
 
-    ``samples``: R n N S, the clocks a column's samples take at one per clock;
+    ``samples``: R n N S, the samples of a column;
+    ``column_clocks``: the clocks they take, samples / P at P samples per clock;
     ``stream``: the correlation streams, groups * n * (N + L - 1);
     ``process``: from the ``col_start`` clock to the clock of the column's last
     ``res_valid``: stream + K L + 14 + K (P (G + 4) + G + 7);
@@ -558,7 +576,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     the first sample;
     ``last_to_col_start``: from the edge taking a column's last sample to its
     ``col_start`` clock when the engine is idle.
-    Real time (no back-pressure) holds when ``process + 1 <= samples``.
+    Real time (no back-pressure) holds when ``process + 1 <= column_clocks``.
     """
     n_chips = (1 << ports["cfg_degree"]) - 1
     s, n, r = ports["cfg_spc"], ports["cfg_uid_bits"], ports["cfg_averages"]
@@ -568,6 +586,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     post = k * (p * (g + 4) + g + 7)
     return {
         "samples": r * n * n_chips * s,
+        "column_clocks": r * n * n_chips * s // params.samples_per_clock,
         "stream": stream,
         "process": stream + k * lanes + 14 + post,
         "first_take": 2,
@@ -581,7 +600,8 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
 
     ``raw``: ``{"corr": [[column, channel, j, word], ...], "res": [[column, channel,
     {port: word}], ...]}``. Format conversion only, channel by channel through
-    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null).
+    :func:`decode_rx_result`. Raises ``ConfigError`` for words with X/Z bits (null) and
+    for a missing or repeated result.
     """
     cols = ports["cfg_columns"]
     k = params.channels
@@ -599,6 +619,10 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
             raise ConfigError(f"rx_top results: unexpected or repeated column {col} channel {ch}",
                               field="res")
         res[(col, ch)] = words
+    missing = [(col, ch) for col in range(cols) for ch in range(k) if (col, ch) not in res]
+    if missing:
+        raise ConfigError(f"rx_top results: no result for (column, channel) {missing[:3]}",
+                          field="res")
     outs = []
     for col in range(cols):
         rows = [to_receiver_output(decode_rx_result(
@@ -607,3 +631,79 @@ def top_decode(raw: Mapping[str, Any], ports: Mapping[str, int],
         outs.append(ReceiverOutput(**{
             f: np.concatenate([getattr(r, f) for r in rows]) for f in ("corr", *FIELD_NAMES)}))
     return outs
+
+
+def top_schedule(ports: Mapping[str, int], params: TopParams, n_samples: int,
+                 offered: Callable[[int], bool], stop_clock: int | None = None,
+                 max_clocks: int = 10_000_000) -> dict[str, Any]:
+    """Clock by clock, what ``rx_top`` does with a source: the model of its handshake.
+
+    Clock 0 is the clock after the ``start`` edge. In clock c the source offers
+    P samples when ``offered(c)`` and samples remain (of ``n_samples``); they are
+    taken when ``s_ready`` is high, which is from clock 2 on while the buffer being
+    filled is free and the column count (``cfg_columns``; 0 = until ``stop``) is not
+    reached. A column's last take fills its buffer from the next clock; the engine,
+    idle and seeing a full buffer in clock c, raises ``col_start`` in c + 1 and its
+    last ``res_valid`` comes ``process`` clocks later (:func:`top_timing`), the clock
+    in which that buffer is free again (sampling into it may resume in that very
+    clock). ``stop`` high in ``stop_clock`` ends the count after the column begun.
+    Returns the clocks of every column's last take (``last_take``), ``col_start``,
+    last ``res_valid`` (``res_last``), every clock that refused an offer
+    (``refused``: ``s_refused`` high), the samples taken and the ``done`` clock.
+    """
+    t = top_timing(ports, params)
+    p = params.samples_per_clock
+    per_col, process = t["samples"], t["process"]
+    target = ports["cfg_columns"] or None
+    full, acc, proc = [False, False], 0, 0
+    taken = cols_in = cols_out = 0
+    engine_free_at = 0                   # first clock the engine is idle
+    out: dict[str, Any] = {"last_take": [], "col_start": [], "res_last": [], "refused": []}
+    events: dict[int, list[Callable[[], None]]] = {}
+
+    def later(clock: int, action: Callable[[], None]) -> None:
+        events.setdefault(clock, []).append(action)
+
+    for clock in range(max_clocks):
+        for action in events.pop(clock, []):
+            action()
+        ready = clock >= 2 and not full[acc] and (target is None or cols_in != target)
+        offer = offered(clock) and taken < n_samples
+        took = offer and ready
+        if offer and not ready:
+            out["refused"].append(clock)
+        if target is not None and cols_out == target and clock >= 2:
+            out["done"] = clock + 1
+            break
+        if clock == stop_clock:
+            target = cols_in + (1 if took or taken % per_col else 0) if clock >= 2 else 0
+        if took:
+            taken += p
+            if taken % per_col == 0:
+                out["last_take"].append(clock)
+                b = acc
+
+                def filled(b: int = b) -> None:
+                    nonlocal acc, cols_in
+                    full[b] = True
+                    acc, cols_in = 1 - b, cols_in + 1
+
+                later(clock + 1, filled)
+        if clock >= engine_free_at and full[proc]:
+            start = clock + 1
+            end = start + process
+            out["col_start"].append(start)
+            out["res_last"].append(end)
+            engine_free_at = end
+
+            def freed(b: int = proc) -> None:
+                nonlocal cols_out
+                full[b] = False
+                cols_out += 1
+
+            proc = 1 - proc
+            later(end, freed)
+    else:
+        raise RuntimeError(f"rx_top schedule: no done after {max_clocks} clocks")
+    out["taken"] = taken
+    return out

@@ -41,6 +41,33 @@ LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
         "MAX_DEG": 13, "MAX_S": 64, "MAX_UID": 16, "MAX_R": 1024, "MAX_G": 1024, "MAX_P": 8,
         "NGHOST": 8, "ADC_W": 16, "OUT_W": 32}),
 }
+_CHAIN = ("lfsr_fib.v", "sdp_ram.v", "rx_post.v", "rx_chain.v")
+_TOP = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_top.v")
+for _name in [n for n in LINT_SETS if n.startswith("rx_chain")]:
+    LINT_SETS[_name] = ("rx_chain", _CHAIN, LINT_SETS[_name][2])
+LINT_SETS |= {
+    "rx_top-default": ("rx_top", _TOP, {}),
+    "rx_top-paper": ("rx_top", _TOP, {
+        "K": 40, "L": 2, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16, "MAX_G": 64,
+        "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
+    "rx_top-minimal": ("rx_top", _TOP, {
+        "K": 1, "L": 1, "MAX_DEG": 5, "MAX_S": 1, "MAX_UID": 1, "MAX_R": 1, "MAX_G": 8,
+        "MAX_P": 1, "NGHOST": 1, "ADC_W": 8, "OUT_W": 16}),
+    "rx_top-g15": ("rx_top", _TOP, {"K": 2, "L": 3, "MAX_DEG": 5, "MAX_S": 1, "MAX_G": 15,
+                                    "MAX_P": 2, "OUT_W": 16}),
+    "rx_top-g31": ("rx_top", _TOP, {"K": 4, "L": 2, "MAX_DEG": 6, "MAX_S": 2, "MAX_G": 31,
+                                    "MAX_P": 2, "MAX_UID": 2}),
+    "rx_top-g63": ("rx_top", _TOP, {"K": 3, "L": 4, "MAX_DEG": 7, "MAX_S": 4, "MAX_G": 63,
+                                    "MAX_P": 3, "MAX_UID": 3, "NGHOST": 2}),
+    "rx_top-p2": ("rx_top", _TOP, {"K": 3, "L": 3, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 31,
+                                   "MAX_P": 2, "MAX_UID": 2, "OUT_W": 16}),
+    "rx_top-p4-paper": ("rx_top", _TOP, {
+        "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
+        "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
+    "rx_top-wide": ("rx_top", _TOP, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
+                                     "MAX_R": 1024, "MAX_G": 256, "MAX_P": 8, "NGHOST": 8,
+                                     "ADC_W": 16, "OUT_W": 32}),
+}
 
 
 @dataclass(frozen=True)

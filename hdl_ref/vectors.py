@@ -17,7 +17,8 @@ in the loop)::
 ``--set`` keys: every field of ``ReceiverConfig`` except ``ghost_windows``
 (``ghost=START:LEN`` instead, repeatable through ``ghost2=``), plus ``degree``
 (5..11, the preferred pair ``pair`` of that degree), ``channels`` (K),
-``lanes`` (L), ``first_index`` (channel k correlates member first_index + k),
+``lanes`` (L), ``samples_per_clock`` (P_IN, dividing samples_per_chip),
+``first_index`` (channel k correlates member first_index + k),
 ``amplitude`` and ``noise`` (echo and noise in ADC LSB).
 """
 
@@ -61,8 +62,8 @@ RESULT_ORDER: tuple[str, ...] = (
     "res_nb_hi", "res_noise_count", "res_noise_sum", "res_noise_sumsq", "res_uid_observed",
     "res_uid_match", "res_saturated",
 )
-_EXTRA_KEYS = ("degree", "pair", "channels", "lanes", "first_index", "amplitude", "noise",
-               "ghost", "ghost2")
+_EXTRA_KEYS = ("degree", "pair", "channels", "lanes", "samples_per_clock", "first_index",
+               "amplitude", "noise", "ghost", "ghost2")
 _CFG_KEYS = tuple(f.name for f in dataclasses.fields(ReceiverConfig) if f.name != "ghost_windows")
 
 
@@ -75,6 +76,7 @@ class VectorSpec:
     pair: int = 0
     channels: int = 4
     lanes: int = 2
+    samples_per_clock: int = 1  # P_IN of the build: ADC samples per clock
     first_index: int = 0
     amplitude: float = 0.3      # echo amplitude, fraction of full scale
     noise: float = 0.1          # noise rms, fraction of full scale
@@ -85,7 +87,7 @@ class VectorSpec:
         return TopParams(channels=self.channels, lanes=self.lanes, max_deg=self.degree,
                          max_s=c.samples_per_chip, max_uid=c.uid_bits, max_r=c.averages,
                          max_g=c.gate_len, max_p=c.peaks, nghost=max(1, len(c.ghost_windows)),
-                         adc_w=c.adc_bits, out_w=32)
+                         adc_w=c.adc_bits, out_w=32, samples_per_clock=self.samples_per_clock)
 
     def polys(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """The preferred pair used (``preferred_pairs(degree)[pair]``)."""
@@ -147,6 +149,7 @@ def spec_from_settings(settings: Sequence[str]) -> VectorSpec:
     check_int("degree", extra.get("degree", 7), 5, 11)
     check_int("channels", extra.get("channels", 4), 1, 64)
     check_int("lanes", extra.get("lanes", 2), 1, 32)
+    check_int("samples_per_clock", extra.get("samples_per_clock", 1), 1, 16)
     cfg = ReceiverConfig(**cfg_fields, ghost_windows=tuple(ghosts))
     spec = VectorSpec(cfg=cfg, **extra)
     n_chips = (1 << spec.degree) - 1
@@ -241,7 +244,8 @@ def write_vectors(spec: VectorSpec, columns: int, seed: int, out_dir: str | Path
             res_lines += [_hex(words[name], res_w) for name in RESULT_ORDER]
     cfg_lines = [_hex(int(ports[name]), cfg_w) for name in CFG_ORDER]
     defines = {
-        "VEC_K": params.channels, "VEC_L": params.lanes, "VEC_MAX_DEG": params.max_deg,
+        "VEC_K": params.channels, "VEC_L": params.lanes, "VEC_P": params.samples_per_clock,
+        "VEC_MAX_DEG": params.max_deg,
         "VEC_MAX_S": params.max_s, "VEC_MAX_UID": params.max_uid, "VEC_MAX_R": params.max_r,
         "VEC_MAX_G": params.max_g, "VEC_MAX_P": params.max_p, "VEC_NGHOST": params.nghost,
         "VEC_ADC_W": params.adc_w, "VEC_OUT_W": params.out_w, "VEC_CFG_W": cfg_w,
@@ -274,7 +278,8 @@ def _readme(spec: VectorSpec, columns: int, seed: int, d: Mapping[str, int],
         ("params.vh", "", "Verilog defines: build parameters, word widths, line counts"),
         ("config.hex", d["VEC_N_CFG"], f"one `rx_top` configuration port per line "
          f"({d['VEC_CFG_W']} bits), order below; apply, then pulse `start`"),
-        ("adc.hex", d["VEC_N_ADC"], f"ADC samples ({d['VEC_ADC_W']} bits), column by column; "
+        ("adc.hex", d["VEC_N_ADC"], f"ADC samples ({d['VEC_ADC_W']} bits), column by column, "
+         f"{d['VEC_P']} per clock (the earliest in the low bits of `s_data`); "
          "within a column repetition r, UID period p, sample i"),
         ("corr.hex", d["VEC_N_CORR"], f"expected `corr_data` ({d['VEC_OUT_W']} bits): column, "
          "then channel 0..K-1, then gate index j = 0..G-1 (the order `rx_top` streams them)"),
@@ -293,7 +298,7 @@ complement where signed, the widths below.
 
 Configuration: {cfg_text}; degree {spec.degree}, pair {list(poly_u)} / {list(poly_v)},
 channel k correlates Gold member {list(indices)}[k]. Build parameters
-(`params.vh`): K={d['VEC_K']}, L={d['VEC_L']}, MAX_DEG={d['VEC_MAX_DEG']},
+(`params.vh`): K={d['VEC_K']}, L={d['VEC_L']}, P_IN={d['VEC_P']}, MAX_DEG={d['VEC_MAX_DEG']},
 MAX_S={d['VEC_MAX_S']}, MAX_UID={d['VEC_MAX_UID']}, MAX_R={d['VEC_MAX_R']},
 MAX_G={d['VEC_MAX_G']}, MAX_P={d['VEC_MAX_P']}, NGHOST={d['VEC_NGHOST']},
 ADC_W={d['VEC_ADC_W']}, OUT_W={d['VEC_OUT_W']}.
@@ -316,7 +321,7 @@ Run with the plain Verilog testbench of the repository (no Python needed):
 
 ```
 iverilog -g2005 -I <this folder> -o tb.vvp hdl_ref/tb/rx_top_vectors_tb.v hdl_ref/rtl/lfsr_fib.v \\
-    hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_top.v
+    hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
 vvp tb.vvp +VEC=<this folder>/
 ```
 """

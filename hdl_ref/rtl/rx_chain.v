@@ -19,14 +19,14 @@
 //          (the two extra lags are the peak's possible neighbours) stream the
 //          averaging RAM against the Gold generator: n * NS clocks per lag;
 //          per lag the rounded, saturated out word and the signs of the n
-//          per-period sums go to the correlation RAM and out on corr_*;
-//   PEAK   `peaks` passes of gate_len clocks over the correlation RAM;
-//   FETCH  read the first peak's two neighbours;
-//   NOISE  one pass of gate_len clocks (count, sum, sum of squares).
+//          per-period sums go to the correlation RAM;
+//   POST   rx_post (shared with rx_top): `peaks` passes over the correlation
+//          RAM, the first peak's two neighbours, one noise pass (count, sum,
+//          sum of squares) that also streams the gate words on corr_*.
 // Latency (clock edges, checked by the co-simulation for every case):
 //   start -> first sample taken:   3
-//   last sample taken -> done:     (gate_len + 2) * n * NS + peaks * (gate_len + 2)
-//                                  + gate_len + 11
+//   last sample taken -> done:     (gate_len + 2) * n * NS + peaks * (gate_len + 4)
+//                                  + gate_len + 12
 // Throughput while averaging: one sample per clock (docs/hdl.md).
 //
 // All configuration inputs are sampled at `start` (one-clock pulse in IDLE)
@@ -89,27 +89,27 @@ module rx_chain #(
     output wire                         s_ready,
 
     // ---- correlation stream: one word per gate lag, j = 0..gate_len-1 ----
-    output reg                          corr_valid,
-    output reg  [G_W-1:0]               corr_index,     // j
-    output reg  signed [OUT_W-1:0]      corr_data,      // out(lag_j)
+    output wire                         corr_valid,
+    output wire [G_W-1:0]               corr_index,     // j
+    output wire signed [OUT_W-1:0]      corr_data,      // out(lag_j)
 
     // ---- results, valid from done until the next start ----
     output wire                         busy,
-    output reg                          done,           // one-clock pulse
-    output reg  [MAX_P-1:0]             res_found,      // peak q exists
-    output reg  [MAX_P*LAG_W-1:0]       res_lag,        // peak q lag (samples) at [q*LAG_W]
-    output reg  [MAX_P*G_W-1:0]         res_index,      // peak q gate index j
-    output reg  [MAX_P*OUT_W-1:0]       res_peak,       // peak q out value (signed)
-    output reg  [MAX_P*MAX_UID-1:0]     res_neg,        // per-period sum c_p < 0 at peak q
-    output reg  [MAX_P*MAX_UID-1:0]     res_nz,         // per-period sum != 0 at peak q
-    output reg  signed [OUT_W-1:0]      res_nb_lo,      // out at peak lag - 1
-    output reg  signed [OUT_W-1:0]      res_nb_hi,      // out at peak lag + 1
-    output reg  [CNT_W-1:0]             res_noise_count,
-    output reg  signed [SUM_W-1:0]      res_noise_sum,
-    output reg  [SQ_W-1:0]              res_noise_sumsq,
-    output reg  [MAX_UID-1:0]           res_uid_observed,
-    output reg                          res_uid_match,
-    output reg                          res_saturated   // peak 0's out word at a rail
+    output wire                         done,           // one-clock pulse
+    output wire [MAX_P-1:0]             res_found,      // peak q exists
+    output wire [MAX_P*LAG_W-1:0]       res_lag,        // peak q lag (samples) at [q*LAG_W]
+    output wire [MAX_P*G_W-1:0]         res_index,      // peak q gate index j
+    output wire [MAX_P*OUT_W-1:0]       res_peak,       // peak q out value (signed)
+    output wire [MAX_P*MAX_UID-1:0]     res_neg,        // per-period sum c_p < 0 at peak q
+    output wire [MAX_P*MAX_UID-1:0]     res_nz,         // per-period sum != 0 at peak q
+    output wire signed [OUT_W-1:0]      res_nb_lo,      // out at peak lag - 1
+    output wire signed [OUT_W-1:0]      res_nb_hi,      // out at peak lag + 1
+    output wire [CNT_W-1:0]             res_noise_count,
+    output wire signed [SUM_W-1:0]      res_noise_sum,
+    output wire [SQ_W-1:0]              res_noise_sumsq,
+    output wire [MAX_UID-1:0]           res_uid_observed,
+    output wire                         res_uid_match,
+    output wire                         res_saturated   // peak 0's out word at a rail
 );
     // ------------------------------------------------------------------
     // Widths
@@ -121,16 +121,12 @@ module rx_chain #(
     localparam integer ADDR_W = $clog2(MAX_UID * MAX_NS);
     localparam integer JJ_W   = G_W + 1;                             // extended gate index
     localparam integer CA_W   = $clog2(MAX_G + 2);                   // correlation RAM address
-    localparam [JJ_W-1:0] JJ_TWO = 2;
     localparam integer CW     = OUT_W + 2 * MAX_UID;                 // correlation RAM word
-    localparam integer MAG_W  = OUT_W + 1;                           // |out|
 
-    localparam [3:0] S_IDLE  = 4'd0,  S_INIT1 = 4'd1, S_INIT2 = 4'd2, S_ACCUM = 4'd3,
-                     S_DRAIN = 4'd4,  S_CORR  = 4'd5, S_CWAIT = 4'd6, S_PEAK  = 4'd7,
-                     S_PWAIT = 4'd8,  S_FETCH = 4'd9, S_NOISE = 4'd10, S_NWAIT = 4'd11,
-                     S_DONE  = 4'd12;
+    localparam [2:0] S_IDLE  = 3'd0, S_INIT1 = 3'd1, S_INIT2 = 3'd2, S_ACCUM = 3'd3,
+                     S_DRAIN = 3'd4, S_CORR  = 3'd5, S_CWAIT = 3'd6, S_POST  = 3'd7;
 
-    reg [3:0] state;
+    reg [2:0] state;
 
     // ------------------------------------------------------------------
     // Configuration registers
@@ -282,85 +278,45 @@ module rx_chain #(
     // Correlation RAM: word = {nz[MAX_UID], neg[MAX_UID], out[OUT_W]},
     // address jj = j + 1 (jj 0 and G+1 are the neighbour lags)
     // ------------------------------------------------------------------
-    reg  [JJ_W-1:0]   cr_raddr;
+    wire [CA_W-1:0]   cr_raddr;
     wire [CW-1:0]     cr_rdata;
 
     sdp_ram #(.WIDTH(CW), .DEPTH(MAX_G + 2)) corr_ram (
         .clk(clk), .we(c3_v), .waddr(c3_jj[CA_W-1:0]), .wdata(c3_word),
-        .raddr(cr_raddr[CA_W-1:0]), .rdata(cr_rdata)
+        .raddr(cr_raddr), .rdata(cr_rdata)
     );
-    wire signed [OUT_W-1:0] cr_out  = cr_rdata[OUT_W-1:0];
-    wire [MAG_W-1:0]        cr_mag  = cr_out[OUT_W-1] ? -{cr_out[OUT_W-1], cr_out}
-                                                      : {1'b0, cr_out};
 
     // ------------------------------------------------------------------
-    // PEAK / NOISE scan: issue j with its lag; ghost and exclusion masks
+    // Post-processing: peaks, neighbours, noise floor, UID (rx_post, shared with rx_top)
     // ------------------------------------------------------------------
-    reg  [G_W-1:0]    q_j;              // gate index being issued
-    reg  [LAG_W-1:0]  q_lag;            // lag_j
-    reg  [P_W-1:0]    q_k;              // peak being searched
-    reg  [MAX_P-1:0]  pk_found;
-    reg  [MAX_P*G_W-1:0] pk_j;
-
-    reg ghost;                          // lag_j in any ghost window
-    reg excl;                           // |j - j_q| <= W for a found peak q (< q_k when searching)
-    integer w, q;
-    reg [LAG_W:0] gd;
-    reg [G_W-1:0] pj, dj;
-    always @(*) begin
-        ghost = 1'b0;
-        for (w = 0; w < NGHOST; w = w + 1) begin
-            // d = (lag - start) mod NS; in the window when d < len
-            gd = {1'b0, q_lag} - {1'b0, c_gh_start[w*LAG_W +: LAG_W]};
-            if (gd[LAG_W])
-                gd = gd + {1'b0, ns};
-            if (gd[LAG_W-1:0] < c_gh_len[w*LAG_W +: LAG_W])
-                ghost = 1'b1;
-        end
-        excl = 1'b0;
-        for (q = 0; q < MAX_P; q = q + 1) begin
-            pj = pk_j[q*G_W +: G_W];
-            dj = (q_j > pj) ? q_j - pj : pj - q_j;
-            if (pk_found[q] && ((state == S_NOISE) || (q < {{(32-P_W){1'b0}}, q_k}))
-                && dj <= c_excl)
-                excl = 1'b1;
-        end
-    end
-
-    reg               s1_v, s1_ok;      // scan stage 1 (corr RAM data valid)
-    reg  [G_W-1:0]    s1_j;
-    reg  [LAG_W-1:0]  s1_lag;
-    reg               b_have;
-    reg  [MAG_W-1:0]  b_mag;
-    reg  [G_W-1:0]    b_j;
-    reg  [LAG_W-1:0]  b_lag;
-    reg  [CW-1:0]     b_word;
     reg  [2:0]        wait_cnt;
-    reg  [1:0]        f_cnt;
+    wire              post_go = (state == S_CWAIT) && (wait_cnt == 3'd3);
+    wire              post_last;
 
-    wire signed [2*OUT_W-1:0] sq = cr_out * cr_out;
-    wire [MAX_UID-1:0]  b_neg = b_word[OUT_W +: MAX_UID] & uid_mask;
-    wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
-    wire signed [OUT_W-1:0] b_out = b_word[OUT_W-1:0];
-    wire [OUT_W:0]      o_max = ({{OUT_W{1'b0}}, 1'b1} << (c_out_bits - 1'b1)) - 1'b1;
-    wire                b_rail = (b_out == o_max[OUT_W-1:0]) || (b_out == ~o_max[OUT_W-1:0]);
-
-    wire [P_W-1:0]    q_k_last = c_peaks - 1'b1;
-    localparam [MAX_P-1:0] P_ONE = 1;
-    wire [MAX_P-1:0]  q_bit    = P_ONE << q_k;       // one-hot of the peak being searched
-    wire [G_W-1:0]    q_j_last = c_gate_len - 1'b1;
+    rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
+              .OUT_W(OUT_W), .LAG_W(LAG_W)) post (
+        .clk(clk), .rst(rst), .go(post_go), .more(1'b0),
+        .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
+        .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
+        .uid_mask(uid_mask), .out_bits(c_out_bits),
+        .raddr(cr_raddr), .rdata(cr_rdata), .last(post_last),
+        .corr_valid(corr_valid), .corr_index(corr_index), .corr_data(corr_data),
+        .res_valid(done), .res_found(res_found), .res_lag(res_lag),
+        .res_index(res_index), .res_peak(res_peak), .res_neg(res_neg), .res_nz(res_nz),
+        .res_nb_lo(res_nb_lo), .res_nb_hi(res_nb_hi), .res_noise_count(res_noise_count),
+        .res_noise_sum(res_noise_sum), .res_noise_sumsq(res_noise_sumsq),
+        .res_uid_observed(res_uid_observed), .res_uid_match(res_uid_match),
+        .res_saturated(res_saturated)
+    );
 
     // ------------------------------------------------------------------
     // Main sequencer
     // ------------------------------------------------------------------
     always @(posedge clk) begin
-        done       <= 1'b0;
-        corr_valid <= 1'b0;
         w_v        <= 1'b0;
         c1_v       <= 1'b0;
         c2_v       <= 1'b0;
         c3_v       <= 1'b0;
-        s1_v       <= 1'b0;
 
         // ---- averaging write-back pipeline ----
         if (a_take) begin
@@ -392,12 +348,6 @@ module rx_chain #(
             c3_jj   <= c2_jj;
             c3_word <= {c2_nz, c2_neg, rsat[OUT_W-1:0]};
         end
-        // ---- stage 3: stream gate lags ----
-        if (c3_v && c3_jj != {JJ_W{1'b0}} && c3_jj != jj_last) begin
-            corr_valid <= 1'b1;
-            corr_index <= c3_jj[G_W-1:0] - 1'b1;
-            corr_data  <= c3_word[OUT_W-1:0];
-        end
 
         case (state)
         S_IDLE: if (start) begin
@@ -419,12 +369,6 @@ module rx_chain #(
             c_round      <= cfg_rounding;
             c_out_bits   <= cfg_out_bits;
             c_peaks      <= cfg_peaks;
-            res_found    <= {MAX_P{1'b0}};
-            res_lag      <= {(MAX_P*LAG_W){1'b0}};
-            res_index    <= {(MAX_P*G_W){1'b0}};
-            res_peak     <= {(MAX_P*OUT_W){1'b0}};
-            res_neg      <= {(MAX_P*MAX_UID){1'b0}};
-            res_nz       <= {(MAX_P*MAX_UID){1'b0}};
             state        <= S_INIT1;
         end
         S_INIT1: begin
@@ -490,124 +434,22 @@ module rx_chain #(
             end
         end
         S_CWAIT: begin
-            // let stages 1..3 drain, then start the first peak pass
+            // let stages 1..3 drain, then post-process
             wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd3) begin
-                state    <= S_PEAK;
-                q_k      <= {P_W{1'b0}};
-                q_j      <= {G_W{1'b0}};
-                q_lag    <= c_gate_start;
-                pk_found <= {MAX_P{1'b0}};
-                b_have   <= 1'b0;
-            end
+            if (post_go)
+                state <= S_POST;
         end
-        S_PEAK: begin
-            s1_v   <= 1'b1;
-            s1_ok  <= !ghost && !excl;
-            s1_j   <= q_j;
-            s1_lag <= q_lag;
-            q_j    <= q_j + 1'b1;
-            q_lag  <= lag_inc(q_lag, ns);
-            if (q_j == q_j_last) begin
-                state    <= S_PWAIT;
-                wait_cnt <= 3'd0;
-            end
-        end
-        S_PWAIT: begin
-            wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd1) begin
-                // record peak q_k
-                pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
-                pk_j[q_k*G_W +: G_W]          <= b_j;
-                res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
-                res_lag[q_k*LAG_W +: LAG_W]   <= b_lag;
-                res_index[q_k*G_W +: G_W]     <= b_j;
-                // a missing peak reports value 0 and no signs (docs/firmware.md 4)
-                res_peak[q_k*OUT_W +: OUT_W]    <= b_have ? b_word[OUT_W-1:0] : {OUT_W{1'b0}};
-                res_neg[q_k*MAX_UID +: MAX_UID] <= b_have ? b_neg : {MAX_UID{1'b0}};
-                res_nz[q_k*MAX_UID +: MAX_UID]  <= b_have ? b_nz : {MAX_UID{1'b0}};
-                if (q_k == {P_W{1'b0}}) begin
-                    res_uid_observed <= b_have ? b_neg : {MAX_UID{1'b0}};
-                    res_uid_match    <= b_have && (b_nz == uid_mask)
-                                        && (b_neg == (c_uid & uid_mask));
-                    res_saturated    <= b_have && b_rail;
-                end
-                q_j    <= {G_W{1'b0}};
-                q_lag  <= c_gate_start;
-                b_have <= 1'b0;
-                if (q_k == q_k_last) begin
-                    state <= S_FETCH;
-                    f_cnt <= 2'd0;
-                end else begin
-                    q_k   <= q_k + 1'b1;
-                    state <= S_PEAK;
-                end
-            end
-        end
-        S_FETCH: begin
-            // neighbours of peak 0: addresses j0 (lag-1) and j0+2 (lag+1)
-            f_cnt <= f_cnt + 1'b1;
-            if (f_cnt == 2'd1)
-                res_nb_lo <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
-            if (f_cnt == 2'd2) begin
-                res_nb_hi       <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
-                res_noise_count <= {CNT_W{1'b0}};
-                res_noise_sum   <= {SUM_W{1'b0}};
-                res_noise_sumsq <= {SQ_W{1'b0}};
-                state           <= S_NOISE;
-            end
-        end
-        S_NOISE: begin
-            s1_v   <= 1'b1;
-            s1_ok  <= !ghost && !excl;
-            s1_j   <= q_j;
-            s1_lag <= q_lag;
-            q_j    <= q_j + 1'b1;
-            q_lag  <= lag_inc(q_lag, ns);
-            if (q_j == q_j_last) begin
-                state    <= S_NWAIT;
-                wait_cnt <= 3'd0;
-            end
-        end
-        S_NWAIT: begin
-            wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd1)
-                state <= S_DONE;
-        end
-        S_DONE: begin
-            done  <= 1'b1;
+        S_POST: if (post_last)
             state <= S_IDLE;
-        end
         default: state <= S_IDLE;
         endcase
 
-        // ---- scan stage 1: best |out| (lowest j on ties) or noise sums ----
-        if (s1_v && s1_ok) begin
-            if (state == S_PEAK || state == S_PWAIT) begin
-                if (!b_have || cr_mag > b_mag) begin
-                    b_have <= 1'b1;
-                    b_mag  <= cr_mag;
-                    b_j    <= s1_j;
-                    b_lag  <= s1_lag;
-                    b_word <= cr_rdata;
-                end
-            end else begin
-                res_noise_count <= res_noise_count + 1'b1;
-                res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){cr_out[OUT_W-1]}}, cr_out};
-                res_noise_sumsq <= res_noise_sumsq
-                                   + {{(SQ_W-2*OUT_W){1'b0}}, sq[2*OUT_W-1:0]};
-            end
-        end
-
         if (rst) begin
             state      <= S_IDLE;
-            done       <= 1'b0;
-            corr_valid <= 1'b0;
             w_v        <= 1'b0;
             c1_v       <= 1'b0;
             c2_v       <= 1'b0;
             c3_v       <= 1'b0;
-            s1_v       <= 1'b0;
         end
     end
 
@@ -616,17 +458,11 @@ module rx_chain #(
         gen_load  = (state == S_DRAIN);     // chip 0 in the first CORR clock
         gen_en    = (state == S_CORR) && (k_s == c_spc - 1'b1);
         ram_raddr = (state == S_CORR) ? k_addr[ADDR_W-1:0] : a_addr[ADDR_W-1:0];
-        case (state)
-        S_FETCH: cr_raddr = (f_cnt == 2'd0) ? {1'b0, pk_j[G_W-1:0]}
-                                            : {1'b0, pk_j[G_W-1:0]} + JJ_TWO;
-        default: cr_raddr = {1'b0, q_j} + 1'b1;
-        endcase
     end
 
     // Sink for bits that are wider than any legal value needs (lint).
-    // (c3_jj and cr_raddr carry G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
-    wire unused_ok = &{1'b0, st_u, st_v, s1_lag, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W], o_max[OUT_W],
-                       c3_jj, cr_raddr,
+    // (c3_jj carries G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
+    wire unused_ok = &{1'b0, st_u, st_v, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W], c3_jj,
                        ns_full[MAX_DEG+S_W:LAG_W]};
 endmodule
 

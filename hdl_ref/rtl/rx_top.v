@@ -31,13 +31,21 @@
 // then res_valid.
 //
 // Configuration is sampled at `start`; then cfg_columns columns are taken
-// (samples in the order repetition r, period p, sample i) and `done` pulses
-// after the last column's last channel.
+// (samples in the order repetition r, period p, sample i; P_IN of them per
+// clock, the earliest at s_data[ADC_W-1:0]) and `done` pulses after the last
+// column's last channel. cfg_columns = 0 runs free: columns follow each other
+// until `stop`, which lets the column already begun finish (any column count
+// is cut short the same way). ADC interface: s_valid/s_ready in the clk domain
+// (the clock-domain crossing from the converter is the integrator's). A source
+// that cannot wait (a fixed-rate strobe) loses every sample offered while
+// s_ready is low: s_refused marks each such clock, and the sticky err_refused
+// (like err_overrun) holds until clear_err.
 `default_nettype none
 
 module rx_top #(
     parameter integer K         = 4,    // channels (Gold members)
     parameter integer L         = 2,    // lanes (parallel lags) per channel
+    parameter integer P_IN      = 1,    // ADC samples per clock (divides MAX_S and cfg_spc)
     parameter integer MAX_DEG   = 11,
     parameter integer MAX_S     = 4,
     parameter integer MAX_UID   = 1,
@@ -69,7 +77,9 @@ module rx_top #(
     input  wire                         rst,
 
     input  wire                         start,
-    input  wire [COL_W-1:0]             cfg_columns,    // columns to take, >= 1
+    input  wire                         stop,           // finish the column being taken, then done
+    input  wire                         clear_err,      // clears err_refused and err_overrun
+    input  wire [COL_W-1:0]             cfg_columns,    // columns to take; 0 = until stop
     input  wire [DEG_W-1:0]             cfg_degree,
     input  wire [MAX_DEG-1:0]           cfg_taps_u,
     input  wire [MAX_DEG-1:0]           cfg_taps_v,
@@ -90,30 +100,32 @@ module rx_top #(
     input  wire [P_W-1:0]               cfg_peaks,
 
     input  wire                         s_valid,
-    input  wire signed [ADC_W-1:0]      s_data,
+    input  wire [P_IN*ADC_W-1:0]        s_data,         // sample k of the clock at [k*ADC_W]
     output wire                         s_ready,
+    output wire                         s_refused,      // s_valid && !s_ready while busy
+    output reg                          err_refused,    // sticky: a sample was refused
 
-    output reg                          corr_valid,
+    output wire                         corr_valid,
     output reg  [K_W-1:0]               corr_channel,
-    output reg  [G_W-1:0]               corr_index,
-    output reg  signed [OUT_W-1:0]      corr_data,
+    output wire [G_W-1:0]               corr_index,
+    output wire signed [OUT_W-1:0]      corr_data,
 
-    output reg                          res_valid,      // one pulse per channel and column
+    output wire                         res_valid,      // one pulse per channel and column
     output reg  [K_W-1:0]               res_channel,
-    output reg  [MAX_P-1:0]             res_found,
-    output reg  [MAX_P*LAG_W-1:0]       res_lag,
-    output reg  [MAX_P*G_W-1:0]         res_index,
-    output reg  [MAX_P*OUT_W-1:0]       res_peak,
-    output reg  [MAX_P*MAX_UID-1:0]     res_neg,
-    output reg  [MAX_P*MAX_UID-1:0]     res_nz,
-    output reg  signed [OUT_W-1:0]      res_nb_lo,
-    output reg  signed [OUT_W-1:0]      res_nb_hi,
-    output reg  [CNT_W-1:0]             res_noise_count,
-    output reg  signed [SUM_W-1:0]      res_noise_sum,
-    output reg  [SQ_W-1:0]              res_noise_sumsq,
-    output reg  [MAX_UID-1:0]           res_uid_observed,
-    output reg                          res_uid_match,
-    output reg                          res_saturated,  // first peak's out word at a rail
+    output wire [MAX_P-1:0]             res_found,
+    output wire [MAX_P*LAG_W-1:0]       res_lag,
+    output wire [MAX_P*G_W-1:0]         res_index,
+    output wire [MAX_P*OUT_W-1:0]       res_peak,
+    output wire [MAX_P*MAX_UID-1:0]     res_neg,
+    output wire [MAX_P*MAX_UID-1:0]     res_nz,
+    output wire signed [OUT_W-1:0]      res_nb_lo,
+    output wire signed [OUT_W-1:0]      res_nb_hi,
+    output wire [CNT_W-1:0]             res_noise_count,
+    output wire signed [SUM_W-1:0]      res_noise_sum,
+    output wire [SQ_W-1:0]              res_noise_sumsq,
+    output wire [MAX_UID-1:0]           res_uid_observed,
+    output wire                         res_uid_match,
+    output wire                         res_saturated,  // first peak's out word at a rail
 
     output wire                         busy,
     output reg                          done,
@@ -132,15 +144,17 @@ module rx_top #(
     localparam integer JJ_W   = G_W + 1;                     // extended gate index 0..G+1
     localparam integer CA_W   = $clog2(MAX_G + 2);
     localparam integer CW     = OUT_W + 2 * MAX_UID;         // correlation RAM word
-    localparam integer MAG_W  = OUT_W + 1;
     localparam integer KL     = K * L;
     localparam integer TAG_W  = 2 * MAX_UID + K_W + CA_W;
     localparam integer DIV_W  = $clog2(LAG_W + 1);
+    localparam integer SJ_W   = $clog2(L + 1);
+    localparam [31:0]     K_M1 = K - 1, L_M1 = L;
+    localparam [K_W-1:0]  K_LAST = K_M1[K_W-1:0];
+    localparam [SJ_W-1:0] L_LAST = L_M1[SJ_W-1:0] - 1'b1;
 
     localparam [1:0] T_IDLE = 2'd0, T_INIT1 = 2'd1, T_INIT2 = 2'd2, T_RUN = 2'd3;
     localparam [3:0] P_IDLE  = 4'd0, P_SETUP = 4'd1, P_STREAM = 4'd2, P_FLUSH = 4'd3,
-                     P_PEAK  = 4'd4, P_PWAIT = 4'd5, P_FETCH  = 4'd6, P_NOISE = 4'd7,
-                     P_NWAIT = 4'd8, P_EMIT  = 4'd9, P_START  = 4'd10;
+                     P_POST  = 4'd4, P_START = 4'd5;
 
     reg [1:0] tstate;
     reg [3:0] pstate;
@@ -149,6 +163,7 @@ module rx_top #(
     // Configuration
     // ------------------------------------------------------------------
     reg [COL_W-1:0]        c_columns;
+    reg                    c_free;      // cfg_columns = 0: columns until `stop`
     reg [DEG_W-1:0]        c_degree;
     reg [MAX_DEG-1:0]      c_taps_u, c_taps_v;
     reg [K*MAX_DEG-1:0]    c_seed_u, c_seed_v;
@@ -185,8 +200,10 @@ module rx_top #(
     reg [DIV_W-1:0]  div_i;
     reg [LAG_W-1:0]  div_q;
     reg [S_W:0]      div_r;
-    wire [S_W+1:0]   div_t = {div_r, lo[div_i - 1'b1]};
+    wire [LAG_W-1:0] lo_sh = lo >> (div_i - 1'b1);
+    wire [S_W+1:0]   div_t = {div_r, lo_sh[0]};
     wire             div_ge = div_t >= {2'b00, c_spc};
+    wire [S_W+1:0]   div_d  = div_t - {2'b00, c_spc};
 
     // ------------------------------------------------------------------
     // Averaging: two buffers of MAX_S banks (n * N words of AVG_W bits each)
@@ -196,46 +213,55 @@ module rx_top #(
     reg  [1:0]        full;             // buffer b holds a complete column not yet processed
     reg               proc_on;          // the engine is reading proc_buf
     reg [COL_W-1:0]   cols_in, cols_out;
-    reg [S_W-1:0]     a_s;
+    reg [S_W-1:0]     a_s;              // bank of the clock's first sample (multiple of P_IN)
     reg [MAX_DEG-1:0] a_c;
     reg [UID_W-1:0]   a_p;
     reg [ADDR_W-1:0]  a_base;
     reg [R_W-1:0]     a_r;
 
-    assign s_ready = (tstate == T_RUN) && !full[acc_buf] && (cols_in != c_columns);
-    assign busy    = (tstate != T_IDLE);
-    wire a_take    = s_valid && s_ready;
+    assign s_ready   = (tstate == T_RUN) && !full[acc_buf] && (c_free || cols_in != c_columns);
+    assign busy      = (tstate != T_IDLE);
+    assign s_refused = busy && s_valid && !s_ready;
+    wire a_take      = s_valid && s_ready;
+    wire a_mid       = a_take || (a_s != {S_W{1'b0}}) || (a_c != {MAX_DEG{1'b0}})
+                       || (a_p != {UID_W{1'b0}}) || (a_r != {R_W{1'b0}});  // a column is open
+    localparam [31:0]    P_IN32 = P_IN;
+    localparam [S_W-1:0] P_STEP = P_IN32[S_W-1:0];
 
     reg               r_v, r_first, r_buf;   // read issued last clock
     reg [S_W-1:0]     r_bank;
     reg [ADDR_W-1:0]  r_addr;
-    reg signed [ADC_W-1:0] r_x;
+    reg [P_IN*ADC_W-1:0] r_x;
     reg               rr_v, rr_first, rr_buf; // read data on rd (output register)
     reg [S_W-1:0]     rr_bank;
     reg [ADDR_W-1:0]  rr_addr;
-    reg signed [ADC_W-1:0] rr_x;
-    reg [AVG_W-1:0]   w_old;                 // RAM word, registered
+    reg [P_IN*ADC_W-1:0] rr_x;
+    reg [MAX_S*AVG_W-1:0] w_old;             // the buffer's bank words, registered
     reg               w_v, w_first, w_buf;
     reg [S_W-1:0]     w_bank;
     reg [ADDR_W-1:0]  w_addr;
-    reg signed [ADC_W-1:0] w_x;
+    reg [P_IN*ADC_W-1:0] w_x;
     wire [ADDR_W-1:0] a_addr = a_base + {{(ADDR_W-MAX_DEG){1'b0}}, a_c};
 
     wire [AVG_W-1:0]  rd [0:2*MAX_S-1];            // bank (b, s) at b*MAX_S + s
     reg  [ADDR_W-1:0] corr_addr [0:MAX_S-1];
     reg  [MAX_S*ADDR_W-1:0] addr0;           // stage 0 (below): registered corr_addr
-    wire signed [AVG_W-1:0] w_x_ext = {{(AVG_W-ADC_W+1){w_x[ADC_W-1]}}, w_x[ADC_W-2:0]};
 
     genvar gb, gs;
     generate
         for (gb = 0; gb < 2; gb = gb + 1) begin : g_buf
             for (gs = 0; gs < MAX_S; gs = gs + 1) begin : g_bank
-                wire we = w_v && (w_buf == gb) && (w_bank == gs);
+                // bank gs takes sample gs % P_IN of a clock whose first bank is gs - gs % P_IN
+                localparam integer  SX = gs % P_IN;
+                localparam [31:0]   GB32 = gs - SX;
+                wire [ADC_W-1:0]    wx = w_x[SX*ADC_W +: ADC_W];
+                wire [AVG_W-1:0]    wx_ext = {{(AVG_W-ADC_W+1){wx[ADC_W-1]}}, wx[ADC_W-2:0]};
+                wire we = w_v && (w_buf == gb) && (w_bank == GB32[S_W-1:0]);
                 wire [ADDR_W-1:0] ra = (proc_on && proc_buf == gb) ? addr0[gs*ADDR_W +: ADDR_W]
                                                                    : a_addr;
                 sdp_ram #(.WIDTH(AVG_W), .DEPTH(MAX_UID * MAX_N), .OUTREG(1)) bank (
                     .clk(clk), .we(we), .waddr(w_addr),
-                    .wdata(w_first ? w_x_ext : w_old + w_x_ext),
+                    .wdata(w_first ? wx_ext : w_old[gs*AVG_W +: AVG_W] + wx_ext),
                     .raddr(ra), .rdata(rd[gb * MAX_S + gs])
                 );
             end
@@ -255,13 +281,16 @@ module rx_top #(
     reg  [KST_W-1:0]   st_k;            // 0 .. N+L-2
     reg  [MAX_DEG-1:0] st_t;            // (g_q + k) mod N
     wire [MAX_DEG-1:0] st_t1 = chip_inc(st_t, nn);
-    wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0] - 2'd2;
+    wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0]
+                                 - {{(KST_W-2){1'b0}}, 2'd2};
     wire               st_end   = (st_k == k_last);
     wire               st_lastp = (st_p == c_uid_bits - 1'b1);
-    wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L * {{(JJ_W+1){1'b0}}, c_spc};
+    localparam [JJ_W+S_W:0] L_JJ = L_M1[JJ_W+S_W:0];
+    wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L_JJ * {{(JJ_W+1){1'b0}}, c_spc};
     wire               g_more   = g_jj_nx <= {{(S_W+1){1'b0}}, jj_last};
     wire [MAX_DEG:0]   g_q_sum  = {1'b0, g_q} + L[MAX_DEG:0];
-    wire [MAX_DEG-1:0] g_q_nx   = (g_q_sum >= {1'b0, nn}) ? g_q_sum - {1'b0, nn}
+    wire [MAX_DEG:0]   g_q_dif  = g_q_sum - {1'b0, nn};
+    wire [MAX_DEG-1:0] g_q_nx   = (g_q_sum >= {1'b0, nn}) ? g_q_dif[MAX_DEG-1:0]
                                                           : g_q_sum[MAX_DEG-1:0];
     wire [S_W-1:0]     ph_nx    = ph + 1'b1;
     wire               ph_more  = (ph_nx < c_spc) && ({{(JJ_W-S_W){1'b0}}, ph_nx} <= jj_last);
@@ -320,13 +349,13 @@ module rx_top #(
     reg [JJ_W-1:0]    gjjq;
     reg [MAX_S*AVG_W-1:0] rdq;
     reg signed [BOX_W-1:0] box1;
-    integer si;
+    integer bsi, si;                        // bsi: the combinational loop, si: clocked ones
     always @(*) begin
         box1 = {BOX_W{1'b0}};
-        for (si = 0; si < MAX_S; si = si + 1)
-            if (si < c_spc)
-                box1 = box1 + {{(BOX_W-AVG_W){rdq[si*AVG_W + AVG_W-1]}},
-                               rdq[si*AVG_W +: AVG_W]};
+        for (bsi = 0; bsi < MAX_S; bsi = bsi + 1)
+            if (bsi < c_spc)
+                box1 = box1 + {{(BOX_W-AVG_W){rdq[bsi*AVG_W + AVG_W-1]}},
+                               rdq[bsi*AVG_W +: AVG_W]};
     end
 
     // ---- lane control delay line: entry j = step k - j ----
@@ -379,7 +408,7 @@ module rx_top #(
                 wire signed [RAW_W-1:0] pext  = {{(RAW_W-PER_W){fval[PER_W-1]}}, fval};
                 wire [MAX_UID-1:0]      psel  = {{(MAX_UID-1){1'b0}}, 1'b1} << fp;
                 wire                    pflip = |(c_uid & psel);
-                wire                    p0    = (fp == {UID_W{1'b0}});
+                wire                    fp0   = (fp == {UID_W{1'b0}});
                 always @(posedge clk) begin
                     fv <= 1'b0;
                     if (v2 && e_a[gj]) begin
@@ -391,10 +420,10 @@ module rx_top #(
                         end
                     end
                     if (fv) begin
-                        tot <= (p0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
-                        neg <= (p0 ? {MAX_UID{1'b0}} : neg)
+                        tot <= (fp0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
+                        neg <= (fp0 ? {MAX_UID{1'b0}} : neg)
                                | (fval[PER_W-1] ? psel : {MAX_UID{1'b0}});
-                        nz  <= (p0 ? {MAX_UID{1'b0}} : nz)
+                        nz  <= (fp0 ? {MAX_UID{1'b0}} : nz)
                                | ((fval != {PER_W{1'b0}}) ? psel : {MAX_UID{1'b0}});
                     end
                     if (rst)
@@ -414,7 +443,7 @@ module rx_top #(
     reg  [KL*MAX_UID-1:0]   h_neg, h_nz;
     reg                     ser_busy;
     reg  [K_W-1:0]          ser_k;
-    reg  [$clog2(L+1)-1:0]  ser_j;
+    reg  [SJ_W-1:0]         ser_j;
     reg  [JJ_W+S_W:0]       ser_jj;
     reg  [JJ_W-1:0]         ser_base;
     wire                    ser_ok = ser_busy && (ser_jj <= {{(S_W+1){1'b0}}, jj_last});
@@ -451,80 +480,38 @@ module rx_top #(
         .wdata({sc_tag[TAG_W-1:K_W+CA_W], sc_word}),
         .raddr(cr_raddr), .rdata(cr_rdata)
     );
-    wire signed [OUT_W-1:0] cr_out = cr_rdata[OUT_W-1:0];
 
     // ------------------------------------------------------------------
-    // Post-processing scan (per channel): as rx_chain
+    // Post-processing (per channel): rx_post, shared with rx_chain
     // ------------------------------------------------------------------
     reg  [K_W-1:0]    pk_ch;
-    reg  [G_W-1:0]    q_j;
-    reg  [LAG_W-1:0]  q_lag;
-    reg  [P_W-1:0]    q_k;
-    reg  [MAX_P-1:0]  pk_found;
-    reg  [MAX_P*G_W-1:0] pk_j;
-
-    reg ghost, excl;
-    integer w, q;
-    reg [LAG_W:0] gd;
-    reg [G_W-1:0] pj, dj;
-    always @(*) begin
-        ghost = 1'b0;
-        for (w = 0; w < NGHOST; w = w + 1) begin
-            gd = {1'b0, q_lag} - {1'b0, c_gh_start[w*LAG_W +: LAG_W]};
-            if (gd[LAG_W])
-                gd = gd + {1'b0, ns};
-            if (gd[LAG_W-1:0] < c_gh_len[w*LAG_W +: LAG_W])
-                ghost = 1'b1;
-        end
-        excl = 1'b0;
-        for (q = 0; q < MAX_P; q = q + 1) begin
-            pj = pk_j[q*G_W +: G_W];
-            dj = (q_j > pj) ? q_j - pj : pj - q_j;
-            if (pk_found[q] && ((pstate == P_NOISE) || (q < {{(32-P_W){1'b0}}, q_k}))
-                && dj <= c_excl)
-                excl = 1'b1;
-        end
-    end
-
-    reg               s1_v, s1_ok;
-    reg  [G_W-1:0]    s1_j;
-    reg  [LAG_W-1:0]  s1_lag;
-    reg               b_have;
-    reg  [MAG_W-1:0]  b_mag;
-    reg  [G_W-1:0]    b_j;
-    reg  [LAG_W-1:0]  b_lag;
-    reg  [CW-1:0]     b_word;
     reg  [2:0]        wait_cnt;
-    reg  [1:0]        f_cnt;
+    wire              flushed = !v0 && !v1 && !vr && !vq && !v2 && !latch_v0 && !latch_v
+                                && !ser_busy && !ser_ok;
+    wire              post_go = (pstate == P_FLUSH) && flushed && (wait_cnt == 3'd4);
+    wire              post_last;
+    wire [CA_W-1:0]   post_raddr;
 
-    reg               s2_v, s2_ok, s3_v, s3_ok;
-    reg  [G_W-1:0]    s2_j, s3_j;
-    reg  [LAG_W-1:0]  s2_lag, s3_lag;
-    reg  [CW-1:0]     s2_word, s3_word;
-    reg  [MAG_W-1:0]  s3_mag;
-    reg  [2*OUT_W-1:0] s3_sq;
-    wire signed [OUT_W-1:0]   s2_out = s2_word[OUT_W-1:0];
-    wire signed [OUT_W-1:0]   s3_out = s3_word[OUT_W-1:0];
-    wire signed [2*OUT_W-1:0] sq = s2_out * s2_out;
-    wire [MAX_UID-1:0]  b_neg = b_word[OUT_W +: MAX_UID] & uid_mask;
-    wire [MAX_UID-1:0]  b_nz  = b_word[OUT_W+MAX_UID +: MAX_UID] & uid_mask;
-    wire signed [OUT_W-1:0] b_out = b_word[OUT_W-1:0];
-    wire [OUT_W:0]      o_max = ({{OUT_W{1'b0}}, 1'b1} << (c_out_bits - 1'b1)) - 1'b1;
-    wire                b_rail = (b_out == o_max[OUT_W-1:0]) || (b_out == ~o_max[OUT_W-1:0]);
-    wire [P_W-1:0]      q_k_last = c_peaks - 1'b1;
-    localparam [MAX_P-1:0] P_ONE = 1;
-    wire [MAX_P-1:0]    q_bit    = P_ONE << q_k;
-    wire [G_W-1:0]      q_j_last = c_gate_len - 1'b1;
-    localparam [CA_W-1:0] CA_ONE = 1, CA_TWO = 2;
-    wire [CA_W-1:0]     j0 = pk_j[CA_W-1:0];
+    rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
+              .OUT_W(OUT_W), .LAG_W(LAG_W)) post (
+        .clk(clk), .rst(rst), .go(post_go), .more(pk_ch != K_LAST),
+        .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
+        .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
+        .uid_mask(uid_mask), .out_bits(c_out_bits),
+        .raddr(post_raddr), .rdata(cr_rdata), .last(post_last),
+        .corr_valid(corr_valid), .corr_index(corr_index), .corr_data(corr_data),
+        .res_valid(res_valid), .res_found(res_found), .res_lag(res_lag),
+        .res_index(res_index), .res_peak(res_peak), .res_neg(res_neg), .res_nz(res_nz),
+        .res_nb_lo(res_nb_lo), .res_nb_hi(res_nb_hi), .res_noise_count(res_noise_count),
+        .res_noise_sum(res_noise_sum), .res_noise_sumsq(res_noise_sumsq),
+        .res_uid_observed(res_uid_observed), .res_uid_match(res_uid_match),
+        .res_saturated(res_saturated)
+    );
 
     always @(*) begin
         gen_load = (pstate == P_SETUP) || (pstate == P_STREAM && st_end);
         gen_en   = (pstate == P_STREAM) && !st_end;
-        case (pstate)
-        P_FETCH: cr_raddr = {pk_ch, (f_cnt == 2'd0) ? j0 : j0 + CA_TWO};
-        default: cr_raddr = {pk_ch, q_j[CA_W-1:0] + CA_ONE};
-        endcase
+        cr_raddr = {pk_ch, post_raddr};
     end
 
     // ------------------------------------------------------------------
@@ -532,8 +519,6 @@ module rx_top #(
     // ------------------------------------------------------------------
     always @(posedge clk) begin
         done       <= 1'b0;
-        res_valid  <= 1'b0;
-        corr_valid <= 1'b0;
         col_start  <= 1'b0;
         w_v        <= 1'b0;
         v0         <= 1'b0;
@@ -543,12 +528,20 @@ module rx_top #(
         v2         <= 1'b0;
         latch_v0   <= 1'b0;
         latch_v    <= 1'b0;
-        s1_v       <= 1'b0;
+
+        // ---- sticky status (cleared by clear_err; an event in the same clock wins) ----
+        if (clear_err) begin
+            err_overrun <= 1'b0;
+            err_refused <= 1'b0;
+        end
+        if (s_refused)
+            err_refused <= 1'b1;
 
         // ---- top: configuration and column count ----
         case (tstate)
         T_IDLE: if (start) begin
             c_columns    <= cfg_columns;
+            c_free       <= (cfg_columns == {COL_W{1'b0}});
             c_degree     <= cfg_degree;
             c_taps_u     <= cfg_taps_u;
             c_taps_v     <= cfg_taps_v;
@@ -591,16 +584,22 @@ module rx_top #(
             tstate      <= T_RUN;
         end
         T_RUN: begin
-            if (cols_out == c_columns) begin
+            if (!c_free && cols_out == c_columns) begin
                 done   <= 1'b1;
                 tstate <= T_IDLE;
             end
         end
         default: tstate <= T_IDLE;
         endcase
+        if (stop && tstate != T_IDLE) begin
+            // take the column already begun (if any) to its end, then no more
+            c_free    <= 1'b0;
+            c_columns <= (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
+                                           : {COL_W{1'b0}};
+        end
 
         if (div_run) begin
-            div_r <= div_ge ? div_t - {2'b00, c_spc} : div_t[S_W:0];
+            div_r <= div_ge ? div_d[S_W:0] : div_t[S_W:0];
             div_q <= {div_q[LAG_W-2:0], div_ge};
             div_i <= div_i - 1'b1;
             if (div_i == {{(DIV_W-1){1'b0}}, 1'b1}) begin
@@ -627,7 +626,8 @@ module rx_top #(
             w_addr  <= rr_addr;
             w_first <= rr_first;
             w_x     <= rr_x;
-            w_old   <= rr_buf ? rd[MAX_S + rr_bank] : rd[rr_bank];
+            for (si = 0; si < MAX_S; si = si + 1)
+                w_old[si*AVG_W +: AVG_W] <= rr_buf ? rd[MAX_S + si] : rd[si];
         end
         if (a_take) begin
             r_v     <= 1'b1;
@@ -636,8 +636,8 @@ module rx_top #(
             r_addr  <= a_addr;
             r_first <= (a_r == {R_W{1'b0}});
             r_x     <= s_data;
-            if (a_s != c_spc - 1'b1) begin
-                a_s <= a_s + 1'b1;
+            if (a_s != c_spc - P_STEP) begin
+                a_s <= a_s + P_STEP;
             end else begin
                 a_s <= {S_W{1'b0}};
                 if (a_c != nn - 1'b1) begin
@@ -735,18 +735,18 @@ module rx_top #(
         latch_v <= latch_v0;
         if (latch_v) begin
             if (ser_busy)
-                err_overrun <= 1'b1;
+                err_overrun <= 1'b1;        // (the clear above loses no event: set wins)
             ser_busy <= 1'b1;
             ser_k    <= {K_W{1'b0}};
             ser_j    <= 0;
             ser_jj   <= {{(S_W+1){1'b0}}, latch_jj};
             ser_base <= latch_jj;
         end else if (ser_busy) begin
-            if (ser_j == L - 1) begin
+            if (ser_j == L_LAST) begin
                 ser_j  <= 0;
                 ser_jj <= {{(S_W+1){1'b0}}, ser_base};
                 ser_k  <= ser_k + 1'b1;
-                if (ser_k == K - 1)
+                if (ser_k == K_LAST)
                     ser_busy <= 1'b0;
             end else begin
                 ser_j  <= ser_j + 1'b1;
@@ -810,163 +810,35 @@ module rx_top #(
         end
         P_FLUSH: begin
             // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
-            if (!v0 && !v1 && !vr && !vq && !v2 && !latch_v0 && !latch_v && !ser_busy && !ser_ok) begin
+            if (flushed) begin
                 wait_cnt <= wait_cnt + 1'b1;
-                if (wait_cnt == 3'd4) begin
+                if (post_go) begin
                     pk_ch  <= {K_W{1'b0}};
-                    pstate <= P_PEAK;
-                    q_k      <= {P_W{1'b0}};
-                    q_j      <= {G_W{1'b0}};
-                    q_lag    <= c_gate_start;
-                    pk_found <= {MAX_P{1'b0}};
-                    b_have   <= 1'b0;
+                    pstate <= P_POST;
                 end
             end
         end
-        P_PEAK: begin
-            if (q_k == {P_W{1'b0}} && q_j == {G_W{1'b0}}) begin
-                // a channel's first clock (the previous channel's res_valid clock)
-                res_found <= {MAX_P{1'b0}};
-                res_lag   <= {(MAX_P*LAG_W){1'b0}};
-                res_index <= {(MAX_P*G_W){1'b0}};
-                res_peak  <= {(MAX_P*OUT_W){1'b0}};
-                res_neg   <= {(MAX_P*MAX_UID){1'b0}};
-                res_nz    <= {(MAX_P*MAX_UID){1'b0}};
-            end
-            s1_v   <= 1'b1;
-            s1_ok  <= !ghost && !excl;
-            s1_j   <= q_j;
-            s1_lag <= q_lag;
-            q_j    <= q_j + 1'b1;
-            q_lag  <= lag_inc(q_lag, ns);
-            if (q_j == q_j_last) begin
-                pstate   <= P_PWAIT;
-                wait_cnt <= 3'd0;
-            end
-        end
-        P_PWAIT: begin
-            wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd3) begin
-                pk_found                      <= pk_found | (b_have ? q_bit : {MAX_P{1'b0}});
-                pk_j[q_k*G_W +: G_W]          <= b_j;
-                res_found                     <= res_found | (b_have ? q_bit : {MAX_P{1'b0}});
-                res_lag[q_k*LAG_W +: LAG_W]   <= b_have ? b_lag : {LAG_W{1'b0}};
-                res_index[q_k*G_W +: G_W]     <= b_have ? b_j : {G_W{1'b0}};
-                res_peak[q_k*OUT_W +: OUT_W]    <= b_have ? b_word[OUT_W-1:0] : {OUT_W{1'b0}};
-                res_neg[q_k*MAX_UID +: MAX_UID] <= b_have ? b_neg : {MAX_UID{1'b0}};
-                res_nz[q_k*MAX_UID +: MAX_UID]  <= b_have ? b_nz : {MAX_UID{1'b0}};
-                if (q_k == {P_W{1'b0}}) begin
-                    res_uid_observed <= b_have ? b_neg : {MAX_UID{1'b0}};
-                    res_uid_match    <= b_have && (b_nz == uid_mask)
-                                        && (b_neg == (c_uid & uid_mask));
-                    res_saturated    <= b_have && b_rail;
-                end
-                q_j    <= {G_W{1'b0}};
-                q_lag  <= c_gate_start;
-                b_have <= 1'b0;
-                if (q_k == q_k_last) begin
-                    pstate <= P_FETCH;
-                    f_cnt  <= 2'd0;
-                end else begin
-                    q_k    <= q_k + 1'b1;
-                    pstate <= P_PEAK;
-                end
-            end
-        end
-        P_FETCH: begin
-            f_cnt <= f_cnt + 1'b1;
-            if (f_cnt == 2'd1)
-                res_nb_lo <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
-            if (f_cnt == 2'd2) begin
-                res_nb_hi       <= pk_found[0] ? cr_out : {OUT_W{1'b0}};
-                res_noise_count <= {CNT_W{1'b0}};
-                res_noise_sum   <= {SUM_W{1'b0}};
-                res_noise_sumsq <= {SQ_W{1'b0}};
-                pstate          <= P_NOISE;
-            end
-        end
-        P_NOISE: begin
-            s1_v   <= 1'b1;
-            s1_ok  <= !ghost && !excl;
-            s1_j   <= q_j;
-            s1_lag <= q_lag;
-            q_j    <= q_j + 1'b1;
-            q_lag  <= lag_inc(q_lag, ns);
-            if (q_j == q_j_last) begin
-                pstate   <= P_NWAIT;
-                wait_cnt <= 3'd0;
-            end
-        end
-        P_NWAIT: begin
-            wait_cnt <= wait_cnt + 1'b1;
-            if (wait_cnt == 3'd2)
-                pstate <= P_EMIT;
-        end
-        P_EMIT: begin
-            res_valid   <= 1'b1;
+        P_POST: if (post_last) begin
             res_channel <= pk_ch;
-            q_k      <= {P_W{1'b0}};
-            q_j      <= {G_W{1'b0}};
-            q_lag    <= c_gate_start;
-            pk_found <= {MAX_P{1'b0}};
-            b_have   <= 1'b0;
-            if (pk_ch == K - 1) begin
-                cols_out <= cols_out + 1'b1;
+            if (pk_ch == K_LAST) begin
+                cols_out       <= cols_out + 1'b1;
                 full[proc_buf] <= 1'b0;
-                proc_buf <= ~proc_buf;
-                proc_on  <= 1'b0;
-                pstate   <= P_IDLE;
+                proc_buf       <= ~proc_buf;
+                proc_on        <= 1'b0;
+                pstate         <= P_IDLE;
             end else begin
-                pk_ch     <= pk_ch + 1'b1;
-                pstate    <= P_PEAK;
+                pk_ch <= pk_ch + 1'b1;
             end
         end
         default: pstate <= P_IDLE;
         endcase
 
-        // ---- scan stages: s1 RAM word, s2 registered, s3 magnitude and square ----
-        s2_v    <= s1_v;
-        s2_ok   <= s1_ok;
-        s2_j    <= s1_j;
-        s2_lag  <= s1_lag;
-        s2_word <= cr_rdata;
-        s3_v    <= s2_v;
-        s3_ok   <= s2_ok;
-        s3_j    <= s2_j;
-        s3_lag  <= s2_lag;
-        s3_word <= s2_word;
-        s3_mag  <= s2_out[OUT_W-1] ? -{s2_out[OUT_W-1], s2_out} : {1'b0, s2_out};
-        s3_sq   <= sq;
-        if (s3_v) begin
-            if (pstate == P_NOISE || pstate == P_NWAIT) begin
-                corr_valid   <= 1'b1;
-                corr_channel <= pk_ch;
-                corr_index   <= s3_j;
-                corr_data    <= s3_out;
-            end
-            if (s3_ok) begin
-                if (pstate == P_PEAK || pstate == P_PWAIT) begin
-                    if (!b_have || s3_mag > b_mag) begin
-                        b_have <= 1'b1;
-                        b_mag  <= s3_mag;
-                        b_j    <= s3_j;
-                        b_lag  <= s3_lag;
-                        b_word <= s3_word;
-                    end
-                end else begin
-                    res_noise_count <= res_noise_count + 1'b1;
-                    res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){s3_out[OUT_W-1]}}, s3_out};
-                    res_noise_sumsq <= res_noise_sumsq + {{(SQ_W-2*OUT_W){1'b0}}, s3_sq};
-                end
-            end
-        end
+        corr_channel <= pk_ch;
 
         if (rst) begin
             tstate      <= T_IDLE;
             pstate      <= P_IDLE;
             done        <= 1'b0;
-            res_valid   <= 1'b0;
-            corr_valid  <= 1'b0;
             w_v         <= 1'b0;
             v1          <= 1'b0;
             v2          <= 1'b0;
@@ -978,21 +850,20 @@ module rx_top #(
             rr_v        <= 1'b0;
             r_v         <= 1'b0;
             ser_busy    <= 1'b0;
-            s1_v        <= 1'b0;
-            s2_v        <= 1'b0;
-            s3_v        <= 1'b0;
             div_run     <= 1'b0;
             div_done    <= 1'b0;
             err_overrun <= 1'b0;
+            err_refused <= 1'b0;
             full        <= 2'b00;
             proc_on     <= 1'b0;
             sr_a        <= {L{1'b0}};
         end
     end
 
-    wire unused_ok = &{1'b0, s3_lag, ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
+    wire unused_ok = &{1'b0, lo_sh[LAG_W-1:1], sr_f, sr_e, sr_a, sr_p, sr_code, g_q_dif[MAX_DEG], div_d[S_W+1],
+                       ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
                        g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
-                       sq[2*OUT_W-1], div_q[LAG_W-1:MAX_DEG], pk_j, q_j};
+                       div_q};
 endmodule
 
 `default_nettype wire

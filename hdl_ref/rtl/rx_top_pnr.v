@@ -13,6 +13,7 @@
 module rx_top_pnr #(
     parameter integer K       = 4,
     parameter integer L       = 2,
+    parameter integer P_IN    = 1,
     parameter integer MAX_DEG = 11,
     parameter integer MAX_S   = 4,
     parameter integer MAX_UID = 1,
@@ -26,11 +27,15 @@ module rx_top_pnr #(
     input  wire              clk,
     input  wire              rst,
     input  wire              start,
+    input  wire              stop,
+    input  wire              clear_err,
     input  wire              cfg_sin,
     input  wire              cfg_shift,
     input  wire              s_valid,
-    input  wire [ADC_W-1:0]  s_data,
+    input  wire [P_IN*ADC_W-1:0] s_data,
     output wire              s_ready,
+    output wire              s_refused,
+    output wire              err_refused,
     output reg               res_valid,
     output reg  [31:0]       fold,
     output wire              busy,
@@ -67,9 +72,9 @@ module rx_top_pnr #(
     wire [RES_W-2:0]  res;
     wire              col_start;
 
-    rx_top #(.K(K), .L(L), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID), .MAX_R(MAX_R),
+    rx_top #(.K(K), .L(L), .P_IN(P_IN), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID), .MAX_R(MAX_R),
              .MAX_G(MAX_G), .MAX_P(MAX_P), .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W)) dut (
-        .clk(clk), .rst(rst), .start(start),
+        .clk(clk), .rst(rst), .start(start), .stop(stop), .clear_err(clear_err),
         .cfg_columns(cfg[15:0]),
         .cfg_degree(cfg[16 +: DEG_W]),
         .cfg_taps_u(cfg[16 + DEG_W +: MAX_DEG]),
@@ -89,7 +94,8 @@ module rx_top_pnr #(
         .cfg_rounding(cfg[CFG_W - P_W - 8 +: 2]),
         .cfg_out_bits(cfg[CFG_W - P_W - 6 +: 6]),
         .cfg_peaks(cfg[CFG_W - P_W +: P_W]),
-        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready),
+        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready), .s_refused(s_refused),
+        .err_refused(err_refused),
         .corr_valid(corr_valid), .corr_channel(corr_channel), .corr_index(corr_index),
         .corr_data(corr_data),
         .res_valid(rv), .res_channel(res[K_W-1:0]),

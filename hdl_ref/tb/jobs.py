@@ -41,6 +41,9 @@ async def play_stream_cases(dut: Any, run_case: Callable[[Any, dict], Awaitable[
     cocotb.start_soon(Clock(dut.clk, period_ns, unit="ns").start())
     dut.rst.value = 1
     dut.start.value = 0
+    for name in ("stop", "clear_err"):      # rx_top only
+        if hasattr(dut, name):
+            getattr(dut, name).value = 0
     dut.s_valid.value = 0
     dut.s_data.value = 0
     for _ in range(2):

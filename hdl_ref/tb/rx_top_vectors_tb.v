@@ -9,6 +9,9 @@
 `timescale 1ns/1ps
 `default_nettype none
 `include "params.vh"
+`ifndef VEC_P
+`define VEC_P 1
+`endif
 
 module rx_top_vectors_tb;
     localparam integer K = `VEC_K, MAX_DEG = `VEC_MAX_DEG, MAX_S = `VEC_MAX_S;
@@ -22,6 +25,7 @@ module rx_top_vectors_tb;
     localparam integer R_W = $clog2(MAX_R + 1), G_W = $clog2(MAX_G + 1);
     localparam integer P_W = $clog2(MAX_P + 1), K_W = (K > 1) ? $clog2(K) : 1;
     localparam integer NRP = `VEC_N_RES_PORTS;
+    localparam integer P = `VEC_P;                  // samples per clock
 
     reg [`VEC_CFG_W-1:0] cfg_mem  [0:`VEC_N_CFG-1];
     reg [ADC_W-1:0]      adc_mem  [0:`VEC_N_ADC-1];
@@ -29,8 +33,9 @@ module rx_top_vectors_tb;
     reg [`VEC_RES_W-1:0] res_mem  [0:`VEC_N_RES-1];
 
     reg clk = 1'b0, rst = 1'b1, start = 1'b0, s_valid = 1'b0;
-    reg [ADC_W-1:0] s_data = {ADC_W{1'b0}};
-    wire s_ready, corr_valid, res_valid, busy, done, col_start, err_overrun;
+    reg [P*ADC_W-1:0] s_data = {(P*ADC_W){1'b0}};
+    wire s_ready, s_refused, err_refused, corr_valid, res_valid, busy, done, col_start;
+    wire err_overrun;
     wire [K_W-1:0] corr_channel, res_channel;
     wire [G_W-1:0] corr_index;
     wire [OUT_W-1:0] corr_data;
@@ -46,10 +51,10 @@ module rx_top_vectors_tb;
     wire [MAX_UID-1:0] res_uid_observed;
     wire res_uid_match, res_saturated;
 
-    rx_top #(.K(K), .L(`VEC_L), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID),
+    rx_top #(.K(K), .L(`VEC_L), .P_IN(P), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID),
              .MAX_R(MAX_R), .MAX_G(MAX_G), .MAX_P(MAX_P), .NGHOST(NGHOST), .ADC_W(ADC_W),
              .OUT_W(OUT_W)) dut (
-        .clk(clk), .rst(rst), .start(start),
+        .clk(clk), .rst(rst), .start(start), .stop(1'b0), .clear_err(1'b0),
         .cfg_columns(cfg_mem[0][15:0]), .cfg_degree(cfg_mem[1][DEG_W-1:0]),
         .cfg_taps_u(cfg_mem[2][MAX_DEG-1:0]), .cfg_taps_v(cfg_mem[3][MAX_DEG-1:0]),
         .cfg_seed_u(cfg_mem[4][K*MAX_DEG-1:0]), .cfg_seed_v(cfg_mem[5][K*MAX_DEG-1:0]),
@@ -61,7 +66,8 @@ module rx_top_vectors_tb;
         .cfg_ghost_len(cfg_mem[14][NGHOST*LAG_W-1:0]),
         .cfg_out_shift(cfg_mem[15][5:0]), .cfg_rounding(cfg_mem[16][1:0]),
         .cfg_out_bits(cfg_mem[17][5:0]), .cfg_peaks(cfg_mem[18][P_W-1:0]),
-        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready),
+        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready), .s_refused(s_refused),
+        .err_refused(err_refused),
         .corr_valid(corr_valid), .corr_channel(corr_channel), .corr_index(corr_index),
         .corr_data(corr_data),
         .res_valid(res_valid), .res_channel(res_channel), .res_found(res_found),
@@ -107,13 +113,15 @@ module rx_top_vectors_tb;
         start <= 1'b0;
     end
 
-    // source: one sample per clock while s_ready
+    // source: P samples per clock while s_ready (the earliest in the low bits)
+    integer k;
     always @(posedge clk) begin
         if (!rst && !start && busy) begin
             if (s_valid && s_ready)
-                n_adc = n_adc + 1;
+                n_adc = n_adc + P;
             s_valid <= (n_adc < `VEC_N_ADC);
-            s_data  <= adc_mem[(n_adc < `VEC_N_ADC) ? n_adc : 0];
+            for (k = 0; k < P; k = k + 1)
+                s_data[k*ADC_W +: ADC_W] <= adc_mem[(n_adc + k < `VEC_N_ADC) ? n_adc + k : 0];
         end
     end
 

@@ -1,7 +1,8 @@
 """cocotb bench for ``gold_gen``: records the chip outputs clock by clock.
 
 For each case of the job (HDL_REF_JOB) it loads the seeds, then for every clock
-c drives ``en = case["en"][c]`` and records ``chip``, ``chip_raw``,
+c drives ``en = case["en"][c]`` (and ``load = case["load"][c]`` when the case has
+``"load"``: a load in the same clock as an enable) and records ``chip``, ``chip_raw``,
 ``chip_index`` and ``period`` as seen during that clock (sampled at the falling
 edge, when the registers are settled). The caller compares with the model.
 """
@@ -32,10 +33,12 @@ async def play_job(dut) -> None:
         await RisingEdge(dut.clk)
         dut.load.value = 0
         rec: dict[str, list[int]] = {"chip": [], "chip_raw": [], "chip_index": [], "period": []}
-        for en in case["en"]:
+        loads = case.get("load", [0] * len(case["en"]))
+        for en, load in zip(case["en"], loads, strict=True):
             await FallingEdge(dut.clk)
             for key, sink in rec.items():
                 sink.append(int(getattr(dut, key).value))
             dut.en.value = int(en)
+            dut.load.value = int(load)
         results.append(rec)
     write_result({"cases": results})

@@ -3,12 +3,15 @@
 Run through :func:`cdma_lidar.hdl_ref.cosim.run_job`. A case gives the
 configuration ports (``cfg_columns`` of them) and the columns' samples; the
 bench streams all columns back to back, one sample per clock whenever
-``s_ready`` is high (``s_valid`` low on every ``gap``-th clock when the case has
-``"gap"``), and records, clock by clock (a clock's values are read at the rising
+``s_ready`` is high, ``p`` samples per clock (``s_valid`` low on every ``gap``-th
+clock when the case has ``"gap"``; ``stop`` high in clock ``stop_clock``; ``spare``
+samples offered after the columns, which must not be taken), and records, clock
+by clock (a clock's values are read at the rising
 edge that ends it): every ``corr_*`` word, every ``res_*`` word at ``res_valid``,
 the clocks of ``col_start`` and of every column's last sample, the clocks where
-the source offered a sample that was not taken (back-pressure), and
-``err_overrun``. Words with X or Z bits are recorded as null. Comparison with
+the source offered a sample that was not taken (back-pressure), every clock with
+``s_refused``, the samples taken, the ``done`` clock, and the sticky flags before
+and after one ``clear_err`` clock. Words with X or Z bits are recorded as null. Comparison with
 the model happens in the caller.
 """
 
@@ -39,34 +42,47 @@ async def _run_case(dut, case: dict) -> dict:
     ports = case["ports"]
     columns = case["columns"]
     per_col = len(columns[0])
-    samples = [x for col in columns for x in col]
-    mask = (1 << len(dut.s_data)) - 1
+    p = int(case.get("p", 1))                      # samples per clock (the build's P_IN)
+    samples = [x for col in columns for x in col] + [0] * int(case.get("spare", 0))
+    adc_w = len(dut.s_data) // p
+    mask = (1 << adc_w) - 1
     gap = int(case.get("gap", 0))
+    stop_clock = case.get("stop_clock")
     max_clocks = int(case.get("max_clocks", 10_000_000))
     for name, value in ports.items():
         getattr(dut, name).value = int(value)
     dut.start.value = 1
     await RisingEdge(dut.clk)          # this edge takes start: clock 0 follows
     dut.start.value = 0
-    corr, res, col_start, last_take, stalls = [], [], [], [], []
+    corr, res, col_start, last_take, stalls, refused = [], [], [], [], [], []
     first_take = None
     taken, clock = 0, 0
     res_count = {}
-    done = False
+    done, done_clock = False, None
 
     def offer(c: int) -> bool:
         return taken < len(samples) and not (gap and c % gap == gap - 1)
 
-    valid = offer(clock)
-    dut.s_valid.value = int(valid)
-    dut.s_data.value = samples[0] & mask
+    def drive(c: int) -> bool:
+        valid = offer(c)
+        dut.s_valid.value = int(valid)
+        word = 0
+        for k, x in enumerate(samples[taken:taken + p]):
+            word |= (x & mask) << (k * adc_w)
+        dut.s_data.value = word
+        dut.stop.value = int(c == stop_clock)
+        return valid
+
+    valid = drive(clock)
     while not done:
         await RisingEdge(dut.clk)      # values read now are those of clock `clock`
+        if dut.s_refused.value:
+            refused.append(clock)
         if valid:
             if dut.s_ready.value:
                 if first_take is None:
                     first_take = clock
-                taken += 1
+                taken += p
                 if taken % per_col == 0:
                     last_take.append(clock)
             elif first_take is not None:
@@ -85,13 +101,20 @@ async def _run_case(dut, case: dict) -> dict:
             col_start.append(clock)
         if dut.done.value:
             done = True
+            done_clock = clock
         clock += 1
-        valid = offer(clock)
-        dut.s_valid.value = int(valid)
-        if taken < len(samples):
-            dut.s_data.value = samples[taken] & mask
+        valid = drive(clock)
         if clock > max_clocks:
             raise RuntimeError(f"rx_top: no done after {max_clocks} clocks")
+    dut.s_valid.value = 0
+    dut.stop.value = 0
+    flags = {"overrun": int(dut.err_overrun.value), "refused": int(dut.err_refused.value)}
+    # software clears the sticky flags: one clear_err clock, then both are low
+    dut.clear_err.value = 1
+    await RisingEdge(dut.clk)
+    dut.clear_err.value = 0
+    await RisingEdge(dut.clk)
+    cleared = int(dut.err_overrun.value) | int(dut.err_refused.value)
     return {
         "corr": corr,
         "res": [r[:3] for r in res],
@@ -100,7 +123,12 @@ async def _run_case(dut, case: dict) -> dict:
         "last_take": last_take,
         "first_take": first_take,
         "stalls": stalls,
-        "overrun": int(dut.err_overrun.value),
+        "refused": refused,
+        "taken": taken,
+        "done": done_clock,
+        "overrun": flags["overrun"],
+        "err_refused": flags["refused"],
+        "cleared": cleared,
     }
 
 

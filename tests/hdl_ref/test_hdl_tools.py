@@ -120,3 +120,34 @@ def test_update_doc_replaces_only_the_marked_section():
     assert new == f"intro\n{synth.BEGIN}\nnew table\n{synth.END}\ntail\n"
     with pytest.raises(ConfigError):
         synth.update_doc("no markers", "x")
+
+
+_CHECKED = {
+    "rx_top small": ("rx_top", synth.SMALL_TOP),
+    "rx_top g31": ("rx_top", {"K": 4, "L": 2, "MAX_DEG": 6, "MAX_S": 2, "MAX_G": 31,
+                              "MAX_P": 2}),
+    "rx_chain": ("rx_chain", {}),
+}
+
+
+@needs_yowasp
+@pytest.mark.parametrize("name", sorted(_CHECKED))
+def test_yosys_check_clean(name):
+    """No signal driven from two processes, no loop, nothing undriven (Yosys ``check``)."""
+    top, params = _CHECKED[name]
+    sources = (*[s for s in synth.TOP_SOURCES if s != "rx_top_pnr.v" and top == "rx_top"],
+               *(("lfsr_fib.v", "sdp_ram.v", "rx_post.v", "rx_chain.v") if top == "rx_chain"
+                 else ()))
+    synth.yosys_check(synth.Design(name, top, sources, params, ""))
+
+
+@needs_yowasp
+def test_yosys_check_reports_a_variable_driven_from_two_blocks(tmp_path):
+    bad = tmp_path / "two.v"
+    bad.write_text("module two(input wire clk, input wire [3:0] a, output reg [3:0] y);\n"
+                   "  integer i;\n  always @(*) for (i = 0; i < 4; i = i + 1) y[i] = a[i];\n"
+                   "  reg [3:0] r;\n"
+                   "  always @(posedge clk) for (i = 0; i < 4; i = i + 1) r[i] <= a[i];\n"
+                   "endmodule\n")
+    with pytest.raises(RuntimeError, match="check failed"):
+        synth.yosys_check(synth.Design("two", "two", (str(bad),), {}, ""))

@@ -25,7 +25,7 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 from cdma_lidar.firmware_model.receiver import ReceiverConfig, reference
-from cdma_lidar.hdl_ref import cosim
+from cdma_lidar.hdl_ref import cosim, synth
 from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 from cdma_lidar.hdl_ref.stimuli import echo_column, full_scale_column
 from cdma_lidar.rounding import ROUNDING_MODES
@@ -48,6 +48,10 @@ class TopCase:
     indices: tuple[int, ...]
     columns: tuple[tuple[int, ...], ...]
     gap: int = 0
+    overrun: bool = False           # K*L > N - 2: the serializer is outrun (words not compared)
+    free: bool = False              # cfg_columns = 0, ended by stop in clock stop_clock
+    stop_clock: int | None = None
+    spare: int = 0                  # samples offered after the columns (must be refused)
 
     def model(self) -> list:
         codes = np.stack([gold_code(self.pair[0], self.pair[1], i) for i in self.indices])
@@ -69,7 +73,7 @@ def random_case(pick: Callable[[int, int], int], name: str, params: cosim.TopPar
     pairs = preferred_pairs(m)
     pair = pairs[pick(0, len(pairs) - 1)]
     n_chips = (1 << m) - 1
-    s = pick(1, params.max_s)
+    s = params.samples_per_clock * pick(1, params.max_s // params.samples_per_clock)
     ns = n_chips * s
     n = pick(1, params.max_uid)
     b = pick(8, params.adc_w)
@@ -173,35 +177,53 @@ def simulate(build_dir, params: cosim.TopParams, cases: list[TopCase], name: str
              top: str = cosim.MULTI_TOP) -> list[dict]:
     """Run ``cases`` in one simulation; per case the ports and the bench's raw record."""
     ports = [cosim.top_ports(c.cfg, c.pair[0], c.pair[1], c.indices, params,
-                             columns=len(c.columns)) for c in cases]
-    job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap}
+                             columns=0 if c.free else len(c.columns), serializer=not c.overrun)
+             for c in cases]
+    job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap,
+                      "p": params.samples_per_clock, "stop_clock": c.stop_clock,
+                      "spare": c.spare}
                      for p, c in zip(ports, cases, strict=True)]}
     raw = cosim.run_job(top, BENCH, build_dir, job, name=name)
     return [{"ports": p, "raw": r} for p, r in zip(ports, raw["cases"], strict=True)]
 
 
 def check(case: TopCase, run: dict, params: cosim.TopParams) -> None:
-    """The RTL's words are the model's, and its clocks are those of cosim.top_timing."""
+    """The RTL's words are the model's, and its clocks are those of cosim.top_schedule.
+
+    Every column's last sample, ``col_start`` and last ``res_valid`` clock, every
+    refused offer (``s_refused``), the samples taken and the ``done`` clock equal the
+    handshake model's; the sticky flags are set exactly when an offer was refused
+    (never an overrun) and one ``clear_err`` clears them.
+    """
     raw, ports = run["raw"], run["ports"]
-    outs = cosim.top_decode(raw, ports, params)
+    if case.overrun:
+        assert (raw["overrun"], raw["cleared"]) == (1, 0)
+        return
+    outs = cosim.top_decode(raw, {**ports, "cfg_columns": len(case.columns)}, params)
     for col, (model, rtl) in enumerate(zip(case.model(), outs, strict=True)):
         bad = model.mismatches(rtl)
         assert not bad, (col, {f: (getattr(model, f).tolist(), getattr(rtl, f).tolist())
                                for f in bad})
-    assert raw["overrun"] == 0
-    t = cosim.top_timing(ports, params)
+    per_col = len(case.columns[0])
+    sched = cosim.top_schedule(
+        ports, params, per_col * len(case.columns) + case.spare,
+        lambda c: not (case.gap and c % case.gap == case.gap - 1), case.stop_clock)
     k = params.channels
-    ends = raw["res_clocks"][k - 1::k]
-    assert [e - s for s, e in zip(raw["col_start"], ends, strict=True)] == \
-        [t["process"]] * len(case.columns)
-    first = t["first_take"]
-    while case.gap and first % case.gap == case.gap - 1:
-        first += 1
-    assert raw["first_take"] == first
-    assert raw["col_start"][0] - raw["last_take"][0] == t["last_to_col_start"]
-    if not case.gap and t["process"] + 1 <= t["samples"]:
-        assert raw["stalls"] == [], "back-pressure although the formula says real time"
-    if t["process"] + 1 > t["samples"] and len(case.columns) > 2:
+    assert raw["taken"] == sched["taken"] == per_col * len(case.columns)
+    assert raw["last_take"] == sched["last_take"]
+    assert raw["col_start"] == sched["col_start"]
+    assert raw["res_clocks"][k - 1::k] == sched["res_last"]
+    assert raw["refused"] == sched["refused"]
+    assert raw["done"] == sched["done"]
+    assert (raw["overrun"], raw["err_refused"], raw["cleared"]) == (0, int(bool(
+        sched["refused"])), 0)
+    t = cosim.top_timing(ports, params)
+    assert [e - s for s, e in zip(raw["col_start"], raw["res_clocks"][k - 1::k],
+                                  strict=True)] == [t["process"]] * len(case.columns)
+    if not case.gap and t["process"] + 1 <= t["column_clocks"]:
+        assert [c for c in raw["stalls"] if c < raw["last_take"][-1]] == [], \
+            "back-pressure although the formula says real time"
+    if t["process"] + 1 > t["column_clocks"] and len(case.columns) > 2:
         assert raw["stalls"], "no back-pressure although processing is slower than the ADC"
 
 
@@ -256,9 +278,12 @@ def test_real_time_formula_paper_configuration():
     # and its "Timing" paragraph: the fewest lanes for 2 (125 MHz) and 4 (62.5 MHz)
     # samples per clock
     def fewest(per_clock: int) -> int:
-        return next(lanes for lanes in range(1, 65) if cosim.top_timing(
-            ports, dataclasses.replace(PAPER_TOP, lanes=lanes))["process"] + 1
-            <= t["samples"] // per_clock)
+        def timing(lanes: int) -> dict[str, int]:
+            return cosim.top_timing(ports, dataclasses.replace(
+                PAPER_TOP, lanes=lanes, samples_per_clock=per_clock))
+
+        return next(lanes for lanes in range(1, 65)
+                    if timing(lanes)["process"] + 1 <= timing(lanes)["column_clocks"])
 
     assert (fewest(2), fewest(4)) == (5, 16)
 
@@ -306,9 +331,19 @@ MUTANT_CASES = {  # mutant -> the crafted case that must expose it
 }
 
 
-def test_every_rx_top_mutant_has_a_case():
-    assert set(MUTANT_CASES) == {m.name for m in MUTANTS if m.file == "rx_top.v"}
+#: RTL files whose mutants this module simulates (rx_chain.v and out_scale.v have their own)
+TOP_FILES = ("rx_top.v", "rx_post.v")
+
+
+def test_every_mutant_is_simulated():
+    """Each mutant is run by a co-simulation: here, or in test_rx_chain / test_out_scale."""
+    assert set(MUTANT_CASES) | set(SWEEP_MUTANTS) == {m.name for m in MUTANTS
+                                                      if m.file in TOP_FILES}
     assert set(MUTANT_CASES.values()) <= {c.name for c in FIXED}
+    doc = synth.DOC_PATH.read_text()
+    assert all(f"| `{m.name}` |" in doc for m in MUTANTS), "docs/hdl.md lists every mutant"
+    assert {m.file for m in MUTANTS} <= {*TOP_FILES, "rx_chain.v", "out_scale.v", "lfsr_fib.v",
+                                         "sdp_ram.v"}
 
 
 # The issue's two named faults run in the normal suite, the others with -m slow.
@@ -318,7 +353,7 @@ _FAST_MUTANTS = ("uid-match-ignores-zero-sign", "box-sum-no-chip-wrap")
 @pytest.mark.hdl
 @pytest.mark.parametrize("mutant", [
     m if m.name in _FAST_MUTANTS else pytest.param(m, marks=pytest.mark.slow)
-    for m in MUTANTS if m.file == "rx_top.v"], ids=lambda m: m.name)
+    for m in MUTANTS if m.name in MUTANT_CASES], ids=lambda m: m.name)
 def test_rx_top_mutant_is_caught(hdl_build_root, fixed_runs, mutant):
     """The deliberately broken RTL disagrees with the model on its case; the real one agrees."""
     k = next(i for i, c in enumerate(FIXED) if c.name == MUTANT_CASES[mutant.name])
@@ -343,3 +378,160 @@ def test_top_equals_model_on_verilator(hdl_build_root):
                         sim="verilator")
     for case, run in zip(cases, simulate(build, TOP4, cases, "verilator"), strict=True):
         check(case, run, TOP4)
+
+
+# ------------------------------------------------------------------------------------------
+# Builds over L (lanes), P (samples per clock) and OUT_W, each with the crafted cases the
+# earlier mutants survived: gate_start = 0 at the largest degree, a ghost window wrapping
+# through lag 0, free running ended by stop, a saturated noise floor, back-pressure (the
+# exact clock sampling resumes), the serializer overrun. Three builds run in CI (every L, P
+# and OUT_W value at least once with TOP4), all 24 with -m slow.
+# ------------------------------------------------------------------------------------------
+
+
+def sweep_params(lanes: int, per_clock: int, out_w: int) -> cosim.TopParams:
+    """The sweep's build: K = 9 at L = 4 (K L = 36 exceeds the N + L - 1 = 34 clocks of a
+    group's stream at degree 5: the overrun case)."""
+    return cosim.TopParams(channels=9 if lanes == 4 else 3, lanes=lanes, max_deg=6, max_s=4,
+                           max_uid=2, max_r=3, max_g=31, max_p=2, nghost=2, adc_w=12,
+                           out_w=out_w, samples_per_clock=per_clock)
+
+
+def sweep_cases(params: cosim.TopParams) -> list[TopCase]:
+    """One random and the crafted cases, within ``params``."""
+    rng = np.random.default_rng(params.lanes * 100 + params.samples_per_clock * 10 + params.out_w)
+
+    def pick(lo: int, hi: int) -> int:
+        return int(rng.integers(lo, hi + 1))
+
+    k, s, ob = params.channels, params.max_s, params.out_w
+    pair6, pair5 = preferred_pairs(6)[0], preferred_pairs(5)[0]
+    ns6 = 63 * s
+    idx = tuple(range(2, 2 + k))
+    cases = [random_case(pick, "random", params)]
+    # gate_start 0 at the largest degree: the first lag is NS - 1, chip N - 1 (a carry
+    # out of the chip index must wrap to 0); echoes at lag 1 and at NS - 1
+    cfg = ReceiverConfig(adc_bits=12, out_bits=ob, samples_per_chip=s, averages=2, uid_bits=1,
+                         gate_start=0, gate_len=31, peaks=2, peak_exclude=1, out_shift=4)
+    cases.append(TopCase("gate-start-0-max-degree", cfg, pair6, idx, (
+        _echo(pair6, idx[0], cfg, 1, 500.0, 30.0, rng),
+        _echo(pair6, idx[1], cfg, ns6 - 1, 500.0, 30.0, rng))))
+    # a ghost window through lag 0 (NS - 2 .. 2) inside a gate that wraps
+    cfg = ReceiverConfig(adc_bits=12, out_bits=ob, samples_per_chip=s, averages=2, uid_bits=2,
+                         uid=1,
+                         gate_start=ns6 - 8, gate_len=20, peaks=2, peak_exclude=2,
+                         ghost_windows=((ns6 - 2, 5),), out_shift=3)
+    cases.append(TopCase("ghost-wraps-lag-0", cfg, pair6, idx, (
+        _echo(pair6, idx[0], cfg, 1, 700.0, 30.0, rng),
+        _echo(pair6, idx[k - 1], cfg, ns6 - 1, 700.0, 30.0, rng))))
+    # free running: cfg_columns = 0, stop in the middle of the second column, one more
+    # column of samples offered (all refused)
+    cfg = ReceiverConfig(adc_bits=12, out_bits=ob, samples_per_chip=s, averages=3, uid_bits=1,
+                         gate_start=40, gate_len=8, out_shift=2)
+    per_col = 3 * ns6
+    cases.append(TopCase("free-running-stop", cfg, pair6, idx, (
+        _echo(pair6, idx[0], cfg, 44, 600.0, 40.0, rng),
+        _echo(pair6, idx[1], cfg, 45, 600.0, 40.0, rng)), free=True,
+        stop_clock=2 + (per_col + per_col // 2) // params.samples_per_clock, spare=per_col))
+    # a saturated noise floor: a full-scale echo drives most gate lags to a rail of
+    # out_bits = OUT_W = 16 (noise sums and squares of rail words)
+    cfg = ReceiverConfig(adc_bits=12, out_bits=16, samples_per_chip=s, averages=3, uid_bits=2,
+                         uid=2,
+                         gate_start=100, gate_len=31,
+                         out_shift=0, peaks=2)
+    col = full_scale_column(gold_code(*pair6, idx[0]), spc=s, averages=3, uid_bits=2,
+                            tx_uid=2, adc_bits=12, delay=110)
+    cases.append(TopCase("saturated-noise-floor", cfg, pair6, idx, (tuple(col.tolist()),)))
+    # back-pressure: a column of 63 S samples takes far fewer clocks than its processing;
+    # every stall and the clock sampling resumes come from cosim.top_schedule
+    cfg = ReceiverConfig(adc_bits=12, out_bits=ob, samples_per_chip=s, averages=1, uid_bits=1,
+                         gate_start=9, gate_len=31, peaks=2, peak_exclude=3)
+    cases.append(TopCase("back-pressure", cfg, pair6, idx, tuple(
+        _echo(pair6, idx[c % k], cfg, 20 + 3 * c, 900.0, 50.0, rng) for c in range(3)),
+        gap=7))
+    if k * params.lanes > 31 + params.lanes - 1:
+        cfg = ReceiverConfig(adc_bits=12, out_bits=ob, samples_per_chip=s, averages=1, uid_bits=1,
+                             gate_start=3, gate_len=30)
+        cases.append(TopCase("overrun", cfg, pair5, idx, (
+            _echo(pair5, idx[0], cfg, 5, 900.0, 50.0, rng),), overrun=True))
+    return cases
+
+
+SWEEP = [(lanes, p, ow) for lanes in (1, 2, 3, 4) for p in (1, 2, 4) for ow in (16, 32)]
+SWEEP_FAST = [(1, 1, 16), (3, 2, 32), (4, 4, 16)]
+
+
+def _sweep_build(root, params: cosim.TopParams, rtl_dir=None, tag: str = ""):
+    return cosim.build(cosim.MULTI_TOP, params.generics(), root / (params.tag() + tag),
+                       **({"rtl_dir": rtl_dir} if rtl_dir else {}))
+
+
+def test_sweep_cases_reach_their_corners():
+    """The crafted sweep cases do what their names say (checked on the model and schedule)."""
+    params = sweep_params(4, 4, 16)
+    by = {c.name: c for c in sweep_cases(params)}
+    sat = by["saturated-noise-floor"].model()[0]
+    rail = np.isin(sat.corr[0], (-(1 << 15), (1 << 15) - 1))
+    assert rail.sum() >= 20                                     # most noise lags at a rail
+    gs0 = by["gate-start-0-max-degree"].model()
+    assert gs0[0].peak_lag[0] == 1 and gs0[1].peak_lag[1] == 0     # left neighbour NS - 1
+    ports = cosim.top_ports(by["back-pressure"].cfg, *by["back-pressure"].pair,
+                            by["back-pressure"].indices, params, columns=3)
+    t = cosim.top_timing(ports, params)
+    assert t["process"] + 1 > t["column_clocks"]                # stalls must happen
+    assert by["overrun"].overrun and params.channels * params.lanes > 34
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("build", [b if b in SWEEP_FAST else pytest.param(
+    b, marks=pytest.mark.slow) for b in SWEEP], ids=lambda b: f"L{b[0]}-P{b[1]}-W{b[2]}")
+def test_sweep_build_equals_model(hdl_build_root, build):
+    params = sweep_params(*build)
+    cases = sweep_cases(params)
+    runs = simulate(_sweep_build(hdl_build_root, params), params, cases, "sweep")
+    for case, run in zip(cases, runs, strict=True):
+        try:
+            check(case, run, params)
+        except AssertionError as exc:
+            raise AssertionError(f"{case.name}: {exc}") from exc
+
+
+#: Mutants of the sweep: (build, case) that must expose each
+SWEEP_MUTANTS = {
+    "chip-index-drops-carry": ((3, 2, 32), "gate-start-0-max-degree"),
+    "ghost-window-no-wrap": ((1, 1, 16), "ghost-wraps-lag-0"),
+    "overrun-never-flagged": ((4, 4, 16), "overrun"),
+    "resume-one-clock-late": ((1, 1, 16), "back-pressure"),
+    "noise-square-two-bits-short": ((1, 1, 16), "saturated-noise-floor"),
+    "lanes-hardcoded-2": ((3, 2, 32), "random"),
+    "samples-of-a-clock-reversed": ((3, 2, 32), "random"),
+    "stop-drops-open-column": ((1, 1, 16), "free-running-stop"),
+    "refused-only-while-running": ((1, 1, 16), "back-pressure"),
+    "clear-leaves-refused": ((1, 1, 16), "back-pressure"),
+}
+_FAST_SWEEP_MUTANTS = ("chip-index-drops-carry", "resume-one-clock-late")
+
+
+def test_sweep_mutants_have_cases():
+    names = {m.name for m in MUTANTS}
+    assert set(SWEEP_MUTANTS) <= names
+    for build, case in SWEEP_MUTANTS.values():
+        assert build in SWEEP_FAST and case in {c.name for c in sweep_cases(sweep_params(*build))}
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("name", [n if n in _FAST_SWEEP_MUTANTS else pytest.param(
+    n, marks=pytest.mark.slow) for n in SWEEP_MUTANTS])
+def test_sweep_mutant_is_caught(hdl_build_root, name):
+    """Each fault fails its case's simulation; the unchanged RTL passes the same case."""
+    build, case_name = SWEEP_MUTANTS[name]
+    params = sweep_params(*build)
+    case = next(c for c in sweep_cases(params) if c.name == case_name)
+    (run,) = simulate(_sweep_build(hdl_build_root, params), params, [case], "one")
+    check(case, run, params)
+    mutant = next(m for m in MUTANTS if m.name == name)
+    rtl = mutated_copy(mutant, hdl_build_root / f"rtl_{name}")
+    (run,) = simulate(_sweep_build(hdl_build_root, params, rtl, f"_{name}"), params, [case],
+                      "mutant")
+    with pytest.raises((AssertionError, ConfigError)):
+        check(case, run, params)

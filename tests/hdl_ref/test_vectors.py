@@ -18,7 +18,8 @@ from cdma_lidar.cli import main
 from cdma_lidar.hdl_ref import cosim
 
 TB = Path(cosim.RTL_DIR).parent / "tb" / "rx_top_vectors_tb.v"
-SOURCES = [cosim.RTL_DIR / n for n in ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_top.v")]
+SOURCES = [cosim.RTL_DIR / n for n in ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v",
+                                         "rx_top.v")]
 SETTINGS = ["degree=6", "channels=4", "lanes=2", "uid_bits=2", "uid=1", "peaks=2",
             "ghost=50:3", "out_shift=3", "rounding=convergent", "averages=3"]
 
@@ -66,9 +67,39 @@ def test_rtl_passes_its_vectors_without_python(vec, tmp_path):
     assert _run_tb(bad, tmp_path).startswith("rx_top vectors: FAIL 1 of")
 
 
+#: Builds whose MAX_G = 2^k - 1 (the correlation-RAM address is one bit wider than the
+#: gate index there), with two peaks so the second peak's index sits next to the first's
+#: in the packed register; gate_len=31 alone is the contract of issue 27.
+EDGE_SETS = {
+    "gate31": ["gate_len=31"],
+    "gate31-two-peaks": ["degree=6", "gate_len=31", "peaks=2", "peak_exclude=1",
+                         "gate_start=100", "noise=0.2"],
+    "gate15-two-peaks": ["degree=5", "gate_len=15", "peaks=2", "samples_per_chip=1",
+                         "channels=2", "gate_start=3"],
+    "gate63-two-peaks": ["degree=6", "gate_len=63", "peaks=2", "uid_bits=2", "uid=2"],
+    # P samples per clock: the file is read P words at a time
+    "two-per-clock": ["samples_per_clock=2", "samples_per_chip=2", "lanes=3", "uid_bits=2"],
+    "four-per-clock": ["samples_per_clock=4", "samples_per_chip=4", "degree=5", "channels=3",
+                       "peaks=2"],
+}
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("name", sorted(EDGE_SETS))
+def test_edge_builds_pass_their_vectors(tmp_path, name):
+    if not cosim.iverilog_available():
+        pytest.skip("Icarus Verilog is not installed")
+    vec = tmp_path / "vec"
+    args = ["hdl", "vectors", *[a for s in EDGE_SETS[name] for a in ("--set", s)],
+            "--columns", "2", "--seed", "3", "--out", str(vec)]
+    assert main(args) == 0
+    assert _run_tb(vec, tmp_path).startswith("rx_top vectors: PASS")
+
+
 @pytest.mark.parametrize(("setting", "named"), [
     ("degree=3", "degree"), ("averages=x", "averages"), ("colour=1", "--set"),
     ("ghost=5", "ghost"), ("gate_len=999", "gate_len"),
+    ("samples_per_clock=3", "samples_per_clock"),
 ])
 def test_bad_setting_exits_2_with_one_line(tmp_path, capsys, setting, named):
     assert main(["hdl", "vectors", "--set", setting, "--out", str(tmp_path)]) == 2
