@@ -1,6 +1,6 @@
 """``cdma-lidar scene ...``: the built-in scenes and their ground truth.
 
-    cdma-lidar scene list                               the built-in presets
+    cdma-lidar scene list [--markdown]                  the built-in presets (docs/scene.md's table)
     cdma-lidar scene show SCENE                         instrument and objects, lit pixels
     cdma-lidar scene truth SCENE --out truth.npz        per-pixel ground truth (NPZ)
 """
@@ -31,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub.required = True
 
     p = sub.add_parser("list", help="list the built-in scenes")
+    p.add_argument("--markdown", action="store_true",
+                   help="a Markdown table of name, description and pixels (docs/scene.md's)")
     p.set_defaults(func=_cmd_list)
 
     p = sub.add_parser("show", help="describe a scene: instrument, objects, lit pixels")
@@ -46,8 +48,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
+    if args.markdown:
+        sys.stdout.write("| name | what | pixels (channels x columns) |\n|---|---|---|\n")
     for name in PRESETS:
-        sys.stdout.write(f"{name:14s} {load_scene(name).description}\n")
+        scene = load_scene(name)
+        if args.markdown:
+            spec = scene.instrument
+            sys.stdout.write(f"| `{name}` | {scene.description} | "
+                             f"{spec.channels} x {spec.columns} |\n")
+        else:
+            sys.stdout.write(f"{name:14s} {scene.description}\n")
     return 0
 
 

@@ -141,18 +141,25 @@ def test_docs_host_python_api_snippet_runs(tmp_path, monkeypatch, capsys):
     assert capsys.readouterr().out.count("valid pixels") == 4
 
 
-def test_scene_docs_write_uids_period_0_first_like_the_presets():
-    """docs/scene.md's preset table names every UID of a preset the way `codes uid` does."""
+def test_scene_docs_preset_table_is_generated_from_the_presets(capsys):
+    """docs/scene.md's preset table is `scene list --markdown`, and a preset's description
+    names its UIDs the way `codes uid` does (period 0 first)."""
+    code, out, err = run_cli(capsys, "scene", "list", "--markdown")
+    assert code == 0, err
     text = (ROOT / "docs" / "scene.md").read_text(encoding="utf-8")
+    block = re.search(r"<!-- generated:presets[^\n]*-->\n(.*?)<!-- end:presets -->", text,
+                      flags=re.S).group(1)
+    assert block == out
     for path in sorted((ROOT / "scene" / "presets").glob("*.toml")):
-        inst = tomllib.loads(path.read_text())["instrument"]
+        doc = tomllib.loads(path.read_text())
+        inst = doc["instrument"]
         n = inst.get("uid_bits", 1)
         if n <= 1:
             continue
-        (row,) = [ln for ln in text.splitlines() if ln.startswith(f"| `{path.stem}` |")]
-        assert f"UID {inst['uid']} = {uid_to_str(inst['uid'], n)} period 0 first" in row
+        assert f"UID {inst['uid']} = {uid_to_str(inst['uid'], n)}, period 0 first" in \
+            doc["description"]
         others = ", ".join(uid_to_str(u["uid"], n) for u in inst.get("other_users", []))
-        assert f"({others})" in row, row
+        assert f"(UIDs {others})" in doc["description"]
 
 
 def test_device_and_host_agree_on_the_default_key_file(monkeypatch, tmp_path):
