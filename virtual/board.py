@@ -19,7 +19,7 @@ numbers, replay and the column ring buffer) and in front of the simulated instru
 * SCAN: renders each column's ADC codes (R * n * N * S samples, noise seeded by
   (seed, frame, column), so a resend or a rescan of the same frame id gives the same
   result) and runs ``cdma_lidar.firmware_model.receiver`` (the fast, bit-exact path, a batch of
-  columns at a time) with the current configuration.
+  columns at a time: a whole frame when it fits _BATCH_VALUES) with the current configuration.
 * CALIBRATE: ``shots`` columns of the zeroth-order beam-trap target at its fixed
   distance, every channel lit, grating angle reported as 90 degrees.
 * CAPTURE: the raw ADC codes of a column (of the last scanned frame id) or one
@@ -42,8 +42,10 @@ from numpy.typing import NDArray
 
 from cdma_lidar import __version__
 from cdma_lidar.checks import check_int
+from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
+from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import MODES
@@ -72,26 +74,65 @@ LIMITS = {
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
 
-#: Columns rendered and correlated together: a small first batch (the first column
-#: arrives quickly), then larger ones, which the receive chain's matrix kernel needs to be
-#: efficient. The endpoint's worker keeps sending heartbeats and answering STATUS while a
-#: batch is computed, but an abort waits for it: a batch of 160 paper-scene1 columns
-#: takes about 0.35 s.
-_BATCHES = (4, 16, 160)
+#: Columns rendered and correlated together: at most this many accumulator values
+#: (n N S per column; int64, 16 MB), so a frame of paper-scene1 (160 columns of 8188)
+#: is one batch. The receive chain's matrix kernel pays a fixed cost per call (a batch of
+#: 4 columns costs 2 ms a column, one of 160 0.35 ms), so batches are as large as
+#: memory allows; the endpoint's worker keeps sending heartbeats and answering STATUS
+#: while a batch is computed, but the first column and an abort wait for it (about
+#: 0.1 s for paper-scene1's frame).
+_BATCH_VALUES = 1 << 21
 
-#: At most this many ADC samples per batch (int16: 32 MB), whatever the column length.
-_BATCH_SAMPLES = 1 << 24
 
-def _batches(first: int, count: int, column_samples: int = 1) -> Iterator[list[int]]:
-    """Consecutive index lists covering first..first+count-1: sizes 4, 16, then 160,
-    each at most _BATCH_SAMPLES samples of ``column_samples`` (and at least one column)."""
-    cap = max(1, _BATCH_SAMPLES // max(1, column_samples))
-    pos, k, end = first, 0, first + count
-    while pos < end:
-        size = min(_BATCHES[min(k, len(_BATCHES) - 1)], cap)
-        yield list(range(pos, min(pos + size, end)))
-        pos += size
-        k += 1
+def _batches(first: int, count: int, column_values: int = 1) -> Iterator[list[int]]:
+    """Consecutive index lists covering first..first+count-1, each at most
+    _BATCH_VALUES values of ``column_values`` (and at least one column)."""
+    size = max(1, _BATCH_VALUES // max(1, column_values))
+    for pos in range(first, first + count, size):
+        yield list(range(pos, min(pos + size, first + count)))
+
+
+#: Fields of the channel record that describe peaks 2..P (left out when P = 1).
+_EXTRA_FIELDS = frozenset(f.name for f in RECORD if f.per_extra_peak)
+
+
+def _column_results(frame: int, columns: list[int], angles_deg: list[float],
+                    outs: list[ReceiverOutput], calibration: bool,
+                    timestamps_us: list[int]) -> list[ColumnResult]:
+    """ColumnResults of a batch, checked and packed as ONE array of records.
+
+    ``ColumnResult.from_arrays`` checks every value against its wire field and packs
+    the (K,) records of a column; the records of different columns are independent, so
+    the batch's B columns are handed to it as one column of B K channel records (at most
+    65535 at a time) and each ColumnResult gets its K records as a read-only view. Equal
+    to ``ColumnResult.from_receiver`` column by column (tests/virtual/test_board.py), at
+    a fraction of the per-column cost of checking and packing 14 small arrays.
+    """
+    k = outs[0].peak.shape[0]
+    extra = outs[0].extra_lag.size > 0
+    names = [f.name for f in RECORD if extra or f.name not in _EXTRA_FIELDS]
+    per = max(1, 65535 // max(1, k))
+    results: list[ColumnResult] = []
+    for b0 in range(0, len(outs), per):
+        part = outs[b0:b0 + per]
+        arrays = {n: np.concatenate([getattr(o, n) for o in part]) for n in names}
+        merged = ColumnResult.from_arrays(frame, columns[b0], angles_deg[b0],
+                                          calibration=calibration,
+                                          timestamp_us=timestamps_us[b0], **arrays)
+        for i in range(len(part)):
+            col, ts = columns[b0 + i], timestamps_us[b0 + i]
+            udeg = round(float(angles_deg[b0 + i]) * 1e6)
+            if not (0 <= col <= 0xFFFF and 0 <= ts <= 0xFFFFFFFF
+                    and -(2**31) <= udeg < 2**31):
+                # the one-column path checks it (and names the field out of range)
+                results.append(ColumnResult.from_receiver(
+                    frame, col, angles_deg[b0 + i], part[i], calibration=calibration,
+                    timestamp_us=ts))
+                continue
+            results.append(ColumnResult(merged.frame, col, udeg,
+                                        merged.records[i * k:(i + 1) * k], merged.uid_bits,
+                                        merged.calibration, ts))
+    return results
 
 
 class VirtualFirmware(DeviceApp):
@@ -346,13 +387,12 @@ class VirtualFirmware(DeviceApp):
         calibration = self._config["mode"] == "calibration"
         power = self.power_w()
         angles = self.spec.rotations_deg
-        for cols in _batches(first, count, cfg.averages * cfg.frame_samples):
+        for cols in _batches(first, count, cfg.frame_samples):
             outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration,
                                  shots=False)
-            for c, out in zip(cols, outs, strict=True):
-                angle = CALIBRATION_ANGLE_DEG if calibration else float(angles[c])
-                yield ColumnResult.from_receiver(frame, c, angle, out, calibration=calibration,
-                                                 timestamp_us=self._timestamp(cfg))
+            angle = [CALIBRATION_ANGLE_DEG if calibration else float(angles[c]) for c in cols]
+            yield from _column_results(frame, cols, angle, outs, calibration,
+                                       [self._timestamp(cfg) for _ in cols])
 
     def calibrate(self, frame: int, shots: int) -> Iterator[ColumnResult]:
         """Zeroth-order mode: ``shots`` results of the calibration target (column = shot)."""
@@ -365,12 +405,10 @@ class VirtualFirmware(DeviceApp):
     def _calibrate_gen(self, frame: int, shots: int,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.power_w()[:, 0]  # the configured power, as a scan of column 0 would use
-        for idx in _batches(0, shots, cfg.averages * cfg.frame_samples):
+        for idx in _batches(0, shots, cfg.frame_samples):
             outs = self._receive(frame, idx, [power] * len(idx), cfg, True, shots=True)
-            for s, out in zip(idx, outs, strict=True):
-                yield ColumnResult.from_receiver(frame, s, CALIBRATION_ANGLE_DEG, out,
-                                                 calibration=True,
-                                                 timestamp_us=self._timestamp(cfg))
+            yield from _column_results(frame, idx, [CALIBRATION_ANGLE_DEG] * len(idx), outs,
+                                       True, [self._timestamp(cfg) for _ in idx])
 
     def capture(self, kind: CaptureKind, column: int, channel: int) -> NDArray[np.integer]:
         """Raw ADC codes of ``column`` (last scanned frame id) or channel's gated trace.

@@ -313,3 +313,34 @@ def test_the_column_clock_keeps_eq29s_frame_rate():
     assert stamps[1999] == 16382  # no drift: the second frame ends at twice the time
     assert stamps[0] == 8  # a column's own time, floored
     assert np.all(np.diff(stamps) >= 8) and np.all(np.diff(stamps) <= 9)
+
+
+@pytest.mark.parametrize("config", [{}, {"peaks": 3, "uid_bits": 2, "uid": 2}])
+def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
+    """The scan checks and packs a batch's records in one call (virtual.board._column_results);
+    every column must equal ColumnResult.from_receiver of the same receiver output, extra
+    peaks and UID signs included, and batches split anywhere must give the same columns."""
+    from cdma_lidar.protocol.columns import ColumnResult
+    from cdma_lidar.virtual import board
+
+    fw = VirtualFirmware(load_scene("flat-wall", overrides={
+        "distance": 7.5, "instrument.wavelengths.count": 8, "instrument.columns": 7}), 5)
+    fw.set_config(config)
+    cfg = fw.render_settings()
+    cols = list(range(fw.columns))
+    outs = fw._receive(2, cols, [fw.power_w()[:, c] for c in cols], cfg, False, shots=False)
+    angles = fw.spec.rotations_deg
+    want = [ColumnResult.from_receiver(2, c, float(angles[c]), o, timestamp_us=0)
+            for c, o in zip(cols, outs, strict=True)]
+
+    def key(col):
+        return (col.frame, col.column, col.angle_udeg, col.uid_bits, col.calibration,
+                col.records.dtype, col.records.tobytes())
+
+    got = list(fw.scan(2, 0, fw.columns))
+    assert [key(c) for c in got] == [key(c) for c in want]
+    assert want[0].peaks == config.get("peaks", 1)
+    assert [c.timestamp_us for c in got] == sorted({c.timestamp_us for c in got})
+    monkeypatch.setattr(board, "_BATCH_VALUES", 2 * cfg.frame_samples)  # batches of 2
+    assert [key(c) for c in fw.scan(2, 0, fw.columns)] == [key(c) for c in want]
+    assert not got[0].records.flags.writeable
