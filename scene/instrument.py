@@ -135,36 +135,45 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
     Wanted: ``A = sum_r floor(y_r + e_r)`` per sample, e_r independent Gaussian of rms
     ``sigma_lsb`` (LSB), ``mean_lsb = sum_r y_r`` (L,). Drawn as
 
-        A = floor(mean_lsb + sqrt(R) sigma z - sum_{i<R-1} U_i)
+        A = floor(mean_lsb + sqrt(R sigma^2 + (R - 1) h^2 / 12) z - sum_{i<R-1} U_i)
 
-    z standard normal (float64), U_i uniform on [0, 1) (32-bit: (b + 1/2) 2**-32, b a
-    uint32 word of the generator). Why this is A's distribution: floor(y + e) takes the
-    value k with probability g(k), g the density of y + e - U; by Poisson summation the
-    lattice variable's characteristic function is g's Fourier transform plus aliases of
-    size exp(-sigma^2 pi^2 / 2) on [-pi, pi]; so the sum's probabilities are the density
-    of sum_r (y_r + e_r - U_r) at the integers, and one U turns that density at k into
-    P(floor(...) = k). Exact up to the aliases (below 4e-20 at sigma >= 3 LSB) and the
-    32-bit U (variance 1/12 - 2**-64 / 12); no clipping (the caller checks the range).
-    tests/scene/test_fidelity.py compares it with the R-fold convolution of the
-    per-repetition probabilities.
+    z standard normal (float64), U_i = (b_i + 1/2) h uniform on a grid of h = 2**-8 (b_i
+    a random byte of the generator). Why this is A's distribution: floor(y + e) takes the
+    value k with probability g(k), g the density of y + e - U (U uniform on [0, 1)); by
+    Poisson summation the lattice variable's characteristic function is g's Fourier
+    transform plus aliases of size exp(-sigma^2 pi^2 / 2) on [-pi, pi]; so the sum's
+    probabilities are the density of sum_r (y_r + e_r - U_r) at the integers, and one U
+    turns that density at k into P(floor(...) = k). The byte grid: a continuous U is the
+    grid's U plus an independent uniform of width h, so the grid loses h^2 / 12 of
+    variance per uniform, which the Gaussian's variance gives back; what remains differs
+    from the continuous law in the fourth cumulant, (R - 1) h^4 / 120 = 2e-12 (R - 1)
+    LSB^4, and by aliases at 2 pi / h that the Gaussian's exp(-(2 pi / h)^2 R sigma^2 / 2)
+    removes entirely. Exact up to the aliases (below 4e-20 at sigma >= 3 LSB) and that
+    cumulant (probabilities off by under 1e-15); no clipping (the caller checks the
+    range). tests/scene/test_fidelity.py compares it with the R-fold convolution of the
+    per-repetition probabilities (and fails without the variance the grid lacks).
     """
     r = repetitions
     size = mean_lsb.size
     draw = rng.standard_normal(size)
-    draw *= np.sqrt(r) * sigma_lsb
+    draw *= np.sqrt(r * sigma_lsb**2 + (r - 1) * _BYTE_VARIANCE)
     draw += mean_lsb
     if r > 1:
-        bits = np.zeros(size, dtype=np.uint64)
-        rows = max(1, (1 << 22) // size)  # at most about 16 MB of words at a time
+        total = np.zeros(size, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
+        rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
         for r0 in range(0, r - 1, rows):
             n = min(rows, r - 1 - r0) * size
-            words = rng.bit_generator.random_raw(-(-n // 2)).view(np.uint32)[:n]
-            bits += np.add.reduce(words.reshape(-1, size), axis=0, dtype=np.uint64)
-        uniforms = bits.astype(np.float64)  # exact: below 2**42 for R <= 1024
+            octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
+            total += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=total.dtype)
+        uniforms = total.astype(np.float64)
         uniforms += 0.5 * (r - 1)
-        uniforms *= 2.0**-32
+        uniforms *= 1.0 / 256  # exact: a power of two
         draw -= uniforms
     return np.floor(draw, out=draw).astype(np.int64)
+
+
+#: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
+_BYTE_VARIANCE = 1.0 / (12 * 256**2)
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -802,7 +811,7 @@ class Instrument:
         repetitions before anything else). ``exact``: :func:`draw_repetition_sum`, the
         sum's own distribution (not an approximation), where the noise rms is at least
         EXACT_SUM_MIN_NOISE_LSB and nothing comes within EXACT_SUM_CLIP_MARGIN noise rms
-        of the ADC's clip; L Gaussian draws and (R - 1) L 32-bit words instead of R L
+        of the ADC's clip; L Gaussian draws and (R - 1) L random bytes instead of R L
         Gaussians and R L quantisations. ``accumulated``: :meth:`render_accumulated`.
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
