@@ -49,6 +49,7 @@ resend) and the same scene, seed and settings give the same codes.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -72,6 +73,7 @@ __all__ = [
     "EXACT_SUM_MIN_NOISE_LSB",
     "FRAC_BITS",
     "ROUNDING_LSB",
+    "TABLE_PHASES",
     "Instrument",
     "RenderSettings",
     "detector_response",
@@ -108,6 +110,10 @@ ROUNDING_LSB = 0.5 + 0.5 / (1 << FRAC_BITS)
 _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
 _STREAM_SPECKLE = 2
+
+#: ``accumulated`` fidelity tabulates each code's waveform at this many delays per sample
+#: (:meth:`Instrument.tabulated_echo`).
+TABLE_PHASES = 8
 
 #: Bytes of noise-free column echoes kept between frames (a static scene's echo is the same
 #: in every frame; only the noise is new).
@@ -174,6 +180,22 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
 _BYTE_VARIANCE = 1.0 / (12 * 256**2)
+
+
+@functools.cache
+def _normal_table() -> NDArray[np.float32]:
+    """65536 standard normal quantiles, ``Phi^-1((i + 1/2) / 65536)``, scaled to variance 1.
+
+    ``accumulated`` fidelity's Gaussians: a uniform 16-bit word picks one (a fourth of a
+    generator word and a table look-up per value instead of a ziggurat draw). The law
+    is symmetric with mean 0 and variance 1, within 2^-16 of the normal's distribution
+    function everywhere (Kolmogorov distance) and cut at 4.2 standard deviations.
+    """
+    from scipy.special import ndtri  # deferred, as scipy.fft in Instrument.echo
+
+    q = ndtri((np.arange(1 << 16) + 0.5) / (1 << 16))
+    q /= np.sqrt(np.mean(q * q))
+    return q.astype(np.float32)
 
 
 def speckle_factors(cells: float, shape: tuple[int, ...], seed: int) -> NDArray[np.float64]:
@@ -258,6 +280,10 @@ class Instrument:
         self.channels, self.columns = k, c
         self.default_power_w = np.repeat(self.spec.laser_power_w[:, None], c, axis=1)
         lit = h.lit
+        #: the channels each column lights (lit_channels), read-only
+        self._lit_channels = [np.flatnonzero(lit[:, col]) for col in range(c)]
+        for chans in self._lit_channels:
+            chans.flags.writeable = False
         r = np.where(lit, h.range_m, 1.0)
         #: per-pixel speckle fading of the received power (None: no speckle)
         self.speckle = (speckle_factors(self.spec.speckle_cells, (k, c), self.seed)
@@ -366,7 +392,7 @@ class Instrument:
 
     def lit_channels(self, column: int) -> NDArray[np.int64]:
         """Channels whose ray hits an object at ``column``."""
-        return np.flatnonzero(self.truth.hits.lit[:, column])
+        return self._lit_channels[column]
 
     def range_bounds_m(self) -> tuple[float, float]:
         """(min, max) range (m) of the lit pixels and the calibration target, or the overrides."""
@@ -469,22 +495,11 @@ class Instrument:
         tc = 1.0 / self.spec.chip_rate_hz
         return tc / 2 - tc / cfg.samples_per_chip / 2
 
-    def echo(self, column: int, cfg: RenderSettings,
-             power_w: NDArray[np.float64] | None = None,
-             calibration: bool = False, single: bool = False) -> NDArray[np.floating]:
-        """Noise-free photodiode voltage (V) of one frame (L samples) at ``column``.
-
-        Our own channels (lit ones only) and the ghosts configured for this column; other
-        users are not periodic in our frame in general and are added by :meth:`render`.
-        ``power_w``: laser power per channel (W) at this column. In ``calibration`` mode every
-        channel sees the zeroth-order target. ``single``: computed in single precision
-        (complex64 spectra, float32 result, relative error about 1e-7 of the largest
-        echo, i.e. below 1e-4 LSB for echoes inside the ADC's range), for ``accumulated``
-        fidelity; about half the cost.
-        """
-        length = cfg.frame_samples
-        m = length // 2 + 1
-        f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0  # bin spacing (Hz)
+    def _echo_terms(self, column: int, cfg: RenderSettings, power_w: NDArray[np.float64] | None,
+                    calibration: bool) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                                tuple[int, ...]] | None:
+        """(amplitudes (V), delays (s, sample shift included), Gold members) of the column's
+        echoes and ghosts; None when nothing is lit."""
         power = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
         if calibration:
             cal = self.scene.calibration
@@ -499,16 +514,100 @@ class Instrument:
         if self.spec.ghosts:
             amps, taus, chans = self._with_ghosts(column, amps, taus, chans)
         keep = amps != 0
-        if not np.any(keep):
+        if not keep.all():
+            amps, taus, chans = amps[keep], taus[keep], chans[keep]
+        if not amps.size:
+            return None
+        members = tuple(int(cfg.code_index[c]) for c in chans.tolist())
+        return amps, taus + self._sample_shift_s(cfg), members
+
+    def echo(self, column: int, cfg: RenderSettings,
+             power_w: NDArray[np.float64] | None = None,
+             calibration: bool = False, single: bool = False) -> NDArray[np.floating]:
+        """Noise-free photodiode voltage (V) of one frame (L samples) at ``column``.
+
+        Our own channels (lit ones only) and the ghosts configured for this column; other
+        users are not periodic in our frame in general and are added by :meth:`render`.
+        ``power_w``: laser power per channel (W) at this column. In ``calibration`` mode every
+        channel sees the zeroth-order target. ``single``: computed in single precision
+        (complex64 spectra, float32 result, relative error about 1e-7 of the largest
+        echo, i.e. below 1e-4 LSB for echoes inside the ADC's range); about half the cost.
+        """
+        length = cfg.frame_samples
+        m = length // 2 + 1
+        f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0  # bin spacing (Hz)
+        terms = self._echo_terms(column, cfg, power_w, calibration)
+        if terms is None:
             return np.zeros(length, dtype=np.float32 if single else np.float64)
-        amps, taus, chans = amps[keep], taus[keep], chans[keep]
-        members = tuple(int(cfg.code_index[c]) for c in chans)
+        amps, taus, members = terms
         rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
-        total = self._sum_delayed(f0, m, amps, taus + self._sample_shift_s(cfg),
-                                  [rows[i] for i in members])
+        total = self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members])
         import scipy.fft  # deferred: 130 ms at start-up of every command that loads a scene
 
         return scipy.fft.irfft(total, n=length, overwrite_x=True)
+
+    def tabulated_echo(self, column: int, cfg: RenderSettings,
+                       power_w: NDArray[np.float64] | None = None,
+                       calibration: bool = False) -> NDArray[np.float32]:
+        """:meth:`echo` from a table of waveforms, float32: ``accumulated`` fidelity's echo.
+
+        Each Gold member's filtered waveform is tabulated once per configuration at
+        TABLE_PHASES + 1 delays p / TABLE_PHASES of a sample, p = 0..TABLE_PHASES (float32,
+        :meth:`_waveform_table`). A channel at delay ``tau`` (d whole samples plus p + t
+        table steps, 0 <= t < 1) adds ``A ((1 - t) w_p + t w_(p+1))`` rotated by d
+        samples: no Fourier transform per column. Linear interpolation between phases
+        1/8 of a sample apart errs by about ``t (1 - t) (pi f / (8 f_s))^2 / 2`` of the
+        component at frequency f: below 0.5 % of the echo's peak on paper-scene1
+        (tests/scene/test_fidelity.py), a pure low-pass with no delay bias to first order.
+        """
+        length = cfg.frame_samples
+        out = np.zeros(length, dtype=np.float32)
+        terms = self._echo_terms(column, cfg, power_w, calibration)
+        if terms is None:
+            return out
+        from scipy.linalg.blas import saxpy  # deferred, as scipy.fft in echo()
+
+        amps, taus, members = terms
+        steps = taus * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
+        whole = np.floor(steps)
+        frac = (steps - whole).tolist()
+        delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
+        start = (length - delay % length).tolist()  # row[start:start + L]: rotated by delay
+        table = self._waveform_table(cfg, members)
+        for a, t, s, p, i in zip(amps.tolist(), frac, start, phase.tolist(), members,
+                                 strict=True):
+            w = table[i]
+            out = saxpy(w[p, s:s + length], out, a=a * (1.0 - t))  # in place: out += a w
+            out = saxpy(w[p + 1, s:s + length], out, a=a * t)
+        return out
+
+    def _waveform_table(self, cfg: RenderSettings, members: tuple[int, ...]
+                        ) -> dict[int, NDArray[np.float32]]:
+        """(TABLE_PHASES + 1, 2 L) float32 waveforms by Gold member: row p is the member's
+        filtered, unit-amplitude echo delayed by p / TABLE_PHASES of a sample (before the
+        sample shift), one frame written twice (so any rotation is a slice). Built once
+        per (settings, member) from the spectra and kept with them (TABLE_PHASES + 1
+        inverse FFTs per member)."""
+        key = ("table", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid, cfg.uid_bits)
+        table = self._spectra.get(key)
+        if table is not None and all(i in table for i in members):
+            return table
+        spectra = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
+        table = self._spectra.setdefault(key, {})
+        missing = tuple(sorted({i for i in members if i not in table}))
+        if missing:
+            import scipy.fft  # deferred, as in echo()
+
+            length = cfg.frame_samples
+            m = length // 2 + 1
+            step = 1.0 / (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
+            f = np.arange(m) * (self.spec.chip_rate_hz / cfg.frame_chips)
+            ramps = np.exp(-2j * np.pi * np.outer(np.arange(TABLE_PHASES + 1) * step, f))
+            for i in missing:
+                rows = scipy.fft.irfft((ramps * spectra[i]).astype(np.complex64), n=length,
+                                       axis=1, overwrite_x=True)
+                table[i] = np.concatenate([rows, rows], axis=1)  # a rotation is one slice
+        return table
 
     def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
                      chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
@@ -747,15 +846,14 @@ class Instrument:
         if plan is None:
             return None
         mean, std = plan
-        r = cfg.averages
-        lo, hi = adc_limits(self.spec.adc_bits)
         rng = self._noise_rng(frame, col, calibration, shot)
-        draw = rng.standard_normal(mean.size, dtype=np.float32)
+        words = rng.bit_generator.random_raw(-(-mean.size // 4)).view(np.uint16)[:mean.size]
+        draw = _normal_table().take(words)
         draw *= std
         draw += mean
-        acc = np.floor(draw, out=draw).astype(np.int64)
-        np.clip(acc, r * lo, r * hi, out=acc)
-        return acc.reshape(cfg.uid_bits, mean.size // cfg.uid_bits)
+        # no clip needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the range,
+        # so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code
+        return np.floor(draw, out=draw).astype(np.int64).reshape(cfg.uid_bits, -1)
 
     def _accumulated_plan(self, col: int, cfg: RenderSettings,
                           power_w: NDArray[np.float64] | None, calibration: bool
@@ -783,7 +881,11 @@ class Instrument:
             return None
         r = cfg.averages
         # the echo is synthesised here, not kept: the plan (its scaled copy) is what is kept
-        mean = self.echo(col, cfg, power, calibration=calibration, single=True)
+        if (TABLE_PHASES + 1) * cfg.frame_samples * 8 * len(set(cfg.code_index)) \
+                <= ECHO_CACHE_BYTES:
+            mean = self.tabulated_echo(col, cfg, power, calibration=calibration)
+        else:  # a table of every member would not fit: the Fourier synthesis
+            mean = self.echo(col, cfg, power, calibration=calibration, single=True)
         length = mean.size
         peak = float(np.abs(mean).max()) * lsb_per_v + abs(offset_lsb)
         # single precision: the sum's values stay below 2**15 * R, resolved to about
