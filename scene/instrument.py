@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,7 @@ __all__ = [
     "RenderSettings",
     "detector_response",
     "draw_repetition_sum",
+    "draw_repetition_sums",
     "speckle_factors",
     "split_sum",
 ]
@@ -158,23 +160,58 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
     cumulant (probabilities off by under 1e-15); no clipping (the caller checks the
     range). tests/scene/test_fidelity.py compares it with the R-fold convolution of the
     per-repetition probabilities (and fails without the variance the grid lacks).
+    Many columns at once, each with its own generator: :func:`draw_repetition_sums`.
     """
+    return draw_repetition_sums([rng], [mean_lsb], [sigma_lsb], repetitions)[0]
+
+
+def draw_repetition_sums(rngs: Sequence[np.random.Generator],
+                         means_lsb: Sequence[NDArray[np.float64]],
+                         sigmas_lsb: Sequence[float], repetitions: int) -> NDArray[np.int64]:
+    """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
+    ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone); the
+    arithmetic is done on the batch."""
     r = repetitions
-    size = mean_lsb.size
-    draw = rng.standard_normal(size)
-    draw *= np.sqrt(r * sigma_lsb**2 + (r - 1) * _BYTE_VARIANCE)
-    draw += mean_lsb
+    size = means_lsb[0].size
+    draw = np.empty((len(rngs), size))
+    for row, rng in zip(draw, rngs, strict=True):
+        rng.standard_normal(out=row)
+    draw *= np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
+                    + (r - 1) * _BYTE_VARIANCE)[:, None]
+    for row, mean in zip(draw, means_lsb, strict=True):
+        row += mean
     if r > 1:
-        total = np.zeros(size, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
+        total = np.zeros(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
         rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
-        for r0 in range(0, r - 1, rows):
-            n = min(rows, r - 1 - r0) * size
-            octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
-            total += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=total.dtype)
+        for acc, rng in zip(total, rngs, strict=True):
+            for r0 in range(0, r - 1, rows):
+                n = min(rows, r - 1 - r0) * size
+                octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
+                acc += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=total.dtype)
         uniforms = total.astype(np.float64)
         uniforms += 0.5 * (r - 1)
         uniforms *= 1.0 / 256  # exact: a power of two
         draw -= uniforms
+    return np.floor(draw, out=draw).astype(np.int64)
+
+
+def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArray[np.float32]],
+                     stds: Sequence[np.float32]) -> NDArray[np.int64]:
+    """(B, L) ``floor(mean + std z)`` of ``accumulated`` fidelity, z from _normal_table
+    picked by 16-bit words of each column's generator (a fourth of a word per value).
+
+    No clip is needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the ADC's
+    range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code.
+    """
+    size = means[0].size
+    quarter = -(-size // 4)
+    words = np.empty((len(rngs), quarter), dtype=np.uint64)
+    for row, rng in zip(words, rngs, strict=True):
+        row[:] = rng.bit_generator.random_raw(quarter)
+    draw = _normal_table().take(words.view(np.uint16)[:, :size])
+    draw *= np.asarray(stds, dtype=np.float32)[:, None]
+    for row, mean in zip(draw, means, strict=True):
+        row += mean
     return np.floor(draw, out=draw).astype(np.int64)
 
 
@@ -548,7 +585,8 @@ class Instrument:
 
     def tabulated_echo(self, column: int, cfg: RenderSettings,
                        power_w: NDArray[np.float64] | None = None,
-                       calibration: bool = False) -> NDArray[np.float32]:
+                       calibration: bool = False, out: NDArray[np.float32] | None = None
+                       ) -> NDArray[np.float32]:
         """:meth:`echo` from a table of waveforms, float32: ``accumulated`` fidelity's echo.
 
         Each Gold member's filtered waveform is tabulated once per configuration at
@@ -559,9 +597,11 @@ class Instrument:
         1/8 of a sample apart errs by about ``t (1 - t) (pi f / (8 f_s))^2 / 2`` of the
         component at frequency f: below 0.5 % of the echo's peak on paper-scene1
         (tests/scene/test_fidelity.py), a pure low-pass with no delay bias to first order.
+        ``out``: a zeroed contiguous (L,) float32 array to write into.
         """
         length = cfg.frame_samples
-        out = np.zeros(length, dtype=np.float32)
+        if out is None:
+            out = np.zeros(length, dtype=np.float32)
         terms = self._echo_terms(column, cfg, power_w, calibration)
         if terms is None:
             return out
@@ -574,11 +614,14 @@ class Instrument:
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
         start = (length - delay % length).tolist()  # row[start:start + L]: rotated by delay
         table = self._waveform_table(cfg, members)
+        acc = out
         for a, t, s, p, i in zip(amps.tolist(), frac, start, phase.tolist(), members,
                                  strict=True):
             w = table[i]
-            out = saxpy(w[p, s:s + length], out, a=a * (1.0 - t))  # in place: out += a w
-            out = saxpy(w[p + 1, s:s + length], out, a=a * t)
+            acc = saxpy(w[p, s:s + length], acc, a=a * (1.0 - t))  # in place: acc += a w
+            acc = saxpy(w[p + 1, s:s + length], acc, a=a * t)
+        if acc is not out:  # (f2py copies only an array it cannot write in place)
+            out[...] = acc
         return out
 
     def _waveform_table(self, cfg: RenderSettings, members: tuple[int, ...]
@@ -834,73 +877,13 @@ class Instrument:
         ``R x + e`` with ``e`` Gaussian of variance ``R (sigma^2 + 1/12)`` up to the
         quantiser's periodic bias (below 1e-9 LSB); it is drawn as
         ``floor(R x + sqrt(R (sigma^2 + 1/12) - 1/12) z + 1/2)`` (the last rounding adds
-        the missing 1/12). L draws instead of R L, no per-repetition ADC. Returns None
-        (the caller renders ``exact``) when sigma < ACCUMULATED_MIN_NOISE_LSB or the
-        column's echo comes within ACCUMULATED_CLIP_MARGIN sigma of the ADC's clip.
+        the missing 1/12), z from a table of 65536 normal quantiles picked by a 16-bit word
+        (:func:`_normal_table`) and x the echo of :meth:`tabulated_echo` (no Fourier
+        transform per column). Returns None (the caller renders ``exact``) when sigma <
+        ACCUMULATED_MIN_NOISE_LSB or the column's echo comes within
+        ACCUMULATED_CLIP_MARGIN sigma of the ADC's clip.
         """
-        cfg = cfg or RenderSettings.from_spec(self.spec)
-        if not calibration:
-            check_int("column", column, 0, self.columns - 1)
-        col = 0 if calibration else column
-        plan = self._accumulated_plan(col, cfg, power_w, calibration)
-        if plan is None:
-            return None
-        mean, std = plan
-        rng = self._noise_rng(frame, col, calibration, shot)
-        words = rng.bit_generator.random_raw(-(-mean.size // 4)).view(np.uint16)[:mean.size]
-        draw = _normal_table().take(words)
-        draw *= std
-        draw += mean
-        # no clip needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the range,
-        # so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code
-        return np.floor(draw, out=draw).astype(np.int64).reshape(cfg.uid_bits, -1)
-
-    def _accumulated_plan(self, col: int, cfg: RenderSettings,
-                          power_w: NDArray[np.float64] | None, calibration: bool
-                          ) -> tuple[NDArray[np.float32], np.float32] | None:
-        """(R x + R offset + 1/2 in LSB (float32, read-only), the draw's rms in LSB) of a
-        column, kept with its echo; None where the level does not apply."""
-        power = self.default_power_w[:, col] if power_w is None else np.asarray(
-            power_w, dtype=np.float64)
-        key = ("accumulated", col, calibration, cfg, power.tobytes())
-        hit = self._columns.get(key)
-        if hit is not None:
-            return hit[0]
-        plan = self._make_accumulated_plan(col, cfg, power, calibration)
-        self._keep(key, (plan, 0.0), 0 if plan is None else plan[0].nbytes)
-        return plan
-
-    def _make_accumulated_plan(self, col: int, cfg: RenderSettings,
-                               power: NDArray[np.float64], calibration: bool
-                               ) -> tuple[NDArray[np.float32], np.float32] | None:
-        scale, offset = self._fine_scale()
-        lsb_per_v = scale / (1 << FRAC_BITS)
-        offset_lsb = offset / (1 << FRAC_BITS)
-        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v  # LSB
-        if sigma < ACCUMULATED_MIN_NOISE_LSB:
-            return None
-        r = cfg.averages
-        # the echo is synthesised here, not kept: the plan (its scaled copy) is what is kept
-        if (TABLE_PHASES + 1) * cfg.frame_samples * 8 * len(set(cfg.code_index)) \
-                <= ECHO_CACHE_BYTES:
-            mean = self.tabulated_echo(col, cfg, power, calibration=calibration)
-        else:  # a table of every member would not fit: the Fourier synthesis
-            mean = self.echo(col, cfg, power, calibration=calibration, single=True)
-        length = mean.size
-        peak = float(np.abs(mean).max()) * lsb_per_v + abs(offset_lsb)
-        # single precision: the sum's values stay below 2**15 * R, resolved to about
-        # 1e-3 LSB, against a noise rms of sqrt(R) sigma >= 3 LSB
-        mean *= np.float32(r * lsb_per_v)
-        mean += np.float32(r * offset_lsb + 0.5)
-        if not calibration:
-            users = self.other_users_signal(col, cfg, length * r)
-            if users is not None:
-                peak += float(np.abs(users).max()) * lsb_per_v
-                mean += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
-        if peak + ACCUMULATED_CLIP_MARGIN * sigma > adc_limits(self.spec.adc_bits)[1] - 0.5:
-            return None
-        mean.flags.writeable = False
-        return mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12))
+        return self._render_one("accumulated", column, cfg, frame, power_w, calibration, shot)
 
     def render_sum(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                    power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
@@ -915,56 +898,178 @@ class Instrument:
         EXACT_SUM_MIN_NOISE_LSB and nothing comes within EXACT_SUM_CLIP_MARGIN noise rms
         of the ADC's clip; L Gaussian draws and (R - 1) L random bytes instead of R L
         Gaussians and R L quantisations. ``accumulated``: :meth:`render_accumulated`.
+        ``calibration``: shot ``shot`` of the calibration target. Many columns at once:
+        :meth:`render_sums`.
+        """
+        return self._render_one(self.fidelity, column, cfg, frame, power_w, calibration, shot)
+
+    def _render_one(self, level: str, column: int, cfg: RenderSettings | None, frame: int,
+                    power_w: NDArray[np.float64] | None, calibration: bool,
+                    shot: int) -> NDArray[np.int64] | None:
+        sums, drawn = self.render_sums([shot if calibration else column], cfg, frame,
+                                       None if power_w is None else [power_w],
+                                       calibration=calibration, level=level)
+        return sums[0] if drawn[0] else None
+
+    def render_sums(self, columns: Sequence[int], cfg: RenderSettings | None = None,
+                    frame: int = 0, power_w: Sequence[NDArray[np.float64]] | None = None, *,
+                    calibration: bool = False, level: str | None = None
+                    ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """:meth:`render_sum` of a batch of columns (``calibration``: of calibration shots
+        ``columns``): ((B, n, N S) int64 sums, (B,) bool: drawn).
+
+        A row not drawn is zero: the level cannot draw that column's sum (the caller
+        renders it with :meth:`render_exact`). Each column keeps its own noise generator,
+        so a column's sum is the same whatever batch it is drawn in (render_sum is a
+        batch of one); the plans (echoes, scaling) are made, and the noise's arithmetic
+        done, on the whole batch. ``power_w``: the laser power (K,) W of each column
+        (None: the scene's). ``level``: one of FIDELITY_LEVELS (default the scene's).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
-        if self.fidelity == "accumulated":
-            return self.render_accumulated(column, cfg, frame, power_w,
-                                           calibration=calibration, shot=shot)
-        if not calibration:
-            check_int("column", column, 0, self.columns - 1)
-        col = 0 if calibration else column
-        power = self.default_power_w[:, col] if power_w is None else np.asarray(
-            power_w, dtype=np.float64)
-        key = ("sum", col, calibration, cfg, power.tobytes())
-        hit = self._columns.get(key)
-        if hit is None:
-            plan = self._make_sum_plan(col, cfg, power, calibration)
-            self._keep(key, (plan, 0.0), 0 if plan is None else plan[0].nbytes)
+        level = level or self.fidelity
+        plans: list[tuple | None] = []
+        missing: dict[tuple, tuple[int, NDArray[np.float64], list[int]]] = {}
+        for j, column in enumerate(columns):
+            if not calibration:
+                check_int("column", column, 0, self.columns - 1)
+            col = 0 if calibration else column
+            p = None if power_w is None else power_w[j]
+            power = self.default_power_w[:, col] if p is None else np.asarray(
+                p, dtype=np.float64)
+            key = (level, col, calibration, cfg, power.tobytes())
+            hit = self._columns.get(key)
+            plans.append(None if hit is None else hit[0])
+            if hit is None:
+                missing.setdefault(key, (col, power, []))[2].append(j)
+        if missing:
+            made = self._make_plans(level, cfg, [(c, p) for c, p, _ in missing.values()],
+                                    calibration)
+            for (key, (_, _, where)), plan in zip(missing.items(), made, strict=True):
+                self._keep(key, (plan, 0.0), 0 if plan is None else plan[0].nbytes)
+                for j in where:
+                    plans[j] = plan
+        drawn = np.array([p is not None for p in plans], dtype=bool)
+        rows = np.flatnonzero(drawn).tolist()
+        shape = (len(plans), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
+        if not rows:
+            return np.zeros(shape, dtype=np.int64), drawn
+        rngs = [self._noise_rng(frame, columns[j], calibration, columns[j]) for j in rows]
+        means = [plans[j][0] for j in rows]
+        sigmas = [plans[j][1] for j in rows]
+        if level == "accumulated":
+            got = _draw_table_sums(rngs, means, sigmas)
         else:
-            plan = hit[0]
-        if plan is None:
-            return None
-        mean, sigma = plan
-        acc = draw_repetition_sum(self._noise_rng(frame, col, calibration, shot), mean, sigma,
-                                  cfg.averages)
-        return acc.reshape(cfg.uid_bits, mean.size // cfg.uid_bits)
+            got = draw_repetition_sums(rngs, means, sigmas, cfg.averages)
+        if len(rows) == len(plans):
+            return got.reshape(shape), drawn
+        sums = np.zeros((len(plans), cfg.frame_samples), dtype=np.int64)
+        sums[rows] = got
+        return sums.reshape(shape), drawn
 
-    def _make_sum_plan(self, col: int, cfg: RenderSettings, power: NDArray[np.float64],
-                       calibration: bool) -> tuple[NDArray[np.float64], float] | None:
-        """(sum over the repetitions of echo + offset + ROUNDING_LSB in LSB (float64,
-        read-only), noise rms in LSB) of an ``exact`` column, or None (see render_sum)."""
+    def _make_plans(self, level: str, cfg: RenderSettings,
+                    items: list[tuple[int, NDArray[np.float64]]],
+                    calibration: bool) -> list[tuple | None]:
+        """Plans of (column, power) ``items``: (the sum's mean in LSB, read-only, with the
+        offset and the rounding's constant; the draw's scale) or None where ``level``
+        cannot draw the sum (noise under its floor, echoes near the clip).
+
+        ``exact``: float64, the mean ``R (x + offset + ROUNDING_LSB)`` from the same float64
+        echo render_exact uses and the noise rms sigma. ``accumulated``: float32, ``R (x +
+        offset) + 1/2`` from :meth:`tabulated_echo` and ``sqrt(R (sigma^2 + 1/12) - 1/12)``.
+        """
+        lsb_per_v = self._fine_scale()[0] / (1 << FRAC_BITS)
+        top = adc_limits(self.spec.adc_bits)[1]
+        exact = level != "accumulated"
+        least = EXACT_SUM_MIN_NOISE_LSB if exact else ACCUMULATED_MIN_NOISE_LSB
+        sigmas = [self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v
+                  for col, power in items]
+        keep = [i for i, sigma in enumerate(sigmas) if sigma >= least]
+        out: list[tuple | None] = [None] * len(items)
+        if not keep:
+            return out
+        sub = [items[i] for i in keep]
+        means, peaks = (self._exact_means if exact else self._accumulated_means)(
+            cfg, sub, calibration)
+        r = cfg.averages
+        for i, mean, peak in zip(keep, means, peaks, strict=True):
+            sigma = sigmas[i]
+            if exact and peak + EXACT_SUM_CLIP_MARGIN * sigma > top:
+                continue
+            if not exact and peak + ACCUMULATED_CLIP_MARGIN * sigma > top - 0.5:
+                continue
+            mean.flags.writeable = False
+            out[i] = (mean, float(sigma)) if exact else (
+                mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12)))
+        return out
+
+    def _exact_means(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
+                     calibration: bool) -> tuple[list[NDArray[np.float64]], list[float]]:
+        """(R (x + offset + ROUNDING_LSB) per item, float64 LSB; each repetition's largest
+        |value|, LSB): the echoes' inverse FFTs as one batch (bit-identical to
+        :meth:`echo`'s, tests/scene/test_fidelity.py)."""
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
-        sigma = self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v
-        if sigma < EXACT_SUM_MIN_NOISE_LSB:
-            return None
         r = cfg.averages
-        # the same float64 echo render_exact uses, on the same fine grid
-        one = self.echo(col, cfg, power, calibration=calibration)
+        one = self._echoes(cfg, items, calibration)
         one *= scale
         one += offset
         one *= 1.0 / (1 << FRAC_BITS)  # LSB (a power of two: exact)
         one += ROUNDING_LSB
-        users = None if calibration else self.other_users_signal(col, cfg, one.size * r)
-        if users is None:
-            peak = float(np.abs(one).max())
-            mean = one * r
-        else:
-            each = users.reshape(r, one.size) * lsb_per_v
-            each += one
-            peak = float(np.abs(each).max())
-            mean = each.sum(axis=0)
-        if peak + EXACT_SUM_CLIP_MARGIN * sigma > adc_limits(self.spec.adc_bits)[1]:
-            return None
-        mean.flags.writeable = False
-        return mean, float(sigma)
+        peaks = np.abs(one).max(axis=1).tolist()
+        means = list(one * r)
+        for j, (col, _) in enumerate(items):
+            users = None if calibration else self.other_users_signal(col, cfg, one.shape[1] * r)
+            if users is not None:
+                each = users.reshape(r, one.shape[1]) * lsb_per_v
+                each += one[j]
+                peaks[j] = float(np.abs(each).max())
+                means[j] = each.sum(axis=0)
+        return means, peaks
+
+    def _echoes(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
+                calibration: bool) -> NDArray[np.float64]:
+        """(B, L) float64 :meth:`echo` of each (column, power), one batched inverse FFT."""
+        length = cfg.frame_samples
+        m = length // 2 + 1
+        f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0
+        out = np.zeros((len(items), length))
+        lit, spectra = [], []
+        for j, (col, power) in enumerate(items):
+            terms = self._echo_terms(col, cfg, power, calibration)
+            if terms is not None:
+                amps, taus, members = terms
+                rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
+                spectra.append(self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members]))
+                lit.append(j)
+        if lit:
+            import scipy.fft  # deferred, as in echo()
+
+            out[lit] = scipy.fft.irfft(np.stack(spectra), n=length, axis=1, overwrite_x=True)
+        return out
+
+    def _accumulated_means(self, cfg: RenderSettings,
+                           items: list[tuple[int, NDArray[np.float64]]], calibration: bool
+                           ) -> tuple[list[NDArray[np.float32]], list[float]]:
+        """(R (x + offset) + 1/2 per item, float32 LSB; each repetition's largest |value|,
+        LSB). Single precision: the sum's values stay below 2**15 R, resolved to about
+        1e-3 LSB, against a noise rms of sqrt(R) sigma >= 1 LSB."""
+        scale, offset = self._fine_scale()
+        lsb_per_v = scale / (1 << FRAC_BITS)
+        offset_lsb = offset / (1 << FRAC_BITS)
+        r, length = cfg.averages, cfg.frame_samples
+        block = np.zeros((len(items), length), dtype=np.float32)
+        table = (TABLE_PHASES + 1) * length * 8 * len(set(cfg.code_index)) <= ECHO_CACHE_BYTES
+        for j, (col, power) in enumerate(items):
+            if table:
+                self.tabulated_echo(col, cfg, power, calibration=calibration, out=block[j])
+            else:  # a table of every member would not fit: the Fourier synthesis
+                block[j] = self.echo(col, cfg, power, calibration=calibration, single=True)
+        peaks = (np.abs(block).max(axis=1) * lsb_per_v + abs(offset_lsb)).tolist()
+        block *= np.float32(r * lsb_per_v)
+        block += np.float32(r * offset_lsb + 0.5)
+        for j, (col, _) in enumerate(items):
+            users = None if calibration else self.other_users_signal(col, cfg, length * r)
+            if users is not None:
+                peaks[j] += float(np.abs(users).max()) * lsb_per_v
+                block[j] += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
+        return list(block), peaks

@@ -308,15 +308,14 @@ class VirtualFirmware(DeviceApp):
         """
         inst = self.instrument
         rx = self.receiver()  # "auto" picks the kernel for each batch size
-        accs = []
-        for c, p in zip(columns, powers, strict=True):
-            col = 0 if shots else c
-            acc = inst.render_sum(col, cfg, frame, p, calibration=calibration, shot=c)
-            if acc is None:
-                raw = inst.render_exact(col, cfg, frame, p, calibration=calibration, shot=c)
-                acc = rx.accumulate(raw[None, :])[0]
-            accs.append(acc)
-        return rx.from_accumulators(np.stack(accs))
+        # calibration (shots, or a scan in calibration mode): shot c of the target
+        accs, drawn = inst.render_sums(columns, cfg, frame, powers, calibration=calibration)
+        for i in np.flatnonzero(~drawn).tolist():
+            c = columns[i]
+            raw = inst.render_exact(0 if shots else c, cfg, frame, powers[i],
+                                    calibration=calibration, shot=c)
+            accs[i] = rx.accumulate(raw[None, :])[0]
+        return rx.from_accumulators(accs)
 
     # ---- power ----------------------------------------------------------------------
     def set_power(self, channel_start: int, column_start: int,

@@ -360,3 +360,34 @@ def test_accumulated_uses_the_fourier_echo_where_the_table_would_not_fit(monkeyp
     fourier = inst.render_sum(0, cfg, 1)
     assert called and called[0].get("single") is True
     assert 0 < np.abs(fourier - table).max() <= 0.006 * np.abs(table).max()
+
+
+@pytest.mark.parametrize("level", ["exact", "accumulated"])
+def test_a_batch_of_columns_draws_what_each_column_draws_alone(level):
+    """render_sums (the board's path) against render_sum column by column, bit for bit,
+    on paper-scene1 columns in a scrambled order with repeats, lit and empty, one with
+    its own laser power; and the exact echoes' batched inverse FFT equals echo()'s."""
+    inst = Instrument(load_scene(f"paper-scene1?fidelity={level}"), 4)
+    cfg = RenderSettings.from_spec(inst.spec)
+    cols = [77, 3, 150, 77, 41, 0, 120]
+    powers = [inst.default_power_w[:, c] for c in cols]
+    powers[4] = powers[4] * 0.5
+    sums, drawn = inst.render_sums(cols, cfg, 9, powers)
+    assert drawn.all() and sums.shape == (len(cols), 1, cfg.frame_samples)
+    inst.forget()
+    for c, p, got in zip(cols, powers, sums, strict=True):
+        np.testing.assert_array_equal(inst.render_sum(c, cfg, 9, p), got)
+    assert not np.array_equal(sums[0], sums[1])
+    np.testing.assert_array_equal(sums[0], sums[3])
+    items = [(c, inst.default_power_w[:, c]) for c in cols]
+    batch = inst._echoes(cfg, items, False)
+    for (c, p), row in zip(items, batch, strict=True):
+        np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
+    lit = int(np.argmax(inst.truth.hits.lit.sum(axis=0)))  # near the clip at 1000x power
+    mixed, ok = inst.render_sums([lit, 41], cfg, 9, [inst.default_power_w[:, lit] * 1000,
+                                                    powers[4]])
+    assert ok.tolist() == [False, True] and not np.any(mixed[0])
+    np.testing.assert_array_equal(mixed[1], sums[4])
+    cal, ok = inst.render_sums([2, 5], cfg, 9, calibration=True)
+    assert ok.all() and not np.array_equal(cal[0], cal[1])
+    np.testing.assert_array_equal(inst.render_sum(0, cfg, 9, calibration=True, shot=5), cal[1])
