@@ -3,33 +3,36 @@
     python -m bench scene
 
 1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level:
-   render every column the way the scan does (each column's repetition sum,
-   ``Instrument.render_sum``; cold: the first frame, echoes synthesised; warm: a later
-   frame of the static scene, echoes kept), the receive chain alone on the R x L ADC
-   samples of the same frame (all 160 columns in one call, its default kernel: the
-   baseline), and the virtual device's whole scan (rendering, receive chain in the
-   board's batches, ColumnResults), cold and warm. Also, at ``exact``, the rendering of
-   every repetition on its own (``render_exact``: what CAPTURE RAW returns and what the
-   scan drew before it drew the sum). Ratios within the run: scan / receive chain
-   alone, exact render / level's render, and the real-time factor: the instrument's
-   own acquisition time (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms) over the
-   scan's time.
+   render every column the way the scan does (the frame's repetition sums in one batch,
+   ``Instrument.render_sums``; cold: the first frame, echoes synthesised; warm: a later
+   frame of the static scene, echoes kept; first ever: cold with the per-configuration
+   codebook built too, the codes' spectra and, at ``accumulated``, their waveform
+   tables), the receive chain alone on the R x L ADC samples of the same frame (all 160
+   columns in one call, its default kernel: the baseline), and the virtual device's
+   whole scan (rendering, receive chain, ColumnResults), cold and warm. Also, at
+   ``exact``, the rendering of every repetition on its own (``render_exact``: what
+   CAPTURE RAW returns and what the scan drew before it drew the sum). Ratios within
+   the run: scan / receive chain alone, exact render / level's render, and the
+   real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
+   62.5 Mchip/s = 52.4 ms) over the scan's time.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
    column: the per-channel echo kernel (the part that scales with lit channels), echo
    synthesis (kernel plus one inverse FFT per lit column), the noise of the repetition
-   sum (L Gaussians and (R - 1) L uniform words, the floor: fixed, every column), the
+   sum (L Gaussians and (R - 1) L random bytes, the floor: fixed, every column), the
    whole rendering, the receive chain (fixed: the device correlates every configured
    channel, lit or not), and the virtual device's scan (rendering, receive chain and
-   ColumnResults, in its batches of columns). Rendering and scan are timed cold (echoes
-   synthesised, as in a first frame).
+   ColumnResults). Rendering and scan are timed cold (echoes synthesised, as in a
+   first frame).
 
-Times are CPU seconds of this process, best of several runs (see ``_best``).
+Times are CPU seconds of this process (all its threads), best of several runs (see
+``_best``); the load average is printed with them.
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -116,7 +119,7 @@ def _cost(scene) -> dict[str, float]:
         "echo": _best(lambda: [inst.echo(c, cfg) for c in cols]),
         "noise": _best(noise),
         # the first frame: echoes synthesised, not taken from the previous frame
-        "render": _best(lambda: (inst.forget(), [inst.render_sum(c, cfg, 1) for c in cols])),
+        "render": _best(lambda: (inst.forget(), inst.render_sums(list(cols), cfg, 1))),
         # The receive chain's GEMMs run on BLAS threads, whose CPU time swings most
         # when other jobs share the cores: more runs for these two.
         "rx": _best(lambda: rx.frame(samples), 11),
@@ -136,19 +139,23 @@ def _frame_costs(level: str, repeat: int) -> dict[str, float]:
     inst = fw.instrument
     cfg = fw.render_settings()
     rx = fw.receiver()
-    cols = range(inst.columns)
+    cols = list(range(inst.columns))
     list(fw.scan(0, 0, inst.columns))  # warm up spectra, receivers, allocator
 
-    def render() -> list:
-        return [inst.render_sum(c, cfg, 1) for c in cols]
+    def render() -> None:
+        inst.render_sums(cols, cfg, 1)
 
     def cold() -> None:
         inst.forget()
         render()
 
-    t_cold = _best(cold, repeat)
-    t_warm = _best(render, repeat)
-    out = {"cold": t_cold, "warm": t_warm}
+    def first() -> None:
+        inst.forget()
+        inst._spectra.clear()  # the codebook: code spectra, waveform tables
+        render()
+
+    out = {"first": _best(first, repeat), "cold": _best(cold, repeat),
+           "warm": _best(render, repeat)}
     samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
     # the receive chain's GEMMs run on BLAS threads, whose CPU time swings most when
     # other jobs share the cores: more runs for the baseline
@@ -166,17 +173,33 @@ def _frame_costs(level: str, repeat: int) -> dict[str, float]:
     return out
 
 
+def _load() -> str:
+    return "load average {:.2f} {:.2f} {:.2f} on {} CPUs".format(*os.getloadavg(),
+                                                                 os.cpu_count())
+
+
 def main() -> None:
+    print_frame_costs()
+    print_lit_costs()
+    print_presets()
+    print_error_budget()
+    print_range_sweep()
+
+
+def print_frame_costs() -> None:
+    """Section 1 of the module docstring (about a minute on 2 cores)."""
     scene = load_scene("paper-scene1")
     fw = VirtualFirmware(scene, 0)
     lit = fw.instrument.truth.hits.lit
     print(f"paper-scene1: 40 x 160 pixels, {int(lit.sum())} lit "
           f"({lit.sum(axis=0).mean():.1f} lit channels per column on average), "
-          f"gate {fw.get_config()['gate_len']} lags; CPU ms per frame, best of 5")
+          f"gate {fw.get_config()['gate_len']} lags; CPU ms per frame, best of 5; "
+          f"{_load()}")
     costs = {level: _frame_costs(level, 5) for level in FIDELITY_LEVELS}
     ex = costs["exact"]
     print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in FIDELITY_LEVELS))
-    rows = (("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
+    rows = (("render, first ever (codebook too)", "first"),
+            ("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
             ("receive chain alone (baseline)", "rx"), ("VirtualFirmware.scan, cold", "scan_cold"),
             ("VirtualFirmware.scan, warm", "scan"))
     for label, key in rows:
@@ -189,6 +212,8 @@ def main() -> None:
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] / costs[lv]['rx']:13.2f}"
                                          for lv in FIDELITY_LEVELS)
               + "   (baseline: the level's receive chain alone, this run)")
+    print(f"  {'render speed-up vs exact (first)':34s}" + "".join(
+        f"{ex['first'] / costs[lv]['first']:13.2f}" for lv in FIDELITY_LEVELS))
     print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
         f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
     print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
@@ -200,7 +225,11 @@ def main() -> None:
         print(f"  {label:34s}" + "".join(f"{ACQ_S / costs[lv][key]:13.3f}"
                                          for lv in FIDELITY_LEVELS)
               + "   (52.4 ms acquisition / scan)")
+    print(f"  ({_load()} after)")
 
+
+def print_lit_costs() -> None:
+    """Section 2 of the module docstring."""
     full = _cost(_wall(None))
     strip = _cost(_wall(5))
     dark = _cost(_wall(None, dark=True))
@@ -222,10 +251,7 @@ def main() -> None:
               f"{dark[key] * 1e6:9.0f}")
     print(f"  the noise is {100 * full['noise'] / full['render']:.0f} % of the 40-lit rendering "
           f"and {100 * strip['noise'] / strip['render']:.0f} % of the 5-lit one; it is the same "
-          "for any scene (L Gaussians and (R - 1) L uniform words per column)")
-    print_presets()
-    print_error_budget()
-    print_range_sweep()
+          "for any scene (L Gaussians and (R - 1) L random bytes per column)")
 
 
 

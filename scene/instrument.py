@@ -192,7 +192,7 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
         uniforms += 0.5 * (r - 1)
         uniforms *= 1.0 / 256  # exact: a power of two
         draw -= uniforms
-    return np.floor(draw, out=draw).astype(np.int64)
+    return np.floor(draw, out=np.empty(draw.shape, dtype=np.int64), casting="unsafe")
 
 
 def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArray[np.float32]],
@@ -212,7 +212,7 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
     draw *= np.asarray(stds, dtype=np.float32)[:, None]
     for row, mean in zip(draw, means, strict=True):
         row += mean
-    return np.floor(draw, out=draw).astype(np.int64)
+    return np.floor(draw, out=np.empty(draw.shape, dtype=np.int64), casting="unsafe")
 
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
