@@ -38,9 +38,11 @@ one multiply-add over L/2 bins. R repetitions share the deterministic echo, whic
 between frames (a static scene). At ``exact`` fidelity each repetition gets independent
 noise and is quantised on its own (:meth:`Instrument.render_exact`, CAPTURE RAW); what
 the receive chain reads, the repetitions' sum, is drawn from its exact distribution with
-L Gaussians (:meth:`Instrument.render_sum`, :func:`draw_repetition_sum`). At
-``accumulated`` the sum is drawn as one Gaussian (:meth:`Instrument.render_accumulated`,
-docs/scene.md for its validity and error).
+L Gaussians and (R - 1) L random bytes (:meth:`Instrument.render_sum`,
+:func:`draw_repetition_sum`; a batch of columns: :meth:`Instrument.render_sums`). At
+``accumulated`` the sum is drawn as one Gaussian from a table of quantiles, around an
+echo interpolated from each code's tabulated waveform (:meth:`Instrument.render_accumulated`,
+:meth:`Instrument.tabulated_echo`; docs/scene.md for its validity and error).
 
 Determinism: the noise of (frame, column) comes from ``numpy.random.default_rng`` seeded
 with ``(seed, stream, frame, column)``, so columns can be rendered in any order (resume,
@@ -62,7 +64,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
-from cdma_lidar.scene.model import InstrumentSpec, Scene
+from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -927,6 +929,8 @@ class Instrument:
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
         level = level or self.fidelity
+        if level not in FIDELITY_LEVELS:
+            raise out_of_range("level", "one of " + ", ".join(FIDELITY_LEVELS), level)
         plans: list[tuple | None] = []
         missing: dict[tuple, tuple[int, NDArray[np.float64], list[int]]] = {}
         for j, column in enumerate(columns):
