@@ -3,7 +3,7 @@
 ``SyntheticApp`` is a small but complete :class:`cdma_lidar.protocol.endpoint.DeviceApp` whose
 columns are a pure function of (frame, column, config), so a test can recompute
 what every received column must be. The lossy in-memory link is
-:func:`cdma_lidar.protocol.pipes.pipe_pair`.
+:func:`cdma_lidar.virtual.line.pipe_pair`.
 """
 
 from __future__ import annotations

@@ -17,9 +17,9 @@ from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.ports import FdPort
 from cdma_lidar.protocol.views import Status
+from cdma_lidar.virtual.line import pipe_pair
 
 
 def _responder(port, stop: threading.Event, answer) -> threading.Thread:
@@ -303,7 +303,7 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
     from cdma_lidar.protocol.link import DIAG_SILENT
-    from cdma_lidar.protocol.pipes import Faults
+    from cdma_lidar.virtual.line import Faults
 
     host, dev = pipe_pair()
     app = SyntheticApp(columns=40, column_delay_s=0.01)

@@ -19,8 +19,8 @@ from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import REPLY_TO, MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.views import Status
+from cdma_lidar.virtual.line import pipe_pair
 
 SESSION = 0xABCD
 REQUESTS = sorted(int(t) for t in REPLY_TO)

@@ -40,9 +40,9 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
     kind_of,
 )
-from cdma_lidar.protocol.pipes import PipePort, pipe_pair
 from cdma_lidar.protocol.ports import open_port
 from cdma_lidar.protocol.views import Status
+from cdma_lidar.virtual.line import PipePort, pipe_pair
 
 TIMEOUT = 0.05
 

@@ -22,7 +22,7 @@ from cdma_lidar.protocol.link import (
     DIAG_SILENT,
     HostLink,
 )
-from cdma_lidar.protocol.pipes import Faults, pipe_pair
+from cdma_lidar.virtual.line import Faults, pipe_pair
 
 DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_NOISY}
 K, C = 6, 40
