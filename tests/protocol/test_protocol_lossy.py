@@ -12,7 +12,7 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
-from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+from protocol_fixtures import RunningDevice, ScriptedPort, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
 from cdma_lidar.protocol.link import (
@@ -163,14 +163,12 @@ def test_heavy_loss_every_request_completes_or_times_out_clearly(seed: int) -> N
 
 
 def test_dead_line_fails_after_the_retries() -> None:
-    host, dev = pipe_pair(to_host=Faults(drop=1.0))
-    app = SyntheticApp()
-    with RunningDevice(dev, app):
-        link = HostLink(host, timeout_s=0.02, retries=2)
-        with pytest.raises(LinkTimeout) as exc:
-            link.hello()
-        assert exc.value.diagnosis == DIAG_SILENT
-        assert link.stats.retries == 2
+    port = ScriptedPort()  # the device hears; nothing it says reaches the host
+    link = HostLink(port, retries=2, clock=port.clock)
+    with pytest.raises(LinkTimeout) as exc:
+        link.hello()
+    assert exc.value.diagnosis == DIAG_SILENT
+    assert link.stats.retries == 2 and port.clock() >= 3 * link.timeout_s
 
 
 def test_scan_through_bit_errors_is_repaired() -> None:
