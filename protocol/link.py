@@ -124,9 +124,6 @@ class HostLink(Session):
         self.resend_s = self.timeout_s / 4
         self._next_frame_id = secrets.randbits(31)
 
-    def __enter__(self) -> HostLink:
-        return self
-
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""

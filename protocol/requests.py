@@ -119,18 +119,8 @@ class _Pieces:
 
 
 class Requests:
-    """Requests and frame routing over a port (see the module docstring).
-
-    Args:
-        port: anything with ``read``, ``write``, ``in_waiting`` and ``timeout``.
-        timeout_s: wait for one reply (s).
-        retries: retransmissions of a request before LinkTimeout.
-        poll_s: longest blocking read (s), above 0 so that waiting never spins;
-            default ``min(0.05, timeout_s / 4)``.
-        max_frame: largest frame the device may send (bytes), announced in HELLO.
-        fec: Reed-Solomon coded frames (None: :func:`~cdma_lidar.protocol.ports.default_fec`).
-        clock: monotonic clock (s) every wait is measured on, replaceable in tests.
-    """
+    """Requests and frame routing over a port (see the module docstring); the arguments
+    are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
 
     def __init__(self, port: Any, timeout_s: float, retries: int, *, poll_s: float | None,
                  max_frame: int, fec: bool | None, clock: Callable[[], float]) -> None:

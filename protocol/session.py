@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import secrets
-from typing import Any
+from typing import Any, Self
 
 from cdma_lidar.errors import LinkError, out_of_range
 from cdma_lidar.protocol import auth
@@ -29,16 +29,8 @@ log = logging.getLogger(__name__)
 
 
 class Session(Requests):
-    """A host's session with one device (see the module docstring).
-
-    Args (besides those of :class:`~cdma_lidar.protocol.requests.Requests`):
-        key: shared secret of a device that requires one (32 bytes,
-            :func:`cdma_lidar.protocol.auth.load_key`). None: the device must not ask
-            for a key.
-        take_over: HELLO ends another host's live session instead of failing BUSY.
-        keep_config: the new session keeps the previous session's configuration and
-            power instead of starting from the device's defaults.
-    """
+    """A host's session with one device (see the module docstring); the arguments are
+    :class:`~cdma_lidar.protocol.link.HostLink`'s."""
 
     def __init__(self, port: Any, timeout_s: float, retries: int, *, key: bytes | None,
                  take_over: bool, keep_config: bool, **kw: Any) -> None:
@@ -53,7 +45,7 @@ class Session(Requests):
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
         self._seq = int.from_bytes(self._nonce[:2], "little")
 
-    def __enter__(self) -> Session:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

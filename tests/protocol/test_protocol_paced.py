@@ -171,7 +171,7 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
     host, dev = pipe_pair()
     app = SyntheticApp(channels=4, columns=6)
     with RunningDevice(dev, app, ring_columns=0):
-        link = HostLink(host, timeout_s=0.05)
+        link = HostLink(host)  # 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
         link._send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
