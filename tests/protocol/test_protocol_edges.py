@@ -170,10 +170,11 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
     host, dev = pipe_pair()
     app = SyntheticApp(columns=4)
     with RunningDevice(dev, app, heartbeat_s=0.05):
-        link = HostLink(host, timeout_s=0.2, retries=2)
+        link = HostLink(host, timeout_s=2.0, retries=2)  # a reply in 2 s even at load 14
         for _ in range(40):
             assert [c.column for c in link.scan()] == [0, 1, 2, 3]
         assert app.aborts == 0 and link.stats.retries == 0
+        assert link.stats.requests == 2 + 40  # HELLO, CONFIG_GET, SCAN_STARTs: no BUSY wait
 
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
