@@ -20,15 +20,16 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
   (INFO, CONFIG, every column) and escaping of device strings.
 * :mod:`cdma_lidar.protocol.ports` -- :func:`~cdma_lidar.protocol.ports.open_port`
   (pyserial URLs), :class:`~cdma_lidar.protocol.ports.FdPort` (pty, socket).
-* :mod:`cdma_lidar.protocol.pipes` -- in-process line with injectable faults
-  (tests, ``virtual://``).
 * :mod:`cdma_lidar.protocol.endpoint` -- the device end
   :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection, sharing a
   :class:`~cdma_lidar.protocol.endpoint.DeviceCore`: the session owner) in front of a
   :class:`~cdma_lidar.protocol.endpoint.DeviceApp`.
 * :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns put back together and
   what to ask again (``feed``, ``ready``, ``due(now)``).
-* :mod:`cdma_lidar.protocol.link` -- the host end :class:`~cdma_lidar.protocol.link.HostLink`
-  and its timeout diagnoses.
+* :mod:`cdma_lidar.protocol.requests` -- the host's requests: send, await the reply on an
+  injected clock, retry; frame routing and timeout diagnoses.
+* :mod:`cdma_lidar.protocol.session` -- the host's session: HELLO, keys, take-over.
+* :mod:`cdma_lidar.protocol.link` -- the host end :class:`~cdma_lidar.protocol.link.HostLink`:
+  its requests and scans.
 * :mod:`cdma_lidar.protocol.spec` -- regenerates the tables of ``docs/protocol.md``.
 """

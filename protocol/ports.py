@@ -5,7 +5,7 @@ The protocol needs only a small port surface: ``read(n)`` that waits at most
 :func:`open_port` gives one for any pyserial URL (a device path, a pty, ``socket://``,
 ``loop://``, or a scheme some imported package registered with pyserial, such as the
 virtual device's); :class:`FdPort` gives one around a file descriptor (a pty master,
-an accepted TCP socket). The in-process line is :mod:`cdma_lidar.protocol.pipes`.
+an accepted TCP socket). The simulated in-process line is :mod:`cdma_lidar.virtual.line`.
 """
 
 from __future__ import annotations

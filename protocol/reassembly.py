@@ -3,8 +3,8 @@
 :class:`ColumnReassembler` holds the state of one scan or calibration stream and
 nothing else (no port, no clock of its own: the caller passes ``now``)::
 
-    feed(type, item, again)  a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END of the
-                             stream (decoded; ``again``: it carried COMPAT_RETRANSMIT)
+    feed(frame)              a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of
+                             the stream (authenticated, not yet decoded)
     ready()                  the columns now complete in order, each once
     due(now)                 columns (int) and fragments ((column, index)) that were
                              sent, have not arrived, and were not asked for in the last
@@ -25,8 +25,10 @@ from typing import Any
 
 from cdma_lidar.errors import DeviceError, FrameError
 from cdma_lidar.protocol.columns import ColumnResult, decode_column
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason
+from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, decode_payload
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
+from cdma_lidar.protocol.views import Status
 
 __all__ = ["ColumnReassembler", "StreamEnded", "early_end"]
 
@@ -106,9 +108,20 @@ class ColumnReassembler:
         if idle_reason is not None and sent < self.end:
             self._stop(sent, early_end(self.fid, idle_reason, sent))
 
-    def feed(self, mtype: int, item: Any, again: bool = False) -> bool:
-        """One stream item; True when it was of this stream (a sign of life)."""
-        if again and not self._asked_for(item):
+    def feed(self, frame: Frame) -> bool:
+        """One stream frame; True when it was of this stream (a sign of life)."""
+        mtype = frame.msg_type
+        try:
+            item: Any = decode_payload(mtype, frame.payload)
+        except FrameError:
+            item = None
+        if item is None or (mtype == MsgType.FRAGMENT and (
+                item["index"] >= item["count"] or not item["data"])):
+            self.malformed += 1
+            return False
+        if mtype == MsgType.HEARTBEAT:
+            item = Status(**item)
+        if frame.compat & COMPAT_RETRANSMIT and not self._asked_for(item):
             self.duplicates += 1  # a repair this stream did not ask for: a late one
             return False
         if mtype == MsgType.FRAGMENT:

@@ -1,16 +1,17 @@
-"""Test fixtures for the protocol: a synthetic device application and an in-memory lossy link.
+"""Test fixtures for the protocol: a synthetic device application, an in-memory lossy link,
+and a device played by the test on a fake clock (:class:`ScriptedPort`).
 
 ``SyntheticApp`` is a small but complete :class:`cdma_lidar.protocol.endpoint.DeviceApp` whose
 columns are a pure function of (frame, column, config), so a test can recompute
 what every received column must be. The lossy in-memory link is
-:func:`cdma_lidar.protocol.pipes.pipe_pair`.
+:func:`cdma_lidar.virtual.line.pipe_pair`.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -18,7 +19,9 @@ import numpy as np
 from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode
+from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload
 from cdma_lidar.protocol.views import Info
 
 
@@ -153,3 +156,80 @@ def hello_fields(nonce: int, max_frame: int = 65535, flags: int = 0) -> dict[str
     return {"host_max_frame": max_frame, "flags": flags,
             "host_nonce": nonce.to_bytes(16, "little"), "device_nonce": bytes(16),
             "mac": bytes(32)}
+
+
+# ---- a device played by the test, in the host's thread, on a fake clock -----------------
+class FakeClock:
+    """Seconds that pass only while the host waits (:class:`ScriptedPort` moves them)."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class ScriptedPort:
+    """The host's port onto a device that the test plays, with no thread and no real time.
+
+    ``answer(frame)`` gets each frame the host writes (also kept in ``requests``) and
+    returns the bytes the device sends back (b"": none). A read that finds nothing
+    queued moves ``clock`` on by ``timeout`` (the host's poll, s) and queues
+    ``idle(now)``: what the device sends by itself by then (heartbeats, slow columns).
+    Timeouts and deadlines are then exact and independent of the machine's load.
+    """
+
+    name = "script://device"
+
+    def __init__(self, answer: Callable[[Frame], bytes] | None = None,
+                 idle: Callable[[float], bytes] | None = None, data: bytes = b"") -> None:
+        self.clock = FakeClock()
+        self.timeout = 0.05
+        self.answer = answer or (lambda frame: b"")
+        self.idle = idle or (lambda now: b"")
+        self.requests: list[Frame] = []
+        self._decoder = FrameDecoder()
+        self._buf = bytearray(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._buf)
+
+    def write(self, data: bytes) -> int:
+        for frame in self._decoder.feed(data):
+            self.requests.append(frame)
+            self._buf += self.answer(frame)
+        return len(data)
+
+    def read(self, n: int = 1) -> bytes:
+        if not self._buf:
+            self.clock.now += self.timeout
+            self._buf += self.idle(self.clock.now)
+            return b""
+        out = bytes(self._buf[:n])
+        del self._buf[:n]
+        return out
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+
+def scripted_link(port: ScriptedPort, session: int = 0x42, **kw: Any) -> HostLink:
+    """A HostLink on ``port``'s clock, in session ``session`` of a SyntheticApp device, as
+    if HELLO and CONFIG_GET had gone before."""
+    link = HostLink(port, clock=port.clock, **kw)
+    link.session = session
+    link.info = SyntheticApp().info()
+    link.config = SyntheticApp().get_config()
+    return link
+
+
+def reply(t: MsgType, fields: Any, seq: int, session: int = 0x42) -> bytes:
+    """Wire bytes of a device frame of type ``t`` (fields: a dict, a Status or a column)."""
+    fields = fields.to_fields() if hasattr(fields, "to_fields") else fields
+    return encode_frame(t, encode_payload(t, fields), seq, session)
+
+
+def ack(req: Frame, session: int = 0x42) -> bytes:
+    """The ACK of request ``req``."""
+    return encode_frame(MsgType.ACK, bytes([req.msg_type]), req.seq, session)

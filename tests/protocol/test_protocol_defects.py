@@ -10,7 +10,7 @@ from protocol_fixtures import RunningDevice, SyntheticApp
 from cdma_lidar.protocol.framing import encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MsgType, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
+from cdma_lidar.virtual.line import pipe_pair
 
 KEY = bytes(range(32))
 

@@ -8,7 +8,16 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
+from protocol_fixtures import (
+    RunningDevice,
+    ScriptedPort,
+    SyntheticApp,
+    ack,
+    expected_column,
+    hello_fields,
+    reply,
+    scripted_link,
+)
 
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.protocol import cobs, framing
@@ -17,39 +26,21 @@ from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.ports import FdPort
 from cdma_lidar.protocol.views import Status
-
-
-def _responder(port, stop: threading.Event, answer) -> threading.Thread:
-    """A fake device: ``answer(frame)`` gives the wire bytes to send back for each request."""
-    def run() -> None:
-        dec = FrameDecoder()
-        while not stop.is_set():
-            for f in dec.feed(port.read(max(1, port.in_waiting))):
-                port.write(answer(f))
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    return t
+from cdma_lidar.virtual.line import pipe_pair
 
 
 def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
     """A device of another version NAKs VERSION in that version: the host says so, no
     timeout."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
     nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
                                        "code": int(ErrorCode.VERSION), "field": "version",
                                        "detail": ""})
-    _responder(dev, stop, lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=4))
-    link = HostLink(host, timeout_s=0.5, retries=3)
-    try:
-        with pytest.raises(LinkError, match="protocol version 4") as exc:
-            link.hello()
-    finally:
-        stop.set()
+    port = ScriptedPort(lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=4))
+    link = HostLink(port, retries=3, clock=port.clock)
+    with pytest.raises(LinkError, match="protocol version 4") as exc:
+        link.hello()
     assert not isinstance(exc.value, LinkTimeout)
     assert "version 3" in str(exc.value)
     assert link.stats.retries == 0  # at once: no retry, so no timeout was waited for
@@ -57,34 +48,18 @@ def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
 
 def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
     """Frames that pass the CRC but carry another version, none answering us."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
     hb = encode_payload(MsgType.HEARTBEAT, Status().to_fields())
-
-    def talk() -> None:
-        k = 0
-        while not stop.is_set():
-            dev.write(encode_frame(MsgType.HEARTBEAT, hb, k & 0xFFFF, 0x600D, version=4))
-            k += 1
-            time.sleep(0.005)
-
-    threading.Thread(target=talk, daemon=True).start()
-    link = HostLink(host, timeout_s=0.05, retries=1)
-    link.session = 0x600D
-    try:
-        with pytest.raises(LinkTimeout) as exc:
-            link.status()
-    finally:
-        stop.set()
+    port = ScriptedPort(idle=lambda now: encode_frame(MsgType.HEARTBEAT, hb, 1, 0x600D,
+                                                      version=4))
+    link = scripted_link(port, 0x600D, retries=1)
+    with pytest.raises(LinkTimeout) as exc:
+        link.status()
     assert exc.value.diagnosis == DIAG_VERSION and DIAG_VERSION in str(exc.value)
     assert link.decoder.stats.version >= 1 and link.decoder.stats.frames == 0
 
 
 def test_garbage_is_still_garbage_with_the_version_diagnosis_in_place() -> None:
-    host, dev = pipe_pair()
-    dev.write(b"\x00\x03\x01\x02\x00" * 10)
-    link = HostLink(host, timeout_s=0.03, retries=0)
-    link.session = 1
+    link = scripted_link(ScriptedPort(data=b"\x00\x03\x01\x02\x00" * 10), 1, retries=0)
     with pytest.raises(LinkTimeout) as exc:
         link.status()
     assert exc.value.diagnosis == DIAG_GARBAGE
@@ -195,10 +170,11 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
     host, dev = pipe_pair()
     app = SyntheticApp(columns=4)
     with RunningDevice(dev, app, heartbeat_s=0.05):
-        link = HostLink(host, timeout_s=0.2, retries=2)
+        link = HostLink(host, timeout_s=2.0, retries=2)  # a reply in 2 s even at load 14
         for _ in range(40):
             assert [c.column for c in link.scan()] == [0, 1, 2, 3]
         assert app.aborts == 0 and link.stats.retries == 0
+        assert link.stats.requests == 2 + 40  # HELLO, CONFIG_GET, SCAN_STARTs: no BUSY wait
 
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
@@ -213,7 +189,7 @@ def test_worker_failure_outside_the_application_ends_the_stream() -> None:
 
     app = Growing(channels=8, columns=10)
     with RunningDevice(dev, app, max_frame=256, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.05, retries=2)
+        link = HostLink(host)
         got = []
         with pytest.raises(LinkError):
             for c in link.scan(columns=5):
@@ -238,40 +214,18 @@ def test_zero_length_decoded_frame_is_counted_as_short() -> None:
 
 def test_heartbeats_of_another_frame_do_not_keep_a_scan_waiting_forever() -> None:
     """The device is busy with someone else's frame: the silence probe says so."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
     other = Status(state=1, frame=999, next_column=3)
-    dev.timeout = 0.005  # a heartbeat every 5 ms, ten per host timeout
-
-    def device() -> None:
-        dec = FrameDecoder()
-        while not stop.is_set():
-            for f in dec.feed(dev.read(max(1, dev.in_waiting))):
-                if f.msg_type == MsgType.STATUS_GET:
-                    reply = encode_frame(MsgType.STATUS, encode_payload(
-                        MsgType.STATUS, other.to_fields()), f.seq, 0x42)
-                else:
-                    reply = encode_frame(MsgType.ACK, bytes([f.msg_type]), f.seq, 0x42)
-                dev.write(reply)
-            dev.write(encode_frame(MsgType.HEARTBEAT, encode_payload(
-                MsgType.HEARTBEAT, other.to_fields()), 1, 0x42))
-
-    threading.Thread(target=device, daemon=True).start()
-    link = HostLink(host, timeout_s=0.05, retries=1)
-    link.session = 0x42
-    link.info = SyntheticApp().info()
-    link.config = SyntheticApp().get_config()
-    try:
-        with pytest.raises(LinkError, match="frame 999"):
-            list(link.scan(columns=5, frame=7))
-    finally:
-        stop.set()
+    port = ScriptedPort(  # a heartbeat every poll: many per host timeout
+        lambda f: reply(MsgType.STATUS, other, f.seq) if f.msg_type == MsgType.STATUS_GET
+        else ack(f), lambda now: reply(MsgType.HEARTBEAT, other, 1))
+    link = scripted_link(port, retries=1)
+    with pytest.raises(LinkError, match="frame 999"):
+        list(link.scan(columns=5, frame=7))
 
 
 @pytest.mark.parametrize("frames", [0, -1, 1.5])
 def test_scan_names_a_bad_frame_count(frames) -> None:
-    host, _ = pipe_pair()
-    link = HostLink(host, timeout_s=0.02, retries=0)
+    link = HostLink(ScriptedPort())
     with pytest.raises(ValueError, match="frames"):
         next(link.scan(frames=frames))
 
@@ -303,18 +257,17 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
     from cdma_lidar.protocol.link import DIAG_SILENT
-    from cdma_lidar.protocol.pipes import Faults
 
-    host, dev = pipe_pair()
-    app = SyntheticApp(columns=40, column_delay_s=0.01)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.05, retries=1)
-        link.hello()
-        got = []
-        with pytest.raises(LinkTimeout) as exc:
-            for c in link.scan():
-                got.append(c.column)
-                if c.column == 2:
-                    dev.tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
-    assert got[:3] == [0, 1, 2] and len(got) < 40
+    def answer(req: Frame) -> bytes:  # columns 0..2 of 40, then nothing more, ever
+        if req.msg_type != MsgType.SCAN_START:
+            return b""
+        return ack(req) + b"".join(reply(MsgType.COLUMN_RESULT, expected_column(5, c, 8, 1, 1),
+                                         0) for c in range(3))
+
+    link = scripted_link(ScriptedPort(answer), retries=1)
+    got = []
+    with pytest.raises(LinkTimeout) as exc:
+        for c in link.scan(columns=40, frame=5):
+            got.append(c.column)
+    assert got == [0, 1, 2]
     assert exc.value.diagnosis == DIAG_SILENT and "STATUS_GET" in str(exc.value)

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from cdma_lidar.protocol import fec
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
-from cdma_lidar.protocol.pipes import LineNoise
+from cdma_lidar.virtual.line import LineNoise
 
 
 @given(st.binary(max_size=2000))

@@ -19,8 +19,8 @@ from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import REPLY_TO, MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.views import Status
+from cdma_lidar.virtual.line import pipe_pair
 
 SESSION = 0xABCD
 REQUESTS = sorted(int(t) for t in REPLY_TO)
@@ -84,7 +84,7 @@ hostile_replies = st.lists(st.tuples(
 def test_host_raises_only_its_own_errors_on_hostile_frames(frames: list, other_seq: int) -> None:
     host, dev = pipe_pair()
     with RunningDevice(dev, SyntheticApp(), session_id=0x1234, heartbeat_s=0.05):
-        link = HostLink(host, timeout_s=0.05, retries=1)
+        link = HostLink(host, retries=1)  # waits only if the device thread is slow
         link.hello()
         pending = (link._seq + 1) & 0xFFFF  # the seq of the next request
         if other_seq in (pending, (pending + 1) & 0xFFFF):
@@ -107,7 +107,7 @@ def test_hostile_stream_frames_during_a_scan_are_counted_not_raised() -> None:
     app = SyntheticApp(channels=4, columns=30, column_delay_s=0.002)
     stop = threading.Event()
     with RunningDevice(dev, app, session_id=0x1234, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.1, retries=2)
+        link = HostLink(host)
         link.hello()
 
         def inject() -> None:

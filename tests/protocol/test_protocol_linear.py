@@ -13,7 +13,7 @@ from protocol_fixtures import RunningDevice, SyntheticApp, expected_column, hell
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.framing import FRAME_LIMIT, Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.messages import MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
+from cdma_lidar.virtual.line import pipe_pair
 
 
 def _feed(data: bytes, size: int) -> FrameDecoder:

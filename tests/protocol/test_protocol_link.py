@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import threading
+import itertools
 import time
 from collections.abc import Iterator
 
@@ -11,10 +11,14 @@ import pytest
 import serial
 from protocol_fixtures import (
     RunningDevice,
+    ScriptedPort,
     SyntheticApp,
+    ack,
     capture_expected,
     expected_column,
     hello_fields,
+    reply,
+    scripted_link,
 )
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
@@ -40,11 +44,13 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
     kind_of,
 )
-from cdma_lidar.protocol.pipes import PipePort, pipe_pair
 from cdma_lidar.protocol.ports import open_port
 from cdma_lidar.protocol.views import Status
+from cdma_lidar.virtual.line import PipePort, pipe_pair
 
-TIMEOUT = 0.05
+#: Reply timeout against a real device thread (s): ample on a loaded machine, and waited
+#: out only by the tests that expect a timeout.
+TIMEOUT = 0.5
 
 
 @pytest.fixture
@@ -313,19 +319,6 @@ def test_device_survives_line_garbage(raw) -> None:
 
 
 # ---- the host's view of a bad line ----------------------------------------------------
-def _talker(port: PipePort, stop: threading.Event, make: callable) -> threading.Thread:
-    def run() -> None:
-        k = 0
-        while not stop.is_set():
-            port.write(make(k))
-            k += 1
-            time.sleep(0.005)
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    return t
-
-
 @pytest.mark.parametrize(("diag", "make"), [
     (DIAG_SILENT, None),
     (DIAG_GARBAGE, lambda k: bytes([0x55, k & 0xFF, 0x00, 0x03, 0x77])),
@@ -335,17 +328,11 @@ def _talker(port: PipePort, stop: threading.Event, make: callable) -> threading.
     (DIAG_NO_ANSWER, lambda k: encode_frame(MsgType.ACK, b"\x0a", 9999, 0x600D)),
 ])
 def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
-    host, dev = pipe_pair()
-    stop = threading.Event()
-    if make is not None:
-        _talker(dev, stop, make)
-    link = HostLink(host, timeout_s=0.1, retries=1)
-    link.session = 0x600D  # as if HELLO had succeeded before the trouble
-    try:
-        with pytest.raises(LinkTimeout) as exc:
-            link.status()
-    finally:
-        stop.set()
+    k = itertools.count()
+    port = ScriptedPort(idle=lambda now: b"" if make is None else make(next(k)))
+    link = scripted_link(port, 0x600D, retries=1)  # as if HELLO had succeeded before
+    with pytest.raises(LinkTimeout) as exc:
+        link.status()
     assert exc.value.diagnosis == diag
     assert diag in str(exc.value) and "STATUS_GET" in str(exc.value)
     assert link.stats.retries == 1
@@ -415,14 +402,31 @@ def test_failing_health_sensor_sets_a_fault_bit_not_a_dead_link(rig) -> None:
 
 def test_device_stays_responsive_while_a_column_takes_long() -> None:
     """Columns slower than the host's whole retry budget: heartbeats and STATUS keep it alive."""
-    host, dev = pipe_pair()
-    app = SyntheticApp(column_delay_s=0.15)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.04, retries=1)  # budget 0.08 s < 0.15 s per column
-        cols = list(link.scan(columns=3))
-        assert [c.column for c in cols] == [0, 1, 2]
-        assert link.stats.resend_requests == 0
-        assert link.last_status is not None and link.last_status.state_name == "scanning"
+    started: list[float] = []
+    sent = [0]
+
+    def status() -> Status:
+        return Status(state=1, frame=3, next_column=sent[0])
+
+    def answer(req: Frame) -> bytes:
+        if req.msg_type == MsgType.STATUS_GET:
+            return reply(MsgType.STATUS, status(), req.seq)
+        started.append(port.clock())
+        return ack(req)
+
+    def idle(now: float) -> bytes:  # a column every 0.15 s, a heartbeat every poll
+        out = b""
+        if started and sent[0] < 3 and now - started[0] >= 0.15 * (sent[0] + 1):
+            out = reply(MsgType.COLUMN_RESULT, expected_column(3, sent[0], 8, 1, 1), 0)
+            sent[0] += 1
+        return out + reply(MsgType.HEARTBEAT, status(), 0)
+
+    port = ScriptedPort(answer, idle)
+    link = scripted_link(port, timeout_s=0.04, retries=1)  # budget 0.08 s < 0.15 s per column
+    cols = list(link.scan(columns=3, frame=3))
+    assert [c.column for c in cols] == [0, 1, 2]
+    assert link.stats.resend_requests == 0
+    assert link.last_status is not None and link.last_status.state_name == "scanning"
 
 
 @pytest.mark.parametrize("lost_end", [False, True])
@@ -441,7 +445,7 @@ def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bo
     app = SyntheticApp()
     app.fail_at = 7
     with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.03, retries=8)
+        link = HostLink(host, timeout_s=TIMEOUT)
         got = []
         with pytest.raises(DeviceError) as exc:
             for c in link.scan(columns=20):
@@ -463,23 +467,12 @@ def test_power_before_hello_uses_the_session_frame_size() -> None:
 
 def test_reply_echoing_another_request_type_is_not_taken() -> None:
     """An ACK with the right seq but another request's type (e.g. from a previous link)."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
-
-    def responder() -> None:
-        dec = FrameDecoder()
-        while not stop.is_set():
-            for f in dec.feed(dev.read(max(1, dev.in_waiting))):
-                for rtype in (MsgType.CONFIG_SET, f.msg_type):  # wrong echo first
-                    dev.write(encode_frame(MsgType.ACK, bytes([rtype]), f.seq, 0x42))
-
-    t = threading.Thread(target=responder, daemon=True)
-    t.start()
-    link = HostLink(host, timeout_s=TIMEOUT, retries=0)
-    link.session = 0x42
+    port = ScriptedPort(lambda f: b"".join(  # wrong echo first
+        encode_frame(MsgType.ACK, bytes([rtype]), f.seq, 0x42)
+        for rtype in (MsgType.CONFIG_SET, f.msg_type)))
+    link = scripted_link(port, retries=0)
     link.abort()  # takes the second ACK, which echoes SCAN_ABORT
-    stop.set()
-    assert link.stats.stale_replies >= 1
+    assert link.stats.stale_replies == 1
 
 
 def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
@@ -497,7 +490,7 @@ def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
     dev.tx.write = damage_column_2
     app = SyntheticApp()
     with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.03, retries=2, column_retries=3)
+        link = HostLink(host, timeout_s=TIMEOUT, column_retries=3)
         got = []
         with pytest.raises(LinkTimeout) as exc:
             for c in link.scan(columns=6):

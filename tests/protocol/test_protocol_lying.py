@@ -17,8 +17,8 @@ from cdma_lidar.protocol.config_keys import encode_config
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MESSAGES, MsgType, encode_payload
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.trust import DeviceLied, escape
+from cdma_lidar.virtual.line import pipe_pair
 
 TIMEOUT = 0.2
 NASTY = "\x1b]0;pwned\x07\x1b[2J\x1b[31mRED\u202e\r\n"

@@ -20,7 +20,7 @@ from cdma_lidar.protocol.endpoint import _CONTROL, _FRESH, DeviceEndpoint
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.pipes import BytePipe, Faults, pipe_pair
+from cdma_lidar.virtual.line import BytePipe, Faults, pipe_pair
 
 
 # ---- the paced pipe ---------------------------------------------------------------------------
@@ -171,7 +171,7 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
     host, dev = pipe_pair()
     app = SyntheticApp(channels=4, columns=6)
     with RunningDevice(dev, app, ring_columns=0):
-        link = HostLink(host, timeout_s=0.05)
+        link = HostLink(host)  # 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
         link._send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})

@@ -24,8 +24,8 @@ from cdma_lidar.protocol.messages import (
     decode_payload,
     encode_payload,
 )
-from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.ports import FdPort, open_port
+from cdma_lidar.virtual.line import pipe_pair
 
 TIMEOUT = 0.2
 

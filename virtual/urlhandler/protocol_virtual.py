@@ -38,10 +38,10 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from cdma_lidar.errors import CdmaLidarError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
-from cdma_lidar.protocol.pipes import BytePipe, LineNoise, PipePort
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.model import Scene
 from cdma_lidar.virtual.board import VirtualFirmware
+from cdma_lidar.virtual.line import BytePipe, LineNoise, PipePort
 
 __all__ = ["Serial", "parse_url"]
 

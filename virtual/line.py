@@ -1,11 +1,13 @@
-"""In-process line: byte pipes with the port surface, and seeded line faults.
+"""The simulated line: in-process byte pipes with the port surface, and seeded line faults.
+
+It stands for the cable and UART between a host and a device (the protocol itself
+never needs it): ``virtual://`` builds its line from it, and tests put a
+:class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` on one end of :func:`pipe_pair`.
 
 A :class:`BytePipe` carries bytes one way between threads. A :class:`PipePort` reads
 one pipe and writes another, with the surface a pyserial port shows the protocol
 (``read(n)`` waiting up to ``timeout``, ``write``, ``in_waiting``, ``close``);
-:func:`pipe_pair` joins a host end and a device end, e.g. to run a
-:class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` in a thread in tests. The
-virtual device's ``virtual://`` handler builds its line from the same pieces.
+:func:`pipe_pair` joins a host end and a device end.
 
 Each pipe can misbehave like a bad line, from seeded generators so a run is
 repeatable:
