@@ -192,3 +192,15 @@ def test_ghost_windows_remove_the_misjudged_pixels(tmp_path):
     with pytest.raises(ConfigError, match="ghost_m"):
         run_study(note5.STUDY, tmp_path / "bad", overrides={"ghost_m": "8"}, workers=0,
                   progress=False)
+
+
+@pytest.mark.parametrize("first", ["paper", "catalogue", "paperdocs"])
+def test_any_study_module_imports_first(first):
+    """paper.py and catalogue.py once imported each other: importing paper first failed."""
+    import subprocess
+    import sys
+
+    code = (f"import cdma_lidar.study.{first}; from cdma_lidar.study import catalogue, paper; "
+            "assert catalogue.get_study('paper') is paper.STUDY; "
+            "assert all(catalogue.get_study(n) is s for n, s in paper.PARTS.items())")
+    subprocess.run([sys.executable, "-c", code], check=True)
