@@ -58,9 +58,10 @@ REPORT_NOTE = (
     "40 times, Supp. Note 4) against the two lasers received at once (each at half the "
     "EDFA's output, an assumption: the paper gives no power). The cause column gives what "
     "the sequential sum costs in SNR_XC and how far apart the two ways' ranges lie, "
-    "against the paper's 25.68 cm resolution as the yardstick of \"closely mirror\". The paper's curves are printed only as a figure, not "
-    "as numbers, so the figure draws ours (purple: sequential, red: simultaneous, as the "
-    "paper colours them) and the scene's true depth; nothing is digitised from the paper."
+    "against the paper's 25.68 cm resolution as the yardstick of 'closely mirror'. The "
+    "paper's curves are printed only as a figure, not as numbers, so the figure draws ours "
+    "(purple: sequential, red: simultaneous, as the paper colours them) and the scene's "
+    "true depth; nothing is digitised from the paper."
 )
 
 
