@@ -136,6 +136,10 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     _, p2 = psd_lines(gold_code(spec.poly_u, spec.poly_v, 1), spec.chip_rate_hz)
     ax.plot(f / 1e6, 10 * np.log10((p1 + p2) / 2 + 1e-12), lw=0.6, color="k", alpha=0.5,
             label="mixed")
+    n = spec.code_length
+    env = (n + 1) / n**2 * np.sinc(f / spec.chip_rate_hz) ** 2  # eq. 14's line weights
+    ax.plot(f / 1e6, 10 * np.log10(env + 1e-12), color="k", ls="--", lw=1.0,
+            label="paper: eq. 14 envelope (Supp. Fig. 6a, from the equation)")
     ax.axvline(row["psd_main_lobe_null_hz"] / 1e6, color="tab:red", ls=":",
                label="first null (1/T_c)")
     ax.set_ylim(-80, 0)
