@@ -177,7 +177,8 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     ("note10", "bow_sag_deg_scene2"): "Space limitations in the lab reduced the available "
     "scanning field, creating a unilateral bow-like shape in the image",
     ("table1", "pairs_checked"): "Table 1: preferred pairs",
-    ("table1", "pairs_not_preferred"): "Table 1: preferred pairs (every row one)",
+    ("table1", "pairs_not_preferred"): "Table 1. Partial list of preferred pairs for the "
+    "generation of Gold sequences",
 }
 for _i in range(1, 5):
     PAPER_WORDS[("fig17", f"candidates_uid_l{_i}")] = "UID: (2^m + 1) u(2^l) (eq. 52)"

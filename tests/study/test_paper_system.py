@@ -31,7 +31,10 @@ def test_table1_finds_the_two_errata_rows(tmp_path):
     res, s = _run(table1.STUDY, tmp_path)
     assert s["pairs_checked"] == {"ours": 7, "paper": 7, "unit": "pairs", "paper_point": 7,
                                   "ci95": None, "verdict": "exact"}
-    assert s["pairs_not_preferred"]["ours"] == 2 and s["pairs_not_preferred"]["paper"] == 0
+    assert s["pairs_not_preferred"]["ours"] == 2
+    assert s["pairs_not_preferred"]["paper"] == table1.PAPER_CAPTION
+    assert s["pairs_not_preferred"]["verdict"] == "differs"
+    assert "[10,7,1] [10,9,8,5,1]: 6 cross-correlation values" in s["pairs_not_preferred"]["cause"]
     bad = [r["printed_u"] for r in res.table.rows if not r["preferred"]]
     assert bad == ["10,7,1", "11,9,1"]
     # every starred (experiment) pair is preferred and has 2^m + 1 candidates
@@ -124,7 +127,8 @@ def test_paper_report_has_a_row_per_result(tmp_path, monkeypatch):
     assert f"| Note 9, eq. 42: `eq42.async_xcorr_power_times_n` | {words} | 2/3 |" in report
     assert "![eq42, default](eq42/eq42.png)" in report
     assert (tmp_path / "p" / "eq42" / "eq42.png").is_file()
-    assert "`table1.pairs_not_preferred` | Table 1: preferred pairs (every row one) | -- | " \
+    words = paper.PAPER_WORDS[("table1", "pairs_not_preferred")]
+    assert f"`table1.pairs_not_preferred` | {words} | -- | " \
         "not available in this build | -- | not covered |" in report
     assert eq42.REPORT_NOTE in report and fig17.REPORT_NOTE in report
     assert "shared/seed" not in report and "Identity-enabled CDMA LiDAR" in report
