@@ -161,8 +161,11 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     "identification of the four users",
     ("fig4b", "foreign_ranges_accepted"): "each user can only correctly identify its own "
     "time delay",
-    ("fig4d", "object_valid_fraction_before"): "(heatmap, Fig. 4d ii: before power control)",
-    ("fig4d", "object_valid_fraction_after"): "(heatmap, Fig. 4d iii: after power control)",
+    ("fig4d", "object_valid_fraction_before"): "This phenomenon impacts the processing of "
+    "signals from channels with relatively lower intensity, as evidenced by the lower mean "
+    "values in the SNR_XC heatmap in the top right corner in Fig.4d(ii)",
+    ("fig4d", "object_valid_fraction_after"): "subsequent scan frames such as one shown in "
+    "Fig.4d(iii) produces a more uniform SNR_XC distribution",
     ("note5", "ghost_misjudged_after_removal"): "such extraneous correlation peaks can be "
     "accurately identified in the time delay after correlation with the reference code, "
     "allowing for the removal of any misjudgment from spurious peaks",

@@ -113,6 +113,11 @@ def test_fig4d_power_control_recovers_the_far_letters(tmp_path):
     before = s["object_valid_fraction_before"]["ours"]
     after = s["object_valid_fraction_after"]["ours"]
     assert before < 0.9 and after >= 0.95 and after > before + 0.1
+    assert s["object_valid_fraction_before"]["verdict"] == "reproduced"
+    assert s["object_valid_fraction_after"]["verdict"] == "reproduced"
+    assert s["object_valid_fraction_after"]["paper"] == fig4d.PAPER_AFTER
+    assert s["object_valid_fraction_after"]["ci95"][0] > s["object_valid_fraction_before"][
+        "ci95"][1]
     row = res.table.rows[0]
     assert row["block_power_ratio"] < 0.2 and row["false_valid_last"] == 0
 
