@@ -191,8 +191,8 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                 before, PAPER_BEFORE, "1", ci95=b_ci, paper_point=before,
                 paper_point_ci95=b_ci, verdict=v_before,
                 cause=f"object pixels at or above the SNR_XC threshold: {shown}near-far at "
-                      f"uniform power {before:.3f}; reproduced when the obstruction's interval lies "
-                      "below the unobstructed one"),
+                      f"uniform power {before:.3f}; reproduced when the obstruction's "
+                      "interval lies below the unobstructed one"),
             "object_valid_fraction_after": entry(
                 after, PAPER_AFTER, "1", ci95=a_ci, paper_point=after, paper_point_ci95=a_ci,
                 verdict=v_after,
