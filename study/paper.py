@@ -14,7 +14,7 @@ from the paper's equations in their own table; the operating point's assumptions
 explanatory paragraph (its module's ``REPORT_NOTE``).
 
 ``point`` (default ``both``): every part runs at its default; a part whose paper point
-needs other settings (:data:`PAPER_POINT_RUNS`: fig2c, fig2d, fig2f, fig3) runs again with
+needs other settings (:data:`PAPER_POINT_RUNS`: fig2c, fig2d, fig2f, fig3, fig3b) runs again with
 ``point=paper`` into ``DIR/<name>-paper/``; fig11 and fig2e judge the same trials with
 eq. 9's detector, the others have one point. ``point=default`` skips the second runs;
 ``point=paper`` runs every part at ``point=paper`` only. The summary has every part's
