@@ -189,6 +189,11 @@ def test_ghost_windows_remove_the_misjudged_pixels(tmp_path):
     assert row["misjudged_before"] > 0 and row["misjudged_after"] == 0
     assert row["correct_before"] < row["correct_after"] <= row["correct_no_ghost"]
     assert res.summary["ghost_misjudged_after_removal"]["verdict"] == "reproduced"
+    # Supp. Fig. 8: a ghost of fixed strength loses to the echo at 5 m and beats it at 10 m
+    near, far = res.summary["fig8_ghost_fraction_5m"], res.summary["fig8_ghost_fraction_10m"]
+    assert near["ci95"][1] < 0.5 < far["ci95"][0]
+    assert near["verdict"] == far["verdict"] == "reproduced"
+    assert near["paper"] == note5.PAPER_FIG8_NEAR
     with pytest.raises(ConfigError, match="ghost_m"):
         run_study(note5.STUDY, tmp_path / "bad", overrides={"ghost_m": "8"}, workers=0,
                   progress=False)
