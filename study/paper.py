@@ -256,13 +256,14 @@ def _run_json(folder: Path) -> dict[str, Any]:
 
 
 def fmt_value(x: Any) -> str:
-    """A number for a Markdown cell (4 significant digits; ``--`` for None)."""
+    """A number for a Markdown cell (4 significant digits, 7 for a fraction of a number
+    above 1000 such as 1591.875 nm; ``--`` for None)."""
     if x is None:
         return "--"
     if isinstance(x, bool | int):
         return str(x)
     if isinstance(x, float):
-        return f"{x:.4g}"
+        return f"{x:.7g}" if abs(x) >= 1000 and not x.is_integer() else f"{x:.4g}"
     return str(x).replace("|", "\\|")
 
 

@@ -71,3 +71,8 @@ def test_every_paper_result_is_covered():
     for name, (_, _, keys) in paper.PAPER_STUDIES.items():
         for key in keys:
             assert (name, key) in paper.PAPER_WORDS, (name, key)
+
+
+def test_report_cells_keep_the_digits_an_exact_row_needs():
+    assert paper.fmt_value(1591.875) == "1591.875" and paper.fmt_value(1587.5) == "1587.5"
+    assert paper.fmt_value(0.23734) == "0.2373" and paper.fmt_value(6.25e7) == "6.25e+07"
