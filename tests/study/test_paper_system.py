@@ -113,7 +113,8 @@ def test_fig4d_power_control_recovers_the_far_letters(tmp_path):
     before = s["object_valid_fraction_before"]["ours"]
     after = s["object_valid_fraction_after"]["ours"]
     assert before < 0.9 and after >= 0.95 and after > before + 0.1
-    assert s["object_valid_fraction_before"]["verdict"] == "reproduced"
+    # without the unobstructed case there is nothing to judge "before" against
+    assert s["object_valid_fraction_before"]["verdict"] is None
     assert s["object_valid_fraction_after"]["verdict"] == "reproduced"
     assert s["object_valid_fraction_after"]["paper"] == fig4d.PAPER_AFTER
     assert s["object_valid_fraction_after"]["ci95"][0] > s["object_valid_fraction_before"][
