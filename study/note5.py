@@ -37,12 +37,19 @@ import numpy as np
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
+from cdma_lidar.firmware_model.gold import bipolar
 from cdma_lidar.firmware_model.receiver import FastReceiver
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.ranging import estimate_ranges, ghost_windows_from_image, sample_range_m
+from cdma_lidar.host.ranging import (
+    estimate_ranges,
+    ghost_windows_from_image,
+    lag_to_range_m,
+    sample_range_m,
+)
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import RunContext, RunOptions, Setting, Study, Table, grid_product
+from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.paperlab import PRESET, check_point, entry, wilson
 from cdma_lidar.study.simulate import (
     ranging_config,
@@ -51,7 +58,7 @@ from cdma_lidar.study.simulate import (
     true_offset_m,
 )
 
-__all__ = ["MIN_SEPARATION_M", "REPORT_NOTE", "STUDY", "note5_task"]
+__all__ = ["MIN_SEPARATION_M", "REPORT_NOTE", "STUDY", "correlation_curve", "note5_task"]
 
 #: Paper, Supp. Note 5 on Fig. 8 (a) and (b): its words, no number.
 PAPER_FIG8_NEAR = "the delay index resides at the actual peak"
@@ -66,7 +73,8 @@ REPORT_NOTE = (
     "fixed, so one scan of an empty field finds its lag windows, and the receiver's peak "
     "search outside those windows ranges the wall again. The counts before and after are "
     "from this run; the ghost's distance and strength are settings (the paper gives "
-    "neither)."
+    "neither). The figure redraws Supp. Fig. 8 on the simulated instrument: one pixel's "
+    "correlation with the ghost of fixed strength, the wall at 5 m and at 10 m."
 )
 
 
@@ -80,6 +88,24 @@ def _scan(inst: Instrument, windows: tuple[tuple[int, int], ...] = ()) -> Any:
     rng = dataclasses.replace(ranging_config(inst), offset_m=true_offset_m(inst),
                               ghost_windows=windows)
     return estimate_ranges(data, rng)
+
+
+def _base(params: dict) -> dict[str, Any]:
+    return {"distance": float(params["distance"]), "averages": int(params["averages"]),
+            "sequential_mixing": False}
+
+
+def _echo_v(base: dict[str, Any]) -> float:
+    """The wall's median echo amplitude (V) in the scene ``base`` describes."""
+    inst = Instrument(load_scene(PRESET, base), seed=0)
+    return float(np.median(inst.gain_v_per_w * inst.default_power_w))
+
+
+def _ghost(params: dict, base: dict[str, Any]) -> list[dict[str, float]]:
+    """The ghost: at ``ghost_m``, ``ghost_ratio`` times the wall's echo at ``ghost_like_m``."""
+    like = _echo_v({**base, "distance": float(params["ghost_like_m"])})
+    return [{"distance_m": float(params["ghost_m"]),
+             "amplitude_v": float(params["ghost_ratio"]) * like}]
 
 
 def _grid(options: RunOptions) -> list[dict]:
@@ -113,15 +139,10 @@ def note5_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     """Empty field, wall without the ghost windows, wall with them."""
     t0 = time.perf_counter()
     s = int(seed.generate_state(1)[0])
-    base = {"distance": float(params["distance"]), "averages": int(params["averages"]),
-            "sequential_mixing": False}
+    base = _base(params)
     wall = Instrument(load_scene(PRESET, base), seed=s)
-    echo_v = float(np.median(wall.gain_v_per_w * wall.default_power_w))
-    like = Instrument(load_scene(PRESET, {**base, "distance": float(params["ghost_like_m"])}),
-                      seed=s)
-    like_v = float(np.median(like.gain_v_per_w * like.default_power_w))
-    ghost = [{"distance_m": float(params["ghost_m"]),
-              "amplitude_v": float(params["ghost_ratio"]) * like_v}]
+    echo_v = _echo_v(base)
+    ghost = _ghost(params, base)
     empty = Instrument(load_scene(PRESET, {**base, "reflectivity": 0.0,
                                            "instrument.ghosts": ghost}), seed=s + 1)
     # the ghost's correlation triangle spans +-S lags: the window covers it whole
@@ -145,8 +166,48 @@ def note5_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     return row
 
 
+def correlation_curve(params: dict, channel: int, column: int = 0, seed: int = 0
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Range (m) and normalised circular correlation of one pixel of a ``fig8`` row's scene
+    (the ghost in, no windows): the R records summed, correlated with the channel's code."""
+    base = _base(params)
+    inst = Instrument(load_scene(PRESET, {**base, "instrument.ghosts": _ghost(params, base)}),
+                      seed=seed)
+    spec = inst.spec
+    _, codes = receiver_setup(inst)
+    x = inst.render(column).astype(np.float64).reshape(spec.averages, -1).sum(axis=0)
+    ref = np.repeat(bipolar(codes[channel]).astype(np.float64), spec.samples_per_chip)
+    x = x[: ref.size] - x[: ref.size].mean()
+    corr = np.fft.irfft(np.fft.rfft(x) * np.conj(np.fft.rfft(ref)), ref.size)
+    rng = lag_to_range_m(np.arange(ref.size), spec.samples_per_chip, spec.chip_rate_hz,
+                         true_offset_m(inst))
+    return rng, corr / np.abs(corr).max()
+
+
+def _draw_fig8(table: Table, path: Any) -> None:
+    """Supp. Fig. 8: the correlation of one pixel with the ghost, wall at 5 and at 10 m."""
+    rows = table.where(case="fig8").rows
+    if not rows:
+        return
+    fig, axes = new_figure(5.0 * len(rows), 3.4, 1, len(rows))
+    axes = axes if isinstance(axes, list) else [axes]
+    for ax, row, tag in zip(axes, rows, "abcdefgh", strict=False):
+        rng, corr = correlation_curve(row, channel=20)
+        keep = (rng > -1.0) & (rng < float(row["ghost_m"]) + 10.0)
+        ax.plot(rng[keep], corr[keep], color="tab:blue", lw=0.8)
+        ax.axvline(float(row["distance"]), color="tab:green", ls="--", lw=0.8, label="wall")
+        ax.axvline(float(row["ghost_m"]), color="tab:red", ls=":", lw=0.8, label="ghost")
+        ax.set_xlabel("distance (m)")
+        ax.set_ylabel("normalised cross-correlation")
+        ax.set_title(f"({tag}) wall at {row['distance']:g} m", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle("Supp. Fig. 8 on the simulated instrument (one pixel, channel 20; the "
+                 "paper's curves are not digitised)", fontsize=8)
+    save_figure(fig, path)
+
+
 def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
-    del ctx
+    _draw_fig8(table, ctx.out / "note5.png")
     row = table.where(case="removal").rows[0]
     n = int(row["pixels"])
     where = (f"ghost at {row['ghost_m']:g} m, {row['ghost_ratio']:g} x the echo, wall at "

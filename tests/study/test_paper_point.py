@@ -194,6 +194,9 @@ def test_ghost_windows_remove_the_misjudged_pixels(tmp_path):
     assert near["ci95"][1] < 0.5 < far["ci95"][0]
     assert near["verdict"] == far["verdict"] == "reproduced"
     assert near["paper"] == note5.PAPER_FIG8_NEAR
+    assert (tmp_path / "note5.png").is_file()
+    rng, corr = note5.correlation_curve(res.table.where(case="fig8").rows[0], channel=20)
+    assert abs(rng[np.argmax(corr)] - 5.0) < 1.0  # at 5 m the wall's peak is the highest
     with pytest.raises(ConfigError, match="ghost_m"):
         run_study(note5.STUDY, tmp_path / "bad", overrides={"ghost_m": "8"}, workers=0,
                   progress=False)
