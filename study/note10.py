@@ -48,14 +48,15 @@ SAME_DEG = 1e-9
 
 REPORT_NOTE = (
     "Supp. Note 10's geometry on the paper's grating (600 grooves/mm, the 40 L-band "
-    "channels, the fields of view of scenes 1 and 2). The toolkit's grating model is eq. "
-    "47 (to rounding), and rotating the grating moves every channel along a bow: over "
-    "scene 2's -5..0 deg the elevation of a channel moves by the sag in the table, a "
-    "number of pixel rows, so a reconstruction on a rectangular grid would bend the "
-    "image by the centimetres shown; the host's reconstruction places each pixel on eq. "
-    "47's ray instead (docs/host.md). The figure draws eq. 47 as the paper prints it "
-    "(computed here, not digitised from its Fig. 15d) over the toolkit's model. The sag "
-    "depends on the incidence angle, which the paper does not state (60 deg assumed)."
+    "channels, the fields of view of scenes 1 and 2). The run compares the toolkit's "
+    "grating model with eq. 47 as printed, and measures how far rotating the grating moves "
+    "a channel's elevation (the bow) in channel steps: more than one step shows in the "
+    "image as the paper's bow-like shape. The derived rows give how far a reconstruction "
+    "on a rectangular grid would misplace pixels; the host's reconstruction places each "
+    "pixel on eq. 47's ray instead (docs/host.md). The figure draws eq. 47 as the paper "
+    "prints it (computed here, not digitised from its Fig. 15d) over the toolkit's model. "
+    "The sag depends on the incidence angle, which the paper does not state (60 deg "
+    "assumed)."
 )
 
 
