@@ -76,3 +76,18 @@ def test_every_paper_result_is_covered():
 def test_report_cells_keep_the_digits_an_exact_row_needs():
     assert paper.fmt_value(1591.875) == "1591.875" and paper.fmt_value(1587.5) == "1587.5"
     assert paper.fmt_value(0.23734) == "0.2373" and paper.fmt_value(6.25e7) == "6.25e+07"
+
+
+def test_fig3_clusters_with_the_depth_steps_spread(tmp_path):
+    """At the paper's point the sequential mixing's 2 sigma rivals scene 1's depth step
+    (ours); the same instrument resolves the three depths when they are twice as far apart."""
+    from cdma_lidar.study import fig3
+
+    res = run_study(fig3.STUDY, tmp_path, workers=0, progress=False,
+                    overrides={"point": "paper", "scenes": "paper-scene1"})
+    rows = {float(r["depth_scale"]): r for r in res.table.rows}
+    assert set(rows) == {1.0, 2.0}
+    assert rows[2.0]["depth_step_m"] == pytest.approx(2 * rows[1.0]["depth_step_m"], rel=0.05)
+    assert res.summary["clusters_scene1_depths_spread"]["ours"] == 3
+    assert "depth steps x2" in res.summary["clusters_scene1"]["cause"]
+    assert rows[1.0]["clusters_truth"] == 3
