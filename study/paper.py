@@ -71,9 +71,9 @@ from cdma_lidar.study.paperlab import (
     entry,
 )
 
-__all__ = ["NOT_COVERED", "PAPER_POINT_QUICK", "PAPER_POINT_RUNS", "PAPER_STUDIES", "PAPER_WORDS",
-           "PARTS", "STUDY", "counts", "fmt_interval", "fmt_value", "merge", "parse_sub_set",
-           "write_report"]
+__all__ = ["DIFFERENCES", "NOT_COVERED", "PAPER_POINT_QUICK", "PAPER_POINT_RUNS", "PAPER_STUDIES",
+           "PAPER_WORDS", "PARTS", "STUDY", "counts", "fmt_interval", "fmt_value", "merge",
+           "parse_sub_set", "write_report"]
 
 log = logging.getLogger(__name__)
 
@@ -193,6 +193,26 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
 for _i in range(1, 5):
     PAPER_WORDS[("fig17", f"candidates_uid_l{_i}")] = "UID: (2^m + 1) u(2^l) (eq. 52)"
     PAPER_WORDS[("fig17", f"candidates_direct_l{_i}")] = "Direct spread: 2^(m+l) + 1 (eq. 53)"
+
+#: Where a difference at the paper's point lies, per result (the report's "Why each
+#: difference" table; the numbers that show it are the row's cause, from the run).
+DIFFERENCES: dict[tuple[str, str], str] = {
+    ("fig2d", "resolution_m_at_200mhz"): "the paper's claim: eq. 28 through its own 25.68 cm "
+    "at 62.5 MHz does not reach millimetres at 200 MHz without a gain it does not state",
+    ("fig2f", "max_range_m_order13"): "the paper's claim against its own Fig. 2c: with the "
+    "link that reproduces 25.68 cm at 10 m, 66 m needs a processing gain the paper does not "
+    "state (whether Fig. 2f mixed 40 channels and its R are our assumptions)",
+    ("fig3", "clusters_scene1"): "our scene: the paper gives no depths for its letters; "
+    "ours (15 cm apart) are within the 2 sigma of the paper's point",
+    ("fig2e", "snr_xc_threshold_db"): "a definition the paper leaves open: the noise floor "
+    "of eq. 44's SNR_XC (hypothesis, not tested)",
+    ("fig11", "snr_xc_threshold_db_order11"): "a definition the paper leaves open: the noise "
+    "floor of eq. 44's SNR_XC (hypothesis, not tested)",
+    ("fig2e", "min_workable_snr_db"): "an unstated setting: the processing gain N S R "
+    "behind the paper's -50 dB",
+    ("table1", "pairs_not_preferred"): "the paper's table: two printed pairs are not "
+    "preferred pairs (errata)",
+}
 
 #: Quantitative results of the paper without a study in this toolkit: (where, the paper's
 #: words, why not and where to look instead). None today: Fig. 3b and Supp. Note 10, the
@@ -391,6 +411,22 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
     for where, words, why in NOT_COVERED:
         lines.append(f"| {where} | {fmt_value(words)} | -- | -- | -- | not covered | "
                      f"{fmt_value(why)} |")
+    lines += ["", "## Why each difference", "",
+              "Per result that differs at the paper's point: where the difference lies (our "
+              "assumption, the paper's claim, a definition the paper leaves open), and the "
+              "numbers of this run that show it.", "",
+              "| result | paper | ours at the paper's point | where the difference lies | "
+              "what this run shows |", "|---|---|---|---|---|"]
+    for e in entries:
+        for key in e["keys"]:
+            h = e["summary"].get(key)
+            if h is None or h.get("verdict") != "differs":
+                continue
+            at = h["paper_point"] if h.get("paper_point") is not None else h.get("ours")
+            lines.append(
+                f"| `{e['name']}.{key}` | {fmt_value(h.get('paper'))} | {fmt_value(at)} | "
+                f"{DIFFERENCES.get((e['name'], key), '--')} | "
+                f"{fmt_value(h.get('cause') or '')} |")
     lines += ["", "## Derived from the paper's equations", "",
               "Not printed by the paper: values its equations give at our operating point, "
               "and the other quantities the studies report.", "",
