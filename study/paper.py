@@ -102,7 +102,8 @@ PAPER_STUDIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
              ("frame_rate_hz",)),
     "eq26": ("Notes 2-4, 7, 10; Fig. 1e", "the instrument's exact figures",
              ("range_resolution_eq26_m", "max_unambiguous_distance_m", "angular_resolution_deg",
-              "psd_main_lobe_null_hz", "sequential_mixing_noise_ratio")),
+              "psd_main_lobe_null_hz", "sequential_mixing_noise_ratio",
+              "aligned_averaging_noise_ratio")),
     "fig4b": ("Fig. 4b, Note 11", "four users on one code with 3-bit UIDs",
               ("users_identified", "foreign_ranges_accepted")),
     "fig4d": ("Fig. 4d, Note 12", "near-far heatmaps before and after power control",
@@ -159,6 +160,9 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     ("eq26", "psd_main_lobe_null_hz"): "the boundary of the main lobe occurs at 1/T_c",
     ("eq26", "sequential_mixing_noise_ratio"): "the wideband ASE noise [...] is redundantly "
     "accounted for 40 times",
+    ("eq26", "aligned_averaging_noise_ratio"): "by aligned signal averaging, the post-mixed "
+    "signal can simulate the actual noise power level: E{(sum_i e~_i)^2} = 40 zeta^2 = delta^2 "
+    "(eq. 25)",
     ("fig4b", "users_identified"): "the differentiation based on UID enables the "
     "identification of the four users",
     ("fig4b", "foreign_ranges_accepted"): "each user can only correctly identify its own "

@@ -176,6 +176,8 @@ def test_composite_at_the_paper_point_only(tmp_path):
     assert h["paper_point"] == h["ours"] and "paper-lab at 10 m" in h["cause"]
     assert not (tmp_path / "p" / "fig2c-paper").exists()
     assert res.summary["eq26.angular_resolution_deg"]["verdict"] == "exact"
+    eq25 = res.summary["eq26.aligned_averaging_noise_ratio"]
+    assert eq25["ci95"][0] <= 1.0 <= eq25["ci95"][1] and eq25["verdict"] == "reproduced"
     with pytest.raises(ConfigError, match="point"):
         run_study(paper.STUDY, tmp_path / "q", overrides={"point": "lab"}, workers=0,
                   progress=False)

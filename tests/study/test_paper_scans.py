@@ -110,3 +110,13 @@ def test_report_says_where_each_difference_lies(tmp_path):
     h["verdict"] = "reproduced"  # only differing rows are listed
     paper.write_report([entry], tmp_path / "r2.md", quick=True, seed=1, engine="x")
     assert why not in (tmp_path / "r2.md").read_text()
+
+
+def test_variance_ratio_interval():
+    from cdma_lidar.study.eq26 import variance_ratio_ci
+
+    lo, hi = variance_ratio_ci(1.0, 8188, 8188)
+    assert lo < 1.0 < hi and hi - lo < 0.1
+    lo2, hi2 = variance_ratio_ci(1.0, 100, 100)
+    assert lo2 < lo and hi2 > hi  # fewer samples, wider
+    assert variance_ratio_ci(1.0, 1, 5) == (None, None)
