@@ -1,34 +1,16 @@
 """The studies ``cdma-lidar study list`` shows and ``study run NAME`` finds.
 
 Built-in studies are listed in :data:`BUILTIN` (one import and one entry per study
-module); :func:`register_study` adds more at run time (plug-ins, tests). Names are
-unique: registering a second study under a taken name is an error unless
-``replace=True``.
+module; the paper's studies come from :data:`cdma_lidar.study.paper.PARTS`, which imports
+them: the catalogue imports the paper, never the other way round).
+:func:`register_study` adds more at run time (plug-ins, tests). Names are unique:
+registering a second study under a taken name is an error unless ``replace=True``.
 """
 
 from __future__ import annotations
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import (
-    detection,
-    eq26,
-    eq29,
-    eq42,
-    extremes,
-    fig2c,
-    fig2d,
-    fig2e,
-    fig2f,
-    fig3,
-    fig4b,
-    fig4d,
-    fig11,
-    fig17,
-    note5,
-    paper,
-    table1,
-    tradeoff,
-)
+from cdma_lidar.study import detection, extremes, paper, tradeoff
 from cdma_lidar.study.engine import Study
 
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
@@ -36,10 +18,7 @@ __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
 BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
                               # the paper's results (docs/paper.md); `paper` runs them all
-                              fig2c.STUDY, fig2d.STUDY, fig2e.STUDY, fig2f.STUDY, fig3.STUDY,
-                              fig11.STUDY, fig17.STUDY, eq42.STUDY, eq29.STUDY, eq26.STUDY,
-                              fig4b.STUDY, fig4d.STUDY, table1.STUDY, note5.STUDY,
-                              paper.STUDY)
+                              *paper.PARTS.values(), paper.STUDY)
 
 _REGISTRY: dict[str, Study] = {}
 

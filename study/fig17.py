@@ -158,15 +158,20 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     ax = axes[0]
     w = 0.38
     x = np.arange(len(ls))
-    ax.bar(x - w / 2, table.column("candidates_direct"), w, label="direct spread (eq. 53)")
-    ax.bar(x + w / 2, table.column("candidates_uid"), w, label="UID (eq. 52)")
+    ax.bar(x - w / 2, table.column("candidates_direct"), w,
+           label="paper: direct spread, eq. 53 as printed")
+    ax.bar(x + w / 2, table.column("candidates_uid"), w, label="paper: UID, eq. 52 as printed")
+    ax.plot(x + w / 2, table.column("candidates_uid_enumerated"), "wo", mec="k", ms=5,
+            label="ours: UID, counted")
+    ax.plot(x - w / 2, np.asarray(table.column("candidates_direct_enumerated"), float), "wo",
+            mec="tab:blue", ms=5, label="ours: direct, counted (where built)")
     ax.plot(x + w / 2, table.column("candidates_uid_lyndon"), "k_", ms=14,
             label="UID, aperiodic necklaces only")
     ax.set_yscale("log")
     ax.set_xticks(x, [f"l={v}\n(n={1 << v} bits)" for v in ls])
     ax.set_ylabel("sequence candidates")
     ax.set_title(f"degree-{int(table.column('degree')[0])} code with a 2^l-bit UID")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=6)
     ax = axes[1]
     ax.plot(table.column("chips_direct"), table.column("candidates_direct"), "o-",
             label="direct spread (order m + l)")

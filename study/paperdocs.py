@@ -28,9 +28,6 @@ from pathlib import Path
 from typing import Any
 
 from cdma_lidar.fileio import atomic_write_text
-
-# the catalogue first: it imports paper.py, which imports the catalogue (run as __main__)
-from cdma_lidar.study import catalogue  # noqa: F401
 from cdma_lidar.study.paper import NOT_COVERED, PAPER_STUDIES, fmt_interval, fmt_value
 from cdma_lidar.study.paperlab import PAPER_CITATION, assumptions_markdown
 

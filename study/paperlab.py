@@ -89,7 +89,15 @@ ASSUMPTIONS: tuple[Parameter, ...] = (
     Parameter("power per channel", "2.5 mW", False,
               "assumed: the 100 mW shared over 40 channels, the power the toolkit's link "
               "budget was set for (Fig. 3 scans); the paper's sequential recording gave each "
-              "wavelength the whole EDFA output, which the unpublished link budget absorbs"),
+              "wavelength the whole EDFA output, which the unpublished link budget absorbs: "
+              "only power x link gain matters, and Fig. 2c's 25.68 cm at 10 m (reproduced at "
+              "this point) checks that product"),
+    Parameter("Fig. 2f channels and averaging", "40 channels sequentially mixed, R = 10",
+              False, "assumed: the text of Fig. 2f names neither; the multi-channel set-up "
+              "of Fig. 2e and the averaging of the 3D scans (Methods)"),
+    Parameter("Fig. 3b power", "half the per-channel power for each of the two lasers",
+              False, "assumed: Methods: the two lasers are combined in a 50:50 coupler and "
+              "amplified by the same EDFA (no power given)"),
     Parameter("Fig. 2c averaging", "R = 1", False,
               "assumed: each of the 1000 measurements one record (the text names no "
               "averaging for Fig. 2c)"),

@@ -176,6 +176,8 @@ def test_composite_at_the_paper_point_only(tmp_path):
     assert h["paper_point"] == h["ours"] and "paper-lab at 10 m" in h["cause"]
     assert not (tmp_path / "p" / "fig2c-paper").exists()
     assert res.summary["eq26.angular_resolution_deg"]["verdict"] == "exact"
+    eq25 = res.summary["eq26.aligned_averaging_noise_ratio"]
+    assert eq25["ci95"][0] <= 1.0 <= eq25["ci95"][1] and eq25["verdict"] == "reproduced"
     with pytest.raises(ConfigError, match="point"):
         run_study(paper.STUDY, tmp_path / "q", overrides={"point": "lab"}, workers=0,
                   progress=False)
@@ -189,6 +191,26 @@ def test_ghost_windows_remove_the_misjudged_pixels(tmp_path):
     assert row["misjudged_before"] > 0 and row["misjudged_after"] == 0
     assert row["correct_before"] < row["correct_after"] <= row["correct_no_ghost"]
     assert res.summary["ghost_misjudged_after_removal"]["verdict"] == "reproduced"
+    # Supp. Fig. 8: a ghost of fixed strength loses to the echo at 5 m and beats it at 10 m
+    near, far = res.summary["fig8_ghost_fraction_5m"], res.summary["fig8_ghost_fraction_10m"]
+    assert near["ci95"][1] < 0.5 < far["ci95"][0]
+    assert near["verdict"] == far["verdict"] == "reproduced"
+    assert near["paper"] == note5.PAPER_FIG8_NEAR
+    assert (tmp_path / "note5.png").is_file()
+    rng, corr = note5.correlation_curve(res.table.where(case="fig8").rows[0], channel=20)
+    assert abs(rng[np.argmax(corr)] - 5.0) < 1.0  # at 5 m the wall's peak is the highest
     with pytest.raises(ConfigError, match="ghost_m"):
         run_study(note5.STUDY, tmp_path / "bad", overrides={"ghost_m": "8"}, workers=0,
                   progress=False)
+
+
+@pytest.mark.parametrize("first", ["paper", "catalogue", "paperdocs"])
+def test_any_study_module_imports_first(first):
+    """paper.py and catalogue.py once imported each other: importing paper first failed."""
+    import subprocess
+    import sys
+
+    code = (f"import cdma_lidar.study.{first}; from cdma_lidar.study import catalogue, paper; "
+            "assert catalogue.get_study('paper') is paper.STUDY; "
+            "assert all(catalogue.get_study(n) is s for n, s in paper.PARTS.items())")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -165,6 +165,10 @@ def test_fig2d_resolution_falls_with_chip_and_sample_rate(tmp_path):
     assert _ours(res, "resolution_m_at_200mhz") < _ours(res, "resolution_m_at_62_5mhz")
     eq28 = t.column("resolution_eq28_m")
     assert np.all(eq28 > 0)
+    # eq. 28 through the paper's 25.68 cm: 1/f_c scaling to 200 MHz
+    assert _ours(res, "resolution_eq28_paper_scaled_m_at_200mhz") == pytest.approx(
+        0.2568 * 62.5 / 200.0)
+    assert "64 times" in res.summary["resolution_m_at_200mhz"]["cause"]
 
 
 def test_fig2f_longer_code_reaches_farther(tmp_path):
@@ -174,3 +178,7 @@ def test_fig2f_longer_code_reaches_farther(tmp_path):
     lo, hi = res.summary["max_range_m_order13"]["ci95"]  # the grid step: 25-35 m at most
     assert lo in (None, 15.0, 25.0) and hi in (None, 25.0, 35.0) and (lo or 0) <= r13
     assert res.summary["max_range_m_order13"]["paper"] == 66.0
+    # the echo's SNR falls 40 dB per decade (1/r^2 amplitude): the gap to 66 m in dB
+    need = _ours(res, "gain_needed_db_for_66m_order13")
+    assert need == pytest.approx(40.0 * np.log10(66.0 / r13), rel=0.1)
+    assert "66 m needs" in res.summary["max_range_m_order13"]["cause"]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import catalogue, eq29, eq42, fig4b, fig4d, fig17, paper, table1
+from cdma_lidar.study import eq29, eq42, fig4b, fig4d, fig17, paper, table1
 from cdma_lidar.study.engine import read_csv, run_study
 
 
@@ -31,7 +31,10 @@ def test_table1_finds_the_two_errata_rows(tmp_path):
     res, s = _run(table1.STUDY, tmp_path)
     assert s["pairs_checked"] == {"ours": 7, "paper": 7, "unit": "pairs", "paper_point": 7,
                                   "ci95": None, "verdict": "exact"}
-    assert s["pairs_not_preferred"]["ours"] == 2 and s["pairs_not_preferred"]["paper"] == 0
+    assert s["pairs_not_preferred"]["ours"] == 2
+    assert s["pairs_not_preferred"]["paper"] == table1.PAPER_CAPTION
+    assert s["pairs_not_preferred"]["verdict"] == "differs"
+    assert "[10,7,1] [10,9,8,5,1]: 6 cross-correlation values" in s["pairs_not_preferred"]["cause"]
     bad = [r["printed_u"] for r in res.table.rows if not r["preferred"]]
     assert bad == ["10,7,1", "11,9,1"]
     # every starred (experiment) pair is preferred and has 2^m + 1 candidates
@@ -110,19 +113,18 @@ def test_fig4d_power_control_recovers_the_far_letters(tmp_path):
     before = s["object_valid_fraction_before"]["ours"]
     after = s["object_valid_fraction_after"]["ours"]
     assert before < 0.9 and after >= 0.95 and after > before + 0.1
+    # without the unobstructed case there is nothing to judge "before" against
+    assert s["object_valid_fraction_before"]["verdict"] is None
+    assert s["object_valid_fraction_after"]["verdict"] == "reproduced"
+    assert s["object_valid_fraction_after"]["paper"] == fig4d.PAPER_AFTER
+    assert s["object_valid_fraction_after"]["ci95"][0] > s["object_valid_fraction_before"][
+        "ci95"][1]
     row = res.table.rows[0]
     assert row["block_power_ratio"] < 0.2 and row["false_valid_last"] == 0
 
 
 def test_paper_report_has_a_row_per_result(tmp_path, monkeypatch):
-    real = catalogue.get_study
-
-    def without_table1(name):
-        if name == "table1":
-            raise ConfigError("unknown study 'table1'", "study")
-        return real(name)
-
-    monkeypatch.setattr(paper.catalogue, "get_study", without_table1)
+    monkeypatch.delitem(paper.PARTS, "table1")
     res = run_study(paper.STUDY, tmp_path / "p", quick=True, workers=0, progress=False,
                     overrides={"studies": "eq42,fig17,table1",
                                "sub_set": "eq42.degrees=9,11,eq42.trials=2000,fig17.l=1"})
@@ -131,7 +133,8 @@ def test_paper_report_has_a_row_per_result(tmp_path, monkeypatch):
     assert f"| Note 9, eq. 42: `eq42.async_xcorr_power_times_n` | {words} | 2/3 |" in report
     assert "![eq42, default](eq42/eq42.png)" in report
     assert (tmp_path / "p" / "eq42" / "eq42.png").is_file()
-    assert "`table1.pairs_not_preferred` | Table 1: preferred pairs (every row one) | -- | " \
+    words = paper.PAPER_WORDS[("table1", "pairs_not_preferred")]
+    assert f"`table1.pairs_not_preferred` | {words} | -- | " \
         "not available in this build | -- | not covered |" in report
     assert eq42.REPORT_NOTE in report and fig17.REPORT_NOTE in report
     assert "shared/seed" not in report and "Identity-enabled CDMA LiDAR" in report
