@@ -15,12 +15,13 @@ Two sets of configurations:
   wide-data, many-column (the virtual board's batches of 4, 16 and 160 paper-scene1
   columns) and many-channel rows; the full grid with ``CDMA_LIDAR_BENCH_FULL=1`` (degrees
   5-20, S 1-64, K 1-2048; long);
-* random configurations off that grid (``python -m bench kernels --random``, or
-  ``CDMA_LIDAR_BENCH_RANDOM=N``; default 24): degree 5-15, S 1-16, K 1-400 (log-uniform),
-  a gate of 1-300 lags or the whole period, 1-160 columns, (R, n, b) from three
-  classes, seeded (``CDMA_LIDAR_BENCH_SEED``, default 0); every kernel best of 7. To
-  stay short on a shared machine a draw is replaced when its accumulators exceed 32 MiB
-  or its best prediction 0.3 s (printed as skipped).
+* random configurations off that grid, after it (``CDMA_LIDAR_BENCH_RANDOM=N``,
+  default 12; ``--random`` runs only them, default 24; ``--grid`` only the grid):
+  degree 5-15, S 1-16, K 1-400 (log-uniform), a gate of 1-300 lags or the whole
+  period, 1-160 columns, (R, n, b) from three classes, seeded
+  (``CDMA_LIDAR_BENCH_SEED``, default 0); every kernel best of 7. To stay short on a
+  shared machine a draw is replaced when its accumulators exceed 32 MiB or its best
+  prediction 0.3 s (printed as skipped).
 
 A kernel whose *predicted* time is over 20x the best prediction (except auto's choice,
 always run), or over 60 s, or whose predicted memory is over 2 GiB (a shared machine),
@@ -29,6 +30,10 @@ configurations: 0.3 s), or whose predicted working set is over 6 GiB, is skipped
 repeats are interleaved; a row where auto measured over 1.25x the fastest is timed again
 up to twice, 2 s apart (on the shared 2-core machine a threaded BLAS call stalls for
 10-250 ms whenever another process holds a core).
+
+``--cpu`` times by process CPU time instead of wall time: with ``CDMA_LIDAR_THREADS=1``
+the kernels' own time, which other processes' load barely moves (the constants of
+``costs.py`` were fitted that way on the shared 2-core machine).
 
 Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
 ``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits.
@@ -103,18 +108,20 @@ def _setup(case: Case) -> tuple[ReceiverConfig, np.ndarray, np.ndarray]:
     return cfg, codes, acc
 
 
-def _best_time(fn, repeats: int) -> float:
+def _best_time(fn, repeats: int, clock=time.perf_counter) -> float:
     t = math.inf
     for _ in range(repeats):
         gc.collect()
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        t = min(t, time.perf_counter() - t0)
+        t = min(t, clock() - t0)
     return t
 
 
-def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS) -> str:
-    """Measure every kernel on one grid point; returns the table row."""
+def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS,
+             clock=time.perf_counter) -> str:
+    """Measure every kernel on one grid point; returns the table row. ``clock``:
+    ``time.perf_counter`` (wall) or ``time.process_time`` (``--cpu``)."""
     n = (1 << case.degree) - 1
     ns = n * case.s
     gate = ns if case.gate == 0 else min(case.gate, ns)
@@ -159,14 +166,15 @@ def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS) -> str:
         if together:
             kept[m] = rx
         else:
-            times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
+            times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats, clock)
         del rx
 
     def measure() -> None:
         for _ in range(repeats):
             for m, rx in kept.items():
                 times[m] = min(times.get(m, math.inf),
-                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1,
+                                          clock))
 
     measure()
     for _ in range(RETRIES):  # a stall of the shared machine passes; a wrong choice stays
@@ -231,18 +239,9 @@ def random_cases(seed: int) -> Iterator[Case]:
             yield case
 
 
-def main() -> None:
-    full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
-    random_n = os.environ.get("CDMA_LIDAR_BENCH_RANDOM")
-    if "--random" in sys.argv and random_n is None:
-        random_n = "24"
-    if random_n is not None:
-        seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
-        cases, label, repeats, max_pred = random_cases(seed), \
-            f"{random_n} random configurations (seed {seed})", 7, RANDOM_MAX_SECONDS
-    else:
-        cases, label, repeats, max_pred = full_grid() if full else quick_grid(), \
-            "full grid" if full else "quick grid", 3, SKIP_SECONDS
+def run_set(cases, label: str, repeats: int, max_pred: float, want: int | None,
+            clock) -> None:
+    """Measure ``cases`` (at most ``want`` rows) and print the rows and a summary line."""
     print(f"kernels on the {label}; cost constants {COEFFICIENTS}; load average "
           f"{os.getloadavg()[0]:.2f}")
     print(f"times per call (from_accumulators: despread .. peaks), best of {repeats} "
@@ -253,13 +252,12 @@ def main() -> None:
     worst, worst_case, n_rows, off = 0.0, "", 0, 0
     only = os.environ.get("CDMA_LIDAR_BENCH_DEGREES")
     degrees = {int(d) for d in only.split(",")} if only else None
-    want = int(random_n) if random_n is not None else None
     for case in cases:
         if want is not None and n_rows >= want:
             break
         if degrees is not None and case.degree not in degrees:
             continue
-        row = run_case(case, repeats, max_pred)
+        row = run_case(case, repeats, max_pred, clock)
         print(row, flush=True)
         if "time x" in row:
             n_rows += 1
@@ -267,9 +265,27 @@ def main() -> None:
             if ratio > worst:
                 worst, worst_case = ratio, case.label()
             off += "off target" in row
-    print(f"{n_rows} rows measured, {off} off target (auto over 1.25x the fastest); worst "
-          f"auto / fastest x{worst:.2f} ({worst_case.strip()}); load average "
-          f"{os.getloadavg()[0]:.2f}")
+    print(f"{label}: {n_rows} rows measured, {off} off target (auto over 1.25x the fastest); "
+          f"worst auto / fastest x{worst:.2f} ({worst_case.strip()}); load average "
+          f"{os.getloadavg()[0]:.2f}", flush=True)
+
+
+def main() -> None:
+    """The grid, then random configurations off it (``--grid``, ``--random``: one only)."""
+    full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
+    only_random = "--random" in sys.argv
+    random_n = int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "24" if only_random else "12"))
+    seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
+    clock = time.process_time if "--cpu" in sys.argv else time.perf_counter
+    if "--cpu" in sys.argv:
+        print("--cpu: process CPU time (run with CDMA_LIDAR_THREADS=1: the kernels' own "
+              "time, which another process's load barely moves)")
+    if not only_random:
+        run_set(full_grid() if full else quick_grid(), "full grid" if full else "quick grid",
+                3, SKIP_SECONDS, None, clock)
+    if "--grid" not in sys.argv and random_n > 0:
+        run_set(random_cases(seed), f"{random_n} random configurations (seed {seed})", 7,
+                RANDOM_MAX_SECONDS, random_n, clock)
 
 
 if __name__ == "__main__":
