@@ -60,13 +60,14 @@ class Coefficients:
 #: grid of ``bench kernels`` up to degree 13 and K 400, and 30 of its random
 #: configurations, seed 0), one thread (BLAS limited to 1), process CPU time, best of
 #: 7 interleaved across the kernels (CPU time because the machine was shared, load
-#: 6-12: wall times swung 2-3x). Non-negative least squares on the relative error of
-#: every kernel's time, with ``ram`` and :data:`CACHE_BYTES` chosen from a small grid
-#: (1.8/3/5; 2 or 8 MiB) by the most plans whose predicted-fastest kernel measured
-#: within 1.25x of the fastest: 91 of 92 (the constants before: 85), the worst 1.42x
-#: (0.40 against 0.28 ms). ``/tmp`` fitting script, not kept; ``python -m bench
-#: kernels`` checks the result on the grid and on random configurations.
-COEFFICIENTS = Coefficients(mac=6.9e-11, byte=1.35e-11, fft=6.3e-10, call=6.7e-7, ram=3.0)
+#: 6-15: wall times swung 2-3x). Non-negative least squares on the relative error of
+#: every kernel's time (the fixed costs as one unknown per kernel), with ``ram`` and
+#: :data:`CACHE_BYTES` chosen from a small grid (1.8/3/5; 2 or 8 MiB) by the most plans
+#: whose predicted-fastest kernel measured within 1.25x of the fastest: 91 of 92 (the
+#: constants before: 85), the worst 1.42x (0.40 against 0.28 ms). Checked on plans not
+#: fitted (the grid measured again and random configurations of seed 7): see
+#: docs/firmware.md; ``python -m bench kernels`` checks the result end to end.
+COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ class DirectCorrelator(Correlator):
     """One (C, N) @ (N, K) product per gated lag on a window of the doubled chip sums."""
 
     #: its Python per call (limbs, doubled rows, output): 0.13 ms measured (costs.py)
-    fixed_calls = 197.0
+    fixed_calls = 200.0
 
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
@@ -50,6 +50,8 @@ class DirectCorrelator(Correlator):
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
         codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # one (K, N) matrix read per lag
+        if cb > 1:  # a product of several rows also packs the codes (as gemm_seconds)
+            codes += 16.0 * n * k * plan.count
         per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
                                    + 3 * co.call)  # slice, product, store
                      + co.byte * codes
