@@ -35,6 +35,12 @@ up to twice, 2 s apart (on the shared 2-core machine a threaded BLAS call stalls
 the kernels' own time, which other processes' load barely moves (the constants of
 ``costs.py`` were fitted that way on the shared 2-core machine).
 
+``--fit`` times each kernel alone (one thread, CPU time, best of 7) on the quick grid up
+to degree 13 and K 400 and on random configurations (``CDMA_LIDAR_BENCH_RANDOM``, default
+30), and prints the constants of ``costs.py`` and each kernel's ``fixed_calls`` fitted
+to them (non-negative least squares on relative errors; ``ram`` from FIT_RAMS), with how
+many plans the fitted and the current constants send within 1.25x of the fastest.
+
 Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
 ``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits.
 """
@@ -53,8 +59,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
-from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS
+from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
+from cdma_lidar.firmware_model.correlators.base import _REGISTRY, blas_threads
+from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS, Coefficients
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 SKIP_FACTOR = 20.0
@@ -239,6 +246,103 @@ def random_cases(seed: int) -> Iterator[Case]:
             yield case
 
 
+#: ``--fit``: the ``ram`` ratios tried, and the largest best prediction of a plan timed.
+FIT_RAMS = (1.8, 3.0, 5.0)
+FIT_MAX_SECONDS = 0.3
+
+
+def kernel_times(plan: GatePlan, repeats: int = 7) -> dict[str, float]:
+    """Each kernel with a finite estimate within 30x of the best, called alone on random
+    chip sums of the plan's shape: process CPU time on one thread (BLAS limited to 1),
+    best of ``repeats`` interleaved across the kernels."""
+    est = {m: e.seconds for m, e in estimates(plan).items() if math.isfinite(e.seconds)}
+    best = min(est.values())
+    bound = plan.y_bound if plan.y_bound is not None else 1 << 11
+    y = np.random.default_rng(0).integers(-bound, bound + 1, (plan.columns, plan.s, plan.n))
+    kernels = {m: _REGISTRY[m](plan) for m, t in est.items() if t <= 30 * best}
+    times = dict.fromkeys(kernels, math.inf)
+    with blas_threads(1):
+        for kernel in kernels.values():
+            kernel(y)  # warm up
+        for _ in range(repeats):
+            for m, kernel in kernels.items():
+                times[m] = min(times[m], _best_time(lambda k=kernel: k(y), 1, time.process_time))
+    return times
+
+
+def _features(plan: GatePlan, ram: float) -> dict[str, np.ndarray]:
+    """Per kernel: its estimate's seconds per unit of mac, byte, fft and call (its own
+    fixed calls taken out), then one column per kernel for its fixed cost."""
+    units = [Coefficients(1, 0, 0, 0, ram), Coefficients(0, 1, 0, 0, ram),
+             Coefficients(0, 0, 1, 0, ram), Coefficients(0, 0, 0, 1, ram)]
+    per = [estimates(plan, u) for u in units]
+    names = list(_REGISTRY)
+    out = {}
+    for m in per[0]:
+        row = [e[m].seconds for e in per]
+        row[3] -= _REGISTRY[m].fixed_calls
+        out[m] = np.array(row + [float(m == k) for k in names])
+    return out
+
+
+def fit(seed: int, random_n: int) -> None:
+    """``--fit``: time the kernels on the quick grid (degree <= 13, K <= 400) and
+    ``random_n`` random configurations, then fit :data:`.costs.COEFFICIENTS` and each
+    kernel's ``fixed_calls`` (non-negative least squares on the relative errors, the
+    ``ram`` of FIT_RAMS that puts the most plans within 1.25x) and print them."""
+    from scipy.optimize import nnls
+
+    cases = [c for c in quick_grid() if c.degree <= 13 and c.k <= 400]
+    draws = random_cases(seed)
+    cases += [next(draws) for _ in range(random_n)]
+    print(f"--fit: {len(cases)} plans (quick grid, {random_n} random of seed {seed}); "
+          f"load average {os.getloadavg()[0]:.2f}", flush=True)
+    data = []
+    for case in cases:
+        cfg, codes, _ = _setup(case)
+        plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+        if min(e.seconds for e in estimates(plan).values()) > FIT_MAX_SECONDS:
+            continue
+        times = kernel_times(plan)
+        data.append((plan, times))
+        print(f"{case.label()} | " + " ".join(f"{m}={t * 1e3:.3f}ms" for m, t in times.items()),
+              flush=True)
+    names = list(_REGISTRY)
+
+    def within(pick) -> tuple[int, float]:
+        ratios = [times[pick(plan, times)] / min(times.values()) for plan, times in data]
+        return sum(r <= 1.25 for r in ratios), max(ratios)
+
+    best = None
+    for ram in FIT_RAMS:
+        feats = [_features(plan, ram) for plan, _ in data]
+        a = np.array([f[m] / t for f, (_, times) in zip(feats, data, strict=True)
+                      for m, t in times.items()])
+        coef, _ = nnls(a, np.ones(len(a)))
+        table = dict(zip((id(plan) for plan, _ in data), feats, strict=True))
+
+        def pick(plan, times, coef=coef, table=table):
+            return min(times, key=lambda name: float(table[id(plan)][name] @ coef))
+
+        score = within(pick)
+        print(f"ram {ram}: mac={coef[0]:.3g} byte={coef[1]:.3g} fft={coef[2]:.3g} "
+              f"call={coef[3]:.3g}, fixed s " + " ".join(
+                  f"{k}={c:.3g}" for k, c in zip(names, coef[4:], strict=True))
+              + f": {score[0]} of {len(data)} within 1.25x, worst x{score[1]:.2f}")
+        if best is None or score[0] > best[0][0]:
+            best = (score, ram, coef)
+    now = within(lambda plan, times: min(times, key=lambda m: estimates(plan)[m].seconds))
+    (score, ram, coef) = best
+    call = coef[3]
+    print(f"fitted: Coefficients(mac={coef[0]:.2g}, byte={coef[1]:.3g}, fft={coef[2]:.2g}, "
+          f"call={call:.2g}, ram={ram}); fixed_calls " + ", ".join(
+              f"{k}={c / call:.0f}" for k, c in zip(names, coef[4:], strict=True) if c)
+          + f"; {score[0]} of {len(data)} plans within 1.25x (worst x{score[1]:.2f}); the "
+          f"constants in the code: {now[0]} (worst x{now[1]:.2f}); load average "
+          f"{os.getloadavg()[0]:.2f}")
+
+
+
 def run_set(cases, label: str, repeats: int, max_pred: float, want: int | None,
             clock) -> None:
     """Measure ``cases`` (at most ``want`` rows) and print the rows and a summary line."""
@@ -276,6 +380,9 @@ def main() -> None:
     only_random = "--random" in sys.argv
     random_n = int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "24" if only_random else "12"))
     seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
+    if "--fit" in sys.argv:
+        fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")))
+        return
     clock = time.process_time if "--cpu" in sys.argv else time.perf_counter
     if "--cpu" in sys.argv:
         print("--cpu: process CPU time (run with CDMA_LIDAR_THREADS=1: the kernels' own "
