@@ -64,9 +64,10 @@ class Coefficients:
 #: every kernel's time (the fixed costs as one unknown per kernel), with ``ram`` and
 #: :data:`CACHE_BYTES` chosen from a small grid (1.8/3/5; 2 or 8 MiB) by the most plans
 #: whose predicted-fastest kernel measured within 1.25x of the fastest: 91 of 92 (the
-#: constants before: 85), the worst 1.42x (0.40 against 0.28 ms). Checked on plans not
-#: fitted (the grid measured again and random configurations of seed 7): see
-#: docs/firmware.md; ``python -m bench kernels`` checks the result end to end.
+#: constants before: 85), the worst 1.42x (0.40 against 0.28 ms); on 72 plans not
+#: fitted (the grid timed again, random configurations of seed 7) 69. ``python -m bench
+#: kernels --fit`` does the same (its run afterwards fitted these within 16 %), and
+#: ``python -m bench kernels`` checks the choice end to end (docs/firmware.md, 10).
 COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
 
 

@@ -98,7 +98,7 @@ class MatmulCorrelator(Correlator):
     and benchmarks.
     """
 
-    #: its Python per call (buffers, float32 test, groups): 0.25 ms measured (costs.py)
+    #: its Python per call (buffers, float32 test, groups): 0.26 ms measured (costs.py)
     fixed_calls = 400.0
 
     @classmethod
