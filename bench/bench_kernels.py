@@ -15,12 +15,13 @@ Two sets of configurations:
   wide-data, many-column (the virtual board's batches of 4, 16 and 160 paper-scene1
   columns) and many-channel rows; the full grid with ``CDMA_LIDAR_BENCH_FULL=1`` (degrees
   5-20, S 1-64, K 1-2048; long);
-* random configurations off that grid (``python -m bench kernels --random``, or
-  ``CDMA_LIDAR_BENCH_RANDOM=N``; default 24): degree 5-15, S 1-16, K 1-400 (log-uniform),
-  a gate of 1-300 lags or the whole period, 1-160 columns, (R, n, b) from three
-  classes, seeded (``CDMA_LIDAR_BENCH_SEED``, default 0); every kernel best of 7. To
-  stay short on a shared machine a draw is replaced when its accumulators exceed 32 MiB
-  or its best prediction 0.3 s (printed as skipped).
+* random configurations off that grid, after it (``CDMA_LIDAR_BENCH_RANDOM=N``,
+  default 12; ``--random`` runs only them, default 24; ``--grid`` only the grid):
+  degree 5-15, S 1-16, K 1-400 (log-uniform), a gate of 1-300 lags or the whole
+  period, 1-160 columns, (R, n, b) from three classes, seeded
+  (``CDMA_LIDAR_BENCH_SEED``, default 0); every kernel best of 7. To stay short on a
+  shared machine a draw is replaced when its accumulators exceed 32 MiB or its best
+  prediction 0.3 s (printed as skipped).
 
 A kernel whose *predicted* time is over 20x the best prediction (except auto's choice,
 always run), or over 60 s, or whose predicted memory is over 2 GiB (a shared machine),
@@ -29,6 +30,16 @@ configurations: 0.3 s), or whose predicted working set is over 6 GiB, is skipped
 repeats are interleaved; a row where auto measured over 1.25x the fastest is timed again
 up to twice, 2 s apart (on the shared 2-core machine a threaded BLAS call stalls for
 10-250 ms whenever another process holds a core).
+
+``--cpu`` times by process CPU time instead of wall time: with ``CDMA_LIDAR_THREADS=1``
+the kernels' own time, which other processes' load barely moves (the constants of
+``costs.py`` were fitted that way on the shared 2-core machine).
+
+``--fit`` times each kernel alone (one thread, CPU time, best of 7) on the quick grid up
+to degree 13 and K 400 and on random configurations (``CDMA_LIDAR_BENCH_RANDOM``, default
+30), and prints the constants of ``costs.py`` and each kernel's ``fixed_calls`` fitted
+to them (non-negative least squares on relative errors; ``ram`` from FIT_RAMS), with how
+many plans the fitted and the current constants send within 1.25x of the fastest.
 
 Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
 ``CDMA_LIDAR_BENCH_MAX_SECONDS`` replaces the 60 s limits.
@@ -48,8 +59,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdma_lidar.firmware_model.correlators import choose_correlator, estimates
-from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS
+from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
+from cdma_lidar.firmware_model.correlators.base import _REGISTRY, blas_threads
+from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS, Coefficients
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
 SKIP_FACTOR = 20.0
@@ -103,18 +115,20 @@ def _setup(case: Case) -> tuple[ReceiverConfig, np.ndarray, np.ndarray]:
     return cfg, codes, acc
 
 
-def _best_time(fn, repeats: int) -> float:
+def _best_time(fn, repeats: int, clock=time.perf_counter) -> float:
     t = math.inf
     for _ in range(repeats):
         gc.collect()
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        t = min(t, time.perf_counter() - t0)
+        t = min(t, clock() - t0)
     return t
 
 
-def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS) -> str:
-    """Measure every kernel on one grid point; returns the table row."""
+def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS,
+             clock=time.perf_counter) -> str:
+    """Measure every kernel on one grid point; returns the table row. ``clock``:
+    ``time.perf_counter`` (wall) or ``time.process_time`` (``--cpu``)."""
     n = (1 << case.degree) - 1
     ns = n * case.s
     gate = ns if case.gate == 0 else min(case.gate, ns)
@@ -159,14 +173,15 @@ def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS) -> str:
         if together:
             kept[m] = rx
         else:
-            times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats)
+            times[m] = _best_time(lambda rx=rx: rx.from_accumulators(acc), repeats, clock)
         del rx
 
     def measure() -> None:
         for _ in range(repeats):
             for m, rx in kept.items():
                 times[m] = min(times.get(m, math.inf),
-                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+                               _best_time(lambda rx=rx: rx.from_accumulators(acc), 1,
+                                          clock))
 
     measure()
     for _ in range(RETRIES):  # a stall of the shared machine passes; a wrong choice stays
@@ -231,18 +246,106 @@ def random_cases(seed: int) -> Iterator[Case]:
             yield case
 
 
-def main() -> None:
-    full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
-    random_n = os.environ.get("CDMA_LIDAR_BENCH_RANDOM")
-    if "--random" in sys.argv and random_n is None:
-        random_n = "24"
-    if random_n is not None:
-        seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
-        cases, label, repeats, max_pred = random_cases(seed), \
-            f"{random_n} random configurations (seed {seed})", 7, RANDOM_MAX_SECONDS
-    else:
-        cases, label, repeats, max_pred = full_grid() if full else quick_grid(), \
-            "full grid" if full else "quick grid", 3, SKIP_SECONDS
+#: ``--fit``: the ``ram`` ratios tried, and the largest best prediction of a plan timed.
+FIT_RAMS = (1.8, 3.0, 5.0)
+FIT_MAX_SECONDS = 0.3
+
+
+def kernel_times(plan: GatePlan, repeats: int = 7) -> dict[str, float]:
+    """Each kernel with a finite estimate within 30x of the best, called alone on random
+    chip sums of the plan's shape: process CPU time on one thread (BLAS limited to 1),
+    best of ``repeats`` interleaved across the kernels."""
+    est = {m: e.seconds for m, e in estimates(plan).items() if math.isfinite(e.seconds)}
+    best = min(est.values())
+    bound = plan.y_bound if plan.y_bound is not None else 1 << 11
+    y = np.random.default_rng(0).integers(-bound, bound + 1, (plan.columns, plan.s, plan.n))
+    kernels = {m: _REGISTRY[m](plan) for m, t in est.items() if t <= 30 * best}
+    times = dict.fromkeys(kernels, math.inf)
+    with blas_threads(1):
+        for kernel in kernels.values():
+            kernel(y)  # warm up
+        for _ in range(repeats):
+            for m, kernel in kernels.items():
+                times[m] = min(times[m], _best_time(lambda k=kernel: k(y), 1, time.process_time))
+    return times
+
+
+def _features(plan: GatePlan, ram: float) -> dict[str, np.ndarray]:
+    """Per kernel: its estimate's seconds per unit of mac, byte, fft and call (its own
+    fixed calls taken out), then one column per kernel for its fixed cost."""
+    units = [Coefficients(1, 0, 0, 0, ram), Coefficients(0, 1, 0, 0, ram),
+             Coefficients(0, 0, 1, 0, ram), Coefficients(0, 0, 0, 1, ram)]
+    per = [estimates(plan, u) for u in units]
+    names = list(_REGISTRY)
+    out = {}
+    for m in per[0]:
+        row = [e[m].seconds for e in per]
+        row[3] -= _REGISTRY[m].fixed_calls
+        out[m] = np.array(row + [float(m == k) for k in names])
+    return out
+
+
+def fit(seed: int, random_n: int) -> None:
+    """``--fit``: time the kernels on the quick grid (degree <= 13, K <= 400) and
+    ``random_n`` random configurations, then fit :data:`.costs.COEFFICIENTS` and each
+    kernel's ``fixed_calls`` (non-negative least squares on the relative errors, the
+    ``ram`` of FIT_RAMS that puts the most plans within 1.25x) and print them."""
+    from scipy.optimize import nnls
+
+    cases = [c for c in quick_grid() if c.degree <= 13 and c.k <= 400]
+    draws = random_cases(seed)
+    cases += [next(draws) for _ in range(random_n)]
+    print(f"--fit: {len(cases)} plans (quick grid, {random_n} random of seed {seed}); "
+          f"load average {os.getloadavg()[0]:.2f}", flush=True)
+    data = []
+    for case in cases:
+        cfg, codes, _ = _setup(case)
+        plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+        if min(e.seconds for e in estimates(plan).values()) > FIT_MAX_SECONDS:
+            continue
+        times = kernel_times(plan)
+        data.append((plan, times))
+        print(f"{case.label()} | " + " ".join(f"{m}={t * 1e3:.3f}ms" for m, t in times.items()),
+              flush=True)
+    names = list(_REGISTRY)
+
+    def within(pick) -> tuple[int, float]:
+        ratios = [times[pick(plan, times)] / min(times.values()) for plan, times in data]
+        return sum(r <= 1.25 for r in ratios), max(ratios)
+
+    best = None
+    for ram in FIT_RAMS:
+        feats = [_features(plan, ram) for plan, _ in data]
+        a = np.array([f[m] / t for f, (_, times) in zip(feats, data, strict=True)
+                      for m, t in times.items()])
+        coef, _ = nnls(a, np.ones(len(a)))
+        table = dict(zip((id(plan) for plan, _ in data), feats, strict=True))
+
+        def pick(plan, times, coef=coef, table=table):
+            return min(times, key=lambda name: float(table[id(plan)][name] @ coef))
+
+        score = within(pick)
+        print(f"ram {ram}: mac={coef[0]:.3g} byte={coef[1]:.3g} fft={coef[2]:.3g} "
+              f"call={coef[3]:.3g}, fixed s " + " ".join(
+                  f"{k}={c:.3g}" for k, c in zip(names, coef[4:], strict=True))
+              + f": {score[0]} of {len(data)} within 1.25x, worst x{score[1]:.2f}")
+        if best is None or score[0] > best[0][0]:
+            best = (score, ram, coef)
+    now = within(lambda plan, times: min(times, key=lambda m: estimates(plan)[m].seconds))
+    (score, ram, coef) = best
+    call = coef[3]
+    print(f"fitted: Coefficients(mac={coef[0]:.2g}, byte={coef[1]:.3g}, fft={coef[2]:.2g}, "
+          f"call={call:.2g}, ram={ram}); fixed_calls " + ", ".join(
+              f"{k}={c / call:.0f}" for k, c in zip(names, coef[4:], strict=True) if c)
+          + f"; {score[0]} of {len(data)} plans within 1.25x (worst x{score[1]:.2f}); the "
+          f"constants in the code: {now[0]} (worst x{now[1]:.2f}); load average "
+          f"{os.getloadavg()[0]:.2f}")
+
+
+
+def run_set(cases, label: str, repeats: int, max_pred: float, want: int | None,
+            clock) -> None:
+    """Measure ``cases`` (at most ``want`` rows) and print the rows and a summary line."""
     print(f"kernels on the {label}; cost constants {COEFFICIENTS}; load average "
           f"{os.getloadavg()[0]:.2f}")
     print(f"times per call (from_accumulators: despread .. peaks), best of {repeats} "
@@ -253,13 +356,12 @@ def main() -> None:
     worst, worst_case, n_rows, off = 0.0, "", 0, 0
     only = os.environ.get("CDMA_LIDAR_BENCH_DEGREES")
     degrees = {int(d) for d in only.split(",")} if only else None
-    want = int(random_n) if random_n is not None else None
     for case in cases:
         if want is not None and n_rows >= want:
             break
         if degrees is not None and case.degree not in degrees:
             continue
-        row = run_case(case, repeats, max_pred)
+        row = run_case(case, repeats, max_pred, clock)
         print(row, flush=True)
         if "time x" in row:
             n_rows += 1
@@ -267,9 +369,30 @@ def main() -> None:
             if ratio > worst:
                 worst, worst_case = ratio, case.label()
             off += "off target" in row
-    print(f"{n_rows} rows measured, {off} off target (auto over 1.25x the fastest); worst "
-          f"auto / fastest x{worst:.2f} ({worst_case.strip()}); load average "
-          f"{os.getloadavg()[0]:.2f}")
+    print(f"{label}: {n_rows} rows measured, {off} off target (auto over 1.25x the fastest); "
+          f"worst auto / fastest x{worst:.2f} ({worst_case.strip()}); load average "
+          f"{os.getloadavg()[0]:.2f}", flush=True)
+
+
+def main() -> None:
+    """The grid, then random configurations off it (``--grid``, ``--random``: one only)."""
+    full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
+    only_random = "--random" in sys.argv
+    random_n = int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "24" if only_random else "12"))
+    seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
+    if "--fit" in sys.argv:
+        fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")))
+        return
+    clock = time.process_time if "--cpu" in sys.argv else time.perf_counter
+    if "--cpu" in sys.argv:
+        print("--cpu: process CPU time (run with CDMA_LIDAR_THREADS=1: the kernels' own "
+              "time, which another process's load barely moves)")
+    if not only_random:
+        run_set(full_grid() if full else quick_grid(), "full grid" if full else "quick grid",
+                3, SKIP_SECONDS, None, clock)
+    if "--grid" not in sys.argv and random_n > 0:
+        run_set(random_cases(seed), f"{random_n} random configurations (seed {seed})", 7,
+                RANDOM_MAX_SECONDS, random_n, clock)
 
 
 if __name__ == "__main__":

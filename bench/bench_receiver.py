@@ -1,17 +1,19 @@
 """Receive chain benchmark: the paper frame against the machine's GEMM floor, and per-kernel tables.
 
-1. Paper frame: K = 40 degree-11 Gold codes, S = 4, R = 10, 160 columns, 64-lag
-   gate (12-bit ADC). ``FastReceiver(threads=t).frame`` for every thread count t = 1 ..
-   the machine's, each interleaved with its GEMM floor: one bare float64 product doing
-   the frame's multiply-adds (160 x 2047 x 40 x 66 = 0.865 G; the issue's floor, target
-   <= 1.5) with BLAS limited to t threads; then, at the machine's thread count, float32
+1. Paper frame: K = 40 degree-11 Gold codes, S = 4, R = 10, 160 columns, 64-lag gate
+   (12-bit ADC). ``FastReceiver(threads=t).frame`` for every thread count t = 1 .. the
+   machine's, each interleaved with its GEMM floor: one bare float64 product doing the
+   frame's multiply-adds (160 x 2047 x 40 x 66 = 0.865 G; the issue's floor, target <=
+   1.5) with BLAS limited to t threads; then, at the machine's thread count, float32
    products switched off (``float32_bits=0``), full-scale data (every sample at an ADC
    rail: chip sums far beyond float32's exact range, so float64 products) and the
-   float32 floor; best of 9 each, every ratio within the run. Also the real-time factor against
-   the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms), the plan
-   build, and ``scipy.signal.correlate`` per channel and column (circular, on the
-   R-summed period) on 8 columns scaled to the frame, its gated values checked equal.
-   Then every registered kernel on the same frame, each checked equal to "auto".
+   float32 floor; best of 9 each, every ratio within the run. A frame timed after a
+   threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one).
+   Also the real-time factor against the acquisition time (160 x 10 x 2047 chips / 62.5
+   Mchip/s = 52.4 ms), the plan build, and ``scipy.signal.correlate`` per channel and
+   column (circular, on the R-summed period) on 8 columns scaled to the frame, its gated
+   values checked equal. Then every registered kernel on the same frame, each checked
+   equal to "auto".
 2. Per configuration class (short gate / whole period, one column / a frame, 40 /
    400 / 1200 channels, degrees 11-15) and kernel: time per column, peak traced
    memory, the GEMM floor of the same correlation (N K G multiply-adds at this
@@ -155,13 +157,21 @@ def paper_frame() -> None:
         with correlator_base.blas_threads(t):
             fa @ fb
 
+    def settle() -> None:
+        """Wait out BLAS's worker threads: after a threaded product OpenBLAS's workers
+        spin for tens of ms (measured: ~50 ms, a core's worth when the machine is
+        quiet), and a frame timed meanwhile shares a core with them."""
+        time.sleep(SETTLE_S)
+
     kern = per.kernel_for(columns)
     before = dict(getattr(kern, "products", {}))
     for _ in range(REPEATS):
         for t in counts:
             per.threads = t
+            settle()
             runs[t] += _time(lambda: per.frame(x), 1)
             runs[("floor", t)] += _time(lambda t=t: floor_at(t), 1)
+        settle()
         runs["f64"] += _time(lambda: rx64.frame(x), 1)
         runs["full"] += _time(lambda: rx.frame(x_full), 1)
         runs["floor32"] += _time(lambda: fa32 @ fb32, 1)
@@ -231,6 +241,8 @@ def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray,
 
 
 REPEATS = 9
+#: Pause (s) before a frame timed after a threaded BLAS call (its workers spin meanwhile).
+SETTLE_S = 0.15
 #: Kernels other than auto's choice predicted to need more memory are not run (shared machine).
 MAX_BYTES = 1 << 30
 

@@ -522,13 +522,16 @@ class FastReceiver:
         self._identity_scale = cfg.out_shift == 0 and wd.raw <= cfg.out_bits
         self._local = threading.local()  # per-thread scratch of the post passes
 
-    def _scratch(self, shape: tuple[int, ...]) -> NDArray[np.int64]:
-        """A reused int64 work array of ``shape`` for this thread (never returned to callers):
-        a fresh one would fault its pages in on every frame."""
+    def _scratch(self, shape: tuple[int, ...], dtype: type = np.int64,
+                 name: str = "post") -> NDArray[np.signedinteger]:
+        """A reused work array of ``shape`` and ``dtype`` for this thread, one per ``name``
+        (never returned to callers): a fresh one would fault its pages in on every frame."""
         size = math.prod(shape)
-        buf = getattr(self._local, "buf", None)
+        bufs = self._local.__dict__.setdefault("bufs", {})
+        key = (name, np.dtype(dtype))
+        buf = bufs.get(key)
         if buf is None or buf.size < size:
-            buf = self._local.buf = np.empty(size, dtype=np.int64)
+            buf = bufs[key] = np.empty(size, dtype=dtype)
         return buf[:size].reshape(shape)
 
     def _shared_bytes(self, columns: int) -> float:
@@ -710,7 +713,8 @@ class FastReceiver:
                     d += a[:, p, :]
                 else:
                     d -= a[:, p, :]
-        chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w)
+        chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w,
+                  scratch=self._scratch(w.shape, self._y_type, "chips"))
 
     def _scale_raw(self, raw: NDArray[np.int64]) -> NDArray[np.int64]:
         """``out`` of the kernel's ``raw``: ``raw`` itself when the scaling is the identity."""

@@ -149,6 +149,9 @@ class Correlator(ABC):
 
     #: called once per frame with every column (else once per column range and thread)
     whole_frame: bool = False
+    #: the fixed cost of one call (its Python: buffers, checks, dispatch) in numpy calls
+    #: (:class:`.costs.Coefficients` ``call``); measured per kernel, see ``costs.py``
+    fixed_calls: float = 0.0
 
     def __init__(self, plan: GatePlan) -> None:
         self.plan = plan

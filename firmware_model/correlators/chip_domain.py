@@ -27,7 +27,8 @@ def int_type(bits: int) -> type[np.signedinteger]:
 
 def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
               dtype: type[np.signedinteger] = np.int64,
-              out: NDArray[np.signedinteger] | None = None) -> NDArray[np.signedinteger]:
+              out: NDArray[np.signedinteger] | None = None,
+              scratch: NDArray[np.signedinteger] | None = None) -> NDArray[np.signedinteger]:
     """Integrate-and-dump (C, N*S) -> (C, S, N): ``Y[c,r,m] = sign sum_{t<S} d[(mS+r+t) mod NS]``.
 
     First the circular window sums ``W[i] = sum_{t<S} d[(i + t) mod NS]`` at every
@@ -40,13 +41,16 @@ def chip_sums(d: NDArray[np.integer], s: int, sign: int = 1,
     the first pass reads ``d`` directly). ``dtype`` is the
     integer type of the work and the result: the caller makes it wide enough for
     ``S max|d|`` (and for ``S NS max|d|`` when S > 8, the prefix sums). ``out``, if
-    given, is a (C, N*S) array of ``dtype`` that receives W (the result is its view).
+    given, is a (C, N*S) array of ``dtype`` that receives W (the result is its view);
+    ``scratch``, if given, another one (sharing memory with neither ``d`` nor ``out``)
+    that holds the first intermediate window sums (S <= 8): a caller that keeps it
+    saves faulting in a fresh array's pages on every call (4 ms of a paper frame).
     """
     c, ns = d.shape
     n = ns // s
     if s <= 8:
         w = np.empty((c, ns), dtype=dtype) if out is None else out
-        _window_sums(d, s, sign, w)
+        _window_sums(d, s, sign, w, [] if scratch is None else [scratch])
     else:
         ext = np.empty((c, ns + s), dtype=dtype)
         ext[:, 0] = 0
@@ -67,7 +71,7 @@ def _shifted_add(a: NDArray[np.integer], b: NDArray[np.integer], t: int,
 
 
 def _window_sums(d: NDArray[np.integer], s: int, sign: int,
-                 w: NDArray[np.signedinteger]) -> None:
+                 w: NDArray[np.signedinteger], spare: list[NDArray] | None = None) -> None:
     """``w[:, i] = sign sum_{t<s} d[:, (i + t) mod NS]`` by doubling (s <= 8).
 
     ``p`` holds windows of 1, 2, 4, ... samples (each two of the previous, one pass;
@@ -75,17 +79,23 @@ def _window_sums(d: NDArray[np.integer], s: int, sign: int,
     the windows of the set bits of s, from the largest down, are added into ``w`` at
     the offsets that tile s samples. Every partial sum is a sum of at most s samples,
     computed in ``w``'s type, so ``dtype`` wide enough for ``S max|d|`` holds them all.
+    ``spare``: arrays like ``w`` taken (each once) for intermediates before new ones.
     """
+    spare = [] if spare is None else spare
+
+    def fresh() -> NDArray[np.signedinteger]:
+        return spare.pop() if spare else np.empty_like(w)
+
     if s == 1:
         np.multiply(d, sign, out=w, dtype=w.dtype, casting="unsafe")  # -(-2^15): wide
         return
     p = d
     if sign < 0:  # the window of 1 sample, negated
-        p = np.empty_like(w)
+        p = fresh()
         np.multiply(d, sign, out=p, dtype=p.dtype, casting="unsafe")
     width, top = 1, 1 << (s.bit_length() - 1)
     while width < top:  # p: window of 2 width samples
-        nxt = np.empty_like(w) if width * 2 < top or s != top else w
+        nxt = fresh() if width * 2 < top or s != top else w
         _shifted_add(p, p, width, nxt)
         p, width = nxt, width * 2
     if s == top:

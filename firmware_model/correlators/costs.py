@@ -38,12 +38,13 @@ __all__ = [
 class Coefficients:
     """Seconds per machine primitive (all > 0; the model's are :data:`COEFFICIENTS`).
 
-    ``mac``: one float64 multiply-add inside a large matrix product (BLAS, all
-    threads); ``byte``: one byte read or written by a memory-bound pass (copies,
-    matrix-vector products, casts) on an operand that stays in the cache; ``fft``: one
-    ``L log2 L`` point of a batched real FFT (forward or inverse); ``call``: the fixed
-    overhead of one numpy or BLAS call from Python; ``ram``: how many times a byte
-    streamed from main memory costs more than ``byte`` (a ratio >= 1).
+    ``mac``: one float64 multiply-add inside a matrix product (BLAS on one thread, as
+    fitted: the kernels are compared with each other, not with the machine); ``byte``:
+    one byte read or written by a memory-bound pass (copies, matrix-vector products,
+    casts) on an operand that stays in the cache; ``fft``: one ``L log2 L`` point of a
+    batched real FFT (forward or inverse); ``call``: the fixed overhead of one numpy or
+    BLAS call from Python; ``ram``: how many times a byte streamed from main memory
+    costs more than ``byte`` (a ratio >= 1).
     """
 
     mac: float
@@ -53,12 +54,21 @@ class Coefficients:
     ram: float = 1.0
 
 
-#: The constants of the model: the development machine's (2 cores, OpenBLAS) seconds per
-#: primitive as measured by the micro-benchmarks the model was fitted with (a 768^3
-#: GEMM, matrix-vector products over 4 MiB and 128 MiB, batched FFTs, a loop of tiny
-#: calls), with which ``python -m bench kernels`` measured auto within 1.25x of the
-#: fastest kernel on the whole grid of docs/firmware.md.
-COEFFICIENTS = Coefficients(mac=1.78e-11, byte=6.8e-12, fft=1.57e-10, call=4.2e-7, ram=1.8)
+#: The constants of the model, and the kernels' ``fixed_calls``, fitted to this project's
+#: 2-core development machine (Xeon, AVX-512, 2 MiB L2 per core, OpenBLAS 0.3.31, numpy 2)
+#: on 2026-11-26: each kernel called alone on random chip sums of 92 plans (the quick
+#: grid of ``bench kernels`` up to degree 13 and K 400, and 30 of its random
+#: configurations, seed 0), one thread (BLAS limited to 1), process CPU time, best of
+#: 7 interleaved across the kernels (CPU time because the machine was shared, load
+#: 6-15: wall times swung 2-3x). Non-negative least squares on the relative error of
+#: every kernel's time (the fixed costs as one unknown per kernel), with ``ram`` and
+#: :data:`CACHE_BYTES` chosen from a small grid (1.8/3/5; 2 or 8 MiB) by the most plans
+#: whose predicted-fastest kernel measured within 1.25x of the fastest: 91 of 92 (the
+#: constants before: 85), the worst 1.42x (0.40 against 0.28 ms); on 72 plans not
+#: fitted (the grid timed again, random configurations of seed 7) 69. ``python -m bench
+#: kernels --fit`` does the same (its run afterwards fitted these within 16 %), and
+#: ``python -m bench kernels`` checks the choice end to end (docs/firmware.md, 10).
+COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
 
 
 @dataclass(frozen=True)
@@ -69,8 +79,9 @@ class Estimate:
     peak_bytes: float
 
 
-#: Operands up to this size are taken to stay in cache when a kernel reuses them.
-CACHE_BYTES = 8 << 20
+#: Operands up to this size are taken to stay in cache when a kernel reuses them (a
+#: core's L2 on the development machine; 8 MiB predicted worse, see COEFFICIENTS).
+CACHE_BYTES = 2 << 20
 
 
 #: :data:`COEFFICIENTS`' ``ram``: a byte streamed from main memory costs this many

@@ -38,6 +38,9 @@ def _block(plan: GatePlan) -> int:
 class DirectCorrelator(Correlator):
     """One (C, N) @ (N, K) product per gated lag on a window of the doubled chip sums."""
 
+    #: its Python per call (limbs, doubled rows, output): 0.13 ms measured (costs.py)
+    fixed_calls = 200.0
+
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
         """Per lag a thin product; per phase a copy of the doubled chip sums."""
@@ -47,12 +50,14 @@ class DirectCorrelator(Correlator):
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
         codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # one (K, N) matrix read per lag
+        if cb > 1:  # a product of several rows also packs the codes (as gemm_seconds)
+            codes += 16.0 * n * k * plan.count
         per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
                                    + 3 * co.call)  # slice, product, store
                      + co.byte * codes
                      + active * (co.byte * 8.0 * 3 * cb * n + 2 * co.call)
                      + co.byte * 16.0 * cb * k * plan.count)
-        seconds = blocks * parts * per_block + 4 * co.call
+        seconds = blocks * parts * per_block + cls.fixed_calls * co.call
         peak = 8.0 * n * k + 16.0 * cb * n + 8.0 * c * k * plan.count + 8.0 * cb * k
         return Estimate(seconds, peak)
 

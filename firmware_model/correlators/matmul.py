@@ -98,6 +98,9 @@ class MatmulCorrelator(Correlator):
     and benchmarks.
     """
 
+    #: its Python per call (buffers, float32 test, groups): 0.26 ms measured (costs.py)
+    fixed_calls = 400.0
+
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
         """The products, the operand copies and the output scatter.
@@ -121,8 +124,7 @@ class MatmulCorrelator(Correlator):
         # float32 bound test: on data too large for it, usually one phase copied and summed
         check = 0.0 if single or not plan.float32_limit() else \
             co.byte * 12.0 * cb * n + 6 * co.call
-        # + its Python: buffers, float32 test, groups (measured ~7 us over direct's per call)
-        seconds = blocks * (parts * (prods + moves) + check) + 20 * co.call
+        seconds = blocks * (parts * (prods + moves) + check) + cls.fixed_calls * co.call
         hankel = sum(w for _, w in shapes)
         peak = item * n * k * hankel + item * active * cb * n + item * cb * k * width \
             + 8.0 * c * k * plan.count

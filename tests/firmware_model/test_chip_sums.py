@@ -15,8 +15,8 @@ from cdma_lidar.firmware_model.receiver import ReceiverConfig, fast, reference
 @settings(max_examples=150, deadline=None)
 @given(s=st.integers(1, 12), n=st.integers(1, 9), c=st.integers(1, 3),
        sign=st.sampled_from([1, -1]), kind=st.sampled_from(["uniform", "rails"]),
-       seed=st.integers(0, 2**32 - 1), out=st.booleans())
-def test_chip_sums_equal_the_definition(s, n, c, sign, kind, seed, out):
+       seed=st.integers(0, 2**32 - 1), out=st.booleans(), scratch=st.booleans())
+def test_chip_sums_equal_the_definition(s, n, c, sign, kind, seed, out, scratch):
     rng = np.random.default_rng(seed)
     ns = n * s
     if kind == "uniform":
@@ -25,7 +25,9 @@ def test_chip_sums_equal_the_definition(s, n, c, sign, kind, seed, out):
         d = rng.choice([-(1 << 15), (1 << 15) - 1], (c, ns))
     d = d.astype(np.int16)
     dest = np.empty((c, ns), dtype=np.int32) if out else None
-    y = chip_sums(d, s, sign, np.int32, out=dest)
+    # a kept scratch array (filled with garbage: whatever a previous call left in it)
+    spare = np.full((c, ns), 12345, dtype=np.int32) if scratch else None
+    y = chip_sums(d, s, sign, np.int32, out=dest, scratch=spare)
     assert y.shape == (c, s, n) and y.dtype == np.int32
     big = d.astype(np.int64)
     for r in range(s):

@@ -120,3 +120,32 @@ def test_choosing_writes_nothing_under_the_home_directory(tmp_path, monkeypatch)
     FastReceiver(ReceiverConfig(samples_per_chip=2, gate_len=16), codes)
     choose_correlator(_plan(127, 3, 2, 20), measure=True)
     assert list(home.rglob("*")) == []
+
+
+def test_each_kernels_fixed_cost_is_in_its_estimate_and_decides_the_tiny_plans():
+    """Every call costs the kernel's measured fixed Python (``fixed_calls``): no estimate
+    is below it, and where the work vanishes (one lag, one channel, a short code) the
+    kernel with the smallest fixed cost is chosen."""
+    from cdma_lidar.firmware_model.correlators.base import _REGISTRY
+
+    for plan in (_plan(31, 1, 1, 1), _plan(127, 1, 2, 1), _plan(2047, 40, 4, 66, columns=160)):
+        est = estimates(plan)
+        for name, e in est.items():
+            fixed = _REGISTRY[name].fixed_calls * COEFFICIENTS.call
+            assert e.seconds >= fixed, name
+    tiny = _plan(31, 1, 1, 1)
+    cpu = {m: e for m, e in estimates(tiny).items()  # a GPU's costs are its own
+           if math.isfinite(e.seconds) and not _REGISTRY[m].whole_frame}
+    assert choose(cpu) == min(cpu, key=lambda m: _REGISTRY[m].fixed_calls)
+    # a kernel's fixed cost moves its estimate by exactly that many calls
+    cheap = Coefficients(mac=1e-11, byte=1e-11, fft=1e-10, call=1e-6, ram=2.0)
+    for name in ("matmul", "direct", "fft"):
+        cls = _REGISTRY[name]
+        with_fixed = cls.estimate(tiny, cheap).seconds
+        saved = cls.fixed_calls
+        try:
+            cls.fixed_calls = 0.0
+            assert math.isclose(with_fixed - cls.estimate(tiny, cheap).seconds, saved * 1e-6,
+                                rel_tol=1e-9), name
+        finally:
+            cls.fixed_calls = saved
