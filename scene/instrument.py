@@ -585,6 +585,13 @@ class Instrument:
 
         return scipy.fft.irfft(total, n=length, overwrite_x=True)
 
+    @staticmethod
+    def echo_tabulated(cfg: RenderSettings) -> bool:
+        """Whether ``accumulated`` renders echoes from waveform tables under ``cfg`` (the
+        tables of every code member fit ECHO_CACHE_BYTES) or by the Fourier synthesis."""
+        return (TABLE_PHASES + 1) * cfg.frame_samples * 8 * len(set(cfg.code_index)) \
+            <= ECHO_CACHE_BYTES
+
     def tabulated_echo(self, column: int, cfg: RenderSettings,
                        power_w: NDArray[np.float64] | None = None,
                        calibration: bool = False, out: NDArray[np.float32] | None = None
@@ -1062,7 +1069,7 @@ class Instrument:
         offset_lsb = offset / (1 << FRAC_BITS)
         r, length = cfg.averages, cfg.frame_samples
         block = np.zeros((len(items), length), dtype=np.float32)
-        table = (TABLE_PHASES + 1) * length * 8 * len(set(cfg.code_index)) <= ECHO_CACHE_BYTES
+        table = self.echo_tabulated(cfg)
         for j, (col, power) in enumerate(items):
             if table:
                 self.tabulated_echo(col, cfg, power, calibration=calibration, out=block[j])

@@ -207,17 +207,25 @@ def acquisition_time_s(columns: int, repetitions: int, uid_bits: int, degree: in
     return columns * repetitions * uid_bits * ((1 << degree) - 1) / chip_rate_hz
 
 
-def simulation_work(lit: int, samples: int, repetitions: int, how: str) -> int:
-    """Values the simulator computes for one column of ``samples`` (L) per repetition.
+def simulation_work(lit: int, samples: int, repetitions: int, how: str,
+                    tabulated: bool = False) -> int:
+    """Operations the simulator performs for one column of ``samples`` (L) per repetition.
 
-    Echo synthesis (a static scene's, once per frame when cold): ``lit (L/2 + 1)`` bins
-    of the per-channel kernel and ``L ceil(log2 L)`` for the inverse FFT when anything
-    is lit. Noise and ADC, by ``how`` the column's repetition sum was made:
-    ``"exact"`` (the sum drawn from its law) L Gaussians, (R - 1) L uniform words and
-    L floors; ``"accumulated"`` L Gaussians and L floors; ``"repetitions"`` (drawn one
-    by one) R L Gaussians and R L quantisations.
+    Echo synthesis (a static scene's, once per frame when cold), in real multiply-adds:
+    by the Fourier synthesis ``4 lit (L/2 + 1)`` (one complex multiply-add per bin of
+    each lit channel's kernel) and ``2 L ceil(log2 L)`` for the inverse FFT when anything
+    is lit; from waveform tables (``tabulated``: the ``accumulated`` level where they
+    fit) two axpys of L per lit channel, ``2 lit L``. Noise and ADC, in values drawn or
+    quantised, by ``how`` the column's repetition sum was made: ``"exact"`` (the sum
+    drawn from its law) L Gaussians, (R - 1) L uniform bytes and L floors;
+    ``"accumulated"`` L table Gaussians and L floors; ``"repetitions"`` (drawn one by
+    one) R L Gaussians and R L quantisations.
     """
-    echo = lit * (samples // 2 + 1) + (samples * math.ceil(math.log2(samples)) if lit else 0)
+    if tabulated and how == "accumulated":
+        echo = 2 * lit * samples
+    else:
+        echo = 4 * lit * (samples // 2 + 1) + (
+            2 * samples * math.ceil(math.log2(samples)) if lit else 0)
     noise = {"exact": (repetitions + 1) * samples, "accumulated": 2 * samples,
              "repetitions": 2 * repetitions * samples}[how]
     return echo + noise
@@ -261,7 +269,8 @@ def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
                 acc = rx.accumulate(raw[None, :])[0]
                 how = "repetitions"
             accs.append(acc)
-            work += simulation_work(int(lit[col]), length, cfg.averages, how)
+            work += simulation_work(int(lit[col]), length, cfg.averages, how,
+                                    tabulated=inst.echo_tabulated(cfg))
         tb = time.process_time()
         outs = rx.from_accumulators(np.stack(accs))
         cpu_rx += time.process_time() - tb
