@@ -54,6 +54,7 @@ __all__ = [
     "decode_payload",
     "encode_payload",
     "kind_of",
+    "type_name",
 ]
 
 
@@ -63,6 +64,14 @@ class MsgKind(enum.Enum):
     REQUEST = "request"
     REPLY = "reply"
     STREAM = "stream"
+
+
+def type_name(msg_type: int) -> str:
+    """The name of a message type, or its hex value when unknown."""
+    try:
+        return MsgType(msg_type).name
+    except ValueError:
+        return f"0x{msg_type:02x}"
 
 
 def kind_of(msg_type: int) -> MsgKind:

@@ -34,7 +34,6 @@ from cdma_lidar.protocol.columns import (
     column_payload_size,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL
-from cdma_lidar.protocol.endpoint import FRAGMENT_HEADER, MAX_PIECES
 from cdma_lidar.protocol.messages import (
     DEVICE_RULES,
     ERROR_DOCS,
@@ -44,6 +43,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     encode_payload,
 )
+from cdma_lidar.protocol.transmit import FRAGMENT_HEADER, MAX_PIECES
 
 __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
