@@ -33,6 +33,7 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
 
 __all__ = [
@@ -145,7 +146,8 @@ ERROR_DOCS = {
     "time (seconds)",
     ErrorCode.NOT_AVAILABLE: "RESEND of a column no longer kept, or capture not available",
     ErrorCode.TOO_LARGE: "the result would exceed the max frame size",
-    ErrorCode.VERSION: "protocol version not supported; header carries the device's version",
+    ErrorCode.VERSION: "protocol version not supported; sent plain in the request's version "
+    "(section 9), field `version`, detail `device speaks protocol version N`",
     ErrorCode.UNSUPPORTED_FLAGS: "an incompat flag bit this device does not know",
     ErrorCode.WRONG_SESSION: "request carries another session id: send HELLO again",
     ErrorCode.INTERNAL: "the device failed while acting on the request",
@@ -325,7 +327,7 @@ _MESSAGE_LIST = [
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         u("protocol_version", 8, "protocol version spoken (2)"),
+         u("protocol_version", 8, f"protocol version spoken ({PROTOCOL_VERSION})"),
          u("session_id", 32, "session id chosen for this HELLO, also in every frame header",
            lo=1, hi=2**32 - 1),
          u("session_idle_ms", 32, "a session idle this long may be taken by another host "
@@ -403,8 +405,8 @@ _MESSAGE_LIST = [
          u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
          u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
     _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
-         "COLUMN_RESULT, or a reply such as INFO): `count` pieces, in order, of "
-         "ceil(len / (max_frame - 27 - signature)) bytes each but the last.",
+         "COLUMN_RESULT, a reply such as INFO, or a notice): `count` = ceil(len / L) pieces, "
+         "in order, of L = max_frame - 27 bytes (- 24 more when signed) each but the last.",
          u("msg_type", 8, "type of the whole message"),
          u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
          u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
@@ -412,7 +414,7 @@ _MESSAGE_LIST = [
          u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
          blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
-              allowed="1..max_frame-27 bytes")),
+              allowed="1..L bytes (L = max_frame-27, -24 when signed)")),
     _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
          "a host waiting for a reply sends its request again at once.",
          u("rx_errors", 32, "rejected chunks since boot")),

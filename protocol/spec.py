@@ -24,7 +24,7 @@ import construct as cs
 
 from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.protocol import auth, fec, framing
+from cdma_lidar.protocol import auth, fec, framing, trust
 from cdma_lidar.protocol.columns import (
     COLUMN_HEADER,
     FLAG_CALIBRATION,
@@ -215,6 +215,13 @@ def config_table() -> str:
                    "device range (else OUT_OF_RANGE)", "read-only", "meaning"), rows)
 
 
+def info_ranges_table() -> str:
+    """Physical range of each INFO field with a unit (what a host checks, section 8)."""
+    return _table(("INFO field", "allowed (inclusive)", "unit"),
+                  [(f"`{name}`", f"{lo}..{hi}", unit) for name, (lo, hi, unit)
+                   in trust.INFO_RANGES.items()])
+
+
 def errors_table() -> str:
     """NAK error codes."""
     return _table(("code", "name", "meaning"),
@@ -298,6 +305,7 @@ SECTIONS: dict[str, Callable[[], str]] = {
     "column_size": column_size,
     "config": config_table,
     "errors": errors_table,
+    "info_ranges": info_ranges_table,
     "ranges": ranges_table,
     "examples": examples,
     "vectors": vectors,
