@@ -43,19 +43,8 @@ from pathlib import Path
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
-__all__ = [
-    "KEY_BYTES",
-    "MAC_BYTES",
-    "NONCE_BYTES",
-    "Backoff",
-    "FrameSigner",
-    "FrameVerifier",
-    "device_mac",
-    "hello_mac",
-    "load_key",
-    "load_or_create_key",
-    "session_keys",
-]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameSigner", "FrameVerifier",
+           "device_mac", "hello_mac", "load_key", "load_or_create_key", "session_keys"]
 
 log = logging.getLogger(__name__)
 

@@ -165,6 +165,9 @@ class DeviceEndpoint:
         peer: who is on the other end (an IP address), for the per-peer back-off after
             failed authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
+        threads: False: no worker threads; each :meth:`poll` also handles the queued
+            requests and one column of a running stream (tests step the device with
+            an injected clock; ``poll_s`` may then be 0).
     """
 
     def __init__(self, port: Any, app: DeviceApp | None = None, *,
@@ -172,13 +175,14 @@ class DeviceEndpoint:
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
                  poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
-                 fec: bool = True, clock: Callable[[], float] = time.monotonic) -> None:
+                 fec: bool = True, clock: Callable[[], float] = time.monotonic,
+                 threads: bool = True) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
         check_int("ring_columns", ring_columns, 0, 65535)
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
-        if not 0 < poll_s <= 1:
+        if not (0 < poll_s or not threads) or poll_s > 1:
             raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin)", poll_s)
         check_int("replay_depth", replay_depth, 1, 32768)
         if session_id is not None:  # 0 or None: random
@@ -195,6 +199,7 @@ class DeviceEndpoint:
         self.sessionless_since = core.clock()
         self.max_frame, self.ring_columns, self.heartbeat_s = max_frame, ring_columns, heartbeat_s
         self.replay_depth, self.clock, self.fec = replay_depth, clock, fec
+        self.threads = threads
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
         self.tx = Transmitter(port, session_id or sessions.new_session_id(), max_frame,
@@ -258,6 +263,9 @@ class DeviceEndpoint:
             streams.stop_stream(self, ScanEndReason.ABORTED, send_end=False)
             self.core.release(self)
             self.session_open = False
+        if not self.threads and self.latest is not None:  # no worker to end it
+            with self.core.app_lock:
+                streams.finish(self, self.latest)
         if self._worker is not None:
             self._queue.put(None)
             if self._worker is not threading.current_thread():
@@ -297,6 +305,13 @@ class DeviceEndpoint:
         # Replies and notices now; repairs in a bounded share while a column worker runs
         # (it sends the rest); everything when no stream runs.
         self.tx.flush(REPAIR if worker else FRESH, _POLL_REPAIR_BYTES if worker else None)
+        if not self.threads:  # what the workers would do meanwhile
+            while not self._queue.empty():
+                item = self._queue.get()
+                assert item is not None
+                self._serve_one(*item)
+            if self.latest is not None and not self.latest.finished:
+                streams.step(self, self.latest)
 
     def _count_rx(self) -> None:
         """Add what the decoder counted since the last call to the core's totals."""
@@ -371,7 +386,7 @@ class DeviceEndpoint:
 
     def _enqueue(self, frame: Frame, checked: bool) -> None:
         self._queued += 1
-        if self._worker is None:
+        if self._worker is None and self.threads:
             self._worker = threading.Thread(target=self._serve_requests, daemon=True,
                                             name="cdma-lidar-requests")
             self._worker.start()
@@ -433,23 +448,26 @@ class DeviceEndpoint:
         """Request worker: handles, in order, the requests that need the application."""
         while True:
             item = self._queue.get()
-            if item is None:
+            if item is None or not self._serve_one(*item):
                 return
-            frame, checked = item
-            try:
-                with self.core.app_lock, self.lock:
-                    self._queued -= 1
-                    if checked:
-                        self._respond(frame, zlib.crc32(bytes([frame.msg_type]) + frame.payload))
-                    else:
-                        self._process(frame, True)
-                    idle = self.stream is None
-                self.tx.flush(FRESH if idle else CONTROL)
-            except OSError as exc:  # the port went away
-                log.warning("request worker stops: %s", exc)
-                return
-            except Exception:  # a bug must not take the device off the line
-                log.exception("request worker failed on %s", type_name(frame.msg_type))
+
+    def _serve_one(self, frame: Frame, checked: bool) -> bool:
+        """Handle one queued request; False when the port went away."""
+        try:
+            with self.core.app_lock, self.lock:
+                self._queued -= 1
+                if checked:
+                    self._respond(frame, zlib.crc32(bytes([frame.msg_type]) + frame.payload))
+                else:
+                    self._process(frame, True)
+                idle = self.stream is None
+            self.tx.flush(FRESH if idle else CONTROL)
+        except OSError as exc:
+            log.warning("request worker stops: %s", exc)
+            return False
+        except Exception:  # a bug must not take the device off the line
+            log.exception("request worker failed on %s", type_name(frame.msg_type))
+        return True
 
     def _respond(self, frame: Frame, key: int, reply: Reply | None = None) -> None:
         """Act on one request (or send ``reply``, decided already), cache and send its

@@ -1,21 +1,11 @@
 """Message catalogue: every payload declared once with construct, with units and ranges.
 
-Message types are split by range, so even an unknown type says who sent it::
-
-    0x01..0x7F  request   host -> device; answered by exactly one reply with the same seq
-    0x80..0xBF  reply     device -> host; header seq = the request's seq
-    0xC0..0xFF  stream    device -> host, unsolicited; header seq = device stream counter
-
-Each field is declared with :func:`u` / :func:`i` / :func:`text` / :func:`array` /
-:func:`blob`, which wrap a construct subcon and attach a :class:`FieldMeta` (C type,
-unit, allowed range, description). From that one declaration come the encoder's
-range checks (:func:`encode_payload` raises FieldError naming the field), the
-strict decoder (:func:`decode_payload` raises FrameError only), the spec tables
-in ``docs/protocol.md`` (``python -m cdma_lidar.protocol.spec``) and :data:`SCHEMA_CRC`.
-
-CONFIG_SET / CONFIG carry key-length-value items whose keys are declared in
-:mod:`cdma_lidar.protocol.config_keys`; INFO and STATUS have typed views in
-:mod:`cdma_lidar.protocol.views`.
+The type byte's range says who sends it (request 0x01..0x7F, reply 0x80..0xBF, stream
+0xC0..0xFF; :func:`kind_of`). Fields are declared with :mod:`~cdma_lidar.protocol.schema`;
+from that one declaration come the encoder's range checks (:func:`encode_payload` raises
+FieldError naming the field), the strict decoder (:func:`decode_payload` raises
+FrameError only), the tables of ``docs/protocol.md`` (:mod:`~cdma_lidar.protocol.spec`)
+and :data:`SCHEMA_CRC`.
 """
 
 from __future__ import annotations
@@ -36,27 +26,10 @@ from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
 
-__all__ = [
-    "DEVICE_RULES",
-    "ERROR_DOCS",
-    "MESSAGES",
-    "REPLY_TO",
-    "SCHEMA_CRC",
-    "Auth",
-    "CaptureKind",
-    "ErrorCode",
-    "HelloFlags",
-    "MessageSpec",
-    "MsgKind",
-    "MsgType",
-    "ScanEndReason",
-    "SessionLostReason",
-    "State",
-    "decode_payload",
-    "encode_payload",
-    "kind_of",
-    "type_name",
-]
+__all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
+           "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
+           "ScanEndReason", "SessionLostReason", "State", "decode_payload", "encode_payload",
+           "kind_of", "type_name"]
 
 
 class MsgKind(enum.Enum):
@@ -117,24 +90,25 @@ class MsgType(enum.IntEnum):
 
 
 class ErrorCode(enum.IntEnum):
-    """NAK error codes (u16)."""
+    """NAK error codes (u16); meanings in :data:`ERROR_DOCS`."""
 
-    MALFORMED = 1  #: payload does not parse or a field is outside its wire range
-    UNKNOWN_TYPE = 2  #: request type not implemented by this device
-    UNKNOWN_KEY = 3  #: CONFIG key not known and not flagged optional
-    OUT_OF_RANGE = 4  #: a value is outside what this device supports (field names it)
-    READ_ONLY = 5  #: CONFIG_SET of a read-only key
-    BUSY = 6  #: a scan runs (abort it first), or HELLO: another host owns the session
-    NOT_AVAILABLE = 7  #: RESEND of a column no longer kept, or CAPTURE data not available
-    TOO_LARGE = 8  #: the result would not fit in the max frame size
-    VERSION = 9  #: protocol version not supported (the NAK carries the device's version)
-    UNSUPPORTED_FLAGS = 10  #: an incompat flag bit this device does not know
-    WRONG_SESSION = 11  #: request carries another session id: send HELLO again
-    INTERNAL = 12  #: the device failed while acting on the request
-    AUTH_REQUIRED = 13  #: unsigned request to a device that requires signed frames
-    AUTH_FAILED = 14  #: HELLO's MAC does not match: the host holds another key
+    MALFORMED = 1
+    UNKNOWN_TYPE = 2
+    UNKNOWN_KEY = 3
+    OUT_OF_RANGE = 4
+    READ_ONLY = 5
+    BUSY = 6
+    NOT_AVAILABLE = 7
+    TOO_LARGE = 8
+    VERSION = 9
+    UNSUPPORTED_FLAGS = 10
+    WRONG_SESSION = 11
+    INTERNAL = 12
+    AUTH_REQUIRED = 13
+    AUTH_FAILED = 14
 
 
+#: What each NAK code means (the spec's error table).
 ERROR_DOCS = {
     ErrorCode.MALFORMED: "payload does not parse, or a field is outside its wire range",
     ErrorCode.UNKNOWN_TYPE: "request type not implemented by this device",

@@ -25,7 +25,7 @@ from cdma_lidar.protocol.transmit import FRESH, MAX_PIECES
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceEndpoint
 
-__all__ = ["HANDLERS", "Stream", "finish", "stop_stream"]
+__all__ = ["HANDLERS", "Stream", "finish", "step", "stop_stream"]
 
 log = logging.getLogger(__name__)
 
@@ -67,9 +67,10 @@ def _start(ep: DeviceEndpoint, req: Frame, gen_factory: Callable[[], Iterator[Co
     ep.stream = ep.latest = st
     ep.last_frame = frame
     ep.last_heartbeat = ep.clock()
-    worker = threading.Thread(target=_produce, args=(ep, st), daemon=True,
-                              name=f"cdma-lidar-frame-{frame}")
-    after.append(worker.start)  # after the ACK is on the wire
+    if ep.threads:
+        worker = threading.Thread(target=_produce, args=(ep, st), daemon=True,
+                                  name=f"cdma-lidar-frame-{frame}")
+        after.append(worker.start)  # after the ACK is on the wire
     return ack(ep, req)
 
 
@@ -120,50 +121,22 @@ HANDLERS = {MsgType.SCAN_START: _scan_start, MsgType.CALIBRATE: _calibrate,
 
 
 def _produce(ep: DeviceEndpoint, st: Stream) -> None:
-    """Worker thread of one stream: pull columns from the app and send them in order."""
-    reason = ScanEndReason.COMPLETE
+    """Worker thread of one stream."""
+    while step(ep, st):
+        pass
+
+
+def step(ep: DeviceEndpoint, st: Stream) -> bool:
+    """Pull one column from the app and send it; False once the stream is over and
+    finished (its worker then exits). Never runs ahead of the line."""
     try:
-        while not st.stopped and st.produced < st.count:
-            try:
-                with ep.core.app_lock:
-                    if st.stopped:
-                        break
-                    col = next(st.gen)
-                if col.frame != st.frame or col.calibration != st.calibration:
-                    col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
-                payload = encode_column(col)
-                if ep.tx.pieces(len(payload), ep.tx.signer is not None) > MAX_PIECES:
-                    log.error("frame %d column %d: %d bytes need more than %d fragments at max "
-                              "frame %d", st.frame, col.column, len(payload), MAX_PIECES,
-                              ep.tx.max_frame)
-                    reason = ScanEndReason.ERROR
-                    break
-            except StopIteration:
-                log.warning("application ended frame %d after %d of %d columns", st.frame,
-                            st.produced, st.count)
-                reason = ScanEndReason.ERROR
-                break
-            except Exception:
-                log.exception("application failed during frame %d", st.frame)
-                reason = ScanEndReason.ERROR
-                break
-            with ep.lock:
-                if st.stopped:
-                    break
-                key = (st.frame, col.column)
-                ep.ring[key] = payload
-                ep.ring.move_to_end(key)
-                while len(ep.ring) > ep.ring_columns:
-                    ep.tx.cuts.pop(ep.ring.popitem(last=False)[0], None)
-                st.produced += 1
-                ep.count_column()
-                ep.tx.column(key, payload)
-                if st.produced >= st.count:
-                    # End the stream under the same lock that queued its last column:
-                    # a SCAN_START arriving right after must not find it still busy.
-                    stop_stream(ep, reason)
-            # Replies and repairs first, then this column: never ahead of the line.
-            ep.tx.flush(FRESH, wait=True)
+        if not st.stopped and st.produced < st.count:
+            reason = _next_column(ep, st)
+            if reason is None:
+                ep.tx.flush(FRESH, wait=True)  # replies and repairs first, then this column
+                return True
+        else:
+            reason = ScanEndReason.COMPLETE
         with ep.lock:
             if not st.stopped:
                 stop_stream(ep, reason)
@@ -182,9 +155,48 @@ def _produce(ep: DeviceEndpoint, st: Stream) -> None:
                     stop_stream(ep, ScanEndReason.ERROR)
                 except Exception:
                     log.exception("cannot send SCAN_END of frame %d", st.frame)
-    finally:
+    with ep.core.app_lock:
+        finish(ep, st)
+    return False
+
+
+def _next_column(ep: DeviceEndpoint, st: Stream) -> ScanEndReason | None:
+    """Compute, keep and queue the next column; the reason to end the stream, or None."""
+    try:
         with ep.core.app_lock:
-            finish(ep, st)
+            if st.stopped:
+                return ScanEndReason.COMPLETE
+            col = next(st.gen)
+        if col.frame != st.frame or col.calibration != st.calibration:
+            col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
+        payload = encode_column(col)
+        if ep.tx.pieces(len(payload), ep.tx.signer is not None) > MAX_PIECES:
+            log.error("frame %d column %d: %d bytes need more than %d fragments at max frame "
+                      "%d", st.frame, col.column, len(payload), MAX_PIECES, ep.tx.max_frame)
+            return ScanEndReason.ERROR
+    except StopIteration:
+        log.warning("application ended frame %d after %d of %d columns", st.frame, st.produced,
+                    st.count)
+        return ScanEndReason.ERROR
+    except Exception:
+        log.exception("application failed during frame %d", st.frame)
+        return ScanEndReason.ERROR
+    with ep.lock:
+        if st.stopped:
+            return ScanEndReason.COMPLETE
+        key = (st.frame, col.column)
+        ep.ring[key] = payload
+        ep.ring.move_to_end(key)
+        while len(ep.ring) > ep.ring_columns:
+            ep.tx.cuts.pop(ep.ring.popitem(last=False)[0], None)
+        st.produced += 1
+        ep.count_column()
+        ep.tx.column(key, payload)
+        if st.produced >= st.count:
+            # End the stream under the same lock that queued its last column: a
+            # SCAN_START arriving right after must not find it still busy.
+            stop_stream(ep, ScanEndReason.COMPLETE)
+    return None
 
 
 def finish(ep: DeviceEndpoint, st: Stream) -> None:

@@ -19,6 +19,7 @@ from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode
+from cdma_lidar.protocol.pipes import pipe_pair
 from cdma_lidar.protocol.views import Info
 
 
@@ -153,3 +154,49 @@ def hello_fields(nonce: int, max_frame: int = 65535, flags: int = 0) -> dict[str
     return {"host_max_frame": max_frame, "flags": flags,
             "host_nonce": nonce.to_bytes(16, "little"), "device_nonce": bytes(16),
             "mac": bytes(32)}
+
+
+class SteppedDevice:
+    """A threadless DeviceEndpoint behind the host end of a pipe, on an injected clock.
+
+    The object is the host's port: every ``read`` or ``in_waiting`` first polls the
+    device once (it reads the requests, answers them, sends one column of a running
+    stream). A read that finds nothing moves the shared clock ``now`` on by
+    ``tick_s``, so host timeouts, heartbeats and idle limits come due without real
+    waiting and without a second thread. Give the host ``clock=dev.clock``.
+    """
+
+    def __init__(self, app: DeviceApp | None, *, tick_s: float = 0.001,
+                 now: list[float] | None = None, **kw: Any) -> None:
+        self.now = [100.0] if now is None else now  # shared by devices of one core
+        self.tick_s = tick_s
+        self.host, dev = pipe_pair()
+        self.name = "stepped://device"
+        self.timeout: float | None = 0.0
+        self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, threads=False, poll_s=0.0,
+                                       **kw)
+
+    def clock(self) -> float:
+        return self.now[0]
+
+    @property
+    def in_waiting(self) -> int:
+        self.endpoint.poll()
+        return self.host.rx.available()
+
+    def read(self, n: int = 1) -> bytes:
+        self.endpoint.poll()
+        data = self.host.rx.read(n, 0)
+        if not data:
+            self.now[0] += self.tick_s
+        return data
+
+    def write(self, data: bytes) -> int:
+        return self.host.write(data)
+
+    def flush(self) -> None:
+        """Nothing to flush."""
+
+    def close(self) -> None:
+        self.endpoint.close()
+        self.host.close()
