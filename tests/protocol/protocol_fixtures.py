@@ -180,6 +180,11 @@ class SteppedDevice:
         return self.now[0]
 
     @property
+    def rx(self) -> Any:
+        """The pipe the host reads (a test injects frames into it)."""
+        return self.host.rx
+
+    @property
     def in_waiting(self) -> int:
         self.endpoint.poll()
         return self.host.rx.available()
@@ -200,3 +205,9 @@ class SteppedDevice:
     def close(self) -> None:
         self.endpoint.close()
         self.host.close()
+
+    def __enter__(self) -> DeviceEndpoint:
+        return self.endpoint
+
+    def __exit__(self, *exc: object) -> None:
+        self.endpoint.close()

@@ -8,7 +8,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
+from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.protocol import cobs, framing
@@ -203,7 +203,6 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
     """A column too large for 254 fragments: SCAN_END reason 2, and the device stays usable."""
-    host, dev = pipe_pair()
 
     class Growing(SyntheticApp):
         def _columns(self, frame, first, count, calibration):  # type: ignore[override]
@@ -212,8 +211,9 @@ def test_worker_failure_outside_the_application_ends_the_stream() -> None:
             yield from super()._columns(frame, first + 1, count - 1, calibration)
 
     app = Growing(channels=8, columns=10)
-    with RunningDevice(dev, app, max_frame=256, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.05, retries=2)
+    port = SteppedDevice(app, max_frame=256, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=2, clock=port.clock)
         got = []
         with pytest.raises(LinkError):
             for c in link.scan(columns=5):
@@ -305,10 +305,10 @@ def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     from cdma_lidar.protocol.link import DIAG_SILENT
     from cdma_lidar.protocol.pipes import Faults
 
-    host, dev = pipe_pair()
-    app = SyntheticApp(columns=40, column_delay_s=0.01)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.05, retries=1)
+    port = SteppedDevice(SyntheticApp(columns=40), heartbeat_s=0.02)
+    dev = port.endpoint.port
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=1, clock=port.clock)
         link.hello()
         got = []
         with pytest.raises(LinkTimeout) as exc:
