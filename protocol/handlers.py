@@ -19,7 +19,7 @@ from cdma_lidar.errors import DeviceError, FieldError
 from cdma_lidar.protocol.columns import column_payload_size
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import OVERHEAD, Frame, frame_size
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload, head_size
 from cdma_lidar.protocol.transmit import FRAGMENT_HEADER, MAX_PIECES
 
 if TYPE_CHECKING:
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 #: A reply as cached for replay: (type, payload, signed); signed afresh each time sent.
 Reply = tuple[MsgType, bytes, bool]
 _READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
-_CAPTURE_HEADER = 18  # CAPTURE_DATA bytes before the data
+_CAPTURE_HEADER = head_size(MsgType.CAPTURE_DATA)  # bytes before the data (14)
 
 
 def reply(ep: DeviceEndpoint, req: Frame, msg_type: MsgType, payload: bytes) -> Reply:

@@ -29,7 +29,7 @@ from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, 
 __all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
            "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
            "ScanEndReason", "SessionLostReason", "State", "decode_payload", "encode_payload",
-           "kind_of", "type_name"]
+           "head_size", "kind_of", "type_name"]
 
 
 class MsgKind(enum.Enum):
@@ -401,6 +401,11 @@ _MESSAGE_LIST = [
 
 #: Every message type, by type.
 MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
+
+
+def head_size(msg_type: MsgType) -> int:
+    """Payload bytes before the trailing data field (FRAGMENT, CAPTURE_DATA)."""
+    return sum(sc.sizeof() for sc in MESSAGES[msg_type].fields[:-1])
 #: Reply type of each request.
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
 

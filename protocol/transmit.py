@@ -25,7 +25,7 @@ from cdma_lidar.protocol.framing import (
     encode_frame,
     frame_size,
 )
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload, type_name
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload, head_size, type_name
 
 __all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Transmitter"]
 
@@ -33,8 +33,8 @@ log = logging.getLogger(__name__)
 
 #: Transmit classes, sent in this order.
 CONTROL, REPAIR, FRESH = 0, 1, 2
-#: FRAGMENT payload bytes before the data.
-FRAGMENT_HEADER = 11
+#: FRAGMENT payload bytes before the data (11).
+FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
 #: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
 MAX_PIECES = 254
 _SESSION = object()  # "the session's signer / coding", resolved when queued

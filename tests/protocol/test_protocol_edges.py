@@ -318,3 +318,18 @@ def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
                     dev.tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
     assert got[:3] == [0, 1, 2] and len(got) < 40
     assert exc.value.diagnosis == DIAG_SILENT and "STATUS_GET" in str(exc.value)
+
+
+def test_a_capture_chunk_fills_the_frame_exactly() -> None:
+    """The CAPTURE_DATA header size comes from its declaration: a chunk is as long as the
+    session's frame allows, never longer."""
+    port = SteppedDevice(SyntheticApp(channels=4, columns=8))
+    with port:
+        link = HostLink(port, timeout_s=0.2, max_frame=256, clock=port.clock)
+        link.hello()
+        sent = []
+        write = port.endpoint.port.write
+        port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
+        link.capture("raw", column=1)
+        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        assert max(sizes) == 256
