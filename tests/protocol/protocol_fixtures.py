@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -50,6 +50,7 @@ class SyntheticApp(DeviceApp):
         self.channels = channels
         self.columns = columns
         self.column_delay_s = column_delay_s
+        self.tick: Callable[[], None] | None = None
         self.config: dict[str, Any] = {
             "poly_u": (11, 2), "poly_v": (11, 8, 5, 2), "code_index": tuple(range(channels)),
             "uid_bits": 1, "uid": 0, "samples_per_chip": 4, "averages": 10, "adc_bits": 12,
@@ -102,6 +103,8 @@ class SyntheticApp(DeviceApp):
                 raise RuntimeError(f"sensor fault at column {col}")
             if self.column_delay_s:
                 time.sleep(self.column_delay_s)
+            if self.tick is not None:  # a column takes time on an injected clock
+                self.tick()
             yield expected_column(frame, col, self.channels, self.config["peaks"],
                                   self.config["uid_bits"], calibration)
 
