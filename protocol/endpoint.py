@@ -137,13 +137,6 @@ class DeviceApp(abc.ABC):
         return TEMPERATURE_UNKNOWN, 0
 
 
-class _Cached:
-    """A request's CRC (type + payload) and its reply, for retransmission replay."""
-
-    def __init__(self, key: int, reply: Reply) -> None:
-        self.key, self.reply = key, reply
-
-
 class DeviceEndpoint:
     """Protocol engine of one connection to the device. See the module docstring.
 
@@ -206,7 +199,8 @@ class DeviceEndpoint:
                               (self.stats, core.totals))
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
-        self._replay: OrderedDict[int, _Cached] = OrderedDict()
+        #: seq -> (CRC of the request's type and payload, its reply), for replay.
+        self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self.stream: Stream | None = None
         self.latest: Stream | None = None  # the last stream started, running or not
@@ -417,10 +411,10 @@ class DeviceEndpoint:
             self.core.touch(self)
         key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
         cached = self._replay.get(frame.seq)
-        if cached is not None and cached.key == key:
+        if cached is not None and cached[0] == key:
             self.stats.replays += 1
             self.core.totals.replays += 1
-            self._send_reply(frame, cached.reply)
+            self._send_reply(frame, cached[1])
             return
         if not is_hello and self.last_seq is not None:
             age = (self.last_seq - frame.seq) & 0xFFFF
@@ -492,7 +486,7 @@ class DeviceEndpoint:
                 self._replay.clear()
         else:
             self.last_seq = frame.seq
-        self._replay[frame.seq] = _Cached(key, reply)
+        self._replay[frame.seq] = (key, reply)
         self._replay.move_to_end(frame.seq)
         while len(self._replay) > self.replay_depth:
             self._replay.popitem(last=False)
