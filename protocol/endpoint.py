@@ -175,8 +175,9 @@ class DeviceEndpoint:
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
-        if not (0 < poll_s or not threads) or poll_s > 1:
-            raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin)", poll_s)
+        if not (0 < poll_s <= 1 or (poll_s == 0 and not threads)):
+            raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin; allowed "
+                               "with threads=False)", poll_s)
         check_int("replay_depth", replay_depth, 1, 32768)
         if session_id is not None:  # 0 or None: random
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
@@ -230,11 +231,6 @@ class DeviceEndpoint:
     @session.setter
     def session(self, value: int) -> None:
         self.tx.session = value
-
-    @property
-    def streaming(self) -> bool:
-        """True while a scan or calibration stream runs."""
-        return self.stream is not None
 
     def serve_forever(self, stop: threading.Event) -> None:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
