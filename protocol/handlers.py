@@ -18,9 +18,9 @@ import numpy as np
 from cdma_lidar.errors import DeviceError, FieldError
 from cdma_lidar.protocol.columns import column_payload_size
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import OVERHEAD, Frame, frame_size
+from cdma_lidar.protocol.framing import Frame, frame_size
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload, head_size
-from cdma_lidar.protocol.transmit import FRAGMENT_HEADER, MAX_PIECES
+from cdma_lidar.protocol.transmit import MAX_PIECES
 
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -66,8 +66,7 @@ def _frame_size(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
     new = min(ep.max_frame, f["host_max_frame"])
     if ep.stream is not None and ep.info is not None and ep.config is not None:
         size = column_payload_size(ep.info.channels, int(ep.config.get("peaks", 1)))
-        room = new - frame_size(FRAGMENT_HEADER, ep.tx.signer is not None)
-        if size + OVERHEAD > new and -(-size // room) > MAX_PIECES:
+        if ep.tx.pieces(size, ep.tx.signer is not None, new) > MAX_PIECES:
             return nak(ep, req, ErrorCode.TOO_LARGE, "host_max_frame",
                        f"a column of {size} bytes would need more than {MAX_PIECES} "
                        f"fragments at {new} bytes")

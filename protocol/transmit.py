@@ -156,11 +156,13 @@ class Transmitter:
             if cls == REPAIR:
                 self._repairs.clear()
 
-    def pieces(self, payload_len: int, signed: bool) -> int:
-        """Frames a payload takes: 1 if it fits the max frame, else its FRAGMENT count."""
-        if frame_size(payload_len, signed) <= self.max_frame:
+    def pieces(self, payload_len: int, signed: bool, max_frame: int = 0) -> int:
+        """Frames a payload takes at ``max_frame`` (0: the session's): 1 if it fits one
+        frame, else its FRAGMENT count."""
+        max_frame = max_frame or self.max_frame
+        if frame_size(payload_len, signed) <= max_frame:
             return 1
-        return -(-payload_len // (self.max_frame - frame_size(FRAGMENT_HEADER, signed)))
+        return -(-payload_len // (max_frame - frame_size(FRAGMENT_HEADER, signed)))
 
     def notice(self, msg_type: MsgType, payload: bytes, compat: int = 0, cls: int = CONTROL,
                repair: tuple[int, int, int] | None = None) -> None:
