@@ -334,3 +334,18 @@ def test_a_capture_chunk_fills_the_frame_exactly() -> None:
         link.capture("raw", column=1)
         sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
         assert max(sizes) == 256
+
+
+def test_frame_size_shrinks_the_devices_frames_from_its_ack_on() -> None:
+    """FRAME_SIZE (no longer sent by the v3 host, still served): new columns come cut to it."""
+    port = SteppedDevice(SyntheticApp(channels=40, columns=3))
+    with port:
+        link = HostLink(port, timeout_s=0.2, clock=port.clock)
+        link.hello()
+        link._request(MsgType.FRAME_SIZE, {"host_max_frame": 96})
+        sent: list[bytes] = []
+        write = port.endpoint.port.write
+        port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
+        assert [c.column for c in link.scan(frame=4)] == [0, 1, 2]
+        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        assert len(sizes) > 3 * 20 and max(sizes) <= 96  # 1.6 kB columns in pieces
