@@ -170,10 +170,11 @@ class SteppedDevice:
     """
 
     def __init__(self, app: DeviceApp | None, *, tick_s: float = 0.001,
-                 now: list[float] | None = None, **kw: Any) -> None:
+                 now: list[float] | None = None, faults: Any = None, seed: int = 0,
+                 **kw: Any) -> None:
         self.now = [100.0] if now is None else now  # shared by devices of one core
         self.tick_s = tick_s
-        self.host, dev = pipe_pair()
+        self.host, dev = pipe_pair(faults, faults, seed=seed)  # the same Faults both ways
         self.name = "stepped://device"
         self.timeout: float | None = 0.0
         self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, threads=False, poll_s=0.0,

@@ -163,18 +163,26 @@ class _RecordingApp(SyntheticApp):
         self.log.append(("abort", self.log[-1][1] if self.log else -1))
 
 
+def _until_a_column_is_out(ep: DeviceEndpoint) -> None:
+    """Wait (a condition, not a time) until the scan's generator has produced a column."""
+    deadline = time.monotonic() + 10.0
+    while (ep.latest is None or ep.latest.produced == 0) and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert ep.latest is not None and ep.latest.produced > 0
+
+
 def test_an_ended_stream_is_cleaned_up_before_the_next_one_starts() -> None:
     """SCAN_ABORT then SCAN_START at once: the app closes scan 1 before it is asked for scan 2."""
     host, dev = pipe_pair()
     host.timeout = 0.02
     app = _RecordingApp()
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         def send(t: MsgType, fields: dict, seq: int) -> bytes:
             return encode_frame(t, encode_payload(t, fields), seq, 0xABCD)
 
         host.write(send(MsgType.HELLO, hello_fields(1, 65535), 1))
         host.write(send(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 50}, 2))
-        time.sleep(0.05)  # the worker is inside a column of frame 1
+        _until_a_column_is_out(ep)  # the worker is inside a later column of frame 1
         host.write(send(MsgType.SCAN_ABORT, {}, 3) +
                    send(MsgType.SCAN_START, {"frame": 2, "first_column": 0, "columns": 2}, 4))
         dec = FrameDecoder()
@@ -286,10 +294,10 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
     def send(t: MsgType, fields: dict, seq: int, session: int) -> None:
         host.write(encode_frame(t, encode_payload(t, fields), seq, session))
 
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         send(MsgType.HELLO, hello_fields(1, 65535), 1, 0)
         send(MsgType.SCAN_START, {"frame": 5, "first_column": 0, "columns": 50}, 2, 0xABCD)
-        time.sleep(0.05)
+        _until_a_column_is_out(ep)
         send(MsgType.HELLO, hello_fields(2, 65535, flags=1), 900, 0)  # take over
         dec = FrameDecoder()
         info: list[Frame] = []
