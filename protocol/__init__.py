@@ -21,9 +21,11 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
 * :mod:`cdma_lidar.protocol.ports` -- :func:`~cdma_lidar.protocol.ports.open_port`
   (pyserial URLs), :class:`~cdma_lidar.protocol.ports.FdPort` (pty, socket).
 * :mod:`cdma_lidar.protocol.endpoint` -- the device end
-  :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection, sharing a
-  :class:`~cdma_lidar.protocol.endpoint.DeviceCore`: the session owner) in front of a
-  :class:`~cdma_lidar.protocol.endpoint.DeviceApp`.
+  :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection) in front of
+  a :class:`~cdma_lidar.protocol.endpoint.DeviceApp`, with its jobs in
+  :mod:`~cdma_lidar.protocol.sessions` (the shared :class:`DeviceCore`, HELLO, take-over),
+  :mod:`~cdma_lidar.protocol.streams` (scans, RESEND), :mod:`~cdma_lidar.protocol.handlers`
+  (the other requests) and :mod:`~cdma_lidar.protocol.transmit` (the transmit queue).
 * :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns put back together and
   what to ask again (``feed``, ``ready``, ``due(now)``).
 * :mod:`cdma_lidar.protocol.requests` -- the host's requests: send, await the reply on an

@@ -1,30 +1,13 @@
 """Access control: the shared key, HELLO's challenge-response and per-session frame signing.
 
-A device reachable over a network holds a 32-byte key (a file created mode 0600 with
-:func:`load_or_create_key`); a host must hold the same key. No key ever travels.
-
-HELLO (since version 2) is a challenge-response with HMAC-SHA256::
-
-    host   HELLO(host_nonce16, mac = 0)               -> device
-    device CHALLENGE(device_nonce16)                  -> host    (fresh per challenge)
-    host   HELLO(host_nonce16, device_nonce16,
-                 mac = HMAC(key, "cdma-lidar hello" | device_nonce | host_nonce
-                            | flags | host_max_frame))   -> device
-    device INFO(..., device_mac = HMAC(key, "cdma-lidar device" | host_nonce
-                                       | device_nonce | session_id))  -> host
-
-Both sides then derive one key per direction from the exchange
-(:func:`session_keys`) and sign **every** later frame of the session, in the spirit
-of MAVLink 2 signing: incompat bit 0 set, and 24 bytes between payload and CRC::
-
-    counter  u64 LE   strictly increasing per direction within the session
-    mac      16 B     HMAC-SHA256(direction key, header | payload | counter)[:16]
-
-A receiver drops (and counts) a signed frame whose MAC is wrong or whose counter is
-not above the last one it accepted in that direction, so a recorded frame cannot be
-replayed and a frame of one direction cannot be reflected back. Retransmissions are
-signed afresh (new counter, same seq and payload), so the replay cache still
-recognises them.
+docs/protocol.md section 5 is the contract. A device reachable over a network holds a
+32-byte key (a file, mode 0600: :func:`load_or_create_key`); a host must hold the same
+key, which never travels. HELLO proves it with HMAC-SHA256 both ways
+(:func:`hello_mac`, :func:`device_mac`); both sides then derive one key per direction
+(:func:`session_keys`) and sign every later frame: a u64 counter, strictly increasing
+per direction, and the first 16 bytes of HMAC(direction key, header | payload |
+counter) between payload and CRC (:class:`FrameSigner`, :class:`FrameVerifier`). A
+retransmission is signed afresh, so the replay cache still recognises it.
 """
 
 from __future__ import annotations
@@ -43,19 +26,8 @@ from pathlib import Path
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
-__all__ = [
-    "KEY_BYTES",
-    "MAC_BYTES",
-    "NONCE_BYTES",
-    "Backoff",
-    "FrameSigner",
-    "FrameVerifier",
-    "device_mac",
-    "hello_mac",
-    "load_key",
-    "load_or_create_key",
-    "session_keys",
-]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameSigner", "FrameVerifier",
+           "device_mac", "hello_mac", "load_key", "load_or_create_key", "session_keys"]
 
 log = logging.getLogger(__name__)
 

@@ -13,20 +13,18 @@ no zero. The trailing implied zero of the last block is dropped::
 The encoding is never longer than ``n + 1 + n // 254`` bytes and contains no 0x00,
 so 0x00 can delimit frames on the wire (see :mod:`cdma_lidar.protocol.framing`).
 
-:func:`encode` and :func:`decode` use the C extension of the ``cobs`` package when it
-is installed (about 2 us for a 4 KB frame) and the pure-Python reference
-:func:`encode_py` / :func:`decode_py` otherwise; the two are tested byte for byte.
+:func:`encode` and :func:`decode` use the C extension of the ``cobs`` package (a base
+dependency, about 2 us for a 4 KB frame); the pure-Python reference :func:`encode_py` /
+:func:`decode_py` is tested against it byte for byte.
 """
 
 from __future__ import annotations
 
-import logging
+from cobs import cobs as _ccobs
 
 from cdma_lidar.errors import FrameError
 
-__all__ = ["HAVE_C_COBS", "decode", "decode_py", "encode", "encode_py", "max_encoded_len"]
-
-log = logging.getLogger(__name__)
+__all__ = ["decode", "decode_py", "encode", "encode_py", "max_encoded_len"]
 
 
 def max_encoded_len(n: int) -> int:
@@ -78,30 +76,17 @@ def decode_py(enc: bytes) -> bytes:
     return bytes(out)
 
 
-try:  # pragma: no cover - depends on the installed package
-    from cobs import cobs as _ccobs
-
-    HAVE_C_COBS = True
-except ImportError:  # pragma: no cover
-    _ccobs = None
-    HAVE_C_COBS = False
-    log.info("cobs C extension not installed; using the pure-Python COBS codec")
-
-
 def encode(data: bytes) -> bytes:
-    """COBS-encode ``data``; byte-identical to :func:`encode_py`."""
-    if _ccobs is not None:
-        return _ccobs.encode(data)
-    return encode_py(data)
+    """COBS-encode ``data`` (the ``cobs`` package's C extension); byte-identical to
+    :func:`encode_py`."""
+    return _ccobs.encode(data)
 
 
 def decode(enc: bytes) -> bytes:
     """COBS-decode ``enc`` (no delimiters); raises FrameError (only) if malformed."""
-    if _ccobs is not None:
-        if not enc:
-            raise FrameError("COBS: empty input")
-        try:
-            return _ccobs.decode(enc)
-        except _ccobs.DecodeError as exc:
-            raise FrameError(f"COBS: {exc}") from None
-    return decode_py(enc)
+    if not enc:
+        raise FrameError("COBS: empty input")
+    try:
+        return _ccobs.decode(enc)
+    except _ccobs.DecodeError as exc:
+        raise FrameError(f"COBS: {exc}") from None

@@ -26,16 +26,8 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.poly import mask_to_poly, poly_to_mask
 from cdma_lidar.rounding import ROUNDING_MODES
 
-__all__ = [
-    "CONFIG_KEYS",
-    "CONFIG_OPTIONAL",
-    "MODES",
-    "ConfigKey",
-    "DecodedConfig",
-    "config_key",
-    "decode_config",
-    "encode_config",
-]
+__all__ = ["CONFIG_KEYS", "CONFIG_OPTIONAL", "MODES", "ConfigKey", "DecodedConfig", "config_key",
+           "decode_config", "encode_config"]
 
 #: Bit 7 of a key id: a device that does not know this key ignores it.
 CONFIG_OPTIONAL = 0x80

@@ -23,16 +23,13 @@ of a damaged block is ``reedsolo``'s.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
+import reedsolo
 
 from cdma_lidar.errors import FrameError
 
 __all__ = ["BLOCK", "DATA", "NSYM", "body_len", "coded_len", "decode", "encode", "encode_reference",
            "strip", "whiten"]
-
-log = logging.getLogger(__name__)
 
 #: Parity bytes per block: corrects 8 damaged bytes per block.
 NSYM = 16
@@ -40,23 +37,7 @@ NSYM = 16
 BLOCK = 255
 DATA = BLOCK - NSYM
 
-try:  # pragma: no cover - depends on the installed package
-    import reedsolo
-    from reedsolo import ReedSolomonError, RSCodec
-except ImportError:  # pragma: no cover
-    reedsolo = None  # type: ignore[assignment]
-    RSCodec = None  # type: ignore[assignment,misc]
-    ReedSolomonError = Exception  # type: ignore[assignment,misc]
-
-_codec = RSCodec(NSYM, nsize=BLOCK) if RSCodec is not None else None
-
-
-def _need() -> object:
-    if _codec is None:
-        raise ImportError("forward error correction needs the reedsolo package: "
-                          "pip install reedsolo (or install cdma-lidar with its base "
-                          "dependencies)")
-    return _codec
+_codec = reedsolo.RSCodec(NSYM, nsize=BLOCK)
 
 
 def coded_len(d: int) -> int:
@@ -86,36 +67,23 @@ def whiten(data: bytes) -> bytes:
 
 
 def _gf_tables() -> tuple[np.ndarray, np.ndarray]:
-    """(MUL, U): GF(2^8) products (poly 0x11D) and the parity of each unit message.
+    """(MUL, U): GF(2^8) products (reedsolo's tables, poly 0x11D) and the parity of each
+    unit message.
 
     ``U[e]`` is the remainder of ``x^(NSYM + e)`` modulo the generator
     ``g(x) = prod_{i<16} (x - 2^i)``, highest degree first: the parity of a message whose
     only non-zero byte is a 1, ``e`` bytes before its end. The code is linear over
     GF(2^8), so a message's parity is the XOR of ``m_i * U[e_i]``.
     """
-    exp = np.zeros(512, np.int64)
-    x = 1
-    for i in range(255):
-        exp[i] = x
-        x <<= 1
-        if x & 0x100:
-            x ^= 0x11D
-    exp[255:510] = exp[:255]
-    log_ = np.zeros(256, np.int64)
-    log_[exp[:255]] = np.arange(255)
-    mul = exp[(log_[:, None] + log_[None, :])].astype(np.uint8)
-    mul[0, :] = 0
-    mul[:, 0] = 0
-    g = np.array([1], np.uint8)  # generator, highest degree first
-    for i in range(NSYM):
-        root = int(exp[i])
-        g = np.append(g, 0) ^ np.concatenate(([0], mul[root, g]))
-    low = g[1:]  # g = x^16 + low(x)
+    exp = np.frombuffer(bytes(reedsolo.gf_exp[:255]), np.uint8).astype(np.int64)
+    log_ = np.frombuffer(bytes(reedsolo.gf_log), np.uint8).astype(np.int64)
+    mul = exp[(log_[:, None] + log_[None, :]) % 255].astype(np.uint8)
+    mul[0, :] = mul[:, 0] = 0
+    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^16 + low
     u = np.zeros((DATA, NSYM), np.uint8)
     u[0] = low
     for e in range(1, DATA):  # x * U[e-1] mod g
-        lead, rest = u[e - 1, 0], np.append(u[e - 1, 1:], 0).astype(np.uint8)
-        u[e] = rest ^ mul[lead, low]
+        u[e] = np.append(u[e - 1, 1:], 0).astype(np.uint8) ^ mul[u[e - 1, 0], low]
     return mul, u
 
 
@@ -165,7 +133,7 @@ def encode(body: bytes) -> bytes:
 
 def encode_reference(body: bytes) -> bytes:
     """:func:`encode` by ``reedsolo`` (the reference the fast encoder is tested against)."""
-    return whiten(bytes(_need().encode(body)))  # type: ignore[attr-defined]
+    return whiten(bytes(_codec.encode(body)))
 
 
 def strip(coded: bytes) -> bytes:
@@ -199,7 +167,6 @@ def decode(coded: bytes) -> bytes:
     plain = np.frombuffer(whiten(coded), np.uint8).copy()
     if not plain.size:
         return b""
-    _need()
     syn = _syndromes(plain)
     for b in np.flatnonzero(syn.any(axis=1)):
         block = plain[b * BLOCK:(b + 1) * BLOCK]
@@ -208,7 +175,7 @@ def decode(coded: bytes) -> bytes:
             loc = reedsolo.rs_find_error_locator(synd, NSYM)
             pos = reedsolo.rs_find_errors(loc[::-1], block.size, 2)
             fixed = reedsolo.rs_correct_errata(bytearray(block.tobytes()), synd, pos, 0, 2)
-        except (ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
+        except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: block {b}: {exc}") from None
         block[:] = np.frombuffer(bytes(fixed), np.uint8)
     return b"".join(plain[i:i + BLOCK][:-NSYM].tobytes() for i in range(0, plain.size, BLOCK))

@@ -1,73 +1,33 @@
 """Frame layer: header, CRC-32 and COBS with 0x00 delimiters; a stream decoder that never raises.
 
-One frame on the wire::
+One frame on the wire (docs/protocol.md section 2; the header is :data:`HEADER_FIELDS`,
+frozen in every protocol version)::
 
-    00 | COBS( header(12) | payload(len) | crc32(4) ) | 00
+    00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
-    header, little-endian (frozen in every protocol version):
-    off size field
-      0   1  version          PROTOCOL_VERSION (3)
-      1   1  incompat_flags   a receiver drops a frame with an unknown bit set
-      2   1  compat_flags     unknown bits are ignored
-      3   1  msg_type         see cdma_lidar.protocol.messages.MsgType
-      4   2  seq              request: host counter; reply: its request's; stream: device counter
-      6   2  payload_len      bytes of payload
-      8   4  session_id       chosen at random by the device at boot; 0 from a host before HELLO
-
-    incompat bit 0 (INCOMPAT_SIGNED): a 24-byte signature (u64 counter, 16-byte
-    truncated HMAC-SHA256, see cdma_lidar.protocol.auth) sits between payload and CRC;
-    payload_len still counts the payload only.
-
-    crc32 = CRC-32/ISO-HDLC (zlib.crc32: reflected poly 0xEDB88320, init and xorout
-            0xFFFFFFFF) over header and payload, stored little-endian.
-
-The delimiter before the frame ends any garbage the receiver has buffered, so it
-resynchronises at the next frame whatever came before; the one after ends the frame
-at once (no timeout needed). Two delimiters in a row are an empty frame and are
-skipped silently.
-
-:class:`FrameDecoder` turns any byte stream into :class:`Frame` objects. It never
-raises on wire bytes: garbage, bit flips, truncation, oversize frames, wrong versions
-and unknown incompatible flags become counts in :class:`DecoderStats`.
+The signature is there when incompat bit 0 (INCOMPAT_SIGNED) is set
+(:mod:`cdma_lidar.protocol.auth`). crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header,
+payload and signature, little-endian. A session with FEC Reed-Solomon codes the body
+inside COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
+stream into :class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import struct
 import zlib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import cobs, fec
 
-__all__ = [
-    "COMPAT_RETRANSMIT",
-    "CRC_SIZE",
-    "DELIMITER",
-    "FRAME_LIMIT",
-    "HEADER",
-    "HEADER_FIELDS",
-    "HEADER_SIZE",
-    "INCOMPAT_KNOWN",
-    "INCOMPAT_SIGNED",
-    "MIN_MAX_FRAME",
-    "OVERHEAD",
-    "PROTOCOL_VERSION",
-    "SIGNATURE_SIZE",
-    "DecoderStats",
-    "Frame",
-    "FrameDecoder",
-    "Signer",
-    "crc32",
-    "decode_frame",
-    "encode_frame",
-    "frame_size",
-    "max_wire_len",
-]
+__all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
+           "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
+           "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
+           "crc32", "decode_frame", "encode_frame", "frame_size", "max_wire_len"]
 
 log = logging.getLogger(__name__)
 
@@ -255,12 +215,6 @@ class DecoderStats:
         return self.cobs + self.short + self.crc + self.length + self.oversize + \
             self.version + self.incompat
 
-    def as_dict(self) -> dict[str, int]:
-        """Counters by name (``errors`` included)."""
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
-        d["errors"] = self.errors
-        return d
-
 
 class FrameDecoder:
     """Stream decoder: feed it any slices of the byte stream, get whole frames back.
@@ -343,72 +297,58 @@ class FrameDecoder:
         return out
 
     def _chunk(self, chunk: bytes, out: list[Frame]) -> None:
-        """Decode one chunk; with ``fec``, two damaged chunks with one 0x00 between them
-        are tried once more as one frame whose byte there was damaged into 0x00."""
-        n = len(out)
-        self._one(chunk, out)
-        if not self.fec:
-            return
-        if len(out) > n:
-            self._split = None
-            return
-        before, self._split = self._split, chunk
-        if before is not None and len(before) + len(chunk) < self._max_chunk:
-            self._one(before + b"\x01" + chunk, out, quiet=True)
-            if len(out) > n:
-                self.stats.rejoined += 1
-                self._split = None
-
-    def _one(self, chunk: bytes, out: list[Frame], quiet: bool = False) -> None:
+        """Decode and count one chunk; with ``fec``, two damaged chunks with one 0x00
+        between them are tried once more as one frame whose byte there was damaged into
+        0x00 (that second reading counts only if it gives a frame)."""
         st = self.stats
+        got = self._read(chunk)
+        if isinstance(got, str):
+            setattr(st, got, getattr(st, got) + 1)
+            if not self.fec:
+                return
+            before, self._split = self._split, chunk
+            if before is None or len(before) + len(chunk) >= self._max_chunk:
+                return
+            got = self._read(before + b"\x01" + chunk)
+            if isinstance(got, str):
+                return
+            st.rejoined += 1
+        self._split = None
+        frame, corrected = got
+        st.frames += 1
+        st.corrected += corrected
+        out.append(frame)
+
+    def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:
+        """(frame, corrected by FEC), or the name of the counter its rejection goes to."""
         if len(chunk) > self._max_chunk:
-            st.oversize += 1
-            return
-        if quiet:  # a second reading of chunks already counted: count only success
-            saved = dataclasses.replace(st)
-            self.stats = DecoderStats()
-            try:
-                self._one(chunk, out)
-            finally:
-                frames = self.stats.frames
-                corrected = self.stats.corrected
-                self.stats = saved
-                saved.frames += frames
-                saved.corrected += corrected
-            return
+            return "oversize"
         try:
             body = cobs.decode(chunk)
         except FrameError:
-            st.cobs += 1
-            return
+            return "cobs"
         if len(body) > fec.coded_len(self._max_frame):
-            st.oversize += 1
-            return
+            return "oversize"
         try:
             try:
-                frame = decode_frame(body)
+                return decode_frame(body), False
             except _Rejected:
                 raise
             except FrameError:
                 if not self.fec:
                     raise
-                frame = self._coded(body)
+                return self._coded(body)
         except _Rejected as exc:
-            setattr(st, exc.reason, getattr(st, exc.reason) + 1)
             if len(self.rejected) < 64:
                 self.rejected.append(exc.frame)
-            return
+            return exc.reason
         except FrameError as exc:
-            reason = str(exc).split(":", 1)[0]
-            setattr(st, reason, getattr(st, reason) + 1)
-            return
-        st.frames += 1
-        out.append(frame)
+            return str(exc).split(":", 1)[0]
 
-    def _coded(self, body: bytes) -> Frame:
+    def _coded(self, body: bytes) -> tuple[Frame, bool]:
         """Read ``body`` as a coded frame; raises the plain reading's FrameError if not."""
         try:
-            return decode_frame(fec.strip(body))._replace(fec=True)
+            return decode_frame(fec.strip(body))._replace(fec=True), False
         except _Rejected as exc:
             exc.frame = exc.frame._replace(fec=True)
             raise
@@ -417,13 +357,5 @@ class FrameDecoder:
         try:
             fixed = fec.decode(body)
         except FrameError:
-            return decode_frame(body)  # raises: the chunk is damaged either way
-        frame = decode_frame(fixed)._replace(fec=True)  # _Rejected / FrameError propagate
-        self.stats.corrected += 1
-        return frame
-
-    def reset(self) -> None:
-        """Forget buffered bytes (counters are kept)."""
-        self._buf.clear()
-        self._skipping = False
-        self.rejected.clear()
+            return decode_frame(body), False  # raises: the chunk is damaged either way
+        return decode_frame(fixed)._replace(fec=True), True  # _Rejected / FrameError propagate

@@ -1,21 +1,11 @@
 """Message catalogue: every payload declared once with construct, with units and ranges.
 
-Message types are split by range, so even an unknown type says who sent it::
-
-    0x01..0x7F  request   host -> device; answered by exactly one reply with the same seq
-    0x80..0xBF  reply     device -> host; header seq = the request's seq
-    0xC0..0xFF  stream    device -> host, unsolicited; header seq = device stream counter
-
-Each field is declared with :func:`u` / :func:`i` / :func:`text` / :func:`array` /
-:func:`blob`, which wrap a construct subcon and attach a :class:`FieldMeta` (C type,
-unit, allowed range, description). From that one declaration come the encoder's
-range checks (:func:`encode_payload` raises FieldError naming the field), the
-strict decoder (:func:`decode_payload` raises FrameError only), the spec tables
-in ``docs/protocol.md`` (``python -m cdma_lidar.protocol.spec``) and :data:`SCHEMA_CRC`.
-
-CONFIG_SET / CONFIG carry key-length-value items whose keys are declared in
-:mod:`cdma_lidar.protocol.config_keys`; INFO and STATUS have typed views in
-:mod:`cdma_lidar.protocol.views`.
+The type byte's range says who sends it (request 0x01..0x7F, reply 0x80..0xBF, stream
+0xC0..0xFF; :func:`kind_of`). Fields are declared with :mod:`~cdma_lidar.protocol.schema`;
+from that one declaration come the encoder's range checks (:func:`encode_payload` raises
+FieldError naming the field), the strict decoder (:func:`decode_payload` raises
+FrameError only), the tables of ``docs/protocol.md`` (:mod:`~cdma_lidar.protocol.spec`)
+and :data:`SCHEMA_CRC`.
 """
 
 from __future__ import annotations
@@ -33,28 +23,13 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
 
-__all__ = [
-    "DEVICE_RULES",
-    "ERROR_DOCS",
-    "MESSAGES",
-    "REPLY_TO",
-    "SCHEMA_CRC",
-    "Auth",
-    "CaptureKind",
-    "ErrorCode",
-    "HelloFlags",
-    "MessageSpec",
-    "MsgKind",
-    "MsgType",
-    "ScanEndReason",
-    "SessionLostReason",
-    "State",
-    "decode_payload",
-    "encode_payload",
-    "kind_of",
-]
+__all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
+           "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
+           "ScanEndReason", "SessionLostReason", "State", "decode_payload", "encode_payload",
+           "head_size", "kind_of", "type_name"]
 
 
 class MsgKind(enum.Enum):
@@ -63,6 +38,14 @@ class MsgKind(enum.Enum):
     REQUEST = "request"
     REPLY = "reply"
     STREAM = "stream"
+
+
+def type_name(msg_type: int) -> str:
+    """The name of a message type, or its hex value when unknown."""
+    try:
+        return MsgType(msg_type).name
+    except ValueError:
+        return f"0x{msg_type:02x}"
 
 
 def kind_of(msg_type: int) -> MsgKind:
@@ -107,24 +90,25 @@ class MsgType(enum.IntEnum):
 
 
 class ErrorCode(enum.IntEnum):
-    """NAK error codes (u16)."""
+    """NAK error codes (u16); meanings in :data:`ERROR_DOCS`."""
 
-    MALFORMED = 1  #: payload does not parse or a field is outside its wire range
-    UNKNOWN_TYPE = 2  #: request type not implemented by this device
-    UNKNOWN_KEY = 3  #: CONFIG key not known and not flagged optional
-    OUT_OF_RANGE = 4  #: a value is outside what this device supports (field names it)
-    READ_ONLY = 5  #: CONFIG_SET of a read-only key
-    BUSY = 6  #: a scan runs (abort it first), or HELLO: another host owns the session
-    NOT_AVAILABLE = 7  #: RESEND of a column no longer kept, or CAPTURE data not available
-    TOO_LARGE = 8  #: the result would not fit in the max frame size
-    VERSION = 9  #: protocol version not supported (the NAK carries the device's version)
-    UNSUPPORTED_FLAGS = 10  #: an incompat flag bit this device does not know
-    WRONG_SESSION = 11  #: request carries another session id: send HELLO again
-    INTERNAL = 12  #: the device failed while acting on the request
-    AUTH_REQUIRED = 13  #: unsigned request to a device that requires signed frames
-    AUTH_FAILED = 14  #: HELLO's MAC does not match: the host holds another key
+    MALFORMED = 1
+    UNKNOWN_TYPE = 2
+    UNKNOWN_KEY = 3
+    OUT_OF_RANGE = 4
+    READ_ONLY = 5
+    BUSY = 6
+    NOT_AVAILABLE = 7
+    TOO_LARGE = 8
+    VERSION = 9
+    UNSUPPORTED_FLAGS = 10
+    WRONG_SESSION = 11
+    INTERNAL = 12
+    AUTH_REQUIRED = 13
+    AUTH_FAILED = 14
 
 
+#: What each NAK code means (the spec's error table).
 ERROR_DOCS = {
     ErrorCode.MALFORMED: "payload does not parse, or a field is outside its wire range",
     ErrorCode.UNKNOWN_TYPE: "request type not implemented by this device",
@@ -136,7 +120,8 @@ ERROR_DOCS = {
     "time (seconds)",
     ErrorCode.NOT_AVAILABLE: "RESEND of a column no longer kept, or capture not available",
     ErrorCode.TOO_LARGE: "the result would exceed the max frame size",
-    ErrorCode.VERSION: "protocol version not supported; header carries the device's version",
+    ErrorCode.VERSION: "protocol version not supported; sent plain in the request's version "
+    "(section 9), field `version`, detail `device speaks protocol version N`",
     ErrorCode.UNSUPPORTED_FLAGS: "an incompat flag bit this device does not know",
     ErrorCode.WRONG_SESSION: "request carries another session id: send HELLO again",
     ErrorCode.INTERNAL: "the device failed while acting on the request",
@@ -316,7 +301,7 @@ _MESSAGE_LIST = [
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         u("protocol_version", 8, "protocol version spoken (2)"),
+         u("protocol_version", 8, f"protocol version spoken ({PROTOCOL_VERSION})"),
          u("session_id", 32, "session id chosen for this HELLO, also in every frame header",
            lo=1, hi=2**32 - 1),
          u("session_idle_ms", 32, "a session idle this long may be taken by another host "
@@ -394,8 +379,8 @@ _MESSAGE_LIST = [
          u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
          u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
     _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
-         "COLUMN_RESULT, or a reply such as INFO): `count` pieces, in order, of "
-         "ceil(len / (max_frame - 27 - signature)) bytes each but the last.",
+         "COLUMN_RESULT, a reply such as INFO, or a notice): `count` = ceil(len / L) pieces, "
+         "in order, of L = max_frame - 27 bytes (- 24 more when signed) each but the last.",
          u("msg_type", 8, "type of the whole message"),
          u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
          u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
@@ -403,7 +388,7 @@ _MESSAGE_LIST = [
          u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
          blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
-              allowed="1..max_frame-27 bytes")),
+              allowed="1..L bytes (L = max_frame-27, -24 when signed)")),
     _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
          "a host waiting for a reply sends its request again at once.",
          u("rx_errors", 32, "rejected chunks since boot")),
@@ -416,6 +401,11 @@ _MESSAGE_LIST = [
 
 #: Every message type, by type.
 MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
+
+
+def head_size(msg_type: MsgType) -> int:
+    """Payload bytes before the trailing data field (FRAGMENT, CAPTURE_DATA)."""
+    return sum(sc.sizeof() for sc in MESSAGES[msg_type].fields[:-1])
 #: Reply type of each request.
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
 

@@ -70,9 +70,10 @@ def _named(name: str, sub: cs.Construct, meta: FieldMeta) -> cs.Renamed:
 
 
 def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> cs.Renamed:
-    """Unsigned little-endian integer field of ``bits`` bits, optional [lo, hi]."""
-    sub, ctype, nlo, nhi = _INT[("u", bits)]
+      hi: int | None = None, allowed: str = "", kind: str = "u") -> cs.Renamed:
+    """Little-endian integer field of ``bits`` bits, unsigned (``kind`` "u") or two's
+    complement ("i"), optionally limited to [lo, hi]."""
+    sub, ctype, nlo, nhi = _INT[(kind, bits)]
     return _named(name, sub, FieldMeta(ctype, unit, nlo if lo is None else lo,
                                        nhi if hi is None else hi, doc, allowed=allowed))
 
@@ -80,9 +81,7 @@ def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
 def i(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
       hi: int | None = None, allowed: str = "") -> cs.Renamed:
     """Signed two's-complement little-endian integer field."""
-    sub, ctype, nlo, nhi = _INT[("i", bits)]
-    return _named(name, sub, FieldMeta(ctype, unit, nlo if lo is None else lo,
-                                       nhi if hi is None else hi, doc, allowed=allowed))
+    return u(name, bits, doc, unit, lo, hi, allowed, kind="i")
 
 
 def text(name: str, doc: str) -> cs.Renamed:

@@ -20,11 +20,9 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import construct as cs
-
 from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.protocol import auth, fec, framing
+from cdma_lidar.protocol import auth, fec, framing, trust
 from cdma_lidar.protocol.columns import (
     COLUMN_HEADER,
     FLAG_CALIBRATION,
@@ -34,7 +32,6 @@ from cdma_lidar.protocol.columns import (
     column_payload_size,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL
-from cdma_lidar.protocol.endpoint import FRAGMENT_HEADER, MAX_PIECES
 from cdma_lidar.protocol.messages import (
     DEVICE_RULES,
     ERROR_DOCS,
@@ -44,6 +41,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     encode_payload,
 )
+from cdma_lidar.protocol.transmit import FRAGMENT_HEADER, MAX_PIECES
 
 __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
@@ -140,34 +138,15 @@ def messages_table() -> str:
     return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
 
 
-def _fields_table(subcons: list, *, offset: int | str = 0) -> str:
-    rows = []
-    off: int | str = offset
+def _fields_table(subcons: list) -> str:
+    rows: list[tuple] = []
+    off: int | str = 0
     for sc in subcons:
-        meta = getattr(sc, "meta", None)
-        if meta is None:  # a plain construct field (column layout)
-            ctype, unit, rng, doc = _ctype(sc.subcon), "", "", sc.docs
-        else:
-            ctype, unit, rng, doc = meta.ctype, meta.unit, meta.range_text, meta.doc
-        rows.append((off, f"`{sc.name}`", ctype, unit, rng, doc))
-        size = _SIZES.get(ctype)
+        m = sc.meta
+        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
+        size = _SIZES.get(m.ctype)
         off = off + size if isinstance(off, int) and size else "var"
     return _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
-
-
-def _ctype(sub: cs.Construct) -> str:
-    while isinstance(sub, cs.Renamed):
-        sub = sub.subcon
-    if isinstance(sub, cs.FormatField):
-        return _STRUCT_TYPES[sub.fmtstr]
-    if isinstance(sub, cs.Array):
-        count = sub.count if isinstance(sub.count, int) else "P-1"
-        return f"{_ctype(sub.subcon)}[{count}]"
-    raise TypeError(f"no spec type for {sub!r}")
-
-
-_STRUCT_TYPES = {"<B": "u8", "<H": "u16", "<I": "u32", "<L": "u32", "<Q": "u64", "<b": "i8",
-                 "<h": "i16", "<i": "i32", "<l": "i32", "<q": "i64"}
 
 
 def message_fields() -> str:
@@ -213,6 +192,13 @@ def config_table() -> str:
              "yes" if k.read_only else "", k.doc) for k in CONFIG_KEYS]
     return _table(("key", "name", "value type", "unit", "wire range (else MALFORMED)",
                    "device range (else OUT_OF_RANGE)", "read-only", "meaning"), rows)
+
+
+def info_ranges_table() -> str:
+    """Physical range of each INFO field with a unit (what a host checks, section 8)."""
+    return _table(("INFO field", "allowed (inclusive)", "unit"),
+                  [(f"`{name}`", f"{lo}..{hi}", unit) for name, (lo, hi, unit)
+                   in trust.INFO_RANGES.items()])
 
 
 def errors_table() -> str:
@@ -298,6 +284,7 @@ SECTIONS: dict[str, Callable[[], str]] = {
     "column_size": column_size,
     "config": config_table,
     "errors": errors_table,
+    "info_ranges": info_ranges_table,
     "ranges": ranges_table,
     "examples": examples,
     "vectors": vectors,

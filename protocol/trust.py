@@ -151,21 +151,6 @@ def check_config(config: dict[str, Any], info: Info) -> None:
          f"1 to column_count = {info.column_count}")
 
 
-def _field_groups(extra: bool) -> tuple[list[str], list[str], list[tuple[str, str]],
-                                        list[str]]:
-    """(lag fields, flag fields, sign mask pairs, signed out_bits fields) of the record,
-    with or without extra peaks."""
-    fs = [f for f in RECORD if extra or not f.per_extra_peak]
-    return ([f.name for f in fs if f.encoding == "lag"],
-            [f.name for f in fs if f.encoding == "flag"],
-            [(f.wire[0].name, f.wire[1].name) for f in fs if f.encoding == "signs"],
-            [f.name for f in fs if f.allowed == "signed out_bits"])
-
-
-_FIXED = _field_groups(False)
-_ALL = _field_groups(True)
-
-
 class ColumnChecker:
     """Checks every column of one stream against the session's INFO and configuration.
 
@@ -206,93 +191,43 @@ class ColumnChecker:
         if not self.first <= col.column < self.end:
             raise lie("column", col.column, f"{self.first} to {self.end - 1}")
         rec = col.records
-        if self._plausible(rec):
-            return  # the common case, in a few vectorised comparisons
-        # Something is wrong: find the first field that says so, for the message.
-        n_mask = 1 << self.uid_bits
+        n_mask, out = 1 << self.uid_bits, self.out_max
         for f in RECORD:
-            names = [w.name for w in f.wire]
+            if f.encoding == "signs":
+                neg, zero = (w.name for w in f.wire)
+                self._none(lie, neg, rec[neg], rec[neg] >= n_mask, f"below 2^n = {n_mask}")
+                self._none(lie, zero, rec[zero], rec[zero] >= n_mask, f"below 2^n = {n_mask}")
+                self._none(lie, zero, rec[zero], (rec[neg] & rec[zero]) != 0,
+                           f"disjoint from {neg} (a sign is -1 or 0, not both)")
+                continue
+            v = rec[f.name]
             if f.encoding == "lag":
-                bad = (rec[f.name] != NO_PEAK) & (rec[f.name] >= self.lags)
-                self._none(lie, f.name, rec[f.name], bad, f"0 to N*S - 1 = {self.lags - 1} "
-                           f"or {NO_PEAK:#x} (no peak)")
+                self._none(lie, f.name, v, (v >= self.lags) & (v != NO_PEAK),
+                           f"0 to N*S - 1 = {self.lags - 1} or {NO_PEAK:#x} (no peak)")
             elif f.encoding == "flag":
-                self._none(lie, f.name, rec[f.name], rec[f.name] > 1, "0 or 1")
-            elif f.encoding == "signs":
-                neg, zero = rec[names[0]], rec[names[1]]
-                self._none(lie, names[0], neg, neg >= n_mask, f"below 2^n = {n_mask}")
-                self._none(lie, names[1], zero, zero >= n_mask, f"below 2^n = {n_mask}")
-                self._none(lie, names[1], zero, (neg & zero) != 0,
-                           f"disjoint from {names[0]} (a sign is -1 or 0, not both)")
+                self._none(lie, f.name, v, v > 1, "0 or 1")
+            if f.allowed == "signed out_bits":
+                self._none(lie, f.name, v, (v < -out) | (v >= out),
+                           f"signed out_bits: {-out} to {out - 1}")
         self._none(lie, "uid_observed", rec["uid_observed"], rec["uid_observed"] >= n_mask,
                    f"below 2^n = {n_mask}")
-        for f in RECORD:
-            if f.allowed == "signed out_bits":
-                v = rec[f.name]
-                self._none(lie, f.name, v, (v < -self.out_max) | (v >= self.out_max),
-                           f"signed out_bits: {-self.out_max} to {self.out_max - 1}")
-        count = rec["noise_count"]
+        count, total, sumsq = rec["noise_count"], rec["noise_sum"], rec["noise_sumsq"]
         self._none(lie, "noise_count", count, count > self.gate_len,
                    f"at most gate_len = {self.gate_len}")
         self._none(lie, "noise_count", count, (count == 0) & (rec["peak_lag"] != NO_PEAK),
                    "at least 1 where a peak is reported (the SNR needs a noise floor)")
-        # Each noise lag is an output: |sum| <= count * out_max, sumsq <= count * out_max^2.
-        c_obj = count.astype(object)
-        self._none(lie, "noise_sum", rec["noise_sum"], np.asarray(
-            abs(rec["noise_sum"].astype(object)) > c_obj * self.out_max, dtype=bool),
-            f"at most noise_count * 2^(out_bits-1) = noise_count * {self.out_max} in magnitude")
-        self._none(lie, "noise_sumsq", rec["noise_sumsq"], np.asarray(
-            rec["noise_sumsq"].astype(object) > c_obj * self.out_max ** 2, dtype=bool),
-            f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {self.out_max ** 2}")
-        # Cauchy-Schwarz: count * sumsq >= sum^2 for any real noise floor (exact integers).
-        lhs = count.astype(object) * rec["noise_sumsq"].astype(object)
-        rhs = rec["noise_sum"].astype(object) ** 2
-        self._none(lie, "noise_sumsq", rec["noise_sumsq"], np.asarray(lhs < rhs, dtype=bool),
-                   "at least noise_sum^2 / noise_count")
-
-    def _plausible(self, rec: np.ndarray) -> bool:
-        """True when every record field is within the session (fast path of check)."""
-        n_mask = 1 << self.uid_bits
-        if self.peaks == 1:  # the per-extra-peak fields are empty
-            lags, flags, signs, outs = _FIXED
-        else:
-            lags, flags, signs, outs = _ALL
-        for name in outs:
-            v = rec[name]
-            if v.size and (v.min() < -self.out_max or v.max() >= self.out_max):
-                return False
-        for name in lags:
-            v = rec[name]
-            if v.max() >= self.lags and bool(((v >= self.lags) & (v != NO_PEAK)).any()):
-                return False
-        for name in flags:
-            if rec[name].max() > 1:
-                return False
-        for neg_name, zero_name in signs:
-            neg, zero = rec[neg_name], rec[zero_name]
-            if max(neg.max(), zero.max()) >= n_mask or (neg & zero).any():
-                return False
-        count = rec["noise_count"]
-        if rec["uid_observed"].max() >= n_mask or count.max() > self.gate_len:
-            return False
-        if count.min() == 0 and bool(((count == 0) & (rec["peak_lag"] != NO_PEAK)).any()):
-            return False
-        cf = count.astype(np.float64)
-        # Bounds from the output range; float is within 1e-15, so a margin of 1e-9 is safe
-        # and a record near a bound is judged exactly by check().
-        if (np.abs(rec["noise_sum"].astype(np.float64)) > cf * self.out_max * (1 - 1e-9)).any() \
-                or (rec["noise_sumsq"].astype(np.float64) >
-                    cf * float(self.out_max) ** 2 * (1 - 1e-9)).any():
-            return False
-        lhs = cf * rec["noise_sumsq"].astype(np.float64)
-        rhs = np.square(rec["noise_sum"].astype(np.float64))
-        close = lhs <= rhs * (1 + 1e-9)  # decided exactly below; float is good to 1e-15
-        if close.any():
-            idx = np.flatnonzero(close)
-            exact = [int(count[i]) * int(rec["noise_sumsq"][i]) >= int(rec["noise_sum"][i]) ** 2
-                     for i in idx]
-            return all(exact)
-        return True
+        # Each noise lag is an output: |sum| <= count * out, sumsq <= count * out^2; and
+        # count * sumsq >= sum^2 for any real noise floor (Cauchy-Schwarz). Exact integers.
+        c, s, q = (a.astype(np.float64) for a in (count, total, sumsq))
+        self._none(lie, "noise_sum", total, _above(
+            np.abs(s), c * out, lambda i: abs(int(total[i])) > int(count[i]) * out),
+            f"at most noise_count * 2^(out_bits-1) = noise_count * {out} in magnitude")
+        self._none(lie, "noise_sumsq", sumsq, _above(
+            q, c * float(out) ** 2, lambda i: int(sumsq[i]) > int(count[i]) * out ** 2),
+            f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {out ** 2}")
+        self._none(lie, "noise_sumsq", sumsq, _above(
+            s * s, c * q, lambda i: int(total[i]) ** 2 > int(count[i]) * int(sumsq[i])),
+            "at least noise_sum^2 / noise_count")
 
     @staticmethod
     def _none(lie: Any, field: str, values: np.ndarray, bad: np.ndarray, allowed: str) -> None:
@@ -300,3 +235,12 @@ class ColumnChecker:
             idx = np.argwhere(bad)[0]
             at = ", ".join(str(int(x)) for x in idx)
             raise lie(f"{field}[{at}]", int(values[tuple(idx)]), allowed)
+
+
+def _above(lhs: np.ndarray, rhs: np.ndarray, exact: Any) -> np.ndarray:
+    """Where ``lhs > rhs`` (both >= 0, 1-D): floats decide where they are more than 1e-9
+    apart (they are good to 1e-15), ``exact(i)`` in integers decides the rest."""
+    bad = lhs > rhs * (1 + 1e-9)
+    for i in np.flatnonzero(~bad & (lhs > rhs * (1 - 1e-9))):
+        bad[i] = exact(int(i))
+    return bad

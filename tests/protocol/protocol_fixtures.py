@@ -23,6 +23,7 @@ from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload
 from cdma_lidar.protocol.views import Info
+from cdma_lidar.virtual.line import pipe_pair
 
 
 # ---- synthetic device application ------------------------------------------------------
@@ -52,6 +53,7 @@ class SyntheticApp(DeviceApp):
         self.channels = channels
         self.columns = columns
         self.column_delay_s = column_delay_s
+        self.tick: Callable[[], None] | None = None
         self.config: dict[str, Any] = {
             "poly_u": (11, 2), "poly_v": (11, 8, 5, 2), "code_index": tuple(range(channels)),
             "uid_bits": 1, "uid": 0, "samples_per_chip": 4, "averages": 10, "adc_bits": 12,
@@ -104,6 +106,8 @@ class SyntheticApp(DeviceApp):
                 raise RuntimeError(f"sensor fault at column {col}")
             if self.column_delay_s:
                 time.sleep(self.column_delay_s)
+            if self.tick is not None:  # a column takes time on an injected clock
+                self.tick()
             yield expected_column(frame, col, self.channels, self.config["peaks"],
                                   self.config["uid_bits"], calibration)
 
@@ -233,3 +237,59 @@ def reply(t: MsgType, fields: Any, seq: int, session: int = 0x42) -> bytes:
 def ack(req: Frame, session: int = 0x42) -> bytes:
     """The ACK of request ``req``."""
     return encode_frame(MsgType.ACK, bytes([req.msg_type]), req.seq, session)
+class SteppedDevice:
+    """A threadless DeviceEndpoint behind the host end of a pipe, on an injected clock.
+
+    The object is the host's port: every ``read`` or ``in_waiting`` first polls the
+    device once (it reads the requests, answers them, sends one column of a running
+    stream). A read that finds nothing moves the shared clock ``now`` on by
+    ``tick_s``, so host timeouts, heartbeats and idle limits come due without real
+    waiting and without a second thread. Give the host ``clock=dev.clock``.
+    """
+
+    def __init__(self, app: DeviceApp | None, *, tick_s: float = 0.001,
+                 now: list[float] | None = None, faults: Any = None, seed: int = 0,
+                 **kw: Any) -> None:
+        self.now = [100.0] if now is None else now  # shared by devices of one core
+        self.tick_s = tick_s
+        self.host, dev = pipe_pair(faults, faults, seed=seed)  # the same Faults both ways
+        self.name = "stepped://device"
+        self.timeout: float | None = 0.0
+        self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, threads=False, poll_s=0.0,
+                                       **kw)
+
+    def clock(self) -> float:
+        return self.now[0]
+
+    @property
+    def rx(self) -> Any:
+        """The pipe the host reads (a test injects frames into it)."""
+        return self.host.rx
+
+    @property
+    def in_waiting(self) -> int:
+        self.endpoint.poll()
+        return self.host.rx.available()
+
+    def read(self, n: int = 1) -> bytes:
+        self.endpoint.poll()
+        data = self.host.rx.read(n, 0)
+        if not data:
+            self.now[0] += self.tick_s
+        return data
+
+    def write(self, data: bytes) -> int:
+        return self.host.write(data)
+
+    def flush(self) -> None:
+        """Nothing to flush."""
+
+    def close(self) -> None:
+        self.endpoint.close()
+        self.host.close()
+
+    def __enter__(self) -> DeviceEndpoint:
+        return self.endpoint
+
+    def __exit__(self, *exc: object) -> None:
+        self.endpoint.close()

@@ -6,12 +6,11 @@ import os
 import stat
 import subprocess
 import sys
-import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+from protocol_fixtures import SteppedDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError
 from cdma_lidar.host.connection import connect
@@ -43,10 +42,11 @@ def test_key_file_is_created_private_and_read_back(tmp_path) -> None:
 
 
 def _rig(key: bytes | None, host_key: bytes | None, app: SyntheticApp | None = None):
-    host, dev = pipe_pair()
+    """(device, host link, host port, device port, app): one thread, an injected clock."""
     app = app or SyntheticApp(channels=4, columns=20)
-    rd = RunningDevice(dev, app, key=key, heartbeat_s=0.05)
-    return rd, HostLink(host, timeout_s=TIMEOUT, retries=2, key=host_key), host, dev, app
+    port = SteppedDevice(app, key=key, heartbeat_s=0.05)
+    link = HostLink(port, timeout_s=TIMEOUT, retries=2, key=host_key, clock=port.clock)
+    return port, link, port, port.endpoint.port, app
 
 
 def test_signed_session_scans_and_nothing_travels_unsigned() -> None:
@@ -68,10 +68,9 @@ def test_signed_session_scans_and_nothing_travels_unsigned() -> None:
 def test_signed_info_in_fragments_opens_a_session() -> None:
     """A 40-channel INFO is longer than a 96-byte frame: it arrives in FRAGMENTs, each
     signed; the host checks those (the reassembled INFO carries no signature)."""
-    host, dev = pipe_pair()
-    app = SyntheticApp(channels=40, columns=3)
-    link = HostLink(host, timeout_s=TIMEOUT, retries=2, key=KEY, max_frame=96)
-    with RunningDevice(dev, app, key=KEY, heartbeat_s=0.05):
+    port = SteppedDevice(SyntheticApp(channels=40, columns=3), key=KEY, heartbeat_s=0.05)
+    link = HostLink(port, timeout_s=TIMEOUT, retries=2, key=KEY, max_frame=96, clock=port.clock)
+    with port:
         info = link.hello()
         assert info.auth == 1 and len(link._reply_parts) > 1
         assert [c for c in link.scan(frame=3)] == [expected_column(3, c, 40, 1, 1)
@@ -92,7 +91,7 @@ def test_unsigned_requests_are_refused_auth_required() -> None:
         wire = encode_frame(MsgType.CONFIG_SET, encode_payload(MsgType.CONFIG_SET, {
             "items": [{"key": 16, "value": b"\x03"}]}), 999, info.session_id)
         host.write(wire)  # a local process without the key, in the right session
-        time.sleep(0.2)
+        ep.poll()
         assert link.get_config()["peaks"] == 1 and app.set_config_calls == 0
         assert ep.stats.naks == 1  # refused AUTH_REQUIRED, not dropped unseen
 
@@ -126,7 +125,7 @@ def test_forged_and_replayed_frames_are_dropped() -> None:
         forged = encode_frame(MsgType.SCAN_ABORT, b"", 500, info.session_id,
                               signer=auth.FrameSigner(bytes(32), counter=10**6))
         write(forged)  # signed with another key
-        time.sleep(0.2)
+        ep.poll()
         assert ep.stats.auth_rejected == 2
         assert app.set_config_calls == 2 and link.get_config()["peaks"] == 1
 

@@ -5,7 +5,7 @@ Time-dependent behaviour is driven by injected clocks; no test asserts an elapse
 
 from __future__ import annotations
 
-from protocol_fixtures import RunningDevice, SyntheticApp
+from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp
 
 from cdma_lidar.protocol.framing import encode_frame
 from cdma_lidar.protocol.link import HostLink
@@ -61,17 +61,18 @@ def test_notices_longer_than_a_small_frame_go_out_in_fragments(caplog) -> None:
     from cdma_lidar.protocol.endpoint import DeviceCore
     from cdma_lidar.protocol.link import SessionLost
 
-    app = SyntheticApp(channels=2, columns=6, column_delay_s=0.05)
-    core = DeviceCore(app, key=KEY)
-    a_host, a_dev = pipe_pair()
-    b_host, b_dev = pipe_pair()
-    with caplog.at_level(logging.ERROR), RunningDevice(a_dev, None, core=core, heartbeat_s=0.01), \
-            RunningDevice(b_dev, None, core=core):
-        a = HostLink(a_host, timeout_s=1.0, key=KEY, max_frame=64)
+    now = [100.0]
+    app = SyntheticApp(channels=2, columns=6)
+    app.tick = lambda: now.__setitem__(0, now[0] + 0.05)  # 50 ms per column, injected
+    core = DeviceCore(app, key=KEY, clock=lambda: now[0])
+    a_port = SteppedDevice(None, core=core, now=now, heartbeat_s=0.01)
+    b_port = SteppedDevice(None, core=core, now=now)
+    with caplog.at_level(logging.ERROR), a_port, b_port:
+        a = HostLink(a_port, timeout_s=1.0, key=KEY, max_frame=64, clock=a_port.clock)
         a.hello()
         assert len(list(a.scan(frame=2))) == 6
         assert a.last_status is not None and a.last_status.frame == 2  # a heartbeat came
-        b = HostLink(b_host, timeout_s=1.0, key=KEY, take_over=True)
+        b = HostLink(b_port, timeout_s=1.0, key=KEY, take_over=True, clock=b_port.clock)
         b.hello()
         try:
             a.status()

@@ -11,6 +11,7 @@ import pytest
 from protocol_fixtures import (
     RunningDevice,
     ScriptedPort,
+    SteppedDevice,
     SyntheticApp,
     ack,
     expected_column,
@@ -75,8 +76,9 @@ def test_host_refuses_a_poll_time_that_would_spin(kw: dict, name: str) -> None:
 
 
 @pytest.mark.parametrize(("kw", "name"), [
-    ({"poll_s": 0}, "poll_s"), ({"heartbeat_s": 0}, "heartbeat_s"),
-    ({"heartbeat_s": 100.0}, "heartbeat_s"), ({"ring_columns": -1}, "ring_columns"),
+    ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0, "threads": False}, "poll_s"),
+    ({"heartbeat_s": 0}, "heartbeat_s"), ({"heartbeat_s": 100.0}, "heartbeat_s"),
+    ({"ring_columns": -1}, "ring_columns"),
     ({"ring_columns": 70000}, "ring_columns"), ({"replay_depth": 0}, "replay_depth"),
     ({"max_frame": 100}, "max_frame"), ({"session_id": 2**32}, "session_id"),
 ])
@@ -137,18 +139,26 @@ class _RecordingApp(SyntheticApp):
         self.log.append(("abort", self.log[-1][1] if self.log else -1))
 
 
+def _until_a_column_is_out(ep: DeviceEndpoint) -> None:
+    """Wait (a condition, not a time) until the scan's generator has produced a column."""
+    deadline = time.monotonic() + 10.0
+    while (ep.latest is None or ep.latest.produced == 0) and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert ep.latest is not None and ep.latest.produced > 0
+
+
 def test_an_ended_stream_is_cleaned_up_before_the_next_one_starts() -> None:
     """SCAN_ABORT then SCAN_START at once: the app closes scan 1 before it is asked for scan 2."""
     host, dev = pipe_pair()
     host.timeout = 0.02
     app = _RecordingApp()
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         def send(t: MsgType, fields: dict, seq: int) -> bytes:
             return encode_frame(t, encode_payload(t, fields), seq, 0xABCD)
 
         host.write(send(MsgType.HELLO, hello_fields(1, 65535), 1))
         host.write(send(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 50}, 2))
-        time.sleep(0.05)  # the worker is inside a column of frame 1
+        _until_a_column_is_out(ep)  # the worker is inside a later column of frame 1
         host.write(send(MsgType.SCAN_ABORT, {}, 3) +
                    send(MsgType.SCAN_START, {"frame": 2, "first_column": 0, "columns": 2}, 4))
         dec = FrameDecoder()
@@ -179,7 +189,6 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
 
 def test_worker_failure_outside_the_application_ends_the_stream() -> None:
     """A column too large for 254 fragments: SCAN_END reason 2, and the device stays usable."""
-    host, dev = pipe_pair()
 
     class Growing(SyntheticApp):
         def _columns(self, frame, first, count, calibration):  # type: ignore[override]
@@ -188,8 +197,9 @@ def test_worker_failure_outside_the_application_ends_the_stream() -> None:
             yield from super()._columns(frame, first + 1, count - 1, calibration)
 
     app = Growing(channels=8, columns=10)
-    with RunningDevice(dev, app, max_frame=256, heartbeat_s=0.02):
-        link = HostLink(host)
+    port = SteppedDevice(app, max_frame=256, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=2, clock=port.clock)
         got = []
         with pytest.raises(LinkError):
             for c in link.scan(columns=5):
@@ -239,10 +249,10 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
     def send(t: MsgType, fields: dict, seq: int, session: int) -> None:
         host.write(encode_frame(t, encode_payload(t, fields), seq, session))
 
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD):
+    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
         send(MsgType.HELLO, hello_fields(1, 65535), 1, 0)
         send(MsgType.SCAN_START, {"frame": 5, "first_column": 0, "columns": 50}, 2, 0xABCD)
-        time.sleep(0.05)
+        _until_a_column_is_out(ep)
         send(MsgType.HELLO, hello_fields(2, 65535, flags=1), 900, 0)  # take over
         dec = FrameDecoder()
         info: list[Frame] = []
@@ -257,17 +267,48 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
     from cdma_lidar.protocol.link import DIAG_SILENT
+    from cdma_lidar.virtual.line import Faults
 
-    def answer(req: Frame) -> bytes:  # columns 0..2 of 40, then nothing more, ever
-        if req.msg_type != MsgType.SCAN_START:
-            return b""
-        return ack(req) + b"".join(reply(MsgType.COLUMN_RESULT, expected_column(5, c, 8, 1, 1),
-                                         0) for c in range(3))
-
-    link = scripted_link(ScriptedPort(answer), retries=1)
-    got = []
-    with pytest.raises(LinkTimeout) as exc:
-        for c in link.scan(columns=40, frame=5):
-            got.append(c.column)
-    assert got == [0, 1, 2]
+    port = SteppedDevice(SyntheticApp(columns=40), heartbeat_s=0.02)
+    dev = port.endpoint.port
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=1, clock=port.clock)
+        link.hello()
+        got = []
+        with pytest.raises(LinkTimeout) as exc:
+            for c in link.scan():
+                got.append(c.column)
+                if c.column == 2:
+                    dev.tx.faults = Faults(drop=1.0)  # nothing reaches the host any more
+    assert got[:3] == [0, 1, 2] and len(got) < 40
     assert exc.value.diagnosis == DIAG_SILENT and "STATUS_GET" in str(exc.value)
+
+
+def test_a_capture_chunk_fills_the_frame_exactly() -> None:
+    """The CAPTURE_DATA header size comes from its declaration: a chunk is as long as the
+    session's frame allows, never longer."""
+    port = SteppedDevice(SyntheticApp(channels=4, columns=8))
+    with port:
+        link = HostLink(port, timeout_s=0.2, max_frame=256, clock=port.clock)
+        link.hello()
+        sent = []
+        write = port.endpoint.port.write
+        port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
+        link.capture("raw", column=1)
+        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        assert max(sizes) == 256
+
+
+def test_frame_size_shrinks_the_devices_frames_from_its_ack_on() -> None:
+    """FRAME_SIZE (no longer sent by the v3 host, still served): new columns come cut to it."""
+    port = SteppedDevice(SyntheticApp(channels=40, columns=3))
+    with port:
+        link = HostLink(port, timeout_s=0.2, clock=port.clock)
+        link.hello()
+        link._request(MsgType.FRAME_SIZE, {"host_max_frame": 96})
+        sent: list[bytes] = []
+        write = port.endpoint.port.write
+        port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
+        assert [c.column for c in link.scan(frame=4)] == [0, 1, 2]
+        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        assert len(sizes) > 3 * 20 and max(sizes) <= 96  # 1.6 kB columns in pieces

@@ -12,7 +12,7 @@ import threading
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
+from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import CdmaLidarError, FrameError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -82,9 +82,10 @@ hostile_replies = st.lists(st.tuples(
 @settings(max_examples=40, deadline=None)
 @given(frames=hostile_replies, other_seq=st.integers(0, 0xFFFF))
 def test_host_raises_only_its_own_errors_on_hostile_frames(frames: list, other_seq: int) -> None:
-    host, dev = pipe_pair()
-    with RunningDevice(dev, SyntheticApp(), session_id=0x1234, heartbeat_s=0.05):
-        link = HostLink(host, retries=1)  # waits only if the device thread is slow
+    port = SteppedDevice(SyntheticApp(), session_id=0x1234, heartbeat_s=0.05)
+    dev = port.endpoint.port
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=1, clock=port.clock)
         link.hello()
         pending = (link._seq + 1) & 0xFFFF  # the seq of the next request
         if other_seq in (pending, (pending + 1) & 0xFFFF):

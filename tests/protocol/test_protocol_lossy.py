@@ -12,7 +12,13 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
-from protocol_fixtures import RunningDevice, ScriptedPort, SyntheticApp, expected_column
+from protocol_fixtures import (
+    RunningDevice,
+    ScriptedPort,
+    SteppedDevice,
+    SyntheticApp,
+    expected_column,
+)
 
 from cdma_lidar.errors import LinkTimeout
 from cdma_lidar.protocol.link import (
@@ -191,11 +197,10 @@ def test_scan_through_bit_errors_is_repaired() -> None:
 @pytest.mark.parametrize(("ber", "max_frame"), [(1e-3, 80), (3e-4, 256), (1e-4, 65535)])
 def test_a_noisy_line_scans_byte_identical_in_fragments(ber: float, max_frame: int) -> None:
     """40-channel columns through bit errors on both directions, frames sized to the line."""
-    f = Faults(bit_error_rate=ber)
-    host, dev = pipe_pair(f, f, seed=7)
-    app = SyntheticApp(channels=40, columns=25)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, retries=20, max_frame=max_frame)
+    port = SteppedDevice(SyntheticApp(channels=40, columns=25), faults=Faults(bit_error_rate=ber),
+                         seed=7, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=0.05, retries=20, max_frame=max_frame, clock=port.clock)
         assert link.hello().channels == 40
         link.set_config(peaks=2)
         cols = list(link.scan(frame=11))
@@ -206,10 +211,10 @@ def test_a_noisy_line_scans_byte_identical_in_fragments(ber: float, max_frame: i
 
 
 def test_a_line_that_damages_everything_is_diagnosed_as_noisy_not_as_a_baud_rate() -> None:
-    f = Faults(bit_error_rate=3e-3)
-    host, dev = pipe_pair(f, f, seed=3)
-    with RunningDevice(dev, SyntheticApp(channels=40, columns=4), heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, retries=3, column_retries=2)
+    port = SteppedDevice(SyntheticApp(channels=40, columns=4), faults=Faults(bit_error_rate=3e-3),
+                         seed=3, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=0.03, retries=3, column_retries=2, clock=port.clock)
         with pytest.raises(LinkTimeout) as exc:
             link.hello()
             list(link.scan())

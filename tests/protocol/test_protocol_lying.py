@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
+from protocol_fixtures import SteppedDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import DeviceError, LinkError
 from cdma_lidar.protocol.columns import ColumnResult
@@ -53,9 +53,9 @@ class LyingApp(SyntheticApp):
 
 
 def _run(app: SyntheticApp, body: Callable[[HostLink], Any]) -> Any:
-    host, dev = pipe_pair()
-    with RunningDevice(dev, app, heartbeat_s=0.05):
-        link = HostLink(host, timeout_s=TIMEOUT, retries=1)
+    port = SteppedDevice(app, heartbeat_s=0.05)
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, retries=1, clock=port.clock)
         try:
             return body(link)
         finally:

@@ -16,11 +16,12 @@ from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 from cdma_lidar.errors import ConfigError, DeviceError
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import encode_column
-from cdma_lidar.protocol.endpoint import _CONTROL, _FRESH, DeviceEndpoint
+from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
 from cdma_lidar.virtual.line import BytePipe, Faults, pipe_pair
+from cdma_lidar.protocol.transmit import CONTROL, FRESH
 
 
 # ---- the paced pipe ---------------------------------------------------------------------------
@@ -85,12 +86,12 @@ def _column(frame: int, column: int) -> bytes:
 
 def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
     ep, port = _device(key=bytes(range(32)))
-    ep._tx = auth.FrameSigner(bytes(32))
+    ep.tx.signer = auth.FrameSigner(bytes(32))
     verifier = auth.FrameVerifier(bytes(32))
-    ep._send_column((1, 0), _column(1, 0))  # new column: several fragments
-    ep._send_column((1, 9), _column(1, 9), COMPAT_RETRANSMIT)  # a repair
-    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
-    ep._flush(_FRESH)
+    ep.tx.column((1, 0), _column(1, 0))  # new column: several fragments
+    ep.tx.column((1, 9), _column(1, 9), COMPAT_RETRANSMIT)  # a repair
+    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
+    ep.tx.flush(FRESH)
     frames = list(port.frames())
     kinds = [("notice" if f.msg_type == MsgType.LINE_ERROR else
               "repair" if f.compat & COMPAT_RETRANSMIT else "new") for f in frames]
@@ -102,44 +103,44 @@ def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
 def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
     ep, port = _device()
     for c in range(10):
-        ep._send_column((1, c), _column(1, c), COMPAT_RETRANSMIT)
-    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)
-    ep._flush(_CONTROL + 1, budget=1000)
+        ep.tx.column((1, c), _column(1, c), COMPAT_RETRANSMIT)
+    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)
+    ep.tx.flush(CONTROL + 1, budget=1000)
     sent = list(port.frames())
     assert sent[0].msg_type == MsgType.LINE_ERROR
     assert 1 < len(sent) < 1 + 80  # some repairs, not all 80 fragments
-    ep._flush(_FRESH)
+    ep.tx.flush(FRESH)
     assert len(list(port.frames())) == 1 + 80
 
 
 def test_a_repair_already_queued_is_not_queued_twice() -> None:
     ep, port = _device()
-    ep._ring[(1, 2)] = _column(1, 2)
-    ep._send_column((1, 2), _column(1, 2))  # first cut: 8 fragments
-    ep._flush(_FRESH)
+    ep.ring[(1, 2)] = _column(1, 2)
+    ep.tx.column((1, 2), _column(1, 2))  # first cut: 8 fragments
+    ep.tx.flush(FRESH)
     port.out.clear()
     for _ in range(3):  # the host asked three times before the first answer reached it
-        ep._send_column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3, 5])
-    ep._flush(_FRESH)
+        ep.tx.column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3, 5])
+    ep.tx.flush(FRESH)
     got = [decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()]
     assert got == [3, 5]
-    ep._send_column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3])  # sent: may go again
-    ep._flush(_FRESH)
+    ep.tx.column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3])  # sent: may go again
+    ep.tx.flush(FRESH)
     assert len(list(port.frames())) == 3
 
 
 def test_pieces_asked_by_index_keep_the_cut_of_the_column() -> None:
     ep, port = _device(max_frame=256)
     payload = _column(1, 0)
-    ep._send_column((1, 0), payload)
-    ep._flush(_FRESH)
+    ep.tx.column((1, 0), payload)
+    ep.tx.flush(FRESH)
     first = {b["index"]: b for b in (decode_payload(f.msg_type, f.payload)
                                      for f in port.frames())}
     port.out.clear()
-    ep.tx_max_frame = 96  # the host asked for shorter frames meanwhile
-    ep._send_column((1, 0), payload, COMPAT_RETRANSMIT, [2])
-    ep._send_column((1, 1), _column(1, 1))  # a new column is cut at the new size
-    ep._flush(_FRESH)
+    ep.tx.max_frame = 96  # the host asked for shorter frames meanwhile
+    ep.tx.column((1, 0), payload, COMPAT_RETRANSMIT, [2])
+    ep.tx.column((1, 1), _column(1, 1))  # a new column is cut at the new size
+    ep.tx.flush(FRESH)
     frames = list(port.frames())
     again = decode_payload(frames[0].msg_type, frames[0].payload)
     assert (again["index"], again["count"], again["data"]) == \
@@ -149,20 +150,20 @@ def test_pieces_asked_by_index_keep_the_cut_of_the_column() -> None:
 
 def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
     ep, port = _device()
-    ep._enqueue_tx(_CONTROL, MsgType.LINE_ERROR, bytes(300), None, max_frame=64)
-    ep._send_stream(MsgType.LINE_ERROR, _NOTICE)
-    ep._flush(_FRESH)
+    ep.tx.put(CONTROL, MsgType.LINE_ERROR, bytes(300), max_frame=64)
+    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)
+    ep.tx.flush(FRESH)
     assert [f.msg_type for f in port.frames()] == [MsgType.LINE_ERROR]
     assert "cannot send" in caplog.text
 
 
 def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
     ep, _port = _device()
-    ep._stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
+    ep.stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
     assert ep.status().next_column == 5
-    ep._send_column((1, 4), _column(1, 4))  # column 4 waits in the queue
+    ep.tx.column((1, 4), _column(1, 4))  # column 4 waits in the queue
     assert ep.status().next_column == 4
-    ep._stream = None
+    ep.stream = None
 
 
 # ---- host: unawaited RESEND -----------------------------------------------------------

@@ -11,7 +11,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from protocol_fixtures import RunningDevice, SyntheticApp, hello_fields
+from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.endpoint import DeviceCore
@@ -27,27 +27,29 @@ from cdma_lidar.protocol.messages import (
 from cdma_lidar.protocol.ports import FdPort, open_port
 from cdma_lidar.virtual.line import pipe_pair
 
-TIMEOUT = 0.2
+TIMEOUT = 0.2  # s of the injected clock: nothing here waits in real time
 
 
 class Device:
-    """One device (one core) reachable over several in-memory connections, as over TCP."""
+    """One device (one core) reachable over several connections at once, as over TCP.
+
+    Threadless: each connection is a :class:`SteppedDevice`; all share one clock.
+    """
 
     def __init__(self, app: SyntheticApp, idle_s: float = 10.0) -> None:
         self.app = app
-        self.core = DeviceCore(app, session_idle_s=idle_s)
-        self.running: list[RunningDevice] = []
+        self.now = [100.0]
+        self.core = DeviceCore(app, session_idle_s=idle_s, clock=lambda: self.now[0])
+        self.ports: list[SteppedDevice] = []
 
     def host(self, **kw: object) -> HostLink:
-        host, dev = pipe_pair()
-        rd = RunningDevice(dev, self.app, core=self.core, heartbeat_s=0.05)
-        rd.__enter__()
-        self.running.append(rd)
-        return HostLink(host, timeout_s=TIMEOUT, retries=2, **kw)
+        port = SteppedDevice(None, core=self.core, now=self.now, heartbeat_s=0.05)
+        self.ports.append(port)
+        return HostLink(port, timeout_s=TIMEOUT, retries=2, clock=port.clock, **kw)
 
     def close(self) -> None:
-        for rd in self.running:
-            rd.__exit__()
+        for port in self.ports:
+            port.close()
 
 
 @pytest.fixture
@@ -105,7 +107,7 @@ def test_an_idle_session_expires_for_another_host() -> None:
         assert info.session_idle_ms == 300
         with pytest.raises(DeviceError):
             b.hello()  # not idle long enough
-        time.sleep(0.4)
+        d.now[0] += 0.4
         b.hello()
         with pytest.raises(SessionLost) as exc:
             a.status()

@@ -9,12 +9,15 @@ field, what the reference host decodes from the same scan.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import re
 import secrets
 import struct
 from pathlib import Path
 
 import numpy as np
+import reedsolo
 import serial
 
 import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
@@ -189,3 +192,103 @@ def test_a_client_written_from_the_page_scans_the_virtual_device() -> None:
         assert rec.dtype.names == col.records.dtype.names  # every field the page names
         for name in rec.dtype.names:
             assert np.array_equal(rec[name], col.records[name]), name
+
+
+# ---- a keyed, signed, FEC-coded session, from sections 2.5 and 5 alone ------------------------
+def _mac(key: bytes, *parts: bytes) -> bytes:
+    return hmac.new(key, b"".join(parts), hashlib.sha256).digest()
+
+
+def _whiten(data: bytes) -> bytes:
+    return bytes(b ^ ((0x5A + 0x97 * i) & 0xFF) for i, b in enumerate(data))
+
+
+def _rs_encode(body: bytes) -> bytes:
+    rs = reedsolo.RSCodec(16, nsize=255)
+    return _whiten(b"".join(bytes(rs.encode(body[i:i + 239])) for i in range(0, len(body), 239)))
+
+
+def _rs_data(coded: bytes) -> bytes:
+    plain = _whiten(coded)
+    return b"".join(plain[i:i + 255][:-16] for i in range(0, len(plain), 255))
+
+
+class SignedClient(Client):
+    """Signs (section 5) and codes (section 2.5) what it sends; reads coded frames."""
+
+    def __init__(self, port) -> None:
+        super().__init__(port)
+        self.k_dev = self.k_host = b""
+        self.counter = self.last_in = 0
+        self.keys = None  # session id -> (k_to_device, k_to_host), once HELLO has its MAC
+
+    def send(self, name: str, payload: bytes) -> None:
+        self.seq += 1
+        head = struct.pack(HEADER_FMT, VERSION, 1 if self.k_dev else 0, 0, TYPES[name], self.seq,
+                           len(payload), self.session)
+        body = head + payload
+        if self.k_dev:
+            self.counter += 1
+            c = struct.pack("<Q", self.counter)
+            body += c + _mac(self.k_dev, body, c)[:16]
+        body += struct.pack("<I", crc32(body))
+        self.port.write(b"\x00" + cobs_encode(_rs_encode(body)) + b"\x00")
+
+    def frames(self):
+        while True:
+            while b"\x00" not in self.buf:
+                self.buf += self.port.read(max(1, self.port.in_waiting)) or b""
+            chunk, self.buf = self.buf.split(b"\x00", 1)
+            if not chunk:
+                continue
+            raw = cobs_decode(chunk)
+            body = raw if struct.unpack("<I", raw[-4:])[0] == crc32(raw[:-4]) else _rs_data(raw)
+            assert struct.unpack("<I", body[-4:])[0] == crc32(body[:-4])
+            _v, incompat, _c, mtype, seq, plen, session = struct.unpack_from(HEADER_FMT, body)
+            payload = body[12:12 + plen]
+            if self.keys is not None and incompat & 1 and not self.k_host:
+                # The signed INFO (or its first piece) names the session the keys are for.
+                self.k_dev, self.k_host = self.keys(session)
+            if self.k_host:  # every frame of the session signed, counters rising
+                assert incompat & 1
+                sig = body[12 + plen:-4]
+                assert sig[8:] == _mac(self.k_host, body[:12 + plen], sig[:8])[:16]
+                counter = struct.unpack("<Q", sig[:8])[0]
+                assert counter > self.last_in
+                self.last_in = counter
+            yield mtype, seq, session, payload
+
+
+def test_a_client_from_the_page_opens_a_keyed_fec_session() -> None:
+    """HELLO, CHALLENGE, HELLO with the MAC, signed INFO in pieces, a signed STATUS: all coded."""
+    from protocol_fixtures import RunningDevice, SyntheticApp  # the device under test
+
+    from cdma_lidar.virtual.line import pipe_pair
+
+    key = bytes(range(32))
+    host, dev = pipe_pair()
+    with RunningDevice(dev, SyntheticApp(channels=40, columns=2), key=key):
+        client = SignedClient(host)
+        msgs = client.messages()
+        nonce = secrets.token_bytes(16)
+        fields = {"host_max_frame": 256, "flags": 4, "host_nonce": nonce,
+                  "device_nonce": bytes(16), "mac": bytes(32)}
+        client.send("HELLO", struct.pack(HELLO[0], *(fields[n] for n in HELLO[1])))
+        mtype, _seq, _session, dn = next(msgs)
+        assert mtype == TYPES["CHALLENGE"]
+        fields["device_nonce"] = dn
+        fields["mac"] = _mac(key, b"cdma-lidar hello", dn, nonce, struct.pack("<BH", 4, 256))
+        client.keys = lambda s: tuple(_mac(key, b"cdma-lidar to " + who, nonce, dn,
+                                           struct.pack("<I", s)) for who in (b"device", b"host"))
+        client.send("HELLO", struct.pack(HELLO[0], *(fields[n] for n in HELLO[1])))
+        mtype, _seq, session, payload = next(msgs)
+        assert mtype == TYPES["INFO"] and client.last_in > 1  # signed pieces: 256-byte frames
+        info_fmt = _fmt("#### INFO")
+        info = dict(zip(info_fmt[1], struct.unpack_from(info_fmt[0], payload), strict=True))
+        assert info["session_id"] == session and info["auth"] == 1
+        assert info["device_mac"] == _mac(key, b"cdma-lidar device", nonce, dn,
+                                          struct.pack("<I", session))
+        client.session = session
+        client.send("STATUS_GET", b"")
+        mtype, _seq, _session, _payload = next(msgs)
+        assert mtype == TYPES["STATUS"]

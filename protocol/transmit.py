@@ -1,0 +1,228 @@
+"""Device transmit queue: three priority classes, FRAGMENTs, signing at send time.
+
+Frames of one connection wait in three classes, each first-in first-out, sent in
+this order: replies and notices (:data:`CONTROL`), retransmitted columns
+(:data:`REPAIR`), new columns and SCAN_END (:data:`FRESH`). On a UART at 921600 baud a
+1.6 kB column takes 18 ms, so a reply or a repair waits for at most the frame on the
+wire. Frames are encoded and signed when they leave, so signature counters rise in
+wire order whatever the class. One thread writes at a time (:meth:`Transmitter.flush`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from cdma_lidar.errors import DeviceError, FieldError
+from cdma_lidar.protocol.auth import FrameSigner
+from cdma_lidar.protocol.framing import (
+    COMPAT_RETRANSMIT,
+    PROTOCOL_VERSION,
+    encode_frame,
+    frame_size,
+)
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload, head_size, type_name
+
+__all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Transmitter"]
+
+log = logging.getLogger(__name__)
+
+#: Transmit classes, sent in this order.
+CONTROL, REPAIR, FRESH = 0, 1, 2
+#: FRAGMENT payload bytes before the data (11).
+FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
+#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
+MAX_PIECES = 254
+_SESSION = object()  # "the session's signer / coding", resolved when queued
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One frame waiting to be sent; encoded (and signed) when it goes out."""
+
+    msg_type: MsgType
+    payload: bytes
+    seq: int | None  # None: the next stream seq, taken when sent
+    session: int
+    compat: int
+    max_frame: int  # bytes, decoded frame
+    signer: FrameSigner | None
+    repair: tuple[int, int, int] | None  # (frame, column, fragment or -1) of a repair
+    coded: bool  # Reed-Solomon coded
+    version: int  # another only for NAK VERSION to an older host
+
+
+class Transmitter:
+    """The transmit side of one connection.
+
+    ``session``, ``max_frame`` (largest frame sent, bytes), ``signer`` and ``coded``
+    describe the current session's frames; a frame takes them when it is queued.
+    ``counters``: objects whose ``tx_frames`` count every frame written.
+    """
+
+    def __init__(self, port: Any, session: int, max_frame: int, counters: Iterable[Any]) -> None:
+        self.port = port
+        self.session, self.max_frame = session, max_frame
+        self.signer: FrameSigner | None = None
+        self.coded = False
+        self.counters = tuple(counters)
+        self._q: tuple[deque[_Job], ...] = (deque(), deque(), deque())
+        self._cv = threading.Condition()
+        self._writing = False
+        self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
+        self._stream_seq = 0
+        self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
+        #: Piece length (bytes) each column was last cut at; 0: sent whole.
+        self.cuts: dict[tuple[int, int], int] = {}
+
+    def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
+            compat: int = 0, signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
+            max_frame: int = 0, coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
+        """Queue one frame of class ``cls`` of at most ``max_frame`` bytes (0: the session's).
+
+        A ``repair`` already queued is not queued twice: a host that asks again before
+        the first answer reached it costs the line nothing.
+        """
+        job = _Job(msg_type, payload, seq, self.session, compat, max_frame or self.max_frame,
+                   self.signer if signer is _SESSION else signer, repair,
+                   self.coded if coded is _SESSION else coded, version)
+        with self._cv:
+            if repair is not None:
+                if repair in self._repairs:
+                    return
+                self._repairs.add(repair)
+            self._q[cls].append(job)
+
+    def flush(self, upto: int, budget: int | None = None, wait: bool = False) -> None:
+        """Send queued frames of classes 0..``upto``, highest priority first.
+
+        If another thread is writing, return at once unless ``wait`` (that writer sends
+        replies and notices before it gives up its role). ``budget``: stop after about
+        this many bytes of classes above CONTROL (replies and notices all go).
+        """
+        with self._cv:
+            if self._writing and not wait:
+                return
+            while self._writing:
+                self._cv.wait()
+            self._writing = True
+        sent = 0
+        try:
+            while True:
+                with self._cv:
+                    cls = next((c for c in range(upto + 1) if self._q[c]), None)
+                    if cls is None or (cls > CONTROL and budget is not None and sent >= budget):
+                        # Give up the writer's role in the same breath as the last look
+                        # at the queue: a frame queued after it finds no writer.
+                        self._writing = False
+                        self._cv.notify_all()
+                        return
+                    job = self._q[cls].popleft()
+                    self._repairs.discard(job.repair)  # type: ignore[arg-type]
+                seq = job.seq
+                if seq is None:
+                    self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
+                try:
+                    wire = encode_frame(job.msg_type, job.payload, seq, job.session,
+                                        compat=job.compat, max_frame=job.max_frame,
+                                        signer=job.signer, coded=job.coded, version=job.version)
+                except FieldError:  # a bug must not take the device off the line
+                    log.exception("cannot send a %s frame", type_name(job.msg_type))
+                    continue
+                self.port.write(wire)
+                for c in self.counters:
+                    c.tx_frames += 1
+                if cls > CONTROL:
+                    sent += len(wire)
+        except BaseException:  # the port failed: let the next writer try
+            with self._cv:
+                self._writing = False
+                self._cv.notify_all()
+            raise
+
+    def fresh_pending(self) -> int:
+        """1 while frames of a new column wait in the queue (that column is not sent yet)."""
+        with self._cv:
+            return int(any(j.msg_type != MsgType.SCAN_END for j in self._q[FRESH]))
+
+    def drop(self, cls: int) -> None:
+        """Forget the queued frames of one class (an ended stream's new columns)."""
+        with self._cv:
+            self._q[cls].clear()
+            if cls == REPAIR:
+                self._repairs.clear()
+
+    def pieces(self, payload_len: int, signed: bool, max_frame: int = 0) -> int:
+        """Frames a payload takes at ``max_frame`` (0: the session's): 1 if it fits one
+        frame, else its FRAGMENT count."""
+        max_frame = max_frame or self.max_frame
+        if frame_size(payload_len, signed) <= max_frame:
+            return 1
+        return -(-payload_len // (max_frame - frame_size(FRAGMENT_HEADER, signed)))
+
+    def notice(self, msg_type: MsgType, payload: bytes, compat: int = 0, cls: int = CONTROL,
+               repair: tuple[int, int, int] | None = None) -> None:
+        """A stream frame (notice, column, SCAN_END); FRAGMENTs if it is too long."""
+        if self.pieces(len(payload), self.signer is not None) > 1:
+            self._notice_id = (self._notice_id + 1) & 0xFFFF
+            self.fragments(msg_type, payload, self._notice_id, 0, 0, self.signer, None,
+                           compat, cls)
+        else:
+            self.put(cls, msg_type, payload, compat=compat, repair=repair)
+
+    def reply(self, seq: int, msg_type: MsgType, payload: bytes, signed: bool,
+              coded: bool) -> None:
+        """A reply with its request's ``seq``; FRAGMENTs if it is too long."""
+        signer = self.signer if signed else None
+        if self.pieces(len(payload), signed) == 1:
+            self.put(CONTROL, msg_type, payload, seq, signer=signer, coded=coded)
+        else:
+            self.fragments(msg_type, payload, seq, 0, 0, signer, None, coded=coded)
+
+    def fragments(self, msg_type: MsgType, payload: bytes, seq: int, frame: int, column: int,
+                  signer: FrameSigner | None, only: Iterable[int] | None, compat: int = 0,
+                  cls: int = CONTROL, room: int = 0, coded: Any = _SESSION) -> int:
+        """Queue ``payload`` as FRAGMENTs (all, or the indexes in ``only``) of ``room``
+        bytes each (0: as many as the max frame carries); returns the piece length."""
+        signed = signer is not None
+        cut = room
+        room = room or self.max_frame - frame_size(FRAGMENT_HEADER, signed)
+        count = -(-len(payload) // room)
+        if count > MAX_PIECES:
+            raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
+                              f"fragments at max frame {self.max_frame} (at most "
+                              f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
+        for k in range(count) if only is None else only:
+            body = encode_payload(MsgType.FRAGMENT, {
+                "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
+                "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
+            self.put(cls, MsgType.FRAGMENT, body, compat=compat, signer=signer,
+                     repair=(frame, column, k) if cls == REPAIR else None,
+                     max_frame=frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0,
+                     coded=coded)
+        return room
+
+    def column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
+               only: Iterable[int] | None = None) -> None:
+        """One COLUMN_RESULT ``key`` = (frame, column), or its FRAGMENTs.
+
+        A repair when ``compat`` marks a retransmission, else a new column. Pieces asked
+        for by index (``only``) are cut as the column last was, whatever the frame size
+        now, so the pieces the host holds stay good; a whole column is cut afresh.
+        """
+        cls = REPAIR if compat & COMPAT_RETRANSMIT else FRESH
+        cut = self.cuts.get(key, 0)
+        if only is not None and cut and all(0 <= k < -(-len(payload) // cut) for k in only):
+            self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key, self.signer, only, compat,
+                           cls, cut)
+        elif self.pieces(len(payload), self.signer is not None) == 1:
+            self.cuts[key] = 0
+            self.notice(MsgType.COLUMN_RESULT, payload, compat, cls,
+                        (*key, -1) if cls == REPAIR else None)
+        else:
+            self.cuts[key] = self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key,
+                                            self.signer, None, compat, cls)
