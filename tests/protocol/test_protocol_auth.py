@@ -19,7 +19,6 @@ from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
-from cdma_lidar.virtual.line import pipe_pair
 
 KEY = bytes(range(32))
 TIMEOUT = 0.2

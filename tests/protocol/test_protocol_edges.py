@@ -14,7 +14,6 @@ from protocol_fixtures import (
     SteppedDevice,
     SyntheticApp,
     ack,
-    expected_column,
     hello_fields,
     reply,
     scripted_link,

@@ -20,8 +20,8 @@ from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
-from cdma_lidar.virtual.line import BytePipe, Faults, pipe_pair
 from cdma_lidar.protocol.transmit import CONTROL, FRESH
+from cdma_lidar.virtual.line import BytePipe, Faults, pipe_pair
 
 
 # ---- the paced pipe ---------------------------------------------------------------------------
