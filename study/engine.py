@@ -46,8 +46,11 @@ Storage (``--out DIR``)::
                           are at least two replicates, and ``<col>_best``, the minimum,
                           for machine columns); units in the column names
     DIR/summary.json      headline numbers, each {"ours": x, "paper": y or null, "unit": u}
-    DIR/run.json          what ran: study, settings, engine, counts, failures, the columns
-                          that measure the machine (time, memory) rather than the model
+    DIR/run.json          what ran: study, settings, engine, counts, failures, wall time,
+                          the tasks' own wall and CPU seconds in the workers (computed
+                          ones; ``task_cpu_s`` / ``wall_time_s`` is the cores kept busy),
+                          the columns that measure the machine (time, memory) rather
+                          than the model
     DIR/failures.json     tasks that raised, with their parameters and the error
     DIR/*.png             the study's figures
 
@@ -556,18 +559,21 @@ class RunContext:
 
 
 def _execute_task(task: Callable[[Params, np.random.SeedSequence], Mapping[str, Any]],
-                  params: Params, root: int, replicate: int) -> tuple[dict[str, Any], float]:
-    """What runs on a worker: one seeded task, its result made JSON-plain, its seconds."""
-    t0 = time.perf_counter()
+                  params: Params, root: int, replicate: int
+                  ) -> tuple[dict[str, Any], float, float]:
+    """What runs on a worker: one seeded task, its result made JSON-plain, its wall and
+    CPU seconds (the worker process's, all its threads)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     result = task(dict(params), task_seed(root, params, replicate))
-    return {k: plain(v) for k, v in result.items()}, time.perf_counter() - t0
+    return ({k: plain(v) for k, v in result.items()}, time.perf_counter() - t0,
+            time.process_time() - c0)
 
 
 def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, start: int,
-                   stop: int) -> tuple[dict[str, list[Any]], float]:
+                   stop: int) -> tuple[dict[str, list[Any]], float, float]:
     """What runs on a worker: trials start..stop-1 of (point, replicate), one list per
-    column, and the seconds they took."""
-    t0 = time.perf_counter()
+    column, and the wall and CPU seconds they took."""
+    t0, c0 = time.perf_counter(), time.process_time()
     chunk = TrialChunk(task_seed(root, params, replicate), start, stop, trials.block)
     columns = {k: [plain(v) for v in np.asarray(vals).tolist()]
                for k, vals in trials.run(dict(params), chunk).items()}
@@ -575,7 +581,7 @@ def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, st
     if bad:
         raise ValueError(f"trial columns {bad} do not have one value per trial "
                          f"({stop - start})")
-    return columns, time.perf_counter() - t0
+    return columns, time.perf_counter() - t0, time.process_time() - c0
 
 
 class _Executor:
@@ -993,6 +999,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
     for i, u in enumerate(units):
         complete(i, u)
     computed = 0
+    busy = [0.0, 0.0]  # wall and CPU seconds of the tasks computed (in the workers)
     index = {id(u): i for i, u in enumerate(units)}
     jobs: dict[str, tuple[_Unit, int, int]] = {}
     try:
@@ -1025,7 +1032,9 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
                     if not u.failed:
                         fail(u, exc)
                 else:
-                    value, seconds = result
+                    value, seconds, cpu = result
+                    busy[0] += seconds
+                    busy[1] += cpu
                     u.done[a] = (b, value)
                     computed += 1
                     if u.total is None:
@@ -1077,6 +1086,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
         "tasks": computed + cached, "computed": computed, "cached": cached,
         "failed": len(failures), "wall_time_s": round(time.monotonic() - t0, 3),
         "executor_start_s": round(getattr(executor, "start_s", 0.0), 3),
+        "task_wall_s": round(busy[0], 3), "task_cpu_s": round(busy[1], 3),
         "machine_columns": list(study.machine_columns),
         "sub_studies": sorted(ctx.subs),
     }

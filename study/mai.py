@@ -47,7 +47,6 @@ __all__ = [
     "mai_config",
     "mai_signal",
     "run_trial_blocks",
-    "run_trials",
     "run_trials_detectors",
     "sga_error_rate",
     "snr_per_sample_eq30",
@@ -78,9 +77,12 @@ def mai_signal(bip: NDArray[np.int8], delays: NDArray[np.int64], s: int) -> NDAr
     d = np.asarray(delays, dtype=np.int64) % (n * s)
     m, f = np.divmod(d, s)
     a = np.zeros((s, n), dtype=np.int32)
-    # group the channels by sub-chip phase f: one roll per channel in the chip domain
+    # group the channels by sub-chip phase f; channel ch rolled by m in the chip domain
+    # (a[f, j] += bip[ch, j - m]) as two slice adds, without a rolled copy
     for ch in range(k):
-        a[f[ch]] += np.roll(bip[ch], m[ch])
+        row, mm = a[f[ch]], int(m[ch])
+        row[mm:] += bip[ch, :n - mm]
+        row[:mm] += bip[ch, n - mm:]
     p = np.cumsum(a, axis=0)                      # P_s, (S, N)
     total = p[-1]
     x = p + np.roll(total[None, :] - p, 1, axis=1)  # x[s, n] = P_s[n] + (T - P_s)[n - 1]
@@ -164,20 +166,9 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001,
     return float(min(max(1.0 - correct, 0.0), 1.0))
 
 
-def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator, *,
-               noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
-               adc_bits: int = 16, batch: int = 8, detector: str = "abs"
-               ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """:func:`run_trials_detectors` for one ``detector``: (gross error per trial, SNR_XC dB)."""
-    errors, snr = run_trials_detectors(bits, s, trials, rng, noise_rms=noise_rms,
-                                       amplitude=amplitude, averages=averages,
-                                       adc_bits=adc_bits, batch=batch)
-    return errors[detector], snr
-
-
 def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator,
                          *, noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
-                         adc_bits: int = 16, batch: int = 8
+                         adc_bits: int = 16, batch: int = 8, rx: FastReceiver | None = None
                          ) -> tuple[dict[str, NDArray[np.bool_]], NDArray[np.float64]]:
     """``trials`` random-delay trials through the whole receive chain; channel 0 is ranged.
 
@@ -186,17 +177,18 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
     Gaussian noise of ``noise_rms`` LSB per sample (independent in each of the R
     ``averages``), quantises (round half up, clip to ``adc_bits``) and runs the column
     through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``)
-    correlating with channel 0's code. The same trials are judged with each of
-    :data:`DETECTORS`: ``abs`` is the receiver's own peak (largest |out|), ``signed`` the
-    largest ``out`` over the gate (the whole period, so gate index = lag; ties to the
-    lowest lag as the receiver's). Returns ({detector: gross error per trial}, SNR_XC dB
-    per trial as the receiver reports it).
+    correlating with channel 0's code; ``rx``: that receiver already built (for
+    :func:`mai_config` and ``bits[:1]``), so that many calls share one. The same trials
+    are judged with each of :data:`DETECTORS`: ``abs`` is the receiver's own peak
+    (largest |out|), ``signed`` the largest ``out`` over the gate (the whole period, so
+    gate index = lag; ties to the lowest lag as the receiver's). Returns ({detector:
+    gross error per trial}, SNR_XC dB per trial as the receiver reports it).
     """
     bip = bipolar(bits)
     k, n = bip.shape
     ns = n * s
-    cfg = mai_config(n, s, adc_bits=adc_bits, averages=averages)
-    rx = FastReceiver(cfg, bits[:1])
+    if rx is None:
+        rx = FastReceiver(mai_config(n, s, adc_bits=adc_bits, averages=averages), bits[:1])
     lo, hi = adc_limits(adc_bits)
     errors = {d: np.zeros(trials, dtype=bool) for d in DETECTORS}
     snr = np.zeros(trials, dtype=np.float64)
@@ -227,14 +219,21 @@ def run_trial_blocks(bits: NDArray[np.uint8] | None, s: int,
                      **kw: float | int) -> dict[str, list]:
     """:func:`run_trials_detectors` over a study chunk's seeded blocks (``chunk.blocks()``).
 
-    Returns per-trial lists: ``error`` (the receiver's |corr|), ``error_signed`` (eq. 9's
-    signed maximum), ``snr_xc_db`` and ``seconds`` (each block's time shared equally by
-    its trials). ``kw``: the noise, amplitude and averages of :func:`run_trials_detectors`.
+    One receiver serves every block of the chunk. Returns per-trial lists: ``error`` (the
+    receiver's |corr|), ``error_signed`` (eq. 9's signed maximum), ``snr_xc_db`` and
+    ``seconds`` (each block's time shared equally by its trials). ``kw``: the noise,
+    amplitude and averages of :func:`run_trials_detectors`.
     """
     out: dict[str, list] = {"error": [], "error_signed": [], "snr_xc_db": [], "seconds": []}
+    rx = None
     for rng, count in blocks:
         t0 = time.perf_counter()
-        errors, snr = run_trials_detectors(bits, s, count, rng, **kw)  # type: ignore[arg-type]
+        if rx is None:
+            assert bits is not None
+            rx = FastReceiver(mai_config(bits.shape[1], s, adc_bits=int(kw.get("adc_bits", 16)),
+                                         averages=int(kw.get("averages", 1))), bits[:1])
+        errors, snr = run_trials_detectors(bits, s, count, rng, rx=rx,  # type: ignore[arg-type]
+                                           **kw)
         out["error"] += errors["abs"].tolist()
         out["error_signed"] += errors["signed"].tolist()
         out["snr_xc_db"] += snr.tolist()
