@@ -47,8 +47,9 @@ Storage (``--out DIR``)::
                           for machine columns); units in the column names
     DIR/summary.json      headline numbers, each {"ours": x, "paper": y or null, "unit": u}
     DIR/run.json          what ran: study, settings, engine, counts, failures, wall time,
-                          the tasks' own wall and CPU seconds in the workers (computed
-                          ones; ``task_cpu_s`` / ``wall_time_s`` is the cores kept busy),
+                          the computed tasks' own wall, CPU and runqueue-wait seconds
+                          in the workers (``task_cpu_s`` / ``wall_time_s``: the cores
+                          kept busy; ``task_wait_s``: time other load took from them),
                           the columns that measure the machine (time, memory) rather
                           than the model
     DIR/failures.json     tasks that raised, with their parameters and the error
@@ -561,19 +562,19 @@ class RunContext:
 def _execute_task(task: Callable[[Params, np.random.SeedSequence], Mapping[str, Any]],
                   params: Params, root: int, replicate: int
                   ) -> tuple[dict[str, Any], float, float]:
-    """What runs on a worker: one seeded task, its result made JSON-plain, its wall and
-    CPU seconds (the worker process's, all its threads)."""
-    t0, c0 = time.perf_counter(), time.process_time()
+    """What runs on a worker: one seeded task, its result made JSON-plain, and its
+    seconds (:func:`_clocks`)."""
+    c0 = _clocks()
     result = task(dict(params), task_seed(root, params, replicate))
-    return ({k: plain(v) for k, v in result.items()}, time.perf_counter() - t0,
-            time.process_time() - c0)
+    return ({k: plain(v) for k, v in result.items()},
+            *(b - a for a, b in zip(c0, _clocks(), strict=True)))
 
 
 def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, start: int,
                    stop: int) -> tuple[dict[str, list[Any]], float, float]:
     """What runs on a worker: trials start..stop-1 of (point, replicate), one list per
-    column, and the wall and CPU seconds they took."""
-    t0, c0 = time.perf_counter(), time.process_time()
+    column, and the seconds they took (:func:`_clocks`)."""
+    c0 = _clocks()
     chunk = TrialChunk(task_seed(root, params, replicate), start, stop, trials.block)
     columns = {k: [plain(v) for v in np.asarray(vals).tolist()]
                for k, vals in trials.run(dict(params), chunk).items()}
@@ -581,7 +582,22 @@ def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, st
     if bad:
         raise ValueError(f"trial columns {bad} do not have one value per trial "
                          f"({stop - start})")
-    return columns, time.perf_counter() - t0, time.process_time() - c0
+    return columns, *(b - a for a, b in zip(c0, _clocks(), strict=True))
+
+
+def _clocks() -> tuple[float, float, float]:
+    """(wall, CPU of this process, runqueue wait of this thread) in seconds.
+
+    The wait is the time this thread was ready to run but another process held the
+    core (Linux ``/proc/thread-self/schedstat``; 0 elsewhere): on a shared machine it
+    tells the other load's share of a task's wall time from the task's own.
+    """
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            wait = int(f.read().split()[1]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        wait = 0.0
+    return time.perf_counter(), time.process_time(), wait
 
 
 class _Executor:
@@ -999,7 +1015,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
     for i, u in enumerate(units):
         complete(i, u)
     computed = 0
-    busy = [0.0, 0.0]  # wall and CPU seconds of the tasks computed (in the workers)
+    busy = [0.0, 0.0, 0.0]  # wall, CPU and runqueue-wait seconds of the tasks computed
     index = {id(u): i for i, u in enumerate(units)}
     jobs: dict[str, tuple[_Unit, int, int]] = {}
     try:
@@ -1032,9 +1048,10 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
                     if not u.failed:
                         fail(u, exc)
                 else:
-                    value, seconds, cpu = result
+                    value, seconds, cpu, wait = result
                     busy[0] += seconds
                     busy[1] += cpu
+                    busy[2] += wait
                     u.done[a] = (b, value)
                     computed += 1
                     if u.total is None:
@@ -1087,6 +1104,7 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
         "failed": len(failures), "wall_time_s": round(time.monotonic() - t0, 3),
         "executor_start_s": round(getattr(executor, "start_s", 0.0), 3),
         "task_wall_s": round(busy[0], 3), "task_cpu_s": round(busy[1], 3),
+        "task_wait_s": round(busy[2], 3),
         "machine_columns": list(study.machine_columns),
         "sub_studies": sorted(ctx.subs),
     }
