@@ -24,6 +24,7 @@ sum (tests compare the two).
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Iterable
@@ -35,7 +36,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.gold import bipolar, gold_codes
 from cdma_lidar.firmware_model.pairs import preferred_pairs
-from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.firmware_model.receiver import ReceiverConfig, fast_frame
 from cdma_lidar.study.simulate import smallest_out_shift
 
 __all__ = [
@@ -61,10 +62,16 @@ log = logging.getLogger(__name__)
 DETECTORS = ("abs", "signed")
 
 
+@functools.lru_cache(maxsize=4)
 def code_bits(degree: int, channels: int) -> NDArray[np.uint8]:
-    """Gold members 0..channels-1 of the first preferred pair of ``degree``: (K, N) chip bits."""
+    """Gold members 0..channels-1 of the first preferred pair of ``degree``: (K, N) chip bits.
+
+    Kept (read-only) for the next chunk of the same point: 76 ms at degree 15, K = 1200.
+    """
     u, v = preferred_pairs(degree)[0]
-    return gold_codes(u, v, range(channels), field="channels")
+    bits = gold_codes(u, v, range(channels), field="channels")
+    bits.flags.writeable = False
+    return bits
 
 
 def mai_signal(bip: NDArray[np.int8], delays: NDArray[np.int64], s: int) -> NDArray[np.int32]:
@@ -168,7 +175,7 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001,
 
 def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator,
                          *, noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
-                         adc_bits: int = 16, batch: int = 8, rx: FastReceiver | None = None
+                         adc_bits: int = 16, batch: int = 8
                          ) -> tuple[dict[str, NDArray[np.bool_]], NDArray[np.float64]]:
     """``trials`` random-delay trials through the whole receive chain; channel 0 is ranged.
 
@@ -176,9 +183,9 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
     period (whole samples), sums the K channels at ``amplitude`` LSB each, adds white
     Gaussian noise of ``noise_rms`` LSB per sample (independent in each of the R
     ``averages``), quantises (round half up, clip to ``adc_bits``) and runs the column
-    through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``)
-    correlating with channel 0's code; ``rx``: that receiver already built (for
-    :func:`mai_config` and ``bits[:1]``), so that many calls share one. The same trials
+    through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``,
+    by :func:`~cdma_lidar.firmware_model.receiver.fast_frame`, which keeps the prepared
+    receiver for the next call) correlating with channel 0's code. The same trials
     are judged with each of :data:`DETECTORS`: ``abs`` is the receiver's own peak
     (largest |out|), ``signed`` the largest ``out`` over the gate (the whole period, so
     gate index = lag; ties to the lowest lag as the receiver's). Returns ({detector:
@@ -187,8 +194,7 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
     bip = bipolar(bits)
     k, n = bip.shape
     ns = n * s
-    if rx is None:
-        rx = FastReceiver(mai_config(n, s, adc_bits=adc_bits, averages=averages), bits[:1])
+    cfg = mai_config(n, s, adc_bits=adc_bits, averages=averages)
     lo, hi = adc_limits(adc_bits)
     errors = {d: np.zeros(trials, dtype=bool) for d in DETECTORS}
     snr = np.zeros(trials, dtype=np.float64)
@@ -205,7 +211,7 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
                 cols[c] = np.clip(np.floor(noisy + 0.5), lo, hi).reshape(-1)
             else:
                 cols[c] = np.tile(np.clip(clean, lo, hi), averages)
-        outs = rx.frame(cols)
+        outs = fast_frame(cfg, bits[:1], cols)
         lags = np.array([int(o.peak_lag[0]) for o in outs])
         signed = np.array([int(np.argmax(o.corr[0])) for o in outs])  # gate_start 0: j = lag
         errors["abs"][start:start + count] = gross_error(lags, truth, ns, s)
@@ -219,21 +225,15 @@ def run_trial_blocks(bits: NDArray[np.uint8] | None, s: int,
                      **kw: float | int) -> dict[str, list]:
     """:func:`run_trials_detectors` over a study chunk's seeded blocks (``chunk.blocks()``).
 
-    One receiver serves every block of the chunk. Returns per-trial lists: ``error`` (the
+    Returns per-trial lists: ``error`` (the
     receiver's |corr|), ``error_signed`` (eq. 9's signed maximum), ``snr_xc_db`` and
     ``seconds`` (each block's time shared equally by its trials). ``kw``: the noise,
     amplitude and averages of :func:`run_trials_detectors`.
     """
     out: dict[str, list] = {"error": [], "error_signed": [], "snr_xc_db": [], "seconds": []}
-    rx = None
     for rng, count in blocks:
         t0 = time.perf_counter()
-        if rx is None:
-            assert bits is not None
-            rx = FastReceiver(mai_config(bits.shape[1], s, adc_bits=int(kw.get("adc_bits", 16)),
-                                         averages=int(kw.get("averages", 1))), bits[:1])
-        errors, snr = run_trials_detectors(bits, s, count, rng, rx=rx,  # type: ignore[arg-type]
-                                           **kw)
+        errors, snr = run_trials_detectors(bits, s, count, rng, **kw)  # type: ignore[arg-type]
         out["error"] += errors["abs"].tolist()
         out["error_signed"] += errors["signed"].tolist()
         out["snr_xc_db"] += snr.tolist()
