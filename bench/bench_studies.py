@@ -20,8 +20,8 @@ receivers and transfers cost CPU). The load average before and after is printed.
 
 Targets (issue 23): efficiency >= 90 % on 2 workers and >= 80 % on 16 workers, for the
 full fig11 (orders 11 and 13, 1000 trials per point). The default is a smaller version
-with the same structure: orders 11 and 13 on the same grids with 200 trials per point
-(looks at 64, 128 and 200 trials), about a fifth of the full run's CPU;
+with the same structure: orders 11 and 13 on the same grids with up to 100 trials per
+point (a look at 64), about a third of the full run's CPU (about 1 CPU-minute per run);
 ``python -m bench studies --full`` (or ``CDMA_LIDAR_BENCH_FULL=1``) runs the full one.
 A machine with fewer cores than a target's worker count cannot measure that target:
 the line says so.
@@ -42,7 +42,7 @@ from cdma_lidar.study.fig11 import STUDY as FIG11
 #: The default (reduced) configuration and the full one of the issue.
 SMALL = {"channels_order11": tuple(range(25, 251, 25)),
          "channels_order13": tuple(range(100, 1001, 100)), "channels_order15": (),
-         "trials": 200}
+         "trials": 100}
 FULL = {"channels_order11": tuple(range(25, 251, 25)),
         "channels_order13": tuple(range(100, 1001, 100)), "channels_order15": (),
         "trials": 1000}
