@@ -37,3 +37,24 @@ def test_a_stopped_point_is_on_one_side_at_95_percent(look, data):
         for k in (errors, signed):
             lo, hi = wilson(k, look)  # the interval the capacity's bracket uses
             assert hi < 0.10 or lo > 0.10
+
+
+def test_fig11_stops_far_points_at_the_first_look_whatever_the_chunks(tmp_path):
+    from cdma_lidar.study.engine import read_csv, run_study
+    from cdma_lidar.study.fig11 import STUDY
+
+    small = {"channels_order11": (8, 1500), "channels_order13": (), "channels_order15": (),
+             "trials": "128", "S": "4"}
+    rows = []
+    for chunk in (8, 1000):
+        out = tmp_path / str(chunk)
+        res = run_study(STUDY, out, overrides=small, workers=0, progress=False,
+                        chunk_trials=chunk)
+        assert not res.failures
+        table = read_csv(out / "results.csv")
+        assert table.column("trials_run").tolist() == [64, 64]  # decided: 0 % and ~100 %
+        assert table.column("error_rate").tolist()[0] == 0.0
+        assert table.column("error_rate").tolist()[1] > 0.5
+        rows.append([{k: v for k, v in r.items() if not k.startswith("time_per_trial")}
+                     for r in table.rows])
+    assert rows[0] == rows[1]
