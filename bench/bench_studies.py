@@ -88,6 +88,9 @@ def main() -> None:
     for _ in range(repeats):
         for n in counts:
             run = _run(overrides, n)
+            print(f"    run on {n} worker(s): {run['t']:.2f} s, workers' CPU {run['cpu']:.1f} s, "
+                  f"runqueue wait {run['wait']:.1f} s; load average {os.getloadavg()[0]:.2f}",
+                  flush=True)
             if reference is None:
                 reference = run["rows"]
             elif run["rows"] != reference:
