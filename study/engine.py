@@ -46,8 +46,12 @@ Storage (``--out DIR``)::
                           are at least two replicates, and ``<col>_best``, the minimum,
                           for machine columns); units in the column names
     DIR/summary.json      headline numbers, each {"ours": x, "paper": y or null, "unit": u}
-    DIR/run.json          what ran: study, settings, engine, counts, failures, the columns
-                          that measure the machine (time, memory) rather than the model
+    DIR/run.json          what ran: study, settings, engine, counts, failures, wall time,
+                          the computed tasks' own wall, CPU and runqueue-wait seconds
+                          in the workers (``task_cpu_s`` / ``wall_time_s``: the cores
+                          kept busy; ``task_wait_s``: time other load took from them),
+                          the columns that measure the machine (time, memory) rather
+                          than the model
     DIR/failures.json     tasks that raised, with their parameters and the error
     DIR/*.png             the study's figures
 
@@ -349,12 +353,30 @@ class Trials:
       means and percentiles are exact whatever the chunking.
 
     ``block``: trials per seed (the unit of chunking; changing it changes the draws).
+
+    ``stop`` (optional): a sequential stopping rule. ``stop(params, columns) -> bool`` is
+    asked at fixed looks, after the first ``first_look`` trials and each doubling of that
+    (``first_look``, 2 ``first_look``, 4 ``first_look``, ... below ``count``), with the
+    columns of exactly those first trials; True ends the point there (``summarise`` then
+    gets those trials only). The looks depend on nothing but ``count``, so a stopped
+    point's trials, and the table, still do not depend on chunking, workers or order.
     """
 
     count: Callable[[Params], int]
     run: Callable[[Params, TrialChunk], Mapping[str, Sequence[Any]]]
     summarise: Callable[[Params, Mapping[str, np.ndarray]], Mapping[str, Any]]
     block: int = 8
+    stop: Callable[[Params, Mapping[str, np.ndarray]], bool] | None = None
+    first_look: int = 64
+
+    def looks(self, count: int) -> list[int]:
+        """Trial counts at which ``stop`` is asked, then ``count`` itself (the last)."""
+        out = []
+        look = -(-max(self.first_look, 1) // self.block) * self.block  # whole blocks
+        while self.stop is not None and look < count:
+            out.append(look)
+            look *= 2
+        return [*out, count]
 
 
 #: Chunk durations the engine aims at (s): at most MAX_CHUNK_S (a Ctrl-C loses little,
@@ -367,7 +389,10 @@ MIN_CHUNK_S = 0.25
 @dataclass
 class _Unit:
     """One (point, replicate): its finished chunks, the trial ranges still to run, its
-    measured seconds per trial. ``total`` is None for a plain (unchunked) task."""
+    measured seconds per trial. ``total`` is None for a plain (unchunked) task; else the
+    trials the point will have (its count, or the look where ``Trials.stop`` ended it),
+    ``looks`` the trial counts at which it may stop (the last is the count), ``looks[0]``
+    the end of the stretch of trials now open."""
 
     params: Params
     replicate: int
@@ -378,9 +403,44 @@ class _Unit:
     rate: float | None = None
     inflight: int = 0
     failed: bool = False
+    looks: list[int] = field(default_factory=list)
 
     def missing(self) -> int:
+        """Trials of the open stretch not yet handed out."""
         return sum(b - a for a, b in self.todo)
+
+    def left(self) -> int:
+        """Trials still to run up to the point's count (if it never stops)."""
+        end = self.looks[-1] if self.looks else 0
+        return end - sum(min(b, end) - a for a, (b, _) in self.done.items() if a < end)
+
+    def columns(self, stop: int) -> dict[str, np.ndarray]:
+        """Trials 0..stop-1 of the finished chunks, one array per column (trial order)."""
+        parts = [(a, *self.done[a]) for a in sorted(self.done) if a < stop or a == 0]
+        names = list(parts[0][2]) if parts else []
+        if any(list(c) != names for _, _, c in parts):
+            raise ValueError("the chunks of this point returned different trial columns")
+        return {k: np.asarray([v for a, b, c in parts for v in c[k][:max(0, stop - a)]])
+                for k in names}
+
+    def advance(self, trials: Trials) -> int:
+        """Past a finished look: stop there (``trials.stop``) or open the next stretch.
+
+        Returns the trials the point will not run because it stopped (0 otherwise).
+        """
+        skipped = 0
+        while self.looks and not self.todo and not self.inflight and not self.failed \
+                and len(self.looks) > 1:
+            look = self.looks[0]
+            assert trials.stop is not None  # more than one look: there is a rule
+            if trials.stop(dict(self.params), self.columns(look)):
+                skipped = self.looks[-1] - look
+                self.total, self.looks = look, [look]
+                break
+            self.looks.pop(0)
+            self.todo = _uncovered(self.looks[0], [(a, b) for a, (b, _) in self.done.items()],
+                                   self.block)
+        return skipped
 
     def take(self, blocks: int) -> tuple[int, int]:
         """The next ``blocks`` blocks (at most the first missing range) as (start, stop)."""
@@ -500,18 +560,21 @@ class RunContext:
 
 
 def _execute_task(task: Callable[[Params, np.random.SeedSequence], Mapping[str, Any]],
-                  params: Params, root: int, replicate: int) -> tuple[dict[str, Any], float]:
-    """What runs on a worker: one seeded task, its result made JSON-plain, its seconds."""
-    t0 = time.perf_counter()
+                  params: Params, root: int, replicate: int
+                  ) -> tuple[dict[str, Any], float, float]:
+    """What runs on a worker: one seeded task, its result made JSON-plain, and its
+    seconds (:func:`_clocks`)."""
+    c0 = _clocks()
     result = task(dict(params), task_seed(root, params, replicate))
-    return {k: plain(v) for k, v in result.items()}, time.perf_counter() - t0
+    return ({k: plain(v) for k, v in result.items()},
+            *(b - a for a, b in zip(c0, _clocks(), strict=True)))
 
 
 def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, start: int,
-                   stop: int) -> tuple[dict[str, list[Any]], float]:
+                   stop: int) -> tuple[dict[str, list[Any]], float, float]:
     """What runs on a worker: trials start..stop-1 of (point, replicate), one list per
-    column, and the seconds they took."""
-    t0 = time.perf_counter()
+    column, and the seconds they took (:func:`_clocks`)."""
+    c0 = _clocks()
     chunk = TrialChunk(task_seed(root, params, replicate), start, stop, trials.block)
     columns = {k: [plain(v) for v in np.asarray(vals).tolist()]
                for k, vals in trials.run(dict(params), chunk).items()}
@@ -519,7 +582,22 @@ def _execute_chunk(trials: Trials, params: Params, root: int, replicate: int, st
     if bad:
         raise ValueError(f"trial columns {bad} do not have one value per trial "
                          f"({stop - start})")
-    return columns, time.perf_counter() - t0
+    return columns, *(b - a for a, b in zip(c0, _clocks(), strict=True))
+
+
+def _clocks() -> tuple[float, float, float]:
+    """(wall, CPU of this process, runqueue wait of this thread) in seconds.
+
+    The wait is the time this thread was ready to run but another process held the
+    core (Linux ``/proc/thread-self/schedstat``; 0 elsewhere): on a shared machine it
+    tells the other load's share of a task's wall time from the task's own.
+    """
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            wait = int(f.read().split()[1]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        wait = 0.0
+    return time.perf_counter(), time.process_time(), wait
 
 
 class _Executor:
@@ -878,7 +956,10 @@ def _units(study: Study, points: list[Params], reps: int, root: int, tasks_dir: 
                         u.done[a] = (b, cols)
                         pos = b
                         cached += 1
-                u.todo = _uncovered(total, [(a, b) for a, (b, _) in u.done.items()], block)
+                u.looks = study.trials.looks(total)
+                u.todo = _uncovered(u.looks[0], [(a, b) for a, (b, _) in u.done.items()],
+                                    block)
+                u.advance(study.trials)
             units.append(u)
     return units, cached
 
@@ -887,11 +968,7 @@ def _finish(study: Study, u: _Unit) -> dict[str, Any]:
     """The row of a unit whose chunks are all done (raises what the study raises)."""
     if study.trials is None:
         return u.done[0][1]
-    parts = [u.done[a][1] for a in sorted(u.done)]
-    names = list(parts[0]) if parts else []
-    if any(list(c) != names for c in parts):
-        raise ValueError("the chunks of this point returned different trial columns")
-    columns = {k: np.asarray([v for c in parts for v in c[k]]) for k in names}
+    columns = u.columns(u.total or 0)
     return {k: plain(v) for k, v in study.trials.summarise(dict(u.params), columns).items()}
 
 
@@ -918,17 +995,27 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
                     _canonical(u.params), u.replicate, msg)
 
     def complete(i: int, u: _Unit) -> None:
+        if study.trials is not None and not u.failed:
+            try:
+                skipped = u.advance(study.trials)
+            except Exception as exc:  # the stopping rule raised: the point fails
+                fail(u, exc)
+                return
+            if skipped and bar is not None:
+                bar.total = max(bar.n, bar.total - skipped)
+                bar.refresh()
         if not u.todo and not u.inflight and not u.failed:
             try:
                 rows[i] = _finish(study, u)
             except Exception as exc:
                 fail(u, exc)
 
+    work = sum(1 if u.total is None else max(u.left(), 1) if u.todo else 0 for u in units)
+    bar = _progress(work, study.name, progress, "task" if study.trials is None else "trial")
     for i, u in enumerate(units):
         complete(i, u)
     computed = 0
-    work = sum(1 if u.total is None else max(u.missing(), 1) if u.todo else 0 for u in units)
-    bar = _progress(work, study.name, progress, "task" if study.trials is None else "trial")
+    busy = [0.0, 0.0, 0.0]  # wall, CPU and runqueue-wait seconds of the tasks computed
     index = {id(u): i for i, u in enumerate(units)}
     jobs: dict[str, tuple[_Unit, int, int]] = {}
     try:
@@ -961,7 +1048,10 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
                     if not u.failed:
                         fail(u, exc)
                 else:
-                    value, seconds = result
+                    value, seconds, cpu, wait = result
+                    busy[0] += seconds
+                    busy[1] += cpu
+                    busy[2] += wait
                     u.done[a] = (b, value)
                     computed += 1
                     if u.total is None:
@@ -1013,6 +1103,8 @@ def _run(study: Study, out: Path, options: RunOptions, executor: _Executor, *,
         "tasks": computed + cached, "computed": computed, "cached": cached,
         "failed": len(failures), "wall_time_s": round(time.monotonic() - t0, 3),
         "executor_start_s": round(getattr(executor, "start_s", 0.0), 3),
+        "task_wall_s": round(busy[0], 3), "task_cpu_s": round(busy[1], 3),
+        "task_wait_s": round(busy[2], 3),
         "machine_columns": list(study.machine_columns),
         "sub_studies": sorted(ctx.subs),
     }

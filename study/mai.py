@@ -24,6 +24,7 @@ sum (tests compare the two).
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Iterable
@@ -35,7 +36,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.gold import bipolar, gold_codes
 from cdma_lidar.firmware_model.pairs import preferred_pairs
-from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.firmware_model.receiver import ReceiverConfig, fast_frame
 from cdma_lidar.study.simulate import smallest_out_shift
 
 __all__ = [
@@ -47,7 +48,6 @@ __all__ = [
     "mai_config",
     "mai_signal",
     "run_trial_blocks",
-    "run_trials",
     "run_trials_detectors",
     "sga_error_rate",
     "snr_per_sample_eq30",
@@ -62,10 +62,16 @@ log = logging.getLogger(__name__)
 DETECTORS = ("abs", "signed")
 
 
+@functools.lru_cache(maxsize=4)
 def code_bits(degree: int, channels: int) -> NDArray[np.uint8]:
-    """Gold members 0..channels-1 of the first preferred pair of ``degree``: (K, N) chip bits."""
+    """Gold members 0..channels-1 of the first preferred pair of ``degree``: (K, N) chip bits.
+
+    Kept (read-only) for the next chunk of the same point: 76 ms at degree 15, K = 1200.
+    """
     u, v = preferred_pairs(degree)[0]
-    return gold_codes(u, v, range(channels), field="channels")
+    bits = gold_codes(u, v, range(channels), field="channels")
+    bits.flags.writeable = False
+    return bits
 
 
 def mai_signal(bip: NDArray[np.int8], delays: NDArray[np.int64], s: int) -> NDArray[np.int32]:
@@ -78,9 +84,12 @@ def mai_signal(bip: NDArray[np.int8], delays: NDArray[np.int64], s: int) -> NDAr
     d = np.asarray(delays, dtype=np.int64) % (n * s)
     m, f = np.divmod(d, s)
     a = np.zeros((s, n), dtype=np.int32)
-    # group the channels by sub-chip phase f: one roll per channel in the chip domain
+    # group the channels by sub-chip phase f; channel ch rolled by m in the chip domain
+    # (a[f, j] += bip[ch, j - m]) as two slice adds, without a rolled copy
     for ch in range(k):
-        a[f[ch]] += np.roll(bip[ch], m[ch])
+        row, mm = a[f[ch]], int(m[ch])
+        row[mm:] += bip[ch, :n - mm]
+        row[:mm] += bip[ch, n - mm:]
     p = np.cumsum(a, axis=0)                      # P_s, (S, N)
     total = p[-1]
     x = p + np.roll(total[None, :] - p, 1, axis=1)  # x[s, n] = P_s[n] + (T - P_s)[n - 1]
@@ -164,17 +173,6 @@ def sga_error_rate(snr_ss: float, competitors: int, points: int = 4001,
     return float(min(max(1.0 - correct, 0.0), 1.0))
 
 
-def run_trials(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator, *,
-               noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
-               adc_bits: int = 16, batch: int = 8, detector: str = "abs"
-               ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """:func:`run_trials_detectors` for one ``detector``: (gross error per trial, SNR_XC dB)."""
-    errors, snr = run_trials_detectors(bits, s, trials, rng, noise_rms=noise_rms,
-                                       amplitude=amplitude, averages=averages,
-                                       adc_bits=adc_bits, batch=batch)
-    return errors[detector], snr
-
-
 def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.random.Generator,
                          *, noise_rms: float = 0.0, amplitude: int = 1, averages: int = 1,
                          adc_bits: int = 16, batch: int = 8
@@ -185,18 +183,18 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
     period (whole samples), sums the K channels at ``amplitude`` LSB each, adds white
     Gaussian noise of ``noise_rms`` LSB per sample (independent in each of the R
     ``averages``), quantises (round half up, clip to ``adc_bits``) and runs the column
-    through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``)
-    correlating with channel 0's code. The same trials are judged with each of
-    :data:`DETECTORS`: ``abs`` is the receiver's own peak (largest |out|), ``signed`` the
-    largest ``out`` over the gate (the whole period, so gate index = lag; ties to the
-    lowest lag as the receiver's). Returns ({detector: gross error per trial}, SNR_XC dB
-    per trial as the receiver reports it).
+    through :class:`~cdma_lidar.firmware_model.receiver.FastReceiver` (``method="auto"``,
+    by :func:`~cdma_lidar.firmware_model.receiver.fast_frame`, which keeps the prepared
+    receiver for the next call) correlating with channel 0's code. The same trials
+    are judged with each of :data:`DETECTORS`: ``abs`` is the receiver's own peak
+    (largest |out|), ``signed`` the largest ``out`` over the gate (the whole period, so
+    gate index = lag; ties to the lowest lag as the receiver's). Returns ({detector:
+    gross error per trial}, SNR_XC dB per trial as the receiver reports it).
     """
     bip = bipolar(bits)
     k, n = bip.shape
     ns = n * s
     cfg = mai_config(n, s, adc_bits=adc_bits, averages=averages)
-    rx = FastReceiver(cfg, bits[:1])
     lo, hi = adc_limits(adc_bits)
     errors = {d: np.zeros(trials, dtype=bool) for d in DETECTORS}
     snr = np.zeros(trials, dtype=np.float64)
@@ -213,7 +211,7 @@ def run_trials_detectors(bits: NDArray[np.uint8], s: int, trials: int, rng: np.r
                 cols[c] = np.clip(np.floor(noisy + 0.5), lo, hi).reshape(-1)
             else:
                 cols[c] = np.tile(np.clip(clean, lo, hi), averages)
-        outs = rx.frame(cols)
+        outs = fast_frame(cfg, bits[:1], cols)
         lags = np.array([int(o.peak_lag[0]) for o in outs])
         signed = np.array([int(np.argmax(o.corr[0])) for o in outs])  # gate_start 0: j = lag
         errors["abs"][start:start + count] = gross_error(lags, truth, ns, s)
@@ -227,9 +225,10 @@ def run_trial_blocks(bits: NDArray[np.uint8] | None, s: int,
                      **kw: float | int) -> dict[str, list]:
     """:func:`run_trials_detectors` over a study chunk's seeded blocks (``chunk.blocks()``).
 
-    Returns per-trial lists: ``error`` (the receiver's |corr|), ``error_signed`` (eq. 9's
-    signed maximum), ``snr_xc_db`` and ``seconds`` (each block's time shared equally by
-    its trials). ``kw``: the noise, amplitude and averages of :func:`run_trials_detectors`.
+    Returns per-trial lists: ``error`` (the
+    receiver's |corr|), ``error_signed`` (eq. 9's signed maximum), ``snr_xc_db`` and
+    ``seconds`` (each block's time shared equally by its trials). ``kw``: the noise,
+    amplitude and averages of :func:`run_trials_detectors`.
     """
     out: dict[str, list] = {"error": [], "error_signed": [], "snr_xc_db": [], "seconds": []}
     for rng, count in blocks:

@@ -281,6 +281,72 @@ def test_chunked_tables_do_not_depend_on_chunk_size_worker_count_or_order(
         assert res.computed == 2 * sum(max(1, -(-n // size)) for n in (0, 1, 5, 17, 40))
 
 
+def _coin_stop(params, t) -> bool:
+    """Stop a point once its first trials hold two hits (data-dependent on purpose)."""
+    return int(np.sum(t["hit"])) >= 2
+
+
+#: COIN with a sequential stop asked after 8, 16 and 32 trials.
+STOPPING = dataclasses.replace(COIN, name="coin-stop", trials=dataclasses.replace(
+    COIN.trials, stop=_coin_stop, first_look=6))  # 6 -> 8: looks fall on whole blocks
+
+
+def _stopping_reference() -> list[dict]:
+    """Each point's row from its trials up to the first look where the rule stops it."""
+    rows = []
+    for p in STOPPING.grid(STOPPING.options()):
+        seed = task_seed(STOPPING.options().seed, p, 0)
+        cols = {k: np.asarray(v) for k, v in _coin_trials(p, TrialChunk(seed, 0, p["n"], 4)
+                                                          ).items()}
+        looks = STOPPING.trials.looks(p["n"])
+        end = next(n for n in looks if n == looks[-1] or _coin_stop(p, {k: v[:n] for k, v
+                                                                      in cols.items()}))
+        rows.append({**p, "replicates": 1, **_coin_row(p, {k: v[:end] for k, v in cols.items()})})
+    return rows
+
+
+def test_looks_double_from_the_first_on_whole_blocks():
+    assert STOPPING.trials.looks(40) == [8, 16, 32, 40]
+    assert STOPPING.trials.looks(8) == [8] and STOPPING.trials.looks(0) == [0]
+    assert COIN.trials.looks(40) == [40]  # no rule, no looks
+
+
+@settings(max_examples=20)
+@given(chunk=st.one_of(st.none(), st.integers(1, 45)), slots=st.integers(1, 4),
+       rnd=st.randoms(use_true_random=False))
+def test_a_stopped_point_does_not_depend_on_chunk_size_worker_count_or_order(
+        tmp_path_factory, chunk, slots, rnd):
+    out = tmp_path_factory.mktemp("stop")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(engine, "make_executor", lambda *a, **k: _Shuffled(slots, rnd))
+        res = run_study(STOPPING, out, workers=slots, progress=False, chunk_trials=chunk)
+    reference = _stopping_reference()
+    assert res.table.rows == reference
+    runs = [r["trials_run"] for r in reference]
+    assert any(r < p["n"] for r, p in zip(runs, STOPPING.grid(STOPPING.options()),
+                                          strict=True))  # the rule did stop some points
+    # no trial past a point's stopping look was run
+    for path in (out / "tasks").glob("*.json"):
+        doc = json.loads(path.read_text())
+        row = next(r for r in reference if r["x"] == doc["params"]["x"]
+                   and r["n"] == doc["params"]["n"])
+        assert doc["trials"][1] <= max(row["trials_run"], 1) or row["n"] == 0
+
+
+def test_a_resumed_run_stops_where_a_fresh_run_stops(tmp_path):
+    whole = run_study(COIN, tmp_path, workers=0, progress=False, chunk_trials=4)
+    assert whole.table.rows == _coin_reference()
+    res = run_study(STOPPING, tmp_path / "s", workers=0, progress=False)
+    # the same chunks kept by a run without the rule: resume reads the looks from them
+    for path in (tmp_path / "tasks").glob("*.json"):
+        doc = json.loads(path.read_text())
+        doc["study"] = "coin-stop"
+        (tmp_path / "s" / "tasks" / path.name).write_text(json.dumps(doc))
+    again = run_study(STOPPING, tmp_path / "s", workers=0, progress=False, resume=True)
+    assert again.table.rows == res.table.rows == _stopping_reference()
+    assert again.computed == 0
+
+
 def test_chunks_follow_the_machine_and_stay_whole_blocks(tmp_path):
     res = run_study(COIN, tmp_path, workers=0, progress=False)
     assert res.table.rows == _coin_reference()
