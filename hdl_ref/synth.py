@@ -278,8 +278,9 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
                      "P_IN x Fmax)"}
     for flow in ("ecp5", "xc7", "pnr"):
         cols = COLUMNS[flow]
-        rows = [table_row(d, flow, results[(d.name, flow)]) for d in DESIGNS
-                if (d.name, flow) in results]
+        rows = [table_row(d, flow, results[(d.name, flow)]) if (d.name, flow) in results
+                else f"| {d.name} | not measured for this RTL |"
+                for d in DESIGNS if flow != "pnr" or d.pnr]
         lines += ["", titles[flow], "",
                   "| design | " + " | ".join(c for c, _ in cols) + " |",
                   "|---" * (len(cols) + 1) + "|", *rows]
@@ -294,8 +295,13 @@ def update_doc(text: str, table: str) -> str:
     return text[:start + len(BEGIN)] + "\n" + table + text[end:]
 
 
-def run_all(only: Sequence[str] = (), skip: Sequence[str] = ()) -> tuple[dict, list[str]]:
-    """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``."""
+def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
+            cached_only: bool = False) -> tuple[dict, list[str]]:
+    """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``.
+
+    ``cached_only``: run nothing, take what the cache holds for the current RTL (the
+    tables then mark the rest "not measured for this RTL").
+    """
     versions = [yosys_version(), _version("nextpnr-ecp5")]
     version = " ".join(versions)
     results: dict[tuple[str, str], dict[str, float]] = {}
@@ -307,6 +313,8 @@ def run_all(only: Sequence[str] = (), skip: Sequence[str] = ()) -> tuple[dict, l
             for flow in flows:
                 _cache_path(d, flow, version).unlink(missing_ok=True)
         for flow in flows:                                 # every design, every flow
+            if cached_only and not _cache_path(d, flow, version).exists():
+                continue
             log.info("%s with %s", d.name, flow)
 
             def run(d: Design = d, flow: str = flow) -> dict[str, float]:
@@ -328,10 +336,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip", action="append", default=[], metavar="NAME",
                         help="leave this design out (e.g. 'rx_top paper': its place and "
                              "route takes tens of minutes)")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="run no tool: tables from the cache, the rest marked "
+                             "'not measured for this RTL'")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        results, versions = run_all(args.only, args.skip)
+        results, versions = run_all(args.only, args.skip, args.cached_only)
     except FileNotFoundError as exc:
         sys.stderr.write(f"{exc}\n")
         return 2
