@@ -499,6 +499,17 @@ def test_sweep_build_equals_model(hdl_build_root, build):
             raise AssertionError(f"{case.name}: {exc}") from exc
 
 
+@pytest.mark.hdl
+@pytest.mark.slow
+def test_sixteen_lanes_four_samples_per_clock(hdl_build_root):
+    """The lane count of the paper's P_IN = 4 build (L = 16) at degree <= 6, K = 2."""
+    params = dataclasses.replace(sweep_params(4, 4, 32), channels=2, lanes=16)
+    cases = sweep_cases(params)
+    runs = simulate(_sweep_build(hdl_build_root, params), params, cases, "sweep")
+    for case, run in zip(cases, runs, strict=True):
+        check(case, run, params)
+
+
 #: Mutants of the sweep: (build, case) that must expose each
 SWEEP_MUTANTS = {
     "chip-index-drops-carry": ((3, 2, 32), "gate-start-0-max-degree"),
