@@ -103,7 +103,8 @@ FLOWS: dict[str, str] = {
 
 COLUMNS: dict[str, list[tuple[str, str]]] = {
     "ecp5": [("LUT4", "LUT4"), ("CCU2C", "CCU2C"), ("flip-flops", "TRELLIS_FF"),
-             ("DP16KD", "DP16KD"), ("MULT18X18D", "MULT18X18D")],
+             ("DPR16X4 (LUT RAM)", "TRELLIS_DPR16X4"), ("DP16KD", "DP16KD"),
+             ("MULT18X18D", "MULT18X18D")],
     "xc7": [("LUTs", r"LUT\d"), ("flip-flops", r"FD[CPRS]E?"), ("CARRY4", "CARRY4"),
             ("LUTRAM", r"RAM\d+[XM].*"), ("RAMB36E1", "RAMB36E1"), ("RAMB18E1", "RAMB18E1"),
             ("DSP48E1", "DSP48E1")],
