@@ -571,7 +571,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
     ``column_clocks``: the clocks they take, samples / P at P samples per clock;
     ``stream``: the correlation streams, groups * n * (N + L - 1);
     ``process``: from the ``col_start`` clock to the clock of the column's last
-    ``res_valid``: stream + K L + 14 + K (P (G + 4) + G + 7);
+    ``res_valid``: stream + K L + 17 + K (P (G + 4) + G + 7);
     ``first_take``: the clock (counted from 0 after the ``start`` edge) whose edge takes
     the first sample;
     ``last_to_col_start``: from the edge taking a column's last sample to its
@@ -588,7 +588,7 @@ def top_timing(ports: Mapping[str, int], params: TopParams) -> dict[str, int]:
         "samples": r * n * n_chips * s,
         "column_clocks": r * n * n_chips * s // params.samples_per_clock,
         "stream": stream,
-        "process": stream + k * lanes + 14 + post,
+        "process": stream + k * lanes + 17 + post,
         "first_take": 2,
         "last_to_col_start": 2,
     }

@@ -119,6 +119,18 @@ MUTANTS: tuple[Mutant, ...] = (
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};",
            "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], sr_code[gk*L]};",
            "lane 0 uses the previous chip of the Gold code"),
+    Mutant("lane-state-stale-after-start", "rx_top.v",
+           "x0_fst <= ser_fst;",
+           "x0_fst <= 1'b0;",
+           "the first stream after start subtracts the state RAM's old word, not 0"),
+    Mutant("uid-fold-restarts-every-period", "rx_top.v",
+           "x2_p0 = (x2_p == {UID_W{1'b0}});",
+           "x2_p0 = 1'b1;",
+           "the despread total keeps only the last UID period"),
+    Mutant("all-sum-misses-first-box", "rx_top.v",
+           "all_sum <= (f2 ? {PER_W{1'b0}} : all_sum) + bx;",
+           "all_sum <= f2 ? {PER_W{1'b0}} : all_sum + bx;",
+           "the sum of every box of a stream leaves out its first box"),
 )
 
 

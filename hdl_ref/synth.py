@@ -90,13 +90,11 @@ DESIGNS: tuple[Design, ...] = (
     Design("rx_top paper", "rx_top_pnr", TOP_SOURCES, PAPER_TOP,
            "K=40 x L=2, m<=11, S<=4, R<=16, 64 lags, 1 peak, 1 ghost window, 12-bit ADC, "
            "32-bit out (the paper's instrument; co-simulated by the slow test)", pnr=True),
+    Design("rx_top paper P=4", "rx_top_pnr", TOP_SOURCES, PAPER_P4,
+           "the paper build taking 4 samples per clock with K=40 x L=16 lanes: real time at "
+           "a quarter of the sample rate", pnr=True),
 )
-#: Not in DESIGNS yet (its rows are not measured: hours of synthesis and place and route
-#: on a shared 2-core machine); add it to DESIGNS and run ``--write-doc`` to measure it.
-PAPER_P4_DESIGN = Design(
-    "rx_top paper P=4", "rx_top_pnr", TOP_SOURCES, PAPER_P4,
-    "the paper build taking 4 samples per clock with K=40 x L=16 lanes: real time at a "
-    "quarter of the sample rate", pnr=True)
+PAPER_P4_DESIGN = DESIGNS[-1]
 
 FLOWS: dict[str, str] = {
     "ecp5": "synth_ecp5 -top {top} -json {json}",
@@ -105,7 +103,8 @@ FLOWS: dict[str, str] = {
 
 COLUMNS: dict[str, list[tuple[str, str]]] = {
     "ecp5": [("LUT4", "LUT4"), ("CCU2C", "CCU2C"), ("flip-flops", "TRELLIS_FF"),
-             ("DP16KD", "DP16KD"), ("MULT18X18D", "MULT18X18D")],
+             ("DPR16X4 (LUT RAM)", "TRELLIS_DPR16X4"), ("DP16KD", "DP16KD"),
+             ("MULT18X18D", "MULT18X18D")],
     "xc7": [("LUTs", r"LUT\d"), ("flip-flops", r"FD[CPRS]E?"), ("CARRY4", "CARRY4"),
             ("LUTRAM", r"RAM\d+[XM].*"), ("RAMB36E1", "RAMB36E1"), ("RAMB18E1", "RAMB18E1"),
             ("DSP48E1", "DSP48E1")],
@@ -151,13 +150,22 @@ def _key(design: Design, flow: str, version: str) -> str:
     return h.hexdigest()[:20]
 
 
+def _cache_path(design: Design, flow: str, version: str) -> Path:
+    return CACHE / f"{flow}-{_key(design, flow, version)}.json"
+
+
+def _store(design: Design, flow: str, version: str, result: Mapping[str, float]) -> None:
+    path = _cache_path(design, flow, version)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(dict(result)))
+
+
 def _cached(design: Design, flow: str, version: str, run) -> dict[str, float]:
-    path = CACHE / f"{flow}-{_key(design, flow, version)}.json"
+    path = _cache_path(design, flow, version)
     if path.exists():
         return json.loads(path.read_text())
     result = run()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(result))
+    _store(design, flow, version, result)
     return result
 
 
@@ -217,12 +225,19 @@ def yosys_check(design: Design) -> str:
     return proc.stdout
 
 
-def place_and_route(design: Design) -> dict[str, float]:
-    """synth_ecp5 then nextpnr-ecp5 for an LFE5U-85F: used cells and the maximum clock (MHz)."""
+def place_and_route(design: Design, version: str | None = None) -> dict[str, float]:
+    """synth_ecp5 then nextpnr-ecp5 for an LFE5U-85F: used cells and the maximum clock (MHz).
+
+    With ``version`` (the tool versions of the cache key) the ``synth_ecp5`` cell
+    counts are cached as that design's ``ecp5`` row too (the same netlist: one
+    synthesis of a large design saved).
+    """
     with tempfile.TemporaryDirectory(prefix="hdl_pnr_") as tmp:
         folder = Path(tmp)
         report = folder / "report.json"
-        _synth_in(folder, design, "ecp5")
+        cells = _synth_in(folder, design, "ecp5")
+        if version is not None:
+            _store(design, "ecp5", version, cells)
         proc = subprocess.run([tool("nextpnr-ecp5"), *PNR_ARGS, "--json", "netlist.json",
                                "--report", "report.json"], capture_output=True, text=True,
                               check=False, cwd=folder)
@@ -264,8 +279,9 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
                      "P_IN x Fmax)"}
     for flow in ("ecp5", "xc7", "pnr"):
         cols = COLUMNS[flow]
-        rows = [table_row(d, flow, results[(d.name, flow)]) for d in DESIGNS
-                if (d.name, flow) in results]
+        rows = [table_row(d, flow, results[(d.name, flow)]) if (d.name, flow) in results
+                else f"| {d.name} | not measured for this RTL |"
+                for d in DESIGNS if flow != "pnr" or d.pnr]
         lines += ["", titles[flow], "",
                   "| design | " + " | ".join(c for c, _ in cols) + " |",
                   "|---" * (len(cols) + 1) + "|", *rows]
@@ -280,23 +296,33 @@ def update_doc(text: str, table: str) -> str:
     return text[:start + len(BEGIN)] + "\n" + table + text[end:]
 
 
-def run_all(only: Sequence[str] = (), skip: Sequence[str] = ()) -> tuple[dict, list[str]]:
-    """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``."""
+def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
+            cached_only: bool = False) -> tuple[dict, list[str]]:
+    """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``.
+
+    ``cached_only``: run nothing, take what the cache holds for the current RTL (the
+    tables then mark the rest "not measured for this RTL").
+    """
     versions = [yosys_version(), _version("nextpnr-ecp5")]
+    version = " ".join(versions)
     results: dict[tuple[str, str], dict[str, float]] = {}
     for d in DESIGNS:
         if d.name in skip:
             continue
-        for flow in (*FLOWS, *(("pnr",) if d.pnr else ())):  # every design, every flow
-            if d.name in only:
-                (CACHE / f"{flow}-{_key(d, flow, ' '.join(versions))}.json").unlink(
-                    missing_ok=True)
+        flows = (*(("pnr",) if d.pnr else ()), *FLOWS)   # pnr first: it caches ecp5 too
+        if d.name in only:
+            for flow in flows:
+                _cache_path(d, flow, version).unlink(missing_ok=True)
+        for flow in flows:                                 # every design, every flow
+            if cached_only and not _cache_path(d, flow, version).exists():
+                continue
             log.info("%s with %s", d.name, flow)
 
             def run(d: Design = d, flow: str = flow) -> dict[str, float]:
-                return place_and_route(d) if flow == "pnr" else synthesise(d, flow)
+                return (place_and_route(d, version) if flow == "pnr"
+                        else synthesise(d, flow))
 
-            results[(d.name, flow)] = _cached(d, flow, " ".join(versions), run)
+            results[(d.name, flow)] = _cached(d, flow, version, run)
     return results, versions
 
 
@@ -311,10 +337,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip", action="append", default=[], metavar="NAME",
                         help="leave this design out (e.g. 'rx_top paper': its place and "
                              "route takes tens of minutes)")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="run no tool: tables from the cache, the rest marked "
+                             "'not measured for this RTL'")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        results, versions = run_all(args.only, args.skip)
+        results, versions = run_all(args.only, args.skip, args.cached_only)
     except FileNotFoundError as exc:
         sys.stderr.write(f"{exc}\n")
         return 2

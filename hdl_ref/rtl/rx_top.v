@@ -323,27 +323,27 @@ module rx_top #(
     endgenerate
 
     // ---- stage 0: registered RAM addresses ----
-    reg               v0, f0, e0, a0, gend0;
+    reg               v0, f0, a0, gend0, glast0;
     reg [UID_W-1:0]   p0;
     reg [K-1:0]       code0;
     reg [JJ_W-1:0]    gjj0;
     // ---- stage 1: RAM data ----
-    reg               v1, f1, e1, a1, gend1;
+    reg               v1, f1, a1, gend1, glast1;
     reg [UID_W-1:0]   p1;
     reg [K-1:0]       code1;
     reg [JJ_W-1:0]    gjj1;
     // ---- stage 2: box sum ----
-    reg               v2, f2, e2, a2, gend2;
+    reg               v2, f2, a2, gend2, glast2;
     reg [UID_W-1:0]   p2;
     reg [K-1:0]       code2;
     reg [JJ_W-1:0]    gjj2;
     reg signed [BOX_W-1:0] box2;
 
-    reg               vr, fr, er, ar, gendr;   // stage 1a: RAM output register
+    reg               vr, fr, ar, gendr, glastr;   // stage 1a: RAM output register
     reg [UID_W-1:0]   pr;
     reg [K-1:0]       coder;
     reg [JJ_W-1:0]    gjjr;
-    reg               vq, fq, eq, aq, gendq;   // stage 1b: RAM words registered
+    reg               vq, fq, aq, gendq, glastq;   // stage 1b: RAM words registered
     reg [UID_W-1:0]   pq;
     reg [K-1:0]       codeq;
     reg [JJ_W-1:0]    gjjq;
@@ -359,116 +359,194 @@ module rx_top #(
     end
 
     // ---- lane control delay line: entry j = step k - j ----
-    wire [L-1:0]       e_f, e_e, e_a;
-    wire [L*UID_W-1:0] e_p;
+    wire [L-1:0]       e_a;
     wire [K*L-1:0]     e_code;              // [k*L + j]
-    reg  [L-1:0]       sr_f, sr_e, sr_a;    // sr[j] = step k - 1 - j
-    reg  [L*UID_W-1:0] sr_p;
+    reg  [L-1:0]       sr_a;                // sr[j] = step k - 1 - j
     reg  [K*L-1:0]     sr_code;
 
     genvar gj;
     generate
         if (L == 1) begin : g_l1
-            assign e_f = f2;
-            assign e_e = e2;
             assign e_a = a2;
-            assign e_p = p2;
             for (gk = 0; gk < K; gk = gk + 1) begin : g_c
                 assign e_code[gk] = code2[gk];
             end
         end else begin : g_ln
-            assign e_f = {sr_f[L-2:0], f2};
-            assign e_e = {sr_e[L-2:0], e2};
             assign e_a = {sr_a[L-2:0], a2};
-            assign e_p = {sr_p[(L-1)*UID_W-1:0], p2};
             for (gk = 0; gk < K; gk = gk + 1) begin : g_c
                 assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};
             end
         end
     endgenerate
 
-    // ---- lanes: flat outputs, lane k*L + j at [(k*L + j)*W +: W] ----
-    wire [KL*RAW_W-1:0]   ln_tot;
-    wire [KL*MAX_UID-1:0] ln_neg, ln_nz;
+    // ---- lanes: c_p = 2 * plus - all ----
+    // With chips b in {0 -> +1, 1 -> -1}, sum_c (-1)^b_c box = 2 * (sum of the boxes whose
+    // chip is 0) - (sum of every box of the period). A lane therefore only adds box when
+    // its chip is 0 (a clock enable: no negation, no multiplexer) and is never cleared
+    // between streams: the serializer subtracts the lane's value at the previous stream's
+    // end (PER_W-bit arithmetic wraps, the difference is exact). `all_sum` sums every
+    // box of the stream's first N steps (lane 0's window: every chip once), the same for
+    // every lane. Lane k*L + j at [(k*L + j)*PER_W +: PER_W].
+    wire [KL*PER_W-1:0]     ln_per;
+    wire [PER_W-1:0]        bx = {{(PER_W-BOX_W){box2[BOX_W-1]}}, box2};
+    reg                     ln_clr;         // start of a run: every lane to 0
+    reg  [PER_W-1:0]        all_sum;
 
     generate
         for (gk = 0; gk < K; gk = gk + 1) begin : g_lk
             for (gj = 0; gj < L; gj = gj + 1) begin : g_lj
                 localparam integer IX = gk * L + gj;
-                reg  signed [PER_W-1:0] per;
-                reg  signed [RAW_W-1:0] tot;
-                reg  [MAX_UID-1:0]      neg, nz;
-                reg                     fv;             // fold fval into the total
-                reg  signed [PER_W-1:0] fval;           // the period's sum c_p
-                reg  [UID_W-1:0]        fp;
-                wire [UID_W-1:0]        lp    = e_p[gj*UID_W +: UID_W];
-                wire signed [PER_W-1:0] bx    = {{(PER_W-BOX_W){box2[BOX_W-1]}}, box2};
-                wire signed [PER_W-1:0] term  = e_code[IX] ? -bx : bx;
-                wire signed [PER_W-1:0] psum  = (e_f[gj] ? {PER_W{1'b0}} : per) + term;
-                wire signed [RAW_W-1:0] pext  = {{(RAW_W-PER_W){fval[PER_W-1]}}, fval};
-                wire [MAX_UID-1:0]      psel  = {{(MAX_UID-1){1'b0}}, 1'b1} << fp;
-                wire                    pflip = |(c_uid & psel);
-                wire                    fp0   = (fp == {UID_W{1'b0}});
+                reg [PER_W-1:0] per;
                 always @(posedge clk) begin
-                    fv <= 1'b0;
-                    if (v2 && e_a[gj]) begin
-                        per <= psum;
-                        if (e_e[gj]) begin
-                            fv   <= 1'b1;
-                            fval <= psum;
-                            fp   <= lp;
-                        end
-                    end
-                    if (fv) begin
-                        tot <= (fp0 ? {RAW_W{1'b0}} : tot) + (pflip ? -pext : pext);
-                        neg <= (fp0 ? {MAX_UID{1'b0}} : neg)
-                               | (fval[PER_W-1] ? psel : {MAX_UID{1'b0}});
-                        nz  <= (fp0 ? {MAX_UID{1'b0}} : nz)
-                               | ((fval != {PER_W{1'b0}}) ? psel : {MAX_UID{1'b0}});
-                    end
-                    if (rst)
-                        fv <= 1'b0;
+                    if (ln_clr)
+                        per <= {PER_W{1'b0}};
+                    else if (v2 && e_a[gj] && !e_code[IX])
+                        per <= per + bx;
                 end
-                assign ln_tot[IX*RAW_W +: RAW_W]     = tot;
-                assign ln_neg[IX*MAX_UID +: MAX_UID] = neg;
-                assign ln_nz[IX*MAX_UID +: MAX_UID]  = nz;
+                assign ln_per[IX*PER_W +: PER_W] = per;
             end
         end
     endgenerate
 
+    always @(posedge clk)
+        if (v2 && a2)
+            all_sum <= (f2 ? {PER_W{1'b0}} : all_sum) + bx;
+
     // ---- hold chain and serializer ----
-    reg                     latch_v0, latch_v;  // last fold, then copy
+    // At a stream's end the K*L lane values move into the hold chain (one clock before
+    // lane 0 adds again); the serializer walks it, one lane per clock, through
+    //   x0: lane value; state RAM read {previous value, total, neg, nz} of the lane
+    //   x1: d = value - previous (0 after ln_clr)
+    //   x2: c_p = 2 d - all
+    //   x3: total (+-c_p folded by the UID bit), neg, nz; state RAM write;
+    //       on the last UID period: out_scale (round, saturate) and the correlation RAM.
+    localparam integer KL_W = (KL > 1) ? $clog2(KL) : 1;
+    localparam integer ST_W = PER_W + RAW_W + 2 * MAX_UID;
+    reg                     latch_v;        // a stream ended: copy
     reg  [JJ_W-1:0]         latch_jj;
-    reg  [KL*RAW_W-1:0]     h_raw;          // entry 0 at the bottom
-    reg  [KL*MAX_UID-1:0]   h_neg, h_nz;
-    reg                     ser_busy;
+    reg  [UID_W-1:0]        latch_p;
+    reg                     latch_last;
+    reg  [KL*PER_W-1:0]     h_per;          // entry 0 at the bottom
+    reg  [PER_W-1:0]        h_all;
+    reg                     ser_busy, ser_fst, ser_last, ln_fst;
+    reg  [UID_W-1:0]        ser_p;
+    reg  [KL_W-1:0]         ser_idx;
     reg  [K_W-1:0]          ser_k;
     reg  [SJ_W-1:0]         ser_j;
     reg  [JJ_W+S_W:0]       ser_jj;
     reg  [JJ_W-1:0]         ser_base;
     wire                    ser_ok = ser_busy && (ser_jj <= {{(S_W+1){1'b0}}, jj_last});
+
+    reg                     x0_v, x0_ok, x0_fst, x0_last;
+    reg  [UID_W-1:0]        x0_p;
+    reg  [KL_W-1:0]         x0_idx;
+    reg  [K_W+CA_W-1:0]     x0_tag;
+    reg  [PER_W-1:0]        x0_h, x0_all;
+    reg                     x1_v, x1_ok, x1_last;
+    reg  [UID_W-1:0]        x1_p;
+    reg  [KL_W-1:0]         x1_idx;
+    reg  [K_W+CA_W-1:0]     x1_tag;
+    reg  [PER_W-1:0]        x1_h, x1_all, x1_d;
+    reg  [RAW_W-1:0]        x1_tot;
+    reg  [MAX_UID-1:0]      x1_neg, x1_nz;
+    reg                     x2_v, x2_ok, x2_last;
+    reg  [UID_W-1:0]        x2_p;
+    reg  [KL_W-1:0]         x2_idx;
+    reg  [K_W+CA_W-1:0]     x2_tag;
+    reg  [PER_W-1:0]        x2_h;
+    reg  signed [PER_W-1:0] x2_c;
+    reg  [RAW_W-1:0]        x2_tot;
+    reg  [MAX_UID-1:0]      x2_neg, x2_nz;
+    reg                     x3_v, x3_ok, x3_last;
+    reg  [KL_W-1:0]         x3_idx;
+    reg  [K_W+CA_W-1:0]     x3_tag;
+    reg  [PER_W-1:0]        x3_h;
+    reg  [RAW_W-1:0]        x3_tot;
+    reg  [MAX_UID-1:0]      x3_neg, x3_nz;
+
+    wire [ST_W-1:0]         st_rdata;
+    wire [PER_W-1:0]        st_prev = st_rdata[ST_W-1 -: PER_W];
+    sdp_ram #(.WIDTH(ST_W), .DEPTH((KL > 1) ? KL : 2)) st_ram (
+        .clk(clk), .we(x3_v), .waddr(x3_idx), .wdata({x3_h, x3_tot, x3_neg, x3_nz}),
+        .raddr(ser_idx), .rdata(st_rdata)
+    );
+
+    wire [PER_W-1:0]        x2_c2 = {x1_d[PER_W-2:0], 1'b0} - x1_all;
+    wire signed [RAW_W-1:0] x2_cext = {{(RAW_W-PER_W){x2_c[PER_W-1]}}, x2_c};
+    wire [MAX_UID-1:0]      x2_sel = {{(MAX_UID-1){1'b0}}, 1'b1} << x2_p;
+    wire                    x2_flip = |(c_uid & x2_sel);
+    wire                    x2_p0 = (x2_p == {UID_W{1'b0}});
+
+    always @(posedge clk) begin
+        x0_v <= ser_busy;
+        x0_ok <= ser_ok;
+        x0_fst <= ser_fst;
+        x0_last <= ser_last;
+        x0_p <= ser_p;
+        x0_idx <= ser_idx;
+        x0_tag <= {ser_k, ser_jj[CA_W-1:0]};
+        x0_h <= h_per[PER_W-1:0];
+        x0_all <= h_all;
+
+        x1_v <= x0_v;
+        x1_ok <= x0_ok;
+        x1_last <= x0_last;
+        x1_p <= x0_p;
+        x1_idx <= x0_idx;
+        x1_tag <= x0_tag;
+        x1_h <= x0_h;
+        x1_all <= x0_all;
+        x1_d <= x0_h - (x0_fst ? {PER_W{1'b0}} : st_prev);
+        {x1_tot, x1_neg, x1_nz} <= st_rdata[RAW_W+2*MAX_UID-1:0];
+
+        x2_v <= x1_v;
+        x2_ok <= x1_ok;
+        x2_last <= x1_last;
+        x2_p <= x1_p;
+        x2_idx <= x1_idx;
+        x2_tag <= x1_tag;
+        x2_h <= x1_h;
+        x2_c <= x2_c2;
+        x2_tot <= x1_tot;
+        x2_neg <= x1_neg;
+        x2_nz <= x1_nz;
+
+        x3_v <= x2_v;
+        x3_ok <= x2_ok;
+        x3_last <= x2_last;
+        x3_idx <= x2_idx;
+        x3_tag <= x2_tag;
+        x3_h <= x2_h;
+        x3_tot <= (x2_p0 ? {RAW_W{1'b0}} : x2_tot) + (x2_flip ? -x2_cext : x2_cext);
+        x3_neg <= (x2_p0 ? {MAX_UID{1'b0}} : x2_neg)
+                  | (x2_c[PER_W-1] ? x2_sel : {MAX_UID{1'b0}});
+        x3_nz  <= (x2_p0 ? {MAX_UID{1'b0}} : x2_nz)
+                  | ((x2_c != {PER_W{1'b0}}) ? x2_sel : {MAX_UID{1'b0}});
+
+        if (latch_v) begin
+            h_per <= ln_per;
+            h_all <= all_sum;
+        end else if (ser_busy) begin
+            h_per <= h_per >> PER_W;
+        end
+        if (rst) begin
+            x0_v <= 1'b0;
+            x1_v <= 1'b0;
+            x2_v <= 1'b0;
+            x3_v <= 1'b0;
+        end
+    end
+
     wire                    sc_v;
     wire signed [OUT_W-1:0] sc_word;
     wire [TAG_W-1:0]        sc_tag;
 
     out_scale #(.RAW_W(RAW_W), .OUT_W(OUT_W), .TAG_W(TAG_W), .SH_W(SH_W), .OB_W(OB_W)) scale (
-        .clk(clk), .in_v(ser_ok), .in_raw(h_raw[RAW_W-1:0]),
-        .in_tag({h_nz[MAX_UID-1:0], h_neg[MAX_UID-1:0], ser_k, ser_jj[CA_W-1:0]}),
+        .clk(clk), .in_v(x3_v && x3_ok && x3_last), .in_raw(x3_tot),
+        .in_tag({x3_nz, x3_neg, x3_tag}),
         .shift(c_shift), .rounding(c_round), .out_bits(c_out_bits),
         .out_v(sc_v), .out_word(sc_word), .out_tag(sc_tag)
     );
-
-    always @(posedge clk) begin
-        if (latch_v) begin
-            h_raw <= ln_tot;
-            h_neg <= ln_neg;
-            h_nz  <= ln_nz;
-        end else if (ser_busy) begin
-            h_raw <= h_raw >> RAW_W;
-            h_neg <= h_neg >> MAX_UID;
-            h_nz  <= h_nz >> MAX_UID;
-        end
-    end
 
     // ------------------------------------------------------------------
     // Correlation RAM: K * 2^CA_W words {nz, neg, out}, address {channel, jj}
@@ -486,8 +564,8 @@ module rx_top #(
     // ------------------------------------------------------------------
     reg  [K_W-1:0]    pk_ch;
     reg  [2:0]        wait_cnt;
-    wire              flushed = !v0 && !v1 && !vr && !vq && !v2 && !latch_v0 && !latch_v
-                                && !ser_busy && !ser_ok;
+    wire              flushed = !v0 && !v1 && !vr && !vq && !v2 && !latch_v
+                                && !ser_busy && !x0_v && !x1_v && !x2_v && !x3_v;
     wire              post_go = (pstate == P_FLUSH) && flushed && (wait_cnt == 3'd4);
     wire              post_last;
     wire [CA_W-1:0]   post_raddr;
@@ -526,8 +604,8 @@ module rx_top #(
         vr         <= 1'b0;
         vq         <= 1'b0;
         v2         <= 1'b0;
-        latch_v0   <= 1'b0;
         latch_v    <= 1'b0;
+        ln_clr     <= 1'b0;
 
         // ---- sticky status (cleared by clear_err; an event in the same clock wins) ----
         if (clear_err) begin
@@ -581,6 +659,8 @@ module rx_top #(
             cols_out    <= {COL_W{1'b0}};
             a_s <= {S_W{1'b0}}; a_c <= {MAX_DEG{1'b0}}; a_p <= {UID_W{1'b0}};
             a_base <= {ADDR_W{1'b0}}; a_r <= {R_W{1'b0}};
+            ln_clr      <= 1'b1;
+            ln_fst      <= 1'b1;
             tstate      <= T_RUN;
         end
         T_RUN: begin
@@ -667,11 +747,11 @@ module rx_top #(
         if (pstate == P_STREAM) begin
             v0    <= 1'b1;
             f0    <= (st_k == {KST_W{1'b0}});
-            e0    <= (st_k == {{(KST_W-MAX_DEG){1'b0}}, nn} - 1'b1);
             a0    <= (st_k < {{(KST_W-MAX_DEG){1'b0}}, nn});
             p0    <= st_p;
             code0 <= chip;
-            gend0 <= st_end && st_lastp;
+            gend0 <= st_end;
+            glast0 <= st_lastp;
             gjj0  <= g_jj;
             for (si = 0; si < MAX_S; si = si + 1)
                 addr0[si*ADDR_W +: ADDR_W] <= corr_addr[si];
@@ -679,31 +759,31 @@ module rx_top #(
         if (v0) begin
             v1    <= 1'b1;
             f1    <= f0;
-            e1    <= e0;
             a1    <= a0;
             p1    <= p0;
             code1 <= code0;
             gend1 <= gend0;
+            glast1 <= glast0;
             gjj1  <= gjj0;
         end
         if (v1) begin
             vr    <= 1'b1;
             fr    <= f1;
-            er    <= e1;
             ar    <= a1;
             pr    <= p1;
             coder <= code1;
             gendr <= gend1;
+            glastr <= glast1;
             gjjr  <= gjj1;
         end
         if (vr) begin
             vq    <= 1'b1;
             fq    <= fr;
-            eq    <= er;
             aq    <= ar;
             pq    <= pr;
             codeq <= coder;
             gendq <= gendr;
+            glastq <= glastr;
             gjjq  <= gjjr;
             for (si = 0; si < MAX_S; si = si + 1)
                 rdq[si*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + si];
@@ -711,37 +791,41 @@ module rx_top #(
         if (vq) begin
             v2    <= 1'b1;
             f2    <= fq;
-            e2    <= eq;
             a2    <= aq;
             p2    <= pq;
             code2 <= codeq;
             gend2 <= gendq;
+            glast2 <= glastq;
             gjj2  <= gjjq;
             box2  <= box1;
         end
         if (v2) begin
             if (L > 1) begin
-                sr_f <= e_f[L-1:0];
-                sr_e <= e_e[L-1:0];
                 sr_a <= e_a[L-1:0];
-                sr_p <= e_p;
                 sr_code <= e_code;
             end
             if (gend2) begin
-                latch_v0 <= 1'b1;
-                latch_jj <= gjj2;
+                latch_v    <= 1'b1;
+                latch_jj   <= gjj2;
+                latch_p    <= p2;
+                latch_last <= glast2;
             end
         end
-        latch_v <= latch_v0;
         if (latch_v) begin
             if (ser_busy)
                 err_overrun <= 1'b1;        // (the clear above loses no event: set wins)
             ser_busy <= 1'b1;
+            ser_fst  <= ln_fst;
+            ln_fst   <= 1'b0;
+            ser_p    <= latch_p;
+            ser_last <= latch_last;
+            ser_idx  <= {KL_W{1'b0}};
             ser_k    <= {K_W{1'b0}};
             ser_j    <= 0;
             ser_jj   <= {{(S_W+1){1'b0}}, latch_jj};
             ser_base <= latch_jj;
         end else if (ser_busy) begin
+            ser_idx <= ser_idx + 1'b1;
             if (ser_j == L_LAST) begin
                 ser_j  <= 0;
                 ser_jj <= {{(S_W+1){1'b0}}, ser_base};
@@ -842,8 +926,8 @@ module rx_top #(
             w_v         <= 1'b0;
             v1          <= 1'b0;
             v2          <= 1'b0;
-            latch_v0    <= 1'b0;
             latch_v     <= 1'b0;
+            ln_clr      <= 1'b0;
             vq          <= 1'b0;
             vr          <= 1'b0;
             v0          <= 1'b0;
@@ -860,7 +944,7 @@ module rx_top #(
         end
     end
 
-    wire unused_ok = &{1'b0, lo_sh[LAG_W-1:1], sr_f, sr_e, sr_a, sr_p, sr_code, g_q_dif[MAX_DEG], div_d[S_W+1],
+    wire unused_ok = &{1'b0, lo_sh[LAG_W-1:1], sr_a, sr_code, x1_d[PER_W-1], g_q_dif[MAX_DEG], div_d[S_W+1],
                        ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
                        g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
                        div_q};

@@ -269,7 +269,7 @@ def test_real_time_formula_paper_configuration():
     one = dataclasses.replace(PAPER_TOP, lanes=1)
     assert cosim.top_timing(ports, one)["process"] + 1 > t["samples"]
     # the docs/hdl.md "Clock counts" table: L -> (groups, process clocks)
-    table = {1: (66, 140_716), 2: (34, 75_286), 4: (18, 42_634), 5: (16, 38_590)}
+    table = {1: (66, 140_719), 2: (34, 75_289), 4: (18, 42_637), 5: (16, 38_593)}
     for lanes, (groups, process) in table.items():
         assert cosim.top_groups(ports, lanes) == groups
         assert cosim.top_timing(ports, dataclasses.replace(PAPER_TOP, lanes=lanes))[
@@ -328,6 +328,9 @@ MUTANT_CASES = {  # mutant -> the crafted case that must expose it
     "ghost-window-one-long": "wrapping-gate-ghost-edge",
     "box-sum-no-chip-wrap": "wrapping-gate-ghost-edge",
     "lane-code-delay-off-by-one": "uid-period-zero-sign",
+    "lane-state-stale-after-start": "zero-input-ties",
+    "uid-fold-restarts-every-period": "uid-period-zero-sign",
+    "all-sum-misses-first-box": "wrapping-gate-ghost-edge",
 }
 
 
@@ -494,6 +497,17 @@ def test_sweep_build_equals_model(hdl_build_root, build):
             check(case, run, params)
         except AssertionError as exc:
             raise AssertionError(f"{case.name}: {exc}") from exc
+
+
+@pytest.mark.hdl
+@pytest.mark.slow
+def test_sixteen_lanes_four_samples_per_clock(hdl_build_root):
+    """The lane count of the paper's P_IN = 4 build (L = 16) at degree <= 6, K = 2."""
+    params = dataclasses.replace(sweep_params(4, 4, 32), channels=2, lanes=16)
+    cases = sweep_cases(params)
+    runs = simulate(_sweep_build(hdl_build_root, params), params, cases, "sweep")
+    for case, run in zip(cases, runs, strict=True):
+        check(case, run, params)
 
 
 #: Mutants of the sweep: (build, case) that must expose each
