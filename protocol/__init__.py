@@ -23,14 +23,14 @@ Modules, bottom up (``docs/protocol.md`` is the byte-exact spec):
 * :mod:`cdma_lidar.protocol.endpoint` -- the device end
   :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` (one per connection) in front of
   a :class:`~cdma_lidar.protocol.endpoint.DeviceApp`, with its jobs in
-  :mod:`~cdma_lidar.protocol.sessions` (the shared :class:`DeviceCore`, HELLO, take-over),
+  :mod:`~cdma_lidar.protocol.device_sessions` (the shared :class:`DeviceCore`, HELLO, take-over),
   :mod:`~cdma_lidar.protocol.streams` (scans, RESEND), :mod:`~cdma_lidar.protocol.handlers`
   (the other requests) and :mod:`~cdma_lidar.protocol.transmit` (the transmit queue).
 * :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns put back together and
   what to ask again (``feed``, ``ready``, ``due(now)``).
 * :mod:`cdma_lidar.protocol.requests` -- the host's requests: send, await the reply on an
   injected clock, retry; frame routing and timeout diagnoses.
-* :mod:`cdma_lidar.protocol.session` -- the host's session: HELLO, keys, take-over.
+* :mod:`cdma_lidar.protocol.host_session` -- the host's session: HELLO, keys, take-over.
 * :mod:`cdma_lidar.protocol.link` -- the host end :class:`~cdma_lidar.protocol.link.HostLink`:
   its requests and scans.
 * :mod:`cdma_lidar.protocol.spec` -- regenerates the tables of ``docs/protocol.md``.

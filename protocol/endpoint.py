@@ -12,7 +12,7 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application? --yes--> request worker thread (in arrival order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-The jobs are split: sessions and HELLO in :mod:`~cdma_lidar.protocol.sessions`, column
+The jobs are split: sessions and HELLO in :mod:`~cdma_lidar.protocol.device_sessions`, column
 streams and RESEND in :mod:`~cdma_lidar.protocol.streams`, the other requests in
 :mod:`~cdma_lidar.protocol.handlers`, the transmit queue in
 :mod:`~cdma_lidar.protocol.transmit`. The polling thread answers STATUS_GET, RESEND,
@@ -39,8 +39,9 @@ from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
-from cdma_lidar.protocol import auth, handlers, sessions, streams
+from cdma_lidar.protocol import auth, device_sessions, handlers, streams
 from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.device_sessions import DeviceCore, EndpointStats
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
     MIN_MAX_FRAME,
@@ -61,7 +62,6 @@ from cdma_lidar.protocol.messages import (
     kind_of,
     type_name,
 )
-from cdma_lidar.protocol.sessions import DeviceCore, EndpointStats
 from cdma_lidar.protocol.streams import Stream
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, Status
@@ -73,7 +73,7 @@ log = logging.getLogger(__name__)
 
 #: Request handler of each request type, ``(endpoint, request, fields, after) -> reply``.
 HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
-    **sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
+    **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT,
                           MsgType.FRAME_SIZE})
@@ -196,7 +196,7 @@ class DeviceEndpoint:
         self.threads = threads
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
-        self.tx = Transmitter(port, session_id or sessions.new_session_id(), max_frame,
+        self.tx = Transmitter(port, session_id or device_sessions.new_session_id(), max_frame,
                               (self.stats, core.totals))
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
@@ -420,7 +420,7 @@ class DeviceEndpoint:
                 return
         if is_hello and not in_worker:
             try:  # the gate's answer, at once whatever the application is computing
-                refusal = sessions.hello_gate(self, frame, decode_payload(MsgType.HELLO,
+                refusal = device_sessions.hello_gate(self, frame, decode_payload(MsgType.HELLO,
                                                                           frame.payload))
             except FrameError:
                 refusal = None  # the worker NAKs it MALFORMED

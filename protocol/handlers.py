@@ -4,7 +4,7 @@ A handler is ``(endpoint, request, fields, after) -> Reply``: it acts on the dec
 fields, returns the reply, and appends to ``after`` what must happen once the reply
 is queued. It refuses by returning :func:`nak` or raising ``ConfigError`` /
 ``DeviceError`` (answered NAK by the endpoint). Sessions and HELLO are in
-:mod:`~cdma_lidar.protocol.sessions`, streams and RESEND in
+:mod:`~cdma_lidar.protocol.device_sessions`, streams and RESEND in
 :mod:`~cdma_lidar.protocol.streams`.
 """
 

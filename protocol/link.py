@@ -8,7 +8,7 @@ pyserial URL (``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://
 
 * :mod:`cdma_lidar.protocol.requests` -- send, await the reply on an injected clock,
   retry, route frames, diagnose a silent line (``DIAG_*``);
-* :mod:`cdma_lidar.protocol.session` -- HELLO, keys, take-over, SESSION_END;
+* :mod:`cdma_lidar.protocol.host_session` -- HELLO, keys, take-over, SESSION_END;
 * :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns, in order, and what to
   ask for again (``feed(frame)``, ``due(now)``).
 
@@ -36,6 +36,7 @@ from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, o
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE
+from cdma_lidar.protocol.host_session import Session
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, State
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import (
@@ -49,7 +50,6 @@ from cdma_lidar.protocol.requests import (
     LinkStats,
     SessionLost,
 )
-from cdma_lidar.protocol.session import Session
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 from cdma_lidar.protocol.views import Status
 
