@@ -171,30 +171,43 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
                          means_lsb: Sequence[NDArray[np.float64]],
                          sigmas_lsb: Sequence[float], repetitions: int) -> NDArray[np.int64]:
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
-    ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone); the
-    arithmetic is done on the batch."""
+    ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
+
+    The arithmetic runs on blocks of about _BLOCK_VALUES values (columns that stay in a
+    core's cache together), every value through the same operations in the same order
+    as the whole batch at once (tests/scene/test_fidelity.py checks it bit for bit).
+    """
     r = repetitions
     size = means_lsb[0].size
-    draw = np.empty((len(rngs), size))
-    for row, rng in zip(draw, rngs, strict=True):
-        rng.standard_normal(out=row)
-    draw *= np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
-                    + (r - 1) * _BYTE_VARIANCE)[:, None]
-    for row, mean in zip(draw, means_lsb, strict=True):
-        row += mean
-    if r > 1:
-        total = np.zeros(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
-        rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
-        for acc, rng in zip(total, rngs, strict=True):
-            for r0 in range(0, r - 1, rows):
-                n = min(rows, r - 1 - r0) * size
-                octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
-                acc += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=total.dtype)
-        uniforms = total.astype(np.float64)
-        uniforms += 0.5 * (r - 1)
-        uniforms *= 1.0 / 256  # exact: a power of two
-        draw -= uniforms
-    return np.floor(draw, out=np.empty(draw.shape, dtype=np.int64), casting="unsafe")
+    out = np.empty((len(rngs), size), dtype=np.int64)
+    scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
+                     + (r - 1) * _BYTE_VARIANCE)
+    step = max(1, _BLOCK_VALUES // size)
+    rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
+    draw = np.empty((min(step, len(rngs)), size))
+    uniforms = np.empty(draw.shape)
+    total = np.empty(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
+    for b0 in range(0, len(rngs), step):
+        block = slice(b0, b0 + step)
+        n_b = len(rngs[block])
+        d, u, t = draw[:n_b], uniforms[:n_b], total[:n_b]
+        for row, rng in zip(d, rngs[block], strict=True):
+            rng.standard_normal(out=row)
+        d *= scales[block, None]
+        for row, mean in zip(d, means_lsb[block], strict=True):
+            row += mean
+        if r > 1:
+            t[...] = 0
+            for acc, rng in zip(t, rngs[block], strict=True):
+                for r0 in range(0, r - 1, rows):
+                    n = min(rows, r - 1 - r0) * size
+                    octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
+                    acc += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=t.dtype)
+            np.add(t, 0.5 * (r - 1), out=u)  # sum of (b + 1/2): exact in float64
+            u *= 1.0 / 256  # exact: a power of two
+            d -= u
+        np.floor(d, out=out[block], casting="unsafe")
+    return out
 
 
 def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArray[np.float32]],
@@ -219,6 +232,10 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
 _BYTE_VARIANCE = 1.0 / (12 * 256**2)
+
+#: Values per block of the noise's arithmetic: float64 blocks of 512 kB, a few of which
+#: stay in one core's 2 MB cache while every pass runs over them.
+_BLOCK_VALUES = 1 << 16
 
 
 @functools.cache
