@@ -216,18 +216,31 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
     picked by 16-bit words of each column's generator (a fourth of a word per value).
 
     No clip is needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the ADC's
-    range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code.
+    range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code. The
+    arithmetic runs on blocks of about _BLOCK_VALUES values, as in draw_repetition_sums.
     """
     size = means[0].size
     quarter = -(-size // 4)
-    words = np.empty((len(rngs), quarter), dtype=np.uint64)
-    for row, rng in zip(words, rngs, strict=True):
-        row[:] = rng.bit_generator.random_raw(quarter)
-    draw = _normal_table().take(words.view(np.uint16)[:, :size])
-    draw *= np.asarray(stds, dtype=np.float32)[:, None]
-    for row, mean in zip(draw, means, strict=True):
-        row += mean
-    return np.floor(draw, out=np.empty(draw.shape, dtype=np.int64), casting="unsafe")
+    out = np.empty((len(rngs), size), dtype=np.int64)
+    scales = np.asarray(stds, dtype=np.float32)
+    table = _normal_table()
+    step = max(1, _BLOCK_VALUES // size)
+    words = np.empty((min(step, len(rngs)), quarter), dtype=np.uint64)
+    index = np.empty((words.shape[0], size), dtype=np.intp)
+    draw = np.empty((words.shape[0], size), dtype=np.float32)
+    for b0 in range(0, len(rngs), step):
+        block = slice(b0, b0 + step)
+        n_b = len(rngs[block])
+        w, d = words[:n_b], draw[:n_b]
+        for row, rng in zip(w, rngs[block], strict=True):
+            row[:] = rng.bit_generator.random_raw(quarter)
+        np.copyto(index[:n_b], w.view(np.uint16)[:, :size])
+        np.take(table, index[:n_b], out=d, mode="clip")  # in range: clip only skips a copy
+        d *= scales[block, None]
+        for row, mean in zip(d, means[block], strict=True):
+            row += mean
+        np.floor(d, out=out[block], casting="unsafe")
+    return out
 
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
@@ -625,30 +638,41 @@ class Instrument:
         (tests/scene/test_fidelity.py), a pure low-pass with no delay bias to first order.
         ``out``: a zeroed contiguous (L,) float32 array to write into.
         """
-        length = cfg.frame_samples
         if out is None:
-            out = np.zeros(length, dtype=np.float32)
-        terms = self._echo_terms(column, cfg, power_w, calibration)
-        if terms is None:
-            return out
+            out = np.zeros(cfg.frame_samples, dtype=np.float32)
+        self._tabulated_echoes(cfg, [(column, power_w)], calibration, out[None, :])
+        return out
+
+    def _tabulated_echoes(self, cfg: RenderSettings,
+                          items: Sequence[tuple[int, NDArray[np.float64] | None]],
+                          calibration: bool, out: NDArray[np.float32]) -> None:
+        """:meth:`tabulated_echo` of each (column, power) added into the rows of ``out``
+        (B, L) float32 (zeroed, C-contiguous): the delays of the whole batch split into
+        samples, table phases and fractions at once, then two saxpy calls per channel."""
+        terms = [self._echo_terms(col, cfg, power, calibration) for col, power in items]
+        lit = [j for j, t in enumerate(terms) if t is not None]
+        if not lit:
+            return
         from scipy.linalg.blas import saxpy  # deferred, as scipy.fft in echo()
 
-        amps, taus, members = terms
+        length = cfg.frame_samples
+        rows = [j for j in lit for _ in terms[j][2]]
+        amps = np.concatenate([terms[j][0] for j in lit])
+        taus = np.concatenate([terms[j][1] for j in lit])
+        members = tuple(i for j in lit for i in terms[j][2])
         steps = taus * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
         whole = np.floor(steps)
         frac = (steps - whole).tolist()
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
         start = (length - delay % length).tolist()  # row[start:start + L]: rotated by delay
         table = self._waveform_table(cfg, members)
-        acc = out
-        for a, t, s, p, i in zip(amps.tolist(), frac, start, phase.tolist(), members,
-                                 strict=True):
-            w = table[i]
-            acc = saxpy(w[p, s:s + length], acc, a=a * (1.0 - t))  # in place: acc += a w
+        for j, a, t, s, p, i in zip(rows, amps.tolist(), frac, start, phase.tolist(), members,
+                                    strict=True):
+            w, row = table[i], out[j]
+            acc = saxpy(w[p, s:s + length], row, a=a * (1.0 - t))  # in place: row += a w
             acc = saxpy(w[p + 1, s:s + length], acc, a=a * t)
-        if acc is not out:  # (f2py copies only an array it cannot write in place)
-            out[...] = acc
-        return out
+            if acc is not row:  # (f2py copies only an array it cannot write in place)
+                row[...] = acc
 
     def _waveform_table(self, cfg: RenderSettings, members: tuple[int, ...]
                         ) -> dict[int, NDArray[np.float32]]:
@@ -694,11 +718,13 @@ class Instrument:
 
     @staticmethod
     def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
-                     spectra: list[NDArray[np.complex128]]) -> NDArray[np.complex128]:
+                     spectra: list[NDArray[np.complex128]],
+                     out: NDArray[np.complexfloating] | None = None) -> NDArray[np.complex128]:
         """sum_k amps_k * spectra_k[q] * exp(-2j pi q f0 tau_k), q < m: the per-channel work.
 
         The phase ramp of each channel is the outer product of two short exponentials
-        (q = a * B + b), so each channel costs three passes over m bins.
+        (q = a * B + b), so each channel costs three passes over m bins. ``out``: an (m,)
+        array of the spectra's dtype to write the sum into (its values are overwritten).
         """
         b = int(np.ceil(np.sqrt(m)))
         a = -(-m // b)
@@ -706,7 +732,9 @@ class Instrument:
         dtype = spectra[0].dtype  # complex64 in single precision
         lo = (np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]).astype(dtype)
         hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :]).astype(dtype)
-        total = np.zeros(m, dtype=dtype)
+        total = np.zeros(m, dtype=dtype) if out is None else out
+        if out is not None:
+            total[...] = 0
         tmp = np.empty((a, b), dtype=dtype)
         flat = tmp.reshape(-1)[:m]
         for k, spec in enumerate(spectra):
@@ -1033,25 +1061,31 @@ class Instrument:
     def _exact_means(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
                      calibration: bool) -> tuple[list[NDArray[np.float64]], list[float]]:
         """(R (x + offset + ROUNDING_LSB) per item, float64 LSB; each repetition's largest
-        |value|, LSB): the echoes' inverse FFTs as one batch (bit-identical to
-        :meth:`echo`'s, tests/scene/test_fidelity.py)."""
+        |value|, LSB): the echoes' inverse FFTs in batches (bit-identical to :meth:`echo`'s,
+        tests/scene/test_fidelity.py), each batch of about _BLOCK_VALUES values scaled
+        while it is in the cache."""
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
         r = cfg.averages
-        one = self._echoes(cfg, items, calibration)
-        one *= scale
-        one += offset
-        one *= 1.0 / (1 << FRAC_BITS)  # LSB (a power of two: exact)
-        one += ROUNDING_LSB
-        peaks = np.abs(one).max(axis=1).tolist()
-        means = list(one * r)
-        for j, (col, _) in enumerate(items):
-            users = None if calibration else self.other_users_signal(col, cfg, one.shape[1] * r)
-            if users is not None:
-                each = users.reshape(r, one.shape[1]) * lsb_per_v
-                each += one[j]
-                peaks[j] = float(np.abs(each).max())
-                means[j] = each.sum(axis=0)
+        means: list[NDArray[np.float64]] = []
+        peaks: list[float] = []
+        step = max(1, _BLOCK_VALUES // cfg.frame_samples)
+        for b0 in range(0, len(items), step):
+            one = self._echoes(cfg, items[b0:b0 + step], calibration)
+            one *= scale
+            one += offset
+            one *= 1.0 / (1 << FRAC_BITS)  # LSB (a power of two: exact)
+            one += ROUNDING_LSB
+            peaks += np.maximum(one.max(axis=1), -one.min(axis=1)).tolist()  # max |one|
+            means += list(one * r)
+            for j, (col, _) in enumerate(items[b0:b0 + step]):
+                users = None if calibration else self.other_users_signal(col, cfg,
+                                                                         one.shape[1] * r)
+                if users is not None:
+                    each = users.reshape(r, one.shape[1]) * lsb_per_v
+                    each += one[j]
+                    peaks[b0 + j] = float(np.abs(each).max())
+                    means[b0 + j] = each.sum(axis=0)
         return means, peaks
 
     def _echoes(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
@@ -1060,19 +1094,22 @@ class Instrument:
         length = cfg.frame_samples
         m = length // 2 + 1
         f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0
-        out = np.zeros((len(items), length))
-        lit, spectra = [], []
-        for j, (col, power) in enumerate(items):
-            terms = self._echo_terms(col, cfg, power, calibration)
-            if terms is not None:
-                amps, taus, members = terms
-                rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-                spectra.append(self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members]))
-                lit.append(j)
-        if lit:
-            import scipy.fft  # deferred, as in echo()
+        terms = [self._echo_terms(col, cfg, power, calibration) for col, power in items]
+        lit = [j for j, t in enumerate(terms) if t is not None]
+        if not lit:
+            return np.zeros((len(items), length))
+        spectra = np.empty((len(lit), m), dtype=np.complex128)
+        for row, j in zip(spectra, lit, strict=True):
+            amps, taus, members = terms[j]
+            rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
+            self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members], out=row)
+        import scipy.fft  # deferred, as in echo()
 
-            out[lit] = scipy.fft.irfft(np.stack(spectra), n=length, axis=1, overwrite_x=True)
+        wave = scipy.fft.irfft(spectra, n=length, axis=1, overwrite_x=True)
+        if len(lit) == len(items):
+            return wave
+        out = np.zeros((len(items), length))
+        out[lit] = wave
         return out
 
     def _accumulated_means(self, cfg: RenderSettings,
@@ -1087,14 +1124,19 @@ class Instrument:
         r, length = cfg.averages, cfg.frame_samples
         block = np.zeros((len(items), length), dtype=np.float32)
         table = self.echo_tabulated(cfg)
-        for j, (col, power) in enumerate(items):
+        peaks: list[float] = []
+        step = max(1, _BLOCK_VALUES // length)  # rows scaled while they are in the cache
+        for b0 in range(0, len(items), step):
+            part = block[b0:b0 + step]
             if table:
-                self.tabulated_echo(col, cfg, power, calibration=calibration, out=block[j])
+                self._tabulated_echoes(cfg, items[b0:b0 + step], calibration, part)
             else:  # a table of every member would not fit: the Fourier synthesis
-                block[j] = self.echo(col, cfg, power, calibration=calibration, single=True)
-        peaks = (np.abs(block).max(axis=1) * lsb_per_v + abs(offset_lsb)).tolist()
-        block *= np.float32(r * lsb_per_v)
-        block += np.float32(r * offset_lsb + 0.5)
+                for row, (col, power) in zip(part, items[b0:b0 + step], strict=True):
+                    row[...] = self.echo(col, cfg, power, calibration=calibration, single=True)
+            top = np.maximum(part.max(axis=1), -part.min(axis=1))  # max |echo|
+            peaks += (top * lsb_per_v + abs(offset_lsb)).tolist()
+            part *= np.float32(r * lsb_per_v)
+            part += np.float32(r * offset_lsb + 0.5)
         for j, (col, _) in enumerate(items):
             users = None if calibration else self.other_users_signal(col, cfg, length * r)
             if users is not None:
