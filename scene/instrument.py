@@ -65,6 +65,7 @@ from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
+from cdma_lidar.scene.streams import generators
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -862,7 +863,8 @@ class Instrument:
 
     def _noise_rng(self, frame: int, col: int, calibration: bool,
                    shot: int) -> np.random.Generator:
-        """The noise generator of one rendered column (or calibration shot)."""
+        """The noise generator of one rendered column (or calibration shot); many at
+        once: :func:`cdma_lidar.scene.streams.generators` of the same keys."""
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
         return np.random.default_rng([self.seed, stream, frame, shot if calibration else col])
 
@@ -1009,7 +1011,8 @@ class Instrument:
         shape = (len(plans), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
         if not rows:
             return np.zeros(shape, dtype=np.int64), drawn
-        rngs = [self._noise_rng(frame, columns[j], calibration, columns[j]) for j in rows]
+        stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
+        rngs = generators([(self.seed, stream, frame, columns[j]) for j in rows])
         means = [plans[j][0] for j in rows]
         sigmas = [plans[j][1] for j in rows]
         if level == "accumulated":
