@@ -591,6 +591,36 @@ class Instrument:
         members = tuple(int(cfg.code_index[c]) for c in chans.tolist())
         return amps, taus + self._sample_shift_s(cfg), members
 
+    def _batch_echo_terms(self, cfg: RenderSettings,
+                          items: Sequence[tuple[int, NDArray[np.float64] | None]],
+                          calibration: bool) -> list[tuple | None]:
+        """:meth:`_echo_terms` of each (column, power), the scan's common case (no ghosts,
+        not calibration) gathered for the whole batch at once (the same values)."""
+        if calibration or self.spec.ghosts or not items:
+            return [self._echo_terms(col, cfg, p, calibration) for col, p in items]
+        cols = [col for col, _ in items]
+        chans = [self._lit_channels[col] for col in cols]
+        counts = [c.size for c in chans]
+        if not sum(counts):
+            return [None] * len(items)
+        ch = np.concatenate(chans)
+        which = np.repeat(np.arange(len(items)), counts)
+        power = np.stack([self.default_power_w[:, col] if p is None else np.asarray(p)
+                          for col, p in items])
+        amps = self.gain_v_per_w[ch, np.repeat(cols, counts)] * power[which, ch]
+        taus = self.delay_s[ch, np.repeat(cols, counts)] + self._sample_shift_s(cfg)
+        keep = amps != 0
+        if not keep.all():
+            amps, taus, ch, which = amps[keep], taus[keep], ch[keep], which[keep]
+        members = np.asarray(cfg.code_index, dtype=np.int64)[ch].tolist()
+        ends = np.cumsum(np.bincount(which, minlength=len(items))).tolist()
+        out: list[tuple | None] = []
+        for j, end in enumerate(ends):
+            start = ends[j - 1] if j else 0
+            out.append((amps[start:end], taus[start:end], tuple(members[start:end]))
+                       if end > start else None)
+        return out
+
     def echo(self, column: int, cfg: RenderSettings,
              power_w: NDArray[np.float64] | None = None,
              calibration: bool = False, single: bool = False) -> NDArray[np.floating]:
@@ -650,7 +680,7 @@ class Instrument:
         """:meth:`tabulated_echo` of each (column, power) added into the rows of ``out``
         (B, L) float32 (zeroed, C-contiguous): the delays of the whole batch split into
         samples, table phases and fractions at once, then two saxpy calls per channel."""
-        terms = [self._echo_terms(col, cfg, power, calibration) for col, power in items]
+        terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
             return
@@ -1097,7 +1127,7 @@ class Instrument:
         length = cfg.frame_samples
         m = length // 2 + 1
         f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0
-        terms = [self._echo_terms(col, cfg, power, calibration) for col, power in items]
+        terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
             return np.zeros((len(items), length))

@@ -107,3 +107,44 @@ def test_render_sums_do_not_depend_on_the_block_size(level):
     for sums, cal in out.values():
         np.testing.assert_array_equal(sums, ref[0])
         np.testing.assert_array_equal(cal, ref[1])
+
+
+_WALL = None  # paper-scene1 on 12 columns, built on first use
+
+
+@settings(max_examples=30, deadline=None)
+@given(data=st.data())
+def test_batched_echo_terms_equal_the_columns_own(data):
+    """The batch's echo terms (gathered at once) against _echo_terms column by column:
+    any columns (repeats, empty ones), powers with channels switched off (0 W) or
+    scaled, and the scene's default power."""
+    global _WALL
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+
+    if _WALL is None:
+        _WALL = Instrument(load_scene("paper-scene1?instrument.columns=12"), 0)
+    inst = _WALL
+    assert 0 < sum(inst.lit_channels(c).size for c in range(inst.columns)) < 12 * 40
+    cfg = RenderSettings.from_spec(inst.spec)
+    cols = data.draw(st.lists(st.integers(0, inst.columns - 1), min_size=1, max_size=8))
+    items = []
+    for c in cols:
+        kind = data.draw(st.sampled_from(["default", "scaled", "some off", "all off"]))
+        p = inst.default_power_w[:, c].copy()
+        if kind == "scaled":
+            p *= data.draw(st.floats(0.1, 3.0))
+        elif kind == "some off":
+            p[data.draw(st.lists(st.integers(0, inst.channels - 1), max_size=20))] = 0.0
+        elif kind == "all off":
+            p[:] = 0.0
+        items.append((c, None if kind == "default" else p))
+    got = inst._batch_echo_terms(cfg, items, False)
+    for (c, p), terms in zip(items, got, strict=True):
+        want = inst._echo_terms(c, cfg, p, False)
+        if want is None:
+            assert terms is None
+            continue
+        np.testing.assert_array_equal(terms[0], want[0])
+        np.testing.assert_array_equal(terms[1], want[1])
+        assert terms[2] == want[2]
