@@ -567,9 +567,10 @@ class Instrument:
 
     def _echo_terms(self, column: int, cfg: RenderSettings, power_w: NDArray[np.float64] | None,
                     calibration: bool) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                                tuple[int, ...]] | None:
-        """(amplitudes (V), delays (s, sample shift included), Gold members) of the column's
-        echoes and ghosts; None when nothing is lit."""
+                                                tuple[int, ...], NDArray[np.int64]] | None:
+        """(amplitudes (V), delays (s, sample shift included), Gold members, channels) of the
+        column's echoes and ghosts (in that order: the echoes by ascending channel); None
+        when nothing is lit."""
         power = self.default_power_w[:, column] if power_w is None else np.asarray(power_w)
         if calibration:
             cal = self.scene.calibration
@@ -589,7 +590,7 @@ class Instrument:
         if not amps.size:
             return None
         members = tuple(int(cfg.code_index[c]) for c in chans.tolist())
-        return amps, taus + self._sample_shift_s(cfg), members
+        return amps, taus + self._sample_shift_s(cfg), members, chans
 
     def _batch_echo_terms(self, cfg: RenderSettings,
                           items: Sequence[tuple[int, NDArray[np.float64] | None]],
@@ -617,8 +618,8 @@ class Instrument:
         out: list[tuple | None] = []
         for j, end in enumerate(ends):
             start = ends[j - 1] if j else 0
-            out.append((amps[start:end], taus[start:end], tuple(members[start:end]))
-                       if end > start else None)
+            out.append((amps[start:end], taus[start:end], tuple(members[start:end]),
+                        ch[start:end]) if end > start else None)
         return out
 
     def echo(self, column: int, cfg: RenderSettings,
@@ -639,7 +640,7 @@ class Instrument:
         terms = self._echo_terms(column, cfg, power_w, calibration)
         if terms is None:
             return np.zeros(length, dtype=np.float32 if single else np.float64)
-        amps, taus, members = terms
+        amps, taus, members, _ = terms
         rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
         total = self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members])
         import scipy.fft  # deferred: 130 ms at start-up of every command that loads a scene
@@ -679,7 +680,13 @@ class Instrument:
                           calibration: bool, out: NDArray[np.float32]) -> None:
         """:meth:`tabulated_echo` of each (column, power) added into the rows of ``out``
         (B, L) float32 (zeroed, C-contiguous): the delays of the whole batch split into
-        samples, table phases and fractions at once, then two saxpy calls per channel."""
+        samples, table phases and fractions at once, then two saxpy calls per channel.
+
+        Without ghosts every row adds its channels in ascending order, so the batch is
+        walked channel by channel (each row still gets its terms in its own order: the
+        same sums): a channel's table rows are read once for all the batch's columns
+        that light it instead of once per column (a frame reads the tables from memory
+        about 3x less)."""
         terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
@@ -691,15 +698,18 @@ class Instrument:
         amps = np.concatenate([terms[j][0] for j in lit])
         taus = np.concatenate([terms[j][1] for j in lit])
         members = tuple(i for j in lit for i in terms[j][2])
+        order = range(len(rows)) if self.spec.ghosts else np.lexsort(
+            (rows, np.concatenate([terms[j][3] for j in lit]))).tolist()
         steps = taus * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
         whole = np.floor(steps)
         frac = (steps - whole).tolist()
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
         start = (length - delay % length).tolist()  # row[start:start + L]: rotated by delay
         table = self._waveform_table(cfg, members)
-        for j, a, t, s, p, i in zip(rows, amps.tolist(), frac, start, phase.tolist(), members,
-                                    strict=True):
-            w, row = table[i], out[j]
+        amps_l, phase_l = amps.tolist(), phase.tolist()
+        for n in order:
+            a, t, s, p, i = amps_l[n], frac[n], start[n], phase_l[n], members[n]
+            w, row = table[i], out[rows[n]]
             acc = saxpy(w[p, s:s + length], row, a=a * (1.0 - t))  # in place: row += a w
             acc = saxpy(w[p + 1, s:s + length], acc, a=a * t)
             if acc is not row:  # (f2py copies only an array it cannot write in place)
@@ -1133,7 +1143,7 @@ class Instrument:
             return np.zeros((len(items), length))
         spectra = np.empty((len(lit), m), dtype=np.complex128)
         for row, j in zip(spectra, lit, strict=True):
-            amps, taus, members = terms[j]
+            amps, taus, members, _ = terms[j]
             rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
             self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members], out=row)
         import scipy.fft  # deferred, as in echo()
@@ -1158,7 +1168,7 @@ class Instrument:
         block = np.zeros((len(items), length), dtype=np.float32)
         table = self.echo_tabulated(cfg)
         peaks: list[float] = []
-        step = max(1, _BLOCK_VALUES // length)  # rows scaled while they are in the cache
+        step = max(1, 4 * _BLOCK_VALUES // length)  # float32 rows: 1 MB in the cache
         for b0 in range(0, len(items), step):
             part = block[b0:b0 + step]
             if table:

@@ -148,3 +148,54 @@ def test_batched_echo_terms_equal_the_columns_own(data):
         np.testing.assert_array_equal(terms[0], want[0])
         np.testing.assert_array_equal(terms[1], want[1])
         assert terms[2] == want[2]
+        np.testing.assert_array_equal(terms[3], want[3])
+
+
+def _tabulated_reference(inst, cfg, column):
+    """tabulated_echo as first written: one column, its terms in their own order."""
+    from scipy.linalg.blas import saxpy
+
+    length = cfg.frame_samples
+    out = np.zeros(length, dtype=np.float32)
+    amps, taus, members, _ = inst._echo_terms(column, cfg, None, False)
+    steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * instrument.TABLE_PHASES)
+    whole = np.floor(steps)
+    delay, phase = np.divmod(whole.astype(np.int64), instrument.TABLE_PHASES)
+    table = inst._waveform_table(cfg, members)
+    for a, t, d, p, i in zip(amps.tolist(), (steps - whole).tolist(), delay.tolist(),
+                             phase.tolist(), members, strict=True):
+        s = length - d % length
+        out = saxpy(table[i][p, s:s + length], out, a=a * (1.0 - t))
+        out = saxpy(table[i][p + 1, s:s + length], out, a=a * t)
+    return out
+
+
+@pytest.mark.parametrize("ghosts", [False, True])
+def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
+    """accumulated's echoes of a batch (walked channel by channel without ghosts, term by
+    term with them) against each column's terms added in their own order, bit for bit: a wall of
+    six channels on five columns, a ghost on channels 0 and 2 of columns 0 and 3 (its
+    terms come after the echoes, out of channel order)."""
+    import tomllib
+    from importlib import resources
+
+    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+    from cdma_lidar.scene.scenefile import parse_scene
+
+    doc = tomllib.loads(resources.files("cdma_lidar.scene").joinpath(
+        "presets", "flat-wall.toml").read_text("utf-8"))
+    doc.pop("shortcuts")
+    doc["instrument"].update({"wavelengths": {"count": 6}, "columns": 5})
+    if ghosts:
+        doc["instrument"]["ghosts"] = [{"distance_m": 4.0, "amplitude_v": 4e-3,
+                                        "channels": [2, 0], "columns": [0, 3]}]
+    inst = Instrument(parse_scene(doc), 1)
+    cfg = RenderSettings.from_spec(inst.spec)
+    items = [(c, None) for c in (3, 0, 4, 3, 1)]
+    batch = np.zeros((len(items), cfg.frame_samples), dtype=np.float32)
+    inst._tabulated_echoes(cfg, items, False, batch)
+    assert np.all(np.abs(batch).max(axis=1) > 0)
+    for (c, _), row in zip(items, batch, strict=True):
+        np.testing.assert_array_equal(_tabulated_reference(inst, cfg, c), row)
+    terms = inst._echo_terms(0, cfg, None, False)
+    assert (terms[3].tolist()[-2:] == [2, 0]) == ghosts  # the ghosts' terms, last
