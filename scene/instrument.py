@@ -760,12 +760,15 @@ class Instrument:
     @staticmethod
     def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
                      spectra: list[NDArray[np.complex128]],
-                     out: NDArray[np.complexfloating] | None = None) -> NDArray[np.complex128]:
+                     out: NDArray[np.complexfloating] | None = None,
+                     rows: list[int] | None = None) -> NDArray[np.complex128]:
         """sum_k amps_k * spectra_k[q] * exp(-2j pi q f0 tau_k), q < m: the per-channel work.
 
         The phase ramp of each channel is the outer product of two short exponentials
         (q = a * B + b), so each channel costs three passes over m bins. ``out``: an (m,)
         array of the spectra's dtype to write the sum into (its values are overwritten).
+        ``rows``: several sums at once, term k added into ``out[rows[k]]`` ((R, m)
+        ``out``), the terms in the order given.
         """
         b = int(np.ceil(np.sqrt(m)))
         a = -(-m // b)
@@ -776,12 +779,13 @@ class Instrument:
         total = np.zeros(m, dtype=dtype) if out is None else out
         if out is not None:
             total[...] = 0
+        targets = [total] * len(spectra) if rows is None else [total[r] for r in rows]
         tmp = np.empty((a, b), dtype=dtype)
         flat = tmp.reshape(-1)[:m]
-        for k, spec in enumerate(spectra):
+        for k, (spec, target) in enumerate(zip(spectra, targets, strict=True)):
             np.multiply.outer(hi[k], lo[k], out=tmp)
             flat *= spec
-            total += flat
+            target += flat
         return total
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
@@ -1141,11 +1145,19 @@ class Instrument:
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
             return np.zeros((len(items), length))
+        # every term of the batch, channel by channel (each row still adds its own terms
+        # in their order when there are no ghosts: the same sums as one column at a time)
+        # so a code's spectrum is read once for all the batch's columns it is lit in
+        rows = [r for r, j in enumerate(lit) for _ in terms[j][2]]
+        members = [i for j in lit for i in terms[j][2]]
+        order = np.arange(len(rows)) if self.spec.ghosts else np.lexsort(
+            (rows, np.concatenate([terms[j][3] for j in lit])))
+        book = self._spectrum_rows(cfg, tuple(set(members)), cfg.uid, cfg.uid_bits)
         spectra = np.empty((len(lit), m), dtype=np.complex128)
-        for row, j in zip(spectra, lit, strict=True):
-            amps, taus, members, _ = terms[j]
-            rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-            self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members], out=row)
+        self._sum_delayed(f0, m, np.concatenate([terms[j][0] for j in lit])[order],
+                          np.concatenate([terms[j][1] for j in lit])[order],
+                          [book[members[n]] for n in order.tolist()], out=spectra,
+                          rows=[rows[n] for n in order.tolist()])
         import scipy.fft  # deferred, as in echo()
 
         wave = scipy.fft.irfft(spectra, n=length, axis=1, overwrite_x=True)
