@@ -175,7 +175,8 @@ class VirtualFirmware(DeviceApp):
         #: the device clock as an exact count of chips since power-up (integer: no rounding
         #: accumulates); the wire's microseconds are derived from it by flooring
         self._clock_chips = 0
-        self._chip_rate = Fraction(self.spec.chip_rate_hz)
+        rate = Fraction(self.spec.chip_rate_hz)  # exact: the float's own binary value
+        self._chip_rate = (rate.numerator, rate.denominator)
 
     # ---- identity -------------------------------------------------------------------
     def info(self) -> Info:
@@ -359,7 +360,8 @@ class VirtualFirmware(DeviceApp):
         to within 1 us however many columns went before (eq. 29's frame rate).
         """
         self._clock_chips += cfg.averages * cfg.frame_chips
-        return int(self._clock_chips * 1_000_000 // self._chip_rate) & 0xFFFFFFFF
+        num, den = self._chip_rate  # floor(chips * 1e6 / (num / den)), in integers
+        return (self._clock_chips * 1_000_000 * den // num) & 0xFFFFFFFF
 
     def column_samples(self, frame: int, column: int) -> NDArray[np.int16]:
         """ADC codes of one scan column under the current configuration and power."""

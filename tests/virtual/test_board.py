@@ -14,6 +14,8 @@ import time
 import numpy as np
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError
@@ -313,6 +315,24 @@ def test_the_column_clock_keeps_eq29s_frame_rate():
     assert stamps[1999] == 16382  # no drift: the second frame ends at twice the time
     assert stamps[0] == 8  # a column's own time, floored
     assert np.all(np.diff(stamps) >= 8) and np.all(np.diff(stamps) <= 9)
+
+
+@given(rate=st.floats(1e3, 1e10), chips=st.integers(1, 2**40))
+@settings(max_examples=200, deadline=None)
+def test_the_clock_floors_chips_over_the_exact_chip_rate(rate, chips):
+    """The timestamp in integers equals floor(chips * 1e6 / rate) with the rate's exact
+    binary value (fractions.Fraction), to the last microsecond, 32 bits."""
+    from fractions import Fraction
+
+    fw = _CLOCK_BOARD
+    fw._chip_rate = (Fraction(rate).numerator, Fraction(rate).denominator)
+    cfg = fw.render_settings()
+    fw._clock_chips = chips - cfg.averages * cfg.frame_chips
+    assert fw._timestamp(cfg) == int(chips * 1_000_000 // Fraction(rate)) & 0xFFFFFFFF
+
+
+_CLOCK_BOARD = VirtualFirmware(load_scene("flat-wall?instrument.columns=1"
+                                          "&instrument.wavelengths.count=1"), 0)
 
 
 @pytest.mark.parametrize("config", [{}, {"peaks": 3, "uid_bits": 2, "uid": 2}])
