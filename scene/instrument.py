@@ -1022,8 +1022,10 @@ class Instrument:
         renders it with :meth:`render_exact`). Each column keeps its own noise generator,
         so a column's sum is the same whatever batch it is drawn in (render_sum is a
         batch of one); the plans (echoes, scaling) are made, and the noise's arithmetic
-        done, on the whole batch. ``power_w``: the laser power (K,) W of each column
-        (None: the scene's). ``level``: one of FIDELITY_LEVELS (default the scene's).
+        done, on blocks of the batch's columns that stay in a core's cache (the same
+        values: tests/scene/test_noise_blocks.py). ``power_w``: the laser power (K,) W of
+        each column (None: the scene's). ``level``: one of FIDELITY_LEVELS (default the
+        scene's).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
         level = level or self.fidelity
@@ -1137,7 +1139,9 @@ class Instrument:
 
     def _echoes(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
                 calibration: bool) -> NDArray[np.float64]:
-        """(B, L) float64 :meth:`echo` of each (column, power), one batched inverse FFT."""
+        """(B, L) float64 :meth:`echo` of each (column, power), one batched inverse FFT
+        (bit-identical to echo()'s: the same operations on each value, the channels of a
+        column added in the same order)."""
         length = cfg.frame_samples
         m = length // 2 + 1
         f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0
