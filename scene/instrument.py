@@ -176,7 +176,7 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
 
     The arithmetic runs on blocks of about _BLOCK_VALUES values (columns that stay in a
     core's cache together), every value through the same operations in the same order
-    as the whole batch at once (tests/scene/test_fidelity.py checks it bit for bit).
+    as the whole batch at once (tests/scene/test_noise_blocks.py checks it bit for bit).
     """
     r = repetitions
     size = means_lsb[0].size
