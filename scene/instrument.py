@@ -226,16 +226,14 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
     scales = np.asarray(stds, dtype=np.float32)
     table = _normal_table()
     step = max(1, _BLOCK_VALUES // size)
-    words = np.empty((min(step, len(rngs)), quarter), dtype=np.uint64)
-    index = np.empty((words.shape[0], size), dtype=np.intp)
-    draw = np.empty((words.shape[0], size), dtype=np.float32)
+    index = np.empty((min(step, len(rngs)), size), dtype=np.intp)
+    draw = np.empty(index.shape, dtype=np.float32)
     for b0 in range(0, len(rngs), step):
         block = slice(b0, b0 + step)
         n_b = len(rngs[block])
-        w, d = words[:n_b], draw[:n_b]
-        for row, rng in zip(w, rngs[block], strict=True):
-            row[:] = rng.bit_generator.random_raw(quarter)
-        np.copyto(index[:n_b], w.view(np.uint16)[:, :size])
+        d = draw[:n_b]
+        for row, rng in zip(index[:n_b], rngs[block], strict=True):  # 16-bit quarters
+            np.copyto(row, rng.bit_generator.random_raw(quarter).view(np.uint16)[:size])
         np.take(table, index[:n_b], out=d, mode="clip")  # in range: clip only skips a copy
         d *= scales[block, None]
         for row, mean in zip(d, means[block], strict=True):
