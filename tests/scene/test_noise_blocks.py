@@ -170,16 +170,13 @@ def _tabulated_reference(inst, cfg, column):
     return out
 
 
-@pytest.mark.parametrize("ghosts", [False, True])
-def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
-    """accumulated's echoes of a batch (walked channel by channel without ghosts, term by
-    term with them) against each column's terms added in their own order, bit for bit: a wall of
-    six channels on five columns, a ghost on channels 0 and 2 of columns 0 and 3 (its
-    terms come after the echoes, out of channel order)."""
+def _wall_with_ghosts(ghosts: bool):
+    """A wall of six channels on five columns; a ghost on channels 2 and 0 of columns 0
+    and 3 (its terms come after the echoes, out of channel order)."""
     import tomllib
     from importlib import resources
 
-    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+    from cdma_lidar.scene.instrument import Instrument
     from cdma_lidar.scene.scenefile import parse_scene
 
     doc = tomllib.loads(resources.files("cdma_lidar.scene").joinpath(
@@ -189,7 +186,17 @@ def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
     if ghosts:
         doc["instrument"]["ghosts"] = [{"distance_m": 4.0, "amplitude_v": 4e-3,
                                         "channels": [2, 0], "columns": [0, 3]}]
-    inst = Instrument(parse_scene(doc), 1)
+    return Instrument(parse_scene(doc), 1)
+
+
+@pytest.mark.parametrize("ghosts", [False, True])
+def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
+    """accumulated's echoes of a batch (walked channel by channel without ghosts, term by
+    term with them) against each column's terms added in their own order, bit for bit
+    (_wall_with_ghosts)."""
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    inst = _wall_with_ghosts(ghosts)
     cfg = RenderSettings.from_spec(inst.spec)
     items = [(c, None) for c in (3, 0, 4, 3, 1)]
     batch = np.zeros((len(items), cfg.frame_samples), dtype=np.float32)
@@ -199,3 +206,18 @@ def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
         np.testing.assert_array_equal(_tabulated_reference(inst, cfg, c), row)
     terms = inst._echo_terms(0, cfg, None, False)
     assert (terms[3].tolist()[-2:] == [2, 0]) == ghosts  # the ghosts' terms, last
+
+
+@pytest.mark.parametrize("ghosts", [False, True])
+def test_exact_echoes_of_a_batch_equal_each_column_alone(ghosts):
+    """exact's echoes of a batch (spectra summed channel by channel without ghosts, term by
+    term with them) against echo() column by column, bit for bit (_wall_with_ghosts)."""
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    inst = _wall_with_ghosts(ghosts)
+    cfg = RenderSettings.from_spec(inst.spec)
+    items = [(c, inst.default_power_w[:, c]) for c in (3, 0, 4, 3, 1)]
+    batch = inst._echoes(cfg, items, False)
+    assert np.all(np.abs(batch).max(axis=1) > 0)
+    for (c, p), row in zip(items, batch, strict=True):
+        np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
