@@ -408,11 +408,32 @@ class Instrument:
                          / self.budget.volts_per_rx_w)
         else:
             rx = self.budget.rx_per_w[:, column]
+        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip,
+                                                           self._noise_coefficients(cfg))))
+
+    def _noise_coefficients(self, cfg: RenderSettings) -> dict[str, float]:
         coef = self._coefficients.get(cfg.samples_per_chip)
         if coef is None:
             coef = self._coefficients[cfg.samples_per_chip] = self.budget.coefficients(
                 cfg.samples_per_chip)
-        return float(np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip, coef)))
+        return coef
+
+    def _noise_rms_items(self, cfg: RenderSettings,
+                         items: Sequence[tuple[int, NDArray[np.float64] | None]],
+                         calibration: bool) -> NDArray[np.float64]:
+        """(B,) :meth:`noise_rms_v_at` of each (column, power), for the batch at once: the
+        same values (each column's sums over its channels run along one contiguous row,
+        as a column's alone does; tests/scene/test_noise_blocks.py)."""
+        if self._fixed_noise_v is not None:
+            return np.full(len(items), self._fixed_noise_v)
+        p = np.stack([self.default_power_w[:, col] if pw is None else np.asarray(pw)
+                      for col, pw in items])
+        if calibration:
+            rx = np.full(p.shape, self.calibration_gain_v_per_w() / self.budget.volts_per_rx_w)
+        else:
+            rx = np.ascontiguousarray(self.budget.rx_per_w[:, [col for col, _ in items]].T)
+        return np.sqrt(self.budget.noise_variance_v2(p, rx, cfg.samples_per_chip,
+                                                     self._noise_coefficients(cfg), axis=1))
 
     def link_figures(self, cfg: RenderSettings | None = None,
                      power_w: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
@@ -1084,8 +1105,7 @@ class Instrument:
         top = adc_limits(self.spec.adc_bits)[1]
         exact = level != "accumulated"
         least = EXACT_SUM_MIN_NOISE_LSB if exact else ACCUMULATED_MIN_NOISE_LSB
-        sigmas = [self.noise_rms_v_at(col, cfg, power, calibration) * lsb_per_v
-                  for col, power in items]
+        sigmas = (self._noise_rms_items(cfg, items, calibration) * lsb_per_v).tolist()
         keep = [i for i, sigma in enumerate(sigmas) if sigma >= least]
         out: list[tuple | None] = [None] * len(items)
         if not keep:

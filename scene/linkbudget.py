@@ -186,13 +186,16 @@ class LinkBudget:
 
     def noise_variance_v2(self, power_w: NDArray[np.float64], rx_per_w: NDArray[np.float64],
                           samples_per_chip: int,
-                          coefficients: dict[str, float] | None = None) -> NDArray[np.float64]:
+                          coefficients: dict[str, float] | None = None,
+                          axis: int = 0) -> NDArray[np.float64]:
         """Variance (V^2 per sample) of the Gaussian noise drawn per column ((C,) or ()).
 
         All sources but quantisation (which the ADC itself makes); arguments as
-        :meth:`noise_terms` (``coefficients``: :meth:`coefficients`, if already computed).
+        :meth:`noise_terms` (``coefficients``: :meth:`coefficients`, if already computed;
+        ``axis``: the channels' axis, 1 for (C, K) arrays).
         """
         c = coefficients or self.coefficients(samples_per_chip)
         p_rx = np.asarray(rx_per_w) * np.asarray(power_w)
-        return (c["thermal"] + c["dark"] + c["ambient"] + c["signal_shot"] * p_rx.sum(axis=0)
-                + c["ase"] * (p_rx * rx_per_w).sum(axis=0))
+        return (c["thermal"] + c["dark"] + c["ambient"]
+                + c["signal_shot"] * p_rx.sum(axis=axis)
+                + c["ase"] * (p_rx * rx_per_w).sum(axis=axis))

@@ -115,9 +115,10 @@ _WALL = None  # paper-scene1 on 12 columns, built on first use
 @settings(max_examples=30, deadline=None)
 @given(data=st.data())
 def test_batched_echo_terms_equal_the_columns_own(data):
-    """The batch's echo terms (gathered at once) against _echo_terms column by column:
-    any columns (repeats, empty ones), powers with channels switched off (0 W) or
-    scaled, and the scene's default power."""
+    """The batch's echo terms and noise levels (gathered at once) against _echo_terms and
+    noise_rms_v_at column by column, bit for bit: any columns (repeats, empty ones),
+    powers with channels switched off (0 W) or scaled, the scene's default power, scan
+    or calibration noise."""
     global _WALL
     from cdma_lidar.scene import load_scene
     from cdma_lidar.scene.instrument import Instrument, RenderSettings
@@ -139,6 +140,11 @@ def test_batched_echo_terms_equal_the_columns_own(data):
         elif kind == "all off":
             p[:] = 0.0
         items.append((c, None if kind == "default" else p))
+    assert inst._fixed_noise_v is None  # the link budget's noise, summed over channels
+    calibration = data.draw(st.booleans())
+    sigmas = inst._noise_rms_items(cfg, items, calibration)
+    for (c, p), sigma in zip(items, sigmas.tolist(), strict=True):
+        assert sigma == inst.noise_rms_v_at(c, cfg, p, calibration)
     got = inst._batch_echo_terms(cfg, items, False)
     for (c, p), terms in zip(items, got, strict=True):
         want = inst._echo_terms(c, cfg, p, False)
