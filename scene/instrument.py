@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -1122,7 +1123,7 @@ class Instrument:
                 continue
             mean.flags.writeable = False
             out[i] = (mean, float(sigma)) if exact else (
-                mean, np.float32(np.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12)))
+                mean, np.float32(math.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12)))
         return out
 
     def _exact_means(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
