@@ -250,7 +250,6 @@ def _end_session(ep: DeviceEndpoint) -> None:
         finish(ep, ep.latest)
     ep.tx.drop(REPAIR)
     ep.ring.clear()
-    ep.tx.cuts.clear()
     ep.capture = None
     ep.tx.signer = ep.verifier = None
     ep.tx.coded = False

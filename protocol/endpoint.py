@@ -16,7 +16,7 @@ The jobs are split: sessions and HELLO in :mod:`~cdma_lidar.protocol.device_sess
 streams and RESEND in :mod:`~cdma_lidar.protocol.streams`, the other requests in
 :mod:`~cdma_lidar.protocol.handlers`, the transmit queue in
 :mod:`~cdma_lidar.protocol.transmit`. The polling thread answers STATUS_GET, RESEND,
-SCAN_ABORT and FRAME_SIZE and sends a HEARTBEAT every ``heartbeat_s`` while a stream
+and SCAN_ABORT and sends a HEARTBEAT every ``heartbeat_s`` while a stream
 runs, whatever the application computes; the application is called by one thread at
 a time. Run :meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like
 object (``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
@@ -75,8 +75,7 @@ log = logging.getLogger(__name__)
 HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
     **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
-_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT,
-                          MsgType.FRAME_SIZE})
+_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
 #: Repair bytes the polling thread sends per poll while a column worker runs (it then

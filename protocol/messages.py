@@ -72,7 +72,6 @@ class MsgType(enum.IntEnum):
     STATUS_GET = 0x0A
     POWER_GET = 0x0B
     SESSION_END = 0x0C
-    FRAME_SIZE = 0x0D
     ACK = 0x80
     NAK = 0x81
     INFO = 0x82
@@ -289,10 +288,6 @@ _MESSAGE_LIST = [
     _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
          "without SCAN_END, another host's HELLO then needs no take-over.",
          reply=MsgType.ACK),
-    _msg(MsgType.FRAME_SIZE, "Change the largest frame the device sends from the ACK on (a "
-         "host sizing frames to its line); also while a scan runs.",
-         u("host_max_frame", 16, "new largest frame the device may send", "bytes", 64, 65535),
-         reply=MsgType.ACK),
     _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
          u("request_type", 8, "type of the request answered")),
     _msg(MsgType.NAK, "Request refused (header seq = request seq).",
@@ -444,8 +439,6 @@ DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
                                   "scan (field `columns[i]` / `fragments[i]`); both lists "
                                   "empty: MALFORMED", ErrorCode.NOT_AVAILABLE),
     (MsgType.CALIBRATE, "shots"): ("while a scan runs: BUSY", ErrorCode.BUSY),
-    (MsgType.FRAME_SIZE, "host_max_frame"): ("a column of the running scan would need more "
-                                             "than MAX_PIECES fragments", ErrorCode.TOO_LARGE),
     (MsgType.CAPTURE, "column"): ("column >= INFO.column_count", ErrorCode.OUT_OF_RANGE),
     (MsgType.CAPTURE, "channel"): ("kind 1 and channel >= K", ErrorCode.OUT_OF_RANGE),
     (MsgType.CAPTURE, "offset"): ("offset > total: OUT_OF_RANGE; offset > 0 with no capture of "

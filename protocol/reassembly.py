@@ -63,7 +63,6 @@ class _Pieces:
 
     count: int
     data: dict[int, bytes] = field(default_factory=dict)
-    size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
 
 
 class ColumnReassembler:
@@ -153,12 +152,8 @@ class ColumnReassembler:
             self.duplicates += 1
             return None
         pc = self.parts.get(c)
-        n = len(item["data"])
-        if pc is None or pc.count != item["count"] or (
-                (n != pc.size if k < pc.count - 1 else n > pc.size) and pc.size):
+        if pc is None or pc.count != item["count"]:
             pc = self.parts[c] = _Pieces(item["count"])  # the first piece, or of another cut
-        if k < pc.count - 1:
-            pc.size = n
         pc.data[k] = item["data"]
         self.stored += 1
         if len(pc.data) < pc.count:

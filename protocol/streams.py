@@ -188,7 +188,7 @@ def _next_column(ep: DeviceEndpoint, st: Stream) -> ScanEndReason | None:
         ep.ring[key] = payload
         ep.ring.move_to_end(key)
         while len(ep.ring) > ep.ring_columns:
-            ep.tx.cuts.pop(ep.ring.popitem(last=False)[0], None)
+            ep.ring.popitem(last=False)
         st.produced += 1
         ep.count_column()
         ep.tx.column(key, payload)

@@ -76,18 +76,16 @@ class Transmitter:
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
-        #: Piece length (bytes) each column was last cut at; 0: sent whole.
-        self.cuts: dict[tuple[int, int], int] = {}
 
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
             compat: int = 0, signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
-            max_frame: int = 0, coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
-        """Queue one frame of class ``cls`` of at most ``max_frame`` bytes (0: the session's).
+            coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
+        """Queue one frame of class ``cls``.
 
         A ``repair`` already queued is not queued twice: a host that asks again before
         the first answer reached it costs the line nothing.
         """
-        job = _Job(msg_type, payload, seq, self.session, compat, max_frame or self.max_frame,
+        job = _Job(msg_type, payload, seq, self.session, compat, self.max_frame,
                    self.signer if signer is _SESSION else signer, repair,
                    self.coded if coded is _SESSION else coded, version)
         with self._cv:
@@ -156,13 +154,11 @@ class Transmitter:
             if cls == REPAIR:
                 self._repairs.clear()
 
-    def pieces(self, payload_len: int, signed: bool, max_frame: int = 0) -> int:
-        """Frames a payload takes at ``max_frame`` (0: the session's): 1 if it fits one
-        frame, else its FRAGMENT count."""
-        max_frame = max_frame or self.max_frame
-        if frame_size(payload_len, signed) <= max_frame:
+    def pieces(self, payload_len: int, signed: bool) -> int:
+        """Frames a payload takes: 1 if it fits one frame, else its FRAGMENT count."""
+        if frame_size(payload_len, signed) <= self.max_frame:
             return 1
-        return -(-payload_len // (max_frame - frame_size(FRAGMENT_HEADER, signed)))
+        return -(-payload_len // (self.max_frame - frame_size(FRAGMENT_HEADER, signed)))
 
     def notice(self, msg_type: MsgType, payload: bytes, compat: int = 0, cls: int = CONTROL,
                repair: tuple[int, int, int] | None = None) -> None:
@@ -185,44 +181,32 @@ class Transmitter:
 
     def fragments(self, msg_type: MsgType, payload: bytes, seq: int, frame: int, column: int,
                   signer: FrameSigner | None, only: Iterable[int] | None, compat: int = 0,
-                  cls: int = CONTROL, room: int = 0, coded: Any = _SESSION) -> int:
-        """Queue ``payload`` as FRAGMENTs (all, or the indexes in ``only``) of ``room``
-        bytes each (0: as many as the max frame carries); returns the piece length."""
-        signed = signer is not None
-        cut = room
-        room = room or self.max_frame - frame_size(FRAGMENT_HEADER, signed)
+                  cls: int = CONTROL, coded: Any = _SESSION) -> None:
+        """Queue ``payload`` as FRAGMENTs as long as the max frame carries: all of them,
+        or the indexes in ``only`` (all when one of those is not a piece)."""
+        room = self.max_frame - frame_size(FRAGMENT_HEADER, signer is not None)
         count = -(-len(payload) // room)
         if count > MAX_PIECES:
             raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
                               f"fragments at max frame {self.max_frame} (at most "
                               f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
-        for k in range(count) if only is None else only:
+        if only is None or not all(0 <= k < count for k in only):
+            only = range(count)
+        for k in only:
             body = encode_payload(MsgType.FRAGMENT, {
                 "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
                 "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
             self.put(cls, MsgType.FRAGMENT, body, compat=compat, signer=signer,
-                     repair=(frame, column, k) if cls == REPAIR else None,
-                     max_frame=frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0,
-                     coded=coded)
-        return room
+                     repair=(frame, column, k) if cls == REPAIR else None, coded=coded)
 
     def column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
                only: Iterable[int] | None = None) -> None:
-        """One COLUMN_RESULT ``key`` = (frame, column), or its FRAGMENTs.
-
-        A repair when ``compat`` marks a retransmission, else a new column. Pieces asked
-        for by index (``only``) are cut as the column last was, whatever the frame size
-        now, so the pieces the host holds stay good; a whole column is cut afresh.
-        """
+        """One COLUMN_RESULT ``key`` = (frame, column), or its FRAGMENTs (all, or those in
+        ``only``); a repair when ``compat`` marks a retransmission, else a new column."""
         cls = REPAIR if compat & COMPAT_RETRANSMIT else FRESH
-        cut = self.cuts.get(key, 0)
-        if only is not None and cut and all(0 <= k < -(-len(payload) // cut) for k in only):
-            self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key, self.signer, only, compat,
-                           cls, cut)
-        elif self.pieces(len(payload), self.signer is not None) == 1:
-            self.cuts[key] = 0
+        if self.pieces(len(payload), self.signer is not None) == 1:
             self.notice(MsgType.COLUMN_RESULT, payload, compat, cls,
                         (*key, -1) if cls == REPAIR else None)
         else:
-            self.cuts[key] = self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key,
-                                            self.signer, None, compat, cls)
+            self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key, self.signer, only, compat,
+                           cls)

@@ -298,13 +298,12 @@ def test_a_capture_chunk_fills_the_frame_exactly() -> None:
         assert max(sizes) == 256
 
 
-def test_frame_size_shrinks_the_devices_frames_from_its_ack_on() -> None:
-    """FRAME_SIZE (no longer sent by the v3 host, still served): new columns come cut to it."""
+def test_a_small_host_frame_cuts_every_column_to_it() -> None:
+    """HELLO.host_max_frame bounds the device's frames: 1.6 kB columns come in pieces."""
     port = SteppedDevice(SyntheticApp(channels=40, columns=3))
     with port:
-        link = HostLink(port, timeout_s=0.2, clock=port.clock)
+        link = HostLink(port, timeout_s=0.2, max_frame=96, clock=port.clock)
         link.hello()
-        link._request(MsgType.FRAME_SIZE, {"host_max_frame": 96})
         sent: list[bytes] = []
         write = port.endpoint.port.write
         port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
