@@ -12,14 +12,11 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application? --yes--> request worker thread (in arrival order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-The jobs are split: sessions and HELLO in :mod:`~cdma_lidar.protocol.device_sessions`, column
-streams and RESEND in :mod:`~cdma_lidar.protocol.streams`, the other requests in
-:mod:`~cdma_lidar.protocol.handlers`, the transmit queue in
-:mod:`~cdma_lidar.protocol.transmit`. The polling thread answers STATUS_GET, RESEND,
-and SCAN_ABORT and sends a HEARTBEAT every ``heartbeat_s`` while a stream
-runs, whatever the application computes; the application is called by one thread at
-a time. Run :meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like
-object (``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
+The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
+every ``heartbeat_s`` while a stream runs, whatever the application computes; the
+application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
+in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
+``timeout``).
 """
 
 from __future__ import annotations

@@ -23,6 +23,7 @@ from typing import NamedTuple, Protocol
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import cobs, fec
+from cdma_lidar.protocol.fec import coded_len
 
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
@@ -239,17 +240,9 @@ class FrameDecoder:
         self._skipping = False  # inside an oversize chunk: drop until the next delimiter
         self._split: bytes | None = None  # the last chunk, if damaged and right before this one
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
-        self.max_frame = max_frame
-
-    @property
-    def max_frame(self) -> int:
-        """Largest decoded frame accepted (bytes, header and CRC included)."""
-        return self._max_frame
-
-    @max_frame.setter
-    def max_frame(self, value: int) -> None:
-        self._max_frame = check_int("max_frame", value, MIN_MAX_FRAME, FRAME_LIMIT)
-        self._max_chunk = cobs.max_encoded_len(fec.coded_len(value))  # coded or not
+        #: Largest decoded frame accepted (bytes, header and CRC included).
+        self.max_frame = check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
+        self._max_chunk = cobs.max_encoded_len(coded_len(max_frame))  # coded or not
 
     @property
     def buffered(self) -> int:
@@ -327,7 +320,7 @@ class FrameDecoder:
             body = cobs.decode(chunk)
         except FrameError:
             return "cobs"
-        if len(body) > fec.coded_len(self._max_frame):
+        if len(body) > coded_len(self.max_frame):
             return "oversize"
         try:
             try:

@@ -4,13 +4,7 @@
 port-like object: whatever :func:`~cdma_lidar.protocol.ports.open_port` returns for a
 pyserial URL (``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), a
 :class:`~cdma_lidar.protocol.ports.FdPort` around a file descriptor, or anything else with
-``read``, ``write``, ``in_waiting`` and ``timeout``. Its jobs are in three modules:
-
-* :mod:`cdma_lidar.protocol.requests` -- send, await the reply on an injected clock,
-  retry, route frames, diagnose a silent line (``DIAG_*``);
-* :mod:`cdma_lidar.protocol.host_session` -- HELLO, keys, take-over, SESSION_END;
-* :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns, in order, and what to
-  ask for again (``feed(frame)``, ``due(now)``).
+``read``, ``write``, ``in_waiting`` and ``timeout``.
 
 Scans: :meth:`HostLink.scan` yields columns in column order exactly once and asks for
 missing ones again (RESEND) as soon as a later column, a HEARTBEAT or SCAN_END shows they
