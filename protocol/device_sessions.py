@@ -59,7 +59,6 @@ class EndpointStats:
     naks: int = 0
     tx_frames: int = 0
     columns_sent: int = 0
-    resent: int = 0
     auth_rejected: int = 0  #: frames dropped for a wrong MAC or a replayed counter
     auth_throttled: int = 0  #: HELLO MACs not checked: the peer's back-off was running
     sessions: int = 0  #: sessions opened on this connection

@@ -73,6 +73,8 @@ HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
     **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
+#: Requests remembered for retransmission replay.
+_REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
 #: Repair bytes the polling thread sends per poll while a column worker runs (it then
@@ -148,7 +150,6 @@ class DeviceEndpoint:
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s).
-        replay_depth: requests remembered for retransmission replay.
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
             (a serial line); False on TCP, where a damaged frame is not worth the CPU.
         peer: who is on the other end (an IP address), for the per-peer back-off after
@@ -163,7 +164,7 @@ class DeviceEndpoint:
                  core: DeviceCore | None = None, key: bytes | None = None,
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
-                 poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
+                 poll_s: float = 0.01, peer: str | None = None,
                  fec: bool = True, clock: Callable[[], float] = time.monotonic,
                  threads: bool = True) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
@@ -174,7 +175,6 @@ class DeviceEndpoint:
         if not (0 < poll_s <= 1 or (poll_s == 0 and not threads)):
             raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin; allowed "
                                "with threads=False)", poll_s)
-        check_int("replay_depth", replay_depth, 1, 32768)
         if session_id is not None:  # 0 or None: random
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
         if core is None:
@@ -188,7 +188,7 @@ class DeviceEndpoint:
         #: Since when this connection has had no session (core clock, s).
         self.sessionless_since = core.clock()
         self.max_frame, self.ring_columns, self.heartbeat_s = max_frame, ring_columns, heartbeat_s
-        self.replay_depth, self.clock, self.fec = replay_depth, clock, fec
+        self.clock, self.fec = clock, fec
         self.threads = threads
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
@@ -480,7 +480,7 @@ class DeviceEndpoint:
             self.last_seq = frame.seq
         self._replay[frame.seq] = (key, reply)
         self._replay.move_to_end(frame.seq)
-        while len(self._replay) > self.replay_depth:
+        while len(self._replay) > _REPLAY_DEPTH:
             self._replay.popitem(last=False)
         self._send_reply(frame, reply)
         for action in after:

@@ -534,6 +534,8 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         except FieldError as exc:
             raise FrameError(f"{spec.type.name}: {exc}", field=sc.name) from None
         out[sc.name] = v
+    if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
+        raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")
     return out
 
 

@@ -29,11 +29,11 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from cdma_lidar.checks import check_int
-from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout, out_of_range
+from cdma_lidar.errors import DeviceError, FrameError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.framing import (
     MIN_MAX_FRAME,
@@ -53,6 +53,7 @@ from cdma_lidar.protocol.messages import (
     kind_of,
 )
 from cdma_lidar.protocol.ports import default_fec
+from cdma_lidar.protocol.reassembly import Pieces
 from cdma_lidar.protocol.trust import escape
 from cdma_lidar.protocol.views import Status
 
@@ -109,15 +110,6 @@ class LinkStats:
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
-@dataclass
-class _Pieces:
-    """FRAGMENTs of one reply or notice received so far."""
-
-    count: int
-    data: dict[int, bytes] = field(default_factory=dict)
-    frames: list[Frame] = field(default_factory=list)
-
-
 class Requests:
     """Requests and frame routing over a port (see the module docstring); the arguments
     are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
@@ -150,7 +142,7 @@ class Requests:
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self._parts: list[Frame] = []  # those of the last message put together
-        self._pieces: OrderedDict[tuple[int, int], _Pieces] = OrderedDict()
+        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
         self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
         self._early: list[Frame] = []  # frames that came with INFO, before it was ours
         self._streaming = False
@@ -365,13 +357,10 @@ class Requests:
 
     def _fragment_body(self, frame: Frame) -> dict[str, Any] | None:
         try:
-            body = decode_payload(frame.msg_type, frame.payload)
-        except Exception:  # FrameError: a malformed fragment is dropped
-            body = None
-        if not isinstance(body, dict) or body["index"] >= body["count"] or not body["data"]:
+            return decode_payload(frame.msg_type, frame.payload)  # type: ignore[return-value]
+        except FrameError:  # a malformed fragment is dropped
             self.stats.malformed += 1
             return None
-        return body
 
     def _piece(self, frame: Frame, body: dict[str, Any]) -> Frame | None:
         """Keep one piece; the whole message (unsigned, of the piece's session) once all
@@ -379,18 +368,14 @@ class Requests:
         key = (body["msg_type"], body["seq"])
         pc = self._pieces.get(key)
         if pc is None or pc.count != body["count"]:
-            pc = self._pieces[key] = _Pieces(body["count"])
+            pc = self._pieces[key] = Pieces(body["count"])
             while len(self._pieces) > _MAX_PIECES:
                 self._pieces.popitem(last=False)
-        if body["index"] not in pc.data:
-            pc.frames.append(frame)
-        pc.data[body["index"]] = body["data"]
-        if len(pc.data) < pc.count:
+        if (payload := pc.add(frame, body)) is None:
             return None
         del self._pieces[key]
         self._parts = pc.frames
-        return Frame(key[0], key[1], frame.session,
-                     b"".join(pc.data[i] for i in range(pc.count)), 0, 0, frame.version)
+        return Frame(key[0], key[1], frame.session, payload, 0, 0, frame.version)
 
     def _reply_piece(self, frame: Frame, body: dict[str, Any]) -> None:
         """A piece of a reply: once all are in, handle the whole reply."""

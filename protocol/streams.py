@@ -108,7 +108,6 @@ def _resend(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
 
     def resend() -> None:
         for key, payload, only in todo:
-            ep.stats.resent += 1
             ep.count_column()
             ep.tx.column(key, payload, COMPAT_RETRANSMIT, only)
 
