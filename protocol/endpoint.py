@@ -53,7 +53,6 @@ from cdma_lidar.protocol.messages import (
     MsgKind,
     MsgType,
     ScanEndReason,
-    State,
     decode_payload,
     encode_payload,
     kind_of,
@@ -61,7 +60,7 @@ from cdma_lidar.protocol.messages import (
 )
 from cdma_lidar.protocol.streams import Stream
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Transmitter
-from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, Status
+from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "HANDLERS", "DeviceApp", "DeviceCore", "DeviceEndpoint",
            "EndpointStats"]

@@ -31,7 +31,7 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE
 from cdma_lidar.protocol.host_session import Session
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, State
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import (
     DIAG_GARBAGE,
@@ -45,7 +45,7 @@ from cdma_lidar.protocol.requests import (
     SessionLost,
 )
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
-from cdma_lidar.protocol.views import Status
+from cdma_lidar.protocol.views import State, Status
 
 __all__ = ["DIAG_GARBAGE", "DIAG_HINTS", "DIAG_NOISY", "DIAG_NO_ANSWER", "DIAG_SILENT",
            "DIAG_VERSION", "DIAG_WRONG_SESSION", "HostLink", "LinkStats", "ScanStalled",

@@ -23,12 +23,12 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.framing import PROTOCOL_VERSION
-from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
+from cdma_lidar.protocol.schema import FieldMeta, array, blob, nbytes, text, u, wire_fields
+from cdma_lidar.protocol.views import Info, Status
 
 __all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
            "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
-           "ScanEndReason", "SessionLostReason", "State", "decode_payload", "encode_payload",
+           "ScanEndReason", "SessionLostReason", "decode_payload", "encode_payload",
            "head_size", "kind_of", "type_name"]
 
 
@@ -129,14 +129,6 @@ ERROR_DOCS = {
 }
 
 
-class State(enum.IntEnum):
-    """Device state in STATUS / HEARTBEAT."""
-
-    IDLE = 0
-    SCANNING = 1
-    CALIBRATING = 2
-
-
 class ScanEndReason(enum.IntEnum):
     """Why a scan or calibration stream ended (SCAN_END.reason)."""
 
@@ -197,22 +189,6 @@ class MessageSpec:
 def _msg(t: MsgType, doc: str, *fields_: cs.Renamed, reply: MsgType | None = None) -> MessageSpec:
     return MessageSpec(t, cs.Struct(*fields_, cs.Terminated), doc, reply)
 
-
-_STATUS_FIELDS = (
-    u("state", 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2),
-    u("frame", 32, "frame id of the current or last scan"),
-    u("next_column", 16, "next column (or shot) the current or last scan produces"),
-    u("last_end", 8, "how the last scan ended: 0 complete, 1 aborted, 2 device error",
-      lo=0, hi=2),
-    u("columns_sent", 32, "COLUMN_RESULT frames sent since boot (resends included)"),
-    u("uptime_ms", 32, "time since boot", "ms"),
-    u("rx_frames", 32, "valid frames received since boot"),
-    u("rx_errors", 32, "rejected chunks since boot (COBS, CRC, length, size, version)"),
-    u("tx_frames", 32, "frames sent since boot"),
-    u("replays", 32, "retransmitted requests answered from the replay cache"),
-    i("temperature_mc", 32, "board temperature; -2^31 = no sensor", "m°C"),
-    u("faults", 32, "device-specific fault bits, 0 = healthy"),
-)
 
 _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
@@ -296,54 +272,13 @@ _MESSAGE_LIST = [
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         u("protocol_version", 8, f"protocol version spoken ({PROTOCOL_VERSION})"),
-         u("session_id", 32, "session id chosen for this HELLO, also in every frame header",
-           lo=1, hi=2**32 - 1),
-         u("session_idle_ms", 32, "a session idle this long may be taken by another host "
-           "without take-over", "ms", 1),
-         u("auth", 8, "0 no key; 1 HMAC-SHA256 challenge-response, every frame signed",
-           lo=0, hi=1),
-         nbytes("device_mac", 32, "HMAC-SHA256 proof that the device holds the key; zeros "
-                "when auth is 0"),
-         u("pixel_power_max_uw", 32, "laser power of one pixel at power 65535; 0: no power "
-           "control", "µW"),
-         u("column_power_cap_uw", 32, "eye-safety cap on the sum over a column's channels; "
-           "0: none", "µW"),
-         u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
-         u("max_frame", 16, "largest frame the device accepts (header + payload + "
-           "signature + CRC); the host's requests stay within min(max_frame, "
-           "max(host_max_frame, 256))", "bytes", 256, 65535),
-         u("ring_columns", 16, "recent columns kept for RESEND", "columns"),
-         u("heartbeat_ms", 16, "HEARTBEAT interval while scanning", "ms", 1, 65535),
-         u("max_degree", 8, "largest LFSR degree m of the code family", "", 2, 32),
-         u("max_channels", 16, "largest number of channels", "", 1, 65535),
-         u("adc_bits", 8, "ADC resolution", "bits", 8, 16),
-         u("spc_min", 16, "smallest samples per chip", "samples/chip", 1, 65535),
-         u("spc_max", 16, "largest samples per chip", "samples/chip", 1, 65535),
-         u("max_averages", 32, "largest number of averaged code repetitions", "", 1),
-         u("max_uid_bits", 8, "largest UID length n", "bits", 1, 8),
-         u("max_peaks", 8, "largest peaks per channel P", "", 1, 8),
-         u("max_gate_len", 32, "largest lag gate", "samples", 1),
-         u("max_columns", 16, "largest columns in one scan", "", 1),
-         u("chip_rate_hz", 32, "code chip rate", "Hz", 1),
-         u("grooves_per_mm_milli", 32, "grating groove density", "0.001 lines/mm", 1),
-         i("incidence_udeg", 32, "incidence angle theta_i on the grating", "µdeg"),
-         i("tilt_udeg", 32, "mounting tilt gamma; -2^31 = host derives it", "µdeg"),
-         u("reference_wavelength_pm", 32, "wavelength horizontal at zero rotation", "pm"),
-         i("column_start_udeg", 32, "rotation angle of column 0", "µdeg"),
-         i("column_step_udeg", 32, "rotation step between columns", "µdeg"),
-         u("column_count", 16, "columns in a full frame", "", 1),
-         text("firmware_version", "firmware version string"),
-         text("serial", "device serial number"),
-         array("wavelengths_pm", 16, "u", 32, "nominal wavelength of each channel (count K)",
-               "pm", 1, max_items=65535, allowed="K = 1..max_channels items", min_items=1),
-         ),
+         *wire_fields(Info)),
     _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
          blob("items", cs.GreedyRange(cs.Struct("key" / cs.Int8ul,
                                                 "value" / cs.Prefixed(cs.Int16ul,
                                                                       cs.GreedyBytes))),
               "KLV items (rest)", "key u8, length u16, value")),
-    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *_STATUS_FIELDS),
+    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
          u("column", 16, "column index"),
@@ -366,7 +301,7 @@ _MESSAGE_LIST = [
     MessageSpec(MsgType.COLUMN_RESULT, COLUMN_STRUCT,
                 "Receiver outputs of one column, all channels (layout below)."),
     _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
-         "STATUS).", *_STATUS_FIELDS),
+         "STATUS).", *wire_fields(Status)),
     _msg(MsgType.SCAN_END, "End of a scan or calibration stream.",
          u("frame", 32, "frame id"),
          u("first_column", 16, "first column (or shot) of the scan"),
