@@ -114,13 +114,10 @@ class Requests:
     """Requests and frame routing over a port (see the module docstring); the arguments
     are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
 
-    def __init__(self, port: Any, timeout_s: float, retries: int, *, poll_s: float | None,
-                 max_frame: int, fec: bool | None, clock: Callable[[], float]) -> None:
+    def __init__(self, port: Any, timeout_s: float, retries: int, *, max_frame: int,
+                 fec: bool | None, clock: Callable[[], float]) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
-        if poll_s is not None and not 0 < poll_s <= 10:
-            raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
-                               "would make every wait spin)", poll_s)
         self.port, self.clock = port, clock
         self.timeout_s = float(timeout_s)
         self.retries = check_int("retries", retries, 0, 100)
@@ -151,7 +148,7 @@ class Requests:
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
-        port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
+        port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
 
     # ---- sending --------------------------------------------------------------------------
     def _new_seq(self) -> int:
