@@ -9,18 +9,10 @@ only ever blocks in ``port.read`` (at most ``port.timeout``) and measures every 
 A request carries a new ``seq``; the reply (ACK, NAK or data) echoes it. No reply within
 ``timeout_s`` -> the identical request is sent again (signed afresh), up to ``retries``
 times; the device answers a retransmission from its replay cache instead of acting
-twice. Then :class:`LinkTimeout` says what the line showed (``diagnosis``):
-
-* ``no bytes at all``           -- nothing came back: power, cable, port name;
-* ``bytes but no valid frame``  -- wrong baud rate, or not a cdma-lidar device;
-* ``frames but wrong session``  -- the device rebooted: call ``hello()``;
-* ``frames of another protocol version`` -- CRC-valid frames this version must not
-  read (another ``version`` or unknown incompat flags): update host or firmware;
-* ``damaged frames``            -- more damage than the error correction repairs;
-* ``frames but no answer``      -- the device is alive but ignores this request.
-
-A reply to the pending request in another protocol version fails it at once. Frames of
-a running stream (columns, their FRAGMENTs, HEARTBEAT, SCAN_END) go, undecoded, to the
+twice. Then :class:`LinkTimeout` says what the line showed: its ``diagnosis`` is one of
+the ``DIAG_*`` strings, and its message ends with that one's :data:`DIAG_HINTS`. A reply
+to the pending request in another protocol version fails it at once. Frames of a
+running stream (columns, their FRAGMENTs, HEARTBEAT, SCAN_END) go, undecoded, to the
 ``stream`` queue for :class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`.
 """
 
