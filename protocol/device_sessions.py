@@ -38,7 +38,7 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
 )
 from cdma_lidar.protocol.streams import finish, stop_stream
-from cdma_lidar.protocol.transmit import REPAIR
+from cdma_lidar.protocol.transmit import CONTROL, REPAIR
 
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
@@ -263,7 +263,7 @@ def _lose(ep: DeviceEndpoint, reason: SessionLostReason, detail: str) -> None:
     if ep.session_open:
         log.info("session 0x%08x lost: %s", ep.session, detail)
         try:
-            ep.tx.notice(MsgType.SESSION_LOST, encode_payload(
+            ep.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
                 MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         except OSError:
             pass  # that host is gone anyway

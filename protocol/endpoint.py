@@ -278,13 +278,13 @@ class DeviceEndpoint:
                 if self.decoder.stats.damaged > damaged:
                     # Say so at once: a host waiting for a reply sends its request again
                     # now rather than after its timeout.
-                    self.tx.notice(MsgType.LINE_ERROR, encode_payload(
+                    self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))
             now = self.clock()
             if self.stream is not None and now - self.last_heartbeat >= self.heartbeat_s:
                 self.last_heartbeat = now
-                self.tx.notice(MsgType.HEARTBEAT,
+                self.tx.send(CONTROL, MsgType.HEARTBEAT,
                                encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
             worker = self.stream is not None
         # Replies and notices now; repairs in a bounded share while a column worker runs
@@ -340,7 +340,8 @@ class DeviceEndpoint:
     # ---- receiving ------------------------------------------------------------------
     def _send_reply(self, req: Frame, reply: Reply) -> None:
         # A coded request gets a coded reply.
-        self.tx.reply(req.seq, reply[0], reply[1], reply[2], self.tx.coded or req.fec)
+        self.tx.send(CONTROL, reply[0], reply[1], req.seq, coded=self.tx.coded or req.fec,
+                     signer=self.tx.signer if reply[2] else None)
 
     def _on_rejected(self, frame: Frame) -> None:
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
