@@ -276,8 +276,7 @@ class DeviceEndpoint:
                     self._on_rejected(self.decoder.rejected.pop(0))
                 self._count_rx()
                 if self.decoder.stats.damaged > damaged:
-                    # Say so at once: a host waiting for a reply sends its request again
-                    # now rather than after its timeout.
+                    # Say so at once (information only: it words the host's diagnosis).
                     self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))

@@ -319,8 +319,8 @@ _MESSAGE_LIST = [
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
          blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
               allowed="1..L bytes (L = max_frame-27, -24 when signed)")),
-    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
-         "a host waiting for a reply sends its request again at once.",
+    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
+         "information only (section 6.4): a host words its timeout diagnosis with it.",
          u("rx_errors", 32, "rejected chunks since boot")),
     _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
          "answer its requests NAK WRONG_SESSION.",
