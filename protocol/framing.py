@@ -28,7 +28,7 @@ from cdma_lidar.protocol.fec import coded_len
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
-           "crc32", "decode_frame", "encode_frame", "frame_size", "max_wire_len"]
+           "crc32", "decode_frame", "encode_frame", "frame_size"]
 
 log = logging.getLogger(__name__)
 
@@ -72,11 +72,6 @@ _CRC = struct.Struct("<I")
 def crc32(data: bytes) -> int:
     """CRC-32/ISO-HDLC of ``data`` (check value of b"123456789" is 0xCBF43926)."""
     return zlib.crc32(data) & 0xFFFFFFFF
-
-
-def max_wire_len(max_frame: int) -> int:
-    """Bytes on the wire for a decoded frame of ``max_frame`` bytes, both delimiters included."""
-    return cobs.max_encoded_len(max_frame) + 2
 
 
 class Frame(NamedTuple):
@@ -221,7 +216,7 @@ class FrameDecoder:
     """Stream decoder: feed it any slices of the byte stream, get whole frames back.
 
     It owns its receive buffer, so partial reads (pyserial ``read(n)`` may return
-    fewer bytes) are fine. A chunk longer than ``max_wire_len(max_frame)`` is dropped
+    fewer bytes) are fine. A chunk longer than a coded ``max_frame`` after COBS is dropped
     up to the next delimiter and counted as ``oversize`` without being buffered.
     ``rejected`` lists frames that passed the CRC but had another version or unknown
     incompatible flags (the device answers them with a NAK); the caller drains it.
