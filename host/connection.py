@@ -24,9 +24,10 @@ from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
 from cdma_lidar.protocol.auth import load_key
-from cdma_lidar.protocol.link import DIAG_HINTS, DIAG_SILENT, HostLink
+from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode
 from cdma_lidar.protocol.ports import open_port
+from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_SILENT
 
 __all__ = ["KEY_FILE_ENV", "Device", "DeviceLink", "check_socket_url", "connect",
            "default_key_file", "resolve_key"]

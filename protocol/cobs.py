@@ -76,10 +76,8 @@ def decode_py(enc: bytes) -> bytes:
     return bytes(out)
 
 
-def encode(data: bytes) -> bytes:
-    """COBS-encode ``data`` (the ``cobs`` package's C extension); byte-identical to
-    :func:`encode_py`."""
-    return _ccobs.encode(data)
+#: COBS-encode bytes (the ``cobs`` package's C extension); byte-identical to :func:`encode_py`.
+encode = _ccobs.encode
 
 
 def decode(enc: bytes) -> bytes:

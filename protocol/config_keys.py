@@ -90,8 +90,7 @@ class ConfigKey:
 
     id: int
     name: str
-    sub: cs.Construct  # value encoding (fills the whole length)
-    ctype: str
+    ctype: str  # value encoding (fills the whole length): a key of _SUBS
     unit: str
     allowed: str
     doc: str
@@ -100,6 +99,11 @@ class ConfigKey:
     read_only: bool = False
     to_wire: Callable[[Any], Any] = _ident
     from_wire: Callable[[Any], Any] = _ident
+
+    @property
+    def sub(self) -> cs.Construct:
+        """The construct of the value (it fills the item's whole length)."""
+        return cs.FocusedSeq("v", "v" / _SUBS[self.ctype], cs.Terminated)
 
     def encode(self, value: Any) -> bytes:
         """Value bytes; raises FieldError naming the key."""
@@ -140,13 +144,11 @@ class ConfigKey:
         return self.from_wire(w)
 
 
-def _full(sub: cs.Construct) -> cs.Construct:
-    return cs.FocusedSeq("v", "v" / sub, cs.Terminated)
-
-
 _ROUND_TO, _ROUND_FROM = _enum(ROUNDING_MODES, "rounding")
 _MODE_TO, _MODE_FROM = _enum(MODES, "mode")
 _WINDOW = cs.Struct("start" / cs.Int32ul, "length" / cs.Int32ul)
+_SUBS = {"u8": cs.Int8ul, "u16": cs.Int16ul, "u32": cs.Int32ul,
+         "u16 x K": cs.GreedyRange(cs.Int16ul), "(u32 start, u32 len) x n": cs.GreedyRange(_WINDOW)}
 
 
 def _windows_to_wire(v: Any) -> list[dict[str, int]]:
@@ -161,48 +163,44 @@ def _windows_to_wire(v: Any) -> list[dict[str, int]]:
 
 
 CONFIG_KEYS: tuple[ConfigKey, ...] = (
-    ConfigKey(1, "poly_u", _full(cs.Int32ul), "u32", "", "mask, degree 2..max_degree",
+    ConfigKey(1, "poly_u", "u32", "", "mask, degree 2..max_degree",
               "first Gold polynomial: bit e set = x^e term, x^0 implied (host: exponent "
               "tuple, highest first)", to_wire=_poly_to_wire, from_wire=mask_to_poly),
-    ConfigKey(2, "poly_v", _full(cs.Int32ul), "u32", "", "mask, same degree as poly_u",
+    ConfigKey(2, "poly_v", "u32", "", "mask, same degree as poly_u",
               "second Gold polynomial, same encoding", to_wire=_poly_to_wire,
               from_wire=mask_to_poly),
-    ConfigKey(3, "code_index", _full(cs.GreedyRange(cs.Int16ul)), "u16 x K", "",
-              "0..2^m (N+1), K items", "Gold family member of each channel", 0, 65535,
+    ConfigKey(3, "code_index", "u16 x K", "", "0..2^m (N+1), K items",
+              "Gold family member of each channel", 0, 65535,
               to_wire=lambda v: [int(x) for x in v], from_wire=tuple),
-    ConfigKey(4, "uid_bits", _full(cs.Int8ul), "u8", "code periods", "1..max_uid_bits",
-              "UID length n", 1, 8),
-    ConfigKey(5, "uid", _full(cs.Int8ul), "u8", "", "0..2^uid_bits-1",
+    ConfigKey(4, "uid_bits", "u8", "code periods", "1..max_uid_bits", "UID length n", 1, 8),
+    ConfigKey(5, "uid", "u8", "", "0..2^uid_bits-1",
               "this device's UID (bit p = polarity of period p)", 0, 255),
-    ConfigKey(6, "samples_per_chip", _full(cs.Int16ul), "u16", "samples/chip",
-              "spc_min..spc_max", "ADC samples per chip S", 1, 65535),
-    ConfigKey(7, "averages", _full(cs.Int32ul), "u32", "repetitions", "1..max_averages",
+    ConfigKey(6, "samples_per_chip", "u16", "samples/chip", "spc_min..spc_max",
+              "ADC samples per chip S", 1, 65535),
+    ConfigKey(7, "averages", "u32", "repetitions", "1..max_averages",
               "coherently summed code repetitions R", 1, 2**32 - 1),
-    ConfigKey(8, "adc_bits", _full(cs.Int8ul), "u8", "bits", "8..16, read-only",
-              "ADC resolution", 8, 16, read_only=True),
-    ConfigKey(9, "gate_start", _full(cs.Int32ul), "u32", "samples", "0..N*S-1",
-              "first lag of the gate", 0, 2**32 - 1),
-    ConfigKey(10, "gate_len", _full(cs.Int32ul), "u32", "samples", "1..min(N*S, max_gate_len)",
+    ConfigKey(8, "adc_bits", "u8", "bits", "8..16, read-only", "ADC resolution", 8, 16,
+              read_only=True),
+    ConfigKey(9, "gate_start", "u32", "samples", "0..N*S-1", "first lag of the gate", 0,
+              2**32 - 1),
+    ConfigKey(10, "gate_len", "u32", "samples", "1..min(N*S, max_gate_len)",
               "lags in the gate", 1, 2**32 - 1),
-    ConfigKey(11, "peak_exclude", _full(cs.Int32ul), "u32", "samples", "0..N*S",
+    ConfigKey(11, "peak_exclude", "u32", "samples", "0..N*S",
               "W: peaks at least W+1 lags apart; noise excludes |j - j_peak| <= W",
               0, 2**32 - 1),
-    ConfigKey(12, "ghost_windows", _full(cs.GreedyRange(_WINDOW)), "(u32 start, u32 len) x n",
-              "samples", "lags mod N*S",
+    ConfigKey(12, "ghost_windows", "(u32 start, u32 len) x n", "samples", "lags mod N*S",
               "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
               to_wire=_windows_to_wire, from_wire=tuple),
-    ConfigKey(13, "out_shift", _full(cs.Int8ul), "u8", "bits", "0..63",
-              "out = round(raw / 2^out_shift)", 0, 63),
-    ConfigKey(14, "rounding", _full(cs.Int8ul), "u8", "", _enum_allowed(ROUNDING_MODES),
+    ConfigKey(13, "out_shift", "u8", "bits", "0..63", "out = round(raw / 2^out_shift)", 0, 63),
+    ConfigKey(14, "rounding", "u8", "", _enum_allowed(ROUNDING_MODES),
               "rounding of the output shift", 0, len(ROUNDING_MODES) - 1,
               to_wire=_ROUND_TO, from_wire=_ROUND_FROM),
-    ConfigKey(15, "out_bits", _full(cs.Int8ul), "u8", "bits", "8..32",
-              "outputs saturate to signed out_bits", 8, 32),
-    ConfigKey(16, "peaks", _full(cs.Int8ul), "u8", "", "1..max_peaks",
-              "peaks reported per channel P", 1, 8),
-    ConfigKey(17, "columns_per_frame", _full(cs.Int16ul), "u16", "columns",
-              "1..max_columns", "columns in a default scan frame", 1, 65535),
-    ConfigKey(18, "mode", _full(cs.Int8ul), "u8", "", _enum_allowed(MODES),
+    ConfigKey(15, "out_bits", "u8", "bits", "8..32", "outputs saturate to signed out_bits", 8,
+              32),
+    ConfigKey(16, "peaks", "u8", "", "1..max_peaks", "peaks reported per channel P", 1, 8),
+    ConfigKey(17, "columns_per_frame", "u16", "columns", "1..max_columns",
+              "columns in a default scan frame", 1, 65535),
+    ConfigKey(18, "mode", "u8", "", _enum_allowed(MODES),
               "measurement mode (calibration = zeroth-order beam)", 0, len(MODES) - 1,
               to_wire=_MODE_TO, from_wire=_MODE_FROM),
 )

@@ -38,7 +38,7 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
 )
 from cdma_lidar.protocol.streams import finish, stop_stream
-from cdma_lidar.protocol.transmit import REPAIR
+from cdma_lidar.protocol.transmit import CONTROL, REPAIR
 
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
@@ -59,7 +59,6 @@ class EndpointStats:
     naks: int = 0
     tx_frames: int = 0
     columns_sent: int = 0
-    resent: int = 0
     auth_rejected: int = 0  #: frames dropped for a wrong MAC or a replayed counter
     auth_throttled: int = 0  #: HELLO MACs not checked: the peer's back-off was running
     sessions: int = 0  #: sessions opened on this connection
@@ -250,7 +249,6 @@ def _end_session(ep: DeviceEndpoint) -> None:
         finish(ep, ep.latest)
     ep.tx.drop(REPAIR)
     ep.ring.clear()
-    ep.tx.cuts.clear()
     ep.capture = None
     ep.tx.signer = ep.verifier = None
     ep.tx.coded = False
@@ -265,7 +263,7 @@ def _lose(ep: DeviceEndpoint, reason: SessionLostReason, detail: str) -> None:
     if ep.session_open:
         log.info("session 0x%08x lost: %s", ep.session, detail)
         try:
-            ep.tx.notice(MsgType.SESSION_LOST, encode_payload(
+            ep.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
                 MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         except OSError:
             pass  # that host is gone anyway

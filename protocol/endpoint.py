@@ -12,14 +12,11 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application? --yes--> request worker thread (in arrival order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-The jobs are split: sessions and HELLO in :mod:`~cdma_lidar.protocol.device_sessions`, column
-streams and RESEND in :mod:`~cdma_lidar.protocol.streams`, the other requests in
-:mod:`~cdma_lidar.protocol.handlers`, the transmit queue in
-:mod:`~cdma_lidar.protocol.transmit`. The polling thread answers STATUS_GET, RESEND,
-SCAN_ABORT and FRAME_SIZE and sends a HEARTBEAT every ``heartbeat_s`` while a stream
-runs, whatever the application computes; the application is called by one thread at
-a time. Run :meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like
-object (``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
+The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
+every ``heartbeat_s`` while a stream runs, whatever the application computes; the
+application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
+in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
+``timeout``).
 """
 
 from __future__ import annotations
@@ -56,7 +53,6 @@ from cdma_lidar.protocol.messages import (
     MsgKind,
     MsgType,
     ScanEndReason,
-    State,
     decode_payload,
     encode_payload,
     kind_of,
@@ -64,7 +60,7 @@ from cdma_lidar.protocol.messages import (
 )
 from cdma_lidar.protocol.streams import Stream
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Transmitter
-from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, Status
+from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "HANDLERS", "DeviceApp", "DeviceCore", "DeviceEndpoint",
            "EndpointStats"]
@@ -75,8 +71,9 @@ log = logging.getLogger(__name__)
 HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
     **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
-_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT,
-                          MsgType.FRAME_SIZE})
+_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
+#: Requests remembered for retransmission replay.
+_REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
 #: Repair bytes the polling thread sends per poll while a column worker runs (it then
@@ -152,7 +149,6 @@ class DeviceEndpoint:
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s).
-        replay_depth: requests remembered for retransmission replay.
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
             (a serial line); False on TCP, where a damaged frame is not worth the CPU.
         peer: who is on the other end (an IP address), for the per-peer back-off after
@@ -167,7 +163,7 @@ class DeviceEndpoint:
                  core: DeviceCore | None = None, key: bytes | None = None,
                  session_id: int | None = None, session_idle_s: float = 10.0,
                  max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
-                 poll_s: float = 0.01, replay_depth: int = 32, peer: str | None = None,
+                 poll_s: float = 0.01, peer: str | None = None,
                  fec: bool = True, clock: Callable[[], float] = time.monotonic,
                  threads: bool = True) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
@@ -178,7 +174,6 @@ class DeviceEndpoint:
         if not (0 < poll_s <= 1 or (poll_s == 0 and not threads)):
             raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin; allowed "
                                "with threads=False)", poll_s)
-        check_int("replay_depth", replay_depth, 1, 32768)
         if session_id is not None:  # 0 or None: random
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
         if core is None:
@@ -192,7 +187,7 @@ class DeviceEndpoint:
         #: Since when this connection has had no session (core clock, s).
         self.sessionless_since = core.clock()
         self.max_frame, self.ring_columns, self.heartbeat_s = max_frame, ring_columns, heartbeat_s
-        self.replay_depth, self.clock, self.fec = replay_depth, clock, fec
+        self.clock, self.fec = clock, fec
         self.threads = threads
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
@@ -281,15 +276,14 @@ class DeviceEndpoint:
                     self._on_rejected(self.decoder.rejected.pop(0))
                 self._count_rx()
                 if self.decoder.stats.damaged > damaged:
-                    # Say so at once: a host waiting for a reply sends its request again
-                    # now rather than after its timeout.
-                    self.tx.notice(MsgType.LINE_ERROR, encode_payload(
+                    # Say so at once (information only: it words the host's diagnosis).
+                    self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))
             now = self.clock()
             if self.stream is not None and now - self.last_heartbeat >= self.heartbeat_s:
                 self.last_heartbeat = now
-                self.tx.notice(MsgType.HEARTBEAT,
+                self.tx.send(CONTROL, MsgType.HEARTBEAT,
                                encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
             worker = self.stream is not None
         # Replies and notices now; repairs in a bounded share while a column worker runs
@@ -345,7 +339,8 @@ class DeviceEndpoint:
     # ---- receiving ------------------------------------------------------------------
     def _send_reply(self, req: Frame, reply: Reply) -> None:
         # A coded request gets a coded reply.
-        self.tx.reply(req.seq, reply[0], reply[1], reply[2], self.tx.coded or req.fec)
+        self.tx.send(CONTROL, reply[0], reply[1], req.seq, coded=self.tx.coded or req.fec,
+                     signer=self.tx.signer if reply[2] else None)
 
     def _on_rejected(self, frame: Frame) -> None:
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
@@ -484,7 +479,7 @@ class DeviceEndpoint:
             self.last_seq = frame.seq
         self._replay[frame.seq] = (key, reply)
         self._replay.move_to_end(frame.seq)
-        while len(self._replay) > self.replay_depth:
+        while len(self._replay) > _REPLAY_DEPTH:
             self._replay.popitem(last=False)
         self._send_reply(frame, reply)
         for action in after:

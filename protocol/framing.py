@@ -23,11 +23,12 @@ from typing import NamedTuple, Protocol
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import cobs, fec
+from cdma_lidar.protocol.fec import coded_len
 
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
-           "crc32", "decode_frame", "encode_frame", "frame_size", "max_wire_len"]
+           "crc32", "decode_frame", "encode_frame", "frame_size"]
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +72,6 @@ _CRC = struct.Struct("<I")
 def crc32(data: bytes) -> int:
     """CRC-32/ISO-HDLC of ``data`` (check value of b"123456789" is 0xCBF43926)."""
     return zlib.crc32(data) & 0xFFFFFFFF
-
-
-def max_wire_len(max_frame: int) -> int:
-    """Bytes on the wire for a decoded frame of ``max_frame`` bytes, both delimiters included."""
-    return cobs.max_encoded_len(max_frame) + 2
 
 
 class Frame(NamedTuple):
@@ -220,7 +216,7 @@ class FrameDecoder:
     """Stream decoder: feed it any slices of the byte stream, get whole frames back.
 
     It owns its receive buffer, so partial reads (pyserial ``read(n)`` may return
-    fewer bytes) are fine. A chunk longer than ``max_wire_len(max_frame)`` is dropped
+    fewer bytes) are fine. A chunk longer than a coded ``max_frame`` after COBS is dropped
     up to the next delimiter and counted as ``oversize`` without being buffered.
     ``rejected`` lists frames that passed the CRC but had another version or unknown
     incompatible flags (the device answers them with a NAK); the caller drains it.
@@ -239,17 +235,9 @@ class FrameDecoder:
         self._skipping = False  # inside an oversize chunk: drop until the next delimiter
         self._split: bytes | None = None  # the last chunk, if damaged and right before this one
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
-        self.max_frame = max_frame
-
-    @property
-    def max_frame(self) -> int:
-        """Largest decoded frame accepted (bytes, header and CRC included)."""
-        return self._max_frame
-
-    @max_frame.setter
-    def max_frame(self, value: int) -> None:
-        self._max_frame = check_int("max_frame", value, MIN_MAX_FRAME, FRAME_LIMIT)
-        self._max_chunk = cobs.max_encoded_len(fec.coded_len(value))  # coded or not
+        #: Largest decoded frame accepted (bytes, header and CRC included).
+        self.max_frame = check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
+        self._max_chunk = cobs.max_encoded_len(coded_len(max_frame))  # coded or not
 
     @property
     def buffered(self) -> int:
@@ -327,7 +315,7 @@ class FrameDecoder:
             body = cobs.decode(chunk)
         except FrameError:
             return "cobs"
-        if len(body) > fec.coded_len(self._max_frame):
+        if len(body) > coded_len(self.max_frame):
             return "oversize"
         try:
             try:

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cdma_lidar.errors import DeviceError, FieldError
-from cdma_lidar.protocol.columns import column_payload_size
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import Frame, frame_size
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload, head_size
@@ -59,24 +58,6 @@ def nak(ep: DeviceEndpoint, req: Frame, code: ErrorCode, fld: str = "", detail: 
 def clip(s: str, limit: int = 255) -> str:
     """``s`` cut to at most ``limit`` UTF-8 bytes, on a character boundary."""
     return s.encode("utf-8")[:limit].decode("utf-8", errors="ignore")
-
-
-def _frame_size(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
-    """New largest frame this device sends; the ACK still goes out at the old size."""
-    new = min(ep.max_frame, f["host_max_frame"])
-    if ep.stream is not None and ep.info is not None and ep.config is not None:
-        size = column_payload_size(ep.info.channels, int(ep.config.get("peaks", 1)))
-        if ep.tx.pieces(size, ep.tx.signer is not None, new) > MAX_PIECES:
-            return nak(ep, req, ErrorCode.TOO_LARGE, "host_max_frame",
-                       f"a column of {size} bytes would need more than {MAX_PIECES} "
-                       f"fragments at {new} bytes")
-
-    def apply() -> None:
-        ep.tx.max_frame = new
-        log.debug("frames of session 0x%08x now at most %d bytes", ep.session, new)
-
-    after.append(apply)
-    return ack(ep, req)
 
 
 def _config_get(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
@@ -168,7 +149,7 @@ def _status_get(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
     return reply(ep, req, MsgType.STATUS, encode_payload(MsgType.STATUS, ep.status().to_fields()))
 
 
-HANDLERS = {MsgType.FRAME_SIZE: _frame_size, MsgType.CONFIG_GET: _config_get,
+HANDLERS = {MsgType.CONFIG_GET: _config_get,
             MsgType.CONFIG_SET: _config_set, MsgType.POWER_SET: _power_set,
             MsgType.POWER_GET: _power_get, MsgType.CAPTURE: _capture,
             MsgType.STATUS_GET: _status_get}

@@ -4,13 +4,7 @@
 port-like object: whatever :func:`~cdma_lidar.protocol.ports.open_port` returns for a
 pyserial URL (``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), a
 :class:`~cdma_lidar.protocol.ports.FdPort` around a file descriptor, or anything else with
-``read``, ``write``, ``in_waiting`` and ``timeout``. Its jobs are in three modules:
-
-* :mod:`cdma_lidar.protocol.requests` -- send, await the reply on an injected clock,
-  retry, route frames, diagnose a silent line (``DIAG_*``);
-* :mod:`cdma_lidar.protocol.host_session` -- HELLO, keys, take-over, SESSION_END;
-* :mod:`cdma_lidar.protocol.reassembly` -- one stream's columns, in order, and what to
-  ask for again (``feed(frame)``, ``due(now)``).
+``read``, ``write``, ``in_waiting`` and ``timeout``.
 
 Scans: :meth:`HostLink.scan` yields columns in column order exactly once and asks for
 missing ones again (RESEND) as soon as a later column, a HEARTBEAT or SCAN_END shows they
@@ -37,25 +31,13 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE
 from cdma_lidar.protocol.host_session import Session
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, State
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
-from cdma_lidar.protocol.requests import (
-    DIAG_GARBAGE,
-    DIAG_HINTS,
-    DIAG_NO_ANSWER,
-    DIAG_NOISY,
-    DIAG_SILENT,
-    DIAG_VERSION,
-    DIAG_WRONG_SESSION,
-    LinkStats,
-    SessionLost,
-)
+from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, DIAG_NOISY, SessionLost
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
-from cdma_lidar.protocol.views import Status
+from cdma_lidar.protocol.views import State, Status
 
-__all__ = ["DIAG_GARBAGE", "DIAG_HINTS", "DIAG_NOISY", "DIAG_NO_ANSWER", "DIAG_SILENT",
-           "DIAG_VERSION", "DIAG_WRONG_SESSION", "HostLink", "LinkStats", "ScanStalled",
-           "SessionLost", "StreamEnded"]
+__all__ = ["HostLink", "ScanStalled", "SessionLost", "StreamEnded"]
 
 log = logging.getLogger(__name__)
 
@@ -80,8 +62,6 @@ class HostLink(Session):
         retries: retransmissions of a request before LinkTimeout.
         column_retries: RESENDs of one missing column before LinkTimeout; default
             ``10 * (retries + 1)``.
-        poll_s: longest blocking read (s), greater than 0 so that waiting never spins;
-            default ``min(0.05, timeout_s / 4)``.
         max_frame: largest frame the device may send (bytes, 64..65535), announced in
             HELLO: longer replies and columns come in FRAGMENTs. Requests stay within
             min(INFO.max_frame, max(max_frame, 256)).
@@ -105,14 +85,12 @@ class HostLink(Session):
     """
 
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
-                 column_retries: int | None = None, poll_s: float | None = None,
-                 max_frame: int = FRAME_LIMIT, key: bytes | None = None,
-                 take_over: bool = False, keep_config: bool = False, fec: bool | None = None,
-                 progress_timeout_s: float = 30.0,
+                 column_retries: int | None = None, max_frame: int = FRAME_LIMIT,
+                 key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
+                 fec: bool | None = None, progress_timeout_s: float = 30.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(port, timeout_s, retries, poll_s=poll_s, max_frame=max_frame,
-                         fec=fec, clock=clock, key=key, take_over=take_over,
-                         keep_config=keep_config)
+        super().__init__(port, timeout_s, retries, max_frame=max_frame, fec=fec, clock=clock,
+                         key=key, take_over=take_over, keep_config=keep_config)
         self.column_retries = 10 * (self.retries + 1) if column_retries is None \
             else check_int("column_retries", column_retries, 0, 1000)
         if not progress_timeout_s > 0:

@@ -23,12 +23,12 @@ from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.framing import PROTOCOL_VERSION
-from cdma_lidar.protocol.schema import FieldMeta, array, blob, i, nbytes, text, u
+from cdma_lidar.protocol.schema import FieldMeta, array, blob, nbytes, text, u, wire_fields
+from cdma_lidar.protocol.views import Info, Status
 
 __all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
            "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
-           "ScanEndReason", "SessionLostReason", "State", "decode_payload", "encode_payload",
+           "ScanEndReason", "SessionLostReason", "decode_payload", "encode_payload",
            "head_size", "kind_of", "type_name"]
 
 
@@ -72,7 +72,6 @@ class MsgType(enum.IntEnum):
     STATUS_GET = 0x0A
     POWER_GET = 0x0B
     SESSION_END = 0x0C
-    FRAME_SIZE = 0x0D
     ACK = 0x80
     NAK = 0x81
     INFO = 0x82
@@ -128,14 +127,6 @@ ERROR_DOCS = {
     ErrorCode.AUTH_REQUIRED: "the device requires signed frames: HELLO with its key first",
     ErrorCode.AUTH_FAILED: "HELLO's MAC is wrong (the host's key differs from the device's)",
 }
-
-
-class State(enum.IntEnum):
-    """Device state in STATUS / HEARTBEAT."""
-
-    IDLE = 0
-    SCANNING = 1
-    CALIBRATING = 2
 
 
 class ScanEndReason(enum.IntEnum):
@@ -198,22 +189,6 @@ class MessageSpec:
 def _msg(t: MsgType, doc: str, *fields_: cs.Renamed, reply: MsgType | None = None) -> MessageSpec:
     return MessageSpec(t, cs.Struct(*fields_, cs.Terminated), doc, reply)
 
-
-_STATUS_FIELDS = (
-    u("state", 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2),
-    u("frame", 32, "frame id of the current or last scan"),
-    u("next_column", 16, "next column (or shot) the current or last scan produces"),
-    u("last_end", 8, "how the last scan ended: 0 complete, 1 aborted, 2 device error",
-      lo=0, hi=2),
-    u("columns_sent", 32, "COLUMN_RESULT frames sent since boot (resends included)"),
-    u("uptime_ms", 32, "time since boot", "ms"),
-    u("rx_frames", 32, "valid frames received since boot"),
-    u("rx_errors", 32, "rejected chunks since boot (COBS, CRC, length, size, version)"),
-    u("tx_frames", 32, "frames sent since boot"),
-    u("replays", 32, "retransmitted requests answered from the replay cache"),
-    i("temperature_mc", 32, "board temperature; -2^31 = no sensor", "m°C"),
-    u("faults", 32, "device-specific fault bits, 0 = healthy"),
-)
 
 _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
@@ -289,10 +264,6 @@ _MESSAGE_LIST = [
     _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
          "without SCAN_END, another host's HELLO then needs no take-over.",
          reply=MsgType.ACK),
-    _msg(MsgType.FRAME_SIZE, "Change the largest frame the device sends from the ACK on (a "
-         "host sizing frames to its line); also while a scan runs.",
-         u("host_max_frame", 16, "new largest frame the device may send", "bytes", 64, 65535),
-         reply=MsgType.ACK),
     _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
          u("request_type", 8, "type of the request answered")),
     _msg(MsgType.NAK, "Request refused (header seq = request seq).",
@@ -301,54 +272,13 @@ _MESSAGE_LIST = [
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         u("protocol_version", 8, f"protocol version spoken ({PROTOCOL_VERSION})"),
-         u("session_id", 32, "session id chosen for this HELLO, also in every frame header",
-           lo=1, hi=2**32 - 1),
-         u("session_idle_ms", 32, "a session idle this long may be taken by another host "
-           "without take-over", "ms", 1),
-         u("auth", 8, "0 no key; 1 HMAC-SHA256 challenge-response, every frame signed",
-           lo=0, hi=1),
-         nbytes("device_mac", 32, "HMAC-SHA256 proof that the device holds the key; zeros "
-                "when auth is 0"),
-         u("pixel_power_max_uw", 32, "laser power of one pixel at power 65535; 0: no power "
-           "control", "µW"),
-         u("column_power_cap_uw", 32, "eye-safety cap on the sum over a column's channels; "
-           "0: none", "µW"),
-         u("schema_crc", 32, "CRC-32 of the message schema (see Versioning)"),
-         u("max_frame", 16, "largest frame the device accepts (header + payload + "
-           "signature + CRC); the host's requests stay within min(max_frame, "
-           "max(host_max_frame, 256))", "bytes", 256, 65535),
-         u("ring_columns", 16, "recent columns kept for RESEND", "columns"),
-         u("heartbeat_ms", 16, "HEARTBEAT interval while scanning", "ms", 1, 65535),
-         u("max_degree", 8, "largest LFSR degree m of the code family", "", 2, 32),
-         u("max_channels", 16, "largest number of channels", "", 1, 65535),
-         u("adc_bits", 8, "ADC resolution", "bits", 8, 16),
-         u("spc_min", 16, "smallest samples per chip", "samples/chip", 1, 65535),
-         u("spc_max", 16, "largest samples per chip", "samples/chip", 1, 65535),
-         u("max_averages", 32, "largest number of averaged code repetitions", "", 1),
-         u("max_uid_bits", 8, "largest UID length n", "bits", 1, 8),
-         u("max_peaks", 8, "largest peaks per channel P", "", 1, 8),
-         u("max_gate_len", 32, "largest lag gate", "samples", 1),
-         u("max_columns", 16, "largest columns in one scan", "", 1),
-         u("chip_rate_hz", 32, "code chip rate", "Hz", 1),
-         u("grooves_per_mm_milli", 32, "grating groove density", "0.001 lines/mm", 1),
-         i("incidence_udeg", 32, "incidence angle theta_i on the grating", "µdeg"),
-         i("tilt_udeg", 32, "mounting tilt gamma; -2^31 = host derives it", "µdeg"),
-         u("reference_wavelength_pm", 32, "wavelength horizontal at zero rotation", "pm"),
-         i("column_start_udeg", 32, "rotation angle of column 0", "µdeg"),
-         i("column_step_udeg", 32, "rotation step between columns", "µdeg"),
-         u("column_count", 16, "columns in a full frame", "", 1),
-         text("firmware_version", "firmware version string"),
-         text("serial", "device serial number"),
-         array("wavelengths_pm", 16, "u", 32, "nominal wavelength of each channel (count K)",
-               "pm", 1, max_items=65535, allowed="K = 1..max_channels items", min_items=1),
-         ),
+         *wire_fields(Info)),
     _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
          blob("items", cs.GreedyRange(cs.Struct("key" / cs.Int8ul,
                                                 "value" / cs.Prefixed(cs.Int16ul,
                                                                       cs.GreedyBytes))),
               "KLV items (rest)", "key u8, length u16, value")),
-    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *_STATUS_FIELDS),
+    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
          u("column", 16, "column index"),
@@ -371,7 +301,7 @@ _MESSAGE_LIST = [
     MessageSpec(MsgType.COLUMN_RESULT, COLUMN_STRUCT,
                 "Receiver outputs of one column, all channels (layout below)."),
     _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
-         "STATUS).", *_STATUS_FIELDS),
+         "STATUS).", *wire_fields(Status)),
     _msg(MsgType.SCAN_END, "End of a scan or calibration stream.",
          u("frame", 32, "frame id"),
          u("first_column", 16, "first column (or shot) of the scan"),
@@ -389,8 +319,8 @@ _MESSAGE_LIST = [
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
          blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
               allowed="1..L bytes (L = max_frame-27, -24 when signed)")),
-    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length): "
-         "a host waiting for a reply sends its request again at once.",
+    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
+         "information only (section 6.4): a host words its timeout diagnosis with it.",
          u("rx_errors", 32, "rejected chunks since boot")),
     _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
          "answer its requests NAK WRONG_SESSION.",
@@ -444,8 +374,6 @@ DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
                                   "scan (field `columns[i]` / `fragments[i]`); both lists "
                                   "empty: MALFORMED", ErrorCode.NOT_AVAILABLE),
     (MsgType.CALIBRATE, "shots"): ("while a scan runs: BUSY", ErrorCode.BUSY),
-    (MsgType.FRAME_SIZE, "host_max_frame"): ("a column of the running scan would need more "
-                                             "than MAX_PIECES fragments", ErrorCode.TOO_LARGE),
     (MsgType.CAPTURE, "column"): ("column >= INFO.column_count", ErrorCode.OUT_OF_RANGE),
     (MsgType.CAPTURE, "channel"): ("kind 1 and channel >= K", ErrorCode.OUT_OF_RANGE),
     (MsgType.CAPTURE, "offset"): ("offset > total: OUT_OF_RANGE; offset > 0 with no capture of "
@@ -541,6 +469,8 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         except FieldError as exc:
             raise FrameError(f"{spec.type.name}: {exc}", field=sc.name) from None
         out[sc.name] = v
+    if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
+        raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")
     return out
 
 

@@ -30,7 +30,7 @@ from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, deco
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
 from cdma_lidar.protocol.views import Status
 
-__all__ = ["ColumnReassembler", "StreamEnded", "early_end"]
+__all__ = ["ColumnReassembler", "Pieces", "StreamEnded", "early_end"]
 
 
 class StreamEnded(DeviceError):
@@ -58,12 +58,22 @@ def early_end(fid: int, reason: int, sent: int) -> StreamEnded:
 
 
 @dataclass
-class _Pieces:
-    """FRAGMENTs of one column received so far."""
+class Pieces:
+    """FRAGMENTs of one message (a column, a reply, a notice) received so far."""
 
     count: int
     data: dict[int, bytes] = field(default_factory=dict)
-    size: int = 0  # length of a piece other than the last (bytes): the cut; 0 until seen
+    frames: list[Frame] = field(default_factory=list)  # the pieces as they came
+
+    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
+        once every piece is in."""
+        if body["index"] not in self.data:
+            self.frames.append(frame)
+        self.data[body["index"]] = body["data"]
+        if len(self.data) < self.count:
+            return None
+        return b"".join(self.data[i] for i in range(self.count))
 
 
 class ColumnReassembler:
@@ -80,7 +90,7 @@ class ColumnReassembler:
         self.horizon = first
         self.edge: tuple[int, int] = (first, 0)
         self.received: dict[int, ColumnResult] = {}
-        self.parts: dict[int, _Pieces] = {}
+        self.parts: dict[int, Pieces] = {}
         self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
         self.stored = 0  # columns and fragments kept (progress)
         self.duplicates = self.malformed = 0
@@ -115,8 +125,7 @@ class ColumnReassembler:
             item: Any = decode_payload(mtype, frame.payload)
         except FrameError:
             item = None
-        if item is None or (mtype == MsgType.FRAGMENT and (
-                item["index"] >= item["count"] or not item["data"])):
+        if item is None:
             self.malformed += 1
             return False
         if mtype == MsgType.HEARTBEAT:
@@ -127,7 +136,7 @@ class ColumnReassembler:
         if mtype == MsgType.FRAGMENT:
             if item["frame"] != self.fid:
                 return False
-            col = self._piece(item)
+            col = self._piece(frame, item)
             if col is None:
                 return True
             item, mtype = col, MsgType.COLUMN_RESULT
@@ -144,7 +153,7 @@ class ColumnReassembler:
             return True
         return False
 
-    def _piece(self, item: dict[str, Any]) -> ColumnResult | None:
+    def _piece(self, frame: Frame, item: dict[str, Any]) -> ColumnResult | None:
         c, k = item["column"], item["index"]
         self.asked.pop((c, k), None)
         self.horizon = max(self.horizon, c)
@@ -153,19 +162,14 @@ class ColumnReassembler:
             self.duplicates += 1
             return None
         pc = self.parts.get(c)
-        n = len(item["data"])
-        if pc is None or pc.count != item["count"] or (
-                (n != pc.size if k < pc.count - 1 else n > pc.size) and pc.size):
-            pc = self.parts[c] = _Pieces(item["count"])  # the first piece, or of another cut
-        if k < pc.count - 1:
-            pc.size = n
-        pc.data[k] = item["data"]
+        if pc is None or pc.count != item["count"]:
+            pc = self.parts[c] = Pieces(item["count"])  # the first piece, or of another cut
         self.stored += 1
-        if len(pc.data) < pc.count:
+        if (payload := pc.add(frame, item)) is None:
             return None
         del self.parts[c]
         try:
-            return decode_column(b"".join(pc.data[i] for i in range(pc.count)))
+            return decode_column(payload)
         except FrameError:
             self.malformed += 1
             return None

@@ -9,18 +9,10 @@ only ever blocks in ``port.read`` (at most ``port.timeout``) and measures every 
 A request carries a new ``seq``; the reply (ACK, NAK or data) echoes it. No reply within
 ``timeout_s`` -> the identical request is sent again (signed afresh), up to ``retries``
 times; the device answers a retransmission from its replay cache instead of acting
-twice. Then :class:`LinkTimeout` says what the line showed (``diagnosis``):
-
-* ``no bytes at all``           -- nothing came back: power, cable, port name;
-* ``bytes but no valid frame``  -- wrong baud rate, or not a cdma-lidar device;
-* ``frames but wrong session``  -- the device rebooted: call ``hello()``;
-* ``frames of another protocol version`` -- CRC-valid frames this version must not
-  read (another ``version`` or unknown incompat flags): update host or firmware;
-* ``damaged frames``            -- more damage than the error correction repairs;
-* ``frames but no answer``      -- the device is alive but ignores this request.
-
-A reply to the pending request in another protocol version fails it at once. Frames of
-a running stream (columns, their FRAGMENTs, HEARTBEAT, SCAN_END) go, undecoded, to the
+twice. Then :class:`LinkTimeout` says what the line showed: its ``diagnosis`` is one of
+the ``DIAG_*`` strings, and its message ends with that one's :data:`DIAG_HINTS`. A reply
+to the pending request in another protocol version fails it at once. Frames of a
+running stream (columns, their FRAGMENTs, HEARTBEAT, SCAN_END) go, undecoded, to the
 ``stream`` queue for :class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`.
 """
 
@@ -29,11 +21,11 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from cdma_lidar.checks import check_int
-from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout, out_of_range
+from cdma_lidar.errors import DeviceError, FrameError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.framing import (
     MIN_MAX_FRAME,
@@ -53,6 +45,7 @@ from cdma_lidar.protocol.messages import (
     kind_of,
 )
 from cdma_lidar.protocol.ports import default_fec
+from cdma_lidar.protocol.reassembly import Pieces
 from cdma_lidar.protocol.trust import escape
 from cdma_lidar.protocol.views import Status
 
@@ -109,26 +102,14 @@ class LinkStats:
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
-@dataclass
-class _Pieces:
-    """FRAGMENTs of one reply or notice received so far."""
-
-    count: int
-    data: dict[int, bytes] = field(default_factory=dict)
-    frames: list[Frame] = field(default_factory=list)
-
-
 class Requests:
     """Requests and frame routing over a port (see the module docstring); the arguments
     are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
 
-    def __init__(self, port: Any, timeout_s: float, retries: int, *, poll_s: float | None,
-                 max_frame: int, fec: bool | None, clock: Callable[[], float]) -> None:
+    def __init__(self, port: Any, timeout_s: float, retries: int, *, max_frame: int,
+                 fec: bool | None, clock: Callable[[], float]) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
-        if poll_s is not None and not 0 < poll_s <= 10:
-            raise out_of_range("poll_s", "a number of seconds above 0 and at most 10 (0 "
-                               "would make every wait spin)", poll_s)
         self.port, self.clock = port, clock
         self.timeout_s = float(timeout_s)
         self.retries = check_int("retries", retries, 0, 100)
@@ -150,7 +131,7 @@ class Requests:
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self._reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self._parts: list[Frame] = []  # those of the last message put together
-        self._pieces: OrderedDict[tuple[int, int], _Pieces] = OrderedDict()
+        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
         self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
         self._early: list[Frame] = []  # frames that came with INFO, before it was ours
         self._streaming = False
@@ -159,7 +140,7 @@ class Requests:
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
                               or type(port).__name__)
-        port.timeout = min(0.05, self.timeout_s / 4) if poll_s is None else poll_s
+        port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
 
     # ---- sending --------------------------------------------------------------------------
     def _new_seq(self) -> int:
@@ -365,13 +346,10 @@ class Requests:
 
     def _fragment_body(self, frame: Frame) -> dict[str, Any] | None:
         try:
-            body = decode_payload(frame.msg_type, frame.payload)
-        except Exception:  # FrameError: a malformed fragment is dropped
-            body = None
-        if not isinstance(body, dict) or body["index"] >= body["count"] or not body["data"]:
+            return decode_payload(frame.msg_type, frame.payload)  # type: ignore[return-value]
+        except FrameError:  # a malformed fragment is dropped
             self.stats.malformed += 1
             return None
-        return body
 
     def _piece(self, frame: Frame, body: dict[str, Any]) -> Frame | None:
         """Keep one piece; the whole message (unsigned, of the piece's session) once all
@@ -379,18 +357,14 @@ class Requests:
         key = (body["msg_type"], body["seq"])
         pc = self._pieces.get(key)
         if pc is None or pc.count != body["count"]:
-            pc = self._pieces[key] = _Pieces(body["count"])
+            pc = self._pieces[key] = Pieces(body["count"])
             while len(self._pieces) > _MAX_PIECES:
                 self._pieces.popitem(last=False)
-        if body["index"] not in pc.data:
-            pc.frames.append(frame)
-        pc.data[body["index"]] = body["data"]
-        if len(pc.data) < pc.count:
+        if (payload := pc.add(frame, body)) is None:
             return None
         del self._pieces[key]
         self._parts = pc.frames
-        return Frame(key[0], key[1], frame.session,
-                     b"".join(pc.data[i] for i in range(pc.count)), 0, 0, frame.version)
+        return Frame(key[0], key[1], frame.session, payload, 0, 0, frame.version)
 
     def _reply_piece(self, frame: Frame, body: dict[str, Any]) -> None:
         """A piece of a reply: once all are in, handle the whole reply."""

@@ -9,11 +9,14 @@ encoders' range checks, the strict decoders and the tables of ``docs/protocol.md
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import construct as cs
 
-__all__ = ["FieldMeta", "array", "blob", "i", "nbytes", "text", "u"]
+__all__ = ["FieldMeta", "array", "blob", "i", "nbytes", "text", "u", "wire", "wire_fields"]
 
 
 @dataclass(frozen=True)
@@ -116,3 +119,15 @@ def nbytes(name: str, size: int, doc: str) -> cs.Renamed:
     return _named(name, cs.Bytes(size), FieldMeta(f"u8 x {size}", "", None, None, doc,
                                                   kind="bytes", max_items=size,
                                                   allowed=f"{size} bytes"))
+
+
+def wire(default: Any, make: Callable[..., cs.Renamed], *args: Any, **kw: Any) -> Any:
+    """A dataclass field that is a payload field too: ``make(name, *args, **kw)`` (``u``,
+    ``text``, ...) named as the dataclass field; ``default`` MISSING: required."""
+    return dataclasses.field(default=default, metadata={"wire": (make, args, kw)})
+
+
+def wire_fields(cls: type) -> list[cs.Renamed]:
+    """The payload fields of a dataclass declared with :func:`wire`, in field order."""
+    return [f.metadata["wire"][0](f.name, *f.metadata["wire"][1], **f.metadata["wire"][2])
+            for f in dataclasses.fields(cls)]

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from cdma_lidar.protocol.columns import ColumnResult, column_payload_size, encode_column
-from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
+from cdma_lidar.protocol.framing import Frame
 from cdma_lidar.protocol.handlers import Reply, ack, nak
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, encode_payload
-from cdma_lidar.protocol.transmit import FRESH, MAX_PIECES
+from cdma_lidar.protocol.transmit import FRESH, MAX_PIECES, REPAIR
 
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -108,9 +108,8 @@ def _resend(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
 
     def resend() -> None:
         for key, payload, only in todo:
-            ep.stats.resent += 1
             ep.count_column()
-            ep.tx.column(key, payload, COMPAT_RETRANSMIT, only)
+            ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
 
     after.append(resend)
     return ack(ep, req)
@@ -188,10 +187,10 @@ def _next_column(ep: DeviceEndpoint, st: Stream) -> ScanEndReason | None:
         ep.ring[key] = payload
         ep.ring.move_to_end(key)
         while len(ep.ring) > ep.ring_columns:
-            ep.tx.cuts.pop(ep.ring.popitem(last=False)[0], None)
+            ep.ring.popitem(last=False)
         st.produced += 1
         ep.count_column()
-        ep.tx.column(key, payload)
+        ep.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=key)
         if st.produced >= st.count:
             # End the stream under the same lock that queued its last column: a
             # SCAN_START arriving right after must not find it still busy.
@@ -231,6 +230,6 @@ def stop_stream(ep: DeviceEndpoint, reason: ScanEndReason, send_end: bool = True
     if reason != ScanEndReason.COMPLETE:
         ep.tx.drop(FRESH)  # aborted: its queued columns need not go out (kept in the ring)
     if send_end:  # after the columns queued before it
-        ep.tx.notice(MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
+        ep.tx.send(FRESH, MsgType.SCAN_END, encode_payload(MsgType.SCAN_END, {
             "frame": st.frame, "first_column": st.first, "columns": st.produced,
-            "calibration": int(st.calibration), "reason": int(reason)}), cls=FRESH)
+            "calibration": int(st.calibration), "reason": int(reason)}))

@@ -48,7 +48,6 @@ class _Job:
     payload: bytes
     seq: int | None  # None: the next stream seq, taken when sent
     session: int
-    compat: int
     max_frame: int  # bytes, decoded frame
     signer: FrameSigner | None
     repair: tuple[int, int, int] | None  # (frame, column, fragment or -1) of a repair
@@ -76,18 +75,16 @@ class Transmitter:
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
-        #: Piece length (bytes) each column was last cut at; 0: sent whole.
-        self.cuts: dict[tuple[int, int], int] = {}
 
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
-            compat: int = 0, signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
-            max_frame: int = 0, coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
-        """Queue one frame of class ``cls`` of at most ``max_frame`` bytes (0: the session's).
+            signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
+            coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
+        """Queue one frame of class ``cls`` (REPAIR frames go out marked retransmitted).
 
         A ``repair`` already queued is not queued twice: a host that asks again before
         the first answer reached it costs the line nothing.
         """
-        job = _Job(msg_type, payload, seq, self.session, compat, max_frame or self.max_frame,
+        job = _Job(msg_type, payload, seq, self.session, self.max_frame,
                    self.signer if signer is _SESSION else signer, repair,
                    self.coded if coded is _SESSION else coded, version)
         with self._cv:
@@ -128,7 +125,8 @@ class Transmitter:
                     self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
                 try:
                     wire = encode_frame(job.msg_type, job.payload, seq, job.session,
-                                        compat=job.compat, max_frame=job.max_frame,
+                                        compat=COMPAT_RETRANSMIT if cls == REPAIR else 0,
+                                        max_frame=job.max_frame,
                                         signer=job.signer, coded=job.coded, version=job.version)
                 except FieldError:  # a bug must not take the device off the line
                     log.exception("cannot send a %s frame", type_name(job.msg_type))
@@ -156,73 +154,42 @@ class Transmitter:
             if cls == REPAIR:
                 self._repairs.clear()
 
-    def pieces(self, payload_len: int, signed: bool, max_frame: int = 0) -> int:
-        """Frames a payload takes at ``max_frame`` (0: the session's): 1 if it fits one
-        frame, else its FRAGMENT count."""
-        max_frame = max_frame or self.max_frame
-        if frame_size(payload_len, signed) <= max_frame:
+    def pieces(self, payload_len: int, signed: bool) -> int:
+        """Frames a payload takes: 1 if it fits one frame, else its FRAGMENT count."""
+        if frame_size(payload_len, signed) <= self.max_frame:
             return 1
-        return -(-payload_len // (max_frame - frame_size(FRAGMENT_HEADER, signed)))
+        return -(-payload_len // (self.max_frame - frame_size(FRAGMENT_HEADER, signed)))
 
-    def notice(self, msg_type: MsgType, payload: bytes, compat: int = 0, cls: int = CONTROL,
-               repair: tuple[int, int, int] | None = None) -> None:
-        """A stream frame (notice, column, SCAN_END); FRAGMENTs if it is too long."""
-        if self.pieces(len(payload), self.signer is not None) > 1:
-            self._notice_id = (self._notice_id + 1) & 0xFFFF
-            self.fragments(msg_type, payload, self._notice_id, 0, 0, self.signer, None,
-                           compat, cls)
-        else:
-            self.put(cls, msg_type, payload, compat=compat, repair=repair)
+    def send(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
+             key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: Any = _SESSION,
+             only: Iterable[int] | None = None) -> None:
+        """Queue one message of class ``cls``: whole, or as FRAGMENTs as long as the max
+        frame carries (all, or the indexes in ``only``; all when one is not a piece).
 
-    def reply(self, seq: int, msg_type: MsgType, payload: bytes, signed: bool,
-              coded: bool) -> None:
-        """A reply with its request's ``seq``; FRAGMENTs if it is too long."""
-        signer = self.signer if signed else None
-        if self.pieces(len(payload), signed) == 1:
-            self.put(CONTROL, msg_type, payload, seq, signer=signer, coded=coded)
-        else:
-            self.fragments(msg_type, payload, seq, 0, 0, signer, None, coded=coded)
-
-    def fragments(self, msg_type: MsgType, payload: bytes, seq: int, frame: int, column: int,
-                  signer: FrameSigner | None, only: Iterable[int] | None, compat: int = 0,
-                  cls: int = CONTROL, room: int = 0, coded: Any = _SESSION) -> int:
-        """Queue ``payload`` as FRAGMENTs (all, or the indexes in ``only``) of ``room``
-        bytes each (0: as many as the max frame carries); returns the piece length."""
-        signed = signer is not None
-        cut = room
-        room = room or self.max_frame - frame_size(FRAGMENT_HEADER, signed)
+        ``seq``: a reply's (the request's); None: a stream frame's (whole: the next
+        stream seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT,
+        whose FRAGMENTs name its ``key`` = (frame, column)). A REPAIR already queued is
+        not queued twice: a host that asks again before the first answer reached it
+        costs the line nothing.
+        """
+        signer = self.signer if signer is _SESSION else signer
+        if self.pieces(len(payload), signer is not None) == 1:
+            self.put(cls, msg_type, payload, seq, signer=signer, coded=coded,
+                     repair=(*key, -1) if cls == REPAIR else None)
+            return
+        if seq is None and msg_type != MsgType.COLUMN_RESULT:
+            self._notice_id = seq = (self._notice_id + 1) & 0xFFFF
+        room = self.max_frame - frame_size(FRAGMENT_HEADER, signer is not None)
         count = -(-len(payload) // room)
         if count > MAX_PIECES:
             raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
                               f"fragments at max frame {self.max_frame} (at most "
                               f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
-        for k in range(count) if only is None else only:
+        if only is None or not all(0 <= k < count for k in only):
+            only = range(count)
+        for k in only:
             body = encode_payload(MsgType.FRAGMENT, {
-                "msg_type": int(msg_type), "seq": seq, "frame": frame, "column": column,
+                "msg_type": int(msg_type), "seq": seq or 0, "frame": key[0], "column": key[1],
                 "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
-            self.put(cls, MsgType.FRAGMENT, body, compat=compat, signer=signer,
-                     repair=(frame, column, k) if cls == REPAIR else None,
-                     max_frame=frame_size(FRAGMENT_HEADER + cut, signed) if cut else 0,
-                     coded=coded)
-        return room
-
-    def column(self, key: tuple[int, int], payload: bytes, compat: int = 0,
-               only: Iterable[int] | None = None) -> None:
-        """One COLUMN_RESULT ``key`` = (frame, column), or its FRAGMENTs.
-
-        A repair when ``compat`` marks a retransmission, else a new column. Pieces asked
-        for by index (``only``) are cut as the column last was, whatever the frame size
-        now, so the pieces the host holds stay good; a whole column is cut afresh.
-        """
-        cls = REPAIR if compat & COMPAT_RETRANSMIT else FRESH
-        cut = self.cuts.get(key, 0)
-        if only is not None and cut and all(0 <= k < -(-len(payload) // cut) for k in only):
-            self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key, self.signer, only, compat,
-                           cls, cut)
-        elif self.pieces(len(payload), self.signer is not None) == 1:
-            self.cuts[key] = 0
-            self.notice(MsgType.COLUMN_RESULT, payload, compat, cls,
-                        (*key, -1) if cls == REPAIR else None)
-        else:
-            self.cuts[key] = self.fragments(MsgType.COLUMN_RESULT, payload, 0, *key,
-                                            self.signer, None, compat, cls)
+            self.put(cls, MsgType.FRAGMENT, body, signer=signer, coded=coded,
+                     repair=(*key, k) if cls == REPAIR else None)

@@ -1,26 +1,30 @@
-"""Typed views of the INFO and STATUS payloads, with SI-unit accessors.
+"""INFO and STATUS: their payload fields declared once, as typed dataclasses.
 
 :class:`Info` (reply to HELLO) and :class:`Status` (reply to STATUS_GET, and the
 HEARTBEAT stream) hold the wire fields in wire units (pm, µdeg, m°C, ms, 0.001
-lines/mm); their field names are the payload's (a test checks). ``to_fields`` gives
-the dict :func:`cdma_lidar.protocol.messages.encode_payload` takes, ``from_fields`` /
-``Status(**fields)`` read a decoded payload.
+lines/mm) and in wire order; each field carries its payload declaration
+(:func:`~cdma_lidar.protocol.schema.wire`), from which
+:mod:`~cdma_lidar.protocol.messages` builds the INFO, STATUS and HEARTBEAT payloads.
+``to_fields`` gives the dict :func:`cdma_lidar.protocol.messages.encode_payload` takes,
+``from_fields`` / ``Status(**fields)`` read a decoded payload.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.protocol.messages import State
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION
+from cdma_lidar.protocol.schema import array, i, nbytes, text, u, wire
 
-__all__ = ["TEMPERATURE_UNKNOWN", "TILT_AUTO", "Info", "Status"]
+__all__ = ["TEMPERATURE_UNKNOWN", "TILT_AUTO", "Info", "State", "Status"]
 
 #: Sentinel of Info.tilt_udeg: no nominal tilt, the host derives it (reference wavelength
 #: horizontal at zero rotation).
@@ -29,47 +33,71 @@ TILT_AUTO = -(2**31)
 TEMPERATURE_UNKNOWN = -(2**31)
 
 
-@dataclass(frozen=True)
+class State(enum.IntEnum):
+    """Device state in STATUS / HEARTBEAT."""
+
+    IDLE = 0
+    SCANNING = 1
+    CALIBRATING = 2
+
+
+@dataclass(frozen=True, kw_only=True)
 class Info:
     """INFO payload: identity, limits and nominal geometry (wire units, see the spec).
 
     The device endpoint fills ``protocol_version``, ``session_id``, ``schema_crc``,
-    ``max_frame``, ``ring_columns`` and ``heartbeat_ms``; the device application
-    fills the rest (see :meth:`nominal`).
+    ``max_frame``, ``ring_columns``, ``heartbeat_ms``, ``session_idle_ms``, ``auth`` and
+    ``device_mac``; the device application fills the rest (see :meth:`nominal`).
     """
 
-    firmware_version: str
-    serial: str
-    wavelengths_pm: tuple[int, ...]
-    protocol_version: int = 3
-    session_id: int = 1
-    schema_crc: int = 0
-    max_frame: int = 16384
-    ring_columns: int = 1024
-    heartbeat_ms: int = 200
-    max_degree: int = 20
-    max_channels: int = 64
-    adc_bits: int = 12
-    spc_min: int = 1
-    spc_max: int = 64
-    max_averages: int = 1 << 20
-    max_uid_bits: int = 8
-    max_peaks: int = 8
-    max_gate_len: int = 1 << 20
-    max_columns: int = 65535
-    chip_rate_hz: int = 1_000_000_000
-    grooves_per_mm_milli: int = 600_000
-    incidence_udeg: int = 60_000_000
-    tilt_udeg: int = TILT_AUTO
-    reference_wavelength_pm: int = 1_587_000
-    column_start_udeg: int = 0
-    column_step_udeg: int = 100_000
-    column_count: int = 1
-    session_idle_ms: int = 10_000
-    auth: int = 0
-    device_mac: bytes = bytes(32)
-    pixel_power_max_uw: int = 0
-    column_power_cap_uw: int = 0
+    protocol_version: int = wire(PROTOCOL_VERSION, u, 8,
+                                 f"protocol version spoken ({PROTOCOL_VERSION})")
+    session_id: int = wire(1, u, 32, "session id chosen for this HELLO, also in every frame "
+                           "header", lo=1, hi=2**32 - 1)
+    session_idle_ms: int = wire(10_000, u, 32, "a session idle this long may be taken by "
+                                "another host without take-over", "ms", 1)
+    auth: int = wire(0, u, 8, "0 no key; 1 HMAC-SHA256 challenge-response, every frame "
+                     "signed", lo=0, hi=1)
+    device_mac: bytes = wire(bytes(32), nbytes, 32, "HMAC-SHA256 proof that the device "
+                             "holds the key; zeros when auth is 0")
+    pixel_power_max_uw: int = wire(0, u, 32, "laser power of one pixel at power 65535; 0: "
+                                   "no power control", "µW")
+    column_power_cap_uw: int = wire(0, u, 32, "eye-safety cap on the sum over a column's "
+                                    "channels; 0: none", "µW")
+    schema_crc: int = wire(0, u, 32, "CRC-32 of the message schema (see Versioning)")
+    max_frame: int = wire(16384, u, 16, "largest frame the device accepts (header + payload "
+                          "+ signature + CRC); the host's requests stay within "
+                          "min(max_frame, max(host_max_frame, 256))", "bytes", 256, 65535)
+    ring_columns: int = wire(1024, u, 16, "recent columns kept for RESEND", "columns")
+    heartbeat_ms: int = wire(200, u, 16, "HEARTBEAT interval while scanning", "ms", 1, 65535)
+    max_degree: int = wire(20, u, 8, "largest LFSR degree m of the code family", "", 2, 32)
+    max_channels: int = wire(64, u, 16, "largest number of channels", "", 1, 65535)
+    adc_bits: int = wire(12, u, 8, "ADC resolution", "bits", 8, 16)
+    spc_min: int = wire(1, u, 16, "smallest samples per chip", "samples/chip", 1, 65535)
+    spc_max: int = wire(64, u, 16, "largest samples per chip", "samples/chip", 1, 65535)
+    max_averages: int = wire(1 << 20, u, 32, "largest number of averaged code repetitions",
+                             "", 1)
+    max_uid_bits: int = wire(8, u, 8, "largest UID length n", "bits", 1, 8)
+    max_peaks: int = wire(8, u, 8, "largest peaks per channel P", "", 1, 8)
+    max_gate_len: int = wire(1 << 20, u, 32, "largest lag gate", "samples", 1)
+    max_columns: int = wire(65535, u, 16, "largest columns in one scan", "", 1)
+    chip_rate_hz: int = wire(1_000_000_000, u, 32, "code chip rate", "Hz", 1)
+    grooves_per_mm_milli: int = wire(600_000, u, 32, "grating groove density",
+                                     "0.001 lines/mm", 1)
+    incidence_udeg: int = wire(60_000_000, i, 32, "incidence angle theta_i on the grating",
+                               "µdeg")
+    tilt_udeg: int = wire(TILT_AUTO, i, 32, "mounting tilt gamma; -2^31 = host derives it",
+                          "µdeg")
+    reference_wavelength_pm: int = wire(1_587_000, u, 32, "wavelength horizontal at zero "
+                                        "rotation", "pm")
+    column_start_udeg: int = wire(0, i, 32, "rotation angle of column 0", "µdeg")
+    column_step_udeg: int = wire(100_000, i, 32, "rotation step between columns", "µdeg")
+    column_count: int = wire(1, u, 16, "columns in a full frame", "", 1)
+    firmware_version: str = wire(MISSING, text, "firmware version string")
+    serial: str = wire(MISSING, text, "device serial number")
+    wavelengths_pm: tuple[int, ...] = wire(
+        MISSING, array, 16, "u", 32, "nominal wavelength of each channel (count K)", "pm", 1,
+        max_items=65535, allowed="K = 1..max_channels items", min_items=1)
 
     @classmethod
     def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
@@ -143,18 +171,23 @@ class Info:
 class Status:
     """STATUS / HEARTBEAT payload."""
 
-    state: int = 0
-    frame: int = 0
-    next_column: int = 0
-    last_end: int = 0
-    columns_sent: int = 0
-    uptime_ms: int = 0
-    rx_frames: int = 0
-    rx_errors: int = 0
-    tx_frames: int = 0
-    replays: int = 0
-    temperature_mc: int = TEMPERATURE_UNKNOWN
-    faults: int = 0
+    state: int = wire(0, u, 8, "0 idle, 1 scanning, 2 calibrating", lo=0, hi=2)
+    frame: int = wire(0, u, 32, "frame id of the current or last scan")
+    next_column: int = wire(0, u, 16, "next column (or shot) the current or last scan "
+                            "produces")
+    last_end: int = wire(0, u, 8, "how the last scan ended: 0 complete, 1 aborted, 2 device "
+                         "error", lo=0, hi=2)
+    columns_sent: int = wire(0, u, 32, "COLUMN_RESULT frames sent since boot (resends "
+                             "included)")
+    uptime_ms: int = wire(0, u, 32, "time since boot", "ms")
+    rx_frames: int = wire(0, u, 32, "valid frames received since boot")
+    rx_errors: int = wire(0, u, 32, "rejected chunks since boot (COBS, CRC, length, size, "
+                          "version)")
+    tx_frames: int = wire(0, u, 32, "frames sent since boot")
+    replays: int = wire(0, u, 32, "retransmitted requests answered from the replay cache")
+    temperature_mc: int = wire(TEMPERATURE_UNKNOWN, i, 32, "board temperature; -2^31 = no "
+                               "sensor", "m°C")
+    faults: int = wire(0, u, 32, "device-specific fault bits, 0 = healthy")
 
     @property
     def state_name(self) -> str:

@@ -24,9 +24,10 @@ from cdma_lidar.protocol import cobs, framing
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
-from cdma_lidar.protocol.link import DIAG_GARBAGE, DIAG_VERSION, HostLink
+from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
 from cdma_lidar.protocol.ports import FdPort
+from cdma_lidar.protocol.requests import DIAG_GARBAGE, DIAG_VERSION
 from cdma_lidar.protocol.views import Status
 from cdma_lidar.virtual.line import pipe_pair
 
@@ -66,19 +67,10 @@ def test_garbage_is_still_garbage_with_the_version_diagnosis_in_place() -> None:
 
 
 @pytest.mark.parametrize(("kw", "name"), [
-    ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0}, "poll_s"),
-])
-def test_host_refuses_a_poll_time_that_would_spin(kw: dict, name: str) -> None:
-    host, _ = pipe_pair()
-    with pytest.raises(ValueError, match=name):
-        HostLink(host, **kw)
-
-
-@pytest.mark.parametrize(("kw", "name"), [
     ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0, "threads": False}, "poll_s"),
     ({"heartbeat_s": 0}, "heartbeat_s"), ({"heartbeat_s": 100.0}, "heartbeat_s"),
     ({"ring_columns": -1}, "ring_columns"),
-    ({"ring_columns": 70000}, "ring_columns"), ({"replay_depth": 0}, "replay_depth"),
+    ({"ring_columns": 70000}, "ring_columns"),
     ({"max_frame": 100}, "max_frame"), ({"session_id": 2**32}, "session_id"),
 ])
 def test_device_endpoint_names_a_bad_argument(kw: dict, name: str) -> None:
@@ -265,7 +257,7 @@ def test_hello_during_a_scan_ends_it_for_the_application_before_it_answers() -> 
 
 def test_device_falling_silent_mid_scan_is_diagnosed_not_waited_on() -> None:
     """The device end goes dead after a few columns: the STATUS probe fails with a diagnosis."""
-    from cdma_lidar.protocol.link import DIAG_SILENT
+    from cdma_lidar.protocol.requests import DIAG_SILENT
     from cdma_lidar.virtual.line import Faults
 
     port = SteppedDevice(SyntheticApp(columns=40), heartbeat_s=0.02)
@@ -298,13 +290,12 @@ def test_a_capture_chunk_fills_the_frame_exactly() -> None:
         assert max(sizes) == 256
 
 
-def test_frame_size_shrinks_the_devices_frames_from_its_ack_on() -> None:
-    """FRAME_SIZE (no longer sent by the v3 host, still served): new columns come cut to it."""
+def test_a_small_host_frame_cuts_every_column_to_it() -> None:
+    """HELLO.host_max_frame bounds the device's frames: 1.6 kB columns come in pieces."""
     port = SteppedDevice(SyntheticApp(channels=40, columns=3))
     with port:
-        link = HostLink(port, timeout_s=0.2, clock=port.clock)
+        link = HostLink(port, timeout_s=0.2, max_frame=96, clock=port.clock)
         link.hello()
-        link._request(MsgType.FRAME_SIZE, {"host_max_frame": 96})
         sent: list[bytes] = []
         write = port.endpoint.port.write
         port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]

@@ -26,14 +26,7 @@ from cdma_lidar.protocol import framing
 from cdma_lidar.protocol.config_keys import CONFIG_OPTIONAL, encode_config
 from cdma_lidar.protocol.endpoint import FAULT_HEALTH, HANDLERS, DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
-from cdma_lidar.protocol.link import (
-    DIAG_GARBAGE,
-    DIAG_NO_ANSWER,
-    DIAG_NOISY,
-    DIAG_SILENT,
-    DIAG_WRONG_SESSION,
-    HostLink,
-)
+from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import (
     REPLY_TO,
     CaptureKind,
@@ -45,6 +38,13 @@ from cdma_lidar.protocol.messages import (
     kind_of,
 )
 from cdma_lidar.protocol.ports import open_port
+from cdma_lidar.protocol.requests import (
+    DIAG_GARBAGE,
+    DIAG_NO_ANSWER,
+    DIAG_NOISY,
+    DIAG_SILENT,
+    DIAG_WRONG_SESSION,
+)
 from cdma_lidar.protocol.views import Status
 from cdma_lidar.virtual.line import PipePort, pipe_pair
 
@@ -355,7 +355,8 @@ def test_open_port_errors_say_what_to_do() -> None:
     with pytest.raises(LinkError, match="unknown URL scheme 'bogus'"):
         open_port("bogus://x")
     port = open_port("loop://", timeout=0.01)
-    link = HostLink(port, timeout_s=0.02, retries=0)
+    # The timeout runs on an injected clock that moves 0.1 s per look, not on real time.
+    link = HostLink(port, timeout_s=0.5, retries=0, clock=itertools.count(0.0, 0.1).__next__)
     with pytest.raises(LinkTimeout) as exc:  # a loopback only echoes our own requests
         link.hello()
     assert exc.value.diagnosis == DIAG_NO_ANSWER and link.stats.ignored >= 1

@@ -21,13 +21,8 @@ from protocol_fixtures import (
 )
 
 from cdma_lidar.errors import LinkTimeout
-from cdma_lidar.protocol.link import (
-    DIAG_GARBAGE,
-    DIAG_NO_ANSWER,
-    DIAG_NOISY,
-    DIAG_SILENT,
-    HostLink,
-)
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.requests import DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_NOISY, DIAG_SILENT
 from cdma_lidar.virtual.line import Faults, pipe_pair
 
 #: Reply timeout against the real device thread on a lossy line (s): each lost frame costs

@@ -71,7 +71,10 @@ def message_fields(draw, msg: MsgType) -> dict:
                 "column_start": draw(st.integers(0, 65535)), "channels": r, "columns": c,
                 "power": draw(st.lists(st.integers(0, 65535), min_size=r * c,
                                        max_size=r * c))}
-    return {sc.name: draw(_field_strategy(msg, sc)) for sc in spec.fields}
+    fields = {sc.name: draw(_field_strategy(msg, sc)) for sc in spec.fields}
+    if msg == MsgType.FRAGMENT:  # a piece of the message: index below count
+        fields["index"] = draw(st.integers(0, fields["count"] - 1))
+    return fields
 
 
 CONTROL = [t for t in MESSAGES if t != MsgType.COLUMN_RESULT]
@@ -327,3 +330,12 @@ def test_config_encoder_message_says_the_wire_range(values: dict, text: str) -> 
     with pytest.raises(FieldError) as exc:
         encode_config(values)
     assert text in str(exc.value) and exc.value.field == next(iter(values))
+
+
+@pytest.mark.parametrize(("index", "data"), [(2, b"x"), (3, b"x"), (0, b"")])
+def test_a_fragment_outside_its_count_or_empty_does_not_decode(index: int, data: bytes) -> None:
+    payload = encode_payload(MsgType.FRAGMENT, {"msg_type": 0x82, "seq": 1, "frame": 0,
+                                                "column": 0, "index": index, "count": 2,
+                                                "data": data})
+    with pytest.raises(FrameError, match="FRAGMENT"):
+        decode_payload(MsgType.FRAGMENT, payload)

@@ -17,10 +17,10 @@ from cdma_lidar.errors import ConfigError, DeviceError
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
-from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder, max_wire_len
+from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, FrameDecoder
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.transmit import CONTROL, FRESH
+from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR
 from cdma_lidar.virtual.line import BytePipe, Faults, pipe_pair
 
 
@@ -88,9 +88,9 @@ def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
     ep, port = _device(key=bytes(range(32)))
     ep.tx.signer = auth.FrameSigner(bytes(32))
     verifier = auth.FrameVerifier(bytes(32))
-    ep.tx.column((1, 0), _column(1, 0))  # new column: several fragments
-    ep.tx.column((1, 9), _column(1, 9), COMPAT_RETRANSMIT)  # a repair
-    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
+    ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 0), key=(1, 0))  # several fragments
+    ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 9), key=(1, 9))  # a repair
+    ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
     ep.tx.flush(FRESH)
     frames = list(port.frames())
     kinds = [("notice" if f.msg_type == MsgType.LINE_ERROR else
@@ -103,8 +103,8 @@ def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
 def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
     ep, port = _device()
     for c in range(10):
-        ep.tx.column((1, c), _column(1, c), COMPAT_RETRANSMIT)
-    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)
+        ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, c), key=(1, c))
+    ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)
     ep.tx.flush(CONTROL + 1, budget=1000)
     sent = list(port.frames())
     assert sent[0].msg_type == MsgType.LINE_ERROR
@@ -116,42 +116,47 @@ def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
 def test_a_repair_already_queued_is_not_queued_twice() -> None:
     ep, port = _device()
     ep.ring[(1, 2)] = _column(1, 2)
-    ep.tx.column((1, 2), _column(1, 2))  # first cut: 8 fragments
+    ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2))  # first cut: 8 fragments
     ep.tx.flush(FRESH)
     port.out.clear()
     for _ in range(3):  # the host asked three times before the first answer reached it
-        ep.tx.column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3, 5])
+        ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2), only=[3, 5])
     ep.tx.flush(FRESH)
     got = [decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()]
     assert got == [3, 5]
-    ep.tx.column((1, 2), _column(1, 2), COMPAT_RETRANSMIT, [3])  # sent: may go again
+    ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2), only=[3])  # sent: again
     ep.tx.flush(FRESH)
     assert len(list(port.frames())) == 3
 
 
-def test_pieces_asked_by_index_keep_the_cut_of_the_column() -> None:
+def test_a_piece_asked_by_index_is_the_piece_first_sent() -> None:
+    """A session's frame size is fixed, so a piece asked for again is cut as before; an
+    index that is no piece of the column gets the whole column again."""
     ep, port = _device(max_frame=256)
     payload = _column(1, 0)
-    ep.tx.column((1, 0), payload)
+    ep.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=(1, 0))
     ep.tx.flush(FRESH)
     first = {b["index"]: b for b in (decode_payload(f.msg_type, f.payload)
                                      for f in port.frames())}
     port.out.clear()
-    ep.tx.max_frame = 96  # the host asked for shorter frames meanwhile
-    ep.tx.column((1, 0), payload, COMPAT_RETRANSMIT, [2])
-    ep.tx.column((1, 1), _column(1, 1))  # a new column is cut at the new size
+    ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=(1, 0), only=[2])
     ep.tx.flush(FRESH)
-    frames = list(port.frames())
-    again = decode_payload(frames[0].msg_type, frames[0].payload)
+    (again,) = [decode_payload(f.msg_type, f.payload) for f in port.frames()]
     assert (again["index"], again["count"], again["data"]) == \
         (2, first[2]["count"], first[2]["data"])
-    assert len(frames) - 1 > len(first) and all(n <= max_wire_len(96) for n in port.lengths()[1:])
+    port.out.clear()
+    ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=(1, 0), only=[len(first)])
+    ep.tx.flush(FRESH)
+    assert sorted(decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()) == \
+        sorted(first)
 
 
 def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
     ep, port = _device()
-    ep.tx.put(CONTROL, MsgType.LINE_ERROR, bytes(300), max_frame=64)
-    ep.tx.notice(MsgType.LINE_ERROR, _NOTICE)
+    ep.tx.max_frame, size = 64, ep.tx.max_frame
+    ep.tx.put(CONTROL, MsgType.LINE_ERROR, bytes(300))
+    ep.tx.max_frame = size
+    ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)
     ep.tx.flush(FRESH)
     assert [f.msg_type for f in port.frames()] == [MsgType.LINE_ERROR]
     assert "cannot send" in caplog.text
@@ -161,7 +166,7 @@ def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
     ep, _port = _device()
     ep.stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
     assert ep.status().next_column == 5
-    ep.tx.column((1, 4), _column(1, 4))  # column 4 waits in the queue
+    ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 4), key=(1, 4))  # waits in the queue
     assert ep.status().next_column == 4
     ep.stream = None
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import socket
 import threading
@@ -13,8 +14,9 @@ import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import LinkTimeout
-from cdma_lidar.protocol.link import DIAG_SILENT, HostLink
+from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.ports import FdPort, open_port
+from cdma_lidar.protocol.requests import DIAG_SILENT
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pty")
 
@@ -51,7 +53,8 @@ def test_handshake_configure_scan_over_pty(pty_pair) -> None:
 def test_pty_without_device_is_diagnosed_silent(pty_pair) -> None:
     _, path = pty_pair
     port = open_port(path, timeout=0.01)
-    with HostLink(port, timeout_s=0.03, retries=1) as link, \
+    clock = itertools.count(0.0, 0.1).__next__  # timeouts on an injected clock: 0.1 s a look
+    with HostLink(port, timeout_s=0.5, retries=1, clock=clock) as link, \
             pytest.raises(LinkTimeout) as exc:
         link.hello()
     assert exc.value.diagnosis == DIAG_SILENT

@@ -11,7 +11,15 @@ from cdma_lidar.protocol import spec
 from cdma_lidar.protocol.columns import column_payload_size
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import FrameDecoder, crc32, encode_frame
-from cdma_lidar.protocol.link import (
+from cdma_lidar.protocol.link import HostLink
+from cdma_lidar.protocol.messages import (
+    MESSAGES,
+    SCHEMA_CRC,
+    ErrorCode,
+    MsgType,
+    decode_payload,
+)
+from cdma_lidar.protocol.requests import (
     DIAG_GARBAGE,
     DIAG_HINTS,
     DIAG_NO_ANSWER,
@@ -19,14 +27,6 @@ from cdma_lidar.protocol.link import (
     DIAG_SILENT,
     DIAG_VERSION,
     DIAG_WRONG_SESSION,
-    HostLink,
-)
-from cdma_lidar.protocol.messages import (
-    MESSAGES,
-    SCHEMA_CRC,
-    ErrorCode,
-    MsgType,
-    decode_payload,
 )
 
 
