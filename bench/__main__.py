@@ -61,6 +61,7 @@ def main(argv: list[str]) -> int:
               file=sys.stderr)
         return 2
     name = args.areas[0]
+    started, commit = time.time(), docblock.git_commit()  # the code that will run
     try:
         docblock.read_doc(path, name)
         output = docblock.capture(lambda: run([name]), sys.stdout)
@@ -72,7 +73,7 @@ def main(argv: list[str]) -> int:
         diff = docblock.check(text, name, output, path)
         print("\n".join(diff) if diff else f"{path}: bench {name} block matches this run")
         return 1 if diff else 0
-    head = docblock.header(name, path, time.time(), docblock.git_commit(), os.cpu_count() or 1,
+    head = docblock.header(name, path, started, commit, os.cpu_count() or 1,
                            tuple(rest))
     atomic_write_text(path, docblock.replace_block(text, name, docblock.make_block(head, output),
                                                     path))
