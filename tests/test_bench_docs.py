@@ -85,6 +85,19 @@ def test_block_rows_are_rows_the_bench_prints(doc, name, body):
     assert not missing, f"{doc}: rows the bench no longer prints; rerun its --write-doc"
 
 
+@pytest.mark.parametrize(("doc", "name", "body"), _doc_blocks(),
+                         ids=lambda v: v if isinstance(v, str) and len(v) < 40 else "")
+def test_block_words_are_words_of_the_bench(doc, name, body):
+    """Every word (4 letters or more) of the block's output is in the bench's source."""
+    output = docblock.fenced_output(body)
+    if not output:
+        pytest.skip(f"{doc}: bench {name} block not generated yet")
+    source = Path(importlib.util.find_spec(f"bench.bench_{name}").origin).read_text()
+    words = set(re.findall(r"[A-Za-z]{4,}", output))
+    missing = sorted(w for w in words if w not in source)
+    assert not missing, f"{doc}: words the bench no longer prints; rerun its --write-doc"
+
+
 def test_labels_of_printed_rows():
     out = "paper-scene1: heading 12\n  render, cold   12.5   3.1\n  a  b   7\n  x\n"
     assert _labels(out) == ["render, cold", "a", "b"]
