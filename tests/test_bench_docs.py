@@ -34,12 +34,16 @@ def _placeholder(name: str, doc: str) -> str:
 
 
 def _labels(output: str) -> list[str]:
-    """Row labels of a bench's printed table rows: the text before the first number column."""
+    """Row labels of a bench's printed table rows: the text before the first number column.
+
+    Split where the label holds a number (``1 workers:`` gives ``workers:``).
+    """
     labels = []
     for line in output.splitlines():
         m = re.match(r"\s+(\S.*?)\s{2,}[-+]?\d", line)
         if m:
-            labels += [part for part in re.split(r"\s{2,}", m.group(1)) if part]
+            parts = re.split(r"\s{2,}|\d+(?:\.\d+)?", m.group(1))  # numbers are data
+            labels += [p.strip() for p in parts if re.search("[A-Za-z]", p)]
     return labels
 
 
@@ -99,8 +103,9 @@ def test_block_words_are_words_of_the_bench(doc, name, body):
 
 
 def test_labels_of_printed_rows():
-    out = "paper-scene1: heading 12\n  render, cold   12.5   3.1\n  a  b   7\n  x\n"
-    assert _labels(out) == ["render, cold", "a", "b"]
+    out = ("paper-scene1: heading 12\n  render, cold   12.5   3.1\n  a  b   7\n  x\n"
+           "   16 workers:   8.1 s\n  degree 13 (N = 8191)   1.00\n")
+    assert _labels(out) == ["render, cold", "a", "b", "workers:", "degree", "(N ="]
 
 
 TEXT = "intro\n<!-- bench x:begin -->\nold 1.0\n<!-- bench x:end -->\nafter\n"
