@@ -36,13 +36,16 @@ def _placeholder(name: str, doc: str) -> str:
 def _labels(output: str) -> list[str]:
     """Row labels of a bench's printed table rows: the text before the first number column.
 
-    Split where the label holds a number (``1 workers:`` gives ``workers:``).
+    Rows may be indented or not. Split where the label holds a number (``1 workers:``
+    gives ``workers``; numbers are data) and at parentheses and colons (where a bench's
+    f-string puts a field: ``loop (scaled from 2048 members):`` gives ``loop``,
+    ``scaled from`` and ``members``).
     """
     labels = []
     for line in output.splitlines():
-        m = re.match(r"\s+(\S.*?)\s{2,}[-+]?\d", line)
+        m = re.match(r"\s*(\S.*?)\s{2,}[-+]?\d", line)
         if m:
-            parts = re.split(r"\s{2,}|\d+(?:\.\d+)?", m.group(1))  # numbers are data
+            parts = re.split(r"\s{2,}|\d+(?:\.\d+)?|[():]", m.group(1))
             labels += [p.strip() for p in parts if re.search("[A-Za-z]", p)]
     return labels
 
@@ -105,7 +108,11 @@ def test_block_words_are_words_of_the_bench(doc, name, body):
 def test_labels_of_printed_rows():
     out = ("paper-scene1: heading 12\n  render, cold   12.5   3.1\n  a  b   7\n  x\n"
            "   16 workers:   8.1 s\n  degree 13 (N = 8191)   1.00\n")
-    assert _labels(out) == ["render, cold", "a", "b", "workers:", "degree", "(N ="]
+    assert _labels(out) == ["render, cold", "a", "b", "workers", "degree", "N ="]
+    rows = ("paper-scene1      unpaced  0.0001    0.28\n"
+            "  baseline per-member gold_code loop (scaled from 2048 members):    27.2 ms\n")
+    assert _labels(rows) == ["paper-scene", "unpaced", "baseline per-member gold_code loop",
+                             "scaled from", "members"]
 
 
 TEXT = "intro\n<!-- bench x:begin -->\nold 1.0\n<!-- bench x:end -->\nafter\n"
