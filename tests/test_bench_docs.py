@@ -77,15 +77,19 @@ def test_block_is_generated_by_an_existing_bench(doc, name, body):
     assert body == docblock.make_block(head, docblock.fenced_output(body))
 
 
+def _output_and_source(doc: str, name: str, body: str) -> tuple[str, str]:
+    """The block's bench output and the bench's source text (skips an ungenerated block)."""
+    output = docblock.fenced_output(body)
+    if not output:
+        pytest.skip(f"{doc}: bench {name} block not generated yet")
+    return output, Path(importlib.util.find_spec(f"bench.bench_{name}").origin).read_text()
+
+
 @pytest.mark.parametrize(("doc", "name", "body"), _doc_blocks(),
                          ids=lambda v: v if isinstance(v, str) and len(v) < 40 else "")
 def test_block_rows_are_rows_the_bench_prints(doc, name, body):
     """Each table row's label is in the bench's source: a renamed row needs a rerun."""
-    output = docblock.fenced_output(body)
-    if not output:
-        pytest.skip(f"{doc}: bench {name} block not generated yet")
-    spec = importlib.util.find_spec(f"bench.bench_{name}")
-    source = Path(spec.origin).read_text()
+    output, source = _output_and_source(doc, name, body)
     labels = _labels(output)
     assert labels
     missing = [label for label in labels if label not in source]
@@ -96,10 +100,7 @@ def test_block_rows_are_rows_the_bench_prints(doc, name, body):
                          ids=lambda v: v if isinstance(v, str) and len(v) < 40 else "")
 def test_block_words_are_words_of_the_bench(doc, name, body):
     """Every word (4 letters or more) of the block's output is in the bench's source."""
-    output = docblock.fenced_output(body)
-    if not output:
-        pytest.skip(f"{doc}: bench {name} block not generated yet")
-    source = Path(importlib.util.find_spec(f"bench.bench_{name}").origin).read_text()
+    output, source = _output_and_source(doc, name, body)
     words = set(re.findall(r"[A-Za-z]{4,}", output))
     missing = sorted(w for w in words if w not in source)
     assert not missing, f"{doc}: words the bench no longer prints; rerun its --write-doc"
