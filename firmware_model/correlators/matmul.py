@@ -227,9 +227,11 @@ class MatmulCorrelator(Correlator):
         for lf, (_, phases) in zip(ops, self._groups, strict=True):
             for i in range(len(phases)):
                 np.abs(lf[i * cb : (i + 1) * cb], out=mag)
-                # float64 sums of float32 integers < 2^24: exact; a |Y| >= 2^24 cannot
-                # have rounded below 2^24, so the test never passes wrongly
-                if np.add.reduce(mag, axis=-1, dtype=np.float64).max() >= limit:
+                # a float32 sum (any order) of these integers decides "< limit" exactly:
+                # partial sums below limit <= 2^24 are exact, and rounding is monotone,
+                # so a partial sum reaching limit (or a |Y| >= 2^24, which cannot have
+                # rounded below 2^24) leaves the computed total >= limit
+                if np.add.reduce(mag, axis=-1).max() >= limit:
                     return None
         return ops
 
