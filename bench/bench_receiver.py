@@ -9,8 +9,11 @@
    rail: chip sums far beyond float32's exact range, so float64 products) and the
    float32 floor; best of 9 each, every ratio within the run. A frame timed after a
    threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one).
-   Also the real-time factor against the acquisition time (160 x 10 x 2047 chips / 62.5
-   Mchip/s = 52.4 ms), the plan build, and ``scipy.signal.correlate`` per channel and
+   Where the time goes: CPU ms per pass (range check, R-sum, chip sums, operand
+   copies, float32 test, product and scatter, peaks), summed over the column
+   threads, at 1 thread and at the machine's count. Also the real-time factor
+   against the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms),
+   the plan build, and ``scipy.signal.correlate`` per channel and
    column (circular, on the R-summed period) on 8 columns scaled to the frame, its gated
    values checked equal. Then every registered kernel on the same frame, each checked
    equal to "auto".
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import os
 import statistics
 import time
@@ -212,6 +216,7 @@ def paper_frame() -> None:
     print(f"  speed-up vs scipy: {base_frame / best:.0f}x; gated values equal: {same}")
     print(f"  acquisition time {acq * 1e3:.1f} ms -> real-time factor {acq / best:.2f} "
           f"(median {acq / med:.2f})")
+    stages(cfg, codes, x, columns, threads)
     want = rx.frame(x)
     for method in correlator_methods()[1:]:
         rxm = FastReceiver(cfg, codes, method=method)
@@ -220,6 +225,64 @@ def paper_frame() -> None:
         print(f"  kernel {method:<8}: {min(tm) * 1e3:8.1f} ms/frame (best of 3, "
               f"{min(tm) / floor:.2f}x the floor), equal to auto: {equal}")
     gpu_vs_cpu(cfg, codes, x, rx)
+
+
+#: The passes of ``FastReceiver.frame`` timed by :func:`stages` (receiver, then kernel
+#: methods; the kernel's product and scatter are ``_run``, its operand copies ``_fill``).
+STAGES = ("_check_range", "_accumulate_into", "_chip_domain", "_post")
+KERNEL_STAGES = ("_fill", "_fits32", "_run")
+
+
+def stages(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray, columns: int,
+           threads: int) -> None:
+    """Where the frame's time goes: CPU seconds per pass (summed over the column threads,
+    best of ``REPEATS`` frames each), at 1 thread and at ``threads``, with the frame's
+    process CPU and wall time. The passes are timed by wrapping one receiver's methods
+    (its own receiver: the frames timed above ran unwrapped)."""
+    for t in sorted({1, threads}):
+        with cpu_only():
+            rx = FastReceiver(cfg, codes, columns=columns, threads=t)
+        best = _stage_times(rx, rx.kernel_for(columns), x)
+        parts = ", ".join(f"{name.strip('_')} {v * 1e3:.1f}" for name, v in best.items())
+        print(f"  stages, {t} thread(s), ms best of {REPEATS}: {parts}")
+
+
+def _stage_times(rx: FastReceiver, kern: object, x: np.ndarray) -> dict[str, float]:
+    import threading
+
+    spent: dict[str, float] = {}
+    lock = threading.Lock()
+
+    def timed(name: str, fn):
+        def call(*args, **kwargs):
+            t0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                with lock:
+                    spent[name] = spent.get(name, 0.0) + time.thread_time() - t0
+        return call
+
+    wrapped = [(obj, name) for obj, names in ((rx, STAGES), (kern, KERNEL_STAGES))
+               for name in names if hasattr(obj, name)]
+    for obj, name in wrapped:
+        setattr(obj, name, timed(name, getattr(obj, name)))
+    try:
+        rx.frame(x)
+        best: dict[str, float] = {}
+        for _ in range(REPEATS):
+            spent.clear()
+            time.sleep(SETTLE_S)
+            c0, w0 = time.process_time(), time.perf_counter()
+            rx.frame(x)
+            spent["frame CPU"] = time.process_time() - c0
+            spent["frame wall"] = time.perf_counter() - w0
+            for name, v in spent.items():
+                best[name] = min(best.get(name, math.inf), v)
+    finally:
+        for obj, name in wrapped:
+            del obj.__dict__[name]  # the class's method again
+    return best
 
 
 def gpu_vs_cpu(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray,
