@@ -9,8 +9,8 @@
    rail: chip sums far beyond float32's exact range, so float64 products) and the
    float32 floor; best of 9 each, every ratio within the run. A frame timed after a
    threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one).
-   Where the time goes: CPU ms per pass (range check, R-sum, chip sums, operand
-   copies, float32 test, product and scatter, peaks), summed over the column
+   Where the time goes: CPU ms per pass (range check, R-sum, chip sums, float32
+   operands and their test, product and scatter, peaks), summed over the column
    threads, at 1 thread and at the machine's count. Also the real-time factor
    against the acquisition time (160 x 10 x 2047 chips / 62.5 Mchip/s = 52.4 ms),
    the plan build, and ``scipy.signal.correlate`` per channel and
@@ -228,9 +228,11 @@ def paper_frame() -> None:
 
 
 #: The passes of ``FastReceiver.frame`` timed by :func:`stages` (receiver, then kernel
-#: methods; the kernel's product and scatter are ``_run``, its operand copies ``_fill``).
+#: methods; the kernel's product and scatter are ``_run``; ``_float32_operands`` is the
+#: float32 operand copies and their exactness test, ``_fill`` every operand copy (the
+#: float32 ones are counted inside ``_float32_operands`` too).
 STAGES = ("_check_range", "_accumulate_into", "_chip_domain", "_post")
-KERNEL_STAGES = ("_fill", "_fits32", "_run")
+KERNEL_STAGES = ("_float32_operands", "_fill", "_run")
 
 
 def stages(cfg: ReceiverConfig, codes: np.ndarray, x: np.ndarray, columns: int,
