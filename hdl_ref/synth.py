@@ -165,6 +165,7 @@ def _key(design: Design, flow: str, version: str) -> str:
     for src in design.sources:
         h.update((RTL_DIR / src).read_bytes())
     h.update(json.dumps([design.top, dict(design.params), flow, version, PNR_ARGS,
+                         # the default grade (6) leaves the key as it was before grades
                          pnr_freq(design), *([design.speed] if design.speed != 6 else []),
                          FLOWS.get(flow, "")]).encode())
     return h.hexdigest()[:20]

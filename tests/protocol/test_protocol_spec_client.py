@@ -127,14 +127,18 @@ class Client:
         body = head + payload
         self.port.write(b"\x00" + cobs_encode(body + struct.pack("<I", crc32(body))) + b"\x00")
 
-    def frames(self):
-        """Decoded frames (type, seq, session, payload); checks the CRC."""
+    def chunks(self):
+        """The COBS-encoded frames between 0x00 delimiters, as they arrive (section 3)."""
         while True:
             while b"\x00" not in self.buf:
                 self.buf += self.port.read(max(1, self.port.in_waiting)) or b""
             chunk, self.buf = self.buf.split(b"\x00", 1)
-            if not chunk:
-                continue
+            if chunk:
+                yield chunk
+
+    def frames(self):
+        """Decoded frames (type, seq, session, payload); checks the CRC."""
+        for chunk in self.chunks():
             body = cobs_decode(chunk)
             assert struct.unpack("<I", body[-4:])[0] == crc32(body[:-4])
             version, _inc, _comp, mtype, seq, plen, session = struct.unpack_from(HEADER_FMT, body)
@@ -235,12 +239,7 @@ class SignedClient(Client):
         self.port.write(b"\x00" + cobs_encode(_rs_encode(body)) + b"\x00")
 
     def frames(self):
-        while True:
-            while b"\x00" not in self.buf:
-                self.buf += self.port.read(max(1, self.port.in_waiting)) or b""
-            chunk, self.buf = self.buf.split(b"\x00", 1)
-            if not chunk:
-                continue
+        for chunk in self.chunks():
             raw = cobs_decode(chunk)
             body = raw if struct.unpack("<I", raw[-4:])[0] == crc32(raw[:-4]) else _rs_data(raw)
             assert struct.unpack("<I", body[-4:])[0] == crc32(body[:-4])

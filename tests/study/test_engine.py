@@ -265,15 +265,20 @@ def _coin_reference() -> list[dict]:
     return rows
 
 
+def _shuffled_run(study, out, slots: int, rnd, chunk):
+    """``run_study`` on ``slots`` workers whose tasks finish in ``rnd``'s shuffled order."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(engine, "make_executor", lambda *a, **k: _Shuffled(slots, rnd))
+        return run_study(study, out, workers=slots, progress=False, chunk_trials=chunk)
+
+
 @settings(max_examples=25)
 @given(chunk=st.one_of(st.none(), st.integers(1, 45)), slots=st.integers(1, 4),
        rnd=st.randoms(use_true_random=False))
 def test_chunked_tables_do_not_depend_on_chunk_size_worker_count_or_order(
         tmp_path_factory, chunk, slots, rnd):
     out = tmp_path_factory.mktemp("coin")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(engine, "make_executor", lambda *a, **k: _Shuffled(slots, rnd))
-        res = run_study(COIN, out, workers=slots, progress=False, chunk_trials=chunk)
+    res = _shuffled_run(COIN, out, slots, rnd, chunk)
     assert res.table.rows == _coin_reference()
     assert res.computed == len(list((out / "tasks").glob("*.json")))
     if chunk is not None:  # every point's trials in ceil(n / whole blocks) chunks
@@ -317,9 +322,7 @@ def test_looks_double_from_the_first_on_whole_blocks():
 def test_a_stopped_point_does_not_depend_on_chunk_size_worker_count_or_order(
         tmp_path_factory, chunk, slots, rnd):
     out = tmp_path_factory.mktemp("stop")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(engine, "make_executor", lambda *a, **k: _Shuffled(slots, rnd))
-        res = run_study(STOPPING, out, workers=slots, progress=False, chunk_trials=chunk)
+    res = _shuffled_run(STOPPING, out, slots, rnd, chunk)
     reference = _stopping_reference()
     assert res.table.rows == reference
     runs = [r["trials_run"] for r in reference]
