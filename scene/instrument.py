@@ -78,6 +78,7 @@ __all__ = [
     "EXACT_SUM_MIN_NOISE_LSB",
     "FRAC_BITS",
     "ROUNDING_LSB",
+    "SUM_TYPE",
     "TABLE_PHASES",
     "Instrument",
     "RenderSettings",
@@ -117,6 +118,12 @@ _STREAM_SCAN = 0
 _STREAM_CALIBRATE = 1
 _STREAM_SPECKLE = 2
 
+#: Integer type of the drawn repetition sums: they lie in R times the ADC's range (the plans
+#: keep the noise's reach inside it), |sum| <= 1024 * 2**15 = 2**25 at the largest R and ADC
+#: width the virtual board accepts, far inside int32; half the bytes of int64 to write
+#: (fresh pages in every cold frame) and for the receive chain to read.
+SUM_TYPE = np.int32
+
 #: ``accumulated`` fidelity tabulates each code's waveform at this many delays per sample
 #: (:meth:`Instrument.tabulated_echo`).
 TABLE_PHASES = 8
@@ -141,7 +148,7 @@ def split_sum(acc: NDArray[np.integer], repetitions: int) -> NDArray[np.int16]:
 
 
 def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
-                        sigma_lsb: float, repetitions: int) -> NDArray[np.int64]:
+                        sigma_lsb: float, repetitions: int) -> NDArray[np.int32]:
     """The sum of R quantised noisy repetitions, drawn with L Gaussians instead of R L.
 
     Wanted: ``A = sum_r floor(y_r + e_r)`` per sample, e_r independent Gaussian of rms
@@ -171,7 +178,7 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
 
 def draw_repetition_sums(rngs: Sequence[np.random.Generator],
                          means_lsb: Sequence[NDArray[np.float64]],
-                         sigmas_lsb: Sequence[float], repetitions: int) -> NDArray[np.int64]:
+                         sigmas_lsb: Sequence[float], repetitions: int) -> NDArray[np.int32]:
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
     ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
 
@@ -181,7 +188,7 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     """
     r = repetitions
     size = means_lsb[0].size
-    out = np.empty((len(rngs), size), dtype=np.int64)
+    out = np.empty((len(rngs), size), dtype=SUM_TYPE)
     scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
                      + (r - 1) * _BYTE_VARIANCE)
     step = max(1, _BLOCK_VALUES // size)
@@ -213,7 +220,7 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
 
 
 def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArray[np.float32]],
-                     stds: Sequence[np.float32]) -> NDArray[np.int64]:
+                     stds: Sequence[np.float32]) -> NDArray[np.int32]:
     """(B, L) ``floor(mean + std z)`` of ``accumulated`` fidelity, z from _normal_table
     picked by 16-bit words of each column's generator (a fourth of a word per value).
 
@@ -223,7 +230,7 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
     """
     size = means[0].size
     quarter = -(-size // 4)
-    out = np.empty((len(rngs), size), dtype=np.int64)
+    out = np.empty((len(rngs), size), dtype=SUM_TYPE)
     scales = np.asarray(stds, dtype=np.float32)
     table = _normal_table()
     step = max(1, _BLOCK_VALUES // size)
@@ -990,8 +997,8 @@ class Instrument:
     def render_accumulated(self, column: int, cfg: RenderSettings | None = None,
                            frame: int = 0, power_w: NDArray[np.float64] | None = None, *,
                            calibration: bool = False, shot: int = 0
-                           ) -> NDArray[np.int64] | None:
-        """The sum of the R quantised repetitions, drawn directly: (n, N S) int64, or None.
+                           ) -> NDArray[np.int32] | None:
+        """The sum of the R quantised repetitions, drawn directly: (n, N S) int32, or None.
 
         ``sum_r Q(x + e_r)`` for noise e_r of rms sigma is, when sigma >= 1 LSB, the value
         ``R x + e`` with ``e`` Gaussian of variance ``R (sigma^2 + 1/12)`` up to the
@@ -1007,10 +1014,10 @@ class Instrument:
 
     def render_sum(self, column: int, cfg: RenderSettings | None = None, frame: int = 0,
                    power_w: NDArray[np.float64] | None = None, *, calibration: bool = False,
-                   shot: int = 0) -> NDArray[np.int64] | None:
+                   shot: int = 0) -> NDArray[np.int32] | None:
         """The sum of the column's R quantised repetitions at the scene's fidelity, (n, N S)
-        int64, drawn directly; None where the level must render the repetitions (then
-        :meth:`render_exact` and a sum give it).
+        int32 (:data:`SUM_TYPE`), drawn directly; None where the level must render the
+        repetitions (then :meth:`render_exact` and a sum give it).
 
         What the receive chain reads of a scan column is this sum (it accumulates the R
         repetitions before anything else). ``exact``: :func:`draw_repetition_sum`, the
@@ -1025,7 +1032,7 @@ class Instrument:
 
     def _render_one(self, level: str, column: int, cfg: RenderSettings | None, frame: int,
                     power_w: NDArray[np.float64] | None, calibration: bool,
-                    shot: int) -> NDArray[np.int64] | None:
+                    shot: int) -> NDArray[np.int32] | None:
         sums, drawn = self.render_sums([shot if calibration else column], cfg, frame,
                                        None if power_w is None else [power_w],
                                        calibration=calibration, level=level)
@@ -1034,9 +1041,9 @@ class Instrument:
     def render_sums(self, columns: Sequence[int], cfg: RenderSettings | None = None,
                     frame: int = 0, power_w: Sequence[NDArray[np.float64]] | None = None, *,
                     calibration: bool = False, level: str | None = None
-                    ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+                    ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
         """:meth:`render_sum` of a batch of columns (``calibration``: of calibration shots
-        ``columns``): ((B, n, N S) int64 sums, (B,) bool: drawn).
+        ``columns``): ((B, n, N S) int32 sums, (B,) bool: drawn).
 
         A row not drawn is zero: the level cannot draw that column's sum (the caller
         renders it with :meth:`render_exact`). Each column keeps its own noise generator,
@@ -1076,7 +1083,7 @@ class Instrument:
         rows = np.flatnonzero(drawn).tolist()
         shape = (len(plans), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
         if not rows:
-            return np.zeros(shape, dtype=np.int64), drawn
+            return np.zeros(shape, dtype=SUM_TYPE), drawn
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
         rngs = generators([(self.seed, stream, frame, columns[j]) for j in rows])
         means = [plans[j][0] for j in rows]
@@ -1087,7 +1094,7 @@ class Instrument:
             got = draw_repetition_sums(rngs, means, sigmas, cfg.averages)
         if len(rows) == len(plans):
             return got.reshape(shape), drawn
-        sums = np.zeros((len(plans), cfg.frame_samples), dtype=np.int64)
+        sums = np.zeros((len(plans), cfg.frame_samples), dtype=SUM_TYPE)
         sums[rows] = got
         return sums.reshape(shape), drawn
 
@@ -1134,15 +1141,18 @@ class Instrument:
         while it is in the cache."""
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
+        # (x scale + offset) / 2^FRAC_BITS in two roundings, not three passes: dividing by a
+        # power of two is exact, so it commutes with each rounding (the same values, short of
+        # subnormal products, which no echo in volts comes near)
+        offset_lsb = offset / (1 << FRAC_BITS)
         r = cfg.averages
         means: list[NDArray[np.float64]] = []
         peaks: list[float] = []
         step = max(1, _BLOCK_VALUES // cfg.frame_samples)
         for b0 in range(0, len(items), step):
             one = self._echoes(cfg, items[b0:b0 + step], calibration)
-            one *= scale
-            one += offset
-            one *= 1.0 / (1 << FRAC_BITS)  # LSB (a power of two: exact)
+            one *= lsb_per_v
+            one += offset_lsb
             one += ROUNDING_LSB
             peaks += np.maximum(one.max(axis=1), -one.min(axis=1)).tolist()  # max |one|
             means += list(one * r)

@@ -19,6 +19,7 @@ from cdma_lidar.scene.instrument import (
     EXACT_SUM_MIN_NOISE_LSB,
     FRAC_BITS,
     ROUNDING_LSB,
+    SUM_TYPE,
     Instrument,
     RenderSettings,
     draw_repetition_sum,
@@ -215,7 +216,7 @@ def test_draw_repetition_sum_has_the_sums_distribution(x, r):
         return float(stats.chisquare(obs, exp).pvalue)
 
     drawn = draw_repetition_sum(np.random.default_rng(11), mean, sigma, r)
-    assert drawn.dtype == np.int64
+    assert drawn.dtype == SUM_TYPE
     assert pvalue(drawn) > 1e-3
     if r > 2:
         z = np.random.default_rng(12).standard_normal(mean.size)

@@ -78,7 +78,7 @@ def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, seed, lev
 
             got = run(instrument._draw_table_sums)
             want = run(_table_sums_whole)
-    assert got.dtype == np.int64 and got.shape == (columns, size)
+    assert got.dtype == instrument.SUM_TYPE and got.shape == (columns, size)
     np.testing.assert_array_equal(got, want)
 
 
