@@ -1040,19 +1040,20 @@ class Instrument:
 
     def render_sums(self, columns: Sequence[int], cfg: RenderSettings | None = None,
                     frame: int = 0, power_w: Sequence[NDArray[np.float64]] | None = None, *,
-                    calibration: bool = False, level: str | None = None
-                    ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
+                    calibration: bool = False, level: str | None = None,
+                    complete: bool = False) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
         """:meth:`render_sum` of a batch of columns (``calibration``: of calibration shots
         ``columns``): ((B, n, N S) int32 sums, (B,) bool: drawn).
 
-        A row not drawn is zero: the level cannot draw that column's sum (the caller
-        renders it with :meth:`render_exact`). Each column keeps its own noise generator,
-        so a column's sum is the same whatever batch it is drawn in (render_sum is a
-        batch of one); the plans (echoes, scaling) are made, and the noise's arithmetic
-        done, on blocks of the batch's columns that stay in a core's cache (the same
-        values: tests/scene/test_noise_blocks.py). ``power_w``: the laser power (K,) W of
-        each column (None: the scene's). ``level``: one of FIDELITY_LEVELS (default the
-        scene's).
+        A row not drawn is zero: the level cannot draw that column's sum; with
+        ``complete`` it is :meth:`render_exact`'s R repetitions summed instead (what the
+        receive chain would accumulate), so every row is the column's sum. Each column
+        keeps its own noise generator, so a column's sum is the same whatever batch it is
+        drawn in (render_sum is a batch of one); the plans (echoes, scaling) are made,
+        and the noise's arithmetic done, on blocks of the batch's columns that stay in a
+        core's cache (the same values: tests/scene/test_noise_blocks.py). ``power_w``: the
+        laser power (K,) W of each column (None: the scene's). ``level``: one of
+        FIDELITY_LEVELS (default the scene's).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
         level = level or self.fidelity
@@ -1080,10 +1081,23 @@ class Instrument:
                 for j in where:
                     plans[j] = plan
         drawn = np.array([p is not None for p in plans], dtype=bool)
+        sums = self._draw_sums(level, cfg, frame, columns, plans, drawn, calibration)
+        for j in np.flatnonzero(~drawn).tolist() if complete else ():
+            p = None if power_w is None else power_w[j]
+            raw = self.render_exact(0 if calibration else columns[j], cfg, frame, p,
+                                    calibration=calibration, shot=columns[j])
+            np.add.reduce(raw.reshape(cfg.averages, -1), axis=0, dtype=SUM_TYPE,
+                          out=sums[j].reshape(-1))
+        return sums, drawn
+
+    def _draw_sums(self, level: str, cfg: RenderSettings, frame: int, columns: Sequence[int],
+                   plans: list[tuple | None], drawn: NDArray[np.bool_],
+                   calibration: bool) -> NDArray[np.int32]:
+        """(B, n, N S) sums of the ``drawn`` columns from their plans (zero elsewhere)."""
         rows = np.flatnonzero(drawn).tolist()
         shape = (len(plans), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
         if not rows:
-            return np.zeros(shape, dtype=SUM_TYPE), drawn
+            return np.zeros(shape, dtype=SUM_TYPE)
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
         rngs = generators([(self.seed, stream, frame, columns[j]) for j in rows])
         means = [plans[j][0] for j in rows]
@@ -1093,10 +1107,10 @@ class Instrument:
         else:
             got = draw_repetition_sums(rngs, means, sigmas, cfg.averages)
         if len(rows) == len(plans):
-            return got.reshape(shape), drawn
+            return got.reshape(shape)
         sums = np.zeros((len(plans), cfg.frame_samples), dtype=SUM_TYPE)
         sums[rows] = got
-        return sums.reshape(shape), drawn
+        return sums.reshape(shape)
 
     def _make_plans(self, level: str, cfg: RenderSettings,
                     items: list[tuple[int, NDArray[np.float64]]],

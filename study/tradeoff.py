@@ -259,23 +259,19 @@ def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
     cpu_render = cpu_rx = 0.0
     batch = max(1, _BATCH_SAMPLES // (cfg.averages * length))
     for c0 in range(0, c, batch):
-        accs = []
+        cols = list(range(c0, min(c, c0 + batch)))
         ta = time.process_time()
-        for col in range(c0, min(c, c0 + batch)):
-            acc = inst.render_sum(col, cfg, frame, power_w[:, col])
-            how = inst.fidelity
-            if acc is None:
-                raw = inst.render_exact(col, cfg, frame, power_w[:, col])
-                acc = rx.accumulate(raw[None, :])[0]
-                how = "repetitions"
-            accs.append(acc)
-            work += simulation_work(int(lit[col]), length, cfg.averages, how,
-                                    tabulated=inst.echo_tabulated(cfg))
+        accs, drawn = inst.render_sums(cols, cfg, frame, [power_w[:, col] for col in cols],
+                                       complete=True)
         tb = time.process_time()
-        outs = rx.from_accumulators(np.stack(accs))
+        outs = rx.from_accumulators(accs)
         cpu_rx += time.process_time() - tb
         cpu_render += tb - ta
-        for col, out in zip(range(c0, c0 + len(accs)), outs, strict=True):
+        for col, ok in zip(cols, drawn.tolist(), strict=True):
+            work += simulation_work(int(lit[col]), length, cfg.averages,
+                                    inst.fidelity if ok else "repetitions",
+                                    tabulated=inst.echo_tabulated(cfg))
+        for col, out in zip(cols, outs, strict=True):
             data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     return estimate_ranges(data, ranging), work, cpu_render, cpu_rx
 

@@ -299,23 +299,18 @@ class VirtualFirmware(DeviceApp):
         return chains[method]
 
     def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],
-                 cfg: RenderSettings, calibration: bool, shots: bool) -> list[Any]:
+                 cfg: RenderSettings, calibration: bool) -> list[Any]:
         """Render ``columns`` (or calibration shots) and run the receive chain on them.
 
         The instrument draws each column's repetition sum (what the chain reads first) at
         its fidelity and the chain starts from the accumulators; a column the level cannot
         draw that way (noise under a few LSB, echoes near the clip) is rendered repetition
-        by repetition and accumulated here.
+        by repetition and summed (:meth:`Instrument.render_sums` with ``complete``).
         """
-        inst = self.instrument
         rx = self.receiver()  # "auto" picks the kernel for each batch size
         # calibration (shots, or a scan in calibration mode): shot c of the target
-        accs, drawn = inst.render_sums(columns, cfg, frame, powers, calibration=calibration)
-        for i in np.flatnonzero(~drawn).tolist():
-            c = columns[i]
-            raw = inst.render_exact(0 if shots else c, cfg, frame, powers[i],
-                                    calibration=calibration, shot=c)
-            accs[i] = rx.accumulate(raw[None, :])[0]
+        accs, _ = self.instrument.render_sums(columns, cfg, frame, powers,
+                                              calibration=calibration, complete=True)
         return rx.from_accumulators(accs)
 
     # ---- power ----------------------------------------------------------------------
@@ -389,8 +384,7 @@ class VirtualFirmware(DeviceApp):
         power = self.power_w()
         angles = self.spec.rotations_deg
         for cols in _batches(first, count, cfg.frame_samples):
-            outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration,
-                                 shots=False)
+            outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration)
             angle = [CALIBRATION_ANGLE_DEG if calibration else float(angles[c]) for c in cols]
             yield from _column_results(frame, cols, angle, outs, calibration,
                                        [self._timestamp(cfg) for _ in cols])
@@ -407,7 +401,7 @@ class VirtualFirmware(DeviceApp):
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.power_w()[:, 0]  # the configured power, as a scan of column 0 would use
         for idx in _batches(0, shots, cfg.frame_samples):
-            outs = self._receive(frame, idx, [power] * len(idx), cfg, True, shots=True)
+            outs = self._receive(frame, idx, [power] * len(idx), cfg, True)
             yield from _column_results(frame, idx, [CALIBRATION_ANGLE_DEG] * len(idx), outs,
                                        True, [self._timestamp(cfg) for _ in idx])
 
@@ -426,7 +420,7 @@ class VirtualFirmware(DeviceApp):
             raise out_of_range("channel", f"0 to {self.channels - 1}", channel)
         calibration = self._config["mode"] == "calibration"
         (out,) = self._receive(self._last_frame, [column], [self.power_w()[:, column]],
-                               self.render_settings(), calibration, shots=False)
+                               self.render_settings(), calibration)
         return out.corr[channel]
 
     def abort(self) -> None:

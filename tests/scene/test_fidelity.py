@@ -389,6 +389,14 @@ def test_a_batch_of_columns_draws_what_each_column_draws_alone(level):
                                                     powers[4]])
     assert ok.tolist() == [False, True] and not np.any(mixed[0])
     np.testing.assert_array_equal(mixed[1], sums[4])
+    # complete: the column it cannot draw is rendered repetition by repetition and summed
+    full, ok = inst.render_sums([lit, 41], cfg, 9, [inst.default_power_w[:, lit] * 1000,
+                                                   powers[4]], complete=True)
+    raw = inst.render_exact(lit, cfg, 9, inst.default_power_w[:, lit] * 1000)
+    assert ok.tolist() == [False, True] and full.dtype == SUM_TYPE
+    np.testing.assert_array_equal(full[0, 0], raw.reshape(cfg.averages, -1).astype(
+        np.int64).sum(axis=0))
+    np.testing.assert_array_equal(full[1], sums[4])
     cal, ok = inst.render_sums([2, 5], cfg, 9, calibration=True)
     assert ok.all() and not np.array_equal(cal[0], cal[1])
     np.testing.assert_array_equal(inst.render_sum(0, cfg, 9, calibration=True, shot=5), cal[1])

@@ -348,7 +348,7 @@ def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
     fw.set_config(config)
     cfg = fw.render_settings()
     cols = list(range(fw.columns))
-    outs = fw._receive(2, cols, [fw.power_w()[:, c] for c in cols], cfg, False, shots=False)
+    outs = fw._receive(2, cols, [fw.power_w()[:, c] for c in cols], cfg, False)
     angles = fw.spec.rotations_deg
     want = [ColumnResult.from_receiver(2, c, float(angles[c]), o, timestamp_us=0)
             for c, o in zip(cols, outs, strict=True)]
