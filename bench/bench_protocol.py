@@ -270,11 +270,14 @@ def bench_tcp(columns: int = 3000) -> None:
 
 
 def main() -> None:
-    """Print the figures (ratios against baselines measured in the same run)."""
+    """Print the figures (ratios against baselines measured in the same run) and the
+    machine's load before and after (the line benchmarks' times are wall clock)."""
+    print("load average {:.2f} {:.2f} {:.2f} on {} CPUs".format(*os.getloadavg(), os.cpu_count()))
     bench_in_process()
     bench_pty()
     bench_tcp()
     bench_lines()
+    print("load average {:.2f} {:.2f} {:.2f} after".format(*os.getloadavg()))
 
 
 if __name__ == "__main__":
