@@ -138,12 +138,14 @@ def messages_table() -> str:
     return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
 
 
-def _fields_table(subcons: list) -> str:
+def _fields_table(subcons: list, offsets: list | None = None) -> str:
+    """Field rows; offsets summed from the sizes unless given."""
     rows: list[tuple] = []
     off: int | str = 0
-    for sc in subcons:
+    for k, sc in enumerate(subcons):
         m = sc.meta
-        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
+        rows.append((off if offsets is None else offsets[k], f"`{sc.name}`", m.ctype, m.unit,
+                     m.range_text, m.doc))
         size = _SIZES.get(m.ctype)
         off = off + size if isinstance(off, int) and size else "var"
     return _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
@@ -166,12 +168,9 @@ def message_fields() -> str:
 def column_table() -> str:
     """COLUMN_RESULT header and per-channel record (offsets of the record in terms of P)."""
     head = _fields_table(list(COLUMN_HEADER.subcons))
-    rows = []
-    for sc, at in zip(RECORD_STRUCT.subcons, wire_layout(), strict=True):
-        m = sc.meta
-        off = f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
-        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
-    rec = _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
+    rec = _fields_table(list(RECORD_STRUCT.subcons), [
+        f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
+        for at in wire_layout()])
     return (f"Column header ({COLUMN_HEADER.sizeof()} bytes):\n\n{head}\n\n"
             f"Channel record (`{RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} (P-1)` bytes, K of "
             f"them, channel 0 first):\n\n{rec}")
