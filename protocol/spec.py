@@ -81,7 +81,8 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", _hello_min(), "smallest HELLO.host_max_frame (bytes)"),
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.host_max_frame.meta.lo,
+         "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
         ("`FRAGMENT_OVERHEAD`", framing.OVERHEAD + FRAGMENT_HEADER,
@@ -100,11 +101,6 @@ def constants_table() -> str:
         ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
     ]
     return _table(("name", "value", "meaning"), rows)
-
-
-def _hello_min() -> int:
-    (sc,) = [sc for sc in MESSAGES[MsgType.HELLO].fields if sc.name == "host_max_frame"]
-    return int(sc.meta.lo)
 
 
 def ranges_table() -> str:
