@@ -113,17 +113,12 @@ COLUMN_STRUCT = cs.Struct(
 )
 
 
-def _dtype_entry(w: WireField, peaks: int) -> tuple:
-    if not w.axes:
-        return (w.name, w.numpy_type)
-    return (w.name, w.numpy_type, w.shape(peaks))
-
-
 @lru_cache(maxsize=16)
 def record_dtype(peaks: int) -> np.dtype:
     """Packed little-endian structured dtype of one channel record for ``peaks`` peaks."""
     check_int("peaks", peaks, 1, MAX_PEAKS, cls=FieldError)
-    return np.dtype([_dtype_entry(w, peaks) for w in WIRE_FIELDS])
+    return np.dtype([(w.name, w.numpy_type, w.shape(peaks)) if w.axes else
+                     (w.name, w.numpy_type) for w in WIRE_FIELDS])
 
 
 def column_payload_size(channels: int, peaks: int) -> int:
@@ -136,17 +131,6 @@ _INT_LIMITS = {f.name: f.wire[0].limits for f in RECORD if f.encoding in ("int",
 _LAG_FIELDS = frozenset(f.name for f in RECORD if f.encoding == "lag")
 #: The first wire field repeated per extra peak: its length is P - 1.
 _FIRST_EXTRA = next(f for f in RECORD if f.per_extra_peak)
-
-
-def _masks(signs: NDArray, n: int) -> tuple[NDArray, NDArray]:
-    """(negative mask, zero mask) along the last axis of a sign array in {-1, 0, +1}."""
-    weights = _WEIGHTS[:n]
-    neg = (signs < 0).astype(np.uint8) @ weights
-    zero = (signs == 0).astype(np.uint8) @ weights
-    return neg, zero
-
-
-_WEIGHTS = (1 << np.arange(MAX_UID_BITS)).astype(np.uint8)
 
 
 def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
@@ -278,7 +262,8 @@ def _view(f: RecordField) -> property:
     name = f.name
     if f.encoding == "lag":
         def get(self: ColumnResult) -> NDArray:
-            return _lags_from_wire(self.records[name])
+            lags = self.records[name]
+            return np.where(lags == NO_PEAK, -1, lags.astype(np.int64))
         form = "int64, -1 where the wire says NO_PEAK"
     elif f.encoding == "flag":
         def get(self: ColumnResult) -> NDArray:
@@ -313,13 +298,6 @@ def _check_names(fields: dict[str, Any]) -> None:
     missing = [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]
     if missing:
         raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
-
-
-def _lags_from_wire(lags: NDArray[np.uint32]) -> NDArray[np.int64]:
-    """Wire lags as int64, with NO_PEAK turned back into the receiver's -1."""
-    out = lags.astype(np.int64)
-    out[lags == NO_PEAK] = -1
-    return out
 
 
 #: Fields whose exact value may exceed the wire word: the model carries noise_sumsq as exact
@@ -357,8 +335,10 @@ def _pack_signs(rec: np.ndarray, f: RecordField, value: Any, shape: tuple[int, .
                            None if signs is None else f"shape {signs.shape}", FieldError)
     if signs.dtype.kind not in "iu" or (signs.size and (signs.min() < -1 or signs.max() > 1)):
         raise out_of_range(f.name, "values in {-1, 0, +1}", signs, FieldError)
+    weights = (1 << np.arange(n)).astype(np.uint8)  # bit p of a mask: period p
     neg, zero = f.wire
-    rec[neg.name], rec[zero.name] = _masks(signs, n)
+    rec[neg.name] = (signs < 0).astype(np.uint8) @ weights
+    rec[zero.name] = (signs == 0).astype(np.uint8) @ weights
 
 
 def _pack_flag(rec: np.ndarray, name: str, value: Any, k: int) -> None:

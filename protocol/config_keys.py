@@ -60,26 +60,6 @@ def _poly_to_wire(poly: Sequence[int] | int) -> int:
     return mask
 
 
-def _enum(names: tuple[str, ...], key: str) -> tuple[Callable, Callable]:
-    """(to_wire, from_wire) of a key whose wire code is the index of its name in ``names``."""
-    def to_wire(v: Any) -> int:
-        if isinstance(v, str):
-            if v not in names:
-                raise out_of_range(key, "one of " + ", ".join(names), v, FieldError)
-            return names.index(v)
-        return v
-
-    def from_wire(v: int) -> str | int:
-        return names[v] if 0 <= v < len(names) else v
-
-    return to_wire, from_wire
-
-
-def _enum_allowed(names: tuple[str, ...]) -> str:
-    """Spec range text of an enum key: ``0 truncate, 1 half_up, 2 convergent``."""
-    return ", ".join(f"{code} {name}" for code, name in enumerate(names))
-
-
 def _ident(v: Any) -> Any:
     return v
 
@@ -144,8 +124,23 @@ class ConfigKey:
         return self.from_wire(w)
 
 
-_ROUND_TO, _ROUND_FROM = _enum(ROUNDING_MODES, "rounding")
-_MODE_TO, _MODE_FROM = _enum(MODES, "mode")
+def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey:
+    """A u8 key whose wire code is the index of its name in ``names`` (spec range text:
+    ``0 truncate, 1 half_up, 2 convergent``)."""
+    def to_wire(v: Any) -> int:
+        if isinstance(v, str):
+            if v not in names:
+                raise out_of_range(key, "one of " + ", ".join(names), v, FieldError)
+            return names.index(v)
+        return v
+
+    def from_wire(v: int) -> str | int:
+        return names[v] if 0 <= v < len(names) else v
+
+    return ConfigKey(kid, key, "u8", "", ", ".join(f"{c} {n}" for c, n in enumerate(names)),
+                     doc, 0, len(names) - 1, to_wire=to_wire, from_wire=from_wire)
+
+
 _WINDOW = cs.Struct("start" / cs.Int32ul, "length" / cs.Int32ul)
 _SUBS = {"u8": cs.Int8ul, "u16": cs.Int16ul, "u32": cs.Int32ul,
          "u16 x K": cs.GreedyRange(cs.Int16ul), "(u32 start, u32 len) x n": cs.GreedyRange(_WINDOW)}
@@ -192,17 +187,13 @@ CONFIG_KEYS: tuple[ConfigKey, ...] = (
               "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
               to_wire=_windows_to_wire, from_wire=tuple),
     ConfigKey(13, "out_shift", "u8", "bits", "0..63", "out = round(raw / 2^out_shift)", 0, 63),
-    ConfigKey(14, "rounding", "u8", "", _enum_allowed(ROUNDING_MODES),
-              "rounding of the output shift", 0, len(ROUNDING_MODES) - 1,
-              to_wire=_ROUND_TO, from_wire=_ROUND_FROM),
+    _enum_key(14, "rounding", ROUNDING_MODES, "rounding of the output shift"),
     ConfigKey(15, "out_bits", "u8", "bits", "8..32", "outputs saturate to signed out_bits", 8,
               32),
     ConfigKey(16, "peaks", "u8", "", "1..max_peaks", "peaks reported per channel P", 1, 8),
     ConfigKey(17, "columns_per_frame", "u16", "columns", "1..max_columns",
               "columns in a default scan frame", 1, 65535),
-    ConfigKey(18, "mode", "u8", "", _enum_allowed(MODES),
-              "measurement mode (calibration = zeroth-order beam)", 0, len(MODES) - 1,
-              to_wire=_MODE_TO, from_wire=_MODE_FROM),
+    _enum_key(18, "mode", MODES, "measurement mode (calibration = zeroth-order beam)"),
 )
 _KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
 _KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}

@@ -11,6 +11,7 @@ SESSION_LOST.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import secrets
@@ -242,8 +243,8 @@ def _hello(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
 
 
 def _end_session(ep: DeviceEndpoint) -> None:
-    """Forget the session's stream, ring, capture and keys; end the last stream for the
-    application (caller holds app_lock and the endpoint's lock)."""
+    """Forget the session's stream, ring, capture, keys and ownership; end the last stream
+    for the application (caller holds app_lock and the endpoint's lock)."""
     stop_stream(ep, ScanEndReason.ABORTED, send_end=False)
     if ep.latest is not None:
         finish(ep, ep.latest)
@@ -255,6 +256,7 @@ def _end_session(ep: DeviceEndpoint) -> None:
     if ep.session_open:
         ep.sessionless_since = ep.core.clock()
     ep.session_open = False
+    ep.core.release(ep)
 
 
 def _lose(ep: DeviceEndpoint, reason: SessionLostReason, detail: str) -> None:
@@ -262,20 +264,16 @@ def _lose(ep: DeviceEndpoint, reason: SessionLostReason, detail: str) -> None:
     core's app_lock and ``ep``'s lock)."""
     if ep.session_open:
         log.info("session 0x%08x lost: %s", ep.session, detail)
-        try:
+        with contextlib.suppress(OSError):  # that host is gone anyway
             ep.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
                 MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
-        except OSError:
-            pass  # that host is gone anyway
     _end_session(ep)
-    ep.core.release(ep)
 
 
 def _session_end(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
     """The host closes its link: ACK (signed), then forget the session."""
     def end() -> None:
         _end_session(ep)
-        ep.core.release(ep)
         log.info("session 0x%08x ended by its host", ep.session)
 
     after.append(end)

@@ -271,7 +271,14 @@ class DeviceEndpoint:
             if data:
                 damaged = self.decoder.stats.damaged
                 for frame in self.decoder.feed(data):
-                    self._on_frame(frame)
+                    # While the request worker has work, every request queues behind it,
+                    # so requests are always handled in the order they arrived.
+                    if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+                        self.stats.ignored += 1
+                    elif self._queued:
+                        self._enqueue(frame, False)
+                    else:
+                        self._process(frame, False)
                 while self.decoder.rejected:
                     self._on_rejected(self.decoder.rejected.pop(0))
                 self._count_rx()
@@ -355,19 +362,6 @@ class DeviceEndpoint:
             return
         self._send_reply(frame, nak(self, frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                     f"unknown incompat flags 0x{frame.incompat:02x}", False))
-
-    def _on_frame(self, frame: Frame) -> None:
-        """One decoded frame (caller holds the lock): check, then answer, replay or queue it.
-
-        While the request worker has work, every request queues behind it, so requests
-        are always handled in the order they arrived.
-        """
-        if kind_of(frame.msg_type) is not MsgKind.REQUEST:
-            self.stats.ignored += 1
-        elif self._queued:
-            self._enqueue(frame, False)
-        else:
-            self._process(frame, False)
 
     def _enqueue(self, frame: Frame, checked: bool) -> None:
         self._queued += 1
@@ -460,7 +454,12 @@ class DeviceEndpoint:
         after: list[Callable[[], None]] = []
         try:
             if reply is None:
-                reply = self._handle(frame, after)
+                handler = HANDLERS.get(frame.msg_type)  # type: ignore[call-overload]
+                if handler is None:
+                    raise DeviceError(f"{type_name(frame.msg_type)} is not a request this "
+                                      "device knows", ErrorCode.UNKNOWN_TYPE, "msg_type")
+                reply = handler(self, frame, decode_payload(frame.msg_type, frame.payload),
+                                after)
         except FrameError as exc:
             reply = nak(self, frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except (DeviceError, ConfigError) as exc:
@@ -489,12 +488,3 @@ class DeviceEndpoint:
                 raise  # the port failed
             except Exception:  # a bug must not take the device off the line
                 log.exception("action after %s failed", type_name(frame.msg_type))
-
-    def _handle(self, req: Frame, after: list[Callable[[], None]]) -> Reply:
-        handler = HANDLERS.get(req.msg_type)  # type: ignore[call-overload]
-        if handler is None:
-            return nak(self, req, ErrorCode.UNKNOWN_TYPE, "msg_type",
-                       f"{type_name(req.msg_type)} is not a request this device knows")
-        fields_ = decode_payload(req.msg_type, req.payload)
-        assert isinstance(fields_, dict)
-        return handler(self, req, fields_, after)

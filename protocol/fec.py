@@ -122,12 +122,8 @@ def encode(body: bytes) -> bytes:
     last = d - full
     blocks[nb - 1, DATA - last:] = data[full:]  # leading zeros do not change the parity
     parity = np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _UNIT_BY_POS[None, :, :]], axis=1)
-    out = np.empty(d + NSYM * nb, np.uint8)
-    for b in range(nb):
-        n = DATA if b < nb - 1 else last
-        at = b * BLOCK
-        out[at:at + n] = data[b * DATA:b * DATA + n]
-        out[at + n:at + n + NSYM] = parity[b]
+    out = np.concatenate([np.hstack([blocks[:nb - 1], parity[:nb - 1]]).ravel(),
+                          data[full:], parity[nb - 1]])
     return whiten(out.tobytes())
 
 

@@ -126,16 +126,12 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
                            f"frame {max_frame})", f"{len(payload)} bytes", FieldError)
     try:
         head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
-    except struct.error as exc:
-        packing = exc
-    else:
-        packing = None
-    if packing is not None:  # checked only on failure: every column frame is packed here
+    except struct.error:  # checked only on failure: every column frame is packed here
         for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
                                 ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
                                 ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
             check_int(f"frame.{name}", value, 0, hi, cls=FieldError)
-        raise packing
+        raise
     body = head + payload
     if signer is not None:
         body += signer.sign(body)
@@ -320,10 +316,8 @@ class FrameDecoder:
         try:
             try:
                 return decode_frame(body), False
-            except _Rejected:
-                raise
-            except FrameError:
-                if not self.fec:
+            except FrameError as exc:
+                if not self.fec or isinstance(exc, _Rejected):
                     raise
                 return self._coded(body)
         except _Rejected as exc:

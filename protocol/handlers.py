@@ -50,9 +50,8 @@ def nak(ep: DeviceEndpoint, req: Frame, code: ErrorCode, fld: str = "", detail: 
     log.debug("NAK %s seq %d: %s %s %s", req.msg_type, req.seq, code.name, fld, detail)
     payload = encode_payload(MsgType.NAK, {"request_type": req.msg_type, "code": int(code),
                                            "field": clip(fld), "detail": clip(detail)})
-    if signed is None:
-        signed = ep.tx.signer is not None and bool(req.sig)
-    return (MsgType.NAK, payload, signed)
+    return reply(ep, req, MsgType.NAK, payload) if signed is None else \
+        (MsgType.NAK, payload, signed)
 
 
 def clip(s: str, limit: int = 255) -> str:

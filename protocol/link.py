@@ -1,11 +1,5 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-:class:`HostLink` talks to a :class:`cdma_lidar.protocol.endpoint.DeviceEndpoint` over any
-port-like object: whatever :func:`~cdma_lidar.protocol.ports.open_port` returns for a
-pyserial URL (``/dev/ttyACM0``, ``socket://host:port``, a pty path, ``virtual://...``), a
-:class:`~cdma_lidar.protocol.ports.FdPort` around a file descriptor, or anything else with
-``read``, ``write``, ``in_waiting`` and ``timeout``.
-
 Scans: :meth:`HostLink.scan` yields columns in column order exactly once and asks for
 missing ones again (RESEND) as soon as a later column, a HEARTBEAT or SCAN_END shows they
 were sent. After ``timeout_s`` of silence it asks STATUS how far the device got. It fails
@@ -111,12 +105,8 @@ class HostLink(Session):
             values = decode_config(reply["items"]).values
         except Exception as exc:  # FrameError from the strict decoder
             raise DeviceLied(f"device sent an invalid CONFIG: {exc}") from None
-        if not names:
-            assert self.info is not None
-            check_config(values, self.info)
-            self.config = dict(values)
-        elif self.config is not None:
-            merged = {**self.config, **values}
+        if not names or self.config is not None:  # keep the full configuration, checked
+            merged = {**self.config, **values} if names else dict(values)  # type: ignore[dict-item]
             check_config(merged, self.info)  # type: ignore[arg-type]
             self.config = merged
         return values

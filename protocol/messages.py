@@ -190,6 +190,21 @@ def _msg(t: MsgType, doc: str, *fields_: cs.Renamed, reply: MsgType | None = Non
     return MessageSpec(t, cs.Struct(*fields_, cs.Terminated), doc, reply)
 
 
+def _klv(doc: str) -> cs.Renamed:
+    """CONFIG_SET's and CONFIG's key-length-value items."""
+    return blob("items", cs.GreedyRange(cs.Struct(
+        "key" / cs.Int8ul, "value" / cs.Prefixed(cs.Int16ul, cs.GreedyBytes))),
+        "KLV items (rest)", doc)
+
+
+#: The power-matrix rectangle of POWER_SET, POWER_GET and POWER, and its values.
+_RECT = (u("channel_start", 16, "first channel of the rectangle"),
+         u("column_start", 16, "first column of the rectangle"),
+         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
+         u("columns", 16, "columns in the rectangle", lo=1, hi=65535))
+_POWER = blob("power", cs.Array(cs.this.channels * cs.this.columns, cs.Int16ul),
+              "u16 x channels*columns", "per-pixel laser power", "1/65535 of max", "0..65535")
+
 _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
          "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
@@ -207,20 +222,11 @@ _MESSAGE_LIST = [
          blob("keys", cs.GreedyRange(cs.Int8ul), "u8 x n (rest)", "key ids to read"),
          reply=MsgType.CONFIG),
     _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
-         blob("items", cs.GreedyRange(cs.Struct("key" / cs.Int8ul,
-                                                "value" / cs.Prefixed(cs.Int16ul,
-                                                                      cs.GreedyBytes))),
-              "KLV items (rest)", "key u8, length u16, value (see CONFIG keys)"),
+         _klv("key u8, length u16, value (see CONFIG keys)"),
          reply=MsgType.ACK),
     _msg(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
          "(row-major, channel by channel); large matrices are sent in several requests.",
-         u("channel_start", 16, "first channel of the rectangle"),
-         u("column_start", 16, "first column of the rectangle"),
-         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
-         u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
-         blob("power", cs.Array(cs.this.channels * cs.this.columns, cs.Int16ul),
-              "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
-              "0..65535"),
+         *_RECT, _POWER,
          reply=MsgType.ACK),
     _msg(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
          "order, then SCAN_END. A retransmitted SCAN_START is answered, not restarted.",
@@ -256,10 +262,7 @@ _MESSAGE_LIST = [
          reply=MsgType.CAPTURE_DATA),
     _msg(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
     _msg(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
-         u("channel_start", 16, "first channel of the rectangle"),
-         u("column_start", 16, "first column of the rectangle"),
-         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
-         u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
+         *_RECT,
          reply=MsgType.POWER),
     _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
          "without SCAN_END, another host's HELLO then needs no take-over.",
@@ -274,10 +277,7 @@ _MESSAGE_LIST = [
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
          *wire_fields(Info)),
     _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
-         blob("items", cs.GreedyRange(cs.Struct("key" / cs.Int8ul,
-                                                "value" / cs.Prefixed(cs.Int16ul,
-                                                                      cs.GreedyBytes))),
-              "KLV items (rest)", "key u8, length u16, value")),
+         _klv("key u8, length u16, value")),
     _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
@@ -291,13 +291,7 @@ _MESSAGE_LIST = [
          "a key: say HELLO again with this nonce and the MAC.",
          nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
     _msg(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
-         u("channel_start", 16, "first channel of the rectangle"),
-         u("column_start", 16, "first column of the rectangle"),
-         u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
-         u("columns", 16, "columns in the rectangle", lo=1, hi=65535),
-         blob("power", cs.Array(cs.this.channels * cs.this.columns, cs.Int16ul),
-              "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
-              "0..65535")),
+         *_RECT, _POWER),
     MessageSpec(MsgType.COLUMN_RESULT, COLUMN_STRUCT,
                 "Receiver outputs of one column, all channels (layout below)."),
     _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "

@@ -81,7 +81,8 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", _hello_min(), "smallest HELLO.host_max_frame (bytes)"),
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.host_max_frame.meta.lo,
+         "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
         ("`FRAGMENT_OVERHEAD`", framing.OVERHEAD + FRAGMENT_HEADER,
@@ -100,11 +101,6 @@ def constants_table() -> str:
         ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
     ]
     return _table(("name", "value", "meaning"), rows)
-
-
-def _hello_min() -> int:
-    (sc,) = [sc for sc in MESSAGES[MsgType.HELLO].fields if sc.name == "host_max_frame"]
-    return int(sc.meta.lo)
 
 
 def ranges_table() -> str:
@@ -138,12 +134,14 @@ def messages_table() -> str:
     return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
 
 
-def _fields_table(subcons: list) -> str:
+def _fields_table(subcons: list, offsets: list | None = None) -> str:
+    """Field rows; offsets summed from the sizes unless given."""
     rows: list[tuple] = []
     off: int | str = 0
-    for sc in subcons:
+    for k, sc in enumerate(subcons):
         m = sc.meta
-        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
+        rows.append((off if offsets is None else offsets[k], f"`{sc.name}`", m.ctype, m.unit,
+                     m.range_text, m.doc))
         size = _SIZES.get(m.ctype)
         off = off + size if isinstance(off, int) and size else "var"
     return _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
@@ -166,12 +164,9 @@ def message_fields() -> str:
 def column_table() -> str:
     """COLUMN_RESULT header and per-channel record (offsets of the record in terms of P)."""
     head = _fields_table(list(COLUMN_HEADER.subcons))
-    rows = []
-    for sc, at in zip(RECORD_STRUCT.subcons, wire_layout(), strict=True):
-        m = sc.meta
-        off = f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
-        rows.append((off, f"`{sc.name}`", m.ctype, m.unit, m.range_text, m.doc))
-    rec = _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
+    rec = _fields_table(list(RECORD_STRUCT.subcons), [
+        f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
+        for at in wire_layout()])
     return (f"Column header ({COLUMN_HEADER.sizeof()} bytes):\n\n{head}\n\n"
             f"Channel record (`{RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} (P-1)` bytes, K of "
             f"them, channel 0 first):\n\n{rec}")

@@ -79,11 +79,8 @@ class Transmitter:
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
             signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
             coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
-        """Queue one frame of class ``cls`` (REPAIR frames go out marked retransmitted).
-
-        A ``repair`` already queued is not queued twice: a host that asks again before
-        the first answer reached it costs the line nothing.
-        """
+        """Queue one frame of class ``cls`` (REPAIR frames go out marked retransmitted);
+        a ``repair`` already queued is not queued twice."""
         job = _Job(msg_type, payload, seq, self.session, self.max_frame,
                    self.signer if signer is _SESSION else signer, repair,
                    self.coded if coded is _SESSION else coded, version)

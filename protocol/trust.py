@@ -1,27 +1,14 @@
 """The host trusts nothing: every field of INFO, CONFIG and every column checked.
 
-A device may be buggy, half-updated or hostile. What passed the wire checks (CRC,
-lengths, each field's wire range) is then checked against the session: INFO against
-itself, the configuration against INFO, every COLUMN_RESULT against both. A
-violation raises :class:`DeviceLied` (a LinkError) whose one-line message names the
-field, its value and what was allowed, never a traceback, never a valid-looking
-point. Strings from the device are escaped (:func:`escape`) before they can reach a
-terminal: control characters, escape sequences and bidirectional overrides become
-``\\xNN`` / ``\\uNNNN``.
-
-The checks on a column (K channels, P peaks, n UID bits, N*S lags per period)::
-
-    channels == INFO channels         peaks == config peaks     uid_bits == config uid_bits
-    calibration flag == the stream's  column inside the scan   frame == the scan's
-    lag fields: 0 <= lag < N*S or NO_PEAK
-    sign masks: < 2^n, the -1 and 0 masks disjoint;  uid_observed < 2^n
-    flags: 0 or 1;  noise_count <= gate_len, and >= 1 where a peak is reported;
-    noise_count * noise_sumsq >= noise_sum^2
-    peak, neighbours, extra_peak: signed out_bits, -2^(out_bits-1) <= v < 2^(out_bits-1)
-    |noise_sum| <= noise_count * 2^(out_bits-1);  noise_sumsq <= noise_count * 4^(out_bits-1)
-
-INFO's fields with a unit are checked against their physical ranges
-(:data:`INFO_RANGES`: wavelengths 0.2 to 20 um, chip rate 1 kHz to 100 GHz, ...).
+What passed the wire checks (CRC, lengths, each field's wire range) is then checked
+against the session: INFO against itself and its physical ranges (:data:`INFO_RANGES`),
+the configuration against INFO, every COLUMN_RESULT against both (the list is
+docs/protocol.md section 8; for a column of K channels, P peaks, n UID bits and N*S
+lags per period: lags below N*S or NO_PEAK, sign masks below 2^n and disjoint, outputs
+within signed ``out_bits``, noise sums consistent with ``noise_count``). A violation
+raises :class:`DeviceLied` (a LinkError) whose one-line message names the field, its
+value and what was allowed. Strings from the device are escaped (:func:`escape`)
+before they can reach a terminal.
 """
 
 from __future__ import annotations

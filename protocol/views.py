@@ -155,16 +155,12 @@ class Info:
 
     def to_fields(self) -> dict[str, Any]:
         """Field dict for :func:`encode_payload` (MsgType.INFO)."""
-        d = dataclasses.asdict(self)
-        d["wavelengths_pm"] = list(self.wavelengths_pm)
-        return d
+        return dataclasses.asdict(self)
 
     @classmethod
     def from_fields(cls, d: dict[str, Any]) -> Info:
         """From a decoded INFO payload."""
-        d = dict(d)
-        d["wavelengths_pm"] = tuple(d["wavelengths_pm"])
-        return cls(**d)
+        return cls(**{**d, "wavelengths_pm": tuple(d["wavelengths_pm"])})
 
 
 @dataclass(frozen=True)
