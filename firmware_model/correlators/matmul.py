@@ -6,8 +6,8 @@ phase has a lag). Each phase's chip sums ``Y_r`` (C, N) are copied once into a f
 operand, rotated by ``a_r`` chips, so that every phase needs the same Hankel block
 ``B_L[i, k, t] = bip_k[(i - q0 - t) mod N]``, t < L: the phases with L lags are
 stacked into one product ``(|A| C, N) @ (N, K L)``, those with L - 1 into a second one
-with ``B_{L-1}`` (or into the first, computing one lag too many, when the cost model
-says one product is cheaper). Every output lag is computed exactly once (up to that
+with ``B_{L-1}`` (or into the first, computing one lag too many, while those lags are
+few: :data:`MERGE_WASTE`). Every output lag is computed exactly once (up to that
 one extra lag per phase), in at most two large products.
 
 Exactness: every product is +-y and every partial sum of one output is a sum of a
@@ -40,13 +40,12 @@ from cdma_lidar.firmware_model.correlators.base import (
     product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
-    COEFFICIENTS,
     Coefficients,
     Estimate,
     gemm_seconds,
 )
 
-__all__ = ["MatmulCorrelator", "phase_groups"]
+__all__ = ["MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
 
 
 def _block(plan: GatePlan) -> int:
@@ -78,16 +77,25 @@ def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, scale: f
                _products(plan, merged, rows))
 
 
-def phase_groups(plan: GatePlan, co: Coefficients) -> bool:
+#: The phases of L - 1 lags are merged into the product of those with L while the lags
+#: computed in vain stay under this share of that product's output. Measured (OpenBLAS,
+#: one thread, K = 40, N = 2047, 80 or 160 columns): merging at L = 17 with 2 of 4 phases
+#: short (2.9 % in vain) took 0.89-0.92x the two products in float32 and 0.94-0.98x in
+#: float64 (a second product packs a second Hankel block and runs on half the rows);
+#: L = 5 (10 %) tied; L = 2 with 1 short (12.5 %) took 1.01-1.06x.
+MERGE_WASTE = 1 / 8
+
+
+def phase_groups(plan: GatePlan) -> bool:
     """Whether the phases of L - 1 lags are merged into the product of those with L.
 
     Merged: one product that computes one lag too many for each of those phases; split:
-    two products, nothing wasted. The cheaper by the cost model (ties: merged).
+    two products, nothing wasted. Merged while the lags computed in vain are under
+    :data:`MERGE_WASTE` of its output (always when every phase has L lags).
     """
-    if len(set(_lengths(plan).values())) == 1:
-        return True
-    rows = min(plan.columns, _block(plan))
-    return _seconds(plan, co, True, rows, 1.0) <= _seconds(plan, co, False, rows, 1.0)
+    lens = _lengths(plan)
+    top = max(lens.values())
+    return sum(top - v for v in lens.values()) < MERGE_WASTE * top * len(lens)
 
 
 class MatmulCorrelator(Correlator):
@@ -114,7 +122,7 @@ class MatmulCorrelator(Correlator):
         single = plan.float32_certain()
         parts = 1 if single else plan.matmul_limbs()
         item = 4.0 if single else 8.0
-        merged = phase_groups(plan, co)
+        merged = phase_groups(plan)
         prods = _seconds(plan, co, merged, cb, 0.5 if single else 1.0)
         shapes = _products(plan, merged, cb)
         active = len(_lengths(plan))
@@ -137,7 +145,7 @@ class MatmulCorrelator(Correlator):
         self._len = lens
         # phase r's first chip offset: its operand is rotated by it
         self._rot = {r: int(plan.u_m[plan.sel[r][0]]) % plan.n for r in lens}
-        merged = phase_groups(plan, COEFFICIENTS)
+        merged = phase_groups(plan)
         top = max(lens.values())
         # product groups: (offsets, phases), the phases of L lags first
         if merged:

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.firmware_model.correlators import GatePlan, MatmulCorrelator
+from cdma_lidar.firmware_model.correlators.matmul import phase_groups
 
 
 def _exact(plan: GatePlan, y: np.ndarray) -> list:
@@ -109,3 +110,14 @@ def test_float32_bits_zero_and_a_large_y_bound_mean_float64_everywhere():
     assert certain.float32_certain()
     kern = MatmulCorrelator(certain)
     assert kern(y).tolist() == _exact(certain, y) and set(kern.products) == {"float32"}
+
+
+def test_phase_groups_merge_while_under_an_eighth_of_the_lags_are_wasted():
+    """The paper gate (66 lags over S = 4: 17, 17, 16, 16) runs as one product, 2 lags of 68
+    in vain; 7 lags (2, 2, 2, 1: 1 of 8 in vain) as two; equal lengths always as one."""
+    bip = np.ones((2, 97), dtype=np.int8)
+    assert [len(sel) for sel in GatePlan(bip, 4, 99, 66).sel] == [17, 16, 16, 17]
+    assert phase_groups(GatePlan(bip, 4, 99, 66))
+    assert not phase_groups(GatePlan(bip, 4, 0, 7))
+    assert phase_groups(GatePlan(bip, 4, 0, 8))
+    assert phase_groups(GatePlan(bip, 1, 5, 3))
