@@ -17,7 +17,9 @@ order of the BLAS:
 * float32 products when that sum is below ``2^min(float32_bits, float_bits)``
   (<= 2^24) for every column and phase of a block: measured on the float32 operand
   itself (a value of 2^24 or more cannot round below 2^24, so a large value is never
-  missed), summed in float64 (exact), or proven for all data by ``N y_bound``;
+  missed), summed in float64 (exact), or proven for all data by ``N y_bound``, or
+  for the block by the caller's ``bound`` (the receiver's ``sum_i |d_i|`` per column:
+  phase r's windows tile the period once, so ``sum_m |Y_r[m]| <= sum_i |d_i|``);
 * else float64 when ``N max|y| < 2^float_bits`` (<= 2^53);
 * else ``y`` is split into limbs of h bits (``N 2^h < 2^float_bits``), each product
   exact in float64, recombined in int64 (the result fits: W_raw <= 56 bits,
@@ -108,6 +110,7 @@ class MatmulCorrelator(Correlator):
 
     #: its Python per call (buffers, float32 test, groups): 0.26 ms measured (costs.py)
     fixed_calls = 400.0
+    takes_bound = True  # sum |d| per column proves float32 products without a look at Y
 
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
@@ -211,19 +214,22 @@ class MatmulCorrelator(Correlator):
             ops.append(lf)
         return ops
 
-    def _float32_operands(self, yb: NDArray[np.signedinteger]) -> list | None:
+    def _float32_operands(self, yb: NDArray[np.signedinteger],
+                          bound: NDArray[np.int64] | None) -> list | None:
         """The float32 operands of every group when float32 products are exact, else None.
 
         Per column and phase the sum of ``|Y|`` over the N chips must stay below
-        :meth:`GatePlan.float32_limit`. One row is looked at first: data too large for
-        float32 is usually refused there, on its first 4096 chips (a refusal is always safe:
-        float64 is exact).
+        :meth:`GatePlan.float32_limit`. The caller's ``bound`` (an upper bound of those
+        sums per column) proves it without a look when every column's is below the limit.
+        Otherwise one row is looked at first: data too large for float32 is usually
+        refused there, on its first 4096 chips (a refusal is always safe: float64 is
+        exact), then every column and phase of the operands.
         """
         plan = self.plan
         limit = plan.float32_limit()
         if not limit:
             return None
-        if plan.float32_certain():
+        if plan.float32_certain() or (bound is not None and int(bound.max()) < limit):
             return self._operands(yb, np.float32)
         r0 = self._groups[0][1][0]
         # a part of one row whose sum of |Y| already reaches the limit refuses it cheaply
@@ -266,7 +272,8 @@ class MatmulCorrelator(Correlator):
             with self._lock:  # called from several column threads at once
                 self.products[np.dtype(dtype).name] += 1
 
-    def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
+    def __call__(self, y: NDArray[np.signedinteger],
+                 bound: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
         plan = self.plan
         c = y.shape[0]
         k, count = plan.k, plan.count
@@ -276,7 +283,8 @@ class MatmulCorrelator(Correlator):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
             dst = out[c0 : c0 + cb]
-            ops32 = self._float32_operands(yb)
+            ops32 = self._float32_operands(yb, None if bound is None else
+                                           bound[c0 : c0 + cb])
             if ops32 is not None:
                 self._run(ops32, dst, np.float32, 0, True, True)
                 continue
