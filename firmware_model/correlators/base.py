@@ -149,7 +149,7 @@ class Correlator(ABC):
 
     #: called once per frame with every column (else once per column range and thread)
     whole_frame: bool = False
-    #: called as ``kernel(y, bound)`` with ``bound`` a (C,) int64 array, ``sum_m |y[c, r,
+    #: called as ``kernel(y, bound)`` with ``bound`` a (C,) integer array, ``sum_m |y[c, r,
     #: m]| <= bound[c]`` for every phase r (the receiver's ``sum_i |d_i|`` over the
     #: period), or None: a proof of a narrower exact arithmetic without a look at ``y``
     takes_bound: bool = False

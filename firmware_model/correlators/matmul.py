@@ -215,7 +215,7 @@ class MatmulCorrelator(Correlator):
         return ops
 
     def _float32_operands(self, yb: NDArray[np.signedinteger],
-                          bound: NDArray[np.int64] | None) -> list | None:
+                          bound: NDArray[np.unsignedinteger] | None) -> list | None:
         """The float32 operands of every group when float32 products are exact, else None.
 
         Per column and phase the sum of ``|Y|`` over the N chips must stay below
@@ -273,7 +273,7 @@ class MatmulCorrelator(Correlator):
                 self.products[np.dtype(dtype).name] += 1
 
     def __call__(self, y: NDArray[np.signedinteger],
-                 bound: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
+                 bound: NDArray[np.unsignedinteger] | None = None) -> NDArray[np.int64]:
         plan = self.plan
         c = y.shape[0]
         k, count = plan.k, plan.count

@@ -200,3 +200,19 @@ def test_the_bound_fails_where_every_window_cancels_yet_float32_runs():
     assert out.mismatches(reference(cfg, codes, x[0])) == []
     assert set(rx.kernel_for(1).products) == {"float32"}
     assert 14 * 2047 >= rx.plan.float32_limit() and not out.corr.any()
+
+
+def test_the_bound_sums_in_uint64_where_uint32_could_overflow():
+    """N S R 2^(b-1) >= 2^32 (16-bit codes, R = 1024, 248 samples a period): sum |d| in
+    uint64; at the rails no float32, between them the bound or the test decides, exact."""
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=8, averages=1024, gate_len=9)
+    rng = np.random.default_rng(11)
+    codes = rng.integers(0, 2, (2, 31))
+    size = cfg.column_samples(31)
+    rails = np.where(rng.random(size) < 0.5, -32768, 32767).astype(np.int16)
+    small = rng.integers(-1, 2, size).astype(np.int32)
+    for x, want in ((rails, "float64"), (small, "float32")):
+        rx = FastReceiver(cfg, codes, method="matmul")
+        assert rx._l1_type is np.uint64
+        assert rx.frame(x[None, :])[0].mismatches(reference(cfg, codes, x)) == []
+        assert set(rx.kernel_for(1).products) == {want}
