@@ -689,8 +689,7 @@ class FastReceiver:
         c, s, n = acc.shape[0], self.cfg.samples_per_chip, self.n_chips
         w = np.empty((c, self._ns), dtype=self._y_type)
         kernel = self.kernel_for(c)
-        # sum_i |d_i| per column (< 2^63): the kernel's proof of float32 products, where the
-        # data decide
+        # sum_i |d_i| per column: the kernel's proof of float32 products, where the data decide
         wants = kernel.takes_bound and self._data_bound
         l1 = np.empty(c, dtype=self._l1_type) if wants else None
         parts: dict[int, list[ReceiverOutput]] = {}
