@@ -92,6 +92,9 @@ MIN_CODE_LENGTH = 3
 MAX_CHANNELS = 2048
 MAX_GHOST_WINDOWS = 8
 INT64_BITS = 63  # magnitude bits of an int64
+#: Input bytes per step of the passes before the kernel (range check, R-sum, despread,
+#: chip sums): a step stays in a core's L2 cache from one pass to the next.
+STEP_BYTES = 1 << 20
 
 
 def _bitlen(x: int) -> int:
@@ -513,6 +516,10 @@ class FastReceiver:
                              y_bound=y_bound, columns=self.columns,
                              float32_bits=self.float32_bits,
                              shared_bytes=self._shared_bytes(self.columns))
+        # the float32 rule depends on the data: the chain hands the kernels sum |d| per column
+        self._data_bound = bool(self.plan.float32_limit()) and not self.plan.float32_certain()
+        d_max = cfg.uid_bits * cfg.averages << (cfg.adc_bits - 1)  # max |d|
+        self._l1_type = np.uint32 if ns * d_max < 1 << 32 else np.uint64
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
         self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
         if self.prepare:
@@ -597,18 +604,14 @@ class FastReceiver:
         acc = np.empty((c, self.cfg.uid_bits, self._ns), dtype=acc_type)
         info = np.iinfo(x.dtype)
         check = info.min < self._lo or info.max > self._hi  # else the dtype is the range
-        # about 1 MiB of input per step: the range check's two reductions and the sum
-        # over the R repetitions then read it from the cache, not three times from memory
-        step = max(1, (1 << 20) // max(1, x.shape[1] * x.dtype.itemsize))
 
         def accumulate(c0: int, c1: int) -> None:  # range check and R-sum, columns c0..c1-1
-            for b0 in range(c0, c1, step):
-                xb = x[b0 : min(c1, b0 + step)]
-                if check and xb.size:
-                    self._check_range(xb)
-                self._accumulate_into(xb, acc[b0 : b0 + len(xb)])
+            xb = x[c0:c1]
+            if check and xb.size:
+                self._check_range(xb)
+            self._accumulate_into(xb, acc[c0:c1])
 
-        return self._chain(acc, accumulate, x.size)
+        return self._chain(acc, accumulate, x.size, x.shape[1] * x.dtype.itemsize)
 
     def _check_samples(self, samples: NDArray[np.integer], shape: bool = True,
                        values: bool = True) -> None:
@@ -666,10 +669,10 @@ class FastReceiver:
         return self._finish(a)
 
     def _finish(self, a: NDArray[np.signedinteger]) -> list[ReceiverOutput]:
-        return self._chain(a, lambda c0, c1: None, a.size)
+        return self._chain(a, lambda c0, c1: None, a.size, a[0].nbytes if len(a) else 1)
 
     def _chain(self, acc: NDArray[np.signedinteger], accumulate: Callable[[int, int], None],
-               size: int) -> list[ReceiverOutput]:
+               size: int, column_bytes: int) -> list[ReceiverOutput]:
         """The chain after ``accumulate(c0, c1)`` has filled ``acc[c0:c1]`` (C, n, NS).
 
         The columns are split into :attr:`threads` contiguous ranges, each run through
@@ -678,31 +681,48 @@ class FastReceiver:
         another range, and column threads times BLAS threads never exceed
         :attr:`threads`. A ``whole_frame`` kernel (one batched call, a GPU) runs once
         between the two halves instead.
+
+        ``accumulate``, the despread and the chip sums run in steps of about
+        :data:`STEP_BYTES` of input (``column_bytes`` per column), so that each pass
+        reads the step from the cache the previous one left it in.
         """
         c, s, n = acc.shape[0], self.cfg.samples_per_chip, self.n_chips
         w = np.empty((c, self._ns), dtype=self._y_type)
         kernel = self.kernel_for(c)
+        # sum_i |d_i| per column: the kernel's proof of float32 products, where the data decide
+        wants = kernel.takes_bound and self._data_bound
+        l1 = np.empty(c, dtype=self._l1_type) if wants else None
         parts: dict[int, list[ReceiverOutput]] = {}
+        step = max(1, STEP_BYTES // max(1, column_bytes))
 
         def chips(c0: int, c1: int) -> NDArray[np.signedinteger]:
-            accumulate(c0, c1)
-            self._chip_domain(acc[c0:c1], w[c0:c1])
+            for b0 in range(c0, c1, step):
+                b1 = min(c1, b0 + step)
+                accumulate(b0, b1)
+                self._chip_domain(acc[b0:b1], w[b0:b1], None if l1 is None else l1[b0:b1])
             return w[c0:c1].reshape(c1 - c0, n, s).transpose(0, 2, 1)  # (C, S, N), a view
 
         def post(c0: int, c1: int, raw: NDArray[np.int64]) -> None:
             parts[c0] = self._post(raw, self._scale_raw(raw), acc[c0:c1])
 
+        def run(y: NDArray[np.signedinteger], c0: int, c1: int) -> NDArray[np.int64]:
+            if kernel.takes_bound:
+                return kernel(y, None if l1 is None else l1[c0:c1])
+            return kernel(y)
+
         if kernel.whole_frame:
             parallel_columns(chips, c, size, self.threads)
-            raw_all = kernel(w.reshape(c, n, s).transpose(0, 2, 1))
+            raw_all = run(w.reshape(c, n, s).transpose(0, 2, 1), 0, c)
             parallel_columns(lambda c0, c1: post(c0, c1, raw_all[c0:c1]), c, size, self.threads)
         else:
-            parallel_columns(lambda c0, c1: post(c0, c1, kernel(chips(c0, c1))), c, size,
+            parallel_columns(lambda c0, c1: post(c0, c1, run(chips(c0, c1), c0, c1)), c, size,
                              self.threads)
         return [o for c0 in sorted(parts) for o in parts[c0]]
 
-    def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger]) -> None:
-        """Despread the accumulators ``a`` (C, n, NS) and write the window sums into ``w``."""
+    def _chip_domain(self, a: NDArray[np.signedinteger], w: NDArray[np.signedinteger],
+                     l1: NDArray[np.unsignedinteger] | None = None) -> None:
+        """Despread the accumulators ``a`` (C, n, NS) and write the window sums into ``w``
+        and, if given, ``sum_i |d_i|`` per column into ``l1``."""
         cfg = self.cfg
         if cfg.uid_bits == 1:  # d = (-1)^uid acc[0]: the sign is folded into the chip sums
             d, sign = a[:, 0, :], int(self._despread[0])
@@ -715,6 +735,13 @@ class FastReceiver:
                     d -= a[:, p, :]
         chip_sums(d, cfg.samples_per_chip, sign, self._y_type, out=w,
                   scratch=self._scratch(w.shape, self._y_type, "chips"))
+        if l1 is not None:
+            # |d| in d's own type, read as unsigned: |min| wraps to min, whose unsigned
+            # reading is its magnitude 2^(bits-1), so every |d_i| is exact; summed in
+            # uint32 when NS |d| fits (2x faster than int64 for int16 d), else uint64
+            mag = np.abs(d, out=self._scratch(d.shape, d.dtype, "abs"))
+            np.add.reduce(mag.view(mag.dtype.str.replace("i", "u")), axis=-1,
+                          dtype=self._l1_type, out=l1)
 
     def _scale_raw(self, raw: NDArray[np.int64]) -> NDArray[np.int64]:
         """``out`` of the kernel's ``raw``: ``raw`` itself when the scaling is the identity."""

@@ -149,6 +149,10 @@ class Correlator(ABC):
 
     #: called once per frame with every column (else once per column range and thread)
     whole_frame: bool = False
+    #: called as ``kernel(y, bound)`` with ``bound`` a (C,) integer array, ``sum_m |y[c, r,
+    #: m]| <= bound[c]`` for every phase r (the receiver's ``sum_i |d_i|`` over the
+    #: period), or None: a proof of a narrower exact arithmetic without a look at ``y``
+    takes_bound: bool = False
     #: the fixed cost of one call (its Python: buffers, checks, dispatch) in numpy calls
     #: (:class:`.costs.Coefficients` ``call``); measured per kernel, see ``costs.py``
     fixed_calls: float = 0.0
@@ -169,7 +173,10 @@ class Correlator(ABC):
 
     @abstractmethod
     def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
-        """Chip sums ``y`` (C, S, N), int16/32/64 -> exact ``raw`` (C, K, count) int64."""
+        """Chip sums ``y`` (C, S, N), int16/32/64 -> exact ``raw`` (C, K, count) int64.
+
+        A kernel that sets :attr:`takes_bound` is called as ``kernel(y, bound)`` instead.
+        """
 
 
 _REGISTRY: dict[str, type[Correlator]] = {}

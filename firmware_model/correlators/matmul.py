@@ -6,8 +6,8 @@ phase has a lag). Each phase's chip sums ``Y_r`` (C, N) are copied once into a f
 operand, rotated by ``a_r`` chips, so that every phase needs the same Hankel block
 ``B_L[i, k, t] = bip_k[(i - q0 - t) mod N]``, t < L: the phases with L lags are
 stacked into one product ``(|A| C, N) @ (N, K L)``, those with L - 1 into a second one
-with ``B_{L-1}`` (or into the first, computing one lag too many, when the cost model
-says one product is cheaper). Every output lag is computed exactly once (up to that
+with ``B_{L-1}`` (or into the first, computing one lag too many, while those lags are
+few: :data:`MERGE_WASTE`). Every output lag is computed exactly once (up to that
 one extra lag per phase), in at most two large products.
 
 Exactness: every product is +-y and every partial sum of one output is a sum of a
@@ -17,7 +17,9 @@ order of the BLAS:
 * float32 products when that sum is below ``2^min(float32_bits, float_bits)``
   (<= 2^24) for every column and phase of a block: measured on the float32 operand
   itself (a value of 2^24 or more cannot round below 2^24, so a large value is never
-  missed), summed in float64 (exact), or proven for all data by ``N y_bound``;
+  missed), summed in float64 (exact), or proven for all data by ``N y_bound``, or
+  for the block by the caller's ``bound`` (the receiver's ``sum_i |d_i|`` per column:
+  phase r's windows tile the period once, so ``sum_m |Y_r[m]| <= sum_i |d_i|``);
 * else float64 when ``N max|y| < 2^float_bits`` (<= 2^53);
 * else ``y`` is split into limbs of h bits (``N 2^h < 2^float_bits``), each product
   exact in float64, recombined in int64 (the result fits: W_raw <= 56 bits,
@@ -40,13 +42,12 @@ from cdma_lidar.firmware_model.correlators.base import (
     product_limbs,
 )
 from cdma_lidar.firmware_model.correlators.costs import (
-    COEFFICIENTS,
     Coefficients,
     Estimate,
     gemm_seconds,
 )
 
-__all__ = ["MatmulCorrelator", "phase_groups"]
+__all__ = ["MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
 
 
 def _block(plan: GatePlan) -> int:
@@ -78,16 +79,30 @@ def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, scale: f
                _products(plan, merged, rows))
 
 
-def phase_groups(plan: GatePlan, co: Coefficients) -> bool:
+#: The phases of L - 1 lags are merged into the product of those with L while the lags
+#: computed in vain stay under this share of that product's output. Measured (OpenBLAS,
+#: one thread, K = 40, N = 2047, 80 or 160 columns): merging at L = 17 with 2 of 4 phases
+#: short (2.9 % in vain) took 0.89-0.92x the two products in float32 and 0.94-0.98x in
+#: float64 (a second product packs a second Hankel block and runs on half the rows);
+#: L = 5 (10 %) tied; L = 2 with 1 short (12.5 %) took 1.01-1.06x.
+MERGE_WASTE = 1 / 8
+
+#: Bytes of output scattered per step: the 4 phases writing every 4th lag of a paper frame
+#: (3.4 MB of int64) took 0.58-0.82 ms in one pass each, 0.41-0.45 ms in steps of 12
+#: columns (this size), on the 2-core development machine.
+SCATTER_BYTES = 1 << 18
+
+
+def phase_groups(plan: GatePlan) -> bool:
     """Whether the phases of L - 1 lags are merged into the product of those with L.
 
     Merged: one product that computes one lag too many for each of those phases; split:
-    two products, nothing wasted. The cheaper by the cost model (ties: merged).
+    two products, nothing wasted. Merged while the lags computed in vain are under
+    :data:`MERGE_WASTE` of its output (always when every phase has L lags).
     """
-    if len(set(_lengths(plan).values())) == 1:
-        return True
-    rows = min(plan.columns, _block(plan))
-    return _seconds(plan, co, True, rows, 1.0) <= _seconds(plan, co, False, rows, 1.0)
+    lens = _lengths(plan)
+    top = max(lens.values())
+    return sum(top - v for v in lens.values()) < MERGE_WASTE * top * len(lens)
 
 
 class MatmulCorrelator(Correlator):
@@ -100,6 +115,7 @@ class MatmulCorrelator(Correlator):
 
     #: its Python per call (buffers, float32 test, groups): 0.26 ms measured (costs.py)
     fixed_calls = 400.0
+    takes_bound = True  # sum |d| per column proves float32 products without a look at Y
 
     @classmethod
     def estimate(cls, plan: GatePlan, co: Coefficients) -> Estimate:
@@ -114,7 +130,7 @@ class MatmulCorrelator(Correlator):
         single = plan.float32_certain()
         parts = 1 if single else plan.matmul_limbs()
         item = 4.0 if single else 8.0
-        merged = phase_groups(plan, co)
+        merged = phase_groups(plan)
         prods = _seconds(plan, co, merged, cb, 0.5 if single else 1.0)
         shapes = _products(plan, merged, cb)
         active = len(_lengths(plan))
@@ -137,7 +153,7 @@ class MatmulCorrelator(Correlator):
         self._len = lens
         # phase r's first chip offset: its operand is rotated by it
         self._rot = {r: int(plan.u_m[plan.sel[r][0]]) % plan.n for r in lens}
-        merged = phase_groups(plan, COEFFICIENTS)
+        merged = phase_groups(plan)
         top = max(lens.values())
         # product groups: (offsets, phases), the phases of L lags first
         if merged:
@@ -203,19 +219,22 @@ class MatmulCorrelator(Correlator):
             ops.append(lf)
         return ops
 
-    def _float32_operands(self, yb: NDArray[np.signedinteger]) -> list | None:
+    def _float32_operands(self, yb: NDArray[np.signedinteger],
+                          bound: NDArray[np.unsignedinteger] | None) -> list | None:
         """The float32 operands of every group when float32 products are exact, else None.
 
         Per column and phase the sum of ``|Y|`` over the N chips must stay below
-        :meth:`GatePlan.float32_limit`. One row is looked at first: data too large for
-        float32 is usually refused there, on its first 4096 chips (a refusal is always safe:
-        float64 is exact).
+        :meth:`GatePlan.float32_limit`. The caller's ``bound`` (an upper bound of those
+        sums per column) proves it without a look when every column's is below the limit.
+        Otherwise one row is looked at first: data too large for float32 is usually
+        refused there, on its first 4096 chips (a refusal is always safe: float64 is
+        exact), then every column and phase of the operands.
         """
         plan = self.plan
         limit = plan.float32_limit()
         if not limit:
             return None
-        if plan.float32_certain():
+        if plan.float32_certain() or (bound is not None and int(bound.max()) < limit):
             return self._operands(yb, np.float32)
         r0 = self._groups[0][1][0]
         # a part of one row whose sum of |Y| already reaches the limit refuses it cheaply
@@ -245,20 +264,25 @@ class MatmulCorrelator(Correlator):
             o = self._buffer(f"out{g}", (lf.shape[0], k * width), dtype)
             np.matmul(lf, self._hankel(width, dtype), out=o)  # exact integers (module doc)
             o4 = o.reshape(len(phases), cb, k, width)
-            for i, r in enumerate(phases):
-                sel = plan.sel[r]
-                d = dst[:, :, int(sel[0]) :: s]  # lags m of phase r: a strided view
-                src = o4[i, :, :, : self._len[r]]
-                if single:
-                    np.copyto(d, src, casting="unsafe")  # exact integers: an exact cast
-                elif first:
-                    np.left_shift(src.astype(np.int64), shift, out=d)
-                else:
-                    d += src.astype(np.int64) << shift
+            # the phases interleave in dst's lags: a few columns at a time, so that every
+            # phase's strided writes find those columns' lines of dst still in the cache
+            step = max(1, SCATTER_BYTES // (8 * k * plan.count))
+            for c0 in range(0, cb, step):
+                for i, r in enumerate(phases):
+                    sel = plan.sel[r]
+                    d = dst[c0 : c0 + step, :, int(sel[0]) :: s]  # phase r's lags: strided
+                    src = o4[i, c0 : c0 + step, :, : self._len[r]]
+                    if single:
+                        np.copyto(d, src, casting="unsafe")  # exact integers: an exact cast
+                    elif first:
+                        np.left_shift(src.astype(np.int64), shift, out=d)
+                    else:
+                        d += src.astype(np.int64) << shift
             with self._lock:  # called from several column threads at once
                 self.products[np.dtype(dtype).name] += 1
 
-    def __call__(self, y: NDArray[np.signedinteger]) -> NDArray[np.int64]:
+    def __call__(self, y: NDArray[np.signedinteger],
+                 bound: NDArray[np.unsignedinteger] | None = None) -> NDArray[np.int64]:
         plan = self.plan
         c = y.shape[0]
         k, count = plan.k, plan.count
@@ -268,7 +292,8 @@ class MatmulCorrelator(Correlator):
             yb = y[c0 : c0 + block]
             cb = yb.shape[0]
             dst = out[c0 : c0 + cb]
-            ops32 = self._float32_operands(yb)
+            ops32 = self._float32_operands(yb, None if bound is None else
+                                           bound[c0 : c0 + cb])
             if ops32 is not None:
                 self._run(ops32, dst, np.float32, 0, True, True)
                 continue

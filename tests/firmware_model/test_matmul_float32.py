@@ -15,6 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.firmware_model.correlators import GatePlan, MatmulCorrelator
+from cdma_lidar.firmware_model.correlators.matmul import phase_groups
+from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, reference
 
 
 def _exact(plan: GatePlan, y: np.ndarray) -> list:
@@ -109,3 +111,108 @@ def test_float32_bits_zero_and_a_large_y_bound_mean_float64_everywhere():
     assert certain.float32_certain()
     kern = MatmulCorrelator(certain)
     assert kern(y).tolist() == _exact(certain, y) and set(kern.products) == {"float32"}
+
+
+def test_phase_groups_merge_while_under_an_eighth_of_the_lags_are_wasted():
+    """The paper gate (66 lags over S = 4: 17, 17, 16, 16) runs as one product, 2 lags of 68
+    in vain; 7 lags (2, 2, 2, 1: 1 of 8 in vain) as two; equal lengths always as one."""
+    bip = np.ones((2, 97), dtype=np.int8)
+    assert [len(sel) for sel in GatePlan(bip, 4, 99, 66).sel] == [17, 16, 16, 17]
+    assert phase_groups(GatePlan(bip, 4, 99, 66))
+    assert not phase_groups(GatePlan(bip, 4, 0, 7))
+    assert phase_groups(GatePlan(bip, 4, 0, 8))
+    assert phase_groups(GatePlan(bip, 1, 5, 3))
+
+
+# -- the receiver's bound: sum_i |d_i| per column proves float32 without a look at Y --------
+
+
+def _phase_sums(cfg: ReceiverConfig, x: np.ndarray) -> int:
+    """max over columns and phases of sum_m |Y_r[m]|, from the definition (Python ints)."""
+    ns = x.shape[1] // (cfg.averages * cfg.uid_bits)
+    s = cfg.samples_per_chip
+    worst = 0
+    for col in x.tolist():
+        acc = [[sum(col[(r * cfg.uid_bits + p) * ns + i] for r in range(cfg.averages))
+                for i in range(ns)] for p in range(cfg.uid_bits)]
+        d = [sum(-acc[p][i] if (cfg.uid >> p) & 1 else acc[p][i] for p in range(cfg.uid_bits))
+             for i in range(ns)]
+        w = [sum(d[(i + t) % ns] for t in range(s)) for i in range(ns)]
+        worst = max([worst] + [sum(abs(v) for v in w[r::s]) for r in range(s)])
+    return worst
+
+
+@st.composite
+def bound_cases(draw):
+    """Small frames whose sums of |d| and of |Y| straddle a low float32 limit: random codes,
+    alternating signs (|d| large, every window of S samples cancels: the bound fails where
+    the per-phase test passes), the ADC rails, and zeros."""
+    n = draw(st.sampled_from([3, 7, 13]))
+    s = draw(st.integers(1, 4))
+    b = draw(st.sampled_from([8, 12, 16]))
+    cfg = ReceiverConfig(adc_bits=b, samples_per_chip=s, averages=draw(st.integers(1, 3)),
+                         uid_bits=draw(st.integers(1, 2)),
+                         gate_start=draw(st.integers(0, n * s - 1)),
+                         gate_len=draw(st.integers(s, n * s)))
+    uid = draw(st.integers(0, (1 << cfg.uid_bits) - 1))
+    cfg = cfg.replace(uid=uid)
+    lo, hi = -(1 << (b - 1)), (1 << (b - 1)) - 1
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    c, size = draw(st.integers(1, 3)), cfg.column_samples(n)
+    kind = draw(st.sampled_from(["random", "small", "alternate", "rails", "zeros"]))
+    if kind == "random":
+        x = rng.integers(lo, hi + 1, (c, size))
+    elif kind == "small":
+        x = rng.integers(-3, 4, (c, size))
+    elif kind == "alternate":  # +v, -v, ... per sample (S even: every window of S sums to 0)
+        x = np.where(np.arange(size) % 2 == 0, hi, -hi) * np.ones((c, 1), dtype=np.int64)
+    elif kind == "rails":
+        x = np.where(rng.random((c, size)) < 0.5, lo, hi)
+    else:
+        x = np.zeros((c, size), dtype=np.int64)
+    codes = rng.integers(0, 2, (draw(st.integers(1, 3)), n))
+    float32_bits = draw(st.sampled_from([1, 6, 10, 14, 24]))
+    dtype = draw(st.sampled_from([np.int16, np.int32, np.int64])) if b <= 16 else np.int64
+    return cfg, codes, x.astype(dtype), float32_bits
+
+
+@settings(max_examples=120, deadline=None)
+@given(bound_cases())
+def test_receiver_float32_products_by_the_bound_or_the_test_equal_the_reference(case):
+    cfg, codes, x, float32_bits = case
+    rx = FastReceiver(cfg, codes, method="matmul", float32_bits=float32_bits)
+    got = rx.frame(x)
+    for col, out in zip(x, got, strict=True):
+        assert out.mismatches(reference(cfg, codes, col)) == []
+    kern = rx.kernel_for(len(x))
+    want = "float32" if _phase_sums(cfg, x) < kern.plan.float32_limit() else "float64"
+    assert set(kern.products) == {want}, (dict(kern.products), want)
+
+
+def test_the_bound_fails_where_every_window_cancels_yet_float32_runs():
+    """Alternating full-scale samples, S = 2: sum |d| is far above 2^10, every chip sum is 0.
+    The bound cannot prove float32; the per-phase test does, and the result is exact."""
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=2, averages=1, gate_len=8)
+    codes = np.random.default_rng(3).integers(0, 2, (2, 7))
+    x = np.where(np.arange(cfg.column_samples(7)) % 2 == 0, 2047, -2047)[None, :]
+    rx = FastReceiver(cfg, codes, method="matmul", float32_bits=10)
+    out = rx.frame(x)[0]
+    assert out.mismatches(reference(cfg, codes, x[0])) == []
+    assert set(rx.kernel_for(1).products) == {"float32"}
+    assert 14 * 2047 >= rx.plan.float32_limit() and not out.corr.any()
+
+
+def test_the_bound_sums_in_uint64_where_uint32_could_overflow():
+    """N S R 2^(b-1) >= 2^32 (16-bit codes, R = 1024, 248 samples a period): sum |d| in
+    uint64; at the rails no float32, between them the bound or the test decides, exact."""
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=8, averages=1024, gate_len=9)
+    rng = np.random.default_rng(11)
+    codes = rng.integers(0, 2, (2, 31))
+    size = cfg.column_samples(31)
+    rails = np.where(rng.random(size) < 0.5, -32768, 32767).astype(np.int16)
+    small = rng.integers(-1, 2, size).astype(np.int32)
+    for x, want in ((rails, "float64"), (small, "float32")):
+        rx = FastReceiver(cfg, codes, method="matmul")
+        assert rx._l1_type is np.uint64
+        assert rx.frame(x[None, :])[0].mismatches(reference(cfg, codes, x)) == []
+        assert set(rx.kernel_for(1).products) == {want}
