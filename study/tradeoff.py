@@ -14,8 +14,9 @@ Two trades, each on deterministic axes:
   same configuration.
 
 Every point renders frames of a scene with the simulated instrument
-(:class:`cdma_lidar.scene.instrument.Instrument`: each column's repetition sum,
-:meth:`~cdma_lidar.scene.instrument.Instrument.render_sum`, as the virtual board does),
+(:class:`cdma_lidar.scene.instrument.Instrument`: the columns' repetition sums in
+batches, :meth:`~cdma_lidar.scene.instrument.Instrument.render_sums`, as the virtual
+board does),
 runs them through the bit-exact receive chain
 (:class:`cdma_lidar.firmware_model.receiver.FastReceiver`, ``method="auto"``) and turns
 each frame into ranges with the host's pipeline
