@@ -8,7 +8,12 @@
    products switched off (``float32_bits=0``), full-scale data (every sample at an ADC
    rail: chip sums far beyond float32's exact range, so float64 products) and the
    float32 floor; best of 9 each, every ratio within the run. A frame timed after a
-   threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one).
+   threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one)
+   and is then timed twice: once straight after the pause (the table's ``after idle``:
+   on this VM a core idle that long takes milliseconds to come back, which costs the
+   2-thread frame 5-8 ms) and once right after that, warm, as the floor is timed (right
+   after the frame) and as a scan's frames follow each other; the ratios use the warm
+   time.
    Where the time goes: CPU ms per pass (range check, R-sum, chip sums, float32
    operands and their test, product and scatter, peaks), summed over the column
    threads, at 1 thread and at the machine's count. Also the real-time factor
@@ -36,6 +41,7 @@ import os
 import statistics
 import time
 import tracemalloc
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,17 +161,20 @@ def paper_frame() -> None:
     counts = range(1, threads + 1)
     runs: dict[object, list[float]] = {name: [] for name in ("f64", "full", "floor32")}
     for t in counts:
-        runs[t], runs[("floor", t)] = [], []
+        runs[t], runs[("floor", t)], runs[("idle", t)] = [], [], []
 
     def floor_at(t: int) -> None:
         with correlator_base.blas_threads(t):
             fa @ fb
 
-    def settle() -> None:
+    def settle(warm: Callable[[], object] | None = None) -> None:
         """Wait out BLAS's worker threads: after a threaded product OpenBLAS's workers
         spin for tens of ms (measured: ~50 ms, a core's worth when the machine is
-        quiet), and a frame timed meanwhile shares a core with them."""
+        quiet), and a frame timed meanwhile shares a core with them. ``warm``, if given,
+        is then called once untimed (the cores back from idle)."""
         time.sleep(SETTLE_S)
+        if warm is not None:
+            warm()
 
     kern = per.kernel_for(columns)
     before = dict(getattr(kern, "products", {}))
@@ -173,9 +182,10 @@ def paper_frame() -> None:
         for t in counts:
             per.threads = t
             settle()
-            runs[t] += _time(lambda: per.frame(x), 1)
+            runs[("idle", t)] += _time(lambda: per.frame(x), 1)  # straight after the pause
+            runs[t] += _time(lambda: per.frame(x), 1)  # warm, as the floor right after it
             runs[("floor", t)] += _time(lambda t=t: floor_at(t), 1)
-        settle()
+        settle(lambda: rx64.frame(x))
         runs["f64"] += _time(lambda: rx64.frame(x), 1)
         runs["full"] += _time(lambda: rx.frame(x_full), 1)
         runs["floor32"] += _time(lambda: fa32 @ fb32, 1)
@@ -200,11 +210,12 @@ def paper_frame() -> None:
           f"{macs / 1e9:.3f} G multiply-adds, BLAS limited to the same threads "
           "(target: frame / floor <= 1.5 at every thread count)")
     print(f"  {'threads':>7} {'frame ms':>9} {'median':>7} {'floor ms':>9} {'ratio':>6} "
-          f"{'GFLOP/s':>8}")
+          f"{'GFLOP/s':>8} {'after idle':>10}")
     for t in counts:
         ft, fl = min(runs[t]), min(runs[("floor", t)])
         print(f"  {t:>7} {ft * 1e3:9.1f} {statistics.median(runs[t]) * 1e3:7.1f} "
-              f"{fl * 1e3:9.1f} {ft / fl:6.2f} {2 * macs / fl / 1e9:8.0f}")
+              f"{fl * 1e3:9.1f} {ft / fl:6.2f} {2 * macs / fl / 1e9:8.0f} "
+              f"{min(runs[('idle', t)]) * 1e3:10.1f}")
     print(f"  float64 only    : {min(runs['f64']) * 1e3:8.1f} ms/frame (float32_bits=0), "
           f"{min(runs['f64']) / floor:.2f}x the float64 floor ({threads} threads)")
     print(f"  full-scale data : {min(runs['full']) * 1e3:8.1f} ms/frame (every sample at an "
@@ -273,8 +284,9 @@ def _stage_times(rx: FastReceiver, kern: object, x: np.ndarray) -> dict[str, flo
         rx.frame(x)
         best: dict[str, float] = {}
         for _ in range(REPEATS):
-            spent.clear()
             time.sleep(SETTLE_S)
+            rx.frame(x)  # the cores back from idle, as in the table above
+            spent.clear()
             c0, w0 = time.process_time(), time.perf_counter()
             rx.frame(x)
             spent["frame CPU"] = time.process_time() - c0
