@@ -26,7 +26,6 @@ __all__ = [
     "CACHE_BYTES",
     "COEFFICIENTS",
     "RAM_FACTOR",
-    "SMALL_ROWS",
     "Coefficients",
     "Estimate",
     "choose",
@@ -98,24 +97,20 @@ def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
     return size * uses * (1.0 if size <= CACHE_BYTES else ram)
 
 
-#: Products of fewer rows than this measured no faster than that many one-row products
-#: (OpenBLAS, 2 threads: (3, 2047) @ (2047, 400) took 1.7x three (1, 2047) products).
-SMALL_ROWS = 8
-
-
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
 
     Thin products (p or m small) are memory-bound: the byte term dominates them. A
     product of several rows also packs its second operand (BLAS copies it into panels:
     one more read and a write), which a one-row product (a matrix-vector product) does
-    not: measured 1.7x slower for (3, 2047) @ (2047, 400) than three one-row products.
+    not. (A product of a few rows streams its second operand about once: charging it
+    once per row, as this model did, sent a degree-13, 40-channel column to a kernel
+    1.5-1.7x slower than matmul, whose (4, 8191) @ (8191, 680) product measured one
+    pass over its 44.6 MB operand.)
     """
     moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
     if m > 1:
         moved += 16.0 * n * p
-    if 1 < m < SMALL_ROWS:  # no faster than m one-row products: B streamed once per row
-        moved += (m - 1) * stream_bytes(8.0 * n * p, 1, co.ram)
     return co.mac * m * n * p + co.byte * moved + co.call
 
 

@@ -47,7 +47,7 @@ from cdma_lidar.firmware_model.correlators.costs import (
     gemm_seconds,
 )
 
-__all__ = ["MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
+__all__ = ["MAX_HANKEL_BYTES", "MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
 
 
 def _block(plan: GatePlan) -> int:
@@ -91,6 +91,12 @@ MERGE_WASTE = 1 / 8
 #: (3.4 MB of int64) took 0.58-0.82 ms in one pass each, 0.41-0.45 ms in steps of 12
 #: columns (this size), on the 2-core development machine.
 SCATTER_BYTES = 1 << 18
+
+#: ``"auto"`` never prepares Hankel blocks larger than this (bytes; ``method="matmul"``
+#: still does): a degree-15, 1200-channel column would hold 5.3 GB of them, where the
+#: direct kernel needs 32 MB; the cost model counts time only, so this bound keeps auto
+#: from trading gigabytes for it.
+MAX_HANKEL_BYTES = 1 << 30
 
 
 def phase_groups(plan: GatePlan) -> bool:
@@ -144,6 +150,8 @@ class MatmulCorrelator(Correlator):
         hankel = sum(w for _, w in shapes)
         peak = item * n * k * hankel + item * active * cb * n + item * cb * k * width \
             + 8.0 * c * k * plan.count
+        if item * n * k * hankel > MAX_HANKEL_BYTES:
+            return Estimate(math.inf, peak)  # not a candidate for auto (see the constant)
         return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
