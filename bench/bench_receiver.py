@@ -10,8 +10,8 @@
    float32 floor; best of 9 each, every ratio within the run. A frame timed after a
    threaded product waits ``SETTLE_S`` first (OpenBLAS's workers spin ~50 ms after one)
    and is then timed twice: once straight after the pause (the table's ``after idle``:
-   on this VM a core idle that long takes milliseconds to come back, which costs the
-   2-thread frame 5-8 ms) and once right after that, warm, as the floor is timed (right
+   on this VM a core idle that long takes milliseconds to come back, which the frame
+   then pays) and once right after that, warm, as the floor is timed (right
    after the frame) and as a scan's frames follow each other; the ratios use the warm
    time.
    Where the time goes: CPU ms per pass (range check, R-sum, chip sums, float32
