@@ -91,8 +91,8 @@ def _kernel_args(inst: Instrument, cfg: RenderSettings, column: int) -> tuple | 
     amps = inst.gain_v_per_w[chans, column] * inst.default_power_w[chans, column]
     taus = inst.delay_s[chans, column] + inst._sample_shift_s(cfg)
     members = tuple(int(cfg.code_index[c]) for c in chans)
-    rows = inst._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-    return f[1], f.size, amps, taus, [rows[i] for i in members]
+    dfts, period = inst._chip_spectra(cfg, members, cfg.uid, cfg.uid_bits)
+    return f[1], amps, taus, [dfts[i] for i in members], period, inst._spectral_weight(cfg, period)
 
 
 def _cost(scene) -> dict[str, float]:

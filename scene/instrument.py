@@ -267,7 +267,7 @@ def _normal_table() -> NDArray[np.float32]:
     is symmetric with mean 0 and variance 1, within 2^-16 of the normal's distribution
     function everywhere (Kolmogorov distance) and cut at 4.2 standard deviations.
     """
-    from scipy.special import ndtri  # deferred, as scipy.fft in Instrument.echo
+    from scipy.special import ndtri  # deferred: start-up time of every command with a scene
 
     q = ndtri((np.arange(1 << 16) + 0.5) / (1 << 16))
     q /= np.sqrt(np.mean(q * q))
@@ -329,6 +329,17 @@ def detector_response(f_hz: NDArray[np.float64], bandwidth_hz: float,
     h *= np.cos(0.5 * np.pi * x) ** 2
     h[f == 0] = 0.0
     return h
+
+
+@functools.lru_cache(maxsize=8)
+def _bin_weights(m: int, period: int, length: int, chip_rate_hz: float,
+                 bandwidth_hz: float, nyquist_hz: float) -> NDArray[np.float64]:
+    """(m,) H(f_q) sinc(q / nN) L / nN, f_q = q chip_rate / nN (read-only; nN = ``period``)."""
+    q = np.arange(m)
+    h = detector_response(q * chip_rate_hz / period, bandwidth_hz, nyquist_hz)
+    weight = h * np.sinc(q / period) / period * length
+    weight.flags.writeable = False
+    return weight
 
 
 def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
@@ -547,46 +558,64 @@ class Instrument:
 
     def _spectrum_rows(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
                        uid_bits: int, single: bool = False) -> dict[int, NDArray]:
-        """Spectra by Gold member, computed once per (settings, member, UID).
+        """Whole spectra by Gold member (L/2 + 1 bins: ``dft[q % nN] * weight[q]`` of
+        :meth:`_chip_spectra`), computed once per (settings, member, UID) and dropped
+        with the settings. ``single``: complex64 (rounded from the complex128)."""
+        rows = self._book(("rows", single, cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid,
+                           uid_bits))
+        missing = tuple(sorted({i for i in indices if i not in rows}))
+        if missing:
+            dfts, period = self._chip_spectra(cfg, missing, uid, uid_bits)
+            weight = self._spectral_weight(cfg, period)
+            q = np.arange(weight.size) % period
+            for i in missing:
+                row = dfts[i].reshape(-1)[q] * weight
+                rows[i] = row.astype(np.complex64) if single else row
+        return rows
 
-        A column's lit subset then costs nothing to gather; the cache is dropped when
-        the settings change. ``single``: complex64 copies (made once from the complex128).
-        """
-        if single:
-            wide = self._spectrum_rows(cfg, indices, uid, uid_bits)
-            key32 = ("single", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
-            rows32 = self._spectra.setdefault(key32, {})
-            for i in indices:
-                if i not in rows32:
-                    rows32[i] = wide[i].astype(np.complex64)
-            return rows32
-        key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits)
-        rows = self._spectra.get(key)
-        if rows is None:
-            if len(self._spectra) >= 8:
-                self._spectra.clear()
-            rows = self._spectra[key] = {}
+    def _chip_spectra(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
+                      uid_bits: int, single: bool = False
+                      ) -> tuple[dict[int, NDArray[np.complexfloating]], int]:
+        """(by Gold member: the nN-point DFT of its UID-signed bipolar chips, zero-padded to
+        an (A, B) array, A B >= nN; the period nN in bins). A member's spectrum at bin q
+        is ``dft[q % nN] * weight[q]`` (:meth:`_spectral_weight`): the L/2 + 1 bins of
+        an S-samples-per-chip frame repeat the chips' DFT S/2 times under one smooth
+        weight, which :meth:`_sum_delayed` exploits. Computed once per member and
+        UID. ``single``: complex64 copies."""
+        rows = self._book(("chips", single, cfg.poly_u, cfg.poly_v, uid, uid_bits))
+        period = uid_bits * ((1 << cfg.poly_u[0]) - 1)
         missing = tuple(sorted({i for i in indices if i not in rows}))
         if missing:
             codes = gold_codes(cfg.poly_u, cfg.poly_v, missing, field="code_index")
-            n_chips = codes.shape[1]
-            nn = uid_bits * n_chips
-            s = cfg.samples_per_chip
-            length = nn * s
-            m = length // 2 + 1
             bip = 1.0 - 2.0 * codes.astype(np.float64)  # (k, N)
             chips = (bip[:, None, :] * _uid_signs(uid, uid_bits)[None, :, None]
-                     ).reshape(len(missing), nn)
-            spec = np.fft.fft(chips, axis=1)
-            q = np.arange(m)
-            f = q * self.spec.chip_rate_hz / nn
-            h = detector_response(f, self.spec.detector_bandwidth_hz,
-                                  self.spec.chip_rate_hz * s / 2)
-            weight = h * np.sinc(q / nn) / nn * length
-            out = spec[:, q % nn] * weight[None, :]
-            for i, row in zip(missing, out, strict=True):
-                rows[i] = row
-        return rows
+                     ).reshape(len(missing), period)
+            b = math.isqrt(period - 1) + 1
+            a = -(-period // b)
+            spec = np.zeros((len(missing), a * b), dtype=np.complex128)
+            spec[:, :period] = np.fft.fft(chips, axis=1)
+            for i, row in zip(missing, spec, strict=True):
+                rows[i] = row.reshape(a, b).astype(np.complex64) if single else row.reshape(a, b)
+        return rows, period
+
+    def _book(self, key: tuple) -> dict:
+        """The codebook's entry ``key``: a dict by Gold member (spectra, tables), new and
+        empty the first time; the whole codebook is dropped when it holds 16 entries
+        (the settings changed that often)."""
+        book = self._spectra.get(key)
+        if book is None:
+            if len(self._spectra) >= 16:
+                self._spectra.clear()
+            book = self._spectra[key] = {}
+        return book
+
+    def _spectral_weight(self, cfg: RenderSettings, period: int) -> NDArray[np.float64]:
+        """(L/2 + 1,) real weight of every member's spectrum: the detector's H(f), the NRZ
+        chip's sinc and the scale L / (nN) (``period`` = nN chips per frame)."""
+        length = period * cfg.samples_per_chip
+        return _bin_weights(length // 2 + 1, period, length, self.spec.chip_rate_hz,
+                            self.spec.detector_bandwidth_hz,
+                            self.spec.chip_rate_hz * cfg.samples_per_chip / 2)
 
     def _sample_shift_s(self, cfg: RenderSettings) -> float:
         tc = 1.0 / self.spec.chip_rate_hz
@@ -668,11 +697,10 @@ class Instrument:
         if terms is None:
             return np.zeros(length, dtype=np.float32 if single else np.float64)
         amps, taus, members, _ = terms
-        rows = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits, single)
-        total = self._sum_delayed(f0, m, amps, taus, [rows[i] for i in members])
-        import scipy.fft  # deferred: 130 ms at start-up of every command that loads a scene
-
-        return scipy.fft.irfft(total, n=length, overwrite_x=True)
+        dfts, period = self._chip_spectra(cfg, members, cfg.uid, cfg.uid_bits, single)
+        total = self._sum_delayed(f0, amps, taus, [dfts[i] for i in members], period,
+                                  self._spectral_weight(cfg, period))
+        return np.fft.irfft(total, n=length)
 
     @staticmethod
     def echo_tabulated(cfg: RenderSettings) -> bool:
@@ -718,7 +746,7 @@ class Instrument:
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
             return
-        from scipy.linalg.blas import saxpy  # deferred, as scipy.fft in echo()
+        from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
 
         length = cfg.frame_samples
         rows = [j for j in lit for _ in terms[j][2]]
@@ -749,15 +777,12 @@ class Instrument:
         sample shift), one frame written twice (so any rotation is a slice). Built once
         per (settings, member) from the spectra and kept with them (TABLE_PHASES + 1
         inverse FFTs per member)."""
-        key = ("table", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid, cfg.uid_bits)
-        table = self._spectra.get(key)
-        if table is not None and all(i in table for i in members):
-            return table
-        spectra = self._spectrum_rows(cfg, members, cfg.uid, cfg.uid_bits)
-        table = self._spectra.setdefault(key, {})
+        table = self._book(("table", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid,
+                            cfg.uid_bits))
         missing = tuple(sorted({i for i in members if i not in table}))
         if missing:
-            import scipy.fft  # deferred, as in echo()
+            spectra = self._spectrum_rows(cfg, missing, cfg.uid, cfg.uid_bits)
+            import scipy.fft  # deferred, as in _normal_table
 
             length = cfg.frame_samples
             m = length // 2 + 1
@@ -785,34 +810,55 @@ class Instrument:
         return np.concatenate(amps_l), np.concatenate(taus_l), np.concatenate(chans_l)
 
     @staticmethod
-    def _sum_delayed(f0_hz: float, m: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
-                     spectra: list[NDArray[np.complex128]],
+    def _sum_delayed(f0_hz: float, amps: NDArray[np.float64], taus: NDArray[np.float64],
+                     dfts: list[NDArray[np.complexfloating]], period: int,
+                     weight: NDArray[np.float64],
                      out: NDArray[np.complexfloating] | None = None,
-                     rows: list[int] | None = None) -> NDArray[np.complex128]:
-        """sum_k amps_k * spectra_k[q] * exp(-2j pi q f0 tau_k), q < m: the per-channel work.
+                     rows: list[int] | None = None) -> NDArray[np.complexfloating]:
+        """weight[q] sum_k amps_k dfts_k[q % period] exp(-2j pi q f0 tau_k), q < m = weight.size:
+        the per-channel work of the Fourier synthesis (dfts: :meth:`_chip_spectra`'s (A, B)
+        arrays; their dtype, complex128 or complex64, is the sum's).
 
-        The phase ramp of each channel is the outer product of two short exponentials
-        (q = a * B + b), so each channel costs three passes over m bins. ``out``: an (m,)
-        array of the spectra's dtype to write the sum into (its values are overwritten).
-        ``rows``: several sums at once, term k added into ``out[rows[k]]`` ((R, m)
-        ``out``), the terms in the order given.
+        With q = j period + p, the term is ``u_k[p] exp(-2j pi f0 tau_k j period)``, u_k =
+        amps_k dfts_k[p] exp(-2j pi p f0 tau_k) over one period (p < period), its ramp the
+        outer product of two short exponentials (p = alpha B + beta): two multiplies over
+        a period, then one scaled add (BLAS axpy) per period of bins, where multiplying
+        every bin by its own ramp and the member's whole spectrum costs three passes over
+        all m bins (1.5x the work at S = 4, 2.4x at S = 16). The weight multiplies each
+        sum once at the end. ``out``: an (m,) array of the dfts' dtype to write the sum
+        into (overwritten). ``rows``: several sums at once, term k added into
+        ``out[rows[k]]`` ((R, m) ``out``), the terms in the order given.
         """
-        b = int(np.ceil(np.sqrt(m)))
-        a = -(-m // b)
+        from scipy.linalg.blas import caxpy, zaxpy  # deferred, as in _normal_table
+
+        m = weight.size
+        a, b = dfts[0].shape
+        dtype = dfts[0].dtype  # complex64 in single precision
+        axpy = zaxpy if dtype == np.complex128 else caxpy
         w = -2.0 * np.pi * f0_hz * taus
-        dtype = spectra[0].dtype  # complex64 in single precision
-        lo = (np.exp(1j * w[:, None] * np.arange(b)[None, :]) * amps[:, None]).astype(dtype)
-        hi = np.exp(1j * w[:, None] * (b * np.arange(a))[None, :]).astype(dtype)
+        hi = (np.exp(1j * np.outer(w, b * np.arange(a))) * amps[:, None]).astype(dtype)
+        lo = np.exp(1j * np.outer(w, np.arange(b))).astype(dtype)
+        starts = range(0, m, period)  # the first bin of each period of bins
+        turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype).tolist()
         total = np.zeros(m, dtype=dtype) if out is None else out
         if out is not None:
             total[...] = 0
-        targets = [total] * len(spectra) if rows is None else [total[r] for r in rows]
+        # each sum's periods of bins, and the same lengths of one period's terms
+        parts = {r: [row[q0:q0 + period] for q0 in starts]
+                 for r, row in ([(0, total)] if rows is None else
+                                [(r, total[r]) for r in sorted(set(rows))])}
         tmp = np.empty((a, b), dtype=dtype)
-        flat = tmp.reshape(-1)[:m]
-        for k, (spec, target) in enumerate(zip(spectra, targets, strict=True)):
-            np.multiply.outer(hi[k], lo[k], out=tmp)
-            flat *= spec
-            target += flat
+        heads = [tmp.reshape(-1)[:part.size] for part in parts[next(iter(parts))]]
+        for k, dft in enumerate(dfts):
+            np.multiply(dft, lo[k], out=tmp)
+            np.multiply(tmp, hi[k][:, None], out=tmp)
+            first, *rest = parts[0 if rows is None else rows[k]]
+            np.add(first, heads[0], out=first)
+            for part, head, turn in zip(rest, heads[1:], turns[k], strict=True):
+                got = axpy(head, part, a=turn)  # in place: part += turn u
+                if got is not part:  # (f2py copies only an array it cannot write in place)
+                    part[...] = got
+        total *= weight
         return total
 
     def other_users_signal(self, column: int, cfg: RenderSettings,
@@ -844,10 +890,10 @@ class Instrument:
             ucfg = RenderSettings(cfg.samples_per_chip, 1, u.uid_bits, u.uid, cfg.code_index,
                                   cfg.poly_u, cfg.poly_v)
             f, length = self._frame_bins(ucfg)
-            spec = self._spectrum_rows(ucfg, (u.code_index,), u.uid, u.uid_bits)[u.code_index]
+            dfts, period = self._chip_spectra(ucfg, (u.code_index,), u.uid, u.uid_bits)
             frame = np.fft.irfft(self._sum_delayed(
-                f[1], f.size, np.array([u.amplitude_v]),
-                np.array([u.delay_s + self._sample_shift_s(cfg)]), [spec]), n=length)
+                f[1], np.array([u.amplitude_v]), np.array([u.delay_s + self._sample_shift_s(cfg)]),
+                [dfts[u.code_index]], period, self._spectral_weight(ucfg, period)), n=length)
             out += frame[idx % length]
         return out
 
@@ -1150,69 +1196,66 @@ class Instrument:
     def _exact_means(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
                      calibration: bool) -> tuple[list[NDArray[np.float64]], list[float]]:
         """(R (x + offset + ROUNDING_LSB) per item, float64 LSB; each repetition's largest
-        |value|, LSB): the echoes' inverse FFTs in batches (bit-identical to :meth:`echo`'s,
-        tests/scene/test_fidelity.py), each batch of about _BLOCK_VALUES values scaled
-        while it is in the cache."""
+        |value|, LSB): :meth:`_echoes` with the scaling to LSB and the constant made in
+        the spectrum."""
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
-        # (x scale + offset) / 2^FRAC_BITS in two roundings, not three passes: dividing by a
-        # power of two is exact, so it commutes with each rounding (the same values, short of
-        # subnormal products, which no echo in volts comes near)
-        offset_lsb = offset / (1 << FRAC_BITS)
         r = cfg.averages
-        means: list[NDArray[np.float64]] = []
-        peaks: list[float] = []
-        step = max(1, _BLOCK_VALUES // cfg.frame_samples)
-        for b0 in range(0, len(items), step):
-            one = self._echoes(cfg, items[b0:b0 + step], calibration)
-            one *= lsb_per_v
-            one += offset_lsb
-            one += ROUNDING_LSB
-            peaks += np.maximum(one.max(axis=1), -one.min(axis=1)).tolist()  # max |one|
-            means += list(one * r)
-            for j, (col, _) in enumerate(items[b0:b0 + step]):
-                users = None if calibration else self.other_users_signal(col, cfg,
-                                                                         one.shape[1] * r)
-                if users is not None:
-                    each = users.reshape(r, one.shape[1]) * lsb_per_v
-                    each += one[j]
-                    peaks[b0 + j] = float(np.abs(each).max())
-                    means[b0 + j] = each.sum(axis=0)
+        shift = offset / (1 << FRAC_BITS) + ROUNDING_LSB
+        block, top = self._echoes(cfg, items, calibration, r * lsb_per_v, r * shift)
+        peaks = (top / r).tolist()
+        means = list(block)
+        for j, (col, _) in enumerate(items):
+            users = None if calibration else self.other_users_signal(col, cfg,
+                                                                     block.shape[1] * r)
+            if users is not None:
+                each = users.reshape(r, block.shape[1]) * lsb_per_v
+                each += block[j] / r
+                peaks[j] = float(np.abs(each).max())
+                means[j] = each.sum(axis=0)
         return means, peaks
 
     def _echoes(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
-                calibration: bool) -> NDArray[np.float64]:
-        """(B, L) float64 :meth:`echo` of each (column, power), one batched inverse FFT
-        (bit-identical to echo()'s: the same operations on each value, the channels of a
-        column added in the same order)."""
+                calibration: bool, gain: float = 1.0, shift: float = 0.0
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """((B, L) float64 ``gain * echo + shift`` of each (column, power), (B,) the
+        largest |value| of each): the spectra of about _BLOCK_VALUES values at a time (one
+        buffer, in the cache), their batched inverse FFT and its extremes. The gain
+        multiplies the spectral weight and the shift is the DC bin's (the defaults give
+        :meth:`echo`'s values bit for bit: the same operations on each value, a column's
+        channels added in the same order)."""
         length = cfg.frame_samples
         m = length // 2 + 1
         f0 = self.spec.chip_rate_hz / cfg.frame_chips if m > 1 else 0.0
         terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
+        out = np.empty((len(items), length))
+        out[[j for j, t in enumerate(terms) if t is None]] = shift
+        peaks = np.empty(len(items))
+        peaks[:] = abs(shift)
         if not lit:
-            return np.zeros((len(items), length))
-        # every term of the batch, channel by channel (each row still adds its own terms
-        # in their order when there are no ghosts: the same sums as one column at a time)
-        # so a code's spectrum is read once for all the batch's columns it is lit in
-        rows = [r for r, j in enumerate(lit) for _ in terms[j][2]]
-        members = [i for j in lit for i in terms[j][2]]
-        order = np.arange(len(rows)) if self.spec.ghosts else np.lexsort(
-            (rows, np.concatenate([terms[j][3] for j in lit])))
-        book = self._spectrum_rows(cfg, tuple(set(members)), cfg.uid, cfg.uid_bits)
-        spectra = np.empty((len(lit), m), dtype=np.complex128)
-        self._sum_delayed(f0, m, np.concatenate([terms[j][0] for j in lit])[order],
-                          np.concatenate([terms[j][1] for j in lit])[order],
-                          [book[members[n]] for n in order.tolist()], out=spectra,
-                          rows=[rows[n] for n in order.tolist()])
-        import scipy.fft  # deferred, as in echo()
-
-        wave = scipy.fft.irfft(spectra, n=length, axis=1, overwrite_x=True)
-        if len(lit) == len(items):
-            return wave
-        out = np.zeros((len(items), length))
-        out[lit] = wave
-        return out
+            return out, peaks
+        dfts, period = self._chip_spectra(
+            cfg, tuple({i for j in lit for i in terms[j][2]}), cfg.uid, cfg.uid_bits)
+        weight = self._spectral_weight(cfg, period)
+        if gain != 1.0:
+            weight = weight * gain
+        step = max(1, _BLOCK_VALUES // length)
+        spectra = np.empty((min(step, len(lit)), m), dtype=np.complex128)
+        for b0 in range(0, len(lit), step):
+            block = lit[b0:b0 + step]
+            part = spectra[:len(block)]
+            self._sum_delayed(f0, np.concatenate([terms[j][0] for j in block]),
+                              np.concatenate([terms[j][1] for j in block]),
+                              [dfts[i] for j in block for i in terms[j][2]], period, weight,
+                              out=part, rows=[r for r, j in enumerate(block) for _ in terms[j][2]])
+            part[:, 0] += shift * length  # the weight is 0 at DC (AC coupling)
+            if block[-1] - block[0] == len(block) - 1:  # consecutive rows: written in place
+                wave = np.fft.irfft(part, n=length, axis=1, out=out[block[0]:block[-1] + 1])
+            else:
+                out[block] = wave = np.fft.irfft(part, n=length, axis=1)
+            peaks[block] = np.maximum(wave.max(axis=1), -wave.min(axis=1))  # in the cache
+        return out, peaks
 
     def _accumulated_means(self, cfg: RenderSettings,
                            items: list[tuple[int, NDArray[np.float64]]], calibration: bool

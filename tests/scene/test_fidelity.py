@@ -381,7 +381,7 @@ def test_a_batch_of_columns_draws_what_each_column_draws_alone(level):
     assert not np.array_equal(sums[0], sums[1])
     np.testing.assert_array_equal(sums[0], sums[3])
     items = [(c, inst.default_power_w[:, c]) for c in cols]
-    batch = inst._echoes(cfg, items, False)
+    batch = inst._echoes(cfg, items, False)[0]
     for (c, p), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
     lit = int(np.argmax(inst.truth.hits.lit.sum(axis=0)))  # near the clip at 1000x power

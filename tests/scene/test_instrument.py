@@ -8,6 +8,8 @@ from importlib import resources
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cdma_lidar.firmware_model.gold import gold_codes, gold_family
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
@@ -255,3 +257,36 @@ def test_our_uid_polarity_matches_the_code_generator():
     plain = np.repeat(1.0 - 2.0 * gold_codes(cfg.poly_u, cfg.poly_v, (0,))[0], 4)
     signs = np.sign((aligned.reshape(3, -1) * plain).sum(axis=1))
     assert signs.tolist() == [-1.0, 1.0, -1.0]  # bit p of 0b101 set -> period p inverted
+
+
+@settings(max_examples=40, deadline=None)
+@given(s=st.integers(1, 16), uid_bits=st.integers(1, 3), uid=st.integers(0, 7),
+       taus=st.lists(st.floats(0.0, 2e-6), min_size=1, max_size=5), seed=st.integers(0, 99))
+def test_the_periodic_synthesis_equals_the_spectrum_summed_bin_by_bin(s, uid_bits, uid, taus,
+                                                                      seed):
+    """_sum_delayed (a period of bins per term, then one scaled add per further period)
+    against its definition, weight[q] sum_k A_k dft_k[q % nN] exp(-2j pi q f0 tau_k), at
+    every S (odd frame lengths and S = 1, where the bins end inside the first period),
+    UID length and delay, to a few units in the last place; rows and the order of terms
+    as the batch gives them."""
+    inst = Instrument(_wall(count=3), 0)
+    base = RenderSettings.from_spec(inst.spec)
+    cfg = RenderSettings(s, 1, uid_bits, uid % (1 << uid_bits), base.code_index, base.poly_u,
+                         base.poly_v)
+    members = [int(cfg.code_index[k % 3]) for k in range(len(taus))]
+    amps = np.random.default_rng(seed).uniform(-1.0, 1.0, len(taus))
+    dfts, period = inst._chip_spectra(cfg, tuple(set(members)), cfg.uid, cfg.uid_bits)
+    weight = inst._spectral_weight(cfg, period)
+    f0 = inst.spec.chip_rate_hz / cfg.frame_chips
+    rows = [k % 2 for k in range(len(taus))]
+    got = np.empty((2, weight.size), dtype=np.complex128)
+    Instrument._sum_delayed(f0, amps, np.asarray(taus), [dfts[i] for i in members], period,
+                            weight, out=got, rows=rows)
+    q = np.arange(weight.size)
+    want = np.zeros_like(got)
+    for a, tau, i, r in zip(amps, taus, members, rows, strict=True):
+        want[r] += a * dfts[i].reshape(-1)[q % period] * np.exp(-2j * np.pi * q * f0 * tau)
+    want *= weight
+    scale = np.abs(want).max()
+    assert np.abs(got - want).max() <= 1e-12 * scale
+    assert period == uid_bits * ((1 << cfg.poly_u[0]) - 1) and weight.size == period * s // 2 + 1

@@ -223,7 +223,7 @@ def test_exact_echoes_of_a_batch_equal_each_column_alone(ghosts):
     inst = _wall_with_ghosts(ghosts)
     cfg = RenderSettings.from_spec(inst.spec)
     items = [(c, inst.default_power_w[:, c]) for c in (3, 0, 4, 3, 1)]
-    batch = inst._echoes(cfg, items, False)
+    batch = inst._echoes(cfg, items, False)[0]
     assert np.all(np.abs(batch).max(axis=1) > 0)
     for (c, p), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
