@@ -840,24 +840,33 @@ class Instrument:
         lo = np.exp(1j * np.outer(w, np.arange(b))).astype(dtype)
         starts = range(0, m, period)  # the first bin of each period of bins
         turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype).tolist()
-        total = np.zeros(m, dtype=dtype) if out is None else out
-        if out is not None:
-            total[...] = 0
+        total = np.empty(m, dtype=dtype) if out is None else out
+        sums = [total] if rows is None else list(total)
         # each sum's periods of bins, and the same lengths of one period's terms
-        parts = {r: [row[q0:q0 + period] for q0 in starts]
-                 for r, row in ([(0, total)] if rows is None else
-                                [(r, total[r]) for r in sorted(set(rows))])}
+        parts = [[row[q0:q0 + period] for q0 in starts] for row in sums]
         tmp = np.empty((a, b), dtype=dtype)
-        heads = [tmp.reshape(-1)[:part.size] for part in parts[next(iter(parts))]]
+        heads = [tmp.reshape(-1)[:part.size] for part in parts[0]]
+        written = [False] * len(sums)  # a sum's first term is written, not added
         for k, dft in enumerate(dfts):
             np.multiply(dft, lo[k], out=tmp)
             np.multiply(tmp, hi[k][:, None], out=tmp)
-            first, *rest = parts[0 if rows is None else rows[k]]
-            np.add(first, heads[0], out=first)
+            r = 0 if rows is None else rows[k]
+            (first, *rest), add = parts[r], written[r]
+            written[r] = True
+            if not add:
+                first[...] = heads[0]
+            else:
+                np.add(first, heads[0], out=first)
             for part, head, turn in zip(rest, heads[1:], turns[k], strict=True):
+                if not add:
+                    np.multiply(head, turn, out=part)
+                    continue
                 got = axpy(head, part, a=turn)  # in place: part += turn u
                 if got is not part:  # (f2py copies only an array it cannot write in place)
                     part[...] = got
+        for row, done in zip(sums, written, strict=True):
+            if not done:
+                row[...] = 0
         total *= weight
         return total
 
