@@ -32,9 +32,11 @@ after the start of the emitted frame, so sample i of chip m lies inside chip m a
 echo with ``tau = d / (S * chip_rate)`` peaks exactly at lag d in the receive chain
 (``tau' = tau + Tc/2 - Ts/2`` folds the pulse centre and the sample phase in).
 
-Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely;
-the per-channel work is one phase ramp (an outer product of two short exponentials) and
-one multiply-add over L/2 bins. R repetitions share the deterministic echo, which is kept
+Cost: only what the column needs. Channels whose ray hits nothing are skipped entirely.
+The L/2 + 1 bins repeat the chips' nN-point DFT under one weight (H, sinc, scale), so the
+per-channel work is one period of nN bins times its phase ramp (an outer product of two
+short exponentials), then one scaled add per further period; the weight multiplies the
+column's sum once (:meth:`Instrument._sum_delayed`). R repetitions share the deterministic echo, which is kept
 between frames (a static scene). At ``exact`` fidelity each repetition gets independent
 noise and is quantised on its own (:meth:`Instrument.render_exact`, CAPTURE RAW); what
 the receive chain reads, the repetitions' sum, is drawn from its exact distribution with
