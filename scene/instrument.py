@@ -36,9 +36,10 @@ Cost: only what the column needs. Channels whose ray hits nothing are skipped en
 The L/2 + 1 bins repeat the chips' nN-point DFT under one weight (H, sinc, scale), so the
 per-channel work is one period of nN bins times its phase ramp (an outer product of two
 short exponentials), then one scaled add per further period; the weight multiplies the
-column's sum once (:meth:`Instrument._sum_delayed`). R repetitions share the deterministic echo, which is kept
-between frames (a static scene). At ``exact`` fidelity each repetition gets independent
-noise and is quantised on its own (:meth:`Instrument.render_exact`, CAPTURE RAW); what
+column's sum once (:meth:`Instrument._sum_delayed`). R repetitions share the deterministic
+echo, which is kept between frames (a static scene). At ``exact`` fidelity each
+repetition gets independent noise and is quantised on its own
+(:meth:`Instrument.render_exact`, CAPTURE RAW); what
 the receive chain reads, the repetitions' sum, is drawn from its exact distribution with
 L Gaussians and (R - 1) L random bytes (:meth:`Instrument.render_sum`,
 :func:`draw_repetition_sum`; a batch of columns: :meth:`Instrument.render_sums`). At
