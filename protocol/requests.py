@@ -308,7 +308,7 @@ class Requests:
             return
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
-        elif mtype == MsgType.SESSION_LOST and not hello_reply:
+        elif mtype == MsgType.SESSION_LOST:
             self._session_lost(frame)
         elif mtype == MsgType.FRAGMENT:
             self._fragment(frame)
