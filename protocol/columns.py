@@ -213,21 +213,17 @@ class ColumnResult:
         None) for P = 1. Raises FieldError naming the first bad field.
         """
         _check_names(fields)
-        check_int("frame", frame, 0, 2**32 - 1, cls=FieldError)
-        check_int("column", column, 0, 2**16 - 1, cls=FieldError)
-        check_int("timestamp_us", timestamp_us, 0, 2**32 - 1, cls=FieldError)
-        angle_udeg = round(float(angle_deg) * 1e6)
-        check_int("angle_deg (micro-degrees)", angle_udeg, -(2**31), 2**31 - 1, cls=FieldError)
         signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
                                FieldError)
-        k, n = signs.shape
-        if not 1 <= n <= MAX_UID_BITS:
-            raise out_of_range("uid_bits", f"1 to {MAX_UID_BITS} (uid_signs columns)", n,
-                               FieldError)
-        if not 1 <= k <= 65535:
-            raise out_of_range("channels", "1 to 65535", k, FieldError)
+        k, n = signs.shape  # channels and UID bits
+        angle_udeg = round(float(angle_deg) * 1e6)
+        for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
+                            ("channels", k), ("angle_udeg", angle_udeg),
+                            ("timestamp_us", timestamp_us)):  # the header's declared ranges
+            meta = getattr(COLUMN_HEADER, name).meta
+            check_int(name, value, meta.lo, meta.hi, cls=FieldError)
         first_extra = fields.get(_FIRST_EXTRA.name)
         e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]
         rec = np.zeros(k, dtype=record_dtype(e + 1))
