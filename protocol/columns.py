@@ -126,8 +126,10 @@ def column_payload_size(channels: int, peaks: int) -> int:
     return _HEAD.size + channels * record_size(peaks)
 
 
-#: Range checks of the fields that travel as integers: the limits of their wire type.
-_INT_LIMITS = {f.name: f.wire[0].limits for f in RECORD if f.encoding in ("int", "lag")}
+#: What :meth:`ColumnResult.from_arrays` accepts per field: integers and lags the limits of
+#: their wire type (a lag -1 travels as NO_PEAK), flags 0..1, signs -1..+1.
+_LIMITS = {f.name: (0, 1) if f.encoding == "flag" else (-1, 1) if f.encoding == "signs"
+           else f.wire[0].limits for f in RECORD}
 _LAG_FIELDS = frozenset(f.name for f in RECORD if f.encoding == "lag")
 #: The first wire field repeated per extra peak: its length is P - 1.
 _FIRST_EXTRA = next(f for f in RECORD if f.per_extra_peak)
@@ -211,36 +213,34 @@ class ColumnResult:
         None) for P = 1. Raises FieldError naming the first bad field.
         """
         _check_names(fields)
-        check_int("frame", frame, 0, 2**32 - 1, cls=FieldError)
-        check_int("column", column, 0, 2**16 - 1, cls=FieldError)
-        check_int("timestamp_us", timestamp_us, 0, 2**32 - 1, cls=FieldError)
-        angle_udeg = round(float(angle_deg) * 1e6)
-        check_int("angle_deg (micro-degrees)", angle_udeg, -(2**31), 2**31 - 1, cls=FieldError)
         signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
                                FieldError)
-        k, n = signs.shape
-        if not 1 <= n <= MAX_UID_BITS:
-            raise out_of_range("uid_bits", f"1 to {MAX_UID_BITS} (uid_signs columns)", n,
-                               FieldError)
-        if not 1 <= k <= 65535:
-            raise out_of_range("channels", "1 to 65535", k, FieldError)
+        k, n = signs.shape  # channels and UID bits
+        angle_udeg = round(float(angle_deg) * 1e6)
+        for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
+                            ("channels", k), ("angle_udeg", angle_udeg),
+                            ("timestamp_us", timestamp_us)):  # the header's declared ranges
+            meta = getattr(COLUMN_HEADER, name).meta
+            check_int(name, value, meta.lo, meta.hi, cls=FieldError)
         first_extra = fields.get(_FIRST_EXTRA.name)
         e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]
         rec = np.zeros(k, dtype=record_dtype(e + 1))
-        wanted = [f for f in RECORD if e or not f.per_extra_peak]
-        for f in wanted:  # integers and lags first, then what depends on n
-            if f.encoding in ("int", "lag"):
-                rec[f.name] = _checked_array(f.name, fields.get(f.name), (k, *f.shape(n, e + 1)))
-        for f in wanted:
-            if f.encoding == "signs":
-                _pack_signs(rec, f, fields.get(f.name), (k, *f.shape(n, e + 1)), n)
-            elif f.encoding == "flag":
-                _pack_flag(rec, f.name, fields.get(f.name), k)
-            elif f.name == "uid_observed" and int(np.max(rec[f.name])) >= 1 << n:
-                raise out_of_range(f.name, f"below 2^uid_bits = {1 << n}",
-                                   int(np.max(rec[f.name])), FieldError)
+        for f in RECORD:
+            if f.per_extra_peak and not e:
+                continue
+            arr = _checked_array(f.name, fields.get(f.name), (k, *f.shape(n, e + 1)))
+            if f.encoding == "signs":  # two masks: bit p of each is period p
+                weights = (1 << np.arange(n)).astype(np.uint8)
+                neg, zero = f.wire
+                rec[neg.name] = (arr < 0).astype(np.uint8) @ weights
+                rec[zero.name] = (arr == 0).astype(np.uint8) @ weights
+            else:
+                rec[f.name] = arr
+            if f.name == "uid_observed" and int(arr.max()) >= 1 << n:
+                raise out_of_range(f.name, f"below 2^uid_bits = {1 << n}", int(arr.max()),
+                                   FieldError)
         rec.flags.writeable = False
         return cls(int(frame), int(column), angle_udeg, rec, n, bool(calibration),
                    int(timestamp_us))
@@ -309,7 +309,7 @@ _WIRE_SATURATES = frozenset({"noise_sumsq"})
 def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
     arr = np.asarray(value)
     if name in _WIRE_SATURATES and arr.dtype == object:
-        hi = _INT_LIMITS[name][1]
+        hi = _LIMITS[name][1]
         arr = np.array([min(int(v), hi) for v in arr.ravel()], dtype=np.uint64).reshape(arr.shape)
     if name in _LAG_FIELDS and arr.dtype.kind == "i" and arr.size and int(arr.min()) == -1:
         arr = np.where(arr == -1, NO_PEAK, arr).astype(np.int64)  # "no peak" on the wire
@@ -317,37 +317,13 @@ def _checked_array(name: str, value: Any, shape: tuple[int, ...]) -> NDArray:
         raise out_of_range(name, f"an array of shape {shape}", f"shape {arr.shape}", FieldError)
     if arr.dtype.kind not in "iub":
         raise out_of_range(name, "an integer array", f"dtype {arr.dtype}", FieldError)
-    lo, hi = _INT_LIMITS[name]
+    lo, hi = _LIMITS[name]
     if arr.size:
         amin, amax = int(arr.min()), int(arr.max())
         if amin < lo or amax > hi:
             raise out_of_range(name, f"integers from {lo} to {hi}", amin if amin < lo else amax,
                                FieldError)
     return arr
-
-
-def _pack_signs(rec: np.ndarray, f: RecordField, value: Any, shape: tuple[int, ...],
-                n: int) -> None:
-    """Check a sign array of ``shape`` and store it as the field's two wire masks."""
-    signs = None if value is None else np.asarray(value)
-    if signs is None or signs.shape != shape:
-        raise out_of_range(f.name, f"a {shape} array",
-                           None if signs is None else f"shape {signs.shape}", FieldError)
-    if signs.dtype.kind not in "iu" or (signs.size and (signs.min() < -1 or signs.max() > 1)):
-        raise out_of_range(f.name, "values in {-1, 0, +1}", signs, FieldError)
-    weights = (1 << np.arange(n)).astype(np.uint8)  # bit p of a mask: period p
-    neg, zero = f.wire
-    rec[neg.name] = (signs < 0).astype(np.uint8) @ weights
-    rec[zero.name] = (signs == 0).astype(np.uint8) @ weights
-
-
-def _pack_flag(rec: np.ndarray, name: str, value: Any, k: int) -> None:
-    """Check a (K,) boolean (or 0/1) array and store it as u8 0/1."""
-    match = np.asarray(value)
-    if match.shape != (k,) or match.dtype.kind not in "biu" or \
-            (k and (match.min() < 0 or match.max() > 1)):
-        raise out_of_range(name, f"a ({k},) array of booleans", match, FieldError)
-    rec[name] = match
 
 
 # ---- fast codec (numpy) -------------------------------------------------------------

@@ -58,6 +58,7 @@ from cdma_lidar.protocol.messages import (
     kind_of,
     type_name,
 )
+from cdma_lidar.protocol.ports import port_name
 from cdma_lidar.protocol.streams import Stream
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
@@ -182,7 +183,7 @@ class DeviceEndpoint:
             core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock)
         self.core, self.app, self.port = core, core.app, port
         #: Who is on the other end (an IP address over TCP), for the auth back-off and logs.
-        self.peer = peer or str(getattr(port, "name", None) or type(port).__name__)
+        self.peer = peer or port_name(port)
         self.session_open = False
         #: Since when this connection has had no session (core clock, s).
         self.sessionless_since = core.clock()

@@ -107,23 +107,34 @@ _POWERS = _powers()
 _UNIT_BY_POS = _UNIT[::-1].copy()
 
 
+def _blocks(data: np.ndarray, width: int) -> np.ndarray:
+    """``data`` (uint8) cut into rows of ``width`` bytes, the last one right-aligned after
+    zeros: leading zeros change neither a block's parity nor its syndromes."""
+    nb = -(-data.size // width)
+    rows = np.zeros((nb, width), np.uint8)
+    full = (nb - 1) * width
+    rows[:nb - 1] = data[:full].reshape(nb - 1, width)
+    rows[nb - 1, width - (data.size - full):] = data[full:]
+    return rows
+
+
+def _data(plain: bytes) -> bytes:
+    """The data bytes of unwhitened coded bytes (each block's parity dropped)."""
+    return b"".join(plain[i:i + BLOCK][:-NSYM] for i in range(0, len(plain), BLOCK))
+
+
 def encode(body: bytes) -> bytes:
     """``body`` with 16 parity bytes after every 239 data bytes (and after the rest),
     whitened. Table-driven (the code is linear): byte-identical to ``reedsolo``'s
     encoder, which a test checks."""
-    d = len(body)
-    nb = -(-d // DATA)
-    if nb == 0:
+    if not body:
         return b""
-    blocks = np.zeros((nb, DATA), np.uint8)
     data = np.frombuffer(body, np.uint8)
-    full = (nb - 1) * DATA
-    blocks[:nb - 1] = data[:full].reshape(nb - 1, DATA)
-    last = d - full
-    blocks[nb - 1, DATA - last:] = data[full:]  # leading zeros do not change the parity
+    blocks = _blocks(data, DATA)
     parity = np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _UNIT_BY_POS[None, :, :]], axis=1)
-    out = np.concatenate([np.hstack([blocks[:nb - 1], parity[:nb - 1]]).ravel(),
-                          data[full:], parity[nb - 1]])
+    full = (len(blocks) - 1) * DATA
+    out = np.concatenate([np.hstack([blocks[:-1], parity[:-1]]).ravel(), data[full:],
+                          parity[-1]])
     return whiten(out.tobytes())
 
 
@@ -134,21 +145,7 @@ def encode_reference(body: bytes) -> bytes:
 
 def strip(coded: bytes) -> bytes:
     """The data bytes of ``coded`` as they arrived (no correction); b"" if no valid length."""
-    if body_len(len(coded)) < 0:
-        return b""
-    plain = whiten(coded)
-    return b"".join(plain[i:i + BLOCK][:-NSYM] for i in range(0, len(plain), BLOCK))
-
-
-def _syndromes(plain: np.ndarray) -> np.ndarray:
-    """(blocks, 16) syndromes of ``plain`` (unwhitened, coded): ``c(2^j)`` per block; a
-    block is a codeword exactly when all are zero."""
-    nb = -(-plain.size // BLOCK)
-    blocks = np.zeros((nb, BLOCK), np.uint8)
-    full = (nb - 1) * BLOCK
-    blocks[:nb - 1] = plain[:full].reshape(nb - 1, BLOCK)
-    blocks[nb - 1, BLOCK - (plain.size - full):] = plain[full:]  # right-aligned
-    return np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _POWERS[None, :, :]], axis=1)
+    return _data(whiten(coded)) if body_len(len(coded)) >= 0 else b""
 
 
 def decode(coded: bytes) -> bytes:
@@ -163,7 +160,9 @@ def decode(coded: bytes) -> bytes:
     plain = np.frombuffer(whiten(coded), np.uint8).copy()
     if not plain.size:
         return b""
-    syn = _syndromes(plain)
+    # Syndrome j of a block: the block polynomial at the root 2^j (all zero: a codeword).
+    syn = np.bitwise_xor.reduce(_MUL[_blocks(plain, BLOCK)[:, :, None], _POWERS[None, :, :]],
+                                axis=1)
     for b in np.flatnonzero(syn.any(axis=1)):
         block = plain[b * BLOCK:(b + 1) * BLOCK]
         synd = [0, *syn[b].tolist()]  # reedsolo's layout
@@ -174,4 +173,4 @@ def decode(coded: bytes) -> bytes:
         except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: block {b}: {exc}") from None
         block[:] = np.frombuffer(bytes(fixed), np.uint8)
-    return b"".join(plain[i:i + BLOCK][:-NSYM].tobytes() for i in range(0, plain.size, BLOCK))
+    return _data(plain.tobytes())

@@ -204,8 +204,7 @@ class DecoderStats:
     @property
     def errors(self) -> int:
         """All rejected chunks."""
-        return self.cobs + self.short + self.crc + self.length + self.oversize + \
-            self.version + self.incompat
+        return self.damaged + self.oversize + self.version + self.incompat
 
 
 class FrameDecoder:

@@ -19,7 +19,6 @@ from cdma_lidar.errors import DeviceError, FieldError
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import Frame, frame_size
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload, head_size
-from cdma_lidar.protocol.transmit import MAX_PIECES
 
 if TYPE_CHECKING:
     from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -74,7 +73,7 @@ def _config_get(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
                 return nak(ep, req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
         values = {n: values[n] for n in want if n in values}
     payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values)})
-    if ep.tx.pieces(len(payload), ep.tx.signer is not None) > MAX_PIECES:
+    if not ep.tx.fits(len(payload)):
         return nak(ep, req, ErrorCode.TOO_LARGE, "keys", "ask for fewer keys per CONFIG_GET")
     return reply(ep, req, MsgType.CONFIG, payload)
 
@@ -110,7 +109,7 @@ def _power_get(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
     payload = encode_payload(MsgType.POWER, {
         "channel_start": r0, "column_start": c0, "channels": nr, "columns": nc,
         "power": m[r0:r0 + nr, c0:c0 + nc]})
-    if ep.tx.pieces(len(payload), ep.tx.signer is not None) > MAX_PIECES:
+    if not ep.tx.fits(len(payload)):
         return nak(ep, req, ErrorCode.TOO_LARGE, "columns",
                    "ask for a smaller rectangle per POWER_GET")
     return reply(ep, req, MsgType.POWER, payload)

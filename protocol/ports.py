@@ -23,7 +23,7 @@ from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from cdma_lidar.errors import LinkError
 
-__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "default_fec", "open_port"]
+__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "default_fec", "open_port", "port_name"]
 
 
 def _bytes_ready(fd: int) -> int:
@@ -36,6 +36,12 @@ def _bytes_ready(fd: int) -> int:
 DEFAULT_BAUD = 921600
 
 
+def port_name(port: Any) -> str:
+    """What a port calls itself (its URL or path), for messages and logs; else its type."""
+    return str(getattr(port, "portstr", None) or getattr(port, "name", None)
+               or type(port).__name__)
+
+
 def default_fec(port: Any) -> bool:
     """Whether frames on ``port`` are Reed-Solomon coded by default: yes on a serial line
     (a device path such as ``/dev/ttyUSB0`` or a pty, and ``virtual://``, which stands for
@@ -44,7 +50,7 @@ def default_fec(port: Any) -> bool:
     says)."""
     if isinstance(port, TcpPort):
         return False
-    name = str(getattr(port, "portstr", None) or getattr(port, "name", None) or "")
+    name = port_name(port)
     return (name.startswith("/dev/") and "ttyACM" not in name) or \
         name.lower().startswith("virtual://")
 

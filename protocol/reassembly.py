@@ -124,8 +124,6 @@ class ColumnReassembler:
         try:
             item: Any = decode_payload(mtype, frame.payload)
         except FrameError:
-            item = None
-        if item is None:
             self.malformed += 1
             return False
         if mtype == MsgType.HEARTBEAT:

@@ -5,15 +5,10 @@ every frame the device sends.
 :class:`~cdma_lidar.protocol.framing.FrameDecoder`) and the request counter ``seq``. It
 only ever blocks in ``port.read`` (at most ``port.timeout``) and measures every wait on
 ``clock``, so a test drives it with a fake port whose reads move a fake clock.
-
-A request carries a new ``seq``; the reply (ACK, NAK or data) echoes it. No reply within
-``timeout_s`` -> the identical request is sent again (signed afresh), up to ``retries``
-times; the device answers a retransmission from its replay cache instead of acting
-twice. Then :class:`LinkTimeout` says what the line showed: its ``diagnosis`` is one of
-the ``DIAG_*`` strings, and its message ends with that one's :data:`DIAG_HINTS`. A reply
-to the pending request in another protocol version fails it at once. Frames of a
-running stream (columns, their FRAGMENTs, HEARTBEAT, SCAN_END) go, undecoded, to the
-``stream`` queue for :class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`.
+Retransmission follows docs/protocol.md section 6.1; a :class:`LinkTimeout` after the
+last try carries a ``DIAG_*`` diagnosis (section 6.7) and ends with its
+:data:`DIAG_HINTS`. Frames of a running stream go, undecoded, to the ``stream`` queue
+for :class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`.
 """
 
 from __future__ import annotations
@@ -44,7 +39,7 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
     kind_of,
 )
-from cdma_lidar.protocol.ports import default_fec
+from cdma_lidar.protocol.ports import default_fec, port_name
 from cdma_lidar.protocol.reassembly import Pieces
 from cdma_lidar.protocol.trust import escape
 from cdma_lidar.protocol.views import Status
@@ -138,8 +133,7 @@ class Requests:
         self._stream: deque[Frame] = deque()  # stream frames for the reassembler
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        self._port_name = str(getattr(port, "portstr", None) or getattr(port, "name", None)
-                              or type(port).__name__)
+        self._port_name = port_name(port)
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
 
     # ---- sending --------------------------------------------------------------------------
@@ -289,7 +283,7 @@ class Requests:
             mtype in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE)
         if self._hello_seq is not None and not hello_reply:
             if mtype == MsgType.FRAGMENT and self._reply is None:
-                body = self._fragment_body(frame)
+                body = self._decoded(frame)
                 if body is not None and body["seq"] == self._hello_seq and \
                         body["msg_type"] in (MsgType.INFO, MsgType.NAK):
                     self._reply_piece(frame, body)  # INFO of a session we do not know yet
@@ -314,7 +308,7 @@ class Requests:
             return
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
-        elif mtype == MsgType.SESSION_LOST and not hello_reply:
+        elif mtype == MsgType.SESSION_LOST:
             self._session_lost(frame)
         elif mtype == MsgType.FRAGMENT:
             self._fragment(frame)
@@ -322,11 +316,9 @@ class Requests:
             self._on_reply(frame)
         else:
             if mtype == MsgType.HEARTBEAT:
-                try:
-                    self.last_status = Status(**decode_payload(mtype, frame.payload))  # type: ignore[arg-type]
-                except Exception:  # FrameError
-                    self.stats.malformed += 1
+                if (body := self._decoded(frame)) is None:
                     return
+                self.last_status = Status(**body)
             if self._streaming:
                 self._stream.append(frame)
 
@@ -336,7 +328,7 @@ class Requests:
             if self._streaming:
                 self._stream.append(frame)
             return
-        body = self._fragment_body(frame)
+        body = self._decoded(frame)
         if body is None:
             return
         if kind_of(body["msg_type"]) is MsgKind.REPLY:
@@ -344,10 +336,11 @@ class Requests:
         elif (whole := self._piece(frame, body)) is not None:  # a notice longer than a frame
             self._dispatch(whole._replace(seq=0), checked=True)
 
-    def _fragment_body(self, frame: Frame) -> dict[str, Any] | None:
+    def _decoded(self, frame: Frame) -> dict[str, Any] | None:
+        """The decoded payload of a FRAGMENT or HEARTBEAT; None (counted) if malformed."""
         try:
             return decode_payload(frame.msg_type, frame.payload)  # type: ignore[return-value]
-        except FrameError:  # a malformed fragment is dropped
+        except FrameError:  # dropped
             self.stats.malformed += 1
             return None
 

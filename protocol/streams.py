@@ -59,7 +59,7 @@ def _start(ep: DeviceEndpoint, req: Frame, gen_factory: Callable[[], Iterator[Co
     ep.config = ep.app.get_config()
     peaks = int(ep.config.get("peaks", 1))
     size = column_payload_size(info.channels, peaks)
-    if ep.tx.pieces(size, ep.tx.signer is not None) > MAX_PIECES:
+    if not ep.tx.fits(size):
         return nak(ep, req, ErrorCode.TOO_LARGE, "peaks",
                    f"a column of {info.channels} channels x {peaks} peaks ({size} bytes) "
                    f"needs more than {MAX_PIECES} fragments at max frame {ep.tx.max_frame}")
@@ -169,7 +169,7 @@ def _next_column(ep: DeviceEndpoint, st: Stream) -> ScanEndReason | None:
         if col.frame != st.frame or col.calibration != st.calibration:
             col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
         payload = encode_column(col)
-        if ep.tx.pieces(len(payload), ep.tx.signer is not None) > MAX_PIECES:
+        if not ep.tx.fits(len(payload)):
             log.error("frame %d column %d: %d bytes need more than %d fragments at max frame "
                       "%d", st.frame, col.column, len(payload), MAX_PIECES, ep.tx.max_frame)
             return ScanEndReason.ERROR

@@ -151,11 +151,10 @@ class Transmitter:
             if cls == REPAIR:
                 self._repairs.clear()
 
-    def pieces(self, payload_len: int, signed: bool) -> int:
-        """Frames a payload takes: 1 if it fits one frame, else its FRAGMENT count."""
-        if frame_size(payload_len, signed) <= self.max_frame:
-            return 1
-        return -(-payload_len // (self.max_frame - frame_size(FRAGMENT_HEADER, signed)))
+    def fits(self, payload_len: int) -> bool:
+        """A payload of this session goes out whole or in at most MAX_PIECES FRAGMENTs."""
+        return payload_len <= MAX_PIECES * (self.max_frame - frame_size(
+            FRAGMENT_HEADER, self.signer is not None))
 
     def send(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
              key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: Any = _SESSION,
@@ -170,7 +169,7 @@ class Transmitter:
         costs the line nothing.
         """
         signer = self.signer if signer is _SESSION else signer
-        if self.pieces(len(payload), signer is not None) == 1:
+        if frame_size(len(payload), signer is not None) <= self.max_frame:
             self.put(cls, msg_type, payload, seq, signer=signer, coded=coded,
                      repair=(*key, -1) if cls == REPAIR else None)
             return

@@ -3,12 +3,9 @@
 What passed the wire checks (CRC, lengths, each field's wire range) is then checked
 against the session: INFO against itself and its physical ranges (:data:`INFO_RANGES`),
 the configuration against INFO, every COLUMN_RESULT against both (the list is
-docs/protocol.md section 8; for a column of K channels, P peaks, n UID bits and N*S
-lags per period: lags below N*S or NO_PEAK, sign masks below 2^n and disjoint, outputs
-within signed ``out_bits``, noise sums consistent with ``noise_count``). A violation
-raises :class:`DeviceLied` (a LinkError) whose one-line message names the field, its
-value and what was allowed. Strings from the device are escaped (:func:`escape`)
-before they can reach a terminal.
+docs/protocol.md section 8). A violation raises :class:`DeviceLied` (a LinkError) whose
+one-line message names the field, its value and what was allowed. Strings from the
+device are escaped (:func:`escape`) before they can reach a terminal.
 """
 
 from __future__ import annotations
@@ -80,7 +77,8 @@ INFO_RANGES: dict[str, tuple[int, int, str]] = {
 
 
 def check_info(info: Info) -> Info:
-    """Check INFO's fields against each other; returns it with its strings escaped."""
+    """Check INFO's fields against each other and their physical ranges (the decoder
+    checked each wire range); returns it with its strings escaped."""
     def need(ok: bool, field: str, allowed: str) -> None:
         if not ok:
             raise _lie("INFO", field, getattr(info, field, "?"), allowed)
@@ -90,9 +88,6 @@ def check_info(info: Info) -> Info:
         raise _lie("INFO", "wavelengths_pm", f"{k} channels",
                    f"1 to max_channels = {info.max_channels}")
     need(info.spc_min <= info.spc_max, "spc_min", f"at most spc_max = {info.spc_max}")
-    need(info.column_count >= 1, "column_count", "at least 1")
-    need(info.max_columns >= 1, "max_columns", "at least 1")
-    need(info.heartbeat_ms >= 1, "heartbeat_ms", "at least 1")
     for field, (lo, hi, unit) in INFO_RANGES.items():
         value = getattr(info, field)
         if field == "tilt_udeg" and value == TILT_AUTO:

@@ -32,7 +32,7 @@ from cdma_lidar.hdl_ref import cosim
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.protocol.columns import (
     _HEAD,
-    _INT_LIMITS,
+    _LIMITS,
     COLUMN_HEADER,
     RECORD_STRUCT,
     ColumnResult,
@@ -188,7 +188,7 @@ def test_encoder_limits_are_the_wire_types() -> None:
     for f in RECORD:
         if f.encoding in ("int", "lag"):
             info = np.iinfo(np.dtype(f.wire[0].numpy_type))
-            assert _INT_LIMITS[f.name] == (int(info.min), int(info.max)), f.name
+            assert _LIMITS[f.name] == (int(info.min), int(info.max)), f.name
     assert NO_PEAK == np.iinfo(np.uint32).max
 
 
