@@ -30,6 +30,7 @@ __all__ = [
     "Estimate",
     "choose",
     "gemm_seconds",
+    "packs",
     "stream_bytes",
 ]
 
@@ -97,19 +98,32 @@ def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
     return size * uses * (1.0 if size <= CACHE_BYTES else ram)
 
 
+def packs(m: float, p: float) -> bool:
+    """Whether a float64 product (m, n) @ (n, p) packs its second operand into panels.
+
+    Only a true matrix product does: one row (m = 1) or one output column (p = 1) is a
+    matrix-vector product, which BLAS (gemv) streams without a copy. (Charging the
+    packing to the direct kernel's 95 per-lag (2, 16383) @ (16383, 1) products of a
+    one-channel pair of columns predicted them level with matmul's one (2, 16383) @
+    (16383, 95) product, where direct measured 0.4-0.7x matmul's time, kernel alone:
+    ``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2, auto off target.)
+    """
+    return m > 1 and p > 1
+
+
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
 
     Thin products (p or m small) are memory-bound: the byte term dominates them. A
-    product of several rows also packs its second operand (BLAS copies it into panels:
-    one more read and a write), which a one-row product (a matrix-vector product) does
-    not. (A product of a few rows streams its second operand about once: charging it
-    once per row, as this model did, sent a degree-13, 40-channel column to a kernel
-    1.5-1.7x slower than matmul, whose (4, 8191) @ (8191, 680) product measured one
-    pass over its 44.6 MB operand.)
+    product of several rows and several columns also packs its second operand (BLAS
+    copies it into panels: one more read and a write, :func:`packs`). (A product of a
+    few rows streams its second operand about once: charging it once per row, as this
+    model did, sent a degree-13, 40-channel column to a kernel 1.5-1.7x slower than
+    matmul, whose (4, 8191) @ (8191, 680) product measured one pass over its 44.6 MB
+    operand.)
     """
     moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
-    if m > 1:
+    if packs(m, p):
         moved += 16.0 * n * p
     return co.mac * m * n * p + co.byte * moved + co.call
 

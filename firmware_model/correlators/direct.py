@@ -25,7 +25,12 @@ from cdma_lidar.firmware_model.correlators.base import (
     GatePlan,
     product_limbs,
 )
-from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate, stream_bytes
+from cdma_lidar.firmware_model.correlators.costs import (
+    Coefficients,
+    Estimate,
+    packs,
+    stream_bytes,
+)
 
 __all__ = ["DirectCorrelator"]
 
@@ -50,7 +55,7 @@ class DirectCorrelator(Correlator):
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
         codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # one (K, N) matrix read per lag
-        if cb > 1:  # a product of several rows also packs the codes (as gemm_seconds)
+        if packs(cb, k):  # a product of several rows and channels packs the codes
             codes += 16.0 * n * k * plan.count
         per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
                                    + 3 * co.call)  # slice, product, store

@@ -22,6 +22,7 @@ from cdma_lidar.firmware_model.correlators.costs import (
     Coefficients,
     Estimate,
     choose,
+    gemm_seconds,
 )
 
 
@@ -66,6 +67,33 @@ def test_streaming_from_main_memory_costs_the_ram_ratio():
                    for r in (1.0, 8.0))
     assert estimates(plan, dear)["direct"].seconds > 4 * estimates(plan, cheap)["direct"].seconds
     assert estimates(plan) == estimates(plan, COEFFICIENTS)
+
+
+def test_only_a_true_matrix_product_pays_for_packing_its_second_operand():
+    """Bytes moved by (m, n) @ (n, p): each operand and the output once, plus a read and a
+    write of the second operand into BLAS's panels, which a matrix-vector product (one
+    row, or one output column) does not do."""
+    bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
+    assert gemm_seconds(1, 100, 7, bytes_only) == 8 * (100 + 700 + 7)
+    assert gemm_seconds(4, 100, 1, bytes_only) == 8 * (400 + 100 + 4)
+    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28) + 16 * 700
+
+
+def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
+    """``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2: the direct kernel's
+    95 products (2, 16383) @ (16383, 1) read the codes from the cache and pack nothing;
+    matmul's one (2, 16383) @ (16383, 95) product streams a 12 MB Hankel block and packs
+    it. Charging direct's products for packing made them tie with matmul's, which
+    measured the slower."""
+    plan = _plan(16383, 1, 1, 95, lag_lo=16383 // 3 - 1, columns=2, y_bound=1 << 29)
+    est = estimates(plan)
+    assert est["direct"].seconds < est["matmul"].seconds
+    assert choose_correlator(plan) == "direct"
+    # with more channels the codes are a true matrix again and direct pays for packing
+    bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
+    one, two = (estimates(_plan(16383, k, 1, 95, columns=2), bytes_only)["direct"].seconds
+                for k in (1, 2))
+    assert two - one >= 16 * 16383 * 95  # the second channel's packing, on every lag
 
 
 @st.composite
