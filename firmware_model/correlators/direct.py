@@ -14,8 +14,6 @@ every partial sum is bounded by ``N max|Y|``, split into limbs when that reaches
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numpy.typing import NDArray
 
@@ -51,18 +49,23 @@ class DirectCorrelator(Correlator):
         """Per lag a thin product; per phase a copy of the doubled chip sums."""
         c, n, k = plan.columns, plan.n, plan.k
         cb = min(c, _block(plan))
-        blocks = math.ceil(c / cb)
         parts = plan.matmul_limbs()
         active = sum(1 for sel in plan.sel if len(sel))
-        codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # one (K, N) matrix read per lag
-        if packs(cb, k):  # a product of several rows and channels packs the codes
-            codes += 16.0 * n * k * plan.count
-        per_block = (plan.count * (co.mac * cb * n * k + co.byte * 8.0 * (cb * n + cb * k)
-                                   + 3 * co.call)  # slice, product, store
-                     + co.byte * codes
-                     + active * (co.byte * 8.0 * 3 * cb * n + 2 * co.call)
-                     + co.byte * 16.0 * cb * k * plan.count)
-        seconds = blocks * parts * per_block + cls.fixed_calls * co.call
+
+        def block(rows: int) -> float:
+            """One block of ``rows`` columns, every lag and phase."""
+            codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # the (K, N) codes per lag
+            if packs(rows, k):  # a product of several rows and channels packs the codes
+                codes += 16.0 * n * k * plan.count
+            return (plan.count * (co.mac * rows * n * k + co.byte * 8.0 * (rows * n + rows * k)
+                                  + 3 * co.call)  # slice, product, store
+                    + co.byte * codes
+                    + active * (co.byte * 8.0 * 3 * rows * n + 2 * co.call)
+                    + co.byte * 16.0 * rows * k * plan.count)
+
+        full, rest = divmod(c, cb)  # the last block holds only the columns left
+        seconds = parts * (full * block(cb) + (block(rest) if rest else 0.0)) \
+            + cls.fixed_calls * co.call
         peak = 8.0 * n * k + 16.0 * cb * n + 8.0 * c * k * plan.count + 8.0 * cb * k
         return Estimate(seconds, peak)
 

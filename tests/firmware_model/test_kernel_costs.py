@@ -177,3 +177,19 @@ def test_each_kernels_fixed_cost_is_in_its_estimate_and_decides_the_tiny_plans()
                                 rel_tol=1e-9), name
         finally:
             cls.fixed_calls = saved
+
+
+def test_a_last_partial_block_costs_its_own_columns_not_a_whole_block():
+    """The kernels run columns in blocks of ``_block(plan)``; one column past a full
+    block adds one column's work, not a second full block (charging whole blocks
+    predicted 160 columns of a degree-10, 116-channel plan as 196 in matmul)."""
+    from cdma_lidar.firmware_model.correlators import direct, matmul
+
+    for mod, kernel, plan_of in (
+            (matmul, matmul.MatmulCorrelator, lambda c: _plan(1023, 116, 15, 203, columns=c)),
+            (direct, direct.DirectCorrelator, lambda c: _plan(1023, 400, 1, 2000, columns=c))):
+        cb = mod._block(plan_of(1))
+        assert 1 < cb < 200, kernel  # the plan really is split into blocks
+        one, full, more = (kernel.estimate(plan_of(c), COEFFICIENTS).seconds
+                           for c in (1, cb, cb + 1))
+        assert full < more < full + 2 * one, kernel
