@@ -99,7 +99,7 @@ def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
 
 
 def packs(m: float, p: float) -> bool:
-    """Whether a float64 product (m, n) @ (n, p) packs its second operand into panels.
+    """Whether a float64 product (m, n) @ (n, p) packs its operands into blocks and panels.
 
     Only a true matrix product does: one row (m = 1) or one output column (p = 1) is a
     matrix-vector product, which BLAS (gemv) streams without a copy. (Charging the
@@ -115,16 +115,19 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
 
     Thin products (p or m small) are memory-bound: the byte term dominates them. A
-    product of several rows and several columns also packs its second operand (BLAS
-    copies it into panels: one more read and a write, :func:`packs`). (A product of a
-    few rows streams its second operand about once: charging it once per row, as this
-    model did, sent a degree-13, 40-channel column to a kernel 1.5-1.7x slower than
-    matmul, whose (4, 8191) @ (8191, 680) product measured one pass over its 44.6 MB
-    operand.)
+    product of several rows and several columns also packs both operands (BLAS copies
+    them into blocks and panels: one more read and a write of each, :func:`packs`).
+    (A product of a few rows streams its second operand about once: charging it once
+    per row, as this model did, sent a degree-13, 40-channel column to a kernel
+    1.5-1.7x slower than matmul, whose (4, 8191) @ (8191, 680) product measured one
+    pass over its 44.6 MB operand. Charging the packing of the second operand only
+    left the direct kernel's per-lag products, which pack a window of the chip sums
+    on every lag, predicted 1.2x matmul on a degree-10, 116-channel, 160-column plan
+    where they measured 1.9x its time, kernel alone.)
     """
     moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
     if packs(m, p):
-        moved += 16.0 * n * p
+        moved += 16.0 * (m * n + n * p)
     return co.mac * m * n * p + co.byte * moved + co.call
 
 

@@ -55,8 +55,8 @@ class DirectCorrelator(Correlator):
         def block(rows: int) -> float:
             """One block of ``rows`` columns, every lag and phase."""
             codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # the (K, N) codes per lag
-            if packs(rows, k):  # a product of several rows and channels packs the codes
-                codes += 16.0 * n * k * plan.count
+            if packs(rows, k):  # a product of several rows and channels packs both
+                codes += 16.0 * (rows * n + n * k) * plan.count  # operands (gemm_seconds)
             return (plan.count * (co.mac * rows * n * k + co.byte * 8.0 * (rows * n + rows * k)
                                   + 3 * co.call)  # slice, product, store
                     + co.byte * codes

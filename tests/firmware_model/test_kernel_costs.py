@@ -69,14 +69,14 @@ def test_streaming_from_main_memory_costs_the_ram_ratio():
     assert estimates(plan) == estimates(plan, COEFFICIENTS)
 
 
-def test_only_a_true_matrix_product_pays_for_packing_its_second_operand():
+def test_only_a_true_matrix_product_pays_for_packing_its_operands():
     """Bytes moved by (m, n) @ (n, p): each operand and the output once, plus a read and a
-    write of the second operand into BLAS's panels, which a matrix-vector product (one
-    row, or one output column) does not do."""
+    write of both operands into BLAS's blocks and panels, which a matrix-vector product
+    (one row, or one output column) does not do."""
     bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
     assert gemm_seconds(1, 100, 7, bytes_only) == 8 * (100 + 700 + 7)
     assert gemm_seconds(4, 100, 1, bytes_only) == 8 * (400 + 100 + 4)
-    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28) + 16 * 700
+    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28) + 16 * (400 + 700)
 
 
 def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
@@ -93,7 +93,8 @@ def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
     bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
     one, two = (estimates(_plan(16383, k, 1, 95, columns=2), bytes_only)["direct"].seconds
                 for k in (1, 2))
-    assert two - one >= 16 * 16383 * 95  # the second channel's packing, on every lag
+    # packing both operands on every lag: the (2, N) window and the (N, 2) codes
+    assert two - one >= 16 * (2 * 16383 + 2 * 16383) * 95
 
 
 @st.composite
@@ -177,6 +178,17 @@ def test_each_kernels_fixed_cost_is_in_its_estimate_and_decides_the_tiny_plans()
                                 rel_tol=1e-9), name
         finally:
             cls.fixed_calls = saved
+
+
+def test_the_direct_kernel_pays_for_packing_its_window_on_every_lag():
+    """``bench kernels``' random row d10 S15 K116 G201 C160 (seed 2): direct's 203
+    per-lag products (160, 1023) @ (1023, 116) each pack a 1.3 MB window of the chip
+    sums, matmul's (15 columns, 1023) @ (1023, 116 x 14) products (two blocks of
+    columns) pack their operands once; charging only the codes' packing predicted
+    direct the cheaper, where it measured 1.5x matmul's time."""
+    plan = _plan(1023, 116, 15, 203, lag_lo=15 * 1023 // 3 - 1, columns=160,
+                 y_bound=15 * 10 * 2048)
+    assert choose_correlator(plan) == "matmul"
 
 
 def test_a_last_partial_block_costs_its_own_columns_not_a_whole_block():
