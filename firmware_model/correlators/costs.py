@@ -69,9 +69,10 @@ class Coefficients:
 #: kernels --fit`` does the same (its run afterwards fitted these within 16 %), and
 #: ``python -m bench kernels`` checks the choice end to end (docs/firmware.md, 10).
 #: Kept when the model stopped charging packing to matrix-vector products, charged it
-#: to both operands of a matrix product and counted a last partial block by its
-#: columns: refitted on 140 plans' kernel times (--fit's 92, 24 random of seeds 1 and
-#: 2), the constants put 135 plans within 1.25x, the refits 135-136.
+#: to both operands of a matrix product, counted a last partial block by its columns
+#: and the direct kernel's lag-by-lag store by cache lines: on 140 plans' kernel times
+#: (--fit's 92, 24 random of seeds 1 and 2) the constants put 136 within 1.25x, refits
+#: (--fit's procedure) 135-138.
 COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
 
 
