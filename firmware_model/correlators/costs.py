@@ -30,6 +30,7 @@ __all__ = [
     "Estimate",
     "choose",
     "gemm_seconds",
+    "packs",
     "stream_bytes",
 ]
 
@@ -67,6 +68,11 @@ class Coefficients:
 #: fitted (the grid timed again, random configurations of seed 7) 69. ``python -m bench
 #: kernels --fit`` does the same (its run afterwards fitted these within 16 %), and
 #: ``python -m bench kernels`` checks the choice end to end (docs/firmware.md, 10).
+#: Kept when the model stopped charging packing to matrix-vector products, charged it
+#: to both operands of a matrix product, counted a last partial block by its columns
+#: and the direct kernel's lag-by-lag store by cache lines: on 140 plans' kernel times
+#: (--fit's 92, 24 random of seeds 1 and 2) the constants put 136 within 1.25x, refits
+#: (--fit's procedure) 135-138.
 COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
 
 
@@ -97,20 +103,36 @@ def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
     return size * uses * (1.0 if size <= CACHE_BYTES else ram)
 
 
+def packs(m: float, p: float) -> bool:
+    """Whether a float64 product (m, n) @ (n, p) packs its operands into blocks and panels.
+
+    Only a true matrix product does: one row (m = 1) or one output column (p = 1) is a
+    matrix-vector product, which BLAS (gemv) streams without a copy. (Charging the
+    packing to the direct kernel's 95 per-lag (2, 16383) @ (16383, 1) products of a
+    one-channel pair of columns predicted them level with matmul's one (2, 16383) @
+    (16383, 95) product, where direct measured 0.4-0.7x matmul's time, kernel alone:
+    ``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2, auto off target.)
+    """
+    return m > 1 and p > 1
+
+
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
 
     Thin products (p or m small) are memory-bound: the byte term dominates them. A
-    product of several rows also packs its second operand (BLAS copies it into panels:
-    one more read and a write), which a one-row product (a matrix-vector product) does
-    not. (A product of a few rows streams its second operand about once: charging it
-    once per row, as this model did, sent a degree-13, 40-channel column to a kernel
+    product of several rows and several columns also packs both operands (BLAS copies
+    them into blocks and panels: one more read and a write of each, :func:`packs`).
+    (A product of a few rows streams its second operand about once: charging it once
+    per row, as this model did, sent a degree-13, 40-channel column to a kernel
     1.5-1.7x slower than matmul, whose (4, 8191) @ (8191, 680) product measured one
-    pass over its 44.6 MB operand.)
+    pass over its 44.6 MB operand. Charging the packing of the second operand only
+    left the direct kernel's per-lag products, which pack a window of the chip sums
+    on every lag, predicted 1.2x matmul on a degree-10, 116-channel, 160-column plan
+    where they measured 1.9x its time, kernel alone.)
     """
     moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
-    if m > 1:
-        moved += 16.0 * n * p
+    if packs(m, p):
+        moved += 16.0 * (m * n + n * p)
     return co.mac * m * n * p + co.byte * moved + co.call
 
 

@@ -132,21 +132,28 @@ class MatmulCorrelator(Correlator):
         """
         c, n, k = plan.columns, plan.n, plan.k
         cb = min(c, _block(plan))
-        blocks = math.ceil(c / cb)
         single = plan.float32_certain()
         parts = 1 if single else plan.matmul_limbs()
         item = 4.0 if single else 8.0
         merged = phase_groups(plan)
-        prods = _seconds(plan, co, merged, cb, 0.5 if single else 1.0)
         shapes = _products(plan, merged, cb)
         active = len(_lengths(plan))
         width = sum(m // cb * w for m, w in shapes)  # output columns per channel
-        moves = co.byte * ((4.0 + item) * active * cb * n + (item + 16.0) * cb * k * width) \
-            + 4 * active * co.call  # per phase: a rotated copy in, a strided copy out
-        # float32 bound test: on data too large for it, usually one phase copied and summed
-        check = 0.0 if single or not plan.float32_limit() else \
-            co.byte * 12.0 * cb * n + 6 * co.call
-        seconds = blocks * (parts * (prods + moves) + check) + cls.fixed_calls * co.call
+
+        def block(rows: int) -> float:
+            """One block of ``rows`` columns: products, copies, the float32 test."""
+            prods = _seconds(plan, co, merged, rows, 0.5 if single else 1.0)
+            moves = co.byte * ((4.0 + item) * active * rows * n
+                               + (item + 16.0) * rows * k * width) \
+                + 4 * active * co.call  # per phase: a rotated copy in, a strided copy out
+            # float32 bound test: on data too large for it, usually one phase copied, summed
+            check = 0.0 if single or not plan.float32_limit() else \
+                co.byte * 12.0 * rows * n + 6 * co.call
+            return parts * (prods + moves) + check
+
+        full, rest = divmod(c, cb)  # the last block holds only the columns left
+        seconds = full * block(cb) + (block(rest) if rest else 0.0) \
+            + cls.fixed_calls * co.call
         hankel = sum(w for _, w in shapes)
         peak = item * n * k * hankel + item * active * cb * n + item * cb * k * width \
             + 8.0 * c * k * plan.count

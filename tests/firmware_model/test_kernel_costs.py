@@ -22,6 +22,7 @@ from cdma_lidar.firmware_model.correlators.costs import (
     Coefficients,
     Estimate,
     choose,
+    gemm_seconds,
 )
 
 
@@ -66,6 +67,34 @@ def test_streaming_from_main_memory_costs_the_ram_ratio():
                    for r in (1.0, 8.0))
     assert estimates(plan, dear)["direct"].seconds > 4 * estimates(plan, cheap)["direct"].seconds
     assert estimates(plan) == estimates(plan, COEFFICIENTS)
+
+
+def test_only_a_true_matrix_product_pays_for_packing_its_operands():
+    """Bytes moved by (m, n) @ (n, p): each operand and the output once, plus a read and a
+    write of both operands into BLAS's blocks and panels, which a matrix-vector product
+    (one row, or one output column) does not do."""
+    bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
+    assert gemm_seconds(1, 100, 7, bytes_only) == 8 * (100 + 700 + 7)
+    assert gemm_seconds(4, 100, 1, bytes_only) == 8 * (400 + 100 + 4)
+    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28) + 16 * (400 + 700)
+
+
+def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
+    """``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2: the direct kernel's
+    95 products (2, 16383) @ (16383, 1) read the codes from the cache and pack nothing;
+    matmul's one (2, 16383) @ (16383, 95) product streams a 12 MB Hankel block and packs
+    it. Charging direct's products for packing made them tie with matmul's, which
+    measured the slower."""
+    plan = _plan(16383, 1, 1, 95, lag_lo=16383 // 3 - 1, columns=2, y_bound=1 << 29)
+    est = estimates(plan)
+    assert est["direct"].seconds < est["matmul"].seconds
+    assert choose_correlator(plan) == "direct"
+    # with more channels the codes are a true matrix again and direct pays for packing
+    bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
+    one, two = (estimates(_plan(16383, k, 1, 95, columns=2), bytes_only)["direct"].seconds
+                for k in (1, 2))
+    # packing both operands on every lag: the (2, N) window and the (N, 2) codes
+    assert two - one >= 16 * (2 * 16383 + 2 * 16383) * 95
 
 
 @st.composite
@@ -149,3 +178,47 @@ def test_each_kernels_fixed_cost_is_in_its_estimate_and_decides_the_tiny_plans()
                                 rel_tol=1e-9), name
         finally:
             cls.fixed_calls = saved
+
+
+def test_the_direct_kernel_pays_for_packing_its_window_on_every_lag():
+    """``bench kernels``' random row d10 S15 K116 G201 C160 (seed 2): direct's 203
+    per-lag products (160, 1023) @ (1023, 116) each pack a 1.3 MB window of the chip
+    sums, matmul's (15 columns, 1023) @ (1023, 116 x 14) products (two blocks of
+    columns) pack their operands once; charging only the codes' packing predicted
+    direct the cheaper, where it measured 1.5x matmul's time."""
+    plan = _plan(1023, 116, 15, 203, lag_lo=15 * 1023 // 3 - 1, columns=160,
+                 y_bound=15 * 10 * 2048)
+    assert choose_correlator(plan) == "matmul"
+
+
+def test_the_direct_kernels_lag_by_lag_store_moves_whole_lines_beyond_the_cache():
+    """``out[:, :, m] = o`` writes one value per row of ``count`` lags: within the cache a
+    read and a write of it, beyond the cache a whole cache line in and out per value.
+    ``bench kernels``' random row d5 S10 K253 G127 C160 (seed 5, 42 MB of output):
+    direct measured 1.4-1.5x matmul's time, and counting 16 bytes per value chose it."""
+    from cdma_lidar.firmware_model.correlators.costs import CACHE_BYTES
+    from cdma_lidar.firmware_model.correlators.direct import _store_bytes
+
+    assert _store_bytes(100, 129, 3.0) == 16 * 100 * 129  # 103 kB: in the cache
+    rows = CACHE_BYTES // (8 * 129) + 1
+    assert _store_bytes(rows, 129, 3.0) == 2 * 64 * rows * 129 * 3.0
+    assert _store_bytes(CACHE_BYTES, 3, 3.0) == 2 * 24 * CACHE_BYTES * 3 * 3.0  # short rows
+    plan = _plan(31, 253, 10, 129, lag_lo=10 * 31 // 3 - 1, columns=160,
+                 y_bound=10 * 4 * 100 * 8192)
+    assert choose_correlator(plan) == "matmul"
+
+
+def test_a_last_partial_block_costs_its_own_columns_not_a_whole_block():
+    """The kernels run columns in blocks of ``_block(plan)``; one column past a full
+    block adds one column's work, not a second full block (charging whole blocks
+    predicted 160 columns of a degree-10, 116-channel plan as 196 in matmul)."""
+    from cdma_lidar.firmware_model.correlators import direct, matmul
+
+    for mod, kernel, plan_of in (
+            (matmul, matmul.MatmulCorrelator, lambda c: _plan(1023, 116, 15, 203, columns=c)),
+            (direct, direct.DirectCorrelator, lambda c: _plan(1023, 400, 1, 2000, columns=c))):
+        cb = mod._block(plan_of(1))
+        assert 1 < cb < 200, kernel  # the plan really is split into blocks
+        one, full, more = (kernel.estimate(plan_of(c), COEFFICIENTS).seconds
+                           for c in (1, cb, cb + 1))
+        assert full < more < full + 2 * one, kernel
