@@ -560,20 +560,18 @@ class Instrument:
         return np.stack([rows[i] for i in indices])
 
     def _spectrum_rows(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
-                       uid_bits: int, single: bool = False) -> dict[int, NDArray]:
+                       uid_bits: int) -> dict[int, NDArray[np.complex128]]:
         """Whole spectra by Gold member (L/2 + 1 bins: ``dft[q % nN] * weight[q]`` of
         :meth:`_chip_spectra`), computed once per (settings, member, UID) and dropped
-        with the settings. ``single``: complex64 (rounded from the complex128)."""
-        rows = self._book(("rows", single, cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid,
-                           uid_bits))
+        with the settings."""
+        rows = self._book(("rows", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, uid, uid_bits))
         missing = tuple(sorted({i for i in indices if i not in rows}))
         if missing:
             dfts, period = self._chip_spectra(cfg, missing, uid, uid_bits)
             weight = self._spectral_weight(cfg, period)
             q = np.arange(weight.size) % period
             for i in missing:
-                row = dfts[i].reshape(-1)[q] * weight
-                rows[i] = row.astype(np.complex64) if single else row
+                rows[i] = dfts[i].reshape(-1)[q] * weight
         return rows
 
     def _chip_spectra(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,

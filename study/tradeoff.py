@@ -259,6 +259,7 @@ def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
     work = 0
     cpu_render = cpu_rx = 0.0
     batch = max(1, _BATCH_SAMPLES // (cfg.averages * length))
+    tabulated = inst.echo_tabulated(cfg)
     for c0 in range(0, c, batch):
         cols = list(range(c0, min(c, c0 + batch)))
         ta = time.process_time()
@@ -271,7 +272,7 @@ def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
         for col, ok in zip(cols, drawn.tolist(), strict=True):
             work += simulation_work(int(lit[col]), length, cfg.averages,
                                     inst.fidelity if ok else "repetitions",
-                                    tabulated=inst.echo_tabulated(cfg))
+                                    tabulated=tabulated)
         for col, out in zip(cols, outs, strict=True):
             data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     return estimate_ranges(data, ranging), work, cpu_render, cpu_rx
