@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
-from cdma_lidar.firmware_model.correlators.base import _REGISTRY, blas_threads
+from cdma_lidar.firmware_model.correlators.base import _REGISTRY, blas_threads, column_threads
 from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS, Coefficients
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
@@ -138,6 +138,7 @@ def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS,
         return f"{case.label()} | skipped: the chain alone needs {chain / 2**30:.0f} GiB"
     cfg, codes, acc = _setup(case)
     plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+    plan.threads = column_threads(case.columns, acc.size)  # as from_accumulators runs it
     chosen = choose_correlator(plan)  # nothing prepared yet: a kernel may not fit
     est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
