@@ -4,7 +4,8 @@ For each configuration every registered kernel finishes the same random accumula
 (``FastReceiver.from_accumulators``, the whole chain after the accumulator); the results
 must be identical. Per row: each kernel's time per call (best of N) and peak traced
 memory (tracemalloc, the prepared kernel plus one call), the kernel ``auto`` chose (the
-fixed operation-count constants of ``correlators/costs.py``), the fastest, and
+fixed operation-count constants of ``correlators/costs.py``, on the column threads
+``from_accumulators`` splits the row's columns over), the fastest, and
 ``auto / fastest`` (target <= 1.25); ``mem x`` (auto's memory over the leanest kernel's)
 is for information.
 

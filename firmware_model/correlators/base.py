@@ -269,7 +269,8 @@ def measure_correlators(plan: GatePlan, repeats: int = 3, seed: int = 0) -> dict
 
     The kernels with a finite estimate within :data:`MEASURE_SPAN` of the best one are
     prepared and called on random chip sums of the plan's shape (``plan.columns``
-    columns, ``|Y|`` up to ``plan.y_bound``, or 2^11 when unknown).
+    columns, ``|Y|`` up to ``plan.y_bound``, or 2^11 when unknown), split over
+    ``plan.threads`` column threads as the receiver splits them (one call otherwise).
     """
     est = {k: e for k, e in estimates(plan).items() if math.isfinite(e.seconds)}
     if not est:
@@ -283,11 +284,19 @@ def measure_correlators(plan: GatePlan, repeats: int = 3, seed: int = 0) -> dict
         if e.seconds > MEASURE_SPAN * fastest:
             continue
         kernel = _REGISTRY[name](plan)
-        kernel(y)  # warm up: buffers, plans, threads
+
+        def call(kernel: Correlator = kernel) -> None:
+            if plan.threads > 1 and not kernel.whole_frame:
+                parallel_columns(lambda c0, c1: kernel(y[c0:c1]), plan.columns,
+                                 _PARALLEL_MIN, plan.threads)
+            else:
+                kernel(y)
+
+        call()  # warm up: buffers, plans, threads
         best = math.inf
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
-            kernel(y)
+            call()
             best = min(best, time.perf_counter() - t0)
         times[name] = best
     return times

@@ -137,6 +137,37 @@ def test_the_measured_choice_times_the_kernels_and_picks_one_it_timed():
     assert choose_correlator(plan, measure=True) in estimates(plan)
 
 
+def test_the_measured_choice_splits_the_columns_over_the_plans_threads():
+    from cdma_lidar.firmware_model.correlators import (
+        Correlator,
+        register_correlator,
+        unregister_correlator,
+    )
+
+    calls: list[int] = []
+
+    class Spy(Correlator):
+        @classmethod
+        def estimate(cls, plan, co):
+            return Estimate(0.0, 0.0)  # the best prediction: the only kernel timed
+
+        def __call__(self, y):
+            calls.append(y.shape[0])
+            return np.zeros((y.shape[0], self.plan.k, self.plan.count), dtype=np.int64)
+
+    register_correlator("spy", Spy)
+    try:
+        plan = _plan(127, 3, 2, 20, columns=6)
+        assert set(measure_correlators(plan, repeats=1)) == {"spy"}
+        assert calls == [6, 6]  # warm-up and one repeat, all columns in one call
+        calls.clear()
+        plan.threads = 2
+        measure_correlators(plan, repeats=1)
+        assert sorted(calls) == [3, 3, 3, 3]  # two column threads of 3 columns each
+    finally:
+        unregister_correlator("spy")
+
+
 def test_choosing_writes_nothing_under_the_home_directory(tmp_path, monkeypatch):
     home = tmp_path / "home"
     home.mkdir()
