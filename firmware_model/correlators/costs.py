@@ -141,12 +141,16 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
 #: Seconds of each numpy/BLAS call's GIL-free work that no other column thread overlaps:
 #: the call gives the GIL back to whichever thread holds it only at that thread's next
 #: call, then waits for it (a futex wake-up). On the 2-core development machine
-#: (2026-11-26, kernels alone on 2 column threads of BLAS 1 against one thread, best of
-#: 7): calls of 2-12 us of work each (the FFT kernel's per-column transforms of a
-#: degree-9 to 11 code, few channels; the direct kernel's 4601 per-lag (80, 511) @
-#: (511, 2) products) took 0.6-1.0x their one-thread time on two threads, calls of
-#: 20-30 us 1.15-1.6x, of 60 us and more 1.3-1.96x (matmul's few large products,
-#: the FFT kernel's transforms of 40 channels of a degree-11 or 13 code).
+#: (2026-11-26, each kernel alone on 2 column threads of BLAS 1 against one thread,
+#: best of 7, load 0.1-0.6): calls of 2-12 us of work each (the FFT kernel's
+#: per-column transforms of a degree-9 to 11 code and a few channels; the direct
+#: kernel's 4601 per-lag (80, 511) @ (511, 2) products) took 0.6-1.0x their
+#: one-thread time on two threads, calls of 20-30 us 1.15-1.6x, of 75 us and more
+#: 1.8-1.96x (matmul's few large products, the FFT kernel's transforms of 40
+#: channels). On the 37 plans of ``bench kernels``' grid and random seeds 0-2 (32
+#: each) that the chain splits over 2 column threads, this rule put all 37 within
+#: 1.25x of the fastest kernel alone on 2 threads, the one-thread rule 36 (d9 S9 K2
+#: Gall C160: fft at 2.6x matmul); it changed that one choice only.
 HANDOFF = 1e-5
 
 
