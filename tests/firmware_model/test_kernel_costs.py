@@ -12,9 +12,11 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
 from cdma_lidar.firmware_model.correlators.base import measure_correlators
 from cdma_lidar.firmware_model.correlators.costs import (
@@ -290,6 +292,9 @@ def test_column_threads_speed_up_large_products_not_microsecond_calls():
         assert e2[name].seconds >= e1[name].seconds, name
         assert e2[name].peak_bytes == e1[name].peak_bytes, name
     assert choose_correlator(one) == "fft" and choose_correlator(two) == "matmul"
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="threads"):
+            GatePlan(one.bip, 9, 0, 3, threads=bad)
 
 
 def test_streams_from_main_memory_do_not_overlap_across_column_threads():
