@@ -4,7 +4,8 @@ For each configuration every registered kernel finishes the same random accumula
 (``FastReceiver.from_accumulators``, the whole chain after the accumulator); the results
 must be identical. Per row: each kernel's time per call (best of N) and peak traced
 memory (tracemalloc, the prepared kernel plus one call), the kernel ``auto`` chose (the
-fixed operation-count constants of ``correlators/costs.py``), the fastest, and
+fixed operation-count constants of ``correlators/costs.py``, on the column threads
+``from_accumulators`` splits the row's columns over), the fastest, and
 ``auto / fastest`` (target <= 1.25); ``mem x`` (auto's memory over the leanest kernel's)
 is for information.
 
@@ -31,6 +32,12 @@ repeats are interleaved; a row where auto measured over 1.25x the fastest is tim
 up to twice, 2 s apart (on the shared 2-core machine a threaded BLAS call stalls for
 10-250 ms whenever another process holds a core).
 
+``--row "d9 S9 K2 Gall R100 n4 b14 C160"`` (a row's label as printed) times that row's
+kernels through the chain at 1, 2, 4, ... and all the machine's threads (the
+receiver's ``threads``), best of 7 interleaved across kernels and thread counts, and
+prints per thread count each kernel's time, auto's choice on those column threads,
+the fastest and ``time x``.
+
 ``--cpu`` times by process CPU time instead of wall time: with ``CDMA_LIDAR_THREADS=1``
 the kernels' own time, which other processes' load barely moves (the constants of
 ``costs.py`` were fitted that way on the shared 2-core machine).
@@ -47,10 +54,12 @@ Environment: ``CDMA_LIDAR_BENCH_DEGREES=5,8`` runs only those degrees;
 
 from __future__ import annotations
 
+import copy
 import gc
 import itertools
 import math
 import os
+import re
 import sys
 import time
 import tracemalloc
@@ -60,7 +69,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
-from cdma_lidar.firmware_model.correlators.base import _REGISTRY, blas_threads
+from cdma_lidar.firmware_model.correlators.base import (
+    _REGISTRY,
+    blas_threads,
+    column_threads,
+    machine_threads,
+)
 from cdma_lidar.firmware_model.correlators.costs import COEFFICIENTS, Coefficients
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, correlator_methods
 
@@ -138,6 +152,7 @@ def run_case(case: Case, repeats: int, max_pred: float = SKIP_SECONDS,
         return f"{case.label()} | skipped: the chain alone needs {chain / 2**30:.0f} GiB"
     cfg, codes, acc = _setup(case)
     plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+    plan.threads = column_threads(case.columns, acc.size)  # as from_accumulators runs it
     chosen = choose_correlator(plan)  # nothing prepared yet: a kernel may not fit
     est = estimates(plan)
     finite = {m: e for m, e in est.items() if math.isfinite(e.seconds)}
@@ -343,6 +358,62 @@ def fit(seed: int, random_n: int) -> None:
 
 
 
+LABEL_RE = re.compile(r"d(\d+) S(\d+) K(\d+) G(all|\d+) R(\d+) n(\d+) b(\d+) C(\d+)")
+
+
+def parse_case(label: str) -> Case | None:
+    """The Case of a row's label (``Case.label()``, spacing free), or None."""
+    m = LABEL_RE.fullmatch(" ".join(label.split()))
+    if m is None:
+        return None
+    d, s, k, g, r, n, b, c = m.groups()
+    return Case(int(d), int(s), int(k), 0 if g == "all" else int(g), r=int(r),
+                uid_bits=int(n), adc_bits=int(b), columns=int(c))
+
+
+def run_row_threads(case: Case, repeats: int = 7) -> None:
+    """``--row``: one row's kernels through the chain (``from_accumulators``) at 1, 2, 4,
+    ... and all the machine's threads, best of ``repeats`` interleaved; per thread count
+    auto's choice on the column threads the chain splits the row's columns over."""
+    cfg, codes, acc = _setup(case)
+    top = machine_threads()
+    counts = sorted({1, top, *(1 << i for i in range(top.bit_length()) if 1 << i <= top)})
+    plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+    plans = {}
+    for t in counts:
+        plans[t] = copy.copy(plan)
+        plans[t].threads = column_threads(case.columns, acc.size, t)
+    est = {m: e.seconds for m, e in estimates(plan).items()
+           if math.isfinite(e.seconds) and not _REGISTRY[m].whole_frame}
+    chosen = {t: choose_correlator(p) for t, p in plans.items()}
+    best = min(est.values())
+    methods = [m for m in est if est[m] <= SKIP_FACTOR * best or m in chosen.values()]
+    print(f"{case.label()}: kernels through the chain (from_accumulators) at {counts} "
+          f"threads, best of {repeats} interleaved; load average {os.getloadavg()[0]:.2f}")
+    rxs = {(m, t): FastReceiver(cfg, codes, method=m, columns=case.columns, threads=t)
+           for t in counts for m in methods}
+    want = None
+    for key, rx in rxs.items():
+        got = rx.from_accumulators(acc)  # warm up, and the same integers from each
+        if want is None:
+            want = got
+        elif not all(a.same_as(b) for a, b in zip(got, want, strict=True)):
+            raise AssertionError(f"{case.label()}: {key} differs")
+    times = dict.fromkeys(rxs, math.inf)
+    for _ in range(repeats):
+        for key, rx in rxs.items():
+            times[key] = min(times[key], _best_time(lambda rx=rx: rx.from_accumulators(acc), 1))
+    for t in counts:
+        row = {m: times[m, t] for m in methods}
+        fastest = min(row, key=row.__getitem__)
+        ratio = row[chosen[t]] / row[fastest]
+        print(f"threads {t:<3} column threads {plans[t].threads:<3} | "
+              + " ".join(f"{m}={row[m] * 1e3:9.2f}ms" for m in methods)
+              + f" | auto={chosen[t]:<6} fastest={fastest:<6} time x{ratio:5.2f}"
+              + ("" if ratio <= 1.25 else "  <-- off target"))
+    print(f"load average {os.getloadavg()[0]:.2f}")
+
+
 def run_set(cases, label: str, repeats: int, max_pred: float, want: int | None,
             clock) -> None:
     """Measure ``cases`` (at most ``want`` rows) and print the rows and a summary line."""
@@ -380,6 +451,15 @@ def main() -> None:
     only_random = "--random" in sys.argv
     random_n = int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "24" if only_random else "12"))
     seed = int(os.environ.get("CDMA_LIDAR_BENCH_SEED", "0"))
+    if "--row" in sys.argv:
+        at = sys.argv.index("--row") + 1
+        case = parse_case(sys.argv[at]) if at < len(sys.argv) else None
+        if case is None:
+            print("bench kernels: --row takes a row's label, e.g. \"d9 S9 K2 Gall R100 n4 "
+                  "b14 C160\"", file=sys.stderr)
+            sys.exit(2)
+        run_row_threads(case)
+        return
     if "--fit" in sys.argv:
         fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")))
         return

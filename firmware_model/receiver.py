@@ -60,6 +60,7 @@ from cdma_lidar.firmware_model.correlators import (
 )
 from cdma_lidar.firmware_model.correlators.base import (
     BLOCK_BYTES,
+    column_threads,
     parallel_columns,
     resolve_threads,
 )
@@ -521,7 +522,7 @@ class FastReceiver:
         d_max = cfg.uid_bits * cfg.averages << (cfg.adc_bits - 1)  # max |d|
         self._l1_type = np.uint32 if ns * d_max < 1 << 32 else np.uint64
         self._kernels: dict[str, Correlator] = {}  # prepared kernels by name
-        self._auto: dict[int, str] = {}  # auto's choice per bucket of columns per call
+        self._auto: dict[tuple[int, int], str] = {}  # auto's choice per (bucket, threads)
         if self.prepare:
             self.kernel_for(self.columns)
         self._lo, self._hi = adc_limits(cfg.adc_bits)
@@ -560,24 +561,29 @@ class FastReceiver:
 
     @property
     def correlator_method(self) -> str:
-        """The kernel a call of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
+        """The kernel a frame of ``columns`` columns uses ("matmul", "fft", "direct", ...)."""
         return self.kernel_for(self.columns).method
 
-    def kernel_for(self, columns: int) -> Correlator:
+    def kernel_for(self, columns: int, size: int | None = None) -> Correlator:
         """The prepared kernel for calls of ``columns`` columns (built on first use).
 
         A named ``method`` is used for every call; ``"auto"`` asks the cost model once
         per power-of-two bucket of columns (one column and a 160-column frame may want
-        different kernels) and keeps each kernel it prepared.
+        different kernels) and number of column threads the call runs on
+        (:func:`.correlators.base.column_threads` of ``size``, the elements the call
+        touches; default a frame's ADC samples), and keeps each kernel it prepared.
         """
         if self.method == AUTO:
             bucket = 1 << (max(1, int(columns)) - 1).bit_length()
-            name = self._auto.get(bucket)
+            if size is None:
+                size = columns * self.cfg.column_samples(self.n_chips)
+            threads = column_threads(columns, size, self.threads)
+            name = self._auto.get((bucket, threads))
             if name is None:
                 plan = copy.copy(self.plan)
-                plan.columns = bucket
+                plan.columns, plan.threads = bucket, threads
                 plan.shared_bytes = self._shared_bytes(bucket)
-                name = self._auto[bucket] = choose_correlator(plan)
+                name = self._auto[bucket, threads] = choose_correlator(plan)
         else:
             name = self.method
         kernel = self._kernels.get(name)
@@ -688,7 +694,7 @@ class FastReceiver:
         """
         c, s, n = acc.shape[0], self.cfg.samples_per_chip, self.n_chips
         w = np.empty((c, self._ns), dtype=self._y_type)
-        kernel = self.kernel_for(c)
+        kernel = self.kernel_for(c, size)
         # sum_i |d_i| per column: the kernel's proof of float32 products, where the data decide
         wants = kernel.takes_bound and self._data_bound
         l1 = np.empty(c, dtype=self._l1_type) if wants else None

@@ -223,3 +223,11 @@ def test_write_doc_replaces_the_block_with_the_output(tmp_path, monkeypatch, cap
     assert main(["codes", "--check-doc", str(doc)]) == 0
     monkeypatch.setattr(bench_main, "run", lambda areas: print("other row 1.5"))
     assert main(["codes", "--check-doc", str(doc)]) == 1
+
+
+def test_a_kernels_row_label_parses_back_into_its_case():
+    from bench.bench_kernels import Case, parse_case, quick_grid
+
+    for case in [*quick_grid(), Case(9, 9, 2, 0, r=100, uid_bits=4, adc_bits=14, columns=160)]:
+        assert parse_case(case.label()) == case
+    assert parse_case("d9 S9 K2 Gall R100 n4 b14") is None

@@ -19,6 +19,8 @@ streaming reference or it is a bug.
 from __future__ import annotations
 
 import contextlib
+import copy
+import dataclasses
 import itertools
 import logging
 import math
@@ -45,6 +47,7 @@ __all__ = [
     "GatePlan",
     "blas_threads",
     "choose_correlator",
+    "column_threads",
     "correlator_methods",
     "default_threads",
     "estimates",
@@ -79,6 +82,10 @@ class GatePlan:
     (``S n R 2^(b-1)``): a kernel may then skip looking at the data to decide on limbs.
     ``columns`` is the number of columns expected per call; it only steers the cost
     estimates (a product over many columns amortises its constant operand).
+    ``threads`` (>= 1, default 1) is how many column threads a call's columns are split
+    over (the receiver's :func:`parallel_columns`: :func:`column_threads`), each calling
+    the kernel on its contiguous share; it too only steers the estimates
+    (:func:`estimates`, :func:`.costs.threaded`).
 
     Derived (all integers): ``k``, ``n``; ``q0, r0 = divmod(lag_lo, s)``; per lag m
     the chip offset ``u_m = (r0 + m) // s`` and phase ``r_m = (r0 + m) % s``;
@@ -91,8 +98,11 @@ class GatePlan:
 
     def __init__(self, bip: NDArray[np.int8], s: int, lag_lo: int, count: int,
                  float_bits: int = 53, y_bound: int | None = None, columns: int = 1,
-                 float32_bits: int = 24, shared_bytes: float = 0.0) -> None:
+                 float32_bits: int = 24, shared_bytes: float = 0.0, threads: int = 1) -> None:
         self.shared_bytes = float(shared_bytes)
+        if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1:
+            raise out_of_range("threads", "an integer >= 1", threads)
+        self.threads = int(threads)
         self.k, self.n = bip.shape
         self.s = s
         self.bip = bip
@@ -220,9 +230,33 @@ def correlator_methods() -> tuple[str, ...]:
 
 def estimates(plan: GatePlan, co: Coefficients | None = None) -> dict[str, Estimate]:
     """Every registered kernel's :class:`.costs.Estimate` for ``plan`` (registration order);
-    ``co``: the seconds per primitive (default :data:`.costs.COEFFICIENTS`)."""
+    ``co``: the seconds per primitive (default :data:`.costs.COEFFICIENTS`).
+
+    On ``plan.threads`` column threads (a ``whole_frame`` kernel is called once whatever
+    the threads) a kernel's time is :func:`.costs.threaded` of one thread's call on its
+    share of the columns. What cannot overlap is read off the estimate, which is linear
+    in the coefficients: its ``call`` terms (the GIL-held Python) and its ``ram`` terms
+    (streams from main memory: the estimate less the one with ``call = 0``, and less
+    the one with ``ram = 0``); its calls less its ``fixed_calls`` (Python, no call into
+    numpy) release the GIL. The peak is the whole plan's.
+    """
     co = costs.COEFFICIENTS if co is None else co
-    return {name: cls.estimate(plan, co) for name, cls in _REGISTRY.items()}
+    return {name: _estimate(cls, plan, co) for name, cls in _REGISTRY.items()}
+
+
+def _estimate(cls: type[Correlator], plan: GatePlan, co: Coefficients) -> Estimate:
+    """``cls.estimate`` of ``plan`` on its ``plan.threads`` column threads."""
+    whole = cls.estimate(plan, co)
+    threads = min(plan.threads, plan.columns)
+    if threads <= 1 or cls.whole_frame or not math.isfinite(whole.seconds):
+        return whole
+    share = copy.copy(plan)  # one thread's call: the largest share of the columns
+    share.columns, share.threads = -(-plan.columns // threads), 1
+    one = cls.estimate(share, co).seconds
+    held = one - cls.estimate(share, dataclasses.replace(co, call=0.0)).seconds
+    streamed = one - cls.estimate(share, dataclasses.replace(co, ram=0.0)).seconds
+    calls = held / co.call - cls.fixed_calls if co.call > 0 else 0.0
+    return Estimate(costs.threaded(one, held + streamed, calls, threads), whole.peak_bytes)
 
 
 #: ``measure=True`` times only the kernels predicted at most this many times slower
@@ -235,7 +269,8 @@ def measure_correlators(plan: GatePlan, repeats: int = 3, seed: int = 0) -> dict
 
     The kernels with a finite estimate within :data:`MEASURE_SPAN` of the best one are
     prepared and called on random chip sums of the plan's shape (``plan.columns``
-    columns, ``|Y|`` up to ``plan.y_bound``, or 2^11 when unknown).
+    columns, ``|Y|`` up to ``plan.y_bound``, or 2^11 when unknown), split over
+    ``plan.threads`` column threads as the receiver splits them (one call otherwise).
     """
     est = {k: e for k, e in estimates(plan).items() if math.isfinite(e.seconds)}
     if not est:
@@ -249,11 +284,19 @@ def measure_correlators(plan: GatePlan, repeats: int = 3, seed: int = 0) -> dict
         if e.seconds > MEASURE_SPAN * fastest:
             continue
         kernel = _REGISTRY[name](plan)
-        kernel(y)  # warm up: buffers, plans, threads
+
+        def call(kernel: Correlator = kernel) -> None:
+            if plan.threads > 1 and not kernel.whole_frame:
+                parallel_columns(lambda c0, c1: kernel(y[c0:c1]), plan.columns,
+                                 _PARALLEL_MIN, plan.threads)
+            else:
+                kernel(y)
+
+        call()  # warm up: buffers, plans, threads
         best = math.inf
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
-            kernel(y)
+            call()
             best = min(best, time.perf_counter() - t0)
         times[name] = best
     return times
@@ -350,21 +393,31 @@ def blas_threads(n: int) -> Iterator[None]:
         yield
 
 
+def column_threads(columns: int, size: int, threads: int | None = None) -> int:
+    """How many column threads :func:`parallel_columns` runs ``columns`` columns over:
+    ``min(threads, columns)`` when ``size`` (the elements the call touches) is at least
+    2^18, else 1, as from inside a column task (no nesting)."""
+    if getattr(_WORKER, "inside", False) or size < _PARALLEL_MIN:
+        return 1
+    return max(1, min(resolve_threads(threads), columns))
+
+
 def parallel_columns(task: Callable[[int, int], None], columns: int, size: int,
                      threads: int | None = None) -> None:
     """Run ``task(c0, c1)`` over contiguous column ranges covering 0..columns-1.
 
-    ``min(threads, columns)`` ranges in as many threads when ``size`` (the elements the
-    call touches) is at least 2^18, else one call in the calling thread, as is a call
-    from inside a task (no nesting). The BLAS libraries are limited to
-    ``threads // ranges`` threads meanwhile, so that column threads times BLAS threads
-    never exceed ``threads`` (default :func:`default_threads`). Exceptions propagate.
+    :func:`column_threads` ranges in as many threads (``min(threads, columns)`` when
+    ``size``, the elements the call touches, is at least 2^18), else one call in the
+    calling thread, as is a call from inside a task (no nesting). The BLAS libraries are
+    limited to ``threads // ranges`` threads meanwhile, so that column threads times BLAS
+    threads never exceed ``threads`` (default :func:`default_threads`). Exceptions
+    propagate.
     """
     threads = resolve_threads(threads)
     if getattr(_WORKER, "inside", False):
         task(0, columns)
         return
-    parts = min(threads, columns) if size >= _PARALLEL_MIN else 1
+    parts = column_threads(columns, size, threads)
     with blas_threads(max(1, threads // max(1, parts))):
         if parts <= 1:
             _in_worker(task, 0, columns)

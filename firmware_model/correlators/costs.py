@@ -25,6 +25,7 @@ from dataclasses import dataclass
 __all__ = [
     "CACHE_BYTES",
     "COEFFICIENTS",
+    "HANDOFF",
     "RAM_FACTOR",
     "Coefficients",
     "Estimate",
@@ -32,6 +33,7 @@ __all__ = [
     "gemm_seconds",
     "packs",
     "stream_bytes",
+    "threaded",
 ]
 
 @dataclass(frozen=True)
@@ -134,6 +136,45 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     if packs(m, p):
         moved += 16.0 * (m * n + n * p)
     return co.mac * m * n * p + co.byte * moved + co.call
+
+
+#: Seconds of each numpy/BLAS call's GIL-free work that no other column thread overlaps:
+#: the call gives the GIL back to whichever thread holds it only at that thread's next
+#: call, then waits for it (a futex wake-up). On the 2-core development machine
+#: (2026-11-26, each kernel alone on 2 column threads of BLAS 1 against one thread,
+#: best of 7, load 0.1-0.6): calls of 2-12 us of work each (the FFT kernel's
+#: per-column transforms of a degree-9 to 11 code and a few channels; the direct
+#: kernel's 4601 per-lag (80, 511) @ (511, 2) products) took 0.6-1.0x their
+#: one-thread time on two threads, calls of 20-30 us 1.15-1.6x, of 75 us and more
+#: 1.8-1.96x (matmul's few large products, the FFT kernel's transforms of 40
+#: channels). On the 37 plans of ``bench kernels``' grid and random seeds 0-2 (32
+#: each) that the chain splits over 2 column threads, this rule put all 37 within
+#: 1.25x of the fastest kernel alone on 2 threads, the one-thread rule 36 (d9 S9 K2
+#: Gall C160: fft at 2.6x matmul); it changed that one choice only.
+HANDOFF = 1e-5
+
+
+def threaded(seconds: float, serial: float, calls: float, threads: int) -> float:
+    """Predicted time of ``threads`` column threads each running one call of a kernel.
+
+    ``seconds``: one thread's call alone (its share of the columns), of which ``serial``
+    cannot overlap another thread's: the GIL-held Python (the ``Coefficients.call``
+    terms) and the bytes streamed from main memory (the ``ram`` share of
+    :func:`stream_bytes`: the cores share its bandwidth). The rest runs in ``calls``
+    numpy/BLAS calls that release the GIL; of those, :data:`HANDOFF` seconds per call
+    run one thread at a time too, the remainder overlaps across the threads (each its
+    own core)::
+
+        overlap = max(0, seconds - serial - calls HANDOFF)
+        time    = threads (seconds - overlap) + overlap
+
+    So a kernel of a few large products on cached operands (matmul on many columns)
+    gains nearly ``threads``x; one of many microsecond calls (small FFTs per column,
+    thin products per lag) or of streams from main memory (a lone column's products with
+    a large Hankel block) gains little or nothing.
+    """
+    overlap = max(0.0, seconds - serial - max(0.0, calls) * HANDOFF)
+    return threads * (seconds - overlap) + overlap
 
 
 def choose(estimates: Mapping[str, Estimate]) -> str:

@@ -12,9 +12,11 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.correlators import GatePlan, choose_correlator, estimates
 from cdma_lidar.firmware_model.correlators.base import measure_correlators
 from cdma_lidar.firmware_model.correlators.costs import (
@@ -137,6 +139,37 @@ def test_the_measured_choice_times_the_kernels_and_picks_one_it_timed():
     assert choose_correlator(plan, measure=True) in estimates(plan)
 
 
+def test_the_measured_choice_splits_the_columns_over_the_plans_threads():
+    from cdma_lidar.firmware_model.correlators import (
+        Correlator,
+        register_correlator,
+        unregister_correlator,
+    )
+
+    calls: list[int] = []
+
+    class Spy(Correlator):
+        @classmethod
+        def estimate(cls, plan, co):
+            return Estimate(0.0, 0.0)  # the best prediction: the only kernel timed
+
+        def __call__(self, y):
+            calls.append(y.shape[0])
+            return np.zeros((y.shape[0], self.plan.k, self.plan.count), dtype=np.int64)
+
+    register_correlator("spy", Spy)
+    try:
+        plan = _plan(127, 3, 2, 20, columns=6)
+        assert set(measure_correlators(plan, repeats=1)) == {"spy"}
+        assert calls == [6, 6]  # warm-up and one repeat, all columns in one call
+        calls.clear()
+        plan.threads = 2
+        measure_correlators(plan, repeats=1)
+        assert sorted(calls) == [3, 3, 3, 3]  # two column threads of 3 columns each
+    finally:
+        unregister_correlator("spy")
+
+
 def test_choosing_writes_nothing_under_the_home_directory(tmp_path, monkeypatch):
     home = tmp_path / "home"
     home.mkdir()
@@ -222,3 +255,69 @@ def test_a_last_partial_block_costs_its_own_columns_not_a_whole_block():
         one, full, more = (kernel.estimate(plan_of(c), COEFFICIENTS).seconds
                            for c in (1, cb, cb + 1))
         assert full < more < full + 2 * one, kernel
+
+
+def test_threaded_overlaps_only_the_released_work_beyond_the_handoffs():
+    from cdma_lidar.firmware_model.correlators.costs import HANDOFF, threaded
+
+    assert threaded(1.0, 0.2, 100, 1) == 1.0  # one thread: the call itself
+    assert threaded(1.0, 1.0, 0, 4) == 4.0  # all serial: one thread at a time
+    assert threaded(1.0, 0.0, 0, 4) == 1.0  # all released: fully overlapped
+    assert math.isclose(threaded(1.0, 0.2, 1000, 2), 2 * (0.2 + 1000 * HANDOFF)
+                        + (0.8 - 1000 * HANDOFF))
+    assert threaded(1.0, 0.2, 1e9, 2) == 2.0  # microsecond calls: no overlap at all
+
+
+def _whole_period_plan(degree, s, k, r, uid_bits, adc_bits, columns, gate=0):
+    """The plan ``bench kernels`` builds for its Case (whole period when ``gate`` is 0)."""
+    n = (1 << degree) - 1
+    ns = n * s
+    lag_lo = ns - 1 if gate == 0 else ns // 3 - 1
+    return _plan(n, k, s, (gate or ns) + 2, lag_lo=lag_lo, columns=columns,
+                 y_bound=s * uid_bits * r * (1 << (adc_bits - 1)))
+
+
+def test_column_threads_speed_up_large_products_not_microsecond_calls():
+    """``bench kernels``' random row d9 S9 K2 Gall R100 n4 b14 C160 (seed 2): on 2 column
+    threads of 80 columns each, matmul's few large products ran 1.5-1.8x faster, the FFT
+    kernel's 16,000 calls of a few microseconds (per column: small transforms of 2
+    channels) and direct's 4601 thin per-lag products not at all (0.6-0.9x); the
+    one-thread estimates had them tie and chose fft at 1.5-1.8x matmul's time."""
+    one = _whole_period_plan(9, 9, 2, 100, 4, 14, 160)
+    two = _whole_period_plan(9, 9, 2, 100, 4, 14, 160)
+    two.threads = 2
+    e1, e2 = estimates(one), estimates(two)
+    assert e2["matmul"].seconds < 0.6 * e1["matmul"].seconds
+    for name in ("fft", "direct"):
+        assert e2[name].seconds >= e1[name].seconds, name
+        assert e2[name].peak_bytes == e1[name].peak_bytes, name
+    assert choose_correlator(one) == "fft" and choose_correlator(two) == "matmul"
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="threads"):
+            GatePlan(one.bip, 9, 0, 3, threads=bad)
+
+
+def test_streams_from_main_memory_do_not_overlap_across_column_threads():
+    """``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2 (seed 0): one column
+    per thread, matmul streams its 12 MB Hankel block from main memory on each (1.27x
+    faster on 2 threads, kernel alone), direct's matrix-vector products gain nothing,
+    and direct stays the faster (0.95 against 1.45 ms). Overlapping matmul's streams
+    as if they were cached predicted matmul the faster."""
+    plan = _whole_period_plan(14, 1, 1, 1024, 16, 16, 2, gate=93)
+    plan.threads = 2
+    assert choose_correlator(plan) == "direct"
+
+
+def test_a_receivers_auto_choice_follows_its_column_threads():
+    from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+
+    n, s = 511, 9
+    cfg = ReceiverConfig(adc_bits=14, samples_per_chip=s, averages=100, uid_bits=4,
+                         gate_start=0, gate_len=n * s, out_bits=32)
+    codes = np.random.default_rng(9).integers(0, 2, (2, n))
+    picks = {t: FastReceiver(cfg, codes, columns=160, threads=t, prepare=False)
+             .kernel_for(160).method for t in (1, 2)}
+    assert picks == {1: "fft", 2: "matmul"}
+    # a call too small to split runs on one thread whatever the setting
+    two = FastReceiver(cfg, codes, columns=160, threads=2, prepare=False)
+    assert two.kernel_for(160, size=1000).method == "fft"

@@ -63,11 +63,14 @@ def test_column_threads_times_blas_threads_stay_within_the_setting(threads, colu
         inner: list[tuple[int, int]] = []
         base.parallel_columns(lambda a, b: inner.append((a, b)), 10, 1 << 20, threads)
         assert inner == [(0, 10)]  # nested: inline, one call
+        assert base.column_threads(10, 1 << 20, threads) == 1  # what auto is told
         with lock:
             seen.append((c0, c1, threading.current_thread().name, _blas_threads()))
 
     base.parallel_columns(task, columns, 1 << 20, threads)
     parts = min(threads, columns)
+    assert base.column_threads(columns, 1 << 20, threads) == parts
+    assert base.column_threads(columns, (1 << 18) - 1, threads) == 1  # too small to split
     assert sorted((c0, c1) for c0, c1, _, _ in seen)[0][0] == 0
     assert sum(c1 - c0 for c0, c1, _, _ in seen) == columns and len(seen) == parts
     if parts > 1:  # in the pool's threads
