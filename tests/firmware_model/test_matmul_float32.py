@@ -10,6 +10,8 @@ wrong there (float32 cannot hold it).
 
 from __future__ import annotations
 
+from unittest import mock
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -216,3 +218,34 @@ def test_the_bound_sums_in_uint64_where_uint32_could_overflow():
         assert rx._l1_type is np.uint64
         assert rx.frame(x[None, :])[0].mismatches(reference(cfg, codes, x)) == []
         assert set(rx.kernel_for(1).products) == {want}
+
+
+def test_data_too_large_skips_the_sum_and_hands_the_trivial_bound():
+    """When column 0's first 4096 samples already sum |d| past the float32 limit, the chain
+    skips its sum |d| pass: the kernel gets the bound type's largest value for every
+    column, decides from Y itself (as without a bound) and stays exact."""
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=10, gate_len=16)
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, 2, (2, 1023))
+    x = np.where(rng.random((3, cfg.column_samples(1023))) < 0.5, -2048, 2047)
+    rx = FastReceiver(cfg, codes, method="matmul")
+    kernel = rx.kernel_for(len(x))
+    seen = []
+    call = type(kernel).__call__
+
+    def spy(self, y, bound=None):
+        seen.append(None if bound is None else bound.copy())
+        return call(self, y, bound)
+
+    with mock.patch.object(type(kernel), "__call__", spy):
+        got = rx.frame(x)
+    for col, out in zip(x, got, strict=True):
+        assert out.mismatches(reference(cfg, codes, col)) == []
+    assert seen and all(b is not None and (b == np.iinfo(b.dtype).max).all() for b in seen)
+    want = "float32" if _phase_sums(cfg, x) < rx.plan.float32_limit() else "float64"
+    assert set(kernel.products) == {want}
+    small = rng.integers(-2, 3, x.shape)  # the same chain on small data: the real sums
+    seen.clear()
+    with mock.patch.object(type(kernel), "__call__", spy):
+        rx.frame(small)
+    assert seen and all((b < rx.plan.float32_limit()).all() for b in seen)
