@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -199,9 +200,17 @@ class LiveView:
 
 
 def wait_forever() -> None:
-    """Block until Ctrl-C (the web viewer is served while this process lives)."""
+    """Block until Ctrl-C (the web viewer is served while this process lives).
+
+    Sleeps in short slices: Python raises KeyboardInterrupt when the main thread next
+    runs Python code, and a SIGINT handled while that thread was not inside its sleep (on
+    one of the viewer's threads, or just before the sleep began) does not interrupt the
+    sleep; one sleep of an hour could hold it that long. (A command started in the
+    background by a non-interactive shell inherits SIGINT ignored, and no Ctrl-C reaches
+    it at all: SIGTERM, which ends the wait the same way, still does.)"""
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` ends it as Ctrl-C
     while True:
-        time.sleep(3600)
+        time.sleep(0.2)
 
 
 def has_display() -> bool:

@@ -132,10 +132,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+#: Python code that gives SIGINT Python's handler, as a terminal's Ctrl-C finds it: a test
+#: run started in the background by a non-interactive shell (``make test &``) hands its
+#: children SIGINT ignored, and the command under test would never see the signal.
+_AS_FROM_A_TERMINAL = ("import runpy, signal\n"
+                       "signal.signal(signal.SIGINT, signal.default_int_handler)\n")
+
+
 def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
     web, grpc = _free_port(), _free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cdma_lidar.cli", "view", "--port", "virtual://flat-wall",
+        [sys.executable, "-c", _AS_FROM_A_TERMINAL + "runpy.run_module('cdma_lidar.cli', "
+         "run_name='__main__')", "view", "--port", "virtual://flat-wall",
          "--web", "--web-port", str(web), "--grpc-port", str(grpc), "--no-progress"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     try:
@@ -153,6 +161,40 @@ def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_ctrl_c_ends_the_wait_when_another_thread_takes_the_signal() -> None:
+    """SIGINT handled on a thread other than the main one (the viewer runs many) still
+    ends wait_forever: the main thread wakes from its sleep and raises KeyboardInterrupt."""
+    code = _AS_FROM_A_TERMINAL + (
+        "import signal, threading, time\n"
+        "from cdma_lidar.host.view import wait_forever\n"
+        "def hit():\n"
+        "    time.sleep(0.3)\n"
+        "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
+        "threading.Thread(target=hit).start()\n"
+        "try:\n"
+        "    wait_forever()\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.stdout.strip() == "interrupted", proc.stderr[-2000:]
+
+
+def test_sigterm_ends_the_wait_as_ctrl_c_does() -> None:
+    """``kill`` (SIGTERM) ends a served viewer the way Ctrl-C does, so the recording is
+    flushed: the one way to end a viewer started in the background with SIGINT ignored."""
+    code = ("import os, signal, threading\n"
+            "from cdma_lidar.host.view import wait_forever\n"
+            "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)).start()\n"
+            "try:\n"
+            "    wait_forever()\n"
+            "except KeyboardInterrupt:\n"
+            "    print('ended')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.stdout.strip() == "ended", (proc.returncode, proc.stderr[-2000:])
 
 
 def _renders_headless() -> bool:
