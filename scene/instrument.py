@@ -734,10 +734,14 @@ class Instrument:
     def _tabulated_echoes(self, cfg: RenderSettings,
                           items: Sequence[tuple[int, NDArray[np.float64] | None]],
                           calibration: bool, out: NDArray[np.float32], gain: float = 1.0
-                          ) -> None:
+                          ) -> NDArray[np.float64]:
         """:meth:`tabulated_echo` of each (column, power) times ``gain`` added into the rows
         of ``out`` (B, L) float32 (C-contiguous): the delays of the whole batch split into
-        samples, table phases and fractions at once, then two saxpy calls per channel.
+        samples, table phases and fractions at once, then two saxpy calls per channel
+        (BLAS reads and writes at offsets into the flat table and batch: no view per call).
+        Returns (B,) each row's sum of |amplitude x gain| times its members' largest
+        |table value|: a bound on the largest |value| added to the row (an interpolation
+        between two phases stays within their extremes), found with no pass over the row.
 
         Without ghosts every row adds its channels in ascending order, so the batch is
         walked channel by channel (each row still gets its terms in its own order: the
@@ -747,40 +751,43 @@ class Instrument:
         terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
-            return
+            return np.zeros(len(items))
         from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
 
         length = cfg.frame_samples
-        rows = [j for j in lit for _ in terms[j][2]]
-        amps = np.concatenate([terms[j][0] for j in lit])
+        rows = np.repeat(lit, [len(terms[j][2]) for j in lit])
+        amps = np.concatenate([terms[j][0] for j in lit]) * gain
         taus = np.concatenate([terms[j][1] for j in lit])
-        members = tuple(i for j in lit for i in terms[j][2])
-        order = range(len(rows)) if self.spec.ghosts else np.lexsort(
-            (rows, np.concatenate([terms[j][3] for j in lit]))).tolist()
-        steps = taus * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
+        members = np.fromiter((i for j in lit for i in terms[j][2]), dtype=np.int64)
+        order = np.arange(rows.size) if self.spec.ghosts else np.lexsort(
+            (rows, np.concatenate([terms[j][3] for j in lit])))
+        steps = taus[order] * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
         whole = np.floor(steps)
-        frac = (steps - whole).tolist()
+        frac = steps - whole
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
-        start = (length - delay % length).tolist()  # row[start:start + L]: rotated by delay
-        table = self._waveform_table(cfg, members)
-        amps_l, phase_l = (amps * gain).tolist(), phase.tolist()
-        for n in order:
-            a, t, s, p, i = amps_l[n], frac[n], start[n], phase_l[n], members[n]
-            w, row = table[i], out[rows[n]]
-            acc = saxpy(w[p, s:s + length], row, a=a * (1.0 - t))  # in place: row += a w
-            acc = saxpy(w[p + 1, s:s + length], acc, a=a * t)
-            if acc is not row:  # (f2py copies only an array it cannot write in place)
-                row[...] = acc
+        x_at = (phase * (2 * length) + length - delay % length).tolist()  # row p, rotated
+        y_at = (rows[order] * length).tolist()
+        table, peak = self._waveform_table(cfg, tuple(members.tolist()))
+        flat = {i: w.reshape(-1) for i, w in table.items()}
+        xs = [flat[i] for i in members[order].tolist()]
+        y = np.reshape(out, -1, copy=False)  # raises rather than copy: writes land in out
+        two = 2 * length
+        for x, a, b, i, j in zip(xs, (amps[order] * (1.0 - frac)).tolist(),
+                                 (amps[order] * frac).tolist(), x_at, y_at, strict=True):
+            saxpy(x, y, length, a, i, 1, j)  # y[j:j + L] += a w_p[rotated]
+            saxpy(x, y, length, b, i + two, 1, j)  # ... + b w_(p+1)[rotated]
+        largest = np.array([peak[i] for i in members.tolist()])
+        return np.bincount(rows, np.abs(amps) * largest, minlength=len(items))
 
     def _waveform_table(self, cfg: RenderSettings, members: tuple[int, ...]
-                        ) -> dict[int, NDArray[np.float32]]:
+                        ) -> tuple[dict[int, NDArray[np.float32]], dict[int, float]]:
         """(TABLE_PHASES + 1, 2 L) float32 waveforms by Gold member: row p is the member's
         filtered, unit-amplitude echo delayed by p / TABLE_PHASES of a sample (before the
-        sample shift), one frame written twice (so any rotation is a slice). Built once
-        per (settings, member) from the spectra and kept with them (TABLE_PHASES + 1
-        inverse FFTs per member)."""
-        table = self._book(("table", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid,
-                            cfg.uid_bits))
+        sample shift), one frame written twice (so any rotation is a slice); and each
+        member's largest |value| there. Built once per (settings, member) from the
+        spectra and kept with them (TABLE_PHASES + 1 inverse FFTs per member)."""
+        key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid, cfg.uid_bits)
+        table, peak = self._book(("table", *key)), self._book(("table peak", *key))
         missing = tuple(sorted({i for i in members if i not in table}))
         if missing:
             spectra = self._spectrum_rows(cfg, missing, cfg.uid, cfg.uid_bits)
@@ -795,7 +802,8 @@ class Instrument:
                 rows = scipy.fft.irfft((ramps * spectra[i]).astype(np.complex64), n=length,
                                        axis=1, overwrite_x=True)
                 table[i] = np.concatenate([rows, rows], axis=1)  # a rotation is one slice
-        return table
+                peak[i] = float(np.abs(rows).max())
+        return table, peak
 
     def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
                      chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
@@ -1190,8 +1198,11 @@ class Instrument:
         if not keep:
             return out
         sub = [items[i] for i in keep]
-        means, peaks = (self._exact_means if exact else self._accumulated_means)(
-            cfg, sub, calibration)
+        if exact:
+            means, peaks = self._exact_means(cfg, sub, calibration)
+        else:  # largest echo that keeps the clip margin: the peak is found only beyond it
+            means, peaks = self._accumulated_means(cfg, sub, calibration, [
+                top - 0.5 - ACCUMULATED_CLIP_MARGIN * sigmas[i] for i in keep])
         r = cfg.averages
         for i, mean, peak in zip(keep, means, peaks, strict=True):
             sigma = sigmas[i]
@@ -1269,13 +1280,16 @@ class Instrument:
         return out, peaks
 
     def _accumulated_means(self, cfg: RenderSettings,
-                           items: list[tuple[int, NDArray[np.float64]]], calibration: bool
+                           items: list[tuple[int, NDArray[np.float64]]], calibration: bool,
+                           limits: Sequence[float]
                            ) -> tuple[list[NDArray[np.float32]], list[float]]:
         """(R (x + offset) + 1/2 per item, float32 LSB; each repetition's largest |value|,
-        LSB). Single precision: the sum's values stay below 2**15 R, resolved to about
-        1e-3 LSB, against a noise rms of sqrt(R) sigma >= 1 LSB. The scaling to LSB goes
-        into the echoes' amplitudes and the constant into the rows they are added to, so
-        no pass over the block is spent on either."""
+        LSB, or a bound on it where that bound is at most the item's ``limits`` entry: the
+        pass over the row that finds the value is made only where the bound is not).
+        Single precision: the sum's values stay below 2**15 R, resolved to about 1e-3 LSB,
+        against a noise rms of sqrt(R) sigma >= 1 LSB. The scaling to LSB goes into the
+        echoes' amplitudes and the constant into the rows they are added to, so no pass
+        over the block is spent on either."""
         scale, offset = self._fine_scale()
         lsb_per_v = scale / (1 << FRAC_BITS)
         offset_lsb = offset / (1 << FRAC_BITS)
@@ -1283,22 +1297,33 @@ class Instrument:
         gain = r * lsb_per_v
         shift = np.float32(r * offset_lsb + 0.5)
         block = np.full((len(items), length), shift, dtype=np.float32)
+        users = [None if calibration else self.other_users_signal(col, cfg, length * r)
+                 for col, _ in items]
+        reach = np.array([0.0 if u is None else float(np.abs(u).max()) * lsb_per_v
+                          for u in users])
         table = self.echo_tabulated(cfg)
-        peaks: list[float] = []
+        bounds = np.full(len(items), np.inf)
         step = max(1, 4 * _BLOCK_VALUES // length)  # float32 rows: 1 MB in the cache
         for b0 in range(0, len(items), step):
             part = block[b0:b0 + step]
             if table:
-                self._tabulated_echoes(cfg, items[b0:b0 + step], calibration, part, gain)
+                bounds[b0:b0 + step] = self._tabulated_echoes(cfg, items[b0:b0 + step],
+                                                              calibration, part, gain)
             else:  # a table of every member would not fit: the Fourier synthesis
                 for row, (col, power) in zip(part, items[b0:b0 + step], strict=True):
                     echo = self.echo(col, cfg, power, calibration=calibration, single=True)
                     row += echo * np.float32(gain)
-            top = np.maximum(part.max(axis=1) - shift, shift - part.min(axis=1))  # R |echo|
-            peaks += (top / r + abs(offset_lsb)).tolist()
-        for j, (col, _) in enumerate(items):
-            users = None if calibration else self.other_users_signal(col, cfg, length * r)
-            if users is not None:
-                peaks[j] += float(np.abs(users).max()) * lsb_per_v
-                block[j] += (users.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
-        return list(block), peaks
+            # The rows' float32 sums may exceed the bound by their rounding (a few 2**-24
+            # of the values' size): 2**-12 of it is ample.
+            bound = (bounds[b0:b0 + step] * (1 + 2.0**-12) + abs(shift) * 2.0**-12) / r \
+                + abs(offset_lsb) + reach[b0:b0 + step]
+            look = b0 + np.flatnonzero(bound > np.asarray(limits[b0:b0 + step]))
+            bounds[b0:b0 + step] = bound
+            if look.size:
+                sub = block[look]
+                top = np.maximum(sub.max(axis=1) - shift, shift - sub.min(axis=1))  # R |echo|
+                bounds[look] = top / r + abs(offset_lsb) + reach[look]
+        for j, u in enumerate(users):
+            if u is not None:
+                block[j] += (u.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
+        return list(block), bounds.tolist()

@@ -129,6 +129,51 @@ def test_near_the_clip_the_level_falls_back_to_exact():
     assert inst.render_accumulated(0, cfg, 0) is None
 
 
+def _loud_neighbour():
+    """A far wall (faint echoes) beside another LiDAR on our code whose light dominates."""
+    import tomllib
+    from importlib import resources
+
+    from cdma_lidar.scene.scenefile import parse_scene
+
+    doc = tomllib.loads(resources.files("cdma_lidar.scene").joinpath(
+        "presets", "flat-wall.toml").read_text("utf-8"))
+    doc.pop("shortcuts")
+    doc["fidelity"] = "accumulated"
+    doc["objects"][0]["position_m"][0] = 60.0
+    doc["instrument"]["other_users"] = [{"uid": 0, "code_index": 0, "distance_m": 9.0,
+                                         "amplitude_v": 0.05}]
+    return parse_scene(doc)
+
+
+@pytest.mark.parametrize("url", ["near-far", "multi-user", "flat-wall?distance=0.6", None])
+def test_accumulated_clip_check_looks_at_a_row_only_where_its_bound_does_not_settle_it(url):
+    """_accumulated_means returns each row's largest |value| or, where that is within the
+    row's limit, a bound on it: never below the value, and on the same side of every
+    limit, so the clip decision is the value's. Scenes with echoes of every size, other
+    users' light (their reach is in the bound: None, where it dominates) and echoes near
+    the clip."""
+    scene = _loud_neighbour() if url is None else load_scene(
+        url + ("&" if "?" in url else "?") + "fidelity=accumulated")
+    inst = Instrument(scene, 1)
+    cfg = RenderSettings.from_spec(inst.spec)
+    items = [(c, inst.default_power_w[:, c]) for c in range(inst.columns)]
+    means, value = inst._accumulated_means(cfg, items, False, [-np.inf] * len(items))
+    value = np.array(value)
+    rng = np.random.default_rng(0)
+    bounded = 0
+    for limits in (value, value * 2, np.nextafter(value, -np.inf), np.full(value.size, np.inf),
+                   rng.uniform(0, 2 * value.max(), value.size)):
+        again, got = inst._accumulated_means(cfg, items, False, limits.tolist())
+        got = np.array(got)
+        assert np.all(got >= value)
+        np.testing.assert_array_equal(got <= limits, value <= limits)
+        np.testing.assert_array_equal(got[got > limits], value[got > limits])
+        np.testing.assert_array_equal(np.stack(again), np.stack(means))
+        bounded += int(np.sum(got != value))
+    assert bounded > 0  # the bound did stand in for the pass over the row
+
+
 def test_calibration_and_capture_at_accumulated_fidelity():
     """CALIBRATE draws each shot's sum too; CAPTURE RAW gives frames whose receive-chain
     result is exactly the scan's."""

@@ -167,7 +167,7 @@ def _tabulated_reference(inst, cfg, column):
     steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * instrument.TABLE_PHASES)
     whole = np.floor(steps)
     delay, phase = np.divmod(whole.astype(np.int64), instrument.TABLE_PHASES)
-    table = inst._waveform_table(cfg, members)
+    table, _ = inst._waveform_table(cfg, members)
     for a, t, d, p, i in zip(amps.tolist(), (steps - whole).tolist(), delay.tolist(),
                              phase.tolist(), members, strict=True):
         s = length - d % length
