@@ -45,7 +45,8 @@ def row_kernel() -> Callable[..., None] | None:
     """``_row`` compiled for float32 tables and means, int32 output (None without numba).
 
     The signature is fixed: float64 means or a float64 scale are refused, not silently
-    computed in another precision. Compiled once per process, cached on disk by numba.
+    computed in another precision. Compiled once per process and cached on disk by numba
+    (in memory only where it finds no writable folder for the cache).
     """
     try:
         import numba  # optional (extra "fast"): without it the noise runs on numpy
@@ -60,4 +61,7 @@ def row_kernel() -> Callable[..., None] | None:
 
     signature = t.void(readonly(t.uint16), readonly(t.float32), t.float32,
                        readonly(t.float32), t.Array(t.int32, 1, "C"))
-    return numba.njit(signature, cache=True, nogil=True, boundscheck=False)(_row)
+    try:
+        return numba.njit(signature, cache=True, nogil=True)(_row)
+    except RuntimeError:  # numba finds no writable folder for its cache: compile in memory
+        return numba.njit(signature, nogil=True)(_row)
