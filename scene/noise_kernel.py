@@ -11,8 +11,9 @@ product rounded to float32, then a sum rounded to float32, then the floor): numb
 compiles without fast-math, so nothing is reassociated or fused into a multiply-add, and
 the values are bit for bit those of the numpy path (tests/scene/test_noise_blocks.py).
 numpy spends five passes (widening the words to indices, the gather, the scale, the
-mean, the floor) where this spends one, per column; about 2 ms of a 160-column
-paper-scene1 frame.
+mean, the floor) where this spends one per column: the noise of a cold 160-column
+paper-scene1 frame took 3.8 ms instead of 6.3 (CPU, best of 21, both paths in one
+process, load 0.7).
 
 Without numba, :func:`row_kernel` returns None and the caller uses numpy.
 """
