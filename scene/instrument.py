@@ -69,6 +69,7 @@ from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
+from cdma_lidar.scene.noise_kernel import row_kernel
 from cdma_lidar.scene.streams import generators
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -228,14 +229,24 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
     picked by 16-bit words of each column's generator (a fourth of a word per value).
 
     No clip is needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the ADC's
-    range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code. The
-    arithmetic runs on blocks of about _BLOCK_VALUES values, as in draw_repetition_sums.
+    range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code. With
+    numba (the ``fast`` extra) each column is one pass of a compiled kernel
+    (:mod:`cdma_lidar.scene.noise_kernel`); without it the arithmetic runs on blocks of
+    about _BLOCK_VALUES values, as in draw_repetition_sums. Both are the same float32
+    operations in the same order: the same values bit for bit
+    (tests/scene/test_noise_blocks.py).
     """
     size = means[0].size
     quarter = -(-size // 4)
     out = np.empty((len(rngs), size), dtype=SUM_TYPE)
     scales = np.asarray(stds, dtype=np.float32)
     table = _normal_table()
+    kernel = row_kernel()
+    if kernel is not None:
+        for row, rng, mean, scale in zip(out, rngs, means, scales, strict=True):
+            kernel(rng.bit_generator.random_raw(quarter).view(np.uint16), table, scale, mean,
+                   row)
+        return out
     step = max(1, _BLOCK_VALUES // size)
     index = np.empty((min(step, len(rngs)), size), dtype=np.intp)
     draw = np.empty(index.shape, dtype=np.float32)
@@ -388,6 +399,8 @@ class Instrument:
                                 np.nan)
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
+        if self.fidelity == "accumulated":
+            row_kernel()  # loaded (numba: about 0.5 s once per process) here, not in a frame
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
         self._columns_bytes = 0

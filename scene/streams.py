@@ -89,14 +89,26 @@ class _State(np.random.bit_generator.ISeedSequence):
         self.words = words
 
     def generate_state(self, n_words: int, dtype: type = np.uint32) -> NDArray[np.uint64]:
-        if n_words != 4 or np.dtype(dtype) != np.uint64:
+        if n_words != 4 or (dtype is not np.uint64 and np.dtype(dtype) != np.uint64):
             raise ValueError("only PCG64's seeding (4 uint64 words) is precomputed")
         return self.words
 
 
 def generators(keys: Sequence[Sequence[int]]) -> list[np.random.Generator]:
     """``[numpy.random.default_rng(list(key)) for key in keys]``, the hashing done once
-    for all keys of the same word length (non-negative ints, any size)."""
+    for all keys of the same word length (non-negative ints, any size).
+
+    Keys of one length whose values all fit in 32 bits (a frame's render keys) are
+    their own entropy words, read in one array; any other keys are split into words
+    value by value."""
+    try:
+        flat = np.array(keys)
+    except (ValueError, OverflowError, TypeError):  # ragged keys: the word-by-word path
+        flat = None
+    if (flat is not None and flat.ndim == 2 and flat.size and flat.dtype.kind in "iu"
+            and flat.min() >= 0 and flat.max() <= _MASK):
+        return [np.random.Generator(np.random.PCG64(_State(row)))
+                for row in _states(flat.astype(np.uint32))]
     entropy = [[w for v in key for w in _words(int(v))] for key in keys]
     out: list[np.random.Generator | None] = [None] * len(keys)
     for length in {len(e) for e in entropy}:

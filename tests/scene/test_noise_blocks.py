@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from cdma_lidar.scene import instrument
 from cdma_lidar.scene.instrument import _BYTE_VARIANCE, _normal_table
+from cdma_lidar.scene.noise_kernel import row_kernel
 
 
 def _repetition_sums_whole(rngs, means, sigmas, r):
@@ -50,15 +51,22 @@ def _table_sums_whole(rngs, means, stds):
     return np.floor(draw, out=np.empty(draw.shape, dtype=np.int64), casting="unsafe")
 
 
-@settings(max_examples=40, deadline=None)
+needs_numba = pytest.mark.skipif(row_kernel() is None, reason="numba (extra 'fast') not installed")
+
+
+@settings(max_examples=60, deadline=None)
 @given(columns=st.integers(1, 9), size=st.integers(1, 70), r=st.sampled_from([1, 2, 10, 300]),
        block=st.sampled_from([1, 50, 64, 1 << 16]), seed=st.integers(0, 2**32 - 1),
-       level=st.sampled_from(["exact", "accumulated"]))
+       level=st.sampled_from(["exact", "accumulated", "accumulated, numpy"]))
 def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, seed, level):
+    """Every path against the whole-batch formulas: exact's blocks, accumulated's compiled
+    row kernel (where numba is installed) and its numpy blocks."""
     data = np.random.default_rng(seed)
     sigmas = (3.0 + 40 * data.random(columns)).tolist()
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(instrument, "_BLOCK_VALUES", block)
+        if level == "accumulated, numpy":
+            mp.setattr(instrument, "row_kernel", lambda: None)
         if level == "exact":
             means = [data.normal(0, 5e3, size) for _ in range(columns)]
 
@@ -80,6 +88,58 @@ def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, seed, lev
             want = run(_table_sums_whole)
     assert got.dtype == instrument.SUM_TYPE and got.shape == (columns, size)
     np.testing.assert_array_equal(got, want)
+
+
+@needs_numba
+@settings(max_examples=60, deadline=None)
+@given(size=st.integers(1, 40), scale=st.floats(1.0, 400.0, width=32),
+       mean=st.floats(-3e5, 3e5, width=32), seed=st.integers(0, 2**32 - 1))
+def test_compiled_row_equals_numpy_float32(size, scale, mean, seed):
+    """The compiled kernel on one row against numpy's float32 operations written out
+    (product, sum, floor, each rounded to float32), means far from zero on both sides
+    and every table entry reachable."""
+    rng = np.random.default_rng(seed)
+    words = rng.integers(0, 1 << 16, size + 3, dtype=np.uint16)
+    words[:2] = [0, 0xFFFF]
+    means = (mean + rng.normal(0, 50, size)).astype(np.float32)
+    table = _normal_table()
+    got = np.empty(size, dtype=np.int32)
+    row_kernel()(words, table, np.float32(scale), means, got)
+    want = table[words[:size].astype(np.intp)] * np.float32(scale)
+    want += means
+    np.testing.assert_array_equal(got, np.floor(want).astype(np.int32))
+
+
+@needs_numba
+def test_compiled_row_refuses_other_precisions_and_short_words():
+    kernel, table = row_kernel(), _normal_table()
+    words, out = np.zeros(8, dtype=np.uint16), np.empty(8, dtype=np.int32)
+    with pytest.raises(TypeError):  # float64 means would be added in float64
+        kernel(words, table, np.float32(1), np.zeros(8), out)
+    with pytest.raises(ValueError, match="cover the row"):
+        kernel(words[:7], table, np.float32(1), np.zeros(8, dtype=np.float32), out)
+
+
+@needs_numba
+def test_accumulated_render_is_the_same_with_or_without_numba():
+    """paper-scene1's first 24 columns, a batch out of order with a repeat, and calibration
+    shots at ``accumulated``: the compiled kernel's sums equal the numpy path's bit for bit."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+
+    inst = Instrument(load_scene("paper-scene1?fidelity=accumulated"), 3)
+    cfg = RenderSettings.from_spec(inst.spec)
+    out = []
+    for kernel in (row_kernel, lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(instrument, "row_kernel", kernel)
+            got = [inst.render_sums(cols, cfg, 4) for cols in (list(range(24)), [9, 2, 9, 0])]
+            got.append(inst.render_sums([0, 5], cfg, 4, calibration=True))
+        out.append(got)
+    for (sums, drawn), (want, want_drawn) in zip(*out, strict=True):
+        assert drawn.all()
+        np.testing.assert_array_equal(drawn, want_drawn)
+        np.testing.assert_array_equal(sums, want)
 
 
 @pytest.mark.parametrize("level", ["exact", "accumulated"])
