@@ -783,7 +783,9 @@ class Instrument:
         table, peak = self._waveform_table(cfg, tuple(members.tolist()))
         flat = {i: w.reshape(-1) for i, w in table.items()}
         xs = [flat[i] for i in members[order].tolist()]
-        y = np.reshape(out, -1, copy=False)  # raises rather than copy: writes land in out
+        if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
+            raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
+        y = out.reshape(-1)
         two = 2 * length
         for x, a, b, i, j in zip(xs, (amps[order] * (1.0 - frac)).tolist(),
                                  (amps[order] * frac).tolist(), x_at, y_at, strict=True):

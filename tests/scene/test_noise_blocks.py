@@ -287,3 +287,15 @@ def test_exact_echoes_of_a_batch_equal_each_column_alone(ghosts):
     assert np.all(np.abs(batch).max(axis=1) > 0)
     for (c, p), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
+
+
+def test_tabulated_echoes_refuse_a_batch_they_cannot_add_into_in_place():
+    """BLAS adds into the batch's flat view: a strided batch (its flat form a copy, the
+    sums lost) is refused, not silently left unchanged."""
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    inst = _wall_with_ghosts(False)
+    cfg = RenderSettings.from_spec(inst.spec)
+    batch = np.zeros((2, 2 * cfg.frame_samples), dtype=np.float32)[:, ::2]
+    with pytest.raises(ValueError, match="C-contiguous"):
+        inst._tabulated_echoes(cfg, [(0, None), (1, None)], False, batch)
