@@ -14,7 +14,8 @@
    CAPTURE RAW returns and what the scan drew before it drew the sum). Ratios within
    the run: scan / receive chain alone, exact render / level's render, and the
    real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
-   62.5 Mchip/s = 52.4 ms) over the scan's time.
+   62.5 Mchip/s = 52.4 ms) over the scan's time. With numba installed (the ``fast``
+   extra), a column ``acc. numpy`` repeats ``accumulated`` with its noise on numpy.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -175,11 +176,33 @@ def _frame_steps(level: str) -> dict[str, object]:
     return steps
 
 
+def _numpy_noise(steps: dict[str, object]) -> dict[str, object]:
+    """``steps`` run with accumulated's noise on numpy (the compiled kernel set aside)."""
+    from cdma_lidar.scene import instrument
+
+    def wrap(fn):
+        def run() -> None:
+            kernel, instrument.row_kernel = instrument.row_kernel, lambda: None
+            try:
+                fn()
+            finally:
+                instrument.row_kernel = kernel
+        return run
+
+    return {key: wrap(fn) for key, fn in steps.items()}
+
+
 def _frame_costs(repeat: int) -> dict[str, dict[str, float]]:
     """CPU seconds of one paper-scene1 frame per fidelity level and step (best of
     ``repeat``), the levels' steps interleaved run by run: the machine's state drifts
-    over the minute this takes, and ratios between levels must not carry that drift."""
+    over the minute this takes, and ratios between levels must not carry that drift.
+    With numba installed, a column ``acc. numpy`` times ``accumulated`` with its noise
+    on numpy too (what an install without the ``fast`` extra runs)."""
+    from cdma_lidar.scene.noise_kernel import row_kernel
+
     steps = {level: _frame_steps(level) for level in FIDELITY_LEVELS}
+    if row_kernel() is not None:
+        steps["acc. numpy"] = _numpy_noise(_frame_steps("accumulated"))
     out = {level: dict.fromkeys(s, np.inf) for level, s in steps.items()}
     for _ in range(repeat):
         for level, level_steps in steps.items():
@@ -212,33 +235,36 @@ def print_frame_costs() -> None:
           f"interleaved across the levels; {_load()}")
     costs = _frame_costs(7)
     ex = costs["exact"]
-    print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in FIDELITY_LEVELS))
+    levels = list(costs)
+    if "acc. numpy" not in costs:
+        print("  (numba is not installed: accumulated's noise runs on numpy)")
+    print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in levels))
     rows = (("render, first ever (codebook too)", "first"),
             ("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
             ("receive chain alone (baseline)", "rx"), ("VirtualFirmware.scan, cold", "scan_cold"),
             ("VirtualFirmware.scan, warm", "scan"))
     for label, key in rows:
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] * 1e3:13.1f}"
-                                         for lv in FIDELITY_LEVELS))
+                                         for lv in levels))
     print(f"  {'render repetition by repetition':34s}{ex['rep_cold'] * 1e3:13.1f}"
           "   (exact, cold: CAPTURE RAW's R x L draws)")
     for label, key in (("scan cold / receive chain alone", "scan_cold"),
                        ("scan warm / receive chain alone", "scan")):
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] / costs[lv]['rx']:13.2f}"
-                                         for lv in FIDELITY_LEVELS)
+                                         for lv in levels)
               + "   (baseline: the level's receive chain alone, this run)")
     print(f"  {'render speed-up vs exact (first)':34s}" + "".join(
-        f"{ex['first'] / costs[lv]['first']:13.2f}" for lv in FIDELITY_LEVELS))
+        f"{ex['first'] / costs[lv]['first']:13.2f}" for lv in levels))
     print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
-        f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
+        f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
     print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
-        f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in FIDELITY_LEVELS))
+        f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in levels))
     print(f"  {'speed-up vs repetitions (cold)':34s}" + "".join(
-        f"{ex['rep_cold'] / costs[lv]['cold']:13.2f}" for lv in FIDELITY_LEVELS))
+        f"{ex['rep_cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
     for label, key in (("real-time factor, cold scan", "scan_cold"),
                        ("real-time factor, warm scan", "scan")):
         print(f"  {label:34s}" + "".join(f"{ACQ_S / costs[lv][key]:13.3f}"
-                                         for lv in FIDELITY_LEVELS)
+                                         for lv in levels)
               + "   (52.4 ms acquisition / scan)")
     print(f"  ({_load()} after)")
 
