@@ -202,7 +202,7 @@ def _frame_costs(repeat: int) -> dict[str, dict[str, float]]:
 
     steps = {level: _frame_steps(level) for level in FIDELITY_LEVELS}
     if row_kernel() is not None:
-        steps["acc. numpy"] = _numpy_noise(_frame_steps("accumulated"))
+        steps["acc. numpy"] = _numpy_noise(steps["accumulated"])  # the same instrument
     out = {level: dict.fromkeys(s, np.inf) for level, s in steps.items()}
     for _ in range(repeat):
         for level, level_steps in steps.items():
