@@ -12,7 +12,10 @@
    whole scan (rendering, receive chain, ColumnResults), cold and warm. Also, at
    ``exact``, the rendering of every repetition on its own (``render_exact``: what
    CAPTURE RAW returns and what the scan drew before it drew the sum). Ratios within
-   the run: scan / receive chain alone, exact render / level's render, and the
+   the run: scan / receive chain alone (the same samples, receiver and work in every
+   column, so its baseline is the best of all the columns' runs: one column's own best
+   swung more than the ratios' margins on a shared machine), exact render / level's
+   render, and the
    real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
    62.5 Mchip/s = 52.4 ms) over the scan's time. With numba installed (the ``fast``
    extra), a column ``acc. numpy`` repeats ``accumulated`` with its noise on numpy.
@@ -248,11 +251,11 @@ def print_frame_costs() -> None:
                                          for lv in levels))
     print(f"  {'render repetition by repetition':34s}{ex['rep_cold'] * 1e3:13.1f}"
           "   (exact, cold: CAPTURE RAW's R x L draws)")
+    rx = min(costs[lv]["rx"] for lv in levels)  # the same chain on the same samples
     for label, key in (("scan cold / receive chain alone", "scan_cold"),
                        ("scan warm / receive chain alone", "scan")):
-        print(f"  {label:34s}" + "".join(f"{costs[lv][key] / costs[lv]['rx']:13.2f}"
-                                         for lv in levels)
-              + "   (baseline: the level's receive chain alone, this run)")
+        print(f"  {label:34s}" + "".join(f"{costs[lv][key] / rx:13.2f}" for lv in levels)
+              + f"   (baseline: the chain's best, {rx * 1e3:.1f} ms, over every column)")
     print(f"  {'render speed-up vs exact (first)':34s}" + "".join(
         f"{ex['first'] / costs[lv]['first']:13.2f}" for lv in levels))
     print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
