@@ -18,7 +18,7 @@
    render, and the
    real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
    62.5 Mchip/s = 52.4 ms) over the scan's time. With numba installed (the ``fast``
-   extra), a column ``acc. numpy`` repeats ``accumulated`` with its noise on numpy.
+   extra), a column ``acc. numpy`` repeats ``accumulated`` without its compiled kernels.
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -179,17 +179,18 @@ def _frame_steps(level: str) -> dict[str, object]:
     return steps
 
 
-def _numpy_noise(steps: dict[str, object]) -> dict[str, object]:
-    """``steps`` run with accumulated's noise on numpy (the compiled kernel set aside)."""
+def _without_numba(steps: dict[str, object]) -> dict[str, object]:
+    """``steps`` run with accumulated's compiled kernels (noise, echoes) set aside."""
     from cdma_lidar.scene import instrument
 
     def wrap(fn):
         def run() -> None:
-            kernel, instrument.row_kernel = instrument.row_kernel, lambda: None
+            kept = instrument.row_kernel, instrument.terms_kernel
+            instrument.row_kernel = instrument.terms_kernel = lambda: None
             try:
                 fn()
             finally:
-                instrument.row_kernel = kernel
+                instrument.row_kernel, instrument.terms_kernel = kept
         return run
 
     return {key: wrap(fn) for key, fn in steps.items()}
@@ -199,13 +200,13 @@ def _frame_costs(repeat: int) -> dict[str, dict[str, float]]:
     """CPU seconds of one paper-scene1 frame per fidelity level and step (best of
     ``repeat``), the levels' steps interleaved run by run: the machine's state drifts
     over the minute this takes, and ratios between levels must not carry that drift.
-    With numba installed, a column ``acc. numpy`` times ``accumulated`` with its noise
-    on numpy too (what an install without the ``fast`` extra runs)."""
+    With numba installed, a column ``acc. numpy`` times ``accumulated`` without its
+    compiled kernels too (what an install without the ``fast`` extra runs)."""
     from cdma_lidar.scene.noise_kernel import row_kernel
 
     steps = {level: _frame_steps(level) for level in FIDELITY_LEVELS}
     if row_kernel() is not None:
-        steps["acc. numpy"] = _numpy_noise(steps["accumulated"])  # the same instrument
+        steps["acc. numpy"] = _without_numba(steps["accumulated"])  # the same instrument
     out = {level: dict.fromkeys(s, np.inf) for level, s in steps.items()}
     for _ in range(repeat):
         for level, level_steps in steps.items():
@@ -240,7 +241,7 @@ def print_frame_costs() -> None:
     ex = costs["exact"]
     levels = list(costs)
     if "acc. numpy" not in costs:
-        print("  (numba is not installed: accumulated's noise runs on numpy)")
+        print("  (numba is not installed: accumulated runs without its compiled kernels)")
     print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in levels))
     rows = (("render, first ever (codebook too)", "first"),
             ("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),

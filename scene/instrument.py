@@ -55,6 +55,7 @@ resend) and the same scene, seed and settings give the same codes.
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import math
 from collections.abc import Sequence
@@ -67,6 +68,7 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
+from cdma_lidar.scene.echo_kernel import terms_kernel
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
 from cdma_lidar.scene.noise_kernel import row_kernel
@@ -399,8 +401,8 @@ class Instrument:
                                 np.nan)
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
-        if self.fidelity == "accumulated":
-            row_kernel()  # loaded (numba: about 0.5 s once per process) here, not in a frame
+        if self.fidelity == "accumulated":  # loaded (numba: about 0.5 s once per process)
+            row_kernel(), terms_kernel()  # here, not in a frame
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
         self._columns_bytes = 0
@@ -751,7 +753,9 @@ class Instrument:
         """:meth:`tabulated_echo` of each (column, power) times ``gain`` added into the rows
         of ``out`` (B, L) float32 (C-contiguous): the delays of the whole batch split into
         samples, table phases and fractions at once, then two saxpy calls per channel
-        (BLAS reads and writes at offsets into the flat table and batch: no view per call).
+        (BLAS reads and writes at offsets into the flat table and batch: no view per call;
+        with numba, :mod:`cdma_lidar.scene.echo_kernel` fuses each pair into one pass, the
+        same values where BLAS fuses its multiply-adds).
         Returns (B,) each row's sum of |amplitude x gain| times its members' largest
         |table value|: a bound on the largest |value| added to the row (an interpolation
         between two phases stays within their extremes), found with no pass over the row.
@@ -765,8 +769,6 @@ class Instrument:
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
             return np.zeros(len(items))
-        from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
-
         length = cfg.frame_samples
         rows = np.repeat(lit, [len(terms[j][2]) for j in lit])
         amps = np.concatenate([terms[j][0] for j in lit]) * gain
@@ -778,19 +780,30 @@ class Instrument:
         whole = np.floor(steps)
         frac = steps - whole
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
-        x_at = (phase * (2 * length) + length - delay % length).tolist()  # row p, rotated
-        y_at = (rows[order] * length).tolist()
+        x_at = phase * (2 * length) + length - delay % length  # row p, rotated by delay
+        y_at = rows[order] * length
+        first, second = amps[order] * (1.0 - frac), amps[order] * frac
         table, peak = self._waveform_table(cfg, tuple(members.tolist()))
         flat = {i: w.reshape(-1) for i, w in table.items()}
-        xs = [flat[i] for i in members[order].tolist()]
         if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
             raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
         y = out.reshape(-1)
-        two = 2 * length
-        for x, a, b, i, j in zip(xs, (amps[order] * (1.0 - frac)).tolist(),
-                                 (amps[order] * frac).tolist(), x_at, y_at, strict=True):
-            saxpy(x, y, length, a, i, 1, j)  # y[j:j + L] += a w_p[rotated]
-            saxpy(x, y, length, b, i + two, 1, j)  # ... + b w_(p+1)[rotated]
+        m = members[order]
+        kernel = terms_kernel()
+        if kernel is not None:  # each run of one member's terms in one compiled call
+            a, b = first.astype(np.float32), second.astype(np.float32)
+            cuts = [0, *(np.flatnonzero(m[1:] != m[:-1]) + 1).tolist(), m.size]
+            for c0, c1 in itertools.pairwise(cuts):
+                kernel(flat[int(m[c0])], x_at[c0:c1], y_at[c0:c1], a[c0:c1], b[c0:c1], y,
+                       length)
+        else:
+            from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
+
+            two = 2 * length
+            for i, a, b, x0, y0 in zip(m.tolist(), first.tolist(), second.tolist(),
+                                       x_at.tolist(), y_at.tolist(), strict=True):
+                saxpy(flat[i], y, length, a, x0, 1, y0)  # y[y0:y0 + L] += a w_p[rotated]
+                saxpy(flat[i], y, length, b, x0 + two, 1, y0)  # ... + b w_(p+1)[rotated]
         largest = np.array([peak[i] for i in members.tolist()])
         return np.bincount(rows, np.abs(amps) * largest, minlength=len(items))
 

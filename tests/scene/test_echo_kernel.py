@@ -1,0 +1,110 @@
+"""accumulated's compiled echo kernel (numba, the ``fast`` extra) against the two BLAS
+saxpy calls per term it fuses, bit for bit, wherever BLAS's saxpy fuses its
+multiply-adds (a probe decides; elsewhere the two paths round differently, both valid)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cdma_lidar.scene import instrument
+from cdma_lidar.scene.echo_kernel import terms_kernel
+
+
+def _blas_fuses() -> bool:
+    """Whether saxpy rounds a x + y once (FMA), in its vector body and in its tail: with
+    a = x = 1 + 2^-12 and y = -(1 + 2^-11), a x + y is 2^-24 exactly, 0 when a x is
+    rounded to float32 first."""
+    from scipy.linalg.blas import saxpy
+
+    one = np.float32(1 + 2.0**-12)
+    for n in (3, 67):
+        y = saxpy(np.full(n, one), np.full(n, -(1 + 2.0**-11), dtype=np.float32), a=one)
+        if not np.all(y == np.float32(2.0**-24)):
+            return False
+    return True
+
+
+needs_kernel = pytest.mark.skipif(
+    terms_kernel() is None or not _blas_fuses(),
+    reason="numba (extra 'fast') not installed, or this BLAS's saxpy does not fuse")
+
+
+def _saxpy_terms(table, x_at, y_at, a, b, y, length):
+    """The numpy path: two saxpy calls per term."""
+    from scipy.linalg.blas import saxpy
+
+    for x0, y0, ak, bk in zip(x_at.tolist(), y_at.tolist(), a.tolist(), b.tolist(),
+                              strict=True):
+        saxpy(table, y, length, ak, x0, 1, y0)
+        saxpy(table, y, length, bk, x0 + 2 * length, 1, y0)
+
+
+@needs_kernel
+@settings(max_examples=80, deadline=None)
+@given(length=st.integers(1, 70), rows=st.integers(1, 4), terms=st.integers(0, 12),
+       seed=st.integers(0, 2**32 - 1), zeros=st.sampled_from(["none", "a", "b", "both"]),
+       scale=st.sampled_from([1e-3, 1.0, 3e5]))
+def test_the_kernel_adds_each_term_as_its_two_saxpy_calls(length, rows, terms, seed, zeros,
+                                                          scale):
+    """Random tables, rotations, rows and coefficients (zero ones included: BLAS skips
+    them, so does the kernel), lengths across the SIMD widths and their tails."""
+    rng = np.random.default_rng(seed)
+    table = (rng.standard_normal(9 * 2 * length) * scale).astype(np.float32)
+    x_at = rng.integers(0, 7 * 2 * length + length + 1, terms).astype(np.int64)
+    y_at = (rng.integers(0, rows, terms) * length).astype(np.int64)
+    a = (rng.standard_normal(terms) * scale).astype(np.float32)
+    b = (rng.standard_normal(terms) * scale).astype(np.float32)
+    if zeros in ("a", "both"):
+        a[::2] = 0
+    if zeros == "b":
+        b[1::2] = 0
+    if zeros == "both":
+        b[::2] = 0  # terms that add nothing
+    start = (rng.standard_normal(rows * length) * scale).astype(np.float32)
+    start[::3] = -0.0  # what a skipped zero coefficient leaves and an added 0 w would not
+    want, got = start.copy(), start.copy()
+    _saxpy_terms(table, x_at, y_at, a, b, want, length)
+    for arr in (table, x_at, y_at, a, b):
+        arr.flags.writeable = False
+    terms_kernel()(table, x_at, y_at, a, b, got, length)
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))  # -0.0 too
+
+
+@needs_kernel
+def test_the_kernel_refuses_terms_outside_the_table_or_the_batch_and_other_types():
+    kernel = terms_kernel()
+    table, y = np.zeros(3 * 4 + 8, dtype=np.float32), np.zeros(8, dtype=np.float32)
+    one = np.ones(1, dtype=np.float32)
+    for x0, y0 in ((9, 0), (-1, 0), (0, 5), (0, -1)):
+        with pytest.raises(ValueError, match="outside"):
+            kernel(table, np.array([x0]), np.array([y0]), one, one, y, 4)
+    with pytest.raises(TypeError):
+        kernel(table.astype(np.float64), np.array([0]), np.array([0]), one, one, y, 4)
+
+
+@needs_kernel
+@pytest.mark.parametrize("url", ["paper-scene1", "near-far", "multi-user"])
+def test_accumulated_render_is_the_same_with_or_without_the_echo_kernel(url):
+    """Whole frames (a batch out of order with a repeat, calibration shots), each from a
+    fresh instrument (the plans keep the echoes): the same sums and echoes bit for bit."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+
+    scene = load_scene(url + "?fidelity=accumulated")
+    out = []
+    for kernel in (terms_kernel, lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(instrument, "terms_kernel", kernel)
+            inst = Instrument(scene, 3)
+            cfg = RenderSettings.from_spec(inst.spec)
+            cols = list(range(inst.columns))
+            got = [inst.render_sums(cols, cfg, 1), inst.render_sums([2, 0, 2], cfg, 1),
+                   inst.render_sums([0, 1], cfg, 1, calibration=True),
+                   (inst.tabulated_echo(1, cfg), np.ones(1, dtype=bool))]
+        out.append(got)
+    for (sums, drawn), (want, want_drawn) in zip(*out, strict=True):
+        np.testing.assert_array_equal(drawn, want_drawn)
+        np.testing.assert_array_equal(sums, want)
