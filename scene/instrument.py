@@ -1329,28 +1329,21 @@ class Instrument:
                  for col, _ in items]
         reach = np.array([0.0 if u is None else float(np.abs(u).max()) * lsb_per_v
                           for u in users])
-        table = self.echo_tabulated(cfg)
-        bounds = np.full(len(items), np.inf)
-        step = max(1, 4 * _BLOCK_VALUES // length)  # float32 rows: 1 MB in the cache
-        for b0 in range(0, len(items), step):
-            part = block[b0:b0 + step]
-            if table:
-                bounds[b0:b0 + step] = self._tabulated_echoes(cfg, items[b0:b0 + step],
-                                                              calibration, part, gain)
-            else:  # a table of every member would not fit: the Fourier synthesis
-                for row, (col, power) in zip(part, items[b0:b0 + step], strict=True):
-                    echo = self.echo(col, cfg, power, calibration=calibration, single=True)
-                    row += echo * np.float32(gain)
-            # The rows' float32 sums may exceed the bound by their rounding (a few 2**-24
-            # of the values' size): 2**-12 of it is ample.
-            bound = (bounds[b0:b0 + step] * (1 + 2.0**-12) + abs(shift) * 2.0**-12) / r \
-                + abs(offset_lsb) + reach[b0:b0 + step]
-            look = b0 + np.flatnonzero(bound > np.asarray(limits[b0:b0 + step]))
-            bounds[b0:b0 + step] = bound
-            if look.size:
-                sub = block[look]
-                top = np.maximum(sub.max(axis=1) - shift, shift - sub.min(axis=1))  # R |echo|
-                bounds[look] = top / r + abs(offset_lsb) + reach[look]
+        if self.echo_tabulated(cfg):  # the whole batch at once, walked code by code
+            bounds = self._tabulated_echoes(cfg, items, calibration, block, gain)
+        else:  # a table of every member would not fit: the Fourier synthesis
+            bounds = np.full(len(items), np.inf)
+            for row, (col, power) in zip(block, items, strict=True):
+                echo = self.echo(col, cfg, power, calibration=calibration, single=True)
+                row += echo * np.float32(gain)
+        # The rows' float32 sums may exceed the bound by their rounding (a few 2**-24 of
+        # the values' size): 2**-12 of it is ample.
+        bounds = (bounds * (1 + 2.0**-12) + abs(shift) * 2.0**-12) / r + abs(offset_lsb) + reach
+        look = np.flatnonzero(bounds > np.asarray(limits))
+        if look.size:
+            sub = block[look]
+            top = np.maximum(sub.max(axis=1) - shift, shift - sub.min(axis=1))  # R |echo|
+            bounds[look] = top / r + abs(offset_lsb) + reach[look]
         for j, u in enumerate(users):
             if u is not None:
                 block[j] += (u.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
