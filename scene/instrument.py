@@ -69,7 +69,7 @@ from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
-from cdma_lidar.scene.noise_kernel import row_kernel
+from cdma_lidar.scene.noise_kernel import repetition_kernel, row_kernel
 from cdma_lidar.scene.streams import generators
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -186,9 +186,13 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
     ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
 
-    The arithmetic runs on blocks of about _BLOCK_VALUES values (columns that stay in a
-    core's cache together), every value through the same operations in the same order
-    as the whole batch at once (tests/scene/test_noise_blocks.py checks it bit for bit).
+    With numba (the ``fast`` extra) the byte sums and the arithmetic of each column are
+    one compiled kernel (:func:`cdma_lidar.scene.noise_kernel.repetition_kernel`), fed
+    the Gaussians and bytes drawn as below; without it, or where a column's bytes take
+    more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
+    (columns that stay in a core's cache together). Every value goes through the same
+    float64 operations in the same order as the whole batch at once: the same sums bit
+    for bit (tests/scene/test_noise_blocks.py).
     """
     r = repetitions
     size = means_lsb[0].size
@@ -197,6 +201,17 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
                      + (r - 1) * _BYTE_VARIANCE)
     step = max(1, _BLOCK_VALUES // size)
     rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
+    kernel = repetition_kernel() if r - 1 <= rows else None  # a column's bytes in one draw
+    if kernel is not None:
+        normals = np.empty(size)
+        n = (r - 1) * size
+        no_bytes = np.empty((0, size), dtype=np.uint8)
+        for row, rng, mean, scale in zip(out, rngs, means_lsb, scales.tolist(), strict=True):
+            rng.standard_normal(out=normals)
+            octets = no_bytes if r == 1 else rng.bit_generator.random_raw(
+                -(-n // 8)).view(np.uint8)[:n].reshape(r - 1, size)
+            kernel(normals, octets, scale, np.ascontiguousarray(mean, dtype=np.float64), row)
+        return out
     draw = np.empty((min(step, len(rngs)), size))
     uniforms = np.empty(draw.shape)
     total = np.empty(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
@@ -399,8 +414,9 @@ class Instrument:
                                 np.nan)
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
-        if self.fidelity == "accumulated":
-            row_kernel()  # loaded (numba: about 0.5 s once per process) here, not in a frame
+        # the level's noise kernel, loaded (numba: about 0.5 s once per process) here, not in
+        # a frame
+        (row_kernel if self.fidelity == "accumulated" else repetition_kernel)()
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
         self._columns_bytes = 0
