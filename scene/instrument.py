@@ -200,7 +200,7 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
                      + (r - 1) * _BYTE_VARIANCE)
     step = max(1, _BLOCK_VALUES // size)
-    rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
+    rows = max(1, _BYTES_PER_DRAW // size)  # byte rows per draw
     kernel = repetition_kernel() if r - 1 <= rows else None  # a column's bytes in one draw
     if kernel is not None:
         normals = np.empty(size)
@@ -278,6 +278,10 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
         np.floor(d, out=out[block], casting="unsafe")
     return out
 
+
+#: Most random bytes :func:`draw_repetition_sums` draws at a time (16 MB, in whole rows of
+#: L): a column whose R - 1 byte rows are more takes several draws (and numpy's blocks).
+_BYTES_PER_DRAW = 1 << 24
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
 _BYTE_VARIANCE = 1.0 / (12 * 256**2)
