@@ -4,6 +4,8 @@ and repetition count, the block boundaries included)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -148,6 +150,31 @@ def test_compiled_repetition_row_equals_numpy_float64(size, rows, scale, mean, s
     want += means
     want -= (octets.sum(axis=0, dtype=np.int64) + 0.5 * rows) * (1.0 / 256)
     np.testing.assert_array_equal(got, np.floor(want).astype(np.int32))
+
+
+@needs_numba
+def test_compiled_repetition_row_keeps_numpys_rounding_order():
+    """Rows whose floors tell the float64 orders apart (random values almost never do):
+    ``(z s + m) - u`` against ``z s + (m - u)`` and ``(z s - u) + m`` (a tie at 1 + 2^-9),
+    and the rounded product against a fused multiply-add (z s = 1 - 2^-60 exactly). The
+    kernel gives numpy's order on every row."""
+    from fractions import Fraction
+
+    u = 0.5 / 256  # one byte row, the byte 0
+    rows = [(2.0**-9, 1.0, 1 - 2.0**-53, 1), (1 + 2.0**-30, 1 - 2.0**-30, -1.0, 0)]
+    got, want, others = [], [], {"m - u first": [], "z s - u first": [], "fused": []}
+    for z, scale, mean, k in rows:
+        out = np.empty(1, dtype=np.int32)
+        repetition_kernel()(np.array([z]), np.zeros((k, 1), dtype=np.uint8), scale,
+                            np.array([mean]), out)
+        got.append(int(out[0]))
+        v = u * k
+        want.append(math.floor((z * scale + mean) - v))
+        others["m - u first"].append(math.floor(z * scale + (mean - v)))
+        others["z s - u first"].append(math.floor((z * scale - v) + mean))
+        others["fused"].append(math.floor(Fraction(z) * Fraction(scale) + Fraction(mean) - v))
+    assert all(order != want for order in others.values())  # the rows tell them apart
+    assert got == want
 
 
 @needs_numba
