@@ -69,7 +69,7 @@ from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
-from cdma_lidar.scene.noise_kernel import repetition_kernel, row_kernel
+from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
 from cdma_lidar.scene.streams import generators
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -188,8 +188,10 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
 
     With numba (the ``fast`` extra) the byte sums and the arithmetic of each column are
     one compiled kernel (:func:`cdma_lidar.scene.noise_kernel.repetition_kernel`), fed
-    the Gaussians and bytes drawn as below; without it, or where a column's bytes take
-    more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
+    the Gaussians and bytes drawn as below (the Gaussians by numba's port of
+    ``standard_normal``, :func:`cdma_lidar.scene.noise_kernel.normal_kernel`: the same
+    values, the generator left in the same state); without it, or where a column's bytes
+    take more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
     (columns that stay in a core's cache together). Every value goes through the same
     float64 operations in the same order as the whole batch at once: the same sums bit
     for bit (tests/scene/test_noise_blocks.py).
@@ -203,11 +205,12 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     rows = max(1, _BYTES_PER_DRAW // size)  # byte rows per draw
     kernel = repetition_kernel() if r - 1 <= rows else None  # a column's bytes in one draw
     if kernel is not None:
+        fill = normal_kernel() or (lambda rng, row: rng.standard_normal(out=row))
         normals = np.empty(size)
         n = (r - 1) * size
         no_bytes = np.empty((0, size), dtype=np.uint8)
         for row, rng, mean, scale in zip(out, rngs, means_lsb, scales.tolist(), strict=True):
-            rng.standard_normal(out=normals)
+            fill(rng, normals)
             octets = no_bytes if r == 1 else rng.bit_generator.random_raw(
                 -(-n // 8)).view(np.uint8)[:n].reshape(r - 1, size)
             kernel(normals, octets, scale, np.ascontiguousarray(mean, dtype=np.float64), row)
@@ -420,7 +423,9 @@ class Instrument:
         self.fidelity = scene.fidelity
         # the level's noise kernel, loaded (numba: about 0.5 s once per process) here, not in
         # a frame
-        (row_kernel if self.fidelity == "accumulated" else repetition_kernel)()
+        for kernel in ((row_kernel,) if self.fidelity == "accumulated"
+                       else (normal_kernel, repetition_kernel)):
+            kernel()
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
         self._columns_bytes = 0

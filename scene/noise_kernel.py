@@ -30,7 +30,13 @@ numpy's order: the product rounded, the sum rounded, the uniform's sum (exact) t
 (exact), the difference rounded, the floor. numpy's blocks make eight passes (the byte
 sums, the product, the sum, the uniforms' three, the difference, the floor).
 
-Without numba, both functions return None and the caller uses numpy.
+The Gaussians themselves: :func:`normal_kernel` fills the column's L normals from its
+generator with numba's own port of numpy's ``Generator.standard_normal`` (the same
+ziggurat on the same bit generator words, the same values, checked against numpy's in
+tests/scene/test_noise_blocks.py) in half the time numpy's call takes here, the
+generator left in the same state for the bytes that follow.
+
+Without numba, the three functions return None and the caller uses numpy.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["repetition_kernel", "row_kernel"]
+__all__ = ["normal_kernel", "repetition_kernel", "row_kernel"]
 
 logger = logging.getLogger(__name__)
 
@@ -74,6 +80,12 @@ def _repetition_row(normals: NDArray[np.float64], octets: NDArray[np.uint8], sca
         out[i] = np.int32(np.floor(d))
 
 
+def _normals(rng: np.random.Generator, out: NDArray[np.float64]) -> None:
+    """The Gaussians' source: ``rng.standard_normal(out=out)`` as numba compiles it."""
+    for i in range(out.size):
+        out[i] = rng.standard_normal()
+
+
 @functools.cache
 def row_kernel() -> Callable[..., None] | None:
     """``_row`` compiled for float32 tables and means, int32 output (None without numba).
@@ -102,6 +114,23 @@ def repetition_kernel() -> Callable[..., None] | None:
                       readonly(t.float64), t.Array(t.int32, 1, "C"))
 
     return _compile(_repetition_row, signature, "exact")
+
+
+@functools.cache
+def normal_kernel() -> Callable[..., None] | None:
+    """``_normals`` compiled for a numpy Generator (any bit generator) and a float64 row
+    (None without numba).
+
+    numba (>= 0.56) runs numpy's ``standard_normal`` algorithm on the generator's own bit
+    generator; should a numba or numpy release part ways, the tests that compare it with
+    numpy's draws (tests/scene/test_noise_blocks.py) fail.
+    """
+    def signature(t: object, readonly: Callable[..., object]) -> object:
+        import numba  # present: _compile imported it
+
+        return t.void(numba.typeof(np.random.default_rng(0)), t.Array(t.float64, 1, "C"))
+
+    return _compile(_normals, signature, "exact")
 
 
 def _compile(source: Callable[..., None], signature: Callable[..., object],
