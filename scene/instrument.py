@@ -71,7 +71,7 @@ from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.echo_kernel import terms_kernel
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
-from cdma_lidar.scene.noise_kernel import row_kernel
+from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
 from cdma_lidar.scene.streams import generators
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -188,9 +188,15 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
     ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
 
-    The arithmetic runs on blocks of about _BLOCK_VALUES values (columns that stay in a
-    core's cache together), every value through the same operations in the same order
-    as the whole batch at once (tests/scene/test_noise_blocks.py checks it bit for bit).
+    With numba (the ``fast`` extra) the byte sums and the arithmetic of each column are
+    one compiled kernel (:func:`cdma_lidar.scene.noise_kernel.repetition_kernel`), fed
+    the Gaussians and bytes drawn as below (the Gaussians by numba's port of
+    ``standard_normal``, :func:`cdma_lidar.scene.noise_kernel.normal_kernel`: the same
+    values, the generator left in the same state); without it, or where a column's bytes
+    take more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
+    (columns that stay in a core's cache together). Every value goes through the same
+    float64 operations in the same order as the whole batch at once: the same sums bit
+    for bit (tests/scene/test_noise_blocks.py).
     """
     r = repetitions
     size = means_lsb[0].size
@@ -198,7 +204,19 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
                      + (r - 1) * _BYTE_VARIANCE)
     step = max(1, _BLOCK_VALUES // size)
-    rows = max(1, (1 << 24) // size)  # at most about 16 MB of bytes at a time
+    rows = max(1, _BYTES_PER_DRAW // size)  # byte rows per draw
+    kernel = repetition_kernel() if r - 1 <= rows else None  # a column's bytes in one draw
+    if kernel is not None:
+        fill = normal_kernel() or (lambda rng, row: rng.standard_normal(out=row))
+        normals = np.empty(size)
+        n = (r - 1) * size
+        no_bytes = np.empty((0, size), dtype=np.uint8)
+        for row, rng, mean, scale in zip(out, rngs, means_lsb, scales.tolist(), strict=True):
+            fill(rng, normals)
+            octets = no_bytes if r == 1 else rng.bit_generator.random_raw(
+                -(-n // 8)).view(np.uint8)[:n].reshape(r - 1, size)
+            kernel(normals, octets, scale, np.ascontiguousarray(mean, dtype=np.float64), row)
+        return out
     draw = np.empty((min(step, len(rngs)), size))
     uniforms = np.empty(draw.shape)
     total = np.empty(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
@@ -265,6 +283,10 @@ def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArra
         np.floor(d, out=out[block], casting="unsafe")
     return out
 
+
+#: Most random bytes :func:`draw_repetition_sums` draws at a time (16 MB, in whole rows of
+#: L): a column whose R - 1 byte rows are more takes several draws (and numpy's blocks).
+_BYTES_PER_DRAW = 1 << 24
 
 #: Variance (LSB^2) a uniform on the byte grid (b + 1/2) / 256 lacks against a continuous one.
 _BYTE_VARIANCE = 1.0 / (12 * 256**2)
@@ -401,8 +423,11 @@ class Instrument:
                                 np.nan)
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
-        if self.fidelity == "accumulated":  # loaded (numba: about 0.5 s once per process)
-            row_kernel(), terms_kernel()  # here, not in a frame
+        # the level's compiled kernels, loaded (numba: about 0.5 s once per process) here,
+        # not in a frame
+        for kernel in ((row_kernel, terms_kernel) if self.fidelity == "accumulated"
+                       else (normal_kernel, repetition_kernel)):
+            kernel()
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
         self._columns_bytes = 0

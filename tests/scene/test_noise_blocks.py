@@ -4,6 +4,8 @@ and repetition count, the block boundaries included)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -11,11 +13,13 @@ from hypothesis import strategies as st
 
 from cdma_lidar.scene import instrument
 from cdma_lidar.scene.instrument import _BYTE_VARIANCE, _normal_table
-from cdma_lidar.scene.noise_kernel import row_kernel
+from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
 
 
 def _repetition_sums_whole(rngs, means, sigmas, r):
-    """draw_repetition_sums as one pass of each operation over the whole (B, L) batch."""
+    """draw_repetition_sums as one pass of each operation over the whole (B, L) batch (its
+    bytes drawn as it draws them: rows of at most _BYTES_PER_DRAW bytes per draw, each draw
+    a whole number of generator words)."""
     size = means[0].size
     draw = np.empty((len(rngs), size))
     for row, rng in zip(draw, rngs, strict=True):
@@ -26,9 +30,11 @@ def _repetition_sums_whole(rngs, means, sigmas, r):
         row += mean
     if r > 1:
         total = np.zeros(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
+        rows = max(1, instrument._BYTES_PER_DRAW // size)
         for acc, rng in zip(total, rngs, strict=True):
-            n = (r - 1) * size
-            octets = rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
+            octets = np.concatenate([
+                rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
+                for n in (min(rows, r - 1 - r0) * size for r0 in range(0, r - 1, rows))])
             acc += np.add.reduce(octets.reshape(-1, size), axis=0, dtype=total.dtype)
         uniforms = total.astype(np.float64)
         uniforms += 0.5 * (r - 1)
@@ -54,20 +60,25 @@ def _table_sums_whole(rngs, means, stds):
 needs_numba = pytest.mark.skipif(row_kernel() is None, reason="numba (extra 'fast') not installed")
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=90, deadline=None)
 @given(columns=st.integers(1, 9), size=st.integers(1, 70), r=st.sampled_from([1, 2, 10, 300]),
-       block=st.sampled_from([1, 50, 64, 1 << 16]), seed=st.integers(0, 2**32 - 1),
-       level=st.sampled_from(["exact", "accumulated", "accumulated, numpy"]))
-def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, seed, level):
-    """Every path against the whole-batch formulas: exact's blocks, accumulated's compiled
-    row kernel (where numba is installed) and its numpy blocks."""
+       block=st.sampled_from([1, 50, 64, 1 << 16]), draw=st.sampled_from([1, 100, 1 << 24]),
+       seed=st.integers(0, 2**32 - 1),
+       level=st.sampled_from(["exact", "exact, numpy", "accumulated", "accumulated, numpy"]))
+def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, draw, seed, level):
+    """Every path against the whole-batch formulas: exact's compiled row kernel and its
+    numpy blocks (bytes in one draw per column or in several, uint16 or uint32 byte sums
+    at R = 300), accumulated's compiled row kernel (where numba is installed) and its
+    numpy blocks."""
     data = np.random.default_rng(seed)
     sigmas = (3.0 + 40 * data.random(columns)).tolist()
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(instrument, "_BLOCK_VALUES", block)
-        if level == "accumulated, numpy":
+        mp.setattr(instrument, "_BYTES_PER_DRAW", draw)
+        if level.endswith(", numpy"):
             mp.setattr(instrument, "row_kernel", lambda: None)
-        if level == "exact":
+            mp.setattr(instrument, "repetition_kernel", lambda: None)
+        if level.startswith("exact"):
             means = [data.normal(0, 5e3, size) for _ in range(columns)]
 
             def run(fn):
@@ -121,21 +132,123 @@ def test_compiled_row_refuses_other_precisions_and_short_words():
 
 
 @needs_numba
-def test_accumulated_render_is_the_same_with_or_without_numba():
+@settings(max_examples=60, deadline=None)
+@given(size=st.integers(1, 40), rows=st.sampled_from([0, 1, 9, 300]),
+       scale=st.floats(1.0, 400.0), mean=st.floats(-3e7, 3e7), seed=st.integers(0, 2**32 - 1))
+def test_compiled_repetition_row_equals_numpy_float64(size, rows, scale, mean, seed):
+    """exact's compiled kernel on one row against numpy's float64 operations written out
+    (byte sums, product, sum, uniforms, difference, floor), means far from zero on both
+    sides, the bytes' extremes (all 0 in the first sample, all 255 in the last) included."""
+    rng = np.random.default_rng(seed)
+    normals = rng.standard_normal(size)
+    octets = rng.integers(0, 256, (rows, size), dtype=np.uint8)
+    octets[:, 0], octets[:, -1] = 0, 255
+    means = mean + rng.normal(0, 50, size)
+    got = np.empty(size, dtype=np.int32)
+    repetition_kernel()(normals, octets, scale, means, got)
+    want = normals * scale
+    want += means
+    want -= (octets.sum(axis=0, dtype=np.int64) + 0.5 * rows) * (1.0 / 256)
+    np.testing.assert_array_equal(got, np.floor(want).astype(np.int32))
+
+
+@needs_numba
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**64 - 1), size=st.sampled_from([0, 1, 7, 8188, 300_000]),
+       bits=st.sampled_from(["PCG64", "MT19937"]))
+def test_compiled_normals_equal_numpys(seed, size, bits):
+    """numba's standard_normal against numpy's on the same generator: the same values bit
+    for bit (300 000 draws reach the ziggurat's wedges and its tail beyond 3.654, where
+    exp and log enter) and the generator left in the same state (its next words, the
+    bytes exact's noise draws next, the same)."""
+    mine, theirs = (np.random.Generator(getattr(np.random, bits)(seed)) for _ in range(2))
+    got = np.empty(size)
+    normal_kernel()(mine, got)
+    want = theirs.standard_normal(size)
+    np.testing.assert_array_equal(got, want)
+    if size == 300_000:
+        assert np.count_nonzero(np.abs(want) > 3.6541528853610088) > 10  # the tail
+    np.testing.assert_array_equal(mine.bit_generator.random_raw(4),
+                                  theirs.bit_generator.random_raw(4))
+
+
+@needs_numba
+def test_compiled_repetition_row_keeps_numpys_rounding_order():
+    """Rows whose floors tell the float64 orders apart (random values almost never do):
+    ``(z s + m) - u`` against ``z s + (m - u)`` and ``(z s - u) + m`` (a tie at 1 + 2^-9),
+    and the rounded product against a fused multiply-add (z s = 1 - 2^-60 exactly). The
+    kernel gives numpy's order on every row."""
+    from fractions import Fraction
+
+    u = 0.5 / 256  # one byte row, the byte 0
+    rows = [(2.0**-9, 1.0, 1 - 2.0**-53, 1), (1 + 2.0**-30, 1 - 2.0**-30, -1.0, 0)]
+    got, want, others = [], [], {"m - u first": [], "z s - u first": [], "fused": []}
+    for z, scale, mean, k in rows:
+        out = np.empty(1, dtype=np.int32)
+        repetition_kernel()(np.array([z]), np.zeros((k, 1), dtype=np.uint8), scale,
+                            np.array([mean]), out)
+        got.append(int(out[0]))
+        v = u * k
+        want.append(math.floor((z * scale + mean) - v))
+        others["m - u first"].append(math.floor(z * scale + (mean - v)))
+        others["z s - u first"].append(math.floor((z * scale - v) + mean))
+        others["fused"].append(math.floor(Fraction(z) * Fraction(scale) + Fraction(mean) - v))
+    assert all(order != want for order in others.values())  # the rows tell them apart
+    assert got == want
+
+
+@needs_numba
+def test_compiled_rows_refuse_other_types_and_shapes():
+    kernel = repetition_kernel()
+    normals, octets = np.zeros(8), np.zeros((2, 8), dtype=np.uint8)
+    mean, out = np.zeros(8), np.empty(8, dtype=np.int32)
+    kernel(normals, octets, 1.0, mean, out)
+    for args in ((normals.astype(np.float32), octets, 1.0, mean, out),  # float32 normals
+                 (normals, octets.astype(np.uint16), 1.0, mean, out),  # wider bytes
+                 (normals, octets[0], 1.0, mean, out),  # byte rows not 2-D
+                 (normals[:4], octets[:, ::2], 1.0, mean[:4], out[:4]),  # strided bytes
+                 (normals, octets, 1.0, mean.astype(np.float32), out),  # float32 means
+                 (normals, octets, 1.0, mean, out.astype(np.int64))):  # int64 sums
+        with pytest.raises(TypeError):
+            kernel(*args)
+    for args in ((normals[:7], octets, 1.0, mean, out),
+                 (normals, octets[:, :7].copy(), 1.0, mean, out),
+                 (normals, octets, 1.0, mean[:7], out)):
+        with pytest.raises(ValueError, match="match the row"):
+            kernel(*args)
+    fill = normal_kernel()
+    for args in ((np.random.default_rng(0), normals.astype(np.float32)),
+                 (np.random.RandomState(0), normals), (np.random.default_rng(0), normals[::2])):
+        with pytest.raises(TypeError):
+            fill(*args)
+
+
+@needs_numba
+@pytest.mark.parametrize(("level", "name"), [("accumulated", "row_kernel"),
+                                             ("exact", "repetition_kernel")])
+def test_render_is_the_same_with_or_without_numba(level, name):
     """paper-scene1's first 24 columns, a batch out of order with a repeat, and calibration
-    shots at ``accumulated``: the compiled kernel's sums equal the numpy path's bit for bit."""
+    shots: the compiled kernel's sums (it ran on every column) equal the numpy path's bit
+    for bit."""
     from cdma_lidar.scene import load_scene
     from cdma_lidar.scene.instrument import Instrument, RenderSettings
 
-    inst = Instrument(load_scene("paper-scene1?fidelity=accumulated"), 3)
+    inst = Instrument(load_scene(f"paper-scene1?fidelity={level}"), 3)
     cfg = RenderSettings.from_spec(inst.spec)
+    compiled, calls = getattr(instrument, name)(), []
+
+    def counted(*args):
+        calls.append(args[-1].size)
+        compiled(*args)
+
     out = []
-    for kernel in (row_kernel, lambda: None):
+    for kernel in (lambda: counted, lambda: None):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, "row_kernel", kernel)
+            mp.setattr(instrument, name, kernel)
             got = [inst.render_sums(cols, cfg, 4) for cols in (list(range(24)), [9, 2, 9, 0])]
             got.append(inst.render_sums([0, 5], cfg, 4, calibration=True))
         out.append(got)
+    assert calls == [cfg.frame_samples] * 30
     for (sums, drawn), (want, want_drawn) in zip(*out, strict=True):
         assert drawn.all()
         np.testing.assert_array_equal(drawn, want_drawn)
