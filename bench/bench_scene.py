@@ -18,7 +18,8 @@
    render, and the
    real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
    62.5 Mchip/s = 52.4 ms) over the scan's time. With numba installed (the ``fast``
-   extra), a column ``acc. numpy`` repeats ``accumulated`` without its compiled kernels.
+   extra), columns ``exact numpy`` and ``acc. numpy`` repeat the levels without their
+   compiled kernels (speed-ups against ``exact numpy``).
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -179,18 +180,24 @@ def _frame_steps(level: str) -> dict[str, object]:
     return steps
 
 
+#: The instrument's compiled kernels (numba, the ``fast`` extra), by their names there.
+KERNELS = ("row_kernel", "terms_kernel", "normal_kernel", "repetition_kernel")
+
+
 def _without_numba(steps: dict[str, object]) -> dict[str, object]:
-    """``steps`` run with accumulated's compiled kernels (noise, echoes) set aside."""
+    """``steps`` run with every compiled kernel set aside (the numpy and BLAS paths)."""
     from cdma_lidar.scene import instrument
 
     def wrap(fn):
         def run() -> None:
-            kept = instrument.row_kernel, instrument.terms_kernel
-            instrument.row_kernel = instrument.terms_kernel = lambda: None
+            kept = {name: getattr(instrument, name) for name in KERNELS}
+            for name in KERNELS:
+                setattr(instrument, name, lambda: None)
             try:
                 fn()
             finally:
-                instrument.row_kernel, instrument.terms_kernel = kept
+                for name, kernel in kept.items():
+                    setattr(instrument, name, kernel)
         return run
 
     return {key: wrap(fn) for key, fn in steps.items()}
@@ -200,13 +207,15 @@ def _frame_costs(repeat: int) -> dict[str, dict[str, float]]:
     """CPU seconds of one paper-scene1 frame per fidelity level and step (best of
     ``repeat``), the levels' steps interleaved run by run: the machine's state drifts
     over the minute this takes, and ratios between levels must not carry that drift.
-    With numba installed, a column ``acc. numpy`` times ``accumulated`` without its
-    compiled kernels too (what an install without the ``fast`` extra runs)."""
+    With numba installed, columns ``exact numpy`` and ``acc. numpy`` time the levels
+    without their compiled kernels too (what an install without the ``fast`` extra
+    runs), each on its level's own instrument."""
     from cdma_lidar.scene.noise_kernel import row_kernel
 
     steps = {level: _frame_steps(level) for level in FIDELITY_LEVELS}
     if row_kernel() is not None:
-        steps["acc. numpy"] = _without_numba(steps["accumulated"])  # the same instrument
+        steps["exact numpy"] = _without_numba(steps["exact"])
+        steps["acc. numpy"] = _without_numba(steps["accumulated"])
     out = {level: dict.fromkeys(s, np.inf) for level, s in steps.items()}
     for _ in range(repeat):
         for level, level_steps in steps.items():
@@ -238,10 +247,11 @@ def print_frame_costs() -> None:
           f"gate {fw.get_config()['gate_len']} lags; CPU ms per frame, best of 7 runs "
           f"interleaved across the levels; {_load()}")
     costs = _frame_costs(7)
-    ex = costs["exact"]
     levels = list(costs)
     if "acc. numpy" not in costs:
-        print("  (numba is not installed: accumulated runs without its compiled kernels)")
+        print("  (numba is not installed: the levels run without their compiled kernels)")
+    # each column's speed-ups are against exact on the same footing (numba or not)
+    base = {lv: costs["exact numpy" if lv.endswith("numpy") else "exact"] for lv in levels}
     print(f"  {'':34s}" + "".join(f"{level:>13s}" for level in levels))
     rows = (("render, first ever (codebook too)", "first"),
             ("render, first frame (cold)", "cold"), ("render, later frame (warm)", "warm"),
@@ -250,21 +260,22 @@ def print_frame_costs() -> None:
     for label, key in rows:
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] * 1e3:13.1f}"
                                          for lv in levels))
-    print(f"  {'render repetition by repetition':34s}{ex['rep_cold'] * 1e3:13.1f}"
-          "   (exact, cold: CAPTURE RAW's R x L draws)")
+    print(f"  {'render repetition by repetition':34s}" + "".join(
+        f"{costs[lv]['rep_cold'] * 1e3:13.1f}" if "rep_cold" in costs[lv] else " " * 13
+        for lv in levels) + "   (exact, cold: CAPTURE RAW's R x L draws)")
     rx = min(costs[lv]["rx"] for lv in levels)  # the same chain on the same samples
     for label, key in (("scan cold / receive chain alone", "scan_cold"),
                        ("scan warm / receive chain alone", "scan")):
         print(f"  {label:34s}" + "".join(f"{costs[lv][key] / rx:13.2f}" for lv in levels)
               + f"   (baseline: the chain's best, {rx * 1e3:.1f} ms, over every column)")
     print(f"  {'render speed-up vs exact (first)':34s}" + "".join(
-        f"{ex['first'] / costs[lv]['first']:13.2f}" for lv in levels))
+        f"{base[lv]['first'] / costs[lv]['first']:13.2f}" for lv in levels))
     print(f"  {'render speed-up vs exact (cold)':34s}" + "".join(
-        f"{ex['cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
+        f"{base[lv]['cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
     print(f"  {'render speed-up vs exact (warm)':34s}" + "".join(
-        f"{ex['warm'] / costs[lv]['warm']:13.2f}" for lv in levels))
+        f"{base[lv]['warm'] / costs[lv]['warm']:13.2f}" for lv in levels))
     print(f"  {'speed-up vs repetitions (cold)':34s}" + "".join(
-        f"{ex['rep_cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
+        f"{base[lv]['rep_cold'] / costs[lv]['cold']:13.2f}" for lv in levels))
     for label, key in (("real-time factor, cold scan", "scan_cold"),
                        ("real-time factor, warm scan", "scan")):
         print(f"  {label:34s}" + "".join(f"{ACQ_S / costs[lv][key]:13.3f}"
