@@ -13,7 +13,7 @@ waveform table: two BLAS saxpy calls, ``y += a_k w_p`` then ``y += b_k w_(p+1)``
 This kernel does both in one pass over the row, each step a fused multiply-add rounded
 once to float32, which is what BLAS's saxpy computes on hardware with FMA (OpenBLAS's
 x86-64 and ARM kernels), and skips a zero coefficient as BLAS does. So the values are
-those of the saxpy path wherever BLAS fuses; tests/scene/test_noise_blocks.py checks it
+those of the saxpy path wherever BLAS fuses; tests/scene/test_echo_kernel.py checks it
 where a probe finds that it does. One pass instead of two, and no Python call per term.
 
 Without numba, :func:`terms_kernel` returns None and the caller calls saxpy.
@@ -22,16 +22,14 @@ Without numba, :func:`terms_kernel` returns None and the caller calls saxpy.
 from __future__ import annotations
 
 import functools
-import logging
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.scene.noise_kernel import compile_kernel
+
 __all__ = ["terms_kernel"]
-
-logger = logging.getLogger(__name__)
-
 
 def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np.int64],
            a: NDArray[np.float32], b: NDArray[np.float32], y: NDArray[np.float32],
@@ -73,31 +71,20 @@ def terms_kernel() -> Callable[..., None] | None:
     Compiled once per process and cached on disk by numba (in memory only where it
     finds no writable folder for the cache).
     """
-    try:
-        import numba  # optional (extra "fast"): without it the echoes call saxpy
-        from numba.extending import intrinsic  # optional, as numba above
-    except ImportError:
-        logger.info("numba is not installed: accumulated echoes call BLAS saxpy "
-                    "(pip install 'cdma-lidar[fast]' for the compiled kernel)")
-        return None
-    t = numba.types
+    def signature(t: object, readonly: Callable[..., object]) -> object:
+        from numba.extending import intrinsic  # present: compile_kernel imported numba
 
-    @intrinsic
-    def fma32(typingctx, a, b, c):  # numba's intrinsic protocol
-        def codegen(context, builder, signature, args):
-            return builder.fma(*args)  # llvm.fma.f32: one rounding, as BLAS's FMA
+        @intrinsic
+        def fma32(typingctx, a, b, c):  # numba's intrinsic protocol
+            def codegen(context, builder, signature, args):
+                return builder.fma(*args)  # llvm.fma.f32: one rounding, as BLAS's FMA
 
-        return t.float32(t.float32, t.float32, t.float32), codegen
+            return t.float32(t.float32, t.float32, t.float32), codegen
 
-    def readonly(dtype: object) -> object:
-        return t.Array(dtype, 1, "C", readonly=True)
+        global _fma  # numba reads it when it compiles _terms (or loads it from its cache)
+        _fma = fma32
+        return t.void(readonly(t.float32), readonly(t.int64), readonly(t.int64),
+                      readonly(t.float32), readonly(t.float32), t.Array(t.float32, 1, "C"),
+                      t.int64)
 
-    signature = t.void(readonly(t.float32), readonly(t.int64), readonly(t.int64),
-                       readonly(t.float32), readonly(t.float32), t.Array(t.float32, 1, "C"),
-                       t.int64)
-    global _fma  # numba reads it when it compiles _terms (or loads it from its cache)
-    _fma = fma32
-    try:
-        return numba.njit(signature, cache=True, nogil=True)(_terms)
-    except RuntimeError:  # numba finds no writable folder for its cache: compile in memory
-        return numba.njit(signature, nogil=True)(_terms)
+    return compile_kernel(_terms, signature, "accumulated echoes call BLAS saxpy")

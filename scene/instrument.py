@@ -423,8 +423,8 @@ class Instrument:
                                 np.nan)
         #: one of cdma_lidar.scene.model.FIDELITY_LEVELS
         self.fidelity = scene.fidelity
-        # the level's compiled kernels, loaded (numba: about 0.5 s once per process) here,
-        # not in a frame
+        # the level's compiled kernels, loaded (numba's import and its cached code, once
+        # per process) here, not in a frame
         for kernel in ((row_kernel, terms_kernel) if self.fidelity == "accumulated"
                        else (normal_kernel, repetition_kernel)):
             kernel()

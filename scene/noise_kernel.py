@@ -12,9 +12,7 @@ product rounded to float32, then a sum rounded to float32, then the floor): numb
 compiles without fast-math, so nothing is reassociated or fused into a multiply-add, and
 the values are bit for bit those of the numpy path (tests/scene/test_noise_blocks.py).
 numpy spends five passes (widening the words to indices, the gather, the scale, the
-mean, the floor) where this spends one per column: the noise of a cold 160-column
-paper-scene1 frame took 3.8 ms instead of 6.3 (CPU, best of 21, both paths in one
-process, load 0.7).
+mean, the floor) where this spends one per column (``python -m bench scene`` times both).
 
 ``exact``: :func:`repetition_kernel`, one column of
 :func:`cdma_lidar.scene.instrument.draw_repetition_sums`::
@@ -48,7 +46,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["normal_kernel", "repetition_kernel", "row_kernel"]
+__all__ = ["compile_kernel", "normal_kernel", "repetition_kernel", "row_kernel"]
 
 logger = logging.getLogger(__name__)
 
@@ -98,7 +96,7 @@ def row_kernel() -> Callable[..., None] | None:
         return t.void(readonly(t.uint16), readonly(t.float32), t.float32,
                       readonly(t.float32), t.Array(t.int32, 1, "C"))
 
-    return _compile(_row, signature, "accumulated")
+    return compile_kernel(_row, signature, "accumulated noise runs on numpy")
 
 
 @functools.cache
@@ -113,7 +111,7 @@ def repetition_kernel() -> Callable[..., None] | None:
         return t.void(readonly(t.float64), readonly(t.uint8, 2), t.float64,
                       readonly(t.float64), t.Array(t.int32, 1, "C"))
 
-    return _compile(_repetition_row, signature, "exact")
+    return compile_kernel(_repetition_row, signature, "exact noise runs on numpy")
 
 
 @functools.cache
@@ -126,23 +124,25 @@ def normal_kernel() -> Callable[..., None] | None:
     numpy's draws (tests/scene/test_noise_blocks.py) fail.
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
-        import numba  # present: _compile imported it
+        import numba  # present: compile_kernel imported it
 
         return t.void(numba.typeof(np.random.default_rng(0)), t.Array(t.float64, 1, "C"))
 
-    return _compile(_normals, signature, "exact")
+    return compile_kernel(_normals, signature, "exact noise runs on numpy")
 
 
-def _compile(source: Callable[..., None], signature: Callable[..., object],
-             level: str) -> Callable[..., None] | None:
-    """``source`` compiled by numba for ``signature(numba.types, readonly)`` (None and a
-    log line without numba): without fast-math, cached on disk (in memory only where
-    numba finds no writable folder for its cache)."""
+def compile_kernel(source: Callable[..., None], signature: Callable[..., object],
+                   fallback: str) -> Callable[..., None] | None:
+    """``source`` compiled by numba for ``signature(numba.types, readonly)``, or None and
+    a log line saying what runs instead (``fallback``) without numba: without fast-math,
+    cached on disk (in memory only where numba finds no writable folder for its cache).
+    The scene's compiled kernels (here and :mod:`cdma_lidar.scene.echo_kernel`) are all
+    made by it."""
     try:
-        import numba  # optional (extra "fast"): without it the noise runs on numpy
+        import numba  # optional (extra "fast"): without it the callers run numpy or BLAS
     except ImportError:
-        logger.info("numba is not installed: %s noise runs on numpy "
-                    "(pip install 'cdma-lidar[fast]' for the compiled kernel)", level)
+        logger.info("numba is not installed: %s (pip install 'cdma-lidar[fast]' for the "
+                    "compiled kernel)", fallback)
         return None
     t = numba.types
 
