@@ -98,7 +98,8 @@ def _kernel_args(inst: Instrument, cfg: RenderSettings, column: int) -> tuple | 
     taus = inst.delay_s[chans, column] + inst._sample_shift_s(cfg)
     members = tuple(int(cfg.code_index[c]) for c in chans)
     dfts, period = inst._chip_spectra(cfg, members, cfg.uid, cfg.uid_bits)
-    return f[1], amps, taus, [dfts[i] for i in members], period, inst._spectral_weight(cfg, period)
+    return (f[1], amps, taus, *inst._stack(dfts, members), period,
+            inst._spectral_weight(cfg, period))
 
 
 def _cost(scene) -> dict[str, float]:
@@ -181,7 +182,8 @@ def _frame_steps(level: str) -> dict[str, object]:
 
 
 #: The instrument's compiled kernels (numba, the ``fast`` extra), by their names there.
-KERNELS = ("row_kernel", "terms_kernel", "normal_kernel", "repetition_kernel")
+KERNELS = ("row_kernel", "terms_kernel", "synthesis_kernel", "normal_kernel",
+           "repetition_kernel")
 
 
 def _without_numba(steps: dict[str, object]) -> dict[str, object]:

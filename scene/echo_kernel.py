@@ -1,6 +1,6 @@
-r"""The compiled kernel of ``accumulated`` fidelity's tabulated echoes (numba: the ``fast``
-extra).
+r"""The compiled kernels of the echoes (numba: the ``fast`` extra).
 
+``accumulated``: :func:`terms_kernel`.
 :meth:`cdma_lidar.scene.instrument.Instrument._tabulated_echoes` adds each echo term k
 (in the batch's order) into its row of the flat batch ``y`` from its Gold member's flat
 waveform table: two BLAS saxpy calls, ``y += a_k w_p`` then ``y += b_k w_(p+1)``::
@@ -16,7 +16,23 @@ x86-64 and ARM kernels), and skips a zero coefficient as BLAS does. So the value
 those of the saxpy path wherever BLAS fuses; tests/scene/test_echo_kernel.py checks it
 where a probe finds that it does. One pass instead of two, and no Python call per term.
 
-Without numba, :func:`terms_kernel` returns None and the caller calls saxpy.
+``exact``: :func:`synthesis_kernel`, the per-channel work of the Fourier synthesis,
+:meth:`cdma_lidar.scene.instrument.Instrument._sum_delayed` (its docstring has the
+algebra) for complex128 sums, before the spectral weight. For each term k, in order, with
+``x y`` numpy's complex product (re = fma(xr, yr, -(xi yi)), im = fma(xr, yi, xi yr):
+numpy's SIMD loops fuse it so on every machine with FMA, which the tests probe)::
+
+    u[p]  = (dft_k[p] lo_k[p % B]) hi_k[p // B]                  p = 0 .. period - 1
+    out[row_k, j period + p]  (+)=  u[p]             (j = 0)
+                                    u[p] turn_k,j    (j >= 1, while the bin is < m)
+
+``(+)=``: the row's first term is written, later ones added. numpy does this as two
+multiplies over the period, then a copy or an add, and a multiply and an add per further
+period, each a call from Python: eight calls and passes per term, where the kernel makes
+one call per batch and one pass per period. The same operations in the same order: the
+same values bit for bit (tests/scene/test_echo_kernel.py).
+
+Without numba both functions return None and the callers use BLAS (saxpy) or numpy.
 """
 
 from __future__ import annotations
@@ -29,7 +45,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.scene.noise_kernel import compile_kernel
 
-__all__ = ["terms_kernel"]
+__all__ = ["synthesis_kernel", "terms_kernel"]
 
 def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np.int64],
            a: NDArray[np.float32], b: NDArray[np.float32], y: NDArray[np.float32],
@@ -57,9 +73,57 @@ def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np
                 row[j] = _fma(bk, w1[j], row[j])
 
 
+def _synthesis(spectra: NDArray[np.complex128], members: NDArray[np.int64],
+               rows: NDArray[np.int64], lo: NDArray[np.complex128], hi: NDArray[np.complex128],
+               turns: NDArray[np.complex128], period: int, out: NDArray[np.complex128]) -> None:
+    """The synthesis kernel's source: spectra (M, A B) flat chip spectra, members/rows (T,)
+    each term's spectrum and row of ``out`` (R, m), lo (T, B) and hi (T, A) the ramp's
+    factors (hi with the amplitude), turns (T, periods - 1) each further period's turn."""
+    size, b, a = out.shape[1], lo.shape[1], hi.shape[1]
+    if (members.size != rows.size or lo.shape[0] != rows.size or hi.shape[0] != rows.size
+            or turns.shape[0] != rows.size or period < 1 or a * b < period
+            or spectra.shape[1] != a * b or (turns.shape[1] + 1) * period < size):
+        raise ValueError("one spectrum, row, ramp and turns per term, covering every bin")
+    written = np.zeros(out.shape[0], dtype=np.bool_)
+    u = np.empty(a * b, dtype=np.complex128)
+    for k in range(rows.size):
+        i, r = members[k], rows[k]
+        if i < 0 or i >= spectra.shape[0] or r < 0 or r >= out.shape[0]:
+            raise ValueError("a term's spectrum or row is out of range")
+        dft, row, add = spectra[i], out[r], written[r]
+        written[r] = True
+        for alpha in range(a):
+            h = hi[k, alpha]
+            for beta in range(b):
+                u[alpha * b + beta] = _mul(_mul(dft[alpha * b + beta], lo[k, beta]), h)
+        for j in range(turns.shape[1] + 1):
+            q0 = j * period
+            n = min(period, size - q0)
+            if j == 0 and add:
+                for p in range(n):
+                    row[p] = row[p] + u[p]
+            elif j == 0:
+                row[:n] = u[:n]
+            elif add:
+                for p in range(n):
+                    row[q0 + p] = row[q0 + p] + _mul(u[p], turns[k, j - 1])
+            else:
+                for p in range(n):
+                    row[q0 + p] = _mul(u[p], turns[k, j - 1])
+    for r in range(out.shape[0]):
+        if not written[r]:
+            out[r, :] = 0
+
+
 def _fma(a: float, b: float, c: float) -> float:
-    """Set to the compiled fused multiply-add by :func:`terms_kernel` (numba's intrinsic)."""
-    raise NotImplementedError("compiled by terms_kernel")
+    """Set to numba's fused multiply-add intrinsic when a kernel is compiled."""
+    raise NotImplementedError("compiled by terms_kernel or synthesis_kernel")
+
+
+def _mul(x: complex, y: complex) -> complex:
+    """numpy's complex product: each part one fused multiply-add of a rounded product."""
+    return complex(_fma(x.real, y.real, -(x.imag * y.imag)),
+                   _fma(x.real, y.imag, x.imag * y.real))
 
 
 @functools.cache
@@ -72,19 +136,48 @@ def terms_kernel() -> Callable[..., None] | None:
     finds no writable folder for the cache).
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
-        from numba.extending import intrinsic  # present: compile_kernel imported numba
-
-        @intrinsic
-        def fma32(typingctx, a, b, c):  # numba's intrinsic protocol
-            def codegen(context, builder, signature, args):
-                return builder.fma(*args)  # llvm.fma.f32: one rounding, as BLAS's FMA
-
-            return t.float32(t.float32, t.float32, t.float32), codegen
-
-        global _fma  # numba reads it when it compiles _terms (or loads it from its cache)
-        _fma = fma32
+        _use_fma()
         return t.void(readonly(t.float32), readonly(t.int64), readonly(t.int64),
                       readonly(t.float32), readonly(t.float32), t.Array(t.float32, 1, "C"),
                       t.int64)
 
     return compile_kernel(_terms, signature, "accumulated echoes call BLAS saxpy")
+
+
+@functools.cache
+def synthesis_kernel() -> Callable[..., None] | None:
+    """``_synthesis`` compiled for complex128 (None without numba).
+
+    The signature is fixed (read-only spectra and ramps, int64 indices, a writable (R, m)
+    sum), as :func:`terms_kernel`'s. Compiled once per process, cached on disk by numba.
+    """
+    def signature(t: object, readonly: Callable[..., object]) -> object:
+        import numba  # present: compile_kernel imported it
+
+        _use_fma()
+        global _mul  # compiled inline into _synthesis, as _fma
+        _mul = numba.njit(inline="always")(_mul_source)
+        c = t.complex128
+        return t.void(readonly(c, 2), readonly(t.int64), readonly(t.int64), readonly(c, 2),
+                      readonly(c, 2), readonly(c, 2), t.int64, t.Array(c, 2, "C"))
+
+    return compile_kernel(_synthesis, signature, "exact echoes run on numpy")
+
+
+_mul_source = _mul
+
+
+def _use_fma() -> None:
+    """Bind ``_fma`` to numba's intrinsic: llvm.fma of the arguments' float type, rounded
+    once (numba reads the global when it compiles a kernel or loads it from its cache)."""
+    from numba.extending import intrinsic  # present: compile_kernel imported numba
+
+    @intrinsic
+    def fma(typingctx, a, b, c):  # numba's intrinsic protocol
+        def codegen(context, builder, signature, args):
+            return builder.fma(*args)
+
+        return a(a, a, a), codegen
+
+    global _fma
+    _fma = fma

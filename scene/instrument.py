@@ -68,7 +68,7 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits, quantise
 from cdma_lidar.firmware_model.gold import gold_codes
-from cdma_lidar.scene.echo_kernel import terms_kernel
+from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
 from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
@@ -426,7 +426,7 @@ class Instrument:
         # the level's compiled kernels, loaded (numba's import and its cached code, once
         # per process) here, not in a frame
         for kernel in ((row_kernel, terms_kernel) if self.fidelity == "accumulated"
-                       else (normal_kernel, repetition_kernel)):
+                       else (synthesis_kernel, normal_kernel, repetition_kernel)):
             kernel()
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
@@ -739,7 +739,7 @@ class Instrument:
             return np.zeros(length, dtype=np.float32 if single else np.float64)
         amps, taus, members, _ = terms
         dfts, period = self._chip_spectra(cfg, members, cfg.uid, cfg.uid_bits, single)
-        total = self._sum_delayed(f0, amps, taus, [dfts[i] for i in members], period,
+        total = self._sum_delayed(f0, amps, taus, *self._stack(dfts, members), period,
                                   self._spectral_weight(cfg, period))
         return np.fft.irfft(total, n=length)
 
@@ -873,45 +873,68 @@ class Instrument:
         return np.concatenate(amps_l), np.concatenate(taus_l), np.concatenate(chans_l)
 
     @staticmethod
+    def _stack(dfts: dict[int, NDArray[np.complexfloating]], members: Sequence[int]
+               ) -> tuple[NDArray[np.complexfloating], NDArray[np.int64]]:
+        """(the distinct members' spectra of ``dfts`` stacked, (M, A, B); each member's row
+        there, (T,)): the two arguments :meth:`_sum_delayed` takes."""
+        distinct = sorted(set(members))
+        row = {i: n for n, i in enumerate(distinct)}
+        return (np.stack([dfts[i] for i in distinct]),
+                np.array([row[i] for i in members], dtype=np.int64))
+
+    @staticmethod
     def _sum_delayed(f0_hz: float, amps: NDArray[np.float64], taus: NDArray[np.float64],
-                     dfts: list[NDArray[np.complexfloating]], period: int,
-                     weight: NDArray[np.float64],
+                     spectra: NDArray[np.complexfloating], members: NDArray[np.int64],
+                     period: int, weight: NDArray[np.float64],
                      out: NDArray[np.complexfloating] | None = None,
-                     rows: list[int] | None = None) -> NDArray[np.complexfloating]:
-        """weight[q] sum_k amps_k dfts_k[q % period] exp(-2j pi q f0 tau_k), q < m = weight.size:
-        the per-channel work of the Fourier synthesis (dfts: :meth:`_chip_spectra`'s (A, B)
-        arrays; their dtype, complex128 or complex64, is the sum's).
+                     rows: Sequence[int] | None = None) -> NDArray[np.complexfloating]:
+        """weight[q] sum_k amps_k dft_k[q % period] exp(-2j pi q f0 tau_k), q < m = weight.size:
+        the per-channel work of the Fourier synthesis. Term k's chip spectrum dft_k is
+        ``spectra[members[k]]`` (:meth:`_chip_spectra`'s (A, B) arrays stacked,
+        :meth:`_stack`); their dtype, complex128 or complex64, is the sum's.
 
         With q = j period + p, the term is ``u_k[p] exp(-2j pi f0 tau_k j period)``, u_k =
-        amps_k dfts_k[p] exp(-2j pi p f0 tau_k) over one period (p < period), its ramp the
-        outer product of two short exponentials (p = alpha B + beta): two multiplies over
-        a period, then one scaled add (BLAS axpy) per period of bins, where multiplying
-        every bin by its own ramp and the member's whole spectrum costs three passes over
-        all m bins (1.5x the work at S = 4, 2.4x at S = 16). The weight multiplies each
-        sum once at the end. ``out``: an (m,) array of the dfts' dtype to write the sum
-        into (overwritten). ``rows``: several sums at once, term k added into
-        ``out[rows[k]]`` ((R, m) ``out``), the terms in the order given.
-        """
-        from scipy.linalg.blas import caxpy, zaxpy  # deferred, as in _normal_table
+        amps_k dft_k[p] exp(-2j pi p f0 tau_k) over one period (p < period), its ramp the
+        outer product of two short exponentials (p = alpha B + beta): two complex
+        multiplies over a period, then one multiply and add per further period of bins,
+        where multiplying every bin by its own ramp and the member's whole spectrum costs
+        three passes over all m bins (1.5x the work at S = 4, 2.4x at S = 16). The weight
+        multiplies each sum once at the end. ``out``: an (m,) array of the spectra's
+        dtype to write the sum into (overwritten). ``rows``: several sums at once, term k
+        added into ``out[rows[k]]`` ((R, m) ``out``), the terms in the order given.
 
+        Every complex product is numpy's (one rounding per part: ``re = fma(xr, yr,
+        -(xi yi))``, ``im = fma(xr, yi, xi yr)``) and every sum a plain add, in this
+        order; with numba (the ``fast`` extra), complex128 sums run in one compiled call
+        doing the same operations (:func:`cdma_lidar.scene.echo_kernel.synthesis_kernel`;
+        the same values bit for bit, tests/scene/test_echo_kernel.py).
+        """
         m = weight.size
-        a, b = dfts[0].shape
-        dtype = dfts[0].dtype  # complex64 in single precision
-        axpy = zaxpy if dtype == np.complex128 else caxpy
+        a, b = spectra.shape[1:]
+        dtype = spectra.dtype  # complex64 in single precision
         w = -2.0 * np.pi * f0_hz * taus
         hi = (np.exp(1j * np.outer(w, b * np.arange(a))) * amps[:, None]).astype(dtype)
         lo = np.exp(1j * np.outer(w, np.arange(b))).astype(dtype)
         starts = range(0, m, period)  # the first bin of each period of bins
-        turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype).tolist()
+        turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype)
         total = np.empty(m, dtype=dtype) if out is None else out
+        kernel = synthesis_kernel() if dtype == np.complex128 else None
+        if kernel is not None:
+            kernel(spectra.reshape(len(spectra), -1), np.asarray(members, dtype=np.int64),
+                   np.zeros(len(members), dtype=np.int64) if rows is None
+                   else np.asarray(rows, dtype=np.int64), lo, hi, turns, period,
+                   total.reshape(-1, m))
+            total *= weight
+            return total
         sums = [total] if rows is None else list(total)
         # each sum's periods of bins, and the same lengths of one period's terms
         parts = [[row[q0:q0 + period] for q0 in starts] for row in sums]
         tmp = np.empty((a, b), dtype=dtype)
+        scratch = np.empty(period, dtype=dtype)
         heads = [tmp.reshape(-1)[:part.size] for part in parts[0]]
         written = [False] * len(sums)  # a sum's first term is written, not added
-        for k, dft in enumerate(dfts):
-            np.multiply(dft, lo[k], out=tmp)
+        for k, i in enumerate(np.asarray(members).tolist()):
+            np.multiply(spectra[i], lo[k], out=tmp)
             np.multiply(tmp, hi[k][:, None], out=tmp)
             r = 0 if rows is None else rows[k]
             (first, *rest), add = parts[r], written[r]
@@ -924,9 +947,9 @@ class Instrument:
                 if not add:
                     np.multiply(head, turn, out=part)
                     continue
-                got = axpy(head, part, a=turn)  # in place: part += turn u
-                if got is not part:  # (f2py copies only an array it cannot write in place)
-                    part[...] = got
+                product = scratch[:part.size]
+                np.multiply(head, turn, out=product)
+                np.add(part, product, out=part)
         for row, done in zip(sums, written, strict=True):
             if not done:
                 row[...] = 0
@@ -965,7 +988,8 @@ class Instrument:
             dfts, period = self._chip_spectra(ucfg, (u.code_index,), u.uid, u.uid_bits)
             frame = np.fft.irfft(self._sum_delayed(
                 f[1], np.array([u.amplitude_v]), np.array([u.delay_s + self._sample_shift_s(cfg)]),
-                [dfts[u.code_index]], period, self._spectral_weight(ucfg, period)), n=length)
+                dfts[u.code_index][None], np.zeros(1, dtype=np.int64), period,
+                self._spectral_weight(ucfg, period)), n=length)
             out += frame[idx % length]
         return out
 
@@ -1312,18 +1336,21 @@ class Instrument:
             return out, peaks
         dfts, period = self._chip_spectra(
             cfg, tuple({i for j in lit for i in terms[j][2]}), cfg.uid, cfg.uid_bits)
+        spectra, members = self._stack(dfts, [i for j in lit for i in terms[j][2]])
+        bounds = np.cumsum([0, *(len(terms[j][2]) for j in lit)]).tolist()  # items' terms
         weight = self._spectral_weight(cfg, period)
         if gain != 1.0:
             weight = weight * gain
         step = max(1, _BLOCK_VALUES // length)
-        spectra = np.empty((min(step, len(lit)), m), dtype=np.complex128)
+        sums = np.empty((min(step, len(lit)), m), dtype=np.complex128)
         for b0 in range(0, len(lit), step):
             block = lit[b0:b0 + step]
-            part = spectra[:len(block)]
+            part = sums[:len(block)]
             self._sum_delayed(f0, np.concatenate([terms[j][0] for j in block]),
-                              np.concatenate([terms[j][1] for j in block]),
-                              [dfts[i] for j in block for i in terms[j][2]], period, weight,
-                              out=part, rows=[r for r, j in enumerate(block) for _ in terms[j][2]])
+                              np.concatenate([terms[j][1] for j in block]), spectra,
+                              members[bounds[b0]:bounds[b0 + len(block)]], period, weight,
+                              out=part,
+                              rows=[r for r, j in enumerate(block) for _ in terms[j][2]])
             part[:, 0] += shift * length  # the weight is 0 at DC (AC coupling)
             if block[-1] - block[0] == len(block) - 1:  # consecutive rows: written in place
                 wave = np.fft.irfft(part, n=length, axis=1, out=out[block[0]:block[-1] + 1])

@@ -1,6 +1,8 @@
-"""accumulated's compiled echo kernel (numba, the ``fast`` extra) against the two BLAS
-saxpy calls per term it fuses, bit for bit, wherever BLAS's saxpy fuses its
-multiply-adds (a probe decides; elsewhere the two paths round differently, both valid)."""
+"""The compiled echo kernels (numba, the ``fast`` extra) against the paths they replace,
+bit for bit: accumulated's against the two BLAS saxpy calls per term it fuses, wherever
+BLAS's saxpy fuses its multiply-adds (a probe decides; elsewhere the two paths round
+differently, both valid); exact's Fourier synthesis against numpy's complex products and
+sums, wherever numpy fuses its complex product (a probe decides, as above)."""
 
 from __future__ import annotations
 
@@ -10,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.scene import instrument
-from cdma_lidar.scene.echo_kernel import terms_kernel
+from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
+from cdma_lidar.scene.instrument import Instrument
 
 
 def _blas_fuses() -> bool:
@@ -108,3 +111,93 @@ def test_accumulated_render_is_the_same_with_or_without_the_echo_kernel(url):
     for (sums, drawn), (want, want_drawn) in zip(*out, strict=True):
         np.testing.assert_array_equal(drawn, want_drawn)
         np.testing.assert_array_equal(sums, want)
+
+
+def _numpy_fuses_complex_products() -> bool:
+    """Whether numpy's complex product rounds each part once, in its SIMD body, its tail
+    and its loop over one scalar: with x = (1 + 2^-30)(1 + i), the real part of x x is
+    fma(xr, xr, -(xi xi)) = xr^2 - round(xr^2) = 2^-60, the rounding error of xr^2 (exact
+    product 1 + 2^-29 + 2^-60), and 0 when both products are rounded first."""
+    x = complex(1 + 2.0**-30, 1 + 2.0**-30)
+    for n in (3, 67):
+        row = np.full(n, x)
+        if not (np.all((row * row).real == 2.0**-60) and np.all((row * x).real == 2.0**-60)):
+            return False
+    return True
+
+
+needs_synthesis = pytest.mark.skipif(
+    synthesis_kernel() is None or not _numpy_fuses_complex_products(),
+    reason="numba (extra 'fast') not installed, or numpy's complex product does not fuse")
+
+
+@needs_synthesis
+@settings(max_examples=80, deadline=None)
+@given(a=st.integers(1, 9), b=st.integers(1, 9), cut=st.integers(0, 8),
+       bins=st.integers(1, 200), rows=st.integers(1, 4), terms=st.integers(0, 12),
+       members=st.integers(1, 3), seed=st.integers(0, 2**32 - 1),
+       scale=st.sampled_from([1e-300, 1e-3, 1.0, 1e150]), zero=st.booleans())
+def test_the_synthesis_kernel_is_numpys_complex_products_and_sums(a, b, cut, bins, rows,
+                                                                  terms, members, seed,
+                                                                  scale, zero):
+    """Random chip spectra, delays, amplitudes (zero ones included), rows (repeated, out
+    of order, some never written) and lengths: every period shape (one period shorter
+    than the bins, several, a last one of one bin), magnitudes near both ends of float64;
+    the kernel's sums equal _sum_delayed's numpy path bit for bit, -0.0 included."""
+    period = max(1, a * b - min(cut, a * b - 1))
+    rng = np.random.default_rng(seed)
+    spectra = (rng.standard_normal((members, a, b)) + 1j * rng.standard_normal((members, a, b))
+               ) * scale
+    which = rng.integers(0, members, terms)
+    amps = rng.standard_normal(terms) * (0.0 if zero else 1.0)
+    taus = rng.uniform(0.0, 2e-6, terms)
+    where = rng.integers(0, rows, terms).tolist()
+    weight = rng.uniform(0.0, 2.0, bins)
+    out = []
+    for kernel in (synthesis_kernel, lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(instrument, "synthesis_kernel", kernel)
+            got = np.full((rows, bins), np.nan + 0j)
+            Instrument._sum_delayed(3.1e4, amps, taus, spectra, which, period, weight,
+                                    out=got, rows=where)
+            out.append(got)
+    np.testing.assert_array_equal(out[0].view(np.uint64), out[1].view(np.uint64))
+
+
+@needs_synthesis
+def test_the_synthesis_kernel_refuses_terms_it_cannot_place_and_other_types():
+    kernel = synthesis_kernel()
+    one = np.ones((1, 1), dtype=np.complex128)
+    spectra, out = np.ones((1, 4), dtype=np.complex128), np.zeros((2, 5), dtype=np.complex128)
+    ramps = np.ones((1, 2), dtype=np.complex128)
+    for member, row in ((1, 0), (-1, 0), (0, 2), (0, -1)):
+        with pytest.raises(ValueError, match="out of range"):
+            kernel(spectra, np.array([member]), np.array([row]), ramps, ramps, one, 4, out)
+    with pytest.raises(ValueError, match="covering every bin"):  # 2 periods of 2 < 5 bins
+        kernel(spectra, np.array([0]), np.array([0]), ramps, ramps, one, 2, out)
+    with pytest.raises(TypeError):
+        kernel(spectra.astype(np.complex64), np.array([0]), np.array([0]), ramps, ramps, one,
+               4, out)
+
+
+@needs_synthesis
+@pytest.mark.parametrize("url", ["paper-scene1", "multi-user", "flat-wall"])
+def test_exact_render_is_the_same_with_or_without_the_synthesis_kernel(url):
+    """Whole frames, calibration shots, the repetitions CAPTURE RAW returns and one echo,
+    each from a fresh instrument: the same integers and volts bit for bit."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    scene = load_scene(url + "?fidelity=exact")
+    out = []
+    for kernel in (synthesis_kernel, lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(instrument, "synthesis_kernel", kernel)
+            inst = Instrument(scene, 3)
+            cfg = RenderSettings.from_spec(inst.spec)
+            cols = list(range(inst.columns))
+            out.append([*inst.render_sums(cols, cfg, 1),
+                        *inst.render_sums([0, 1], cfg, 1, calibration=True),
+                        inst.render_exact(1, cfg, 2), inst.echo(1, cfg)])
+    for got, want in zip(*out, strict=True):
+        np.testing.assert_array_equal(got, want)

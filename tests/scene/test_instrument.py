@@ -280,8 +280,8 @@ def test_the_periodic_synthesis_equals_the_spectrum_summed_bin_by_bin(s, uid_bit
     f0 = inst.spec.chip_rate_hz / cfg.frame_chips
     rows = [k % 2 for k in range(len(taus))]
     got = np.empty((2, weight.size), dtype=np.complex128)
-    Instrument._sum_delayed(f0, amps, np.asarray(taus), [dfts[i] for i in members], period,
-                            weight, out=got, rows=rows)
+    Instrument._sum_delayed(f0, amps, np.asarray(taus), *Instrument._stack(dfts, members),
+                            period, weight, out=got, rows=rows)
     q = np.arange(weight.size)
     want = np.zeros_like(got)
     for a, tau, i, r in zip(amps, taus, members, rows, strict=True):
