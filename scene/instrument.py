@@ -72,7 +72,7 @@ from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
 from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
-from cdma_lidar.scene.streams import generators
+from cdma_lidar.scene.streams import from_seed_words, generators, seed_words
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -243,30 +243,33 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     return out
 
 
-def _draw_table_sums(rngs: Sequence[np.random.Generator], means: Sequence[NDArray[np.float32]],
+def _draw_table_sums(seeds: NDArray[np.uint64], means: Sequence[NDArray[np.float32]],
                      stds: Sequence[np.float32]) -> NDArray[np.int32]:
     """(B, L) ``floor(mean + std z)`` of ``accumulated`` fidelity, z from _normal_table
-    picked by 16-bit words of each column's generator (a fourth of a word per value).
+    picked by 16-bit words of each column's generator (a fourth of a word per value): the
+    PCG64 generator seeded with that column's row of ``seeds`` (B, 4)
+    (:func:`cdma_lidar.scene.streams.seed_words`, what ``default_rng(key)`` seeds it with).
 
     No clip is needed: |z| <= 4.3 and the plan keeps the echo 6 sigma inside the ADC's
     range, so R x + 4.3 sqrt(R (sigma^2 + 1/12)) stays below R times the top code. With
-    numba (the ``fast`` extra) each column is one pass of a compiled kernel
-    (:mod:`cdma_lidar.scene.noise_kernel`); without it the arithmetic runs on blocks of
-    about _BLOCK_VALUES values, as in draw_repetition_sums. Both are the same float32
-    operations in the same order: the same values bit for bit
-    (tests/scene/test_noise_blocks.py).
+    numba (the ``fast`` extra) each column is one call of a compiled kernel that runs
+    numpy's PCG64 itself (:mod:`cdma_lidar.scene.noise_kernel`: no generator object, no
+    call per draw); without it numpy's generators draw the words and the arithmetic runs
+    on blocks of about _BLOCK_VALUES values, as in draw_repetition_sums. Both are the
+    same words and the same float32 operations in the same order: the same values bit
+    for bit (tests/scene/test_noise_blocks.py).
     """
     size = means[0].size
-    quarter = -(-size // 4)
-    out = np.empty((len(rngs), size), dtype=SUM_TYPE)
+    out = np.empty((len(seeds), size), dtype=SUM_TYPE)
     scales = np.asarray(stds, dtype=np.float32)
     table = _normal_table()
     kernel = row_kernel()
     if kernel is not None:
-        for row, rng, mean, scale in zip(out, rngs, means, scales, strict=True):
-            kernel(rng.bit_generator.random_raw(quarter).view(np.uint16), table, scale, mean,
-                   row)
+        for row, seed, mean, scale in zip(out, seeds, means, scales, strict=True):
+            kernel(seed, table, scale, mean, row)
         return out
+    rngs = from_seed_words(seeds)
+    quarter = -(-size // 4)
     step = max(1, _BLOCK_VALUES // size)
     index = np.empty((min(step, len(rngs)), size), dtype=np.intp)
     draw = np.empty(index.shape, dtype=np.float32)
@@ -1241,13 +1244,13 @@ class Instrument:
         if not rows:
             return np.zeros(shape, dtype=SUM_TYPE)
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
-        rngs = generators([(self.seed, stream, frame, columns[j]) for j in rows])
+        keys = [(self.seed, stream, frame, columns[j]) for j in rows]
         means = [plans[j][0] for j in rows]
         sigmas = [plans[j][1] for j in rows]
         if level == "accumulated":
-            got = _draw_table_sums(rngs, means, sigmas)
+            got = _draw_table_sums(seed_words(keys), means, sigmas)
         else:
-            got = draw_repetition_sums(rngs, means, sigmas, cfg.averages)
+            got = draw_repetition_sums(generators(keys), means, sigmas, cfg.averages)
         if len(rows) == len(plans):
             return got.reshape(shape)
         sums = np.zeros((len(plans), cfg.frame_samples), dtype=SUM_TYPE)

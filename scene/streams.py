@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["generators"]
+__all__ = ["from_seed_words", "generators", "seed_words"]
 
 _INIT_A, _MULT_A = 0x43B0D7E5, 0x931E8875
 _INIT_B, _MULT_B = 0x8B51F9DD, 0x58F38DED
@@ -96,7 +96,20 @@ class _State(np.random.bit_generator.ISeedSequence):
 
 def generators(keys: Sequence[Sequence[int]]) -> list[np.random.Generator]:
     """``[numpy.random.default_rng(list(key)) for key in keys]``, the hashing done once
-    for all keys of the same word length (non-negative ints, any size).
+    for all keys of the same word length (non-negative ints, any size): PCG64 generators
+    seeded with :func:`seed_words`."""
+    return from_seed_words(seed_words(keys))
+
+
+def from_seed_words(words: NDArray[np.uint64]) -> list[np.random.Generator]:
+    """A numpy PCG64 Generator seeded with each row of (n, 4) :func:`seed_words`."""
+    return [np.random.Generator(np.random.PCG64(_State(row))) for row in words]
+
+
+def seed_words(keys: Sequence[Sequence[int]]) -> NDArray[np.uint64]:
+    """(n, 4) uint64: the words ``numpy.random.default_rng(list(key))`` seeds its PCG64
+    with (``SeedSequence(key).generate_state(4, np.uint64)``: state high, low, increment
+    high, low), for each key.
 
     Keys of one length whose values all fit in 32 bits (a frame's render keys) are
     their own entropy words, read in one array; any other keys are split into words
@@ -107,14 +120,11 @@ def generators(keys: Sequence[Sequence[int]]) -> list[np.random.Generator]:
         flat = None
     if (flat is not None and flat.ndim == 2 and flat.size and flat.dtype.kind in "iu"
             and flat.min() >= 0 and flat.max() <= _MASK):
-        return [np.random.Generator(np.random.PCG64(_State(row)))
-                for row in _states(flat.astype(np.uint32))]
+        return _states(flat.astype(np.uint32))
     entropy = [[w for v in key for w in _words(int(v))] for key in keys]
-    out: list[np.random.Generator | None] = [None] * len(keys)
+    out = np.empty((len(keys), 4), dtype=np.uint64)
     for length in {len(e) for e in entropy}:
         where = [i for i, e in enumerate(entropy) if len(e) == length]
-        states = _states(np.array([entropy[i] for i in where], dtype=np.uint32)
-                         .reshape(len(where), length))
-        for i, row in zip(where, states, strict=True):
-            out[i] = np.random.Generator(np.random.PCG64(_State(row)))
-    return out  # type: ignore[return-value]
+        out[where] = _states(np.array([entropy[i] for i in where], dtype=np.uint32)
+                             .reshape(len(where), length))
+    return out

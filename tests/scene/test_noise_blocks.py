@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from cdma_lidar.scene import instrument
 from cdma_lidar.scene.instrument import _BYTE_VARIANCE, _normal_table
 from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
+from cdma_lidar.scene.streams import from_seed_words, seed_words
 
 
 def _repetition_sums_whole(rngs, means, sigmas, r):
@@ -91,44 +92,62 @@ def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, draw, see
             means = [data.normal(0, 5e3, size).astype(np.float32) for _ in range(columns)]
             stds = [np.float32(s) for s in sigmas]
 
-            def run(fn):
-                return fn([np.random.default_rng([seed, c]) for c in range(columns)], means,
-                          stds)
-
-            got = run(instrument._draw_table_sums)
-            want = run(_table_sums_whole)
+            keys = [[seed, c] for c in range(columns)]
+            got = instrument._draw_table_sums(seed_words(keys), means, stds)
+            want = _table_sums_whole([np.random.default_rng(k) for k in keys], means, stds)
     assert got.dtype == instrument.SUM_TYPE and got.shape == (columns, size)
+    np.testing.assert_array_equal(got, want)
+
+
+_WORD = st.one_of(st.sampled_from([0, 1, 2**63, 2**64 - 1]), st.integers(0, 2**64 - 1))
+
+
+@needs_numba
+@settings(max_examples=80, deadline=None)
+@given(seed=st.lists(_WORD, min_size=4, max_size=4), size=st.integers(1, 70))
+def test_compiled_row_draws_numpys_pcg64_words(seed, size):
+    """The kernel's own PCG64 (seeding, 128-bit steps, XSL-RR output) against numpy's
+    generator seeded with the same words, any seed (the carries of the extremes
+    included), read through a table that maps each 16-bit quarter to itself."""
+    seed = np.array(seed, dtype=np.uint64)
+    got = np.empty(size, dtype=np.int32)
+    row_kernel()(seed, np.arange(1 << 16, dtype=np.float32), np.float32(1),
+                 np.zeros(size, dtype=np.float32), got)
+    (rng,) = from_seed_words(seed[None])
+    want = rng.bit_generator.random_raw(-(-size // 4)).view(np.uint16)[:size]
     np.testing.assert_array_equal(got, want)
 
 
 @needs_numba
 @settings(max_examples=60, deadline=None)
 @given(size=st.integers(1, 40), scale=st.floats(1.0, 400.0, width=32),
-       mean=st.floats(-3e5, 3e5, width=32), seed=st.integers(0, 2**32 - 1))
+       mean=st.floats(-3e5, 3e5, width=32), seed=st.lists(_WORD, min_size=4, max_size=4))
 def test_compiled_row_equals_numpy_float32(size, scale, mean, seed):
     """The compiled kernel on one row against numpy's float32 operations written out
-    (product, sum, floor, each rounded to float32), means far from zero on both sides
-    and every table entry reachable."""
-    rng = np.random.default_rng(seed)
-    words = rng.integers(0, 1 << 16, size + 3, dtype=np.uint16)
-    words[:2] = [0, 0xFFFF]
-    means = (mean + rng.normal(0, 50, size)).astype(np.float32)
+    (product, sum, floor, each rounded to float32) on numpy's words, means far from zero
+    on both sides."""
+    seed = np.array(seed, dtype=np.uint64)
+    means = (mean + np.random.default_rng(size).normal(0, 50, size)).astype(np.float32)
     table = _normal_table()
     got = np.empty(size, dtype=np.int32)
-    row_kernel()(words, table, np.float32(scale), means, got)
-    want = table[words[:size].astype(np.intp)] * np.float32(scale)
+    row_kernel()(seed, table, np.float32(scale), means, got)
+    (rng,) = from_seed_words(seed[None])
+    words = rng.bit_generator.random_raw(-(-size // 4)).view(np.uint16)[:size]
+    want = table[words.astype(np.intp)] * np.float32(scale)
     want += means
     np.testing.assert_array_equal(got, np.floor(want).astype(np.int32))
 
 
 @needs_numba
-def test_compiled_row_refuses_other_precisions_and_short_words():
+def test_compiled_row_refuses_other_precisions_and_seeds():
     kernel, table = row_kernel(), _normal_table()
-    words, out = np.zeros(8, dtype=np.uint16), np.empty(8, dtype=np.int32)
+    seed, out = np.zeros(4, dtype=np.uint64), np.empty(8, dtype=np.int32)
     with pytest.raises(TypeError):  # float64 means would be added in float64
-        kernel(words, table, np.float32(1), np.zeros(8), out)
-    with pytest.raises(ValueError, match="cover the row"):
-        kernel(words[:7], table, np.float32(1), np.zeros(8, dtype=np.float32), out)
+        kernel(seed, table, np.float32(1), np.zeros(8), out)
+    with pytest.raises(ValueError, match="4 words"):
+        kernel(seed[:3], table, np.float32(1), np.zeros(8, dtype=np.float32), out)
+    with pytest.raises(ValueError, match="mean must match"):
+        kernel(seed, table, np.float32(1), np.zeros(7, dtype=np.float32), out)
 
 
 @needs_numba
