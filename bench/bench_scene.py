@@ -2,24 +2,23 @@
 
     python -m bench scene
 
-1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level:
-   render every column the way the scan does (the frame's repetition sums in one batch,
-   ``Instrument.render_sums``; cold: the first frame, echoes synthesised; warm: a later
-   frame of the static scene, echoes kept; first ever: cold with the per-configuration
-   codebook built too, the codes' spectra and, at ``accumulated``, their waveform
-   tables), the receive chain alone on the R x L ADC samples of the same frame (all 160
-   columns in one call, its default kernel: the baseline), and the virtual device's
-   whole scan (rendering, receive chain, ColumnResults), cold and warm. Also, at
-   ``exact``, the rendering of every repetition on its own (``render_exact``: what
-   CAPTURE RAW returns and what the scan drew before it drew the sum). Ratios within
-   the run: scan / receive chain alone (the same samples, receiver and work in every
-   column, so its baseline is the best of all the columns' runs: one column's own best
-   swung more than the ratios' margins on a shared machine), exact render / level's
-   render, and the
-   real-time factor: the instrument's own acquisition time (160 * 10 * 2047 chips /
-   62.5 Mchip/s = 52.4 ms) over the scan's time. With numba installed (the ``fast``
-   extra), columns ``exact numpy`` and ``acc. numpy`` repeat the levels without their
-   compiled kernels (speed-ups against ``exact numpy``).
+1. paper-scene1 (40 x 160 pixels, R = 10, S = 4, degree 11), at each fidelity level: render
+   every column the way the scan does (the frame's repetition sums in one batch,
+   ``Instrument.render_sums``, into the same array every frame; cold: the first frame,
+   echoes synthesised; warm: a later frame of the static scene, echoes kept; first ever:
+   cold with the per-configuration codebook built too, the codes' spectra and, at
+   ``accumulated``, their waveform tables), the receive chain alone on the R x L ADC
+   samples of the same frame (all 160 columns in one call, its default kernel: the
+   baseline), and the virtual device's whole scan (rendering, receive chain,
+   ColumnResults), cold and warm. Also, at ``exact``, the rendering of every repetition on
+   its own (``render_exact``: what CAPTURE RAW returns and what the scan drew before it
+   drew the sum). Ratios within the run: scan / receive chain alone (the same samples,
+   receiver and work in every column, so its baseline is the best of all the columns' runs:
+   one column's own best swung more than the ratios' margins on a shared machine), exact
+   render / level's render, and the real-time factor: the instrument's own acquisition time
+   (160 * 10 * 2047 chips / 62.5 Mchip/s = 52.4 ms) over the scan's time. With numba
+   installed (the ``fast`` extra), columns ``exact numpy`` and ``acc. numpy`` repeat the
+   levels without their compiled kernels (speed-ups against ``exact numpy``).
 2. "Model only what the scene requires": a 40-channel wall where every channel is lit
    (the baseline) against a 5-channel strip (only 5 channels' rays hit anything) and an
    empty field, same instrument, same columns. Each stage is timed on its own, per
@@ -49,7 +48,12 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import calibrate_device, summarise
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import Instrument, RenderSettings, draw_repetition_sum
+from cdma_lidar.scene.instrument import (
+    SUM_TYPE,
+    Instrument,
+    RenderSettings,
+    draw_repetition_sum,
+)
 from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -151,9 +155,11 @@ def _frame_steps(level: str) -> dict[str, object]:
     cols = list(range(inst.columns))
     list(fw.scan(0, 0, inst.columns))  # warm up spectra, receivers, allocator
     samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
+    sums = np.empty((len(cols), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits),
+                    dtype=SUM_TYPE)
 
-    def render() -> None:
-        inst.render_sums(cols, cfg, 1)
+    def render() -> None:  # into one array frame after frame, as the scan renders
+        inst.render_sums(cols, cfg, 1, out=sums)
 
     def cold() -> None:
         inst.forget()

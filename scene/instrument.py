@@ -184,7 +184,8 @@ def draw_repetition_sum(rng: np.random.Generator, mean_lsb: NDArray[np.float64],
 
 def draw_repetition_sums(rngs: Sequence[np.random.Generator],
                          means_lsb: Sequence[NDArray[np.float64]],
-                         sigmas_lsb: Sequence[float], repetitions: int) -> NDArray[np.int32]:
+                         sigmas_lsb: Sequence[float], repetitions: int,
+                         out: NDArray[np.int32] | None = None) -> NDArray[np.int32]:
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
     ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
 
@@ -196,11 +197,12 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     take more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
     (columns that stay in a core's cache together). Every value goes through the same
     float64 operations in the same order as the whole batch at once: the same sums bit
-    for bit (tests/scene/test_noise_blocks.py).
+    for bit (tests/scene/test_noise_blocks.py). ``out``: the (B, L) int32 array to write
+    them into (returned).
     """
     r = repetitions
     size = means_lsb[0].size
-    out = np.empty((len(rngs), size), dtype=SUM_TYPE)
+    out = np.empty((len(rngs), size), dtype=SUM_TYPE) if out is None else out
     scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
                      + (r - 1) * _BYTE_VARIANCE)
     step = max(1, _BLOCK_VALUES // size)
@@ -244,7 +246,8 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
 
 
 def _draw_table_sums(seeds: NDArray[np.uint64], means: Sequence[NDArray[np.float32]],
-                     stds: Sequence[np.float32]) -> NDArray[np.int32]:
+                     stds: Sequence[np.float32], out: NDArray[np.int32] | None = None
+                     ) -> NDArray[np.int32]:
     """(B, L) ``floor(mean + std z)`` of ``accumulated`` fidelity, z from _normal_table
     picked by 16-bit words of each column's generator (a fourth of a word per value): the
     PCG64 generator seeded with that column's row of ``seeds`` (B, 4)
@@ -257,10 +260,11 @@ def _draw_table_sums(seeds: NDArray[np.uint64], means: Sequence[NDArray[np.float
     call per draw); without it numpy's generators draw the words and the arithmetic runs
     on blocks of about _BLOCK_VALUES values, as in draw_repetition_sums. Both are the
     same words and the same float32 operations in the same order: the same values bit
-    for bit (tests/scene/test_noise_blocks.py).
+    for bit (tests/scene/test_noise_blocks.py). ``out``: the (B, L) int32 array to write
+    them into (returned).
     """
     size = means[0].size
-    out = np.empty((len(seeds), size), dtype=SUM_TYPE)
+    out = np.empty((len(seeds), size), dtype=SUM_TYPE) if out is None else out
     scales = np.asarray(stds, dtype=np.float32)
     table = _normal_table()
     kernel = row_kernel()
@@ -1186,7 +1190,8 @@ class Instrument:
     def render_sums(self, columns: Sequence[int], cfg: RenderSettings | None = None,
                     frame: int = 0, power_w: Sequence[NDArray[np.float64]] | None = None, *,
                     calibration: bool = False, level: str | None = None,
-                    complete: bool = False) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
+                    complete: bool = False, out: NDArray[np.int32] | None = None
+                    ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
         """:meth:`render_sum` of a batch of columns (``calibration``: of calibration shots
         ``columns``): ((B, n, N S) int32 sums, (B,) bool: drawn).
 
@@ -1198,7 +1203,11 @@ class Instrument:
         and the noise's arithmetic done, on blocks of the batch's columns that stay in a
         core's cache (the same values: tests/scene/test_noise_blocks.py). ``power_w``: the
         laser power (K,) W of each column (None: the scene's). ``level``: one of
-        FIDELITY_LEVELS (default the scene's).
+        FIDELITY_LEVELS (default the scene's). ``out``: a C-contiguous (B, n, N S) int32
+        array to write the sums into (returned; as numpy's ``out``): a scan passes the
+        same one every frame, so its 5 to 10 MB are not handed back to the system and
+        faulted in again each frame (what the allocator does with a freed array of that
+        size depends on the process's history).
         """
         cfg = cfg or RenderSettings.from_spec(self.spec)
         level = level or self.fidelity
@@ -1226,7 +1235,13 @@ class Instrument:
                 for j in where:
                     plans[j] = plan
         drawn = np.array([p is not None for p in plans], dtype=bool)
-        sums = self._draw_sums(level, cfg, frame, columns, plans, drawn, calibration)
+        shape = (len(columns), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
+        if out is not None and (out.shape != shape or out.dtype != SUM_TYPE
+                                or not out.flags.c_contiguous):
+            raise out_of_range("out", f"a C-contiguous {shape} {np.dtype(SUM_TYPE)} array",
+                               f"{out.shape} {out.dtype}")
+        sums = self._draw_sums(level, cfg, frame, columns, plans, drawn, calibration,
+                               np.empty(shape, dtype=SUM_TYPE) if out is None else out)
         for j in np.flatnonzero(~drawn).tolist() if complete else ():
             p = None if power_w is None else power_w[j]
             raw = self.render_exact(0 if calibration else columns[j], cfg, frame, p,
@@ -1236,26 +1251,28 @@ class Instrument:
         return sums, drawn
 
     def _draw_sums(self, level: str, cfg: RenderSettings, frame: int, columns: Sequence[int],
-                   plans: list[tuple | None], drawn: NDArray[np.bool_],
-                   calibration: bool) -> NDArray[np.int32]:
-        """(B, n, N S) sums of the ``drawn`` columns from their plans (zero elsewhere)."""
+                   plans: list[tuple | None], drawn: NDArray[np.bool_], calibration: bool,
+                   out: NDArray[np.int32]) -> NDArray[np.int32]:
+        """``out`` (B, n, N S): the sums of the ``drawn`` columns from their plans (zero
+        elsewhere)."""
         rows = np.flatnonzero(drawn).tolist()
-        shape = (len(plans), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
+        flat = out.reshape(len(plans), cfg.frame_samples)
+        if len(rows) < len(plans):
+            flat[~drawn] = 0
         if not rows:
-            return np.zeros(shape, dtype=SUM_TYPE)
+            return out
         stream = _STREAM_CALIBRATE if calibration else _STREAM_SCAN
         keys = [(self.seed, stream, frame, columns[j]) for j in rows]
         means = [plans[j][0] for j in rows]
         sigmas = [plans[j][1] for j in rows]
+        into = flat if len(rows) == len(plans) else None  # else drawn apart, then placed
         if level == "accumulated":
-            got = _draw_table_sums(seed_words(keys), means, sigmas)
+            got = _draw_table_sums(seed_words(keys), means, sigmas, into)
         else:
-            got = draw_repetition_sums(generators(keys), means, sigmas, cfg.averages)
-        if len(rows) == len(plans):
-            return got.reshape(shape)
-        sums = np.zeros((len(plans), cfg.frame_samples), dtype=SUM_TYPE)
-        sums[rows] = got
-        return sums.reshape(shape)
+            got = draw_repetition_sums(generators(keys), means, sigmas, cfg.averages, into)
+        if into is None:
+            flat[rows] = got
+        return out
 
     def _make_plans(self, level: str, cfg: RenderSettings,
                     items: list[tuple[int, NDArray[np.float64]]],

@@ -53,7 +53,7 @@ from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.protocol.views import Info
 from cdma_lidar.rounding import ROUNDING_MODES
-from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings
 from cdma_lidar.scene.model import Scene
 
 __all__ = ["LIMITS", "VirtualFirmware"]
@@ -171,6 +171,7 @@ class VirtualFirmware(DeviceApp):
             self.instrument.default_power_w / self.spec.max_pixel_power_w * 65535), 0, 65535
         ).astype(np.int64), self._pixel_uw, self._cap_uw).astype(np.uint16)
         self._receiver: tuple[tuple, dict[str, FastReceiver]] | None = None
+        self._sums: NDArray[np.int32] | None = None  # the batches' sums, reused (_receive)
         self._last_frame = 0
         #: the device clock as an exact count of chips since power-up (integer: no rounding
         #: accumulates); the wire's microseconds are derived from it by flooring
@@ -305,12 +306,17 @@ class VirtualFirmware(DeviceApp):
         The instrument draws each column's repetition sum (what the chain reads first) at
         its fidelity and the chain starts from the accumulators; a column the level cannot
         draw that way (noise under a few LSB, echoes near the clip) is rendered repetition
-        by repetition and summed (:meth:`Instrument.render_sums` with ``complete``).
+        by repetition and summed (:meth:`Instrument.render_sums` with ``complete``), into
+        the same array batch after batch (the chain keeps nothing of it).
         """
         rx = self.receiver()  # "auto" picks the kernel for each batch size
+        shape = (len(columns), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
+        if self._sums is None or self._sums.shape != shape:
+            self._sums = np.empty(shape, dtype=SUM_TYPE)
         # calibration (shots, or a scan in calibration mode): shot c of the target
         accs, _ = self.instrument.render_sums(columns, cfg, frame, powers,
-                                              calibration=calibration, complete=True)
+                                              calibration=calibration, complete=True,
+                                              out=self._sums)
         return rx.from_accumulators(accs)
 
     # ---- power ----------------------------------------------------------------------

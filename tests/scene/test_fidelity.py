@@ -445,6 +445,25 @@ def test_a_batch_of_columns_draws_what_each_column_draws_alone(level):
     cal, ok = inst.render_sums([2, 5], cfg, 9, calibration=True)
     assert ok.all() and not np.array_equal(cal[0], cal[1])
     np.testing.assert_array_equal(inst.render_sum(0, cfg, 9, calibration=True, shot=5), cal[1])
+    # into a given array (the scan's, reused): the same sums, written over whatever it held
+    into = np.full((2, 1, cfg.frame_samples), -7, dtype=SUM_TYPE)
+    for args, kwargs, want in (([lit, 41], {"complete": True}, full), ([lit, 41], {}, mixed)):
+        got, _ = inst.render_sums(args, cfg, 9, [inst.default_power_w[:, lit] * 1000,
+                                                 powers[4]], out=into, **kwargs)
+        assert got is into
+        np.testing.assert_array_equal(into, want)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((2, 1, 8), dtype=SUM_TYPE),
+                                 np.zeros((3, 1, 8188), dtype=SUM_TYPE),
+                                 np.zeros((2, 1, 8188), dtype=np.int64),
+                                 np.zeros((2, 1, 16376), dtype=SUM_TYPE)[:, :, ::2]])
+def test_render_sums_refuses_an_out_array_of_another_shape_type_or_layout(bad):
+    inst = _SMALL["accumulated"] if bad.shape[-1] == 8 else Instrument(
+        load_scene("paper-scene1?fidelity=accumulated"), 4)
+    cfg = RenderSettings.from_spec(inst.spec)
+    with pytest.raises(ValueError, match="out"):
+        inst.render_sums([0, 1], cfg, 0, out=bad)
 
 
 #: a small scene at both levels for the batching property (5 channels, 6 columns, N = 127)
