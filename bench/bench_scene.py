@@ -48,14 +48,10 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import calibrate_device, summarise
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import (
-    SUM_TYPE,
-    Instrument,
-    RenderSettings,
-    draw_repetition_sum,
-)
+from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings, _draw_exact_sums
 from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
+from cdma_lidar.scene.streams import seed_words
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -120,9 +116,9 @@ def _cost(scene) -> dict[str, float]:
     means = [inst.echo(c, cfg) * scale * cfg.averages for c in cols]
     sigma = inst.noise_rms_v * scale
 
-    def noise() -> list:
-        return [draw_repetition_sum(np.random.default_rng([0, 0, 1, c]), means[c], sigma,
-                                    cfg.averages) for c in cols]
+    def noise() -> object:  # the columns' repetition sums, as render_sums draws them
+        return _draw_exact_sums(seed_words([(0, 0, 1, c) for c in cols]), means,
+                                [sigma] * len(means), cfg.averages)
 
     samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
     t = {
@@ -188,8 +184,7 @@ def _frame_steps(level: str) -> dict[str, object]:
 
 
 #: The instrument's compiled kernels (numba, the ``fast`` extra), by their names there.
-KERNELS = ("row_kernel", "terms_kernel", "synthesis_kernel", "normal_kernel",
-           "repetition_kernel")
+KERNELS = ("row_kernel", "terms_kernel", "synthesis_kernel", "repetition_kernel")
 
 
 def _without_numba(steps: dict[str, object]) -> dict[str, object]:

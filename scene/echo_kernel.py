@@ -116,8 +116,9 @@ def _synthesis(spectra: NDArray[np.complex128], members: NDArray[np.int64],
 
 
 def _fma(a: float, b: float, c: float) -> float:
-    """Set to numba's fused multiply-add intrinsic when a kernel is compiled."""
-    raise NotImplementedError("compiled by terms_kernel or synthesis_kernel")
+    """``a b + c`` rounded once: llvm.fma of the arguments' float type in compiled code
+    (:func:`_register`)."""
+    raise NotImplementedError("compiled code only")
 
 
 def _mul(x: complex, y: complex) -> complex:
@@ -136,7 +137,7 @@ def terms_kernel() -> Callable[..., None] | None:
     finds no writable folder for the cache).
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
-        _use_fma()
+        _register()
         return t.void(readonly(t.float32), readonly(t.int64), readonly(t.int64),
                       readonly(t.float32), readonly(t.float32), t.Array(t.float32, 1, "C"),
                       t.int64)
@@ -152,11 +153,7 @@ def synthesis_kernel() -> Callable[..., None] | None:
     sum), as :func:`terms_kernel`'s. Compiled once per process, cached on disk by numba.
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
-        import numba  # present: compile_kernel imported it
-
-        _use_fma()
-        global _mul  # compiled inline into _synthesis, as _fma
-        _mul = numba.njit(inline="always")(_mul_source)
+        _register()
         c = t.complex128
         return t.void(readonly(c, 2), readonly(t.int64), readonly(t.int64), readonly(c, 2),
                       readonly(c, 2), readonly(c, 2), t.int64, t.Array(c, 2, "C"))
@@ -164,13 +161,12 @@ def synthesis_kernel() -> Callable[..., None] | None:
     return compile_kernel(_synthesis, signature, "exact echoes run on numpy")
 
 
-_mul_source = _mul
-
-
-def _use_fma() -> None:
-    """Bind ``_fma`` to numba's intrinsic: llvm.fma of the arguments' float type, rounded
-    once (numba reads the global when it compiles a kernel or loads it from its cache)."""
-    from numba.extending import intrinsic  # present: compile_kernel imported numba
+@functools.cache
+def _register() -> None:
+    """Make ``_fma`` numba's fused multiply-add intrinsic and ``_mul`` callable from the
+    compiled kernels (numba's register_jitable). Once, before a kernel compiles (numba is
+    present: compile_kernel imported it)."""
+    from numba.extending import intrinsic, overload, register_jitable  # optional: "fast"
 
     @intrinsic
     def fma(typingctx, a, b, c):  # numba's intrinsic protocol
@@ -179,5 +175,5 @@ def _use_fma() -> None:
 
         return a(a, a, a), codegen
 
-    global _fma
-    _fma = fma
+    overload(_fma)(lambda a, b, c: lambda a, b, c: fma(a, b, c))
+    register_jitable(inline="always")(_mul)

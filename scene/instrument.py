@@ -71,8 +71,8 @@ from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
 from cdma_lidar.scene.linkbudget import LinkBudget, link_gain_v_m2_per_w
 from cdma_lidar.scene.model import FIDELITY_LEVELS, InstrumentSpec, Scene
-from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
-from cdma_lidar.scene.streams import from_seed_words, generators, seed_words
+from cdma_lidar.scene.noise_kernel import repetition_kernel, row_kernel
+from cdma_lidar.scene.streams import from_seed_words, seed_words
 from cdma_lidar.scene.truth import Truth, compute_truth
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -189,36 +189,18 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
     """(B, L) :func:`draw_repetition_sum` of B columns of L samples, column b drawn from
     ``rngs[b]`` (its Gaussians first, then its bytes: the same values as alone).
 
-    With numba (the ``fast`` extra) the byte sums and the arithmetic of each column are
-    one compiled kernel (:func:`cdma_lidar.scene.noise_kernel.repetition_kernel`), fed
-    the Gaussians and bytes drawn as below (the Gaussians by numba's port of
-    ``standard_normal``, :func:`cdma_lidar.scene.noise_kernel.normal_kernel`: the same
-    values, the generator left in the same state); without it, or where a column's bytes
-    take more than one draw, the arithmetic runs on blocks of about _BLOCK_VALUES values
-    (columns that stay in a core's cache together). Every value goes through the same
-    float64 operations in the same order as the whole batch at once: the same sums bit
-    for bit (tests/scene/test_noise_blocks.py). ``out``: the (B, L) int32 array to write
-    them into (returned).
+    The arithmetic runs on blocks of about _BLOCK_VALUES values (columns that stay in a
+    core's cache together); every value goes through the same float64 operations in the
+    same order as the whole batch at once: the same sums bit for bit
+    (tests/scene/test_noise_blocks.py). ``out``: the (B, L) int32 array to write them
+    into (returned). A frame's columns, seeded by key: :func:`_draw_exact_sums`.
     """
     r = repetitions
     size = means_lsb[0].size
     out = np.empty((len(rngs), size), dtype=SUM_TYPE) if out is None else out
-    scales = np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
-                     + (r - 1) * _BYTE_VARIANCE)
+    scales = _repetition_scales(sigmas_lsb, r)
     step = max(1, _BLOCK_VALUES // size)
     rows = max(1, _BYTES_PER_DRAW // size)  # byte rows per draw
-    kernel = repetition_kernel() if r - 1 <= rows else None  # a column's bytes in one draw
-    if kernel is not None:
-        fill = normal_kernel() or (lambda rng, row: rng.standard_normal(out=row))
-        normals = np.empty(size)
-        n = (r - 1) * size
-        no_bytes = np.empty((0, size), dtype=np.uint8)
-        for row, rng, mean, scale in zip(out, rngs, means_lsb, scales.tolist(), strict=True):
-            fill(rng, normals)
-            octets = no_bytes if r == 1 else rng.bit_generator.random_raw(
-                -(-n // 8)).view(np.uint8)[:n].reshape(r - 1, size)
-            kernel(normals, octets, scale, np.ascontiguousarray(mean, dtype=np.float64), row)
-        return out
     draw = np.empty((min(step, len(rngs)), size))
     uniforms = np.empty(draw.shape)
     total = np.empty(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
@@ -242,6 +224,40 @@ def draw_repetition_sums(rngs: Sequence[np.random.Generator],
             u *= 1.0 / 256  # exact: a power of two
             d -= u
         np.floor(d, out=out[block], casting="unsafe")
+    return out
+
+
+def _repetition_scales(sigmas_lsb: Sequence[float], r: int) -> NDArray[np.float64]:
+    """The Gaussian's scale (LSB) of each column's repetition sum: sqrt(R sigma^2 + (R - 1)
+    h^2 / 12) (:func:`draw_repetition_sum`)."""
+    return np.sqrt(r * np.square(np.asarray(sigmas_lsb, dtype=np.float64))
+                   + (r - 1) * _BYTE_VARIANCE)
+
+
+def _draw_exact_sums(seeds: NDArray[np.uint64], means_lsb: Sequence[NDArray[np.float64]],
+                     sigmas_lsb: Sequence[float], repetitions: int,
+                     out: NDArray[np.int32] | None = None) -> NDArray[np.int32]:
+    """:func:`draw_repetition_sums` of the PCG64 generators seeded with the rows of
+    ``seeds`` (B, 4) (:func:`cdma_lidar.scene.streams.seed_words`, what
+    ``default_rng(key)`` seeds it with): the same values.
+
+    With numba (the ``fast`` extra) each column is one call of a compiled kernel that runs
+    numpy's PCG64 and ziggurat itself and does the arithmetic in numpy's order
+    (:func:`cdma_lidar.scene.noise_kernel.repetition_kernel`: no generator object, no call
+    through a function pointer per draw); without it, or where a column's bytes take more
+    than one draw, numpy's generators and blocks (tests/scene/test_noise_blocks.py).
+    """
+    r, size = repetitions, means_lsb[0].size
+    kernel = repetition_kernel() if r - 1 <= max(1, _BYTES_PER_DRAW // size) else None
+    if kernel is None:
+        return draw_repetition_sums(from_seed_words(seeds), means_lsb, sigmas_lsb, r, out)
+    out = np.empty((len(seeds), size), dtype=SUM_TYPE) if out is None else out
+    draw, total = np.empty(size), np.empty(size, dtype=np.uint32)
+    words = np.empty(-(-(r - 1) * size // 8), dtype=np.uint64)
+    for row, seed, mean, scale in zip(out, seeds, means_lsb,
+                                      _repetition_scales(sigmas_lsb, r).tolist(), strict=True):
+        kernel(seed, r, scale, np.ascontiguousarray(mean, dtype=np.float64), draw, total,
+               words, row)
     return out
 
 
@@ -433,7 +449,7 @@ class Instrument:
         # the level's compiled kernels, loaded (numba's import and its cached code, once
         # per process) here, not in a frame
         for kernel in ((row_kernel, terms_kernel) if self.fidelity == "accumulated"
-                       else (synthesis_kernel, normal_kernel, repetition_kernel)):
+                       else (synthesis_kernel, repetition_kernel)):
             kernel()
         self._spectra: dict[tuple, dict[int, NDArray[np.complex128]]] = {}
         self._columns: dict[tuple, tuple[NDArray[np.float64], float]] = {}
@@ -1269,7 +1285,7 @@ class Instrument:
         if level == "accumulated":
             got = _draw_table_sums(seed_words(keys), means, sigmas, into)
         else:
-            got = draw_repetition_sums(generators(keys), means, sigmas, cfg.averages, into)
+            got = _draw_exact_sums(seed_words(keys), means, sigmas, cfg.averages, into)
         if into is None:
             flat[rows] = got
         return out

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from cdma_lidar.scene import instrument
 from cdma_lidar.scene.instrument import _BYTE_VARIANCE, _normal_table
-from cdma_lidar.scene.noise_kernel import normal_kernel, repetition_kernel, row_kernel
+from cdma_lidar.scene.noise_kernel import repetition_kernel, row_kernel
 from cdma_lidar.scene.streams import from_seed_words, seed_words
 
 
@@ -67,10 +67,10 @@ needs_numba = pytest.mark.skipif(row_kernel() is None, reason="numba (extra 'fas
        seed=st.integers(0, 2**32 - 1),
        level=st.sampled_from(["exact", "exact, numpy", "accumulated", "accumulated, numpy"]))
 def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, draw, seed, level):
-    """Every path against the whole-batch formulas: exact's compiled row kernel and its
-    numpy blocks (bytes in one draw per column or in several, uint16 or uint32 byte sums
-    at R = 300), accumulated's compiled row kernel (where numba is installed) and its
-    numpy blocks."""
+    """Every path against the whole-batch formulas of numpy's generators seeded by key:
+    exact's compiled row kernel (its own PCG64 and ziggurat) and its numpy blocks (bytes
+    in one draw per column or in several, uint16 or uint32 byte sums at R = 300),
+    accumulated's compiled row kernel (where numba is installed) and its numpy blocks."""
     data = np.random.default_rng(seed)
     sigmas = (3.0 + 40 * data.random(columns)).tolist()
     with pytest.MonkeyPatch.context() as mp:
@@ -79,20 +79,16 @@ def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, draw, see
         if level.endswith(", numpy"):
             mp.setattr(instrument, "row_kernel", lambda: None)
             mp.setattr(instrument, "repetition_kernel", lambda: None)
+        keys = [[seed, c] for c in range(columns)]
         if level.startswith("exact"):
             means = [data.normal(0, 5e3, size) for _ in range(columns)]
-
-            def run(fn):
-                return fn([np.random.default_rng([seed, c]) for c in range(columns)], means,
-                          sigmas, r)
-
-            got = run(instrument.draw_repetition_sums)
-            want = run(_repetition_sums_whole)
+            got = instrument._draw_exact_sums(seed_words(keys), means, sigmas, r)
+            want = _repetition_sums_whole([np.random.default_rng(k) for k in keys], means,
+                                          sigmas, r)
         else:
             means = [data.normal(0, 5e3, size).astype(np.float32) for _ in range(columns)]
             stds = [np.float32(s) for s in sigmas]
 
-            keys = [[seed, c] for c in range(columns)]
             got = instrument._draw_table_sums(seed_words(keys), means, stds)
             want = _table_sums_whole([np.random.default_rng(k) for k in keys], means, stds)
     assert got.dtype == instrument.SUM_TYPE and got.shape == (columns, size)
@@ -150,68 +146,95 @@ def test_compiled_row_refuses_other_precisions_and_seeds():
         kernel(seed, table, np.float32(1), np.zeros(7, dtype=np.float32), out)
 
 
+def _repetition_row(seed, r, scale, means):
+    """exact's kernel on one row: (its sums, its Gaussians, its byte words)."""
+    size = means.size
+    got, draw = np.empty(size, dtype=np.int32), np.empty(size)
+    total, words = np.empty(size, dtype=np.uint32), np.empty(-(-(r - 1) * size // 8), np.uint64)
+    repetition_kernel()(np.asarray(seed, dtype=np.uint64), r, scale, means, draw, total,
+                        words, got)
+    return got, draw, words
+
+
 @needs_numba
 @settings(max_examples=60, deadline=None)
-@given(size=st.integers(1, 40), rows=st.sampled_from([0, 1, 9, 300]),
-       scale=st.floats(1.0, 400.0), mean=st.floats(-3e7, 3e7), seed=st.integers(0, 2**32 - 1))
-def test_compiled_repetition_row_equals_numpy_float64(size, rows, scale, mean, seed):
-    """exact's compiled kernel on one row against numpy's float64 operations written out
-    (byte sums, product, sum, uniforms, difference, floor), means far from zero on both
-    sides, the bytes' extremes (all 0 in the first sample, all 255 in the last) included."""
-    rng = np.random.default_rng(seed)
-    normals = rng.standard_normal(size)
-    octets = rng.integers(0, 256, (rows, size), dtype=np.uint8)
-    octets[:, 0], octets[:, -1] = 0, 255
-    means = mean + rng.normal(0, 50, size)
-    got = np.empty(size, dtype=np.int32)
-    repetition_kernel()(normals, octets, scale, means, got)
-    want = normals * scale
+@given(size=st.integers(1, 40), r=st.sampled_from([1, 2, 3, 10, 301]),
+       scale=st.floats(1.0, 400.0), mean=st.floats(-3e7, 3e7),
+       seed=st.lists(_WORD, min_size=4, max_size=4))
+def test_compiled_repetition_row_equals_numpy_float64(size, r, scale, mean, seed):
+    """exact's compiled kernel on one row against numpy's generator (seeded with the same
+    words, any seed) and numpy's float64 operations written out (byte sums, product, sum,
+    uniforms, difference, floor): means far from zero on both sides, byte counts that are
+    not a multiple of 8, and the generator's words after the Gaussians the same."""
+    means = mean + np.random.default_rng(size).normal(0, 50, size)
+    got, draw, words = _repetition_row(seed, r, scale, means)
+    (rng,) = from_seed_words(np.array([seed], dtype=np.uint64))
+    z = rng.standard_normal(size)
+    n = (r - 1) * size
+    raw = rng.bit_generator.random_raw(-(-n // 8))
+    octets = raw.view(np.uint8)[:n].reshape(r - 1, size)
+    want = z * scale
     want += means
-    want -= (octets.sum(axis=0, dtype=np.int64) + 0.5 * rows) * (1.0 / 256)
+    want -= (octets.sum(axis=0, dtype=np.int64) + 0.5 * (r - 1)) * (1.0 / 256)
+    np.testing.assert_array_equal(draw, z)
+    np.testing.assert_array_equal(words, raw)
     np.testing.assert_array_equal(got, np.floor(want).astype(np.int32))
 
 
 @needs_numba
-@settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 2**64 - 1), size=st.sampled_from([0, 1, 7, 8188, 300_000]),
-       bits=st.sampled_from(["PCG64", "MT19937"]))
-def test_compiled_normals_equal_numpys(seed, size, bits):
-    """numba's standard_normal against numpy's on the same generator: the same values bit
-    for bit (300 000 draws reach the ziggurat's wedges and its tail beyond 3.654, where
-    exp and log enter) and the generator left in the same state (its next words, the
-    bytes exact's noise draws next, the same)."""
-    mine, theirs = (np.random.Generator(getattr(np.random, bits)(seed)) for _ in range(2))
-    got = np.empty(size)
-    normal_kernel()(mine, got)
-    want = theirs.standard_normal(size)
-    np.testing.assert_array_equal(got, want)
+@pytest.mark.parametrize("size", [1, 8188, 300_000])
+def test_compiled_normals_equal_numpys(size):
+    """The kernel's own ziggurat against numpy's standard_normal on the same generator:
+    the same values bit for bit (300 000 draws reach the wedges and the tail beyond
+    3.654, where exp and log1p enter), and the generator's next words the same."""
+    seed = seed_words([[7, size]])[0]
+    _, draw, words = _repetition_row(seed, 2, 1.0, np.zeros(size))
+    (rng,) = from_seed_words(seed[None])
+    want = rng.standard_normal(size)
+    np.testing.assert_array_equal(draw, want)
     if size == 300_000:
         assert np.count_nonzero(np.abs(want) > 3.6541528853610088) > 10  # the tail
-    np.testing.assert_array_equal(mine.bit_generator.random_raw(4),
-                                  theirs.bit_generator.random_raw(4))
+    np.testing.assert_array_equal(words, rng.bit_generator.random_raw(words.size))
 
 
 @needs_numba
 def test_compiled_repetition_row_keeps_numpys_rounding_order():
     """Rows whose floors tell the float64 orders apart (random values almost never do):
-    ``(z s + m) - u`` against ``z s + (m - u)`` and ``(z s - u) + m`` (a tie at 1 + 2^-9),
-    and the rounded product against a fused multiply-add (z s = 1 - 2^-60 exactly). The
-    kernel gives numpy's order on every row."""
+    ``(z s + m) - u`` against ``z s + (m - u)`` and ``(z s - u) + m`` (z s rounded to u,
+    m = 1 - 2^-53: a tie), and the rounded product against a fused multiply-add (z s = 1
+    - d exactly, d > 0 small enough that it rounds to 1, m = -1). z and the byte come
+    from the generator; the scale is chosen around them. The kernel gives numpy's order
+    on both."""
     from fractions import Fraction
 
-    u = 0.5 / 256  # one byte row, the byte 0
-    rows = [(2.0**-9, 1.0, 1 - 2.0**-53, 1), (1 + 2.0**-30, 1 - 2.0**-30, -1.0, 0)]
+    def near(target, z, below):
+        """A scale s within 8 steps of target / z with fl(z s) = target, its exact product
+        below the target where ``below`` (None if there is none)."""
+        s = target / z
+        for k in range(-8, 9):
+            t = s
+            for _ in range(abs(k)):
+                t = np.nextafter(t, math.copysign(math.inf, k))
+            if z * t == target and (not below or Fraction(z) * Fraction(t) < target):
+                return float(t)
+        return None
+
     got, want, others = [], [], {"m - u first": [], "z s - u first": [], "fused": []}
-    for z, scale, mean, k in rows:
-        out = np.empty(1, dtype=np.int32)
-        repetition_kernel()(np.array([z]), np.zeros((k, 1), dtype=np.uint8), scale,
-                            np.array([mean]), out)
-        got.append(int(out[0]))
-        v = u * k
-        want.append(math.floor((z * scale + mean) - v))
-        others["m - u first"].append(math.floor(z * scale + (mean - v)))
-        others["z s - u first"].append(math.floor((z * scale - v) + mean))
-        others["fused"].append(math.floor(Fraction(z) * Fraction(scale) + Fraction(mean) - v))
+    for r in (2, 1):  # u from a byte, m = 1 - 2^-53; no bytes, m = -1
+        for key in range(100):  # the first z with a scale (most have one)
+            seed = seed_words([[key]])[0]
+            (probe,) = from_seed_words(seed[None])
+            z = probe.standard_normal()
+            u = ((probe.bit_generator.random_raw() & 0xFF) + 0.5) / 256 if r == 2 else 0.0
+            scale, mean = (near(u, z, False), 1 - 2.0**-53) if r == 2 else (near(1.0, z, True),
+                                                                            -1.0)
+            if scale is not None:
+                break
+        got.append(int(_repetition_row(seed, r, scale, np.array([mean]))[0][0]))
+        want.append(math.floor((z * scale + mean) - u))
+        others["m - u first"].append(math.floor(z * scale + (mean - u)))
+        others["z s - u first"].append(math.floor((z * scale - u) + mean))
+        others["fused"].append(math.floor(Fraction(z) * Fraction(scale) + Fraction(mean) - u))
     assert all(order != want for order in others.values())  # the rows tell them apart
     assert got == want
 
@@ -219,27 +242,23 @@ def test_compiled_repetition_row_keeps_numpys_rounding_order():
 @needs_numba
 def test_compiled_rows_refuse_other_types_and_shapes():
     kernel = repetition_kernel()
-    normals, octets = np.zeros(8), np.zeros((2, 8), dtype=np.uint8)
-    mean, out = np.zeros(8), np.empty(8, dtype=np.int32)
-    kernel(normals, octets, 1.0, mean, out)
-    for args in ((normals.astype(np.float32), octets, 1.0, mean, out),  # float32 normals
-                 (normals, octets.astype(np.uint16), 1.0, mean, out),  # wider bytes
-                 (normals, octets[0], 1.0, mean, out),  # byte rows not 2-D
-                 (normals[:4], octets[:, ::2], 1.0, mean[:4], out[:4]),  # strided bytes
-                 (normals, octets, 1.0, mean.astype(np.float32), out),  # float32 means
-                 (normals, octets, 1.0, mean, out.astype(np.int64))):  # int64 sums
+    seed, mean, draw = np.zeros(4, dtype=np.uint64), np.zeros(8), np.zeros(8)
+    total, words, out = np.zeros(8, np.uint32), np.zeros(2, np.uint64), np.empty(8, np.int32)
+    kernel(seed, 3, 1.0, mean, draw, total, words, out)
+    for args in ((seed.astype(np.int64), 3, 1.0, mean, draw, total, words, out),
+                 (seed, 3, 1.0, mean.astype(np.float32), draw, total, words, out),
+                 (seed, 3, 1.0, mean, draw, total.astype(np.uint16), words, out),
+                 (seed, 3, 1.0, mean, draw, total, words, out.astype(np.int64)),
+                 (seed, 3, 1.0, mean[::2], draw[:4], total[:4], words, out[:4])):
         with pytest.raises(TypeError):
             kernel(*args)
-    for args in ((normals[:7], octets, 1.0, mean, out),
-                 (normals, octets[:, :7].copy(), 1.0, mean, out),
-                 (normals, octets, 1.0, mean[:7], out)):
+    for args in ((seed, 3, 1.0, mean[:7], draw, total, words, out),
+                 (seed, 3, 1.0, mean, draw, total, words[:1], out),
+                 (seed, 0, 1.0, mean, draw, total, words, out)):
         with pytest.raises(ValueError, match="match the row"):
             kernel(*args)
-    fill = normal_kernel()
-    for args in ((np.random.default_rng(0), normals.astype(np.float32)),
-                 (np.random.RandomState(0), normals), (np.random.default_rng(0), normals[::2])):
-        with pytest.raises(TypeError):
-            fill(*args)
+    with pytest.raises(ValueError, match="4 words"):
+        kernel(seed[:3], 3, 1.0, mean, draw, total, words, out)
 
 
 @needs_numba
