@@ -10,6 +10,9 @@ same length, so it is done here once for all keys, on arrays::
     key (ints) --32-bit words--> entropy (n, E) --mix_entropy--> pool (n, 4)
         --generate_state(4, uint64)--> (n, 4) uint64 --PCG64 seeding (numpy, C)--> Generator
 
+(:func:`seed_words` stops at the (n, 4) words, which the compiled noise kernels seed
+their own copy of PCG64 with: :mod:`cdma_lidar.scene.noise_kernel`.)
+
 ``SeedSequence``'s algorithm (numpy/random/bit_generator.pyx, pool size 4): each word
 is ``hashmix``-ed with a running constant (INIT_A, times MULT_A per use) into the pool,
 every pool word is mixed into every other, any further words into each, and the state
