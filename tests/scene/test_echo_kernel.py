@@ -88,29 +88,35 @@ def test_the_kernel_refuses_terms_outside_the_table_or_the_batch_and_other_types
         kernel(table.astype(np.float64), np.array([0]), np.array([0]), one, one, y, 4)
 
 
+def _with_and_without(name, level, url, take):
+    """``take(inst, cfg, columns)`` of a fresh instrument on ``url`` at ``level``, with
+    the compiled kernel ``name`` and with it set aside (the plans keep the echoes, so
+    each run needs its own instrument)."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    scene = load_scene(f"{url}?fidelity={level}")
+    out = []
+    for kernel in (getattr(instrument, name), lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(instrument, name, kernel)
+            inst = Instrument(scene, 3)
+            out.append(take(inst, RenderSettings.from_spec(inst.spec), list(range(inst.columns))))
+    return out
+
+
 @needs_kernel
 @pytest.mark.parametrize("url", ["paper-scene1", "near-far", "multi-user"])
 def test_accumulated_render_is_the_same_with_or_without_the_echo_kernel(url):
-    """Whole frames (a batch out of order with a repeat, calibration shots), each from a
-    fresh instrument (the plans keep the echoes): the same sums and echoes bit for bit."""
-    from cdma_lidar.scene import load_scene
-    from cdma_lidar.scene.instrument import Instrument, RenderSettings
+    """Whole frames (a batch out of order with a repeat, calibration shots) and one echo:
+    the same sums and echoes bit for bit."""
+    def take(inst, cfg, cols):
+        return [*inst.render_sums(cols, cfg, 1), *inst.render_sums([2, 0, 2], cfg, 1),
+                *inst.render_sums([0, 1], cfg, 1, calibration=True), inst.tabulated_echo(1, cfg)]
 
-    scene = load_scene(url + "?fidelity=accumulated")
-    out = []
-    for kernel in (terms_kernel, lambda: None):
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, "terms_kernel", kernel)
-            inst = Instrument(scene, 3)
-            cfg = RenderSettings.from_spec(inst.spec)
-            cols = list(range(inst.columns))
-            got = [inst.render_sums(cols, cfg, 1), inst.render_sums([2, 0, 2], cfg, 1),
-                   inst.render_sums([0, 1], cfg, 1, calibration=True),
-                   (inst.tabulated_echo(1, cfg), np.ones(1, dtype=bool))]
-        out.append(got)
-    for (sums, drawn), (want, want_drawn) in zip(*out, strict=True):
-        np.testing.assert_array_equal(drawn, want_drawn)
-        np.testing.assert_array_equal(sums, want)
+    for got, want in zip(*_with_and_without("terms_kernel", "accumulated", url, take),
+                         strict=True):
+        np.testing.assert_array_equal(got, want)
 
 
 def _numpy_fuses_complex_products() -> bool:
@@ -183,21 +189,13 @@ def test_the_synthesis_kernel_refuses_terms_it_cannot_place_and_other_types():
 @needs_synthesis
 @pytest.mark.parametrize("url", ["paper-scene1", "multi-user", "flat-wall"])
 def test_exact_render_is_the_same_with_or_without_the_synthesis_kernel(url):
-    """Whole frames, calibration shots, the repetitions CAPTURE RAW returns and one echo,
-    each from a fresh instrument: the same integers and volts bit for bit."""
-    from cdma_lidar.scene import load_scene
-    from cdma_lidar.scene.instrument import RenderSettings
+    """Whole frames, calibration shots, the repetitions CAPTURE RAW returns and one echo:
+    the same integers and volts bit for bit."""
+    def take(inst, cfg, cols):
+        return [*inst.render_sums(cols, cfg, 1),
+                *inst.render_sums([0, 1], cfg, 1, calibration=True),
+                inst.render_exact(1, cfg, 2), inst.echo(1, cfg)]
 
-    scene = load_scene(url + "?fidelity=exact")
-    out = []
-    for kernel in (synthesis_kernel, lambda: None):
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, "synthesis_kernel", kernel)
-            inst = Instrument(scene, 3)
-            cfg = RenderSettings.from_spec(inst.spec)
-            cols = list(range(inst.columns))
-            out.append([*inst.render_sums(cols, cfg, 1),
-                        *inst.render_sums([0, 1], cfg, 1, calibration=True),
-                        inst.render_exact(1, cfg, 2), inst.echo(1, cfg)])
-    for got, want in zip(*out, strict=True):
+    for got, want in zip(*_with_and_without("synthesis_kernel", "exact", url, take),
+                         strict=True):
         np.testing.assert_array_equal(got, want)
