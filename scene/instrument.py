@@ -943,6 +943,8 @@ class Instrument:
         total = np.empty(m, dtype=dtype) if out is None else out
         kernel = synthesis_kernel() if dtype == np.complex128 else None
         if kernel is not None:
+            if not total.flags.c_contiguous:  # (the kernel writes into its 2-D view)
+                raise ValueError("out must be C-contiguous")
             kernel(spectra.reshape(len(spectra), -1), np.asarray(members, dtype=np.int64),
                    np.zeros(len(members), dtype=np.int64) if rows is None
                    else np.asarray(rows, dtype=np.int64), lo, hi, turns, period,
@@ -1229,6 +1231,11 @@ class Instrument:
         level = level or self.fidelity
         if level not in FIDELITY_LEVELS:
             raise out_of_range("level", "one of " + ", ".join(FIDELITY_LEVELS), level)
+        shape = (len(columns), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
+        if out is not None and (out.shape != shape or out.dtype != SUM_TYPE
+                                or not out.flags.c_contiguous):
+            raise out_of_range("out", f"a C-contiguous {shape} {np.dtype(SUM_TYPE)} array",
+                               f"{out.shape} {out.dtype}")
         plans: list[tuple | None] = []
         missing: dict[tuple, tuple[int, NDArray[np.float64], list[int]]] = {}
         for j, column in enumerate(columns):
@@ -1251,11 +1258,6 @@ class Instrument:
                 for j in where:
                     plans[j] = plan
         drawn = np.array([p is not None for p in plans], dtype=bool)
-        shape = (len(columns), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
-        if out is not None and (out.shape != shape or out.dtype != SUM_TYPE
-                                or not out.flags.c_contiguous):
-            raise out_of_range("out", f"a C-contiguous {shape} {np.dtype(SUM_TYPE)} array",
-                               f"{out.shape} {out.dtype}")
         sums = self._draw_sums(level, cfg, frame, columns, plans, drawn, calibration,
                                np.empty(shape, dtype=SUM_TYPE) if out is None else out)
         for j in np.flatnonzero(~drawn).tolist() if complete else ():
@@ -1373,7 +1375,7 @@ class Instrument:
         dfts, period = self._chip_spectra(
             cfg, tuple({i for j in lit for i in terms[j][2]}), cfg.uid, cfg.uid_bits)
         spectra, members = self._stack(dfts, [i for j in lit for i in terms[j][2]])
-        bounds = np.cumsum([0, *(len(terms[j][2]) for j in lit)]).tolist()  # items' terms
+        first = np.cumsum([0, *(len(terms[j][2]) for j in lit)]).tolist()  # items' terms
         weight = self._spectral_weight(cfg, period)
         if gain != 1.0:
             weight = weight * gain
@@ -1384,7 +1386,7 @@ class Instrument:
             part = sums[:len(block)]
             self._sum_delayed(f0, np.concatenate([terms[j][0] for j in block]),
                               np.concatenate([terms[j][1] for j in block]), spectra,
-                              members[bounds[b0]:bounds[b0 + len(block)]], period, weight,
+                              members[first[b0]:first[b0 + len(block)]], period, weight,
                               out=part,
                               rows=[r for r, j in enumerate(block) for _ in terms[j][2]])
             part[:, 0] += shift * length  # the weight is 0 at DC (AC coupling)

@@ -270,7 +270,8 @@ def repetition_kernel() -> Callable[..., None] | None:
 def compile_kernel(source: Callable[..., None], signature: Callable[..., object],
                    fallback: str) -> Callable[..., None] | None:
     """``source`` compiled by numba for ``signature(numba.types, readonly)``, or None and
-    a log line saying what runs instead (``fallback``) without numba: without fast-math,
+    a log line saying what runs instead (``fallback``) without numba, or with a numba
+    whose internals the kernel's helpers import have moved: without fast-math,
     cached on disk (in memory only where numba finds no writable folder for its cache).
     The scene's compiled kernels (here and :mod:`cdma_lidar.scene.echo_kernel`) are all
     made by it."""
@@ -285,7 +286,12 @@ def compile_kernel(source: Callable[..., None], signature: Callable[..., object]
     def readonly(dtype: object, ndim: int = 1) -> object:
         return t.Array(dtype, ndim, "C", readonly=True)
 
-    compiled = signature(t, readonly)
+    try:
+        compiled = signature(t, readonly)
+    except (ImportError, AttributeError) as exc:  # a numba without the internals we use
+        logger.warning("numba %s lacks what the compiled kernel needs (%s): %s",
+                       numba.__version__, exc, fallback)
+        return None
     try:
         return numba.njit(compiled, cache=True, nogil=True)(source)
     except RuntimeError:  # numba finds no writable folder for its cache: compile in memory

@@ -61,6 +61,28 @@ def _table_sums_whole(rngs, means, stds):
 needs_numba = pytest.mark.skipif(row_kernel() is None, reason="numba (extra 'fast') not installed")
 
 
+def test_every_compiled_kernel_is_there_where_numba_is():
+    """With numba installed, no kernel quietly falls back to numpy (a numba whose
+    internals moved would: compile_kernel logs it and returns None)."""
+    pytest.importorskip("numba")
+    from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
+
+    assert all(k() is not None for k in (row_kernel, repetition_kernel, terms_kernel,
+                                         synthesis_kernel))
+
+
+def test_a_numba_without_the_needed_internals_falls_back_with_a_warning(caplog):
+    pytest.importorskip("numba")
+    from cdma_lidar.scene.noise_kernel import compile_kernel
+
+    def signature(t, readonly):
+        raise ImportError("no module named numba.np.random._moved")
+
+    with caplog.at_level("WARNING", logger="cdma_lidar.scene.noise_kernel"):
+        assert compile_kernel(lambda: None, signature, "numpy runs instead") is None
+    assert "numpy runs instead" in caplog.text and "_moved" in caplog.text
+
+
 @settings(max_examples=90, deadline=None)
 @given(columns=st.integers(1, 9), size=st.integers(1, 70), r=st.sampled_from([1, 2, 10, 300]),
        block=st.sampled_from([1, 50, 64, 1 << 16]), draw=st.sampled_from([1, 100, 1 << 24]),
