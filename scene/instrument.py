@@ -1013,7 +1013,7 @@ class Instrument:
             dfts, period = self._chip_spectra(ucfg, (u.code_index,), u.uid, u.uid_bits)
             frame = np.fft.irfft(self._sum_delayed(
                 f[1], np.array([u.amplitude_v]), np.array([u.delay_s + self._sample_shift_s(cfg)]),
-                dfts[u.code_index][None], np.zeros(1, dtype=np.int64), period,
+                *self._stack(dfts, (u.code_index,)), period,
                 self._spectral_weight(ucfg, period)), n=length)
             out += frame[idx % length]
         return out
