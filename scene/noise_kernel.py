@@ -8,7 +8,8 @@ r"""The compiled row kernels of the noise of both fidelity levels (numba: the ``
 
 ``seed`` the column's four seeding words (:func:`cdma_lidar.scene.streams.seed_words`:
 what ``default_rng(key)`` hands its PCG64), ``words16`` the words' 16-bit quarters in
-memory order (numpy's ``random_raw(...).view(np.uint16)``), ``table`` the 65536 float32
+memory order (numpy's ``random_raw(...).view(np.uint16)``: low quarter first, on the
+little-endian machines numba runs on), ``table`` the 65536 float32
 quantiles of ``_normal_table``, ``scale`` (float32, LSB) its noise scale, ``mean``
 (float32, LSB) its mean, ``out`` int32. The generator is numpy's PCG64 written out:
 ``pcg64_set_seed`` (increment ``(seed[2:] << 1) | 1``, state ``(inc + seed[:2]) M +
@@ -20,8 +21,10 @@ blocks (a product rounded to float32, then a sum rounded to float32, then the fl
 numba compiles without fast-math, so nothing is reassociated or fused into a
 multiply-add, and the values are bit for bit those of the numpy path. numpy spends a
 generator, a ``random_raw`` call and five passes (widening the words to indices, the
-gather, the scale, the mean, the floor) where this spends one call per column
-(``python -m bench scene`` times both).
+gather, the scale, the mean, the floor) where this spends one call per column and two
+passes: the table lookups of a word's four quarters as it is made (they run while the
+next 128-bit step waits on its multiply), then the arithmetic in a pass with no lookup,
+which the compiler vectorises (``python -m bench scene`` times both).
 
 ``exact``: :func:`repetition_kernel`, one column of
 :func:`cdma_lidar.scene.instrument._draw_exact_sums`, its draws included::
@@ -74,12 +77,13 @@ def _row(seed: NDArray[np.uint64], table: NDArray[np.float32], scale: np.float32
     if mean.size != out.size:
         raise ValueError("mean must match the row")
     hi, lo, inc_hi, inc_lo = _pcg(seed)
-    words = np.empty((out.size + 3) // 4, dtype=np.uint64)
-    for j in range(words.size):
-        hi, lo, words[j] = _next64(hi, lo, inc_hi, inc_lo)
-    quarters = words.view(np.uint16)  # each word's quarters in memory, as numpy's view
-    for i in range(out.size):
-        out[i] = np.int32(np.floor(table[quarters[i]] * scale + mean[i]))
+    draw = np.empty(out.size + 3, dtype=np.float32)
+    for i in range(0, out.size, 4):  # the lookups run in the shadow of the 128-bit step
+        hi, lo, word = _next64(hi, lo, inc_hi, inc_lo)
+        for q in range(4):  # the word's quarters in memory order (little-endian)
+            draw[i + q] = table[np.intp((word >> np.uint64(16 * q)) & np.uint64(0xFFFF))]
+    for i in range(out.size):  # one pass with no lookup: vectorised
+        out[i] = np.int32(np.floor(draw[i] * scale + mean[i]))
 
 
 def _repetition_row(seed: NDArray[np.uint64], repetitions: int, scale: float,
