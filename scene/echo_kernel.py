@@ -55,22 +55,51 @@ def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np
     if length < 1 or x_at.size != y_at.size or a.size != x_at.size or b.size != x_at.size:
         raise ValueError("one offset pair and two coefficients per term, length >= 1")
     for k in range(x_at.size):
-        x0, y0 = x_at[k], y_at[k]
-        if x0 < 0 or x0 + two + length > table.size or y0 < 0 or y0 + length > y.size:
+        if x_at[k] < 0 or x_at[k] + two + length > table.size or y_at[k] < 0 \
+                or y_at[k] + length > y.size:
             raise ValueError("a term reaches outside its table or the batch")
+    k = 0
+    while k < x_at.size:
+        y0 = y_at[k]
         row = y[y0:y0 + length]
-        w0 = table[x0:x0 + length]
-        w1 = table[x0 + two:x0 + two + length]
-        ak, bk = a[k], b[k]
-        if ak != 0 and bk != 0:  # both saxpy calls, fused into one pass over the row
+        group = 0  # terms from k on that add into the same row, neither coefficient zero
+        while group < 4 and k + group < x_at.size and y_at[k + group] == y0 \
+                and a[k + group] != 0 and b[k + group] != 0:
+            group += 1
+        if group == 4:  # four terms, eight multiply-adds in order, one pass over the row
+            (w0, w1), a0, b0 = _waves(table, x_at[k], length), a[k], b[k]
+            (w2, w3), a1, b1 = _waves(table, x_at[k + 1], length), a[k + 1], b[k + 1]
+            (w4, w5), a2, b2 = _waves(table, x_at[k + 2], length), a[k + 2], b[k + 2]
+            (w6, w7), a3, b3 = _waves(table, x_at[k + 3], length), a[k + 3], b[k + 3]
             for j in range(length):
-                row[j] = _fma(bk, w1[j], _fma(ak, w0[j], row[j]))
-        elif ak != 0:  # BLAS skips a zero coefficient: so do we
+                v = _fma(b1, w3[j], _fma(a1, w2[j], _fma(b0, w1[j], _fma(a0, w0[j], row[j]))))
+                row[j] = _fma(b3, w7[j], _fma(a3, w6[j], _fma(b2, w5[j], _fma(a2, w4[j], v))))
+        elif group >= 2:  # two terms, as above
+            group = 2
+            (w0, w1), a0, b0 = _waves(table, x_at[k], length), a[k], b[k]
+            (w2, w3), a1, b1 = _waves(table, x_at[k + 1], length), a[k + 1], b[k + 1]
             for j in range(length):
-                row[j] = _fma(ak, w0[j], row[j])
-        elif bk != 0:
-            for j in range(length):
-                row[j] = _fma(bk, w1[j], row[j])
+                row[j] = _fma(b1, w3[j], _fma(a1, w2[j], _fma(b0, w1[j], _fma(a0, w0[j],
+                                                                                row[j]))))
+        else:  # one term, a zero coefficient skipped as BLAS skips it
+            group = 1
+            (w0, w1), a0, b0 = _waves(table, x_at[k], length), a[k], b[k]
+            if a0 != 0 and b0 != 0:
+                for j in range(length):
+                    row[j] = _fma(b0, w1[j], _fma(a0, w0[j], row[j]))
+            elif a0 != 0:
+                for j in range(length):
+                    row[j] = _fma(a0, w0[j], row[j])
+            elif b0 != 0:
+                for j in range(length):
+                    row[j] = _fma(b0, w1[j], row[j])
+        k += group
+
+
+def _waves(table: NDArray[np.float32], x0: int, length: int
+           ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """A term's two table rows: phase p at ``x0`` and phase p + 1 two frames on."""
+    return table[x0:x0 + length], table[x0 + 2 * length:x0 + 3 * length]
 
 
 def _synthesis(spectra: NDArray[np.complex128], members: NDArray[np.int64],
@@ -176,4 +205,5 @@ def _register() -> None:
         return a(a, a, a), codegen
 
     overload(_fma)(lambda a, b, c: lambda a, b, c: fma(a, b, c))
-    register_jitable(inline="always")(_mul)
+    for helper in (_mul, _waves):
+        register_jitable(inline="always")(helper)

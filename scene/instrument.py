@@ -800,19 +800,16 @@ class Instrument:
                           ) -> NDArray[np.float64]:
         """:meth:`tabulated_echo` of each (column, power) times ``gain`` added into the rows
         of ``out`` (B, L) float32 (C-contiguous): the delays of the whole batch split into
-        samples, table phases and fractions at once, then two saxpy calls per channel
-        (BLAS reads and writes at offsets into the flat table and batch: no view per call;
-        with numba, :mod:`cdma_lidar.scene.echo_kernel` fuses each pair into one pass, the
-        same values where BLAS fuses its multiply-adds).
+        samples, table phases and fractions at once, then two saxpy calls per channel, in
+        the batch's order (each row its terms in its own order), reading one stack of
+        every member's table (BLAS reads and writes at offsets into the flat stack and
+        batch: no view per call). With numba, :mod:`cdma_lidar.scene.echo_kernel` does the
+        whole batch in one call, each row's terms in passes over the row of up to four
+        terms (their eight multiply-adds in the saxpy calls' order: the same values where
+        BLAS fuses its multiply-adds), so a row is read and written once per four terms.
         Returns (B,) each row's sum of |amplitude x gain| times its members' largest
         |table value|: a bound on the largest |value| added to the row (an interpolation
-        between two phases stays within their extremes), found with no pass over the row.
-
-        Without ghosts every row adds its channels in ascending order, so the batch is
-        walked channel by channel (each row still gets its terms in its own order: the
-        same sums): a channel's table rows are read once for all the batch's columns
-        that light it instead of once per column (a frame reads the tables from memory
-        about 3x less)."""
+        between two phases stays within their extremes), found with no pass over the row."""
         terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         if not lit:
@@ -820,51 +817,49 @@ class Instrument:
         length = cfg.frame_samples
         rows = np.repeat(lit, [len(terms[j][2]) for j in lit])
         amps = np.concatenate([terms[j][0] for j in lit]) * gain
-        taus = np.concatenate([terms[j][1] for j in lit])
-        members = np.fromiter((i for j in lit for i in terms[j][2]), dtype=np.int64)
-        order = np.arange(rows.size) if self.spec.ghosts else np.lexsort(
-            (rows, np.concatenate([terms[j][3] for j in lit])))
-        steps = taus[order] * (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
+        steps = np.concatenate([terms[j][1] for j in lit]) * (
+            self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
+        members = [i for j in lit for i in terms[j][2]]
+        stack, where, peak = self._waveform_table(cfg, tuple(members))
         whole = np.floor(steps)
         frac = steps - whole
         delay, phase = np.divmod(whole.astype(np.int64), TABLE_PHASES)
-        x_at = phase * (2 * length) + length - delay % length  # row p, rotated by delay
-        y_at = rows[order] * length
-        first, second = amps[order] * (1.0 - frac), amps[order] * frac
-        table, peak = self._waveform_table(cfg, tuple(members.tolist()))
-        flat = {i: w.reshape(-1) for i, w in table.items()}
+        # member's table, row p, rotated by the delay; the term's row of the batch
+        x_at = (np.array([where[i] for i in members]) * (TABLE_PHASES + 1) + phase) * (
+            2 * length) + length - delay % length
+        y_at = rows * length
+        first, second = amps * (1.0 - frac), amps * frac
         if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
             raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
-        y = out.reshape(-1)
-        m = members[order]
+        y, flat = out.reshape(-1), stack.reshape(-1)
         kernel = terms_kernel()
-        if kernel is not None:  # each run of one member's terms in one compiled call
-            a, b = first.astype(np.float32), second.astype(np.float32)
-            cuts = [0, *(np.flatnonzero(m[1:] != m[:-1]) + 1).tolist(), m.size]
-            for c0, c1 in itertools.pairwise(cuts):
-                kernel(flat[int(m[c0])], x_at[c0:c1], y_at[c0:c1], a[c0:c1], b[c0:c1], y,
-                       length)
+        if kernel is not None:  # the whole batch in one compiled call
+            kernel(flat, x_at, y_at, first.astype(np.float32), second.astype(np.float32), y,
+                   length)
         else:
             from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
 
             two = 2 * length
-            for i, a, b, x0, y0 in zip(m.tolist(), first.tolist(), second.tolist(),
-                                       x_at.tolist(), y_at.tolist(), strict=True):
-                saxpy(flat[i], y, length, a, x0, 1, y0)  # y[y0:y0 + L] += a w_p[rotated]
-                saxpy(flat[i], y, length, b, x0 + two, 1, y0)  # ... + b w_(p+1)[rotated]
-        largest = np.array([peak[i] for i in members.tolist()])
+            for a, b, x0, y0 in zip(first.tolist(), second.tolist(), x_at.tolist(),
+                                    y_at.tolist(), strict=True):
+                saxpy(flat, y, length, a, x0, 1, y0)  # y[y0:y0 + L] += a w_p[rotated]
+                saxpy(flat, y, length, b, x0 + two, 1, y0)  # ... + b w_(p+1)[rotated]
+        largest = np.array([peak[i] for i in members])
         return np.bincount(rows, np.abs(amps) * largest, minlength=len(items))
 
     def _waveform_table(self, cfg: RenderSettings, members: tuple[int, ...]
-                        ) -> tuple[dict[int, NDArray[np.float32]], dict[int, float]]:
-        """(TABLE_PHASES + 1, 2 L) float32 waveforms by Gold member: row p is the member's
+                        ) -> tuple[NDArray[np.float32], dict[int, int], dict[int, float]]:
+        """((M, TABLE_PHASES + 1, 2 L) float32 waveforms: row p of a member's table is its
         filtered, unit-amplitude echo delayed by p / TABLE_PHASES of a sample (before the
-        sample shift), one frame written twice (so any rotation is a slice); and each
-        member's largest |value| there. Built once per (settings, member) from the
-        spectra and kept with them (TABLE_PHASES + 1 inverse FFTs per member)."""
+        sample shift), one frame written twice (so any rotation is a slice); each Gold
+        member's table in it; each member's largest |value| there). Built once per
+        (settings, member) from the spectra and kept with them (TABLE_PHASES + 1 inverse
+        FFTs per member); members not tabulated before are appended to the stack, so a
+        batch's terms all read one array."""
         key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid, cfg.uid_bits)
-        table, peak = self._book(("table", *key)), self._book(("table peak", *key))
-        missing = tuple(sorted({i for i in members if i not in table}))
+        where, peak = self._book(("table", *key)), self._book(("table peak", *key))
+        kept = self._book(("table stack", *key))
+        missing = tuple(sorted({i for i in members if i not in where}))
         if missing:
             spectra = self._spectrum_rows(cfg, missing, cfg.uid, cfg.uid_bits)
             import scipy.fft  # deferred, as in _normal_table
@@ -874,12 +869,15 @@ class Instrument:
             step = 1.0 / (self.spec.chip_rate_hz * cfg.samples_per_chip * TABLE_PHASES)
             f = np.arange(m) * (self.spec.chip_rate_hz / cfg.frame_chips)
             ramps = np.exp(-2j * np.pi * np.outer(np.arange(TABLE_PHASES + 1) * step, f))
-            for i in missing:
-                rows = scipy.fft.irfft((ramps * spectra[i]).astype(np.complex64), n=length,
-                                       axis=1, overwrite_x=True)
-                table[i] = np.concatenate([rows, rows], axis=1)  # a rotation is one slice
-                peak[i] = float(np.abs(rows).max())
-        return table, peak
+            new = np.empty((len(missing), TABLE_PHASES + 1, 2 * length), dtype=np.float32)
+            for table, i in zip(new, missing, strict=True):
+                table[:, :length] = scipy.fft.irfft((ramps * spectra[i]).astype(np.complex64),
+                                                    n=length, axis=1, overwrite_x=True)
+                table[:, length:] = table[:, :length]  # a rotation is one slice
+                peak[i] = float(np.abs(table[:, :length]).max())
+                where[i] = len(where)
+            kept[0] = new if not kept else np.concatenate([kept[0], new])
+        return kept[0], where, peak
 
     def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
                      chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:

@@ -49,15 +49,19 @@ def _saxpy_terms(table, x_at, y_at, a, b, y, length):
 @settings(max_examples=80, deadline=None)
 @given(length=st.integers(1, 70), rows=st.integers(1, 4), terms=st.integers(0, 12),
        seed=st.integers(0, 2**32 - 1), zeros=st.sampled_from(["none", "a", "b", "both"]),
-       scale=st.sampled_from([1e-3, 1.0, 3e5]))
+       scale=st.sampled_from([1e-3, 1.0, 3e5]), by_row=st.booleans())
 def test_the_kernel_adds_each_term_as_its_two_saxpy_calls(length, rows, terms, seed, zeros,
-                                                          scale):
+                                                          scale, by_row):
     """Random tables, rotations, rows and coefficients (zero ones included: BLAS skips
-    them, so does the kernel), lengths across the SIMD widths and their tails."""
+    them, so does the kernel), lengths across the SIMD widths and their tails; terms
+    in any row order, or row by row (``by_row``: the runs of one row's terms that the
+    kernel adds in passes of up to four, as a batch does)."""
     rng = np.random.default_rng(seed)
     table = (rng.standard_normal(9 * 2 * length) * scale).astype(np.float32)
     x_at = rng.integers(0, 7 * 2 * length + length + 1, terms).astype(np.int64)
     y_at = (rng.integers(0, rows, terms) * length).astype(np.int64)
+    if by_row:
+        y_at.sort()
     a = (rng.standard_normal(terms) * scale).astype(np.float32)
     b = (rng.standard_normal(terms) * scale).astype(np.float32)
     if zeros in ("a", "both"):

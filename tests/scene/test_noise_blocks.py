@@ -400,12 +400,12 @@ def _tabulated_reference(inst, cfg, column):
     steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * instrument.TABLE_PHASES)
     whole = np.floor(steps)
     delay, phase = np.divmod(whole.astype(np.int64), instrument.TABLE_PHASES)
-    table, _ = inst._waveform_table(cfg, members)
+    stack, where, _ = inst._waveform_table(cfg, members)
     for a, t, d, p, i in zip(amps.tolist(), (steps - whole).tolist(), delay.tolist(),
                              phase.tolist(), members, strict=True):
         s = length - d % length
-        out = saxpy(table[i][p, s:s + length], out, a=a * (1.0 - t))
-        out = saxpy(table[i][p + 1, s:s + length], out, a=a * t)
+        out = saxpy(stack[where[i], p, s:s + length], out, a=a * (1.0 - t))
+        out = saxpy(stack[where[i], p + 1, s:s + length], out, a=a * t)
     return out
 
 
@@ -430,8 +430,8 @@ def _wall_with_ghosts(ghosts: bool):
 
 @pytest.mark.parametrize("ghosts", [False, True])
 def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
-    """accumulated's echoes of a batch (walked channel by channel without ghosts, term by
-    term with them) against each column's terms added in their own order, bit for bit
+    """accumulated's echoes of a batch (each row's terms in passes of up to four, with
+    numba) against each column's terms added in their own order by saxpy, bit for bit
     (_wall_with_ghosts)."""
     from cdma_lidar.scene.instrument import RenderSettings
 
