@@ -1,20 +1,25 @@
 r"""The compiled kernels of the echoes (numba: the ``fast`` extra).
 
 ``accumulated``: :func:`terms_kernel`.
-:meth:`cdma_lidar.scene.instrument.Instrument._tabulated_echoes` adds each echo term k
-(in the batch's order) into its row of the flat batch ``y`` from its Gold member's flat
-waveform table: two BLAS saxpy calls, ``y += a_k w_p`` then ``y += b_k w_(p+1)``::
+:meth:`cdma_lidar.scene.instrument.Instrument._tabulated_echoes` sets each row of the
+flat batch ``y`` that the terms reach to ``start`` and adds each echo term k (in the
+batch's order) into its row from its Gold member's waveform table (a stack of every
+member's, flat): two BLAS saxpy calls, ``y += a_k w_p`` then ``y += b_k w_(p+1)``::
 
-    row = y[y_at[k] : y_at[k] + L]
+    row = y[y_at[k] : y_at[k] + L]               (y_at[k] a multiple of L)
     w0  = table[x_at[k] : x_at[k] + L]           (phase p, rotated by the delay)
     w1  = table[x_at[k] + 2L : x_at[k] + 3L]     (phase p + 1)
     row[j] = fma(b_k, w1[j], fma(a_k, w0[j], row[j]))      j = 0 .. L - 1
 
-This kernel does both in one pass over the row, each step a fused multiply-add rounded
-once to float32, which is what BLAS's saxpy computes on hardware with FMA (OpenBLAS's
-x86-64 and ARM kernels), and skips a zero coefficient as BLAS does. So the values are
-those of the saxpy path wherever BLAS fuses; tests/scene/test_echo_kernel.py checks it
-where a probe finds that it does. One pass instead of two, and no Python call per term.
+Each step is a fused multiply-add rounded once to float32, which is what BLAS's saxpy
+computes on hardware with FMA (OpenBLAS's x86-64 and ARM kernels), and a zero
+coefficient is skipped as BLAS skips it. So the values are those of the saxpy path
+wherever BLAS fuses; tests/scene/test_echo_kernel.py checks it where a probe finds that
+it does. A batch's terms come row by row, and the kernel takes a run of up to four
+terms of one row (none with a zero coefficient) in one pass over the row, their eight
+multiply-adds in the saxpy calls' order: the row is read and written once per four
+terms instead of twice per term, and set to ``start`` when its first term is added (in
+the cache), not in a pass over the whole batch before. One call per batch.
 
 ``exact``: :func:`synthesis_kernel`, the per-channel work of the Fourier synthesis,
 :meth:`cdma_lidar.scene.instrument.Instrument._sum_delayed` (its docstring has the
@@ -48,20 +53,25 @@ from cdma_lidar.scene.noise_kernel import compile_kernel
 __all__ = ["synthesis_kernel", "terms_kernel"]
 
 def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np.int64],
-           a: NDArray[np.float32], b: NDArray[np.float32], y: NDArray[np.float32],
-           length: int) -> None:
+           a: NDArray[np.float32], b: NDArray[np.float32], start: float,
+           y: NDArray[np.float32], length: int) -> None:
     """The kernel's source (numba compiles it, ``_fma`` then its fused multiply-add)."""
     two = 2 * length
     if length < 1 or x_at.size != y_at.size or a.size != x_at.size or b.size != x_at.size:
         raise ValueError("one offset pair and two coefficients per term, length >= 1")
     for k in range(x_at.size):
         if x_at[k] < 0 or x_at[k] + two + length > table.size or y_at[k] < 0 \
-                or y_at[k] + length > y.size:
-            raise ValueError("a term reaches outside its table or the batch")
+                or y_at[k] + length > y.size or y_at[k] % length:
+            raise ValueError("a term reaches outside its table or the batch, or starts "
+                             "within a row")
+    written = np.zeros(y.size // length, dtype=np.bool_)
     k = 0
     while k < x_at.size:
         y0 = y_at[k]
         row = y[y0:y0 + length]
+        if not written[y0 // length]:  # the row's first term: set the row then (in cache)
+            row[:] = start
+            written[y0 // length] = True
         group = 0  # terms from k on that add into the same row, neither coefficient zero
         while group < 4 and k + group < x_at.size and y_at[k + group] == y0 \
                 and a[k + group] != 0 and b[k + group] != 0:
@@ -161,15 +171,16 @@ def terms_kernel() -> Callable[..., None] | None:
     """``_terms`` compiled for float32 tables and batches (None without numba).
 
     The signature is fixed (read-only float32 table and coefficients, int64 offsets, a
-    writable float32 batch, an int64 length): other types are refused, not converted.
+    float32 start, a writable float32 batch, an int64 length): other types are refused,
+    not converted.
     Compiled once per process and cached on disk by numba (in memory only where it
     finds no writable folder for the cache).
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
         _register()
         return t.void(readonly(t.float32), readonly(t.int64), readonly(t.int64),
-                      readonly(t.float32), readonly(t.float32), t.Array(t.float32, 1, "C"),
-                      t.int64)
+                      readonly(t.float32), readonly(t.float32), t.float32,
+                      t.Array(t.float32, 1, "C"), t.int64)
 
     return compile_kernel(_terms, signature, "accumulated echoes call BLAS saxpy")
 

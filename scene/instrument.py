@@ -55,7 +55,6 @@ resend) and the same scene, seed and settings give the same codes.
 from __future__ import annotations
 
 import functools
-import itertools
 import logging
 import math
 from collections.abc import Sequence
@@ -787,20 +786,22 @@ class Instrument:
         1/8 of a sample apart errs by about ``t (1 - t) (pi f / (8 f_s))^2 / 2`` of the
         component at frequency f: below 0.5 % of the echo's peak on paper-scene1
         (tests/scene/test_fidelity.py), a pure low-pass with no delay bias to first order.
-        ``out``: a zeroed contiguous (L,) float32 array to write into.
+        ``out``: a contiguous (L,) float32 array to write into (its values are not read).
         """
         if out is None:
-            out = np.zeros(cfg.frame_samples, dtype=np.float32)
+            out = np.empty(cfg.frame_samples, dtype=np.float32)
         self._tabulated_echoes(cfg, [(column, power_w)], calibration, out[None, :])
         return out
 
     def _tabulated_echoes(self, cfg: RenderSettings,
                           items: Sequence[tuple[int, NDArray[np.float64] | None]],
-                          calibration: bool, out: NDArray[np.float32], gain: float = 1.0
-                          ) -> NDArray[np.float64]:
-        """:meth:`tabulated_echo` of each (column, power) times ``gain`` added into the rows
-        of ``out`` (B, L) float32 (C-contiguous): the delays of the whole batch split into
-        samples, table phases and fractions at once, then two saxpy calls per channel, in
+                          calibration: bool, out: NDArray[np.float32], gain: float = 1.0,
+                          start: float = 0.0) -> NDArray[np.float64]:
+        """``start`` (float32) plus :meth:`tabulated_echo` of each (column, power) times
+        ``gain``, written into the rows of ``out`` (B, L) float32 (C-contiguous; what it
+        held is overwritten, a row with no echo is ``start``): the delays of the whole
+        batch split into samples, table phases and fractions at once, then two saxpy calls
+        per channel, in
         the batch's order (each row its terms in its own order), reading one stack of
         every member's table (BLAS reads and writes at offsets into the flat stack and
         batch: no view per call). With numba, :mod:`cdma_lidar.scene.echo_kernel` does the
@@ -810,8 +811,11 @@ class Instrument:
         Returns (B,) each row's sum of |amplitude x gain| times its members' largest
         |table value|: a bound on the largest |value| added to the row (an interpolation
         between two phases stays within their extremes), found with no pass over the row."""
+        if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
+            raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
         terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
+        out[[j for j, t in enumerate(terms) if t is None]] = start
         if not lit:
             return np.zeros(len(items))
         length = cfg.frame_samples
@@ -829,16 +833,15 @@ class Instrument:
             2 * length) + length - delay % length
         y_at = rows * length
         first, second = amps * (1.0 - frac), amps * frac
-        if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
-            raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
         y, flat = out.reshape(-1), stack.reshape(-1)
         kernel = terms_kernel()
-        if kernel is not None:  # the whole batch in one compiled call
-            kernel(flat, x_at, y_at, first.astype(np.float32), second.astype(np.float32), y,
-                   length)
+        if kernel is not None:  # the whole batch in one compiled call, rows set as reached
+            kernel(flat, x_at, y_at, first.astype(np.float32), second.astype(np.float32),
+                   np.float32(start), y, length)
         else:
             from scipy.linalg.blas import saxpy  # deferred, as in _normal_table
 
+            out[lit] = start
             two = 2 * length
             for a, b, x0, y0 in zip(first.tolist(), second.tolist(), x_at.tolist(),
                                     y_at.tolist(), strict=True):
@@ -1412,14 +1415,15 @@ class Instrument:
         r, length = cfg.averages, cfg.frame_samples
         gain = r * lsb_per_v
         shift = np.float32(r * offset_lsb + 0.5)
-        block = np.full((len(items), length), shift, dtype=np.float32)
+        block = np.empty((len(items), length), dtype=np.float32)
         users = [None if calibration else self.other_users_signal(col, cfg, length * r)
                  for col, _ in items]
         reach = np.array([0.0 if u is None else float(np.abs(u).max()) * lsb_per_v
                           for u in users])
         if self.echo_tabulated(cfg):  # the whole batch at once, walked code by code
-            bounds = self._tabulated_echoes(cfg, items, calibration, block, gain)
+            bounds = self._tabulated_echoes(cfg, items, calibration, block, gain, shift)
         else:  # a table of every member would not fit: the Fourier synthesis
+            block[:] = shift
             bounds = np.full(len(items), np.inf)
             for row, (col, power) in zip(block, items, strict=True):
                 echo = self.echo(col, cfg, power, calibration=calibration, single=True)

@@ -35,10 +35,13 @@ needs_kernel = pytest.mark.skipif(
     reason="numba (extra 'fast') not installed, or this BLAS's saxpy does not fuse")
 
 
-def _saxpy_terms(table, x_at, y_at, a, b, y, length):
-    """The numpy path: two saxpy calls per term."""
+def _saxpy_terms(table, x_at, y_at, a, b, start, y, length):
+    """The numpy path: the rows the terms reach set to ``start``, then two saxpy calls per
+    term."""
     from scipy.linalg.blas import saxpy
 
+    for y0 in y_at.tolist():
+        y[y0:y0 + length] = start
     for x0, y0, ak, bk in zip(x_at.tolist(), y_at.tolist(), a.tolist(), b.tolist(),
                               strict=True):
         saxpy(table, y, length, ak, x0, 1, y0)
@@ -50,8 +53,8 @@ def _saxpy_terms(table, x_at, y_at, a, b, y, length):
 @given(length=st.integers(1, 70), rows=st.integers(1, 4), terms=st.integers(0, 12),
        seed=st.integers(0, 2**32 - 1), zeros=st.sampled_from(["none", "a", "b", "both"]),
        scale=st.sampled_from([1e-3, 1.0, 3e5]), by_row=st.booleans())
-def test_the_kernel_adds_each_term_as_its_two_saxpy_calls(length, rows, terms, seed, zeros,
-                                                          scale, by_row):
+def test_the_kernel_sets_rows_then_adds_each_term_as_its_two_saxpy_calls(
+        length, rows, terms, seed, zeros, scale, by_row):
     """Random tables, rotations, rows and coefficients (zero ones included: BLAS skips
     them, so does the kernel), lengths across the SIMD widths and their tails; terms
     in any row order, or row by row (``by_row``: the runs of one row's terms that the
@@ -70,13 +73,14 @@ def test_the_kernel_adds_each_term_as_its_two_saxpy_calls(length, rows, terms, s
         b[1::2] = 0
     if zeros == "both":
         b[::2] = 0  # terms that add nothing
-    start = (rng.standard_normal(rows * length) * scale).astype(np.float32)
-    start[::3] = -0.0  # what a skipped zero coefficient leaves and an added 0 w would not
-    want, got = start.copy(), start.copy()
-    _saxpy_terms(table, x_at, y_at, a, b, want, length)
+    # -0.0: what a skipped zero coefficient leaves and an added 0 w would not
+    start = np.float32(rng.choice([-0.0, rng.standard_normal() * scale]))
+    before = (rng.standard_normal((rows + 1) * length) * scale).astype(np.float32)
+    want, got = before.copy(), before.copy()  # (rows no term reaches are left as they are)
+    _saxpy_terms(table, x_at, y_at, a, b, start, want, length)
     for arr in (table, x_at, y_at, a, b):
         arr.flags.writeable = False
-    terms_kernel()(table, x_at, y_at, a, b, got, length)
+    terms_kernel()(table, x_at, y_at, a, b, start, got, length)
     np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))  # -0.0 too
 
 
@@ -85,11 +89,12 @@ def test_the_kernel_refuses_terms_outside_the_table_or_the_batch_and_other_types
     kernel = terms_kernel()
     table, y = np.zeros(3 * 4 + 8, dtype=np.float32), np.zeros(8, dtype=np.float32)
     one = np.ones(1, dtype=np.float32)
-    for x0, y0 in ((9, 0), (-1, 0), (0, 5), (0, -1)):
+    zero = np.float32(0)
+    for x0, y0 in ((9, 0), (-1, 0), (0, 5), (0, -1), (0, 2)):
         with pytest.raises(ValueError, match="outside"):
-            kernel(table, np.array([x0]), np.array([y0]), one, one, y, 4)
+            kernel(table, np.array([x0]), np.array([y0]), one, one, zero, y, 4)
     with pytest.raises(TypeError):
-        kernel(table.astype(np.float64), np.array([0]), np.array([0]), one, one, y, 4)
+        kernel(table.astype(np.float64), np.array([0]), np.array([0]), one, one, zero, y, 4)
 
 
 def _with_and_without(name, level, url, take):
