@@ -796,7 +796,8 @@ class Instrument:
     def _tabulated_echoes(self, cfg: RenderSettings,
                           items: Sequence[tuple[int, NDArray[np.float64] | None]],
                           calibration: bool, out: NDArray[np.float32], gain: float = 1.0,
-                          start: float = 0.0) -> NDArray[np.float64]:
+                          start: float = 0.0, terms: list[tuple | None] | None = None
+                          ) -> NDArray[np.float64]:
         """``start`` (float32) plus :meth:`tabulated_echo` of each (column, power) times
         ``gain``, written into the rows of ``out`` (B, L) float32 (C-contiguous; what it
         held is overwritten, a row with no echo is ``start``): the delays of the whole
@@ -810,10 +811,12 @@ class Instrument:
         BLAS fuses its multiply-adds), so a row is read and written once per four terms.
         Returns (B,) each row's sum of |amplitude x gain| times its members' largest
         |table value|: a bound on the largest |value| added to the row (an interpolation
-        between two phases stays within their extremes), found with no pass over the row."""
+        between two phases stays within their extremes), found with no pass over the row.
+        ``terms``: the items' :meth:`_batch_echo_terms`, where the caller has them."""
         if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
             raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
-        terms = self._batch_echo_terms(cfg, items, calibration)
+        if terms is None:
+            terms = self._batch_echo_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]
         out[[j for j, t in enumerate(terms) if t is None]] = start
         if not lit:
@@ -1415,28 +1418,37 @@ class Instrument:
         r, length = cfg.averages, cfg.frame_samples
         gain = r * lsb_per_v
         shift = np.float32(r * offset_lsb + 0.5)
-        block = np.empty((len(items), length), dtype=np.float32)
         users = [None if calibration else self.other_users_signal(col, cfg, length * r)
                  for col, _ in items]
         reach = np.array([0.0 if u is None else float(np.abs(u).max()) * lsb_per_v
                           for u in users])
-        if self.echo_tabulated(cfg):  # the whole batch at once, walked code by code
-            bounds = self._tabulated_echoes(cfg, items, calibration, block, gain, shift)
+        tabulated = self.echo_tabulated(cfg)
+        terms = self._batch_echo_terms(cfg, items, calibration) if tabulated else None
+        # Items with no echo and no other user share one constant row (a third of a frame)
+        busy = [j for j, u in enumerate(users)
+                if terms is None or terms[j] is not None or u is not None]
+        block = np.empty((len(busy), length), dtype=np.float32)
+        means = [np.full(length, shift, dtype=np.float32)] * len(items)
+        for j, row in zip(busy, block, strict=True):
+            means[j] = row
+        bounds = np.zeros(len(items))
+        if tabulated:  # the whole batch at once
+            bounds[busy] = self._tabulated_echoes(cfg, [items[j] for j in busy], calibration,
+                                                  block, gain, shift,
+                                                  [terms[j] for j in busy])
         else:  # a table of every member would not fit: the Fourier synthesis
             block[:] = shift
-            bounds = np.full(len(items), np.inf)
+            bounds[:] = np.inf
             for row, (col, power) in zip(block, items, strict=True):
                 echo = self.echo(col, cfg, power, calibration=calibration, single=True)
                 row += echo * np.float32(gain)
         # The rows' float32 sums may exceed the bound by their rounding (a few 2**-24 of
         # the values' size): 2**-12 of it is ample.
         bounds = (bounds * (1 + 2.0**-12) + abs(shift) * 2.0**-12) / r + abs(offset_lsb) + reach
-        look = np.flatnonzero(bounds > np.asarray(limits))
-        if look.size:
-            sub = block[look]
-            top = np.maximum(sub.max(axis=1) - shift, shift - sub.min(axis=1))  # R |echo|
-            bounds[look] = top / r + abs(offset_lsb) + reach[look]
+        for j in np.flatnonzero(bounds > np.asarray(limits)).tolist():
+            top = max(means[j].max() - shift, shift - means[j].min())  # R |echo|
+            bounds[j] = top / r + abs(offset_lsb) + reach[j]
         for j, u in enumerate(users):
             if u is not None:
-                block[j] += (u.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
-        return list(block), bounds.tolist()
+                means[j] += (u.reshape(r, length).sum(axis=0) * lsb_per_v).astype(np.float32)
+        return means, bounds.tolist()
