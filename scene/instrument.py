@@ -1240,11 +1240,13 @@ class Instrument:
                                 or not out.flags.c_contiguous):
             raise out_of_range("out", f"a C-contiguous {shape} {np.dtype(SUM_TYPE)} array",
                                f"{out.shape} {out.dtype}")
+        if not calibration and not (all(type(c) is int for c in columns) and columns
+                                    and 0 <= min(columns) and max(columns) < self.columns):
+            for column in columns:  # (the common case above: one check for the batch)
+                check_int("column", column, 0, self.columns - 1)
         plans: list[tuple | None] = []
         missing: dict[tuple, tuple[int, NDArray[np.float64], list[int]]] = {}
         for j, column in enumerate(columns):
-            if not calibration:
-                check_int("column", column, 0, self.columns - 1)
             col = 0 if calibration else column
             p = None if power_w is None else power_w[j]
             power = self.default_power_w[:, col] if p is None else np.asarray(
