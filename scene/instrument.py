@@ -662,9 +662,9 @@ class Instrument:
         return rows, period
 
     def _book(self, key: tuple) -> dict:
-        """The codebook's entry ``key``: a dict by Gold member (spectra, tables), new and
-        empty the first time; the whole codebook is dropped when it holds 16 entries
-        (the settings changed that often)."""
+        """The codebook's entry ``key``: a dict (spectra by Gold member; the waveform
+        tables' stack, rows and peaks), new and empty the first time; the whole codebook
+        is dropped when it holds 16 entries (the settings changed that often)."""
         book = self._spectra.get(key)
         if book is None:
             if len(self._spectra) >= 16:
@@ -862,9 +862,9 @@ class Instrument:
         (settings, member) from the spectra and kept with them (TABLE_PHASES + 1 inverse
         FFTs per member); members not tabulated before are appended to the stack, so a
         batch's terms all read one array."""
-        key = (cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid, cfg.uid_bits)
-        where, peak = self._book(("table", *key)), self._book(("table peak", *key))
-        kept = self._book(("table stack", *key))
+        book = self._book(("table", cfg.samples_per_chip, cfg.poly_u, cfg.poly_v, cfg.uid,
+                           cfg.uid_bits))
+        where, peak = book.setdefault("row", {}), book.setdefault("peak", {})
         missing = tuple(sorted({i for i in members if i not in where}))
         if missing:
             spectra = self._spectrum_rows(cfg, missing, cfg.uid, cfg.uid_bits)
@@ -881,9 +881,9 @@ class Instrument:
                                                     n=length, axis=1, overwrite_x=True)
                 table[:, length:] = table[:, :length]  # a rotation is one slice
                 peak[i] = float(np.abs(table[:, :length]).max())
-                where[i] = len(where)
-            kept[0] = new if not kept else np.concatenate([kept[0], new])
-        return kept[0], where, peak
+            book["stack"] = np.concatenate([book["stack"], new]) if where else new
+            where.update({i: len(where) + n for n, i in enumerate(missing)})
+        return book["stack"], where, peak
 
     def _with_ghosts(self, column: int, amps: NDArray[np.float64], taus: NDArray[np.float64],
                      chans: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:

@@ -462,6 +462,22 @@ def test_exact_echoes_of_a_batch_equal_each_column_alone(ghosts):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
 
 
+def test_waveform_tables_appended_member_by_member_equal_tables_built_at_once():
+    """The stack of waveform tables grows as members are first used: each member's rows
+    and peak are where its index says, whatever order the members came in."""
+    from cdma_lidar.scene.instrument import RenderSettings
+
+    grown, at_once = _wall_with_ghosts(False), _wall_with_ghosts(False)
+    cfg = RenderSettings.from_spec(grown.spec)
+    for members in ((5,), (3, 5, 9), (0, 9)):
+        stack, where, peak = grown._waveform_table(cfg, members)
+    assert stack.shape[0] == len(where) == 4
+    whole, at, top = at_once._waveform_table(cfg, (9, 0, 5, 3))
+    for i in (0, 3, 5, 9):
+        np.testing.assert_array_equal(stack[where[i]], whole[at[i]])
+        assert peak[i] == top[i]
+
+
 def test_tabulated_echoes_refuse_a_batch_they_cannot_add_into_in_place():
     """BLAS adds into the batch's flat view: a strided batch (its flat form a copy, the
     sums lost) is refused, not silently left unchanged."""
