@@ -58,7 +58,7 @@ import functools
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from numpy.typing import NDArray
@@ -367,6 +367,20 @@ class RenderSettings:
         return cls(samples_per_chip=spec.samples_per_chip, averages=spec.averages,
                    uid_bits=spec.uid_bits, uid=spec.uid, code_index=spec.code_indices,
                    poly_u=spec.poly_u, poly_v=spec.poly_v)
+
+    def __hash__(self) -> int:
+        """The fields' hash, computed once (every column a frame renders looks its plan up
+        under a key that holds the settings, and the code indices are 40 or more ints);
+        not pickled (:meth:`__getstate__`), so a copy in another process hashes anew."""
+        h = self.__dict__.get("_hash")
+        if h is None:
+            h = hash(tuple(getattr(self, f.name) for f in fields(self)))
+            object.__setattr__(self, "_hash", h)
+        return h
+
+    def __getstate__(self) -> dict:
+        """The fields, without the cached hash."""
+        return {k: v for k, v in self.__dict__.items() if k != "_hash"}
 
     @property
     def frame_chips(self) -> int:
@@ -1325,6 +1339,8 @@ class Instrument:
             means, peaks = self._accumulated_means(cfg, sub, calibration, [
                 top - 0.5 - ACCUMULATED_CLIP_MARGIN * sigmas[i] for i in keep])
         r = cfg.averages
+        scales = sigmas if exact else (  # the scale of the R-repetition sum's Gaussian
+            np.sqrt(r * (np.square(sigmas) + 1.0 / 12) - 1.0 / 12).astype(np.float32))
         for i, mean, peak in zip(keep, means, peaks, strict=True):
             sigma = sigmas[i]
             if exact and peak + EXACT_SUM_CLIP_MARGIN * sigma > top:
@@ -1332,8 +1348,7 @@ class Instrument:
             if not exact and peak + ACCUMULATED_CLIP_MARGIN * sigma > top - 0.5:
                 continue
             mean.flags.writeable = False
-            out[i] = (mean, float(sigma)) if exact else (
-                mean, np.float32(math.sqrt(r * (sigma**2 + 1.0 / 12) - 1.0 / 12)))
+            out[i] = (mean, scales[i])
         return out
 
     def _exact_means(self, cfg: RenderSettings, items: list[tuple[int, NDArray[np.float64]]],
@@ -1420,8 +1435,8 @@ class Instrument:
         r, length = cfg.averages, cfg.frame_samples
         gain = r * lsb_per_v
         shift = np.float32(r * offset_lsb + 0.5)
-        users = [None if calibration else self.other_users_signal(col, cfg, length * r)
-                 for col, _ in items]
+        users = [None if calibration or not self.spec.other_users
+                 else self.other_users_signal(col, cfg, length * r) for col, _ in items]
         reach = np.array([0.0 if u is None else float(np.abs(u).max()) * lsb_per_v
                           for u in users])
         tabulated = self.echo_tabulated(cfg)

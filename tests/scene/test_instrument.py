@@ -290,3 +290,21 @@ def test_the_periodic_synthesis_equals_the_spectrum_summed_bin_by_bin(s, uid_bit
     scale = np.abs(want).max()
     assert np.abs(got - want).max() <= 1e-12 * scale
     assert period == uid_bits * ((1 << cfg.poly_u[0]) - 1) and weight.size == period * s // 2 + 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(s=st.integers(1, 8), r=st.integers(1, 100), uid_bits=st.integers(1, 4),
+       codes=st.lists(st.integers(0, 2048), min_size=1, max_size=48))
+def test_render_settings_hash_once_and_as_their_fields(s, r, uid_bits, codes):
+    """The settings' cached hash is the hash of their fields, equal settings hash alike
+    whatever was hashed before, and a pickled copy carries no stale hash."""
+    import dataclasses
+    import pickle
+
+    cfg = RenderSettings(s, r, uid_bits, 0, tuple(codes), (11, 2, 0), (11, 8, 5, 2, 0))
+    fields = tuple(getattr(cfg, f.name) for f in dataclasses.fields(cfg))
+    assert hash(cfg) == hash(fields) == hash(cfg)
+    copy = pickle.loads(pickle.dumps(cfg))
+    assert "_hash" not in copy.__dict__ and copy == cfg and hash(copy) == hash(cfg)
+    other = dataclasses.replace(cfg, averages=r + 1)
+    assert other != cfg and hash(other) == hash((s, r + 1, *fields[2:]))
