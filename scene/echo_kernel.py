@@ -18,8 +18,8 @@ wherever BLAS fuses; tests/scene/test_echo_kernel.py checks it where a probe fin
 it does. A batch's terms come row by row, and the kernel takes a run of up to four
 terms of one row (none with a zero coefficient) in one pass over the row, their eight
 multiply-adds in the saxpy calls' order: the row is read and written once per four
-terms instead of twice per term, and set to ``start`` when its first term is added (in
-the cache), not in a pass over the whole batch before. One call per batch.
+terms (the saxpy path: twice per term), and set to ``start`` when its first term is
+added (in the cache), not in a pass over the whole batch before. One call per batch.
 
 ``exact``: :func:`synthesis_kernel`, the per-channel work of the Fourier synthesis,
 :meth:`cdma_lidar.scene.instrument.Instrument._sum_delayed` (its docstring has the

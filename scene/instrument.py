@@ -816,13 +816,13 @@ class Instrument:
         ``gain``, written into the rows of ``out`` (B, L) float32 (C-contiguous; what it
         held is overwritten, a row with no echo is ``start``): the delays of the whole
         batch split into samples, table phases and fractions at once, then two saxpy calls
-        per channel, in
-        the batch's order (each row its terms in its own order), reading one stack of
-        every member's table (BLAS reads and writes at offsets into the flat stack and
-        batch: no view per call). With numba, :mod:`cdma_lidar.scene.echo_kernel` does the
-        whole batch in one call, each row's terms in passes over the row of up to four
-        terms (their eight multiply-adds in the saxpy calls' order: the same values where
-        BLAS fuses its multiply-adds), so a row is read and written once per four terms.
+        per channel, in the batch's order (each row its terms in its own order), reading
+        one stack of every member's table (BLAS reads and writes at offsets into the flat
+        stack and batch: no view per call). With numba, :mod:`cdma_lidar.scene.echo_kernel`
+        does the whole batch in one call, each row's terms in passes over the row of up to
+        four terms (their eight multiply-adds in the saxpy calls' order: the same values
+        where BLAS fuses its multiply-adds), so a row is read and written once per four
+        terms.
         Returns (B,) each row's sum of |amplitude x gain| times its members' largest
         |table value|: a bound on the largest |value| added to the row (an interpolation
         between two phases stays within their extremes), found with no pass over the row.
