@@ -1254,7 +1254,7 @@ class Instrument:
                                 or not out.flags.c_contiguous):
             raise out_of_range("out", f"a C-contiguous {shape} {np.dtype(SUM_TYPE)} array",
                                f"{out.shape} {out.dtype}")
-        if not calibration and not (all(type(c) is int for c in columns) and columns
+        if not calibration and not (len(columns) and all(type(c) is int for c in columns)
                                     and 0 <= min(columns) and max(columns) < self.columns):
             for column in columns:  # (the common case above: one check for the batch)
                 check_int("column", column, 0, self.columns - 1)
