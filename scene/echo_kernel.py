@@ -52,6 +52,7 @@ from cdma_lidar.scene.noise_kernel import compile_kernel
 
 __all__ = ["synthesis_kernel", "terms_kernel"]
 
+
 def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np.int64],
            a: NDArray[np.float32], b: NDArray[np.float32], start: float,
            y: NDArray[np.float32], length: int) -> None:
