@@ -5,6 +5,7 @@ operating-point table generated from what the studies run."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import re
@@ -15,6 +16,7 @@ import pytest
 
 from cdma_lidar.scene import load_scene
 from cdma_lidar.study import fig2c, paper, papercal
+from cdma_lidar.study.engine import run_study
 from cdma_lidar.study.paperlab import entry, exact, verdict_of, wilson
 
 
@@ -162,3 +164,21 @@ def test_operating_point_is_read_from_what_the_studies_run():
     assert not table["channel spacing"].stated  # inferred, not printed
     assert table["chip rate"].value == f"{lab.chip_rate_hz / 1e6:g} Mchip/s"
     assert all(p.value for p in table.values())
+
+
+@pytest.mark.slow
+def test_paper_point_grid_is_refined_inside_the_interval(tmp_path):
+    """fig2f's crossing between 8 and 16 m is read again on finer grids until the trials,
+    not the grid step, set the interval's width (about 30 s)."""
+    res = run_study(paper.STUDY, tmp_path / "p", quick=True, workers=0, progress=False,
+                    overrides={"studies": "fig2f",
+                               "sub_set": "fig2f.distances=8,16,fig2f.degrees=13"})
+    refined = json.loads((tmp_path / "p" / "fig2f-paper-refined" / "run.json").read_text())
+    grid = refined["settings"]["distances"]
+    h = res.summary["fig2f.max_range_m_order13"]
+    lo, hi = h["paper_point_ci95"]
+    assert 8 < lo < hi < 16 and max(np.diff(grid)) < 8
+    assert any(lo < x < hi for x in grid) or hi - lo <= max(np.diff(grid))
+    assert h["kind"] == "prediction" and h["verdict"] == "differs"  # 66 m
+    report = (tmp_path / "p" / "report.md").read_text()
+    assert "fig2f-paper-refined/fig2f.png" in report
