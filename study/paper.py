@@ -814,6 +814,8 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
     lines += ["## Time", "", "| study | wall time (s), default | at the paper's point | tasks | "
               "failed | executor |", "|---|---|---|---|---|---|"]
     for e in entries:
+        if e["name"] not in PAPER_STUDIES:
+            continue  # the calibration's own rows: closed forms, no run of their own
         t = e["wall_time_s"]
         lines.append(f"| {e['name']} | {fmt_value(t) if t is not None else '--'} | "
                      f"{fmt_value(e.get('paper_wall_time_s'))} | {fmt_value(e['tasks'])} | "
