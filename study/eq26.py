@@ -36,7 +36,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import bipolar, gold_code
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.host.ranging import lag_to_range_m
-from cdma_lidar.optics.grating import azimuth_elevation_deg
+from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import RunContext, Setting, Study, Table
@@ -44,8 +44,13 @@ from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.paperlab import PRESET, check_point, entry, exact
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
-__all__ = ["REPORT_NOTE", "STUDY", "eq26_task", "folded_range_m", "psd_lines",
-           "variance_ratio_ci"]
+__all__ = ["BLAZE_DEG", "REPORT_NOTE", "STUDY", "angular_step_deg", "eq26_task", "folded_range_m",
+           "incidence_curve", "psd_lines", "variance_ratio_ci"]
+
+#: Paper, Methods: the grating's nominal blaze angle (deg; its Littrow incidence).
+BLAZE_DEG = 28.7
+#: Paper: "a theoretical angular resolution of 0.03°" (deg), printed to two decimals.
+PAPER_ANGLE_DEG = 0.03
 
 #: Paper, Supp. Note 4, eq. 25: averaging 40 aligned repetitions before summing restores
 #: the noise of a simultaneous recording.
@@ -76,6 +81,23 @@ def psd_lines(code_bits: np.ndarray, chip_rate_hz: float) -> tuple[np.ndarray, n
     spec = np.abs(np.fft.fft(chips)) ** 2 / n**2
     power = spec[q % n] * np.sinc(q / n) ** 2
     return q * chip_rate_hz / n, power
+
+
+def angular_step_deg(grooves_per_mm: float, incidence_deg: float,
+                     wavelengths_m: np.ndarray) -> float:
+    """Mean angle (deg) between adjacent channels' first-order beams at rotation 0."""
+    d = GratingGeometry(grooves_per_mm, incidence_deg).directions(
+        np.asarray(wavelengths_m), np.zeros(1)).reshape(-1, 3)
+    cos = np.clip(np.sum(d[1:] * d[:-1], axis=1), -1.0, 1.0)
+    return float(np.degrees(np.mean(np.arccos(cos))))
+
+
+def incidence_curve(grooves_per_mm: float, wavelengths_m: np.ndarray,
+                    step_deg: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The angular step (deg) over incidence 0..85 deg (``step_deg`` apart)."""
+    inc = np.arange(0.0, 85.0 + step_deg / 2, step_deg)
+    return inc, np.array([angular_step_deg(grooves_per_mm, float(i), wavelengths_m)
+                          for i in inc])
 
 
 def folded_range_m(distance_m: float, degree: int, chip_rate_hz: float, s: int = 4) -> float:
@@ -128,7 +150,8 @@ def eq26_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     steps = np.abs(np.diff(el))
     freq, power = psd_lines(gold_code(spec.poly_u, spec.poly_v, 0), f_c)
     floor = 1e-9 * power[1:].max()
-    null = float(freq[1:][np.flatnonzero(power[1:] <= floor)[0]])
+    nulls = freq[1:][np.flatnonzero(power[1:] <= floor)]
+    null, second = float(nulls[0]), float(nulls[nulls > 1.5 * nulls[0]][0])
     mixed = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": True}), seed=0)
     single = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": False}), seed=0)
     ratio = [m.budget.coefficients(spec.samples_per_chip)["thermal"] for m in (mixed, single)]
@@ -149,7 +172,7 @@ def eq26_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
             "angular_resolution_deg": float(np.mean(steps)),
             "angular_step_min_deg": float(steps.min()),
             "angular_step_max_deg": float(steps.max()),
-            "psd_main_lobe_null_hz": null,
+            "psd_main_lobe_null_hz": null, "psd_second_null_hz": second,
             "sequential_mixing_noise_ratio": ratio[0] / ratio[1],
             "noise_samples": samples,
             "measured_mixing_ratio": var["mixed_r1"] / var["single"],
@@ -180,6 +203,27 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     ax.set_title("Fig. 1e: PSD of the spread-spectrum codes (ours, line spectrum)", fontsize=9)
     ax.legend(fontsize=7)
     save_figure(fig, ctx.out / "eq26.png")
+    inc, step = incidence_curve(spec.grooves_per_mm, np.asarray(spec.wavelengths_m))
+    rounds = np.round(step, 2) == PAPER_ANGLE_DEG  # the printed 0.03 at its precision
+    lo_inc, hi_inc = float(inc[rounds].min()), float(inc[rounds].max())
+    at = {name: angular_step_deg(spec.grooves_per_mm, a, np.asarray(spec.wavelengths_m))
+          for name, a in (("normal", 0.0), ("blaze", BLAZE_DEG), ("preset", spec.incidence_deg))}
+    fig, ax = new_figure(6.0, 3.8)
+    ax.plot(inc, step, color="tab:blue", label="ours: adjacent channels' beams, grating "
+            f"{spec.grooves_per_mm:g} /mm, {np.mean(np.diff(spec.wavelengths_m)) * 1e9:.3f} nm")
+    ax.axhline(PAPER_ANGLE_DEG, color="k", ls="--", lw=1.0, label="paper: 0.03 deg (its text)")
+    ax.axvspan(lo_inc, hi_inc, color="tab:green", alpha=0.15,
+               label=f"rounds to 0.03 deg: incidence {lo_inc:g}-{hi_inc:g} deg")
+    ax.axvline(BLAZE_DEG, color="tab:red", ls=":", lw=1.0,
+               label=f"Littrow at the blaze {BLAZE_DEG:g} deg: {at['blaze']:.4f} deg")
+    ax.axvline(spec.incidence_deg, color="tab:gray", ls="-.", lw=1.0,
+               label=f"preset {spec.incidence_deg:g} deg: {at['preset']:.4f} deg")
+    ax.set_xlabel("incidence angle (deg)")
+    ax.set_ylabel("angular resolution (deg)")
+    ax.set_title("Angular resolution over the grating's incidence (the paper states none)",
+                 fontsize=9)
+    ax.legend(fontsize=6)
+    save_figure(fig, ctx.out / "eq26_incidence.png")
     n = int(row["noise_samples"])
     ci25 = variance_ratio_ci(float(row["aligned_averaging_noise_ratio"]), n, n)
     fold, back = float(row["fold_m"]), float(row["fold_check_m"])
@@ -198,6 +242,18 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             row["angular_resolution_deg"], 0.03, "deg",
             cause=f"grating steps {row['angular_step_min_deg']:.4f}-"
                   f"{row['angular_step_max_deg']:.4f} deg over {row['channels']} channels"),
+        "incidence_for_paper_angle_deg": exact(
+            lo_inc, None, "deg",
+            derived=f"the step rounds to the paper's 0.03 deg for incidence {lo_inc:g}-"
+                    f"{hi_inc:g} deg (grid 0.25 deg); {at['normal']:.4f} deg at normal "
+                    f"incidence, {at['blaze']:.4f} at Littrow on the blaze ({BLAZE_DEG:g} "
+                    f"deg), {at['preset']:.4f} at the preset's {spec.incidence_deg:g} deg"),
+        "bandpass_second_null_hz": exact(
+            row["psd_second_null_hz"], 125e6, "Hz",
+            verdict="exact" if math.isclose(row["psd_second_null_hz"], 2 * row["chip_rate_hz"])
+            else "differs",
+            derived="2/T_c: the PSD's second null, where the paper's band-pass 'second "
+                    "sidelobe (125 MHz)' sits"),
         "psd_main_lobe_null_hz": exact(
             row["psd_main_lobe_null_hz"], None, "Hz",
             verdict="exact" if math.isclose(row["psd_main_lobe_null_hz"], row["chip_rate_hz"])

@@ -199,7 +199,35 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         out[f"candidates_direct_l{li}"] = exact(
             direct, None, "sequences", verdict="exact" if direct == eq53 else "differs",
             derived=f"eq. 53 at m = {m}, l = {li}: {eq53}")
+    out.update(uid3_rows())
     return out
+
+
+def uid3_rows() -> dict[str, Any]:
+    """Eq. 51 and Note 11's comparison: an order-11 code carrying a 3-bit UID against an
+    order-13 code without one (lengths in chips, candidate counts; closed forms, and u(3)
+    also enumerated). The paper prints u(3) = 4 and 8193; the other numbers are the
+    formulas of its words ("shorter", "practically the same amount")."""
+    u3 = len(necklaces(3))
+    chips11, chips13 = 3 * ((1 << 11) - 1), (1 << 13) - 1
+    cand11, cand13 = ((1 << 11) + 1) * necklace_count(3), (1 << 13) + 1
+    return {
+        "necklaces_u3": exact(u3, 4, "UIDs", verdict="exact" if u3 == necklace_count(3) == 4
+                              else "differs",
+                              derived=f"3-bit necklaces enumerated: {u3}; eq. 50: "
+                                      f"{necklace_count(3)}"),
+        "chips_order11_uid3": exact(chips11, None, "chips", verdict="exact" if chips11 < chips13
+                                    else "differs",
+                                    derived=f"3 x 2047; shorter than order 13's {chips13}: "
+                                            f"{chips11 / chips13:.3f} of its duration"),
+        "chips_order13": exact(chips13, None, "chips", derived="2^13 - 1"),
+        "candidates_order11_uid3": exact(
+            cand11, None, "sequences",
+            verdict="exact" if abs(cand11 - cand13) <= 0.01 * cand13 else "differs",
+            derived=f"(2^11 + 1) u(3) against order 13's {cand13}: within 1 % "
+                    "('practically the same', the criterion)"),
+        "candidates_order13": exact(cand13, 8193, "sequences", derived="2^13 + 1"),
+    }
 
 
 STUDY = Study(

@@ -21,10 +21,9 @@ stands where the paper stood as far as it says (:mod:`cdma_lidar.study.paperlab`
 assumptions it lists for what the paper leaves out (10 m, R = 1, S = 50, the peak index
 without refinement). ``repeats`` applies to both.
 
-The resolution's 95 % interval: with ``replicates`` >= 2, Student's t over the
-replicates' 2 sigma (each replicate its own instrument seed: the spread between runs);
-with one, a bootstrap of the standard deviation of the run's ranges (their tails are
-heavier than a Gaussian's at low SNR); a range more than half a
+The resolution's 95 % interval: a bootstrap of the standard deviation of every range of
+every replicate pooled (their tails are heavier than a Gaussian's at low SNR; each
+replicate draws its own instrument seed); a range more than half a
 chip from the truth is a gross error (``gross_errors``), left out of the histogram. Eq.
 28 at the pixel's SNR is a derived quantity beside it.
 """
@@ -81,7 +80,8 @@ REPORT_NOTE = (
     "Both numbers are 2 sigma of repeated single-channel ranges. At the paper's point (the "
     "paper-lab instrument at 10 m, one record per range, 50 samples per chip, the peak "
     "index) the link budget gives an SNR at which eq. 28 itself is near the paper's "
-    "number; at the toolkit's default (5 m, R = 10 records summed, S = 4 with sub-sample "
+    "number, which the joint calibration fits (so the row is calibrated, not a test); at "
+    "the toolkit's default (5 m, R = 10 records summed, S = 4 with sub-sample "
     "refinement) the SNR is much higher and the resolution centimetres. The `cause` "
     "column gives both from this run. Fig. 2c ranges one channel, so nothing is mixed: "
     "Supp. Note 4's sequential-mixing noise does not apply. The paper states neither the "
@@ -201,11 +201,9 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     save_figure(fig, ctx.out / "fig2c.png")
     chip_rate = 62.5e6
     row = table.rows[0]
-    if ctx.options.replicates >= 2:  # between runs: Student t over the replicates' 2 sigma
-        half = float(table.rows[0]["resolution_2sigma_m_ci95"]) / 2
-        lo, hi = sigma - half, sigma + half
-    else:
-        lo, hi = bootstrap_std_ci(errs, ctx.options.seed)
+    # every range of every replicate pooled: a bootstrap of their standard deviation (not a
+    # t over a handful of replicates' 2 sigma, whose few degrees of freedom widen it)
+    lo, hi = bootstrap_std_ci(errs, ctx.options.seed)
     snr_eff = float(np.mean(table.column("snr_effective_db")))
     where = (f"{row['scene']} at {row['distance']:g} m, R = {row['averages']}, "
              f"S = {row['S']}, refinement {row['method']}")

@@ -46,6 +46,9 @@ __all__ = ["REPORT_NOTE", "STUDY", "clusters", "fig3_task"]
 PAPER_CLUSTERS_SCENE1 = 3
 #: Paper: "3D point clouds are captured with a 40 x 160 pixels resolution".
 PAPER_PIXELS = "40 x 160"
+#: Paper, Fig. 3d: its two points, in words (it prints no SNR_XC value).
+PAPER_POINT_WORDS = {13: "high-confidence point (point 13) with correct depth information",
+                     35: "low-confidence point (point 35) with incorrect depth information"}
 
 SCENES = ("paper-scene1", "paper-scene2")
 
@@ -135,7 +138,65 @@ def fig3_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
             "smallest_group_share": float(np.bincount(group).min() / group.size)
             if group.size else math.nan,
             "ranges_m": " ".join(f"{x:.4f}" for x in img.range_m[ok]),
+            **line3(img, scan.truth_range_m, scan.ranging.snr_threshold_db),
             "time_s": time.perf_counter() - t0}
+
+
+#: Paper, Fig. 3c/3d: line 3 (one column, all 40 channels) and its points 13 and 35
+#: (1-based: a high-confidence pixel with the correct depth, and a low-confidence one with
+#: an incorrect depth). The column: the middle of the scan (the paper's is not given).
+POINTS_3D = (13, 35)
+#: A depth within the paper's own 25.68 cm resolution of the truth is correct.
+CORRECT_M = 0.2568
+
+
+def line3(img: Any, truth: np.ndarray, threshold_db: float) -> dict[str, Any]:
+    """Fig. 3c/3d on line 3 (the middle column): each of :data:`POINTS_3D`'s SNR_XC (dB)
+    and whether its depth is correct, and over the whole scan the median SNR_XC of the
+    object pixels with a correct depth and of those with an incorrect one."""
+    col = truth.shape[1] // 2
+    err = np.abs(img.range_m - truth)
+    obj = np.isfinite(truth)
+    good = obj & (err <= CORRECT_M)
+    bad = obj & ~good
+    out: dict[str, Any] = {"line3_column": col, "snr_threshold_db": float(threshold_db)}
+    for p in POINTS_3D:
+        out[f"snr_xc_point{p}_db"] = float(img.snr_xc_db[p - 1, col])
+        out[f"correct_point{p}"] = int(good[p - 1, col])
+        out[f"object_point{p}"] = int(obj[p - 1, col])
+    out["snr_xc_correct_median_db"] = float(np.median(img.snr_xc_db[good])) if good.any() \
+        else math.nan
+    out["snr_xc_incorrect_median_db"] = float(np.median(img.snr_xc_db[bad])) if bad.any() \
+        else math.nan
+    out["incorrect_pixels"] = int(bad.sum())
+    return out
+
+
+def _points_3d(row: dict, where: str) -> dict[str, Any]:
+    """Fig. 3c/3d's rows: point 13 confident and correct, point 35 not confident and wrong
+    (the criterion, written before the run: SNR_XC above the receiver's threshold with a
+    depth within 25.68 cm, and below it or wrong); the scene is ours, so the mechanism row
+    compares the whole scan's correct and incorrect pixels' median SNR_XC."""
+    thr = float(row["snr_threshold_db"])
+    out: dict[str, Any] = {}
+    for p, confident in zip(POINTS_3D, (True, False), strict=True):
+        snr, ok = float(row[f"snr_xc_point{p}_db"]), bool(row[f"correct_point{p}"])
+        holds = (snr >= thr and ok) if confident else (snr < thr or not ok)
+        out[f"snr_xc_point{p}_db"] = exact(
+            snr, PAPER_POINT_WORDS[p], "dB", verdict="reproduced" if holds else "differs",
+            criterion=("SNR_XC at or above the threshold and the depth within 25.68 cm"
+                       if confident else "SNR_XC below the threshold or the depth wrong"),
+            cause=f"{where}: line 3 = column {row['line3_column']}, point {p} "
+                  f"{'on an object' if row[f'object_point{p}'] else 'on no object'}, "
+                  f"SNR_XC {snr:.1f} dB against the threshold {thr:.1f} dB, depth "
+                  f"{'correct' if ok else 'wrong'}")
+    good, bad = float(row["snr_xc_correct_median_db"]), float(row["snr_xc_incorrect_median_db"])
+    out["snr_xc_wrong_minus_right_db"] = exact(
+        bad - good, None, "dB",
+        derived=f"median SNR_XC of the {row['incorrect_pixels']} object pixels with a wrong "
+                f"depth minus that of the correct ones (Fig. 3c: false depths have low "
+                f"SNR_XC)")
+    return out
 
 
 def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
@@ -173,6 +234,8 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                       f"step of {row['depth_step_m'] * 100:.1f} cm (ours: the paper gives no "
                       f"depths), the smallest depth group holding "
                       f"{row['smallest_group_share']:.3f} of the pixels")
+        if n == 1:
+            out.update(_points_3d(row, where))
         out[f"valid_fraction_scene{n}"] = entry(
             row["valid_fraction"], None, "1", derived=f"{where}; of {row['object_pixels']} "
                                                       "object pixels")

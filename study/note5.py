@@ -5,7 +5,8 @@ from a fixed distance with the channel's own code, so after correlation it is a 
 the target's. The paper: "such extraneous correlation peaks can be accurately identified
 in the time delay after correlation with the reference code, allowing for the removal of
 any misjudgment from spurious peaks". Here, on the ``paper-lab`` wall (``distance`` m)
-with a ghost at ``ghost_m`` m, ``ghost_ratio`` times the echo's amplitude, on every pixel:
+with a ghost at ``ghost_m`` m, each of ``ghost_ratios`` times the echo's amplitude (one
+task each; the row holds when :data:`REMOVAL_CRITERION` holds at every one), on every pixel:
 
 0. the wall without a ghost (``correct_no_ghost``: the baseline);
 1. an empty field (the wall's reflectivity 0) is scanned and the host's
@@ -64,6 +65,21 @@ __all__ = ["MIN_SEPARATION_M", "REPORT_NOTE", "STUDY", "correlation_curve", "not
 PAPER_FIG8_NEAR = "the delay index resides at the actual peak"
 PAPER_FIG8_FAR = "the correlation peak to fall below the spurious peak"
 
+#: The criterion of "allowing for the removal of any misjudgment" (written before the run):
+#: no pixel on the ghost after the removal, and the wall's correct pixels after it within
+#: this fraction of the run without a ghost, at every ghost strength of ``ghost_ratios``
+#: (Supp. Note 5: the ghosts' "spurious peaks" are mostly "lower than the actual echo
+#: signals", up to comparable near its positions 1 and 2: 0.25, 0.5 and 1 x the echo).
+REMOVAL_TOLERANCE = 0.02
+REMOVAL_CRITERION = ("no pixel on the ghost after removal, and the wall's correct pixels "
+                     "within 2 % of the run without a ghost, at every ghost strength")
+
+
+def _kept(row: dict) -> float:
+    """The wall's correct pixels after removal over those without a ghost."""
+    return int(row["correct_after"]) / max(int(row["correct_no_ghost"]), 1)
+
+
 #: A ghost's window spans its correlation triangle and a margin (+-(S + 1) samples at
 #: S = 4, 62.5 Mchip/s: 3 m); the wall's own triangle must lie outside it (m).
 MIN_SEPARATION_M = 6.0
@@ -116,9 +132,10 @@ def _grid(options: RunOptions) -> list[dict]:
     if not 0.5 <= g <= 100.0 or abs(g - d) < MIN_SEPARATION_M:
         raise out_of_range("ghost_m", f"0.5..100 m and at least {MIN_SEPARATION_M:g} m from "
                            "the wall", g)
-    ratio = float(options["ghost_ratio"])
-    if not 0.0 < ratio <= 100.0:
-        raise out_of_range("ghost_ratio", "0..100", ratio)
+    ratios = [float(x) for x in options["ghost_ratios"]]
+    for ratio in ratios:
+        if not 0.0 < ratio <= 100.0:
+            raise out_of_range("ghost_ratios", "0..100 each", ratio)
     avg = check_int("averages", options["averages"], 1, 1024)
     like = float(options["fig8_ghost_like_m"])
     fg = float(options["fig8_ghost_m"])
@@ -129,7 +146,7 @@ def _grid(options: RunOptions) -> list[dict]:
         if not 1.0 <= x <= 100.0 or abs(fg - x) < MIN_SEPARATION_M:
             raise out_of_range("fig8_distances", f"1..100 m and at least {MIN_SEPARATION_M:g} m "
                                "from fig8_ghost_m", x)
-    return (grid_product(case=["removal"], distance=[d], ghost_m=[g], ghost_ratio=[ratio],
+    return (grid_product(case=["removal"], distance=[d], ghost_m=[g], ghost_ratio=ratios,
                          ghost_like_m=[d], averages=[avg])
             + grid_product(case=["fig8"], distance=f8, ghost_m=[fg], ghost_ratio=[1.0],
                            ghost_like_m=[like], averages=[avg]))
@@ -208,19 +225,21 @@ def _draw_fig8(table: Table, path: Any) -> None:
 
 def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     _draw_fig8(table, ctx.out / "note5.png")
-    row = table.where(case="removal").rows[0]
+    rows = table.where(case="removal").rows
+    row = min(rows, key=_kept)  # the ghost strength that costs the wall most
     n = int(row["pixels"])
-    where = (f"ghost at {row['ghost_m']:g} m, {row['ghost_ratio']:g} x the echo, wall at "
-             f"{row['distance']:g} m, R = {row['averages']}")
+    holds = all(r["misjudged_after"] == 0 and _kept(r) >= 1.0 - REMOVAL_TOLERANCE for r in rows)
+    per = "; ".join(f"{r['ghost_ratio']:g} x the echo: {r['misjudged_before']} on the ghost "
+                    f"before, {r['misjudged_after']} after, wall {r['correct_before']} before, "
+                    f"{r['correct_after']} after, {r['correct_no_ghost']} with no ghost"
+                    for r in rows)
     return {
         "ghost_misjudged_after_removal": entry(
-            int(row["misjudged_after"]), None, "pixels", exact=True,
-            paper_point=int(row["misjudged_after"]),
-            verdict="reproduced" if row["misjudged_after"] == 0 else "differs",
-            cause=f"{where}: {row['misjudged_before']} of {n} pixels on the ghost without "
-                  f"the windows, {row['misjudged_after']} with the {row['windows']} window(s) "
-                  f"found on an empty field; on the wall {row['correct_before']} before, "
-                  f"{row['correct_after']} after, {row['correct_no_ghost']} with no ghost"),
+            max(int(r["misjudged_after"]) for r in rows), None, "pixels", exact=True,
+            paper_point=max(int(r["misjudged_after"]) for r in rows),
+            verdict="reproduced" if holds else "differs", criterion=REMOVAL_CRITERION,
+            cause=f"ghost at {row['ghost_m']:g} m, wall at {row['distance']:g} m, R = "
+                  f"{row['averages']}, windows from an empty field ({row['windows']}): {per}"),
         "ghost_misjudged_before_removal": entry(int(row["misjudged_before"]), None, "pixels",
                                                 derived=f"of {n}, without the windows"),
         "ghost_correct_after_removal": entry(int(row["correct_after"]), None, "pixels",
@@ -256,7 +275,8 @@ STUDY = Study(
     settings=(
         Setting("distance", 10.0, "wall distance (m)"),
         Setting("ghost_m", 3.0, "the ghost's fixed distance (m)"),
-        Setting("ghost_ratio", 1.0, "ghost amplitude over the echo's"),
+        Setting("ghost_ratios", (0.25, 0.5, 1.0), "ghost amplitudes over the echo's (Supp. "
+                "Note 5: mostly below the echo)", quick=(0.5, 1.0)),
         Setting("averages", 10, "code periods R summed"),
         Setting("fig8_distances", (5.0, 10.0), "Fig. 8: wall distances (m)"),
         Setting("fig8_ghost_m", 20.0, "Fig. 8: the ghost's fixed distance (m)"),

@@ -7,8 +7,10 @@ same ``--quick``, ``--resume`` and ``seed``, into ``DIR/<name>/`` -- and writes
 ``DIR/report.md``, written for a reviewer (:func:`write_report`): per result of the
 paper (:data:`PAPER_STUDIES` headline keys, :data:`NOT_COVERED`) a row with the paper's
 words and number exactly as printed (:data:`PAPER_WORDS`; ">" kept), ours at the paper's
-operating point and at the toolkit's default, each with its 95 % interval, the verdict
-(reproduced / differs / exact) and the cause the run demonstrates; quantities derived
+operating point and at the toolkit's default, each with its 95 % interval, the row's kind
+(:data:`KINDS`: input, formula, calibrated, prediction), the verdict of a prediction
+(reproduced / consistent / differs, :func:`classify`) and the cause the run demonstrates;
+the joint calibration (:mod:`cdma_lidar.study.papercal`); quantities derived
 from the paper's equations in their own table; the operating point's assumptions
 (:mod:`cdma_lidar.study.paperlab`); the time of each study; each study's figures and
 explanatory paragraph (its module's ``REPORT_NOTE``).
@@ -18,9 +20,11 @@ needs other settings (:data:`PAPER_POINT_RUNS`: fig2c, fig2d, fig2f, fig3, fig3b
 ``point=paper`` into ``DIR/<name>-paper/``; fig11 and fig2e judge the same trials with
 eq. 9's detector, the others have one point. ``point=default`` skips the second runs;
 ``point=paper`` runs every part at ``point=paper`` only. The summary has every part's
-entries (``<study>.<key>``, the contract of :func:`cdma_lidar.study.paperlab.entry`) and
-the counts ``results_reproduced``, ``results_exact``, ``results_differing`` and
-``results_not_covered``.
+entries (``<study>.<key>``, the contract of :func:`cdma_lidar.study.paperlab.entry`, each
+with its ``kind``; ``verdict`` for predictions only), the calibration's own row
+``calibration.resolution_scene1_m``, ``counts`` (predictions by verdict, the other rows
+by kind, the rows not covered) and ``calibration`` (:func:`~cdma_lidar.study.papercal.
+calibrate`: ``parameters``, ``used``, ``residuals``, the held-out prediction).
 
 The parts are this module's imports (:data:`PARTS`; the catalogue lists them from here,
 so importing either module first works). A part missing from :data:`PARTS` is listed as
@@ -39,11 +43,15 @@ import dataclasses
 import importlib
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.fileio import atomic_write_text
+from cdma_lidar.scene import load_scene
 from cdma_lidar.study import (
     eq26,
     eq29,
@@ -63,17 +71,45 @@ from cdma_lidar.study import (
     table1,
 )
 from cdma_lidar.study.engine import Headline, RunContext, RunResult, Setting, Study, Table
+from cdma_lidar.study.papercal import calibrate, preset_link_db
 from cdma_lidar.study.paperlab import (
+    ASSUMPTIONS,
     PAPER_CITATION,
     POINTS,
     PRESET,
+    Parameter,
     assumptions_markdown,
     entry,
+    judge,
+    printed_value,
+    verdict_of,
 )
 
-__all__ = ["DIFFERENCES", "NOT_COVERED", "PAPER_POINT_QUICK", "PAPER_POINT_RUNS", "PAPER_STUDIES",
-           "PAPER_WORDS", "PARTS", "STUDY", "counts", "fmt_interval", "fmt_value", "merge",
-           "parse_sub_set", "write_report"]
+__all__ = [
+    "CALIBRATION_GROUP",
+    "CRITERIA",
+    "DIFFERENCES",
+    "KINDS",
+    "KIND_NAMES",
+    "NOT_COVERED",
+    "PAPER_POINT_QUICK",
+    "PAPER_POINT_RUNS",
+    "PAPER_STUDIES",
+    "PAPER_WORDS",
+    "PARTS",
+    "STUDY",
+    "TRANSCRIBED",
+    "VERDICTS",
+    "calibration_entry",
+    "classify",
+    "counts",
+    "fmt_interval",
+    "fmt_value",
+    "merge",
+    "parse_sub_set",
+    "row_groups",
+    "write_report",
+]
 
 log = logging.getLogger(__name__)
 
@@ -88,21 +124,25 @@ PAPER_STUDIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "fig2f": ("Fig. 2f", "maximum range vs code length at constant power (95 % band)",
               ("max_range_m_order13",)),
     "fig3": ("Fig. 3", "the 40 x 160 scans at 5 m and 10 m, range clusters",
-             ("pixels_scene1", "clusters_scene1", "pixels_scene2")),
+             ("pixels_scene1", "clusters_scene1", "pixels_scene2", "snr_xc_point13_db",
+              "snr_xc_point35_db")),
     "fig11": ("Fig. 11, Note 8", "channel capacity at 10 % error, orders 11/13/15, 50 samples "
               "per chip, 1000 random delays",
               ("workable_channels_order11", "workable_channels_order13",
                "workable_channels_order15", "snr_xc_threshold_db_order11")),
-    "fig17": ("Fig. 17, eqs. 52-53", "UID vs direct-spread candidate counts from a degree-9 "
-              "code", tuple(f"candidates_{k}_l{i}" for k in ("uid", "direct")
-                            for i in range(1, 5))),
+    "fig17": ("Fig. 17, eqs. 51-53, Note 11", "UID vs direct-spread candidate counts from a "
+              "degree-9 code; eq. 51; an order-11 code with a 3-bit UID against order 13",
+              (*(f"candidates_{k}_l{i}" for k in ("uid", "direct") for i in range(1, 5)),
+               "necklaces_u3", "chips_order11_uid3", "chips_order13",
+               "candidates_order11_uid3", "candidates_order13")),
     "eq42": ("Note 9, eq. 42", "asynchronous cross-correlation power N E[r^2] = 2/3",
              ("async_xcorr_power_times_n",)),
     "eq29": ("Note 8, eq. 29", "frame rate at 1 GHz, degree 13, 1000 pixels",
              ("frame_rate_hz",)),
     "eq26": ("Notes 2-4, 7, 10; Fig. 1e", "the instrument's exact figures",
              ("range_resolution_eq26_m", "max_unambiguous_distance_m", "angular_resolution_deg",
-              "psd_main_lobe_null_hz", "sequential_mixing_noise_ratio",
+              "incidence_for_paper_angle_deg", "psd_main_lobe_null_hz",
+              "bandpass_second_null_hz", "sequential_mixing_noise_ratio",
               "aligned_averaging_noise_ratio")),
     "fig4b": ("Fig. 4b, Note 11", "four users on one code with 3-bit UIDs",
               ("users_identified", "foreign_ranges_accepted")),
@@ -140,23 +180,30 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     ("fig2e", "min_workable_snr_db"): "still workable in -50 dB testing environment",
     ("fig2f", "max_range_m_order13"): "potentially achieving up to 66 m with a 13th-order code",
     ("fig3", "pixels_scene1"): "3D point clouds are captured with a 40 x 160 pixels "
-    "resolution (scene 1, approximately 5 m)",
+    "resolution",
     ("fig3", "clusters_scene1"): "the objects are clearly categorized into three distinct "
     "clusters based on their distance",
     ("fig3", "pixels_scene2"): "(scene 2, approximately 10 m) 40 x 160 pixels",
+    ("fig3", "snr_xc_point13_db"): "Specific SNR_XC profiles for high-confidence point "
+    "(point 13) with correct depth information",
+    ("fig3", "snr_xc_point35_db"): "(and) low-confidence point (point 35) with incorrect "
+    "depth information",
     ("fig11", "workable_channels_order11"): "the workable channel numbers for orders 11, 13, "
     "and 15 are roughly more than 125, 400, and 1200",
     ("fig11", "workable_channels_order13"): "(order 13) roughly more than [...] 400",
     ("fig11", "workable_channels_order15"): "(order 15) roughly more than [...] 1200",
     ("fig11", "snr_xc_threshold_db_order11"): "The cut-off SNR_XC of approximately 32.5 dB "
     "for the 11th-order sequence",
-    ("eq42", "async_xcorr_power_times_n"): "E{[r_ij^a(d)]^2} = 1/(3N) + 1/(3N) + 0 = 2/(3N)",
-    ("eq29", "frame_rate_hz"): "f_frame = w_c / (N x 1000) ~ 122 Hz",
+    ("eq42", "async_xcorr_power_times_n"): "E{[r_ij^a(d)]^2} = 2/(3N) (eq. 42)",
+    ("eq29", "frame_rate_hz"): "f_frame = w_c / (N x 1000) ~ 122 Hz (eq. 29)",
     ("eq26", "range_resolution_eq26_m"): "our theoretical traditional resolution is limited "
     "to 2.4 m",
     ("eq26", "max_unambiguous_distance_m"): "d_max = c/2 argmax(xcorr[s_r, s_e]) < c/2 T_0 = "
-    "c/2 N/w_c",
-    ("eq26", "angular_resolution_deg"): "an angular resolution of 0.03 deg",
+    "c/2 N/w_c (eq. 9)",
+    ("eq26", "angular_resolution_deg"): "a theoretical angular resolution of 0.03°",
+    ("eq26", "incidence_for_paper_angle_deg"): "a nominal blaze angle of 28.7°",
+    ("eq26", "bandpass_second_null_hz"): "A bandpass filter is applied to the second "
+    "sidelobe (125 MHz) to purify the signal in the spectral domain",
     ("eq26", "psd_main_lobe_null_hz"): "the boundary of the main lobe occurs at 1/T_c",
     ("eq26", "sequential_mixing_noise_ratio"): "the wideband ASE noise [...] is redundantly "
     "accounted for 40 times",
@@ -165,8 +212,8 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     "(eq. 25)",
     ("fig4b", "users_identified"): "the differentiation based on UID enables the "
     "identification of the four users",
-    ("fig4b", "foreign_ranges_accepted"): "each user can only correctly identify its own "
-    "time delay",
+    ("fig4b", "foreign_ranges_accepted"): "accurate distance measurement for each user is "
+    "only possible when cross-correlating with its own synchronized Gold sequence code",
     ("fig4d", "object_valid_fraction_before"): "This phenomenon impacts the processing of "
     "signals from channels with relatively lower intensity, as evidenced by the lower mean "
     "values in the SNR_XC heatmap in the top right corner in Fig.4d(ii)",
@@ -175,8 +222,7 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     ("note5", "ghost_misjudged_after_removal"): "such extraneous correlation peaks can be "
     "accurately identified in the time delay after correlation with the reference code, "
     "allowing for the removal of any misjudgment from spurious peaks",
-    ("fig3b", "wavelength_line1_nm"): "two lasers emitted at 1587.500 nm and 1591.875 nm "
-    "(line 1)",
+    ("fig3b", "wavelength_line1_nm"): "two lasers emitted at 1587.500 nm and 1591.875 nm",
     ("fig3b", "wavelength_line2_nm"): "(line 2) 1591.875 nm",
     ("fig3b", "snr_xc_change_db"): "This shows that while superposition introduces more "
     "noise as previously mentioned, the results closely mirror actual conditions",
@@ -190,13 +236,30 @@ PAPER_WORDS: dict[tuple[str, str], str] = {
     "the actual peak",
     ("note5", "fig8_ghost_fraction_10m"): "However, at 10 m, the diminished echo signal "
     "intensity causes the correlation peak to fall below the spurious peak",
-    ("table1", "pairs_checked"): "Table 1: preferred pairs",
+    ("table1", "pairs_checked"): "Table 1. Partial list of preferred pairs",
     ("table1", "pairs_not_preferred"): "Table 1. Partial list of preferred pairs for the "
     "generation of Gold sequences",
 }
+PAPER_WORDS.update({
+    ("fig17", "necklaces_u3"): "u(3) = 1/3 (phi(1) 2^3 + phi(3) 2^1) = 4 (eq. 51)",
+    ("fig17", "chips_order11_uid3"): "the time duration for an 11th-order sequence carrying "
+    "a 3-bit UID is shorter than a 13th-order sequence with no UID",
+    ("fig17", "chips_order13"): "a 13th-order sequence with no UID",
+    ("fig17", "candidates_order11_uid3"): "yet provides practically the same amount of "
+    "sequence candidates",
+    ("fig17", "candidates_order13"): "nearly quadruples the orthogonal code candidates from "
+    "2049 to 8193",
+    ("calibration", "resolution_scene1_m"): "40 parallel ranging channels with "
+    "centimeter-level depth resolution",
+})
 for _i in range(1, 5):
     PAPER_WORDS[("fig17", f"candidates_uid_l{_i}")] = "UID: (2^m + 1) u(2^l) (eq. 52)"
     PAPER_WORDS[("fig17", f"candidates_direct_l{_i}")] = "Direct spread: 2^(m+l) + 1 (eq. 53)"
+
+#: Words that transcribe an equation into ASCII (they end in "(eq. N)"): not prose, so
+#: the quote check (tests) skips them. Elsewhere "[...]" marks words left out and a
+#: leading "(...)" says which part of a quoted sentence the row is.
+TRANSCRIBED = frozenset(k for k, w in PAPER_WORDS.items() if re.search(r"\(eq\. \d+\)", w))
 
 #: Where a difference at the paper's point lies, per result (the report's "Why each
 #: difference" table; the numbers that show it are the row's cause, from the run).
@@ -214,8 +277,91 @@ DIFFERENCES: dict[tuple[str, str], str] = {
     "floor of eq. 44's SNR_XC (hypothesis, not tested)",
     ("fig2e", "min_workable_snr_db"): "an unstated setting: the processing gain N S R "
     "behind the paper's -50 dB",
+    ("calibration", "resolution_scene1_m"): "the paper's claim against its own Fig. 2c: the "
+    "link that gives 25.68 cm at 10 m gives decimetres, not centimetres, at scene 1's 5 m "
+    "with 40 channels mixed and R = 10",
+    ("fig3", "snr_xc_point35_db"): "our scene: the paper's points sit on its letters' "
+    "edges; ours are the presets' pixels at the same indices (the mechanism row compares "
+    "the whole scan's wrong and correct pixels)",
+    ("fig3", "snr_xc_point13_db"): "our scene: the paper's points sit on its letters' "
+    "edges; ours are the presets' pixels at the same indices",
     ("table1", "pairs_not_preferred"): "the paper's table: two printed pairs are not "
     "preferred pairs (errata)",
+}
+
+#: What each row of the report is (the four kinds; only predictions get a verdict):
+#: ``input`` a value the toolkit was given; ``formula`` a closed form of the paper
+#: evaluated; ``calibrated`` a printed number used to fit a free parameter
+#: (:mod:`cdma_lidar.study.papercal`, or a study's own free setting); ``prediction`` a
+#: printed number (or a claim with a criterion) the toolkit did not use and now predicts.
+KINDS: dict[tuple[str, str], str] = {
+    ("fig2c", "resolution_2sigma_m"): "calibrated",  # papercal's fit uses it
+    ("fig2d", "resolution_m_at_62_5mhz"): "input",  # Fig. 2c's 25.68 cm again: tested once
+    ("fig2d", "resolution_m_at_200mhz"): "prediction",
+    ("fig2e", "snr_xc_threshold_db"): "prediction",
+    ("fig2e", "min_workable_snr_db"): "calibrated",  # papercal's fit uses it
+    ("fig2f", "max_range_m_order13"): "prediction",  # held out of papercal's fit
+    ("fig3", "pixels_scene1"): "input",
+    ("fig3", "clusters_scene1"): "prediction",
+    ("fig3", "pixels_scene2"): "input",
+    ("fig3", "snr_xc_point13_db"): "prediction",
+    ("fig3", "snr_xc_point35_db"): "prediction",
+    ("fig11", "workable_channels_order11"): "prediction",
+    ("fig11", "workable_channels_order13"): "prediction",
+    ("fig11", "workable_channels_order15"): "prediction",
+    ("fig11", "snr_xc_threshold_db_order11"): "prediction",
+    ("eq42", "async_xcorr_power_times_n"): "prediction",  # real codes, not the formula
+    ("eq29", "frame_rate_hz"): "formula",
+    ("eq26", "range_resolution_eq26_m"): "formula",
+    ("eq26", "max_unambiguous_distance_m"): "formula",
+    ("eq26", "angular_resolution_deg"): "formula",
+    ("eq26", "incidence_for_paper_angle_deg"): "formula",
+    ("eq26", "psd_main_lobe_null_hz"): "formula",
+    ("eq26", "bandpass_second_null_hz"): "formula",
+    ("eq26", "sequential_mixing_noise_ratio"): "formula",
+    ("eq26", "aligned_averaging_noise_ratio"): "prediction",  # rendered noise, not eq. 25
+    ("fig4b", "users_identified"): "prediction",
+    ("fig4b", "foreign_ranges_accepted"): "prediction",
+    ("fig4d", "object_valid_fraction_before"): "prediction",
+    ("fig4d", "object_valid_fraction_after"): "prediction",
+    ("table1", "pairs_checked"): "input",
+    ("table1", "pairs_not_preferred"): "prediction",
+    ("note5", "ghost_misjudged_after_removal"): "prediction",
+    # Fig. 8's ghost strength is set between the echo at 5 m and at 10 m: the observation
+    # fixes the free setting, so these rows are calibrated, not tested
+    ("note5", "fig8_ghost_fraction_5m"): "calibrated",
+    ("note5", "fig8_ghost_fraction_10m"): "calibrated",
+    ("fig3b", "wavelength_line1_nm"): "input",
+    ("fig3b", "wavelength_line2_nm"): "input",
+    ("fig3b", "snr_xc_change_db"): "prediction",
+    ("fig3b", "range_difference_m"): "prediction",
+    ("note10", "eq47_deviation_deg"): "formula",
+    ("note10", "bow_sag_deg_scene2"): "prediction",
+    ("calibration", "resolution_scene1_m"): "prediction",
+}
+for _i in range(1, 5):
+    KINDS[("fig17", f"candidates_uid_l{_i}")] = "formula"
+    KINDS[("fig17", f"candidates_direct_l{_i}")] = "formula"
+for _key in ("necklaces_u3", "chips_order11_uid3", "chips_order13",
+             "candidates_order11_uid3", "candidates_order13"):
+    KINDS[("fig17", _key)] = "formula"
+
+#: The criterion of a prediction whose paper value is words (or a number with words),
+#: written before the run: (study, key) -> (op, value, tolerance, the sentence the docs
+#: give). Judged by :func:`cdma_lidar.study.paperlab.verdict_of` on the paper point's
+#: interval. A prediction without a criterion here is judged on its printed number, or
+#: keeps its study's own rule (stated in the study's code and its ``criterion``/``cause``).
+CRITERIA: dict[tuple[str, str], tuple[str, float, float, str]] = {
+    ("fig2d", "resolution_m_at_200mhz"): ("<", 0.01, 0.0, "millimetre-level: 2 sigma below "
+                                          "1 cm"),
+    ("fig3", "clusters_scene1"): ("=", 3, 0.0, "three clusters counted in the histogram"),
+    ("fig4b", "users_identified"): ("=", 4, 0.0, "all four users identified"),
+    ("fig4b", "foreign_ranges_accepted"): ("=", 0, 0.0, "no user accepts another's range"),
+    ("table1", "pairs_not_preferred"): ("=", 0, 0.0, "every printed pair is a preferred "
+                                        "pair (the caption)"),
+    ("eq26", "aligned_averaging_noise_ratio"): ("=", 1.0, 0.0, "eq. 25: the ratio is 1"),
+    ("calibration", "resolution_scene1_m"): ("<", 0.10, 0.0, "centimetre-level: 2 sigma "
+                                             "below 10 cm"),
 }
 
 #: Quantitative results of the paper without a study in this toolkit: (where, the paper's
@@ -239,7 +385,74 @@ PAPER_POINT_QUICK: dict[str, dict[str, str]] = {
     # fig2f's error rate crosses 10 % between 8 and 20 m there: a finer quick grid
     "fig2f": {"distances": "6,8,10,12,14,17,20,30"}}
 
+#: Thresholds read off a grid at the paper's point, refined by the composite: study ->
+#: (the grid's setting, the headline read off it, settings of the refining run). While the
+#: headline's 95 % interval spans a single grid step (the grid, not the trials, limits
+#: it), the run is repeated on :data:`REFINE_POINTS` points inside that step, at most
+#: :data:`REFINE_ROUNDS` times, into ``DIR/<study>-paper-refined/``; the row reports the
+#: finest run.
+REFINE: dict[str, tuple[str, str, dict[str, str]]] = {
+    "fig2f": ("distances", "max_range_m_order13", {"degrees": "13"})}
+REFINE_POINTS = 5
+REFINE_ROUNDS = 2
+
 NOT_AVAILABLE = "not available in this build"
+
+
+def _setting(study: Study, name: str) -> Any:
+    return next(s.default for s in study.settings if s.name == name)
+
+
+def operating_point() -> tuple[Parameter, ...]:
+    """:data:`~cdma_lidar.study.paperlab.ASSUMPTIONS` with every value read from the presets
+    and the paper-point settings the studies run (``paper-lab`` for eq26, fig2f, fig3b and
+    note5 and the single-channel fig2c/fig2d at their ``PAPER_POINT``; ``paper-scene1`` and
+    ``paper-scene2`` for fig3; the settings of fig11 and fig2e)."""
+    lab_scene = load_scene(PRESET)
+    lab = lab_scene.instrument
+    scenes = {n: load_scene(n).instrument for n in fig3.SCENES}
+    wl = np.asarray(lab.wavelengths_m)
+
+    def band(w: Any) -> str:
+        w = np.asarray(w)
+        return f"{w.min() * 1e9:.3f}-{w.max() * 1e9:.3f} nm"
+
+    s_lab = sorted({lab.samples_per_chip, *(s.samples_per_chip for s in scenes.values())})
+    values = {
+        "chip rate": f"{lab.chip_rate_hz / 1e6:g} Mchip/s",
+        "code": f"Gold, degree {lab.code_degree} ({lab.code_length} chips)",
+        "channels": f"{lab.channels} ({PRESET}: {band(wl)})",
+        "channel spacing": f"{np.mean(np.diff(wl)) * 1e9:.3f} nm",
+        "band of each scene": "; ".join(f"{n}: {band(s.wavelengths_m)}"
+                                        for n, s in scenes.items()),
+        "grating": f"{lab.grooves_per_mm:g} grooves/mm",
+        "detector": f"InGaAs APD, {lab.detector_bandwidth_hz / 1e6:g} MHz bandwidth",
+        "averaging": "; ".join(f"{n}: R = {s.averages}" for n, s in scenes.items()),
+        "Fig. 11 and 2e simulation": f"S = {_setting(fig11.STUDY, 'S')} (fig11), "
+                                     f"{_setting(fig2e.STUDY, 'S')} (fig2e); eq. 9's "
+                                     "signed maximum",
+        "samples per chip": f"{', '.join(map(str, s_lab))} ({PRESET}, paper-scene1/2: eq26, "
+                            f"fig2f, fig3, fig3b, note5); {fig2c.PAPER_POINT['S']} (fig2c at "
+                            f"point=paper); {fig2d.PAPER_POINT['headline_S']} (fig2d's "
+                            "headline at point=paper)",
+        "power per channel": f"{float(np.mean(lab.laser_power_w)) * 1e3:g} mW ({PRESET}); "
+                             + "; ".join(f"{float(np.mean(s.laser_power_w)) * 1e3:g} mW ({n})"
+                                         for n, s in scenes.items()),
+        "Fig. 2f channels and averaging": f"{lab.channels} channels, sequential mixing "
+                                          f"{fig2f.PAPER_POINT['sequential_mixing']}, R = "
+                                          f"{fig2f.PAPER_POINT['averages']}",
+        "Fig. 2c set-up": f"{fig2c.PAPER_POINT['distance']:g} m, R = "
+                          f"{fig2c.PAPER_POINT['averages']}, refinement "
+                          f"{fig2c.PAPER_POINT['method']}",
+        "link budget": f"aperture {lab.rx_aperture_m * 1e3:g} mm, APD gain {lab.apd_gain:g}, "
+                       f"TIA {lab.tia_gain_ohm / 1e3:g} kohm, "
+                       f"{lab.tia_noise_a_per_rthz * 1e12:g} pA/rtHz, EDFA NF "
+                       f"{lab.edfa_noise_figure_db:g} dB",
+        "reflectivity": f"{lab_scene.objects[0].reflectivity:g} ({PRESET})",
+        "grating incidence": f"{lab.incidence_deg:g} deg",
+    }
+    return tuple(dataclasses.replace(p, value=values.get(p.name, p.value))
+                 for p in ASSUMPTIONS)
 
 
 def parse_sub_set(items: tuple[str, ...], names: list[str]) -> dict[str, dict[str, str]]:
@@ -328,40 +541,189 @@ def _entry(name: str, result: RunResult | None, error: str | None, out: Path,
     where, what, keys = PAPER_STUDIES[name]
     folder = out / name
     run = _run_json(folder) if result is not None else {}
-    prun = _run_json(out / f"{name}-paper") if at_paper is not None else {}
+    # the paper point's runs: its own, and a refined grid's where REFINE made one
+    pdirs = [d for d in (out / f"{name}-paper", out / f"{name}-paper-refined")
+             if at_paper is not None and (d / "run.json").is_file()]
+    pruns = [_run_json(d) for d in pdirs]
+    prun = pruns[-1] if pruns else {}
     pngs = sorted(p.name for p in folder.glob("*.png")) if result is not None else []
-    ppngs = (sorted(p.name for p in (out / f"{name}-paper").glob("*.png"))
-             if at_paper is not None else [])
+    ppngs = [f"{d.name}/{p.name}" for d in pdirs for p in sorted(d.glob("*.png"))]
     summary = merge(dict(result.summary), dict(at_paper.summary) if at_paper else None) \
         if result is not None else {}
+    summary = {k: classify(name, k, h, k in keys) for k, h in summary.items()}
     return {"name": name, "where": where, "what": what, "keys": keys,
             "status": "ok" if result is not None and not result.failures else
             ("failed tasks" if result is not None else (error or NOT_AVAILABLE)),
             "summary": summary, "figures": [f"{name}/{p}" for p in pngs],
-            "paper_figures": [f"{name}-paper/{p}" for p in ppngs],
+            "paper_figures": ppngs,
             "note": _note(study) if study is not None else None,
             "wall_time_s": run.get("wall_time_s"), "engine": run.get("engine"),
-            "paper_wall_time_s": prun.get("wall_time_s"),
+            "paper_wall_time_s": sum(r.get("wall_time_s") or 0.0 for r in pruns) or None,
             "tasks": run.get("tasks"), "failed": run.get("failed"),
             "settings": run.get("settings", {}), "paper_settings": prun.get("settings")}
 
 
+KIND_NAMES = ("input", "formula", "calibrated", "prediction")
+VERDICTS = ("reproduced", "consistent", "differs")
+
+#: The rows the joint calibration predicts itself (closed form): (where, what, keys).
+CALIBRATION_GROUP = ("Abstract; one calibration (papercal)", "eq. 28 at scene 1's set-up "
+                     "(5 m, 40 channels mixed, R = 10) with the jointly calibrated link",
+                     ("resolution_scene1_m",))
+
+
+def row_groups() -> dict[str, tuple[str, str, tuple[str, ...]]]:
+    """Every group of the report's rows: the paper studies and the calibration's own."""
+    return {**PAPER_STUDIES, "calibration": CALIBRATION_GROUP}
+
+
+def classify(name: str, key: str, h: Headline, headline: bool = True) -> Headline:
+    """``h`` with its ``kind`` (:data:`KINDS`) and, for a prediction only, the three-word
+    verdict (:data:`VERDICTS`): by the row's criterion (:data:`CRITERIA`), else by its
+    printed number, else the study's own rule; judged at the paper's point (its interval;
+    an exact value is its own). Other kinds have no verdict; a formula row says whether it
+    ``agrees`` with the printed number. Entries beyond the paper's rows (``headline``
+    False) are ``formula``: computed, nothing printed to test."""
+    h = dict(h)
+    kind = KINDS.get((name, key), "prediction" if headline else "formula")
+    old = h.pop("verdict", None)
+    h["kind"] = kind
+    if kind != "prediction":
+        if kind == "formula" and old is not None:
+            h["agrees"] = old in ("exact", "reproduced")
+        return h
+    at_paper = h.get("paper_point") is not None
+    at = h.get("paper_point") if at_paper else h.get("ours")
+    ci = (h.get("paper_point_ci95") or h.get("ci95")) if at_paper else h.get("ci95")
+    lo, hi = (ci[0], ci[1]) if ci else (at, at)
+    crit = CRITERIA.get((name, key))
+    verdict: str | None
+    if at is None or isinstance(at, str):
+        verdict = {"exact": "reproduced"}.get(old, old)
+    elif crit is not None:
+        op, p, tol, sentence = crit
+        verdict = verdict_of(op, float(p), lo, hi, tol)
+        h["criterion"] = sentence
+    elif printed_value(h.get("paper")) is not None:
+        verdict = judge(h["paper"], at, [lo, hi])
+    else:
+        verdict = {"exact": "reproduced"}.get(old, old)
+    h["verdict"] = verdict if verdict in VERDICTS else None
+    return h
+
+
+def calibration_entry(cal: dict[str, Any]) -> dict[str, Any]:
+    """The calibration's own row group (an entry like a study's) from :func:`calibrate`."""
+    where, what, keys = CALIBRATION_GROUP
+    lo, hi = cal["resolution_scene1_ci95"]
+    h = entry(cal["resolution_scene1_m"], "centimeter-level", "m",
+              paper_point=cal["resolution_scene1_m"], paper_point_ci95=(lo, hi), ci95=(lo, hi),
+              cause="eq. 28 at the calibrated link (5 m, 40 channels mixed, R = 10); the "
+                    "paper's own Fig. 2c gives 25.68 cm at 10 m, one record")
+    summary = {"resolution_scene1_m": classify("calibration", "resolution_scene1_m", h)}
+    return {"name": "calibration", "where": where, "what": what, "keys": keys,
+            "status": "ok", "summary": summary, "figures": [], "paper_figures": [],
+            "note": None, "wall_time_s": None, "engine": None, "paper_wall_time_s": None,
+            "tasks": None, "failed": None, "settings": {}, "paper_settings": None}
+
+
 def counts(entries: list[dict[str, Any]]) -> dict[str, int]:
-    """Results by verdict over the paper's rows (headline keys), plus those not covered."""
-    c = {"reproduced": 0, "differs": 0, "exact": 0, "no verdict": 0,
-         "not covered": len(NOT_COVERED)}
+    """Predictions by verdict, the other rows by kind, and the rows not covered."""
+    c = {v: 0 for v in VERDICTS} | {k: 0 for k in KIND_NAMES} | {
+        "no verdict": 0, "not covered": len(NOT_COVERED)}
     for e in entries:
         for key in e["keys"]:
             h = e["summary"].get(key)
             if h is None:
                 c["not covered"] += 1
-            else:
+                continue
+            c[h["kind"]] += 1
+            if h["kind"] == "prediction":
                 c[h.get("verdict") or "no verdict"] += 1
     return c
 
 
+VERDICT_RULES = (
+    "Every row is one kind: *input* (a value the toolkit was given), *formula* (a closed "
+    "form of the paper evaluated; `agrees` or `disagrees` at the printed precision), "
+    "*calibrated* (a printed number the joint calibration, or a study's free setting, was "
+    "fitted to), *prediction* (a printed number, or a claim with a criterion written before "
+    "the run, that the toolkit did not use). Only predictions have a verdict, at the "
+    "paper's operating point: for \"more than N\" *reproduced* when the 95 % lower bound "
+    "is at least N, *consistent* when the interval holds N, *differs* when the upper bound "
+    "is below N (\"less than\" the mirror image); for a point value *reproduced* when the "
+    "interval lies within the printed precision, *consistent* when it holds the value, "
+    "*differs* when it excludes it. Intervals pool all the data (bootstrap or chi-square "
+    "over every range, Wilson over every trial) and count a grid's step; an end the run "
+    "does not bound is `open`. The cause is what this run shows.")
+
+
+def headline(n: dict[str, int]) -> str:
+    """The report's and the docs' headline: predictions by verdict, the other rows by kind."""
+    return (f"{n['prediction']} predictions: {n['reproduced']} reproduced, "
+            f"{n['consistent']} consistent, {n['differs']} differ"
+            + (f", {n['no verdict']} without a value" if n["no verdict"] else "")
+            + f". Not tested: {n['calibrated']} calibrated, {n['formula']} formula and "
+            f"{n['input']} input rows; {n['not covered']} not covered.")
+
+
+def verdict_cell(h: Headline) -> str:
+    """A row's verdict cell: the verdict of a prediction, the check of the other kinds."""
+    if h["kind"] == "prediction":
+        return f"**{h.get('verdict') or '--'}**"
+    if h["kind"] == "formula" and "agrees" in h:
+        return "agrees" if h["agrees"] else "disagrees"
+    if h["kind"] == "calibrated" and h.get("calibration_residual_db") is not None:
+        return f"residual {h['calibration_residual_db']:+.2f} dB"
+    return "--"
+
+
+def calibration_markdown(cal: dict[str, Any]) -> list[str]:
+    """The joint calibration as report lines: parameters, residuals, held-out prediction,
+    whether one instrument explains every measurement and which sets go together."""
+    p, ho = cal["parameters"], cal["held_out"]
+    lines = ["## One calibration for the whole paper", "",
+             f"Method: {cal['method']} (`cdma_lidar.study.papercal`). Fitted to "
+             f"{', '.join(cal['used'])}; {ho['name']} held out and predicted.", "",
+             "| parameter | fitted | the toolkit's preset |", "|---|---|---|",
+             f"| link: rho of one channel at 10 m, R = 1, degree 11 (dB) | {p['link_db']:.2f} | "
+             f"{cal['preset_link_db']:.2f} (paper-lab) |",
+             f"| C-band EDFA over the L-band's (dB of rho) | at least {p['c_band_db']:.2f} "
+             "(one-sided: scene 2 imaged) | 0 |",
+             f"| samples per chip behind Fig. 2e's SNR axis (R = 10) | at least "
+             f"{p['fig2e_samples_per_chip']:.1f} (one-sided: workable) | 50 (assumed) |", "",
+             "Residuals are the model minus the measurement in dB of rho: below 0 the link "
+             "gives less than the measurement shows, above 0 more.", "",
+             "| measurement | where | used | residual (dB of rho) | in its uncertainties | "
+             "the paper's conditions |", "|---|---|---|---|---|---|"]
+    for name, r in cal["residuals"].items():
+        m = cal["measurements"][name]
+        lines.append(f"| {name} | {m['where']} | {'fitted' if r['used'] else 'held out'} | "
+                     f"{r['db']:+.2f} | {r['sigma']:+.2f} | {fmt_value(m['source'])} |")
+    every = cal["all"]
+    lines += ["", f"Held out: {ho['where']}'s {fmt_value(ho['paper'])} {ho['unit']} predicted "
+              f"as {fmt_interval(ho['predicted'], ho['ci95'])} {ho['unit']} (closed form; the "
+              "Monte-Carlo check is the fig2f row at the paper's point).",
+              "",
+              "One instrument explains every measurement: "
+              + ("**yes**" if every["explains"] else "**no**")
+              + " (fitted to all five: residuals "
+              + ", ".join(f"{k} {v:+.1f} dB" for k, v in every["residuals_db"].items())
+              + "). If Fig. 2f used the C-band EDFA: "
+              + ("explained" if cal["fig2f_on_c_band"]["explains"] else "not explained")
+              + f" with the C band {cal['fig2f_on_c_band']['parameters']['c_band_db']:+.1f} dB "
+              "over the L band.", "",
+              "The largest sets one instrument explains (every residual within two "
+              "uncertainties), and what each measurement left out would need (dB of rho):", ""]
+    for sub in cal["subsets"]:
+        need = "; ".join(f"{k} {v:+.1f} dB" for k, v in sub["left_out"].items()) or "nothing"
+        lines.append(f"* {', '.join(sub['members'])} (link {sub['parameters']['link_db']:.1f} "
+                     f"dB): left out {need}")
+    return [*lines, ""]
+
+
 def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed: int,
-                 engine: str) -> None:
+                 engine: str, calibration: dict[str, Any] | None = None) -> None:
     """Write ``report.md`` (see the module docstring) from the per-study entries."""
     total = sum((e["wall_time_s"] or 0.0) + (e.get("paper_wall_time_s") or 0.0)
                 for e in entries)
@@ -379,22 +741,15 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
         + ("`--quick`: reduced trial counts and grids, so the intervals are wider than the "
            "full run's. " if quick else "Full trial counts. "),
         "",
-        f"**Results: {n['reproduced']} reproduced within their 95 % interval, {n['exact']} "
-        f"exact, {n['differs']} differ, {n['no verdict']} without a verdict (the paper "
-        f"prints no number, or the run bounds neither end of the interval), "
-        f"{n['not covered']} not covered.**",
+        f"**{headline(n)}**",
         "",
         "## Results",
         "",
-        "Verdict at the paper's operating point: *exact* (computed, equal to the printed "
-        "number at its printed precision), *reproduced* (the printed number lies in our 95 % "
-        "interval; for the paper's \"more than\" when the interval reaches it), *differs*. "
-        "Intervals count the trials and the grid step; an end the run does not bound is "
-        "`open`. The cause is what this run shows.",
+        VERDICT_RULES,
         "",
         "| result | the paper's words | paper | ours at the paper's point [95 %] | "
-        "ours at the default [95 %] | verdict | cause (this run) |",
-        "|---|---|---|---|---|---|---|",
+        "ours at the default [95 %] | kind | verdict | cause (this run) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:
         for key in e["keys"]:
@@ -403,18 +758,20 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
             label = f"{e['where']}: `{e['name']}.{key}`"
             if h is None:
                 status = e["status"] if e["status"] != "ok" else "missing from summary.json"
-                lines.append(f"| {label} | {words} | -- | {status} | -- | not covered | -- |")
+                lines.append(f"| {label} | {words} | -- | {status} | -- | -- | not covered | -- |")
                 continue
             unit = (f" {h.get('unit')}" if h.get("unit") not in (None, "", "1")
                     and isinstance(h.get("paper"), int | float) else "")
             lines.append(
                 f"| {label} | {words} | {fmt_value(h.get('paper'))}{unit} | "
                 f"{fmt_interval(h.get('paper_point'), h.get('paper_point_ci95', h.get('ci95')))} | "
-                f"{fmt_interval(h.get('ours'), h.get('ci95'))} | **{h.get('verdict') or '--'}** | "
-                f"{fmt_value(h.get('cause') or '')} |")
+                f"{fmt_interval(h.get('ours'), h.get('ci95'))} | {h['kind']} | "
+                f"{verdict_cell(h)} | {fmt_value(h.get('cause') or '')} |")
     for where, words, why in NOT_COVERED:
-        lines.append(f"| {where} | {fmt_value(words)} | -- | -- | -- | not covered | "
+        lines.append(f"| {where} | {fmt_value(words)} | -- | -- | -- | -- | not covered | "
                      f"{fmt_value(why)} |")
+    if calibration:
+        lines += ["", *calibration_markdown(calibration)]
     lines += ["", "## Why each difference", "",
               "Per result that differs at the paper's point: where the difference lies (our "
               "assumption, the paper's claim, a definition the paper leaves open), and the "
@@ -453,10 +810,12 @@ def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed
     lines += ["", "## The paper's operating point", "",
               f"`--set point=paper` of every paper study, and the `{PRESET}` scene preset. "
               "What the paper states, and what it leaves out (assumed, with the source of "
-              "each assumption):", "", *assumptions_markdown(), ""]
+              "each assumption):", "", *assumptions_markdown(operating_point()), ""]
     lines += ["## Time", "", "| study | wall time (s), default | at the paper's point | tasks | "
               "failed | executor |", "|---|---|---|---|---|---|"]
     for e in entries:
+        if e["name"] not in PAPER_STUDIES:
+            continue  # the calibration's own rows: closed forms, no run of their own
         t = e["wall_time_s"]
         lines.append(f"| {e['name']} | {fmt_value(t) if t is not None else '--'} | "
                      f"{fmt_value(e.get('paper_wall_time_s'))} | {fmt_value(e['tasks'])} | "
@@ -512,6 +871,9 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                 paper_study = dataclasses.replace(study, name=f"{name}-paper")
                 quick = PAPER_POINT_QUICK.get(name, {}) if ctx.options.quick else {}
                 at_paper = ctx.run_sub(paper_study, {**quick, **own, **PAPER_POINT_RUNS[name]})
+                if name in REFINE:
+                    at_paper = _refine(ctx, study, at_paper, {**quick, **own,
+                                                              **PAPER_POINT_RUNS[name]})
             elif ctx.options["point"] == "paper" and name in PAPER_POINT_RUNS:
                 at_paper = result  # the part ran at the paper's point: that is its value
         except ConfigError:
@@ -523,14 +885,39 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         entries.append(e)
         for key, h in e["summary"].items():
             out[f"{name}.{key}"] = h
+    cal = calibrate(preset_link_db(PRESET))
+    for e in entries:  # the calibrated rows carry their residual
+        for key, name in (("resolution_2sigma_m", "fig2c_resolution"),
+                          ("min_workable_snr_db", "fig2e_workable")):
+            if key in e["summary"] and e["name"] in ("fig2c", "fig2e"):
+                e["summary"][key]["calibration_residual_db"] = cal["residuals"][name]["db"]
+    own = calibration_entry(cal)
+    entries.append(own)
+    for key, h in own["summary"].items():
+        out[f"calibration.{key}"] = h
     write_report(entries, ctx.out / "report.md", quick=ctx.options.quick,
-                 seed=ctx.options.seed, engine=ctx.executor.description)
+                 seed=ctx.options.seed, engine=ctx.executor.description, calibration=cal)
     n = counts(entries)
-    total = sum(len(PAPER_STUDIES[e["name"]][2]) for e in entries) + len(NOT_COVERED)
-    for verdict, key in (("reproduced", "results_reproduced"), ("exact", "results_exact"),
-                         ("differs", "results_differing"), ("not covered", "results_not_covered")):
-        out[key] = entry(n[verdict], None, f"results of {total}", verdict=None)
+    out["counts"] = {k.replace(" ", "_"): v for k, v in n.items()}
+    out["calibration"] = cal
     return out
+
+
+def _refine(ctx: RunContext, study: Study, result: RunResult,
+            settings: dict[str, str]) -> RunResult:
+    """``result`` or a run on a finer grid inside its headline's interval (:data:`REFINE`)."""
+    setting, key, extra = REFINE[study.name]
+    for _ in range(REFINE_ROUNDS):
+        grid = sorted(float(x) for x in _run_json(result.out).get("settings", {}).get(setting, ()))
+        ci = (result.summary.get(key) or {}).get("ci95") or [None, None]
+        lo, hi = ci
+        if lo is None or hi is None or any(lo < x < hi for x in grid) or hi <= lo:
+            return result  # unbounded, or the trials (not the grid step) set the width
+        points = np.linspace(lo, hi, REFINE_POINTS)
+        refined = dataclasses.replace(study, name=f"{study.name}-paper-refined")
+        result = ctx.run_sub(refined, {**settings, **extra,
+                                       setting: ",".join(f"{x:.6g}" for x in points)})
+    return result
 
 
 def _grid(options: Any) -> list[dict]:

@@ -12,9 +12,12 @@ and ``DIR/run.json`` (the folder of ``cdma-lidar study run paper --out DIR``);
 from what DIR gives (exit 2 for a missing folder or a page without its blocks). Blocks:
 
 * ``paper-results`` -- per result: where, key, the paper's number as printed, ours at the
-  paper's point and at the default with their 95 % intervals, the verdict;
-* ``paper-counts`` -- the counts of results reproduced, exact, differing, not covered;
-* ``paper-assumptions`` -- the operating point (:data:`cdma_lidar.study.paperlab.ASSUMPTIONS`).
+  paper's point and at the default with their 95 % intervals, the kind, the verdict;
+* ``paper-counts`` -- the predictions by verdict and the other rows by kind;
+* ``paper-calibration`` -- the joint calibration (:mod:`cdma_lidar.study.papercal`):
+  fitted values, each measurement's residual, the held-out prediction;
+* ``paper-assumptions`` -- the operating point, generated from the presets and the
+  studies' paper-point settings (:func:`cdma_lidar.study.paperlab.assumptions_markdown`).
 """
 
 from __future__ import annotations
@@ -28,7 +31,16 @@ from pathlib import Path
 from typing import Any
 
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.study.paper import NOT_COVERED, PAPER_STUDIES, fmt_interval, fmt_value
+from cdma_lidar.study.paper import (
+    NOT_COVERED,
+    calibration_markdown,
+    fmt_interval,
+    fmt_value,
+    headline,
+    operating_point,
+    row_groups,
+    verdict_cell,
+)
 from cdma_lidar.study.paperlab import PAPER_CITATION, assumptions_markdown
 
 __all__ = ["BLOCKS", "DOCS", "apply", "blocks", "main"]
@@ -36,9 +48,10 @@ __all__ = ["BLOCKS", "DOCS", "apply", "blocks", "main"]
 log = logging.getLogger(__name__)
 
 #: The pages with generated blocks (relative to the repository root) and their blocks.
-DOCS = {"docs/paper.md": ("paper-counts", "paper-results", "paper-assumptions"),
+DOCS = {"docs/paper.md": ("paper-counts", "paper-results", "paper-calibration",
+                         "paper-assumptions"),
         "docs/studies.md": ("paper-counts",)}
-BLOCKS = ("paper-counts", "paper-results", "paper-assumptions")
+BLOCKS = ("paper-counts", "paper-results", "paper-calibration", "paper-assumptions")
 
 _BLOCK = re.compile(r"(<!-- generated:(?P<name>[a-z-]+) [^>]*-->\n)(?P<body>.*?)"
                     r"(<!-- end:(?P=name) -->)", re.S)
@@ -50,32 +63,31 @@ def blocks(summary: dict[str, Any], run: dict[str, Any]) -> dict[str, str]:
     how = (f"`cdma-lidar study run paper --out DIR{' --quick' if run.get('quick') else ''}` "
            f"(seed {settings.get('seed')}, point={settings.get('point', 'both')})")
 
-    def count(key: str) -> Any:
-        return (summary.get(key) or {}).get("ours")
-
-    counts = (f"From {how}: **{count('results_reproduced')} results reproduced** within "
-              f"their 95 % interval at the paper's operating point, **{count('results_exact')} "
-              f"exact**, **{count('results_differing')} differ**, "
-              f"{count('results_not_covered')} not covered.\n")
+    n = {k.replace("_", " "): v for k, v in (summary.get("counts") or {}).items()}
+    counts = (f"From {how}: **{headline(n)}**\n" if n else
+              f"From {how}: no counts in this run.\n")
     rows = [f"From {how}. Paper: {PAPER_CITATION}.", "",
             "| where | result | paper | ours at the paper's point [95 %] | ours at the default "
-            "[95 %] | verdict |", "|---|---|---|---|---|---|"]
-    for name, (where, _, keys) in PAPER_STUDIES.items():
+            "[95 %] | kind | verdict |", "|---|---|---|---|---|---|---|"]
+    for name, (where, _, keys) in row_groups().items():
         for key in keys:
             h = summary.get(f"{name}.{key}")
             if h is None:
-                rows.append(f"| {where} | `{name}.{key}` | -- | not in this run | -- | -- |")
+                rows.append(f"| {where} | `{name}.{key}` | -- | not in this run | -- | -- | -- |")
                 continue
             unit = (f" {h['unit']}" if h.get("unit") not in (None, "", "1")
                     and isinstance(h.get("paper"), int | float) else "")
             at = fmt_interval(h.get("paper_point"), h.get("paper_point_ci95", h.get("ci95")))
             rows.append(f"| {where} | `{name}.{key}` | {fmt_value(h.get('paper'))}{unit} | {at} | "
-                        f"{fmt_interval(h.get('ours'), h.get('ci95'))} | "
-                        f"{h.get('verdict') or '--'} |")
+                        f"{fmt_interval(h.get('ours'), h.get('ci95'))} | {h.get('kind', '--')} | "
+                        f"{verdict_cell(h) if 'kind' in h else '--'} |")
     for where, _, _ in NOT_COVERED:
-        rows.append(f"| {where} | -- | -- | -- | -- | not covered |")
+        rows.append(f"| {where} | -- | -- | -- | -- | -- | not covered |")
+    cal = summary.get("calibration")
+    calib = ("\n".join(calibration_markdown(cal)[2:]) if cal else "No calibration in this run.\n")
     return {"paper-counts": counts, "paper-results": "\n".join(rows) + "\n",
-            "paper-assumptions": "\n".join(assumptions_markdown()) + "\n"}
+            "paper-calibration": calib,
+            "paper-assumptions": "\n".join(assumptions_markdown(operating_point())) + "\n"}
 
 
 def apply(text: str, generated: dict[str, str]) -> tuple[str, list[str]]:

@@ -42,6 +42,7 @@ __all__ = [
     "judge",
     "printed_value",
     "sigma_ci",
+    "verdict_of",
     "wilson",
 ]
 
@@ -67,59 +68,64 @@ class Parameter:
     source: str
 
 
-#: The paper's operating point, parameter by parameter (``paper-lab`` and the studies'
-#: ``point=paper``). ``stated=False``: an assumption, with where it comes from.
+#: The paper's operating point, parameter by parameter. ``stated=False``: an assumption,
+#: with where it comes from. ``value`` here is a placeholder for the rows whose value the
+#: presets and the studies' settings give: :func:`cdma_lidar.study.paper.operating_point`
+#: fills them from what the studies actually run (so the table cannot disagree with them).
 ASSUMPTIONS: tuple[Parameter, ...] = (
-    Parameter("chip rate", "62.5 Mchip/s", True, "Methods: AWG modulating at 62.5 MHz"),
-    Parameter("code", "Gold, degree 11 (2047 chips)", True, "Methods: 11th-order Gold sequence"),
-    Parameter("channels", "40, L-band 1570 nm + 0.875 nm steps", True,
-              "Results (40 channels), Supp. Note 10 (L-band 1570-1605 nm)"),
-    Parameter("grating", "600 grooves/mm, ruled", True, "Methods: Newport 33010FL01-550R"),
-    Parameter("detector", "InGaAs APD, 400 MHz bandwidth", True,
-              "Methods: Thorlabs APD430C (DC-400 MHz)"),
+    Parameter("chip rate", "", True, "Methods: the AWG modulates at 62.5 MHz"),
+    Parameter("code", "", True, "Methods: an 11th-order Gold sequence spanning 2047 bits"),
+    Parameter("channels", "", True, "Results: 40 channels; Supp. Note 10: C band 1530-1565 "
+              "nm and L band 1570-1605 nm"),
+    Parameter("channel spacing", "", False,
+              "inferred: Fig. 3b's 1587.500 and 1591.875 nm are five steps of 0.875 nm apart; "
+              "the paper prints no spacing"),
+    Parameter("band of each scene", "", False,
+              "the paper (Methods): an L-band EDFA for scene 1 (5 m), a C-band EDFA for scene "
+              "2 (10 m); the presets put both in the L band, and the joint calibration "
+              "(papercal) gives the C band its own gain"),
+    Parameter("grating", "", True, "Methods: Newport 33010FL01-550R, 600 grooves per mm, "
+              "nominal blaze 28.7 deg"),
+    Parameter("detector", "", True, "Methods: Thorlabs APD430C"),
     Parameter("EDFA output", "about 100 mW", True, "Methods: EDFA100P up to around 100 mW"),
     Parameter("distances", "5 m and 10 m", True, "Results: scenes 1 and 2"),
     Parameter("sequential mixing", "noise added 40 times (multi-channel results)", True,
               "Supp. Note 4; off for Fig. 2c, one channel (nothing is mixed)"),
     Parameter("repeats", "1000 single-channel ranges", True, "Results, Fig. 2c"),
-    Parameter("averaging", "10 records for the 3D scans", True,
-              "Methods: 3D imaging averaged over ten repetitions"),
-    Parameter("Fig. 11 simulation", "50 samples per chip, 1000 random delays, eq. 9's "
-              "signed-maximum detector", True, "Supp. Note 8; Supp. Note 2, eq. 9 (argmax)"),
-    Parameter("power per channel", "2.5 mW", False,
-              "assumed: the 100 mW shared over 40 channels, the power the toolkit's link "
-              "budget was set for (Fig. 3 scans); the paper's sequential recording gave each "
-              "wavelength the whole EDFA output, which the unpublished link budget absorbs: "
-              "only power x link gain matters, and Fig. 2c's 25.68 cm at 10 m (reproduced at "
-              "this point) checks that product"),
-    Parameter("Fig. 2f channels and averaging", "40 channels sequentially mixed, R = 10",
-              False, "assumed: the text of Fig. 2f names neither; the multi-channel set-up "
-              "of Fig. 2e and the averaging of the 3D scans (Methods)"),
+    Parameter("averaging", "", True, "Results: each mixed echo is recorded 10 times and "
+              "averaged"),
+    Parameter("Fig. 11 and 2e simulation", "", True,
+              "Supp. Note 8 (50 samples per chip); Supp. Note 2, eq. 9 (argmax)"),
+    Parameter("samples per chip", "", False,
+              "assumed: the oscilloscope's rate is not given; eq. 28's N_s x SNR does not "
+              "depend on S for white noise, so the paper-lab runs use 4 (fast) and the "
+              "single-channel runs the paper's simulation rate"),
+    Parameter("power per channel", "", False,
+              "assumed: the 100 mW shared over 40 channels; only power x link gain matters, "
+              "and the joint calibration (papercal) fits that product"),
+    Parameter("Fig. 2f channels and averaging", "", False,
+              "assumed: the text of Fig. 2f names neither; the multi-channel set-up of Fig. "
+              "2e and the averaging of the 3D scans (Methods)"),
     Parameter("Fig. 3b power", "half the per-channel power for each of the two lasers",
               False, "assumed: Methods: the two lasers are combined in a 50:50 coupler and "
               "amplified by the same EDFA (no power given)"),
-    Parameter("Fig. 2c averaging", "R = 1", False,
-              "assumed: each of the 1000 measurements one record (the text names no "
-              "averaging for Fig. 2c)"),
-    Parameter("Fig. 2c distance", "10 m", False,
-              "assumed: the farther of the paper's two scenes (not stated for Fig. 2c)"),
-    Parameter("samples per chip", "50", False,
-              "assumed: the paper's own simulation rate (Supp. Note 8); the oscilloscope's "
-              "rate is not given"),
-    Parameter("peak refinement", "none (peak index)", False,
-              "assumed: Methods describe the circular correlation's peak, no interpolation"),
-    Parameter("link budget", "aperture 25.4 mm, APD gain 10, TIA 140 kohm, 10 pA/rtHz, "
-              "EDFA NF 5 dB", False,
-              "assumed: the toolkit's defaults (InstrumentSpec), chosen for the Fig. 3 scans"),
-    Parameter("reflectivity", "0.5", False, "assumed: painted foam and cardboard (Methods)"),
-    Parameter("grating incidence", "60 deg", False, "assumed: not stated"),
+    Parameter("Fig. 2c set-up", "", False,
+              "assumed: the farther scene's distance, one record per range (the text names "
+              "no averaging), the peak index without refinement (Methods)"),
+    Parameter("link budget", "", False,
+              "assumed: the toolkit's defaults (InstrumentSpec); the joint calibration "
+              "(papercal) reports the link the paper's measurements need"),
+    Parameter("reflectivity", "", False, "assumed: painted foam and cardboard (Methods)"),
+    Parameter("grating incidence", "", False,
+              "assumed: not stated; the eq26 study draws the angular step over incidence "
+              "with the paper's 0.03 deg"),
 )
 
 
-def assumptions_markdown() -> list[str]:
-    """:data:`ASSUMPTIONS` as a Markdown table (lines)."""
+def assumptions_markdown(params: tuple[Parameter, ...] = ASSUMPTIONS) -> list[str]:
+    """``params`` (default :data:`ASSUMPTIONS`) as a Markdown table (lines)."""
     lines = ["| parameter | value | stated by the paper? | source |", "|---|---|---|---|"]
-    for p in ASSUMPTIONS:
+    for p in params:
         lines.append(f"| {p.name} | {p.value} | {'stated' if p.stated else '**assumed**'} | "
                      f"{p.source} |")
     return lines
@@ -199,38 +205,62 @@ def printed_value(paper: Any) -> tuple[str, float] | None:
     return (m.group(1) or "="), value
 
 
+def _printed_tolerance(paper: Any, p: float) -> float:
+    """Half a unit of the printed number's last digit (``25.68`` -> 0.005; ``2/3`` -> 0)."""
+    if not isinstance(paper, str | int | float) or isinstance(paper, bool):
+        return 0.0
+    text = str(paper).split()[-1]
+    if "/" in text:
+        return 0.0  # a fraction is exact
+    if isinstance(paper, float) and not isinstance(paper, str):
+        text = repr(paper)
+    decimals = len(text.split(".")[1]) if "." in text and not text.endswith(".0") else 0
+    return 0.5 * 10.0 ** -decimals
+
+
+def verdict_of(op: str, p: float, lo: float | None, hi: float | None,
+               tolerance: float = 0.0) -> str:
+    """The three-word verdict of a 95 % interval [lo, hi] against a printed claim.
+
+    ``op`` ``">"`` (the paper's "more than p"): *reproduced* when the lower bound is at
+    least p, *differs* when the upper bound is below p, *consistent* otherwise (the
+    interval holds p). ``"<"``: the mirror image. ``"="`` (a point value, printed to
+    ``tolerance`` either side): *reproduced* when the interval lies inside
+    [p - tolerance, p + tolerance], *differs* when it lies wholly outside, *consistent*
+    when it holds part of it. An end the run does not bound (None) is infinite.
+    """
+    lo = -math.inf if lo is None else float(lo)
+    hi = math.inf if hi is None else float(hi)
+    if op == ">":
+        return "reproduced" if lo >= p else ("differs" if hi < p else "consistent")
+    if op == "<":
+        return "reproduced" if hi <= p else ("differs" if lo > p else "consistent")
+    if p - tolerance <= lo and hi <= p + tolerance:
+        return "reproduced"
+    return "differs" if hi < p - tolerance or lo > p + tolerance else "consistent"
+
+
 def judge(paper: Any, value: float | None, ci95: list[float | None] | None,
-          *, decimals: int | None = None) -> str | None:
+          *, decimals: int | None = None, tolerance: float | None = None) -> str | None:
     """The verdict of ``value`` (with its 95 % interval, or None if exact) against ``paper``.
 
-    Exact values (``ci95`` None): ``"exact"`` when ``value`` rounds to the printed number
-    (``decimals``: the printed precision; default: as many as the printed number shows),
-    else ``"differs"``. Measured values: ``"reproduced"`` when the printed number lies in
-    the interval (for ``"> P"``: when the interval reaches P; an unbounded end counts as
-    reaching), else ``"differs"``. None when the paper prints no number, we have none,
-    or the run bounds neither end of the interval.
+    Three words (:func:`verdict_of`): *reproduced*, *consistent*, *differs*. An exact value
+    (``ci95`` None) is its own interval, compared at the printed precision (``decimals``,
+    default: as many as the printed number shows), so it is reproduced or differs. A
+    point value's tolerance is half the printed last digit unless ``tolerance`` is given.
+    None when the paper prints no number or we have none.
     """
     pv = printed_value(paper)
     if pv is None or value is None or (isinstance(value, float) and not math.isfinite(value)):
         return None
     op, p = pv
     if ci95 is None:
-        if decimals is None:
-            text = str(paper).split()[-1] if isinstance(paper, str) else repr(float(p))
-            decimals = len(text.split(".")[1]) if "." in text else 0
-            if text.endswith(".0"):
-                decimals = 0
-        return "exact" if round(float(value), decimals) == round(p, decimals) else "differs"
-    lo, hi = ci95
-    if lo is None and hi is None:
-        return None  # the run bounds nothing: no verdict either way
-    lo = -math.inf if lo is None else lo
-    hi = math.inf if hi is None else hi
-    if op == ">":
-        return "reproduced" if hi >= p else "differs"
-    if op == "<":
-        return "reproduced" if lo <= p else "differs"
-    return "reproduced" if lo <= p <= hi else "differs"
+        ci95 = [value, value]
+        if decimals is not None:
+            tolerance = 0.5 * 10.0 ** -decimals
+    if tolerance is None:
+        tolerance = _printed_tolerance(paper, p) if op == "=" else 0.0
+    return verdict_of(op, p, ci95[0], ci95[1], tolerance)
 
 
 def _clean(x: Any) -> Any:
