@@ -54,7 +54,7 @@ from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.intensity import RAW_UNIT, intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
-from cdma_lidar.host.pointcloud import PointCloud, assemble
+from cdma_lidar.host.pointcloud import PointCloud, assemble, file_metadata
 from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
 from cdma_lidar.host.uid_filter import ForeignReturns
 
@@ -560,9 +560,10 @@ def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
 
     ``wavelengths_m`` (K), ``angles_deg`` (C, grating rotations), ``beam_elevation_deg``
     and ``beam_azimuth_deg`` (K x C, from the nominal grating; ring 0 is the top beam,
-    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and
-    ``intensity_unit`` (``reflectance`` with a calibrated gain, else
-    :data:`cdma_lidar.host.intensity.RAW_UNIT`).
+    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and what
+    :func:`cdma_lidar.host.pointcloud.file_metadata` gives: the toolkit's version, the
+    SNR_XC threshold used, ``intensity_unit`` (``reflectance`` with a calibrated gain,
+    else :data:`cdma_lidar.host.intensity.RAW_UNIT`) and every field's unit.
     """
     el, az = device.beam_angles_deg()
     doc = {"wavelengths_m": device.wavelengths_m.tolist(),
@@ -571,9 +572,10 @@ def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
            "beam_azimuth_deg": np.round(az, 6).tolist(),
            "device": toml_safe(device.identity()),
            "configuration": toml_safe(device.calibration_config()),
-           "scan_options": toml_safe(dataclasses.asdict(options)),
-           "intensity_unit": "reflectance" if options.intensity_gain else RAW_UNIT}
-    return {k: json.dumps(v) for k, v in doc.items()}
+           "scan_options": toml_safe(dataclasses.asdict(options))}
+    unit = "reflectance" if options.intensity_gain else RAW_UNIT
+    return ({k: json.dumps(v) for k, v in doc.items()}
+            | file_metadata(_ranging(device, options).snr_threshold_db, unit))
 
 
 def _ranging(device: Device, options: ScanOptions) -> Any:
