@@ -56,7 +56,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("convert", "cdma_lidar.host.cli", "convert a point cloud file to another format"),
     Command("calibrate", "cdma_lidar.host.cli",
             "measure the system delay on the zeroth-order target"),
-    Command("capture", "cdma_lidar.host.capture",
+    Command("capture", "cdma_lidar.host.cli",
             "capture a correlation trace or raw ADC codes of one column (npz, SigMF, plot)"),
     Command("study", "cdma_lidar.study.cli",
             "sweeps of the speed/accuracy trade (docs/studies.md)"),

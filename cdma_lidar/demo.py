@@ -13,16 +13,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import check_writable
-from cdma_lidar.host.connection import connect
-from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
-from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, summarise
-from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.truth import compute_truth
 
 __all__ = ["DEMO_SCENE", "register"]
 
@@ -49,6 +41,15 @@ def _say(*parts: object) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Calibrate and scan the paper's scene 1 on the virtual device; print a summary."""
+    # imported here, not above, so that `cdma-lidar demo --help` loads no numpy
+    import numpy as np
+
+    import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
+    from cdma_lidar.host.connection import connect
+    from cdma_lidar.host.ranging import estimate_ranges, precision_eq27_m
+    from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, summarise
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.truth import compute_truth
 
     folder = Path(args.out)
     try:

@@ -55,7 +55,7 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.intensity import RAW_UNIT, intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
 from cdma_lidar.host.pointcloud import PointCloud, assemble, file_metadata
-from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
+from cdma_lidar.host.ranging import RangeImage, estimate_ranges, in_windows, sample_range_m
 from cdma_lidar.host.uid_filter import ForeignReturns
 
 __all__ = [
@@ -587,6 +587,25 @@ def _ranging(device: Device, options: ScanOptions) -> Any:
     return ranging
 
 
+def _check_ghost_windows(windows: tuple[tuple[int, int], ...], device: Device) -> None:
+    """Refuse a ghost window that misses the device's lag gate, or windows covering all of
+    it (every pixel would be rejected as a ghost, silently)."""
+    if not windows:
+        return
+    cfg, ns = device.config, device.ranging_config().samples_per_symbol
+    start, length = int(cfg.get("gate_start", 0)), int(cfg.get("gate_len", ns))
+    gate = (start + np.arange(length)) % ns
+    span = f"lags {start} to {start + length - 1} samples (mod {ns})"
+    for w in windows:
+        if not in_windows(gate, (w,), ns).any():
+            raise ConfigError(f"ghost window {w[0]}:{w[1]} lies outside the device's gate, "
+                              f"{span}", field="ghost_window")
+    if in_windows(gate, windows, ns).all():
+        raise ConfigError(f"ghost windows {', '.join(f'{a}:{b}' for a, b in windows)} cover "
+                          f"the whole gate, {span}: every pixel would be rejected",
+                          field="ghost_window")
+
+
 def open_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
               *, resume: bool = False, force: bool = False, frame_id: int | None = None
               ) -> Scan:
@@ -611,6 +630,7 @@ def open_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions 
         raise ConfigError(f"snr_threshold_db must be from 0 to {top:.1f} dB (the SNR_XC this "
                           f"configuration can report), not {options.snr_threshold_db:g}",
                           field="snr_threshold")
+    _check_ghost_windows(options.ghost_windows, device)
     spath, folder = state_path(out), frames_path(out)
     if not resume and not force and (spath.exists() or folder.exists()):
         raise ConfigError(f"{str(spath)!r} holds an interrupted scan; finish it with --resume "

@@ -163,34 +163,45 @@ def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
             proc.wait()
 
 
-def _wait_ended_by(setup: str) -> subprocess.CompletedProcess:
-    """Run ``setup`` then wait_forever in a fresh interpreter (SIGINT's handler as from a
-    terminal); it prints ``ended`` when the wait ends in KeyboardInterrupt."""
-    code = (_AS_FROM_A_TERMINAL + "import os, signal, threading, time\n" + setup
-            + "from cdma_lidar.host.view import wait_forever\n"
+def _wait_ended_by(signal_code: str) -> subprocess.CompletedProcess:
+    """Run wait_forever in a fresh interpreter (SIGINT's handler as from a terminal) while a
+    second thread runs ``signal_code`` once the main thread is inside wait_forever (seen in
+    its stack: no timing is assumed, however slowly the child starts); the child prints
+    ``ended`` when the wait ends in KeyboardInterrupt."""
+    code = (_AS_FROM_A_TERMINAL + "import os, signal, sys, threading, time\n"
+            "from cdma_lidar.host.view import wait_forever\n"
+            "main = threading.get_ident()\n"
+            "def inside():\n"
+            "    frame = sys._current_frames().get(main)\n"
+            "    while frame is not None:\n"
+            "        if frame.f_code is wait_forever.__code__:  # and past its set-up:\n"
+            "            return signal.getsignal(signal.SIGTERM) is signal.default_int_handler\n"
+            "        frame = frame.f_back\n"
+            "    return False\n"
+            "def hit():\n"
+            "    while not inside():\n"
+            "        time.sleep(0.01)\n"
+            "    " + signal_code + "\n"
+            "threading.Thread(target=hit, daemon=True).start()\n"
             "try:\n"
             "    wait_forever()\n"
             "except KeyboardInterrupt:\n"
             "    print('ended')\n")
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60)
+                          timeout=120)
 
 
 def test_ctrl_c_ends_the_wait_when_another_thread_takes_the_signal() -> None:
     """SIGINT handled on a thread other than the main one (the viewer runs many) still
     ends wait_forever: the main thread wakes from its sleep and raises KeyboardInterrupt."""
-    proc = _wait_ended_by("def hit():\n"
-                          "    time.sleep(0.3)\n"
-                          "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
-                          "threading.Thread(target=hit).start()\n")
+    proc = _wait_ended_by("signal.pthread_kill(threading.get_ident(), signal.SIGINT)")
     assert proc.stdout.strip() == "ended", proc.stderr[-2000:]
 
 
 def test_sigterm_ends_the_wait_as_ctrl_c_does() -> None:
     """``kill`` (SIGTERM) ends a served viewer the way Ctrl-C does, so the recording is
     flushed: the one way to end a viewer started in the background with SIGINT ignored."""
-    proc = _wait_ended_by(
-        "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)).start()\n")
+    proc = _wait_ended_by("os.kill(os.getpid(), signal.SIGTERM)")
     assert proc.stdout.strip() == "ended", (proc.returncode, proc.stderr[-2000:])
 
 
