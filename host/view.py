@@ -69,7 +69,8 @@ __all__ = ["COLOR_BY", "ENTITIES", "LiveView", "ViewOptions", "check_port_free",
 log = logging.getLogger(__name__)
 
 #: What each logged entity path holds (the module docstring's table).
-ENTITIES = ("cloud", "color_scale", "color_scale/span", "range", "snr_xc", "power", "valid_percent", "log")
+ENTITIES = ("cloud", "color_scale", "color_scale/span", "range", "snr_xc", "power",
+            "valid_percent", "log")
 
 #: Point colourings (the keys are :data:`cdma_lidar.host.settings.COLOR_MAPS`): field of
 #: the cloud, the colour scale's fixed span (None: the frame's own 2nd to 98th
@@ -149,7 +150,8 @@ def check_port_free(bind: str, port: int, option: str) -> None:
     """ConfigError (one line) unless ``port`` can be listened on at ``bind``."""
     family = socket.AF_INET6 if ipaddress.ip_address(bind).version == 6 else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
-        try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers do: a port
+        try:                                                      # in TIME_WAIT is free
             s.bind((bind, port))
         except OSError as exc:
             raise ConfigError(f"{option} {port} on {bind} is taken ({exc.strerror}): another "
