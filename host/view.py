@@ -159,6 +159,24 @@ def check_port_free(bind: str, port: int, option: str) -> None:
                               f"{option}", field=option.lstrip("-")) from None
 
 
+def _wait_listening(host: str, port: int, proc: Any, within_s: float = 60.0,
+                    clock: Callable[[], float] = time.monotonic) -> None:
+    """Return once ``host:port`` accepts connections; ConfigError if ``proc`` (the viewer
+    serving it) ends first or ``within_s`` pass (rerun starts in about a second)."""
+    end = clock() + within_s
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=1.0).close()
+            return
+        except OSError:
+            if proc.poll() is not None or clock() > end:
+                raise ConfigError(f"the web viewer (python -m rerun) did not listen on "
+                                  f"{host}:{port}" + (f" (it ended with status "
+                                  f"{proc.returncode})" if proc.poll() is not None else ""),
+                                  field="web") from None
+            time.sleep(0.05)
+
+
 def _colors(values: NDArray[np.float64], span: tuple[float, float] | None) -> NDArray[np.uint8]:
     """RGB (N, 3) of ``values`` on matplotlib's turbo scale, over ``span`` (or 2-98 %)."""
     from matplotlib import colormaps  # deferred: only a view colours points
@@ -210,6 +228,8 @@ class LiveView:
             sinks.append(rr.FileSink(options.save))
         self.rec.set_sinks(*sinks, default_blueprint=self._blueprint())
         if options.web:
+            for port in (options.grpc_port, options.web_port):
+                _wait_listening(options.host, port, self.viewers[0])
             self.url = (f"http://{options.host}:{options.web_port}/?url="
                         f"{options.grpc_urls()[0]}")
         self.rec.log("cloud", rr.ViewCoordinates.FLU, static=True)

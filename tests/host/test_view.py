@@ -9,6 +9,7 @@ Ctrl-C), and rerun's headless viewer renders the recording to a screenshot.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import signal
@@ -126,6 +127,41 @@ def test_view_without_rerun_names_the_extra(tmp_path, capsys, monkeypatch) -> No
     assert line.endswith("the live viewer needs rerun-sdk: pip install 'cdma-lidar[view]'")
 
 
+def listeners() -> dict[int, set[str]]:
+    """{port: {local addresses}} of every listening TCP socket (IPv4 and IPv6) here."""
+    out: dict[int, set[str]] = {}
+    for name, size in (("/proc/net/tcp", 4), ("/proc/net/tcp6", 16)):
+        for line in Path(name).read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            if state != "0A":  # LISTEN
+                continue
+            addr, port = local.split(":")
+            raw = bytes.fromhex(addr)
+            # /proc prints each 32-bit word in host (little-endian) order
+            ip = b"".join(raw[i:i + 4][::-1] for i in range(0, size, 4))
+            out.setdefault(int(port, 16), set()).add(
+                str(ipaddress.ip_address(ip)))
+    return out
+
+
+def test_listeners_sees_a_socket_on_every_interface() -> None:
+    """The check above can fail: a socket on 0.0.0.0 shows as such."""
+    with socket.socket() as s:
+        s.bind(("0.0.0.0", 0))  # the case the check must catch
+        s.listen()
+        assert listeners()[s.getsockname()[1]] == {"0.0.0.0"}
+
+
+def test_bind_reaches_the_viewer_commands() -> None:
+    from cdma_lidar.host.view import ViewOptions
+
+    wide = ViewOptions(web=True, spawn=True, bind="0.0.0.0")
+    assert all(argv[argv.index("--bind") + 1] == "0.0.0.0" for argv in wide.viewer_commands())
+    assert wide.grpc_urls()[0].startswith("rerun+http://127.0.0.1:")
+    default = ViewOptions(web=True).viewer_commands()[0]
+    assert default[default.index("--bind") + 1] == "127.0.0.1"
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -153,6 +189,10 @@ def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
             if line.startswith("serving the web viewer"):
                 break
         assert any(ln.startswith(f"web viewer: http://127.0.0.1:{web}/?url=") for ln in lines)
+        # everything served listens on loopback only (issue 43: not 0.0.0.0)
+        listening = listeners()
+        assert listening.get(web) == {"127.0.0.1"} and listening.get(grpc) == {"127.0.0.1"}, \
+            listening
         page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=30).read()
         assert b"<html" in page.lower() and b"rerun" in page.lower()
         proc.send_signal(signal.SIGINT)
