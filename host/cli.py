@@ -287,6 +287,10 @@ def add_view_options(p: argparse.ArgumentParser) -> None:
                    help=f"HTTP port of the web viewer (default {WEB_PORT})")
     g.add_argument("--grpc-port", type=_port, default=GRPC_PORT, metavar="PORT",
                    help=f"port the web viewer reads the frames from (default {GRPC_PORT})")
+    g.add_argument("--steer", action="store_true",
+                   help="scan frame after frame and take settings typed here, one a line: "
+                        "threshold DB, averages N, cap X, near-far on|off, color FIELD, quit "
+                        "(--frames N > 1: stop after N frames; else at quit or Ctrl-C)")
     g.add_argument("--bind", default=LOOPBACK, metavar="ADDRESS",
                    help=f"address the served ports listen on (default {LOOPBACK}: this "
                         "machine only; 0.0.0.0 serves every interface, unauthenticated)")

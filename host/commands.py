@@ -46,6 +46,8 @@ from cdma_lidar.host.scan import (
     run_scan,
     state_path,
 )
+from cdma_lidar.host.steer import COMMANDS as STEER_COMMANDS
+from cdma_lidar.host.steer import Settings, stdin_commands, steer
 from cdma_lidar.host.view import LiveView, view_options, wait_forever
 
 __all__ = ["apply_profile", "cmd_calibrate", "cmd_convert", "cmd_info", "cmd_scan", "cmd_view"]
@@ -150,8 +152,13 @@ def _profile_value(action: argparse.Action, key: str, value: Any, path: str) -> 
 
 
 def cmd_scan(args: argparse.Namespace,
-             on_frame: Callable[..., None] | None = None) -> int:
-    """Scan and write the point cloud; ``on_frame`` sees each frame (``view``)."""
+             on_frame: Callable[..., None] | None = None,
+             steered: Callable[[Any, Path, ScanOptions], int] | None = None) -> int:
+    """Scan and write the point cloud; ``on_frame`` sees each frame (``view``).
+
+    ``steered(device, out, options)`` (``view --steer``) scans instead, once the device
+    is connected, configured and its calibration checked; nothing is written.
+    """
 
     apply_profile(args, args.profile_parser)
     for name in ("port", "out"):
@@ -188,6 +195,9 @@ def cmd_scan(args: argparse.Namespace,
                           keep_foreign=args.keep_foreign,
                           intensity_gain=cal.intensity_gain if cal else None)
     if is_replay(args.port):
+        if steered is not None:
+            raise ConfigError(f"--steer needs a device, not a replay ({args.port})",
+                              field="steer")
         return _replay(args, out, options)
     with connect(args.port, **connect_options(args)) as dev:
         _configure(dev, args.set)
@@ -200,6 +210,9 @@ def cmd_scan(args: argparse.Namespace,
             cal.check_applies(dev.identity(), dev.calibration_config())
         else:
             log.warning("no --calibration: ranges include the system delay")
+        if steered is not None:
+            steered(dev, out, options)
+            return 0
         t0 = time.monotonic()
         try:
             res = run_scan(dev, out, options, resume=args.resume, force=args.force,
@@ -258,15 +271,34 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise ConfigError("--pictures and --resume need --out FILE in view", field="out")
     threshold = (DEFAULT_SNR_THRESHOLD_DB if args.snr_threshold is None
                  else args.snr_threshold)
+    if args.steer:
+        for name in ("out", "pictures", "resume", "calibrate_intensity", "save_ghost_map"):
+            if getattr(args, name):
+                raise ConfigError(f"--{name.replace('_', '-')} needs a finished scan; --steer "
+                                  "scans until quit (keep it with --save FILE.rrd)",
+                                  field=name)
     live = LiveView(view_options(args, threshold), description=f"cdma-lidar view {args.port}")
     if live.url:
         _say(f"web viewer: {live.url}")
+    steered = None
+    if args.steer:
+        settings = Settings(threshold_db=threshold, power_cap=args.power_cap,
+                            near_far=args.near_far, color_by=args.color_by)
+        frames, args.frames = (args.frames if args.frames > 1 else None), max(args.frames, 2)
+        pending = stdin_commands(sys.stdin)
+        _say("steer: type " + ", ".join(f"{k} {v}".strip() for k, v in STEER_COMMANDS.items())
+             + " (one a line; from the next frame on)")
+
+        def steered(dev: Any, out: Path, options: ScanOptions) -> int:
+            return steer(dev, out, options, settings, pending, live, frames=frames,
+                         frame_id=args.frame_id,
+                         say=lambda text: sys.stderr.write(f"cdma-lidar view: {text}\n"))
     # Without --out the cloud goes to a temporary file that is never reported.
     with tempfile.TemporaryDirectory(prefix="cdma-lidar-view-") as tmp:
         if args.out is None:
             args.out, args.temporary_out = str(Path(tmp) / "view.npz"), True
         try:
-            code = cmd_scan(args, on_frame=live.log_frame)
+            code = cmd_scan(args, on_frame=live.log_frame, steered=steered)
         except BaseException:
             live.close()
             raise

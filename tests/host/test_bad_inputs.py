@@ -141,6 +141,8 @@ CASES = {
                    str(_closed_port())), ["--grpc-port", "is taken"]),
     "view --spawn without a display": (lambda t: (*VIEW, "--spawn"),
                                        ["--spawn needs a display", "--web"]),
+    "view --steer with --out": (lambda t: (*VIEW, "--steer", "--out", str(t / "a.ply")),
+                                ["--out needs a finished scan", "--steer"]),
     "view --bind of a name": (lambda t: (*VIEW, "--save", str(t / "v.rrd"), "--bind", "home"),
                               ["--bind must be an IP address"]),
     "device on a busy port": (lambda t: ("device", "--scene", "flat-wall", "--tcp",

@@ -268,3 +268,17 @@ def test_headless_viewer_screenshot_shows_the_scan(near_far_view, tmp_path) -> N
     # the dark theme is grey; the range and SNR_XC images and the points add saturated colour
     saturation = img.max(axis=2) - img.min(axis=2)
     assert np.count_nonzero(saturation > 100) > 2000, json.dumps(img.mean(axis=(0, 1)).tolist())
+
+
+def test_view_steer_takes_commands_on_stdin(tmp_path) -> None:
+    """``view --steer`` end to end: settings typed on stdin, ``quit`` ends it; the colour
+    change reaches the recording (the colour scale names SNR_XC's fixed span)."""
+    rrd = tmp_path / "steer.rrd"
+    proc = subprocess.run(
+        [sys.executable, "-m", "cdma_lidar.cli", "view", "--port", "virtual://flat-wall?seed=1",
+         "--steer", "--save", str(rrd), "--no-progress", "--frame-id", "1"],
+        input="color snr\nthreshold 18\nquit\n", capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("steer: type threshold DB")
+    spans = [row["TextDocument:text"][0] for row in recorded(rrd)["color_scale/span"].values()]
+    assert spans[-1].startswith("snr: 0 dB")
