@@ -290,9 +290,12 @@ def cmd_view(args: argparse.Namespace) -> int:
              + " (one a line; from the next frame on)")
 
         def steered(dev: Any, out: Path, options: ScanOptions) -> int:
-            return steer(dev, out, options, settings, pending, live, frames=frames,
-                         frame_id=args.frame_id,
-                         say=lambda text: sys.stderr.write(f"cdma-lidar view: {text}\n"))
+            try:
+                return steer(dev, out, options, settings, pending, live, frames=frames,
+                             frame_id=args.frame_id,
+                             say=lambda text: sys.stderr.write(f"cdma-lidar view: {text}\n"))
+            except KeyboardInterrupt:  # Ctrl-C ends a steered scan as `quit` does
+                return live.frames
     # Without --out the cloud goes to a temporary file that is never reported.
     with tempfile.TemporaryDirectory(prefix="cdma-lidar-view-") as tmp:
         if args.out is None:

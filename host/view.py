@@ -27,8 +27,8 @@ native viewer window). With none of them: ``--spawn`` where there is a display, 
 ``rerun-sdk``) in a child process, started with ``--bind``: everything served listens on
 127.0.0.1 unless ``--bind`` names another address (rerun's in-process web server has no
 bind address and would listen on every interface). A port already taken, or ``--spawn``
-without a display, is refused before the scan starts. The 3D view's camera is placed
-behind the sensor looking at the first frame's points, so the cloud fills the view.
+without a display, is refused before the scan starts. The 3D view's camera is aimed at
+the first frame's points from behind, left and above, so the cloud fills the view.
 
 The frames come from :func:`cdma_lidar.host.scan.run_scan`'s ``on_frame`` hook (the
 viewer is a consumer of finished frames and needs nothing else of the scan).
@@ -228,8 +228,12 @@ class LiveView:
             sinks.append(rr.FileSink(options.save))
         self.rec.set_sinks(*sinks, default_blueprint=self._blueprint())
         if options.web:
-            for port in (options.grpc_port, options.web_port):
-                _wait_listening(options.host, port, self.viewers[0])
+            try:
+                for port in (options.grpc_port, options.web_port):
+                    _wait_listening(options.host, port, self.viewers[0])
+            except BaseException:
+                self.viewers[0].terminate()
+                raise
             self.url = (f"http://{options.host}:{options.web_port}/?url="
                         f"{options.grpc_urls()[0]}")
         self.rec.log("cloud", rr.ViewCoordinates.FLU, static=True)
@@ -252,15 +256,17 @@ class LiveView:
             rrb.TimePanel(timeline="frame"))
 
     def frame_camera(self, cloud: PointCloud) -> None:
-        """Place the 3D camera behind the sensor, looking at ``cloud``'s points."""
+        """Aim the 3D camera at ``cloud``: at the middle of its points (2nd to 98th
+        percentile box), from behind, left and above at about 0.8 times the box's largest
+        side, so that both its depth and its width fill the view (a scan is a narrow cone:
+        seen from the sensor its points would sit in a few degrees)."""
         ok = cloud.has_range
         if not ok.any():
             return
         xyz = np.stack([cloud.x[ok], cloud.y[ok], cloud.z[ok]], axis=1)
-        centre = np.median(xyz, axis=0)
-        size = float(np.max(np.ptp(xyz, axis=0))) or 1.0
-        eye = centre - np.array([1.5 * size + float(np.linalg.norm(centre)) * 0.5, 0.0,
-                                 -0.3 * size])
+        lo, hi = np.percentile(xyz, [2.0, 98.0], axis=0)
+        centre, size = (lo + hi) / 2, max(float(np.max(hi - lo)), 0.1)
+        eye = centre + size * np.array([-0.5, 0.5, 0.3])
         self.rec.send_blueprint(self._blueprint(self.rr.blueprint.EyeControls3D(
             position=eye.tolist(), look_target=centre.tolist(), eye_up=[0.0, 0.0, 1.0])))
 
@@ -311,7 +317,7 @@ class LiveView:
         xyz = np.stack([cloud.x[ok], cloud.y[ok], cloud.z[ok]], axis=1).astype(np.float32)
         rec.log("cloud", rr.Points3D(
             xyz, colors=_colors(values, (float(lo), float(hi))),
-            radii=rr.Radius.ui_points(2.0)),
+            radii=rr.Radius.ui_points(3.0)),
             rr.AnyValues(range_m=cloud.range[ok].astype(np.float32),
                          snr_xc_db=cloud.snr_xc[ok].astype(np.float32),
                          intensity=cloud.intensity[ok].astype(np.float32),
