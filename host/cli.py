@@ -29,16 +29,12 @@ from cdma_lidar.host.settings import (
     DEFAULT_SNR_THRESHOLD_DB,
     GRPC_PORT,
     LOOPBACK,
+    MIN_TIMEOUT_S,
     TARGET_DISTANCE_M,
     WEB_PORT,
 )
 
-#: The shortest ``--timeout`` (s): a request's round trip (a column's frames on a serial
-#: line, a loaded host) takes longer than this, so a shorter wait only fails, and the
-#: error would blame a device that was never given time to answer.
-MIN_TIMEOUT_S = 0.05
-
-__all__ = ["MIN_TIMEOUT_S", "add_port_options", "add_view_options", "connect_options", "register"]
+__all__ = ["add_port_options", "add_view_options", "connect_options", "register"]
 
 
 def _later(name: str, module: str = "cdma_lidar.host.commands"
@@ -122,7 +118,6 @@ def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> No
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N"
                         + (" (scan: also replay://FILE, a recorded cloud)" if not required
                            else ""))
-    # below MIN_TIMEOUT_S an answer cannot arrive and the device would be blamed for it
     p.add_argument("--timeout", type=_float_in(MIN_TIMEOUT_S, 3600, "s"), default=1.0,
                    metavar="S", help=f"seconds to wait for each answer (default 1, from "
                                      f"{MIN_TIMEOUT_S:g} to 3600)")

@@ -8,10 +8,15 @@ act on them (ranging, calibration, combine, the viewer, capture) import them fro
 from __future__ import annotations
 
 __all__ = ["CAPTURE_KINDS", "COLOR_MAPS", "COMBINE_MODES", "DEFAULT_SNR_THRESHOLD_DB",
-           "GRPC_PORT", "LOOPBACK", "TARGET_DISTANCE_M", "WEB_PORT"]
+           "GRPC_PORT", "LOOPBACK", "MIN_TIMEOUT_S", "TARGET_DISTANCE_M", "WEB_PORT"]
 
 #: Pixels below this SNR_XC (dB) are rejected unless ``--snr-threshold`` says otherwise.
 DEFAULT_SNR_THRESHOLD_DB = 16.0
+
+#: The shortest ``--timeout`` (s): a request's round trip (a column's frames on a serial
+#: line, a loaded host) takes longer than this, so a shorter wait only fails, and the
+#: error would blame a device that was never given time to answer.
+MIN_TIMEOUT_S = 0.05
 
 #: Allowed ``--target-distance`` of a calibration (m): from, to.
 TARGET_DISTANCE_M = (0.01, 1000.0)
