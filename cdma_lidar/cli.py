@@ -28,7 +28,7 @@ import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// 
 from cdma_lidar import __version__
 from cdma_lidar.errors import CdmaLidarError
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "main", "register"]
 
 log = logging.getLogger("cdma_lidar.cli")
 
@@ -56,14 +56,18 @@ COMMANDS: tuple[Command, ...] = (
     Command("convert", "cdma_lidar.host.cli", "convert a point cloud file to another format"),
     Command("calibrate", "cdma_lidar.host.cli",
             "measure the system delay on the zeroth-order target"),
-    Command("capture", "cdma_lidar.host.capture",
+    Command("capture", "cdma_lidar.host.cli",
             "capture a correlation trace or raw ADC codes of one column (npz, SigMF, plot)"),
     Command("study", "cdma_lidar.study.cli",
             "sweeps of the speed/accuracy trade (docs/studies.md)"),
-    Command("demo", "cdma_lidar.demo",
+    Command("demo", "cdma_lidar.cli",
             "calibrate and scan paper-scene1 on the virtual device, with pictures"),
     Command("hdl", "cdma_lidar.hdl_ref.vectors", "reference RTL: test vectors"),
 )
+
+
+#: The module that does ``demo``'s work (:func:`register` adds its options).
+DEMO_MODULE = "cdma_lidar.demo"
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -101,6 +105,22 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         if command.module not in modules:
             sub.add_parser(command.name, help=command.help, add_help=False)
     return parser
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``demo`` (its work, :func:`cdma_lidar.demo.cmd_demo`, imported when it runs)."""
+    p = subparsers.add_parser(
+        "demo", help="calibrate and scan paper-scene1 on the virtual device, with pictures")
+    p.add_argument("--out", default="cdma-lidar-demo", metavar="DIR",
+                   help="folder for the results (default ./cdma-lidar-demo)")
+    p.add_argument("--seed", type=int, default=1, help="noise seed of the virtual device")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_demo)
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    """``demo``'s work: its module is loaded only now, as a command module is (above)."""
+    return int(importlib.import_module(DEMO_MODULE).cmd_demo(args))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

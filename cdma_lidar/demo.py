@@ -2,7 +2,8 @@
 
 The README's main job. It sits at the top of the stack because it composes the
 simulated world (for the ground truth it compares against), the virtual device and
-the host, which no lower layer may do.
+the host, which no lower layer may do. Its options are registered by
+:mod:`cdma_lidar.cli`, so that ``cdma-lidar demo --help`` loads none of this stack.
 """
 
 from __future__ import annotations
@@ -24,21 +25,10 @@ from cdma_lidar.host.scan import ScanOptions, calibrate_device, run_scan, summar
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.truth import compute_truth
 
-__all__ = ["DEMO_SCENE", "register"]
+__all__ = ["DEMO_SCENE", "cmd_demo"]
 
 #: The built-in scene the demo scans: the letters "CDMA LIDAR" at about 5 m.
 DEMO_SCENE = "paper-scene1"
-
-
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``demo`` command."""
-    p = subparsers.add_parser(
-        "demo", help="calibrate and scan paper-scene1 on the virtual device, with pictures")
-    p.add_argument("--out", default="cdma-lidar-demo", metavar="DIR",
-                   help="folder for the results (default ./cdma-lidar-demo)")
-    p.add_argument("--seed", type=int, default=1, help="noise seed of the virtual device")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_demo)
 
 
 def _say(*parts: object) -> None:

@@ -45,6 +45,9 @@ from numpy.typing import ArrayLike
 from cdma_lidar.errors import CalibrationError, ConfigError, out_of_range
 from cdma_lidar.fileio import atomic_write_text
 
+# the target distances (m) a zeroth-order beam trap can sit at (the scene file's range)
+from cdma_lidar.host.settings import TARGET_DISTANCE_M
+
 __all__ = [
     "CALIBRATION_KEYS",
     "TARGET_DISTANCE_M",
@@ -56,9 +59,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Calibration target distances (m) a zeroth-order beam trap can sit at (the scene file's
-#: ``calibration.target_distance_m`` range).
-TARGET_DISTANCE_M = (0.01, 1000.0)
 
 #: Configuration fields that change the system delay or the lag-to-range scale; a
 #: calibration applies only where all of those present in the file are equal.
@@ -176,6 +176,11 @@ class Calibration:
                                f"{TARGET_DISTANCE_M[1]:g} m", target_distance_m)
         hist = analyse_histogram(ranges_m, gap_m=gap_m, max_spread_m=max_spread_m)
         offset = hist.centre_m - target_distance_m
+        if offset < 0:  # the system delay only adds range: the target is nearer than said
+            raise CalibrationError(
+                f"--target-distance {target_distance_m:g} m disagrees with the target "
+                f"measured at {hist.centre_m:.4f} m (uncalibrated, system delay included): "
+                f"the offset would be negative ({offset:.4f} m); give the target's distance")
         log.info("calibration: centre %.4f m, spread %.4f m, offset %.4f m (%d values, %d "
                  "outliers)", hist.centre_m, hist.spread_m, offset, hist.kept, hist.outliers)
         return cls(offset_m=offset, spread_m=hist.spread_m,
@@ -216,7 +221,7 @@ class Calibration:
                               "give the TOML file 'cdma-lidar calibrate' wrote",
                               field="calibration") from None
         try:
-            return cls(offset_m=float(doc["offset_m"]), spread_m=float(doc["spread_m"]),
+            cal = cls(offset_m=float(doc["offset_m"]), spread_m=float(doc["spread_m"]),
                        target_distance_m=float(doc["target_distance_m"]),
                        shots=int(doc["shots"]), samples=int(doc.get("samples", 0)),
                        device=dict(doc.get("device", {})),
@@ -231,6 +236,15 @@ class Calibration:
             raise ConfigError(f"calibration file {str(p)!r} has a field of the wrong type "
                               f"({exc}); make a new one with 'cdma-lidar calibrate'",
                               field="calibration") from exc
+        for name, ok, allowed in (
+                ("offset_m", math.isfinite(cal.offset_m), "a finite number of m"),
+                ("spread_m", math.isfinite(cal.spread_m) and cal.spread_m >= 0, ">= 0 m"),
+                ("shots", cal.shots >= 1, "at least 1")):
+            if not ok:
+                raise ConfigError(f"calibration file {str(p)!r}: {name} must be {allowed}, "
+                                  f"not {getattr(cal, name)!r}; make a new one with "
+                                  "'cdma-lidar calibrate'", field="calibration")
+        return cal
 
     def check_applies(self, device: Mapping[str, Any],
                       configuration: Mapping[str, Any]) -> None:

@@ -28,7 +28,6 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,15 +37,14 @@ from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open, atomic_write_text, check_writable
 from cdma_lidar.host import pictures
 from cdma_lidar.host.calibration import Calibration, toml_safe
-from cdma_lidar.host.cli import add_port_options, connect_options
+from cdma_lidar.host.cli import connect_options
 from cdma_lidar.host.connection import Device, connect
 from cdma_lidar.host.ranging import lag_to_range_m
+from cdma_lidar.host.settings import CAPTURE_KINDS
 
-__all__ = ["Capture", "capture", "register", "write_sigmf"]
+__all__ = ["Capture", "capture", "cmd_capture", "write_sigmf"]
 
 log = logging.getLogger(__name__)
-
-KINDS = ("corr", "raw")
 
 
 class Capture(dict):
@@ -60,8 +58,9 @@ def capture(device: Device, kind: str, column: int, channel: int, *,
     ``offset_m``: the calibration offset (m); None leaves the ranges raw (``calibrated``
     False in the capture: they still hold the system delay).
     """
-    if kind not in KINDS:
-        raise ConfigError(f"kind must be one of {', '.join(KINDS)}, not {kind!r}", field="kind")
+    if kind not in CAPTURE_KINDS:
+        raise ConfigError(f"kind must be one of {', '.join(CAPTURE_KINDS)}, not {kind!r}",
+                          field="kind")
     if not 0 <= column < device.columns:
         raise ConfigError(f"--column must be from 0 to {device.columns - 1}, not {column}",
                           field="column")
@@ -113,25 +112,6 @@ def write_sigmf(data: NDArray[np.int16], sample_rate_hz: float, path: str | os.P
 def _say(text: str) -> None:
     sys.stdout.write(text + "\n")
     sys.stdout.flush()
-
-
-def register(subparsers: Any) -> None:
-    """Add the ``capture`` subcommand."""
-    p = subparsers.add_parser("capture", help="capture a correlation trace or raw ADC codes "
-                                              "of one column (npz, SigMF, plot)")
-    add_port_options(p)
-    p.add_argument("--kind", choices=KINDS, required=True,
-                   help="corr: one channel's correlation over the gate; raw: the column's ADC "
-                        "codes (also written as SigMF)")
-    p.add_argument("--column", type=int, required=True, metavar="C", help="grating column")
-    p.add_argument("--channel", type=int, default=0, metavar="K",
-                   help="channel of the correlation trace (default 0)")
-    p.add_argument("--out", required=True, metavar="FILE", help="capture file (.npz)")
-    p.add_argument("--calibration", metavar="FILE",
-                   help="calibration TOML: the trace's range axis without the system delay")
-    p.add_argument("--frame-id", type=int, metavar="N", help="frame id of the scan captured")
-    p.add_argument("--plot", action="store_true", help="also write FILE.png (Fig. 3d)")
-    p.set_defaults(func=cmd_capture)
 
 
 def cmd_capture(args: argparse.Namespace) -> int:

@@ -1,4 +1,4 @@
-"""The host commands: ``info``, ``scan``, ``view``, ``convert`` and ``calibrate``.
+"""The host commands' parser: ``info``, ``scan``, ``view``, ``convert``, ``calibrate``, ``capture``.
 
 Every command checks what it can before it touches the device (output folder
 writable, extension known, numbers in range), so a bad argument costs nothing and
@@ -6,62 +6,44 @@ exits 2 with one line. Ports are any pyserial URL: a device path, a pty,
 ``socket://host:port`` or ``virtual://SCENE?seed=N`` (the built-in virtual device);
 ``scan`` also takes ``replay://FILE``, a recorded cloud fed back through the host
 (:mod:`cdma_lidar.host.replay`).
+
+This module holds only the options: it imports no numpy and none of the host stack, so
+``cdma-lidar COMMAND --help`` starts as fast as Python does. What a command does is in
+:mod:`cdma_lidar.host.commands` (``capture``'s in :mod:`cdma_lidar.host.capture`), imported
+when the command runs; the defaults shown come from :mod:`cdma_lidar.host.settings`.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
+import importlib
 import math
-import sys
-import tempfile
-import time
-import tomllib
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
-import numpy as np
-import tomli_w
-
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.fileio import atomic_write_text, check_writable
-from cdma_lidar.host.calibration import TARGET_DISTANCE_M, Calibration
-from cdma_lidar.host.cloud_formats import (
-    MULTI_FRAME_FORMATS,
-    check_output,
-    read_frames,
-    write_frames,
-)
-from cdma_lidar.host.cloud_formats.mcap import read_metadata
-from cdma_lidar.host.combine import COMBINE_MODES
-from cdma_lidar.host.connection import connect
-from cdma_lidar.host.intensity import intensity_gain
-from cdma_lidar.host.ranging import (
+from cdma_lidar.host.settings import (
+    CAPTURE_KINDS,
+    COLOR_MAPS,
+    COMBINE_MODES,
     DEFAULT_SNR_THRESHOLD_DB,
-    ghost_windows_from_image,
-    sample_range_m,
+    GRPC_PORT,
+    LOOPBACK,
+    MIN_TIMEOUT_S,
+    TARGET_DISTANCE_M,
+    WEB_PORT,
 )
-from cdma_lidar.host.replay import Replay, is_replay
-from cdma_lidar.host.scan import (
-    ScanOptions,
-    calibrate_device,
-    multi_user_peaks,
-    run_scan,
-    state_path,
-)
-from cdma_lidar.host.view import LiveView, add_view_options, view_options, wait_forever
 
-__all__ = ["register"]
-
-log = logging.getLogger(__name__)
+__all__ = ["add_port_options", "add_view_options", "connect_options", "register"]
 
 
-
-def _say(*parts: object) -> None:
-    """One line of command output on stdout (CLI results, not logging)."""
-    sys.stdout.write(" ".join(str(p) for p in parts) + "\n")
-    sys.stdout.flush()
+def _later(name: str, module: str = "cdma_lidar.host.commands"
+           ) -> Callable[[argparse.Namespace], int]:
+    """The command ``module.name(args)``, its module imported only when the command runs."""
+    def run(args: argparse.Namespace) -> int:
+        return int(getattr(importlib.import_module(module), name)(args))
+    run.__name__ = name
+    return run
 
 
 def _positive_float(text: str) -> float:
@@ -136,8 +118,9 @@ def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> No
                    help="device path, pty, socket://HOST:PORT or virtual://SCENE?seed=N"
                         + (" (scan: also replay://FILE, a recorded cloud)" if not required
                            else ""))
-    p.add_argument("--timeout", type=_float_in(0, 3600, "s"), default=1.0, metavar="S",
-                   help="seconds to wait for each answer (default 1, at most 3600)")
+    p.add_argument("--timeout", type=_float_in(MIN_TIMEOUT_S, 3600, "s"), default=1.0,
+                   metavar="S", help=f"seconds to wait for each answer (default 1, from "
+                                     f"{MIN_TIMEOUT_S:g} to 3600)")
     # Access to a shared device (protocol v2 sessions and keys, docs/protocol.md).
     p.add_argument("--take-over", action="store_true",
                    help="end another host's session on the device instead of failing busy")
@@ -146,7 +129,15 @@ def add_port_options(p: argparse.ArgumentParser, *, required: bool = True) -> No
 
 
 def connect_options(args: argparse.Namespace) -> dict[str, Any]:
-    """connect() options from --timeout, --take-over and --key-file."""
+    """connect() options from --timeout, --take-over and --key-file.
+
+    A recording (``replay://FILE``) is refused here: only ``scan`` and ``view`` read one.
+    """
+    if args.port.lower().startswith("replay://"):
+        raise ConfigError(f"--port {args.port} is a recording: scan and view replay it, "
+                          f"{getattr(args, 'command', 'this command')} needs a device "
+                          "(a device path, socket://HOST:PORT or virtual://SCENE)",
+                          field="port")
     return {"timeout_s": args.timeout, "take_over": args.take_over, "key_file": args.key_file}
 
 
@@ -159,7 +150,7 @@ def register(subparsers: Any) -> None:
     """Add the host's subcommands to the ``cdma-lidar`` parser."""
     p = subparsers.add_parser("info", help="show a device's identity, geometry and configuration")
     add_port_options(p)
-    p.set_defaults(func=cmd_info)
+    p.set_defaults(func=_later("cmd_info"))
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
     p.add_argument("--config", metavar="FILE",
@@ -189,7 +180,8 @@ def register(subparsers: Any) -> None:
                    help="adjust per-pixel power between frames (needs --frames 2 or more; "
                         "one update usually settles it)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
-                   help="SNR_XC threshold in dB: pixels below it are rejected (default 16)")
+                   help="SNR_XC threshold in dB: pixels below it are rejected (default "
+                        f"{DEFAULT_SNR_THRESHOLD_DB:g})")
     p.add_argument("--min-support", type=int, default=1, metavar="N",
                    help="keep a pixel above the threshold only if N of its 8 neighbours are "
                         "too, at a lag within 1.5 samples (default 1; 0: the threshold alone)")
@@ -219,7 +211,7 @@ def register(subparsers: Any) -> None:
                         "noise with it, so the same seed and id give the same cloud")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
-    p.set_defaults(func=cmd_scan, profile_parser=p)
+    p.set_defaults(func=_later("cmd_scan"), profile_parser=p)
     scan = p
 
     # view: every scan option (--out optional) and where the live view goes
@@ -229,7 +221,7 @@ def register(subparsers: Any) -> None:
         description="Scan as `scan` does and watch each frame as it arrives: the point "
                     "cloud, the range and SNR_XC images and the power matrix, in rerun.")
     add_view_options(p)
-    p.set_defaults(func=cmd_view, profile_parser=p)
+    p.set_defaults(func=_later("cmd_view"), profile_parser=p)
 
     p = subparsers.add_parser("convert", help="convert a point cloud file to another format",
                               description="Read a cloud cdma-lidar wrote (.ply, .pcd, .npz, "
@@ -238,7 +230,7 @@ def register(subparsers: Any) -> None:
                               ".mcap's metadata record is kept.")
     p.add_argument("in_file", metavar="IN", help="cloud file to read")
     p.add_argument("out_file", metavar="OUT", help="cloud file to write")
-    p.set_defaults(func=cmd_convert)
+    p.set_defaults(func=_later("cmd_convert"))
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
@@ -251,295 +243,59 @@ def register(subparsers: Any) -> None:
                    help="repeated shots (default 20)")
     p.add_argument("--out", required=True, metavar="FILE", help="calibration file (.toml)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
-                   help="SNR_XC threshold in dB (default 16)")
+                   help=f"SNR_XC threshold in dB (default {DEFAULT_SNR_THRESHOLD_DB:g})")
     p.add_argument("--max-spread", type=_float_in(0, 1000, "m"), metavar="M",
                    help="widest acceptable histogram standard deviation (m)")
     _add_set(p)
-    p.set_defaults(func=cmd_calibrate)
+    p.set_defaults(func=_later("cmd_calibrate"))
+
+    p = subparsers.add_parser("capture", help="capture a correlation trace or raw ADC codes "
+                                              "of one column (npz, SigMF, plot)")
+    add_port_options(p)
+    p.add_argument("--kind", choices=CAPTURE_KINDS, required=True,
+                   help="corr: one channel's correlation over the gate; raw: the column's ADC "
+                        "codes (also written as SigMF)")
+    p.add_argument("--column", type=int, required=True, metavar="C", help="grating column")
+    p.add_argument("--channel", type=int, default=0, metavar="K",
+                   help="channel of the correlation trace (default 0)")
+    p.add_argument("--out", required=True, metavar="FILE", help="capture file (.npz)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration TOML: the trace's range axis without the system delay")
+    p.add_argument("--frame-id", type=int, metavar="N", help="frame id of the scan captured")
+    p.add_argument("--plot", action="store_true", help="also write FILE.png (Fig. 3d)")
+    p.set_defaults(func=_later("cmd_capture", "cdma_lidar.host.capture"))
 
 
-def _configure(device: Any, settings: list[tuple[str, Any]]) -> None:
-    if settings:
-        device.link.set_config(**dict(settings))
-        device.refresh_config()
+def add_view_options(p: argparse.ArgumentParser) -> None:
+    """``--save``, ``--web``, ``--spawn``, ``--color-by``, ``--bind`` and the viewer's ports."""
+    g = p.add_argument_group("viewer (rerun; pip install 'cdma-lidar[view]')")
+    g.add_argument("--save", metavar="FILE.rrd",
+                   help="write the recording to an .rrd file (open it with `rerun FILE.rrd`)")
+    g.add_argument("--web", action="store_true",
+                   help="serve a web viewer from this process and print its URL; Ctrl-C "
+                        "ends it (the default without a display)")
+    g.add_argument("--spawn", action="store_true",
+                   help="open rerun's native viewer (the default with a display)")
+    g.add_argument("--color-by", choices=COLOR_MAPS, default="range",
+                   help="colour the points by range (default), SNR_XC, intensity or ring")
+    g.add_argument("--web-port", type=_port, default=WEB_PORT, metavar="PORT",
+                   help=f"HTTP port of the web viewer (default {WEB_PORT})")
+    g.add_argument("--grpc-port", type=_port, default=GRPC_PORT, metavar="PORT",
+                   help=f"port the web viewer reads the frames from (default {GRPC_PORT})")
+    g.add_argument("--steer", action="store_true",
+                   help="scan frame after frame and take settings typed here, one a line: "
+                        "threshold DB, averages N, cap X, near-far on|off, color FIELD, quit "
+                        "(--frames N > 1: stop after N frames; else at quit or Ctrl-C)")
+    g.add_argument("--bind", default=LOOPBACK, metavar="ADDRESS",
+                   help=f"address the served ports listen on (default {LOOPBACK}: this "
+                        "machine only; 0.0.0.0 serves every interface, unauthenticated)")
 
 
-def cmd_info(args: argparse.Namespace) -> int:
-    """Print identity, limits, geometry and configuration."""
-
-    with connect(args.port, **connect_options(args)) as dev:
-        info, cfg = dev.info, dev.config
-        wl = dev.wavelengths_m
-        ang = dev.column_angles_deg
-        _say(f"device      {info.serial} (firmware {info.firmware_version}, protocol "
-              f"{info.protocol_version})")
-        _say(f"channels    {dev.channels}: {wl[0] * 1e9:.3f} .. {wl[-1] * 1e9:.3f} nm")
-        _say(f"columns     {dev.columns}: {ang[0]:.4f} .. {ang[-1]:.4f} deg")
-        _say(f"chip rate   {info.chip_rate_hz / 1e6:g} Mchip/s, code length {dev.code_length}")
-        geo = dev.geometry()
-        _say(f"grating     {geo.grooves_per_mm:g} lines/mm, incidence {geo.incidence_deg:g} deg, "
-              f"tilt {np.degrees(geo.gamma_rad):.3f} deg")
-        rc = dev.ranging_config()
-        _say(f"range scale {rc.samples_per_chip} samples/chip, "
-              f"{100 * sample_range_m(rc.samples_per_chip, rc.chip_rate_hz):.2f} cm per lag "
-              "sample")
-        for key, value in cfg.items():
-            _say(f"  {key:18s} {value}")
-    return 0
-
-
-def apply_profile(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
-    """Fill the options not given on the command line from ``args.config`` (TOML).
-
-    Keys are the command's long options without dashes (``snr-threshold`` or
-    ``snr_threshold``); values go through the same checks as on the command line
-    (repeatable options take a list, flags true or false). An option given on the
-    command line (any value but its default) wins over the file.
-    """
-    if not getattr(args, "config", None):
-        return
-    path = args.config
+def _port(text: str) -> int:
     try:
-        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"--config {path!r} does not exist", field="config") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"--config {path!r} is not a readable TOML file ({exc})",
-                          field="config") from None
-    actions = {a.dest: a for a in parser._actions
-               if a.option_strings and a.dest not in ("help", "config")}
-    for key, value in doc.items():
-        action = actions.get(key.replace("-", "_"))
-        if action is None:
-            raise ConfigError(f"--config {path!r}: unknown option {key!r}; allowed: "
-                              + ", ".join(sorted(d.replace("_", "-") for d in actions)),
-                              field="config")
-        if getattr(args, action.dest) != action.default:
-            continue  # the command line wins
-        setattr(args, action.dest, _profile_value(action, key, value, path))
-
-
-def _profile_value(action: argparse.Action, key: str, value: Any, path: str) -> Any:
-    """One profile value, converted and checked as argparse would on the command line."""
-    def bad(allowed: str) -> ConfigError:
-        return ConfigError(f"--config {path!r}: {key} must be {allowed}, not {value!r}",
-                           field="config")
-
-    if action.nargs == 0:  # a flag
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    repeat = isinstance(action, argparse._AppendAction)
-    items = value if repeat and isinstance(value, list) else [value]
-    if any(isinstance(v, dict | list | bool) for v in items):
-        raise bad("a number or a string" + (" (or a list of them)" if repeat else ""))
-    out = []
-    for v in items:
-        try:
-            conv = action.type(str(v)) if action.type is not None else str(v)
-        except argparse.ArgumentTypeError as exc:  # says "must be ..., not ..."
-            raise ConfigError(f"--config {path!r}: {key} {exc}", field="config") from None
-        except ValueError:
-            raise bad("a whole number" if action.type is int else "valid") from None
-        if action.choices is not None and conv not in action.choices:
-            raise bad("one of " + ", ".join(map(str, action.choices)))
-        out.append(conv)
-    return out if repeat else out[0]
-
-
-def cmd_scan(args: argparse.Namespace,
-             on_frame: Callable[..., None] | None = None) -> int:
-    """Scan and write the point cloud; ``on_frame`` sees each frame (``view``)."""
-
-    apply_profile(args, args.profile_parser)
-    for name in ("port", "out"):
-        if getattr(args, name) is None:
-            raise ConfigError(f"--{name} is required (on the command line or in --config)",
-                              field=name)
-    out = check_output(args.out)
-    if args.calibrate_intensity is not None and not args.calibration:
-        raise ConfigError("--calibrate-intensity needs --calibration FILE to store the gain "
-                          "in", field="calibrate_intensity")
-    if args.resume and not state_path(out).is_file():
-        raise ConfigError(f"nothing to resume: {state_path(out)} does not exist; scan "
-                          "without --resume", field="resume")
-    if args.power_cap is not None and not args.near_far:
-        raise ConfigError("--power-cap needs --near-far (a uniform scan uses one power)",
-                          field="power_cap")
-    cal = Calibration.load(args.calibration) if args.calibration else None
-    ghosts = list(args.ghost_window)
-    if args.ghost_map:
-        ghosts += _load_ghost_map(args.ghost_map)
-    if args.save_ghost_map:
-        if Path(args.save_ghost_map).suffix.lower() != ".toml":
-            raise ConfigError(f"--save-ghost-map must be a .toml file, not "
-                              f"{args.save_ghost_map!r}", field="save_ghost_map")
-        check_writable(args.save_ghost_map, "--save-ghost-map")
-    if args.frame_id is not None and not 0 <= args.frame_id <= 2**31 - 1 - args.frames:
-        raise ConfigError(f"--frame-id must be from 0 to {2**31 - 1 - args.frames}, not "
-                          f"{args.frame_id}", field="frame_id")
-    options = ScanOptions(frames=args.frames, near_far=args.near_far,
-                          snr_threshold_db=args.snr_threshold, min_support=args.min_support,
-                          interpolate=args.interpolate,
-                          ghost_windows=tuple(ghosts), power_cap=args.power_cap,
-                          offset_m=cal.offset_m if cal else 0.0, combine=args.combine,
-                          keep_foreign=args.keep_foreign,
-                          intensity_gain=cal.intensity_gain if cal else None)
-    if is_replay(args.port):
-        return _replay(args, out, options)
-    with connect(args.port, **connect_options(args)) as dev:
-        _configure(dev, args.set)
-        peaks = multi_user_peaks(dev, {key for key, _ in args.set})
-        if peaks:
-            _say(f"UID configured ({dev.config.get('uid_bits')} bits): asking for {peaks} "
-                 "peaks per channel so other users' returns cannot hide ours (--set peaks=1 "
-                 "to turn this off)")
-        if cal is not None:
-            cal.check_applies(dev.identity(), dev.calibration_config())
-        else:
-            log.warning("no --calibration: ranges include the system delay")
-        t0 = time.monotonic()
-        try:
-            res = run_scan(dev, out, options, resume=args.resume, force=args.force,
-                           progress=not args.no_progress, pictures_too=args.pictures,
-                           frame_id=args.frame_id, on_frame=on_frame)
-        except KeyboardInterrupt:
-            sys.stderr.write(f"partial scan saved to {state_path(out)}; run the same command "
-                             "with --resume to finish it\n")
-            raise
-        dt = time.monotonic() - t0
-    img = res.image
-    _say(f"scanned {res.columns_scanned} columns in {dt:.1f} s; "
-          f"{int(img.valid.sum())} of {img.range_m.size} pixels valid "
-          f"({100 * float(img.valid.mean()):.1f} %)")
-    if args.near_far and len(res.snr_maps) > 1:
-        thr = img.config.snr_threshold_db
-        fr = [100 * float(np.mean(m >= thr)) for m in res.snr_maps]
-        _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
-             + ", ".join(f"{f:.1f} %" for f in fr))
-        cap = args.power_cap if args.power_cap is not None else \
-            dev.channels * options.initial_power
-        _say(f"largest column power sum per frame (cap {cap:g} x the per-pixel maximum): "
-             + ", ".join(f"{float(p.sum(axis=0).max()):.2f}" for p in res.powers[:-1]))
-    if len(img.foreign):
-        users = ", ".join(f"UID {u}: {n}" for u, n in img.foreign.users().items())
-        fate = ("kept in the cloud with their user_id" if args.keep_foreign
-                else "rejected; --keep-foreign keeps them")
-        _say(f"other users' returns: {len(img.foreign)} ({users}), {fate}")
-    if args.calibrate_intensity is not None:
-        assert cal is not None
-        power = res.powers[-2] if args.near_far and len(res.powers) > 1 else \
-            options.initial_power
-        cal.intensity_gain = intensity_gain(res.clouds[-1].peak, res.clouds[-1].range, power,
-                                            dev.config, args.calibrate_intensity,
-                                            res.clouds[-1].flags == 0)
-        cal.save(args.calibration)
-        _say(f"intensity gain {cal.intensity_gain:.6g} (a flat target of reflectivity "
-             f"{args.calibrate_intensity:g}); added to {args.calibration}")
-    if args.save_ghost_map:
-
-        windows = ghost_windows_from_image(img)
-        text = tomli_w.dumps({"windows": [list(w) for w in windows],
-                              "device": dev.identity()})
-        atomic_write_text(args.save_ghost_map, text)
-        _say(f"ghost map: {len(windows)} windows {list(windows)}; wrote {args.save_ghost_map}")
-    for f in res.files:
-        if not getattr(args, "temporary_out", False):
-            _say(f"wrote {f}")
-    return 0
-
-
-def cmd_view(args: argparse.Namespace) -> int:
-    """Scan as ``scan`` does, logging every finished frame to a rerun viewer."""
-    apply_profile(args, args.profile_parser)
-    if args.out is None and (args.pictures or args.resume):
-        raise ConfigError("--pictures and --resume need --out FILE in view", field="out")
-    threshold = (DEFAULT_SNR_THRESHOLD_DB if args.snr_threshold is None
-                 else args.snr_threshold)
-    live = LiveView(view_options(args, threshold), description=f"cdma-lidar view {args.port}")
-    if live.url:
-        _say(f"web viewer: {live.url}")
-    # Without --out the cloud goes to a temporary file that is never reported.
-    with tempfile.TemporaryDirectory(prefix="cdma-lidar-view-") as tmp:
-        if args.out is None:
-            args.out, args.temporary_out = str(Path(tmp) / "view.npz"), True
-        try:
-            code = cmd_scan(args, on_frame=live.log_frame)
-        except BaseException:
-            live.close()
-            raise
-    _say(f"viewed {live.frames} frames" + (f"; recording in {args.save}" if args.save else ""))
-    try:
-        if live.url:
-            _say("serving the web viewer; Ctrl-C ends it")
-        live.close(wait=wait_forever)
-    except KeyboardInterrupt:  # Ctrl-C between the line above and the wait: the same end
-        live.close()
-    return code
-
-
-def _replay(args: argparse.Namespace, out: Path, options: ScanOptions) -> int:
-    """``scan --port replay://FILE``: a recording through the host's writers and pictures."""
-    for name in ("set", "calibration", "calibrate_intensity", "save_ghost_map", "resume"):
-        if getattr(args, name):
-            raise ConfigError(f"--{name.replace('_', '-')} needs a device, not a replay "
-                              f"({args.port})", field=name)
-    replay = Replay(args.port, out, options)
-    res = replay.finish(pictures_too=args.pictures)
-    img = res.image
-    _say(f"replayed {len(res.clouds)} frames from {replay.source}; {int(img.valid.sum())} of "
-         f"{img.range_m.size} pixels valid in the last")
-    for f in res.files:
-        _say(f"wrote {f}")
-    return 0
-
-
-def cmd_convert(args: argparse.Namespace) -> int:
-    """Convert a cloud file between formats (every frame where the output holds several)."""
-    out = check_output(args.out_file, "OUT")
-    clouds = read_frames(args.in_file)
-    meta = read_metadata(args.in_file) if Path(args.in_file).suffix.lower() == ".mcap" else {}
-    n = write_frames(clouds, out, meta)
-    kept = len(clouds) if out.suffix.lower() in MULTI_FRAME_FORMATS else 1
-    _say(f"wrote {n} points of {kept} of {len(clouds)} frames to {out}"
-         + ("" if kept == len(clouds) else " (this format holds one frame: the last)"))
-    return 0
-
-
-def _load_ghost_map(path: str) -> list[tuple[int, int]]:
-    try:
-        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-        windows = [(int(a), int(b)) for a, b in doc["windows"]]
-    except FileNotFoundError:
-        raise ConfigError(f"ghost map {path!r} does not exist; make one with "
-                          "--save-ghost-map on an empty field", field="ghost_map") from None
-    except OSError as exc:  # a folder, a symlink loop, no permission
-        raise ConfigError(f"ghost map {path!r} cannot be read ({exc.strerror})",
-                          field="ghost_map") from None
-    except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"ghost map {path!r} is not a list of [start, length] windows "
-                          f"({exc})", field="ghost_map") from None
-    if any(a < 0 or b < 1 for a, b in windows):
-        raise ConfigError(f"ghost map {path!r} has a window with start < 0 or length < 1",
-                          field="ghost_map")
-    return windows
-
-
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    """Zeroth-order calibration to a TOML file."""
-
-    out = Path(args.out)
-    if out.suffix.lower() != ".toml":
-        raise ConfigError(f"--out must be a .toml file, not {str(out)!r}", field="out")
-    check_writable(out, "--out")
-    if not 1 <= args.shots <= 65535:
-        raise ConfigError(f"--shots must be from 1 to 65535, not {args.shots}", field="shots")
-    with connect(args.port, **connect_options(args)) as dev:
-        _configure(dev, args.set)
-        cal = calibrate_device(dev, args.target_distance, shots=args.shots,
-                               snr_threshold_db=args.snr_threshold,
-                               max_spread_m=args.max_spread)
-    cal.save(out)
-    _say(f"offset {cal.offset_m:.4f} m, spread {cal.spread_m:.4f} m from {cal.samples} "
-          f"returns of {cal.shots} shots; wrote {out}")
-    return 0
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a port number, not {text!r}") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be from 1 to 65535, not {text!r}")
+    return v

@@ -30,12 +30,12 @@ from numpy.typing import NDArray
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.host.ranging import FLAG_REJECTED, RangeImage
+from cdma_lidar.host.settings import COMBINE_MODES
 
 __all__ = ["COMBINE_MODES", "combine", "nan_median"]
 
 log = logging.getLogger(__name__)
 
-COMBINE_MODES = ("last", "mean", "median")
 
 
 def nan_median(stack: NDArray[np.float64]) -> NDArray[np.float64]:

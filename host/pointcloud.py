@@ -26,6 +26,8 @@ leave them out). The file formats are in :mod:`cdma_lidar.host.cloud_formats`.
 
 from __future__ import annotations
 
+import importlib.metadata
+import json
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -45,8 +47,8 @@ from cdma_lidar.host.ranging import (
 )
 from cdma_lidar.optics.grating import GratingGeometry
 
-__all__ = ["FLAG_BITS", "POINT_FIELDS", "PointCloud", "assemble", "column_times_s",
-           "empty_records"]
+__all__ = ["FIELD_UNITS", "FLAG_BITS", "POINT_FIELDS", "PointCloud", "assemble", "column_times_s",
+           "empty_records", "file_metadata"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,23 @@ POINT_FIELDS: tuple[tuple[str, str], ...] = (
     ("ring", "<u2"), ("range", "<f4"), ("snr_xc", "<f4"), ("flags", "<u2"),
     ("column", "<u2"), ("user_id", "<i4"), ("peak", "<i4"),
 )
+
+#: Unit and a short description (at most 32 characters: LAS extra-bytes descriptions) of
+#: every field of :data:`POINT_FIELDS`, as the files say it (module docstring's table).
+FIELD_UNITS: dict[str, tuple[str, str]] = {
+    "x": ("m", "forward, sensor frame"),
+    "y": ("m", "left, sensor frame"),
+    "z": ("m", "up, sensor frame"),
+    "intensity": ("intensity_unit", "reflectance estimate"),
+    "t": ("s", "time from the frame's start"),
+    "ring": ("channel", "channel k (laser line)"),
+    "range": ("m", "calibrated range"),
+    "snr_xc": ("dB", "SNR_XC of the peak (eq. 44)"),
+    "flags": ("bitfield", "1int 2rej 4for 8gh 16sat, 0 ok"),
+    "column": ("column", "grating column"),
+    "user_id": ("UID", "matched user's UID, -1 none"),
+    "peak": ("correlator units", "correlation peak"),
+}
 
 #: The ``flags`` bitfield (a point with flags 0 is a valid measured point).
 FLAG_BITS: dict[str, int] = {
@@ -67,6 +86,22 @@ FLAG_BITS: dict[str, int] = {
 }
 
 _WRAP = 2**32
+
+
+def file_metadata(snr_threshold_db: float, intensity_unit: str) -> dict[str, str]:
+    """What every recording says about its points (string keys to JSON text).
+
+    ``cdma_lidar_version``; ``snr_threshold_db``, the SNR_XC threshold (dB) the ranges
+    were accepted with; ``intensity_unit``; ``field_units``, each field of
+    :data:`POINT_FIELDS` to its unit (:data:`FIELD_UNITS`; ``intensity`` in
+    ``intensity_unit``).
+    """
+    units = {n: (intensity_unit if u == "intensity_unit" else u)
+             for n, (u, _) in FIELD_UNITS.items()}
+    doc = {"cdma_lidar_version": importlib.metadata.version("cdma-lidar"),
+           "snr_threshold_db": float(snr_threshold_db),
+           "intensity_unit": intensity_unit, "field_units": units}
+    return {k: json.dumps(v) for k, v in doc.items()}
 
 
 def column_times_s(timestamp_us: ArrayLike, done: ArrayLike) -> NDArray[np.float64]:

@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.snr import snr_xc_db
 from cdma_lidar.host.frame import SUMSQ_UNKNOWN, FrameData
+from cdma_lidar.host.settings import DEFAULT_SNR_THRESHOLD_DB
 from cdma_lidar.host.uid_filter import ForeignReturns, find_foreign, select_own
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
@@ -90,8 +91,6 @@ FLAG_GHOST = 8
 FLAG_SATURATED = 16
 METHODS = ("none", "parabolic", "triangle")
 
-#: Default SNR_XC threshold (dB) below which a pixel is rejected.
-DEFAULT_SNR_THRESHOLD_DB = 16.0
 
 
 def sample_range_m(samples_per_chip: int, chip_rate_hz: float) -> float:

@@ -29,6 +29,8 @@ from cdma_lidar.host.cloud_formats import (
     write_frames,
 )
 from cdma_lidar.host.cloud_formats.mcap import read_metadata
+from cdma_lidar.host.intensity import RAW_UNIT
+from cdma_lidar.host.pointcloud import file_metadata
 from cdma_lidar.host.ranging import RangingConfig
 from cdma_lidar.host.scan import ScanFrame, ScanOptions, ScanResult, image_from_cloud, picture_paths
 
@@ -59,10 +61,18 @@ class Replay:
         self.clouds = read_frames(path)
         if not self.clouds:
             raise ConfigError(f"{str(path)!r} holds no frame", field="port")
+        if options.frames > len(self.clouds):
+            raise ConfigError(f"--frames {options.frames} asks for more frames than "
+                              f"{str(path)!r} holds ({len(self.clouds)})", field="frames")
         self.metadata = read_metadata(path) if path.suffix.lower() == ".mcap" else {}
         threshold = options.snr_threshold_db
         self.ranging = RangingConfig() if threshold is None else \
             RangingConfig(snr_threshold_db=threshold)
+        recorded = json.loads(self.metadata.get("snr_threshold_db", "null"))
+        unit = json.loads(self.metadata.get("intensity_unit", json.dumps(RAW_UNIT)))
+        self.metadata |= file_metadata(
+            recorded if threshold is None and recorded is not None
+            else self.ranging.snr_threshold_db, unit)
         self.done: list[ScanFrame] = []
         self.columns_scanned = 0
 

@@ -54,8 +54,8 @@ from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.intensity import RAW_UNIT, intensity
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits, apply_cap
-from cdma_lidar.host.pointcloud import PointCloud, assemble
-from cdma_lidar.host.ranging import RangeImage, estimate_ranges, sample_range_m
+from cdma_lidar.host.pointcloud import PointCloud, assemble, file_metadata
+from cdma_lidar.host.ranging import RangeImage, estimate_ranges, in_windows, sample_range_m
 from cdma_lidar.host.uid_filter import ForeignReturns
 
 __all__ = [
@@ -560,9 +560,10 @@ def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
 
     ``wavelengths_m`` (K), ``angles_deg`` (C, grating rotations), ``beam_elevation_deg``
     and ``beam_azimuth_deg`` (K x C, from the nominal grating; ring 0 is the top beam,
-    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and
-    ``intensity_unit`` (``reflectance`` with a calibrated gain, else
-    :data:`cdma_lidar.host.intensity.RAW_UNIT`).
+    column 0 the leftmost), ``device``, ``configuration``, ``scan_options`` and what
+    :func:`cdma_lidar.host.pointcloud.file_metadata` gives: the toolkit's version, the
+    SNR_XC threshold used, ``intensity_unit`` (``reflectance`` with a calibrated gain,
+    else :data:`cdma_lidar.host.intensity.RAW_UNIT`) and every field's unit.
     """
     el, az = device.beam_angles_deg()
     doc = {"wavelengths_m": device.wavelengths_m.tolist(),
@@ -571,9 +572,10 @@ def scan_metadata(device: Device, options: ScanOptions) -> dict[str, str]:
            "beam_azimuth_deg": np.round(az, 6).tolist(),
            "device": toml_safe(device.identity()),
            "configuration": toml_safe(device.calibration_config()),
-           "scan_options": toml_safe(dataclasses.asdict(options)),
-           "intensity_unit": "reflectance" if options.intensity_gain else RAW_UNIT}
-    return {k: json.dumps(v) for k, v in doc.items()}
+           "scan_options": toml_safe(dataclasses.asdict(options))}
+    unit = "reflectance" if options.intensity_gain else RAW_UNIT
+    return ({k: json.dumps(v) for k, v in doc.items()}
+            | file_metadata(_ranging(device, options).snr_threshold_db, unit))
 
 
 def _ranging(device: Device, options: ScanOptions) -> Any:
@@ -583,6 +585,25 @@ def _ranging(device: Device, options: ScanOptions) -> Any:
     if options.snr_threshold_db is not None:
         ranging = dataclasses.replace(ranging, snr_threshold_db=options.snr_threshold_db)
     return ranging
+
+
+def _check_ghost_windows(windows: tuple[tuple[int, int], ...], device: Device) -> None:
+    """Refuse a ghost window that misses the device's lag gate, or windows covering all of
+    it (every pixel would be rejected as a ghost, silently)."""
+    if not windows:
+        return
+    cfg, ns = device.config, device.ranging_config().samples_per_symbol
+    start, length = int(cfg.get("gate_start", 0)), int(cfg.get("gate_len", ns))
+    gate = (start + np.arange(length)) % ns
+    span = f"lags {start} to {start + length - 1} samples (mod {ns})"
+    for w in windows:
+        if not in_windows(gate, (w,), ns).any():
+            raise ConfigError(f"ghost window {w[0]}:{w[1]} lies outside the device's gate, "
+                              f"{span}", field="ghost_window")
+    if in_windows(gate, windows, ns).all():
+        raise ConfigError(f"ghost windows {', '.join(f'{a}:{b}' for a, b in windows)} cover "
+                          f"the whole gate, {span}: every pixel would be rejected",
+                          field="ghost_window")
 
 
 def open_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions = ScanOptions(),
@@ -609,6 +630,7 @@ def open_scan(device: Device, out: str | os.PathLike[str], options: ScanOptions 
         raise ConfigError(f"snr_threshold_db must be from 0 to {top:.1f} dB (the SNR_XC this "
                           f"configuration can report), not {options.snr_threshold_db:g}",
                           field="snr_threshold")
+    _check_ghost_windows(options.ghost_windows, device)
     spath, folder = state_path(out), frames_path(out)
     if not resume and not force and (spath.exists() or folder.exists()):
         raise ConfigError(f"{str(spath)!r} holds an interrupted scan; finish it with --resume "

@@ -76,6 +76,27 @@ class Table:
             lines.append("| " + " | ".join(_fmt(r.get(c), digits) for c in cols) + " |")
         return "\n".join(lines) + "\n"
 
+    def to_text(self, digits: int = 4) -> str:
+        """Aligned plain text: a header row, then one line per row (numbers to ``digits``
+        significant digits, right-aligned; text left-aligned)."""
+        cells = [[_fmt(r.get(c), digits) for c in self.columns] for r in self.rows]
+        numeric = [all(isinstance(r.get(c), int | float) or r.get(c) is None
+                       for r in self.rows) for c in self.columns]
+        widths = [max([len(c), *(len(row[i]) for row in cells)])
+                  for i, c in enumerate(self.columns)]
+
+        def line(values: Sequence[str]) -> str:
+            return "  ".join(v.rjust(w) if num else v.ljust(w)
+                             for v, w, num in zip(values, widths, numeric, strict=True)).rstrip()
+
+        return "\n".join([line(self.columns), *(line(row) for row in cells)])
+
+    def __str__(self) -> str:
+        return self.to_text()
+
+    def __repr__(self) -> str:
+        return f"Table: {len(self)} rows x {len(self.columns)} columns\n{self.to_text()}"
+
 
 def plain(v: Any) -> Scalar:
     """numpy scalars -> Python scalars (JSON-able); anything else unchanged."""

@@ -101,6 +101,7 @@ def _cmd_device(args: argparse.Namespace) -> int:
                          session_idle_s=args.session_idle)
     host, port = _parse_hostport(args.tcp)
     scene = load_scene(args.scene)  # a bad scene is refused before a key or a warning
+    _check_free(args.tcp, host, port)  # and a taken port: one line, no warning before it
     key = None
     if args.key_file and args.insecure:
         raise ConfigError("--key-file and --insecure exclude each other", "--insecure")
@@ -128,6 +129,23 @@ def _cmd_device(args: argparse.Namespace) -> int:
                          session_idle_s=args.session_idle)
     except OSError as exc:
         raise ConfigError(f"--tcp {args.tcp}: cannot listen ({exc.strerror})", "--tcp") from exc
+
+
+def _check_free(text: str, host: str, port: int) -> None:
+    """ConfigError unless ``port`` can be listened on at ``host`` (checked, then closed)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError:
+        return  # an unresolvable host: serve_tcp says so
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers do: a port
+        try:                                                      # in TIME_WAIT is free
+            s.bind(addr)
+        except OSError as exc:
+            raise ConfigError(f"--tcp {text}: cannot listen ({exc.strerror}): another device "
+                              "or program listens there; choose another port",
+                              "--tcp") from None
 
 
 def _announce(text: str) -> None:

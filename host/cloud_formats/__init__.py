@@ -18,9 +18,13 @@ Every module also reads back what it wrote, ``read_frames(path) -> [PointCloud, 
 (:data:`READERS`, :func:`read_frames`; the records land in their pixels by ``ring`` and
 ``column``, :mod:`.grid`), so ``cdma-lidar convert IN OUT`` goes between every pair and
 ``replay://FILE`` (:mod:`cdma_lidar.host.replay`) feeds a recording back through the host.
-What a format cannot hold is lost on the way: PCD and LAS keep no wavelengths or column
-rotations, PLY and PCD no stamp (their bytes depend only on the
-scan), LAS quantises intensity to 1/4096.
+What a format cannot hold is lost on the way: PCD keeps no wavelengths or column
+rotations, PLY and PCD no stamp (their bytes depend only on the scan), LAS quantises
+intensity to 1/4096. Every file opens in the reader people use (Open3D for .ply and
+.pcd, laspy for .las, the mcap ROS 2 reader for .mcap: tests/host/test_readers.py); a
+list too long for one header line is split over several (.ply) or goes in a VLR (.las)
+or a metadata record (.mcap), never on a line a reader rejects. Each reader checks the
+header's point count against the bytes that follow: a file cut short is refused.
 
 Adding a format is one new module here with ``EXTENSION``,
 ``write(cloud, path) -> int`` (points written) and ``read_frames``, listed in
@@ -40,8 +44,8 @@ from cdma_lidar.fileio import check_writable
 from cdma_lidar.host.cloud_formats import las, mcap, npz, pcd, ply
 from cdma_lidar.host.pointcloud import PointCloud
 
-__all__ = ["FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES", "READERS", "check_output",
-           "read_frames", "write", "write_frames"]
+__all__ = ["FORMATS", "METADATA_FORMATS", "MULTI_FRAME_FORMATS", "OPTIONAL_LIBRARIES",
+           "READERS", "check_output", "read_frames", "write", "write_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +64,9 @@ MULTI_FRAME_FORMATS: dict[str, Callable[..., int]] = {
 READERS: dict[str, Callable[[str | os.PathLike[str]], list[PointCloud]]] = {
     m.EXTENSION: m.read_frames for m in (ply, pcd, npz, las, mcap)
 }
+
+#: Extensions whose writer also takes the scan's ``metadata`` (string keys to JSON text).
+METADATA_FORMATS = (".las", ".mcap")
 
 #: Extension -> (import name, extra) of the optional library a format needs.
 OPTIONAL_LIBRARIES: dict[str, tuple[str, str]] = {".las": ("laspy", "las"),
@@ -81,10 +88,14 @@ def check_output(path: str | os.PathLike[str], option: str = "--out") -> Path:
     return check_writable(p, option)
 
 
-def write(cloud: PointCloud, path: str | os.PathLike[str]) -> int:
-    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las, .mcap)."""
+def write(cloud: PointCloud, path: str | os.PathLike[str],
+          metadata: Mapping[str, str] | None = None) -> int:
+    """Write ``cloud`` in the format its extension names (.ply, .pcd, .npz, .las, .mcap);
+    ``metadata`` goes into the formats that keep it (:data:`METADATA_FORMATS`)."""
     p = check_output(path)
-    n = FORMATS[p.suffix.lower()](cloud, p)
+    ext = p.suffix.lower()
+    n = (FORMATS[ext](cloud, p, metadata) if ext in METADATA_FORMATS  # type: ignore[call-arg]
+         else FORMATS[ext](cloud, p))
     log.info("wrote %d points to %s", n, p)
     return n
 
@@ -93,15 +104,16 @@ def write_frames(clouds: Sequence[PointCloud], path: str | os.PathLike[str],
                  metadata: Mapping[str, str] | None = None) -> int:
     """Write every frame where the format holds several (.mcap), else the last one.
 
-    ``metadata`` (string keys to JSON text: beam angles, wavelengths, configuration) goes
-    into the formats that keep it (.mcap); the others have their fixed header fields.
+    ``metadata`` (string keys to JSON text: beam angles, wavelengths, configuration, the
+    threshold, units and version) goes into the formats that keep it (.mcap, .las); the
+    others have their fixed header fields.
     """
     if not clouds:
         raise ConfigError("no frame to write", field="out")
     p = Path(path)
     writer = MULTI_FRAME_FORMATS.get(p.suffix.lower())
     if writer is None:
-        return write(clouds[-1], p)
+        return write(clouds[-1], p, metadata)
     check_output(p)
     n = writer(clouds, p, metadata)
     log.info("wrote %d frames, %d points to %s", len(clouds), n, p)

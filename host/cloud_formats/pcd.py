@@ -3,7 +3,8 @@ unless extra points (kept foreign returns) are present, then unorganised (HEIGHT
 
 Every field of :data:`cdma_lidar.host.pointcloud.POINT_FIELDS` under its own name;
 pixels without a range have NaN x y z. An empty cloud (no pixels) is WIDTH 0,
-HEIGHT 1, POINTS 0.
+HEIGHT 1, POINTS 0. ``POINTS`` is checked against the bytes after the header: a file
+cut short is refused, not read as a smaller cloud.
 """
 
 from __future__ import annotations
@@ -64,8 +65,14 @@ def read_frames(path: str | os.PathLike[str]) -> list[PointCloud]:
         dt = np.dtype([(n, types[(s, t)]) for n, s, t in
                        zip(head["FIELDS"], head["SIZE"], head["TYPE"], strict=True)])
         width, height = int(head["WIDTH"][0]), int(head["HEIGHT"][0])
+        points = int(head["POINTS"][0])
     except (KeyError, ValueError) as exc:
         raise ConfigError(f"{str(path)!r}: a PCD header cdma-lidar did not write ({exc})",
                           field="in") from None
-    rec = np.frombuffer(raw[end + len(b"DATA binary\n"):], dtype=dt)
+    body = raw[end + len(b"DATA binary\n"):]
+    if points != width * height or points * dt.itemsize != len(body):
+        raise ConfigError(f"{str(path)!r} is cut short or padded: its header says {points} "
+                          f"points of {width} x {height} ({points * dt.itemsize} bytes), the "
+                          f"file holds {len(body)} bytes of them", field="in")
+    rec = np.frombuffer(body, dtype=dt)
     return [cloud_from_records(rec, shape=(height, width) if height > 1 else None)]

@@ -54,3 +54,16 @@ def test_scan_by_url_with_a_calibration_file_writes_out(tmp_path) -> None:
 def test_scan_options_are_checked() -> None:
     with pytest.raises(ConfigError, match="combine must be one of"):
         cdma_lidar.scan(URL, combine="max", progress=False)
+
+
+def test_a_study_table_prints_as_a_table() -> None:
+    """``print(run_study(...).table)`` in the README: a header row and aligned rows."""
+    from cdma_lidar.study.table import Table
+
+    table = Table(["degree", "snr_db", "scene"],
+                  [{"degree": 5, "snr_db": 12.345678, "scene": "flat-wall"},
+                   {"degree": 11, "snr_db": None, "scene": "wall"}])
+    assert str(table).splitlines() == ["degree  snr_db  scene",
+                                       "     5   12.35  flat-wall",
+                                       "    11          wall"]
+    assert repr(table).splitlines() == ["Table: 2 rows x 3 columns", *str(table).splitlines()]

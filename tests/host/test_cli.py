@@ -215,7 +215,7 @@ def test_scan_over_a_noisy_serial_line_gives_the_clean_cloud(capsys, tmp_path):
         out = tmp_path / name
         code, _, err = _run(capsys, "scan", "--port", f"virtual://flat-wall?seed=2{line}",
                                "--out", str(out), "--no-progress", "--frame-id", "8",
-                               "--timeout", "0.5")
+                               "--timeout", "2")
         assert code == 0, err
         return out.read_bytes()
 

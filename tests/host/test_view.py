@@ -9,6 +9,7 @@ Ctrl-C), and rerun's headless viewer renders the recording to a screenshot.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import signal
@@ -126,6 +127,41 @@ def test_view_without_rerun_names_the_extra(tmp_path, capsys, monkeypatch) -> No
     assert line.endswith("the live viewer needs rerun-sdk: pip install 'cdma-lidar[view]'")
 
 
+def listeners() -> dict[int, set[str]]:
+    """{port: {local addresses}} of every listening TCP socket (IPv4 and IPv6) here."""
+    out: dict[int, set[str]] = {}
+    for name, size in (("/proc/net/tcp", 4), ("/proc/net/tcp6", 16)):
+        for line in Path(name).read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            if state != "0A":  # LISTEN
+                continue
+            addr, port = local.split(":")
+            raw = bytes.fromhex(addr)
+            # /proc prints each 32-bit word in host (little-endian) order
+            ip = b"".join(raw[i:i + 4][::-1] for i in range(0, size, 4))
+            out.setdefault(int(port, 16), set()).add(
+                str(ipaddress.ip_address(ip)))
+    return out
+
+
+def test_listeners_sees_a_socket_on_every_interface() -> None:
+    """The check above can fail: a socket on 0.0.0.0 shows as such."""
+    with socket.socket() as s:
+        s.bind(("0.0.0.0", 0))  # the case the check must catch
+        s.listen()
+        assert listeners()[s.getsockname()[1]] == {"0.0.0.0"}
+
+
+def test_bind_reaches_the_viewer_commands() -> None:
+    from cdma_lidar.host.view import ViewOptions
+
+    wide = ViewOptions(web=True, spawn=True, bind="0.0.0.0")
+    assert all(argv[argv.index("--bind") + 1] == "0.0.0.0" for argv in wide.viewer_commands())
+    assert wide.grpc_urls()[0].startswith("rerun+http://127.0.0.1:")
+    default = ViewOptions(web=True).viewer_commands()[0]
+    assert default[default.index("--bind") + 1] == "127.0.0.1"
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -153,6 +189,10 @@ def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
             if line.startswith("serving the web viewer"):
                 break
         assert any(ln.startswith(f"web viewer: http://127.0.0.1:{web}/?url=") for ln in lines)
+        # everything served listens on loopback only (issue 43: not 0.0.0.0)
+        listening = listeners()
+        assert listening.get(web) == {"127.0.0.1"} and listening.get(grpc) == {"127.0.0.1"}, \
+            listening
         page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=30).read()
         assert b"<html" in page.lower() and b"rerun" in page.lower()
         proc.send_signal(signal.SIGINT)
@@ -163,34 +203,45 @@ def test_web_viewer_is_served_until_ctrl_c(tmp_path) -> None:
             proc.wait()
 
 
-def _wait_ended_by(setup: str) -> subprocess.CompletedProcess:
-    """Run ``setup`` then wait_forever in a fresh interpreter (SIGINT's handler as from a
-    terminal); it prints ``ended`` when the wait ends in KeyboardInterrupt."""
-    code = (_AS_FROM_A_TERMINAL + "import os, signal, threading, time\n" + setup
-            + "from cdma_lidar.host.view import wait_forever\n"
+def _wait_ended_by(signal_code: str) -> subprocess.CompletedProcess:
+    """Run wait_forever in a fresh interpreter (SIGINT's handler as from a terminal) while a
+    second thread runs ``signal_code`` once the main thread is inside wait_forever (seen in
+    its stack: no timing is assumed, however slowly the child starts); the child prints
+    ``ended`` when the wait ends in KeyboardInterrupt."""
+    code = (_AS_FROM_A_TERMINAL + "import os, signal, sys, threading, time\n"
+            "from cdma_lidar.host.view import wait_forever\n"
+            "main = threading.get_ident()\n"
+            "def inside():\n"
+            "    frame = sys._current_frames().get(main)\n"
+            "    while frame is not None:\n"
+            "        if frame.f_code is wait_forever.__code__:  # and past its set-up:\n"
+            "            return signal.getsignal(signal.SIGTERM) is signal.default_int_handler\n"
+            "        frame = frame.f_back\n"
+            "    return False\n"
+            "def hit():\n"
+            "    while not inside():\n"
+            "        time.sleep(0.01)\n"
+            "    " + signal_code + "\n"
+            "threading.Thread(target=hit, daemon=True).start()\n"
             "try:\n"
             "    wait_forever()\n"
             "except KeyboardInterrupt:\n"
             "    print('ended')\n")
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60)
+                          timeout=120)
 
 
 def test_ctrl_c_ends_the_wait_when_another_thread_takes_the_signal() -> None:
     """SIGINT handled on a thread other than the main one (the viewer runs many) still
     ends wait_forever: the main thread wakes from its sleep and raises KeyboardInterrupt."""
-    proc = _wait_ended_by("def hit():\n"
-                          "    time.sleep(0.3)\n"
-                          "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
-                          "threading.Thread(target=hit).start()\n")
+    proc = _wait_ended_by("signal.pthread_kill(threading.get_ident(), signal.SIGINT)")
     assert proc.stdout.strip() == "ended", proc.stderr[-2000:]
 
 
 def test_sigterm_ends_the_wait_as_ctrl_c_does() -> None:
     """``kill`` (SIGTERM) ends a served viewer the way Ctrl-C does, so the recording is
     flushed: the one way to end a viewer started in the background with SIGINT ignored."""
-    proc = _wait_ended_by(
-        "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)).start()\n")
+    proc = _wait_ended_by("os.kill(os.getpid(), signal.SIGTERM)")
     assert proc.stdout.strip() == "ended", (proc.returncode, proc.stderr[-2000:])
 
 
@@ -217,3 +268,17 @@ def test_headless_viewer_screenshot_shows_the_scan(near_far_view, tmp_path) -> N
     # the dark theme is grey; the range and SNR_XC images and the points add saturated colour
     saturation = img.max(axis=2) - img.min(axis=2)
     assert np.count_nonzero(saturation > 100) > 2000, json.dumps(img.mean(axis=(0, 1)).tolist())
+
+
+def test_view_steer_takes_commands_on_stdin(tmp_path) -> None:
+    """``view --steer`` end to end: settings typed on stdin, ``quit`` ends it; the colour
+    change reaches the recording (the colour scale names SNR_XC's fixed span)."""
+    rrd = tmp_path / "steer.rrd"
+    proc = subprocess.run(
+        [sys.executable, "-m", "cdma_lidar.cli", "view", "--port", "virtual://flat-wall?seed=1",
+         "--steer", "--save", str(rrd), "--no-progress", "--frame-id", "1"],
+        input="color snr\nthreshold 18\nquit\n", capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("steer: type threshold DB")
+    spans = [row["TextDocument:text"][0] for row in recorded(rrd)["color_scale/span"].values()]
+    assert spans[-1].startswith("snr: 0 dB")
