@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from cdma_lidar import __version__
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
@@ -55,7 +55,6 @@ from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.protocol.views import Info
-from cdma_lidar.rounding import ROUNDING_MODES
 from cdma_lidar.scene.acquire import (
     acquire,
     boot_power_codes,
@@ -213,7 +212,11 @@ class VirtualFirmware(DeviceApp):
                                                  if k != "code_index"))
 
     def _check(self, c: dict[str, Any]) -> None:
-
+        """Check a merged configuration once: the board's own limits here (code pair and
+        members, UID length, samples per chip, peak exclusion, columns, mode, samples per
+        column), the receive chain's fields where the chain's configuration is built
+        (``ReceiverConfig``, then ``widths``: the gate inside the period); each error
+        names the field and its range."""
         pu, _ = check_pair(c["poly_u"], c["poly_v"])
         degree = pu[0]
         if not 3 <= degree <= LIMITS["max_degree"]:
@@ -227,42 +230,27 @@ class VirtualFirmware(DeviceApp):
         if any(not 0 <= x <= n + 1 for x in idx):
             raise out_of_range("code_index", f"members 0 to {n + 1}", idx)
         check_int("uid_bits", c["uid_bits"], 1, LIMITS["max_uid_bits"])
-        check_int("uid", c["uid"], 0, (1 << c["uid_bits"]) - 1)
         check_int("samples_per_chip", c["samples_per_chip"], LIMITS["spc_min"], LIMITS["spc_max"])
-        check_int("averages", c["averages"], 1, LIMITS["max_averages"])
-        ns = n * c["samples_per_chip"]
-        check_int("gate_start", c["gate_start"], 0, ns - 1)
-        check_int("gate_len", c["gate_len"], 1, ns)
-        check_int("peak_exclude", c["peak_exclude"], 0, ns)
-        check_int("peaks", c["peaks"], 1, LIMITS["max_peaks"])
-        check_int("out_shift", c["out_shift"], 0, 62)
-        check_int("out_bits", c["out_bits"], 8, 32)
         check_int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
-        if c["rounding"] not in ROUNDING_MODES:
-            raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), c["rounding"])
         if c["mode"] not in MODES:
             raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
+        self._receiver_config(c).widths(n)
+        ns = n * c["samples_per_chip"]
+        check_int("peak_exclude", c["peak_exclude"], 0, ns)
         samples = c["averages"] * c["uid_bits"] * ns
         if samples > LIMITS["max_column_samples"]:
             raise out_of_range("averages", f"at most {LIMITS['max_column_samples']} samples per "
                                "column (averages * uid_bits * N * samples_per_chip)", samples)
-        rc = self._receiver_config(c)
-        try:
-            rc.widths(n)
-        except ConfigError as exc:
-            raise ConfigError(str(exc), field=exc.field or "out_bits") from exc
 
     def _receiver_config(self, c: dict[str, Any]) -> ReceiverConfig:
-        try:
-            return ReceiverConfig(
-                adc_bits=self.spec.adc_bits, samples_per_chip=c["samples_per_chip"],
-                averages=c["averages"], uid_bits=c["uid_bits"], uid=c["uid"],
-                gate_start=c["gate_start"], gate_len=c["gate_len"],
-                peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
-                out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
-                peaks=c["peaks"])
-        except ConfigError as exc:
-            raise ConfigError(str(exc), field=exc.field) from exc
+        """The receive chain's configuration of ``c`` (its fields checked there)."""
+        return ReceiverConfig(
+            adc_bits=self.spec.adc_bits, samples_per_chip=c["samples_per_chip"],
+            averages=c["averages"], uid_bits=c["uid_bits"], uid=c["uid"],
+            gate_start=c["gate_start"], gate_len=c["gate_len"],
+            peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
+            out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
+            peaks=c["peaks"])
 
     def render_settings(self) -> RenderSettings:
         """What the instrument emits and samples under the current configuration."""

@@ -381,3 +381,23 @@ def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
     monkeypatch.setattr(acquire, "BATCH_VALUES", 2 * cfg.frame_samples)  # batches of 2
     assert [key(c) for c in fw.scan(2, 0, fw.columns)] == [key(c) for c in want]
     assert not got[0].records.flags.writeable
+
+
+@pytest.mark.parametrize(("change", "field", "allowed"), [
+    ({"out_bits": 40}, "out_bits", "8"), ({"out_shift": 63}, "out_shift", "62"),
+    ({"rounding": "up"}, "rounding", "truncate"), ({"peaks": 9}, "peaks", "8"),
+    ({"averages": 0}, "averages", "1024"), ({"uid": 2}, "uid", "1"),
+    ({"gate_len": 2047 * 4 + 1}, "gate_len", str(2047 * 4)),
+    ({"samples_per_chip": 17}, "samples_per_chip", "16"),
+    ({"peak_exclude": 2047 * 4 + 1}, "peak_exclude", str(2047 * 4))])
+def test_a_bad_key_is_refused_once_naming_the_field_and_its_range(change, field, allowed):
+    """The board checks its own limits, the receive chain's configuration checks its
+    fields (ReceiverConfig): each refusal names the field and the allowed range, and
+    leaves the configuration as it was."""
+    fw = VirtualFirmware(load_scene("flat-wall?instrument.columns=2"), 0)
+    before = fw.get_config()
+    with pytest.raises(ConfigError) as info:
+        fw.set_config(change)
+    assert info.value.field == field
+    assert allowed in str(info.value)
+    assert fw.get_config() == before
