@@ -43,7 +43,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar import __version__
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import out_of_range
@@ -66,6 +65,7 @@ from cdma_lidar.scene.acquire import (
 )
 from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings
 from cdma_lidar.scene.model import Scene
+from cdma_lidar.version import __version__
 
 __all__ = ["LIMITS", "VirtualFirmware"]
 
