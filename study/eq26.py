@@ -131,7 +131,7 @@ def eq26_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     null = float(freq[1:][np.flatnonzero(power[1:] <= floor)[0]])
     mixed = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": True}), seed=0)
     single = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": False}), seed=0)
-    ratio = [m.budget.coefficients(spec.samples_per_chip)["thermal"] for m in (mixed, single)]
+    ratio = [m.noise.coefficients(spec.samples_per_chip)["thermal"] for m in (mixed, single)]
     # eqs. 20 and 25 measured on rendered noise (no echo): one record of the sequential sum,
     # the mean of ``spec.channels`` aligned records of it, and one simultaneous record
     var = {}
