@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import ConfigError
+from cdma_lidar.errors import ConfigError, DeviceError
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
@@ -175,20 +175,20 @@ class FrameLink:
     (:func:`cdma_lidar.scene.acquire.receiver_config`) and the power matrix the host
     sets; the identity and configuration announced are the virtual device's own
     (:meth:`VirtualFirmware.info`, ``get_config``), the columns' timestamps its clock's
-    (:func:`cdma_lidar.scene.acquire.clock_us`, counted from this link's opening).
-    What the host's scan pipeline needs of a link, and no more: a configuration change
-    is refused (a study frame runs the boot configuration), and the eye-safety cap is
-    not checked (the host's default power is far below it).
+    (:func:`cdma_lidar.scene.acquire.clock_us`, counted from this link's opening), its
+    power matrix the device's (set and checked against the eye-safety cap by the device's
+    own :meth:`VirtualFirmware.set_power`, a refusal a DeviceError naming ``power`` as
+    the wire's NAK is). What the host's scan pipeline needs of a link, and no more: a
+    configuration change is refused (a study frame runs the boot configuration).
     """
 
     def __init__(self, scene_name: str, seed: int) -> None:
-        device = VirtualFirmware(load_scene(scene_name), seed)
-        self.info, self.config = device.info(), device.get_config()
-        self.instrument = device.instrument
+        self._device = VirtualFirmware(load_scene(scene_name), seed)
+        self.info, self.config = self._device.info(), self._device.get_config()
+        self.instrument = self._device.instrument
         self.settings = RenderSettings.from_spec(self.instrument.spec)
         cfg, codes = receiver_config(self.instrument, self.settings)
         self.receiver = FastReceiver(cfg, codes)
-        self.power_code = boot_power_codes(self.instrument)
         self._chips = 0
 
     def hello(self) -> Any:
@@ -206,9 +206,11 @@ class FrameLink:
 
     def set_power(self, matrix: Any, channel_start: int = 0, column_start: int = 0) -> None:
         """Store a rectangle of the power matrix (1/65535 of the per-pixel maximum)."""
-        p = np.asarray(matrix, dtype=np.uint16)
-        self.power_code[channel_start:channel_start + p.shape[0],
-                        column_start:column_start + p.shape[1]] = p
+        try:
+            self._device.set_power(channel_start, column_start,
+                                   np.asarray(matrix, dtype=np.uint16))
+        except ConfigError as exc:
+            raise DeviceError(str(exc), field=exc.field) from exc
 
     def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
              frame: int | None = None) -> Iterator[ColumnResult]:
@@ -216,7 +218,7 @@ class FrameLink:
         inst, settings = self.instrument, self.settings
         count = inst.columns - first_column if columns is None else columns
         frame_id = 0 if frame is None else int(frame)
-        power = power_w_of_codes(inst.spec, self.power_code)
+        power = self._device.power_w()
         angles = inst.spec.rotations_deg
         for _ in range(frames):
             for cols in column_batches(first_column, count, settings.frame_samples):

@@ -51,3 +51,19 @@ def test_study_frame_refuses_a_negative_seed_in_one_line(capsys, tmp_path):
                         str(tmp_path / "x.npz"))
     assert code == 2
     assert "--seed" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_study_frames_power_is_refused_over_the_cap_as_the_device_refuses_it():
+    """The study link keeps the device's power matrix: a column over the eye-safety cap
+    is a DeviceError naming ``power`` (what the wire's NAK gives the host's scan)."""
+    from cdma_lidar.errors import DeviceError
+    from cdma_lidar.study.simulate import FrameLink
+
+    link = FrameLink(f"{SCENE}?instrument.columns=2", 1)
+    k = link.instrument.channels
+    with pytest.raises(DeviceError) as info:
+        link.set_power(np.full((k, 2), 65535))
+    assert info.value.field == "power"
+    link.set_power(np.full((k, 2), 7))
+    (col,) = list(link.scan(0, 1, frame=0))
+    assert col.column == 0 and col.frame == 0
