@@ -48,10 +48,12 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import calibrate_device, summarise
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings, _draw_exact_sums
+from cdma_lidar.scene.codebook import Codebook
+from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings
 from cdma_lidar.scene.model import FIDELITY_LEVELS
 from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.scene.streams import seed_words
+from cdma_lidar.scene.sums import _draw_exact_sums
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -90,16 +92,17 @@ def _wall(strip_channels: int | None, columns: int = 32, dark: bool = False) -> 
 
 def _kernel_args(inst: Instrument, cfg: RenderSettings, column: int) -> tuple | None:
     """The arguments echo() hands the per-channel kernel at ``column`` (None: nothing lit)."""
-    f, _ = inst._frame_bins(cfg)
+    book = inst.codebook
+    f, _ = book.frame_bins(cfg)
     chans = inst.lit_channels(column)
     if chans.size == 0:
         return None
     amps = inst.gain_v_per_w[chans, column] * inst.default_power_w[chans, column]
-    taus = inst.delay_s[chans, column] + inst._sample_shift_s(cfg)
+    taus = inst.delay_s[chans, column] + book.sample_shift_s(cfg)
     members = tuple(int(cfg.code_index[c]) for c in chans)
-    dfts, period = inst._chip_spectra(cfg, members, cfg.uid, cfg.uid_bits)
-    return (f[1], amps, taus, *inst._stack(dfts, members), period,
-            inst._spectral_weight(cfg, period))
+    dfts, period = book.chip_spectra(cfg, members, cfg.uid, cfg.uid_bits)
+    return (f[1], amps, taus, *book.stack(dfts, members), period,
+            book.spectral_weight(cfg, period))
 
 
 def _cost(scene) -> dict[str, float]:
@@ -112,7 +115,7 @@ def _cost(scene) -> dict[str, float]:
         inst.echo(c, cfg)
     rx = fw.receiver()
     args = [a for a in (_kernel_args(inst, cfg, c) for c in cols) if a is not None]
-    scale = inst._fine_scale()[0] / 256  # LSB per volt
+    scale = inst.adc.fine_scale()[0] / 256  # LSB per volt
     means = [inst.echo(c, cfg) * scale * cfg.averages for c in cols]
     sigma = inst.noise_rms_v * scale
 
@@ -122,7 +125,7 @@ def _cost(scene) -> dict[str, float]:
 
     samples = np.stack([inst.render_exact(c, cfg, 1) for c in cols])
     t = {
-        "kernel": _best(lambda: [Instrument._sum_delayed(*a) for a in args]),
+        "kernel": _best(lambda: [Codebook.sum_delayed(*a) for a in args]),
         "echo": _best(lambda: [inst.echo(c, cfg) for c in cols]),
         "noise": _best(noise),
         # the first frame: echoes synthesised, not taken from the previous frame
@@ -163,7 +166,7 @@ def _frame_steps(level: str) -> dict[str, object]:
 
     def first() -> None:
         inst.forget()
-        inst._spectra.clear()  # the codebook: code spectra, waveform tables
+        inst.codebook.forget()  # the codebook: code spectra, waveform tables
         render()
 
     def rep_cold() -> None:

@@ -7,13 +7,14 @@ to import another just for an exception class.
 The Python quick start, ``cdma_lidar.open(URL)``, ``.calibrate(...)``, ``.scan(...)``
 and ``.run_study(...)``, lives in :mod:`cdma_lidar.api` at the top of the layers;
 its names are loaded from there on first use (PEP 562), so ``import cdma_lidar`` loads
-nothing else and the core never imports an upper layer at import time.
+nothing else and the core never imports an upper layer at import time. ``__version__``
+lives in :mod:`cdma_lidar.version` (what the layers import; a constant, re-exported here).
 """
 
 import importlib
 from typing import Any
 
-__version__ = "0.1.0"
+from cdma_lidar.version import __version__
 
 #: Names of :mod:`cdma_lidar.api` that ``cdma_lidar.NAME`` loads on first use.
 API_NAMES = ("calibrate", "open", "run_study", "scan")

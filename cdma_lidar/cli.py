@@ -25,8 +25,8 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
-from cdma_lidar import __version__
 from cdma_lidar.errors import CdmaLidarError
+from cdma_lidar.version import __version__
 
 __all__ = ["COMMANDS", "build_parser", "main", "register"]
 

@@ -4,7 +4,8 @@ For every channel of a grating column the receive chain reports the same dozen
 integers; the receiver model returns them (``ReceiverOutput``), the wire carries
 them (a COLUMN_RESULT channel record), the host stacks them into frames
 (``FrameData``) and the RTL co-simulation decodes them. :data:`RECORD` is the one
-declaration all of those views are derived from: per field its name, logical
+declaration all of those views are derived from or checked against (the classes write
+their fields out, and tests compare them with :data:`FIELD_NAMES`): per field its name, logical
 dtype and trailing shape (after the channel axis), unit, meaning, allowed range
 and how it travels on the wire.
 
@@ -26,14 +27,11 @@ with a ``P-1`` axis repeat per extra peak, so a record is
 
 from __future__ import annotations
 
-import inspect
 import itertools
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 __all__ = [
     "FIELD_NAMES",
@@ -47,7 +45,6 @@ __all__ = [
     "WireField",
     "WireLayout",
     "record_field",
-    "record_fields",
     "record_size",
     "wire_layout",
 ]
@@ -265,38 +262,3 @@ def wire_layout() -> tuple[WireLayout, ...]:
             out.append(WireLayout(w, off, 0))
             off += w.fixed_size
     return tuple(out)
-
-
-_T = TypeVar("_T", bound=type)
-
-
-def record_fields(after: str | None = None,
-                  leading: tuple[str, ...] = ("K",)) -> Callable[[_T], _T]:
-    """Class decorator: add one ``NDArray`` attribute per record field, for ``@dataclass``.
-
-    The record's annotations go after the class's own annotation ``after`` (first
-    when None), in record order; apply ``@dataclass`` on top of this decorator.
-    The class docstring gains one line per field: ``name (leading..., trailing)
-    dtype  unit: meaning``.
-    """
-    def add(cls: _T) -> _T:
-        own = dict(inspect.get_annotations(cls))
-        mine = {f.name: NDArray[f.dtype] for f in RECORD}  # type: ignore[name-defined]
-        names = list(own)
-        at = 0 if after is None else names.index(after) + 1
-        merged = {n: own[n] for n in names[:at]} | mine | {n: own[n] for n in names[at:]}
-        cls.__annotations__ = merged
-        cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n" + _field_lines(leading) + "\n"
-        return cls
-
-    return add
-
-
-def _field_lines(leading: tuple[str, ...]) -> str:
-    rows = []
-    for f in RECORD:
-        shape = "(" + ", ".join((*leading, *(str(a) for a in f.axes))) + \
-            ("," if len(leading) + len(f.axes) == 1 else "") + ")"
-        unit = f" [{f.unit}]" if f.unit else ""
-        rows.append(f"    {f.name} {shape} {np.dtype(f.dtype).name}{unit}: {f.doc}")
-    return "\n".join(rows)

@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar import __version__
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_open, atomic_write_text, check_writable
 from cdma_lidar.host import pictures
@@ -41,6 +40,7 @@ from cdma_lidar.host.cli import connect_options
 from cdma_lidar.host.connection import Device, connect
 from cdma_lidar.host.ranging import lag_to_range_m
 from cdma_lidar.host.settings import CAPTURE_KINDS
+from cdma_lidar.version import __version__
 
 __all__ = ["Capture", "capture", "cmd_capture", "write_sigmf"]
 

@@ -14,7 +14,6 @@ import logging
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -23,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
 from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
 from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
+from cdma_lidar.paths import default_key_file
 from cdma_lidar.protocol.auth import load_key
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode
@@ -171,18 +171,6 @@ class Device:
 
 #: Environment variable naming the key file of a device reached over a network.
 KEY_FILE_ENV = "CDMA_LIDAR_KEY_FILE"
-
-
-def default_key_file() -> Path:
-    """Where a device key belongs: outside any working tree, in
-    ``$XDG_CONFIG_HOME/cdma-lidar/device.key`` (default ``~/.config/cdma-lidar/device.key``).
-
-    A host reaching ``socket://`` without ``--key-file`` or $CDMA_LIDAR_KEY_FILE reads it
-    from there when it exists, so the README's commands leave no secret in the repository.
-    """
-    base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"),
-                                                              ".config")
-    return Path(base) / "cdma-lidar" / "device.key"
 
 
 def resolve_key(url: str, key_file: str | None = None) -> bytes | None:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.column_record import RECORD, record_fields
+from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
 
 __all__ = ["SUMSQ_UNKNOWN", "FrameData", "clamp_sumsq"]
@@ -46,23 +46,47 @@ def clamp_sumsq(values: Any) -> NDArray[np.int64]:
 
 
 @dataclass
-@record_fields(leading=("K", "C"))
 class FrameData:
     """Receiver results of one frame as ``(K, C, ...)`` arrays (K channels, C columns).
 
-    Its fields are one array per field of the column record (listed at the end; the
-    ``record_fields`` decorator adds them from :data:`cdma_lidar.column_record.RECORD`),
-    then:
+    Its fields are one array per field of the column record, in its order
+    (:data:`cdma_lidar.column_record.RECORD`: the ``ReceiverOutput`` shapes with the
+    column axis C added; a test checks the two lists agree), then:
 
     angle_deg (C,) float64: grating rotation of each column (deg), NaN until it arrives.
     done (C,) bool: True for columns that have arrived.
     timestamp_us (C,) int64: the device clock when each column was measured (us, the
     wire's u32 that wraps every 71.6 min; 0 until it arrives).
     frame: frame number.
-
-    The record's arrays (the ``ReceiverOutput`` shapes with the column axis C added):
     """
 
+    #: (K, C) [samples] lag of the strongest peak; -1: no eligible lag
+    peak_lag: NDArray[np.int64]
+    #: (K, C) [out LSB] scaled correlation out at peak_lag
+    peak: NDArray[np.int64]
+    #: (K, C, 2) [out LSB] out at peak_lag-1, peak_lag+1
+    neighbours: NDArray[np.int64]
+    #: (K, C) [lags] gate lags in the noise floor
+    noise_count: NDArray[np.int64]
+    #: (K, C) [out LSB] sum of out over the noise lags
+    noise_sum: NDArray[np.int64]
+    #: (K, C) [out LSB^2] sum of out^2 over the noise lags
+    noise_sumsq: NDArray[np.int64]
+    #: (K, C, n) sign of each period's raw correlation at peak_lag
+    uid_signs: NDArray[np.int8]
+    #: (K, C) observed UID: bit p set where period p's sign is -1
+    uid_observed: NDArray[np.int64]
+    #: (K, C) no sign is 0 and uid_observed == uid
+    uid_match: NDArray[np.bool_]
+    #: (K, C) peak is at a rail of out_bits (it may have been clipped, so peak_lag can sit early
+    #: on a plateau)
+    saturated: NDArray[np.bool_]
+    #: (K, C, P-1) [samples] lags of peaks 2..P; -1: no such peak
+    extra_lag: NDArray[np.int64]
+    #: (K, C, P-1) [out LSB] out at peaks 2..P
+    extra_peak: NDArray[np.int64]
+    #: (K, C, P-1, n) signs of each period at peaks 2..P
+    extra_signs: NDArray[np.int8]
     angle_deg: NDArray[np.float64]
     done: NDArray[np.bool_]
     timestamp_us: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))

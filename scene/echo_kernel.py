@@ -1,7 +1,7 @@
 r"""The compiled kernels of the echoes (numba: the ``fast`` extra).
 
 ``accumulated``: :func:`terms_kernel`.
-:meth:`cdma_lidar.scene.instrument.Instrument._tabulated_echoes` sets each row of the
+:meth:`cdma_lidar.scene.echoes.Echoes.tabulated_echoes` sets each row of the
 flat batch ``y`` that the terms reach to ``start`` and adds each echo term k (in the
 batch's order) into its row from its Gold member's waveform table (a stack of every
 member's, flat): two BLAS saxpy calls, ``y += a_k w_p`` then ``y += b_k w_(p+1)``::
@@ -22,7 +22,7 @@ terms (the saxpy path: twice per term), and set to ``start`` when its first term
 added (in the cache), not in a pass over the whole batch before. One call per batch.
 
 ``exact``: :func:`synthesis_kernel`, the per-channel work of the Fourier synthesis,
-:meth:`cdma_lidar.scene.instrument.Instrument._sum_delayed` (its docstring has the
+:meth:`cdma_lidar.scene.codebook.Codebook.sum_delayed` (its docstring has the
 algebra) for complex128 sums, before the spectral weight. For each term k, in order, with
 ``x y`` numpy's complex product (re = fma(xr, yr, -(xi yi)), im = fma(xr, yi, xi yr):
 numpy's SIMD loops fuse it so on every machine with FMA, which the tests probe)::

@@ -1,7 +1,7 @@
 r"""The compiled row kernels of the noise of both fidelity levels (numba: the ``fast`` extra).
 
 ``accumulated``: :func:`row_kernel`, one column of
-:func:`cdma_lidar.scene.instrument._draw_table_sums` in one call::
+:func:`cdma_lidar.scene.sums._draw_table_sums` in one call::
 
     words[j] = PCG64 output j of the generator seeded with ``seed``      j < ceil(L / 4)
     out[i] = floor(table[words16[i]] * scale + mean[i])                  i = 0 .. L - 1
@@ -27,7 +27,7 @@ next 128-bit step waits on its multiply), then the arithmetic in a pass with no 
 which the compiler vectorises (``python -m bench scene`` times both).
 
 ``exact``: :func:`repetition_kernel`, one column of
-:func:`cdma_lidar.scene.instrument._draw_exact_sums`, its draws included::
+:func:`cdma_lidar.scene.sums._draw_exact_sums`, its draws included::
 
     z[i]     = standard_normal(generator)                       i = 0 .. L - 1
     word[w]  = next word of the generator                       w < ceil(n / 8)

@@ -8,6 +8,7 @@ Commands (a contract: users and tests rely on these forms)::
                          [--resume] [--set KEY=VALUE ...] [--no-progress]
     cdma-lidar study ask tradeoff DIR --max-p95 METRES [--scene NAME] [--min-valid F]
                          [--max-adc-rate HZ]
+    cdma-lidar study frame SCENE --seed N --frame-id F --out FILE [--force]
 
 ``list`` prints one line per study: its name, then a one-line description.
 ``run`` writes DIR/results.csv, DIR/summary.json, DIR/run.json, DIR/replicates.csv,
@@ -24,6 +25,11 @@ address (one line), 130 interrupted (finished tasks are kept: rerun with --resum
 meeting the constraints, its 95 % intervals and the runner-up
 (:func:`cdma_lidar.study.tradeoff.ask`): exit status 0 with an answer, 1 when no
 configuration meets them, 2 for a bad folder or option (one line).
+``frame`` writes one study frame of SCENE (a preset or a TOML file) in the format of
+``cdma-lidar scan`` (by FILE's extension): the same arrays, with equal values, as
+``cdma-lidar scan --port 'virtual://SCENE?seed=N' --frame-id F --out FILE``, the
+wall-clock stamp aside (:func:`cdma_lidar.study.simulate.write_study_frame`: the device's
+acquisition, receiver configuration and the scan's default power, without the protocol).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ import sys
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.study.catalogue import get_study, studies
 from cdma_lidar.study.engine import parse_set, run_study
+from cdma_lidar.study.simulate import write_study_frame
 from cdma_lidar.study.tradeoff import ask
 
 __all__ = ["register"]
@@ -87,8 +94,21 @@ def cmd_ask(args: argparse.Namespace) -> int:
     return 0 if answer.best is not None else 1
 
 
+def cmd_frame(args: argparse.Namespace) -> int:
+    """``study frame SCENE``: one study frame written as ``cdma-lidar scan`` writes a scan."""
+    if args.seed < 0:
+        raise ConfigError(f"--seed must be a non-negative integer, not {args.seed}", "seed")
+    if not 0 <= args.frame_id <= 2**31 - 2:
+        raise ConfigError(f"--frame-id must be from 0 to {2**31 - 2}, not {args.frame_id}",
+                          "frame_id")
+    result = write_study_frame(args.scene, args.seed, args.frame_id, args.out, force=args.force)
+    sys.stdout.write(f"study frame {args.scene} seed {args.seed} frame id {args.frame_id}: "
+                     f"{int(result.cloud.has_range.sum())} points -> {args.out}\n")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``study list`` and ``study run``."""
+    """Add ``study list``, ``run``, ``ask`` and ``frame``."""
     p = sub.add_parser("study", help="sweeps of the speed/accuracy trade (docs/studies.md)")
     ssub = p.add_subparsers(dest="study_command", metavar="STUDY_COMMAND",
                             parser_class=type(p))
@@ -124,3 +144,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     pa.add_argument("--max-adc-rate", type=float, default=None, metavar="HZ",
                     help="ADC sample rate (S x chip rate) at most this")
     pa.set_defaults(func=cmd_ask)
+    pf = ssub.add_parser("frame", help="one study frame, written as `cdma-lidar scan` writes "
+                         "a scan of the virtual device")
+    pf.add_argument("scene", help="a scene preset or .toml file")
+    pf.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    pf.add_argument("--frame-id", type=int, default=0, metavar="F",
+                    help="frame id, which seeds the frame's noise (default 0)")
+    pf.add_argument("--out", required=True, help="output cloud (.npz, .ply, ... as `scan`)")
+    pf.add_argument("--force", action="store_true", help="overwrite a partial scan of --out")
+    pf.set_defaults(func=cmd_frame)

@@ -154,7 +154,7 @@ def eq26_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     null, second = float(nulls[0]), float(nulls[nulls > 1.5 * nulls[0]][0])
     mixed = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": True}), seed=0)
     single = Instrument(load_scene(str(params["scene"]), {"sequential_mixing": False}), seed=0)
-    ratio = [m.budget.coefficients(spec.samples_per_chip)["thermal"] for m in (mixed, single)]
+    ratio = [m.noise.coefficients(spec.samples_per_chip)["thermal"] for m in (mixed, single)]
     # eqs. 20 and 25 measured on rendered noise (no echo): one record of the sequential sum,
     # the mean of ``spec.channels`` aligned records of it, and one simultaneous record
     var = {}

@@ -1,38 +1,57 @@
 """Frames straight from the scene's instrument and the receive-chain model, without a link.
 
-The virtual device renders ADC samples with :class:`cdma_lidar.scene.instrument.Instrument` and
-runs them through :class:`cdma_lidar.firmware_model.receiver.FastReceiver`; this module does the
-same two steps in-process so the host's range pipeline can be measured and tested
-on a scene with known truth without the serial protocol in between (benchmarks,
-unit tests). Scans for users go through :mod:`cdma_lidar.host.scan` and a real or ``virtual://``
-port.
+The virtual device acquires a frame through :func:`cdma_lidar.scene.acquire.acquire`
+(the instrument's repetition sums, then :class:`cdma_lidar.firmware_model.receiver.FastReceiver`)
+with the receiver configuration :func:`cdma_lidar.scene.acquire.receiver_config` and its boot
+power matrix; this module runs the very same path in-process, so a study frame equals the
+device's scan of the same scene, seed and frame id (``cdma-lidar study frame``), and the
+host's range pipeline can be measured and tested on a scene with known truth without the
+serial protocol in between (benchmarks, unit tests). Scans for users go through
+:mod:`cdma_lidar.host.scan` and a real or ``virtual://`` port.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import ConfigError
-from cdma_lidar.firmware_model.gold import gold_code
+from cdma_lidar.errors import ConfigError, DeviceError
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.ranging import RangingConfig, precision_eq27_m
+from cdma_lidar.host.scan import ScanOptions, ScanResult, run_scan
 from cdma_lidar.optics.grating import GratingGeometry
+from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.scene.acquire import (
+    acquire,
+    boot_power_codes,
+    clock_us,
+    column_batches,
+    power_w_of_codes,
+    receiver_config,
+)
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.units import delay_to_range_m
+from cdma_lidar.virtual.board import VirtualFirmware
 
 __all__ = [
+    "FrameLink",
     "SimulatedScan",
+    "device_power_w",
     "eq27_from_configuration",
     "ranging_config",
     "receiver_setup",
     "simulate_frame",
     "smallest_out_shift",
     "true_offset_m",
+    "write_study_frame",
 ]
 
 
@@ -56,9 +75,8 @@ class SimulatedScan:
 def smallest_out_shift(cfg: ReceiverConfig, n_chips: int) -> ReceiverConfig:
     """``cfg`` with the smallest ``out_shift`` whose derived widths fit (noise_sumsq in int64).
 
-    A long code, many samples per chip or many repetitions make the 32-bit output's
-    noise accumulator too wide at shift 0; the device would be configured the same way.
-    Raises the receiver's ConfigError when no shift fits.
+    For a configuration a study changes after :func:`receiver_setup` (ghost windows,
+    peak exclusion). Raises the receiver's ConfigError when no shift fits.
     """
     for shift in range(63):
         try:
@@ -72,20 +90,19 @@ def smallest_out_shift(cfg: ReceiverConfig, n_chips: int) -> ReceiverConfig:
 
 def receiver_setup(inst: Instrument, *, peaks: int = 1, gate: tuple[int, int] | None = None
                    ) -> tuple[ReceiverConfig, NDArray[np.uint8]]:
-    """The receive-chain configuration and Gold codes (K, N) the instrument's device uses.
+    """The receive-chain configuration and Gold codes (K, N) the instrument's device uses:
+    :func:`cdma_lidar.scene.acquire.receiver_config` at the scene's settings.
 
     ``gate`` (start, length) in samples defaults to the instrument's
-    :meth:`~cdma_lidar.scene.instrument.Instrument.default_gate`; the output shift is the
-    smallest that fits (:func:`smallest_out_shift`).
+    :meth:`~cdma_lidar.scene.instrument.Instrument.default_gate`.
     """
-    spec = inst.spec
-    gate_start, gate_len = gate if gate is not None else inst.default_gate()
-    codes = np.stack([gold_code(spec.poly_u, spec.poly_v, k) for k in spec.code_indices])
-    cfg = ReceiverConfig(adc_bits=spec.adc_bits,
-                         samples_per_chip=spec.samples_per_chip,
-                         averages=spec.averages, uid_bits=spec.uid_bits, uid=spec.uid,
-                         gate_start=gate_start, gate_len=gate_len, peaks=peaks)
-    return smallest_out_shift(cfg, codes.shape[1]), codes
+    return receiver_config(inst, gate=gate, peaks=peaks)
+
+
+def device_power_w(inst: Instrument) -> NDArray[np.float64]:
+    """(K, C) laser power (W) the instrument's device boots with (the scene's, in the
+    device's 1/65535 steps, within its eye-safety cap)."""
+    return power_w_of_codes(inst.spec, boot_power_codes(inst))
 
 
 def ranging_config(inst: Instrument) -> RangingConfig:
@@ -104,18 +121,27 @@ def true_offset_m(inst: Instrument) -> float:
 def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
                    power_w: NDArray[np.float64] | None = None, frame: int = 0,
                    gate: tuple[int, int] | None = None) -> SimulatedScan:
-    """Render and receive every column of ``scene_name`` (a preset or a TOML path)."""
+    """Render and receive every column of ``scene_name`` (a preset or a TOML path).
+
+    The device's acquisition (:func:`cdma_lidar.scene.acquire.acquire`) with its receiver
+    configuration (:func:`receiver_setup`) and, where ``power_w`` (K, C) W is None, its
+    boot power (:func:`device_power_w`): the same per-pixel results as a scan of
+    ``virtual://scene_name?seed=seed`` at frame id ``frame`` (with ``peaks`` and ``gate``
+    configured there too).
+    """
 
     scene = load_scene(scene_name)
     inst = Instrument(scene, seed=seed)
     spec = inst.spec
     cfg, codes = receiver_setup(inst, peaks=peaks, gate=gate)
     rx = FastReceiver(cfg, codes)
+    settings = RenderSettings.from_spec(spec)
+    power = device_power_w(inst) if power_w is None else np.asarray(power_w, dtype=np.float64)
     data = FrameData.empty(inst.channels, inst.columns, spec.uid_bits, peaks, frame)
-    for col in range(inst.columns):
-        pw = None if power_w is None else power_w[:, col]
-        data.set_column(col, rx.column(inst.render(col, frame=frame, power_w=pw)),
-                        angle_deg=float(spec.rotations_deg[col]))
+    for cols in column_batches(0, inst.columns, settings.frame_samples):
+        got = acquire(inst, rx, settings, frame, cols, [power[:, c] for c in cols])
+        for col, out in zip(cols, got.outputs, strict=True):
+            data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     return SimulatedScan(frame=data, truth_range_m=inst.truth.range_m,
                          ranging=ranging_config(inst), geometry=spec.geometry(nominal=True),
                          wavelengths_m=np.asarray(spec.wavelengths_m),
@@ -139,3 +165,88 @@ def eq27_from_configuration(scene_name: str) -> float:
     lit = inst.gain_v_per_w > 0
     return float(precision_eq27_m(spec.chip_rate_hz, spec.code_length * spec.samples_per_chip,
                                   snr=float(np.median(snr[lit]))))
+
+
+class FrameLink:
+    """A device link whose scans are study frames (no protocol, no device application).
+
+    The instrument of ``scene_name`` with noise seed ``seed``, acquired by
+    :func:`cdma_lidar.scene.acquire.acquire` with the device's boot configuration
+    (:func:`cdma_lidar.scene.acquire.receiver_config`) and the power matrix the host
+    sets; the identity and configuration announced are the virtual device's own
+    (:meth:`VirtualFirmware.info`, ``get_config``), the columns' timestamps its clock's
+    (:func:`cdma_lidar.scene.acquire.clock_us`, counted from this link's opening), its
+    power matrix the device's (set and checked against the eye-safety cap by the device's
+    own :meth:`VirtualFirmware.set_power`, a refusal a DeviceError naming ``power`` as
+    the wire's NAK is). What the host's scan pipeline needs of a link, and no more: a
+    configuration change is refused (a study frame runs the boot configuration).
+    """
+
+    def __init__(self, scene_name: str, seed: int) -> None:
+        self._device = VirtualFirmware(load_scene(scene_name), seed)
+        self.info, self.config = self._device.info(), self._device.get_config()
+        self.instrument = self._device.instrument
+        self.settings = RenderSettings.from_spec(self.instrument.spec)
+        cfg, codes = receiver_config(self.instrument, self.settings)
+        self.receiver = FastReceiver(cfg, codes)
+        self._chips = 0
+
+    def hello(self) -> Any:
+        """The identity (INFO)."""
+        return self.info
+
+    def get_config(self, *names: str) -> dict[str, Any]:
+        """The boot configuration (``names``: those keys only)."""
+        return {k: v for k, v in self.config.items() if not names or k in names}
+
+    def set_config(self, **values: Any) -> None:
+        """Refused: a study frame runs the device's boot configuration."""
+        raise ConfigError("a study frame runs the device's boot configuration; "
+                          f"cannot set {', '.join(values)}", field=next(iter(values), "config"))
+
+    def set_power(self, matrix: Any, channel_start: int = 0, column_start: int = 0) -> None:
+        """Store a rectangle of the power matrix (1/65535 of the per-pixel maximum)."""
+        try:
+            self._device.set_power(channel_start, column_start,
+                                   np.asarray(matrix, dtype=np.uint16))
+        except ConfigError as exc:
+            raise DeviceError(str(exc), field=exc.field) from exc
+
+    def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
+             frame: int | None = None) -> Iterator[ColumnResult]:
+        """Column results of one frame ``frame`` (default 0), columns first..first+count-1."""
+        inst, settings = self.instrument, self.settings
+        count = inst.columns - first_column if columns is None else columns
+        frame_id = 0 if frame is None else int(frame)
+        power = self._device.power_w()
+        angles = inst.spec.rotations_deg
+        for _ in range(frames):
+            for cols in column_batches(first_column, count, settings.frame_samples):
+                got = acquire(inst, self.receiver, settings, frame_id, cols,
+                              [power[:, c] for c in cols])
+                for col, out in zip(cols, got.outputs, strict=True):
+                    self._chips += settings.averages * settings.frame_chips
+                    yield ColumnResult.from_receiver(
+                        frame_id, col, float(angles[col]), out,
+                        timestamp_us=clock_us(self._chips, inst.spec.chip_rate_hz))
+            frame_id += 1
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+
+def write_study_frame(scene_name: str, seed: int, frame_id: int,
+                      out: str | os.PathLike[str], options: ScanOptions | None = None, *,
+                      force: bool = False) -> ScanResult:
+    """Write a study frame of ``scene_name`` to ``out`` as ``cdma-lidar scan`` writes a scan.
+
+    The host's scan (:func:`cdma_lidar.host.scan.run_scan`, ``options`` default as the
+    command's) of a :class:`FrameLink`: the same arrays, with equal values, as ``cdma-lidar
+    scan --port 'virtual://SCENE?seed=N' --frame-id F --out FILE`` (the wall-clock stamp
+    aside).
+    """
+    link = FrameLink(scene_name, seed)
+    device = Device(link=link, info=link.info, config=link.get_config(),  # type: ignore[arg-type]
+                    url=f"study://{scene_name}?seed={seed}")
+    return run_scan(device, out, options or ScanOptions(), force=force, progress=False,
+                    frame_id=frame_id)

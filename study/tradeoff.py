@@ -13,12 +13,11 @@ Two trades, each on deterministic axes:
   against the fidelity error, each level's accuracy minus the ``exact`` level's at the
   same configuration.
 
-Every point renders frames of a scene with the simulated instrument
-(:class:`cdma_lidar.scene.instrument.Instrument`: the columns' repetition sums in
-batches, :meth:`~cdma_lidar.scene.instrument.Instrument.render_sums`, as the virtual
-board does),
-runs them through the bit-exact receive chain
-(:class:`cdma_lidar.firmware_model.receiver.FastReceiver`, ``method="auto"``) and turns
+Every point acquires frames of a scene as the virtual board does, through the one
+acquisition path (:func:`cdma_lidar.scene.acquire.acquire`: the simulated instrument's
+repetition sums in batches, then the bit-exact receive chain
+:class:`cdma_lidar.firmware_model.receiver.FastReceiver`, ``method="auto"``, configured as
+the device is, :func:`cdma_lidar.scene.acquire.receiver_config`) and turns
 each frame into ranges with the host's pipeline
 (:func:`cdma_lidar.host.ranging.estimate_ranges`, perfect calibration: the true system
 delay is the offset, so the errors are the ranging's own).
@@ -74,6 +73,7 @@ from cdma_lidar.host.frame import FrameData
 from cdma_lidar.host.nearfar import NearFarController, PowerLimits
 from cdma_lidar.host.ranging import METHODS, estimate_ranges
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.acquire import acquire, column_batches
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.scene.model import FIDELITY_LEVELS  # the scene's levels (docs/scene.md)
 from cdma_lidar.study.engine import RunContext, RunOptions, Setting, Study, Table, headline
@@ -119,9 +119,6 @@ SCENES = ("paper-scene1", "flat-wall", "flat-wall?distance=15")
 MACHINE_COLUMNS = ("scan_cpu_per_frame_s", "render_cpu_per_frame_s", "receive_cpu_per_frame_s")
 
 _AXES = tuple(BASELINE)
-
-#: Column batches handed to the receive chain at once: at most this many samples.
-_BATCH_SAMPLES = 1 << 22
 
 
 def _check_axes(options: RunOptions) -> dict[str, tuple]:
@@ -251,29 +248,24 @@ def _errors(img: Any, truth: np.ndarray) -> dict[str, float]:
 def _frame(inst: Instrument, rx: FastReceiver, cfg: RenderSettings, frame: int,
            power_w: np.ndarray, ranging: Any) -> tuple[Any, int, float, float]:
     """(range image, simulation work, CPU s rendering, CPU s receiving) of one frame at
-    laser power ``power_w`` (K, C) W, rendered as the virtual board does."""
+    laser power ``power_w`` (K, C) W: the virtual board's acquisition
+    (:func:`cdma_lidar.scene.acquire.acquire`, in its batches)."""
     spec = inst.spec
     c, length = inst.columns, cfg.frame_samples
     lit = inst.truth.hits.lit.sum(axis=0)
     data = FrameData.empty(inst.channels, c, spec.uid_bits, 1, frame)
     work = 0
     cpu_render = cpu_rx = 0.0
-    batch = max(1, _BATCH_SAMPLES // (cfg.averages * length))
     tabulated = inst.echo_tabulated(cfg)
-    for c0 in range(0, c, batch):
-        cols = list(range(c0, min(c, c0 + batch)))
-        ta = time.process_time()
-        accs, drawn = inst.render_sums(cols, cfg, frame, [power_w[:, col] for col in cols],
-                                       complete=True)
-        tb = time.process_time()
-        outs = rx.from_accumulators(accs)
-        cpu_rx += time.process_time() - tb
-        cpu_render += tb - ta
-        for col, ok in zip(cols, drawn.tolist(), strict=True):
+    for cols in column_batches(0, c, length):
+        got = acquire(inst, rx, cfg, frame, cols, [power_w[:, col] for col in cols])
+        cpu_render += got.render_cpu_s
+        cpu_rx += got.receive_cpu_s
+        for col, ok in zip(cols, got.drawn.tolist(), strict=True):
             work += simulation_work(int(lit[col]), length, cfg.averages,
                                     inst.fidelity if ok else "repetitions",
                                     tabulated=tabulated)
-        for col, out in zip(cols, outs, strict=True):
+        for col, out in zip(cols, got.outputs, strict=True):
             data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     return estimate_ranges(data, ranging), work, cpu_render, cpu_rx
 

@@ -16,10 +16,14 @@ numbers, replay and the column ring buffer) and in front of the simulated instru
 * POWER: a (K, C) matrix of per-pixel laser power in 1/65535 of ``max_pixel_power_w``; a
   rectangle that would push any column's total above the eye-safety cap
   ``total_power_cap_w`` is refused (field ``power``), as is one outside the matrix.
-* SCAN: renders each column's ADC codes (R * n * N * S samples, noise seeded by
-  (seed, frame, column), so a resend or a rescan of the same frame id gives the same
-  result) and runs ``cdma_lidar.firmware_model.receiver`` (the fast, bit-exact path, a batch of
-  columns at a time: a whole frame when it fits _BATCH_VALUES) with the current configuration.
+* SCAN: renders each column's repetition sums (noise seeded by (seed, frame, column), so
+  a resend or a rescan of the same frame id gives the same result) and runs
+  ``cdma_lidar.firmware_model.receiver`` (the fast, bit-exact path) with the current
+  configuration, a batch of columns at a time (a whole frame when it fits
+  ``cdma_lidar.scene.acquire.BATCH_VALUES``): :func:`cdma_lidar.scene.acquire.acquire`,
+  the acquisition path every study frame runs too. The boot configuration and power
+  are :func:`~cdma_lidar.scene.acquire.receiver_config` and
+  :func:`~cdma_lidar.scene.acquire.boot_power_codes`.
 * CALIBRATE: ``shots`` columns of the zeroth-order beam-trap target at its fixed
   distance, every channel lit, grating angle reported as 90 degrees.
 * CAPTURE: the raw ADC codes of a column (of the last scanned frame id) or one
@@ -34,16 +38,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from fractions import Fraction
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar import __version__
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
-from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
@@ -52,9 +54,18 @@ from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.protocol.views import Info
-from cdma_lidar.rounding import ROUNDING_MODES
+from cdma_lidar.scene.acquire import (
+    acquire,
+    boot_power_codes,
+    clock_us,
+    column_batches,
+    power_limits_uw,
+    power_w_of_codes,
+    receiver_config,
+)
 from cdma_lidar.scene.instrument import SUM_TYPE, Instrument, RenderSettings
 from cdma_lidar.scene.model import Scene
+from cdma_lidar.version import __version__
 
 __all__ = ["LIMITS", "VirtualFirmware"]
 
@@ -73,24 +84,6 @@ LIMITS = {
 
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
-
-#: Columns rendered and correlated together: at most this many accumulator values
-#: (n N S per column; int64, 16 MB), so a frame of paper-scene1 (160 columns of 8188)
-#: is one batch. The receive chain's matrix kernel pays a fixed cost per call (a batch of
-#: 4 columns costs 2 ms a column, one of 160 0.35 ms), so batches are as large as
-#: memory allows; the endpoint's worker keeps sending heartbeats and answering STATUS
-#: while a batch is computed, but the first column and an abort wait for it (about
-#: 0.1 s for paper-scene1's frame).
-_BATCH_VALUES = 1 << 21
-
-
-def _batches(first: int, count: int, column_values: int = 1) -> Iterator[list[int]]:
-    """Consecutive index lists covering first..first+count-1, each at most
-    _BATCH_VALUES values of ``column_values`` (and at least one column)."""
-    size = max(1, _BATCH_VALUES // max(1, column_values))
-    for pos in range(first, first + count, size):
-        yield list(range(pos, min(pos + size, first + count)))
-
 
 #: Fields of the channel record that describe peaks 2..P (left out when P = 1).
 _EXTRA_FIELDS = frozenset(f.name for f in RECORD if f.per_extra_peak)
@@ -153,31 +146,27 @@ class VirtualFirmware(DeviceApp):
         self.serial = serial or f"VIRT-{scene.name}-{self.seed}"
         k, c = self.instrument.channels, self.instrument.columns
         self.channels, self.columns = k, c
-        start, length = self.instrument.default_gate()
+        rc, _ = receiver_config(self.instrument)  # the boot configuration: every study's
         self._config: dict[str, Any] = {
             "poly_u": self.spec.poly_u, "poly_v": self.spec.poly_v,
-            "code_index": tuple(self.spec.code_indices), "uid_bits": self.spec.uid_bits,
-            "uid": self.spec.uid, "samples_per_chip": self.spec.samples_per_chip,
-            "averages": self.spec.averages, "adc_bits": self.spec.adc_bits,
-            "gate_start": start, "gate_len": length, "peak_exclude": 8, "ghost_windows": (),
-            "out_shift": 0, "rounding": "truncate", "out_bits": _out_bits(length), "peaks": 1,
-            "columns_per_frame": c, "mode": "ranging",
+            "code_index": tuple(self.spec.code_indices), "uid_bits": rc.uid_bits,
+            "uid": rc.uid, "samples_per_chip": rc.samples_per_chip,
+            "averages": rc.averages, "adc_bits": rc.adc_bits,
+            "gate_start": rc.gate_start, "gate_len": rc.gate_len,
+            "peak_exclude": rc.peak_exclude, "ghost_windows": rc.ghost_windows,
+            "out_shift": rc.out_shift, "rounding": rc.rounding, "out_bits": rc.out_bits,
+            "peaks": rc.peaks, "columns_per_frame": c, "mode": "ranging",
         }
         self._check(self._config)
         # Power in exact integers: codes (1/65535 of the pixel maximum) and whole µW.
-        self._pixel_uw = round(self.spec.max_pixel_power_w * 1e6)
-        self._cap_uw = round(self.spec.total_power_cap_w * 1e6)
-        self.power_code = _within_cap(np.clip(np.round(
-            self.instrument.default_power_w / self.spec.max_pixel_power_w * 65535), 0, 65535
-        ).astype(np.int64), self._pixel_uw, self._cap_uw).astype(np.uint16)
+        self._pixel_uw, self._cap_uw = power_limits_uw(self.spec)
+        self.power_code = boot_power_codes(self.instrument)
         self._receiver: tuple[tuple, dict[str, FastReceiver]] | None = None
         self._sums: NDArray[np.int32] | None = None  # the batches' sums, reused (_receive)
         self._last_frame = 0
         #: the device clock as an exact count of chips since power-up (integer: no rounding
         #: accumulates); the wire's microseconds are derived from it by flooring
         self._clock_chips = 0
-        rate = Fraction(self.spec.chip_rate_hz)  # exact: the float's own binary value
-        self._chip_rate = (rate.numerator, rate.denominator)
 
     # ---- identity -------------------------------------------------------------------
     def info(self) -> Info:
@@ -223,7 +212,11 @@ class VirtualFirmware(DeviceApp):
                                                  if k != "code_index"))
 
     def _check(self, c: dict[str, Any]) -> None:
-
+        """Check a merged configuration once: the board's own limits here (code pair and
+        members, UID length, samples per chip, peak exclusion, columns, mode, samples per
+        column), the receive chain's fields where the chain's configuration is built
+        (``ReceiverConfig``, then ``widths``: the gate inside the period); each error
+        names the field and its range."""
         pu, _ = check_pair(c["poly_u"], c["poly_v"])
         degree = pu[0]
         if not 3 <= degree <= LIMITS["max_degree"]:
@@ -237,42 +230,27 @@ class VirtualFirmware(DeviceApp):
         if any(not 0 <= x <= n + 1 for x in idx):
             raise out_of_range("code_index", f"members 0 to {n + 1}", idx)
         check_int("uid_bits", c["uid_bits"], 1, LIMITS["max_uid_bits"])
-        check_int("uid", c["uid"], 0, (1 << c["uid_bits"]) - 1)
         check_int("samples_per_chip", c["samples_per_chip"], LIMITS["spc_min"], LIMITS["spc_max"])
-        check_int("averages", c["averages"], 1, LIMITS["max_averages"])
-        ns = n * c["samples_per_chip"]
-        check_int("gate_start", c["gate_start"], 0, ns - 1)
-        check_int("gate_len", c["gate_len"], 1, ns)
-        check_int("peak_exclude", c["peak_exclude"], 0, ns)
-        check_int("peaks", c["peaks"], 1, LIMITS["max_peaks"])
-        check_int("out_shift", c["out_shift"], 0, 62)
-        check_int("out_bits", c["out_bits"], 8, 32)
         check_int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
-        if c["rounding"] not in ROUNDING_MODES:
-            raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), c["rounding"])
         if c["mode"] not in MODES:
             raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
+        self._receiver_config(c).widths(n)
+        ns = n * c["samples_per_chip"]
+        check_int("peak_exclude", c["peak_exclude"], 0, ns)
         samples = c["averages"] * c["uid_bits"] * ns
         if samples > LIMITS["max_column_samples"]:
             raise out_of_range("averages", f"at most {LIMITS['max_column_samples']} samples per "
                                "column (averages * uid_bits * N * samples_per_chip)", samples)
-        rc = self._receiver_config(c)
-        try:
-            rc.widths(n)
-        except ConfigError as exc:
-            raise ConfigError(str(exc), field=exc.field or "out_bits") from exc
 
     def _receiver_config(self, c: dict[str, Any]) -> ReceiverConfig:
-        try:
-            return ReceiverConfig(
-                adc_bits=self.spec.adc_bits, samples_per_chip=c["samples_per_chip"],
-                averages=c["averages"], uid_bits=c["uid_bits"], uid=c["uid"],
-                gate_start=c["gate_start"], gate_len=c["gate_len"],
-                peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
-                out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
-                peaks=c["peaks"])
-        except ConfigError as exc:
-            raise ConfigError(str(exc), field=exc.field) from exc
+        """The receive chain's configuration of ``c`` (its fields checked there)."""
+        return ReceiverConfig(
+            adc_bits=self.spec.adc_bits, samples_per_chip=c["samples_per_chip"],
+            averages=c["averages"], uid_bits=c["uid_bits"], uid=c["uid"],
+            gate_start=c["gate_start"], gate_len=c["gate_len"],
+            peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
+            out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
+            peaks=c["peaks"])
 
     def render_settings(self) -> RenderSettings:
         """What the instrument emits and samples under the current configuration."""
@@ -300,24 +278,17 @@ class VirtualFirmware(DeviceApp):
         return chains[method]
 
     def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],
-                 cfg: RenderSettings, calibration: bool) -> list[Any]:
-        """Render ``columns`` (or calibration shots) and run the receive chain on them.
-
-        The instrument draws each column's repetition sum (what the chain reads first) at
-        its fidelity and the chain starts from the accumulators; a column the level cannot
-        draw that way (noise under a few LSB, echoes near the clip) is rendered repetition
-        by repetition and summed (:meth:`Instrument.render_sums` with ``complete``), into
-        the same array batch after batch (the chain keeps nothing of it).
-        """
-        rx = self.receiver()  # "auto" picks the kernel for each batch size
+                 cfg: RenderSettings, calibration: bool) -> list[ReceiverOutput]:
+        """Render ``columns`` (or calibration shots) and run the receive chain on them:
+        :func:`cdma_lidar.scene.acquire.acquire`, into the same array of sums batch after
+        batch."""
         shape = (len(columns), cfg.uid_bits, cfg.frame_samples // cfg.uid_bits)
         if self._sums is None or self._sums.shape != shape:
             self._sums = np.empty(shape, dtype=SUM_TYPE)
-        # calibration (shots, or a scan in calibration mode): shot c of the target
-        accs, _ = self.instrument.render_sums(columns, cfg, frame, powers,
-                                              calibration=calibration, complete=True,
-                                              out=self._sums)
-        return rx.from_accumulators(accs)
+        # "auto" picks the kernel for each batch size; calibration (shots, or a scan in
+        # calibration mode): shot c of the target
+        return acquire(self.instrument, self.receiver(), cfg, frame, columns, powers,
+                       calibration=calibration, out=self._sums).outputs
 
     # ---- power ----------------------------------------------------------------------
     def set_power(self, channel_start: int, column_start: int,
@@ -350,7 +321,7 @@ class VirtualFirmware(DeviceApp):
 
     def power_w(self) -> NDArray[np.float64]:
         """(K, C) laser power per pixel (W)."""
-        return self.power_code.astype(np.float64) / 65535 * self.spec.max_pixel_power_w
+        return power_w_of_codes(self.spec, self.power_code)
 
     # ---- measurements ---------------------------------------------------------------
     def _timestamp(self, cfg: RenderSettings) -> int:
@@ -361,8 +332,7 @@ class VirtualFirmware(DeviceApp):
         to within 1 us however many columns went before (eq. 29's frame rate).
         """
         self._clock_chips += cfg.averages * cfg.frame_chips
-        num, den = self._chip_rate  # floor(chips * 1e6 / (num / den)), in integers
-        return (self._clock_chips * 1_000_000 * den // num) & 0xFFFFFFFF
+        return clock_us(self._clock_chips, self.spec.chip_rate_hz)
 
     def column_samples(self, frame: int, column: int) -> NDArray[np.int16]:
         """ADC codes of one scan column under the current configuration and power."""
@@ -389,7 +359,7 @@ class VirtualFirmware(DeviceApp):
         calibration = self._config["mode"] == "calibration"
         power = self.power_w()
         angles = self.spec.rotations_deg
-        for cols in _batches(first, count, cfg.frame_samples):
+        for cols in column_batches(first, count, cfg.frame_samples):
             outs = self._receive(frame, cols, [power[:, c] for c in cols], cfg, calibration)
             angle = [CALIBRATION_ANGLE_DEG if calibration else float(angles[c]) for c in cols]
             yield from _column_results(frame, cols, angle, outs, calibration,
@@ -406,7 +376,7 @@ class VirtualFirmware(DeviceApp):
     def _calibrate_gen(self, frame: int, shots: int,
                        cfg: RenderSettings) -> Iterator[ColumnResult]:
         power = self.power_w()[:, 0]  # the configured power, as a scan of column 0 would use
-        for idx in _batches(0, shots, cfg.frame_samples):
+        for idx in column_batches(0, shots, cfg.frame_samples):
             outs = self._receive(frame, idx, [power] * len(idx), cfg, True)
             yield from _column_results(frame, idx, [CALIBRATION_ANGLE_DEG] * len(idx), outs,
                                        True, [self._timestamp(cfg) for _ in idx])
@@ -437,25 +407,3 @@ class VirtualFirmware(DeviceApp):
         """A virtual board at a steady 35 degrees C, no faults."""
         return 35_000, 0
 
-
-def _within_cap(codes: NDArray[np.int64], pixel_uw: int, cap_uw: int) -> NDArray[np.int64]:
-    """``codes`` lowered where needed so every column sum is within the cap (exact integers).
-
-    A column over ``cap_uw * 65535 / pixel_uw`` codes loses the excess from its largest
-    codes, one code at a time, so rounding never leaves the boot matrix over the cap.
-    """
-    out = codes.copy()
-    limit = cap_uw * 65535 // max(pixel_uw, 1)
-    for c in np.flatnonzero(out.sum(axis=0) > limit):
-        excess = int(out[:, c].sum()) - limit
-        while excess > 0:
-            k = int(np.argmax(out[:, c]))
-            step = min(excess, int(out[k, c]))
-            out[k, c] -= step
-            excess -= step
-    return out
-
-
-def _out_bits(gate_len: int) -> int:
-    """Widest output whose noise sum of squares fits 63 bits: 2 b - 2 + bitlen(gate) <= 63."""
-    return max(8, min(32, (65 - int(gate_len).bit_length()) // 2))

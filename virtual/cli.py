@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
-import os
 import socket
 import sys
 from pathlib import Path
 
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.paths import default_key_file
 from cdma_lidar.protocol.auth import load_or_create_key
 from cdma_lidar.scene import load_scene
 from cdma_lidar.virtual.serve import serve_pty, serve_tcp
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     where = dev.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pty and print its path")
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on a TCP socket")
-    dev.add_argument("--key-file", metavar="FILE", nargs="?", const=str(_default_key_file()),
+    dev.add_argument("--key-file", metavar="FILE", nargs="?", const=str(default_key_file()),
                      help="TCP: hosts must prove they hold the key in FILE (created, mode "
                      "0600, with a fresh random key if absent); every frame is signed; "
                      "without FILE: ~/.config/cdma-lidar/device.key, outside any working "
@@ -70,15 +70,6 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def _default_key_file() -> Path:
-    """``$XDG_CONFIG_HOME/cdma-lidar/device.key`` (``~/.config/...``): the same path as
-    :func:`cdma_lidar.host.connection.default_key_file`, which this layer cannot import
-    (a test keeps the two equal)."""
-    base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"),
-                                                              ".config")
-    return Path(base) / "cdma-lidar" / "device.key"
-
-
 def _make_private_folder(folder: Path) -> None:
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -106,8 +97,8 @@ def _cmd_device(args: argparse.Namespace) -> int:
     if args.key_file and args.insecure:
         raise ConfigError("--key-file and --insecure exclude each other", "--insecure")
     if args.key_file:
-        if args.key_file == str(_default_key_file()):
-            _make_private_folder(_default_key_file().parent)
+        if args.key_file == str(default_key_file()):
+            _make_private_folder(default_key_file().parent)
         key, created = load_or_create_key(args.key_file)
         if created:
             sys.stderr.write(f"cdma-lidar device: created key file {args.key_file} (mode "

@@ -236,3 +236,25 @@ def test_column_record_imports_only_numpy_and_the_standard_library() -> None:
                  if isinstance(node, ast.ImportFrom) and node.module}
     assert imported <= {"__future__", "collections", "dataclasses", "inspect", "itertools",
                         "typing", "numpy"}
+
+
+# ---- the classes that hold the record write its fields out ------------------------------
+def test_frame_data_writes_out_the_record_fields_in_order_with_their_dtypes() -> None:
+    """FrameData's fields are written out (no generated annotations): they must be the
+    record's, in its order and with its dtypes, before the frame's own fields."""
+    import dataclasses
+    import typing
+
+    from cdma_lidar.column_record import FIELD_NAMES
+    from cdma_lidar.host.frame import FrameData
+
+    names = [f.name for f in dataclasses.fields(FrameData)]
+    assert tuple(names[:len(FIELD_NAMES)]) == FIELD_NAMES
+    assert names[len(FIELD_NAMES):] == ["angle_deg", "done", "timestamp_us", "frame"]
+    hints = typing.get_type_hints(FrameData)
+    for f in RECORD:
+        (dtype,) = typing.get_args(typing.get_args(hints[f.name])[1])
+        assert np.dtype(dtype) == np.dtype(f.dtype), f.name
+    empty = FrameData.empty(3, 2, uid_bits=2, peaks=3)
+    for f in RECORD:
+        assert getattr(empty, f.name).shape == (3, 2, *f.shape(2, 3)), f.name

@@ -163,12 +163,14 @@ def test_scene_docs_preset_table_is_generated_from_the_presets(capsys):
 
 
 def test_device_and_host_agree_on_the_default_key_file(monkeypatch, tmp_path):
-    from cdma_lidar.host.connection import default_key_file
-    from cdma_lidar.virtual.cli import _default_key_file
+    """One function gives the path (cdma_lidar.paths): the host's and the device's."""
+    from cdma_lidar import paths
+    from cdma_lidar.host import connection
+    from cdma_lidar.virtual import cli
 
+    assert connection.default_key_file is cli.default_key_file is paths.default_key_file
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
-    assert _default_key_file() == default_key_file() == tmp_path / "cdma-lidar" / "device.key"
+    assert paths.default_key_file() == tmp_path / "cdma-lidar" / "device.key"
     monkeypatch.delenv("XDG_CONFIG_HOME")
     monkeypatch.setenv("HOME", str(tmp_path))
-    assert _default_key_file() == default_key_file() == (tmp_path / ".config" / "cdma-lidar"
-                                                         / "device.key")
+    assert paths.default_key_file() == tmp_path / ".config" / "cdma-lidar" / "device.key"

@@ -10,7 +10,7 @@ from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType
 from cdma_lidar.protocol.ports import open_port
-from cdma_lidar.virtual.board import _within_cap
+from cdma_lidar.scene.acquire import within_cap
 
 # 1 mW is exactly code 1000 at a 65.535 mW pixel maximum; 4 channels x 1 mW = the cap.
 URL = ("virtual://flat-wall?instrument.wavelengths.count=4&instrument.columns=3"
@@ -42,6 +42,6 @@ def test_cap_announced_matrix_read_back_and_checked_in_exact_integers() -> None:
 
 def test_a_rounded_boot_matrix_is_brought_within_the_cap() -> None:
     codes = np.array([[32768, 10], [32768, 10]], dtype=np.int64)  # 65536 codes: 1 over
-    out = _within_cap(codes, pixel_uw=1000, cap_uw=1000)  # cap = 65535 codes per column
+    out = within_cap(codes, pixel_uw=1000, cap_uw=1000)  # cap = 65535 codes per column
     assert out.sum(axis=0).tolist() == [65535, 20]
     assert (out <= codes).all()

@@ -11,9 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cdma_lidar.scene import instrument
+from cdma_lidar.scene import codebook, echoes, sums
+from cdma_lidar.scene.codebook import Codebook
 from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
 from cdma_lidar.scene.instrument import Instrument
+
+#: The module whose compiled kernel of each name the rendering calls.
+KERNEL_HOMES = {"synthesis_kernel": codebook, "terms_kernel": echoes,
+                "repetition_kernel": sums, "row_kernel": sums}
 
 
 def _blas_fuses() -> bool:
@@ -106,9 +111,10 @@ def _with_and_without(name, level, url, take):
 
     scene = load_scene(f"{url}?fidelity={level}")
     out = []
-    for kernel in (getattr(instrument, name), lambda: None):
+    home = KERNEL_HOMES[name]
+    for kernel in (getattr(home, name), lambda: None):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, name, kernel)
+            mp.setattr(home, name, kernel)
             inst = Instrument(scene, 3)
             out.append(take(inst, RenderSettings.from_spec(inst.spec), list(range(inst.columns))))
     return out
@@ -171,10 +177,10 @@ def test_the_synthesis_kernel_is_numpys_complex_products_and_sums(a, b, cut, bin
     out = []
     for kernel in (synthesis_kernel, lambda: None):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, "synthesis_kernel", kernel)
+            mp.setattr(codebook, "synthesis_kernel", kernel)
             got = np.full((rows, bins), np.nan + 0j)
-            Instrument._sum_delayed(3.1e4, amps, taus, spectra, which, period, weight,
-                                    out=got, rows=where)
+            Codebook.sum_delayed(3.1e4, amps, taus, spectra, which, period, weight,
+                                 out=got, rows=where)
             out.append(got)
     np.testing.assert_array_equal(out[0].view(np.uint64), out[1].view(np.uint64))
 

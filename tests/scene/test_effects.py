@@ -8,7 +8,7 @@ import pytest
 
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
-from cdma_lidar.scene.linkbudget import ELEMENTARY_CHARGE_C, apd_excess_noise
+from cdma_lidar.scene.noise import ELEMENTARY_CHARGE_C, apd_excess_noise
 
 WALL = "flat-wall?distance=5&instrument.columns=64"
 
@@ -61,8 +61,8 @@ def test_sequential_mixing_adds_the_signal_independent_noise_k_times():
     par = Instrument(load_scene(WALL), 0)
     seq = Instrument(load_scene(f"{WALL}&instrument.sequential_mixing=true"), 0)
     p = par.default_power_w
-    a = par.budget.noise_terms(p, par.budget.rx_per_w, 4)
-    b = seq.budget.noise_terms(p, seq.budget.rx_per_w, 4)
+    a = par.noise.terms(p, par.budget.rx_per_w, 4)
+    b = seq.noise.terms(p, seq.budget.rx_per_w, 4)
     for key in ("thermal", "dark", "ambient", "ase"):
         np.testing.assert_allclose(b[key], 40 * a[key])
     np.testing.assert_allclose(b["signal_shot"], a["signal_shot"])  # each record its own

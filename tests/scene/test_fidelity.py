@@ -15,13 +15,12 @@ from cdma_lidar.host.ranging import RangingConfig, estimate_ranges
 from cdma_lidar.host.scan import summarise
 from cdma_lidar.protocol.messages import CaptureKind
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import (
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.sums import (
     EXACT_SUM_MIN_NOISE_LSB,
     FRAC_BITS,
     ROUNDING_LSB,
     SUM_TYPE,
-    Instrument,
-    RenderSettings,
     draw_repetition_sum,
     split_sum,
 )
@@ -48,7 +47,7 @@ def test_accumulator_values_have_the_exact_levels_distribution():
     b = np.stack([acc.render_accumulated(0, cfg, f).reshape(-1)
                   for f in range(frames)]).astype(np.float64)
     echo, sigma_v = exact.column_model(0, cfg)
-    scale = exact._fine_scale()[0] / (1 << FRAC_BITS)  # LSB per volt
+    scale = exact.adc.fine_scale()[0] / (1 << FRAC_BITS)  # LSB per volt
     mean = cfg.averages * echo * scale
     sigma = sigma_v * scale
     assert sigma > 20  # the preset's noise spans many LSB: the level applies
@@ -158,13 +157,13 @@ def test_accumulated_clip_check_looks_at_a_row_only_where_its_bound_does_not_set
     inst = Instrument(scene, 1)
     cfg = RenderSettings.from_spec(inst.spec)
     items = [(c, inst.default_power_w[:, c]) for c in range(inst.columns)]
-    means, value = inst._accumulated_means(cfg, items, False, [-np.inf] * len(items))
+    means, value = inst.plans._accumulated_means(cfg, items, False, [-np.inf] * len(items))
     value = np.array(value)
     rng = np.random.default_rng(0)
     bounded = 0
     for limits in (value, value * 2, np.nextafter(value, -np.inf), np.full(value.size, np.inf),
                    rng.uniform(0, 2 * value.max(), value.size)):
-        again, got = inst._accumulated_means(cfg, items, False, limits.tolist())
+        again, got = inst.plans._accumulated_means(cfg, items, False, limits.tolist())
         got = np.array(got)
         assert np.all(got >= value)
         np.testing.assert_array_equal(got <= limits, value <= limits)
@@ -281,7 +280,7 @@ def test_exact_scan_sums_match_repetition_by_repetition_rendering():
     b = np.stack([inst.render_sum(0, cfg, f).reshape(-1) for f in range(frames)]
                  ).astype(np.float64)
     echo, sigma_v = inst.column_model(0, cfg)
-    scale = inst._fine_scale()[0] / (1 << FRAC_BITS)
+    scale = inst.adc.fine_scale()[0] / (1 << FRAC_BITS)
     mean = cfg.averages * (echo * scale + ROUNDING_LSB - 0.5)
     var = cfg.averages * ((sigma_v * scale) ** 2 + 1 / 12)
     for x in (a, b):
@@ -310,7 +309,7 @@ def test_exact_sums_carry_the_other_users_light_repetition_by_repetition():
     a = np.stack([_acc_exact(inst, 2, cfg, f) for f in range(frames)]).astype(np.float64)
     b = np.stack([inst.render_sum(2, cfg, f).reshape(-1) for f in range(frames)]
                  ).astype(np.float64)
-    scale = inst._fine_scale()[0] / (1 << FRAC_BITS)
+    scale = inst.adc.fine_scale()[0] / (1 << FRAC_BITS)
     var = cfg.averages * ((inst.noise_rms_v_at(2, cfg) * scale) ** 2 + 1 / 12)
     assert np.abs(a.mean(axis=0) - b.mean(axis=0)).max() < 5 * np.sqrt(2 * var / frames)
     users = inst.other_users_signal(2, cfg, cfg.averages * cfg.frame_samples)
@@ -328,12 +327,12 @@ def test_the_byte_grid_uniforms_keep_the_sums_law_only_with_their_variance(r, co
     R = 2, 65536 pairs for R = 3), equals the R-fold convolution of the repetitions'
     probabilities to 1e-12 with the Gaussian's variance raised by (R - 1) / (12 * 256^2);
     without that variance the same comparison fails (errors near 1e-8)."""
-    from cdma_lidar.scene import instrument
+    from cdma_lidar.scene import sums
     sigma, x = EXACT_SUM_MIN_NOISE_LSB, 0.3
     pmf, lo = _sum_pmf(x, sigma, r)
     u = (np.arange(256) + 0.5) / 256
     grid = u if r == 2 else (u[:, None] + u[None, :]).ravel()
-    var = r * sigma**2 + (r - 1) * (instrument._BYTE_VARIANCE if compensated else 0.0)
+    var = r * sigma**2 + (r - 1) * (sums._BYTE_VARIANCE if compensated else 0.0)
     m, s = r * (x + ROUNDING_LSB), np.sqrt(var)
     k = np.arange(lo + pmf.size // 2 - 12, lo + pmf.size // 2 + 12)
     got = (stats.norm.cdf((k[:, None] + 1 - m + grid) / s)
@@ -348,7 +347,7 @@ def test_the_byte_grid_uniforms_keep_the_sums_law_only_with_their_variance(r, co
 def test_the_normal_table_is_a_unit_normal_to_two_to_the_minus_sixteen():
     """accumulated's Gaussians: symmetric, mean 0, variance 1 (to float32), within
     2^-16 of the normal distribution function (Kolmogorov), cut near 4.3 sigma."""
-    from cdma_lidar.scene.instrument import _normal_table
+    from cdma_lidar.scene.sums import _normal_table
     t = _normal_table().astype(np.float64)
     assert t.size == 1 << 16 and np.all(np.diff(t) > 0)
     np.testing.assert_array_equal(t, -t[::-1])
@@ -365,7 +364,7 @@ def test_tabulated_echo_matches_the_fourier_synthesis():
     Instrument.echo on paper-scene1's columns and a calibration shot: within 0.6 % of
     each column's peak, and not merely shaped alike: a table read one step off errs by
     over 5 %."""
-    from cdma_lidar.scene import instrument
+    from cdma_lidar.scene import codebook
     inst = Instrument(load_scene("paper-scene1"), 0)
     cfg = RenderSettings.from_spec(inst.spec)
 
@@ -379,29 +378,29 @@ def test_tabulated_echo_matches_the_fourier_synthesis():
                    for g, r in zip(got, ref, strict=True) if np.any(r))
 
     assert worst(ref) < 0.006
-    shift = instrument.Instrument._sample_shift_s
-    step = 1 / (inst.spec.chip_rate_hz * cfg.samples_per_chip * instrument.TABLE_PHASES)
+    shift = codebook.Codebook.sample_shift_s
+    step = 1 / (inst.spec.chip_rate_hz * cfg.samples_per_chip * codebook.TABLE_PHASES)
     try:  # the reference one table step later
-        instrument.Instrument._sample_shift_s = lambda self, c: shift(self, c) + step
+        codebook.Codebook.sample_shift_s = lambda self, c: shift(self, c) + step
         assert worst([inst.echo(c, cfg, calibration=cal) for c, cal in cols]) > 0.05
     finally:
-        instrument.Instrument._sample_shift_s = shift
+        codebook.Codebook.sample_shift_s = shift
 
 
 def test_accumulated_uses_the_fourier_echo_where_the_table_would_not_fit(monkeypatch):
     """A table of every member larger than ECHO_CACHE_BYTES: the plan's echo is
     Instrument.echo in single precision instead (same noise, sums within the table's
     0.6 % of the echo)."""
-    from cdma_lidar.scene import instrument
+    from cdma_lidar.scene import echoes
     url = "flat-wall?distance=5&instrument.wavelengths.count=6&instrument.columns=1"
     inst = Instrument(load_scene(url + "&fidelity=accumulated"), 3)
     cfg = RenderSettings.from_spec(inst.spec)
     table = inst.render_sum(0, cfg, 1)
-    monkeypatch.setattr(instrument, "ECHO_CACHE_BYTES", 1 << 16)
+    monkeypatch.setattr(echoes, "ECHO_CACHE_BYTES", 1 << 16)
     inst.forget()
     called = []
-    echo = Instrument.echo
-    monkeypatch.setattr(Instrument, "echo",
+    echo = echoes.Echoes.echo
+    monkeypatch.setattr(echoes.Echoes, "echo",
                         lambda self, *a, **k: called.append(k) or echo(self, *a, **k))
     fourier = inst.render_sum(0, cfg, 1)
     assert called and called[0].get("single") is True
@@ -426,7 +425,7 @@ def test_a_batch_of_columns_draws_what_each_column_draws_alone(level):
     assert not np.array_equal(sums[0], sums[1])
     np.testing.assert_array_equal(sums[0], sums[3])
     items = [(c, inst.default_power_w[:, c]) for c in cols]
-    batch = inst._echoes(cfg, items, False)[0]
+    batch = inst.echoes.batch(cfg, items, False)[0]
     for (c, p), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
     lit = int(np.argmax(inst.truth.hits.lit.sum(axis=0)))  # near the clip at 1000x power

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from cdma_lidar.firmware_model.gold import gold_codes, gold_family
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.codebook import Codebook
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.scene.scenefile import parse_scene
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
@@ -211,7 +212,7 @@ def test_fused_adc_is_the_firmware_quantiser(adc_bits):
     """The instrument's float ADC equals the firmware's integer quantise(rint(x)) bit for bit:
     random values, every half-way point of a range of codes, both clip edges, infinities."""
     from cdma_lidar.firmware_model.adc import quantise
-    from cdma_lidar.scene.instrument import FRAC_BITS
+    from cdma_lidar.scene.sums import FRAC_BITS
 
     inst = Instrument(_wall(5.0, count=1, columns=1, **{"instrument.adc_bits": adc_bits}), 0)
     one = float(1 << FRAC_BITS)
@@ -225,10 +226,10 @@ def test_fused_adc_is_the_firmware_quantiser(adc_bits):
     ])
     want = quantise(np.clip(np.rint(fine), -2.0**62, 2.0**62).astype(np.int64), FRAC_BITS,
                     adc_bits)
-    got = inst._quantise_fine(fine.copy())
+    got = inst.adc.quantise_fine(fine.copy())
     assert got.dtype == np.int16
     np.testing.assert_array_equal(got, want)
-    assert inst._quantise_fine(np.array([np.inf, -np.inf])).tolist() == [
+    assert inst.adc.quantise_fine(np.array([np.inf, -np.inf])).tolist() == [
         (1 << (adc_bits - 1)) - 1, -(1 << (adc_bits - 1))]
 
 
@@ -275,12 +276,12 @@ def test_the_periodic_synthesis_equals_the_spectrum_summed_bin_by_bin(s, uid_bit
                          base.poly_v)
     members = [int(cfg.code_index[k % 3]) for k in range(len(taus))]
     amps = np.random.default_rng(seed).uniform(-1.0, 1.0, len(taus))
-    dfts, period = inst._chip_spectra(cfg, tuple(set(members)), cfg.uid, cfg.uid_bits)
-    weight = inst._spectral_weight(cfg, period)
+    dfts, period = inst.codebook.chip_spectra(cfg, tuple(set(members)), cfg.uid, cfg.uid_bits)
+    weight = inst.codebook.spectral_weight(cfg, period)
     f0 = inst.spec.chip_rate_hz / cfg.frame_chips
     rows = [k % 2 for k in range(len(taus))]
     got = np.empty((2, weight.size), dtype=np.complex128)
-    Instrument._sum_delayed(f0, amps, np.asarray(taus), *Instrument._stack(dfts, members),
+    Codebook.sum_delayed(f0, amps, np.asarray(taus), *Codebook.stack(dfts, members),
                             period, weight, out=got, rows=rows)
     q = np.arange(weight.size)
     want = np.zeros_like(got)

@@ -11,10 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cdma_lidar.scene import instrument
-from cdma_lidar.scene.instrument import _BYTE_VARIANCE, _normal_table
+from cdma_lidar.scene import codebook, echoes
+from cdma_lidar.scene import sums as sums_module
 from cdma_lidar.scene.noise_kernel import repetition_kernel, row_kernel
 from cdma_lidar.scene.streams import from_seed_words, seed_words
+from cdma_lidar.scene.sums import _BYTE_VARIANCE, _normal_table
 
 
 def _repetition_sums_whole(rngs, means, sigmas, r):
@@ -31,7 +32,7 @@ def _repetition_sums_whole(rngs, means, sigmas, r):
         row += mean
     if r > 1:
         total = np.zeros(draw.shape, dtype=np.uint16 if (r - 1) * 255 < 1 << 16 else np.uint32)
-        rows = max(1, instrument._BYTES_PER_DRAW // size)
+        rows = max(1, sums_module._BYTES_PER_DRAW // size)
         for acc, rng in zip(total, rngs, strict=True):
             octets = np.concatenate([
                 rng.bit_generator.random_raw(-(-n // 8)).view(np.uint8)[:n]
@@ -96,24 +97,24 @@ def test_blocked_noise_equals_the_whole_batch(columns, size, r, block, draw, see
     data = np.random.default_rng(seed)
     sigmas = (3.0 + 40 * data.random(columns)).tolist()
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(instrument, "_BLOCK_VALUES", block)
-        mp.setattr(instrument, "_BYTES_PER_DRAW", draw)
+        mp.setattr(sums_module, "BLOCK_VALUES", block)
+        mp.setattr(sums_module, "_BYTES_PER_DRAW", draw)
         if level.endswith(", numpy"):
-            mp.setattr(instrument, "row_kernel", lambda: None)
-            mp.setattr(instrument, "repetition_kernel", lambda: None)
+            mp.setattr(sums_module, "row_kernel", lambda: None)
+            mp.setattr(sums_module, "repetition_kernel", lambda: None)
         keys = [[seed, c] for c in range(columns)]
         if level.startswith("exact"):
             means = [data.normal(0, 5e3, size) for _ in range(columns)]
-            got = instrument._draw_exact_sums(seed_words(keys), means, sigmas, r)
+            got = sums_module._draw_exact_sums(seed_words(keys), means, sigmas, r)
             want = _repetition_sums_whole([np.random.default_rng(k) for k in keys], means,
                                           sigmas, r)
         else:
             means = [data.normal(0, 5e3, size).astype(np.float32) for _ in range(columns)]
             stds = [np.float32(s) for s in sigmas]
 
-            got = instrument._draw_table_sums(seed_words(keys), means, stds)
+            got = sums_module._draw_table_sums(seed_words(keys), means, stds)
             want = _table_sums_whole([np.random.default_rng(k) for k in keys], means, stds)
-    assert got.dtype == instrument.SUM_TYPE and got.shape == (columns, size)
+    assert got.dtype == sums_module.SUM_TYPE and got.shape == (columns, size)
     np.testing.assert_array_equal(got, want)
 
 
@@ -295,7 +296,8 @@ def test_render_is_the_same_with_or_without_numba(level, name):
 
     inst = Instrument(load_scene(f"paper-scene1?fidelity={level}"), 3)
     cfg = RenderSettings.from_spec(inst.spec)
-    compiled, calls = getattr(instrument, name)(), []
+    home = {"terms_kernel": echoes, "synthesis_kernel": codebook}.get(name, sums_module)
+    compiled, calls = getattr(home, name)(), []
 
     def counted(*args):
         calls.append(args[-1].size)
@@ -304,7 +306,7 @@ def test_render_is_the_same_with_or_without_numba(level, name):
     out = []
     for kernel in (lambda: counted, lambda: None):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, name, kernel)
+            mp.setattr(home, name, kernel)
             got = [inst.render_sums(cols, cfg, 4) for cols in (list(range(24)), [9, 2, 9, 0])]
             got.append(inst.render_sums([0, 5], cfg, 4, calibration=True))
         out.append(got)
@@ -329,7 +331,8 @@ def test_render_sums_do_not_depend_on_the_block_size(level):
     out = {}
     for block in (1 << 30, 2 * cfg.frame_samples + 1, 3 * cfg.frame_samples):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(instrument, "_BLOCK_VALUES", block)
+            mp.setattr(sums_module, "BLOCK_VALUES", block)
+            mp.setattr(echoes, "BLOCK_VALUES", block)
             inst.forget()
             sums, drawn = inst.render_sums(cols, cfg, 2)
             cal, ok = inst.render_sums([0, 1, 2], cfg, 2, calibration=True)
@@ -373,14 +376,14 @@ def test_batched_echo_terms_equal_the_columns_own(data):
         elif kind == "all off":
             p[:] = 0.0
         items.append((c, None if kind == "default" else p))
-    assert inst._fixed_noise_v is None  # the link budget's noise, summed over channels
+    assert inst.noise.fixed_v is None  # the link budget's noise, summed over channels
     calibration = data.draw(st.booleans())
-    sigmas = inst._noise_rms_items(cfg, items, calibration)
+    sigmas = inst.noise.rms_items(cfg, items, calibration)
     for (c, p), sigma in zip(items, sigmas.tolist(), strict=True):
         assert sigma == inst.noise_rms_v_at(c, cfg, p, calibration)
-    got = inst._batch_echo_terms(cfg, items, False)
+    got = inst.echoes.batch_terms(cfg, items, False)
     for (c, p), terms in zip(items, got, strict=True):
-        want = inst._echo_terms(c, cfg, p, False)
+        want = inst.echoes.terms(c, cfg, p, False)
         if want is None:
             assert terms is None
             continue
@@ -396,11 +399,11 @@ def _tabulated_reference(inst, cfg, column):
 
     length = cfg.frame_samples
     out = np.zeros(length, dtype=np.float32)
-    amps, taus, members, _ = inst._echo_terms(column, cfg, None, False)
-    steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * instrument.TABLE_PHASES)
+    amps, taus, members, _ = inst.echoes.terms(column, cfg, None, False)
+    steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * codebook.TABLE_PHASES)
     whole = np.floor(steps)
-    delay, phase = np.divmod(whole.astype(np.int64), instrument.TABLE_PHASES)
-    stack, where, _ = inst._waveform_table(cfg, members)
+    delay, phase = np.divmod(whole.astype(np.int64), codebook.TABLE_PHASES)
+    stack, where, _ = inst.codebook.waveform_table(cfg, members)
     for a, t, d, p, i in zip(amps.tolist(), (steps - whole).tolist(), delay.tolist(),
                              phase.tolist(), members, strict=True):
         s = length - d % length
@@ -439,11 +442,11 @@ def test_tabulated_echoes_of_a_batch_equal_each_column_alone(ghosts):
     cfg = RenderSettings.from_spec(inst.spec)
     items = [(c, None) for c in (3, 0, 4, 3, 1)]
     batch = np.zeros((len(items), cfg.frame_samples), dtype=np.float32)
-    inst._tabulated_echoes(cfg, items, False, batch)
+    inst.echoes.tabulated_echoes(cfg, items, False, batch)
     assert np.all(np.abs(batch).max(axis=1) > 0)
     for (c, _), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(_tabulated_reference(inst, cfg, c), row)
-    terms = inst._echo_terms(0, cfg, None, False)
+    terms = inst.echoes.terms(0, cfg, None, False)
     assert (terms[3].tolist()[-2:] == [2, 0]) == ghosts  # the ghosts' terms, last
 
 
@@ -456,7 +459,7 @@ def test_exact_echoes_of_a_batch_equal_each_column_alone(ghosts):
     inst = _wall_with_ghosts(ghosts)
     cfg = RenderSettings.from_spec(inst.spec)
     items = [(c, inst.default_power_w[:, c]) for c in (3, 0, 4, 3, 1)]
-    batch = inst._echoes(cfg, items, False)[0]
+    batch = inst.echoes.batch(cfg, items, False)[0]
     assert np.all(np.abs(batch).max(axis=1) > 0)
     for (c, p), row in zip(items, batch, strict=True):
         np.testing.assert_array_equal(inst.echo(c, cfg, p), row)
@@ -470,9 +473,9 @@ def test_waveform_tables_appended_member_by_member_equal_tables_built_at_once():
     grown, at_once = _wall_with_ghosts(False), _wall_with_ghosts(False)
     cfg = RenderSettings.from_spec(grown.spec)
     for members in ((5,), (3, 5, 9), (0, 9)):
-        stack, where, peak = grown._waveform_table(cfg, members)
+        stack, where, peak = grown.codebook.waveform_table(cfg, members)
     assert stack.shape[0] == len(where) == 4
-    whole, at, top = at_once._waveform_table(cfg, (9, 0, 5, 3))
+    whole, at, top = at_once.codebook.waveform_table(cfg, (9, 0, 5, 3))
     for i in (0, 3, 5, 9):
         np.testing.assert_array_equal(stack[where[i]], whole[at[i]])
         assert peak[i] == top[i]
@@ -487,4 +490,4 @@ def test_tabulated_echoes_refuse_a_batch_they_cannot_add_into_in_place():
     cfg = RenderSettings.from_spec(inst.spec)
     batch = np.zeros((2, 2 * cfg.frame_samples), dtype=np.float32)[:, ::2]
     with pytest.raises(ValueError, match="C-contiguous"):
-        inst._tabulated_echoes(cfg, [(0, None), (1, None)], False, batch)
+        inst.echoes.tabulated_echoes(cfg, [(0, None), (1, None)], False, batch)

@@ -335,14 +335,17 @@ def test_the_column_clock_keeps_eq29s_frame_rate():
 @settings(max_examples=200, deadline=None)
 def test_the_clock_floors_chips_over_the_exact_chip_rate(rate, chips):
     """The timestamp in integers equals floor(chips * 1e6 / rate) with the rate's exact
-    binary value (fractions.Fraction), to the last microsecond, 32 bits."""
+    binary value (fractions.Fraction), to the last microsecond, 32 bits; the board's
+    clock is that function of its chip count."""
     from fractions import Fraction
 
+    from cdma_lidar.scene.acquire import clock_us
+
+    assert clock_us(chips, rate) == int(chips * 1_000_000 // Fraction(rate)) & 0xFFFFFFFF
     fw = _CLOCK_BOARD
-    fw._chip_rate = (Fraction(rate).numerator, Fraction(rate).denominator)
     cfg = fw.render_settings()
     fw._clock_chips = chips - cfg.averages * cfg.frame_chips
-    assert fw._timestamp(cfg) == int(chips * 1_000_000 // Fraction(rate)) & 0xFFFFFFFF
+    assert fw._timestamp(cfg) == clock_us(chips, fw.spec.chip_rate_hz)
 
 
 _CLOCK_BOARD = VirtualFirmware(load_scene("flat-wall?instrument.columns=1"
@@ -355,7 +358,7 @@ def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
     every column must equal ColumnResult.from_receiver of the same receiver output, extra
     peaks and UID signs included, and batches split anywhere must give the same columns."""
     from cdma_lidar.protocol.columns import ColumnResult
-    from cdma_lidar.virtual import board
+    from cdma_lidar.scene import acquire
 
     fw = VirtualFirmware(load_scene("flat-wall", overrides={
         "distance": 7.5, "instrument.wavelengths.count": 8, "instrument.columns": 7}), 5)
@@ -375,6 +378,26 @@ def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
     assert [key(c) for c in got] == [key(c) for c in want]
     assert want[0].peaks == config.get("peaks", 1)
     assert [c.timestamp_us for c in got] == sorted({c.timestamp_us for c in got})
-    monkeypatch.setattr(board, "_BATCH_VALUES", 2 * cfg.frame_samples)  # batches of 2
+    monkeypatch.setattr(acquire, "BATCH_VALUES", 2 * cfg.frame_samples)  # batches of 2
     assert [key(c) for c in fw.scan(2, 0, fw.columns)] == [key(c) for c in want]
     assert not got[0].records.flags.writeable
+
+
+@pytest.mark.parametrize(("change", "field", "allowed"), [
+    ({"out_bits": 40}, "out_bits", "8"), ({"out_shift": 63}, "out_shift", "62"),
+    ({"rounding": "up"}, "rounding", "truncate"), ({"peaks": 9}, "peaks", "8"),
+    ({"averages": 0}, "averages", "1024"), ({"uid": 2}, "uid", "1"),
+    ({"gate_len": 2047 * 4 + 1}, "gate_len", str(2047 * 4)),
+    ({"samples_per_chip": 17}, "samples_per_chip", "16"),
+    ({"peak_exclude": 2047 * 4 + 1}, "peak_exclude", str(2047 * 4))])
+def test_a_bad_key_is_refused_once_naming_the_field_and_its_range(change, field, allowed):
+    """The board checks its own limits, the receive chain's configuration checks its
+    fields (ReceiverConfig): each refusal names the field and the allowed range, and
+    leaves the configuration as it was."""
+    fw = VirtualFirmware(load_scene("flat-wall?instrument.columns=2"), 0)
+    before = fw.get_config()
+    with pytest.raises(ConfigError) as info:
+        fw.set_config(change)
+    assert info.value.field == field
+    assert allowed in str(info.value)
+    assert fw.get_config() == before
