@@ -31,9 +31,10 @@ competitor per lag), ``predicted_per_chip`` (``fig11``'s count over the gate),
 whole period would give), ``snr_ss_median_db`` (eq. 43, median pixel), ``gate_lags``,
 ``rejected_fraction`` (pixels a scan would reject at the host's default SNR_XC
 threshold) and, measuring the machine, ``time_s``. The full run (K = 400, 800, 1,200 x
-160 columns) renders and receives 384,000 pixels: at about 2 to 3 CPU seconds per
-1,200-channel column on this 2-core machine (``python -m bench massive``), most of an
-hour; ``--quick`` runs 2 columns per K.
+160 columns, 384,000 pixels) is 80 times the columns of ``--quick`` (2 per K), which took
+22 CPU seconds on the shared 2-core machine (3 minutes of wall time at a load of 14):
+about 10 to 20 CPU minutes, most of it the 1,200-channel columns' receive chain
+(``python -m bench massive``).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The ``massive`` study: wrongly ranged pixels of a flat wall against fig11's prediction.
 
-Run here at reduced sizes (K = 40 and 400, a few columns): the full run, K = 400, 800 and
-1,200 over 160 columns, takes most of an hour on the 2-core machine.
+Run here at reduced sizes (K = 40 to 400, a few columns): the full run, K = 400, 800 and
+1,200 over 160 columns, takes 10 to 20 CPU minutes (study/massive.py says how measured).
 """
 
 from __future__ import annotations
