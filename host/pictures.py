@@ -20,6 +20,13 @@ from the grating and the channel's wavelength down the side (ring 0, the shortes
 wavelength, is the top beam), azimuth (deg, left positive) from the column's grating
 rotation across, drawn as the sensor sees the scene (left is left). Titles name the
 scene (or device) and the frame. Every figure is written atomically.
+
+Many channels (more than :data:`DENSE_ROWS`, e.g. paper-massive's 1,200): an image has
+more rows than the picture has pixels, so it is antialiased (a one-channel feature shows
+as a fainter line instead of vanishing between sampled rows), the SNR_XC map names its
+threshold in the title instead of drawing a contour around every noisy pixel, the
+column profile draws dots without joining lines, and the 3D view draws the far points
+first so near objects stay visible in front of a wall. Ticks are matplotlib's few.
 """
 
 from __future__ import annotations
@@ -46,6 +53,9 @@ __all__ = ["Angles", "capture_plot", "column_profile", "depth_image", "power_map
            "range_histogram", "scan_pictures", "snr_heatmap", "snr_heatmaps", "view_3d"]
 
 log = logging.getLogger(__name__)
+
+#: Images with more rows than this are drawn as described in the module docstring.
+DENSE_ROWS = 200
 
 
 def _figure(width_in: float, height_in: float) -> Figure:
@@ -88,7 +98,9 @@ class Angles:
 def _image(ax: Axes, values: NDArray, angles: Angles | None, **kw: Any) -> AxesImage:
     """A (K, C) image with angle axes when known (module docstring), else indices."""
     ext = angles.extent() if angles is not None else None
-    im = ax.imshow(values, aspect="auto", interpolation="nearest", extent=ext, **kw)
+    smooth = values.shape[0] > DENSE_ROWS   # more rows than pixels: average, do not skip
+    im = ax.imshow(values, aspect="auto", interpolation="antialiased" if smooth else "nearest",
+                   extent=ext, **kw)
     if ext is None:
         ax.set_xlabel("column")
         ax.set_ylabel("channel (ring 0 = top beam)")
@@ -102,7 +114,9 @@ def _heat(ax: Axes, snr_db: NDArray, threshold_db: float, title: str,
           vmin: float, vmax: float, angles: Angles | None = None) -> AxesImage:
     im = _image(ax, snr_db, angles, cmap="viridis", vmin=vmin, vmax=vmax)
     finite = np.where(np.isfinite(snr_db), snr_db, vmin)
-    if finite.min() < threshold_db < finite.max():
+    if snr_db.shape[0] > DENSE_ROWS:
+        title = f"{title} (threshold {threshold_db:g} dB)"
+    elif finite.min() < threshold_db < finite.max():
         ax.contour(finite, levels=[threshold_db], colors="w", linewidths=0.8,
                    extent=im.get_extent(), origin="upper")
         from matplotlib.lines import Line2D  # deferred with the rest of matplotlib (see _figure)
@@ -192,14 +206,17 @@ def column_profile(cloud: PointCloud, column: int, threshold_db: float,
     x = el if use_el else np.arange(k)
     valid = (cloud.flags[:, column] == 0) & cloud.has_range[:, column]
     rng, snr = cloud.range[:, column], cloud.snr_xc[:, column]
+    dense = k > DENSE_ROWS
+    ms = 1.5 if dense else 3.5
     fig = _figure(7.5, 4.6)
     top, bottom = fig.subplots(2, 1, sharex=True)
-    top.plot(x[valid], rng[valid], "o", ms=3.5, color="tab:blue", label="valid")
-    top.plot(x[~valid], rng[~valid], "o", ms=3.5, mfc="none", color="tab:gray",
+    top.plot(x[valid], rng[valid], "o", ms=ms, color="tab:blue", label="valid")
+    top.plot(x[~valid], rng[~valid], "o", ms=ms, mfc="none", color="tab:gray",
              label="rejected")
     top.set_ylabel("range (m)")
     top.legend(fontsize=7, loc="best")
-    bottom.plot(x, snr, "-o", ms=2.5, lw=0.8, color="tab:purple", label="SNR_XC")
+    bottom.plot(x, snr, "." if dense else "-o", ms=2 if dense else 2.5, lw=0.8,
+                color="tab:purple", label="SNR_XC")
     bottom.axhline(threshold_db, ls="--", color="tab:red", lw=0.9,
                    label=f"threshold {threshold_db:g} dB")
     bottom.set_ylabel("SNR_XC (dB)")
@@ -313,7 +330,8 @@ def view_3d(cloud: PointCloud, path: str | os.PathLike[str], title: str = "") ->
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     front = fig.add_subplot(1, 2, 2)
     if np.any(ok):
-        x, y, z, r = cloud.x[ok], cloud.y[ok], cloud.z[ok], cloud.range[ok]
+        far_first = np.argsort(-cloud.range[ok], kind="stable")  # near points drawn on top
+        x, y, z, r = (v[ok][far_first] for v in (cloud.x, cloud.y, cloud.z, cloud.range))
         sc = ax.scatter(x, y, z, c=r, s=2, cmap="turbo")
         lo = np.array([x.min(), y.min(), z.min()])
         span = np.array([np.ptp(v) for v in (x, y, z)])

@@ -67,6 +67,7 @@ __all__ = [
     "ScanResult",
     "ScanState",
     "calibrate_device",
+    "default_power_level",
     "frames_path",
     "image_from_cloud",
     "max_snr_xc_db",
@@ -130,7 +131,9 @@ class ScanOptions:
         ghost_windows: ``(start, length)`` lag windows (samples) of known ghosts.
         power_cap: eye-safety cap per column, in units of the per-pixel maximum power
             (> 0; None: the starting column sum); used by ``near_far`` only.
-        initial_power: near-far start power, as a fraction of the per-pixel maximum (0, 1].
+        initial_power: the scan's (and near-far's starting) power, as a fraction of the
+            per-pixel maximum (0, 1]; lowered to fit the column cap the device states
+            (:func:`default_power_level`).
         offset_m: calibration offset (m, |offset| <= 1000).
         combine: how the frames become one cloud (:mod:`cdma_lidar.host.combine`):
             ``last``, ``mean`` (SNR-weighted) or ``median``; the last two need 2 frames.
@@ -321,6 +324,23 @@ def multi_user_peaks(device: Device, user_set: set[str] | frozenset[str] = froze
     return want
 
 
+def default_power_level(device: Device, fraction: float) -> float:
+    """The uniform power (fraction of the per-pixel maximum) a scan starts with.
+
+    ``fraction`` (at most 1: the per-pixel cap), lowered where K pixels at it would sum
+    over the column cap the device states in INFO (``column_power_cap_uw`` over
+    ``pixel_power_max_uw``; 0 means none): the largest level on the device's 1/65535 grid
+    whose column sum it accepts, in integers as the device checks it. A 1,200-channel
+    device with a 0.1 W pixel maximum and a 6 W column cap starts at 0.05, not 0.25.
+    """
+    code = math.floor(min(fraction, 1.0) * 65535)
+    pixel_uw = int(getattr(device.info, "pixel_power_max_uw", 0))
+    cap_uw = int(getattr(device.info, "column_power_cap_uw", 0))
+    if pixel_uw > 0 and cap_uw > 0:
+        code = min(code, cap_uw * 65535 // (device.channels * pixel_uw))
+    return code / 65535
+
+
 def _set_power(device: Device, matrix: NDArray[np.float64],
                previous: NDArray[np.float64] | None = None,
                raised: NDArray[np.bool_] | None = None
@@ -392,15 +412,16 @@ class Scan:
         self._state = state
         self._controller = None
         k, c = device.channels, device.columns
+        # the starting power within the caps the device states (per pixel, per column)
+        self._level = default_power_level(device, options.initial_power)
         if options.near_far:
             # Default cap: the starting column sum, so the loop moves power between pixels
             # and never raises a column's total (the paper's "without increasing overall
             # power").
-            cap = options.power_cap if options.power_cap is not None else \
-                k * options.initial_power
+            cap = options.power_cap if options.power_cap is not None else k * self._level
             self._controller = NearFarController((k, c), self.ranging.snr_threshold_db,
                                                  PowerLimits(max_power=1.0, total_cap=cap),
-                                                 initial_power=options.initial_power)
+                                                 initial_power=self._level)
             if done:
                 now = state.power if state.power is not None else done[-1].power
                 self._controller.powers[:] = [f.power for f in done] + [now]
@@ -408,7 +429,7 @@ class Scan:
             self._controller.powers[-1] = _apply_power(device, self._controller, None)
         else:
             # A known, uniform power: the intensity needs it (the device default may differ).
-            _set_power(device, np.full((k, c), options.initial_power))
+            _set_power(device, np.full((k, c), self._level))
 
     @property
     def frame_ids(self) -> tuple[int, int]:
@@ -418,7 +439,7 @@ class Scan:
     def _power(self) -> NDArray[np.float64]:
         if self._controller is not None:
             return np.array(self._controller.power)
-        return np.full((self.device.channels, self.device.columns), self.options.initial_power)
+        return np.full((self.device.channels, self.device.columns), self._level)
 
     def frames(self, *, progress: bool = True,
                on_column: Callable[[int, int], None] | None = None) -> Iterator[ScanFrame]:

@@ -8,6 +8,8 @@ A scene file has up to four parts::
     distance = "objects[0].position_m[0]"
     [instrument]                 # the simulated board, optics and photodiode (true values)
     wavelengths = { start_m = 1570e-9, spacing_m = 0.875e-9, count = 40 }
+                                 # or { start_m, stop_m, count }: the spacing follows
+    total_power_cap_w = 0.2      # or total_power_cap_per_channel_w: the cap is K times it
     azimuth_deg = [-5.0, 5.0]    # first and last column, or rotations_deg = [...]
     columns = 160
     ...
@@ -43,6 +45,7 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.pairs import pair_degrees, preferred_pairs
+from cdma_lidar.firmware_model.receiver import MAX_CHANNELS
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.scene.model import (
     FIDELITY_LEVELS,
@@ -189,14 +192,22 @@ class _Reader:
 
 def _parse_wavelengths(r: _Reader) -> NDArray[np.float64]:
     if r.has("wavelengths_m"):
-        return r.nums("wavelengths_m", 100e-9, 20e-6, max_len=1024, unit="m")
+        return r.nums("wavelengths_m", 100e-9, 20e-6, max_len=MAX_CHANNELS, unit="m")
     w = r.sub("wavelengths")
     if w is None:
         w = _Reader({}, r.name("wavelengths"))
     d = DEFAULT_WAVELENGTHS
     start = w.num("start_m", 100e-9, 20e-6, d["start_m"], unit="m")
+    count = w.int("count", 1, MAX_CHANNELS, d["count"])
+    if w.has("stop_m"):
+        # a band instead of a spacing: the spacing follows the count
+        if w.has("spacing_m"):
+            raise out_of_range(w.name("spacing_m"), "absent when stop_m is given",
+                               w.raw("spacing_m"))
+        stop = w.num("stop_m", 100e-9, 20e-6, unit="m")
+        w.done()
+        return np.linspace(start, stop, count) if count > 1 else np.array([start])
     spacing = w.num("spacing_m", -1e-6, 1e-6, d["spacing_m"], unit="m")
-    count = w.int("count", 1, 1024, d["count"])
     w.done()
     return start + spacing * np.arange(count, dtype=np.float64)
 
@@ -327,7 +338,17 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
     else:
         power = np.full(k, r.num("laser_power_w", 0.0, max_pixel, DEFAULT_LASER_POWER_W,
                                  unit="W"))
-    cap = r.num("total_power_cap_w", 0.0, 100.0, d("total_power_cap_w"), unit="W", open_lo=True)
+    if r.has("total_power_cap_per_channel_w"):
+        # the column cap stated per channel, so that it scales with K
+        if r.has("total_power_cap_w"):
+            raise out_of_range("instrument.total_power_cap_w",
+                               "absent when total_power_cap_per_channel_w is given",
+                               r.raw("total_power_cap_w"))
+        cap = k * r.num("total_power_cap_per_channel_w", 0.0, 100.0 / k, unit="W",
+                        open_lo=True)
+    else:
+        cap = r.num("total_power_cap_w", 0.0, 100.0, d("total_power_cap_w"), unit="W",
+                    open_lo=True)
     if power.sum() > cap:
         raise out_of_range("instrument.laser_power_w", f"summing to at most the total cap {cap} W",
                            float(power.sum()))

@@ -10,13 +10,13 @@ registering a second study under a taken name is an error unless ``replace=True`
 from __future__ import annotations
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.study import detection, extremes, paper, tradeoff
+from cdma_lidar.study import detection, extremes, massive, paper, tradeoff
 from cdma_lidar.study.engine import Study
 
 __all__ = ["BUILTIN", "get_study", "register_study", "studies"]
 
 #: The studies shipped with the toolkit, in the order ``study list`` shows them.
-BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY,
+BUILTIN: tuple[Study, ...] = (tradeoff.STUDY, extremes.STUDY, detection.STUDY, massive.STUDY,
                               # the paper's results (docs/paper.md); `paper` runs them all
                               *paper.PARTS.values(), paper.STUDY)
 

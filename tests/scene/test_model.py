@@ -25,7 +25,7 @@ def _doc(**instrument):
 def test_presets_load(name):
     scene = load_scene(name)
     assert scene.name == name
-    assert scene.instrument.channels == 40
+    assert scene.instrument.channels == (1200 if name == "paper-massive" else 40)
     assert scene.instrument.rotations_deg.size == scene.instrument.columns
 
 

@@ -1,0 +1,68 @@
+"""The ``massive`` study: wrongly ranged pixels of a flat wall against fig11's prediction.
+
+Run here at reduced sizes (K = 40 to 400, a few columns): the full run, K = 400, 800 and
+1,200 over 160 columns, takes 10 to 20 CPU minutes (study/massive.py says how measured).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.study.engine import run_study
+from cdma_lidar.study.mai import snr_ss_eq43
+from cdma_lidar.study.massive import STUDY, flat_wall_scene, massive_task, predicted_error
+from cdma_lidar.study.paperlab import wilson
+
+
+def test_the_flat_wall_is_paper_massive_facing_one_plane():
+    scene = load_scene(flat_wall_scene(400, 2, 7.5))
+    spec = scene.instrument
+    assert (spec.channels, spec.columns, spec.code_degree, spec.samples_per_chip) == \
+        (400, 2, 15, 2)
+    assert [o.kind for o in scene.objects] == ["plane"]
+    assert scene.objects[0].position_m[0] == 7.5
+
+
+def test_the_prediction_is_eq43_of_the_walls_own_echoes_and_noise():
+    inst = Instrument(load_scene(flat_wall_scene(400, 2, 8.0)), seed=0)
+    amp = float(np.median(inst.gain_v_per_w * inst.default_power_w))
+    _, snr_db = predicted_error(inst, 123)
+    expected = snr_ss_eq43(inst.spec.code_length, 400, inst.noise_rms_v / amp, 1.0, 2, 1)
+    assert snr_db == pytest.approx(10 * math.log10(expected), abs=0.2)
+    few, _ = predicted_error(inst, 61)
+    many, _ = predicted_error(inst, 32764)
+    assert 0 <= few < many <= 1   # more lags searched, more chances to miss
+
+
+def test_no_pixel_is_wrong_where_fig11_predicts_none():
+    row = massive_task({"channels": 40, "columns": 2, "distance_m": 8.0},
+                       np.random.SeedSequence(1))
+    assert row["pixels"] == 80 and row["wrong_pixels"] == 0
+    assert row["predicted_fraction"] < 1e-3 and row["snr_ss_median_db"] > 20
+
+
+@pytest.mark.parametrize("snr_db", [-40.0, -46.0])
+def test_a_noise_dominated_wall_is_wrong_as_often_as_predicted(snr_db):
+    """The per-sample SNR of each echo at -40 / -46 dB: many pixels miss, and as many as
+    the SGA with one competitor per lag of the gate says (one per chip says too few)."""
+    row = massive_task({"channels": 40, "columns": 4, "distance_m": 8.0, "snr_db": snr_db},
+                       np.random.SeedSequence(1))
+    lo, hi = wilson(row["wrong_pixels"], row["pixels"])
+    assert 0.3 < row["wrong_fraction"] < 0.97
+    assert lo <= row["predicted_fraction"] <= hi
+    assert row["predicted_per_chip"] < row["predicted_fraction"]
+
+
+def test_the_study_runs_and_judges_each_channel_count(tmp_path):
+    res = run_study(STUDY, tmp_path, quick=True, workers=0, progress=False,
+                    overrides={"channels": (40, 80), "columns": 1})
+    assert not res.failures
+    assert list(res.table.column("agrees_with_fig11")) == [1, 1]
+    assert res.summary["wrong_fraction_k80"]["verdict"] == "agrees"
+    assert res.summary["agreeing_channel_counts"]["ours"] == 2
+    assert (tmp_path / "massive.png").stat().st_size > 5000
