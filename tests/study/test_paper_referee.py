@@ -164,6 +164,14 @@ def test_operating_point_is_read_from_what_the_studies_run():
     assert not table["channel spacing"].stated  # inferred, not printed
     assert table["chip rate"].value == f"{lab.chip_rate_hz / 1e6:g} Mchip/s"
     assert all(p.value for p in table.values())
+    # scene 2 stays in the L band (the paper: a C-band EDFA) and the row says so and why
+    band = table["band of each scene"]
+    scene2 = load_scene("paper-scene2").instrument
+    assert min(scene2.wavelengths_m) >= 1570e-9 and "paper-scene2: 1570.000-" in band.value
+    assert not band.stated and "C-band EDFA for scene 2" in band.source
+    assert "higher power per channel stands for the C-band EDFA's extra gain" in band.source
+    scene1 = load_scene("paper-scene1").instrument
+    assert np.min(scene2.laser_power_w) > np.max(scene1.laser_power_w)
 
 
 def test_the_fitted_link_is_realised_by_the_reflectivity():
