@@ -75,12 +75,30 @@ def cmd_run(args: argparse.Namespace) -> int:
     sys.stdout.write(f"{study.name}: {len(result.table)} points, {result.computed} tasks "
                      f"computed, {result.cached} reused -> {result.out}\n")
     for name, h in result.summary.items():
-        paper = "" if h.get("paper") is None else f" (paper: {h['paper']})"
-        sys.stdout.write(f"  {name}: {h.get('ours')} {h.get('unit', '')}{paper}\n")
+        sys.stdout.write(f"  {name}: {_safe(_summary_value(h))}\n")
     for f in result.failures:
         sys.stderr.write(f"cdma-lidar study: task failed: {_safe(json.dumps(f.params))} "
                          f"replicate {f.replicate}: {_safe(f.error)}\n")
     return 1 if result.failures else 0
+
+
+def _summary_value(h: dict) -> str:
+    """One summary entry on one line: a headline's value, unit and the paper's; another
+    dict (the paper study's ``counts``, ``calibration``) its numbers, one level deep, as
+    ``key=value`` and how many other fields summary.json holds."""
+    if "ours" in h:
+        paper = "" if h.get("paper") is None else f" (paper: {h['paper']})"
+        return f"{h.get('ours')} {h.get('unit', '')}{paper}"
+    shown, rest = [], 0
+    for key, v in h.items():
+        items = v.items() if isinstance(v, dict) else [(None, v)]
+        for sub, x in items:
+            if isinstance(x, int | float) and not isinstance(x, bool):
+                shown.append(f"{key}.{sub}={x:g}" if sub else f"{key}={x:g}")
+            else:
+                rest += 1
+    more = f" (+{rest} more fields in summary.json)" if rest else ""
+    return ", ".join(shown) + more
 
 
 def cmd_ask(args: argparse.Namespace) -> int:

@@ -65,7 +65,8 @@ REPORT_NOTE = (
     "treats as cross-talk of its own code (docs/host.md). And eq. 53 at l = 3 counts "
     "2^12 + 1 codes of order 12, but degrees that are multiples of 4 have no preferred "
     "pairs, so no Gold family of order 12 exists (direct_family_exists = 0 in the table); "
-    "there our number is eq. 53's, not an enumeration."
+    "there the row is eq. 53's value with no verdict and a cause saying the family does not "
+    "exist (likewise, with its own cause, an order above max_enumerate_degree)."
 )
 
 
@@ -193,12 +194,22 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         out[f"candidates_uid_l{li}"] = exact(
             uid, None, "sequences", verdict="exact" if uid == eq52 else "differs",
             derived=f"eq. 52 at m = {m}, l = {li}: {eq52}")
-        direct = row["candidates_direct_enumerated"]
-        direct = direct if direct is not None else row["candidates_direct"]
-        eq53 = candidates_direct(m, li)
+        direct, eq53 = row["candidates_direct_enumerated"], candidates_direct(m, li)
+        if direct is not None:
+            out[f"candidates_direct_l{li}"] = exact(
+                direct, None, "sequences", verdict="exact" if direct == eq53 else "differs",
+                derived=f"eq. 53 at m = {m}, l = {li}: {eq53}")
+            continue
+        # nothing counted: eq. 53's value alone, with no verdict (it cannot disagree with
+        # itself), and why: no family of that order, or not enumerated in this run
+        why = (f"no Gold family of order {m + li} exists (a degree that is a multiple of "
+               f"4 has no preferred pair): eq. 53 counts {eq53} codes that cannot be built"
+               if not row["direct_family_exists"] else
+               f"order {m + li} not enumerated in this run (max_enumerate_degree = "
+               f"{row['max_enumerate_degree']}): eq. 53 alone, not checked")
         out[f"candidates_direct_l{li}"] = exact(
-            direct, None, "sequences", verdict="exact" if direct == eq53 else "differs",
-            derived=f"eq. 53 at m = {m}, l = {li}: {eq53}")
+            eq53, None, "sequences", verdict=None, family_exists=bool(row["direct_family_exists"]),
+            cause=why, derived=f"eq. 53 at m = {m}, l = {li}: {eq53} (not counted)")
     out.update(uid3_rows())
     return out
 

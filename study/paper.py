@@ -71,7 +71,7 @@ from cdma_lidar.study import (
     table1,
 )
 from cdma_lidar.study.engine import Headline, RunContext, RunResult, Setting, Study, Table
-from cdma_lidar.study.papercal import calibrate, preset_link_db
+from cdma_lidar.study.papercal import calibrate, preset_link_db, reflectivity_for_link
 from cdma_lidar.study.paperlab import (
     ASSUMPTIONS,
     PAPER_CITATION,
@@ -86,6 +86,7 @@ from cdma_lidar.study.paperlab import (
 )
 
 __all__ = [
+    "AT_FITTED_LINK",
     "CALIBRATION_GROUP",
     "CRITERIA",
     "DIFFERENCES",
@@ -106,6 +107,7 @@ __all__ = [
     "fmt_interval",
     "fmt_value",
     "merge",
+    "monte_carlo",
     "parse_sub_set",
     "row_groups",
     "write_report",
@@ -395,6 +397,12 @@ REFINE: dict[str, tuple[str, str, dict[str, str]]] = {
     "fig2f": ("distances", "max_range_m_order13", {"degrees": "13"})}
 REFINE_POINTS = 5
 REFINE_ROUNDS = 2
+
+#: Paper-point runs made at the jointly fitted link, not the preset's: the held-out
+#: prediction's Monte-Carlo check (:func:`~cdma_lidar.study.papercal.calibrate`). The
+#: fitted link is realised by the wall's reflectivity (an assumed term; the study's
+#: ``reflectivity`` setting), the other link terms the ``paper-lab`` preset's.
+AT_FITTED_LINK = ("fig2f",)
 
 NOT_AVAILABLE = "not available in this build"
 
@@ -702,8 +710,8 @@ def calibration_markdown(cal: dict[str, Any]) -> list[str]:
                      f"{r['db']:+.2f} | {r['sigma']:+.2f} | {fmt_value(m['source'])} |")
     every = cal["all"]
     lines += ["", f"Held out: {ho['where']}'s {fmt_value(ho['paper'])} {ho['unit']} predicted "
-              f"as {fmt_interval(ho['predicted'], ho['ci95'])} {ho['unit']} (closed form; the "
-              "Monte-Carlo check is the fig2f row at the paper's point).",
+              f"as {fmt_interval(ho['predicted'], ho['ci95'])} {ho['unit']} (closed form); "
+              + _monte_carlo_words(cal.get("monte_carlo"), ho["unit"]),
               "",
               "One instrument explains every measurement: "
               + ("**yes**" if every["explains"] else "**no**")
@@ -720,6 +728,20 @@ def calibration_markdown(cal: dict[str, Any]) -> list[str]:
         lines.append(f"* {', '.join(sub['members'])} (link {sub['parameters']['link_db']:.1f} "
                      f"dB): left out {need}")
     return [*lines, ""]
+
+
+def _monte_carlo_words(mc: dict[str, Any] | None, unit: str) -> str:
+    """The Monte-Carlo check of the held-out prediction, in words (:func:`monte_carlo`)."""
+    if not mc:
+        return "no Monte-Carlo check in this calibration."
+    where = (f"the {mc['study']} row at the paper's point, run at the fitted link (the wall's "
+             f"reflectivity {mc['reflectivity']:.4g} instead of the preset's "
+             f"{mc['preset_reflectivity']:g})" if mc["reflectivity"] is not None else
+             f"the {mc['study']} row at the paper's point, not at the fitted link (no "
+             "reflectivity up to 1 reaches it, or the run set its own)")
+    if mc["value"] is None:
+        return f"Monte-Carlo check: {where}, not in this run."
+    return f"Monte-Carlo check, {where}: {fmt_interval(mc['value'], mc['ci95'])} {unit}."
 
 
 def write_report(entries: list[dict[str, Any]], path: Path, *, quick: bool, seed: int,
@@ -855,6 +877,9 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     at_paper_too = ctx.options["point"] == "both"
     entries = []
     out: dict[str, Headline] = {}
+    cal = calibrate(preset_link_db(PRESET))
+    refl = reflectivity_for_link(cal["parameters"]["link_db"], PRESET)
+    fitted = {} if refl is None else {"reflectivity": f"{refl:.6g}"}
     for name in names:
         study = PARTS.get(name)
         if study is None:
@@ -865,15 +890,18 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         own = dict(sub_set.get(name) or {})
         if ctx.options["point"] == "paper":
             own.setdefault("point", "paper")
+            if name in AT_FITTED_LINK:
+                own = {**fitted, **own}
         try:
             result = ctx.run_sub(study, own)
             if at_paper_too and name in PAPER_POINT_RUNS:
                 paper_study = dataclasses.replace(study, name=f"{name}-paper")
                 quick = PAPER_POINT_QUICK.get(name, {}) if ctx.options.quick else {}
-                at_paper = ctx.run_sub(paper_study, {**quick, **own, **PAPER_POINT_RUNS[name]})
+                link = fitted if name in AT_FITTED_LINK else {}
+                settings = {**quick, **link, **own, **PAPER_POINT_RUNS[name]}
+                at_paper = ctx.run_sub(paper_study, settings)
                 if name in REFINE:
-                    at_paper = _refine(ctx, study, at_paper, {**quick, **own,
-                                                              **PAPER_POINT_RUNS[name]})
+                    at_paper = _refine(ctx, study, at_paper, settings)
             elif ctx.options["point"] == "paper" and name in PAPER_POINT_RUNS:
                 at_paper = result  # the part ran at the paper's point: that is its value
         except ConfigError:
@@ -885,7 +913,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
         entries.append(e)
         for key, h in e["summary"].items():
             out[f"{name}.{key}"] = h
-    cal = calibrate(preset_link_db(PRESET))
+    cal["monte_carlo"] = monte_carlo(entries, refl)
     for e in entries:  # the calibrated rows carry their residual
         for key, name in (("resolution_2sigma_m", "fig2c_resolution"),
                           ("min_workable_snr_db", "fig2e_workable")):
@@ -901,6 +929,23 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     out["counts"] = {k.replace(" ", "_"): v for k, v in n.items()}
     out["calibration"] = cal
     return out
+
+
+def monte_carlo(entries: list[dict[str, Any]], reflectivity: float | None) -> dict[str, Any]:
+    """The held-out prediction's Monte-Carlo check, for ``calibration.monte_carlo``: the
+    fig2f row at the paper's point (run at the fitted link: the wall's ``reflectivity``;
+    None when no reflectivity up to 1 reaches the fitted link, then at the preset's)."""
+    e = next((e for e in entries if e["name"] == "fig2f"), None)
+    h = None if e is None else e["summary"].get("max_range_m_order13")
+    ran = ((e or {}).get("paper_settings") or {}).get("reflectivity")
+    if ran is not None and (reflectivity is None or abs(ran - reflectivity) > 1e-5):
+        log.warning("paper: fig2f ran at reflectivity %g, not the fitted link's", ran)
+        reflectivity = None  # a sub_set chose another: not the fitted link
+    return {"study": "fig2f", "key": "max_range_m_order13",
+            "reflectivity": None if reflectivity is None else round(reflectivity, 6),
+            "preset_reflectivity": load_scene(PRESET).objects[0].reflectivity,
+            "value": None if h is None else h.get("paper_point"),
+            "ci95": None if h is None else h.get("paper_point_ci95")}
 
 
 def _refine(ctx: RunContext, study: Study, result: RunResult,

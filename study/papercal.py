@@ -4,7 +4,8 @@ The paper does not publish its link budget, and several of its printed measureme
 on it. Instead of tuning one study's free terms until its row passes, this module fits
 the unstated parameters once, jointly, to a named set of the paper's measurements
 (:data:`USED`), in closed form, and predicts a measurement held out of the fit
-(:data:`HELD_OUT`), which a Monte-Carlo study then checks (``fig2f`` at ``point=paper``).
+(:data:`HELD_OUT`), which a Monte-Carlo study then checks (``fig2f`` at ``point=paper``,
+run by the paper report at the fitted link: :func:`reflectivity_for_link`).
 
 The closed forms (no randomness; a fit takes milliseconds):
 
@@ -68,6 +69,7 @@ __all__ = [
     "max_range_m",
     "output_snr",
     "preset_link_db",
+    "reflectivity_for_link",
     "resolution_eq28_m",
     "rho_for_resolution",
     "subsets",
@@ -274,17 +276,30 @@ def subsets(preset_db: float, names: tuple[str, ...] | None = None) -> list[Fit]
     return ok
 
 
-def preset_link_db(scene: str = "paper-lab") -> float:
+def preset_link_db(scene: str = "paper-lab", reflectivity: float | None = None) -> float:
     """rho (dB) of the toolkit's ``scene`` link: one channel at 10 m, one record, no mixing,
-    N S times the per-sample SNR of eq. 30 from the instrument's link budget."""
-    inst = Instrument(load_scene(scene, {"sequential_mixing": False, "distance": 10.0,
-                                         "averages": 1}), seed=0)
+    N S times the per-sample SNR of eq. 30 from the instrument's link budget; the wall's
+    ``reflectivity`` (the scene's shortcut) if given, else the preset's."""
+    overrides: dict[str, Any] = {"sequential_mixing": False, "distance": 10.0, "averages": 1}
+    if reflectivity is not None:
+        overrides["reflectivity"] = reflectivity
+    inst = Instrument(load_scene(scene, overrides), seed=0)
     p = np.zeros_like(inst.default_power_w)
     k = inst.channels // 2
     p[k, 0] = inst.default_power_w[k, 0]
     snr = float(inst.link_figures(power_w=p)["snr_db"][k, 0])
     spec = inst.spec
     return snr + _db(spec.code_length * spec.samples_per_chip)
+
+
+def reflectivity_for_link(link_db: float, scene: str = "paper-lab") -> float | None:
+    """The wall's reflectivity at which ``scene``'s link (:func:`preset_link_db`) is
+    ``link_db``: how a Monte-Carlo run realises a fitted link with the preset's other terms
+    (the reflectivity is an assumed term). None when no reflectivity up to 1 reaches it."""
+    if preset_link_db(scene, 1.0) < link_db:
+        return None
+    return float(10 ** brentq(lambda lg: preset_link_db(scene, 10 ** lg) - link_db, -4.0, 0.0,
+                              xtol=1e-7))
 
 
 def calibrate(preset_db: float) -> dict[str, Any]:

@@ -82,8 +82,11 @@ ASSUMPTIONS: tuple[Parameter, ...] = (
               "the paper prints no spacing"),
     Parameter("band of each scene", "", False,
               "the paper (Methods): an L-band EDFA for scene 1 (5 m), a C-band EDFA for scene "
-              "2 (10 m); the presets put both in the L band, and the joint calibration "
-              "(papercal) gives the C band its own gain"),
+              "2 (10 m); the presets put both in the L band (scene 2's wavelengths set the "
+              "scan geometry that fig3, note10 and the virtual device share, so moving them "
+              "would move those results; its higher power per channel stands for the "
+              "C-band EDFA's extra gain), and the joint calibration (papercal) gives the C "
+              "band its own gain"),
     Parameter("grating", "", True, "Methods: Newport 33010FL01-550R, 600 grooves per mm, "
               "nominal blaze 28.7 deg"),
     Parameter("detector", "", True, "Methods: Thorlabs APD430C"),

@@ -147,3 +147,20 @@ def test_an_unreachable_scheduler_is_a_link_error_naming_the_address(tmp_path):
     address = f"tcp://127.0.0.1:{_free_port()}"
     with pytest.raises(LinkError, match="cannot reach the Dask scheduler"):
         run_study(get_study("detection"), tmp_path, scheduler=address, connect_timeout_s=1.0)
+
+
+def test_run_prints_dict_summary_entries_by_their_numbers(capsys, tmp_path):
+    """The paper study's ``counts`` and ``calibration`` are dicts, not headlines: their
+    numbers are printed, not ``None`` (eq29 alone: a few seconds)."""
+    code, out, _ = _run(capsys, "study", "run", "paper", "--out", str(tmp_path), "--workers",
+                        "0", "--set", "studies=eq29", "--no-progress")
+    assert code == 0 and "None" not in out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    lines = {ln.split(":")[0].strip(): ln for ln in out.splitlines()[1:]}
+    n = summary["counts"]
+    printed = lines["counts"].split(": ", 1)[1].split(", ")
+    assert sorted(printed) == sorted(f"{k}={v}" for k, v in n.items())
+    link = summary["calibration"]["parameters"]["link_db"]
+    assert f"parameters.link_db={link:g}" in lines["calibration"]
+    assert "more fields in summary.json" in lines["calibration"]
+    assert lines["eq29.frame_rate_hz"].endswith("Hz (paper: 122.0)")

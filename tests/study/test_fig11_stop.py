@@ -44,7 +44,7 @@ def test_fig11_stops_far_points_at_the_first_look_whatever_the_chunks(tmp_path):
     from cdma_lidar.study.fig11 import STUDY
 
     small = {"channels_order11": (8, 1500), "channels_order13": (), "channels_order15": (),
-             "trials": "128", "S": "4"}
+             "trials": "128", "S": "4", "refine_rounds": 0}
     rows = []
     for chunk in (8, 1000):
         out = tmp_path / str(chunk)

@@ -164,6 +164,39 @@ def test_operating_point_is_read_from_what_the_studies_run():
     assert not table["channel spacing"].stated  # inferred, not printed
     assert table["chip rate"].value == f"{lab.chip_rate_hz / 1e6:g} Mchip/s"
     assert all(p.value for p in table.values())
+    # scene 2 stays in the L band (the paper: a C-band EDFA) and the row says so and why
+    band = table["band of each scene"]
+    scene2 = load_scene("paper-scene2").instrument
+    assert min(scene2.wavelengths_m) >= 1570e-9 and "paper-scene2: 1570.000-" in band.value
+    assert not band.stated and "C-band EDFA for scene 2" in band.source
+    assert "higher power per channel stands for the C-band EDFA's extra gain" in band.source
+    scene1 = load_scene("paper-scene1").instrument
+    assert np.min(scene2.laser_power_w) > np.max(scene1.laser_power_w)
+
+
+def test_the_fitted_link_is_realised_by_the_reflectivity():
+    """The Monte-Carlo check runs at the fitted link: the wall's reflectivity that gives the
+    paper-lab link the fitted rho, the preset's own 0.5 for the preset's link, none above
+    1; the report's words say which link the check ran at."""
+    preset = papercal.preset_link_db()
+    assert papercal.reflectivity_for_link(preset) == pytest.approx(0.5, rel=1e-5)
+    r = papercal.reflectivity_for_link(preset + 0.27)
+    assert r == pytest.approx(0.5 * 10 ** (0.27 / 20), rel=1e-3)  # rho ~ reflectivity^2
+    assert papercal.preset_link_db(reflectivity=r) == pytest.approx(preset + 0.27, abs=1e-4)
+    assert papercal.reflectivity_for_link(papercal.preset_link_db(reflectivity=1.0) + 0.1) \
+        is None
+    row = entry(11.0, 66.0, "m", paper_point=11.9, paper_point_ci95=(11.5, 12.4))
+    mc = paper.monte_carlo([{"name": "fig2f", "summary": {"max_range_m_order13": row}}], r)
+    assert (mc["value"], mc["ci95"], mc["preset_reflectivity"]) == (11.9, [11.5, 12.4], 0.5)
+    words = paper._monte_carlo_words(mc, "m")
+    assert f"reflectivity {r:.4g} instead of the preset's 0.5" in words
+    assert words.endswith("11.9 [11.5, 12.4] m.")
+    assert "not in this run" in paper._monte_carlo_words(paper.monte_carlo([], r), "m")
+    assert "not at the fitted link" in paper._monte_carlo_words(paper.monte_carlo([], None),
+                                                                "m")
+    other = {"name": "fig2f", "summary": {"max_range_m_order13": row},
+             "paper_settings": {"reflectivity": 0.9}}  # a sub_set's own reflectivity
+    assert paper.monte_carlo([other], r)["reflectivity"] is None
 
 
 @pytest.mark.slow
@@ -182,3 +215,13 @@ def test_paper_point_grid_is_refined_inside_the_interval(tmp_path):
     assert h["kind"] == "prediction" and h["verdict"] == "differs"  # 66 m
     report = (tmp_path / "p" / "report.md").read_text()
     assert "fig2f-paper-refined/fig2f.png" in report
+    # the Monte-Carlo check of the held-out 66 m runs at the fitted link, refinement too
+    cal = res.summary["calibration"]
+    r = papercal.reflectivity_for_link(cal["parameters"]["link_db"])
+    for run in ("fig2f-paper", "fig2f-paper-refined"):
+        info = json.loads((tmp_path / "p" / run / "run.json").read_text())
+        assert info["settings"]["reflectivity"] == pytest.approx(r, rel=1e-5)
+    mc = cal["monte_carlo"]
+    assert mc["reflectivity"] == pytest.approx(r, abs=1e-6) and r > mc["preset_reflectivity"]
+    assert (mc["value"], mc["ci95"]) == (h["paper_point"], h["paper_point_ci95"])
+    assert f"reflectivity {r:.4g} instead of the preset's 0.5" in report
