@@ -32,7 +32,6 @@ from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.acquire import (
     acquire,
     boot_power_codes,
-    clock_us,
     column_batches,
     power_w_of_codes,
     receiver_config,
@@ -168,28 +167,21 @@ def eq27_from_configuration(scene_name: str) -> float:
 
 
 class FrameLink:
-    """A device link whose scans are study frames (no protocol, no device application).
+    """A device link whose scans are study frames: the virtual device's application without
+    the wire.
 
-    The instrument of ``scene_name`` with noise seed ``seed``, acquired by
-    :func:`cdma_lidar.scene.acquire.acquire` with the device's boot configuration
-    (:func:`cdma_lidar.scene.acquire.receiver_config`) and the power matrix the host
-    sets; the identity and configuration announced are the virtual device's own
-    (:meth:`VirtualFirmware.info`, ``get_config``), the columns' timestamps its clock's
-    (:func:`cdma_lidar.scene.acquire.clock_us`, counted from this link's opening), its
-    power matrix the device's (set and checked against the eye-safety cap by the device's
-    own :meth:`VirtualFirmware.set_power`, a refusal a DeviceError naming ``power`` as
-    the wire's NAK is). What the host's scan pipeline needs of a link, and no more: a
-    configuration change is refused (a study frame runs the boot configuration).
+    The columns are :class:`~cdma_lidar.virtual.board.VirtualFirmware`'s own (its
+    acquisition, :func:`cdma_lidar.scene.acquire.acquire`, its receiver configuration, its
+    clock), and so are the identity and configuration announced and the power matrix the
+    host sets (checked against the eye-safety cap by the device's ``set_power``, a refusal
+    a DeviceError naming ``power`` as the wire's NAK is). What the host's scan pipeline
+    needs of a link, and no more: a configuration change is refused (a study frame runs
+    the boot configuration).
     """
 
     def __init__(self, scene_name: str, seed: int) -> None:
         self._device = VirtualFirmware(load_scene(scene_name), seed)
         self.info, self.config = self._device.info(), self._device.get_config()
-        self.instrument = self._device.instrument
-        self.settings = RenderSettings.from_spec(self.instrument.spec)
-        cfg, codes = receiver_config(self.instrument, self.settings)
-        self.receiver = FastReceiver(cfg, codes)
-        self._chips = 0
 
     def hello(self) -> Any:
         """The identity (INFO)."""
@@ -214,22 +206,12 @@ class FrameLink:
 
     def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
              frame: int | None = None) -> Iterator[ColumnResult]:
-        """Column results of one frame ``frame`` (default 0), columns first..first+count-1."""
-        inst, settings = self.instrument, self.settings
-        count = inst.columns - first_column if columns is None else columns
-        frame_id = 0 if frame is None else int(frame)
-        power = self._device.power_w()
-        angles = inst.spec.rotations_deg
-        for _ in range(frames):
-            for cols in column_batches(first_column, count, settings.frame_samples):
-                got = acquire(inst, self.receiver, settings, frame_id, cols,
-                              [power[:, c] for c in cols])
-                for col, out in zip(cols, got.outputs, strict=True):
-                    self._chips += settings.averages * settings.frame_chips
-                    yield ColumnResult.from_receiver(
-                        frame_id, col, float(angles[col]), out,
-                        timestamp_us=clock_us(self._chips, inst.spec.chip_rate_hz))
-            frame_id += 1
+        """Column results of ``frames`` frames from frame id ``frame`` (default 0), columns
+        first..first+count-1: the device application's own scan, without the wire."""
+        count = self._device.columns - first_column if columns is None else columns
+        first_frame = 0 if frame is None else int(frame)
+        for frame_id in range(first_frame, first_frame + frames):
+            yield from self._device.scan(frame_id, first_column, count)
 
     def close(self) -> None:
         """Nothing to close."""

@@ -60,7 +60,7 @@ def test_a_study_frames_power_is_refused_over_the_cap_as_the_device_refuses_it()
     from cdma_lidar.study.simulate import FrameLink
 
     link = FrameLink(f"{SCENE}?instrument.columns=2", 1)
-    k = link.instrument.channels
+    k = link.info.channels
     with pytest.raises(DeviceError) as info:
         link.set_power(np.full((k, 2), 65535))
     assert info.value.field == "power"
