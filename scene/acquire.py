@@ -42,6 +42,7 @@ __all__ = [
     "Acquisition",
     "BatchReceiver",
     "acquire",
+    "acquire_frame",
     "boot_power_codes",
     "clock_us",
     "column_batches",
@@ -97,6 +98,19 @@ def acquire(inst: Instrument, receiver: BatchReceiver, settings: RenderSettings,
     t1 = time.process_time()
     outputs = receiver.from_accumulators(sums)
     return Acquisition(outputs, drawn, t1 - t0, time.process_time() - t1)
+
+
+def acquire_frame(inst: Instrument, receiver: BatchReceiver, frame: int,
+                  power_w: NDArray[np.float64], settings: RenderSettings | None = None
+                  ) -> list[ReceiverOutput]:
+    """Every column of frame ``frame`` through :func:`acquire`, batch by batch as the
+    virtual device scans it: ``power_w`` (K, C) laser power (W); ``settings`` default the
+    scene's. Returns the C outputs in column order."""
+    s = settings or RenderSettings.from_spec(inst.spec)
+    outputs: list[ReceiverOutput] = []
+    for cols in column_batches(0, inst.columns, s.frame_samples):
+        outputs += acquire(inst, receiver, s, frame, cols, [power_w[:, c] for c in cols]).outputs
+    return outputs
 
 
 def column_batches(first: int, count: int, column_values: int = 1) -> Iterator[list[int]]:

@@ -40,6 +40,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.receiver import FastReceiver
 from cdma_lidar.host.ranging import lag_to_range_m, subsample_delta
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.acquire import acquire_frame
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import (
     RunContext,
@@ -52,7 +53,7 @@ from cdma_lidar.study.engine import (
 from cdma_lidar.study.fig11 import ERROR_THRESHOLD, crossing
 from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.paperlab import check_point, crossing_ci, entry, wilson
-from cdma_lidar.study.simulate import receiver_setup, true_offset_m
+from cdma_lidar.study.simulate import device_power_w, receiver_setup, true_offset_m
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = ["LINK_FIELDS", "PAPER_POINT", "REPORT_NOTE", "STUDY", "fig2f_task", "point_settings",
@@ -147,14 +148,14 @@ def fig2f_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     spec = inst.spec
     cfg, codes = receiver_setup(inst)
     rx = FastReceiver(cfg, codes)
+    power = device_power_w(inst)
     lit = inst.truth.hits.lit
     truth = inst.truth.range_m
     tol = SPEED_OF_LIGHT_M_S / (4.0 * spec.chip_rate_hz)
     bad = total = 0
     snr_xc = []
     for frame in range(int(params["frames"])):
-        cols = np.stack([inst.render(c, frame=frame) for c in range(inst.columns)])
-        for c, out in enumerate(rx.frame(cols)):
+        for c, out in enumerate(acquire_frame(inst, rx, frame, power)):
             delta = subsample_delta(out.peak.astype(np.float64),
                                     out.neighbours.astype(np.float64), "triangle")
             rng = lag_to_range_m(out.peak_lag + delta, spec.samples_per_chip,

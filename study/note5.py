@@ -48,11 +48,13 @@ from cdma_lidar.host.ranging import (
     sample_range_m,
 )
 from cdma_lidar.scene import load_scene
+from cdma_lidar.scene.acquire import acquire_frame
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import RunContext, RunOptions, Setting, Study, Table, grid_product
 from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.paperlab import PRESET, check_point, entry, wilson
 from cdma_lidar.study.simulate import (
+    device_power_w,
     ranging_config,
     receiver_setup,
     smallest_out_shift,
@@ -99,7 +101,7 @@ def _scan(inst: Instrument, windows: tuple[tuple[int, int], ...] = ()) -> Any:
     cfg = smallest_out_shift(cfg.replace(ghost_windows=windows), codes.shape[1])
     rx = FastReceiver(cfg, codes)
     data = FrameData.empty(inst.channels, inst.columns, inst.spec.uid_bits, 1, 0)
-    for col, out in enumerate(rx.frame(np.stack([inst.render(c) for c in range(inst.columns)]))):
+    for col, out in enumerate(acquire_frame(inst, rx, 0, device_power_w(inst))):
         data.set_column(col, out, angle_deg=float(inst.spec.rotations_deg[col]))
     rng = dataclasses.replace(ranging_config(inst), offset_m=true_offset_m(inst),
                               ghost_windows=windows)

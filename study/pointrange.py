@@ -2,12 +2,14 @@
 
 One pixel of a scene (one channel of one column), the other channels dark (laser power 0,
 so no multi-channel interference: the paper's Fig. 2c measures a single channel),
-rendered ``repeats`` times with independent noise (frame ids 0..repeats-1) by
-:class:`cdma_lidar.scene.instrument.Instrument`, received by the bit-exact chain
-(:class:`~cdma_lidar.firmware_model.receiver.FastReceiver`, ``method="auto"``, the
-instrument's default gate) and turned into ranges the host's way: peak lag plus the
-sub-sample correction (:func:`cdma_lidar.host.ranging.subsample_delta`), times the
-sample's range, minus the true system delay (perfect calibration).
+acquired ``repeats`` times with independent noise (frame ids 0..repeats-1) through the
+device's acquisition path (:func:`cdma_lidar.scene.acquire.acquire`: the scene's
+repetition sums, then the bit-exact chain
+:class:`~cdma_lidar.firmware_model.receiver.FastReceiver`, ``method="auto"``, on the
+pixel's channel, with a gate of at least 32 chips of lags) and turned into ranges the
+host's way: peak lag plus the sub-sample correction
+(:func:`cdma_lidar.host.ranging.subsample_delta`), times the sample's range, minus the
+true system delay (perfect calibration).
 
 Eq. 27 needs the per-sample SNR: the pixel's eq. 30 SNR from the instrument's link
 budget (:meth:`~cdma_lidar.scene.instrument.Instrument.link_figures`, one channel lit, so
@@ -27,7 +29,8 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.receiver import FastReceiver
 from cdma_lidar.host.ranging import lag_to_range_m, precision_eq27_m, subsample_delta
 from cdma_lidar.scene import load_scene
-from cdma_lidar.scene.instrument import Instrument
+from cdma_lidar.scene.acquire import acquire
+from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.study.simulate import receiver_setup, smallest_out_shift, true_offset_m
 
 __all__ = ["PointRanges", "repeat_ranges"]
@@ -53,8 +56,8 @@ class PointRanges:
 
 
 def repeat_ranges(scene: str, overrides: dict[str, Any], repeats: int, seed: int, *,
-                  channel: int = 20, column: int = 0, method: str = "triangle",
-                  batch: int = 50) -> PointRanges:
+                  channel: int = 20, column: int = 0, method: str = "triangle"
+                  ) -> PointRanges:
     """Range pixel (``channel``, ``column``) of ``scene`` (+ ``overrides``) ``repeats`` times."""
     inst = Instrument(load_scene(scene, overrides), seed=seed)
     k, c = inst.channels, inst.columns
@@ -75,11 +78,10 @@ def repeat_ranges(scene: str, overrides: dict[str, Any], repeats: int, seed: int
     cfg = smallest_out_shift(cfg.replace(peak_exclude=max(cfg.peak_exclude, 2 * sp)),
                              codes.shape[1])
     rx = FastReceiver(cfg, codes[channel:channel + 1])
+    settings = RenderSettings.from_spec(spec)
     lags, peaks, nbs, snr_xc = [], [], [], []
-    for start in range(0, repeats, batch):
-        frames = range(start, min(start + batch, repeats))
-        cols = np.stack([inst.render(column, frame=f, power_w=power) for f in frames])
-        for out in rx.frame(cols):
+    for f in range(repeats):
+        for out in acquire(inst, rx, settings, f, [column], [power]).outputs:
             lags.append(int(out.peak_lag[0]))
             peaks.append(int(out.peak[0]))
             nbs.append(out.neighbours[0].astype(np.float64))

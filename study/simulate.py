@@ -30,13 +30,12 @@ from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.acquire import (
-    acquire,
+    acquire_frame,
     boot_power_codes,
-    column_batches,
     power_w_of_codes,
     receiver_config,
 )
-from cdma_lidar.scene.instrument import Instrument, RenderSettings
+from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.units import delay_to_range_m
 from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -134,13 +133,10 @@ def simulate_frame(scene_name: str, seed: int = 1, *, peaks: int = 1,
     spec = inst.spec
     cfg, codes = receiver_setup(inst, peaks=peaks, gate=gate)
     rx = FastReceiver(cfg, codes)
-    settings = RenderSettings.from_spec(spec)
     power = device_power_w(inst) if power_w is None else np.asarray(power_w, dtype=np.float64)
     data = FrameData.empty(inst.channels, inst.columns, spec.uid_bits, peaks, frame)
-    for cols in column_batches(0, inst.columns, settings.frame_samples):
-        got = acquire(inst, rx, settings, frame, cols, [power[:, c] for c in cols])
-        for col, out in zip(cols, got.outputs, strict=True):
-            data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
+    for col, out in enumerate(acquire_frame(inst, rx, frame, power)):
+        data.set_column(col, out, angle_deg=float(spec.rotations_deg[col]))
     return SimulatedScan(frame=data, truth_range_m=inst.truth.range_m,
                          ranging=ranging_config(inst), geometry=spec.geometry(nominal=True),
                          wavelengths_m=np.asarray(spec.wavelengths_m),
