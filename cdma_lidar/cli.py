@@ -64,7 +64,7 @@ COMMANDS: tuple[Command, ...] = (
             "sweeps of the speed/accuracy trade (docs/studies.md)"),
     Command("demo", "cdma_lidar.cli",
             "calibrate and scan paper-scene1 on the virtual device, with pictures"),
-    Command("hdl", "cdma_lidar.hdl_ref.vectors", "reference RTL: test vectors"),
+    Command("hdl", "cdma_lidar.hdl_ref.cli", "reference RTL: test vectors"),
 )
 
 
