@@ -47,7 +47,7 @@ def main() -> None:
     numpy_s, _ = _best([*py, "-c", "import numpy"])
     print(f"{'python -c pass':30s} {bare:6.3f} s (baseline)")
     print(f"{'python -c import numpy':30s} {numpy_s:6.3f} s  {numpy_s / bare:5.1f}x  "
-          f"+{numpy_s - bare:5.3f} s")
+          f"{numpy_s - bare:+6.3f} s")
     cli = [*py, "-m", "cdma_lidar.cli"]
     runs = [([*words, "--help"], bare + HELP_OVER_BARE_S)
             for words in [[], *([c.name] for c in COMMANDS)]]
@@ -56,7 +56,7 @@ def main() -> None:
         wall, cpu = _best([*cli, *words])
         flag = "" if wall < target else f"  over its target, {target:.3f} s"
         print(f"{' '.join(['cdma-lidar', *words]):30s} {wall:6.3f} s  {wall / bare:5.1f}x  "
-              f"+{wall - bare:5.3f} s  cpu {cpu:5.3f} s{flag}")
+              f"{wall - bare:+6.3f} s  cpu {cpu:5.3f} s{flag}")
     print(f"load average {os.getloadavg()[0]:.2f} at the end")
 
 

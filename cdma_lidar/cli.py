@@ -1,7 +1,8 @@
 """The ``cdma-lidar`` command: the top of the stack, composing every layer's commands.
 
 Each package that has commands provides ``<package>.cli.register(subparsers)``,
-which adds its subcommands and sets ``func`` to a callable ``(args) -> int``;
+which adds its subcommands and sets ``func`` to a callable ``(args) -> int`` (a
+:func:`cdma_lidar.lazy.later`, whose module is imported when the command runs);
 :data:`COMMANDS` names, in help order, each command, the module that registers it and
 its one-line help. Only the module of the command being run is imported, so
 ``cdma-lidar --help`` and every command start without loading the others (numpy,
@@ -26,6 +27,7 @@ from typing import NamedTuple
 
 import cdma_lidar.virtual  # noqa: F401  (importing it registers the virtual:// URL scheme)
 from cdma_lidar.errors import CdmaLidarError
+from cdma_lidar.lazy import later
 from cdma_lidar.version import __version__
 
 __all__ = ["COMMANDS", "build_parser", "main", "register"]
@@ -62,7 +64,7 @@ COMMANDS: tuple[Command, ...] = (
             "sweeps of the speed/accuracy trade (docs/studies.md)"),
     Command("demo", "cdma_lidar.cli",
             "calibrate and scan paper-scene1 on the virtual device, with pictures"),
-    Command("hdl", "cdma_lidar.hdl_ref.vectors", "reference RTL: test vectors"),
+    Command("hdl", "cdma_lidar.hdl_ref.cli", "reference RTL: test vectors"),
 )
 
 
@@ -115,12 +117,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="folder for the results (default ./cdma-lidar-demo)")
     p.add_argument("--seed", type=int, default=1, help="noise seed of the virtual device")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_run_demo)
-
-
-def _run_demo(args: argparse.Namespace) -> int:
-    """``demo``'s work: its module is loaded only now, as a command module is (above)."""
-    return int(importlib.import_module(DEMO_MODULE).cmd_demo(args))
+    p.set_defaults(func=later("cmd_demo", DEMO_MODULE))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,9 +16,7 @@ when the command runs; the defaults shown come from :mod:`cdma_lidar.host.settin
 from __future__ import annotations
 
 import argparse
-import importlib
 import math
-from collections.abc import Callable
 from typing import Any
 
 from cdma_lidar.errors import ConfigError
@@ -33,17 +31,13 @@ from cdma_lidar.host.settings import (
     TARGET_DISTANCE_M,
     WEB_PORT,
 )
+from cdma_lidar.lazy import later
 
 __all__ = ["add_port_options", "add_view_options", "connect_options", "register"]
 
 
-def _later(name: str, module: str = "cdma_lidar.host.commands"
-           ) -> Callable[[argparse.Namespace], int]:
-    """The command ``module.name(args)``, its module imported only when the command runs."""
-    def run(args: argparse.Namespace) -> int:
-        return int(getattr(importlib.import_module(module), name)(args))
-    run.__name__ = name
-    return run
+#: The module that does the commands' work (``capture``'s: :mod:`cdma_lidar.host.capture`).
+COMMANDS_MODULE = "cdma_lidar.host.commands"
 
 
 def _positive_float(text: str) -> float:
@@ -150,7 +144,7 @@ def register(subparsers: Any) -> None:
     """Add the host's subcommands to the ``cdma-lidar`` parser."""
     p = subparsers.add_parser("info", help="show a device's identity, geometry and configuration")
     add_port_options(p)
-    p.set_defaults(func=_later("cmd_info"))
+    p.set_defaults(func=later("cmd_info", COMMANDS_MODULE))
 
     p = subparsers.add_parser("scan", help="scan a device and write a point cloud")
     p.add_argument("--config", metavar="FILE",
@@ -211,7 +205,7 @@ def register(subparsers: Any) -> None:
                         "noise with it, so the same seed and id give the same cloud")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
-    p.set_defaults(func=_later("cmd_scan"), profile_parser=p)
+    p.set_defaults(func=later("cmd_scan", COMMANDS_MODULE), profile_parser=p)
     scan = p
 
     # view: every scan option (--out optional) and where the live view goes
@@ -221,7 +215,7 @@ def register(subparsers: Any) -> None:
         description="Scan as `scan` does and watch each frame as it arrives: the point "
                     "cloud, the range and SNR_XC images and the power matrix, in rerun.")
     add_view_options(p)
-    p.set_defaults(func=_later("cmd_view"), profile_parser=p)
+    p.set_defaults(func=later("cmd_view", COMMANDS_MODULE), profile_parser=p)
 
     p = subparsers.add_parser("convert", help="convert a point cloud file to another format",
                               description="Read a cloud cdma-lidar wrote (.ply, .pcd, .npz, "
@@ -230,7 +224,7 @@ def register(subparsers: Any) -> None:
                               ".mcap's metadata record is kept.")
     p.add_argument("in_file", metavar="IN", help="cloud file to read")
     p.add_argument("out_file", metavar="OUT", help="cloud file to write")
-    p.set_defaults(func=_later("cmd_convert"))
+    p.set_defaults(func=later("cmd_convert", COMMANDS_MODULE))
 
     p = subparsers.add_parser("calibrate",
                               help="measure the system delay on the zeroth-order target")
@@ -247,7 +241,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--max-spread", type=_float_in(0, 1000, "m"), metavar="M",
                    help="widest acceptable histogram standard deviation (m)")
     _add_set(p)
-    p.set_defaults(func=_later("cmd_calibrate"))
+    p.set_defaults(func=later("cmd_calibrate", COMMANDS_MODULE))
 
     p = subparsers.add_parser("capture", help="capture a correlation trace or raw ADC codes "
                                               "of one column (npz, SigMF, plot)")
@@ -263,7 +257,7 @@ def register(subparsers: Any) -> None:
                    help="calibration TOML: the trace's range axis without the system delay")
     p.add_argument("--frame-id", type=int, metavar="N", help="frame id of the scan captured")
     p.add_argument("--plot", action="store_true", help="also write FILE.png (Fig. 3d)")
-    p.set_defaults(func=_later("cmd_capture", "cdma_lidar.host.capture"))
+    p.set_defaults(func=later("cmd_capture", "cdma_lidar.host.capture"))
 
 
 def add_view_options(p: argparse.ArgumentParser) -> None:

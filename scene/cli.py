@@ -3,25 +3,25 @@
     cdma-lidar scene list [--markdown]                  the built-in presets (docs/scene.md's table)
     cdma-lidar scene show SCENE                         instrument and objects, lit pixels
     cdma-lidar scene truth SCENE --out truth.npz        per-pixel ground truth (NPZ)
+
+This module holds the options and ``scene list``, which reads the preset files
+(:mod:`cdma_lidar.scene.presetfiles`) and so needs no numpy; the other commands (and
+``list --markdown``, which loads every scene for its pixel counts) are in
+:mod:`cdma_lidar.scene.commands`, imported when they run.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
-import numpy as np
-
-from cdma_lidar.errors import ConfigError
-from cdma_lidar.fileio import check_writable
-from cdma_lidar.scene.instrument import Instrument
-from cdma_lidar.scene.loader import PRESETS, load_scene
-from cdma_lidar.scene.truth import save_truth
+from cdma_lidar.lazy import later
+from cdma_lidar.scene.presetfiles import preset_description, preset_names
 
 __all__ = ["register"]
 
-log = logging.getLogger(__name__)
+#: The module that does the commands' work.
+COMMANDS_MODULE = "cdma_lidar.scene.commands"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,76 +37,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("show", help="describe a scene: instrument, objects, lit pixels")
     p.add_argument("scene", help="preset name (e.g. paper-scene1, flat-wall?distance=7.5) or .toml")
-    p.set_defaults(func=_cmd_show)
+    p.set_defaults(func=later("cmd_show", COMMANDS_MODULE))
 
     p = sub.add_parser("truth", help="write per-pixel ground truth (range, point, ...) as NPZ")
     p.add_argument("scene", help="preset name or .toml file")
     p.add_argument("--out", required=True, help="output .npz file")
     p.add_argument("--seed", type=int, default=0,
                    help="noise seed (the speckle pattern, when the scene has speckle)")
-    p.set_defaults(func=_cmd_truth)
+    p.set_defaults(func=later("cmd_truth", COMMANDS_MODULE))
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
+    """``scene list``: name and description of each preset, read from its file."""
     if args.markdown:
-        sys.stdout.write("| name | what | pixels (channels x columns) |\n|---|---|---|\n")
-    for name in PRESETS:
-        scene = load_scene(name)
-        if args.markdown:
-            spec = scene.instrument
-            sys.stdout.write(f"| `{name}` | {scene.description} | "
-                             f"{spec.channels} x {spec.columns} |\n")
-        else:
-            sys.stdout.write(f"{name:14s} {scene.description}\n")
-    return 0
-
-
-def _cmd_show(args: argparse.Namespace) -> int:
-    scene = load_scene(args.scene)
-    inst = Instrument(scene, 0)
-    spec = scene.instrument
-    h = inst.truth.hits
-    lines = [
-        f"scene {scene.name}: {scene.description}",
-        f"  pixels {spec.channels} x {spec.columns}, lit {int(h.lit.sum())}, "
-        f"channels lit somewhere {int(h.lit.any(axis=1).sum())}",
-        f"  wavelengths {spec.wavelengths_m[0] * 1e9:.3f}..{spec.wavelengths_m[-1] * 1e9:.3f} nm, "
-        f"rotations {spec.rotations_deg.min():.3f}..{spec.rotations_deg.max():.3f} deg",
-        f"  code degree {spec.code_degree}, {spec.chip_rate_hz / 1e6:g} Mchip/s, "
-        f"S={spec.samples_per_chip}, R={spec.averages}, uid {spec.uid}/{spec.uid_bits} bits",
-        f"  noise rms {inst.noise_rms_v * 1e3:.3f} mV (median column), fidelity "
-        f"{scene.fidelity}, default gate {inst.default_gate()}",
-        f"  calibration target (zeroth order) at {scene.calibration.target_distance_m:g} m: "
-        f"calibrate with --target-distance {scene.calibration.target_distance_m:g}",
-    ]
-    for i, obj in enumerate(scene.objects):
-        sel = h.object_id == i
-        rng = h.range_m[sel]
-        span = f"{rng.min():.3f}..{rng.max():.3f} m" if rng.size else "not seen"
-        lines.append(f"  objects[{i}] {obj.kind:6s} {obj.name:14s} pixels {int(sel.sum()):5d} "
-                     f"range {span}")
-    sys.stdout.write("\n".join(lines) + "\n")
-    return 0
-
-
-def _cmd_truth(args: argparse.Namespace) -> int:
-    if not str(args.out).lower().endswith(".npz"):
-        raise ConfigError(f"--out must be a .npz file, not {args.out!r}", "out")
-    check_writable(args.out, "--out")
-    scene = load_scene(args.scene)
-    figures = Instrument(scene, args.seed).link_figures()
-    try:
-        truth = save_truth(scene, args.out, figures)
-    except OSError as exc:  # the folder changed under us after the check
-        raise ConfigError(f"--out {args.out!r}: cannot write it ({exc.strerror}); choose a "
-                          "writable folder", "out") from None
-    lit = truth.hits.lit
-    rng = truth.range_m[lit]
-    summary = f"{rng.min():.3f}..{rng.max():.3f} m" if rng.size else "no hits"
-    snr = figures["snr_db"][lit]
-    if snr.size:
-        summary += (f", SNR (eq. 30) median {np.median(snr):.1f} dB, SNR_SS (eq. 43) median "
-                    f"{np.median(figures['snr_ss_db'][lit]):.1f} dB")
-    sys.stdout.write(f"{args.out}: {lit.shape[0]} x {lit.shape[1]} pixels, "
-                     f"{int(lit.sum())} hit ({summary})\n")
+        return later("cmd_markdown", COMMANDS_MODULE)(args)
+    for name in preset_names():
+        sys.stdout.write(f"{name:14s} {preset_description(name)}\n")
     return 0

@@ -2,35 +2,24 @@
 
 ``load_scene("flat-wall?distance=7.5")`` loads a preset by name with options,
 ``load_scene("my.toml")`` a file. The presets are the ``*.toml`` files of the
-``cdma_lidar.scene.presets`` folder, found by listing it (:data:`PRESETS`): adding a
-preset is adding a file.
+``cdma_lidar.scene.presets`` folder, found by listing it (:data:`PRESETS`, from
+:mod:`cdma_lidar.scene.presetfiles`): adding a preset is adding a file.
 """
 
 from __future__ import annotations
 
 import logging
-from importlib import resources
-from importlib.abc import Traversable
 from pathlib import Path
 from typing import Any
 
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.scene.model import Scene
+from cdma_lidar.scene.presetfiles import preset_file, preset_names
 from cdma_lidar.scene.scenefile import apply_options, parse_options, parse_scene, read_document
 
 __all__ = ["PRESETS", "load_scene", "preset_names"]
 
 log = logging.getLogger(__name__)
-
-
-def _presets_folder() -> Traversable:
-    return resources.files("cdma_lidar.scene").joinpath("presets")
-
-
-def preset_names() -> tuple[str, ...]:
-    """Names of the built-in scenes: the ``*.toml`` files of ``scene/presets``, sorted."""
-    return tuple(sorted(p.name.removesuffix(".toml") for p in _presets_folder().iterdir()
-                        if p.is_file() and p.name.endswith(".toml")))
 
 
 #: Built-in scenes, loadable by name (listed once, at import).
@@ -50,7 +39,7 @@ def load_scene(name_or_path: str | Path, overrides: dict[str, Any] | None = None
     opts.update(overrides or {})
     path = Path(base)
     if base in PRESETS:
-        raw = _presets_folder().joinpath(f"{base}.toml").read_text("utf-8")
+        raw = preset_file(base).read_text("utf-8")
     elif path.suffix == ".toml" or path.exists():
         try:
             raw = path.read_text("utf-8")

@@ -6,9 +6,11 @@
 * A function-local import is allowed only for an optional (or heavy, deferred)
   third-party dependency, and says so in a comment on its line or the line above.
   ``importlib.import_module("name")`` counts as an import of ``name``.
-* One exception, :data:`LAZY_REEXPORTS`: ``cdma_lidar/__init__.py`` loads the Python
+* The exceptions, :data:`LAZY_REEXPORTS`: ``cdma_lidar/__init__.py`` loads the Python
   quick start (:mod:`cdma_lidar.api`, top layer) on first use of one of its names (PEP
-  562), so ``import cdma_lidar`` stays light and ``cdma_lidar.open(URL)`` works. The
+  562), so ``import cdma_lidar`` stays light and ``cdma_lidar.open(URL)`` works; and
+  ``cdma_lidar/scene/__init__.py`` loads ``load_scene``, ``PRESETS`` and ``Scene`` the same
+  way, so the scene's light modules (its CLI) load without numpy. The
   CLI loads a command's module by the name in its ``COMMANDS`` table (top layer: it
   may import every layer).
 * Nothing imports the repository's folder names as top-level packages (``protocol``,
@@ -56,7 +58,9 @@ ALLOWED: dict[str, set[str]] = {
 TOP_MODULES = {"cdma_lidar.cli", "cdma_lidar.demo", "cdma_lidar.api"}
 
 #: (module, name it loads lazily): the only imports allowed against the table.
-LAZY_REEXPORTS = {("cdma_lidar", "cdma_lidar.api")}
+LAZY_REEXPORTS = {("cdma_lidar", "cdma_lidar.api"),
+                  ("cdma_lidar.scene", "cdma_lidar.scene.loader"),
+                  ("cdma_lidar.scene", "cdma_lidar.scene.model")}
 
 #: The repository's folder names, which must never be imported as top-level packages.
 FOLDER_NAMES = {Path(d).name for d in PACKAGE_DIR.values()} - {"cdma_lidar"}

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from cdma_lidar.cli import main
-from cdma_lidar.firmware_model.cli import format_chips
+from cdma_lidar.firmware_model import cli, uid
+from cdma_lidar.firmware_model.commands import format_chips
 from cdma_lidar.firmware_model.gold import gold_code, gold_seeds
 from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.pairs import preferred_pairs
@@ -102,6 +103,11 @@ def test_uid(capsys):
     lines = out.strip().splitlines()
     assert [int(line.split()[0]) for line in lines[1:-1]] == necklaces(4)
     assert lines[-1] == "u(4) = 6"
+
+
+def test_the_help_s_uid_limit_is_the_model_s():
+    """The parser writes the limit out (no numpy for --help); it must be uid's."""
+    assert cli.MAX_UID_BITS == uid.MAX_UID_BITS
 
 
 def test_seeds(capsys):

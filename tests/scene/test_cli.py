@@ -9,6 +9,7 @@ import pytest
 
 from cdma_lidar.cli import main
 from cdma_lidar.scene import PRESETS, load_scene
+from cdma_lidar.scene.presetfiles import preset_description, preset_names
 
 
 def test_truth_npz(tmp_path, capsys):
@@ -44,6 +45,17 @@ def test_truth_with_option_and_list(tmp_path, capsys):
     assert "block" in shown
     target = load_scene("near-far").calibration.target_distance_m
     assert f"--target-distance {target:g}" in shown
+
+
+def test_scene_list_reads_what_load_scene_loads(capsys):
+    """`scene list` reads the files without loading them: the same names and descriptions."""
+    assert preset_names() == PRESETS
+    for name in PRESETS:
+        assert preset_description(name) == load_scene(name).description
+    assert main(["scene", "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(None, 1) for line in lines] == [
+        [name, load_scene(name).description] for name in PRESETS]
 
 
 def test_errors_are_one_line_exit_2(tmp_path, capsys):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cdma_lidar.scene import PRESETS, load_scene, loader
+from cdma_lidar.scene import PRESETS, load_scene, loader, presetfiles
 from cdma_lidar.scene.model import (
     Calibration,
     Ghost,
@@ -51,8 +51,8 @@ def test_a_new_file_in_the_folder_is_a_preset(tmp_path, monkeypatch):
     (tmp_path / "b-scene.toml").write_text('description = "b"\n')
     (tmp_path / "a-scene.toml").write_text('description = "a"\n')
     (tmp_path / "notes.txt").write_text("not a scene\n")
-    monkeypatch.setattr(loader, "_presets_folder", lambda: tmp_path)
-    assert loader.preset_names() == ("a-scene", "b-scene")
+    monkeypatch.setattr(presetfiles, "_presets_folder", lambda: tmp_path)
+    assert presetfiles.preset_names() == ("a-scene", "b-scene")
 
 
 def test_no_module_lists_the_presets_again():
