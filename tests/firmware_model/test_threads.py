@@ -108,7 +108,7 @@ def test_the_environment_variable_sets_a_receivers_threads(monkeypatch):
         seen.append(base.resolve_threads(threads))
         return real(task, columns, size, threads)
 
-    monkeypatch.setattr("cdma_lidar.firmware_model.receiver.parallel_columns", spy)
+    monkeypatch.setattr("cdma_lidar.firmware_model.chain.parallel_columns", spy)
     rng = np.random.default_rng(3)
     codes = rng.integers(0, 2, (2, 31))
     cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_len=9)
