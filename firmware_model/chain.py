@@ -58,10 +58,10 @@ class FastReceiver:
     """Vectorised receive chain for one configuration and code set; reuse it across columns.
 
     ``method`` names the correlation kernel, one of :func:`correlator_methods`
-    (default ``"auto"``: the kernel the calibrated cost model predicts fastest among
-    those within 2x of the leanest memory, :mod:`.correlators.costs`); ``float_bits``
-    (default 53) is the largest magnitude, in bits, the float64 kernels' products may reach before
-    operands are split into limbs, ``float32_bits`` (0..24, default 24) the same for
+    (default ``"auto"``: the kernel the cost model's fixed constants predict fastest,
+    :mod:`.correlators.costs`); ``float_bits`` (default 53) is the largest magnitude,
+    in bits, the float64 kernels' products may reach before operands are split into
+    limbs, ``float32_bits`` (0..24, default 24) the same for
     float32 products (0: never float32). All three only choose how the same integers are
     computed. An unknown ``method`` raises ConfigError listing the registered names.
     ``columns`` (default 1) is how many columns a call of :meth:`frame` is expected to
