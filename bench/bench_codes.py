@@ -12,6 +12,10 @@ Baselines, measured in the same run:
 * jump-ahead: clocking the register k times chip by chip.
 * a device's code set (``gold_codes``, K members of one pair, as the scene and the
   receiver build it): the same per-member ``gold_code`` loop.
+* issue 40's code set, K = 1,200 members of degree 15: ``gold_codes``, the per-member
+  ``gold_code`` loop (members from one shared pair of m-sequences) and, as the
+  baseline, one Fibonacci recurrence per member (``gold_code`` before it shared them:
+  v's register jumped ahead by (N - k) mod N clocks), timed on 100 members and scaled.
 
 Run: ``.venv/bin/python -m bench codes``.
 """
@@ -82,6 +86,26 @@ def bench_members(pu, pv, k: int) -> None:
           f"gold_code loop {t_base * 1e3:8.1f} ms (x{t_base / t_fast:.0f})")
 
 
+def recurrence_member(pu, pv, k: int) -> np.ndarray:
+    """Member k by one recurrence of its own (the baseline: gold_code before it shared
+    the m-sequences)."""
+    n = (1 << pu[0]) - 1
+    return mseq(pu) ^ mseq(pv, jump(pv, None, (n - k) % n))
+
+
+def bench_code_set(pu, pv, k: int, sample: int = 100) -> None:
+    indices = tuple(range(k))
+    t_set = best_of(lambda: gold_codes(pu, pv, indices), 3)
+    t_loop = best_of(lambda: np.stack([gold_code(pu, pv, i) for i in indices]), 3)
+    t_rec = best_of(lambda: [recurrence_member(pu, pv, i) for i in range(sample)], 1) \
+        * k / sample
+    assert all(np.array_equal(gold_code(pu, pv, i), recurrence_member(pu, pv, i))
+               for i in (0, 1, k - 1))
+    print(f"code set of {k} members of degree {pu[0]}: gold_codes {t_set * 1e3:8.1f} ms, "
+          f"gold_code loop {t_loop * 1e3:8.1f} ms; one recurrence per member (scaled from "
+          f"{sample} members) {t_rec * 1e3:8.1f} ms (x{t_rec / t_loop:.0f} the loop)")
+
+
 def bench_mseq(poly, chips: int) -> None:
     t_fast = best_of(lambda: mseq(poly, chips=chips), 3)
     reg_time = best_of(lambda: FibonacciLFSR(poly).clock_many(chips), 1)
@@ -107,6 +131,7 @@ def main() -> None:
     bench_family(*PAPER_PAIR, repeat=7, target_s=0.050, baseline_members=None)
     bench_family(*preferred_pairs(15)[0], repeat=3, target_s=5.0, baseline_members=2048)
     bench_members(*PAPER_PAIR, 40)
+    bench_code_set(*preferred_pairs(15)[0], 1200)
     bench_mseq((20, 3), (1 << 20) - 1)
     bench_mseq((11, 2), 2047)
     bench_jump((20, 3), 1_000_000)

@@ -261,6 +261,100 @@ def random_cases(seed: int) -> Iterator[Case]:
             yield case
 
 
+#: ``--wide``: the ranges of issue 40's target (degrees, S, K, gate lags, R), the seed
+#: (one the constants were never fitted on: --fit used 0, 1, 2, 5 and 7), and a
+#: configuration whose best prediction is over WIDE_MAX_SECONDS is drawn again (printed).
+WIDE_DEGREES, WIDE_S, WIDE_K, WIDE_GATES, WIDE_R = (6, 15), (1, 16), (1, 1200), (16, 1024), \
+    (1, 10)
+WIDE_SEED = 40
+WIDE_MAX_SECONDS = 0.5
+#: ``--wide``: a kernel predicted over this many times the best prediction is not timed.
+WIDE_SKIP_FACTOR = 50.0
+
+
+def wide_cases(seed: int) -> Iterator[Case]:
+    """One-column configurations over issue 40's ranges, drawn from ``seed``: degree and
+    S and R uniform, K and the gate log-uniform (the gate at most N*S), 12-bit ADC, n 1."""
+    rng = np.random.default_rng(seed)
+
+    def log_uniform(lo: int, hi: int) -> int:
+        return round(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+    while True:
+        degree = int(rng.integers(WIDE_DEGREES[0], WIDE_DEGREES[1] + 1))
+        s = int(rng.integers(WIDE_S[0], WIDE_S[1] + 1))
+        k = log_uniform(*WIDE_K)
+        gate = min(log_uniform(*WIDE_GATES), ((1 << degree) - 1) * s)
+        r = int(rng.integers(WIDE_R[0], WIDE_R[1] + 1))
+        yield Case(degree, s, k, gate, r=r)
+
+
+def wide_row(case: Case, repeats: int) -> tuple[str, float | None]:
+    """``--wide``: every kernel worth timing through the chain (``from_accumulators``) on
+    one thread (BLAS 1: the kernels' own cost, which the model predicts), process CPU
+    time (on the shared 2-core machine wall times swing 2-5x with the other load), best
+    of ``repeats`` interleaved; the row and auto / fastest (None: skipped)."""
+    cfg, codes, acc = _setup(case)
+    plan = FastReceiver(cfg, codes, columns=1, threads=1, prepare=False).plan
+    chosen = choose_correlator(plan)
+    est = {m: e for m, e in estimates(plan).items() if math.isfinite(e.seconds)
+           and not _REGISTRY[m].whole_frame and m != "xp"}
+    best = min(e.seconds for e in est.values())
+    if best > WIDE_MAX_SECONDS:
+        return f"{case.label()} | skipped: best predicted {best:.2f} s", None
+    run = [m for m, e in est.items() if m == chosen or (
+        e.seconds <= WIDE_SKIP_FACTOR * best and e.peak_bytes <= SKIP_BYTES)]
+    rxs = {m: FastReceiver(cfg, codes, method=m, columns=1, threads=1) for m in run}
+    want = None
+    for m, rx in rxs.items():
+        got = rx.from_accumulators(acc)  # warm up; and the same integers from each
+        if want is None:
+            want = got
+        elif not all(a.same_as(b) for a, b in zip(got, want, strict=True)):
+            raise AssertionError(f"{case.label()}: kernel {m} differs")
+    times = dict.fromkeys(rxs, math.inf)
+    for _ in range(repeats):
+        for m, rx in rxs.items():
+            times[m] = min(times[m], _best_time(lambda rx=rx: rx.from_accumulators(acc), 1,
+                                                time.process_time))
+    fastest = min(times, key=times.__getitem__)
+    ratio = times[chosen] / times[fastest]
+    cells = " ".join(f"{m}={times[m] * 1e3:8.2f}ms" if m in times else f"{m}={'-':>8}  "
+                     for m in est)
+    flag = "" if ratio <= 1.25 else "  <-- off target"
+    return (f"{case.label()} | {cells} | auto={chosen:<6} fastest={fastest:<6} "
+            f"auto/fastest x{ratio:5.2f}{flag}"), ratio
+
+
+def run_wide(seed: int, count: int, repeats: int = 5) -> None:
+    """``--wide``: ``count`` configurations of :func:`wide_cases`, a row each, then the
+    worst and median auto / fastest."""
+    print(f"--wide: {count} one-column configurations of seed {seed} over degrees "
+          f"{WIDE_DEGREES}, S {WIDE_S}, K {WIDE_K}, gates {WIDE_GATES} lags, R {WIDE_R}; "
+          f"one thread, CPU time, best of {repeats} interleaved through the chain; cost constants "
+          f"{COEFFICIENTS}; load average {os.getloadavg()[0]:.2f}", flush=True)
+    ratios: list[tuple[float, str]] = []
+    skipped = 0
+    with blas_threads(1):
+        for case in wide_cases(seed):
+            if len(ratios) >= count:
+                break
+            row, ratio = wide_row(case, repeats)
+            print(row, flush=True)
+            if ratio is None:
+                skipped += 1
+            else:
+                ratios.append((ratio, case.label()))
+    values = sorted(r for r, _ in ratios)
+    worst = max(ratios)
+    off = sum(r > 1.25 for r in values)
+    print(f"--wide seed {seed}: {len(values)} rows, {skipped} drawn again (best prediction "
+          f"over {WIDE_MAX_SECONDS:g} s), {off} off target; auto / fastest worst "
+          f"x{worst[0]:.2f} ({' '.join(worst[1].split())}), median "
+          f"x{float(np.median(values)):.2f}; load average {os.getloadavg()[0]:.2f}",
+          flush=True)
+
+
 #: ``--fit``: the ``ram`` ratios tried, and the largest best prediction of a plan timed.
 FIT_RAMS = (1.8, 3.0, 5.0)
 FIT_MAX_SECONDS = 0.3
@@ -459,6 +553,11 @@ def main() -> None:
                   "b14 C160\"", file=sys.stderr)
             sys.exit(2)
         run_row_threads(case)
+        return
+    if "--wide" in sys.argv:
+        at = sys.argv.index("--wide") + 1
+        count = int(sys.argv[at]) if at < len(sys.argv) and sys.argv[at].isdigit() else 40
+        run_wide(int(os.environ.get("CDMA_LIDAR_BENCH_SEED", str(WIDE_SEED))), count)
         return
     if "--fit" in sys.argv:
         fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")))

@@ -29,6 +29,15 @@
    K-channel call. Kernels predicted 20x slower than the best, or over 1 GiB, are
    left out.
 
+3. ``--massive`` (alone): one column of issue 40's massively parallel instrument, K =
+   1,200 degree-15 Gold codes (N = 32,767), S = 2, R = 4, a 64-lag gate, noise only,
+   through ``FastReceiver.column`` (auto's kernel, and the per-lag ``direct`` kernel it
+   replaced) against the GEMM floor of the same multiply-adds: a bare (64, N) @ (N, K)
+   float32 and float64 product, best of 3 interleaved, on one thread and on the
+   machine's; wall and process CPU time (on the shared machine wall times swing with the
+   other load). Target (issue 40): the chain within 1.5x the floor of the float type
+   its products run in.
+
 The grid of auto's choices is ``bench_kernels``. Run: ``.venv/bin/python -m bench receiver``.
 """
 
@@ -39,6 +48,7 @@ import gc
 import math
 import os
 import statistics
+import sys
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -412,7 +422,74 @@ def kernel_tables() -> None:
           "K one-channel calls)")
 
 
+MASSIVE = {"degree": 15, "k": 1200, "s": 2, "r": 4, "gate": 64}
+
+
+def massive_column(repeats: int = 3) -> None:
+    """``--massive``: one column at K = 1,200, degree 15 against its GEMM floor."""
+    from cdma_lidar.firmware_model.gold import gold_codes
+    from cdma_lidar.firmware_model.pairs import preferred_pairs
+
+    m = MASSIVE
+    pu, pv = preferred_pairs(m["degree"])[0]
+    codes = gold_codes(pu, pv, range(m["k"]))
+    n = codes.shape[1]
+    cfg = ReceiverConfig(samples_per_chip=m["s"], averages=m["r"], gate_start=n,
+                         gate_len=m["gate"])
+    rng = np.random.default_rng(0)
+    fine = np.floor(rng.normal(0.0, 60.0, cfg.column_samples(n)) * (1 << FRAC_BITS) + 0.5)
+    x = quantise(fine.astype(np.int64), FRAC_BITS, cfg.adc_bits)
+    print(f"massive column: K={m['k']} N={n} S={m['s']} R={m['r']} gate={m['gate']} "
+          f"(12-bit noise, sigma 60 LSB); GEMM floor ({m['gate']}x{n})@({n}x{m['k']}) = "
+          f"{m['gate'] * n * m['k'] / 1e9:.2f} G multiply-adds; best of {repeats}, "
+          f"wall / CPU ms; load average {os.getloadavg()[0]:.2f}")
+    floors = {dt: (rng.standard_normal((m["gate"], n)).astype(dt),
+                   (1 - 2 * codes.astype(dt)).T) for dt in (np.float32, np.float64)}
+    want = None
+    for threads in sorted({1, correlator_base.default_threads()}):
+        rxs = {name: FastReceiver(cfg, codes, method=name, threads=threads)
+               for name in ("auto", "direct")}
+        for name, rx in rxs.items():
+            got = rx.column(x)  # prepare the kernel; and the same integers from both
+            want = got if want is None else want
+            if not got.same_as(want):
+                raise AssertionError(f"massive column: {name} differs")
+        kernel = rxs["auto"].kernel_for(1)
+        d = x.reshape(cfg.averages, -1).sum(axis=0, dtype=np.int64)  # one period, uid 1
+        single = kernel.plan.float32_certain() or (
+            kernel.takes_bound and int(np.abs(d).sum()) < kernel.plan.float32_limit())
+        auto, direct = rxs["auto"], rxs["direct"]
+        times: dict[str, list[float]] = {}
+
+        def clocked(fn) -> tuple[float, float]:
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            return time.perf_counter() - w0, time.process_time() - c0
+
+        with correlator_base.blas_threads(threads):
+            for i in range(repeats):
+                for dt, (a, b) in floors.items():
+                    times.setdefault(np.dtype(dt).name, []).append(
+                        clocked(lambda a=a, b=b: a @ b))
+                times.setdefault("chain", []).append(clocked(lambda rx=auto: rx.column(x)))
+                if i == 0:  # the per-lag kernel takes seconds: once
+                    times["direct"] = [clocked(lambda rx=direct: rx.column(x))]
+        best = {k: (min(w for w, _ in v), min(c for _, c in v)) for k, v in times.items()}
+        ch, f32, f64 = best["chain"], best["float32"], best["float64"]
+        print(f"  threads {threads}: chain (auto: {kernel.method}) {ch[0] * 1e3:7.1f} / "
+              f"{ch[1] * 1e3:7.1f} ms; floor float32 {f32[0] * 1e3:7.1f} / {f32[1] * 1e3:7.1f}"
+              f", float64 {f64[0] * 1e3:7.1f} / {f64[1] * 1e3:7.1f}; chain / floor32 "
+              f"x{ch[0] / f32[0]:.2f} / x{ch[1] / f32[1]:.2f}, / floor64 x{ch[0] / f64[0]:.2f}"
+              f" / x{ch[1] / f64[1]:.2f}; direct {best['direct'][0] * 1e3:7.1f} / "
+              f"{best['direct'][1] * 1e3:7.1f} ms (x{best['direct'][1] / ch[1]:.1f} the chain, "
+              f"CPU); products in {'float32' if single else 'float64'}")
+    print(f"load average {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
+    if "--massive" in sys.argv:
+        massive_column()
+        return
     print(f"cores: {os.cpu_count()} ({correlator_base.machine_threads()} usable, receive chain "
           f"threads {correlator_base.default_threads()}), load average: "
           f"{os.getloadavg()[0]:.2f}")

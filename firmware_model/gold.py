@@ -43,12 +43,14 @@ from cdma_lidar.firmware_model.lfsr import (
     check_primitive,
     jump,
     mseq,
+    parse_seed,
     seed_to_str,
 )
 from cdma_lidar.poly import Poly
 
 __all__ = [
     "MAX_FAMILY_DEGREE",
+    "MAX_SHARED_DEGREE",
     "bipolar",
     "check_pair",
     "family_size",
@@ -68,6 +70,9 @@ Seed = str | Sequence[int] | np.ndarray | None
 
 #: Largest degree :func:`gold_family` builds whole (degree 16: 4.3 GB of chips).
 MAX_FAMILY_DEGREE = 16
+#: Largest degree whose m-sequences :func:`gold_code` generates whole and shares
+#: (2^20 - 1 chips: 1 MB each); above it each call clocks only the chips it returns.
+MAX_SHARED_DEGREE = 20
 
 
 def t_value(m: int) -> int:
@@ -102,21 +107,42 @@ def gold_code(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str, index: i
     ``chips`` defaults to one period N; longer requests repeat the code periodically.
     ``seed_u``/``seed_v`` choose the phases of u and v (bit strings, stage 1 first).
 
-    Only the requested chips are generated: v delayed by k chips is the v register
-    started k chips early, i.e. from its seed jumped ahead by (N - k) mod N clocks
-    (the FPGA's own trick, see :func:`gold_seeds`), so a short prefix of a
-    degree-32 member costs O(chips), not O(2^32).
+    Member k is u XOR v delayed by k chips, and v delayed by k is a shift of one shared
+    v: up to degree :data:`MAX_SHARED_DEGREE` both m-sequences are generated once per
+    (polynomial, seed) and kept (:func:`_msequence`), so K members cost one XOR of N
+    chips each, not one recurrence each. Above it (a short prefix of a degree-32
+    member, say) v's register is started k chips early, i.e. from its seed jumped
+    ahead by (N - k) mod N clocks (the FPGA's own trick, see :func:`gold_seeds`):
+    O(chips), not O(2^m).
     """
     pu, pv = check_pair(poly_u, poly_v)
-    n = (1 << pu[0]) - 1
+    m = pu[0]
+    n = (1 << m) - 1
     k = _check_index(index, n)
     chips = n if chips is None else _check_chips(chips)
-    if k == n + 1:
-        return mseq(pv, seed_v, chips)
-    u = mseq(pu, seed_u, chips)
-    if k == n:
-        return u
-    return u ^ mseq(pv, jump(pv, seed_v, (n - k) % n), chips)
+    if m > MAX_SHARED_DEGREE:
+        if k == n + 1:
+            return mseq(pv, seed_v, chips)
+        u = mseq(pu, seed_u, chips)
+        if k == n:
+            return u
+        return u ^ mseq(pv, jump(pv, seed_v, (n - k) % n), chips)
+    u = None if k == n + 1 else _msequence(pu, seed_to_str(parse_seed(seed_u, m)))
+    v = None if k == n else _msequence(pv, seed_to_str(parse_seed(seed_v, m)))
+    if u is None or v is None:
+        one = v if u is None else u
+    else:  # v[(t - k) mod N]: v shifted right by k
+        one = u ^ np.concatenate([v[n - k:], v[:n - k]])
+    return one.copy() if chips == n else np.resize(one, chips)
+
+
+@functools.lru_cache(maxsize=16)
+def _msequence(poly: Poly, seed: str) -> NDArray[np.uint8]:
+    """One period of the m-sequence of a checked ``poly`` and ``seed`` (stage 1 first),
+    read-only: shared by :func:`gold_code` calls."""
+    seq = mseq(poly, seed)
+    seq.flags.writeable = False
+    return seq
 
 
 def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
@@ -141,15 +167,6 @@ def gold_family(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
     return family
 
 
-@functools.lru_cache(maxsize=8)
-def _pair_msequences(pu: Poly, pv: Poly) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """Default-seed u and v of a checked pair, read-only (shared by gold_codes calls)."""
-    u, v = mseq(pu), mseq(pv)
-    u.flags.writeable = False
-    v.flags.writeable = False
-    return u, v
-
-
 def gold_codes(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
                indices: Sequence[int], field: str = "index") -> NDArray[np.uint8]:
     """Members ``indices`` of the family, stacked: shape (len(indices), N) uint8 chip bits.
@@ -157,11 +174,12 @@ def gold_codes(poly_u: Sequence[int] | str, poly_v: Sequence[int] | str,
     Row i is ``gold_code(poly_u, poly_v, indices[i])`` (default seeds, one period).
     For the few members a device uses (the receiver's code set, the emitter's
     lasers): one XOR of u with a window of v repeated twice per member, and the
-    m-sequences of the last 8 pairs are kept, so a repeated call costs O(K N).
+    m-sequences are kept (:func:`_msequence`), so a repeated call costs O(K N).
     An index outside 0..N+1 raises ConfigError naming ``field``.
     """
     pu, pv = check_pair(poly_u, poly_v)
-    u, v = _pair_msequences(pu, pv)
+    m = pu[0]
+    u, v = _msequence(pu, "1" * m), _msequence(pv, "1" * m)
     n = u.size
     ks = [_check_index(k, n, field) for k in indices]
     out = np.empty((len(ks), n), dtype=np.uint8)

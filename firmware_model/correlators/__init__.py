@@ -9,6 +9,8 @@ every registered kernel name, in registration order. Built in:
 * ``"matmul"`` (:mod:`.matmul`): exact float64 Hankel products, limbs for the 2^53 bound;
 * ``"fft"`` (:mod:`.fft`): power-of-two real FFTs rounded under a rigorous error bound;
 * ``"direct"`` (:mod:`.direct`): one thin product per gated lag, little memory;
+* ``"windows"`` (:mod:`.windows`): per phase, the lags' windows of the data as rows of
+  one product with the codes (long codes with many channels);
 * ``"xp"`` (:mod:`.xp`, when ``array-api-compat`` is installed): the array-API kernel
   on numpy, never chosen by ``"auto"``: the CI twin of ``"gpu"``;
 * ``"gpu"`` (:mod:`.xp`, when CuPy imports and finds a CUDA device): the same code on
@@ -41,12 +43,14 @@ from cdma_lidar.firmware_model.correlators.base import (
 from cdma_lidar.firmware_model.correlators.direct import DirectCorrelator
 from cdma_lidar.firmware_model.correlators.fft import FFTCorrelator
 from cdma_lidar.firmware_model.correlators.matmul import MatmulCorrelator
+from cdma_lidar.firmware_model.correlators.windows import WindowsCorrelator
 from cdma_lidar.firmware_model.correlators.xp import GPUCorrelator, XPCorrelator, gpu_available
 
 # The built-in kernels, in this order: it is auto's tie-break (equal costs -> matmul).
 register_correlator("matmul", MatmulCorrelator)
 register_correlator("fft", FFTCorrelator)
 register_correlator("direct", DirectCorrelator)
+register_correlator("windows", WindowsCorrelator)
 if importlib.util.find_spec("array_api_compat") is not None:  # the optional extra [gpu]
     register_correlator("xp", XPCorrelator)
     if gpu_available():
@@ -60,6 +64,7 @@ __all__ = [
     "GPUCorrelator",
     "GatePlan",
     "MatmulCorrelator",
+    "WindowsCorrelator",
     "XPCorrelator",
     "choose_correlator",
     "correlator_methods",

@@ -238,7 +238,8 @@ def estimates(plan: GatePlan, co: Coefficients | None = None) -> dict[str, Estim
     in the coefficients: its ``call`` terms (the GIL-held Python) and its ``ram`` terms
     (streams from main memory: the estimate less the one with ``call = 0``, and less
     the one with ``ram = 0``); its calls less its ``fixed_calls`` (Python, no call into
-    numpy) release the GIL. The peak is the whole plan's.
+    numpy) release the GIL. The threads share the last-level cache
+    (``Coefficients.llc_bytes`` split between them). The peak is the whole plan's.
     """
     co = costs.COEFFICIENTS if co is None else co
     return {name: _estimate(cls, plan, co) for name, cls in _REGISTRY.items()}
@@ -252,6 +253,7 @@ def _estimate(cls: type[Correlator], plan: GatePlan, co: Coefficients) -> Estima
         return whole
     share = copy.copy(plan)  # one thread's call: the largest share of the columns
     share.columns, share.threads = -(-plan.columns // threads), 1
+    co = dataclasses.replace(co, llc_bytes=co.llc_bytes / threads)  # the L3 is shared
     one = cls.estimate(share, co).seconds
     held = one - cls.estimate(share, dataclasses.replace(co, call=0.0)).seconds
     streamed = one - cls.estimate(share, dataclasses.replace(co, ram=0.0)).seconds
@@ -410,15 +412,20 @@ def parallel_columns(task: Callable[[int, int], None], columns: int, size: int,
     ``size``, the elements the call touches, is at least 2^18), else one call in the
     calling thread, as is a call from inside a task (no nesting). The BLAS libraries are
     limited to ``threads // ranges`` threads meanwhile, so that column threads times BLAS
-    threads never exceed ``threads`` (default :func:`default_threads`). Exceptions
-    propagate.
+    threads never exceed ``threads`` (default :func:`default_threads`), and to one
+    thread for a call under 2^18 elements: its products last milliseconds, and a
+    threaded BLAS call waits for its other threads for a scheduler slice whenever
+    another process holds a core (one degree-11 column with a 256-lag gate, S = 16:
+    matmul's one product took 32.7 ms on 2 BLAS threads of a loaded 2-core machine,
+    1.3 ms of CPU on one). Exceptions propagate.
     """
     threads = resolve_threads(threads)
     if getattr(_WORKER, "inside", False):
         task(0, columns)
         return
     parts = column_threads(columns, size, threads)
-    with blas_threads(max(1, threads // max(1, parts))):
+    blas = max(1, threads // max(1, parts)) if size >= _PARALLEL_MIN else 1
+    with blas_threads(blas):
         if parts <= 1:
             _in_worker(task, 0, columns)
             return

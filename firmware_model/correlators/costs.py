@@ -26,7 +26,11 @@ __all__ = [
     "CACHE_BYTES",
     "COEFFICIENTS",
     "HANDOFF",
+    "LLC_BYTES",
+    "LLC_FACTOR",
+    "PACK_BYTES",
     "RAM_FACTOR",
+    "TILE_ROWS",
     "Coefficients",
     "Estimate",
     "choose",
@@ -46,7 +50,9 @@ class Coefficients:
     casts) on an operand that stays in the cache; ``fft``: one ``L log2 L`` point of a
     batched real FFT (forward or inverse); ``call``: the fixed overhead of one numpy or
     BLAS call from Python; ``ram``: how many times a byte streamed from main memory
-    costs more than ``byte`` (a ratio >= 1).
+    costs more than ``byte`` (a ratio >= 1); ``llc_bytes``: the share of the last-level
+    cache one call's operands may hold (:data:`LLC_BYTES` on one thread; the column
+    threads share it, :func:`.base.estimates`).
     """
 
     mac: float
@@ -54,6 +60,7 @@ class Coefficients:
     fft: float
     call: float
     ram: float = 1.0
+    llc_bytes: float = 16 << 20  # LLC_BYTES
 
 
 #: The constants of the model, and the kernels' ``fixed_calls``, fitted to this project's
@@ -75,7 +82,7 @@ class Coefficients:
 #: and the direct kernel's lag-by-lag store by cache lines: on 140 plans' kernel times
 #: (--fit's 92, 24 random of seeds 1 and 2) the constants put 136 within 1.25x, refits
 #: (--fit's procedure) 135-138.
-COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=6.3e-10, call=6.5e-7, ram=3.0)
+COEFFICIENTS = Coefficients(mac=6.6e-11, byte=1.24e-11, fft=4.4e-10, call=6.5e-7, ram=3.0)
 
 
 @dataclass(frozen=True)
@@ -95,14 +102,42 @@ CACHE_BYTES = 2 << 20
 #: cache bytes.
 RAM_FACTOR = COEFFICIENTS.ram
 
+#: An operand reused within a call up to this size stays in the last-level cache (half
+#: the 32 MiB L3 of the 2-core machine, which other processes share), where a byte
+#: costs LLC_FACTOR of a byte from main memory (1.2 cache bytes). (Charging main memory
+#: beyond the 2 MiB L2 priced the direct kernel's per-lag products over 2-5 MB of codes
+#: at 1.3-2.6x their time, and sent 5 of 50 one-column plans of ``bench kernels
+#: --wide`` seeds 41 and 43 to matmul at 1.3-3.4x direct's time: d11 S2 K168 G53,
+#: d12 S5 K158 G21.)
+LLC_BYTES = COEFFICIENTS.llc_bytes
+LLC_FACTOR = 0.4
 
-def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR) -> float:
+#: A matrix product's micro-kernel computes this many rows of the first operand at a
+#: time: a product of fewer rows (a column's few phases) pays for the whole tile. And
+#: packing its operands costs PACK_BYTES cache bytes per element, float32 or float64
+#: alike. Measured on the 2-core machine (OpenBLAS 0.3.31, one thread, CPU time): an
+#: (m, 1023) @ (1023, p) product took 0.6-0.8 ns per element of the second operand for
+#: m = 2..8, in float64 and in float32 alike (float32 1.0-1.2x float64's time, not the
+#: half the model charged), and reached the multiply-add rate only from m = 16 (float32
+#: 0.6-0.7x float64). Charging 16 bytes of packing per element and halving every
+#: float32 term sent a degree-11, 168-channel column (a (2, 2047) @ (2047, 4536)
+#: product over 74 MB) to matmul at 3.4x direct's time.
+TILE_ROWS = 4
+PACK_BYTES = 32.0
+
+
+def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR,
+                 llc_bytes: float = LLC_BYTES) -> float:
     """Cache-byte equivalents of ``uses`` reads of a ``size``-byte operand: every read
-    costs its bytes from the cache when it fits :data:`CACHE_BYTES`, else streams it
-    from main memory (``ram`` cache bytes each, ``Coefficients.ram``). (Counting the
-    re-reads of a cached operand as free made 66 one-row products over 2.6 MB of
-    codes look 2x cheaper than they measured.)"""
-    return size * uses * (1.0 if size <= CACHE_BYTES else ram)
+    costs its bytes from the cache when it fits :data:`CACHE_BYTES`, from the shared
+    last-level cache when it fits ``llc_bytes`` (``Coefficients.llc_bytes``;
+    :data:`LLC_FACTOR` of ``ram`` each), else streams it from main memory (``ram`` cache bytes each,
+    ``Coefficients.ram``). Both tiers beyond a core's own cache are shared by the cores,
+    so both scale with ``ram`` (:func:`threaded` does not overlap them). (Counting the
+    re-reads of a cached operand as free made 66 one-row products over 2.6 MB of codes
+    look 2x cheaper than they measured.)"""
+    factor = 1.0 if size <= CACHE_BYTES else LLC_FACTOR * ram if size <= llc_bytes else ram
+    return size * uses * factor
 
 
 def packs(m: float, p: float) -> bool:
@@ -118,12 +153,15 @@ def packs(m: float, p: float) -> bool:
     return m > 1 and p > 1
 
 
-def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
-    """Predicted time of a float64 product (m, n) @ (n, p): compute plus streaming its operands.
+def gemm_seconds(m: float, n: float, p: float, co: Coefficients, item: float = 8.0) -> float:
+    """Predicted time of a product (m, n) @ (n, p) of ``item``-byte floats (8: float64,
+    4: float32): compute plus streaming its operands.
 
     Thin products (p or m small) are memory-bound: the byte term dominates them. A
     product of several rows and several columns also packs both operands (BLAS copies
-    them into blocks and panels: one more read and a write of each, :func:`packs`).
+    them into blocks and panels: :data:`PACK_BYTES` per element, :func:`packs`) and
+    computes whole tiles of :data:`TILE_ROWS` rows; float32 halves the multiply-adds
+    and the bytes streamed, not the packing.
     (A product of a few rows streams its second operand about once: charging it once
     per row, as this model did, sent a degree-13, 40-channel column to a kernel
     1.5-1.7x slower than matmul, whose (4, 8191) @ (8191, 680) product measured one
@@ -132,10 +170,13 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients) -> float:
     on every lag, predicted 1.2x matmul on a degree-10, 116-channel, 160-column plan
     where they measured 1.9x its time, kernel alone.)
     """
-    moved = sum(stream_bytes(8.0 * size, 1, co.ram) for size in (m * n, n * p, m * p))
+    moved = sum(stream_bytes(item * size, 1, co.ram, co.llc_bytes)
+                for size in (m * n, n * p, m * p))
+    rows = m
     if packs(m, p):
-        moved += 16.0 * (m * n + n * p)
-    return co.mac * m * n * p + co.byte * moved + co.call
+        moved += PACK_BYTES * (m * n + n * p)
+        rows = -(-m // TILE_ROWS) * TILE_ROWS
+    return co.mac * item / 8.0 * rows * n * p + co.byte * moved + co.call
 
 
 #: Seconds of each numpy/BLAS call's GIL-free work that no other column thread overlaps:

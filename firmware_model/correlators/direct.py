@@ -25,6 +25,7 @@ from cdma_lidar.firmware_model.correlators.base import (
 )
 from cdma_lidar.firmware_model.correlators.costs import (
     CACHE_BYTES,
+    PACK_BYTES,
     Coefficients,
     Estimate,
     packs,
@@ -70,9 +71,10 @@ class DirectCorrelator(Correlator):
 
         def block(rows: int) -> float:
             """One block of ``rows`` columns, every lag and phase."""
-            codes = stream_bytes(8.0 * n * k, plan.count, co.ram)  # the (K, N) codes per lag
+            # the (K, N) codes, read on every lag
+            codes = stream_bytes(8.0 * n * k, plan.count, co.ram, co.llc_bytes)
             if packs(rows, k):  # a product of several rows and channels packs both
-                codes += 16.0 * (rows * n + n * k) * plan.count  # operands (gemm_seconds)
+                codes += PACK_BYTES * (rows * n + n * k) * plan.count  # operands (gemm_seconds)
             return (plan.count * (co.mac * rows * n * k + co.byte * 8.0 * (rows * n + rows * k)
                                   + 3 * co.call)  # slice, product, store
                     + co.byte * codes

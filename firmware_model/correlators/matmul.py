@@ -71,11 +71,11 @@ def _products(plan: GatePlan, merged: bool, rows: int) -> list[tuple[int, int]]:
     return [(rows * groups[length], length) for length in sorted(groups, reverse=True)]
 
 
-def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, scale: float) -> float:
-    """Predicted time of the products of one block of ``rows`` columns (``scale``: 0.5 for
-    float32, whose multiply-adds and bytes cost half)."""
+def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, item: float) -> float:
+    """Predicted time of the products of one block of ``rows`` columns in ``item``-byte
+    floats (:func:`.costs.gemm_seconds`)."""
     n, k = plan.n, plan.k
-    return sum(scale * gemm_seconds(m, n, k * width, co) for m, width in
+    return sum(gemm_seconds(m, n, k * width, co, item) for m, width in
                _products(plan, merged, rows))
 
 
@@ -142,7 +142,7 @@ class MatmulCorrelator(Correlator):
 
         def block(rows: int) -> float:
             """One block of ``rows`` columns: products, copies, the float32 test."""
-            prods = _seconds(plan, co, merged, rows, 0.5 if single else 1.0)
+            prods = _seconds(plan, co, merged, rows, item)
             moves = co.byte * ((4.0 + item) * active * rows * n
                                + (item + 16.0) * rows * k * width) \
                 + 4 * active * co.call  # per phase: a rotated copy in, a strided copy out

@@ -20,7 +20,7 @@ from cdma_lidar.firmware_model.gold import (
     t_value,
     xcorr_values,
 )
-from cdma_lidar.firmware_model.lfsr import fibonacci_run, mseq
+from cdma_lidar.firmware_model.lfsr import fibonacci_run, jump, mseq
 from cdma_lidar.firmware_model.pairs import PAPER_PAIR, preferred_pairs
 
 SMALL_PAIRS = [pair for m in (5, 6, 7, 9, 10, 11) for pair in preferred_pairs(m)]
@@ -201,3 +201,52 @@ def test_gold_codes_name_the_bad_index():
         gold_codes((5, 2), (5, 4, 3, 2), (0, 33), field="code_index")
     with pytest.raises(ConfigError, match="index"):
         gold_codes((5, 2), (5, 4, 3, 2), (-1,))
+
+
+def recurrence_member(pu, pv, k, chips, seed_u=None, seed_v=None):
+    """Member k the way gold_code made it before it shared m-sequences: one Fibonacci
+    recurrence per member, v's register jumped ahead by (N - k) mod N clocks."""
+    n = (1 << pu[0]) - 1
+    if k == n + 1:
+        return mseq(pv, seed_v, chips)
+    u = mseq(pu, seed_u, chips)
+    return u if k == n else u ^ mseq(pv, jump(pv, seed_v, (n - k) % n), chips)
+
+
+SHARED_PAIRS = [preferred_pairs(m)[0] for m in (5, 6, 7, 9, 10, 11, 13, 14, 15)]
+
+
+@st.composite
+def shared_cases(draw):
+    pu, pv = draw(st.sampled_from(SHARED_PAIRS))
+    m = pu[0]
+    n = (1 << m) - 1
+    k = draw(st.one_of(st.sampled_from([0, 1, 2, n - 1, n, n + 1, 1 << m]),
+                       st.integers(0, n + 1)))
+    chips = draw(st.sampled_from([None, 0, 1, n - 1, n, n + 1, 2 * n + 5]))
+    seeds = draw(st.sampled_from([(None, None), ("1" + "0" * (m - 1), "0" * (m - 1) + "1"),
+                                  ("01" * m, "110" * m)]))
+    return pu, pv, k, chips, tuple(None if s is None else s[:m] for s in seeds)
+
+
+@settings(max_examples=120, deadline=None)
+@given(shared_cases())
+def test_shared_msequences_equal_one_recurrence_per_member(case):
+    # index 2^m is the last member (v); N = 2^m - 1 is u; degrees 3..15, default and
+    # other seeds, a prefix, one period and more than one
+    pu, pv, k, chips, (seed_u, seed_v) = case
+    n = (1 << pu[0]) - 1
+    got = gold_code(pu, pv, k, chips=chips, seed_u=seed_u, seed_v=seed_v)
+    want = recurrence_member(pu, pv, k, n if chips is None else chips, seed_u, seed_v)
+    assert got.dtype == np.uint8 and got.flags.writeable
+    np.testing.assert_array_equal(got, want)
+
+
+def test_degree_15_code_set_of_1200_members_equals_the_recurrence():
+    pu, pv = preferred_pairs(15)[0]
+    n = (1 << 15) - 1
+    indices = [0, 1, 2, *range(1000, 1000 + 1195), n, n + 1]
+    codes = np.stack([gold_code(pu, pv, k) for k in indices])
+    np.testing.assert_array_equal(codes, gold_codes(pu, pv, indices))
+    for row in (0, 1, 2, 600, len(indices) - 2, len(indices) - 1):
+        np.testing.assert_array_equal(codes[row], recurrence_member(pu, pv, indices[row], n))

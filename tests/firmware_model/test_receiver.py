@@ -192,7 +192,8 @@ def test_a_registered_kernel_is_usable_by_name(case):
         rx = FastReceiver(cfg, codes, method=name)
         assert rx.correlator_method == name
         # its cost is the default (infinite): "auto" never picks a kernel that did not ask
-        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft", "direct")
+        assert FastReceiver(cfg, codes).correlator_method in ("matmul", "fft", "direct",
+                                                              "windows")
         acc = rx.accumulate(x[None, :])
         assert fast_from_accumulators(cfg, codes, acc, method=name)[0].same_as(want)
     assert name not in correlator_methods()
@@ -388,7 +389,7 @@ def test_the_widest_noise_sumsq_is_accepted():
 
 
 def test_two_word_sum_of_squares_is_exact_at_the_largest_terms():
-    from cdma_lidar.firmware_model.receiver import _sum_squares
+    from cdma_lidar.firmware_model.peaks import _sum_squares
 
     # the largest square (2^62, out = -2^31) and its neighbours, 2^20 of each per row:
     # the int64 halves stay far from overflow (2^26 lags * 2^31 < 2^58); the result is exact

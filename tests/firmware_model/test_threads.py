@@ -108,7 +108,7 @@ def test_the_environment_variable_sets_a_receivers_threads(monkeypatch):
         seen.append(base.resolve_threads(threads))
         return real(task, columns, size, threads)
 
-    monkeypatch.setattr("cdma_lidar.firmware_model.receiver.parallel_columns", spy)
+    monkeypatch.setattr("cdma_lidar.firmware_model.chain.parallel_columns", spy)
     rng = np.random.default_rng(3)
     codes = rng.integers(0, 2, (2, 31))
     cfg = ReceiverConfig(samples_per_chip=2, averages=2, gate_len=9)
@@ -116,3 +116,11 @@ def test_the_environment_variable_sets_a_receivers_threads(monkeypatch):
     FastReceiver(cfg, codes).frame(x)
     FastReceiver(cfg, codes, threads=5).frame(x)
     assert seen == [2, 5]
+
+
+def test_small_work_runs_blas_on_one_thread():
+    # a threaded BLAS call of a millisecond stalls whenever another process holds a core
+    seen = []
+    base.parallel_columns(lambda a, b: seen.append(_blas_threads()), 1, (1 << 18) - 1, 4)
+    base.parallel_columns(lambda a, b: seen.append(_blas_threads()), 1, 1 << 18, 4)
+    assert seen == [1, 4]

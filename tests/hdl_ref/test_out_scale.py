@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdma_lidar.firmware_model.receiver import _scale
+from cdma_lidar.firmware_model.chain import scale_out as _scale
 from cdma_lidar.hdl_ref import cosim
 from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 from cdma_lidar.rounding import ROUNDING_MODES

@@ -21,13 +21,13 @@ from cdma_lidar.study.engine import (
     Table,
     TrialChunk,
     Trials,
-    _Executor,
     grid_product,
     headline,
     read_csv,
     run_study,
     task_seed,
 )
+from cdma_lidar.study.executors import Executor
 from cdma_lidar.study.fig11 import STUDY as FIG11
 
 #: The detection study shrunk to 4 points x 2 replicates of 20 trials (well under a second).
@@ -238,7 +238,7 @@ COIN = Study("coin", "chunked toy", grid=lambda o: grid_product(x=[1, 2], n=[0, 
                                       summarise=_coin_row, block=4))
 
 
-class _Shuffled(_Executor):
+class _Shuffled(Executor):
     """``slots`` workers finishing their jobs in an order drawn by ``rnd``."""
 
     description = "shuffled"
