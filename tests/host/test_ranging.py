@@ -271,3 +271,13 @@ def test_a_noise_only_column_at_paper_massive_is_rejected_at_the_stated_rate(noi
         seen = estimate_ranges(frame, replace(ranging, snr_threshold_db=level)).valid.mean()
         p = false_alarm_rate(level, cfg.gate_len, cfg.samples_per_chip, cfg.peak_exclude)
         assert abs(seen - p) <= 4 * np.sqrt(p * (1 - p) / pixels), (level, seen, p)
+
+
+def test_docs_host_states_the_rule_s_values():
+    """The sentence in docs/host.md gives the ceiling and the threshold the code derives."""
+    from pathlib import Path
+
+    text = " ".join((Path(__file__).resolve().parents[2] / "docs" / "host.md").read_text(
+        encoding="utf-8").split())
+    assert f"{mai_ceiling_db(1200, 32767):.1f} dB at paper-massive's K = 1,200" in text
+    assert f"{default_snr_threshold_db(1200, 32767, 2, 128):.1f} dB at paper-massive" in text
