@@ -175,7 +175,8 @@ def register(subparsers: Any) -> None:
                         "one update usually settles it)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
                    help="SNR_XC threshold in dB: pixels below it are rejected (default "
-                        f"{DEFAULT_SNR_THRESHOLD_DB:g})")
+                        f"{DEFAULT_SNR_THRESHOLD_DB:g}, lower where multiple-access "
+                        "interference caps SNR_XC near it: docs/host.md)")
     p.add_argument("--min-support", type=int, default=1, metavar="N",
                    help="keep a pixel above the threshold only if N of its 8 neighbours are "
                         "too, at a lag within 1.5 samples (default 1; 0: the threshold alone)")
@@ -237,7 +238,8 @@ def register(subparsers: Any) -> None:
                    help="repeated shots (default 20)")
     p.add_argument("--out", required=True, metavar="FILE", help="calibration file (.toml)")
     p.add_argument("--snr-threshold", type=_finite_float, metavar="DB",
-                   help=f"SNR_XC threshold in dB (default {DEFAULT_SNR_THRESHOLD_DB:g})")
+                   help=f"SNR_XC threshold in dB (default {DEFAULT_SNR_THRESHOLD_DB:g}, or "
+                        "lower as in scan --help)")
     p.add_argument("--max-spread", type=_float_in(0, 1000, "m"), metavar="M",
                    help="widest acceptable histogram standard deviation (m)")
     _add_set(p)

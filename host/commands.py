@@ -42,6 +42,7 @@ from cdma_lidar.host.replay import Replay, is_replay
 from cdma_lidar.host.scan import (
     ScanOptions,
     calibrate_device,
+    default_power_level,
     multi_user_peaks,
     run_scan,
     state_path,
@@ -233,7 +234,7 @@ def cmd_scan(args: argparse.Namespace,
         _say(f"pixels above {thr:g} dB per frame (of all {img.range_m.size}): "
              + ", ".join(f"{f:.1f} %" for f in fr))
         cap = args.power_cap if args.power_cap is not None else \
-            dev.channels * options.initial_power
+            dev.channels * default_power_level(dev, options.initial_power)
         _say(f"largest column power sum per frame (cap {cap:g} x the per-pixel maximum): "
              + ", ".join(f"{float(p.sum(axis=0).max()):.2f}" for p in res.powers[:-1]))
     if len(img.foreign):
@@ -243,8 +244,8 @@ def cmd_scan(args: argparse.Namespace,
         _say(f"other users' returns: {len(img.foreign)} ({users}), {fate}")
     if args.calibrate_intensity is not None:
         assert cal is not None
-        power = res.powers[-2] if args.near_far and len(res.powers) > 1 else \
-            options.initial_power
+        # the last frame's power matrix (near-far's list also holds the next frame's)
+        power = res.powers[-2] if args.near_far and len(res.powers) > 1 else res.powers[-1]
         cal.intensity_gain = intensity_gain(res.clouds[-1].peak, res.clouds[-1].range, power,
                                             dev.config, args.calibrate_intensity,
                                             res.clouds[-1].flags == 0)

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError, LinkTimeout
-from cdma_lidar.host.ranging import DEFAULT_SNR_THRESHOLD_DB, RangingConfig
+from cdma_lidar.host.ranging import RangingConfig, default_snr_threshold_db
 from cdma_lidar.optics.grating import GratingGeometry, azimuth_elevation_deg
 from cdma_lidar.paths import default_key_file
 from cdma_lidar.protocol.auth import load_key
@@ -161,11 +161,19 @@ class Device:
         return np.asarray(el), np.asarray(az)
 
     def ranging_config(self, **changes: Any) -> RangingConfig:
-        """RangingConfig for the current configuration; ``changes`` override fields."""
-        base = RangingConfig(samples_per_chip=int(self.config["samples_per_chip"]),
-                             chip_rate_hz=float(self.info.chip_rate_hz),
+        """RangingConfig for the current configuration; ``changes`` override fields.
+
+        The SNR_XC threshold defaults to :func:`default_snr_threshold_db` of the device's
+        K, N, S, gate length, peak exclusion and UID bits (16 dB unless interference caps SNR_XC).
+        """
+        s = int(self.config["samples_per_chip"])
+        ns = self.code_length * s
+        threshold = default_snr_threshold_db(
+            self.channels, self.code_length, s, int(self.config.get("gate_len", ns)),
+            int(self.config.get("peak_exclude", 8)), int(self.config.get("uid_bits", 1)))
+        base = RangingConfig(samples_per_chip=s, chip_rate_hz=float(self.info.chip_rate_hz),
                              code_length=self.code_length, uid=int(self.config.get("uid", 0)),
-                             snr_threshold_db=DEFAULT_SNR_THRESHOLD_DB)
+                             snr_threshold_db=threshold)
         return replace(base, **changes)
 
 

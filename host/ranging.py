@@ -22,7 +22,9 @@ the scene truth; the default (``triangle``) had the smaller median error there
 
 SNR_XC (eq. 44, Note 9) comes from the receiver's integer noise statistics through
 the one shared function :func:`cdma_lidar.firmware_model.snr.snr_xc_db`. Pixels below the
-threshold are rejected. On top of it, a pixel above the threshold is kept only if
+threshold are rejected; its default follows the configuration
+(:func:`default_snr_threshold_db`: 16 dB unless multiple-access interference caps
+SNR_XC near it). On top of it, a pixel above the threshold is kept only if
 ``min_support`` of its 8 neighbours are above it too at a lag within ``support_tol``
 (:func:`neighbour_support`; 0 turns this off): on paper-scene1 the strongest empty
 pixels and the weakest object pixels overlap within about 1 dB, so the threshold alone
@@ -48,10 +50,12 @@ filled one has bit 1 set and bit 2 cleared.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import fdtr, fdtri, ndtri
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.snr import snr_xc_db
@@ -62,6 +66,8 @@ from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = [
     "DEFAULT_SNR_THRESHOLD_DB",
+    "DETECTION_AT_CEILING",
+    "FALSE_ALARM_RATE",
     "FLAG_FOREIGN",
     "FLAG_GHOST",
     "FLAG_INTERPOLATED",
@@ -70,11 +76,14 @@ __all__ = [
     "METHODS",
     "RangeImage",
     "RangingConfig",
+    "default_snr_threshold_db",
     "estimate_ranges",
+    "false_alarm_rate",
     "fill_columns",
     "ghost_windows_from_image",
     "in_windows",
     "lag_to_range_m",
+    "mai_ceiling_db",
     "neighbour_support",
     "precision_eq27_m",
     "sample_range_m",
@@ -90,6 +99,87 @@ FLAG_GHOST = 8
 #: The record's ``saturated`` field: the strongest peak's out word at a rail (lag may be early).
 FLAG_SATURATED = 16
 METHODS = ("none", "parabolic", "triangle")
+#: Probability that a pixel with no echo passes the default threshold (per pixel).
+FALSE_ALARM_RATE = 1e-3
+#: Probability that an echo at the multiple-access ceiling passes the default threshold.
+DETECTION_AT_CEILING = 0.99
+
+
+def _gate_lags(gate_len: int, samples_per_chip: int, peak_exclude: int) -> tuple[int, float]:
+    """(lags the peak is the largest of, independent lags of the noise floor): every gate
+    lag is a trial (an upper bound: lags within a chip are correlated, 1 - 1/S), while the
+    floor's variance has only one independent value per chip."""
+    return gate_len, max(gate_len - 2 * peak_exclude - 1, samples_per_chip) / samples_per_chip
+
+
+def false_alarm_rate(threshold_db: float, gate_len: int, samples_per_chip: int,
+                     peak_exclude: int = 8, uid_bits: int = 1) -> float:
+    """Probability (per pixel) that a gate holding no echo reports SNR_XC >= ``threshold_db``.
+
+    Model: the gate's lags hold zero-mean Gaussian noise (receiver noise plus the other
+    channels' multiple-access interference, which is Gaussian by the central limit theorem
+    at large K and only rescales the floor, so it cancels in the ratio). The peak is the
+    largest ``x^2`` of ``G = gate_len`` lags (taken as independent trials: an upper bound),
+    and the floor's variance is estimated from ``nu = (gate_len - 2 W - 1) / S``
+    independent values (W = ``peak_exclude``, one per chip), so each lag's
+    ``peak^2 / sigma^2`` is F(1, nu) distributed and::
+
+        P_fa = 2^-n (1 - (1 - Q_F(1, nu)(10^(threshold_db / 10)))^G)
+
+    (``Q_F``: the F distribution's upper tail); the factor ``2^-n`` is the chance that a
+    noise peak's n period signs (``uid_bits``) read as our UID, which the host requires
+    (with n = 1: a positive peak). At paper-massive's configuration this
+    matches the receiver's own noise-only gates (tests/host/test_ranging.py).
+    """
+    g, nu = _gate_lags(gate_len, samples_per_chip, peak_exclude)
+    x = 10.0 ** (threshold_db / 10.0)
+    tail = 1.0 - float(fdtr(1.0, nu, x))
+    largest = -math.expm1(g * math.log1p(-tail)) if tail < 1 else 1.0
+    return float(largest / 2**uid_bits)
+
+
+def mai_ceiling_db(channels: int, code_length: int) -> float:
+    """The SNR_XC (dB) multiple-access interference alone allows an echo, whatever the power.
+
+    ``10 log10(N / ((2/3) (K - 1)))``: each of the K - 1 other channels' echoes (as strong as
+    ours) adds a Gold cross-correlation of variance about N chips^2, two-thirds of it on
+    average over a sub-chip delay (linear between chip lags); the peak is N. S and R scale
+    both alike and cancel. ``inf`` for one channel.
+    """
+    if channels <= 1:
+        return math.inf
+    return 10.0 * math.log10(code_length / (2.0 / 3.0 * (channels - 1)))
+
+
+def default_snr_threshold_db(channels: int, code_length: int, samples_per_chip: int,
+                             gate_len: int, peak_exclude: int = 8, uid_bits: int = 1) -> float:
+    """The host's default SNR_XC threshold (dB) for a configuration.
+
+    ``min(16 dB, max(T_fa, T_mai))``, where
+
+    * ``T_fa``: the level a gate with no echo exceeds with probability
+      :data:`FALSE_ALARM_RATE` (:func:`false_alarm_rate`: the largest of ``gate_len``
+      lags, each F(1, nu), read as our UID), so noise never passes more often;
+    * ``T_mai = 10 log10((sqrt(rho) - z)^2)``, with ``rho`` the multiple-access ceiling
+      (:func:`mai_ceiling_db`, linear) and ``z`` the normal quantile of
+      :data:`DETECTION_AT_CEILING`: the level an echo limited by the other channels alone
+      clears with that probability (its peak is ``sqrt(rho)`` floor deviations plus one
+      Gaussian deviation).
+
+    16 dB (:data:`DEFAULT_SNR_THRESHOLD_DB`) stays wherever the interference leaves room
+    above it (``rho`` >= 18.7 dB: every preset of 40 channels at degree 11, ceiling
+    19.0 dB); paper-massive (K = 1,200, N = 32,767, S = 2, 128 lags), whose ceiling is
+    16.1 dB, gets ``T_fa`` = 13.5 dB. All values in dB.
+    """
+    rho = 10.0 ** (mai_ceiling_db(channels, code_length) / 10.0)
+    z = float(ndtri(DETECTION_AT_CEILING))
+    t_mai = 10.0 * math.log10(max(math.sqrt(rho) - z, 1e-9) ** 2) if math.isfinite(rho) \
+        else math.inf
+    g, nu = _gate_lags(gate_len, samples_per_chip, peak_exclude)
+    largest = min(FALSE_ALARM_RATE * 2**uid_bits, 0.5)   # of G lags, before the UID test
+    per_lag = -math.expm1(math.log1p(-largest) / g)
+    t_fa = 10.0 * math.log10(float(fdtri(1.0, nu, 1.0 - per_lag)))
+    return min(DEFAULT_SNR_THRESHOLD_DB, max(t_fa, t_mai))
 
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import tomllib
@@ -267,3 +268,31 @@ def test_scan_in_calibration_mode_says_what_to_do(capsys, tmp_path):
                            str(tmp_path / "a.ply"), "--no-progress", "--set", "mode=calibration")
     assert "calibration mode" in line and "--set mode=ranging" in line
     assert not list(tmp_path.iterdir())
+
+
+def test_a_capped_device_is_reported_and_calibrated_at_the_power_it_scanned(capsys, tmp_path):
+    """flat-wall with a 20 mW column cap: 40 pixels at the default quarter of the 10 mW
+    maximum would need 100 mW, so the scan runs at 0.05; the near-far cap line and the
+    intensity gain use that level, not the requested 0.25."""
+    from cdma_lidar.host.cloud_formats.npz import read as read_npz
+
+    capped = "instrument.total_power_cap_w=0.02&power=0.0005&seed=1"
+    level = math.floor(0.02e6 * 65535 / (40 * 10_000)) / 65535   # default_power_level
+    code, text, _ = _run(capsys, "scan", "--port", f"virtual://flat-wall?{capped}", "--out",
+                         str(tmp_path / "n.npz"), "--near-far", "--frames", "2",
+                         "--no-progress")
+    assert code == 0
+    cap = float(re.search(r"\(cap (\S+) x the per-pixel maximum\)", text).group(1))
+    assert cap == pytest.approx(40 * level, rel=1e-5)
+    cal = tmp_path / "cal.toml"
+    assert _run(capsys, "calibrate", "--port", f"virtual://flat-wall?{capped}",
+                "--target-distance", "0.5", "--out", str(cal))[0] == 0
+    assert _run(capsys, "scan", "--port", f"virtual://flat-wall?{capped}", "--out",
+                str(tmp_path / "w.npz"), "--calibration", str(cal), "--calibrate-intensity",
+                "0.5", "--no-progress")[0] == 0
+    out = tmp_path / "x.npz"
+    assert _run(capsys, "scan", "--port", f"virtual://flat-wall?reflectivity=0.2&{capped}",
+                "--out", str(out), "--calibration", str(cal), "--no-progress")[0] == 0
+    cloud = read_npz(out)
+    # (about 1.1, 0.25 / 0.05 times too much, with the requested level in the gain)
+    assert np.median(cloud.intensity[cloud.flags == 0]) == pytest.approx(0.2, rel=0.25)

@@ -15,7 +15,9 @@ import pytest
 
 import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
 from cdma_lidar.host.connection import connect
+from cdma_lidar.host.ranging import default_snr_threshold_db, mai_ceiling_db
 from cdma_lidar.host.scan import ScanOptions, default_power_level, open_scan
+from cdma_lidar.scene import PRESETS
 
 
 def _device(k: int, pixel_uw: int, cap_uw: int) -> SimpleNamespace:
@@ -162,3 +164,22 @@ def test_a_one_channel_feature_of_1200_rows_shows_in_the_picture(massive_picture
     pixels = img[top:bottom, col]
     assert pixels.shape[0] < K / 3    # fewer pixel rows than channels: the case in question
     assert _bands(pixels, np.median(pixels, axis=0)) == STRIPES.size
+
+
+@pytest.mark.parametrize("preset", sorted(set(PRESETS) - {"paper-massive"}))
+def test_every_other_preset_keeps_the_16_db_default(preset):
+    with connect(f"virtual://{preset}?seed=1") as dev:
+        assert dev.ranging_config().snr_threshold_db == 16.0
+
+
+def test_paper_massive_gets_the_derived_default_and_an_explicit_threshold_wins(massive_device,
+                                                                                tmp_path):
+    dev, cfg = massive_device, massive_device.config
+    thr = dev.ranging_config().snr_threshold_db
+    assert thr == default_snr_threshold_db(1200, 32767, int(cfg["samples_per_chip"]),
+                                           int(cfg["gate_len"]), int(cfg["peak_exclude"]),
+                                           int(cfg["uid_bits"]))
+    assert thr < mai_ceiling_db(1200, 32767) < 16.0 + 0.2
+    assert open_scan(dev, tmp_path / "a.npz").ranging.snr_threshold_db == thr
+    explicit = open_scan(dev, tmp_path / "b.npz", ScanOptions(snr_threshold_db=16.0))
+    assert explicit.ranging.snr_threshold_db == 16.0

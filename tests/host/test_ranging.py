@@ -9,10 +9,15 @@ from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.host.ranging import (
+    DEFAULT_SNR_THRESHOLD_DB,
+    FALSE_ALARM_RATE,
     RangingConfig,
+    default_snr_threshold_db,
+    false_alarm_rate,
     fill_columns,
     in_windows,
     lag_to_range_m,
+    mai_ceiling_db,
     precision_eq27_m,
     sample_range_m,
     subsample_delta,
@@ -196,3 +201,83 @@ def test_neighbour_support_counts_consistent_lags():
     n = neighbour_support(lag, strong, 1.5)
     assert n[1, 1] == 5  # (0,0) (0,1) (1,0) (1,2) (2,1); 40, 70 too far; (2,2) not strong
     assert n[0, 2] == 0 and n[2, 0] == 0  # lags 40 and 70 stand alone
+
+
+# -- the default SNR_XC threshold follows the configuration (issue 40) -------------------
+
+
+@pytest.mark.parametrize(("k", "n", "s", "gate"), [
+    (40, 2047, 4, 128),     # every 40-channel preset (paper-scene1/2, paper-lab, flat-wall...)
+    (1, 2047, 4, 128),      # one channel: no interference at all
+    (400, 32767, 2, 128),   # order 15 at K = 400: room above 16 dB
+    (8, 127, 4, 64),        # a short code with few channels
+])
+def test_the_default_threshold_stays_16_db_where_interference_leaves_room(k, n, s, gate):
+    assert default_snr_threshold_db(k, n, s, gate) == DEFAULT_SNR_THRESHOLD_DB == 16.0
+
+
+def test_at_paper_massive_the_default_sits_below_the_mai_ceiling_at_the_stated_rate():
+    thr = default_snr_threshold_db(1200, 32767, 2, 128)
+    ceiling = mai_ceiling_db(1200, 32767)
+    assert ceiling == pytest.approx(16.13, abs=0.01)   # the colleague's 16.1 dB
+    assert thr < ceiling - 2.0
+    assert false_alarm_rate(thr, 128, 2) == pytest.approx(FALSE_ALARM_RATE, rel=1e-6)
+    # the false-alarm floor, not the interference term, sets it: a lower level lets noise in
+    assert false_alarm_rate(thr - 0.5, 128, 2) > 1.5 * FALSE_ALARM_RATE
+
+
+def test_the_false_alarm_rate_falls_with_the_threshold_and_grows_with_the_gate():
+    rates = [false_alarm_rate(t, 128, 2) for t in (8.0, 10.0, 12.0, 14.0, 16.0)]
+    assert np.all(np.diff(rates) < 0)
+    assert false_alarm_rate(12.0, 512, 2) > false_alarm_rate(12.0, 128, 2)
+
+
+@pytest.fixture(scope="module")
+def noise_only_frame():
+    """2,000 pixels of paper-massive's receive chain (degree 15, S = 2, R = 1, 128 lags)
+    that see no echo: 100 of its codes, 20 columns of Gaussian ADC noise (seeded)."""
+    from cdma_lidar.firmware_model.receiver import fast_frame
+    from cdma_lidar.host.frame import FrameData
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.scene.acquire import receiver_config
+    from cdma_lidar.scene.instrument import Instrument
+
+    cfg, codes = receiver_config(Instrument(load_scene("paper-massive"), seed=0))
+    k, c = 100, 20
+    rng = np.random.default_rng(40)
+    x = np.round(rng.normal(0.0, 30.0, (c, cfg.column_samples(codes.shape[1]))))
+    frame = FrameData.empty(k, c)
+    for col, out in enumerate(fast_frame(cfg, codes[:k], x.astype(np.int16))):
+        frame.set_column(col, out, angle_deg=0.0)
+    ranging = RangingConfig(samples_per_chip=cfg.samples_per_chip, chip_rate_hz=62.5e6,
+                            code_length=codes.shape[1], min_support=0)
+    return frame, ranging, cfg
+
+
+def test_a_noise_only_column_at_paper_massive_is_rejected_at_the_stated_rate(noise_only_frame):
+    from dataclasses import replace
+
+    from cdma_lidar.host.ranging import estimate_ranges
+
+    frame, ranging, cfg = noise_only_frame
+    thr = default_snr_threshold_db(1200, ranging.code_length, cfg.samples_per_chip,
+                                   cfg.gate_len, cfg.peak_exclude)
+    pixels = frame.shape[0] * frame.shape[1]
+    passed = int(estimate_ranges(frame, replace(ranging, snr_threshold_db=thr)).valid.sum())
+    # expected 2 of 2,000 at 1e-3; more than 8 has probability 2e-4
+    assert passed <= 8
+    # the model the rate comes from matches the receiver where passes are frequent
+    for level in (10.0, 12.0):
+        seen = estimate_ranges(frame, replace(ranging, snr_threshold_db=level)).valid.mean()
+        p = false_alarm_rate(level, cfg.gate_len, cfg.samples_per_chip, cfg.peak_exclude)
+        assert abs(seen - p) <= 4 * np.sqrt(p * (1 - p) / pixels), (level, seen, p)
+
+
+def test_docs_host_states_the_rule_s_values():
+    """The sentence in docs/host.md gives the ceiling and the threshold the code derives."""
+    from pathlib import Path
+
+    text = " ".join((Path(__file__).resolve().parents[2] / "docs" / "host.md").read_text(
+        encoding="utf-8").split())
+    assert f"{mai_ceiling_db(1200, 32767):.1f} dB at paper-massive's K = 1,200" in text
+    assert f"{default_snr_threshold_db(1200, 32767, 2, 128):.1f} dB at paper-massive" in text
