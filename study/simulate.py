@@ -24,7 +24,7 @@ from cdma_lidar.errors import ConfigError, DeviceError
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.host.connection import Device
 from cdma_lidar.host.frame import FrameData
-from cdma_lidar.host.ranging import RangingConfig, precision_eq27_m
+from cdma_lidar.host.ranging import RangingConfig, default_snr_threshold_db, precision_eq27_m
 from cdma_lidar.host.scan import ScanOptions, ScanResult, run_scan
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.protocol.columns import ColumnResult
@@ -104,11 +104,16 @@ def device_power_w(inst: Instrument) -> NDArray[np.float64]:
 
 
 def ranging_config(inst: Instrument) -> RangingConfig:
-    """What the host knows of the instrument's configuration (nominal values, no offset)."""
+    """What the host knows of the instrument's configuration (nominal values, no offset),
+    with the SNR_XC threshold the host derives for the device's boot configuration
+    (:func:`cdma_lidar.host.ranging.default_snr_threshold_db`, dB)."""
     spec = inst.spec
+    cfg, _ = receiver_config(inst)
+    threshold = default_snr_threshold_db(inst.channels, spec.code_length, spec.samples_per_chip,
+                                         cfg.gate_len, cfg.peak_exclude, spec.uid_bits)
     return RangingConfig(samples_per_chip=spec.samples_per_chip,
                          chip_rate_hz=spec.chip_rate_hz, code_length=spec.code_length,
-                         uid=spec.uid)
+                         uid=spec.uid, snr_threshold_db=threshold)
 
 
 def true_offset_m(inst: Instrument) -> float:
