@@ -152,8 +152,8 @@ class DeviceEndpoint:
         poll_s: longest blocking read when idle (s).
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
             (a serial line); False on TCP, where a damaged frame is not worth the CPU.
-        peer: who is on the other end (an IP address), for the per-peer back-off after
-            failed authentication; default the port's name.
+        peer: who is on the other end (an IP address), for the log of failed
+            authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
         threads: False: no worker threads; each :meth:`poll` also handles the queued
             requests and one column of a running stream (tests step the device with
@@ -182,7 +182,7 @@ class DeviceEndpoint:
                 raise out_of_range("app", "a DeviceApp (or a DeviceCore)", app)
             core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock)
         self.core, self.app, self.port = core, core.app, port
-        #: Who is on the other end (an IP address over TCP), for the auth back-off and logs.
+        #: Who is on the other end (an IP address over TCP), for the logs.
         self.peer = peer or port_name(port)
         self.session_open = False
         #: Since when this connection has had no session (core clock, s).
@@ -196,6 +196,8 @@ class DeviceEndpoint:
                               (self.stats, core.totals))
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
+        #: (wrong HELLO MACs on this connection since its last success, the last one's time)
+        self.auth_failures: tuple[int, float] = (0, 0.0)
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None

@@ -185,3 +185,36 @@ def test_tcp_device_with_a_key_file_end_to_end(tmp_path) -> None:
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_flood_of_wrong_macs_from_the_key_holders_address_never_keeps_it_out() -> None:
+    """Guessers on 127.0.0.1 (one connection guessing fast, 30 more guessing once each)
+    are slowed per connection and by the global budget; the key holder on the same
+    address is checked at once (fake clock, no thread)."""
+    from cdma_lidar.protocol.endpoint import DeviceCore
+
+    now = [100.0]
+    core = DeviceCore(SyntheticApp(channels=2, columns=4), key=KEY, clock=lambda: now[0])
+
+    def conn() -> SteppedDevice:
+        return SteppedDevice(None, core=core, now=now, peer="127.0.0.1")
+
+    fast = conn()
+    guesser = HostLink(fast, clock=fast.clock, key=bytes(32), retries=0, timeout_s=TIMEOUT)
+    for _ in range(20):
+        with pytest.raises(DeviceError) as exc:
+            guesser.hello()
+        assert exc.value.code == ErrorCode.AUTH_FAILED
+    assert fast.endpoint.stats.auth_rejected < 5 < fast.endpoint.stats.auth_throttled
+    for _ in range(30):
+        dev = conn()
+        with pytest.raises(DeviceError, match="does not match"):
+            HostLink(dev, clock=dev.clock, key=bytes(32), retries=0, timeout_s=TIMEOUT).hello()
+    # The budget is spent: a connection that guessed wrong now waits for it too.
+    assert core.backoff.wait_s(1, now[0]) > 5.0
+    holder_dev, start = conn(), now[0]
+    holder = HostLink(holder_dev, clock=holder_dev.clock, key=KEY, retries=0, timeout_s=TIMEOUT)
+    assert holder.hello().auth == 1
+    assert now[0] - start < TIMEOUT  # at once: no retry, no back-off
+    with pytest.raises(DeviceError, match="retry in"):  # the guesser is still held back
+        guesser.hello()
