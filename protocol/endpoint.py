@@ -52,6 +52,7 @@ from cdma_lidar.protocol.messages import (
     ErrorCode,
     MsgKind,
     MsgType,
+    Pieces,
     ScanEndReason,
     decode_payload,
     encode_payload,
@@ -212,6 +213,8 @@ class DeviceEndpoint:
         self.info: Info | None = None  # as sent in the last INFO
         self.config: dict[str, Any] | None = None  # the app's config, for CONFIG_GET mid-scan
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
+        #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
+        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
         # lock guards the endpoint's state; the core's app_lock serialises calls into the
         # application and is always taken first.
         self.lock = threading.Lock()
@@ -273,9 +276,13 @@ class DeviceEndpoint:
         with self.lock:
             if data:
                 damaged = self.decoder.stats.damaged
-                for frame in self.decoder.feed(data):
+                for piece in self.decoder.feed(data):
+                    frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
+                        else piece
                     # While the request worker has work, every request queues behind it,
                     # so requests are always handled in the order they arrived.
+                    if frame is None:
+                        continue
                     if kind_of(frame.msg_type) is not MsgKind.REQUEST:
                         self.stats.ignored += 1
                     elif self._queued:
@@ -366,6 +373,33 @@ class DeviceEndpoint:
         self._send_reply(frame, nak(self, frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                     f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
+    def _request_piece(self, frame: Frame) -> Frame | None:
+        """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
+        signed requests with a bad signature is dropped); the whole request once every
+        piece is in, keyed by (type, seq). Two requests in pieces are kept at most."""
+        ours = self.session_open and frame.session == self.session
+        if ours and self.verifier is not None and not self.verifier.check(frame):
+            self.stats.auth_rejected += 1
+            return None
+        try:
+            body = decode_payload(MsgType.FRAGMENT, frame.payload)
+        except FrameError:
+            self.stats.ignored += 1
+            return None
+        if kind_of(body["msg_type"]) is not MsgKind.REQUEST:
+            self.stats.ignored += 1
+            return None
+        key = (body["msg_type"], body["seq"])
+        pc = self._pieces.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._pieces[key] = Pieces(body["count"])
+            while len(self._pieces) > 2:
+                self._pieces.popitem(last=False)
+        if (payload := pc.add(frame, body)) is None:
+            return None
+        del self._pieces[key]
+        return Frame(key[0], key[1], frame.session, payload, fec=frame.fec, joined=ours)
+
     def _enqueue(self, frame: Frame, checked: bool) -> None:
         self._queued += 1
         if self._worker is None and self.threads:
@@ -385,7 +419,7 @@ class DeviceEndpoint:
                 self._send_reply(frame, nak(self, frame, ErrorCode.WRONG_SESSION, "session",
                                             detail, False))
                 return
-            if self.verifier is not None:
+            if self.verifier is not None and not frame.joined:
                 if not frame.sig:
                     self._send_reply(frame, nak(
                         self, frame, ErrorCode.AUTH_REQUIRED, "incompat_flags",

@@ -262,7 +262,7 @@ def vectors() -> str:
         f"  header  {head.hex(' ')}\n"
         f"  sig     {sig.hex(' ')}\n"
         f"  wire    {signed.hex(' ')}",
-        f"ACK of SCAN_START, seq 0x0102, FEC-coded (RS parity, whitened, then COBS):\n"
+        f"ACK of SCAN_START, seq 0x0102, FEC-coded (whitened, COBS, then RS parity spread):\n"
         f"  wire    {coded.hex(' ')}",
         f"whitening bytes 0..7: {fec.whiten(bytes(8)).hex(' ')}",
     ]

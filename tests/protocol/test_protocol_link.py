@@ -12,6 +12,7 @@ import serial
 from protocol_fixtures import (
     RunningDevice,
     ScriptedPort,
+    SteppedDevice,
     SyntheticApp,
     ack,
     capture_expected,
@@ -46,7 +47,7 @@ from cdma_lidar.protocol.requests import (
     DIAG_WRONG_SESSION,
 )
 from cdma_lidar.protocol.views import Status
-from cdma_lidar.virtual.line import PipePort, pipe_pair
+from cdma_lidar.virtual.line import Faults, PipePort, pipe_pair
 
 #: Reply timeout against a real device thread (s): ample on a loaded machine, and waited
 #: out only by the tests that expect a timeout.
@@ -136,24 +137,36 @@ def test_config_set_get_and_device_refusal(rig) -> None:
         link.set_config(nonsense=1)
 
 
-def test_power_matrix_is_chunked_under_the_frame_size() -> None:
-    host, dev = pipe_pair()
+def test_a_power_matrix_longer_than_a_frame_goes_as_one_request_in_fragments() -> None:
     app = SyntheticApp(channels=8, columns=300)
-    with RunningDevice(dev, app, max_frame=512):
-        link = HostLink(host, timeout_s=TIMEOUT)
-        assert link.hello().max_frame == 512
-        m = (np.arange(8 * 300).reshape(8, 300) * 7) % 65536
-        before = link.stats.requests
-        link.set_power(m)
-        assert link.stats.requests - before >= 8 * 300 * 2 // 512
-        np.testing.assert_array_equal(app.power, m)
-        link.set_power(np.full((2, 3), 0.5), channel_start=1, column_start=10)
-        assert (app.power[1:3, 10:13] == 32768).all()
-        with pytest.raises(DeviceError) as exc:
-            link.set_power(np.ones((9, 1), dtype=int))
-        assert exc.value.field == "channel_start"
-        with pytest.raises(FieldError, match="power"):
-            link.set_power(np.full((2, 2), 1.5))
+    dev = SteppedDevice(app, max_frame=512)
+    link = HostLink(dev, clock=dev.clock, timeout_s=TIMEOUT)
+    assert link.hello().max_frame == 512
+    m = (np.arange(8 * 300).reshape(8, 300) * 7) % 65536
+    before, pieces = link.stats.requests, dev.endpoint.decoder.stats.frames
+    link.set_power(m)
+    assert link.stats.requests - before == 1  # 4808 bytes: one POWER_SET in 10 FRAGMENTs
+    assert dev.endpoint.decoder.stats.frames - pieces == 10
+    np.testing.assert_array_equal(app.power, m)
+    link.set_power(np.full((2, 3), 0.5), channel_start=1, column_start=10)
+    assert (app.power[1:3, 10:13] == 32768).all()
+    with pytest.raises(DeviceError) as exc:
+        link.set_power(np.ones((9, 1), dtype=int))
+    assert exc.value.field == "channel_start"
+    with pytest.raises(FieldError, match="power"):
+        link.set_power(np.full((2, 2), 1.5))
+
+
+def test_a_request_in_fragments_survives_lost_pieces() -> None:
+    """Every fifth frame to the device is lost: the retries fill the gaps (the device
+    keeps the pieces it has), and the request is acted on once."""
+    app = SyntheticApp(channels=8, columns=300)
+    dev = SteppedDevice(app, max_frame=512, faults=Faults(drop=0.2), seed=5)
+    link = HostLink(dev, clock=dev.clock, timeout_s=TIMEOUT, retries=10)
+    link.hello()
+    m = (np.arange(8 * 300).reshape(8, 300) * 3) % 65536
+    link.set_power(m)
+    np.testing.assert_array_equal(app.power, m)
 
 
 def test_scan_calibrate_capture_status(rig) -> None:
@@ -279,11 +292,11 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
     r.port.write(encode_frame(0x7E, b"", 125, r.session))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
-    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=4))
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=5))
     assert r.recv() == []  # the NAK is in the request's version: this decoder rejects it
     (f,) = r.dec.rejected
     r.dec.rejected.clear()
-    assert nak(f)["code"] == ErrorCode.VERSION and f.version == 4 != framing.PROTOCOL_VERSION
+    assert nak(f)["code"] == ErrorCode.VERSION and f.version == 5 != framing.PROTOCOL_VERSION
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNSUPPORTED_FLAGS
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 128, 0x5555))

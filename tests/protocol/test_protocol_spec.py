@@ -77,7 +77,7 @@ def test_example_wire_bytes_in_the_page_decode() -> None:
 def test_hand_written_numbers_of_the_page_match_the_code() -> None:
     """The prose outside the generated blocks: CRC example, diagnoses, default timing."""
     text = spec.DOC_PATH.read_text(encoding="utf-8")
-    head = bytes.fromhex("03 00 00 0a 02 01 00 00 d4 c3 b2 a1")
+    head = bytes.fromhex("04 00 00 0a 02 01 00 00 d4 c3 b2 a1")
     assert f"give CRC 0x{crc32(head):08X}" in text
     wire = encode_frame(MsgType.STATUS_GET, b"", 0x0102, 0xA1B2C3D4)
     assert f"COBS-encode to `{wire[1:-1].hex(' ')}`" in text
