@@ -26,8 +26,8 @@ when they fail. The coded length ``t`` gives the stuffed length ``n`` back:
 Code: narrow-sense RS over GF(2^8) with primitive polynomial 0x11D, generator roots
 alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it.
 Encoding and syndromes are table-driven numpy (the code is linear over GF(2^8); a test
-checks them against ``reedsolo``); locating and correcting the errors of a damaged
-block is ``reedsolo``'s.
+checks them against ``reedsolo``), and so are the Chien search and Forney's formula
+that correct a damaged block; the error locator is ``reedsolo``'s Berlekamp-Massey.
 """
 
 from __future__ import annotations
@@ -194,13 +194,68 @@ def strip(coded: bytes) -> bytes:
     return b"".join(coded[i:i + WIRE_BLOCK][:-SPREAD] for i in range(0, len(coded), WIRE_BLOCK))
 
 
+_EXP = np.array(reedsolo.gf_exp[:255], np.int64)
+_LOG = np.array(reedsolo.gf_log[:256], np.int64)
+
+
+_EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
+
+
+def _gmul(x: int, y: int) -> int:
+    return 0 if x == 0 or y == 0 else _EXP_LIST[(_LOG_LIST[x] + _LOG_LIST[y]) % 255]
+
+
+def _correct(block: np.ndarray, syn: list[int]) -> None:
+    """Correct one block in place from its syndromes ``S_0 .. S_47`` (not all zero).
+
+    The error locator comes from ``reedsolo``'s Berlekamp-Massey; its roots are found
+    for all positions at once (Chien search in tables) and the error values by Forney's
+    formula (first consecutive root 1: ``Y = X Omega(1/X) / Lambda'(1/X)``). Raises
+    ReedSolomonError when the roots are not as many as the locator's degree (more than
+    24 damaged symbols)."""
+    n = block.size
+    loc = reedsolo.rs_find_error_locator([0, *syn], NSYM)  # Lambda, highest degree first
+    deg = len(loc) - 1
+    # Chien: x^deg Lambda(1/x), highest degree first, at x = 2^e for every exponent e.
+    rev = np.array(loc[::-1], np.int64)
+    k = np.flatnonzero(rev)
+    e = np.arange(n)
+    terms = _EXP[(_LOG[rev[k]][:, None] + e[None, :] * (deg - k)[:, None]) % 255]
+    roots = np.flatnonzero(np.bitwise_xor.reduce(terms, axis=0) == 0)
+    if deg == 0 or roots.size != deg:
+        raise reedsolo.ReedSolomonError(f"{roots.size} error positions for a locator of "
+                                        f"degree {deg}")
+    xs = [_EXP_LIST[r] for r in roots.tolist()]  # X_l = 2^e_l
+    lam = [1]  # Lambda(x) = prod (1 + X_l x), lowest degree first
+    for x in xs:
+        lam = [a ^ _gmul(x, b) for a, b in zip([*lam, 0], [0, *lam], strict=True)]
+    omega = [0] * deg  # S(x) Lambda(x) mod x^deg, lowest degree first
+    for i in range(deg):
+        for j in range(i + 1):
+            omega[i] ^= _gmul(syn[i - j], lam[j])
+    for r, x in zip(roots.tolist(), xs, strict=True):
+        xinv = _EXP_LIST[(255 - r) % 255]
+        num = den = 0
+        p = 1
+        for i in range(deg):
+            num ^= _gmul(omega[i], p)
+            p = _gmul(p, xinv)
+        p = 1
+        for i in range(1, deg + 1, 2):  # Lambda'(x): the odd terms, one degree down
+            den ^= _gmul(lam[i], p)
+            p = _gmul(p, _gmul(xinv, xinv))
+        if den == 0:
+            raise reedsolo.ReedSolomonError("Forney: zero derivative")
+        y = _gmul(x, _gmul(num, _EXP_LIST[(255 - _LOG_LIST[den]) % 255]))
+        block[n - 1 - r] ^= y
+
+
 def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
     cannot.
 
     The syndromes of every block are computed at once (tables); a block whose
-    syndromes show damage goes through ``reedsolo``'s Berlekamp-Massey, Chien search
-    and Forney steps with those syndromes. A block with more than 24 damaged symbols
+    syndromes show damage is corrected by :func:`_correct`. A block with more than 24 damaged symbols
     fails there, or is miscorrected and then fails the frame's CRC."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
@@ -211,13 +266,8 @@ def decode(coded: bytes) -> bytes:
     syn = np.bitwise_xor.reduce(_MUL[_blocks(plain, BLOCK)[:, :, None], _POWERS[None, :, :]],
                                 axis=1)
     for b in np.flatnonzero(syn.any(axis=1)):
-        block = plain[b * BLOCK:(b + 1) * BLOCK]
-        synd = [0, *syn[b].tolist()]  # reedsolo's layout
         try:
-            loc = reedsolo.rs_find_error_locator(synd, NSYM)
-            pos = reedsolo.rs_find_errors(loc[::-1], block.size, 2)
-            fixed = reedsolo.rs_correct_errata(bytearray(block.tobytes()), synd, pos, 0, 2)
+            _correct(plain[b * BLOCK:(b + 1) * BLOCK], syn[b].tolist())
         except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: block {b}: {exc}") from None
-        block[:] = np.frombuffer(bytes(fixed), np.uint8)
     return b"".join(plain[i:i + BLOCK][:-NSYM].tobytes() for i in range(0, plain.size, BLOCK))

@@ -116,9 +116,8 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     """Build the wire bytes of one frame, both 0x00 delimiters included.
 
     With a ``signer`` the frame is signed (incompat bit INCOMPAT_SIGNED, signature
-    between payload and CRC). ``coded``: Reed-Solomon parity inside the COBS frame
-    around the COBS bytes (:mod:`cdma_lidar.protocol.fec`; ``max_frame`` bounds the frame
-    before coding).
+    between payload and CRC). ``coded``: Reed-Solomon parity around the COBS bytes
+    (:mod:`cdma_lidar.protocol.fec`; ``max_frame`` bounds the frame before coding).
     Raises FieldError naming the header field that cannot hold its value, or ``payload``
     when the frame would exceed ``max_frame`` bytes (decoded size).
     """
