@@ -113,16 +113,24 @@ def test_line_noise_rate_is_the_bit_error_rate() -> None:
 SHORT = "virtual://flat-wall?seed=3&instrument.columns=16"
 
 
-def _scan(url: str) -> list[bytes]:
+def _scan(url: str, frames: int = 1) -> list[bytes]:
+    """The columns of ``frames`` frames of ``url``, each after a whole power matrix
+    (near-far control's POWER_SET, a different one every frame)."""
     import cdma_lidar.virtual  # noqa: F401 - registers virtual://
     from cdma_lidar.protocol.columns import encode_column
     from cdma_lidar.protocol.link import HostLink
     from cdma_lidar.protocol.ports import open_port
 
     with HostLink(open_port(url), timeout_s=0.5) as link:
-        link.hello()
+        info = link.hello()
         assert link.coded  # virtual:// is a serial line: FEC by default
-        return [encode_column(c) for c in link.scan(frame=7)]
+        cols = []
+        for f in range(frames):
+            power = np.random.default_rng(f).integers(4_000, 16_000,
+                                                      (info.channels, info.column_count))
+            link.set_power(power)
+            cols += [encode_column(c) for c in link.scan(frame=7 + f)]
+        return cols
 
 
 def test_one_hundred_short_scans_at_1e3_give_the_clean_cloud() -> None:
@@ -133,10 +141,20 @@ def test_one_hundred_short_scans_at_1e3_give_the_clean_cloud() -> None:
     assert bad == []
 
 
+def test_short_scans_with_near_far_power_at_3e3_give_the_clean_cloud() -> None:
+    """The fast suite's version of the paper-scene1 test below: 5 line seeds, 2 frames."""
+    clean = _scan(SHORT, frames=2)
+    bad = [seed for seed in range(5)
+           if _scan(f"{SHORT}&line_error_rate=0.003&line_seed={seed}", frames=2) != clean]
+    assert bad == []
+
+
 @pytest.mark.slow
-def test_ten_paper_scene_scans_at_1e3_give_the_clean_cloud() -> None:
+@pytest.mark.parametrize("ber", [1e-3, 3e-3])
+def test_ten_paper_scene_scans_with_near_far_power_give_the_clean_cloud(ber: float) -> None:
+    """paper-scene1, a 40 x 160 power matrix before each of 2 frames, line seeds 0..9."""
     base = "virtual://paper-scene1?seed=3"
-    clean = _scan(base)
+    clean = _scan(base, frames=2)
     bad = [seed for seed in range(10)
-           if _scan(f"{base}&line_error_rate=0.001&line_seed={seed}") != clean]
+           if _scan(f"{base}&line_error_rate={ber:g}&line_seed={seed}", frames=2) != clean]
     assert bad == []
