@@ -251,6 +251,8 @@ def _end_session(ep: DeviceEndpoint) -> None:
     ep.tx.drop(REPAIR)
     ep.ring.clear()
     ep.capture = None
+    if ep.session_open and ep.verifier is not None:  # to sign its NAK WRONG_SESSION
+        ep.ended = (ep.session, ep.tx.signer, ep.verifier)
     ep.tx.signer = ep.verifier = None
     ep.tx.coded = False
     if ep.session_open:

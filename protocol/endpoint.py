@@ -74,6 +74,9 @@ HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
     **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
+# Requests answered NAK BUSY from the stream's state while it runs (their handlers check
+# it before they call the application).
+_BUSY_WHILE_SCANNING = frozenset({MsgType.CONFIG_SET, MsgType.SCAN_START, MsgType.CALIBRATE})
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
@@ -197,6 +200,8 @@ class DeviceEndpoint:
                               (self.stats, core.totals))
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
+        #: The last signed session that ended on this connection: (id, signer, verifier).
+        self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
         #: (wrong HELLO MACs on this connection since its last success, the last one's time)
         self.auth_failures: tuple[int, float] = (0, 0.0)
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
@@ -416,8 +421,15 @@ class DeviceEndpoint:
             if not self.session_open or frame.session != self.session:
                 detail = (f"this connection's session is 0x{self.session:08x}; send HELLO"
                           if self.session_open else "no session is open here: send HELLO")
-                self._send_reply(frame, nak(self, frame, ErrorCode.WRONG_SESSION, "session",
-                                            detail, False))
+                refusal = nak(self, frame, ErrorCode.WRONG_SESSION, "session", detail, False)
+                sid, signer, verifier = self.ended or (None, None, None)
+                if frame.session == sid and verifier is not None and verifier.check(frame):
+                    # A request of the signed session that ended here: its host hears it
+                    # signed with that session's key (it drops unsigned frames).
+                    self.tx.send(CONTROL, MsgType.NAK, refusal[1], frame.seq, signer=signer,
+                                 coded=self.tx.coded or frame.fec)
+                else:
+                    self._send_reply(frame, refusal)
                 return
             if self.verifier is not None and not frame.joined:
                 if not frame.sig:
@@ -453,9 +465,9 @@ class DeviceEndpoint:
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-        if in_worker or frame.msg_type in _WITHOUT_APP or \
-                (frame.msg_type == MsgType.CONFIG_GET and self.stream is not None and
-                 self.config is not None):
+        if in_worker or frame.msg_type in _WITHOUT_APP or (self.stream is not None and (
+                frame.msg_type in _BUSY_WHILE_SCANNING or
+                (frame.msg_type == MsgType.CONFIG_GET and self.config is not None))):
             self._respond(frame, key)
         else:
             self._enqueue(frame, True)

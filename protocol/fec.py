@@ -1,7 +1,7 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
 A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section
-2.5) is sent as ``00 | rs(COBS(whiten(body))) | 00``: the code covers the framing's
+2.5) is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the framing's
 own bytes (the COBS code bytes too), so a bit error anywhere between the delimiters
 is repaired and a frame's chance to arrive no longer falls with its length.
 :func:`whiten` first makes the zero-rich column records look random, so few bytes are
@@ -255,8 +255,8 @@ def decode(coded: bytes) -> bytes:
     cannot.
 
     The syndromes of every block are computed at once (tables); a block whose
-    syndromes show damage is corrected by :func:`_correct`. A block with more than 24 damaged symbols
-    fails there, or is miscorrected and then fails the frame's CRC."""
+    syndromes show damage is corrected by :func:`_correct`. A block with more than 24
+    damaged symbols fails there, or is miscorrected and then fails the frame's CRC."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
     data, spread = _cut(coded)

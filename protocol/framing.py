@@ -139,8 +139,8 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     if signer is not None:
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
-    if coded:
-        return b"".join((DELIMITER, fec.encode(cobs.encode(fec.whiten(body))), DELIMITER))
+    if coded:  # a second delimiter after it: one damaged on the line still ends the frame
+        return b"".join((DELIMITER, fec.encode(cobs.encode(fec.whiten(body))), DELIMITER * 2))
     return b"".join((DELIMITER, cobs.encode(body), DELIMITER))
 
 

@@ -235,3 +235,16 @@ def test_keyed_and_coded_on_a_noisy_line_with_requests_in_fragments() -> None:
     cols = list(link.scan(columns=20))
     assert all(c == expected_column(c.frame, c.column, 8, 1, 1) for c in cols)
     assert dev.endpoint.decoder.stats.corrected > 0 and dev.endpoint.stats.auth_rejected == 0
+
+
+def test_a_request_of_an_ended_signed_session_gets_a_signed_wrong_session() -> None:
+    """The host of a signed session drops unsigned frames: the device signs the NAK with
+    the ended session's key, so the host hears it at once instead of timing out."""
+    dev = SteppedDevice(SyntheticApp(channels=2, columns=4), key=KEY)
+    link = HostLink(dev, clock=dev.clock, key=KEY, timeout_s=TIMEOUT)
+    link.hello()
+    link._transact(MsgType.SESSION_END, {}, link._new_seq())  # the link keeps its keys
+    with pytest.raises(DeviceError) as exc:
+        link.status()
+    assert exc.value.code == ErrorCode.WRONG_SESSION
+    assert link.stats.retries == 0 and link.stats.unauthenticated == 0

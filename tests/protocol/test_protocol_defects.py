@@ -125,6 +125,33 @@ def test_a_second_host_hears_busy_while_the_application_computes() -> None:
         app.release.set()
 
 
+def test_busy_comes_from_the_scan_state_while_the_application_computes() -> None:
+    """CONFIG_SET, SCAN_START and CALIBRATE during a scan are refused BUSY by the polling
+    thread (issue 42.3): none waits for the column the application is computing."""
+    import pytest
+
+    from cdma_lidar.errors import DeviceError
+    from cdma_lidar.protocol.messages import ErrorCode
+
+    app = _Stuck()
+    host, dev = pipe_pair()
+    try:
+        with RunningDevice(dev, app):
+            link = HostLink(host, timeout_s=2.0, retries=0)
+            link.hello()
+            link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
+            for req, fields in ((MsgType.CONFIG_SET, {"items": []}),
+                                (MsgType.SCAN_START, {"frame": 2, "first_column": 0,
+                                                      "columns": 1}),
+                                (MsgType.CALIBRATE, {"frame": 3, "shots": 1})):
+                with pytest.raises(DeviceError) as exc:
+                    link._request(req, fields)
+                assert exc.value.code == ErrorCode.BUSY, req
+            assert not app.release.is_set()  # all answered while the column was stuck
+    finally:
+        app.release.set()
+
+
 def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
     """20 wrong MACs at one instant: one is checked, one WARNING; later the key holder gets in."""
     import logging

@@ -77,16 +77,19 @@ def test_bytes_damaged_into_delimiters_are_rejoined(zeros: tuple[int, ...]) -> N
 
 @pytest.mark.parametrize("where", ["first", "last"])
 def test_a_delimiter_damaged_into_a_byte_costs_no_frame(where: str) -> None:
-    wire = bytearray(encode_frame(0x81, bytes(900), 7, 9, coded=True) * 2)
-    at = len(wire) // 2 - 1 if where == "last" else len(wire) // 2
-    wire[at] = 0x10  # one of the two delimiters between the frames
+    one = encode_frame(0x81, bytes(900), 7, 9, coded=True)
+    assert one.endswith(b"\x00\x00")  # a coded frame ends with two delimiters
+    wire = bytearray(one * 2)
+    at = len(one) - 2 if where == "last" else len(one)
+    wire[at] = 0x10  # the first frame's first trailing delimiter, or the next's leading one
     dec = FrameDecoder(fec=True)
     assert [f.payload for f in dec.feed(bytes(wire))] == [bytes(900)] * 2
 
 
 @pytest.mark.parametrize("ber", [1e-3, 3e-3])
 def test_a_coded_frame_of_any_size_survives_the_line(ber: float) -> None:
-    """Delivery no longer falls with size: 5 frames each of 200 B to 60 kB, seeded."""
+    """Delivery no longer falls with size: 5 frames each of 200 B to 60 kB, seeded (each
+    frame alone: nothing after it ends it but its own delimiters)."""
     for size in (200, 4000, 60000):
         for seed in range(5):
             payload = bytes(np.random.default_rng(seed).integers(0, 4, size, dtype=np.uint8))
