@@ -95,3 +95,28 @@ def test_handshake_and_scan_over_tcp_with_a_true_in_waiting() -> None:
     finally:
         conn.close()
         server.close()
+
+
+def test_the_cli_device_on_a_pty_with_a_key_file_speaks_keyed_and_coded(tmp_path) -> None:
+    """``cdma-lidar device --pty --key-file``: a serial line whose sessions are signed and
+    Reed-Solomon coded at once (issue 42.6)."""
+    import subprocess
+    import sys
+
+    from cdma_lidar.protocol.auth import load_or_create_key
+
+    key_file = tmp_path / "device.key"
+    key, _ = load_or_create_key(key_file)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+         "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--pty",
+         "--key-file", str(key_file)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else path
+        with HostLink(open_port(path, timeout=0.02), timeout_s=2.0, key=key) as link:
+            assert link.hello().auth == 1 and link.coded
+            assert len(list(link.scan())) == 2
+    finally:
+        proc.terminate()
+        proc.wait(10)
