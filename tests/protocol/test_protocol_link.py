@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -47,19 +46,19 @@ from cdma_lidar.protocol.requests import (
     DIAG_WRONG_SESSION,
 )
 from cdma_lidar.protocol.views import Status
-from cdma_lidar.virtual.line import Faults, PipePort, pipe_pair
+from cdma_lidar.virtual.line import Faults, pipe_pair
 
-#: Reply timeout against a real device thread (s): ample on a loaded machine, and waited
-#: out only by the tests that expect a timeout.
+#: Reply timeout (s), on the threadless device's fake clock: waited out only by the tests
+#: that expect a timeout, and never a matter of the machine's load.
 TIMEOUT = 0.5
 
 
 @pytest.fixture
 def rig() -> Iterator[tuple[HostLink, DeviceEndpoint, SyntheticApp]]:
-    host, dev = pipe_pair(max_read=500)
     app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=0.05, session_id=0x1234) as ep:
-        link = HostLink(host, timeout_s=TIMEOUT, retries=2)
+    port = SteppedDevice(app, heartbeat_s=0.05, session_id=0x1234, max_read=500)
+    with port as ep:
+        link = HostLink(port, timeout_s=TIMEOUT, retries=2, clock=port.clock)
         link.hello()
         yield link, ep, app
         link.close()
@@ -68,7 +67,7 @@ def rig() -> Iterator[tuple[HostLink, DeviceEndpoint, SyntheticApp]]:
 class Raw:
     """Talk to a device endpoint frame by frame (no HostLink in between)."""
 
-    def __init__(self, port: PipePort, session: int = 0) -> None:
+    def __init__(self, port: SteppedDevice, session: int = 0) -> None:
         self.port = port
         self.session = session
         self.dec = FrameDecoder()
@@ -78,25 +77,20 @@ class Raw:
         self.port.write(wire)
         return wire
 
-    def recv(self, wait: float = 0.3) -> list[Frame]:
+    def recv(self) -> list[Frame]:
+        """Every frame the device sends until it falls silent (each read polls it once)."""
         out: list[Frame] = []
-        end = time.monotonic() + wait
-        while time.monotonic() < end:
-            out += self.dec.feed(self.port.read(max(1, self.port.in_waiting)))
-            if out and not self.port.in_waiting:
-                time.sleep(0.02)
-                if not self.port.in_waiting:
-                    break
+        while data := self.port.read(65536):
+            out += self.dec.feed(data)
         return out
 
 
 @pytest.fixture
 def raw() -> Iterator[tuple[Raw, DeviceEndpoint, SyntheticApp]]:
-    host, dev = pipe_pair()
-    host.timeout = 0.02
     app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
-        r = Raw(host)
+    port = SteppedDevice(app, heartbeat_s=10.0, session_id=0xABCD)
+    with port as ep:
+        r = Raw(port)
         r.send(MsgType.HELLO, hello_fields(5, 65535), seq=100)
         (info,) = r.recv()
         assert info.msg_type == MsgType.INFO and info.session == 0xABCD
@@ -195,38 +189,30 @@ def test_scan_calibrate_capture_status(rig) -> None:
 
 def test_leaving_a_scan_early_aborts_it(rig) -> None:
     link, _ep, app = rig
-    app.column_delay_s = 0.005
     for c in link.scan():
         if c.column == 3:
             break
-    deadline = time.monotonic() + 2.0  # the column worker calls abort() when it stops
-    while app.aborts == 0 and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert app.aborts == 1
     assert link.status().state_name == "idle"
+    assert app.aborts == 1
     assert len(list(link.scan(columns=5))) == 5  # the link is usable again
 
 
 def test_busy_and_too_large(rig) -> None:
-    link, _ep, app = rig
-    app.column_delay_s = 0.01
+    link, _ep, _app = rig
     it = link.scan()
     next(it)
     with pytest.raises(DeviceError) as exc:
         link.set_config(peaks=2)
     assert exc.value.code == ErrorCode.BUSY
     it.close()
-    app.column_delay_s = 0.0
-    host, dev = pipe_pair()
-    big = SyntheticApp(channels=40, columns=6)
-    with RunningDevice(dev, big, max_frame=2048):  # a 4419-byte column: three fragments
-        link2 = HostLink(host, timeout_s=TIMEOUT)
+    big = SteppedDevice(SyntheticApp(channels=40, columns=6), max_frame=2048)
+    with big:  # a 4419-byte column: three fragments
+        link2 = HostLink(big, timeout_s=TIMEOUT, clock=big.clock)
         link2.set_config(peaks=8)
         assert list(link2.scan(frame=4)) == [expected_column(4, c, 40, 8, 1) for c in range(6)]
-    host, dev = pipe_pair()
-    huge = SyntheticApp(channels=1500, columns=2)
-    with RunningDevice(dev, huge, max_frame=256):  # INFO itself comes in 27 fragments
-        link3 = HostLink(host, timeout_s=TIMEOUT, max_frame=256)
+    huge = SteppedDevice(SyntheticApp(channels=1500, columns=2), max_frame=256)
+    with huge:  # INFO itself comes in 27 fragments
+        link3 = HostLink(huge, timeout_s=TIMEOUT, max_frame=256, clock=huge.clock)
         assert link3.hello().channels == 1500
         link3.set_config(peaks=8)  # a column of 1500 x 110 bytes: 721 fragments
         with pytest.raises(DeviceError) as exc:
@@ -258,7 +244,7 @@ def test_retransmitted_request_is_replayed_not_repeated(raw) -> None:
     assert app.set_config_calls == 1 and ep.stats.replays == 2
     r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
     r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
-    frames = r.recv(0.5)
+    frames = r.recv()
     assert app.scan_calls == 1
     cols = [f for f in frames if f.msg_type == MsgType.COLUMN_RESULT]
     assert len(cols) == 3
@@ -269,7 +255,7 @@ def test_late_duplicate_of_an_older_request_is_dropped(raw) -> None:
     r.send(MsgType.STATUS_GET, seq=110)
     assert len(r.recv()) == 1
     r.send(MsgType.CONFIG_SET, {"items": encode_config({"peaks": 5})}, seq=105)
-    assert r.recv(0.15) == []
+    assert r.recv() == []
     assert ep.stats.stale == 1 and app.config["peaks"] == 1
 
 
@@ -302,7 +288,7 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 128, 0x5555))
     assert nak(r.recv()[0])["code"] == ErrorCode.WRONG_SESSION
     r.port.write(encode_frame(MsgType.ACK, b"\x01", 129, r.session))  # not a request
-    assert r.recv(0.1) == [] and ep.stats.ignored == 1
+    assert r.recv() == [] and ep.stats.ignored == 1
 
 
 def test_device_survives_an_application_crash(raw) -> None:
