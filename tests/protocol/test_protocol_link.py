@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import serial
 from protocol_fixtures import (
-    RunningDevice,
     ScriptedPort,
     SteppedDevice,
     SyntheticApp,
@@ -429,20 +428,20 @@ def test_device_stays_responsive_while_a_column_takes_long() -> None:
 @pytest.mark.parametrize("lost_end", [False, True])
 def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bool) -> None:
     """Also when SCAN_END is lost: the STATUS probe says how the scan ended."""
-    host, dev = pipe_pair(seed=4)
+    app = SyntheticApp()
+    app.fail_at = 7
+    port = SteppedDevice(app, seed=4, heartbeat_s=0.02)
     if lost_end:
-        push = dev.tx.write
+        push = port.rx.write  # what the device writes
 
         def drop_scan_end(data: bytes) -> None:
             frames = FrameDecoder().feed(data)
             if not (frames and frames[0].msg_type == MsgType.SCAN_END):
                 push(data)
 
-        dev.tx.write = drop_scan_end
-    app = SyntheticApp()
-    app.fail_at = 7
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT)
+        port.rx.write = drop_scan_end
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, clock=port.clock)
         got = []
         with pytest.raises(DeviceError) as exc:
             for c in link.scan(columns=20):
@@ -454,10 +453,10 @@ def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bo
 
 
 def test_power_before_hello_uses_the_session_frame_size() -> None:
-    host, dev = pipe_pair()
     app = SyntheticApp(channels=8, columns=300)
-    with RunningDevice(dev, app, max_frame=512) as ep:
-        link = HostLink(host, timeout_s=TIMEOUT)
+    port = SteppedDevice(app, max_frame=512)
+    with port as ep:
+        link = HostLink(port, timeout_s=TIMEOUT, clock=port.clock)
         link.set_power(np.full((8, 300), 3))  # hello() happens first, implicitly
         assert (app.power == 3).all() and ep.decoder.stats.oversize == 0
 
@@ -474,8 +473,8 @@ def test_reply_echoing_another_request_type_is_not_taken() -> None:
 
 def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
     """Short frames pass, every copy of column 2 is damaged: a clear timeout, no hang."""
-    host, dev = pipe_pair()
-    push = dev.tx.write
+    port = SteppedDevice(SyntheticApp(), heartbeat_s=0.02)
+    push = port.rx.write  # what the device writes
 
     def damage_column_2(data: bytes) -> None:
         frames = FrameDecoder().feed(data)
@@ -484,10 +483,9 @@ def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
             data = data[:40] + bytes([data[40] ^ 0x10]) + data[41:]
         push(data)
 
-    dev.tx.write = damage_column_2
-    app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, column_retries=3)
+    port.rx.write = damage_column_2
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, column_retries=3, clock=port.clock)
         got = []
         with pytest.raises(LinkTimeout) as exc:
             for c in link.scan(columns=6):
