@@ -19,7 +19,7 @@ def test_an_unsigned_line_error_in_a_signed_session_is_not_counted() -> None:
     """An injector's LINE_ERROR must not hurry the host: counted only once it verifies."""
     host, dev = pipe_pair()
     with RunningDevice(dev, SyntheticApp(channels=4, columns=8), key=KEY):
-        link = HostLink(host, timeout_s=1.0, retries=2, key=KEY)
+        link = HostLink(host, timeout_s=2.0, retries=2, key=KEY)
         link.hello()
         before = (link.line_errors, link.stats.unauthenticated)
         forged = encode_payload(MsgType.LINE_ERROR, {"rx_errors": 7})
@@ -38,14 +38,14 @@ def test_status_counters_run_since_boot_not_since_the_connection() -> None:
     core = DeviceCore(SyntheticApp(channels=4, columns=8))
     first_host, first_dev = pipe_pair()
     with RunningDevice(first_dev, None, core=core):
-        link = HostLink(first_host, timeout_s=1.0)
+        link = HostLink(first_host, timeout_s=2.0)
         link.hello()
         list(link.scan(frame=1))
         st1 = link.status()
         link.close()
     second_host, second_dev = pipe_pair()
     with RunningDevice(second_dev, None, core=core):
-        link = HostLink(second_host, timeout_s=1.0)
+        link = HostLink(second_host, timeout_s=2.0)
         link.hello()
         st2 = link.status()
         link.close()
@@ -167,7 +167,7 @@ def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
     host, dev = pipe_pair()
     with caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol"), \
             RunningDevice(dev, None, core=core) as ep:
-        guesser = HostLink(host, timeout_s=1.0, key=bytes(32))
+        guesser = HostLink(host, timeout_s=2.0, key=bytes(32))
         for _ in range(20):
             with pytest.raises(DeviceError) as exc:
                 guesser.hello()
@@ -306,7 +306,7 @@ def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> N
     host, dev = pipe_pair()
     got = []
     with RunningDevice(dev, app):
-        link = HostLink(host, timeout_s=1.0)
+        link = HostLink(host, timeout_s=2.0)
         link.hello()
         with pytest.raises(StreamEnded) as exc:
             got.extend(c.column for c in link.scan(frame=5))
