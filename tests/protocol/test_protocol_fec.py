@@ -124,7 +124,7 @@ def _scan(url: str, frames: int = 1) -> list[bytes]:
     from cdma_lidar.protocol.link import HostLink
     from cdma_lidar.protocol.ports import open_port
 
-    with HostLink(open_port(url), timeout_s=0.5) as link:
+    with HostLink(open_port(url), timeout_s=2.0) as link:
         info = link.hello()
         assert link.coded  # virtual:// is a serial line: FEC by default
         cols = []
