@@ -25,6 +25,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from cdma_lidar.column_record import FIELD_NAMES
+from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.columns import (
     ColumnResult,
     decode_column,
@@ -227,6 +228,68 @@ def bench_lines(paper_seeds: int = 10, short_seeds: int = 30) -> None:
     print("(unpaced line; Reed-Solomon FEC on, the default for a serial line)")
 
 
+def bench_latency(seconds: float = 6.0) -> None:
+    """What a host hears while paper-scene1 scans at averages 1024, S 16 (columns take
+    seconds each): the reply times of STATUS_GET, SCAN_ABORT-free BUSY refusals
+    (CONFIG_SET, SCAN_START) and CONFIG_GET, and the gaps between the device's stream
+    frames (heartbeats), over ``seconds`` of probing through a real pty."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.virtual.board import VirtualFirmware
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    dev_port = FdPort(master)
+    ep = DeviceEndpoint(dev_port, VirtualFirmware(load_scene("paper-scene1"), 3))
+    stop = threading.Event()
+    th = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
+    th.start()
+    link = HostLink(open_port(os.ttyname(slave), timeout=0.005), timeout_s=5.0, fec=False)
+    try:
+        link.hello()
+        link.set_config(averages=1024, samples_per_chip=16)
+        link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 160})
+        times: dict[str, list[float]] = {"STATUS_GET": [], "CONFIG_GET": [],
+                                         "CONFIG_SET (BUSY)": [], "SCAN_START (BUSY)": []}
+        gaps: list[float] = []
+        heard = end = time.perf_counter()
+        end += seconds
+        seen = link.decoder.stats.frames
+        while time.perf_counter() < end:
+            for name, req, fields in (
+                    ("STATUS_GET", MsgType.STATUS_GET, {}),
+                    ("CONFIG_GET", MsgType.CONFIG_GET, {"keys": [16]}),
+                    ("CONFIG_SET (BUSY)", MsgType.CONFIG_SET, {"items": []}),
+                    ("SCAN_START (BUSY)", MsgType.SCAN_START,
+                     {"frame": 2, "first_column": 0, "columns": 1})):
+                t0 = time.perf_counter()
+                try:
+                    link._request(req, fields)
+                except DeviceError:
+                    pass
+                times[name].append(time.perf_counter() - t0)
+            t_end = time.perf_counter() + 0.1  # listen: every stream frame ends a gap
+            while time.perf_counter() < t_end:
+                link._pump()
+                if link.decoder.stats.frames != seen:
+                    now = time.perf_counter()
+                    gaps.append(now - heard)
+                    heard, seen = now, link.decoder.stats.frames
+        link.abort()
+    finally:
+        stop.set()
+        th.join(10.0)
+        dev_port.close()
+        os.close(slave)
+    print(f"paper-scene1 scanning at averages 1024, S 16, {seconds:g} s of probing on a pty:")
+    for name, ts in times.items():
+        print(f"  {name:<18} reply: median {1e3 * float(np.median(ts)):6.1f} ms, worst "
+              f"{1e3 * max(ts):6.1f} ms of {len(ts)} (target 50 ms: "
+              f"{'met' if max(ts) <= 0.05 else 'NOT met'})")
+    print(f"  stream frame gaps:  median {1e3 * float(np.median(gaps)):6.1f} ms, worst "
+          f"{1e3 * max(gaps):6.1f} ms of {len(gaps)} (heartbeat target 200 ms: "
+          f"{'met' if max(gaps) <= 0.2 else 'NOT met'})")
+
+
 def _bench_link(label: str, dev_port, host_port, columns: int) -> None:
     """Scan ``columns`` columns from a DeviceEndpoint on ``dev_port`` to a HostLink on
     ``host_port``; baseline: the same frame bytes through the same connection, raw."""
@@ -304,6 +367,7 @@ def main() -> None:
     bench_tcp()
     bench_delivery()
     bench_lines()
+    bench_latency()
     print("load average {:.2f} {:.2f} {:.2f} after".format(*os.getloadavg()))
 
 
