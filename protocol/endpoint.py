@@ -13,7 +13,7 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
 The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
-every ``heartbeat_s`` while a stream runs, whatever the application computes; the
+every ``heartbeat_s`` (a quarter early) while a stream runs, whatever the application computes; the
 application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
 in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
 ``timeout``).
@@ -77,6 +77,9 @@ _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT
 # Requests answered NAK BUSY from the stream's state while it runs (their handlers check
 # it before they call the application).
 _BUSY_WHILE_SCANNING = frozenset({MsgType.CONFIG_SET, MsgType.SCAN_START, MsgType.CALIBRATE})
+#: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
+#: between stream frames stays within INFO.heartbeat_ms when the polling thread runs late.
+_HEARTBEAT_EARLY = 0.75
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
@@ -303,7 +306,8 @@ class DeviceEndpoint:
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))
             now = self.clock()
-            if self.stream is not None and now - self.last_heartbeat >= self.heartbeat_s:
+            if self.stream is not None and \
+                    now - self.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
                 self.last_heartbeat = now
                 self.tx.send(CONTROL, MsgType.HEARTBEAT,
                                encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
