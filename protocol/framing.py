@@ -307,19 +307,22 @@ class FrameDecoder:
 
     def _retry(self, chunk: bytes) -> tuple[Frame, bool] | None:
         """A damaged chunk read again as a coded frame whose delimiters the line moved:
-        joined to the damaged chunks since the last frame boundary, then without the
-        first or the last byte."""
-        self._split.append(chunk)
-        if sum(map(len, self._split)) > self._max_chunk:
-            self._split = [chunk]
-        whole = b"\x01".join(self._split)
-        for candidate in (whole, whole[1:], whole[:-1])[len(self._split) == 1:]:
-            try:
-                got = self._coded(candidate)
-            except FrameError:
-                continue
-            self.stats.rejoined += 1
-            return got
+        joined to the damaged chunks since the last frame boundary (the last 1 to 8 of
+        them: a damaged boundary may leave a stray chunk before the frame), each join
+        also without its first or its last byte. Only candidates :func:`fec.plausible`
+        passes are decoded."""
+        self._split = [*self._split[-7:], chunk]
+        while sum(map(len, self._split)) > self._max_chunk:
+            self._split.pop(0)
+        for k in range(1, len(self._split) + 1):
+            whole = b"\x01".join(self._split[-k:])
+            for candidate in (whole, whole[1:], whole[:-1])[k == 1:]:
+                try:
+                    got = self._coded(candidate)
+                except FrameError:
+                    continue
+                self.stats.rejoined += 1
+                return got
         return None
 
     def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:

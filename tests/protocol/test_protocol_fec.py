@@ -161,3 +161,14 @@ def test_ten_paper_scene_scans_with_near_far_power_give_the_clean_cloud(ber: flo
     bad = [seed for seed in range(10)
            if _scan(f"{base}&line_error_rate={ber:g}&line_seed={seed}", frames=2) != clean]
     assert bad == []
+
+
+def test_a_frame_split_after_a_stray_chunk_is_still_joined() -> None:
+    """A damaged boundary leaves one byte between delimiters; the next frame, split by a
+    byte damaged into 0x00, is joined without that stray chunk."""
+    one = encode_frame(0x81, bytes(range(1, 200)) * 6, 7, 9, coded=True)
+    wire = bytearray(one * 2)
+    wire[len(one) - 1] = 0x33  # the first frame's second delimiter: a chunk of its own
+    wire[len(one) + 300] = 0  # the second frame split in two
+    dec = FrameDecoder(fec=True)
+    assert [f.payload for f in dec.feed(bytes(wire))] == [bytes(range(1, 200)) * 6] * 2
