@@ -13,7 +13,7 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
 The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
-every ``heartbeat_s`` (a quarter early) while a stream runs, whatever the application computes; the
+every ``heartbeat_s / 2`` while a stream runs, whatever the application computes; the
 application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
 in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
 ``timeout``).
@@ -78,8 +78,9 @@ _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT
 # it before they call the application).
 _BUSY_WHILE_SCANNING = frozenset({MsgType.CONFIG_SET, MsgType.SCAN_START, MsgType.CALIBRATE})
 #: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
-#: between stream frames stays within INFO.heartbeat_ms when the polling thread runs late.
-_HEARTBEAT_EARLY = 0.75
+#: between stream frames stays within INFO.heartbeat_ms when the polling thread runs late
+#: (by up to half of it: a loaded machine).
+_HEARTBEAT_EARLY = 0.5
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
