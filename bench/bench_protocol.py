@@ -5,11 +5,11 @@ In process, one 40-channel column goes through the whole frame path both ways
 parser). The baseline is the same path with the construct-declared payload codec.
 Through a pty and a loopback TCP socket, a DeviceEndpoint streams columns to a
 HostLink scan (gap repair and all); the baseline is the same connection carrying
-the same frame bytes with no protocol. On noisy ``virtual://`` lines (bit errors both
-ways, reproducible by ``line_seed``) :func:`bench_lines` prints issue 25's targets as a
-table: the time to a byte-identical scan as a ratio to the clean line with the same
-settings, on a line with a UART's pace (921600 baud, 8N1: time is the line's) and
-unpaced (time is the code's), and how many line seeds gave the clean bytes.
+the same frame bytes with no protocol. :func:`bench_delivery` prints how often one
+message of 200 B to 384 kB crosses a noisy line at once; on noisy ``virtual://`` lines
+(bit errors both ways, reproducible by ``line_seed``) :func:`bench_lines` prints issue
+42's targets as a table: the time to a byte-identical scan as a ratio to the clean line
+with the same settings, and how many line seeds gave the clean bytes.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from cdma_lidar.column_record import FIELD_NAMES
+from cdma_lidar.errors import DeviceError
 from cdma_lidar.protocol.columns import (
     ColumnResult,
     decode_column,
@@ -36,7 +37,7 @@ from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MsgType
-from cdma_lidar.protocol.ports import DEFAULT_BAUD, FdPort, open_port
+from cdma_lidar.protocol.ports import FdPort, open_port
 from cdma_lidar.protocol.views import Info
 
 K = 40
@@ -141,64 +142,160 @@ class _FastApp(DeviceApp):
                 for c in range(first_column, first_column + columns))
 
 
-#: Targets of issue 25: time on the noisy line / time on the clean line, per line.
-NOISY_TARGETS = {("paced", 1e-3): 3.0, ("unpaced", 1e-3): 5.0, ("paced", 1e-4): 1.5,
-                 ("unpaced", 1e-4): 1.5}
 PAPER = "virtual://paper-scene1?seed=3"
 SHORT = "virtual://flat-wall?seed=3&instrument.columns=16"
+#: Message sizes of the delivery table (bytes): a short reply, a column, a 40 x 160 power
+#: matrix, the largest frame, a 1,200 x 160 power matrix.
+SIZES = (200, 1_700, 12_800, 65_000, 384_000)
 
 
-def virtual_scan(url: str, frame: int = 7) -> tuple[float, list[bytes]]:
-    """(seconds of the scan after HELLO, column payloads) of one scan of ``url``."""
+def _power(frame: int, shape: tuple[int, int]) -> np.ndarray:
+    """The power matrix near-far control might send before ``frame`` (seeded)."""
+    return np.random.default_rng(frame).integers(4_000, 16_000, shape)  # within the column cap
+
+
+def virtual_scan(url: str, frames: int = 1, near_far: bool = False) -> tuple[float, list[bytes]]:
+    """(seconds after HELLO, column payloads) of ``frames`` scans of ``url``; with
+    ``near_far`` a whole power matrix (POWER_SET) goes before every frame."""
     import cdma_lidar.virtual  # noqa: F401 - registers virtual://
 
     with HostLink(open_port(url), timeout_s=0.5) as link:
-        link.hello()
+        info = link.hello()
         t0 = time.perf_counter()
-        cols = [encode_column(c) for c in link.scan(frame=frame)]
+        cols = []
+        for f in range(frames):
+            if near_far:
+                link.set_power(_power(f, (info.channels, info.column_count)))
+            cols += [encode_column(c) for c in link.scan(frame=7 + f)]
         return time.perf_counter() - t0, cols
 
 
-def bench_lines(paper_seeds: int = 10, timing_seeds: int = 3, short_seeds: int = 100) -> None:
-    """The issue's targets as a table: noisy ``virtual://`` scans against the clean one.
+def bench_delivery(tries: int = 20, max_frame: int = 16_384) -> None:
+    """One message of each size through a noisy line once, coded as a FEC session sends
+    it (in FRAGMENTs of ``max_frame`` when longer): how often every frame arrives."""
+    from cdma_lidar.protocol.messages import split_message
+    from cdma_lidar.virtual.line import LineNoise
 
-    paper-scene1 (160 columns of 40 channels) on an unpaced line (time is the code's)
-    and on a 921600-baud UART (time is the line's); at a bit error rate of 1e-3 every
-    one of ``paper_seeds`` line seeds (unpaced; ``timing_seeds`` paced) must give the
-    clean scan's bytes; at 1e-4 ``timing_seeds``. The short scans: flat-wall, 16
-    columns, ``short_seeds`` line seeds at 1e-3. Times are medians; the clean time is
-    the best of two scans in this run.
+    room = max_frame - 16 - 11
+    print(f"one message through the line once, Reed-Solomon coded, max frame {max_frame}:")
+    print(f"{'bytes':>8} {'frames':>6}  " + "  ".join(f"{f'BER {b:g}':>16}" for b in (1e-3, 3e-3)))
+    for size in SIZES:
+        payload = bytes(np.random.default_rng(size).integers(0, 4, size, dtype=np.uint8))
+        pieces = [payload] if size + 16 <= max_frame else split_message(0x04, payload, room, 1)
+        wire = b"".join(encode_frame(MsgType.FRAGMENT if len(pieces) > 1 else 0x04, p, 1, 9,
+                                     coded=True) for p in pieces)
+        cells = []
+        for ber in (1e-3, 3e-3):
+            ok = 0
+            for t in range(tries):
+                got = FrameDecoder(fec=True).feed(LineNoise(ber, [size, t])(wire))
+                ok += [f.payload for f in got] == pieces
+            cells.append(f"{ok:>3}/{tries} delivered")
+        print(f"{size:>8} {len(pieces):>6}  " + "  ".join(f"{c:>16}" for c in cells))
+
+
+def bench_lines(paper_seeds: int = 10, short_seeds: int = 30) -> None:
+    """Issue 42's targets as a table: noisy ``virtual://`` scans against clean ones.
+
+    paper-scene1 (160 columns of 40 channels) with near-far control (a whole power
+    matrix before each of 2 frames), unpaced (time is the code's): at bit error rates
+    1e-3 and 3e-3 every one of ``paper_seeds`` line seeds must give the clean scan's
+    bytes. flat-wall, 16 columns, ``short_seeds`` line seeds (101 on) at 1e-3: the
+    median and the worst time against the clean scan (targets 1.5 and 3: a lost frame
+    costs a round trip, not a second). Each noisy scan is timed against a clean scan run
+    right before it (the shared machine's load moves both alike); the reference row
+    gives the median clean time.
     """
-    rows = []
-    for scene, base, seeds_1e3 in (("paper-scene1", PAPER, paper_seeds),
-                                   ("flat-wall 16 col", SHORT, short_seeds)):
-        lines = [("unpaced", "")] + ([("paced", f"&line_baud={DEFAULT_BAUD}")]
-                                     if scene == "paper-scene1" else [])
-        for line, pace in lines:
-            clean_t, clean = min(virtual_scan(base + pace) for _ in range(2))
-            rows.append((scene, line, 0.0, clean_t, 1.0, None, "reference"))
-            for ber in (1e-4, 1e-3):
-                n = seeds_1e3 if ber == 1e-3 and (line == "unpaced" or scene != "paper-scene1") \
-                    else timing_seeds
-                times, same = [], 0
-                for seed in range(n):
-                    dt, cols = virtual_scan(f"{base}{pace}&line_error_rate={ber:g}"
-                                            f"&line_seed={seed}")
-                    times.append(dt)
-                    same += cols == clean
-                med = float(np.median(times))
-                rows.append((scene, line, ber, med, med / clean_t,
-                             NOISY_TARGETS.get((line, ber)) if scene == "paper-scene1" else None,
-                             f"{same}/{n} byte-identical"))
-    print(f"{'scene':<17} {'line':<8} {'BER':>6} {'time s':>7} {'x clean':>8} {'target':>7}  "
-          "verdict")
-    for scene, line, ber, t, ratio, target, what in rows:
-        verdict = what if target is None else \
-            f"{what}, {'met' if ratio <= target else 'NOT met'}"
-        print(f"{scene:<17} {line:<8} {ber:>6g} {t:>7.2f} {ratio:>8.2f} "
-              f"{'' if target is None else f'<= {target:g}':>7}  {verdict}")
-    print(f"(paced: a {DEFAULT_BAUD:,}-baud 8N1 UART; Reed-Solomon FEC on, the default for "
-          "a serial line)")
+    print(f"{'scene':<22} {'BER':>6} {'median s':>8} {'x clean':>8} {'worst':>8}  verdict")
+    for scene, base, n, bers, kw in (
+            ("paper-scene1 near-far", PAPER, paper_seeds, (1e-3, 3e-3),
+             {"frames": 2, "near_far": True}),
+            ("flat-wall 16 col", SHORT, short_seeds, (1e-3,), {})):
+        _, clean = virtual_scan(base, **kw)
+        rows, cleans = [], []
+        for ber in bers:
+            times, ratios, same = [], [], 0
+            for seed in range(101, 101 + n):
+                clean_t = virtual_scan(base, **kw)[0]
+                dt, cols = virtual_scan(f"{base}&line_error_rate={ber:g}&line_seed={seed}", **kw)
+                cleans.append(clean_t)
+                times.append(dt)
+                ratios.append(dt / clean_t)
+                same += cols == clean
+            med, worst = float(np.median(ratios)), max(ratios)
+            verdict = f"{same}/{n} byte-identical"
+            if scene.startswith("flat"):
+                verdict += (f", median <= 1.5: {'met' if med <= 1.5 else 'NOT met'}, worst <= 3: "
+                            f"{'met' if worst <= 3 else 'NOT met'}")
+            rows.append(f"{scene:<22} {ber:>6g} {float(np.median(times)):>8.3f} {med:>8.2f} "
+                        f"{worst:>8.2f}  {verdict}")
+        print(f"{scene:<22} {0:>6g} {float(np.median(cleans)):>8.3f} {1:>8.2f} {1:>8.2f}  "
+              "reference")
+        print("\n".join(rows))
+    print("(unpaced line; Reed-Solomon FEC on, the default for a serial line; x clean: each "
+          "noisy scan over a clean one run just before it)")
+
+
+def bench_latency(seconds: float = 6.0) -> None:
+    """What a host hears while paper-scene1 scans at averages 1024, S 16 (columns take
+    seconds each): the reply times of STATUS_GET, SCAN_ABORT-free BUSY refusals
+    (CONFIG_SET, SCAN_START) and CONFIG_GET, and the gaps between the device's stream
+    frames (heartbeats), over ``seconds`` of probing through a real pty."""
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.virtual.board import VirtualFirmware
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    dev_port = FdPort(master)
+    ep = DeviceEndpoint(dev_port, VirtualFirmware(load_scene("paper-scene1"), 3))
+    stop = threading.Event()
+    th = threading.Thread(target=ep.serve_forever, args=(stop,), daemon=True)
+    th.start()
+    link = HostLink(open_port(os.ttyname(slave), timeout=0.005), timeout_s=5.0, fec=False)
+    try:
+        link.hello()
+        link.set_config(averages=1024, samples_per_chip=16)
+        link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 160})
+        times: dict[str, list[float]] = {"STATUS_GET": [], "CONFIG_GET": [],
+                                         "CONFIG_SET (BUSY)": [], "SCAN_START (BUSY)": []}
+        gaps: list[float] = []
+        heard = end = time.perf_counter()
+        end += seconds
+        seen = link.decoder.stats.frames
+        while time.perf_counter() < end:
+            for name, req, fields in (
+                    ("STATUS_GET", MsgType.STATUS_GET, {}),
+                    ("CONFIG_GET", MsgType.CONFIG_GET, {"keys": [16]}),
+                    ("CONFIG_SET (BUSY)", MsgType.CONFIG_SET, {"items": []}),
+                    ("SCAN_START (BUSY)", MsgType.SCAN_START,
+                     {"frame": 2, "first_column": 0, "columns": 1})):
+                t0 = time.perf_counter()
+                try:
+                    link._request(req, fields)
+                except DeviceError:
+                    pass
+                times[name].append(time.perf_counter() - t0)
+            t_end = time.perf_counter() + 0.1  # listen: every stream frame ends a gap
+            while time.perf_counter() < t_end:
+                link._pump()
+                if link.decoder.stats.frames != seen:
+                    now = time.perf_counter()
+                    gaps.append(now - heard)
+                    heard, seen = now, link.decoder.stats.frames
+        link.abort()
+    finally:
+        stop.set()
+        th.join(10.0)
+        dev_port.close()
+        os.close(slave)
+    print(f"paper-scene1 scanning at averages 1024, S 16, {seconds:g} s of probing on a pty:")
+    for name, ts in times.items():
+        print(f"  {name:<18} reply: median {1e3 * float(np.median(ts)):6.1f} ms, worst "
+              f"{1e3 * max(ts):6.1f} ms of {len(ts)} (target 50 ms: "
+              f"{'met' if max(ts) <= 0.05 else 'NOT met'})")
+    print(f"  stream frame gaps:  median {1e3 * float(np.median(gaps)):6.1f} ms, worst "
+          f"{1e3 * max(gaps):6.1f} ms of {len(gaps)} (heartbeat target 200 ms: "
+          f"{'met' if max(gaps) <= 0.2 else 'NOT met'})")
 
 
 def _bench_link(label: str, dev_port, host_port, columns: int) -> None:
@@ -276,7 +373,9 @@ def main() -> None:
     bench_in_process()
     bench_pty()
     bench_tcp()
+    bench_delivery()
     bench_lines()
+    bench_latency()
     print("load average {:.2f} {:.2f} {:.2f} after".format(*os.getloadavg()))
 
 

@@ -1,7 +1,7 @@
 """Serial/USB frame protocol spoken by host and device (``docs/protocol.md`` is the
 byte-exact spec). Modules, bottom up:
 
-* wire: ``cobs`` (byte stuffing), ``fec`` (Reed-Solomon inside the COBS frame),
+* wire: ``cobs`` (byte stuffing), ``fec`` (Reed-Solomon around the COBS frame),
   ``framing`` (header, CRC-32, the stream decoder ``FrameDecoder``);
 * declarations: ``schema`` (fields with units and ranges), ``columns`` (COLUMN_RESULT),
   ``config_keys`` (CONFIG keys), ``messages`` (every message type, the payload codec,

@@ -181,42 +181,53 @@ class FrameVerifier(_FrameMac):
 
 
 class Backoff:
-    """Per-peer back-off after failed authentication, logged once per burst.
+    """Back-off after failed authentication: it slows a guesser, never the key holder.
 
-    After ``n`` failures in a row from one peer (an IP address, a port), the peer's next
-    MAC is not even checked until ``min(max_s, base_s * 2**(n - 1))`` seconds after the
-    last failure: a guesser gets about ``log2(max_s / base_s)`` guesses, then one per
-    ``max_s``. A burst is the failures of one peer with less than ``quiet_s`` between
-    them; its first failure logs one WARNING (the count is in the caller's stats).
-    ``clock`` is monotonic seconds.
+    A MAC is always checked at once on a connection that has sent no wrong MAC, so the
+    key holder gets in from any address whatever its neighbours on that address send.
+    A guesser is slowed twice over:
+
+    * per connection: after ``n`` wrong MACs on one connection, its next MAC is not even
+      checked until ``min(max_s, base_s * 2**(n - 1))`` seconds after the last failure;
+    * globally: wrong MACs draw on a budget of ``rate`` checks per second (``burst`` at
+      once). While it is spent, a connection that has failed waits for it too, so many
+      connections give a guesser at most ``rate`` checked guesses per second plus one per
+      new connection.
+
+    Failures of one peer (an address) less than ``quiet_s`` apart are one burst, whose
+    first failure logs one WARNING (counts are in the caller's stats). ``clock`` is
+    monotonic seconds.
     """
 
     def __init__(self, clock: Callable[[], float], base_s: float = 0.1, max_s: float = 5.0,
-                 quiet_s: float = 60.0) -> None:
+                 rate: float = 2.0, burst: float = 10.0, quiet_s: float = 60.0) -> None:
         self.clock = clock
         self.base_s, self.max_s, self.quiet_s = base_s, max_s, quiet_s
-        self._peers: dict[str, tuple[int, float]] = {}  # peer -> (failures in a row, last)
+        self.rate, self.burst = rate, burst
+        self._debt, self._at = 0.0, clock()  # wrong MACs not yet paid back, as of _at
+        self._peers: dict[str, float] = {}  # peer -> its last failure (for the log)
 
-    def wait_s(self, peer: str) -> float:
-        """Seconds ``peer`` must still wait before its next MAC is checked (0: go ahead)."""
-        n, last = self._peers.get(peer, (0, 0.0))
-        if not n:
+    def _owed(self, now: float) -> float:
+        return max(0.0, self._debt - (now - self._at) * self.rate)
+
+    def wait_s(self, failures: int, last: float) -> float:
+        """Seconds a connection with ``failures`` wrong MACs, the last at ``last`` (clock
+        s), must still wait before its next MAC is checked (0: check it now)."""
+        if not failures:
             return 0.0
-        return max(0.0, last + min(self.max_s, self.base_s * 2 ** (n - 1)) - self.clock())
+        now = self.clock()
+        own = last + min(self.max_s, self.base_s * 2 ** (failures - 1)) - now
+        return max(0.0, own, (self._owed(now) - self.burst) / self.rate)
 
     def failed(self, peer: str, what: str) -> None:
-        """One more failure of ``peer`` (``what`` names it for the log)."""
+        """One wrong MAC (or forged frame) from ``peer``; ``what`` names it for the log."""
         now = self.clock()
-        n, last = self._peers.get(peer, (0, 0.0))
-        if not n or now - last >= self.quiet_s:
-            log.warning("%s from %s: further failures from it are delayed (up to %g s "
-                        "apart) and not logged until it is quiet for %g s", what, peer,
-                        self.max_s, self.quiet_s)
-            n = 0
+        self._debt, self._at = self._owed(now) + 1.0, now
+        last = self._peers.pop(peer, None)
+        if last is None or now - last >= self.quiet_s:
+            log.warning("%s from %s: further failures are delayed (up to %g s apart per "
+                        "connection, %g checked per second in all) and not logged until it "
+                        "is quiet for %g s", what, peer, self.max_s, self.rate, self.quiet_s)
             while len(self._peers) >= 4096:  # bounded whatever the number of peers
                 self._peers.pop(next(iter(self._peers)))
-        self._peers[peer] = (n + 1, now)
-
-    def passed(self, peer: str) -> None:
-        """``peer`` authenticated: its back-off ends."""
-        self._peers.pop(peer, None)
+        self._peers[peer] = now

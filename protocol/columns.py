@@ -35,7 +35,6 @@ from cdma_lidar.column_record import (
     NO_PEAK,
     RECORD,
     WIRE_FIELDS,
-    RecordField,
     WireField,
     record_size,
 )
@@ -143,6 +142,35 @@ def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
     return np.where(zero_b == 1, 0, np.where(neg_b == 1, -1, 1)).astype(np.int8)
 
 
+def _view(name: str) -> property:
+    """Read-only property of ColumnResult presenting record field ``name`` in the receiver's
+    form."""
+    f = next(f for f in RECORD if f.name == name)
+    if f.encoding == "lag":
+        def get(self: ColumnResult) -> NDArray:
+            lags = self.records[name]
+            return np.where(lags == NO_PEAK, -1, lags.astype(np.int64))
+        form = "int64, -1 where the wire says NO_PEAK"
+    elif f.encoding == "flag":
+        def get(self: ColumnResult) -> NDArray:
+            return self.records[name].astype(bool)
+        form = "bool"
+    elif f.encoding == "signs":
+        neg, zero = (w.name for w in f.wire)
+
+        def get(self: ColumnResult) -> NDArray:
+            return _signs(self.records[neg], self.records[zero], self.uid_bits)
+        form = "int8 in {-1, 0, +1}"
+    else:
+        def get(self: ColumnResult) -> NDArray:
+            return self.records[name]
+        form = f"{f.wire[0].ctype} as on the wire"
+    get.__name__ = name
+    unit = f" ({f.unit})" if f.unit else ""
+    get.__doc__ = f"(K{''.join(', ' + str(a) for a in f.axes)}) {f.doc}{unit}; {form}."
+    return property(get)
+
+
 @dataclass(frozen=True, eq=False)
 class ColumnResult:
     """One column of receiver outputs: the payload of a COLUMN_RESULT frame.
@@ -173,7 +201,22 @@ class ColumnResult:
     calibration: bool = False
     timestamp_us: int = 0
 
-    # ---- derived views (plus one property per record field, added below) ------------
+    # ---- one read-only view per field of column_record.RECORD (a test checks the list) --
+    peak_lag = _view("peak_lag")
+    peak = _view("peak")
+    neighbours = _view("neighbours")
+    noise_count = _view("noise_count")
+    noise_sum = _view("noise_sum")
+    noise_sumsq = _view("noise_sumsq")
+    uid_signs = _view("uid_signs")
+    uid_observed = _view("uid_observed")
+    uid_match = _view("uid_match")
+    saturated = _view("saturated")
+    extra_lag = _view("extra_lag")
+    extra_peak = _view("extra_peak")
+    extra_signs = _view("extra_signs")
+
+    # ---- derived views ------------------------------------------------------------------
     @property
     def channels(self) -> int:
         """K, number of channel records."""
@@ -257,37 +300,6 @@ class ColumnResult:
                                timestamp_us=timestamp_us, **arrays)
 
 
-def _view(f: RecordField) -> property:
-    """Read-only property of ColumnResult presenting record field ``f`` in the receiver's form."""
-    name = f.name
-    if f.encoding == "lag":
-        def get(self: ColumnResult) -> NDArray:
-            lags = self.records[name]
-            return np.where(lags == NO_PEAK, -1, lags.astype(np.int64))
-        form = "int64, -1 where the wire says NO_PEAK"
-    elif f.encoding == "flag":
-        def get(self: ColumnResult) -> NDArray:
-            return self.records[name].astype(bool)
-        form = "bool"
-    elif f.encoding == "signs":
-        neg, zero = (w.name for w in f.wire)
-
-        def get(self: ColumnResult) -> NDArray:
-            return _signs(self.records[neg], self.records[zero], self.uid_bits)
-        form = "int8 in {-1, 0, +1}"
-    else:
-        def get(self: ColumnResult) -> NDArray:
-            return self.records[name]
-        form = f"{f.wire[0].ctype} as on the wire"
-    get.__name__ = name
-    unit = f" ({f.unit})" if f.unit else ""
-    get.__doc__ = f"(K{''.join(', ' + str(a) for a in f.axes)}) {f.doc}{unit}; {form}."
-    return property(get)
-
-
-for _f in RECORD:
-    setattr(ColumnResult, _f.name, _view(_f))
-del _f
 
 
 def _check_names(fields: dict[str, Any]) -> None:

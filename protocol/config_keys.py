@@ -23,7 +23,7 @@ import numpy as np
 
 from cdma_lidar.checks import is_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from cdma_lidar.poly import mask_to_poly, poly_to_mask
+from cdma_lidar.poly import mask_to_poly, tap_mask
 from cdma_lidar.rounding import ROUNDING_MODES
 
 __all__ = ["CONFIG_KEYS", "CONFIG_OPTIONAL", "MODES", "ConfigKey", "DecodedConfig", "config_key",
@@ -40,8 +40,8 @@ MODES: tuple[str, ...] = ("ranging", "calibration")
 def _poly_to_wire(poly: Sequence[int] | int) -> int:
     """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask.
 
-    The wire mask is the coefficient mask of :mod:`cdma_lidar.poly` without the constant
-    term (bit e = x^e term, bits 1..31): ``poly_to_mask(poly) & ~1``.
+    The wire mask is the tap mask of :mod:`cdma_lidar.poly`: bit e - 1 is the x^e term
+    for e = 1..32, the constant term implied (``tap_mask(poly)``; (11, 2) is 0x402).
     """
     if is_int(poly):
         mask = int(poly)  # type: ignore[arg-type]
@@ -51,13 +51,18 @@ def _poly_to_wire(poly: Sequence[int] | int) -> int:
         except (TypeError, ValueError):
             raise out_of_range("poly", "a tuple of exponents like (11, 2)", poly,
                                FieldError) from None
-        if len(set(exps)) != len(exps) or any(not 1 <= e <= 31 for e in exps):
-            raise out_of_range("poly", "distinct exponents from 1 to 31", poly, FieldError)
-        mask = poly_to_mask(exps) & ~1
-    if not 0 < mask < 2**32 or mask & 1:
-        raise out_of_range("poly", "a mask with bits 1..31 (constant term implied)", mask,
-                           FieldError)
+        if len(set(exps)) != len(exps) or any(not 1 <= e <= 32 for e in exps):
+            raise out_of_range("poly", "distinct exponents from 1 to 32", poly, FieldError)
+        mask = tap_mask(exps)
+    if not 0 < mask < 2**32:
+        raise out_of_range("poly", "a mask of bits 0..31 (bit e - 1: the x^e term), not 0",
+                           mask, FieldError)
     return mask
+
+
+def _wire_to_poly(mask: int) -> tuple[int, ...]:
+    """Exponent tuple (highest first) of a wire mask (bit e - 1: the x^e term)."""
+    return mask_to_poly(int(mask) << 1)
 
 
 def _ident(v: Any) -> Any:
@@ -159,11 +164,12 @@ def _windows_to_wire(v: Any) -> list[dict[str, int]]:
 
 CONFIG_KEYS: tuple[ConfigKey, ...] = (
     ConfigKey(1, "poly_u", "u32", "", "mask, degree 2..max_degree",
-              "first Gold polynomial: bit e set = x^e term, x^0 implied (host: exponent "
-              "tuple, highest first)", to_wire=_poly_to_wire, from_wire=mask_to_poly),
+              "first Gold polynomial: bit e - 1 set = x^e term (e = 1..32), x^0 implied "
+              "(host: exponent tuple, highest first)", to_wire=_poly_to_wire,
+              from_wire=_wire_to_poly),
     ConfigKey(2, "poly_v", "u32", "", "mask, same degree as poly_u",
               "second Gold polynomial, same encoding", to_wire=_poly_to_wire,
-              from_wire=mask_to_poly),
+              from_wire=_wire_to_poly),
     ConfigKey(3, "code_index", "u16 x K", "", "0..2^m (N+1), K items",
               "Gold family member of each channel", 0, 65535,
               to_wire=lambda v: [int(x) for x in v], from_wire=tuple),

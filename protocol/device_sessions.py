@@ -61,7 +61,7 @@ class EndpointStats:
     tx_frames: int = 0
     columns_sent: int = 0
     auth_rejected: int = 0  #: frames dropped for a wrong MAC or a replayed counter
-    auth_throttled: int = 0  #: HELLO MACs not checked: the peer's back-off was running
+    auth_throttled: int = 0  #: HELLO MACs not checked: the connection's back-off was running
     sessions: int = 0  #: sessions opened on this connection
 
 
@@ -93,7 +93,7 @@ class DeviceCore:
         self.owner_nonce = b""
         self.opened = self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
-        self.backoff = auth.Backoff(clock)  # failed authentication, per peer
+        self.backoff = auth.Backoff(clock)  # failed authentication: the global budget
         #: Since boot (the core's creation), over every connection: what STATUS reports.
         self.booted = clock()
         self.totals = EndpointStats()
@@ -146,7 +146,7 @@ def new_session_id(old: int = 0) -> int:
 
 def hello_gate(ep: DeviceEndpoint, req: Frame, f: dict) -> Reply | None:
     """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
-    or one sent during the peer's back-off) or BUSY; None: open a session.
+    or one sent during this connection's back-off) or BUSY; None: open a session.
 
     Runs in the polling thread, so a HELLO is refused at once whatever the application
     is computing, and again in the request worker.
@@ -158,17 +158,18 @@ def hello_gate(ep: DeviceEndpoint, req: Frame, f: dict) -> Reply | None:
             ep.challenge = secrets.token_bytes(auth.NONCE_BYTES)
             return (MsgType.CHALLENGE, encode_payload(
                 MsgType.CHALLENGE, {"device_nonce": ep.challenge}), False)
-        wait = core.backoff.wait_s(ep.peer)
+        wait = core.backoff.wait_s(*ep.auth_failures)
         if wait > 0:
             ep.challenge = None
             ep.stats.auth_throttled += 1
             return nak(ep, req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
-                       f"authentications from this peer: retry in {wait:.1f} s", False)
+                       f"authentications on this connection: retry in {wait:.1f} s", False)
         want = auth.hello_mac(core.key, ep.challenge, bytes(f["host_nonce"]), f["flags"],
                               f["host_max_frame"])
         if not auth.equal(want, f["mac"]):
             ep.challenge = None
             ep.stats.auth_rejected += 1
+            ep.auth_failures = (ep.auth_failures[0] + 1, core.clock())
             core.backoff.failed(ep.peer, "HELLO with a wrong MAC (the host holds another key)")
             return nak(ep, req, ErrorCode.AUTH_FAILED, "mac",
                        "the MAC does not match this device's key", False)
@@ -194,8 +195,7 @@ def _hello(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
     if refusal is not None:
         return refusal
     core = ep.core
-    if core.key is not None:
-        core.backoff.passed(ep.peer)
+    ep.auth_failures = (0, 0.0)
     nonce = bytes(f["host_nonce"])
     now = core.clock()
     owner = core.owner
@@ -251,6 +251,8 @@ def _end_session(ep: DeviceEndpoint) -> None:
     ep.tx.drop(REPAIR)
     ep.ring.clear()
     ep.capture = None
+    if ep.session_open and ep.verifier is not None:  # to sign its NAK WRONG_SESSION
+        ep.ended = (ep.session, ep.tx.signer, ep.verifier)
     ep.tx.signer = ep.verifier = None
     ep.tx.coded = False
     if ep.session_open:

@@ -13,7 +13,7 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
 The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
-every ``heartbeat_s`` while a stream runs, whatever the application computes; the
+every ``heartbeat_s / 2`` while a stream runs, whatever the application computes; the
 application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
 in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
 ``timeout``).
@@ -52,6 +52,7 @@ from cdma_lidar.protocol.messages import (
     ErrorCode,
     MsgKind,
     MsgType,
+    Pieces,
     ScanEndReason,
     decode_payload,
     encode_payload,
@@ -73,6 +74,13 @@ HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
     **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
+# Requests answered NAK BUSY from the stream's state while it runs (their handlers check
+# it before they call the application).
+_BUSY_WHILE_SCANNING = frozenset({MsgType.CONFIG_SET, MsgType.SCAN_START, MsgType.CALIBRATE})
+#: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
+#: between stream frames stays within INFO.heartbeat_ms when the polling thread runs late
+#: (by up to half of it: a loaded machine).
+_HEARTBEAT_EARLY = 0.5
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
@@ -152,8 +160,8 @@ class DeviceEndpoint:
         poll_s: longest blocking read when idle (s).
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
             (a serial line); False on TCP, where a damaged frame is not worth the CPU.
-        peer: who is on the other end (an IP address), for the per-peer back-off after
-            failed authentication; default the port's name.
+        peer: who is on the other end (an IP address), for the log of failed
+            authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
         threads: False: no worker threads; each :meth:`poll` also handles the queued
             requests and one column of a running stream (tests step the device with
@@ -182,7 +190,7 @@ class DeviceEndpoint:
                 raise out_of_range("app", "a DeviceApp (or a DeviceCore)", app)
             core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock)
         self.core, self.app, self.port = core, core.app, port
-        #: Who is on the other end (an IP address over TCP), for the auth back-off and logs.
+        #: Who is on the other end (an IP address over TCP), for the logs.
         self.peer = peer or port_name(port)
         self.session_open = False
         #: Since when this connection has had no session (core clock, s).
@@ -196,6 +204,10 @@ class DeviceEndpoint:
                               (self.stats, core.totals))
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
+        #: The last signed session that ended on this connection: (id, signer, verifier).
+        self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
+        #: (wrong HELLO MACs on this connection since its last success, the last one's time)
+        self.auth_failures: tuple[int, float] = (0, 0.0)
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
@@ -210,6 +222,8 @@ class DeviceEndpoint:
         self.info: Info | None = None  # as sent in the last INFO
         self.config: dict[str, Any] | None = None  # the app's config, for CONFIG_GET mid-scan
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
+        #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
+        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
         # lock guards the endpoint's state; the core's app_lock serialises calls into the
         # application and is always taken first.
         self.lock = threading.Lock()
@@ -271,9 +285,13 @@ class DeviceEndpoint:
         with self.lock:
             if data:
                 damaged = self.decoder.stats.damaged
-                for frame in self.decoder.feed(data):
+                for piece in self.decoder.feed(data):
+                    frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
+                        else piece
                     # While the request worker has work, every request queues behind it,
                     # so requests are always handled in the order they arrived.
+                    if frame is None:
+                        continue
                     if kind_of(frame.msg_type) is not MsgKind.REQUEST:
                         self.stats.ignored += 1
                     elif self._queued:
@@ -289,7 +307,8 @@ class DeviceEndpoint:
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))
             now = self.clock()
-            if self.stream is not None and now - self.last_heartbeat >= self.heartbeat_s:
+            if self.stream is not None and \
+                    now - self.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
                 self.last_heartbeat = now
                 self.tx.send(CONTROL, MsgType.HEARTBEAT,
                                encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
@@ -364,6 +383,33 @@ class DeviceEndpoint:
         self._send_reply(frame, nak(self, frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                     f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
+    def _request_piece(self, frame: Frame) -> Frame | None:
+        """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
+        signed requests with a bad signature is dropped); the whole request once every
+        piece is in, keyed by (type, seq). Two requests in pieces are kept at most."""
+        ours = self.session_open and frame.session == self.session
+        if ours and self.verifier is not None and not self.verifier.check(frame):
+            self.stats.auth_rejected += 1
+            return None
+        try:
+            body = decode_payload(MsgType.FRAGMENT, frame.payload)
+        except FrameError:
+            self.stats.ignored += 1
+            return None
+        if kind_of(body["msg_type"]) is not MsgKind.REQUEST:
+            self.stats.ignored += 1
+            return None
+        key = (body["msg_type"], body["seq"])
+        pc = self._pieces.get(key)
+        if pc is None or pc.count != body["count"]:
+            pc = self._pieces[key] = Pieces(body["count"])
+            while len(self._pieces) > 2:
+                self._pieces.popitem(last=False)
+        if (payload := pc.add(frame, body)) is None:
+            return None
+        del self._pieces[key]
+        return Frame(key[0], key[1], frame.session, payload, fec=frame.fec, joined=ours)
+
     def _enqueue(self, frame: Frame, checked: bool) -> None:
         self._queued += 1
         if self._worker is None and self.threads:
@@ -380,10 +426,17 @@ class DeviceEndpoint:
             if not self.session_open or frame.session != self.session:
                 detail = (f"this connection's session is 0x{self.session:08x}; send HELLO"
                           if self.session_open else "no session is open here: send HELLO")
-                self._send_reply(frame, nak(self, frame, ErrorCode.WRONG_SESSION, "session",
-                                            detail, False))
+                refusal = nak(self, frame, ErrorCode.WRONG_SESSION, "session", detail, False)
+                sid, signer, verifier = self.ended or (None, None, None)
+                if frame.session == sid and verifier is not None and verifier.check(frame):
+                    # A request of the signed session that ended here: its host hears it
+                    # signed with that session's key (it drops unsigned frames).
+                    self.tx.send(CONTROL, MsgType.NAK, refusal[1], frame.seq, signer=signer,
+                                 coded=self.tx.coded or frame.fec)
+                else:
+                    self._send_reply(frame, refusal)
                 return
-            if self.verifier is not None:
+            if self.verifier is not None and not frame.joined:
                 if not frame.sig:
                     self._send_reply(frame, nak(
                         self, frame, ErrorCode.AUTH_REQUIRED, "incompat_flags",
@@ -417,9 +470,9 @@ class DeviceEndpoint:
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-        if in_worker or frame.msg_type in _WITHOUT_APP or \
-                (frame.msg_type == MsgType.CONFIG_GET and self.stream is not None and
-                 self.config is not None):
+        if in_worker or frame.msg_type in _WITHOUT_APP or (self.stream is not None and (
+                frame.msg_type in _BUSY_WHILE_SCANNING or
+                (frame.msg_type == MsgType.CONFIG_GET and self.config is not None))):
             self._respond(frame, key)
         else:
             self._enqueue(frame, True)

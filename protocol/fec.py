@@ -1,24 +1,33 @@
-"""Forward error correction inside the COBS frame: Reed-Solomon RS(255, 239) over GF(2^8).
+"""Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
-A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md) is
-sent as ``00 | COBS(rs(body)) | 00`` where ``body`` is the plain frame (header,
-payload, signature, CRC-32) and ``rs`` cuts it into blocks of 239 bytes (the last
-one shorter) and appends 16 parity bytes to each::
+A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section
+2.5) is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the framing's
+own bytes (the COBS code bytes too), so a bit error anywhere between the delimiters
+is repaired and a frame's chance to arrive no longer falls with its length.
+:func:`whiten` first makes the zero-rich column records look random, so few bytes are
+one bit error away from 0x00 (such a byte splits the frame in two; the receiver joins
+the pieces again, :class:`~cdma_lidar.protocol.framing.FrameDecoder`). ``rs`` cuts the
+COBS bytes (no 0x00 among them) into blocks of 207 bytes (the last one shorter) and
+follows each with its 48 parity bytes, spread over 55 bytes that are never 0x00::
 
-    body     b0 ........ b238 | b239 ...... b477 | b478 .. b(d-1)
-    coded    [239 data | 16 parity] [239 data | 16 parity] [r data | 16 parity]
+    stuffed  s0 ........ s206 | s207 ...... s413 | s414 .. s(n-1)
+    coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-The coded bytes are then whitened (:func:`whiten`) before COBS. A block corrects any
-8 damaged bytes (a bit error rate of 1e-3 damages about 2 of
-255). The code is systematic: a receiver first checks the CRC-32 of the data bytes
-alone and decodes only when it fails, so an undamaged frame costs one CRC. The coded
-length ``t`` gives the body length ``d`` back: ``t = d + 16 * ceil(d / 239)``.
+Spreading: the 48 parity bytes, highest degree first, as one string of 384 bits (most
+significant bit of each byte first), are cut into 55 groups of 7 bits (the last one
+padded with 1 zero bit); each group ``g`` is sent as the byte ``0x80 | g``. A block
+corrects any 24 damaged symbols (a damaged spread byte damages at most two parity
+symbols; a bit error rate of 3e-3 damages about 6 of 262 bytes, and more than 24 in
+fewer than one block in a million). The code is
+systematic: a receiver first reads the data bytes alone (one CRC) and decodes only
+when they fail. The coded length ``t`` gives the stuffed length ``n`` back:
+``t = n + 55 * ceil(n / 207)``.
 
-Code: narrow-sense RS over GF(2^8) with primitive polynomial 0x11D, generator
-roots alpha^0 .. alpha^15 (alpha = 2), as ``reedsolo.RSCodec(16, nsize=255)``
-builds it. Encoding and syndromes are table-driven numpy (the code is linear over
-GF(2^8); a test checks them against ``reedsolo``); locating and correcting the errors
-of a damaged block is ``reedsolo``'s.
+Code: narrow-sense RS over GF(2^8) with primitive polynomial 0x11D, generator roots
+alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it.
+Encoding and syndromes are table-driven numpy (the code is linear over GF(2^8); a test
+checks them against ``reedsolo``), and so are the Chien search and Forney's formula
+that correct a damaged block; the error locator is ``reedsolo``'s Berlekamp-Massey.
 """
 
 from __future__ import annotations
@@ -28,33 +37,36 @@ import reedsolo
 
 from cdma_lidar.errors import FrameError
 
-__all__ = ["BLOCK", "DATA", "NSYM", "body_len", "coded_len", "decode", "encode", "encode_reference",
-           "strip", "whiten"]
+__all__ = ["BLOCK", "DATA", "NSYM", "SPREAD", "WIRE_BLOCK", "body_len", "coded_len", "decode",
+           "encode", "encode_reference", "plausible", "strip", "whiten"]
 
-#: Parity bytes per block: corrects 8 damaged bytes per block.
-NSYM = 16
-#: Bytes of a coded block (data + parity) and of its data.
+#: Parity bytes per block: corrects 24 damaged symbols per block.
+NSYM = 48
+#: Symbols of a code block (data + parity) and of its data.
 BLOCK = 255
 DATA = BLOCK - NSYM
+#: Bytes that carry one block's parity on the wire (7 bits each, high bit set).
+SPREAD = -(-8 * NSYM // 7)
+#: Bytes of a full block on the wire.
+WIRE_BLOCK = DATA + SPREAD
 
 _codec = reedsolo.RSCodec(NSYM, nsize=BLOCK)
 
 
 def coded_len(d: int) -> int:
-    """Coded bytes of a body of ``d`` bytes."""
-    return d + NSYM * -(-d // DATA)
+    """Coded bytes of ``d`` stuffed (COBS) bytes."""
+    return d + SPREAD * -(-d // DATA)
 
 
 def body_len(t: int) -> int:
-    """Body bytes of ``t`` coded bytes; -1 when no body codes to that length."""
-    blocks = -(-t // BLOCK)
-    d = t - NSYM * blocks
-    return d if d > DATA * (blocks - 1) else -1
+    """Stuffed bytes (at least 1) of ``t`` coded bytes; -1 when nothing codes to that
+    length."""
+    blocks = -(-t // WIRE_BLOCK)
+    d = t - SPREAD * blocks
+    return d if d > max(0, DATA * (blocks - 1)) else -1
 
 
-#: Whitening: coded byte i is XORed with ``(WHITE_START + WHITE_STEP * i) mod 256``, so
-#: the zero-rich column records give COBS few zero bytes: each is a code byte, which a
-#: bit error would make misread the rest of the frame (no code can repair that).
+#: Whitening: body byte i is XORed with ``(WHITE_START + WHITE_STEP * i) mod 256``.
 WHITE_START, WHITE_STEP = 0x5A, 0x97
 _WHITE = ((WHITE_START + WHITE_STEP * np.arange(1 << 17)) & 0xFF).astype(np.uint8)
 
@@ -118,59 +130,144 @@ def _blocks(data: np.ndarray, width: int) -> np.ndarray:
     return rows
 
 
-def _data(plain: bytes) -> bytes:
-    """The data bytes of unwhitened coded bytes (each block's parity dropped)."""
-    return b"".join(plain[i:i + BLOCK][:-NSYM] for i in range(0, len(plain), BLOCK))
+def _spread(parity: np.ndarray) -> np.ndarray:
+    """(blocks, NSYM) parity bytes -> (blocks, SPREAD) bytes ``0x80 | 7 bits``."""
+    bits = np.unpackbits(parity, axis=1)
+    bits = np.pad(bits, ((0, 0), (0, 7 * SPREAD - bits.shape[1])))
+    groups = np.packbits(bits.reshape(len(parity), SPREAD, 7), axis=2)[:, :, 0] >> 1
+    return groups | np.uint8(0x80)
 
 
-def encode(body: bytes) -> bytes:
-    """``body`` with 16 parity bytes after every 239 data bytes (and after the rest),
-    whitened. Table-driven (the code is linear): byte-identical to ``reedsolo``'s
-    encoder, which a test checks."""
-    if not body:
+def _unspread(spread: np.ndarray) -> np.ndarray:
+    """(blocks, SPREAD) wire bytes -> (blocks, NSYM) parity bytes (high bits ignored)."""
+    bits = np.unpackbits((spread << 1)[:, :, None], axis=2)[:, :, :7]
+    return np.packbits(bits.reshape(len(spread), 7 * SPREAD)[:, :8 * NSYM], axis=1)
+
+
+def _cut(coded: bytes) -> tuple[list[np.ndarray], np.ndarray]:
+    """(data bytes of each block, (blocks, SPREAD) spread parity) of a valid coded length."""
+    arr = np.frombuffer(coded, np.uint8)
+    starts = range(0, arr.size, WIRE_BLOCK)
+    data = [arr[i:i + WIRE_BLOCK][:-SPREAD] for i in starts]
+    return data, np.stack([arr[i:i + WIRE_BLOCK][-SPREAD:] for i in starts])
+
+
+def encode(stuffed: bytes) -> bytes:
+    """``stuffed`` (COBS bytes) with 55 spread parity bytes after every 207 (and after
+    the rest); no byte is 0x00 when ``stuffed`` has none. Table-driven (the code is
+    linear): byte-identical to :func:`encode_reference`, which a test checks."""
+    if not stuffed:
         return b""
-    data = np.frombuffer(body, np.uint8)
+    data = np.frombuffer(stuffed, np.uint8)
     blocks = _blocks(data, DATA)
     parity = np.bitwise_xor.reduce(_MUL[blocks[:, :, None], _UNIT_BY_POS[None, :, :]], axis=1)
+    spread = _spread(parity)
     full = (len(blocks) - 1) * DATA
-    out = np.concatenate([np.hstack([blocks[:-1], parity[:-1]]).ravel(), data[full:],
-                          parity[-1]])
-    return whiten(out.tobytes())
+    return np.concatenate([np.hstack([blocks[:-1], spread[:-1]]).ravel(), data[full:],
+                           spread[-1]]).tobytes()
 
 
-def encode_reference(body: bytes) -> bytes:
-    """:func:`encode` by ``reedsolo`` (the reference the fast encoder is tested against)."""
-    return whiten(bytes(_codec.encode(body)))
+def encode_reference(stuffed: bytes) -> bytes:
+    """:func:`encode` with ``reedsolo``'s encoder (the reference it is tested against)."""
+    out = []
+    for i in range(0, len(stuffed), DATA):
+        block = bytes(_codec.encode(stuffed[i:i + DATA]))
+        parity = np.frombuffer(block[-NSYM:], np.uint8)[None, :]
+        out.append(block[:-NSYM] + _spread(parity).tobytes())
+    return b"".join(out)
+
+
+def plausible(coded: bytes) -> bool:
+    """``coded`` has a coded length and every block's spread parity has at most 4 bytes
+    without their high bit: the bytes are where a coded frame puts them (a piece of a
+    frame, or one a byte longer or shorter, fails this at once, without decoding)."""
+    if body_len(len(coded)) < 0:
+        return False
+    _, spread = _cut(coded)
+    return bool(((spread < 0x80).sum(axis=1) <= 4).all())
 
 
 def strip(coded: bytes) -> bytes:
     """The data bytes of ``coded`` as they arrived (no correction); b"" if no valid length."""
-    return _data(whiten(coded)) if body_len(len(coded)) >= 0 else b""
+    if body_len(len(coded)) < 0:
+        return b""
+    return b"".join(coded[i:i + WIRE_BLOCK][:-SPREAD] for i in range(0, len(coded), WIRE_BLOCK))
+
+
+_EXP = np.array(reedsolo.gf_exp[:255], np.int64)
+_LOG = np.array(reedsolo.gf_log[:256], np.int64)
+
+
+_EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
+
+
+def _gmul(x: int, y: int) -> int:
+    return 0 if x == 0 or y == 0 else _EXP_LIST[(_LOG_LIST[x] + _LOG_LIST[y]) % 255]
+
+
+def _correct(block: np.ndarray, syn: list[int]) -> None:
+    """Correct one block in place from its syndromes ``S_0 .. S_47`` (not all zero).
+
+    The error locator comes from ``reedsolo``'s Berlekamp-Massey; its roots are found
+    for all positions at once (Chien search in tables) and the error values by Forney's
+    formula (first consecutive root 1: ``Y = X Omega(1/X) / Lambda'(1/X)``). Raises
+    ReedSolomonError when the roots are not as many as the locator's degree (more than
+    24 damaged symbols)."""
+    n = block.size
+    loc = reedsolo.rs_find_error_locator([0, *syn], NSYM)  # Lambda, highest degree first
+    deg = len(loc) - 1
+    # Chien: x^deg Lambda(1/x), highest degree first, at x = 2^e for every exponent e.
+    rev = np.array(loc[::-1], np.int64)
+    k = np.flatnonzero(rev)
+    e = np.arange(n)
+    terms = _EXP[(_LOG[rev[k]][:, None] + e[None, :] * (deg - k)[:, None]) % 255]
+    roots = np.flatnonzero(np.bitwise_xor.reduce(terms, axis=0) == 0)
+    if deg == 0 or roots.size != deg:
+        raise reedsolo.ReedSolomonError(f"{roots.size} error positions for a locator of "
+                                        f"degree {deg}")
+    xs = [_EXP_LIST[r] for r in roots.tolist()]  # X_l = 2^e_l
+    lam = [1]  # Lambda(x) = prod (1 + X_l x), lowest degree first
+    for x in xs:
+        lam = [a ^ _gmul(x, b) for a, b in zip([*lam, 0], [0, *lam], strict=True)]
+    omega = [0] * deg  # S(x) Lambda(x) mod x^deg, lowest degree first
+    for i in range(deg):
+        for j in range(i + 1):
+            omega[i] ^= _gmul(syn[i - j], lam[j])
+    for r, x in zip(roots.tolist(), xs, strict=True):
+        xinv = _EXP_LIST[(255 - r) % 255]
+        num = den = 0
+        p = 1
+        for i in range(deg):
+            num ^= _gmul(omega[i], p)
+            p = _gmul(p, xinv)
+        p = 1
+        for i in range(1, deg + 1, 2):  # Lambda'(x): the odd terms, one degree down
+            den ^= _gmul(lam[i], p)
+            p = _gmul(p, _gmul(xinv, xinv))
+        if den == 0:
+            raise reedsolo.ReedSolomonError("Forney: zero derivative")
+        y = _gmul(x, _gmul(num, _EXP_LIST[(255 - _LOG_LIST[den]) % 255]))
+        block[n - 1 - r] ^= y
 
 
 def decode(coded: bytes) -> bytes:
-    """Correct ``coded`` and return the body; FrameError (only) when it cannot.
+    """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
+    cannot.
 
     The syndromes of every block are computed at once (tables); a block whose
-    syndromes show damage goes through ``reedsolo``'s Berlekamp-Massey, Chien search
-    and Forney steps with those syndromes. A block with more than 8 damaged bytes
-    fails there, or is miscorrected and then fails the frame's CRC."""
+    syndromes show damage is corrected by :func:`_correct`. A block with more than 24
+    damaged symbols fails there, or is miscorrected and then fails the frame's CRC."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
-    plain = np.frombuffer(whiten(coded), np.uint8).copy()
-    if not plain.size:
-        return b""
+    data, spread = _cut(coded)
+    parity = _unspread(spread)
+    plain = np.concatenate([np.concatenate([d, p]) for d, p in zip(data, parity, strict=True)])
     # Syndrome j of a block: the block polynomial at the root 2^j (all zero: a codeword).
     syn = np.bitwise_xor.reduce(_MUL[_blocks(plain, BLOCK)[:, :, None], _POWERS[None, :, :]],
                                 axis=1)
     for b in np.flatnonzero(syn.any(axis=1)):
-        block = plain[b * BLOCK:(b + 1) * BLOCK]
-        synd = [0, *syn[b].tolist()]  # reedsolo's layout
         try:
-            loc = reedsolo.rs_find_error_locator(synd, NSYM)
-            pos = reedsolo.rs_find_errors(loc[::-1], block.size, 2)
-            fixed = reedsolo.rs_correct_errata(bytearray(block.tobytes()), synd, pos, 0, 2)
+            _correct(plain[b * BLOCK:(b + 1) * BLOCK], syn[b].tolist())
         except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: block {b}: {exc}") from None
-        block[:] = np.frombuffer(bytes(fixed), np.uint8)
-    return _data(plain.tobytes())
+    return b"".join(plain[i:i + BLOCK][:-NSYM].tobytes() for i in range(0, plain.size, BLOCK))

@@ -8,7 +8,7 @@ frozen in every protocol version)::
 The signature is there when incompat bit 0 (INCOMPAT_SIGNED) is set
 (:mod:`cdma_lidar.protocol.auth`). crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header,
 payload and signature, little-endian. A session with FEC Reed-Solomon codes the body
-inside COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
+around COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
 stream into :class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
 """
 
@@ -32,13 +32,14 @@ __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER"
 
 log = logging.getLogger(__name__)
 
-#: Version 3: v2 (sessions per HELLO, signed frames, fragmented columns) plus Reed-Solomon
-#: FEC negotiated in HELLO and notices in fragments (docs/protocol.md).
-PROTOCOL_VERSION = 3
+#: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
+#: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
+#: (docs/protocol.md).
+PROTOCOL_VERSION = 4
 DELIMITER = b"\x00"
 #: Header fields in wire order: (name, struct format, description). Frozen in every version.
 HEADER_FIELDS = (
-    ("version", "B", "protocol version; this document: 3"),
+    ("version", "B", "protocol version; this document: 4"),
     ("incompat_flags", "B", "bit 0: signed (24-byte signature before the CRC); a receiver "
      "drops (device: NAKs) a frame with an unknown bit set"),
     ("compat_flags", "B", "bit 0: retransmitted (a resent column); unknown bits are ignored"),
@@ -88,6 +89,8 @@ class Frame(NamedTuple):
     sig: bytes = b""
     #: it came Reed-Solomon coded (cdma_lidar.protocol.fec).
     fec: bool = False
+    #: put together from FRAGMENTs, each of them checked (session, signature) on arrival.
+    joined: bool = False
 
     def signed_bytes(self) -> bytes:
         """What a signature covers: the header as sent and the payload."""
@@ -113,7 +116,7 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     """Build the wire bytes of one frame, both 0x00 delimiters included.
 
     With a ``signer`` the frame is signed (incompat bit INCOMPAT_SIGNED, signature
-    between payload and CRC). ``coded``: Reed-Solomon parity inside the COBS frame
+    between payload and CRC). ``coded``: Reed-Solomon parity around the COBS bytes
     (:mod:`cdma_lidar.protocol.fec`; ``max_frame`` bounds the frame before coding).
     Raises FieldError naming the header field that cannot hold its value, or ``payload``
     when the frame would exceed ``max_frame`` bytes (decoded size).
@@ -136,7 +139,9 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     if signer is not None:
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
-    return b"".join((DELIMITER, cobs.encode(fec.encode(body) if coded else body), DELIMITER))
+    if coded:  # a second delimiter after it: one damaged on the line still ends the frame
+        return b"".join((DELIMITER, fec.encode(cobs.encode(fec.whiten(body))), DELIMITER * 2))
+    return b"".join((DELIMITER, cobs.encode(body), DELIMITER))
 
 
 def decode_frame(body: bytes) -> Frame:
@@ -194,7 +199,7 @@ class DecoderStats:
     version: int = 0
     incompat: int = 0
     corrected: int = 0  #: frames whose Reed-Solomon parity repaired damage
-    rejoined: int = 0  #: frames put together from two chunks split by a byte damaged to 0x00
+    rejoined: int = 0  #: frames put together from chunks split by bytes damaged to 0x00
 
     @property
     def damaged(self) -> int:
@@ -218,8 +223,11 @@ class FrameDecoder:
 
     ``fec``: a chunk that is not a valid plain frame is read as a Reed-Solomon coded one
     (:mod:`cdma_lidar.protocol.fec`): its data bytes first (one CRC), corrected only if
-    they fail; a frame that arrived coded has ``fec`` set. Off by default: correcting
-    costs about 3 ms per kB of damaged chunk, which only a line that needs it pays.
+    they fail; a frame that arrived coded has ``fec`` set. A coded chunk that still
+    fails is tried without its first or last byte (a delimiter damaged into a data
+    byte joined it), and joined to the damaged chunks right before it (a data byte
+    damaged into 0x00 split it). Off by default: correcting costs about 3 ms per kB of
+    damaged chunk, which only a line that needs it pays.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT, fec: bool = False) -> None:
@@ -228,11 +236,11 @@ class FrameDecoder:
         self.rejected: list[Frame] = []
         self._buf = bytearray()
         self._skipping = False  # inside an oversize chunk: drop until the next delimiter
-        self._split: bytes | None = None  # the last chunk, if damaged and right before this one
+        self._split: list[bytes] = []  # the damaged chunks right before this one
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         #: Largest decoded frame accepted (bytes, header and CRC included).
         self.max_frame = check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
-        self._max_chunk = cobs.max_encoded_len(coded_len(max_frame))  # coded or not
+        self._max_chunk = coded_len(cobs.max_encoded_len(max_frame)) + 1  # coded or not
 
     @property
     def buffered(self) -> int:
@@ -266,7 +274,7 @@ class FrameDecoder:
             elif end > start:
                 self._chunk(data[start:end], out)
             else:
-                self._split = None  # "00 00": a frame boundary, not a damaged byte
+                self._split = []  # "00 00": a frame boundary, not a damaged byte
             start = end + 1
         if self._skipping or start >= len(data):
             return out  # inside an oversize chunk (dropped), or nothing left over
@@ -280,63 +288,87 @@ class FrameDecoder:
         return out
 
     def _chunk(self, chunk: bytes, out: list[Frame]) -> None:
-        """Decode and count one chunk; with ``fec``, two damaged chunks with one 0x00
-        between them are tried once more as one frame whose byte there was damaged into
-        0x00 (that second reading counts only if it gives a frame)."""
+        """Decode and count one chunk; with ``fec``, a damaged chunk is tried again
+        (:meth:`_retry`); that second reading counts only if it gives a frame."""
         st = self.stats
         got = self._read(chunk)
         if isinstance(got, str):
             setattr(st, got, getattr(st, got) + 1)
-            if not self.fec:
+            if not self.fec or got == "oversize":
                 return
-            before, self._split = self._split, chunk
-            if before is None or len(before) + len(chunk) >= self._max_chunk:
+            got = self._retry(chunk)
+            if got is None:
                 return
-            got = self._read(before + b"\x01" + chunk)
-            if isinstance(got, str):
-                return
-            st.rejoined += 1
-        self._split = None
+        self._split = []
         frame, corrected = got
         st.frames += 1
         st.corrected += corrected
         out.append(frame)
+
+    def _retry(self, chunk: bytes) -> tuple[Frame, bool] | None:
+        """A damaged chunk read again as a coded frame whose delimiters the line moved:
+        joined to the damaged chunks since the last frame boundary (the last 1 to 8 of
+        them: a damaged boundary may leave a stray chunk before the frame), each join
+        also without its first or its last byte. Only candidates :func:`fec.plausible`
+        passes are decoded."""
+        self._split = [*self._split[-7:], chunk]
+        while sum(map(len, self._split)) > self._max_chunk:
+            self._split.pop(0)
+        for k in range(1, len(self._split) + 1):
+            whole = b"\x01".join(self._split[-k:])
+            for candidate in (whole, whole[1:], whole[:-1])[k == 1:]:
+                try:
+                    got = self._coded(candidate)
+                except FrameError:
+                    continue
+                self.stats.rejoined += 1
+                return got
+        return None
 
     def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:
         """(frame, corrected by FEC), or the name of the counter its rejection goes to."""
         if len(chunk) > self._max_chunk:
             return "oversize"
         try:
-            body = cobs.decode(chunk)
-        except FrameError:
-            return "cobs"
-        if len(body) > coded_len(self.max_frame):
-            return "oversize"
-        try:
             try:
-                return decode_frame(body), False
+                return self._plain(cobs.decode(chunk)), False
+            except _Rejected:
+                raise
             except FrameError as exc:
-                if not self.fec or isinstance(exc, _Rejected):
+                if not self.fec:
                     raise
-                return self._coded(body)
+                try:
+                    return self._coded(chunk)
+                except _Rejected:
+                    raise
+                except FrameError:
+                    raise exc from None
         except _Rejected as exc:
             if len(self.rejected) < 64:
                 self.rejected.append(exc.frame)
             return exc.reason
         except FrameError as exc:
-            return str(exc).split(":", 1)[0]
+            return str(exc).split(":", 1)[0].lower()
 
-    def _coded(self, body: bytes) -> tuple[Frame, bool]:
-        """Read ``body`` as a coded frame; raises the plain reading's FrameError if not."""
+    def _plain(self, body: bytes) -> Frame:
+        if len(body) > self.max_frame:
+            raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
+        return decode_frame(body)
+
+    def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
+        """Read ``chunk`` as a coded frame; raises FrameError if it is not one."""
+        if not fec.plausible(chunk):
+            raise FrameError("cobs: not a coded frame")
         try:
-            return decode_frame(fec.strip(body))._replace(fec=True), False
+            return self._plain(fec.whiten(cobs.decode(fec.strip(chunk))))._replace(fec=True), False
         except _Rejected as exc:
             exc.frame = exc.frame._replace(fec=True)
             raise
         except FrameError:
             pass
         try:
-            fixed = fec.decode(body)
-        except FrameError:
-            return decode_frame(body), False  # raises: the chunk is damaged either way
-        return decode_frame(fixed)._replace(fec=True), True  # _Rejected / FrameError propagate
+            frame = self._plain(fec.whiten(cobs.decode(fec.decode(chunk))))
+        except _Rejected as exc:
+            exc.frame = exc.frame._replace(fec=True)
+            raise
+        return frame._replace(fec=True), True

@@ -35,7 +35,7 @@ _CAPTURE_HEADER = head_size(MsgType.CAPTURE_DATA)  # bytes before the data (14)
 
 def reply(ep: DeviceEndpoint, req: Frame, msg_type: MsgType, payload: bytes) -> Reply:
     """A reply, signed when the session and the request are."""
-    return (msg_type, payload, ep.tx.signer is not None and bool(req.sig))
+    return (msg_type, payload, ep.tx.signer is not None and (bool(req.sig) or req.joined))
 
 
 def ack(ep: DeviceEndpoint, req: Frame) -> Reply:

@@ -23,9 +23,15 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE
+from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE, frame_size
 from cdma_lidar.protocol.host_session import Session
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType
+from cdma_lidar.protocol.messages import (
+    FRAGMENT_HEADER,
+    MAX_PIECES,
+    CaptureKind,
+    ErrorCode,
+    MsgType,
+)
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, DIAG_NOISY, SessionLost
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
@@ -124,12 +130,13 @@ class HostLink(Session):
                                                                   allow_read_only=False)})
 
     def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
-        """Send a (channels, columns) laser-power matrix in chunks that fit the frame size.
+        """Send a (channels, columns) laser-power matrix: one POWER_SET, in FRAGMENTs when
+        longer than a frame, or several when longer than MAX_PIECES fragments.
 
         Integer matrices are in units of 1/65535 of the per-pixel maximum (0..65535);
         float matrices are fractions 0..1 and are rounded to that grid.
         """
-        self._need_info()  # the chunk size depends on the session's max frame
+        self._need_info()  # the size of a piece depends on the session's max frame
         m = np.asarray(matrix)
         if m.ndim != 2 or m.size == 0:
             raise out_of_range("power", "a non-empty (channels, columns) matrix",
@@ -141,7 +148,8 @@ class HostLink(Session):
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (self._room() - 8) // 2
+        room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, self._tx is not None))
+                - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):

@@ -12,24 +12,25 @@ from __future__ import annotations
 
 import enum
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import construct as cs
 import numpy as np
 
 from cdma_lidar.checks import check_int
-from cdma_lidar.errors import FieldError, FrameError, out_of_range
+from cdma_lidar.errors import DeviceError, FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import columns as _columns
 from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
+from cdma_lidar.protocol.framing import Frame
 from cdma_lidar.protocol.schema import FieldMeta, array, blob, nbytes, text, u, wire_fields
 from cdma_lidar.protocol.views import Info, Status
 
-__all__ = ["DEVICE_RULES", "ERROR_DOCS", "MESSAGES", "REPLY_TO", "SCHEMA_CRC", "Auth",
-           "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec", "MsgKind", "MsgType",
-           "ScanEndReason", "SessionLostReason", "decode_payload", "encode_payload",
-           "head_size", "kind_of", "type_name"]
+__all__ = ["DEVICE_RULES", "ERROR_DOCS", "FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO",
+           "SCHEMA_CRC", "Auth", "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec",
+           "MsgKind", "MsgType", "Pieces", "ScanEndReason", "SessionLostReason", "decode_payload",
+           "encode_payload", "head_size", "kind_of", "split_message", "type_name"]
 
 
 class MsgKind(enum.Enum):
@@ -330,6 +331,50 @@ MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
 def head_size(msg_type: MsgType) -> int:
     """Payload bytes before the trailing data field (FRAGMENT, CAPTURE_DATA)."""
     return sum(sc.sizeof() for sc in MESSAGES[msg_type].fields[:-1])
+#: FRAGMENT payload bytes before the data (11).
+FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
+#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
+MAX_PIECES = 254
+
+
+@dataclass
+class Pieces:
+    """FRAGMENTs of one message (a column, a reply, a notice) received so far."""
+
+    count: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    frames: list[Frame] = field(default_factory=list)  # the pieces as they came
+
+    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
+        once every piece is in."""
+        if body["index"] not in self.data:
+            self.frames.append(frame)
+        self.data[body["index"]] = body["data"]
+        if len(self.data) < self.count:
+            return None
+        return b"".join(self.data[i] for i in range(self.count))
+
+
+def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,
+                  key: tuple[int, int] = (0, 0)) -> list[bytes]:
+    """The FRAGMENT payloads of one message, ``room`` data bytes each but the last.
+
+    ``seq``: a request's or a reply's seq (a notice's counter, 0 for a COLUMN_RESULT);
+    ``key``: a COLUMN_RESULT's (frame, column), else (0, 0). Raises DeviceError
+    TOO_LARGE when more than MAX_PIECES pieces are needed.
+    """
+    count = -(-len(payload) // room)
+    if count > MAX_PIECES:
+        raise DeviceError(f"{type_name(msg_type)} of {len(payload)} bytes needs {count} "
+                          f"fragments of {room} bytes (at most {MAX_PIECES})",
+                          code=ErrorCode.TOO_LARGE, field="payload")
+    return [encode_payload(MsgType.FRAGMENT, {
+        "msg_type": int(msg_type), "seq": seq, "frame": key[0], "column": key[1],
+        "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
+        for k in range(count)]
+
+
 #: Reply type of each request.
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
 

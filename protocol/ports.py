@@ -23,7 +23,8 @@ from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from cdma_lidar.errors import LinkError
 
-__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "default_fec", "open_port", "port_name"]
+__all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "byte_time_s", "default_fec", "open_port",
+           "port_name"]
 
 
 def _bytes_ready(fd: int) -> int:
@@ -53,6 +54,16 @@ def default_fec(port: Any) -> bool:
     name = port_name(port)
     return (name.startswith("/dev/") and "ttyACM" not in name) or \
         name.lower().startswith("virtual://")
+
+
+def byte_time_s(port: Any) -> float:
+    """Seconds one byte takes on ``port``'s line (8N1: 10 bit times), 0 when unknown: a
+    serial line's ``baudrate``, a port's ``line_baud`` (``virtual://``), a paced pipe's
+    ``tx.baud``; nothing for TCP and unpaced pipes."""
+    baud = getattr(port, "line_baud", None) or getattr(getattr(port, "tx", None), "baud", None)
+    if baud is None and default_fec(port) and not port_name(port).startswith("virtual://"):
+        baud = getattr(port, "baudrate", None)
+    return 10.0 / baud if isinstance(baud, int | float) and baud > 0 else 0.0
 
 
 def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **kw: Any) -> Any:

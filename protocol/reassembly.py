@@ -20,17 +20,16 @@ error, a lying column) keeps the columns before it and leaves ``failure`` set.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from typing import Any
 
 from cdma_lidar.errors import DeviceError, FrameError
 from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, decode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, Pieces, ScanEndReason, decode_payload
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
 from cdma_lidar.protocol.views import Status
 
-__all__ = ["ColumnReassembler", "Pieces", "StreamEnded", "early_end"]
+__all__ = ["ColumnReassembler", "StreamEnded", "early_end"]
 
 
 class StreamEnded(DeviceError):
@@ -55,25 +54,6 @@ def early_end(fid: int, reason: int, sent: int) -> StreamEnded:
                            frame=fid, next_column=sent, reason=reason, code=ErrorCode.INTERNAL)
     return StreamEnded(f"frame {fid} was stopped on the device at column {sent}",
                        frame=fid, next_column=sent, reason=reason)
-
-
-@dataclass
-class Pieces:
-    """FRAGMENTs of one message (a column, a reply, a notice) received so far."""
-
-    count: int
-    data: dict[int, bytes] = field(default_factory=dict)
-    frames: list[Frame] = field(default_factory=list)  # the pieces as they came
-
-    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
-        once every piece is in."""
-        if body["index"] not in self.data:
-            self.frames.append(frame)
-        self.data[body["index"]] = body["data"]
-        if len(self.data) < self.count:
-            return None
-        return b"".join(self.data[i] for i in range(self.count))
 
 
 class ColumnReassembler:

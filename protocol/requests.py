@@ -20,7 +20,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from cdma_lidar.checks import check_int
-from cdma_lidar.errors import DeviceError, FrameError, LinkError, LinkTimeout, out_of_range
+from cdma_lidar.errors import (
+    DeviceError,
+    FieldError,
+    FrameError,
+    LinkError,
+    LinkTimeout,
+    out_of_range,
+)
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.framing import (
     MIN_MAX_FRAME,
@@ -28,19 +35,22 @@ from cdma_lidar.protocol.framing import (
     Frame,
     FrameDecoder,
     encode_frame,
+    frame_size,
 )
 from cdma_lidar.protocol.messages import (
+    FRAGMENT_HEADER,
     REPLY_TO,
     ErrorCode,
     MsgKind,
     MsgType,
+    Pieces,
     SessionLostReason,
     decode_payload,
     encode_payload,
     kind_of,
+    split_message,
 )
-from cdma_lidar.protocol.ports import default_fec, port_name
-from cdma_lidar.protocol.reassembly import Pieces
+from cdma_lidar.protocol.ports import byte_time_s, default_fec, port_name
 from cdma_lidar.protocol.trust import escape
 from cdma_lidar.protocol.views import Status
 
@@ -66,6 +76,8 @@ DIAG_HINTS = {
     DIAG_NOISY: "the line damages more than its error correction repairs: check the cable, "
                 "the baud rate and that FEC is on (a serial line)",
 }
+#: Shortest wait for one reply (s), however fast the line answered so far.
+MIN_TIMEOUT_S = 0.02
 #: Messages in pieces kept at once (a lost piece leaves its message behind).
 _MAX_PIECES = 8
 #: RESENDs remembered while their NAK may still come.
@@ -135,6 +147,14 @@ class Requests:
         self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         self._port_name = port_name(port)
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
+        #: Smoothed round trip of a request and its reply and its mean deviation (s),
+        #: measured on first tries; None until the first reply.
+        self.rtt: float | None = None
+        self.rtt_var = 0.0
+        #: Shortest wait for a reply (s): below it a busy host's scheduling is the noise.
+        self.min_timeout_s = min(MIN_TIMEOUT_S, self.timeout_s)
+        #: Seconds one byte takes on the line (0: unknown, or no line to speak of).
+        self.byte_s = byte_time_s(port)
 
     # ---- sending --------------------------------------------------------------------------
     def _new_seq(self) -> int:
@@ -154,17 +174,26 @@ class Requests:
         self._pending, self._pending_type = seq, int(msg_type)
         self._reply = self._reply_version = None
         self._reply_parts = []
+        tries, waited = 0, 0.0
         try:
-            for attempt in range(retries + 1):
-                if attempt:
+            # Short tries while the line answers fast, each twice the last, up to timeout_s;
+            # as many as it takes to give the device (retries + 1) * timeout_s in all.
+            while tries <= retries or waited < (retries + 1) * timeout_s - 1e-9:
+                if tries:
                     self.stats.retries += 1
-                    log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, attempt + 1)
-                self._send(msg_type, payload, seq)
-                deadline = self.clock() + timeout_s
+                    log.debug("%s seq %d: no answer, try %d", msg_type.name, seq, tries + 1)
+                nbytes = self._send(msg_type, payload, seq)
+                wait = self.reply_wait(nbytes, tries, timeout_s)
+                sent = self.clock()
+                self.port.timeout = min(0.05, wait / 4)  # longest blocking read (s)
                 while self._reply is None and self._reply_version is None and \
-                        self.clock() < deadline:
+                        self.clock() < sent + wait:
                     self._pump()
+                tries += 1
+                waited += wait
                 if self._reply is not None:
+                    if tries == 1:  # Karn: only a first try's reply measures the line
+                        self._measured(self.clock() - sent - nbytes * self.byte_s)
                     return self._accept_reply(msg_type, self._reply)
                 if (f := self._reply_version) is not None:
                     raise LinkError(
@@ -174,15 +203,38 @@ class Requests:
                         f"{DIAG_HINTS[DIAG_VERSION]}")
         finally:
             self._pending = None
+            self.port.timeout = min(0.05, self.timeout_s / 4)
         diag, what = self._diagnose(*before)
         raise LinkTimeout(f"{msg_type.name} got no answer from {self._port_name} after "
-                          f"{retries + 1} tries of {timeout_s:g} s: {what}; "
+                          f"{tries} tries in {waited:.3g} s: {what}; "
                           f"{DIAG_HINTS[diag]}", diag)
 
-    def _send(self, msg_type: MsgType, payload: bytes, seq: int) -> None:
-        """Write one try of a request, signed afresh (new counter, same seq and payload)."""
-        wire = encode_frame(msg_type, payload, seq, self.session or 0, max_frame=self.max_frame,
-                            signer=self._tx, coded=self.coded)
+    def reply_wait(self, nbytes: int, attempt: int, timeout_s: float | None = None) -> float:
+        """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
+        for its reply (s): the measured round trip plus four of its mean deviations and
+        the request's transmit time, at least ``min_timeout_s``, doubled at each retry,
+        at most ``timeout_s``; ``timeout_s`` before the line has been measured."""
+        top = self.timeout_s if timeout_s is None else timeout_s
+        if self.rtt is None:
+            return top
+        base = max(self.min_timeout_s, self.rtt + 4 * self.rtt_var + nbytes * self.byte_s)
+        return min(top, base * 2 ** attempt)
+
+    def _measured(self, rtt: float) -> None:
+        """One round trip (s): smoothed as TCP does (RFC 6298: gains 1/8 and 1/4)."""
+        rtt = max(0.0, rtt)
+        if self.rtt is None:
+            self.rtt, self.rtt_var = rtt, rtt / 2
+        else:
+            self.rtt_var += (abs(self.rtt - rtt) - self.rtt_var) / 4
+            self.rtt += (rtt - self.rtt) / 8
+
+    def _send(self, msg_type: MsgType, payload: bytes, seq: int) -> int:
+        """Write one try of a request, signed afresh (new counter, same seq and payload);
+        returns the bytes written."""
+        wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self._tx,
+                                     coded=self.coded)
+                        for t, p in self._pieces_of(msg_type, payload, seq))
         if msg_type == MsgType.HELLO and self.fec:
             # Coded (gets through a noisy line), then plain (a device that cannot decode
             # it, or an older one, reads this copy): the device acts once, the replay
@@ -193,6 +245,19 @@ class Requests:
         except Exception as exc:  # pyserial raises SerialException (an OSError) or others
             raise LinkError(f"cannot write to {self._port_name}: {exc}; is the device "
                             "still connected?") from None
+        return len(wire)
+
+    def _pieces_of(self, msg_type: MsgType, payload: bytes, seq: int) -> list[tuple[int, bytes]]:
+        """(type, payload) of each frame of one request: whole, or in FRAGMENTs of at most
+        ``max_frame`` bytes (docs/protocol.md section 2.4)."""
+        signed = self._tx is not None
+        if frame_size(len(payload), signed) <= self.max_frame:
+            return [(msg_type, payload)]
+        room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
+        try:
+            return [(MsgType.FRAGMENT, p) for p in split_message(msg_type, payload, room, seq)]
+        except DeviceError as exc:
+            raise FieldError(str(exc), "payload") from None
 
     def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""

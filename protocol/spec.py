@@ -20,6 +20,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from cdma_lidar.column_record import RECORD_EXTRA_SIZE, RECORD_FIXED_SIZE, wire_layout
 from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.protocol import auth, fec, framing, trust
@@ -31,17 +33,21 @@ from cdma_lidar.protocol.columns import (
     ColumnResult,
     column_payload_size,
 )
-from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, config_key
 from cdma_lidar.protocol.messages import (
     DEVICE_RULES,
     ERROR_DOCS,
+    FRAGMENT_HEADER,
+    MAX_PIECES,
     MESSAGES,
     SCHEMA_CRC,
+    ErrorCode,
     MsgKind,
     MsgType,
     encode_payload,
+    split_message,
 )
-from cdma_lidar.protocol.transmit import FRAGMENT_HEADER, MAX_PIECES
+from cdma_lidar.protocol.views import TILT_AUTO
 
 __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
@@ -96,6 +102,8 @@ def constants_table() -> str:
          f"incompat flags understood by version {framing.PROTOCOL_VERSION}"),
         ("`CONFIG_OPTIONAL`", f"0x{CONFIG_OPTIONAL:02x}", "key id bit: ignorable if unknown"),
         ("`FLAG_CALIBRATION`", f"0x{FLAG_CALIBRATION:02x}", "COLUMN_RESULT flags bit"),
+        ("`TILT_AUTO`", f"{TILT_AUTO} (-2^31)",
+         "INFO.tilt_udeg: no mounting tilt given, the host derives it"),
         ("`NO_PEAK`", f"0x{NO_PEAK:08X}",
          "COLUMN_RESULT lag of a peak that was not found (the receiver's lag -1)"),
         ("`SCHEMA_CRC`", f"0x{SCHEMA_CRC:08x}", "CRC-32 of this schema, sent in INFO"),
@@ -248,6 +256,18 @@ def vectors() -> str:
     sig = auth.FrameSigner(to_dev).sign(head)
     ack = encode_payload(MsgType.ACK, {"request_type": int(MsgType.SCAN_START)})
     coded = framing.encode_frame(int(MsgType.ACK), ack, 0x0102, session, coded=True)
+    # A request longer than the frame: POWER_SET of 1 x 120 at max frame 256, in pieces.
+    power = encode_payload(MsgType.POWER_SET, {
+        "channel_start": 0, "column_start": 0, "channels": 1, "columns": 120,
+        "power": np.arange(120, dtype=np.uint16) * 500})
+    room = 256 - framing.frame_size(FRAGMENT_HEADER)
+    pieces = [framing.encode_frame(int(MsgType.FRAGMENT), p, 0x0102, session)
+              for p in split_message(MsgType.POWER_SET, power, room, 0x0102)]
+    nak = encode_payload(MsgType.NAK, {"request_type": int(MsgType.STATUS_GET),
+                                       "code": int(ErrorCode.WRONG_SESSION), "field": "session",
+                                       "detail": ""})
+    ended = framing.encode_frame(int(MsgType.NAK), nak, 0x0102, session,
+                                 signer=auth.FrameSigner(to_host, counter=6))
     lines = [
         f"key (the key file's 64 hex digits, decoded: the key is these 32 bytes)\n"
         f"             {key.hex()}",
@@ -262,9 +282,17 @@ def vectors() -> str:
         f"  header  {head.hex(' ')}\n"
         f"  sig     {sig.hex(' ')}\n"
         f"  wire    {signed.hex(' ')}",
-        f"ACK of SCAN_START, seq 0x0102, FEC-coded (RS parity, whitened, then COBS):\n"
+        f"ACK of SCAN_START, seq 0x0102, FEC-coded (whitened, COBS, then RS parity spread):\n"
         f"  wire    {coded.hex(' ')}",
         f"whitening bytes 0..7: {fec.whiten(bytes(8)).hex(' ')}",
+        f"POWER_SET of 1 x 120 (values 0, 500, 1000, ...), seq 0x0102, max frame 256: "
+        f"{len(power)} payload bytes in {len(pieces)} FRAGMENTs of at most {room} data bytes:\n"
+        + "\n".join(f"  wire {k}  {w.hex(' ')}" for k, w in enumerate(pieces)),
+        "NAK WRONG_SESSION to a STATUS_GET of the session above after it ended, signed with\n"
+        "that session's key to the host, counter 7:\n"
+        f"  wire    {ended.hex(' ')}",
+        "poly_u (32, 22, 2, 1), i.e. x^32 + x^22 + x^2 + x + 1, on the wire: "
+        f"{config_key('poly_u').encode((32, 22, 2, 1)).hex(' ')} (mask 0x80200003)",
     ]
     return "```text\n" + "\n".join(lines) + "\n```"
 

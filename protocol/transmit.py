@@ -17,7 +17,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from cdma_lidar.errors import DeviceError, FieldError
+from cdma_lidar.errors import FieldError
 from cdma_lidar.protocol.auth import FrameSigner
 from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
@@ -25,7 +25,13 @@ from cdma_lidar.protocol.framing import (
     encode_frame,
     frame_size,
 )
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload, head_size, type_name
+from cdma_lidar.protocol.messages import (
+    FRAGMENT_HEADER,
+    MAX_PIECES,
+    MsgType,
+    split_message,
+    type_name,
+)
 
 __all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Transmitter"]
 
@@ -33,10 +39,6 @@ log = logging.getLogger(__name__)
 
 #: Transmit classes, sent in this order.
 CONTROL, REPAIR, FRESH = 0, 1, 2
-#: FRAGMENT payload bytes before the data (11).
-FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
-#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
-MAX_PIECES = 254
 _SESSION = object()  # "the session's signer / coding", resolved when queued
 
 
@@ -176,16 +178,9 @@ class Transmitter:
         if seq is None and msg_type != MsgType.COLUMN_RESULT:
             self._notice_id = seq = (self._notice_id + 1) & 0xFFFF
         room = self.max_frame - frame_size(FRAGMENT_HEADER, signer is not None)
-        count = -(-len(payload) // room)
-        if count > MAX_PIECES:
-            raise DeviceError(f"{msg_type.name} of {len(payload)} bytes needs {count} "
-                              f"fragments at max frame {self.max_frame} (at most "
-                              f"{MAX_PIECES})", code=ErrorCode.TOO_LARGE)
-        if only is None or not all(0 <= k < count for k in only):
-            only = range(count)
+        pieces = split_message(msg_type, payload, room, seq or 0, key)
+        if only is None or not all(0 <= k < len(pieces) for k in only):
+            only = range(len(pieces))
         for k in only:
-            body = encode_payload(MsgType.FRAGMENT, {
-                "msg_type": int(msg_type), "seq": seq or 0, "frame": key[0], "column": key[1],
-                "index": k, "count": count, "data": payload[k * room:(k + 1) * room]})
-            self.put(cls, MsgType.FRAGMENT, body, signer=signer, coded=coded,
+            self.put(cls, MsgType.FRAGMENT, pieces[k], signer=signer, coded=coded,
                      repair=(*key, k) if cls == REPAIR else None)

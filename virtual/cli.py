@@ -1,6 +1,7 @@
 """``cdma-lidar device ...``: serve the virtual device on a pty or a TCP port.
 
-    cdma-lidar device --scene SCENE --pty               serve the virtual device on a pty
+    cdma-lidar device --scene SCENE --pty [--key-file FILE]   serve the virtual device on a
+                                                        pty (FEC when asked; keyed with a file)
     cdma-lidar device --scene SCENE --tcp HOST:PORT --key-file [FILE]
                                                         ... or on a TCP socket (socket://),
                                                         hosts must hold the key in FILE

@@ -52,11 +52,12 @@ def cmd_device(args: argparse.Namespace) -> int:
     if not 0.001 <= args.session_idle <= 4_294_967:
         raise out_of_range("--session-idle", "0.001 to 4294967 seconds", args.session_idle)
     if args.pty:
-        if args.key_file or args.insecure:
-            raise ConfigError("--key-file and --insecure apply to --tcp only (a pty is "
-                              "reachable only by local users who may open it)", "--key-file")
+        if args.insecure:
+            raise ConfigError("--insecure applies to --tcp only (a pty is reachable only by "
+                              "local users who may open it)", "--insecure")
         scene = load_scene(args.scene)
-        return serve_pty(scene, args.seed, announce=_announce,
+        key = load_or_create_key(args.key_file)[0] if args.key_file else None
+        return serve_pty(scene, args.seed, announce=_announce, key=key,
                          session_idle_s=args.session_idle)
     host, port = _parse_hostport(args.tcp)
     scene = load_scene(args.scene)  # a bad scene is refused before a key or a warning

@@ -54,15 +54,18 @@ def _stop_on_signals() -> Iterator[threading.Event]:
 
 
 def serve_pty(scene: Scene, seed: int, announce: Callable[[str], None], *,
-              session_idle_s: float = 10.0) -> int:
-    """Serve on a new pty; ``announce`` gets the slave path (one line). Returns 0."""
+              key: bytes | None = None, session_idle_s: float = 10.0) -> int:
+    """Serve on a new pty; ``announce`` gets the slave path (one line). Returns 0.
+
+    A serial line codes its frames (FEC) when the host asks; with ``key`` (32 bytes)
+    every session is authenticated and signed too (keyed and coded at once)."""
 
     firmware = VirtualFirmware(scene, seed)
     master, slave = os.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
     port = FdPort(master)
-    endpoint = DeviceEndpoint(port, firmware, session_idle_s=session_idle_s)
+    endpoint = DeviceEndpoint(port, firmware, key=key, session_idle_s=session_idle_s)
     with _stop_on_signals() as stop:
         announce(path)
         log.info("virtual device %s (seed %d) on %s", scene.name, seed, path)

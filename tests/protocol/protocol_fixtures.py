@@ -249,9 +249,9 @@ class SteppedDevice:
 
     def __init__(self, app: DeviceApp | None, *, tick_s: float = 0.001,
                  now: list[float] | None = None, faults: Any = None, seed: int = 0,
-                 **kw: Any) -> None:
+                 max_read: int | None = None, **kw: Any) -> None:
         self.now = [100.0] if now is None else now  # shared by devices of one core
-        self.tick_s = tick_s
+        self.tick_s, self.max_read = tick_s, max_read  # max_read: partial reads, as pyserial's
         self.host, dev = pipe_pair(faults, faults, seed=seed)  # the same Faults both ways
         self.name = "stepped://device"
         self.timeout: float | None = 0.0
@@ -273,7 +273,7 @@ class SteppedDevice:
 
     def read(self, n: int = 1) -> bytes:
         self.endpoint.poll()
-        data = self.host.rx.read(n, 0)
+        data = self.host.rx.read(min(n, self.max_read or n), 0)
         if not data:
             self.now[0] += self.tick_s
         return data

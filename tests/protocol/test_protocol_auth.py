@@ -185,3 +185,66 @@ def test_tcp_device_with_a_key_file_end_to_end(tmp_path) -> None:
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_flood_of_wrong_macs_from_the_key_holders_address_never_keeps_it_out() -> None:
+    """Guessers on 127.0.0.1 (one connection guessing fast, 30 more guessing once each)
+    are slowed per connection and by the global budget; the key holder on the same
+    address is checked at once (fake clock, no thread)."""
+    from cdma_lidar.protocol.endpoint import DeviceCore
+
+    now = [100.0]
+    core = DeviceCore(SyntheticApp(channels=2, columns=4), key=KEY, clock=lambda: now[0])
+
+    def conn() -> SteppedDevice:
+        return SteppedDevice(None, core=core, now=now, peer="127.0.0.1")
+
+    fast = conn()
+    guesser = HostLink(fast, clock=fast.clock, key=bytes(32), retries=0, timeout_s=TIMEOUT)
+    for _ in range(20):
+        with pytest.raises(DeviceError) as exc:
+            guesser.hello()
+        assert exc.value.code == ErrorCode.AUTH_FAILED
+    assert fast.endpoint.stats.auth_rejected < 5 < fast.endpoint.stats.auth_throttled
+    for _ in range(30):
+        dev = conn()
+        with pytest.raises(DeviceError, match="does not match"):
+            HostLink(dev, clock=dev.clock, key=bytes(32), retries=0, timeout_s=TIMEOUT).hello()
+    # The budget is spent: a connection that guessed wrong now waits for it too.
+    assert core.backoff.wait_s(1, now[0]) > 5.0
+    holder_dev, start = conn(), now[0]
+    holder = HostLink(holder_dev, clock=holder_dev.clock, key=KEY, retries=0, timeout_s=TIMEOUT)
+    assert holder.hello().auth == 1
+    assert now[0] - start < TIMEOUT  # at once: no retry, no back-off
+    with pytest.raises(DeviceError, match="retry in"):  # the guesser is still held back
+        guesser.hello()
+
+
+def test_keyed_and_coded_on_a_noisy_line_with_requests_in_fragments() -> None:
+    """Signed and Reed-Solomon coded both ways at a bit error rate of 1e-3, with a
+    POWER_SET longer than the frame (signed pieces) and a scan: all arrive intact."""
+    from cdma_lidar.virtual.line import Faults
+
+    app = SyntheticApp(channels=8, columns=300)
+    dev = SteppedDevice(app, key=KEY, max_frame=512, faults=Faults(bit_error_rate=1e-3), seed=3)
+    link = HostLink(dev, clock=dev.clock, key=KEY, fec=True, timeout_s=TIMEOUT, retries=6)
+    assert link.hello().auth == 1 and link.coded
+    m = (np.arange(8 * 300).reshape(8, 300) * 5) % 65536
+    link.set_power(m)
+    np.testing.assert_array_equal(app.power, m)
+    cols = list(link.scan(columns=20))
+    assert all(c == expected_column(c.frame, c.column, 8, 1, 1) for c in cols)
+    assert dev.endpoint.decoder.stats.corrected > 0 and dev.endpoint.stats.auth_rejected == 0
+
+
+def test_a_request_of_an_ended_signed_session_gets_a_signed_wrong_session() -> None:
+    """The host of a signed session drops unsigned frames: the device signs the NAK with
+    the ended session's key, so the host hears it at once instead of timing out."""
+    dev = SteppedDevice(SyntheticApp(channels=2, columns=4), key=KEY)
+    link = HostLink(dev, clock=dev.clock, key=KEY, timeout_s=TIMEOUT)
+    link.hello()
+    link._transact(MsgType.SESSION_END, {}, link._new_seq())  # the link keeps its keys
+    with pytest.raises(DeviceError) as exc:
+        link.status()
+    assert exc.value.code == ErrorCode.WRONG_SESSION
+    assert link.stats.retries == 0 and link.stats.unauthenticated == 0

@@ -19,7 +19,7 @@ def test_an_unsigned_line_error_in_a_signed_session_is_not_counted() -> None:
     """An injector's LINE_ERROR must not hurry the host: counted only once it verifies."""
     host, dev = pipe_pair()
     with RunningDevice(dev, SyntheticApp(channels=4, columns=8), key=KEY):
-        link = HostLink(host, timeout_s=1.0, retries=2, key=KEY)
+        link = HostLink(host, timeout_s=2.0, retries=2, key=KEY)
         link.hello()
         before = (link.line_errors, link.stats.unauthenticated)
         forged = encode_payload(MsgType.LINE_ERROR, {"rx_errors": 7})
@@ -38,14 +38,14 @@ def test_status_counters_run_since_boot_not_since_the_connection() -> None:
     core = DeviceCore(SyntheticApp(channels=4, columns=8))
     first_host, first_dev = pipe_pair()
     with RunningDevice(first_dev, None, core=core):
-        link = HostLink(first_host, timeout_s=1.0)
+        link = HostLink(first_host, timeout_s=2.0)
         link.hello()
         list(link.scan(frame=1))
         st1 = link.status()
         link.close()
     second_host, second_dev = pipe_pair()
     with RunningDevice(second_dev, None, core=core):
-        link = HostLink(second_host, timeout_s=1.0)
+        link = HostLink(second_host, timeout_s=2.0)
         link.hello()
         st2 = link.status()
         link.close()
@@ -125,6 +125,33 @@ def test_a_second_host_hears_busy_while_the_application_computes() -> None:
         app.release.set()
 
 
+def test_busy_comes_from_the_scan_state_while_the_application_computes() -> None:
+    """CONFIG_SET, SCAN_START and CALIBRATE during a scan are refused BUSY by the polling
+    thread (issue 42.3): none waits for the column the application is computing."""
+    import pytest
+
+    from cdma_lidar.errors import DeviceError
+    from cdma_lidar.protocol.messages import ErrorCode
+
+    app = _Stuck()
+    host, dev = pipe_pair()
+    try:
+        with RunningDevice(dev, app):
+            link = HostLink(host, timeout_s=2.0, retries=0)
+            link.hello()
+            link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
+            for req, fields in ((MsgType.CONFIG_SET, {"items": []}),
+                                (MsgType.SCAN_START, {"frame": 2, "first_column": 0,
+                                                      "columns": 1}),
+                                (MsgType.CALIBRATE, {"frame": 3, "shots": 1})):
+                with pytest.raises(DeviceError) as exc:
+                    link._request(req, fields)
+                assert exc.value.code == ErrorCode.BUSY, req
+            assert not app.release.is_set()  # all answered while the column was stuck
+    finally:
+        app.release.set()
+
+
 def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
     """20 wrong MACs at one instant: one is checked, one WARNING; later the key holder gets in."""
     import logging
@@ -140,7 +167,7 @@ def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
     host, dev = pipe_pair()
     with caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol"), \
             RunningDevice(dev, None, core=core) as ep:
-        guesser = HostLink(host, timeout_s=1.0, key=bytes(32))
+        guesser = HostLink(host, timeout_s=2.0, key=bytes(32))
         for _ in range(20):
             with pytest.raises(DeviceError) as exc:
                 guesser.hello()
@@ -279,7 +306,7 @@ def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> N
     host, dev = pipe_pair()
     got = []
     with RunningDevice(dev, app):
-        link = HostLink(host, timeout_s=1.0)
+        link = HostLink(host, timeout_s=2.0)
         link.hello()
         with pytest.raises(StreamEnded) as exc:
             got.extend(c.column for c in link.scan(frame=5))

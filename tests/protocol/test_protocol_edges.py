@@ -38,12 +38,12 @@ def test_reply_in_another_protocol_version_fails_at_once_naming_both() -> None:
     nak = encode_payload(MsgType.NAK, {"request_type": MsgType.HELLO,
                                        "code": int(ErrorCode.VERSION), "field": "version",
                                        "detail": ""})
-    port = ScriptedPort(lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=4))
+    port = ScriptedPort(lambda f: encode_frame(MsgType.NAK, nak, f.seq, 0x99, version=5))
     link = HostLink(port, retries=3, clock=port.clock)
-    with pytest.raises(LinkError, match="protocol version 4") as exc:
+    with pytest.raises(LinkError, match="protocol version 5") as exc:
         link.hello()
     assert not isinstance(exc.value, LinkTimeout)
-    assert "version 3" in str(exc.value)
+    assert "version 4" in str(exc.value)
     assert link.stats.retries == 0  # at once: no retry, so no timeout was waited for
 
 
@@ -51,7 +51,7 @@ def test_only_frames_of_another_version_are_diagnosed_as_such() -> None:
     """Frames that pass the CRC but carry another version, none answering us."""
     hb = encode_payload(MsgType.HEARTBEAT, Status().to_fields())
     port = ScriptedPort(idle=lambda now: encode_frame(MsgType.HEARTBEAT, hb, 1, 0x600D,
-                                                      version=4))
+                                                      version=5))
     link = scripted_link(port, 0x600D, retries=1)
     with pytest.raises(LinkTimeout) as exc:
         link.status()

@@ -23,6 +23,7 @@ frames_st = st.builds(
     version=st.just(framing.PROTOCOL_VERSION),
     sig=st.just(b""),
     fec=st.just(False),
+    joined=st.just(False),
 )
 
 

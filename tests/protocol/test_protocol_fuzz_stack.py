@@ -47,7 +47,9 @@ def test_device_survives_hostile_frames_and_still_answers(frames: list, noise: b
     host, dev = pipe_pair()
     host.timeout = 0.01
     app = SyntheticApp(channels=4, columns=16)
-    ep = DeviceEndpoint(dev, app, session_id=SESSION, poll_s=0.001, heartbeat_s=10.0)
+    # Threadless: each poll also handles the queued requests (no worker thread to wait for).
+    ep = DeviceEndpoint(dev, app, session_id=SESSION, poll_s=0.0, threads=False,
+                        heartbeat_s=10.0)
     try:
         wire = noise + b"".join(encode_frame(t, p, seq, sess, incompat=inc)
                                 for t, seq, sess, p, inc in frames)
@@ -108,7 +110,7 @@ def test_hostile_stream_frames_during_a_scan_are_counted_not_raised() -> None:
     app = SyntheticApp(channels=4, columns=30, column_delay_s=0.002)
     stop = threading.Event()
     with RunningDevice(dev, app, session_id=0x1234, heartbeat_s=0.02):
-        link = HostLink(host)
+        link = HostLink(host, timeout_s=2.0)  # real threads: ample on a loaded machine
         link.hello()
 
         def inject() -> None:

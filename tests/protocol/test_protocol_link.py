@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 import serial
 from protocol_fixtures import (
-    RunningDevice,
     ScriptedPort,
+    SteppedDevice,
     SyntheticApp,
     ack,
     capture_expected,
@@ -46,19 +45,19 @@ from cdma_lidar.protocol.requests import (
     DIAG_WRONG_SESSION,
 )
 from cdma_lidar.protocol.views import Status
-from cdma_lidar.virtual.line import PipePort, pipe_pair
+from cdma_lidar.virtual.line import Faults, pipe_pair
 
-#: Reply timeout against a real device thread (s): ample on a loaded machine, and waited
-#: out only by the tests that expect a timeout.
+#: Reply timeout (s), on the threadless device's fake clock: waited out only by the tests
+#: that expect a timeout, and never a matter of the machine's load.
 TIMEOUT = 0.5
 
 
 @pytest.fixture
 def rig() -> Iterator[tuple[HostLink, DeviceEndpoint, SyntheticApp]]:
-    host, dev = pipe_pair(max_read=500)
     app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=0.05, session_id=0x1234) as ep:
-        link = HostLink(host, timeout_s=TIMEOUT, retries=2)
+    port = SteppedDevice(app, heartbeat_s=0.05, session_id=0x1234, max_read=500)
+    with port as ep:
+        link = HostLink(port, timeout_s=TIMEOUT, retries=2, clock=port.clock)
         link.hello()
         yield link, ep, app
         link.close()
@@ -67,7 +66,7 @@ def rig() -> Iterator[tuple[HostLink, DeviceEndpoint, SyntheticApp]]:
 class Raw:
     """Talk to a device endpoint frame by frame (no HostLink in between)."""
 
-    def __init__(self, port: PipePort, session: int = 0) -> None:
+    def __init__(self, port: SteppedDevice, session: int = 0) -> None:
         self.port = port
         self.session = session
         self.dec = FrameDecoder()
@@ -77,25 +76,20 @@ class Raw:
         self.port.write(wire)
         return wire
 
-    def recv(self, wait: float = 0.3) -> list[Frame]:
+    def recv(self) -> list[Frame]:
+        """Every frame the device sends until it falls silent (each read polls it once)."""
         out: list[Frame] = []
-        end = time.monotonic() + wait
-        while time.monotonic() < end:
-            out += self.dec.feed(self.port.read(max(1, self.port.in_waiting)))
-            if out and not self.port.in_waiting:
-                time.sleep(0.02)
-                if not self.port.in_waiting:
-                    break
+        while data := self.port.read(65536):
+            out += self.dec.feed(data)
         return out
 
 
 @pytest.fixture
 def raw() -> Iterator[tuple[Raw, DeviceEndpoint, SyntheticApp]]:
-    host, dev = pipe_pair()
-    host.timeout = 0.02
     app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=10.0, session_id=0xABCD) as ep:
-        r = Raw(host)
+    port = SteppedDevice(app, heartbeat_s=10.0, session_id=0xABCD)
+    with port as ep:
+        r = Raw(port)
         r.send(MsgType.HELLO, hello_fields(5, 65535), seq=100)
         (info,) = r.recv()
         assert info.msg_type == MsgType.INFO and info.session == 0xABCD
@@ -136,24 +130,36 @@ def test_config_set_get_and_device_refusal(rig) -> None:
         link.set_config(nonsense=1)
 
 
-def test_power_matrix_is_chunked_under_the_frame_size() -> None:
-    host, dev = pipe_pair()
+def test_a_power_matrix_longer_than_a_frame_goes_as_one_request_in_fragments() -> None:
     app = SyntheticApp(channels=8, columns=300)
-    with RunningDevice(dev, app, max_frame=512):
-        link = HostLink(host, timeout_s=TIMEOUT)
-        assert link.hello().max_frame == 512
-        m = (np.arange(8 * 300).reshape(8, 300) * 7) % 65536
-        before = link.stats.requests
-        link.set_power(m)
-        assert link.stats.requests - before >= 8 * 300 * 2 // 512
-        np.testing.assert_array_equal(app.power, m)
-        link.set_power(np.full((2, 3), 0.5), channel_start=1, column_start=10)
-        assert (app.power[1:3, 10:13] == 32768).all()
-        with pytest.raises(DeviceError) as exc:
-            link.set_power(np.ones((9, 1), dtype=int))
-        assert exc.value.field == "channel_start"
-        with pytest.raises(FieldError, match="power"):
-            link.set_power(np.full((2, 2), 1.5))
+    dev = SteppedDevice(app, max_frame=512)
+    link = HostLink(dev, clock=dev.clock, timeout_s=TIMEOUT)
+    assert link.hello().max_frame == 512
+    m = (np.arange(8 * 300).reshape(8, 300) * 7) % 65536
+    before, pieces = link.stats.requests, dev.endpoint.decoder.stats.frames
+    link.set_power(m)
+    assert link.stats.requests - before == 1  # 4808 bytes: one POWER_SET in 10 FRAGMENTs
+    assert dev.endpoint.decoder.stats.frames - pieces == 10
+    np.testing.assert_array_equal(app.power, m)
+    link.set_power(np.full((2, 3), 0.5), channel_start=1, column_start=10)
+    assert (app.power[1:3, 10:13] == 32768).all()
+    with pytest.raises(DeviceError) as exc:
+        link.set_power(np.ones((9, 1), dtype=int))
+    assert exc.value.field == "channel_start"
+    with pytest.raises(FieldError, match="power"):
+        link.set_power(np.full((2, 2), 1.5))
+
+
+def test_a_request_in_fragments_survives_lost_pieces() -> None:
+    """Every fifth frame to the device is lost: the retries fill the gaps (the device
+    keeps the pieces it has), and the request is acted on once."""
+    app = SyntheticApp(channels=8, columns=300)
+    dev = SteppedDevice(app, max_frame=512, faults=Faults(drop=0.2), seed=5)
+    link = HostLink(dev, clock=dev.clock, timeout_s=TIMEOUT, retries=10)
+    link.hello()
+    m = (np.arange(8 * 300).reshape(8, 300) * 3) % 65536
+    link.set_power(m)
+    np.testing.assert_array_equal(app.power, m)
 
 
 def test_scan_calibrate_capture_status(rig) -> None:
@@ -182,38 +188,30 @@ def test_scan_calibrate_capture_status(rig) -> None:
 
 def test_leaving_a_scan_early_aborts_it(rig) -> None:
     link, _ep, app = rig
-    app.column_delay_s = 0.005
     for c in link.scan():
         if c.column == 3:
             break
-    deadline = time.monotonic() + 2.0  # the column worker calls abort() when it stops
-    while app.aborts == 0 and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert app.aborts == 1
     assert link.status().state_name == "idle"
+    assert app.aborts == 1
     assert len(list(link.scan(columns=5))) == 5  # the link is usable again
 
 
 def test_busy_and_too_large(rig) -> None:
-    link, _ep, app = rig
-    app.column_delay_s = 0.01
+    link, _ep, _app = rig
     it = link.scan()
     next(it)
     with pytest.raises(DeviceError) as exc:
         link.set_config(peaks=2)
     assert exc.value.code == ErrorCode.BUSY
     it.close()
-    app.column_delay_s = 0.0
-    host, dev = pipe_pair()
-    big = SyntheticApp(channels=40, columns=6)
-    with RunningDevice(dev, big, max_frame=2048):  # a 4419-byte column: three fragments
-        link2 = HostLink(host, timeout_s=TIMEOUT)
+    big = SteppedDevice(SyntheticApp(channels=40, columns=6), max_frame=2048)
+    with big:  # a 4419-byte column: three fragments
+        link2 = HostLink(big, timeout_s=TIMEOUT, clock=big.clock)
         link2.set_config(peaks=8)
         assert list(link2.scan(frame=4)) == [expected_column(4, c, 40, 8, 1) for c in range(6)]
-    host, dev = pipe_pair()
-    huge = SyntheticApp(channels=1500, columns=2)
-    with RunningDevice(dev, huge, max_frame=256):  # INFO itself comes in 27 fragments
-        link3 = HostLink(host, timeout_s=TIMEOUT, max_frame=256)
+    huge = SteppedDevice(SyntheticApp(channels=1500, columns=2), max_frame=256)
+    with huge:  # INFO itself comes in 27 fragments
+        link3 = HostLink(huge, timeout_s=TIMEOUT, max_frame=256, clock=huge.clock)
         assert link3.hello().channels == 1500
         link3.set_config(peaks=8)  # a column of 1500 x 110 bytes: 721 fragments
         with pytest.raises(DeviceError) as exc:
@@ -245,7 +243,7 @@ def test_retransmitted_request_is_replayed_not_repeated(raw) -> None:
     assert app.set_config_calls == 1 and ep.stats.replays == 2
     r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
     r.send(MsgType.SCAN_START, {"frame": 9, "first_column": 0, "columns": 3}, seq=102)
-    frames = r.recv(0.5)
+    frames = r.recv()
     assert app.scan_calls == 1
     cols = [f for f in frames if f.msg_type == MsgType.COLUMN_RESULT]
     assert len(cols) == 3
@@ -256,7 +254,7 @@ def test_late_duplicate_of_an_older_request_is_dropped(raw) -> None:
     r.send(MsgType.STATUS_GET, seq=110)
     assert len(r.recv()) == 1
     r.send(MsgType.CONFIG_SET, {"items": encode_config({"peaks": 5})}, seq=105)
-    assert r.recv(0.15) == []
+    assert r.recv() == []
     assert ep.stats.stale == 1 and app.config["peaks"] == 1
 
 
@@ -279,17 +277,17 @@ def test_device_naks_what_it_cannot_act_on(raw) -> None:
     assert nak(r.recv()[0])["code"] == ErrorCode.MALFORMED
     r.port.write(encode_frame(0x7E, b"", 125, r.session))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNKNOWN_TYPE
-    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=4))
+    r.port.write(encode_frame(MsgType.STATUS_GET, b"", 126, r.session, version=5))
     assert r.recv() == []  # the NAK is in the request's version: this decoder rejects it
     (f,) = r.dec.rejected
     r.dec.rejected.clear()
-    assert nak(f)["code"] == ErrorCode.VERSION and f.version == 4 != framing.PROTOCOL_VERSION
+    assert nak(f)["code"] == ErrorCode.VERSION and f.version == 5 != framing.PROTOCOL_VERSION
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 127, r.session, incompat=0x80))
     assert nak(r.recv()[0])["code"] == ErrorCode.UNSUPPORTED_FLAGS
     r.port.write(encode_frame(MsgType.STATUS_GET, b"", 128, 0x5555))
     assert nak(r.recv()[0])["code"] == ErrorCode.WRONG_SESSION
     r.port.write(encode_frame(MsgType.ACK, b"\x01", 129, r.session))  # not a request
-    assert r.recv(0.1) == [] and ep.stats.ignored == 1
+    assert r.recv() == [] and ep.stats.ignored == 1
 
 
 def test_device_survives_an_application_crash(raw) -> None:
@@ -430,20 +428,20 @@ def test_device_stays_responsive_while_a_column_takes_long() -> None:
 @pytest.mark.parametrize("lost_end", [False, True])
 def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bool) -> None:
     """Also when SCAN_END is lost: the STATUS probe says how the scan ended."""
-    host, dev = pipe_pair(seed=4)
+    app = SyntheticApp()
+    app.fail_at = 7
+    port = SteppedDevice(app, seed=4, heartbeat_s=0.02)
     if lost_end:
-        push = dev.tx.write
+        push = port.rx.write  # what the device writes
 
         def drop_scan_end(data: bytes) -> None:
             frames = FrameDecoder().feed(data)
             if not (frames and frames[0].msg_type == MsgType.SCAN_END):
                 push(data)
 
-        dev.tx.write = drop_scan_end
-    app = SyntheticApp()
-    app.fail_at = 7
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT)
+        port.rx.write = drop_scan_end
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, clock=port.clock)
         got = []
         with pytest.raises(DeviceError) as exc:
             for c in link.scan(columns=20):
@@ -455,10 +453,10 @@ def test_device_failure_mid_scan_delivers_what_was_sent_then_raises(lost_end: bo
 
 
 def test_power_before_hello_uses_the_session_frame_size() -> None:
-    host, dev = pipe_pair()
     app = SyntheticApp(channels=8, columns=300)
-    with RunningDevice(dev, app, max_frame=512) as ep:
-        link = HostLink(host, timeout_s=TIMEOUT)
+    port = SteppedDevice(app, max_frame=512)
+    with port as ep:
+        link = HostLink(port, timeout_s=TIMEOUT, clock=port.clock)
         link.set_power(np.full((8, 300), 3))  # hello() happens first, implicitly
         assert (app.power == 3).all() and ep.decoder.stats.oversize == 0
 
@@ -475,8 +473,8 @@ def test_reply_echoing_another_request_type_is_not_taken() -> None:
 
 def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
     """Short frames pass, every copy of column 2 is damaged: a clear timeout, no hang."""
-    host, dev = pipe_pair()
-    push = dev.tx.write
+    port = SteppedDevice(SyntheticApp(), heartbeat_s=0.02)
+    push = port.rx.write  # what the device writes
 
     def damage_column_2(data: bytes) -> None:
         frames = FrameDecoder().feed(data)
@@ -485,10 +483,9 @@ def test_column_that_never_arrives_intact_fails_after_its_budget() -> None:
             data = data[:40] + bytes([data[40] ^ 0x10]) + data[41:]
         push(data)
 
-    dev.tx.write = damage_column_2
-    app = SyntheticApp()
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, column_retries=3)
+    port.rx.write = damage_column_2
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, column_retries=3, clock=port.clock)
         got = []
         with pytest.raises(LinkTimeout) as exc:
             for c in link.scan(columns=6):

@@ -13,7 +13,6 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 from protocol_fixtures import (
-    RunningDevice,
     ScriptedPort,
     SteppedDevice,
     SyntheticApp,
@@ -23,10 +22,10 @@ from protocol_fixtures import (
 from cdma_lidar.errors import LinkTimeout
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.requests import DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_NOISY, DIAG_SILENT
-from cdma_lidar.virtual.line import Faults, pipe_pair
+from cdma_lidar.virtual.line import Faults, LineNoise
 
-#: Reply timeout against the real device thread on a lossy line (s): each lost frame costs
-#: one; long enough that a slow machine does not look like a lost frame.
+#: Reply timeout on a lossy line (s), on the threadless device's fake clock: the machine's
+#: load cannot make a slow reply look like a lost frame.
 TIMEOUT = 0.2
 DIAGNOSES = {DIAG_SILENT, DIAG_GARBAGE, DIAG_NO_ANSWER, DIAG_NOISY}
 K, C = 6, 40
@@ -40,11 +39,9 @@ class LossyLink(RuleBasedStateMachine):
                 reorder=st.sampled_from([0.0, 0.1]))
     def start(self, seed: int, drop: float, dup: float, corrupt: float, reorder: float) -> None:
         f = Faults(drop=drop, duplicate=dup, corrupt=corrupt, reorder=reorder)
-        host, dev = pipe_pair(f, f, seed=seed, max_read=900)
         self.app = SyntheticApp(channels=K, columns=C)
-        self.device = RunningDevice(dev, self.app, heartbeat_s=0.02)
-        self.device.__enter__()
-        self.link = HostLink(host, timeout_s=TIMEOUT, retries=8)
+        self.device = SteppedDevice(self.app, faults=f, seed=seed, heartbeat_s=0.02)
+        self.link = HostLink(self.device, timeout_s=TIMEOUT, retries=8, clock=self.device.clock)
         self.config = {"peaks": 1, "uid_bits": 1}
         self.power = self.app.power.copy()
         self.timeouts = 0
@@ -52,7 +49,7 @@ class LossyLink(RuleBasedStateMachine):
 
     def teardown(self) -> None:
         if hasattr(self, "device"):
-            self.device.__exit__(None, None, None)
+            self.device.close()
 
     def _call(self, fn, *args, **kw):
         """Run a request; a timeout is allowed but must carry a diagnosis.
@@ -146,10 +143,10 @@ TestLossyLink = LossyLink.TestCase
 @pytest.mark.parametrize("seed", range(3))
 def test_heavy_loss_every_request_completes_or_times_out_clearly(seed: int) -> None:
     f = Faults(drop=0.4, duplicate=0.2, corrupt=0.2, reorder=0.2)
-    host, dev = pipe_pair(f, f, seed=seed)
     app = SyntheticApp(channels=K, columns=C)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, retries=3)
+    port = SteppedDevice(app, faults=f, seed=seed, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, retries=3, clock=port.clock)
         outcomes = []
         for k in range(12):
             try:
@@ -177,10 +174,11 @@ def test_dead_line_fails_after_the_retries() -> None:
 
 def test_scan_through_bit_errors_is_repaired() -> None:
     """Bit errors on the way up: damaged columns are asked for again; none is lost or doubled."""
-    host, dev = pipe_pair(to_host=Faults(bit_error_rate=2e-4), seed=7)
-    app = SyntheticApp(channels=K, columns=C)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=TIMEOUT, retries=10)
+    port = SteppedDevice(SyntheticApp(channels=K, columns=C), seed=7, heartbeat_s=0.02)
+    port.host.rx.faults = Faults(bit_error_rate=2e-4)  # on the way up only
+    port.host.rx.noise = LineNoise(2e-4, 8)
+    with port:
+        link = HostLink(port, timeout_s=TIMEOUT, retries=10, clock=port.clock)
         link.hello()
         cols = list(link.scan())
         assert [c.column for c in cols] == list(range(C))
@@ -220,11 +218,10 @@ def test_a_line_that_damages_everything_is_diagnosed_as_noisy_not_as_a_baud_rate
 def test_reed_solomon_frames_carry_a_1e3_line_whole() -> None:
     """FEC: 1.7 kB columns never pass a 1e-3 line plain; coded, nearly all are repaired
     on arrival and RESEND fetches the rest."""
-    f = Faults(bit_error_rate=1e-3)
-    host, dev = pipe_pair(f, f, seed=5)
-    app = SyntheticApp(channels=40, columns=12)
-    with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.2, retries=20, fec=True)
+    port = SteppedDevice(SyntheticApp(channels=40, columns=12), faults=Faults(bit_error_rate=1e-3),
+                         seed=5, heartbeat_s=0.02)
+    with port:
+        link = HostLink(port, timeout_s=0.2, retries=20, fec=True, clock=port.clock)
         link.hello()
         assert link.coded
         cols = list(link.scan(frame=2))

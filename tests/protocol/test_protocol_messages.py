@@ -242,12 +242,13 @@ def test_config_decoder_names_key_of_bad_value(key: int, value: bytes) -> None:
     assert exc.value.field == {16: "peaks", 3: "code_index", 14: "rounding"}[key]
 
 
-@given(st.sets(st.integers(1, 31), min_size=1, max_size=8))
-def test_poly_mask_round_trip(exps: set[int]) -> None:
+@given(st.sets(st.integers(1, 32), min_size=1, max_size=8))
+def test_poly_mask_round_trip_up_to_degree_32(exps: set[int]) -> None:
     key = config_key("poly_u")
     poly = tuple(sorted(exps, reverse=True))
     assert key.decode(key.encode(poly)) == poly
-    assert key.encode((11, 2)) == (0x804).to_bytes(4, "little")
+    assert key.encode((11, 2)) == (0x402).to_bytes(4, "little")
+    assert key.encode((32, 22, 2, 1)) == (0x80200003).to_bytes(4, "little")
 
 
 # ---- COLUMN_RESULT: numpy path == construct path ------------------------------------------
@@ -339,3 +340,14 @@ def test_a_fragment_outside_its_count_or_empty_does_not_decode(index: int, data:
                                                 "data": data})
     with pytest.raises(FrameError, match="FRAGMENT"):
         decode_payload(MsgType.FRAGMENT, payload)
+
+
+def test_column_result_declares_one_view_per_record_field() -> None:
+    """The views are written out in the class (no setattr at import): the same list as
+    the record's fields, in order."""
+    from cdma_lidar.column_record import RECORD
+    from cdma_lidar.protocol.columns import ColumnResult
+
+    views = [n for n, v in vars(ColumnResult).items()
+             if isinstance(v, property) and n not in ("channels", "peaks")]
+    assert views[:len(RECORD)] == [f.name for f in RECORD]

@@ -201,7 +201,7 @@ def test_scan_on_a_paced_noisy_line_is_byte_identical(ber: float) -> None:
     host, dev = pipe_pair(f, f, seed=11, baud=4_000_000)
     app = SyntheticApp(channels=40, columns=30)
     with RunningDevice(dev, app, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=0.2, retries=20, fec=True)
+        link = HostLink(host, timeout_s=2.0, retries=20, fec=True)
         link.hello()
         assert link.coded  # Reed-Solomon coded frames
         cols = list(link.scan(frame=3))
@@ -220,7 +220,7 @@ def test_status_overtakes_the_column_stream_on_a_slow_line() -> None:
     host, dev = pipe_pair(baud=921_600)
     app = SyntheticApp(channels=40, columns=60)
     with RunningDevice(dev, app, heartbeat_s=0.5):
-        link = HostLink(host, timeout_s=0.5)
+        link = HostLink(host, timeout_s=2.0)
         link.hello()
         scan = link.scan(frame=6)
         first = [next(scan) for _ in range(3)]

@@ -35,7 +35,7 @@ def test_handshake_configure_scan_over_pty(pty_pair) -> None:
     app = SyntheticApp(channels=40, columns=50)
     with RunningDevice(device_port, app, heartbeat_s=0.05):
         port = open_port(path, baudrate=921600, timeout=0.02)
-        with HostLink(port, timeout_s=0.5, retries=3) as link:
+        with HostLink(port, timeout_s=2.0, retries=3) as link:
             info = link.hello()
             assert info.channels == 40 and info.serial == "SYN-0001"
             link.set_config(peaks=2, uid_bits=2, rounding="convergent")
@@ -86,7 +86,7 @@ def test_handshake_and_scan_over_tcp_with_a_true_in_waiting() -> None:
     dev_port = FdPort(conn.fileno())
     try:
         with RunningDevice(dev_port, app, heartbeat_s=0.05), \
-                HostLink(port, timeout_s=0.5, retries=3) as link:
+                HostLink(port, timeout_s=2.0, retries=3) as link:
             assert link.hello().channels == 40
             cols = list(link.scan())
             assert [c.column for c in cols] == list(range(200))
@@ -95,3 +95,28 @@ def test_handshake_and_scan_over_tcp_with_a_true_in_waiting() -> None:
     finally:
         conn.close()
         server.close()
+
+
+def test_the_cli_device_on_a_pty_with_a_key_file_speaks_keyed_and_coded(tmp_path) -> None:
+    """``cdma-lidar device --pty --key-file``: a serial line whose sessions are signed and
+    Reed-Solomon coded at once (issue 42.6)."""
+    import subprocess
+    import sys
+
+    from cdma_lidar.protocol.auth import load_or_create_key
+
+    key_file = tmp_path / "device.key"
+    key, _ = load_or_create_key(key_file)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdma_lidar.cli", "device", "--scene",
+         "flat-wall?instrument.wavelengths.count=4&instrument.columns=2", "--pty",
+         "--key-file", str(key_file)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else path
+        with HostLink(open_port(path, timeout=0.02), timeout_s=2.0, key=key) as link:
+            assert link.hello().auth == 1 and link.coded
+            assert len(list(link.scan())) == 2
+    finally:
+        proc.terminate()
+        proc.wait(10)

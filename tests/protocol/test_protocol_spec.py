@@ -77,7 +77,7 @@ def test_example_wire_bytes_in_the_page_decode() -> None:
 def test_hand_written_numbers_of_the_page_match_the_code() -> None:
     """The prose outside the generated blocks: CRC example, diagnoses, default timing."""
     text = spec.DOC_PATH.read_text(encoding="utf-8")
-    head = bytes.fromhex("03 00 00 0a 02 01 00 00 d4 c3 b2 a1")
+    head = bytes.fromhex("04 00 00 0a 02 01 00 00 d4 c3 b2 a1")
     assert f"give CRC 0x{crc32(head):08X}" in text
     wire = encode_frame(MsgType.STATUS_GET, b"", 0x0102, 0xA1B2C3D4)
     assert f"COBS-encode to `{wire[1:-1].hex(' ')}`" in text
@@ -96,3 +96,26 @@ def test_every_diagnosis_has_a_hint_and_a_row_in_the_page() -> None:
     assert set(DIAG_HINTS) == {DIAG_SILENT, DIAG_GARBAGE, DIAG_WRONG_SESSION, DIAG_VERSION,
                                DIAG_NO_ANSWER, DIAG_NOISY}
     assert all(hint and f"| `{d}` |" in text for d, hint in DIAG_HINTS.items())
+
+
+def test_the_pages_fragmented_power_set_is_acted_on_by_the_device() -> None:
+    """Section 10's POWER_SET in FRAGMENTs, read off the page, sets the power (a request in
+    pieces is joined by (type, seq) and acted on once)."""
+    import numpy as np
+    from protocol_fixtures import SteppedDevice, SyntheticApp, hello_fields
+
+    from cdma_lidar.protocol.messages import encode_payload
+
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    wires = [bytes.fromhex(h) for h in re.findall(r"^  wire \d  ([0-9a-f ]+)$", text, re.M)]
+    assert len(wires) == 2
+    app = SyntheticApp(channels=2, columns=120)
+    dev = SteppedDevice(app, session_id=0xA1B2C3D4, max_frame=256)
+    dev.write(encode_frame(MsgType.HELLO, encode_payload(MsgType.HELLO, hello_fields(1, 256)),
+                           0x0101, 0))
+    dev.read(4096)
+    for w in wires:
+        dev.write(w)
+    frames = FrameDecoder().feed(dev.read(4096))
+    assert [f.msg_type for f in frames] == [MsgType.ACK] and frames[0].seq == 0x0102
+    np.testing.assert_array_equal(app.power[0], np.arange(120) * 500)

@@ -207,14 +207,24 @@ def _whiten(data: bytes) -> bytes:
     return bytes(b ^ ((0x5A + 0x97 * i) & 0xFF) for i, b in enumerate(data))
 
 
-def _rs_encode(body: bytes) -> bytes:
-    rs = reedsolo.RSCodec(16, nsize=255)
-    return _whiten(b"".join(bytes(rs.encode(body[i:i + 239])) for i in range(0, len(body), 239)))
+def _spread(parity: bytes) -> bytes:
+    """48 parity bytes as 55 bytes 0x80 | 7 bits (section 2.5), bit by bit."""
+    bits = "".join(f"{p:08b}" for p in parity) + "0"
+    return bytes(0x80 | int(bits[i:i + 7], 2) for i in range(0, len(bits), 7))
+
+
+def _rs_encode(stuffed: bytes) -> bytes:
+    rs = reedsolo.RSCodec(48, nsize=255)
+    out = b""
+    for i in range(0, len(stuffed), 207):
+        block = bytes(rs.encode(stuffed[i:i + 207]))
+        out += block[:-48] + _spread(block[-48:])
+    return out
 
 
 def _rs_data(coded: bytes) -> bytes:
-    plain = _whiten(coded)
-    return b"".join(plain[i:i + 255][:-16] for i in range(0, len(plain), 255))
+    """The data bytes of an undamaged coded chunk (the pipe does not damage them)."""
+    return b"".join(coded[i:i + 262][:-55] for i in range(0, len(coded), 262))
 
 
 class SignedClient(Client):
@@ -236,12 +246,13 @@ class SignedClient(Client):
             c = struct.pack("<Q", self.counter)
             body += c + _mac(self.k_dev, body, c)[:16]
         body += struct.pack("<I", crc32(body))
-        self.port.write(b"\x00" + cobs_encode(_rs_encode(body)) + b"\x00")
+        self.port.write(b"\x00" + _rs_encode(cobs_encode(_whiten(body))) + b"\x00")
 
     def frames(self):
         for chunk in self.chunks():
-            raw = cobs_decode(chunk)
-            body = raw if struct.unpack("<I", raw[-4:])[0] == crc32(raw[:-4]) else _rs_data(raw)
+            body = cobs_decode(chunk)
+            if len(body) < 16 or struct.unpack("<I", body[-4:])[0] != crc32(body[:-4]):
+                body = _whiten(cobs_decode(_rs_data(chunk)))  # coded (section 2.5)
             assert struct.unpack("<I", body[-4:])[0] == crc32(body[:-4])
             _v, incompat, _c, mtype, seq, plen, session = struct.unpack_from(HEADER_FMT, body)
             payload = body[12:12 + plen]

@@ -100,6 +100,7 @@ class Serial(SerialBase):
         self._thread: threading.Thread | None = None
         self.endpoint = None
         self.firmware = None
+        self.line_baud: int | None = None
         super().__init__(*args, **kwargs)
 
     # ---- open / close -----------------------------------------------------------------
@@ -124,6 +125,7 @@ class Serial(SerialBase):
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         baud = own.get("line_baud")
+        self.line_baud = baud  # the host's reply timeouts count the line's transmit time
         try:
             self._to_device = BytePipe(noise=self._noise, baud=baud)
             self._from_device = BytePipe(noise=self._noise_up, baud=baud)
