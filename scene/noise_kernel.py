@@ -75,7 +75,7 @@ def _row(seed: NDArray[np.uint64], table: NDArray[np.float32], scale: np.float32
          mean: NDArray[np.float32], out: NDArray[np.int32]) -> None:
     """The accumulated kernel's source (plain Python: what numba compiles)."""
     if mean.size != out.size:
-        raise ValueError("mean must match the row")
+        raise RuntimeError("mean must match the row")
     hi, lo, inc_hi, inc_lo = _pcg(seed)
     draw = np.empty(out.size + 3, dtype=np.float32)
     for i in range(0, out.size, 4):  # the lookups run in the shadow of the 128-bit step
@@ -95,7 +95,7 @@ def _repetition_row(seed: NDArray[np.uint64], repetitions: int, scale: float,
     n = (repetitions - 1) * size  # random bytes, after the L Gaussians
     if repetitions < 1 or mean.size != size or draw.size != size or total.size != size \
             or words.size < -(-n // 8):
-        raise ValueError("repetitions >= 1; mean and the scratch rows must match the row, "
+        raise RuntimeError("repetitions >= 1; mean and the scratch rows must match the row, "
                          "words cover its bytes")
     hi, lo, inc_hi, inc_lo = _pcg(seed)
     for i in range(size):
@@ -126,7 +126,7 @@ def _pcg(seed: NDArray[np.uint64]) -> tuple[int, int, int, int]:
     is these four words, passed along in registers (the helpers below return the state
     they advanced)."""
     if seed.size != 4:
-        raise ValueError("the seed is 4 words (state, increment)")
+        raise RuntimeError("the seed is 4 words (state, increment)")
     one, zero = np.uint64(1), np.uint64(0)
     inc_hi = (seed[2] << one) | (seed[3] >> np.uint64(63))
     inc_lo = (seed[3] << one) | one

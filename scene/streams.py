@@ -28,6 +28,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.errors import ConfigError
+
 __all__ = ["from_seed_words", "generators", "seed_words"]
 
 _INIT_A, _MULT_A = 0x43B0D7E5, 0x931E8875
@@ -40,7 +42,7 @@ _MASK = 0xFFFFFFFF
 def _words(value: int) -> list[int]:
     """The 32-bit words of a non-negative int, least significant first (0: one word)."""
     if value < 0:
-        raise ValueError(f"a key must be non-negative integers, not {value}")
+        raise ConfigError(f"a key must be non-negative integers, not {value}", "key")
     out = [value & _MASK]
     value >>= 32
     while value:
@@ -93,7 +95,7 @@ class _State(np.random.bit_generator.ISeedSequence):
 
     def generate_state(self, n_words: int, dtype: type = np.uint32) -> NDArray[np.uint64]:
         if n_words != 4 or (dtype is not np.uint64 and np.dtype(dtype) != np.uint64):
-            raise ValueError("only PCG64's seeding (4 uint64 words) is precomputed")
+            raise NotImplementedError("only PCG64's seeding (4 uint64 words) is precomputed")
         return self.words
 
 

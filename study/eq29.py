@@ -87,7 +87,7 @@ def eq29_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
         stamps = np.array([c.timestamp_us for c in dev.link.scan(
             first_column=0, columns=cols, frames=1, frame=1)], dtype=np.int64)
     if stamps.size != cols or np.any(np.diff(stamps) < 0):
-        raise ValueError(f"expected {cols} increasing timestamps, got {stamps.size}")
+        raise RuntimeError(f"expected {cols} increasing timestamps, got {stamps.size}")
     frame_s = float(stamps[-1]) * 1e-6 * pixels / cols     # the clock starts at 0 at power-up
     column_us = chips / device_rate * 1e6
     return {"frame_rate_hz": 1.0 / frame_s,

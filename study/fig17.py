@@ -136,7 +136,7 @@ def fig17_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     n = 1 << l
     reps = necklaces(n)
     if len({canonical_necklace(x, n) for x in reps}) != len(reps):
-        raise ValueError(f"necklaces({n}) returned two members of one rotation class")
+        raise RuntimeError(f"necklaces({n}) returned two members of one rotation class")
     family = _family_candidates(m)
     md = m + l
     direct_enum = (_family_candidates(md) if md <= int(params["max_enumerate_degree"])

@@ -102,10 +102,11 @@ def _convert(name: str, text: str, kind: type) -> Any:
                 return True
             if text.lower() in ("0", "false", "no", "off"):
                 return False
-            raise ValueError(text)
-        return kind(text)
+        else:
+            return kind(text)
     except ValueError:
-        raise ConfigError(f"--set {name}={text!r}: expected {kind.__name__}", name) from None
+        pass
+    raise ConfigError(f"--set {name}={text!r}: expected {kind.__name__}", name)
 
 
 #: Settings every study has.

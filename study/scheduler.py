@@ -76,7 +76,7 @@ class Unit:
         parts = [(a, *self.done[a]) for a in sorted(self.done) if a < stop or a == 0]
         names = list(parts[0][2]) if parts else []
         if any(list(c) != names for _, _, c in parts):
-            raise ValueError("the chunks of this point returned different trial columns")
+            raise RuntimeError("the chunks of this point returned different trial columns")
         return {k: np.asarray([v for a, b, c in parts for v in c[k][:max(0, stop - a)]])
                 for k in names}
 
@@ -179,7 +179,7 @@ def execute_chunk(trials: Trials, params: Params, root: int, replicate: int, sta
                for k, vals in trials.run(dict(params), chunk).items()}
     bad = [k for k, v in columns.items() if len(v) != stop - start]
     if bad:
-        raise ValueError(f"trial columns {bad} do not have one value per trial "
+        raise RuntimeError(f"trial columns {bad} do not have one value per trial "
                          f"({stop - start})")
     return columns, *(b - a for a, b in zip(c0, _clocks(), strict=True))
 

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from cdma_lidar.errors import ConfigError
+
 __all__ = ["Scalar", "Table", "plain", "read_csv"]
 
 Scalar = int | float | str | bool | None
@@ -49,7 +51,8 @@ class Table:
     def add_column(self, name: str, values: Iterable[Any]) -> None:
         values = list(values)
         if len(values) != len(self.rows):
-            raise ValueError(f"column {name!r}: {len(values)} values for {len(self.rows)} rows")
+            raise ConfigError(f"column {name!r}: {len(values)} values for {len(self.rows)} rows",
+                              name)
         if name not in self.columns:
             self.columns.append(name)
         for row, v in zip(self.rows, values, strict=True):

@@ -87,7 +87,7 @@ def table1_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     u, v = read_printed(str(params["printed_u"])), read_printed(str(params["printed_v"]))
     m = int(params["degree"])
     if u[0] != m or v[0] != m:
-        raise ValueError(f"row {params['row']}: degree {m} but read {u} / {v}")
+        raise RuntimeError(f"row {params['row']}: degree {m} but read {u} / {v}")
     prim = is_primitive(u) and is_primitive(v)
     values = xcorr_values(u, v) if prim else {}
     t = t_value(m)

@@ -39,6 +39,7 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import NDArray
 
+from cdma_lidar.errors import MissingExtra
 from cdma_lidar.firmware_model.correlators.base import BLOCK_BYTES, Correlator, GatePlan
 from cdma_lidar.firmware_model.correlators.costs import Coefficients, Estimate
 
@@ -60,8 +61,8 @@ def _require_compat() -> ModuleType:
     try:
         import array_api_compat  # optional (extra "gpu"): only the array-API kernels need it
     except ImportError as exc:  # an optional dependency: say how to get it
-        raise ImportError("the array-API correlators need array-api-compat: "
-                          "pip install 'cdma-lidar[gpu]'") from exc
+        raise MissingExtra("the array-API correlators need array-api-compat: "
+                           "pip install 'cdma-lidar[gpu]'") from exc
     return array_api_compat
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdma_lidar.errors import ConfigError
+from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
 from cdma_lidar.hdl_ref import cosim, lint, synth
@@ -87,7 +87,7 @@ def test_verilator_lint_reports_problems(tmp_path):
 def _yowasp() -> bool:
     try:
         synth.tool("yosys")
-    except FileNotFoundError:
+    except MissingExtra:
         return False
     return True
 
