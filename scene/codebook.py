@@ -17,8 +17,12 @@ Fourier series is exact for ANY delay, fractional samples included::
 The L/2 + 1 bins repeat the chips' nN-point DFT under one weight (H, sinc, scale), so the
 per-channel work is one period of nN bins times its phase ramp (an outer product of two
 short exponentials), then one scaled add per further period; the weight multiplies the
-column's sum once (:meth:`Codebook.sum_delayed`). :class:`Codebook` keeps the spectra and
-``accumulated`` fidelity's waveform tables of each configuration (its own cache).
+column's sum once (:meth:`Codebook.sum_delayed`), reading each term's row of one table of
+the members' spectra (:class:`ChipSpectra`, K nN values: no per-column copy). :class:`Codebook`
+keeps the spectra and ``accumulated`` fidelity's waveform tables of each configuration (its
+own cache); the spectra tables are also kept for the process (bounded by
+SHARED_SPECTRA_BYTES), so a new Instrument of the same configuration does not transform the
+codes again.
 """
 
 from __future__ import annotations
