@@ -136,7 +136,7 @@ def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
     return np.where((uid >> np.arange(n)) & 1, -1.0, 1.0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ChipSpectra:
     """The nN-point DFTs of some Gold members' UID-signed bipolar chips, one table.
 
@@ -262,9 +262,9 @@ class Codebook:
         every Codebook in the process (at most SHARED_SPECTRA_BYTES kept)."""
         key = ("chips", single, cfg.poly_u, cfg.poly_v, uid, uid_bits)
         book = self._book(key)
-        have = book.get("spectra")
-        if have is None or any(i not in have.row for i in indices):
-            members = tuple(sorted(set(indices) | (set(have.row) if have else set())))
+        have, wanted = book.get("spectra"), set(indices)
+        if have is None or not wanted.issubset(have.row):
+            members = tuple(sorted(wanted.union(have.row) if have else wanted))
             have = book["spectra"] = _SHARED.get(cfg.poly_u, cfg.poly_v, members, uid,
                                                  uid_bits, single)
         return have, have.period
