@@ -16,7 +16,9 @@ the runs shown in the row), measured in this run:
 * ``render``: a cold frame's repetition sums (``Instrument.render_sums`` after
   ``forget()``: echoes synthesised, the per-configuration codebook kept) at the fastest
   fidelity (``accumulated``) and at ``exact``; ``codebook``: the one-off cost of the
-  first render of a configuration (code spectra and tables), per frame, not per column;
+  first render of a configuration (code spectra and tables), per frame, not per column
+  (the code spectra are then kept for the process, up to
+  :data:`cdma_lidar.scene.codebook.SHARED_SPECTRA_BYTES`: the scan below finds them);
 * ``scan``: ``run_scan`` through ``virtual://`` (device, link, host ranging and the point
   cloud file) of a few columns after a one-column warm-up, per column; a whole
   160-column frame is that times 160 ("extrapolated") unless the row says it ran all;

@@ -17,15 +17,21 @@ Fourier series is exact for ANY delay, fractional samples included::
 The L/2 + 1 bins repeat the chips' nN-point DFT under one weight (H, sinc, scale), so the
 per-channel work is one period of nN bins times its phase ramp (an outer product of two
 short exponentials), then one scaled add per further period; the weight multiplies the
-column's sum once (:meth:`Codebook.sum_delayed`). :class:`Codebook` keeps the spectra and
-``accumulated`` fidelity's waveform tables of each configuration (its own cache).
+column's sum once (:meth:`Codebook.sum_delayed`), reading each term's row of one table of
+the members' spectra (:class:`ChipSpectra`, K nN values: no per-column copy). :class:`Codebook`
+keeps the spectra and ``accumulated`` fidelity's waveform tables of each configuration (its
+own cache); the spectra tables are also kept for the process (bounded by
+SHARED_SPECTRA_BYTES), so a new Instrument of the same configuration does not transform the
+codes again.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+import threading
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -36,11 +42,23 @@ from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.scene.echo_kernel import synthesis_kernel
 from cdma_lidar.scene.model import InstrumentSpec
 
-__all__ = ["TABLE_PHASES", "Codebook", "RenderSettings", "detector_response"]
+__all__ = ["SHARED_SPECTRA_BYTES", "TABLE_PHASES", "ChipSpectra", "Codebook", "RenderSettings",
+           "detector_response"]
 
 #: ``accumulated`` fidelity tabulates each code's waveform at this many delays per sample
 #: (:meth:`cdma_lidar.scene.echoes.Echoes.tabulated_echo`).
 TABLE_PHASES = 8
+
+#: Bytes of chip-spectrum tables (:class:`ChipSpectra`) the process keeps for every
+#: :class:`Codebook`, so a new Instrument (a new connection) of the same code pair, UID
+#: and members finds them transformed: the least recently used go first. paper-massive's
+#: 1,200 members are 0.63 GB in complex128 (0.32 GB complex64); a larger table is built
+#: and used but not kept here.
+SHARED_SPECTRA_BYTES = 1 << 30
+
+#: Gold members transformed at a time while a table is built (its float64 chips and
+#: complex128 transform, 50 MB at N = 32,767, are the only temporaries).
+_CHUNK_MEMBERS = 96
 
 
 @dataclass(frozen=True)
@@ -119,6 +137,80 @@ def _uid_signs(uid: int, n: int) -> NDArray[np.float64]:
     return np.where((uid >> np.arange(n)) & 1, -1.0, 1.0)
 
 
+@dataclass(frozen=True, eq=False)
+class ChipSpectra:
+    """The nN-point DFTs of some Gold members' UID-signed bipolar chips, one table.
+
+    ``table`` (M, A, B) read-only, complex128 or complex64: row ``row[i]`` is member i's
+    DFT zero-padded to A B >= nN bins (``period`` = nN); ``spectra[i]`` is that (A, B) row.
+    The table is what :meth:`Codebook.sum_delayed` reads, indexed by each term's row
+    (:meth:`Codebook.stack`): no per-column copy of the members' spectra.
+    """
+
+    table: NDArray[np.complexfloating]
+    row: dict[int, int]
+    period: int
+
+    def __getitem__(self, member: int) -> NDArray[np.complexfloating]:
+        return self.table[self.row[member]]
+
+    def __contains__(self, member: object) -> bool:
+        return member in self.row
+
+
+def _transform(poly_u: tuple[int, ...], poly_v: tuple[int, ...], members: tuple[int, ...],
+               uid: int, uid_bits: int, single: bool) -> ChipSpectra:
+    """:class:`ChipSpectra` of ``members`` (sorted, distinct), transformed _CHUNK_MEMBERS
+    at a time straight into the table (each member's DFT is numpy's FFT of its own row,
+    whatever the chunk: the same values as one transform of all)."""
+    period = uid_bits * ((1 << poly_u[0]) - 1)
+    b = math.isqrt(period - 1) + 1
+    a = -(-period // b)
+    table = np.zeros((len(members), a, b), dtype=np.complex64 if single else np.complex128)
+    flat = table.reshape(len(members), a * b)
+    signs = _uid_signs(uid, uid_bits)
+    for lo in range(0, len(members), _CHUNK_MEMBERS):
+        part = members[lo:lo + _CHUNK_MEMBERS]
+        codes = gold_codes(poly_u, poly_v, part, field="code_index")
+        chips = (np.where(codes, -1.0, 1.0)[:, None, :] * signs[None, :, None]
+                 ).reshape(len(part), period)  # bipolar, +1 for bit 0
+        into = flat[lo:lo + len(part), :period]
+        if single:
+            into[...] = np.fft.fft(chips, axis=1)  # rounded to complex64 as astype does
+        else:
+            np.fft.fft(chips, axis=1, out=into)
+    table.flags.writeable = False
+    return ChipSpectra(table, {i: n for n, i in enumerate(members)}, period)
+
+
+class _SharedSpectra:
+    """The process's chip-spectrum tables by (code pair, UID, members, precision), at most
+    SHARED_SPECTRA_BYTES of them (least recently used dropped first); thread-safe."""
+
+    def __init__(self) -> None:
+        self._tables: OrderedDict[tuple, ChipSpectra] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, poly_u: tuple[int, ...], poly_v: tuple[int, ...], members: tuple[int, ...],
+            uid: int, uid_bits: int, single: bool) -> ChipSpectra:
+        key = (poly_u, poly_v, members, uid, uid_bits, single)
+        with self._lock:
+            hit = self._tables.get(key)
+            if hit is not None:
+                self._tables.move_to_end(key)
+                return hit
+        built = _transform(poly_u, poly_v, members, uid, uid_bits, single)
+        if built.table.nbytes <= SHARED_SPECTRA_BYTES:
+            with self._lock:
+                self._tables[key] = built
+                while sum(t.table.nbytes for t in self._tables.values()) > SHARED_SPECTRA_BYTES:
+                    self._tables.popitem(last=False)
+        return built
+
+
+_SHARED = _SharedSpectra()
+
+
 class Codebook:
     """Filtered spectra and waveform tables of the Gold members an instrument emits, kept
     per configuration (settings, member, UID): ``spec`` gives the chip rate and the
@@ -159,30 +251,24 @@ class Codebook:
                 rows[i] = dfts[i].reshape(-1)[q] * weight
         return rows
 
-    def chip_spectra(self, cfg: RenderSettings, indices: tuple[int, ...], uid: int,
-                      uid_bits: int, single: bool = False
-                      ) -> tuple[dict[int, NDArray[np.complexfloating]], int]:
-        """(by Gold member: the nN-point DFT of its UID-signed bipolar chips, zero-padded to
-        an (A, B) array, A B >= nN; the period nN in bins). A member's spectrum at bin q
-        is ``dft[q % nN] * weight[q]`` (:meth:`spectral_weight`): the L/2 + 1 bins of
-        an S-samples-per-chip frame repeat the chips' DFT S/2 times under one smooth
-        weight, which :meth:`sum_delayed` exploits. Computed once per member and
-        UID. ``single``: complex64 copies."""
-        rows = self._book(("chips", single, cfg.poly_u, cfg.poly_v, uid, uid_bits))
-        period = uid_bits * ((1 << cfg.poly_u[0]) - 1)
-        missing = tuple(sorted({i for i in indices if i not in rows}))
-        if missing:
-            codes = gold_codes(cfg.poly_u, cfg.poly_v, missing, field="code_index")
-            bip = 1.0 - 2.0 * codes.astype(np.float64)  # (k, N)
-            chips = (bip[:, None, :] * _uid_signs(uid, uid_bits)[None, :, None]
-                     ).reshape(len(missing), period)
-            b = math.isqrt(period - 1) + 1
-            a = -(-period // b)
-            spec = np.zeros((len(missing), a * b), dtype=np.complex128)
-            spec[:, :period] = np.fft.fft(chips, axis=1)
-            for i, row in zip(missing, spec, strict=True):
-                rows[i] = row.reshape(a, b).astype(np.complex64) if single else row.reshape(a, b)
-        return rows, period
+    def chip_spectra(self, cfg: RenderSettings, indices: Iterable[int], uid: int,
+                      uid_bits: int, single: bool = False) -> tuple[ChipSpectra, int]:
+        """(the :class:`ChipSpectra` of (at least) Gold members ``indices``: the nN-point
+        DFTs of their UID-signed bipolar chips; the period nN in bins). A member's spectrum
+        at bin q is ``dft[q % nN] * weight[q]`` (:meth:`spectral_weight`): the L/2 + 1 bins
+        of an S-samples-per-chip frame repeat the chips' DFT S/2 times under one smooth
+        weight, which :meth:`sum_delayed` exploits. ``single``: complex64 (rounded from
+        complex128). One table per (code pair, UID, precision), the members asked for so
+        far; a member not in it makes a new table of all of them. Tables are shared by
+        every Codebook in the process (at most SHARED_SPECTRA_BYTES kept)."""
+        key = ("chips", single, cfg.poly_u, cfg.poly_v, uid, uid_bits)
+        book = self._book(key)
+        have, wanted = book.get("spectra"), set(indices)
+        if have is None or not wanted.issubset(have.row):
+            members = tuple(sorted(wanted.union(have.row) if have else wanted))
+            have = book["spectra"] = _SHARED.get(cfg.poly_u, cfg.poly_v, members, uid,
+                                                 uid_bits, single)
+        return have, have.period
 
     def _book(self, key: tuple) -> dict:
         """The codebook's entry ``key``: a dict (spectra by Gold member; the waveform
@@ -221,6 +307,8 @@ class Codebook:
         where, peak = book.setdefault("row", {}), book.setdefault("peak", {})
         missing = tuple(sorted({i for i in members if i not in where}))
         if missing:
+            # every member's chips transformed in one table (not one table per batch's new ones)
+            self.chip_spectra(cfg, {*cfg.code_index, *missing}, cfg.uid, cfg.uid_bits)
             spectra = self.spectrum_rows(cfg, missing, cfg.uid, cfg.uid_bits)
             import scipy.fft  # deferred, as in _normal_table
 
@@ -240,14 +328,13 @@ class Codebook:
         return book["stack"], where, peak
 
     @staticmethod
-    def stack(dfts: dict[int, NDArray[np.complexfloating]], members: Sequence[int]
+    def stack(dfts: ChipSpectra, members: Sequence[int]
                ) -> tuple[NDArray[np.complexfloating], NDArray[np.int64]]:
-        """(the distinct members' spectra of ``dfts`` stacked, (M, A, B); each member's row
-        there, (T,)): the two arguments :meth:`sum_delayed` takes."""
-        distinct = sorted(set(members))
-        row = {i: n for n, i in enumerate(distinct)}
-        return (np.stack([dfts[i] for i in distinct]),
-                np.array([row[i] for i in members], dtype=np.int64))
+        """(the spectra table of ``dfts``, (M, A, B), read-only; each member's row there,
+        (T,)): the two arguments :meth:`sum_delayed` takes (the table itself, not a copy
+        of the members' rows)."""
+        row = dfts.row
+        return dfts.table, np.array([row[i] for i in members], dtype=np.int64)
 
     @staticmethod
     def sum_delayed(f0_hz: float, amps: NDArray[np.float64], taus: NDArray[np.float64],
@@ -280,10 +367,11 @@ class Codebook:
         a, b = spectra.shape[1:]
         dtype = spectra.dtype  # complex64 in single precision
         w = -2.0 * np.pi * f0_hz * taus
-        hi = (np.exp(1j * np.outer(w, b * np.arange(a))) * amps[:, None]).astype(dtype)
-        lo = np.exp(1j * np.outer(w, np.arange(b))).astype(dtype)
+        hi = (np.exp(1j * np.outer(w, b * np.arange(a))) * amps[:, None]).astype(dtype,
+                                                                                  copy=False)
+        lo = np.exp(1j * np.outer(w, np.arange(b))).astype(dtype, copy=False)
         starts = range(0, m, period)  # the first bin of each period of bins
-        turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype)
+        turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype, copy=False)
         total = np.empty(m, dtype=dtype) if out is None else out
         kernel = synthesis_kernel() if dtype == np.complex128 else None
         if kernel is not None:

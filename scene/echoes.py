@@ -161,7 +161,8 @@ class Echoes:
             return np.zeros(length, dtype=np.float32 if single else np.float64)
         amps, taus, members, _ = terms
         book = self.codebook
-        dfts, period = book.chip_spectra(cfg, members, cfg.uid, cfg.uid_bits, single)
+        dfts, period = book.chip_spectra(cfg, {*cfg.code_index, *members}, cfg.uid,
+                                         cfg.uid_bits, single)  # one table
         total = book.sum_delayed(f0, amps, taus, *book.stack(dfts, members), period,
                                  book.spectral_weight(cfg, period))
         return np.fft.irfft(total, n=length)
@@ -299,7 +300,7 @@ class Echoes:
         out = np.zeros(total_samples)
         idx = np.arange(total_samples)
         for u in users:
-            ucfg = RenderSettings(cfg.samples_per_chip, 1, u.uid_bits, u.uid, cfg.code_index,
+            ucfg = RenderSettings(cfg.samples_per_chip, 1, u.uid_bits, u.uid, (u.code_index,),
                                   cfg.poly_u, cfg.poly_v)
             book = self.codebook
             f, length = book.frame_bins(ucfg)
@@ -333,7 +334,8 @@ class Echoes:
         if not lit:
             return out, peaks
         dfts, period = self.codebook.chip_spectra(
-            cfg, tuple({i for j in lit for i in terms[j][2]}), cfg.uid, cfg.uid_bits)
+            cfg, {*cfg.code_index, *(i for j in lit for i in terms[j][2])}, cfg.uid,
+            cfg.uid_bits)
         spectra, members = self.codebook.stack(dfts, [i for j in lit for i in terms[j][2]])
         first = np.cumsum([0, *(len(terms[j][2]) for j in lit)]).tolist()  # items' terms
         weight = self.codebook.spectral_weight(cfg, period)
