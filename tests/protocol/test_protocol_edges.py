@@ -133,9 +133,10 @@ class _RecordingApp(SyntheticApp):
 def _until_a_column_is_out(ep: DeviceEndpoint) -> None:
     """Wait (a condition, not a time) until the scan's generator has produced a column."""
     deadline = time.monotonic() + 10.0
-    while (ep.latest is None or ep.latest.produced == 0) and time.monotonic() < deadline:
+    streams = ep.streams
+    while (streams.latest is None or streams.latest.produced == 0) and time.monotonic() < deadline:
         time.sleep(0.005)
-    assert ep.latest is not None and ep.latest.produced > 0
+    assert streams.latest is not None and streams.latest.produced > 0
 
 
 def test_an_ended_stream_is_cleaned_up_before_the_next_one_starts() -> None:

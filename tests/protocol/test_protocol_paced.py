@@ -73,7 +73,7 @@ class _Recorder:
 def _device(max_frame: int = 256, key: bytes | None = None) -> tuple[DeviceEndpoint, _Recorder]:
     port = _Recorder()
     ep = DeviceEndpoint(port, SyntheticApp(channels=40, columns=4), max_frame=max_frame, key=key)
-    ep.session_open = True
+    ep.session.open = True
     return ep, port
 
 
@@ -115,7 +115,7 @@ def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
 
 def test_a_repair_already_queued_is_not_queued_twice() -> None:
     ep, port = _device()
-    ep.ring[(1, 2)] = _column(1, 2)
+    ep.streams.ring[(1, 2)] = _column(1, 2)
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2))  # first cut: 8 fragments
     ep.tx.flush(FRESH)
     port.out.clear()
@@ -164,11 +164,11 @@ def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
 
 def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
     ep, _port = _device()
-    ep.stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
+    ep.streams.stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
     assert ep.status().next_column == 5
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 4), key=(1, 4))  # waits in the queue
     assert ep.status().next_column == 4
-    ep.stream = None
+    ep.streams.stream = None
 
 
 # ---- host: unawaited RESEND -----------------------------------------------------------
@@ -180,17 +180,17 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
         link = HostLink(host)  # 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
-        link._send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
-        link._streaming = True
+        link.requests.send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
+        link.requests.streaming = True
         for _ in range(100):
-            link._pump()
-            if link._refusal is not None:
+            link.requests.pump()
+            if link.requests.refusal is not None:
                 break
-        mtype, frame = link._refusal
+        mtype, frame = link.requests.refusal
         with pytest.raises(DeviceError) as exc:
-            link._accept_reply(mtype, frame)
+            link.requests.accept_reply(mtype, frame)
         assert exc.value.code == ErrorCode.NOT_AVAILABLE
-        link._streaming = False
+        link.requests.streaming = False
         link.close()
 
 
@@ -224,9 +224,9 @@ def test_status_overtakes_the_column_stream_on_a_slow_line() -> None:
         link.hello()
         scan = link.scan(frame=6)
         first = [next(scan) for _ in range(3)]
-        before = len(link._stream)
+        before = len(link.requests.stream)
         status = link.status()
-        between = len(link._stream) - before
+        between = len(link.requests.stream) - before
         rest = list(scan)
         link.close()
     assert status.state_name == "scanning" and status.frame == 6
