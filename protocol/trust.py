@@ -102,7 +102,12 @@ def check_info(info: Info) -> Info:
 
 
 def check_config(config: dict[str, Any], info: Info) -> None:
-    """Every key present and every value within what INFO announced."""
+    """Every key present and every value within what INFO announced.
+
+    Each value's own range was checked where it was decoded
+    (:meth:`~cdma_lidar.protocol.config_keys.ConfigKey.decode`); here only what INFO
+    and the other keys bound (the lower bounds in the messages are the decoder's).
+    """
     for key in CONFIG_KEYS:
         if key.name not in config:
             raise DeviceLied(f"device's CONFIG lacks key {key.name!r} (every key must be "
@@ -118,18 +123,18 @@ def check_config(config: dict[str, Any], info: Info) -> None:
     ns = ((1 << degree) - 1) * int(c["samples_per_chip"])
     need(len(c["code_index"]) == info.channels, "code_index",
          f"{info.channels} items (one per channel)")
-    need(1 <= c["uid_bits"] <= info.max_uid_bits, "uid_bits",
+    need(c["uid_bits"] <= info.max_uid_bits, "uid_bits",
          f"1 to max_uid_bits = {info.max_uid_bits}")
-    need(0 <= c["uid"] < 1 << c["uid_bits"], "uid", f"0 to 2^uid_bits - 1 = "
+    need(c["uid"] < 1 << c["uid_bits"], "uid", f"0 to 2^uid_bits - 1 = "
          f"{(1 << c['uid_bits']) - 1}")
     need(info.spc_min <= c["samples_per_chip"] <= info.spc_max, "samples_per_chip",
          f"{info.spc_min} to {info.spc_max}")
-    need(1 <= c["averages"] <= info.max_averages, "averages", f"1 to {info.max_averages}")
-    need(0 <= c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}")
-    need(1 <= c["gate_len"] <= min(ns, info.max_gate_len), "gate_len",
+    need(c["averages"] <= info.max_averages, "averages", f"1 to {info.max_averages}")
+    need(c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}")
+    need(c["gate_len"] <= min(ns, info.max_gate_len), "gate_len",
          f"1 to min(N*S, max_gate_len) = {min(ns, info.max_gate_len)}")
-    need(1 <= c["peaks"] <= info.max_peaks, "peaks", f"1 to max_peaks = {info.max_peaks}")
-    need(1 <= c["columns_per_frame"] <= info.column_count, "columns_per_frame",
+    need(c["peaks"] <= info.max_peaks, "peaks", f"1 to max_peaks = {info.max_peaks}")
+    need(c["columns_per_frame"] <= info.column_count, "columns_per_frame",
          f"1 to column_count = {info.column_count}")
 
 

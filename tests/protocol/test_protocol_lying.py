@@ -121,6 +121,7 @@ def test_a_column_with_other_channel_or_peak_counts_is_a_lie() -> None:
     (lambda c: {**c, "code_index": (1, 2)}, "code_index"),  # 4 channels
     (lambda c: {**c, "peaks": 8}, "peaks"),  # INFO: max_peaks 4
     (lambda c: {**c, "gate_start": 2047 * 4}, "gate_start"),
+    (lambda c: {**c, "out_bits": 40}, "out_bits"),  # outside its wire range: the decoder's
 ])
 def test_a_lying_config_is_a_one_line_error_naming_the_key(edit, field) -> None:
     with pytest.raises(DeviceLied) as exc:
