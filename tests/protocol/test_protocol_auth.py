@@ -130,7 +130,7 @@ def test_forged_and_replayed_frames_are_dropped() -> None:
 
 
 def test_a_column_injected_mid_scan_is_refused() -> None:
-    app = SyntheticApp(channels=4, columns=30, column_delay_s=0.01)
+    app = SyntheticApp(channels=4, columns=30)
     rd, link, host, _dev, _app = _rig(KEY, KEY, app)
     with rd:
         info = link.hello()

@@ -9,16 +9,15 @@ from typing import Any
 
 import numpy as np
 import pytest
-from protocol_fixtures import SteppedDevice, SyntheticApp, expected_column
+from protocol_fixtures import ScriptedPort, SteppedDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import DeviceError, LinkError
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import encode_config
-from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
+from cdma_lidar.protocol.framing import encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MESSAGES, MsgType, encode_payload
 from cdma_lidar.protocol.trust import DeviceLied, escape
-from cdma_lidar.virtual.line import pipe_pair
 
 TIMEOUT = 0.2
 NASTY = "\x1b]0;pwned\x07\x1b[2J\x1b[31mRED\u202e\r\n"
@@ -144,26 +143,11 @@ def test_strings_from_the_device_are_escaped() -> None:
     assert escape("plain text: µm, ±1") == "plain text: µm, ±1"
 
 
-def _raw_device(answer: Callable[[Any], bytes | None]) -> tuple[HostLink, threading.Event]:
-    """A scripted device on a pipe: ``answer(frame)`` gives the wire reply or None."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
-    dev.timeout = 0.01
-
-    def serve() -> None:
-        dec = FrameDecoder()
-        while not stop.is_set():
-            try:
-                data = dev.read(max(1, dev.in_waiting))
-            except OSError:
-                return
-            for f in dec.feed(data):
-                wire = answer(f)
-                if wire:
-                    dev.write(wire)
-
-    threading.Thread(target=serve, daemon=True).start()
-    return HostLink(host, timeout_s=TIMEOUT, retries=1), stop
+def _raw_device(answer: Callable[[Any], bytes]) -> tuple[HostLink, threading.Event]:
+    """A device the test plays: ``answer(frame)`` gives the wire reply (b"": none);
+    threadless, on the port's fake clock. The event is set when the test is done."""
+    port = ScriptedPort(answer)
+    return HostLink(port, timeout_s=TIMEOUT, retries=1, clock=port.clock), threading.Event()
 
 
 def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() -> None:

@@ -79,7 +79,6 @@ def test_every_hello_opens_a_fresh_session(device) -> None:
 
 
 def test_take_over_tells_the_first_host_in_one_line_even_mid_scan(device) -> None:
-    device.app.column_delay_s = 0.02
     a, b = device.host(), device.host(take_over=True)
     info_a = a.hello()
     scan = a.scan(columns=40)
