@@ -62,6 +62,8 @@ def _lie(what: str, field: str, value: object, allowed: str) -> DeviceLied:
 
 #: Physical range of each INFO field with a unit (inclusive, wire units): a device that
 #: announces a value outside it is broken or lying, whatever the wire type can hold.
+#: Fields whose declared wire range is already their physical one (``max_degree``
+#: 2..32, ``max_frame`` 256..65535) are checked once, by the decoder.
 INFO_RANGES: dict[str, tuple[int, int, str]] = {
     "wavelengths_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
     "reference_wavelength_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
@@ -71,8 +73,6 @@ INFO_RANGES: dict[str, tuple[int, int, str]] = {
     "tilt_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg, or TILT_AUTO)"),
     "column_start_udeg": (-180_000_000, 180_000_000, "udeg (-180 to 180 deg)"),
     "column_step_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg)"),
-    "max_degree": (2, 32, "(LFSR degree)"),
-    "max_frame": (256, 65535, "bytes"),
 }
 
 

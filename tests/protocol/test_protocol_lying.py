@@ -176,6 +176,18 @@ def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() ->
         stop.set()
 
 
+@pytest.mark.parametrize(("field", "value"), [("max_degree", 40), ("max_frame", 100)])
+def test_info_outside_a_wire_range_is_refused_where_it_is_decoded(field, value) -> None:
+    """Fields whose wire range is their physical one: one check, by the decoder."""
+    fields = replace(SyntheticApp().info(), session_id=5).to_fields()
+    payload = MESSAGES[MsgType.INFO].struct.build({**fields, field: value})
+    link, _ = _raw_device(lambda f: encode_frame(MsgType.INFO, payload, f.seq, 5))
+    with pytest.raises(LinkError) as exc:
+        link.hello()
+    assert field in str(exc.value) and "\n" not in str(exc.value)
+    assert ("2..32" if field == "max_degree" else "256..65535") in str(exc.value)
+
+
 def test_a_config_reply_with_garbage_values_is_a_one_line_error() -> None:
     good = SyntheticApp(4, 10)
     items = encode_config(good.get_config())
