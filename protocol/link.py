@@ -27,7 +27,6 @@ from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
     OVERHEAD,
     SIGNATURE_SIZE,
-    FrameDecoder,
     frame_size,
 )
 from cdma_lidar.protocol.host_session import Session
@@ -43,7 +42,6 @@ from cdma_lidar.protocol.requests import (
     DIAG_HINTS,
     DIAG_NO_ANSWER,
     DIAG_NOISY,
-    LinkStats,
     Requests,
     SessionLost,
 )
@@ -108,6 +106,9 @@ class HostLink:
         #: The session: HELLO, INFO and the configuration read in it.
         self.session_layer = Session(self.requests, max_frame=max_frame, key=key,
                                      take_over=take_over, keep_config=keep_config)
+        rq = self.requests  # what never changes, read directly:
+        self.port, self.stats, self.decoder, self.clock = rq.port, rq.stats, rq.decoder, rq.clock
+        self.timeout_s, self.retries = rq.timeout_s, rq.retries
         self.column_retries = 10 * (self.retries + 1) if column_retries is None \
             else check_int("column_retries", column_retries, 0, 1000)
         if not progress_timeout_s > 0:
@@ -153,30 +154,6 @@ class HostLink:
     @config.setter
     def config(self, value: dict[str, Any] | None) -> None:
         self.session_layer.config = value
-
-    @property
-    def port(self) -> Any:
-        return self.requests.port
-
-    @property
-    def stats(self) -> LinkStats:
-        return self.requests.stats
-
-    @property
-    def decoder(self) -> FrameDecoder:
-        return self.requests.decoder
-
-    @property
-    def clock(self) -> Callable[[], float]:
-        return self.requests.clock
-
-    @property
-    def timeout_s(self) -> float:
-        return self.requests.timeout_s
-
-    @property
-    def retries(self) -> int:
-        return self.requests.retries
 
     @property
     def coded(self) -> bool:
