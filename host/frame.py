@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.protocol.columns import ColumnResult
 
 __all__ = ["SUMSQ_UNKNOWN", "FrameData", "clamp_sumsq"]
 
@@ -132,16 +133,25 @@ class FrameData:
         """Store one column result (any object or mapping with the ReceiverOutput field names).
 
         ``index`` is the position in this frame (0 .. C-1). ``angle_deg`` defaults to the
-        result's ``angle_deg`` attribute or key.
+        result's ``angle_deg`` attribute or key. A ``ColumnResult`` is stored as it is:
+        its header and every value were checked against the session where the wire's
+        column was decoded (:class:`~cdma_lidar.protocol.trust.ColumnChecker`); other
+        results must carry every field in this frame's shapes.
         """
         c = self.shape[1]
         if not 0 <= index < c:
             raise out_of_range("column", f"from 0 to {c - 1}", index)
         get = result.get if isinstance(result, Mapping) else (
             lambda name, default=None: getattr(result, name, default))
+        trusted = isinstance(result, ColumnResult)
         for f in RECORD:
             name = f.name
             value = get(name)
+            if trusted:
+                if not (f.per_extra_peak and self.peaks == 1):
+                    getattr(self, name)[:, index] = \
+                        clamp_sumsq(value) if name == "noise_sumsq" else value
+                continue
             if value is None:
                 if f.per_extra_peak and self.peaks == 1:
                     continue

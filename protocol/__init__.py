@@ -10,10 +10,12 @@ byte-exact spec). Modules, bottom up:
   the host checks in everything a device sends);
 * ``ports``: pyserial URLs, ptys, TCP;
 * device end: ``endpoint.DeviceEndpoint`` (one per connection) in front of a
-  ``DeviceApp``, with ``device_sessions`` (the shared ``DeviceCore``, HELLO,
-  take-over), ``streams`` (scans, RESEND), ``handlers`` (the other requests) and
-  ``transmit`` (the transmit queue);
-* host end: ``link.HostLink`` (requests and scans) on ``host_session`` (HELLO, keys,
-  take-over), ``requests`` (send, await, retry on an injected clock; frame routing)
-  and ``reassembly`` (one stream's columns: ``feed``, ``ready``, ``due(now)``).
+  ``DeviceApp``; it holds the owners of the connection's state, each given only what
+  it needs: ``device_sessions.DeviceSession`` (HELLO, keys, take-over; the shared
+  ``DeviceCore``), ``streams.Streams`` (scans, ring, RESEND), ``handlers.AppRequests``
+  (the other requests) and ``transmit.Transmitter`` (the transmit queue, replies);
+* host end: ``link.HostLink`` (requests and scans) holds a ``host_session.Session``
+  (HELLO, keys, take-over) and a ``requests.Requests`` (send, await, retry on an
+  injected clock; frame routing); ``reassembly`` (one stream's columns: ``feed``,
+  ``ready``, ``due(now)``).
 """

@@ -90,29 +90,39 @@ class ConfigKey:
         """The construct of the value (it fills the item's whole length)."""
         return cs.FocusedSeq("v", "v" / _SUBS[self.ctype], cs.Terminated)
 
-    def encode(self, value: Any) -> bytes:
-        """Value bytes; raises FieldError naming the key."""
+    def outside(self, w: Any) -> Any:
+        """The first wire value of ``w`` outside lo..hi (None: all within, or no range)."""
+        lo, hi = self.lo, self.hi
+        if lo is None or hi is None:
+            return None
+        return next((v for v in (w if isinstance(w, list | tuple | np.ndarray) else [w])
+                     if not is_int(v) or not lo <= int(v) <= hi), None)
+
+    def encode(self, value: Any, *, check: bool = True) -> bytes:
+        """Value bytes; raises FieldError naming the key.
+
+        ``check``: hold the value to the key's range (the host's one check of what it
+        sends); False for a value already checked (the device's own configuration,
+        checked by its model), of which only what the wire type cannot hold fails.
+        """
         try:
             w = self.to_wire(value)
         except FieldError as exc:
             msg = str(exc) if str(exc).startswith(self.name) else f"{self.name}: {exc}"
             raise FieldError(msg, field=self.name) from None
-        if self.lo is not None:
-            assert self.hi is not None
-            many = isinstance(w, list | tuple | np.ndarray)
-            each = "each " if many else ""
-            for v in w if many else [w]:
-                # Not check_int: the message gives the device's limit and the wire range.
-                if not is_int(v) or not self.lo <= int(v) <= self.hi:
-                    raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}.."
-                                       f"{self.hi} on the wire)", value, FieldError)
+        if check and self.outside(w) is not None:
+            # Not check_int: the message gives the device's limit and the wire range.
+            each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
+            raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}..{self.hi} on "
+                               "the wire)", value, FieldError)
         try:
             return self.sub.build(w)
         except (cs.ConstructError, TypeError, ValueError) as exc:
             raise out_of_range(self.name, self.allowed, value, FieldError) from exc
 
     def decode(self, data: bytes) -> Any:
-        """Python value of the wire bytes; raises FrameError if malformed or out of range."""
+        """Python value of the wire bytes; raises FrameError if malformed or out of range
+        (the receiving side's one check of the wire range)."""
         try:
             w = self.sub.parse(data)
         except cs.ConstructError:
@@ -121,11 +131,8 @@ class ConfigKey:
         if isinstance(w, list):
             w = [tuple(int(x) for x in (e.start, e.length)) if isinstance(e, dict) else int(e)
                  for e in w]
-        if self.lo is not None:
-            for v in w if isinstance(w, list) else [w]:
-                if not self.lo <= v <= self.hi:
-                    raise FrameError(f"{self.name}: {v} not in {self.lo}..{self.hi}",
-                                     field=self.name)
+        if (bad := self.outside(w)) is not None:
+            raise FrameError(f"{self.name}: {bad} not in {self.lo}..{self.hi}", field=self.name)
         return self.from_wire(w)
 
 
@@ -205,11 +212,13 @@ _KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
 _KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}
 
 
-def encode_config(values: dict[str, Any], *, allow_read_only: bool = True) -> list[dict]:
+def encode_config(values: dict[str, Any], *, allow_read_only: bool = True,
+                  check: bool = True) -> list[dict]:
     """KLV items (for CONFIG_SET / CONFIG) of ``{name: python value}``.
 
     Raises FieldError naming an unknown key, a read-only one (when not allowed) or a
-    value its key cannot hold.
+    value its key cannot hold (outside its range unless ``check`` is False: see
+    :meth:`ConfigKey.encode`).
     """
     items = []
     for name, value in values.items():
@@ -219,7 +228,7 @@ def encode_config(values: dict[str, Any], *, allow_read_only: bool = True) -> li
                                "unknown key", FieldError)
         if key.read_only and not allow_read_only:
             raise FieldError(f"{name} is read-only", field=name)
-        data = key.encode(value)
+        data = key.encode(value, check=check)
         if len(data) > 65535:
             raise out_of_range(name, "at most 65535 value bytes", len(data), FieldError)
         items.append({"key": key.id, "value": data})

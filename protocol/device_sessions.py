@@ -2,8 +2,10 @@
 
 One device may be reached over several connections at once (the TCP server gives each
 its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`). :class:`DeviceCore`,
-shared by them, knows which connection's host owns the session, since when and how
-long it has been idle, and the boot configuration a new session starts from. HELLO
+shared by them, knows which connection's :class:`DeviceSession` owns the device, since
+when and how long it has been idle, and the boot configuration a new session starts
+from. A connection's :class:`DeviceSession` owns its session: open or not, its keys,
+the challenge sent, the failed authentications, the INFO sent. HELLO
 opens a session (docs/protocol.md, Sessions and Access control): another host gets
 NAK BUSY unless it takes over or the session expired, and the old owner then gets
 SESSION_LOST.
@@ -19,7 +21,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +29,6 @@ from numpy.typing import NDArray
 from cdma_lidar.errors import DeviceError, out_of_range
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame
-from cdma_lidar.protocol.handlers import Reply, ack, clip, nak
 from cdma_lidar.protocol.messages import (
     SCHEMA_CRC,
     Auth,
@@ -38,13 +39,11 @@ from cdma_lidar.protocol.messages import (
     SessionLostReason,
     encode_payload,
 )
-from cdma_lidar.protocol.streams import finish, stop_stream
-from cdma_lidar.protocol.transmit import CONTROL, REPAIR
+from cdma_lidar.protocol.streams import Streams
+from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, clip
+from cdma_lidar.protocol.views import Info
 
-if TYPE_CHECKING:
-    from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
-
-__all__ = ["HANDLERS", "DeviceCore", "EndpointStats", "hello_gate", "new_session_id"]
+__all__ = ["DeviceCore", "DeviceSession", "EndpointStats", "new_session_id"]
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +76,7 @@ class DeviceCore:
         clock: monotonic clock (s).
     """
 
-    def __init__(self, app: DeviceApp, *, key: bytes | None = None, session_idle_s: float = 10.0,
+    def __init__(self, app: Any, *, key: bytes | None = None, session_idle_s: float = 10.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not 0.001 <= session_idle_s <= 4_294_967.295:
             raise out_of_range("session_idle_s", "0.001 to 4294967 s (INFO.session_idle_ms)",
@@ -89,7 +88,7 @@ class DeviceCore:
         #: Serialises every call into the application. Lock order: app_lock before any
         #: endpoint's lock, never the reverse.
         self.app_lock = threading.RLock()
-        self.owner: DeviceEndpoint | None = None
+        self.owner: DeviceSession | None = None
         self.owner_nonce = b""
         self.opened = self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
@@ -101,18 +100,18 @@ class DeviceCore:
 
     def idle_s(self, now: float) -> float:
         """Seconds the owner's session has been idle (0 while it streams)."""
-        if self.owner is None or self.owner.stream is not None:
+        if self.owner is None or self.owner.streams.stream is not None:
             return 0.0
         return max(0.0, now - self.last_active)
 
-    def touch(self, endpoint: DeviceEndpoint) -> None:
+    def touch(self, session: DeviceSession) -> None:
         """The owner was heard from (or its stream ended)."""
-        if self.owner is endpoint:
+        if self.owner is session:
             self.last_active = self.clock()
 
-    def release(self, endpoint: DeviceEndpoint) -> None:
-        """``endpoint``'s connection closed: its session ends at once."""
-        if self.owner is endpoint:
+    def release(self, session: DeviceSession) -> None:
+        """``session``'s connection closed, or it ended: the device is free at once."""
+        if self.owner is session:
             self.owner = None
 
     def restore_defaults(self, keep: bool) -> None:
@@ -144,142 +143,181 @@ def new_session_id(old: int = 0) -> int:
             return s
 
 
-def hello_gate(ep: DeviceEndpoint, req: Frame, f: dict) -> Reply | None:
-    """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
-    or one sent during this connection's back-off) or BUSY; None: open a session.
+class DeviceSession:
+    """The session of one connection (see the module docstring).
 
-    Runs in the polling thread, so a HELLO is refused at once whatever the application
-    is computing, and again in the request worker.
+    Args:
+        core: what every connection to the device shares.
+        tx: the connection's transmitter (its session id, max frame, signing, coding).
+        streams: the connection's streams, ended with the session.
+        stats: the connection's counters.
+        lock: the connection's lock (another connection's HELLO takes it, after the
+            core's ``app_lock``, to end this session).
+        max_frame, fec, ring_columns, heartbeat_s: the connection's, as
+            :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` takes them (INFO says them).
+        peer: who is on the other end, for the log of failed authentication.
+        on_end: called when the session ends (the connection forgets what it held).
     """
-    core = ep.core
-    if core.key is not None:
-        if not any(f["mac"]) or ep.challenge is None or \
-                not auth.equal(f["device_nonce"], ep.challenge):
-            ep.challenge = secrets.token_bytes(auth.NONCE_BYTES)
-            return (MsgType.CHALLENGE, encode_payload(
-                MsgType.CHALLENGE, {"device_nonce": ep.challenge}), False)
-        wait = core.backoff.wait_s(*ep.auth_failures)
-        if wait > 0:
-            ep.challenge = None
-            ep.stats.auth_throttled += 1
-            return nak(ep, req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
-                       f"authentications on this connection: retry in {wait:.1f} s", False)
-        want = auth.hello_mac(core.key, ep.challenge, bytes(f["host_nonce"]), f["flags"],
-                              f["host_max_frame"])
-        if not auth.equal(want, f["mac"]):
-            ep.challenge = None
-            ep.stats.auth_rejected += 1
-            ep.auth_failures = (ep.auth_failures[0] + 1, core.clock())
-            core.backoff.failed(ep.peer, "HELLO with a wrong MAC (the host holds another key)")
-            return nak(ep, req, ErrorCode.AUTH_FAILED, "mac",
-                       "the MAC does not match this device's key", False)
-    owner = core.owner
-    if owner is None or (owner is ep and core.owner_nonce == bytes(f["host_nonce"])):
-        return None
-    now = core.clock()
-    idle = core.idle_s(now)
-    if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
-        return None
-    return nak(ep, req, ErrorCode.BUSY, "session",
-               f"another host owns the device: its session opened {now - core.opened:.1f} s "
-               f"ago and has been idle {idle:.1f} s (expires after {core.session_idle_s:g} s "
-               "idle); say HELLO with take-over to end it", False)
 
+    def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
+                 stats: EndpointStats, lock: Any, *, max_frame: int, fec: bool,
+                 ring_columns: int, heartbeat_s: float, peer: str,
+                 on_end: Callable[[], None]) -> None:
+        self.core, self.tx, self.streams, self.stats, self.lock = core, tx, streams, stats, lock
+        self.max_frame, self.fec, self.ring_columns, self.heartbeat_s = \
+            max_frame, fec, ring_columns, heartbeat_s
+        self.peer, self._on_end = peer, on_end
+        self.open = False
+        #: Since when this connection has had no session (core clock, s).
+        self.sessionless_since = core.clock()
+        self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
+        self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
+        #: The last signed session that ended on this connection: (id, signer, verifier).
+        self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
+        #: (wrong HELLO MACs on this connection since its last success, the last one's time)
+        self.auth_failures: tuple[int, float] = (0, 0.0)
+        self.info: Info | None = None  # as sent in the last INFO
 
-def _hello(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
-    """Challenge (with a key), check ownership, then open a fresh session.
+    @property
+    def id(self) -> int:
+        """The current (or first) session id."""
+        return self.tx.session
 
-    Runs in the request worker, holding app_lock and the endpoint's lock.
-    """
-    refusal = hello_gate(ep, req, f)
-    if refusal is not None:
-        return refusal
-    core = ep.core
-    ep.auth_failures = (0, 0.0)
-    nonce = bytes(f["host_nonce"])
-    now = core.clock()
-    owner = core.owner
-    if owner is not None and not (owner is ep and core.owner_nonce == nonce):
+    def handlers(self) -> dict[MsgType, Callable[[Frame, dict, list], Reply]]:
+        return {MsgType.HELLO: self._hello, MsgType.SESSION_END: self._session_end}
+
+    def hello_gate(self, req: Frame, f: dict) -> Reply | None:
+        """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
+        or one sent during this connection's back-off) or BUSY; None: open a session.
+
+        Runs in the polling thread, so a HELLO is refused at once whatever the application
+        is computing, and again in the request worker.
+        """
+        core = self.core
+        if core.key is not None:
+            if not any(f["mac"]) or self.challenge is None or \
+                    not auth.equal(f["device_nonce"], self.challenge):
+                self.challenge = secrets.token_bytes(auth.NONCE_BYTES)
+                return (MsgType.CHALLENGE, encode_payload(
+                    MsgType.CHALLENGE, {"device_nonce": self.challenge}), False)
+            wait = core.backoff.wait_s(*self.auth_failures)
+            if wait > 0:
+                self.challenge = None
+                self.stats.auth_throttled += 1
+                return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
+                                   f"authentications on this connection: retry in {wait:.1f} s",
+                                   False)
+            want = auth.hello_mac(core.key, self.challenge, bytes(f["host_nonce"]), f["flags"],
+                                  f["host_max_frame"])
+            if not auth.equal(want, f["mac"]):
+                self.challenge = None
+                self.stats.auth_rejected += 1
+                self.auth_failures = (self.auth_failures[0] + 1, core.clock())
+                core.backoff.failed(self.peer,
+                                    "HELLO with a wrong MAC (the host holds another key)")
+                return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac",
+                                   "the MAC does not match this device's key", False)
+        owner = core.owner
+        if owner is None or (owner is self and core.owner_nonce == bytes(f["host_nonce"])):
+            return None
+        now = core.clock()
         idle = core.idle_s(now)
-        if idle >= core.session_idle_s:
-            lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
-                    f"{core.session_idle_s:g} s: another host opened a session")
-        else:
-            lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
-                    f"after {now - core.opened:.1f} s")
-        if owner is ep:
-            _lose(ep, *lost)
-        else:
-            with owner.lock:  # lock order: app_lock, then one endpoint's lock
-                _lose(owner, *lost)
-    _end_session(ep)
-    device_nonce = ep.challenge or bytes(auth.NONCE_BYTES)
-    ep.challenge = None
-    core.restore_defaults(keep=bool(f["flags"] & HelloFlags.KEEP_CONFIG))
-    ep.config = ep.app.get_config()
-    if ep.stats.sessions:
-        ep.tx.session = new_session_id(ep.session)
-    ep.stats.sessions += 1
-    ep.session_open = True
-    ep.last_seq = None
-    core.owner, core.owner_nonce = ep, nonce
-    core.opened = core.last_active = now
-    ep.tx.max_frame = min(ep.max_frame, f["host_max_frame"])
-    ep.tx.coded = ep.fec and bool(f["flags"] & HelloFlags.FEC)
-    mac = bytes(auth.MAC_BYTES)
-    if core.key is not None:
-        to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, ep.session)
-        ep.tx.signer, ep.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
-        mac = auth.device_mac(core.key, nonce, device_nonce, ep.session)
-    ep.info = info = dataclasses.replace(
-        ep.app.info(), protocol_version=PROTOCOL_VERSION, session_id=ep.session,
-        schema_crc=SCHEMA_CRC, max_frame=ep.max_frame, ring_columns=min(ep.ring_columns, 65535),
-        heartbeat_ms=max(1, min(65535, round(ep.heartbeat_s * 1000))),
-        session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),
-        auth=int(Auth.HMAC_SHA256 if core.key is not None else Auth.NONE), device_mac=mac)
-    log.info("HELLO from host %s: session 0x%08x, max frame %d%s", nonce[:4].hex(),
-             ep.session, ep.tx.max_frame, ", signed" if ep.tx.signer else "")
-    return (MsgType.INFO, encode_payload(MsgType.INFO, info.to_fields()), ep.tx.signer is not None)
+        if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
+            return None
+        return self.tx.nak(req, ErrorCode.BUSY, "session",
+                           f"another host owns the device: its session opened "
+                           f"{now - core.opened:.1f} s ago and has been idle {idle:.1f} s "
+                           f"(expires after {core.session_idle_s:g} s idle); say HELLO with "
+                           "take-over to end it", False)
 
+    def _hello(self, req: Frame, f: dict, after: list) -> Reply:
+        """Challenge (with a key), check ownership, then open a fresh session.
 
-def _end_session(ep: DeviceEndpoint) -> None:
-    """Forget the session's stream, ring, capture, keys and ownership; end the last stream
-    for the application (caller holds app_lock and the endpoint's lock)."""
-    stop_stream(ep, ScanEndReason.ABORTED, send_end=False)
-    if ep.latest is not None:
-        finish(ep, ep.latest)
-    ep.tx.drop(REPAIR)
-    ep.ring.clear()
-    ep.capture = None
-    if ep.session_open and ep.verifier is not None:  # to sign its NAK WRONG_SESSION
-        ep.ended = (ep.session, ep.tx.signer, ep.verifier)
-    ep.tx.signer = ep.verifier = None
-    ep.tx.coded = False
-    if ep.session_open:
-        ep.sessionless_since = ep.core.clock()
-    ep.session_open = False
-    ep.core.release(ep)
+        Runs in the request worker, holding app_lock and the endpoint's lock.
+        """
+        refusal = self.hello_gate(req, f)
+        if refusal is not None:
+            return refusal
+        core = self.core
+        self.auth_failures = (0, 0.0)
+        nonce = bytes(f["host_nonce"])
+        now = core.clock()
+        owner = core.owner
+        if owner is not None and not (owner is self and core.owner_nonce == nonce):
+            idle = core.idle_s(now)
+            if idle >= core.session_idle_s:
+                lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
+                        f"{core.session_idle_s:g} s: another host opened a session")
+            else:
+                lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
+                        f"after {now - core.opened:.1f} s")
+            if owner is self:
+                self.lose(*lost)
+            else:
+                with owner.lock:  # lock order: app_lock, then one connection's lock
+                    owner.lose(*lost)
+        self.end()
+        device_nonce = self.challenge or bytes(auth.NONCE_BYTES)
+        self.challenge = None
+        core.restore_defaults(keep=bool(f["flags"] & HelloFlags.KEEP_CONFIG))
+        if self.stats.sessions:
+            self.tx.session = new_session_id(self.id)
+        self.stats.sessions += 1
+        self.open = True
+        core.owner, core.owner_nonce = self, nonce
+        core.opened = core.last_active = now
+        self.tx.max_frame = min(self.max_frame, f["host_max_frame"])
+        self.tx.coded = self.fec and bool(f["flags"] & HelloFlags.FEC)
+        mac = bytes(auth.MAC_BYTES)
+        if core.key is not None:
+            to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
+            self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
+            mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
+        self.info = info = dataclasses.replace(
+            self.core.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
+            schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
+            ring_columns=min(self.ring_columns, 65535),
+            heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))),
+            session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),
+            auth=int(Auth.HMAC_SHA256 if core.key is not None else Auth.NONE), device_mac=mac)
+        log.info("HELLO from host %s: session 0x%08x, max frame %d%s", nonce[:4].hex(),
+                 self.id, self.tx.max_frame, ", signed" if self.tx.signer else "")
+        return (MsgType.INFO, encode_payload(MsgType.INFO, info.to_fields()),
+                self.tx.signer is not None)
 
+    def end(self) -> None:
+        """Forget the session's stream, ring, capture, keys and ownership; end the last
+        stream for the application (caller holds app_lock and the connection's lock)."""
+        self.streams.stop(ScanEndReason.ABORTED, send_end=False)
+        if self.streams.latest is not None:
+            self.streams.finish(self.streams.latest)
+        self.tx.drop(REPAIR)
+        self.streams.ring.clear()
+        self._on_end()
+        if self.open and self.verifier is not None:  # to sign its NAK WRONG_SESSION
+            self.ended = (self.id, self.tx.signer, self.verifier)
+        self.tx.signer = self.verifier = None
+        self.tx.coded = False
+        if self.open:
+            self.sessionless_since = self.core.clock()
+        self.open = False
+        self.core.release(self)
 
-def _lose(ep: DeviceEndpoint, reason: SessionLostReason, detail: str) -> None:
-    """Another connection's HELLO ends ``ep``'s session: tell its host (caller holds the
-    core's app_lock and ``ep``'s lock)."""
-    if ep.session_open:
-        log.info("session 0x%08x lost: %s", ep.session, detail)
-        with contextlib.suppress(OSError):  # that host is gone anyway
-            ep.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
-                MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
-    _end_session(ep)
+    def lose(self, reason: SessionLostReason, detail: str) -> None:
+        """Another connection's HELLO ends this session: tell its host (caller holds the
+        core's app_lock and this connection's lock)."""
+        if self.open:
+            log.info("session 0x%08x lost: %s", self.id, detail)
+            with contextlib.suppress(OSError):  # that host is gone anyway
+                self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
+                    MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
+        self.end()
 
+    def _session_end(self, req: Frame, f: dict, after: list) -> Reply:
+        """The host closes its link: ACK (signed), then forget the session."""
+        def end() -> None:
+            self.end()
+            log.info("session 0x%08x ended by its host", self.id)
 
-def _session_end(ep: DeviceEndpoint, req: Frame, f: dict, after: list) -> Reply:
-    """The host closes its link: ACK (signed), then forget the session."""
-    def end() -> None:
-        _end_session(ep)
-        log.info("session 0x%08x ended by its host", ep.session)
-
-    after.append(end)
-    return ack(ep, req)
-
-
-HANDLERS = {MsgType.HELLO: _hello, MsgType.SESSION_END: _session_end}
+        after.append(end)
+        return self.tx.ack(req)

@@ -36,9 +36,13 @@ from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
-from cdma_lidar.protocol import auth, device_sessions, handlers, streams
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.device_sessions import DeviceCore, EndpointStats
+from cdma_lidar.protocol.device_sessions import (
+    DeviceCore,
+    DeviceSession,
+    EndpointStats,
+    new_session_id,
+)
 from cdma_lidar.protocol.framing import (
     FRAME_LIMIT,
     MIN_MAX_FRAME,
@@ -46,7 +50,7 @@ from cdma_lidar.protocol.framing import (
     Frame,
     FrameDecoder,
 )
-from cdma_lidar.protocol.handlers import Reply, nak
+from cdma_lidar.protocol.handlers import AppRequests
 from cdma_lidar.protocol.messages import (
     CaptureKind,
     ErrorCode,
@@ -60,18 +64,15 @@ from cdma_lidar.protocol.messages import (
     type_name,
 )
 from cdma_lidar.protocol.ports import port_name
-from cdma_lidar.protocol.streams import Stream
-from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Transmitter
+from cdma_lidar.protocol.streams import Streams
+from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
-__all__ = ["FAULT_HEALTH", "HANDLERS", "DeviceApp", "DeviceCore", "DeviceEndpoint",
+__all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint",
            "EndpointStats"]
 
 log = logging.getLogger(__name__)
 
-#: Request handler of each request type, ``(endpoint, request, fields, after) -> reply``.
-HANDLERS: dict[MsgType, Callable[[Any, Frame, dict, list], Reply]] = {
-    **device_sessions.HANDLERS, **streams.HANDLERS, **handlers.HANDLERS}
 # Requests answered without calling the application (never wait for a column to compute).
 _WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
 # Requests answered NAK BUSY from the stream's state while it runs (their handlers check
@@ -190,57 +191,56 @@ class DeviceEndpoint:
                 raise out_of_range("app", "a DeviceApp (or a DeviceCore)", app)
             core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock)
         self.core, self.app, self.port = core, core.app, port
-        #: Who is on the other end (an IP address over TCP), for the logs.
-        self.peer = peer or port_name(port)
-        self.session_open = False
-        #: Since when this connection has had no session (core clock, s).
-        self.sessionless_since = core.clock()
-        self.max_frame, self.ring_columns, self.heartbeat_s = max_frame, ring_columns, heartbeat_s
-        self.clock, self.fec = clock, fec
-        self.threads = threads
+        self.clock, self.threads = clock, threads
+        self.heartbeat_s = heartbeat_s
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
-        self.tx = Transmitter(port, session_id or device_sessions.new_session_id(), max_frame,
+        self.tx = Transmitter(port, session_id or new_session_id(), max_frame,
                               (self.stats, core.totals))
-        self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
-        self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
-        #: The last signed session that ended on this connection: (id, signer, verifier).
-        self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
-        #: (wrong HELLO MACs on this connection since its last success, the last one's time)
-        self.auth_failures: tuple[int, float] = (0, 0.0)
+        # lock guards the connection's state (its session, streams, replay cache); the
+        # core's app_lock serialises calls into the application and is always taken first.
+        self.lock = threading.Lock()
+        self.streams = Streams(core.app, self.tx, core.app_lock, self.lock,
+                               ring_columns=ring_columns, threads=threads, clock=clock,
+                               counted=self._count_column,
+                               stopped=lambda: core.touch(self.session))
+        self.requests = AppRequests(core.app, self.tx, self.streams, self.status)
+        self.session = DeviceSession(core, self.tx, self.streams, self.stats, self.lock,
+                                     max_frame=max_frame, fec=fec, ring_columns=ring_columns,
+                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port),
+                                     on_end=self._forget_capture)
+        #: Request handler of each request type, ``(request, fields, after) -> reply``.
+        self.handlers: dict[MsgType, Callable[[Frame, dict, list], Reply]] = {
+            **self.session.handlers(), **self.streams.handlers(), **self.requests.handlers()}
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
-        self.stream: Stream | None = None
-        self.latest: Stream | None = None  # the last stream started, running or not
-        self.last_frame = self.last_next = 0
-        self.last_end = ScanEndReason.COMPLETE
-        self.last_heartbeat = 0.0
-        #: Recent columns (frame, column) -> payload, for RESEND.
-        self.ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
-        self.capture: tuple[tuple[int, int, int], NDArray] | None = None
-        self.info: Info | None = None  # as sent in the last INFO
-        self.config: dict[str, Any] | None = None  # the app's config, for CONFIG_GET mid-scan
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
         #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
         self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
-        # lock guards the endpoint's state; the core's app_lock serialises calls into the
-        # application and is always taken first.
-        self.lock = threading.Lock()
         self._health = (TEMPERATURE_UNKNOWN, 0)
         self._queue: queue.SimpleQueue[tuple[Frame, bool] | None] = queue.SimpleQueue()
         self._queued = 0  # requests queued for the request worker and not yet handled
         self._worker: threading.Thread | None = None
         port.timeout = poll_s
 
+    # What the TCP server and the tests read of the connection.
     @property
-    def session(self) -> int:
-        """The current (or first) session id."""
-        return self.tx.session
+    def peer(self) -> str:
+        """Who is on the other end (an IP address over TCP), for the logs."""
+        return self.session.peer
 
-    @session.setter
-    def session(self, value: int) -> None:
-        self.tx.session = value
+    @property
+    def session_open(self) -> bool:
+        return self.session.open
+
+    @property
+    def sessionless_since(self) -> float:
+        """Since when this connection has had no session (core clock, s)."""
+        return self.session.sessionless_since
+
+    def _forget_capture(self) -> None:
+        self.requests.capture = None
 
     def serve_forever(self, stop: threading.Event) -> None:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
@@ -260,12 +260,12 @@ class DeviceEndpoint:
         """Stop a running stream (no SCAN_END), end this connection's session, stop the
         request worker. The port is left open."""
         with self.lock:
-            streams.stop_stream(self, ScanEndReason.ABORTED, send_end=False)
-            self.core.release(self)
-            self.session_open = False
-        if not self.threads and self.latest is not None:  # no worker to end it
+            self.streams.stop(ScanEndReason.ABORTED, send_end=False)
+            self.core.release(self.session)
+            self.session.open = False
+        if not self.threads and self.streams.latest is not None:  # no worker to end it
             with self.core.app_lock:
-                streams.finish(self, self.latest)
+                self.streams.finish(self.streams.latest)
         if self._worker is not None:
             self._queue.put(None)
             if self._worker is not threading.current_thread():
@@ -306,13 +306,13 @@ class DeviceEndpoint:
                     self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
                         MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                              & 0xFFFFFFFF}))
-            now = self.clock()
-            if self.stream is not None and \
-                    now - self.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
-                self.last_heartbeat = now
+            now, streams = self.clock(), self.streams
+            if streams.stream is not None and \
+                    now - streams.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
+                streams.last_heartbeat = now
                 self.tx.send(CONTROL, MsgType.HEARTBEAT,
                                encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
-            worker = self.stream is not None
+            worker = streams.stream is not None
         # Replies and notices now; repairs in a bounded share while a column worker runs
         # (it sends the rest); everything when no stream runs.
         self.tx.flush(REPAIR if worker else FRESH, _POLL_REPAIR_BYTES if worker else None)
@@ -321,8 +321,8 @@ class DeviceEndpoint:
                 item = self._queue.get()
                 assert item is not None
                 self._serve_one(*item)
-            if self.latest is not None and not self.latest.finished:
-                streams.step(self, self.latest)
+            if streams.latest is not None and not streams.latest.finished:
+                streams.step(streams.latest)
 
     def _count_rx(self) -> None:
         """Add what the decoder counted since the last call to the core's totals."""
@@ -331,7 +331,7 @@ class DeviceEndpoint:
         self.core.rx_errors += ds.errors - errors
         self._rx_counted = (ds.frames, ds.errors)
 
-    def count_column(self) -> None:
+    def _count_column(self) -> None:
         """One more COLUMN_RESULT queued (new or resent)."""
         self.stats.columns_sent += 1
         self.core.totals.columns_sent += 1
@@ -339,7 +339,7 @@ class DeviceEndpoint:
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
-        st = self.stream
+        st, streams = self.streams.stream, self.streams
         if self.core.app_lock.acquire(blocking=False):  # else: the last reading
             try:
                 self._health = self.app.health()
@@ -353,10 +353,10 @@ class DeviceEndpoint:
         return Status(
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
-            frame=(st.frame if st else self.last_frame) & mask,
-            next_column=(st.next_column - self.tx.fresh_pending() if st else self.last_next)
+            frame=(st.frame if st else streams.last_frame) & mask,
+            next_column=(st.next_column - self.tx.fresh_pending() if st else streams.last_next)
             & 0xFFFF,
-            last_end=int(self.last_end),
+            last_end=int(streams.last_end),
             columns_sent=core.totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
@@ -375,20 +375,21 @@ class DeviceEndpoint:
         if frame.version != PROTOCOL_VERSION:
             # In the requester's version, so that an older host reads it: the header and
             # the NAK payload are laid out alike in every version.
-            reply = nak(self, frame, ErrorCode.VERSION, "version",
+            reply = self.tx.nak(frame, ErrorCode.VERSION, "version",
                         f"device speaks protocol version {PROTOCOL_VERSION}", False)
             self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
                         coded=frame.fec, version=frame.version)
             return
-        self._send_reply(frame, nak(self, frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+        self._send_reply(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                     f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
         signed requests with a bad signature is dropped); the whole request once every
         piece is in, keyed by (type, seq). Two requests in pieces are kept at most."""
-        ours = self.session_open and frame.session == self.session
-        if ours and self.verifier is not None and not self.verifier.check(frame):
+        sess = self.session
+        ours = sess.open and frame.session == sess.id
+        if ours and sess.verifier is not None and not sess.verifier.check(frame):
             self.stats.auth_rejected += 1
             return None
         try:
@@ -421,13 +422,13 @@ class DeviceEndpoint:
     def _process(self, frame: Frame, in_worker: bool) -> None:
         """Check one request and answer, replay, drop or (poll thread) queue it."""
         self.stats.rx_requests += 1
-        is_hello = frame.msg_type == MsgType.HELLO
+        is_hello, sess = frame.msg_type == MsgType.HELLO, self.session
         if not is_hello:
-            if not self.session_open or frame.session != self.session:
-                detail = (f"this connection's session is 0x{self.session:08x}; send HELLO"
-                          if self.session_open else "no session is open here: send HELLO")
-                refusal = nak(self, frame, ErrorCode.WRONG_SESSION, "session", detail, False)
-                sid, signer, verifier = self.ended or (None, None, None)
+            if not sess.open or frame.session != sess.id:
+                detail = (f"this connection's session is 0x{sess.id:08x}; send HELLO"
+                          if sess.open else "no session is open here: send HELLO")
+                refusal = self.tx.nak(frame, ErrorCode.WRONG_SESSION, "session", detail, False)
+                sid, signer, verifier = sess.ended or (None, None, None)
                 if frame.session == sid and verifier is not None and verifier.check(frame):
                     # A request of the signed session that ended here: its host hears it
                     # signed with that session's key (it drops unsigned frames).
@@ -436,18 +437,18 @@ class DeviceEndpoint:
                 else:
                     self._send_reply(frame, refusal)
                 return
-            if self.verifier is not None and not frame.joined:
+            if sess.verifier is not None and not frame.joined:
                 if not frame.sig:
-                    self._send_reply(frame, nak(
-                        self, frame, ErrorCode.AUTH_REQUIRED, "incompat_flags",
+                    self._send_reply(frame, self.tx.nak(
+                        frame, ErrorCode.AUTH_REQUIRED, "incompat_flags",
                         "this device accepts only signed frames: HELLO with its key", False))
                     return
-                if not self.verifier.check(frame):  # forged or replayed: no answer at all
+                if not sess.verifier.check(frame):  # forged or replayed: no answer at all
                     self.stats.auth_rejected += 1
-                    self.core.backoff.failed(f"{self.peer} (session frames)",
+                    self.core.backoff.failed(f"{sess.peer} (session frames)",
                                              "a frame failed authentication")
                     return
-            self.core.touch(self)
+            self.core.touch(sess)
         key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
         cached = self._replay.get(frame.seq)
         if cached is not None and cached[0] == key:
@@ -463,16 +464,14 @@ class DeviceEndpoint:
                 return
         if is_hello and not in_worker:
             try:  # the gate's answer, at once whatever the application is computing
-                refusal = device_sessions.hello_gate(self, frame, decode_payload(MsgType.HELLO,
-                                                                          frame.payload))
+                refusal = sess.hello_gate(frame, decode_payload(MsgType.HELLO, frame.payload))
             except FrameError:
                 refusal = None  # the worker NAKs it MALFORMED
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-        if in_worker or frame.msg_type in _WITHOUT_APP or (self.stream is not None and (
-                frame.msg_type in _BUSY_WHILE_SCANNING or
-                (frame.msg_type == MsgType.CONFIG_GET and self.config is not None))):
+        if in_worker or frame.msg_type in _WITHOUT_APP or (self.streams.stream is not None and (
+                frame.msg_type in _BUSY_WHILE_SCANNING or frame.msg_type == MsgType.CONFIG_GET)):
             self._respond(frame, key)
         else:
             self._enqueue(frame, True)
@@ -493,7 +492,7 @@ class DeviceEndpoint:
                     self._respond(frame, zlib.crc32(bytes([frame.msg_type]) + frame.payload))
                 else:
                     self._process(frame, True)
-                idle = self.stream is None
+                idle = self.streams.stream is None
             self.tx.flush(FRESH if idle else CONTROL)
         except OSError as exc:
             log.warning("request worker stops: %s", exc)
@@ -508,26 +507,26 @@ class DeviceEndpoint:
         after: list[Callable[[], None]] = []
         try:
             if reply is None:
-                handler = HANDLERS.get(frame.msg_type)  # type: ignore[call-overload]
+                handler = self.handlers.get(frame.msg_type)  # type: ignore[call-overload]
                 if handler is None:
                     raise DeviceError(f"{type_name(frame.msg_type)} is not a request this "
                                       "device knows", ErrorCode.UNKNOWN_TYPE, "msg_type")
-                reply = handler(self, frame, decode_payload(frame.msg_type, frame.payload),
-                                after)
+                reply = handler(frame, decode_payload(frame.msg_type, frame.payload), after)
         except FrameError as exc:
-            reply = nak(self, frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
+            reply = self.tx.nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except (DeviceError, ConfigError) as exc:
             code = exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
-            reply = nak(self, frame, ErrorCode(code) if code in set(ErrorCode) else
+            reply = self.tx.nak(frame, ErrorCode(code) if code in set(ErrorCode) else
                         ErrorCode.INTERNAL, exc.field or "", str(exc))
             after.clear()
         except Exception as exc:  # the device must never die on a request
             log.exception("device application failed on %s", type_name(frame.msg_type))
-            reply = nak(self, frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
+            reply = self.tx.nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
             after.clear()
         if frame.msg_type == MsgType.HELLO:
-            if reply[0] == MsgType.INFO:
+            if reply[0] == MsgType.INFO:  # a new session: its requests count afresh
                 self._replay.clear()
+                self.last_seq = None
         else:
             self.last_seq = frame.seq
         self._replay[frame.seq] = (key, reply)

@@ -14,7 +14,7 @@ import logging
 import secrets
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -23,7 +23,12 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import FRAME_LIMIT, OVERHEAD, SIGNATURE_SIZE, frame_size
+from cdma_lidar.protocol.framing import (
+    FRAME_LIMIT,
+    OVERHEAD,
+    SIGNATURE_SIZE,
+    frame_size,
+)
 from cdma_lidar.protocol.host_session import Session
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
@@ -33,9 +38,15 @@ from cdma_lidar.protocol.messages import (
     MsgType,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
-from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, DIAG_NOISY, SessionLost
+from cdma_lidar.protocol.requests import (
+    DIAG_HINTS,
+    DIAG_NO_ANSWER,
+    DIAG_NOISY,
+    Requests,
+    SessionLost,
+)
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
-from cdma_lidar.protocol.views import State, Status
+from cdma_lidar.protocol.views import Info, State, Status
 
 __all__ = ["HostLink", "ScanStalled", "SessionLost", "StreamEnded"]
 
@@ -51,7 +62,7 @@ class ScanStalled(StreamEnded, LinkTimeout):
         self.diagnosis = DIAG_NO_ANSWER
 
 
-class HostLink(Session):
+class HostLink:
     """Host end of the protocol over a port-like object.
 
     Args:
@@ -89,8 +100,15 @@ class HostLink(Session):
                  key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
                  fec: bool | None = None, progress_timeout_s: float = 30.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(port, timeout_s, retries, max_frame=max_frame, fec=fec, clock=clock,
-                         key=key, take_over=take_over, keep_config=keep_config)
+        #: The request layer: port, receive path, retries, the session id and keys.
+        self.requests = Requests(port, timeout_s, retries, max_frame=max_frame, fec=fec,
+                                 clock=clock)
+        #: The session: HELLO, INFO and the configuration read in it.
+        self.session_layer = Session(self.requests, max_frame=max_frame, key=key,
+                                     take_over=take_over, keep_config=keep_config)
+        rq = self.requests  # what never changes, read directly:
+        self.port, self.stats, self.decoder, self.clock = rq.port, rq.stats, rq.decoder, rq.clock
+        self.timeout_s, self.retries = rq.timeout_s, rq.retries
         self.column_retries = 10 * (self.retries + 1) if column_retries is None \
             else check_int("column_retries", column_retries, 0, 1000)
         if not progress_timeout_s > 0:
@@ -101,6 +119,74 @@ class HostLink(Session):
         #: its answer comes ahead of new columns, so a quarter of the reply timeout.
         self.resend_s = self.timeout_s / 4
         self._next_frame_id = secrets.randbits(31)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the session (SESSION_END, one short try) and close the port."""
+        self.session_layer.close()
+
+    def hello(self) -> Info:
+        """Open a session (:meth:`~cdma_lidar.protocol.host_session.Session.hello`):
+        identity, limits, geometry and session id; a request without a session says it."""
+        return self.session_layer.hello()
+
+    # What a caller reads of the link (the layers own it).
+    @property
+    def session(self) -> int | None:
+        """The session id; None without a session."""
+        return self.requests.session
+
+    @property
+    def info(self) -> Info | None:
+        """INFO of the session (None before HELLO)."""
+        return self.session_layer.info
+
+    @property
+    def config(self) -> dict[str, Any] | None:
+        """The last full configuration read (checked against INFO)."""
+        return self.session_layer.config
+
+    @config.setter
+    def config(self, value: dict[str, Any] | None) -> None:
+        self.session_layer.config = value
+
+    @property
+    def coded(self) -> bool:
+        """This session's frames are Reed-Solomon coded."""
+        return self.requests.coded
+
+    @property
+    def max_frame(self) -> int:
+        """Largest request frame (bytes)."""
+        return self.requests.max_frame
+
+    @property
+    def rtt(self) -> float | None:
+        """Smoothed round trip of a request (s); None until the first reply."""
+        return self.requests.rtt
+
+    @property
+    def line_errors(self) -> int:
+        return self.requests.line_errors
+
+    @property
+    def last_status(self) -> Status | None:
+        """The last HEARTBEAT's status."""
+        return self.requests.last_status
+
+    def _request(self, msg_type: MsgType, fields_: dict[str, Any]) -> dict[str, Any]:
+        return self.session_layer.request(msg_type, fields_)
+
+    def _need_info(self) -> Info:
+        return self.session_layer.need_info()
+
+    def _pump(self) -> None:
+        self.requests.pump()
 
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
@@ -148,8 +234,8 @@ class HostLink(Session):
         elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
             raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
         rows, cols = m.shape
-        room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, self._tx is not None))
-                - 8) // 2
+        signed = self.requests.signer is not None
+        room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, signed)) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -258,7 +344,7 @@ class HostLink(Session):
 
     def _room(self) -> int:
         """Payload bytes of a request frame (bytes)."""
-        return self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self._tx else 0)
+        return self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self.requests.signer else 0)
 
     def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
                         count: int) -> Iterator[ColumnResult]:
@@ -273,10 +359,7 @@ class HostLink(Session):
         assert self.info is not None and self.config is not None
         checker = ColumnChecker(self.info, self.config, fid, first, first + count,
                                 req == MsgType.CALIBRATE)
-        self._stream.clear()
-        self._unawaited.clear()  # a late NAK to a RESEND of an earlier stream is not ours
-        self._refusal = None
-        self._streaming = True
+        self.requests.start_stream()
         finished = False
         try:
             try:
@@ -288,14 +371,13 @@ class HostLink(Session):
                 # columns reached us before the device had sent them all (repairs of the
                 # same frame id, asked for earlier). Let it end, then ask once more.
                 self._await_idle(exc)
-                self._stream.clear()
+                self.requests.stream.clear()
                 self._request(req, fields_)
             asm = ColumnReassembler(fid, first, first + count, checker, self.resend_s)
             yield from self._drive(asm)
             finished = True
         finally:
-            self._streaming = False
-            self._stream.clear()
+            self.requests.end_stream()
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
@@ -307,14 +389,14 @@ class HostLink(Session):
         progress = asm.progress
         while not asm.done:
             alive = False  # heard something of this frame (other frames are no sign of life)
-            while self._stream:
-                alive = asm.feed(self._stream.popleft()) or alive
+            while self.requests.stream:
+                alive = asm.feed(self.requests.stream.popleft()) or alive
             self.stats.duplicates += asm.duplicates
             self.stats.malformed += asm.malformed
             asm.duplicates = asm.malformed = 0
-            if self._refusal is not None:  # the device refused a RESEND: say why
-                (mtype, frame), self._refusal = self._refusal, None
-                self._accept_reply(mtype, frame)
+            if self.requests.refusal is not None:  # the device refused a RESEND: say why
+                (mtype, frame), self.requests.refusal = self.requests.refusal, None
+                self.requests.accept_reply(mtype, frame)
             for col in asm.ready():
                 self.stats.columns += 1
                 yield col
@@ -326,7 +408,7 @@ class HostLink(Session):
             elif now - moved >= self.progress_timeout_s:
                 raise ScanStalled(
                     f"frame {asm.fid} made no progress for {self.progress_timeout_s:g} s on "
-                    f"{self._port_name}: the device says it is still working but column "
+                    f"{self.requests.port_name}: the device says it is still working but column "
                     f"{asm.nxt} never came; {asm.nxt - asm.first} columns were delivered",
                     frame=asm.fid, next_column=asm.nxt)
             if alive:
@@ -371,10 +453,11 @@ class HostLink(Session):
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
                 why, diag = (f"arrived intact after {tries} resend requests on "
-                             f"{self._port_name}: a noisy line, {damaged} damaged frames of "
+                             f"{self.requests.port_name}: a noisy line, {damaged} damaged "
+                             "frames of "
                              f"{damaged + self.decoder.stats.frames}", DIAG_NOISY) \
                     if damaged else (f"arrived after {tries} resend requests on "
-                                     f"{self._port_name}: {DIAG_NO_ANSWER}", DIAG_NO_ANSWER)
+                                     f"{self.requests.port_name}: {DIAG_NO_ANSWER}", DIAG_NO_ANSWER)
                 raise LinkTimeout(f"{what} of frame {asm.fid} never {why}; {DIAG_HINTS[diag]}",
                                   diag)
         asm.ask(cols + pieces, now)
@@ -384,5 +467,6 @@ class HostLink(Session):
                   len(cols), len(pieces))
         # Not waited for: the columns are the answer, and the stream goes on meanwhile.
         # A lost RESEND is asked again once resend_s passes.
-        self._send_unawaited(MsgType.RESEND, {"frame": asm.fid, "columns": cols, "fragments": [
-            {"column": c, "index": k} for c, k in pieces]})
+        self.requests.send_unawaited(MsgType.RESEND, {
+            "frame": asm.fid, "columns": cols,
+            "fragments": [{"column": c, "index": k} for c, k in pieces]})

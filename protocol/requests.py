@@ -129,23 +129,23 @@ class Requests:
         self.max_frame = 4096  # until INFO says more; every request fits
         self.last_status: Status | None = None
         self.line_errors = 0  # LINE_ERRORs heard so far
-        self._seq = 0
-        self._tx: auth.FrameSigner | None = None  # signs our requests (keyed session)
-        self._rx: auth.FrameVerifier | None = None  # checks the device's frames
+        self.seq = 0  # the last request seq used
+        self.signer: auth.FrameSigner | None = None  # signs our requests (keyed session)
+        self.verifier: auth.FrameVerifier | None = None  # checks the device's frames
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
-        self._reply: Frame | None = None
+        self.reply: Frame | None = None
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
-        self._reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
+        self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self._parts: list[Frame] = []  # those of the last message put together
         self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
-        self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
+        self.hello_seq: int | None = None  # HELLO pending: its replies open a new session
         self._early: list[Frame] = []  # frames that came with INFO, before it was ours
-        self._streaming = False
-        self._stream: deque[Frame] = deque()  # stream frames for the reassembler
+        self.streaming = False
+        self.stream: deque[Frame] = deque()  # stream frames for the reassembler
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
-        self._refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        self._port_name = port_name(port)
+        self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
+        self.port_name = port_name(port)
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
         #: Smoothed round trip of a request and its reply and its mean deviation (s),
         #: measured on first tries; None until the first reply.
@@ -155,13 +155,15 @@ class Requests:
         self.min_timeout_s = min(MIN_TIMEOUT_S, self.timeout_s)
         #: Seconds one byte takes on the line (0: unknown, or no line to speak of).
         self.byte_s = byte_time_s(port)
+        #: Called whenever the session is forgotten (SESSION_LOST, a new HELLO).
+        self.on_forget: Callable[[], None] = lambda: None
 
     # ---- sending --------------------------------------------------------------------------
-    def _new_seq(self) -> int:
-        self._seq = (self._seq + 1) & 0xFFFF
-        return self._seq
+    def new_seq(self) -> int:
+        self.seq = (self.seq + 1) & 0xFFFF
+        return self.seq
 
-    def _transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int, *,
+    def transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int, *,
                   retries: int | None = None, timeout_s: float | None = None) -> dict[str, Any]:
         """Send a request and wait for its reply (decoded), retrying on the clock."""
         payload = encode_payload(msg_type, fields_)
@@ -172,8 +174,8 @@ class Requests:
                   st.damaged, self.line_errors)
         self.stats.requests += 1
         self._pending, self._pending_type = seq, int(msg_type)
-        self._reply = self._reply_version = None
-        self._reply_parts = []
+        self.reply = self._reply_version = None
+        self.reply_parts = []
         tries, waited = 0, 0.0
         try:
             # Short tries while the line answers fast, each twice the last, up to timeout_s;
@@ -186,15 +188,15 @@ class Requests:
                 wait = self.reply_wait(nbytes, tries, timeout_s)
                 sent = self.clock()
                 self.port.timeout = min(0.05, wait / 4)  # longest blocking read (s)
-                while self._reply is None and self._reply_version is None and \
+                while self.reply is None and self._reply_version is None and \
                         self.clock() < sent + wait:
-                    self._pump()
+                    self.pump()
                 tries += 1
                 waited += wait
-                if self._reply is not None:
+                if self.reply is not None:
                     if tries == 1:  # Karn: only a first try's reply measures the line
                         self._measured(self.clock() - sent - nbytes * self.byte_s)
-                    return self._accept_reply(msg_type, self._reply)
+                    return self.accept_reply(msg_type, self.reply)
                 if (f := self._reply_version) is not None:
                     raise LinkError(
                         f"device answered {msg_type.name} in protocol version {f.version} "
@@ -205,7 +207,7 @@ class Requests:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
         diag, what = self._diagnose(*before)
-        raise LinkTimeout(f"{msg_type.name} got no answer from {self._port_name} after "
+        raise LinkTimeout(f"{msg_type.name} got no answer from {self.port_name} after "
                           f"{tries} tries in {waited:.3g} s: {what}; "
                           f"{DIAG_HINTS[diag]}", diag)
 
@@ -232,7 +234,7 @@ class Requests:
     def _send(self, msg_type: MsgType, payload: bytes, seq: int) -> int:
         """Write one try of a request, signed afresh (new counter, same seq and payload);
         returns the bytes written."""
-        wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self._tx,
+        wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self.signer,
                                      coded=self.coded)
                         for t, p in self._pieces_of(msg_type, payload, seq))
         if msg_type == MsgType.HELLO and self.fec:
@@ -243,14 +245,14 @@ class Requests:
         try:
             self.port.write(wire)
         except Exception as exc:  # pyserial raises SerialException (an OSError) or others
-            raise LinkError(f"cannot write to {self._port_name}: {exc}; is the device "
+            raise LinkError(f"cannot write to {self.port_name}: {exc}; is the device "
                             "still connected?") from None
         return len(wire)
 
     def _pieces_of(self, msg_type: MsgType, payload: bytes, seq: int) -> list[tuple[int, bytes]]:
         """(type, payload) of each frame of one request: whole, or in FRAGMENTs of at most
         ``max_frame`` bytes (docs/protocol.md section 2.4)."""
-        signed = self._tx is not None
+        signed = self.signer is not None
         if frame_size(len(payload), signed) <= self.max_frame:
             return [(msg_type, payload)]
         room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
@@ -259,9 +261,9 @@ class Requests:
         except DeviceError as exc:
             raise FieldError(str(exc), "payload") from None
 
-    def _send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
+    def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
         """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
-        seq = self._new_seq()
+        seq = self.new_seq()
         self.stats.requests += 1
         self._unawaited[seq] = msg_type
         while len(self._unawaited) > _MAX_UNAWAITED:
@@ -292,7 +294,7 @@ class Requests:
         """CRC-valid frames rejected for their version or incompat flags so far."""
         return self.decoder.stats.version + self.decoder.stats.incompat
 
-    def _accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
+    def accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         """The decoded reply; DeviceError for a NAK, LinkError for anything else amiss."""
         try:
             body = decode_payload(frame.msg_type, frame.payload)
@@ -322,52 +324,52 @@ class Requests:
         return body
 
     # ---- receiving ------------------------------------------------------------------------
-    def _pump(self) -> None:
+    def pump(self) -> None:
         """One blocking read (at most ``port.timeout``) and dispatch of what it completes."""
         try:
             n = self.port.in_waiting
             data = self.port.read(n if n else 1)
         except Exception as exc:
-            raise LinkError(f"cannot read from {self._port_name}: {exc}; is the device "
+            raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
                             "still connected?") from None
         if data:
             for frame in self.decoder.feed(data):
-                self._dispatch(frame)
+                self.dispatch(frame)
             while self.decoder.rejected:  # frames of another version or incompat flags
                 frame = self.decoder.rejected.pop(0)
                 if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
                     self._reply_version = frame
 
-    def _dispatch(self, frame: Frame, checked: bool = False) -> None:
+    def dispatch(self, frame: Frame, checked: bool = False) -> None:
         """Route one frame; ``checked``: a notice put together from authenticated pieces."""
         mtype, kind = frame.msg_type, kind_of(frame.msg_type)
         if kind is MsgKind.REQUEST:
             self.stats.ignored += 1
             return
-        hello_reply = kind is MsgKind.REPLY and frame.seq == self._hello_seq and \
+        hello_reply = kind is MsgKind.REPLY and frame.seq == self.hello_seq and \
             mtype in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE)
-        if self._hello_seq is not None and not hello_reply:
-            if mtype == MsgType.FRAGMENT and self._reply is None:
+        if self.hello_seq is not None and not hello_reply:
+            if mtype == MsgType.FRAGMENT and self.reply is None:
                 body = self._decoded(frame)
-                if body is not None and body["seq"] == self._hello_seq and \
+                if body is not None and body["seq"] == self.hello_seq and \
                         body["msg_type"] in (MsgType.INFO, MsgType.NAK):
                     self._reply_piece(frame, body)  # INFO of a session we do not know yet
                     return
-            elif self._reply is not None and frame.session == self._reply.session:
+            elif self.reply is not None and frame.session == self.reply.session:
                 self._early.append(frame)  # of the session INFO opens: read once it is ours
                 return
-        if mtype == MsgType.LINE_ERROR and self._rx is None:
+        if mtype == MsgType.LINE_ERROR and self.verifier is None:
             self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
             return
         if not hello_reply and frame.session != self.session:
             self.stats.wrong_session += 1
-            if (mtype == MsgType.NAK and frame.seq == self._pending and self._reply is None
-                    and self._rx is None and
+            if (mtype == MsgType.NAK and frame.seq == self._pending and self.reply is None
+                    and self.verifier is None and
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
-                self._reply = frame  # the device says it restarted: fail fast
+                self.reply = frame  # the device says it restarted: fail fast
             return
-        if self._rx is not None and not hello_reply and not checked and \
-                not self._rx.check(frame):
+        if self.verifier is not None and not hello_reply and not checked and \
+                not self.verifier.check(frame):
             self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
             log.debug("dropped an unauthenticated %#04x frame", mtype)
             return
@@ -384,14 +386,14 @@ class Requests:
                 if (body := self._decoded(frame)) is None:
                     return
                 self.last_status = Status(**body)
-            if self._streaming:
-                self._stream.append(frame)
+            if self.streaming:
+                self.stream.append(frame)
 
     def _fragment(self, frame: Frame) -> None:
         """An authenticated FRAGMENT of a column (the stream's), a reply or a notice."""
         if frame.payload[:1] == bytes([MsgType.COLUMN_RESULT]):  # field msg_type comes first
-            if self._streaming:
-                self._stream.append(frame)
+            if self.streaming:
+                self.stream.append(frame)
             return
         body = self._decoded(frame)
         if body is None:
@@ -399,7 +401,7 @@ class Requests:
         if kind_of(body["msg_type"]) is MsgKind.REPLY:
             self._reply_piece(frame, body)
         elif (whole := self._piece(frame, body)) is not None:  # a notice longer than a frame
-            self._dispatch(whole._replace(seq=0), checked=True)
+            self.dispatch(whole._replace(seq=0), checked=True)
 
     def _decoded(self, frame: Frame) -> dict[str, Any] | None:
         """The decoded payload of a FRAGMENT or HEARTBEAT; None (counted) if malformed."""
@@ -429,8 +431,8 @@ class Requests:
         if body["seq"] != self._pending:
             self.stats.stale_replies += 1
         elif (whole := self._piece(frame, body)) is not None:
-            if self._reply is None:
-                self._reply_parts = self._parts
+            if self.reply is None:
+                self.reply_parts = self._parts
             self._on_reply(whole)
 
     def _on_reply(self, frame: Frame) -> None:
@@ -441,11 +443,11 @@ class Requests:
         unawaited = self._unawaited.get(frame.seq)
         if unawaited is not None and echoed == bytes([unawaited]):
             del self._unawaited[frame.seq]
-            if frame.msg_type == MsgType.NAK and self._refusal is None:
-                self._refusal = (unawaited, frame)
-        elif frame.seq == self._pending and self._reply is None and \
+            if frame.msg_type == MsgType.NAK and self.refusal is None:
+                self.refusal = (unawaited, frame)
+        elif frame.seq == self._pending and self.reply is None and \
                 echoed in (b"", bytes([self._pending_type])):
-            self._reply = frame
+            self.reply = frame
         else:
             self.stats.stale_replies += 1
 
@@ -457,12 +459,42 @@ class Requests:
             reason, detail = int(body["reason"]), escape(body["detail"])
         except Exception:  # FrameError: still lost, say so without the device's words
             reason, detail = 0, "no reason given"
-        self._forget()
+        self.forget()
         what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
                 SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-        raise SessionLost(f"session lost on {self._port_name}: {detail or what}", reason)
+        raise SessionLost(f"session lost on {self.port_name}: {detail or what}", reason)
 
-    def _forget(self) -> None:
-        """No session any more (keys and INFO with it)."""
+    def forget(self) -> None:
+        """No session any more (keys with it); then :attr:`on_forget`."""
         self.session = None
-        self._tx = self._rx = None
+        self.signer = self.verifier = None
+        self.on_forget()
+
+    def before_hello(self) -> None:
+        """A HELLO is about to go: no session, uncoded, nothing held from the last one."""
+        self.forget()
+        self._early = []
+        self.coded = False
+
+    def open_session(self, session: int, max_frame: int, coded: bool,
+                     keys: tuple[auth.FrameSigner, auth.FrameVerifier] | None) -> None:
+        """INFO opened ``session``: requests within ``max_frame`` (bytes), ``coded`` or not,
+        signed and checked with ``keys``; then the frames that came with INFO are read."""
+        self.session, self.max_frame, self.coded = session, max_frame, coded
+        if keys is not None:
+            self.signer, self.verifier = keys
+        early, self._early = self._early, []
+        for frame in early:  # e.g. SESSION_LOST right behind INFO
+            self.dispatch(frame)
+
+    def start_stream(self) -> None:
+        """Stream frames go to :attr:`stream` from now on (a late NAK to a RESEND of an
+        earlier stream is not this one's)."""
+        self.stream.clear()
+        self._unawaited.clear()
+        self.refusal = None
+        self.streaming = True
+
+    def end_stream(self) -> None:
+        self.streaming = False
+        self.stream.clear()

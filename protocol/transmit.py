@@ -22,24 +22,35 @@ from cdma_lidar.protocol.auth import FrameSigner
 from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
     PROTOCOL_VERSION,
+    Frame,
     encode_frame,
     frame_size,
 )
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
+    ErrorCode,
     MsgType,
+    encode_payload,
     split_message,
     type_name,
 )
 
-__all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Transmitter"]
+__all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Reply", "Transmitter",
+           "clip"]
 
 log = logging.getLogger(__name__)
 
 #: Transmit classes, sent in this order.
 CONTROL, REPAIR, FRESH = 0, 1, 2
 _SESSION = object()  # "the session's signer / coding", resolved when queued
+#: A reply as cached for replay: (type, payload, signed); signed afresh each time sent.
+Reply = tuple[MsgType, bytes, bool]
+
+
+def clip(s: str, limit: int = 255) -> str:
+    """``s`` cut to at most ``limit`` UTF-8 bytes, on a character boundary."""
+    return s.encode("utf-8")[:limit].decode("utf-8", errors="ignore")
 
 
 @dataclass(frozen=True)
@@ -62,7 +73,8 @@ class Transmitter:
 
     ``session``, ``max_frame`` (largest frame sent, bytes), ``signer`` and ``coded``
     describe the current session's frames; a frame takes them when it is queued.
-    ``counters``: objects whose ``tx_frames`` count every frame written.
+    ``counters``: objects whose ``tx_frames`` count every frame written; the first
+    (the connection's) also counts the NAKs made by :meth:`nak`.
     """
 
     def __init__(self, port: Any, session: int, max_frame: int, counters: Iterable[Any]) -> None:
@@ -77,6 +89,24 @@ class Transmitter:
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
+
+    def reply(self, req: Frame, msg_type: MsgType, payload: bytes) -> Reply:
+        """A reply, signed when the session and the request are."""
+        return (msg_type, payload, self.signer is not None and (bool(req.sig) or req.joined))
+
+    def ack(self, req: Frame) -> Reply:
+        return self.reply(req, MsgType.ACK, encode_payload(MsgType.ACK,
+                                                           {"request_type": req.msg_type}))
+
+    def nak(self, req: Frame, code: ErrorCode, fld: str = "", detail: str = "",
+            signed: bool | None = None) -> Reply:
+        """NAK ``code`` naming field ``fld`` (both texts clipped to 255 UTF-8 bytes)."""
+        self.counters[0].naks += 1
+        log.debug("NAK %s seq %d: %s %s %s", req.msg_type, req.seq, code.name, fld, detail)
+        payload = encode_payload(MsgType.NAK, {"request_type": req.msg_type, "code": int(code),
+                                               "field": clip(fld), "detail": clip(detail)})
+        return self.reply(req, MsgType.NAK, payload) if signed is None else \
+            (MsgType.NAK, payload, signed)
 
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
             signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,

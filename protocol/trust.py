@@ -62,6 +62,8 @@ def _lie(what: str, field: str, value: object, allowed: str) -> DeviceLied:
 
 #: Physical range of each INFO field with a unit (inclusive, wire units): a device that
 #: announces a value outside it is broken or lying, whatever the wire type can hold.
+#: Fields whose declared wire range is already their physical one (``max_degree``
+#: 2..32, ``max_frame`` 256..65535) are checked once, by the decoder.
 INFO_RANGES: dict[str, tuple[int, int, str]] = {
     "wavelengths_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
     "reference_wavelength_pm": (200_000, 20_000_000, "pm (0.2 to 20 um)"),
@@ -71,8 +73,6 @@ INFO_RANGES: dict[str, tuple[int, int, str]] = {
     "tilt_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg, or TILT_AUTO)"),
     "column_start_udeg": (-180_000_000, 180_000_000, "udeg (-180 to 180 deg)"),
     "column_step_udeg": (-90_000_000, 90_000_000, "udeg (-90 to 90 deg)"),
-    "max_degree": (2, 32, "(LFSR degree)"),
-    "max_frame": (256, 65535, "bytes"),
 }
 
 
@@ -102,7 +102,12 @@ def check_info(info: Info) -> Info:
 
 
 def check_config(config: dict[str, Any], info: Info) -> None:
-    """Every key present and every value within what INFO announced."""
+    """Every key present and every value within what INFO announced.
+
+    Each value's own range was checked where it was decoded
+    (:meth:`~cdma_lidar.protocol.config_keys.ConfigKey.decode`); here only what INFO
+    and the other keys bound (the lower bounds in the messages are the decoder's).
+    """
     for key in CONFIG_KEYS:
         if key.name not in config:
             raise DeviceLied(f"device's CONFIG lacks key {key.name!r} (every key must be "
@@ -118,18 +123,18 @@ def check_config(config: dict[str, Any], info: Info) -> None:
     ns = ((1 << degree) - 1) * int(c["samples_per_chip"])
     need(len(c["code_index"]) == info.channels, "code_index",
          f"{info.channels} items (one per channel)")
-    need(1 <= c["uid_bits"] <= info.max_uid_bits, "uid_bits",
+    need(c["uid_bits"] <= info.max_uid_bits, "uid_bits",
          f"1 to max_uid_bits = {info.max_uid_bits}")
-    need(0 <= c["uid"] < 1 << c["uid_bits"], "uid", f"0 to 2^uid_bits - 1 = "
+    need(c["uid"] < 1 << c["uid_bits"], "uid", f"0 to 2^uid_bits - 1 = "
          f"{(1 << c['uid_bits']) - 1}")
     need(info.spc_min <= c["samples_per_chip"] <= info.spc_max, "samples_per_chip",
          f"{info.spc_min} to {info.spc_max}")
-    need(1 <= c["averages"] <= info.max_averages, "averages", f"1 to {info.max_averages}")
-    need(0 <= c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}")
-    need(1 <= c["gate_len"] <= min(ns, info.max_gate_len), "gate_len",
+    need(c["averages"] <= info.max_averages, "averages", f"1 to {info.max_averages}")
+    need(c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}")
+    need(c["gate_len"] <= min(ns, info.max_gate_len), "gate_len",
          f"1 to min(N*S, max_gate_len) = {min(ns, info.max_gate_len)}")
-    need(1 <= c["peaks"] <= info.max_peaks, "peaks", f"1 to max_peaks = {info.max_peaks}")
-    need(1 <= c["columns_per_frame"] <= info.column_count, "columns_per_frame",
+    need(c["peaks"] <= info.max_peaks, "peaks", f"1 to max_peaks = {info.max_peaks}")
+    need(c["columns_per_frame"] <= info.column_count, "columns_per_frame",
          f"1 to column_count = {info.column_count}")
 
 

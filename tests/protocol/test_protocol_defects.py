@@ -94,7 +94,7 @@ class _Stuck(SyntheticApp):
 
     def scan(self, frame: int, first_column: int, columns: int):  # type: ignore[override]
         def gen():
-            self.release.wait(30.0)
+            self.release.wait(120.0)
             yield from super(_Stuck, self).scan(frame, first_column, columns)
         return gen()
 
@@ -278,11 +278,14 @@ def test_a_scan_that_never_progresses_fails_with_what_was_delivered() -> None:
             raise RuntimeError("the host waited forever")
         return calls[0] * 0.05
 
+    # The host's waits run on its own clock, 50 ms a reading: 20 s of it pass in well
+    # under the app's 120 s, and a device thread held up for seconds by a loaded machine
+    # still answers STATUS within the (retries + 1) x 5 s the host gives it.
     app = _Stuck()
     host, dev = pipe_pair()
     try:
-        with RunningDevice(dev, app, heartbeat_s=0.01):
-            link = HostLink(host, timeout_s=2.0, progress_timeout_s=20.0, clock=clock)
+        with RunningDevice(dev, app, heartbeat_s=0.01):  # frequent: fast, not needed
+            link = HostLink(host, timeout_s=5.0, progress_timeout_s=20.0, clock=clock)
             link.hello()
             with pytest.raises(ScanStalled) as exc:
                 list(link.scan(frame=4))

@@ -7,12 +7,10 @@ its own error family, or stop answering afterwards.
 
 from __future__ import annotations
 
-import threading
-
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp, hello_fields
+from protocol_fixtures import SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import CdmaLidarError, FrameError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint
@@ -89,7 +87,7 @@ def test_host_raises_only_its_own_errors_on_hostile_frames(frames: list, other_s
     with port:
         link = HostLink(port, timeout_s=0.05, retries=1, clock=port.clock)
         link.hello()
-        pending = (link._seq + 1) & 0xFFFF  # the seq of the next request
+        pending = (link.requests.seq + 1) & 0xFFFF  # the seq of the next request
         if other_seq in (pending, (pending + 1) & 0xFFFF):
             other_seq = (pending + 2) & 0xFFFF
         dev.write(b"".join(
@@ -105,30 +103,26 @@ def test_host_raises_only_its_own_errors_on_hostile_frames(frames: list, other_s
 
 
 def test_hostile_stream_frames_during_a_scan_are_counted_not_raised() -> None:
-    """Malformed COLUMN_RESULT / HEARTBEAT / unknown stream frames in the device's session."""
-    host, dev = pipe_pair()
-    app = SyntheticApp(channels=4, columns=30, column_delay_s=0.002)
-    stop = threading.Event()
-    with RunningDevice(dev, app, session_id=0x1234, heartbeat_s=0.02):
-        link = HostLink(host, timeout_s=2.0)  # real threads: ample on a loaded machine
+    """Malformed COLUMN_RESULT / HEARTBEAT / unknown stream frames in the device's session,
+    injected on the line while every column is computed (threadless, on the fake clock)."""
+    app = SyntheticApp(channels=4, columns=30)
+    port = SteppedDevice(app, session_id=0x1234, heartbeat_s=0.05)
+    line = port.endpoint.port  # the device's end: what it writes, the host reads
+    injected = [0]
+
+    def inject() -> None:  # runs inside each column, before it goes out
+        k = injected[0]
+        for t, p in ((MsgType.COLUMN_RESULT, bytes(25)), (MsgType.HEARTBEAT, b"\x07"),
+                     (0xEE, b"x"), (MsgType.SCAN_END, bytes(9))):
+            line.write(encode_frame(int(t), p, k & 0xFFFF, 0x1234))
+        injected[0] += 1
+
+    app.tick = inject
+    with port:
+        link = HostLink(port, timeout_s=2.0, clock=port.clock)
         link.hello()
-
-        def inject() -> None:
-            k = 0
-            while not stop.is_set():
-                for t, p in ((MsgType.COLUMN_RESULT, bytes(25)), (MsgType.HEARTBEAT, b"\x07"),
-                             (0xEE, b"x"), (MsgType.SCAN_END, bytes(9))):
-                    dev.write(encode_frame(int(t), p, k & 0xFFFF, 0x1234))
-                k += 1
-                stop.wait(0.003)
-
-        th = threading.Thread(target=inject, daemon=True)
-        th.start()
-        try:
-            cols = list(link.scan())
-        finally:
-            stop.set()
-            th.join(1.0)
+        cols = list(link.scan())
+    assert injected[0] == 30
     assert [c.column for c in cols] == list(range(30))
     assert link.stats.malformed >= 3
     with pytest.raises(FrameError):  # the injected SCAN_END really was malformed

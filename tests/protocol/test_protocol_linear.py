@@ -68,7 +68,7 @@ def test_requests_and_heartbeats_are_served_while_a_column_is_computed() -> None
     must arrive while the application is still inside the column)."""
     host, dev = pipe_pair()
     app = BlockingApp()
-    with RunningDevice(dev, app, heartbeat_s=0.02, session_id=0x5151):
+    with RunningDevice(dev, app, heartbeat_s=0.2, session_id=0x5151):
         def send(t: MsgType, fields: dict, seq: int) -> None:
             host.write(encode_frame(t, encode_payload(t, fields), seq, 0x5151))
 

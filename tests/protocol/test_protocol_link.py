@@ -23,7 +23,7 @@ from protocol_fixtures import (
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout
 from cdma_lidar.protocol import framing
 from cdma_lidar.protocol.config_keys import CONFIG_OPTIONAL, encode_config
-from cdma_lidar.protocol.endpoint import FAULT_HEALTH, HANDLERS, DeviceEndpoint
+from cdma_lidar.protocol.endpoint import FAULT_HEALTH, DeviceEndpoint
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import (
@@ -110,7 +110,7 @@ def test_handshake_gives_identity_limits_and_geometry(rig) -> None:
     assert info.channels == 8 and info.column_count == 64 and info.max_frame == 16384
     np.testing.assert_allclose(info.wavelengths_m, 1570e-9 + 0.875e-9 * np.arange(8))
     assert info.tilt_deg is None and info.heartbeat_ms == 50
-    assert info.ring_columns == ep.ring_columns
+    assert info.ring_columns == ep.streams.ring_columns
 
 
 def test_config_set_get_and_device_refusal(rig) -> None:
@@ -221,7 +221,7 @@ def test_busy_and_too_large(rig) -> None:
 
 def test_resend_of_a_column_no_longer_kept(rig) -> None:
     link, ep, _app = rig
-    ep.ring_columns = 4
+    ep.streams.ring_columns = 4
     cols = list(link.scan(columns=10))
     with pytest.raises(DeviceError) as exc:
         link._request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0],
@@ -338,7 +338,7 @@ def test_silent_link_gets_a_specific_diagnosis(diag: str, make) -> None:
 
 def test_device_restart_is_reported_at_once(rig) -> None:
     link, ep, _app = rig
-    ep.session = 0x7777  # the device rebooted and chose a new session
+    ep.tx.session = 0x7777  # the device rebooted and chose a new session
     with pytest.raises(DeviceError) as exc:  # a NAK, not a LinkTimeout after the retries
         link.status()
     assert exc.value.code == ErrorCode.WRONG_SESSION
@@ -373,7 +373,8 @@ def test_open_port_names_the_scheme_without_a_handler_and_registers_none() -> No
 
 def test_every_request_type_has_a_handler_and_nothing_else_does() -> None:
     requests = {t for t in MsgType if kind_of(t) is MsgKind.REQUEST}
-    assert set(HANDLERS) == requests == set(REPLY_TO)
+    ep = DeviceEndpoint(pipe_pair()[1], SyntheticApp())
+    assert set(ep.handlers) == requests == set(REPLY_TO)
 
 
 def test_host_link_checks_its_arguments() -> None:

@@ -9,16 +9,15 @@ from typing import Any
 
 import numpy as np
 import pytest
-from protocol_fixtures import SteppedDevice, SyntheticApp, expected_column
+from protocol_fixtures import ScriptedPort, SteppedDevice, SyntheticApp, expected_column
 
 from cdma_lidar.errors import DeviceError, LinkError
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import encode_config
-from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
+from cdma_lidar.protocol.framing import encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import MESSAGES, MsgType, encode_payload
 from cdma_lidar.protocol.trust import DeviceLied, escape
-from cdma_lidar.virtual.line import pipe_pair
 
 TIMEOUT = 0.2
 NASTY = "\x1b]0;pwned\x07\x1b[2J\x1b[31mRED\u202e\r\n"
@@ -121,6 +120,7 @@ def test_a_column_with_other_channel_or_peak_counts_is_a_lie() -> None:
     (lambda c: {**c, "code_index": (1, 2)}, "code_index"),  # 4 channels
     (lambda c: {**c, "peaks": 8}, "peaks"),  # INFO: max_peaks 4
     (lambda c: {**c, "gate_start": 2047 * 4}, "gate_start"),
+    (lambda c: {**c, "out_bits": 40}, "out_bits"),  # outside its wire range: the decoder's
 ])
 def test_a_lying_config_is_a_one_line_error_naming_the_key(edit, field) -> None:
     with pytest.raises(DeviceLied) as exc:
@@ -143,26 +143,11 @@ def test_strings_from_the_device_are_escaped() -> None:
     assert escape("plain text: µm, ±1") == "plain text: µm, ±1"
 
 
-def _raw_device(answer: Callable[[Any], bytes | None]) -> tuple[HostLink, threading.Event]:
-    """A scripted device on a pipe: ``answer(frame)`` gives the wire reply or None."""
-    host, dev = pipe_pair()
-    stop = threading.Event()
-    dev.timeout = 0.01
-
-    def serve() -> None:
-        dec = FrameDecoder()
-        while not stop.is_set():
-            try:
-                data = dev.read(max(1, dev.in_waiting))
-            except OSError:
-                return
-            for f in dec.feed(data):
-                wire = answer(f)
-                if wire:
-                    dev.write(wire)
-
-    threading.Thread(target=serve, daemon=True).start()
-    return HostLink(host, timeout_s=TIMEOUT, retries=1), stop
+def _raw_device(answer: Callable[[Any], bytes]) -> tuple[HostLink, threading.Event]:
+    """A device the test plays: ``answer(frame)`` gives the wire reply (b"": none);
+    threadless, on the port's fake clock. The event is set when the test is done."""
+    port = ScriptedPort(answer)
+    return HostLink(port, timeout_s=TIMEOUT, retries=1, clock=port.clock), threading.Event()
 
 
 def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() -> None:
@@ -189,6 +174,18 @@ def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() ->
         assert "\x1b" not in msg and "\r" not in msg and "\n" not in msg and "\\x1b" in msg
     finally:
         stop.set()
+
+
+@pytest.mark.parametrize(("field", "value"), [("max_degree", 40), ("max_frame", 100)])
+def test_info_outside_a_wire_range_is_refused_where_it_is_decoded(field, value) -> None:
+    """Fields whose wire range is their physical one: one check, by the decoder."""
+    fields = replace(SyntheticApp().info(), session_id=5).to_fields()
+    payload = MESSAGES[MsgType.INFO].struct.build({**fields, field: value})
+    link, _ = _raw_device(lambda f: encode_frame(MsgType.INFO, payload, f.seq, 5))
+    with pytest.raises(LinkError) as exc:
+        link.hello()
+    assert field in str(exc.value) and "\n" not in str(exc.value)
+    assert ("2..32" if field == "max_degree" else "256..65535") in str(exc.value)
 
 
 def test_a_config_reply_with_garbage_values_is_a_one_line_error() -> None:
