@@ -283,7 +283,11 @@ module rx_top #(
     wire [MAX_DEG-1:0] st_t1 = chip_inc(st_t, nn);
     wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0]
                                  - {{(KST_W-2){1'b0}}, 2'd2};
-    wire               st_end   = (st_k == k_last);
+    // st_end (the stream's last step) is a register, set one clock ahead, so the
+    // generators' enables below need no comparator in front of them.
+    reg                st_end;
+    wire               st_end_nx = (pstate == P_STREAM) && !st_end
+                                   && (st_k + 1'b1 == k_last);
     wire               st_lastp = (st_p == c_uid_bits - 1'b1);
     localparam [JJ_W+S_W:0] L_JJ = L_M1[JJ_W+S_W:0];
     wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L_JJ * {{(JJ_W+1){1'b0}}, c_spc};
@@ -303,8 +307,21 @@ module rx_top #(
                                        (bi >= ph_s) ? st_t : st_t1};
     end
 
-    // Gold generators, one pair per channel
-    reg               gen_load, gen_en;
+    // Gold generators, one pair per channel. Their load and enable are registers (the
+    // next clock's values, below), one copy per GEN_GRP channels, so no strobe crosses
+    // the die to 2 K generators in one clock.
+    localparam integer GEN_GRP = 4;
+    localparam integer GEN_NG  = (K + GEN_GRP - 1) / GEN_GRP;
+    wire              stream_done = st_lastp && !g_more && !ph_more;
+    wire              gen_load_nx = (pstate == P_START) || st_end_nx;
+    wire              gen_en_nx   = (pstate == P_SETUP)
+                                    || (pstate == P_STREAM && (st_end ? !stream_done
+                                                                      : !st_end_nx));
+    (* keep *) reg [GEN_NG-1:0] gen_load, gen_en;
+    always @(posedge clk) begin
+        gen_load <= rst ? {GEN_NG{1'b0}} : {GEN_NG{gen_load_nx}};
+        gen_en   <= rst ? {GEN_NG{1'b0}} : {GEN_NG{gen_en_nx}};
+    end
     wire [K-1:0]      chip;
     genvar gk;
     generate
@@ -312,10 +329,12 @@ module rx_top #(
             wire cu, cv;
             wire [MAX_DEG-1:0] su, sv;
             lfsr_fib #(.MAX_DEG(MAX_DEG)) gu (
-                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_u[gk*MAX_DEG +: MAX_DEG]),
+                .clk(clk), .load(gen_load[gk / GEN_GRP]), .en(gen_en[gk / GEN_GRP]),
+                .seed(c_seed_u[gk*MAX_DEG +: MAX_DEG]),
                 .taps(c_taps_u), .degree(c_degree), .out(cu), .state(su));
             lfsr_fib #(.MAX_DEG(MAX_DEG)) gv (
-                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_v[gk*MAX_DEG +: MAX_DEG]),
+                .clk(clk), .load(gen_load[gk / GEN_GRP]), .en(gen_en[gk / GEN_GRP]),
+                .seed(c_seed_v[gk*MAX_DEG +: MAX_DEG]),
                 .taps(c_taps_v), .degree(c_degree), .out(cv), .state(sv));
             assign chip[gk] = cu ^ cv;
             wire unused_gen = &{1'b0, su, sv};
@@ -586,11 +605,8 @@ module rx_top #(
         .res_saturated(res_saturated)
     );
 
-    always @(*) begin
-        gen_load = (pstate == P_SETUP) || (pstate == P_STREAM && st_end);
-        gen_en   = (pstate == P_STREAM) && !st_end;
+    always @(*)
         cr_raddr = {pk_ch, post_raddr};
-    end
 
     // ------------------------------------------------------------------
     // Sequencers
@@ -855,6 +871,7 @@ module rx_top #(
             pstate  <= P_SETUP;
         end
         P_SETUP: begin
+            st_end  <= 1'b0;
             st_p    <= {UID_W{1'b0}};
             st_base <= {ADDR_W{1'b0}};
             st_k    <= {KST_W{1'b0}};
@@ -862,6 +879,7 @@ module rx_top #(
             pstate  <= P_STREAM;
         end
         P_STREAM: begin
+            st_end <= st_end_nx;
             if (!st_end) begin
                 st_k <= st_k + 1'b1;
                 st_t <= st_t1;
