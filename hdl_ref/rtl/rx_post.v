@@ -24,7 +24,7 @@ module rx_post #(
     parameter integer NGHOST  = 1,
     parameter integer OUT_W   = 32,
     parameter integer LAG_W   = 14,
-    // ---- derived, do not override ----
+    // ---- derived: passed down by the top, checked below ----
     parameter integer G_W     = $clog2(MAX_G + 1),
     parameter integer CA_W    = $clog2(MAX_G + 2),
     parameter integer P_W     = $clog2(MAX_P + 1),
@@ -73,6 +73,17 @@ module rx_post #(
     output reg                          res_saturated
 );
     localparam integer MAG_W = OUT_W + 1;
+
+    // The derived widths come from the caller (passed down, computed once there); one
+    // that differs from its formula stops the elaboration in every tool (an instance of
+    // a module that does not exist) instead of a silent width mismatch.
+    generate
+        if (G_W != $clog2(MAX_G + 1) || CA_W != $clog2(MAX_G + 2) || P_W != $clog2(MAX_P + 1)
+            || CW != OUT_W + 2 * MAX_UID || SUM_W != OUT_W + G_W || SQ_W != 2 * OUT_W + G_W
+            || OB_W < $clog2(OUT_W + 1)) begin : g_derived_width_mismatch
+            rx_post_derived_width_mismatch bad ();
+        end
+    endgenerate
     localparam [1:0] T_IDLE = 2'd0, T_SCAN = 2'd1, T_WAIT = 2'd2, T_FETCH = 2'd3;
     localparam [MAX_P-1:0] P_ONE = 1;
     localparam [CA_W-1:0]  CA_TWO = 2;
