@@ -12,6 +12,7 @@ The tests of the mutated file run first (the cheapest kill).
 
     python -m cdma_lidar.hdl_ref.mutate                 # every fault (tens of minutes)
     python -m cdma_lidar.hdl_ref.mutate --only NAME     # one fault (repeatable)
+    python -m cdma_lidar.hdl_ref.mutate --jobs 2        # two faults at a time
     python -m cdma_lidar.hdl_ref.mutate --write-doc     # and the table in docs/hdl.md
 
 Exit status 0 when every non-equivalent fault is killed, 1 otherwise, 2 for an
@@ -28,6 +29,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,10 +48,14 @@ BEGIN, END = "<!-- mutate:begin -->", "<!-- mutate:end -->"
 #: simulation test files, and which of them to try first for a fault in each RTL file
 SIM_TESTS = ("test_gold_gen.py", "test_sdp_ram.py", "test_out_scale.py", "test_rx_top.py",
              "test_rx_chain.py", "test_vectors.py")
+#: (the rx_top cases that kill most faults before the long hypothesis and Verilator runs)
+_TOP_FIRST = ("test_rx_top.py::test_top_equals_model",
+              "test_rx_top.py::test_sweep_build_equals_model",
+              "test_rx_top.py::test_top_equals_model_on_verilator")
 FIRST: dict[str, tuple[str, ...]] = {
     "lfsr_fib.v": ("test_gold_gen.py",), "gold_gen.v": ("test_gold_gen.py",),
     "sdp_ram.v": ("test_sdp_ram.py",), "out_scale.v": ("test_out_scale.py",),
-    "rx_post.v": ("test_rx_top.py", "test_rx_chain.py"), "rx_top.v": ("test_rx_top.py",),
+    "rx_post.v": (*_TOP_FIRST, "test_rx_chain.py"), "rx_top.v": _TOP_FIRST,
     "rx_chain.v": ("test_rx_chain.py",),
 }
 #: tests that are not a simulation of the mutated RTL (the per-mutant tests build their
@@ -75,7 +81,7 @@ class Outcome:
 
 
 def test_order(mutant: Mutant) -> list[str]:
-    """The simulation test files, those of the mutated file first."""
+    """The simulation tests (files or test ids), those of the mutated file first."""
     first = FIRST.get(mutant.file, ())
     return [*first, *(t for t in SIM_TESTS if t not in first)]
 
@@ -137,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", action="append", default=[], metavar="NAME",
                         help="run this fault only (repeatable)")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N",
+                        help="faults run at once (default 1)")
     parser.add_argument("--write-doc", action="store_true",
                         help=f"replace the mutation table of {DOC_PATH}")
     args = parser.parse_args(argv)
@@ -147,13 +155,15 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"--only: unknown mutant {unknown[0]!r} (python -m "
                          f"cdma_lidar.hdl_ref.mutate lists them all)\n")
         return 2
-    outcomes = []
-    for m in MUTANTS:
-        if args.only and m.name not in args.only:
-            continue
+    chosen = [m for m in MUTANTS if not args.only or m.name in args.only]
+
+    def one(m: Mutant) -> Outcome:
         outcome = run_mutant(m)
         log.info("%-40s %s %s", m.name, outcome.status, outcome.killer or outcome.detail)
-        outcomes.append(outcome)
+        return outcome
+
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:    # each fault: its own pytest
+        outcomes = list(pool.map(one, chosen))
     text = table(outcomes)
     if args.write_doc:
         atomic_write_text(DOC_PATH, update_doc(DOC_PATH.read_text(), text))
