@@ -61,7 +61,9 @@ FIRST: dict[str, tuple[str, ...]] = {
 #: tests that are not a simulation of the mutated RTL (the per-mutant tests build their
 #: own mutant from the unchanged sources; the tool checks count cells or lint)
 DESELECT = "not mutant"
-_FAILED = re.compile(r"^FAILED (\S+)", re.MULTILINE)
+#: a failing test, or one whose fixture failed (a simulation that hangs raises in the
+#: fixture that runs it: the bench's watchdog)
+_FAILED = re.compile(r"^(?:FAILED|ERROR) (\S+)", re.MULTILINE)
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,7 @@ def run_mutant(mutant: Mutant, tests: Sequence[str] | None = None,
     with tempfile.TemporaryDirectory(prefix=f"mutant_{mutant.name}_") as tmp:
         rtl = mutated_copy(mutant, Path(tmp) / "rtl")
         cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:randomly", "-p",
-               "no:cacheprovider", "-rf", "-k", DESELECT,
+               "no:cacheprovider", "-rfE", "-k", DESELECT,
                "--basetemp", str(Path(tmp) / "pytest"),
                *(str(TESTS / t) for t in (tests or test_order(mutant)))]
         env = {**os.environ, RTL_ENV: str(rtl)}

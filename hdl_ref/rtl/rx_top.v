@@ -337,7 +337,8 @@ module rx_top #(
 
     // Gold generators, one pair per channel. Their load and enable are registers (the
     // next clock's values, below), one copy per GEN_GRP channels, so no strobe crosses
-    // the die to 2 K generators in one clock.
+    // the die to 2 K generators in one clock (each copy a gen_strobe instance: synthesis
+    // keeps them apart, where it would merge identical flip-flops of one module).
     localparam integer GEN_GRP = 4;
     localparam integer GEN_NG  = (K + GEN_GRP - 1) / GEN_GRP;
     wire              stream_done = st_lastp && !g_more && !ph_more;
@@ -345,11 +346,14 @@ module rx_top #(
     wire              gen_en_nx   = (pstate == P_SETUP)
                                     || (pstate == P_STREAM && (st_end ? !stream_done
                                                                       : !st_end_nx));
-    (* keep *) reg [GEN_NG-1:0] gen_load, gen_en;
-    always @(posedge clk) begin
-        gen_load <= rst ? {GEN_NG{1'b0}} : {GEN_NG{gen_load_nx}};
-        gen_en   <= rst ? {GEN_NG{1'b0}} : {GEN_NG{gen_en_nx}};
-    end
+    wire [GEN_NG-1:0] gen_load, gen_en;
+    genvar gg;
+    generate
+        for (gg = 0; gg < GEN_NG; gg = gg + 1) begin : g_strobe
+            gen_strobe copy (.clk(clk), .rst(rst), .load_nx(gen_load_nx), .en_nx(gen_en_nx),
+                             .load(gen_load[gg]), .en(gen_en[gg]));
+        end
+    endgenerate
     wire [K-1:0]      chip;
     genvar gk;
     generate
