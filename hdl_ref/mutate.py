@@ -74,11 +74,15 @@ class Outcome:
     mutant: Mutant
     killer: str = ""
     detail: str = ""
+    #: False for a fault a cut-off run did not reach (listed, counted apart)
+    ran: bool = True
 
     @property
     def status(self) -> str:
         if self.mutant.equivalent:
             return "equivalent"
+        if not self.ran:
+            return "not run"
         return "killed" if self.killer else "SURVIVED"
 
 
@@ -118,15 +122,18 @@ def table(outcomes: Sequence[Outcome]) -> str:
     """The markdown table of every fault and its killer, and the tally."""
     killed = sum(o.status == "killed" for o in outcomes)
     equivalent = sum(o.status == "equivalent" for o in outcomes)
+    not_run = sum(o.status == "not run" for o in outcomes)
     lines = ["| mutant | file | fault | result |", "|---|---|---|---|"]
     for o in outcomes:
         what = (f"killed by `{o.killer}`" if o.status == "killed"
                 else f"equivalent: {o.detail}" if o.status == "equivalent"
+                else "not run" if o.status == "not run"
                 else f"**survived** {o.detail}".rstrip())
         lines.append(f"| `{o.mutant.name}` | `{o.mutant.file}` | {o.mutant.why} | {what} |")
     lines.append("")
+    survived = len(outcomes) - killed - equivalent - not_run
     lines.append(f"Killed {killed} of {len(outcomes)} faults ({equivalent} equivalent, "
-                 f"{len(outcomes) - killed - equivalent} survived).")
+                 f"{survived} survived" + (f", {not_run} not run" if not_run else "") + ").")
     return "\n".join(lines) + "\n"
 
 

@@ -357,7 +357,7 @@ def test_every_mutant_is_simulated():
     doc = synth.DOC_PATH.read_text()
     assert all(f"| `{m.name}` |" in doc for m in MUTANTS), "docs/hdl.md lists every mutant"
     assert {m.file for m in MUTANTS} <= {*TOP_FILES, "rx_chain.v", "out_scale.v", "lfsr_fib.v",
-                                         "sdp_ram.v"}
+                                         "gold_gen.v", "sdp_ram.v"}
 
 
 # The two named faults run in the normal suite, the others with -m slow.
