@@ -50,6 +50,7 @@ __all__ = [
     "GOLD_TOP",
     "MULTI_TOP",
     "RTL_DIR",
+    "RTL_ENV",
     "RTL_SOURCES",
     "RX_TOP",
     "GoldParams",
@@ -58,6 +59,7 @@ __all__ = [
     "TopParams",
     "build",
     "decode_rx_result",
+    "default_rtl_dir",
     "gold_ports",
     "iverilog_available",
     "run_job",
@@ -75,7 +77,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 RTL_DIR = Path(__file__).resolve().parent / "rtl"
-RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_chain.v",
+#: Environment variable naming another RTL folder for every default build (the mutation
+#: script, ``python -m cdma_lidar.hdl_ref.mutate``, points it at a changed copy).
+RTL_ENV = "HDL_REF_RTL_DIR"
+RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v",
+               "out_scale.v", "rx_post.v", "rx_chain.v",
                "rx_top.v")
 RX_TOP = "rx_chain"
 MULTI_TOP = "rx_top"
@@ -254,12 +260,12 @@ def rx_latency_clocks(ports: Mapping[str, int], gap: int = 0) -> dict[str, int]:
     g = ports["cfg_gate_len"]
     p = ports["cfg_peaks"]
     corr = (g + 2) * n * ns
-    # DRAIN 1, CORR corr, CWAIT 4, then rx_post: P x (peak scan g + wait 4), FETCH 3,
-    # noise scan g + wait 4 (done is registered in its last clock)
+    # DRAIN 1, CORR corr, CWAIT 6 (out_scale's 3 stages), then rx_post: P x (peak scan
+    # g + wait 4), FETCH 3, noise scan g + wait 4 (done is registered in its last clock)
     return {
         "start_to_ready": first + 1,
         "first_to_last": last - first,
-        "last_to_done": 1 + corr + 4 + p * (g + 4) + 3 + g + 4,
+        "last_to_done": 1 + corr + 6 + p * (g + 4) + 3 + g + 4,
     }
 
 
@@ -373,12 +379,20 @@ def _verilator_on_path() -> None:
     os.environ["PATH"] = f"{Path(exe).parent}{os.pathsep}{os.environ['PATH']}"
 
 
+def default_rtl_dir() -> Path:
+    """The RTL folder of default builds: ``$HDL_REF_RTL_DIR`` when set, else ``RTL_DIR``."""
+    return Path(os.environ.get(RTL_ENV) or RTL_DIR)
+
+
 def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[str],
-          rtl_dir: str | os.PathLike[str] = RTL_DIR, sim: str | None = None) -> Path:
+          rtl_dir: str | os.PathLike[str] | None = None, sim: str | None = None,
+          build_args: Sequence[str] = ()) -> Path:
     """Compile the RTL with Icarus for ``top`` and ``generics`` into ``build_dir``.
 
-    ``rtl_dir`` holds the sources (default the package's ``rtl``; the mutation
-    tests point it at a changed copy).
+    ``rtl_dir`` holds the sources (default :func:`default_rtl_dir`: the package's
+    ``rtl`` unless ``$HDL_REF_RTL_DIR`` names another; the mutation tests point it at
+    a changed copy). ``build_args`` go to the simulator's compiler (Verilator:
+    ``--x-initial unique`` lets a run choose the value of registers no reset sets).
 
     Reuses an up-to-date build (cocotb's runner compares source times). Returns
     the build folder. Raises ``SimulatorMissing`` without Icarus or without the
@@ -402,13 +416,13 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
     runner = get_runner(sim)
     (build_dir / "simulator").write_text(sim)
     runner.build(
-        sources=[Path(rtl_dir) / name for name in RTL_SOURCES],
+        sources=[Path(rtl_dir or default_rtl_dir()) / name for name in RTL_SOURCES],
         hdl_toplevel=top,
         parameters=dict(generics),
         build_dir=build_dir,
         timescale=("1ns", "1ps"),
         # a warning never stops a simulation build (lint: python -m cdma_lidar.hdl_ref.lint)
-        build_args=["-Wno-fatal"] if sim == "verilator" else [],
+        build_args=[*(["-Wno-fatal"] if sim == "verilator" else []), *build_args],
         log_file=build_dir / "build.log",
     )
     return build_dir
@@ -416,13 +430,15 @@ def build(top: str, generics: Mapping[str, int], build_dir: str | os.PathLike[st
 
 def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
             job: Mapping[str, Any], generics: Mapping[str, int] | None = None,
-            name: str = "job") -> dict[str, Any]:
+            name: str = "job", plusargs: Sequence[str] = ()) -> dict[str, Any]:
     """Run one cocotb ``test_module`` (``cdma_lidar.hdl_ref.tb.*``) on a build, playing ``job``.
 
     The job is written to ``<build_dir>/<name>.job.json`` and handed to the bench
     through the environment (``HDL_REF_JOB``, ``HDL_REF_RESULT``); the bench's
-    result JSON is returned. Raises ``RuntimeError`` when the simulation fails or
-    leaves no result (its log is ``<build_dir>/<name>.log``).
+    result JSON is returned; ``plusargs`` go to the simulation (Verilator:
+    ``+verilator+rand+reset+1`` starts every register no reset sets at all ones).
+    Raises ``RuntimeError`` when the simulation fails or leaves no result (its log is
+    ``<build_dir>/<name>.log``).
     """
     # cocotb is optional (only co-simulation needs it): loaded lazily
     from cocotb_tools.check_results import get_results
@@ -446,6 +462,7 @@ def run_job(top: str, test_module: str, build_dir: str | os.PathLike[str],
         results_xml=str(build_dir / f"{name}.results.xml"),
         log_file=build_dir / f"{name}.log",
         timescale=("1ns", "1ps"),
+        plusargs=list(plusargs),
     )
     total, failed = get_results(Path(xml))
     if failed or not result_file.exists():

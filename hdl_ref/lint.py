@@ -42,8 +42,9 @@ LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
         "MAX_DEG": 13, "MAX_S": 64, "MAX_UID": 16, "MAX_R": 1024, "MAX_G": 1024, "MAX_P": 8,
         "NGHOST": 8, "ADC_W": 16, "OUT_W": 32}),
 }
-_CHAIN = ("lfsr_fib.v", "sdp_ram.v", "rx_post.v", "rx_chain.v")
-_TOP = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_top.v")
+_CHAIN = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v", "rx_chain.v")
+_TOP = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v", "rx_post.v",
+        "rx_top.v")
 for _name in [n for n in LINT_SETS if n.startswith("rx_chain")]:
     LINT_SETS[_name] = ("rx_chain", _CHAIN, LINT_SETS[_name][2])
 LINT_SETS |= {

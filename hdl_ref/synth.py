@@ -85,7 +85,8 @@ def pnr_freq(design: Design) -> float:
     return TARGET_MSPS / design.params.get("P_IN", 1)
 
 
-TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v", "rx_top.v",
+TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
+               "rx_post.v", "rx_top.v",
                "rx_top_pnr.v")
 #: The co-simulated builds: TOP4 of tests/hdl_ref/test_rx_top.py and its PAPER_TOP.
 SMALL_TOP = {"K": 4, "L": 2, "MAX_DEG": 7, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 4, "MAX_G": 32,

@@ -26,7 +26,7 @@ from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
-from cdma_lidar.hdl_ref.cosim import TopParams, top_ports
+from cdma_lidar.hdl_ref.cosim import TopParams, top_ports, top_schedule
 from cdma_lidar.hdl_ref.stimuli import echo_column
 
 __all__ = ["CFG_ORDER", "RESULT_ORDER", "VectorSpec", "cmd_vectors", "expected_words",
@@ -238,6 +238,9 @@ def write_vectors(spec: VectorSpec, columns: int, seed: int, out_dir: str | Path
         "VEC_N_CORR": len(corr_lines), "VEC_N_RES": len(res_lines),
         "VEC_N_RES_PORTS": len(RESULT_ORDER), "VEC_GATE_LEN": cfg.gate_len,
         "VEC_COLUMNS": columns,
+        # the bench's watchdog: twice the clocks cosim.top_schedule needs, plus 1000
+        "VEC_MAX_CLOCKS": 2 * top_schedule(ports, params, len(adc_lines),
+                                           lambda clock: True)["done"] + 1000,
     }
     files = {
         "config.hex": cfg_lines, "adc.hex": adc_lines, "corr.hex": corr_lines,
@@ -306,7 +309,8 @@ Run with the plain Verilog testbench of the repository (no Python needed):
 
 ```
 iverilog -g2005 -I <this folder> -o tb.vvp hdl_ref/tb/rx_top_vectors_tb.v hdl_ref/rtl/lfsr_fib.v \\
-    hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
+    hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/cfg_latch.v hdl_ref/rtl/gen_strobe.v \\
+    hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
 vvp tb.vvp +VEC=<this folder>/
 ```
 """

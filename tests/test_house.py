@@ -46,7 +46,7 @@ ALLOWED: dict[str, set[str]] = {
     "protocol": {"core", "protocol"},
     "hdl_ref": {"core", "firmware_model", "hdl_ref"},
     "scene": {"core", "optics", "firmware_model", "scene"},
-    "virtual": {"core", "optics", "firmware_model", "protocol", "scene", "virtual"},
+    "virtual": {"core", "optics", "firmware_model", "protocol", "hdl_ref", "scene", "virtual"},
     "host": {"core", "optics", "firmware_model", "protocol", "host"},
     "study": {"core", "optics", "firmware_model", "protocol", "hdl_ref", "scene", "virtual",
               "host", "study"},

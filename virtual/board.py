@@ -49,6 +49,7 @@ from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
+from cdma_lidar.hdl_ref.engine import RtlReceiver, missing_simulator
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
@@ -136,9 +137,18 @@ class VirtualFirmware(DeviceApp):
         seed: noise seed; the same scene, seed, configuration and frame ids give the same
             samples and results.
         serial: serial number announced in INFO.
+        engine: ``"model"`` (default) computes the receive chain with ``FastReceiver``,
+            ``"rtl"`` with the reference RTL under Verilator (``hdl_ref.engine``): the
+            same outputs.
     """
 
-    def __init__(self, scene: Scene, seed: int = 0, serial: str | None = None) -> None:
+    def __init__(self, scene: Scene, seed: int = 0, serial: str | None = None,
+                 engine: str = "model") -> None:
+        if engine not in ("model", "rtl"):
+            raise out_of_range("engine", "model or rtl", engine)
+        if engine == "rtl" and missing_simulator():
+            raise ConfigError(missing_simulator() or "", field="engine")
+        self.engine = engine
         self.scene = scene
         self.instrument = Instrument(scene, seed)
         self.spec = scene.instrument
@@ -274,7 +284,10 @@ class VirtualFirmware(DeviceApp):
         if method not in chains:
             codes = gold_codes(tuple(c["poly_u"]), tuple(c["poly_v"]),
                                tuple(int(x) for x in c["code_index"]))
-            chains[method] = FastReceiver(self._receiver_config(c), codes, method=method)
+            chains[method] = (RtlReceiver(self._receiver_config(c), tuple(c["poly_u"]),
+                                          tuple(c["poly_v"]), tuple(c["code_index"]))
+                              if self.engine == "rtl" else
+                              FastReceiver(self._receiver_config(c), codes, method=method))
         return chains[method]
 
     def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],

@@ -18,15 +18,16 @@
 //   CORR   for the gate_len + 2 lags gate_start-1 .. gate_start+gate_len
 //          (the two extra lags are the peak's possible neighbours) stream the
 //          averaging RAM against the Gold generator: n * NS clocks per lag;
-//          per lag the rounded, saturated out word and the signs of the n
-//          per-period sums go to the correlation RAM;
+//          per lag the out word (out_scale: rounded, saturated, the module
+//          rx_top uses) and the signs of the n per-period sums go to the
+//          correlation RAM;
 //   POST   rx_post (shared with rx_top): `peaks` passes over the correlation
 //          RAM, the first peak's two neighbours, one noise pass (count, sum,
 //          sum of squares) that also streams the gate words on corr_*.
 // Latency (clock edges, checked by the co-simulation for every case):
 //   start -> first sample taken:   3
 //   last sample taken -> done:     (gate_len + 2) * n * NS + peaks * (gate_len + 4)
-//                                  + gate_len + 12
+//                                  + gate_len + 14
 // Throughput while averaging: one sample per clock (docs/hdl.md).
 //
 // All configuration inputs are sampled at `start` (one-clock pulse in IDLE)
@@ -114,10 +115,19 @@ module rx_chain #(
     // ------------------------------------------------------------------
     // Widths
     // ------------------------------------------------------------------
+    generate   // a derived parameter overridden by mistake stops the elaboration
+        if (DEG_W != $clog2(MAX_DEG + 1) || MAX_NS != ((1 << MAX_DEG) - 1) * MAX_S
+            || LAG_W != $clog2(MAX_NS + 1) || S_W != $clog2(MAX_S + 1)
+            || UID_W != $clog2(MAX_UID + 1) || R_W != $clog2(MAX_R + 1)
+            || G_W != $clog2(MAX_G + 1) || P_W != $clog2(MAX_P + 1)
+            || CNT_W != G_W || SUM_W != OUT_W + G_W || SQ_W != 2 * OUT_W + G_W)
+        begin : g_derived_width_mismatch
+            rx_chain_derived_width_mismatch bad ();
+        end
+    endgenerate
     localparam integer AVG_W  = ADC_W + $clog2(MAX_R);              // sum of R samples
     localparam integer PER_W  = AVG_W + $clog2(MAX_NS) + 1;         // per-period correlation
     localparam integer RAW_W  = PER_W + $clog2(MAX_UID);            // despread correlation
-    localparam integer EXT_W  = ((RAW_W > OUT_W) ? RAW_W : OUT_W) + 2;
     localparam integer ADDR_W = $clog2(MAX_UID * MAX_NS);
     localparam integer JJ_W   = G_W + 1;                             // extended gate index
     localparam integer CA_W   = $clog2(MAX_G + 2);                   // correlation RAM address
@@ -131,19 +141,36 @@ module rx_chain #(
     // ------------------------------------------------------------------
     // Configuration registers
     // ------------------------------------------------------------------
-    reg [DEG_W-1:0]        c_degree;
-    reg [MAX_DEG-1:0]      c_taps_u, c_taps_v, c_seed_u, c_seed_v;
-    reg [S_W-1:0]          c_spc;
-    reg [R_W-1:0]          c_averages;
-    reg [UID_W-1:0]        c_uid_bits;
-    reg [MAX_UID-1:0]      c_uid;
-    reg [LAG_W-1:0]        c_gate_start;
-    reg [G_W-1:0]          c_gate_len, c_excl;
-    reg [NGHOST*LAG_W-1:0] c_gh_start, c_gh_len;
-    reg [SH_W-1:0]         c_shift;
-    reg [1:0]              c_round;
-    reg [OB_W-1:0]         c_out_bits;
-    reg [P_W-1:0]          c_peaks;
+    wire [DEG_W-1:0]        c_degree;
+    wire [MAX_DEG-1:0]      c_taps_u, c_taps_v, c_seed_u, c_seed_v;
+    wire [S_W-1:0]          c_spc;
+    wire [R_W-1:0]          c_averages;
+    wire [UID_W-1:0]        c_uid_bits;
+    wire [MAX_UID-1:0]      c_uid;
+    wire [LAG_W-1:0]        c_gate_start;
+    wire [G_W-1:0]          c_gate_len, c_excl;
+    wire [NGHOST*LAG_W-1:0] c_gh_start, c_gh_len;
+    wire [SH_W-1:0]         c_shift;
+    wire [1:0]              c_round;
+    wire [OB_W-1:0]         c_out_bits;
+    wire [P_W-1:0]          c_peaks;
+    cfg_latch #(.MAX_DEG(MAX_DEG), .MAX_UID(MAX_UID), .NGHOST(NGHOST), .SEED_W(MAX_DEG),
+                .DEG_W(DEG_W), .S_W(S_W), .R_W(R_W), .UID_W(UID_W), .LAG_W(LAG_W), .G_W(G_W),
+                .P_W(P_W), .SH_W(SH_W), .OB_W(OB_W)) cfg (
+        .clk(clk), .load(state == S_IDLE && start),
+        .cfg_degree(cfg_degree), .cfg_taps_u(cfg_taps_u), .cfg_taps_v(cfg_taps_v),
+        .cfg_seed_u(cfg_seed_u), .cfg_seed_v(cfg_seed_v), .cfg_spc(cfg_spc),
+        .cfg_averages(cfg_averages), .cfg_uid_bits(cfg_uid_bits), .cfg_uid(cfg_uid),
+        .cfg_gate_start(cfg_gate_start), .cfg_gate_len(cfg_gate_len),
+        .cfg_peak_exclude(cfg_peak_exclude), .cfg_ghost_start(cfg_ghost_start),
+        .cfg_ghost_len(cfg_ghost_len), .cfg_out_shift(cfg_out_shift),
+        .cfg_rounding(cfg_rounding), .cfg_out_bits(cfg_out_bits), .cfg_peaks(cfg_peaks),
+        .c_degree(c_degree), .c_taps_u(c_taps_u), .c_taps_v(c_taps_v), .c_seed_u(c_seed_u),
+        .c_seed_v(c_seed_v), .c_spc(c_spc), .c_averages(c_averages), .c_uid_bits(c_uid_bits),
+        .c_uid(c_uid), .c_gate_start(c_gate_start), .c_gate_len(c_gate_len), .c_excl(c_excl),
+        .c_gh_start(c_gh_start), .c_gh_len(c_gh_len), .c_shift(c_shift), .c_round(c_round),
+        .c_out_bits(c_out_bits), .c_peaks(c_peaks)
+    );
 
     reg [LAG_W-1:0]        ns;          // N * S
     reg [ADDR_W:0]         nns;         // n * N * S
@@ -245,34 +272,24 @@ module rx_chain #(
     wire [MAX_UID-1:0]      nz_nx   = ((c1_p == {UID_W{1'b0}}) ? {MAX_UID{1'b0}} : sg_nz)
                                       | ((per_sum != {PER_W{1'b0}}) ? p_sel : {MAX_UID{1'b0}});
 
-    // stage 2 (raw correlation of one lag) -> rounding and saturation
+    // stage 2 (raw correlation of one lag) -> out_scale (round, saturate: 3 clocks, the
+    // module rx_top uses) -> correlation RAM write
     reg               c2_v;
     reg  [JJ_W-1:0]   c2_jj;
     reg  signed [RAW_W-1:0] c2_raw;
     reg  [MAX_UID-1:0] c2_neg, c2_nz;
 
-    wire signed [EXT_W-1:0] rx      = {{(EXT_W-RAW_W){c2_raw[RAW_W-1]}}, c2_raw};
-    wire [SH_W-1:0]         sh_c    = ({{(32-SH_W){1'b0}}, c_shift} > RAW_W + 1)
-                                      ? RAW_W[SH_W-1:0] + 1'b1 : c_shift;
-    wire signed [EXT_W-1:0] rq      = rx >>> sh_c;                    // floor
-    wire signed [EXT_W-1:0] rrem    = rx - (rq <<< sh_c);             // 0 .. 2^sh - 1
-    wire [EXT_W-1:0]        rhalf   = (sh_c == {SH_W{1'b0}}) ? {EXT_W{1'b0}}
-                                      : ({{(EXT_W-1){1'b0}}, 1'b1} << (sh_c - 1'b1));
-    wire                    r_gt    = $unsigned(rrem) > rhalf;
-    wire                    r_eq    = $unsigned(rrem) == rhalf;
-    wire                    r_up    = (sh_c != {SH_W{1'b0}}) &&
-                                      (((c_round == 2'd1) && (r_gt || r_eq)) ||
-                                       ((c_round == 2'd2) && (r_gt || (r_eq && rq[0]))));
-    wire signed [EXT_W-1:0] ry      = rq + {{(EXT_W-1){1'b0}}, r_up};
-    wire signed [EXT_W-1:0] smax    = ({{(EXT_W-1){1'b0}}, 1'b1} << (c_out_bits - 1'b1))
-                                      - {{(EXT_W-1){1'b0}}, 1'b1};
-    wire signed [EXT_W-1:0] smin    = ~smax;
-    wire signed [EXT_W-1:0] rsat    = (ry > smax) ? smax : (ry < smin) ? smin : ry;
-
-    // stage 3: correlation RAM write and stream
-    reg               c3_v;
-    reg  [JJ_W-1:0]   c3_jj;
-    reg  [CW-1:0]     c3_word;
+    localparam integer TAG_W = 2 * MAX_UID + JJ_W;
+    wire                    c3_v;
+    wire signed [OUT_W-1:0] c3_out;
+    wire [TAG_W-1:0]        c3_tag;
+    out_scale #(.RAW_W(RAW_W), .OUT_W(OUT_W), .TAG_W(TAG_W), .SH_W(SH_W), .OB_W(OB_W)) scale (
+        .clk(clk), .in_v(c2_v), .in_raw(c2_raw), .in_tag({c2_nz, c2_neg, c2_jj}),
+        .shift(c_shift), .rounding(c_round), .out_bits(c_out_bits),
+        .out_v(c3_v), .out_word(c3_out), .out_tag(c3_tag)
+    );
+    wire [JJ_W-1:0]   c3_jj   = c3_tag[JJ_W-1:0];
+    wire [CW-1:0]     c3_word = {c3_tag[TAG_W-1:JJ_W], c3_out};
 
     // ------------------------------------------------------------------
     // Correlation RAM: word = {nz[MAX_UID], neg[MAX_UID], out[OUT_W]},
@@ -290,11 +307,12 @@ module rx_chain #(
     // Post-processing: peaks, neighbours, noise floor, UID (rx_post, shared with rx_top)
     // ------------------------------------------------------------------
     reg  [2:0]        wait_cnt;
-    wire              post_go = (state == S_CWAIT) && (wait_cnt == 3'd3);
+    wire              post_go = (state == S_CWAIT) && (wait_cnt == 3'd5);
     wire              post_last;
 
     rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
-              .OUT_W(OUT_W), .LAG_W(LAG_W)) post (
+              .OUT_W(OUT_W), .LAG_W(LAG_W), .G_W(G_W), .CA_W(CA_W), .P_W(P_W), .OB_W(OB_W),
+              .CW(CW), .SUM_W(SUM_W), .SQ_W(SQ_W)) post (
         .clk(clk), .rst(rst), .go(post_go), .more(1'b0),
         .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
         .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
@@ -316,7 +334,6 @@ module rx_chain #(
         w_v        <= 1'b0;
         c1_v       <= 1'b0;
         c2_v       <= 1'b0;
-        c3_v       <= 1'b0;
 
         // ---- averaging write-back pipeline ----
         if (a_take) begin
@@ -342,33 +359,8 @@ module rx_chain #(
                 end
             end
         end
-        // ---- stage 2: rounding, saturation ----
-        if (c2_v) begin
-            c3_v    <= 1'b1;
-            c3_jj   <= c2_jj;
-            c3_word <= {c2_nz, c2_neg, rsat[OUT_W-1:0]};
-        end
-
         case (state)
         S_IDLE: if (start) begin
-            c_degree     <= cfg_degree;
-            c_taps_u     <= cfg_taps_u;
-            c_taps_v     <= cfg_taps_v;
-            c_seed_u     <= cfg_seed_u;
-            c_seed_v     <= cfg_seed_v;
-            c_spc        <= cfg_spc;
-            c_averages   <= cfg_averages;
-            c_uid_bits   <= cfg_uid_bits;
-            c_uid        <= cfg_uid;
-            c_gate_start <= cfg_gate_start;
-            c_gate_len   <= cfg_gate_len;
-            c_excl       <= cfg_peak_exclude;
-            c_gh_start   <= cfg_ghost_start;
-            c_gh_len     <= cfg_ghost_len;
-            c_shift      <= cfg_out_shift;
-            c_round      <= cfg_rounding;
-            c_out_bits   <= cfg_out_bits;
-            c_peaks      <= cfg_peaks;
             state        <= S_INIT1;
         end
         S_INIT1: begin
@@ -449,7 +441,6 @@ module rx_chain #(
             w_v        <= 1'b0;
             c1_v       <= 1'b0;
             c2_v       <= 1'b0;
-            c3_v       <= 1'b0;
         end
     end
 
@@ -462,7 +453,7 @@ module rx_chain #(
 
     // Sink for bits that are wider than any legal value needs (lint).
     // (c3_jj carries G_W + 1 bits; the RAM needs clog2(MAX_G + 2) of them)
-    wire unused_ok = &{1'b0, st_u, st_v, k_addr[ADDR_W], rsat[EXT_W-1:OUT_W], c3_jj,
+    wire unused_ok = &{1'b0, st_u, st_v, k_addr[ADDR_W], c3_jj,
                        ns_full[MAX_DEG+S_W:LAG_W]};
 endmodule
 

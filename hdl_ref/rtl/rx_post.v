@@ -24,7 +24,7 @@ module rx_post #(
     parameter integer NGHOST  = 1,
     parameter integer OUT_W   = 32,
     parameter integer LAG_W   = 14,
-    // ---- derived, do not override ----
+    // ---- derived: passed down by the top, checked below ----
     parameter integer G_W     = $clog2(MAX_G + 1),
     parameter integer CA_W    = $clog2(MAX_G + 2),
     parameter integer P_W     = $clog2(MAX_P + 1),
@@ -73,6 +73,17 @@ module rx_post #(
     output reg                          res_saturated
 );
     localparam integer MAG_W = OUT_W + 1;
+
+    // The derived widths come from the caller (passed down, computed once there); one
+    // that differs from its formula stops the elaboration in every tool (an instance of
+    // a module that does not exist) instead of a silent width mismatch.
+    generate
+        if (G_W != $clog2(MAX_G + 1) || CA_W != $clog2(MAX_G + 2) || P_W != $clog2(MAX_P + 1)
+            || CW != OUT_W + 2 * MAX_UID || SUM_W != OUT_W + G_W || SQ_W != 2 * OUT_W + G_W
+            || OB_W < $clog2(OUT_W + 1)) begin : g_derived_width_mismatch
+            rx_post_derived_width_mismatch bad ();
+        end
+    endgenerate
     localparam [1:0] T_IDLE = 2'd0, T_SCAN = 2'd1, T_WAIT = 2'd2, T_FETCH = 2'd3;
     localparam [MAX_P-1:0] P_ONE = 1;
     localparam [CA_W-1:0]  CA_TWO = 2;
@@ -131,10 +142,19 @@ module rx_post #(
     reg  [LAG_W-1:0]  s1_lag, s2_lag, s3_lag;
     reg  [CW-1:0]     s2_word, s3_word;
     reg  [MAG_W-1:0]  s3_mag;
-    reg  [2*OUT_W-1:0] s3_sq;
     wire signed [OUT_W-1:0]   s2_out = s2_word[OUT_W-1:0];
     wire signed [OUT_W-1:0]   s3_out = s3_word[OUT_W-1:0];
-    wire signed [2*OUT_W-1:0] sq     = s2_out * s2_out;
+    // The noise square, pipelined: |out| = h 2^HB + l; stage 4 holds h^2, l^2 (disjoint
+    // bits: l^2 < 2^(2 HB)) and h l, and adds 2^(2 HB) h^2 + l^2 + 2^(HB+1) h l to the sum
+    // (one clock after stage 3, still before res_valid).
+    localparam integer HB = (MAG_W + 1) / 2;
+    wire [MAG_W-HB-1:0]       s3_h   = s3_mag[MAG_W-1:HB];
+    wire [HB-1:0]             s3_l   = s3_mag[HB-1:0];
+    reg                       s4_acc;
+    reg  [2*(MAG_W-HB)-1:0]   s4_hh;
+    reg  [2*HB-1:0]           s4_ll;
+    reg  [MAG_W-1:0]          s4_hl;
+    wire [2*MAG_W-1:0]        sq4    = {s4_hh, s4_ll} + ({{(MAG_W-HB){1'b0}}, s4_hl, {HB{1'b0}}} << 1);
     wire signed [OUT_W-1:0]   r_out  = rdata[OUT_W-1:0];
 
     // ---- best of the peak pass ----
@@ -254,7 +274,12 @@ module rx_post #(
         s3_lag  <= s2_lag;
         s3_word <= s2_word;
         s3_mag  <= s2_out[OUT_W-1] ? -{s2_out[OUT_W-1], s2_out} : {1'b0, s2_out};
-        s3_sq   <= sq;
+        s4_acc  <= s3_v && noise && s3_ok;
+        s4_hh   <= s3_h * s3_h;
+        s4_ll   <= s3_l * s3_l;
+        s4_hl   <= s3_h * s3_l;
+        if (s4_acc)
+            res_noise_sumsq <= res_noise_sumsq + {{(SQ_W-2*OUT_W){1'b0}}, sq4[2*OUT_W-1:0]};
         if (s3_v) begin
             if (noise) begin
                 corr_valid <= 1'b1;
@@ -263,7 +288,6 @@ module rx_post #(
                 if (s3_ok) begin
                     res_noise_count <= res_noise_count + 1'b1;
                     res_noise_sum   <= res_noise_sum + {{(SUM_W-OUT_W){s3_out[OUT_W-1]}}, s3_out};
-                    res_noise_sumsq <= res_noise_sumsq + {{(SQ_W-2*OUT_W){1'b0}}, s3_sq};
                 end
             end else if (s3_ok && (!b_have || s3_mag > b_mag)) begin
                 b_have <= 1'b1;
@@ -280,12 +304,13 @@ module rx_post #(
             s1_v       <= 1'b0;
             s2_v       <= 1'b0;
             s3_v       <= 1'b0;
+            s4_acc     <= 1'b0;
             res_valid  <= 1'b0;
             corr_valid <= 1'b0;
         end
     end
 
-    wire unused_ok = &{1'b0, sq[2*OUT_W-1], o_max[OUT_W], pk_j, q_jj[G_W+CA_W-1:CA_W], j0[G_W+CA_W-1:CA_W]};
+    wire unused_ok = &{1'b0, sq4[2*MAG_W-1:2*OUT_W], o_max[OUT_W], pk_j, q_jj[G_W+CA_W-1:CA_W], j0[G_W+CA_W-1:CA_W]};
 endmodule
 
 `default_nettype wire

@@ -135,6 +135,17 @@ module rx_top #(
     // ------------------------------------------------------------------
     // Widths
     // ------------------------------------------------------------------
+    generate   // a derived parameter overridden by mistake stops the elaboration
+        if (DEG_W != $clog2(MAX_DEG + 1) || MAX_N != (1 << MAX_DEG) - 1
+            || MAX_NS != MAX_N * MAX_S || LAG_W != $clog2(MAX_NS + 1)
+            || S_W != $clog2(MAX_S + 1) || UID_W != $clog2(MAX_UID + 1)
+            || R_W != $clog2(MAX_R + 1) || G_W != $clog2(MAX_G + 1)
+            || P_W != $clog2(MAX_P + 1) || K_W != ((K > 1) ? $clog2(K) : 1)
+            || CNT_W != G_W || SUM_W != OUT_W + G_W || SQ_W != 2 * OUT_W + G_W)
+        begin : g_derived_width_mismatch
+            rx_top_derived_width_mismatch bad ();
+        end
+    endgenerate
     localparam integer AVG_W  = ADC_W + $clog2(MAX_R);
     localparam integer BOX_W  = AVG_W + $clog2(MAX_S);
     localparam integer PER_W  = BOX_W + MAX_DEG + 1;
@@ -164,20 +175,37 @@ module rx_top #(
     // ------------------------------------------------------------------
     reg [COL_W-1:0]        c_columns;
     reg                    c_free;      // cfg_columns = 0: columns until `stop`
-    reg [DEG_W-1:0]        c_degree;
-    reg [MAX_DEG-1:0]      c_taps_u, c_taps_v;
-    reg [K*MAX_DEG-1:0]    c_seed_u, c_seed_v;
-    reg [S_W-1:0]          c_spc;
-    reg [R_W-1:0]          c_averages;
-    reg [UID_W-1:0]        c_uid_bits;
-    reg [MAX_UID-1:0]      c_uid;
-    reg [LAG_W-1:0]        c_gate_start;
-    reg [G_W-1:0]          c_gate_len, c_excl;
-    reg [NGHOST*LAG_W-1:0] c_gh_start, c_gh_len;
-    reg [SH_W-1:0]         c_shift;
-    reg [1:0]              c_round;
-    reg [OB_W-1:0]         c_out_bits;
-    reg [P_W-1:0]          c_peaks;
+    wire [DEG_W-1:0]        c_degree;
+    wire [MAX_DEG-1:0]      c_taps_u, c_taps_v;
+    wire [K*MAX_DEG-1:0]    c_seed_u, c_seed_v;
+    wire [S_W-1:0]          c_spc;
+    wire [R_W-1:0]          c_averages;
+    wire [UID_W-1:0]        c_uid_bits;
+    wire [MAX_UID-1:0]      c_uid;
+    wire [LAG_W-1:0]        c_gate_start;
+    wire [G_W-1:0]          c_gate_len, c_excl;
+    wire [NGHOST*LAG_W-1:0] c_gh_start, c_gh_len;
+    wire [SH_W-1:0]         c_shift;
+    wire [1:0]              c_round;
+    wire [OB_W-1:0]         c_out_bits;
+    wire [P_W-1:0]          c_peaks;
+    cfg_latch #(.MAX_DEG(MAX_DEG), .MAX_UID(MAX_UID), .NGHOST(NGHOST), .SEED_W(K * MAX_DEG),
+                .DEG_W(DEG_W), .S_W(S_W), .R_W(R_W), .UID_W(UID_W), .LAG_W(LAG_W), .G_W(G_W),
+                .P_W(P_W), .SH_W(SH_W), .OB_W(OB_W)) cfg (
+        .clk(clk), .load(tstate == T_IDLE && start),
+        .cfg_degree(cfg_degree), .cfg_taps_u(cfg_taps_u), .cfg_taps_v(cfg_taps_v),
+        .cfg_seed_u(cfg_seed_u), .cfg_seed_v(cfg_seed_v), .cfg_spc(cfg_spc),
+        .cfg_averages(cfg_averages), .cfg_uid_bits(cfg_uid_bits), .cfg_uid(cfg_uid),
+        .cfg_gate_start(cfg_gate_start), .cfg_gate_len(cfg_gate_len),
+        .cfg_peak_exclude(cfg_peak_exclude), .cfg_ghost_start(cfg_ghost_start),
+        .cfg_ghost_len(cfg_ghost_len), .cfg_out_shift(cfg_out_shift),
+        .cfg_rounding(cfg_rounding), .cfg_out_bits(cfg_out_bits), .cfg_peaks(cfg_peaks),
+        .c_degree(c_degree), .c_taps_u(c_taps_u), .c_taps_v(c_taps_v), .c_seed_u(c_seed_u),
+        .c_seed_v(c_seed_v), .c_spc(c_spc), .c_averages(c_averages), .c_uid_bits(c_uid_bits),
+        .c_uid(c_uid), .c_gate_start(c_gate_start), .c_gate_len(c_gate_len), .c_excl(c_excl),
+        .c_gh_start(c_gh_start), .c_gh_len(c_gh_len), .c_shift(c_shift), .c_round(c_round),
+        .c_out_bits(c_out_bits), .c_peaks(c_peaks)
+    );
 
     reg [MAX_DEG-1:0]      nn;          // N chips
     reg [LAG_W-1:0]        ns;          // N * S
@@ -283,7 +311,11 @@ module rx_top #(
     wire [MAX_DEG-1:0] st_t1 = chip_inc(st_t, nn);
     wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0]
                                  - {{(KST_W-2){1'b0}}, 2'd2};
-    wire               st_end   = (st_k == k_last);
+    // st_end (the stream's last step) is a register, set one clock ahead, so the
+    // generators' enables below need no comparator in front of them.
+    reg                st_end;
+    wire               st_end_nx = (pstate == P_STREAM) && !st_end
+                                   && (st_k + 1'b1 == k_last);
     wire               st_lastp = (st_p == c_uid_bits - 1'b1);
     localparam [JJ_W+S_W:0] L_JJ = L_M1[JJ_W+S_W:0];
     wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L_JJ * {{(JJ_W+1){1'b0}}, c_spc};
@@ -303,8 +335,25 @@ module rx_top #(
                                        (bi >= ph_s) ? st_t : st_t1};
     end
 
-    // Gold generators, one pair per channel
-    reg               gen_load, gen_en;
+    // Gold generators, one pair per channel. Their load and enable are registers (the
+    // next clock's values, below), one copy per GEN_GRP channels, so no strobe crosses
+    // the die to 2 K generators in one clock (each copy a gen_strobe instance: synthesis
+    // keeps them apart, where it would merge identical flip-flops of one module).
+    localparam integer GEN_GRP = 4;
+    localparam integer GEN_NG  = (K + GEN_GRP - 1) / GEN_GRP;
+    wire              stream_done = st_lastp && !g_more && !ph_more;
+    wire              gen_load_nx = (pstate == P_START) || st_end_nx;
+    wire              gen_en_nx   = (pstate == P_SETUP)
+                                    || (pstate == P_STREAM && (st_end ? !stream_done
+                                                                      : !st_end_nx));
+    wire [GEN_NG-1:0] gen_load, gen_en;
+    genvar gg;
+    generate
+        for (gg = 0; gg < GEN_NG; gg = gg + 1) begin : g_strobe
+            gen_strobe copy (.clk(clk), .rst(rst), .load_nx(gen_load_nx), .en_nx(gen_en_nx),
+                             .load(gen_load[gg]), .en(gen_en[gg]));
+        end
+    endgenerate
     wire [K-1:0]      chip;
     genvar gk;
     generate
@@ -312,10 +361,12 @@ module rx_top #(
             wire cu, cv;
             wire [MAX_DEG-1:0] su, sv;
             lfsr_fib #(.MAX_DEG(MAX_DEG)) gu (
-                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_u[gk*MAX_DEG +: MAX_DEG]),
+                .clk(clk), .load(gen_load[gk / GEN_GRP]), .en(gen_en[gk / GEN_GRP]),
+                .seed(c_seed_u[gk*MAX_DEG +: MAX_DEG]),
                 .taps(c_taps_u), .degree(c_degree), .out(cu), .state(su));
             lfsr_fib #(.MAX_DEG(MAX_DEG)) gv (
-                .clk(clk), .load(gen_load), .en(gen_en), .seed(c_seed_v[gk*MAX_DEG +: MAX_DEG]),
+                .clk(clk), .load(gen_load[gk / GEN_GRP]), .en(gen_en[gk / GEN_GRP]),
+                .seed(c_seed_v[gk*MAX_DEG +: MAX_DEG]),
                 .taps(c_taps_v), .degree(c_degree), .out(cv), .state(sv));
             assign chip[gk] = cu ^ cv;
             wire unused_gen = &{1'b0, su, sv};
@@ -349,7 +400,7 @@ module rx_top #(
     reg [JJ_W-1:0]    gjjq;
     reg [MAX_S*AVG_W-1:0] rdq;
     reg signed [BOX_W-1:0] box1;
-    integer bsi, si;                        // bsi: the combinational loop, si: clocked ones
+    integer bsi, si, sj;    // bsi: the combinational loop; si, sj: two clocked blocks' loops
     always @(*) begin
         box1 = {BOX_W{1'b0}};
         for (bsi = 0; bsi < MAX_S; bsi = bsi + 1)
@@ -571,7 +622,8 @@ module rx_top #(
     wire [CA_W-1:0]   post_raddr;
 
     rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
-              .OUT_W(OUT_W), .LAG_W(LAG_W)) post (
+              .OUT_W(OUT_W), .LAG_W(LAG_W), .G_W(G_W), .CA_W(CA_W), .P_W(P_W), .OB_W(OB_W),
+              .CW(CW), .SUM_W(SUM_W), .SQ_W(SQ_W)) post (
         .clk(clk), .rst(rst), .go(post_go), .more(pk_ch != K_LAST),
         .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
         .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
@@ -586,98 +638,38 @@ module rx_top #(
         .res_saturated(res_saturated)
     );
 
-    always @(*) begin
-        gen_load = (pstate == P_SETUP) || (pstate == P_STREAM && st_end);
-        gen_en   = (pstate == P_STREAM) && !st_end;
+    always @(*)
         cr_raddr = {pk_ch, post_raddr};
-    end
 
     // ------------------------------------------------------------------
-    // Sequencers
+    // Sticky status (cleared by clear_err; an event in the same clock wins)
     // ------------------------------------------------------------------
     always @(posedge clk) begin
-        done       <= 1'b0;
-        col_start  <= 1'b0;
-        w_v        <= 1'b0;
-        v0         <= 1'b0;
-        v1         <= 1'b0;
-        vr         <= 1'b0;
-        vq         <= 1'b0;
-        v2         <= 1'b0;
-        latch_v    <= 1'b0;
-        ln_clr     <= 1'b0;
-
-        // ---- sticky status (cleared by clear_err; an event in the same clock wins) ----
         if (clear_err) begin
             err_overrun <= 1'b0;
             err_refused <= 1'b0;
         end
         if (s_refused)
             err_refused <= 1'b1;
+        if (latch_v && ser_busy)
+            err_overrun <= 1'b1;        // the lanes outran the serializer
+        if (rst) begin
+            err_overrun <= 1'b0;
+            err_refused <= 1'b0;
+        end
+    end
 
-        // ---- top: configuration and column count ----
-        case (tstate)
-        T_IDLE: if (start) begin
-            c_columns    <= cfg_columns;
-            c_free       <= (cfg_columns == {COL_W{1'b0}});
-            c_degree     <= cfg_degree;
-            c_taps_u     <= cfg_taps_u;
-            c_taps_v     <= cfg_taps_v;
-            c_seed_u     <= cfg_seed_u;
-            c_seed_v     <= cfg_seed_v;
-            c_spc        <= cfg_spc;
-            c_averages   <= cfg_averages;
-            c_uid_bits   <= cfg_uid_bits;
-            c_uid        <= cfg_uid;
-            c_gate_start <= cfg_gate_start;
-            c_gate_len   <= cfg_gate_len;
-            c_excl       <= cfg_peak_exclude;
-            c_gh_start   <= cfg_ghost_start;
-            c_gh_len     <= cfg_ghost_len;
-            c_shift      <= cfg_out_shift;
-            c_round      <= cfg_rounding;
-            c_out_bits   <= cfg_out_bits;
-            c_peaks      <= cfg_peaks;
-            tstate       <= T_INIT1;
+    // ------------------------------------------------------------------
+    // lo = q_lo * S + s_lo: restoring division, started in T_INIT2
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
+        if (tstate == T_INIT2) begin
+            div_run  <= 1'b1;
+            div_done <= 1'b0;
+            div_i    <= LAG_W[DIV_W-1:0];
+            div_q    <= {LAG_W{1'b0}};
+            div_r    <= {(S_W+1){1'b0}};
         end
-        T_INIT1: begin
-            nn     <= n_chips[MAX_DEG-1:0];
-            ns     <= ns_full[LAG_W-1:0];
-            tstate <= T_INIT2;
-        end
-        T_INIT2: begin
-            lo          <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
-            div_run     <= 1'b1;
-            div_done    <= 1'b0;
-            div_i       <= LAG_W[DIV_W-1:0];
-            div_q       <= {LAG_W{1'b0}};
-            div_r       <= {(S_W+1){1'b0}};
-            acc_buf     <= 1'b0;
-            proc_buf    <= 1'b0;
-            full        <= 2'b00;
-            cols_in     <= {COL_W{1'b0}};
-            cols_out    <= {COL_W{1'b0}};
-            a_s <= {S_W{1'b0}}; a_c <= {MAX_DEG{1'b0}}; a_p <= {UID_W{1'b0}};
-            a_base <= {ADDR_W{1'b0}}; a_r <= {R_W{1'b0}};
-            ln_clr      <= 1'b1;
-            ln_fst      <= 1'b1;
-            tstate      <= T_RUN;
-        end
-        T_RUN: begin
-            if (!c_free && cols_out == c_columns) begin
-                done   <= 1'b1;
-                tstate <= T_IDLE;
-            end
-        end
-        default: tstate <= T_IDLE;
-        endcase
-        if (stop && tstate != T_IDLE) begin
-            // take the column already begun (if any) to its end, then no more
-            c_free    <= 1'b0;
-            c_columns <= (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
-                                           : {COL_W{1'b0}};
-        end
-
         if (div_run) begin
             div_r <= div_ge ? div_d[S_W:0] : div_t[S_W:0];
             div_q <= {div_q[LAG_W-2:0], div_ge};
@@ -687,10 +679,27 @@ module rx_top #(
                 div_done <= 1'b1;
             end
         end
+        if (rst) begin
+            div_run  <= 1'b0;
+            div_done <= 1'b0;
+        end
+    end
 
-        // ---- accumulation ----
+    // ------------------------------------------------------------------
+    // Averaging read-modify-write pipeline: read, RAM output register, add and write
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
         r_v  <= 1'b0;
         rr_v <= 1'b0;
+        w_v  <= 1'b0;
+        if (a_take) begin
+            r_v     <= 1'b1;
+            r_buf   <= acc_buf;
+            r_bank  <= a_s;
+            r_addr  <= a_addr;
+            r_first <= (a_r == {R_W{1'b0}});
+            r_x     <= s_data;
+        end
         if (r_v) begin
             rr_v     <= 1'b1;
             rr_buf   <= r_buf;
@@ -709,41 +718,24 @@ module rx_top #(
             for (si = 0; si < MAX_S; si = si + 1)
                 w_old[si*AVG_W +: AVG_W] <= rr_buf ? rd[MAX_S + si] : rd[si];
         end
-        if (a_take) begin
-            r_v     <= 1'b1;
-            r_buf   <= acc_buf;
-            r_bank  <= a_s;
-            r_addr  <= a_addr;
-            r_first <= (a_r == {R_W{1'b0}});
-            r_x     <= s_data;
-            if (a_s != c_spc - P_STEP) begin
-                a_s <= a_s + P_STEP;
-            end else begin
-                a_s <= {S_W{1'b0}};
-                if (a_c != nn - 1'b1) begin
-                    a_c <= a_c + 1'b1;
-                end else begin
-                    a_c <= {MAX_DEG{1'b0}};
-                    if (a_p != c_uid_bits - 1'b1) begin
-                        a_p    <= a_p + 1'b1;
-                        a_base <= a_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
-                    end else begin
-                        a_p    <= {UID_W{1'b0}};
-                        a_base <= {ADDR_W{1'b0}};
-                        if (a_r != c_averages - 1'b1) begin
-                            a_r <= a_r + 1'b1;
-                        end else begin
-                            a_r           <= {R_W{1'b0}};
-                            full[acc_buf] <= 1'b1;
-                            acc_buf       <= ~acc_buf;
-                            cols_in       <= cols_in + 1'b1;
-                        end
-                    end
-                end
-            end
+        if (rst) begin
+            r_v  <= 1'b0;
+            rr_v <= 1'b0;
+            w_v  <= 1'b0;
         end
+    end
 
-        // ---- correlation pipeline ----
+    // ------------------------------------------------------------------
+    // Correlation pipeline: issue, RAM, RAM output register, RAM words, box sum, lanes;
+    // a stream's end latches the lane values for the serializer
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
+        v0      <= 1'b0;
+        v1      <= 1'b0;
+        vr      <= 1'b0;
+        vq      <= 1'b0;
+        v2      <= 1'b0;
+        latch_v <= 1'b0;
         if (pstate == P_STREAM) begin
             v0    <= 1'b1;
             f0    <= (st_k == {KST_W{1'b0}});
@@ -753,8 +745,8 @@ module rx_top #(
             gend0 <= st_end;
             glast0 <= st_lastp;
             gjj0  <= g_jj;
-            for (si = 0; si < MAX_S; si = si + 1)
-                addr0[si*ADDR_W +: ADDR_W] <= corr_addr[si];
+            for (sj = 0; sj < MAX_S; sj = sj + 1)
+                addr0[sj*ADDR_W +: ADDR_W] <= corr_addr[sj];
         end
         if (v0) begin
             v1    <= 1'b1;
@@ -785,8 +777,8 @@ module rx_top #(
             gendq <= gendr;
             glastq <= glastr;
             gjjq  <= gjjr;
-            for (si = 0; si < MAX_S; si = si + 1)
-                rdq[si*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + si];
+            for (sj = 0; sj < MAX_S; sj = sj + 1)
+                rdq[sj*AVG_W +: AVG_W] <= rd[(proc_buf ? MAX_S : 0) + sj];
         end
         if (vq) begin
             v2    <= 1'b1;
@@ -811,9 +803,24 @@ module rx_top #(
                 latch_last <= glast2;
             end
         end
+        if (rst) begin
+            v0      <= 1'b0;
+            v1      <= 1'b0;
+            vr      <= 1'b0;
+            vq      <= 1'b0;
+            v2      <= 1'b0;
+            latch_v <= 1'b0;
+            sr_a    <= {L{1'b0}};
+        end
+    end
+
+    // ------------------------------------------------------------------
+    // Serializer: walks the hold chain one lane a clock after each stream's end
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
+        if (ln_clr)
+            ln_fst <= 1'b1;             // the first stream after start: no previous value
         if (latch_v) begin
-            if (ser_busy)
-                err_overrun <= 1'b1;        // (the clear above loses no event: set wins)
             ser_busy <= 1'b1;
             ser_fst  <= ln_fst;
             ln_fst   <= 1'b0;
@@ -837,8 +844,87 @@ module rx_top #(
                 ser_jj <= ser_jj + {{(JJ_W+1){1'b0}}, c_spc};
             end
         end
+        if (rst)
+            ser_busy <= 1'b0;
+    end
 
-        // ---- processing engine ----
+    // ------------------------------------------------------------------
+    // Control: run and column count, averaging counters and buffers, processing engine
+    // ------------------------------------------------------------------
+    always @(posedge clk) begin
+        done       <= 1'b0;
+        col_start  <= 1'b0;
+        ln_clr     <= 1'b0;
+
+        // ---- run: configuration (cfg_latch, above) and column count ----
+        case (tstate)
+        T_IDLE: if (start) begin
+            c_columns    <= cfg_columns;
+            c_free       <= (cfg_columns == {COL_W{1'b0}});
+            tstate       <= T_INIT1;
+        end
+        T_INIT1: begin
+            nn     <= n_chips[MAX_DEG-1:0];
+            ns     <= ns_full[LAG_W-1:0];
+            tstate <= T_INIT2;
+        end
+        T_INIT2: begin
+            lo          <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
+            acc_buf     <= 1'b0;
+            proc_buf    <= 1'b0;
+            full        <= 2'b00;
+            cols_in     <= {COL_W{1'b0}};
+            cols_out    <= {COL_W{1'b0}};
+            a_s <= {S_W{1'b0}}; a_c <= {MAX_DEG{1'b0}}; a_p <= {UID_W{1'b0}};
+            a_base <= {ADDR_W{1'b0}}; a_r <= {R_W{1'b0}};
+            ln_clr      <= 1'b1;
+            tstate      <= T_RUN;
+        end
+        T_RUN: begin
+            if (!c_free && cols_out == c_columns) begin
+                done   <= 1'b1;
+                tstate <= T_IDLE;
+            end
+        end
+        default: tstate <= T_IDLE;
+        endcase
+        if (stop && tstate != T_IDLE) begin
+            // take the column already begun (if any) to its end, then no more
+            c_free    <= 1'b0;
+            c_columns <= (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
+                                           : {COL_W{1'b0}};
+        end
+
+        // ---- averaging counters: bank, chip, period, repetition; buffer switch ----
+        if (a_take) begin
+            if (a_s != c_spc - P_STEP) begin
+                a_s <= a_s + P_STEP;
+            end else begin
+                a_s <= {S_W{1'b0}};
+                if (a_c != nn - 1'b1) begin
+                    a_c <= a_c + 1'b1;
+                end else begin
+                    a_c <= {MAX_DEG{1'b0}};
+                    if (a_p != c_uid_bits - 1'b1) begin
+                        a_p    <= a_p + 1'b1;
+                        a_base <= a_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
+                    end else begin
+                        a_p    <= {UID_W{1'b0}};
+                        a_base <= {ADDR_W{1'b0}};
+                        if (a_r != c_averages - 1'b1) begin
+                            a_r <= a_r + 1'b1;
+                        end else begin
+                            a_r           <= {R_W{1'b0}};
+                            full[acc_buf] <= 1'b1;
+                            acc_buf       <= ~acc_buf;
+                            cols_in       <= cols_in + 1'b1;
+                        end
+                    end
+                end
+            end
+        end
+
+        // ---- processing engine: phases, groups, UID periods, stream steps; rx_post ----
         case (pstate)
         P_IDLE: if (tstate == T_RUN && full[proc_buf] && div_done) begin
             proc_on     <= 1'b1;
@@ -855,6 +941,7 @@ module rx_top #(
             pstate  <= P_SETUP;
         end
         P_SETUP: begin
+            st_end  <= 1'b0;
             st_p    <= {UID_W{1'b0}};
             st_base <= {ADDR_W{1'b0}};
             st_k    <= {KST_W{1'b0}};
@@ -862,6 +949,7 @@ module rx_top #(
             pstate  <= P_STREAM;
         end
         P_STREAM: begin
+            st_end <= st_end_nx;
             if (!st_end) begin
                 st_k <= st_k + 1'b1;
                 st_t <= st_t1;
@@ -923,24 +1011,9 @@ module rx_top #(
             tstate      <= T_IDLE;
             pstate      <= P_IDLE;
             done        <= 1'b0;
-            w_v         <= 1'b0;
-            v1          <= 1'b0;
-            v2          <= 1'b0;
-            latch_v     <= 1'b0;
             ln_clr      <= 1'b0;
-            vq          <= 1'b0;
-            vr          <= 1'b0;
-            v0          <= 1'b0;
-            rr_v        <= 1'b0;
-            r_v         <= 1'b0;
-            ser_busy    <= 1'b0;
-            div_run     <= 1'b0;
-            div_done    <= 1'b0;
-            err_overrun <= 1'b0;
-            err_refused <= 1'b0;
             full        <= 2'b00;
             proc_on     <= 1'b0;
-            sr_a        <= {L{1'b0}};
         end
     end
 

@@ -5,12 +5,16 @@
 //   rx_top vectors: PASS <words> words compared
 // or
 //   rx_top vectors: FAIL <errors> of <words> words differ
-// (the first few differences before it) and finishes.
+// (the first few differences before it) and finishes; a run without `done` fails after
+// VEC_MAX_CLOCKS clocks (params.vh) with "FAIL no done".
 `timescale 1ns/1ps
 `default_nettype none
 `include "params.vh"
 `ifndef VEC_P
 `define VEC_P 1
+`endif
+`ifndef VEC_MAX_CLOCKS
+`define VEC_MAX_CLOCKS 100000000
 `endif
 
 module rx_top_vectors_tb;
@@ -125,6 +129,17 @@ module rx_top_vectors_tb;
         end
     end
 
+    // watchdog: a design that never raises done fails in VEC_MAX_CLOCKS clocks (params.vh:
+    // twice the clocks the model's schedule needs), not by the caller's timeout
+    integer clocks = 0;
+    always @(posedge clk) begin
+        clocks = clocks + 1;
+        if (clocks > `VEC_MAX_CLOCKS) begin
+            $display("rx_top vectors: FAIL no done in %0d clocks (watchdog; corr %0d of %0d, results %0d of %0d)",
+                     clocks - 1, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES);
+            $finish;
+        end
+    end
     // sinks
     always @(posedge clk) begin
         if (corr_valid) begin

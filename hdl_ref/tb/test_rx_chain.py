@@ -5,16 +5,18 @@ case it drives the configuration ports, pulses ``start``, streams the samples
 one per clock while ``s_ready`` is high (or with ``s_valid`` low on every
 ``gap``-th clock when the case has ``"gap"``), records every ``corr_*`` word as it
 appears and, at ``done``, every result port. Clock counts (start to first
-sample, last sample to done) are measured in simulated clocks. Comparison with
+sample, last sample to done) are measured in simulated clocks; a case that has not
+finished in twice its documented clocks fails the run (watchdog). Comparison with
 the model happens in the caller (tests/hdl_ref).
 """
 
 from __future__ import annotations
 
 import cocotb
-from cocotb.triggers import ReadOnly, RisingEdge
+from cocotb.triggers import ClockCycles, First, ReadOnly, RisingEdge
 from cocotb.utils import get_sim_time
 
+from cdma_lidar.hdl_ref.cosim import rx_latency_clocks
 from cdma_lidar.hdl_ref.tb.jobs import play_stream_cases
 
 __all__ = ["play_job"]
@@ -56,7 +58,12 @@ async def _run_case(dut, case: dict) -> dict:
     dut.s_data.value = samples[0] & mask
     taken = 0
     t_first = t_last = t_start
+    # watchdog: twice the clocks of the documented latency, plus 100 (a hang fails in seconds)
+    budget = 2 * sum(rx_latency_clocks(ports, gap).values()) + 100
     while taken < len(samples):
+        if clock > budget:
+            monitor.cancel()
+            raise RuntimeError(f"rx_chain: samples still not taken after {budget} clocks")
         await RisingEdge(dut.clk)
         if valid and dut.s_ready.value:  # values before this edge: the edge took the sample
             if taken == 0:
@@ -69,7 +76,9 @@ async def _run_case(dut, case: dict) -> dict:
         dut.s_valid.value = int(valid)
     t_last = get_sim_time("ns")
     dut.s_valid.value = 0
-    await RisingEdge(dut.done)
+    if isinstance(await First(RisingEdge(dut.done), ClockCycles(dut.clk, budget)), ClockCycles):
+        monitor.cancel()
+        raise RuntimeError(f"rx_chain: no done {budget} clocks after the last sample")
     await ReadOnly()
     t_done = get_sim_time("ns")
     res = {name: int(getattr(dut, name).value) for name in RESULT_PORTS}

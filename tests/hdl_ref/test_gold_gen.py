@@ -121,7 +121,7 @@ def test_lfsr_mutant_en_beats_load_is_caught(hdl_build_root):
     """lfsr_fib with enable over load: the reload cases see it, clock by clock."""
     from cdma_lidar.hdl_ref.mutants import MUTANTS, mutated_copy
 
-    (mutant,) = [m for m in MUTANTS if m.file == "lfsr_fib.v"]
+    (mutant,) = [m for m in MUTANTS if m.name == "en-beats-load"]
     rtl = mutated_copy(mutant, hdl_build_root / f"rtl_{mutant.name}")
     build_dir = cosim.build(cosim.GOLD_TOP, PARAMS.generics(),
                             hdl_build_root / f"gold_{mutant.name}", rtl_dir=rtl)

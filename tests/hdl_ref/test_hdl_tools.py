@@ -7,6 +7,8 @@ yosys is, each skipped with the reason otherwise.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -136,7 +138,8 @@ def test_yosys_check_clean(name):
     """No signal driven from two processes, no loop, nothing undriven (Yosys ``check``)."""
     top, params = _CHECKED[name]
     sources = (*[s for s in synth.TOP_SOURCES if s != "rx_top_pnr.v" and top == "rx_top"],
-               *(("lfsr_fib.v", "sdp_ram.v", "rx_post.v", "rx_chain.v") if top == "rx_chain"
+               *(("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v",
+                  "rx_chain.v") if top == "rx_chain"
                  else ()))
     synth.yosys_check(synth.Design(name, top, sources, params, ""))
 
@@ -151,3 +154,12 @@ def test_yosys_check_reports_a_variable_driven_from_two_blocks(tmp_path):
                    "endmodule\n")
     with pytest.raises(RuntimeError, match="check failed"):
         synth.yosys_check(synth.Design("two", "two", (str(bad),), {}, ""))
+
+
+
+def test_docs_quick_command_skips_every_paper_build():
+    """The "minutes" command of docs/hdl.md leaves out every paper place and route."""
+    doc = synth.DOC_PATH.read_text()
+    quick = doc[doc.index("synth --skip"):doc.index("(no paper build)")]
+    assert set(re.findall(r"--skip '([^']*)'", quick)) == {d.name for d in synth.DESIGNS
+                                                           if "paper" in d.name}

@@ -350,7 +350,10 @@ def test_rx_chain_mutant_is_caught(chain_mutant_cases, hdl_build_root, mutant):
     built = cosim.build(cosim.RX_TOP, PARAMS.generics(), hdl_build_root / f"rx_{mutant.name}",
                         rtl_dir=rtl)
     bad = []
-    for case, run in zip(cases, _simulate(lambda _: built, PARAMS, cases, "mutant"),
-                         strict=True):
+    try:
+        runs = _simulate(lambda _: built, PARAMS, cases, "mutant")
+    except (RuntimeError, SystemExit):  # a hang, failed by the bench's watchdog in seconds
+        return
+    for case, run in zip(cases, runs, strict=True):
         bad += case.model().mismatches(_rtl_output(run, PARAMS))
     assert bad, f"{mutant.name} was not caught"

@@ -18,16 +18,18 @@ from cdma_lidar.cli import main
 from cdma_lidar.hdl_ref import cosim
 
 TB = Path(cosim.RTL_DIR).parent / "tb" / "rx_top_vectors_tb.v"
-SOURCES = [cosim.RTL_DIR / n for n in ("lfsr_fib.v", "sdp_ram.v", "out_scale.v", "rx_post.v",
-                                         "rx_top.v")]
+SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v", "rx_post.v",
+           "rx_top.v")
 SETTINGS = ["degree=6", "channels=4", "lanes=2", "uid_bits=2", "uid=1", "peaks=2",
             "ghost=50:3", "out_shift=3", "rounding=convergent", "averages=3"]
 
 
 def _run_tb(vec: Path, tmp: Path) -> str:
     vvp = tmp / "tb.vvp"
+    rtl = cosim.default_rtl_dir()
     subprocess.run(["iverilog", "-g2005", "-I", str(vec), "-o", str(vvp), str(TB),
-                    *map(str, SOURCES)], check=True, capture_output=True, text=True)
+                    *(str(rtl / n) for n in SOURCES)], check=True, capture_output=True,
+                   text=True)
     out = subprocess.run(["vvp", "-n", str(vvp), f"+VEC={vec}/"], check=True,
                          capture_output=True, text=True, timeout=300).stdout
     return [line for line in out.splitlines() if line.startswith("rx_top vectors:")][-1]

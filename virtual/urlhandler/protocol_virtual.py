@@ -23,6 +23,8 @@ URL: ``SCENE`` is a preset name (``virtual://flat-wall``) or a path to a .toml f
     line_baud=N          the line keeps a UART's pace, N bit/s 8N1 (default: none, as
                          fast as memory), e.g. 921600 to see what a noisy serial line costs
     session=N            session id of the device (default: random, as at a real boot)
+    engine=model|rtl     the receive chain: the model (default) or the reference RTL
+                         under Verilator (the same outputs; cdma_lidar.hdl_ref.engine)
     anything else        a scene option (``distance=7.5``, ``instrument.snr_db=-5``)
 """
 
@@ -62,7 +64,12 @@ def parse_url(url: str) -> tuple[str, dict[str, Any], dict[str, str]]:
     rest: dict[str, str] = {}
     for key, values in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items():
         value = values[-1]
-        if key in _OWN_OPTIONS:
+        if key == "engine":
+            if value not in ("model", "rtl"):
+                raise SerialException(f"virtual:// option engine must be model or rtl, "
+                                      f"not {value!r}")
+            own[key] = value
+        elif key in _OWN_OPTIONS:
             try:
                 own[key] = float(value) if key == "line_error_rate" else int(value)
             except ValueError:
@@ -121,7 +128,7 @@ class Serial(SerialBase):
             # same line_seed damages the same bits whatever the threads' timing.
             self._noise = LineNoise(rate, [line_seed, 0])
             self._noise_up = LineNoise(rate, [line_seed, 1])
-            self.firmware = VirtualFirmware(scene, seed)
+            self.firmware = VirtualFirmware(scene, seed, engine=own.get("engine", "model"))
         except CdmaLidarError as exc:
             raise SerialException(f"virtual://{name}: {exc}") from exc
         baud = own.get("line_baud")
