@@ -33,6 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from cdma_lidar.errors import ConfigError
 from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.hdl_ref.cosim import RTL_ENV
 from cdma_lidar.hdl_ref.mutants import MUTANTS, Mutant, mutated_copy
@@ -141,7 +142,7 @@ def update_doc(text: str, block: str) -> str:
     """``text`` with the block between the mutate markers replaced by ``block``."""
     start, end = text.find(BEGIN), text.find(END)
     if start < 0 or end < start:
-        raise ValueError(f"docs/hdl.md must contain {BEGIN} ... {END}")
+        raise ConfigError(f"docs/hdl.md must contain {BEGIN} ... {END}", "docs/hdl.md")
     return text[:start + len(BEGIN)] + "\n" + block + text[end:]
 
 

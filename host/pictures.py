@@ -115,14 +115,14 @@ def _heat(ax: Axes, snr_db: NDArray, threshold_db: float, title: str,
     im = _image(ax, snr_db, angles, cmap="viridis", vmin=vmin, vmax=vmax)
     finite = np.where(np.isfinite(snr_db), snr_db, vmin)
     if snr_db.shape[0] > DENSE_ROWS:
-        title = f"{title} (threshold {threshold_db:g} dB)"
+        title = f"{title}\nthreshold {threshold_db:.1f} dB"
     elif finite.min() < threshold_db < finite.max():
         ax.contour(finite, levels=[threshold_db], colors="w", linewidths=0.8,
                    extent=im.get_extent(), origin="upper")
         from matplotlib.lines import Line2D  # deferred with the rest of matplotlib (see _figure)
 
         ax.legend(handles=[Line2D([], [], color="w", lw=0.8,
-                                  label=f"threshold {threshold_db:g} dB: pixels inside "
+                                  label=f"threshold {threshold_db:.1f} dB: pixels inside "
                                         "are kept")],
                   loc="lower left", fontsize=6, facecolor="0.3", labelcolor="w",
                   framealpha=0.8)

@@ -8,7 +8,7 @@ Commands (a contract: users and tests rely on these forms)::
                          [--resume] [--set KEY=VALUE ...] [--no-progress]
     cdma-lidar study ask tradeoff DIR --max-p95 METRES [--scene NAME] [--min-valid F]
                          [--max-adc-rate HZ]
-    cdma-lidar study frame SCENE --seed N --frame-id F --out FILE [--force]
+    cdma-lidar study frame SCENE --seed N --frame-id F --out FILE [--engine rtl] [--force]
 
 ``list`` prints one line per study: its name, then a one-line description.
 ``run`` writes DIR/results.csv, DIR/summary.json, DIR/run.json, DIR/replicates.csv,
@@ -93,4 +93,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="frame id, which seeds the frame's noise (default 0)")
     pf.add_argument("--out", required=True, help="output cloud (.npz, .ply, ... as `scan`)")
     pf.add_argument("--force", action="store_true", help="overwrite a partial scan of --out")
+    pf.add_argument("--engine", choices=("model", "rtl"), default="model",
+                    help="the receive chain: the model (default) or the reference RTL under "
+                    "Verilator, as virtual://SCENE?engine=rtl")
     pf.set_defaults(func=later("cmd_frame", COMMANDS_MODULE))

@@ -91,7 +91,8 @@ def cmd_frame(args: argparse.Namespace) -> int:
     if not 0 <= args.frame_id <= 2**31 - 2:
         raise ConfigError(f"--frame-id must be from 0 to {2**31 - 2}, not {args.frame_id}",
                           "frame_id")
-    result = write_study_frame(args.scene, args.seed, args.frame_id, args.out, force=args.force)
+    result = write_study_frame(args.scene, args.seed, args.frame_id, args.out, force=args.force,
+                               engine=args.engine)
     sys.stdout.write(f"study frame {args.scene} seed {args.seed} frame id {args.frame_id}: "
                      f"{int(result.cloud.has_range.sum())} points -> {args.out}\n")
     return 0

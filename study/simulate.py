@@ -180,8 +180,8 @@ class FrameLink:
     the boot configuration).
     """
 
-    def __init__(self, scene_name: str, seed: int) -> None:
-        self._device = VirtualFirmware(load_scene(scene_name), seed)
+    def __init__(self, scene_name: str, seed: int, engine: str = "model") -> None:
+        self._device = VirtualFirmware(load_scene(scene_name), seed, engine=engine)
         self.info, self.config = self._device.info(), self._device.get_config()
 
     def hello(self) -> Any:
@@ -220,15 +220,16 @@ class FrameLink:
 
 def write_study_frame(scene_name: str, seed: int, frame_id: int,
                       out: str | os.PathLike[str], options: ScanOptions | None = None, *,
-                      force: bool = False) -> ScanResult:
+                      force: bool = False, engine: str = "model") -> ScanResult:
     """Write a study frame of ``scene_name`` to ``out`` as ``cdma-lidar scan`` writes a scan.
 
     The host's scan (:func:`cdma_lidar.host.scan.run_scan`, ``options`` default as the
     command's) of a :class:`FrameLink`: the same arrays, with equal values, as ``cdma-lidar
     scan --port 'virtual://SCENE?seed=N' --frame-id F --out FILE`` (the wall-clock stamp
-    aside).
+    aside); ``engine`` ``"rtl"``: the receive chain is the reference RTL
+    (``virtual://SCENE?engine=rtl``).
     """
-    link = FrameLink(scene_name, seed)
+    link = FrameLink(scene_name, seed, engine)
     device = Device(link=link, info=link.info, config=link.get_config(),  # type: ignore[arg-type]
                     url=f"study://{scene_name}?seed={seed}")
     return run_scan(device, out, options or ScanOptions(), force=force, progress=False,

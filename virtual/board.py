@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
-from cdma_lidar.errors import out_of_range
+from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig

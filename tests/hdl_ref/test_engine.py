@@ -53,13 +53,13 @@ def test_rtl_engine_equals_the_model_on_accumulators():
 
 
 @pytest.mark.hdl
-@pytest.mark.slow
 @needs_verilator
 def test_rtl_engine_scan_equals_the_model_scan():
-    """flat-wall, 16 columns: the virtual board's scan through the RTL, record for record.
+    """flat-wall, 16 columns: the virtual board's scan through the RTL, record for record,
+    and a study frame through it (``study frame --engine rtl``'s link) the same.
 
-    Slow: the first run builds the K = 40 model (about two minutes on a shared 2-core
-    machine; later runs take it from the cache)."""
+    The first run builds the K = 40 model (about two minutes on a shared 2-core machine;
+    later runs take it from the cache, ``~/.cache/cdma-lidar/rtl-engine``)."""
     from cdma_lidar.scene import load_scene
     from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -71,6 +71,10 @@ def test_rtl_engine_scan_equals_the_model_scan():
         assert (m.column, m.timestamp_us) == (r.column, r.timestamp_us)
         assert m.records.tobytes() == r.records.tobytes()
     assert len({c.records.tobytes() for c in model}) > 1
+    from cdma_lidar.study.simulate import FrameLink
+
+    study = list(FrameLink("flat-wall?instrument.columns=16", 3, "rtl").scan(frame=1))
+    assert [c.records.tobytes() for c in study] == [c.records.tobytes() for c in model]
 
 
 def test_missing_simulator_is_one_line(monkeypatch):
