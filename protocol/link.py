@@ -48,7 +48,7 @@ from cdma_lidar.protocol.requests import (
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 from cdma_lidar.protocol.views import Info, State, Status
 
-__all__ = ["HostLink", "ScanStalled", "SessionLost", "StreamEnded"]
+__all__ = ["HostLink", "ScanStalled", "SessionLost", "StreamEnded", "power_codes"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +60,22 @@ class ScanStalled(StreamEnded, LinkTimeout):
     def __init__(self, message: str, *, frame: int, next_column: int) -> None:
         StreamEnded.__init__(self, message, frame=frame, next_column=next_column, reason=None)
         self.diagnosis = DIAG_NO_ANSWER
+
+
+def power_codes(matrix: ArrayLike) -> NDArray[np.int64]:
+    """A (channels, columns) power matrix as the wire's codes (1/65535 of the per-pixel
+    maximum, 0..65535), checked: integers as they are, fractions 0..1 rounded to the grid."""
+    m = np.asarray(matrix)
+    if m.ndim != 2 or m.size == 0:
+        raise out_of_range("power", "a non-empty (channels, columns) matrix",
+                           f"shape {m.shape}", FieldError)
+    if m.dtype.kind == "f":
+        if not np.isfinite(m).all() or m.min() < 0 or m.max() > 1:
+            raise out_of_range("power", "fractions from 0 to 1", m, FieldError)
+        return np.rint(m * 65535.0).astype(np.int64)
+    if m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
+        raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
+    return m.astype(np.int64)
 
 
 class HostLink:
@@ -223,16 +239,7 @@ class HostLink:
         float matrices are fractions 0..1 and are rounded to that grid.
         """
         self._need_info()  # the size of a piece depends on the session's max frame
-        m = np.asarray(matrix)
-        if m.ndim != 2 or m.size == 0:
-            raise out_of_range("power", "a non-empty (channels, columns) matrix",
-                               f"shape {m.shape}", FieldError)
-        if m.dtype.kind == "f":
-            if not np.isfinite(m).all() or m.min() < 0 or m.max() > 1:
-                raise out_of_range("power", "fractions from 0 to 1", m, FieldError)
-            m = np.rint(m * 65535.0).astype(np.int64)
-        elif m.dtype.kind not in "iu" or m.min() < 0 or m.max() > 65535:
-            raise out_of_range("power", "integers from 0 to 65535", m, FieldError)
+        m = power_codes(matrix)
         rows, cols = m.shape
         signed = self.requests.signer is not None
         room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, signed)) - 8) // 2

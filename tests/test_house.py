@@ -238,3 +238,27 @@ def test_import_cdma_lidar_loads_only_itself_until_the_api_is_used() -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "['cdma_lidar', 'cdma_lidar.version']"
+
+
+#: Rooms small enough to read in one sitting (issue "One instrument"): lines per module, per
+#: class.
+MAX_MODULE_LINES, MAX_CLASS_LINES = 800, 400
+
+
+def _too_big(source: str, name: str) -> list[str]:
+    found = [f"{name}: {source.count(chr(10))} lines"] if source.count("\n") > MAX_MODULE_LINES \
+        else []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno >= MAX_CLASS_LINES:
+            found.append(f"{name}.{node.name}: {node.end_lineno - node.lineno + 1} lines")
+    return found
+
+
+def test_no_module_or_class_is_too_big_to_read() -> None:
+    big = [f for m, p in product_modules() for f in _too_big(p.read_text(encoding="utf-8"), m)]
+    assert big == []
+
+
+def test_the_size_check_sees_a_big_class() -> None:
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_CLASS_LINES))
+    assert _too_big(f"class Big:\n{body}\n", "m") == [f"m.Big: {MAX_CLASS_LINES + 1} lines"]
