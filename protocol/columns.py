@@ -56,6 +56,7 @@ __all__ = [
     "encode_column",
     "encode_column_construct",
     "record_dtype",
+    "udeg",
 ]
 
 MAX_PEAKS = 8
@@ -171,6 +172,11 @@ def _view(name: str) -> property:
     return property(get)
 
 
+def udeg(angle_deg: float) -> int:
+    """A column's angle on the wire: micro-degrees, rounded to the nearest (half to even)."""
+    return round(float(angle_deg) * 1e6)
+
+
 @dataclass(frozen=True, eq=False)
 class ColumnResult:
     """One column of receiver outputs: the payload of a COLUMN_RESULT frame.
@@ -261,7 +267,7 @@ class ColumnResult:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
                                FieldError)
         k, n = signs.shape  # channels and UID bits
-        angle_udeg = round(float(angle_deg) * 1e6)
+        angle_udeg = udeg(angle_deg)
         for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
                             ("channels", k), ("angle_udeg", angle_udeg),
                             ("timestamp_us", timestamp_us)):  # the header's declared ranges

@@ -50,7 +50,7 @@ from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
 from cdma_lidar.hdl_ref.engine import RtlReceiver, missing_simulator
-from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.columns import ColumnResult, udeg
 from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.messages import CaptureKind
@@ -115,15 +115,15 @@ def _column_results(frame: int, columns: list[int], angles_deg: list[float],
                                           timestamp_us=timestamps_us[b0], **arrays)
         for i in range(len(part)):
             col, ts = columns[b0 + i], timestamps_us[b0 + i]
-            udeg = round(float(angles_deg[b0 + i]) * 1e6)
+            angle_udeg = udeg(angles_deg[b0 + i])
             if not (0 <= col <= 0xFFFF and 0 <= ts <= 0xFFFFFFFF
-                    and -(2**31) <= udeg < 2**31):
+                    and -(2**31) <= angle_udeg < 2**31):
                 # the one-column path checks it (and names the field out of range)
                 results.append(ColumnResult.from_receiver(
                     frame, col, angles_deg[b0 + i], part[i], calibration=calibration,
                     timestamp_us=ts))
                 continue
-            results.append(ColumnResult(merged.frame, col, udeg,
+            results.append(ColumnResult(merged.frame, col, angle_udeg,
                                         merged.records[i * k:(i + 1) * k], merged.uid_bits,
                                         merged.calibration, ts))
     return results
