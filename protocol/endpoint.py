@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import abc
 import logging
+import math
 import queue
 import threading
 import time
@@ -142,6 +143,13 @@ class DeviceApp(abc.ABC):
     def health(self) -> tuple[int, int]:
         """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits)."""
         return TEMPERATURE_UNKNOWN, 0
+
+    def column_time_s(self) -> float:
+        """Longest the next column may take with the current configuration (s), batching
+        included; 0.0: not stated. STATUS and every HEARTBEAT carry it, and the host's
+        no-progress limit follows it. Called while a scan runs, without the serialising
+        lock: read state only, never block."""
+        return 0.0
 
 
 class DeviceEndpoint:
@@ -361,7 +369,8 @@ class DeviceEndpoint:
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
             tx_frames=core.totals.tx_frames & mask, replays=core.totals.replays & mask,
-            temperature_mc=temp, faults=faults & mask)
+            temperature_mc=temp, faults=faults & mask,
+            column_time_ms=min(math.ceil(self.app.column_time_s() * 1000), mask))
 
     # ---- receiving ------------------------------------------------------------------
     def _send_reply(self, req: Frame, reply: Reply) -> None:

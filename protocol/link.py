@@ -48,14 +48,28 @@ from cdma_lidar.protocol.requests import (
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 from cdma_lidar.protocol.views import Info, State, Status
 
-__all__ = ["HostLink", "ScanStalled", "SessionLost", "StreamEnded", "power_codes"]
+__all__ = ["PATIENCE", "HostLink", "ScanStalled", "SessionLost", "StreamEnded", "patience_s",
+           "power_codes"]
 
 log = logging.getLogger(__name__)
 
 
+#: How many of the device's stated column times (STATUS.column_time_ms) a stream may go
+#: without progress, on top of the host's own floor.
+PATIENCE = 3.0
+
+
+def patience_s(floor_s: float, status: Status | None) -> float:
+    """The no-progress limit of a stream (s): ``floor_s`` (the link's latency and the
+    host's own work) plus :data:`PATIENCE` times the column time the device last stated
+    in STATUS or HEARTBEAT (nothing when it states none). A column that takes minutes is
+    waited for; a device that goes on heartbeating without moving is still caught."""
+    return floor_s + (PATIENCE * status.column_time_s if status is not None else 0.0)
+
+
 class ScanStalled(StreamEnded, LinkTimeout):
     """The device kept the stream alive (heartbeats, STATUS "scanning") but no column
-    and no ``next_column`` moved for ``HostLink.progress_timeout_s``."""
+    and no ``next_column`` moved for the no-progress limit (:func:`patience_s`)."""
 
     def __init__(self, message: str, *, frame: int, next_column: int) -> None:
         StreamEnded.__init__(self, message, frame=frame, next_column=next_column, reason=None)
@@ -102,9 +116,8 @@ class HostLink:
         fec: Reed-Solomon coded frames both ways (:mod:`cdma_lidar.protocol.fec`), asked
             for in HELLO; None: on for a serial line, off for ``socket://`` and USB
             (``/dev/ttyACM*``) (:func:`cdma_lidar.protocol.ports.default_fec`).
-        progress_timeout_s: a stream whose device stays alive (heartbeats, STATUS
-            "scanning") but sends no new column or fragment and does not move
-            ``next_column`` for this long fails with :class:`ScanStalled` (s).
+        progress_timeout_s: the floor of the no-progress limit (:func:`patience_s`, s): a
+            live stream (heartbeats) that moves nothing for longer fails ScanStalled.
         clock: monotonic clock (s) every wait and deadline is measured on; tests pass a
             fake one that their port moves.
 
@@ -114,7 +127,7 @@ class HostLink:
     def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
                  column_retries: int | None = None, max_frame: int = FRAME_LIMIT,
                  key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
-                 fec: bool | None = None, progress_timeout_s: float = 30.0,
+                 fec: bool | None = None, progress_timeout_s: float = 10.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         #: The request layer: port, receive path, retries, the session id and keys.
         self.requests = Requests(port, timeout_s, retries, max_frame=max_frame, fec=fec,
@@ -412,9 +425,10 @@ class HostLink:
             now = self.clock()
             if asm.progress != progress:
                 progress, moved = asm.progress, now
-            elif now - moved >= self.progress_timeout_s:
+            elif now - moved >= (limit := patience_s(self.progress_timeout_s,
+                                                      self.requests.last_status)):
                 raise ScanStalled(
-                    f"frame {asm.fid} made no progress for {self.progress_timeout_s:g} s on "
+                    f"frame {asm.fid} made no progress for {limit:g} s on "
                     f"{self.requests.port_name}: the device says it is still working but column "
                     f"{asm.nxt} never came; {asm.nxt - asm.first} columns were delivered",
                     frame=asm.fid, next_column=asm.nxt)

@@ -184,11 +184,20 @@ class Status:
     temperature_mc: int = wire(TEMPERATURE_UNKNOWN, i, 32, "board temperature; -2^31 = no "
                                "sensor", "m°C")
     faults: int = wire(0, u, 32, "device-specific fault bits, 0 = healthy")
+    column_time_ms: int = wire(0, u, 32, "longest the device may take to deliver its next "
+                               "column with the current configuration (a batch of columns "
+                               "computed together included); the host's no-progress limit "
+                               "follows it; 0: not stated", "ms")
 
     @property
     def state_name(self) -> str:
         """``idle``, ``scanning`` or ``calibrating``."""
         return State(self.state).name.lower() if self.state in iter(State) else str(self.state)
+
+    @property
+    def column_time_s(self) -> float:
+        """:attr:`column_time_ms` in seconds (0.0: not stated)."""
+        return self.column_time_ms * 1e-3
 
     @property
     def temperature_c(self) -> float:

@@ -37,6 +37,7 @@ Limits (virtual board): code degree 3..15, K fixed by the scene, samples per chi
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -82,6 +83,12 @@ LIMITS = {
     "max_peaks": 8,
     "max_column_samples": 1 << 25,
 }
+
+#: The board's a-priori bound on its own compute per channel and sample of a column (s),
+#: before it has timed a batch of the current configuration: about 3x what a loaded 2-core
+#: machine takes for paper-massive (1,200 x 65,534 values a column); the RTL engine
+#: simulates clock cycles, about 1,000 times slower than the model.
+COMPUTE_S_PER_VALUE = {"model": 2e-8, "rtl": 1e-5}
 
 #: Grating angle reported for calibration shots (the grating is turned 90 degrees, Note 6).
 CALIBRATION_ANGLE_DEG = 90.0
@@ -173,6 +180,7 @@ class VirtualFirmware(DeviceApp):
         self.power_code = boot_power_codes(self.instrument)
         self._receiver: tuple[tuple, dict[str, FastReceiver]] | None = None
         self._sums: NDArray[np.int32] | None = None  # the batches' sums, reused (_receive)
+        self._timed: tuple[dict[str, Any], float] | None = None  # (config, s per column)
         self._last_frame = 0
         #: the device clock as an exact count of chips since power-up (integer: no rounding
         #: accumulates); the wire's microseconds are derived from it by flooring
@@ -290,6 +298,20 @@ class VirtualFirmware(DeviceApp):
                               FastReceiver(self._receiver_config(c), codes, method=method))
         return chains[method]
 
+    def column_time_s(self) -> float:
+        """Longest the next column may take (s): a batch of columns is computed together,
+        so a batch's columns times (the instrument's acquisition time, R n N / f_chip,
+        plus the board's compute per column: the larger of the last batch's, timed
+        under this configuration, and :data:`COMPUTE_S_PER_VALUE` per channel sample)."""
+        c, cfg = self._config, self.render_settings()
+        batch = len(next(column_batches(0, c["columns_per_frame"], cfg.frame_samples)))
+        compute = COMPUTE_S_PER_VALUE[self.engine] * self.channels * cfg.frame_samples
+        timed = self._timed
+        if timed is not None and timed[0] is c:
+            compute = max(compute, timed[1])
+        acquisition = cfg.averages * cfg.frame_chips / self.spec.chip_rate_hz
+        return batch * (acquisition + compute)
+
     def _receive(self, frame: int, columns: list[int], powers: list[NDArray[np.float64]],
                  cfg: RenderSettings, calibration: bool) -> list[ReceiverOutput]:
         """Render ``columns`` (or calibration shots) and run the receive chain on them:
@@ -300,8 +322,11 @@ class VirtualFirmware(DeviceApp):
             self._sums = np.empty(shape, dtype=SUM_TYPE)
         # "auto" picks the kernel for each batch size; calibration (shots, or a scan in
         # calibration mode): shot c of the target
-        return acquire(self.instrument, self.receiver(), cfg, frame, columns, powers,
+        config, t0 = self._config, time.perf_counter()
+        outs = acquire(self.instrument, self.receiver(), cfg, frame, columns, powers,
                        calibration=calibration, out=self._sums).outputs
+        self._timed = (config, (time.perf_counter() - t0) / len(columns))
+        return outs
 
     # ---- power ----------------------------------------------------------------------
     def set_power(self, channel_start: int, column_start: int,

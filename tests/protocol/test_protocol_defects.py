@@ -296,6 +296,74 @@ def test_a_scan_that_never_progresses_fails_with_what_was_delivered() -> None:
         app.release.set()
 
 
+class _Slow(_Stuck):
+    """Computes column 0 for ``stated_s`` of the HOST's clock, and says so in STATUS."""
+
+    def __init__(self, stated_s: float) -> None:
+        super().__init__()
+        self.stated_s = stated_s
+
+    def column_time_s(self) -> float:
+        return self.stated_s
+
+
+def _slow_scan(app: _Slow, release_at_s: float) -> tuple[list[int], str]:
+    """Scan 4 columns on a 0.2 s-a-reading host clock that releases the app's column 0
+    once it passes ``release_at_s``: the columns delivered, and the error if any. The
+    clock stands still at 1 s until the host has heard a heartbeat (the device's thread
+    may be slow to send one on a loaded machine)."""
+    from cdma_lidar.errors import LinkError
+
+    calls, links = [0], []
+    step = 0.2  # s per reading
+
+    def clock() -> float:
+        if calls[0] * step < 1.0 or (links and links[0].last_status is not None):
+            calls[0] += 1
+        if calls[0] > 200_000:
+            raise RuntimeError("the host waited forever")
+        if calls[0] * step >= release_at_s:
+            app.release.set()
+        return calls[0] * step
+
+    got: list[int] = []
+    host, dev = pipe_pair()
+    try:
+        with RunningDevice(dev, app, heartbeat_s=0.01):
+            link = HostLink(host, timeout_s=5.0, progress_timeout_s=20.0, clock=clock)
+            links.append(link)
+            link.hello()
+            try:
+                got.extend(c.column for c in link.scan(frame=4))
+            except LinkError as exc:
+                return got, str(exc)
+    finally:
+        app.release.set()
+    return got, ""
+
+
+def test_a_column_that_takes_minutes_is_waited_for_when_the_device_says_so() -> None:
+    """The device states 60 s a column: 3 minutes of the host's clock pass before
+    column 0, far beyond the 20 s floor, and the scan completes."""
+    got, err = _slow_scan(_Slow(60.0), release_at_s=180.0)
+    assert (got, err) == ([0, 1, 2, 3], "")
+
+
+def test_a_device_that_overruns_its_own_column_time_is_caught() -> None:
+    """Stated 10 s: the limit is 20 + 3 x 10 = 50 s of no progress, then ScanStalled."""
+    got, err = _slow_scan(_Slow(10.0), release_at_s=1e9)
+    assert got == [] and "no progress for 50 s" in err, err
+
+
+def test_the_no_progress_limit_is_the_floor_plus_three_stated_column_times() -> None:
+    from cdma_lidar.protocol.link import patience_s
+    from cdma_lidar.protocol.views import Status
+
+    assert patience_s(10.0, None) == 10.0
+    assert patience_s(10.0, Status()) == 10.0
+    assert patience_s(10.0, Status(column_time_ms=250_000)) == 760.0
+
+
 def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> None:
     """host/scan.py saves a partial file on any LinkError: an early end must be one."""
     import pytest

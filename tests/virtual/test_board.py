@@ -4,6 +4,7 @@ calibration, capture, line errors, determinism, and the pty server as a subproce
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
 import signal
@@ -401,3 +402,46 @@ def test_a_bad_key_is_refused_once_naming_the_field_and_its_range(change, field,
     assert info.value.field == field
     assert allowed in str(info.value)
     assert fw.get_config() == before
+
+
+def test_the_board_states_its_column_time_and_status_carries_it():
+    """A batch's columns times (acquisition R n N / f_chip + compute): at least the
+    a-priori compute bound before any batch, and never below what a batch took."""
+    from cdma_lidar.protocol.endpoint import DeviceEndpoint
+    from cdma_lidar.scene.acquire import column_batches
+    from cdma_lidar.virtual.board import COMPUTE_S_PER_VALUE, VirtualFirmware
+
+    fw = VirtualFirmware(load_scene("flat-wall?instrument.columns=6"), 3)
+    cfg, k = fw.render_settings(), fw.channels
+    batch = len(next(column_batches(0, 6, cfg.frame_samples)))
+    acq = cfg.averages * cfg.frame_chips / fw.spec.chip_rate_hz
+    before = fw.column_time_s()
+    assert before == pytest.approx(batch * (acq + COMPUTE_S_PER_VALUE["model"] * k
+                                            * cfg.frame_samples))
+    fw.set_config({"averages": 2 * cfg.averages})
+    assert fw.column_time_s() == pytest.approx(
+        before + batch * acq)  # the acquisition doubles, the compute bound does not
+    t0 = time.perf_counter()
+    list(fw.scan(0, 0, 6))
+    took = time.perf_counter() - t0
+    assert fw.column_time_s() >= before
+    assert fw.column_time_s() <= batch * (2 * acq + max(took, COMPUTE_S_PER_VALUE["model"]
+                                                         * k * cfg.frame_samples)) + 1e-9
+    ep = DeviceEndpoint(_NullPort(), fw, session_id=1, poll_s=0.0, threads=False)
+    assert ep.status().column_time_ms == math.ceil(fw.column_time_s() * 1000)
+
+
+class _NullPort:
+    """A port that never delivers a byte and swallows every write."""
+
+    timeout = 0.0
+    in_waiting = 0
+
+    def read(self, n: int = 1) -> bytes:
+        return b""
+
+    def write(self, data: bytes) -> int:
+        return len(data)
+
+    def flush(self) -> None:
+        pass
