@@ -255,19 +255,25 @@ def test_headless_viewer_screenshot_shows_the_scan(near_far_view, tmp_path) -> N
     """rerun's own viewer, headless, draws the recording; the range panel is in colour."""
     from PIL import Image
 
-    shot = tmp_path / "view.png"
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
-    proc = subprocess.run(
-        [sys.executable, "-m", "rerun", str(near_far_view[0]), "--headless",
-         "--screenshot-to", str(shot), "--window-size", "1200x700",
-         "--port", str(_free_port())],
-        capture_output=True, text=True, timeout=180, env=env)
-    assert shot.is_file(), proc.stderr[-2000:]
-    img = np.asarray(Image.open(shot).convert("RGB"), dtype=np.int64)
-    assert img.shape[1] >= 1200 and img.shape[0] >= 700
-    # the dark theme is grey; the range and SNR_XC images and the points add saturated colour
-    saturation = img.max(axis=2) - img.min(axis=2)
-    assert np.count_nonzero(saturation > 100) > 2000, json.dumps(img.mean(axis=(0, 1)).tolist())
+    coloured = []
+    for attempt in range(3):  # the headless viewer may shoot before a loaded machine drew
+        shot = tmp_path / f"view-{attempt}.png"
+        proc = subprocess.run(
+            [sys.executable, "-m", "rerun", str(near_far_view[0]), "--headless",
+             "--screenshot-to", str(shot), "--window-size", "1200x700",
+             "--port", str(_free_port())],
+            capture_output=True, text=True, timeout=180, env=env)
+        assert shot.is_file(), proc.stderr[-2000:]
+        img = np.asarray(Image.open(shot).convert("RGB"), dtype=np.int64)
+        assert img.shape[1] >= 1200 and img.shape[0] >= 700
+        # the dark theme is grey; the range and SNR_XC images, the points and the colour
+        # scale add saturated colour
+        saturation = img.max(axis=2) - img.min(axis=2)
+        coloured.append(int(np.count_nonzero(saturation > 100)))
+        if coloured[-1] > 2000:
+            break
+    assert coloured[-1] > 2000, (coloured, json.dumps(img.mean(axis=(0, 1)).tolist()))
 
 
 def test_view_steer_takes_commands_on_stdin(tmp_path) -> None:
