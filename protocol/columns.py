@@ -38,20 +38,9 @@ from cdma_lidar.column_record import (
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol.schema import Field, Layout, i, u
 
-__all__ = [
-    "COLUMN_HEADER",
-    "FLAG_CALIBRATION",
-    "MAX_PEAKS",
-    "MAX_UID_BITS",
-    "NO_PEAK",
-    "RECORD_FIELDS",
-    "ColumnResult",
-    "column_payload_size",
-    "decode_column",
-    "encode_column",
-    "record_dtype",
-    "udeg",
-]
+__all__ = ["COLUMN_HEADER", "FLAG_CALIBRATION", "MAX_PEAKS", "MAX_UID_BITS", "NO_PEAK",
+           "RECORD_FIELDS", "ColumnResult", "column_payload_size", "decode_column",
+           "encode_column", "record_dtype", "udeg"]
 
 MAX_PEAKS = 8
 MAX_UID_BITS = 8

@@ -91,44 +91,36 @@ class MsgType(enum.IntEnum):
 
 
 class ErrorCode(enum.IntEnum):
-    """NAK error codes (u16); meanings in :data:`ERROR_DOCS`."""
+    """NAK error codes (u16); ``doc``: what each means (the spec's error table)."""
 
-    MALFORMED = 1
-    UNKNOWN_TYPE = 2
-    UNKNOWN_KEY = 3
-    OUT_OF_RANGE = 4
-    READ_ONLY = 5
-    BUSY = 6
-    NOT_AVAILABLE = 7
-    TOO_LARGE = 8
-    VERSION = 9
-    UNSUPPORTED_FLAGS = 10
-    WRONG_SESSION = 11
-    INTERNAL = 12
-    AUTH_REQUIRED = 13
-    AUTH_FAILED = 14
+    doc: str
+
+    def __new__(cls, value: int, doc: str) -> ErrorCode:
+        code = int.__new__(cls, value)
+        code._value_, code.doc = value, doc
+        return code
+
+    MALFORMED = 1, "payload does not parse, or a field is outside its wire range"
+    UNKNOWN_TYPE = 2, "request type not implemented by this device"
+    UNKNOWN_KEY = 3, "CONFIG key unknown and not flagged optional (field: `key N`)"
+    OUT_OF_RANGE = 4, "value outside what this device supports (field names it)"
+    READ_ONLY = 5, "CONFIG_SET of a read-only key"
+    BUSY = 6, ("not allowed while a scan or calibration runs: abort it first; for HELLO "
+               "(field `session`): another host owns a live session, the detail gives its age "
+               "and idle time (seconds)")
+    NOT_AVAILABLE = 7, "RESEND of a column no longer kept, or capture not available"
+    TOO_LARGE = 8, "the result would exceed the max frame size"
+    VERSION = 9, ("protocol version not supported; sent plain in the request's version "
+                  "(section 9), field `version`, detail `device speaks protocol version N`")
+    UNSUPPORTED_FLAGS = 10, "an incompat flag bit this device does not know"
+    WRONG_SESSION = 11, "request carries another session id: send HELLO again"
+    INTERNAL = 12, "the device failed while acting on the request"
+    AUTH_REQUIRED = 13, "the device requires signed frames: HELLO with its key first"
+    AUTH_FAILED = 14, "HELLO's MAC is wrong (the host's key differs from the device's)"
 
 
 #: What each NAK code means (the spec's error table).
-ERROR_DOCS = {
-    ErrorCode.MALFORMED: "payload does not parse, or a field is outside its wire range",
-    ErrorCode.UNKNOWN_TYPE: "request type not implemented by this device",
-    ErrorCode.UNKNOWN_KEY: "CONFIG key unknown and not flagged optional (field: `key N`)",
-    ErrorCode.OUT_OF_RANGE: "value outside what this device supports (field names it)",
-    ErrorCode.READ_ONLY: "CONFIG_SET of a read-only key",
-    ErrorCode.BUSY: "not allowed while a scan or calibration runs: abort it first; for HELLO "
-    "(field `session`): another host owns a live session, the detail gives its age and idle "
-    "time (seconds)",
-    ErrorCode.NOT_AVAILABLE: "RESEND of a column no longer kept, or capture not available",
-    ErrorCode.TOO_LARGE: "the result would exceed the max frame size",
-    ErrorCode.VERSION: "protocol version not supported; sent plain in the request's version "
-    "(section 9), field `version`, detail `device speaks protocol version N`",
-    ErrorCode.UNSUPPORTED_FLAGS: "an incompat flag bit this device does not know",
-    ErrorCode.WRONG_SESSION: "request carries another session id: send HELLO again",
-    ErrorCode.INTERNAL: "the device failed while acting on the request",
-    ErrorCode.AUTH_REQUIRED: "the device requires signed frames: HELLO with its key first",
-    ErrorCode.AUTH_FAILED: "HELLO's MAC is wrong (the host's key differs from the device's)",
-}
+ERROR_DOCS = {c: c.doc for c in ErrorCode}
 
 
 class ScanEndReason(enum.IntEnum):

@@ -54,7 +54,6 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
-_FMT = {"B": "u8", "H": "u16", "I": "u32"}
 
 
 def _row(*cells: object) -> str:
@@ -70,10 +69,9 @@ def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
 def header_table() -> str:
     """Frame header fields with offsets."""
     rows, off = [], 0
-    for name, fmt, doc in framing.HEADER_FIELDS:
-        size = framing.struct.calcsize("<" + fmt)
-        rows.append((off, size, f"`{name}`", _FMT[fmt], doc))
-        off += size
+    for f in framing.HEADER_FIELDS.fields:
+        rows.append((off, f.size, f"`{f.name}`", f.ctype, f.doc))
+        off += f.size
     return _table(("offset", "size", "field", "type", "meaning"), rows)
 
 
