@@ -232,7 +232,7 @@ class ColumnResult:
         for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
                             ("channels", k), ("angle_udeg", angle_udeg),
                             ("timestamp_us", timestamp_us)):  # the header's declared ranges
-            f = getattr(COLUMN_HEADER, name)
+            f = COLUMN_HEADER.field(name)
             check_int(name, value, f.lo, f.hi, cls=FieldError)
         first_extra = fields.get(_FIRST_EXTRA.name)
         e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]

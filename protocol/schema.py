@@ -138,12 +138,9 @@ class Layout:
     def __init__(self, *fields: Field) -> None:
         self.fields = fields
 
-    def __getattr__(self, name: str) -> Field:
+    def field(self, name: str) -> Field:
         """The field called ``name``."""
-        for f in self.__dict__.get("fields", ()):
-            if f.name == name:
-                return f
-        raise AttributeError(name)
+        return next(f for f in self.fields if f.name == name)
 
     def sizeof(self) -> int:
         """Bytes of a payload whose fields all have a fixed size."""

@@ -85,7 +85,7 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.host_max_frame.lo,
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.field("host_max_frame").lo,
          "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),

@@ -49,12 +49,12 @@ STRUCTS = {t: cs.Struct(*(f.name / field_construct(f) for f in m.fields), cs.Ter
            for t, m in MESSAGES.items() if t != MsgType.COLUMN_RESULT}
 
 
-def _plain(v):
+def plain(v):
     """construct's containers as plain lists and dicts (private keys dropped)."""
     if isinstance(v, dict):
-        return {k: _plain(x) for k, x in v.items() if not k.startswith("_")}
+        return {k: plain(x) for k, x in v.items() if not k.startswith("_")}
     if isinstance(v, list):
-        return [_plain(x) for x in v]
+        return [plain(x) for x in v]
     return v
 
 
@@ -68,7 +68,7 @@ def build(msg_type: MsgType, fields: dict) -> bytes:
 
 def parse(msg_type: MsgType, payload: bytes) -> dict:
     """Field values through construct; raises construct's errors or UnicodeDecodeError."""
-    return _plain(dict(STRUCTS[msg_type].parse(payload)))
+    return plain(dict(STRUCTS[msg_type].parse(payload)))
 
 
 # ---- COBS: the pure-Python reference of cdma_lidar.protocol.cobs ---------------------------
