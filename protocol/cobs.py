@@ -14,8 +14,8 @@ The encoding is never longer than ``n + 1 + n // 254`` bytes and contains no 0x0
 so 0x00 can delimit frames on the wire (see :mod:`cdma_lidar.protocol.framing`).
 
 :func:`encode` and :func:`decode` use the C extension of the ``cobs`` package (a base
-dependency, about 2 us for a 4 KB frame); the pure-Python reference :func:`encode_py` /
-:func:`decode_py` is tested against it byte for byte.
+dependency, about 2 us for a 4 KB frame); the tests hold it byte for byte to a pure-Python
+reference (``tests/protocol/wire_oracle.py``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from cobs import cobs as _ccobs
 
 from cdma_lidar.errors import FrameError
 
-__all__ = ["decode", "decode_py", "encode", "encode_py", "max_encoded_len"]
+__all__ = ["decode", "encode", "max_encoded_len"]
 
 
 def max_encoded_len(n: int) -> int:
@@ -32,51 +32,7 @@ def max_encoded_len(n: int) -> int:
     return n + 1 + n // 254
 
 
-def encode_py(data: bytes) -> bytes:
-    """COBS-encode ``data`` (reference implementation; output has no 0x00 byte)."""
-    out = bytearray()
-    segments = bytes(data).split(b"\x00")
-    last = len(segments) - 1
-    for k, seg in enumerate(segments):
-        # Full 254-byte blocks first: code 0xFF, no implied zero.
-        full = len(seg) // 254
-        for b in range(full):
-            out.append(0xFF)
-            out += seg[254 * b:254 * (b + 1)]
-        rest = seg[254 * full:]
-        # The remainder block (code len+1) implies the zero that ended the segment. The
-        # last segment has no such zero, so after full blocks it needs no block at all.
-        if k < last or not (full and not rest):
-            out.append(len(rest) + 1)
-            out += rest
-    return bytes(out)
-
-
-def decode_py(enc: bytes) -> bytes:
-    """Decode one COBS block sequence (no delimiters); raises FrameError if malformed."""
-    enc = bytes(enc)
-    out = bytearray()
-    i, n = 0, len(enc)
-    if n == 0:
-        raise FrameError("COBS: empty input")
-    while i < n:
-        code = enc[i]
-        if code == 0:
-            raise FrameError(f"COBS: zero byte at offset {i}")
-        end = i + code
-        if end > n:
-            raise FrameError(f"COBS: block at offset {i} runs past the end")
-        block = enc[i + 1:end]
-        if 0 in block:
-            raise FrameError(f"COBS: zero byte inside block at offset {i}")
-        out += block
-        i = end
-        if code != 0xFF and i < n:
-            out.append(0)
-    return bytes(out)
-
-
-#: COBS-encode bytes (the ``cobs`` package's C extension); byte-identical to :func:`encode_py`.
+#: COBS-encode bytes (the ``cobs`` package's C extension); byte-identical to the tests' reference.
 encode = _ccobs.encode
 
 

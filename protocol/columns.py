@@ -4,18 +4,16 @@ The payload is a 19-byte column header (:data:`COLUMN_HEADER`) followed by one
 fixed-size record per channel (array of structs, little-endian, packed, no
 padding). The channel record is the one declared in :mod:`cdma_lidar.column_record`
 (its wire fields, in order); with P peaks it is ``41 + 10 * (P - 1)`` bytes. Every
-view here is derived from that declaration: the construct record, the numpy
-dtype, the encoder's range checks, the payload size and the per-field properties
-of :class:`ColumnResult`. ``docs/protocol.md`` (generated) shows the layout.
+view here is derived from that declaration: the spec's rows, the numpy dtype, the
+encoder's range checks, the payload size and the per-field properties of
+:class:`ColumnResult`. ``docs/protocol.md`` (generated) shows the layout.
 
 UID signs travel as two masks: bit p of ``uid_neg`` is set where the per-period
 sign at the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag
 the receiver reports as -1 (no peak) travels as :data:`NO_PEAK`.
 
-Two codecs produce the same bytes: the fast one (numpy structured dtype, a few
-microseconds per 40-channel column) used on the link, and the declarative one
-(construct, :data:`COLUMN_STRUCT`) that documents the layout and serves as the
-baseline in ``bench/bench_protocol.py``. ``tests/protocol`` proves them equal.
+The codec is a numpy structured dtype (a few microseconds per 40-channel column);
+``tests/protocol`` proves it equal, byte for byte, to an independent construct codec.
 """
 
 from __future__ import annotations
@@ -25,7 +23,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
-import construct as cs
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -39,32 +36,18 @@ from cdma_lidar.column_record import (
     record_size,
 )
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from cdma_lidar.protocol.schema import blob, i, u
+from cdma_lidar.protocol.schema import Field, Layout, i, u
 
-__all__ = [
-    "COLUMN_HEADER",
-    "COLUMN_STRUCT",
-    "FLAG_CALIBRATION",
-    "MAX_PEAKS",
-    "MAX_UID_BITS",
-    "NO_PEAK",
-    "RECORD_STRUCT",
-    "ColumnResult",
-    "column_payload_size",
-    "decode_column",
-    "decode_column_construct",
-    "encode_column",
-    "encode_column_construct",
-    "record_dtype",
-    "udeg",
-]
+__all__ = ["COLUMN_HEADER", "FLAG_CALIBRATION", "MAX_PEAKS", "MAX_UID_BITS", "NO_PEAK",
+           "RECORD_FIELDS", "ColumnResult", "column_payload_size", "decode_column",
+           "encode_column", "record_dtype", "udeg"]
 
 MAX_PEAKS = 8
 MAX_UID_BITS = 8
 #: flags bit 0: the column is a zeroth-order calibration shot (column = shot index).
 FLAG_CALIBRATION = 0x01
 
-COLUMN_HEADER = cs.Struct(
+COLUMN_HEADER = Layout(
     u("frame", 32, "frame id given in SCAN_START / CALIBRATE"),
     u("column", 16, "column index (calibration: shot index)"),
     u("flags", 8, "bit 0: calibration shot; other bits 0", lo=0, hi=1),
@@ -76,41 +59,19 @@ COLUMN_HEADER = cs.Struct(
 )
 
 
-def _format(sub: cs.Construct) -> str:
-    """struct format letter of a header field (every one is a plain FormatField)."""
-    while isinstance(sub, cs.Renamed):
-        sub = sub.subcon
-    return sub.fmtstr.lstrip("<")
+#: The column header as a struct (the codec); the same fields as COLUMN_HEADER.
+_HEAD = struct.Struct("<" + "".join(f.fmt for f in COLUMN_HEADER.fields))
 
 
-#: The column header as a struct (fast codec); the same fields as COLUMN_HEADER.
-_HEAD = struct.Struct("<" + "".join(_format(sc) for sc in COLUMN_HEADER.subcons))
-
-# ---- the channel record, derived from cdma_lidar.column_record -----------------------------
-_CS_INT = {"u8": cs.Int8ul, "u32": cs.Int32ul, "u64": cs.Int64ul, "i32": cs.Int32sl,
-           "i64": cs.Int64sl}
-_E = cs.this._.peaks - 1  # extra peaks per channel
-
-
-def _construct_field(w: WireField) -> cs.Renamed:
-    """The construct field (with its spec metadata) of one wire field of the record."""
+def _record_field(w: WireField) -> Field:
+    """The declaration (spec row) of one wire field of the channel record."""
     if not w.axes:
-        make = u if w.ctype.startswith("u") else i
-        return make(w.name, int(w.ctype[1:]), w.doc, w.unit, allowed=w.allowed)
-    sub: cs.Construct = _CS_INT[w.ctype]
-    for axis in reversed(w.axes):
-        sub = cs.Array(_E if axis == "P-1" else axis, sub)
-    return blob(w.name, sub, w.spec_type, w.doc, w.unit, w.allowed)
+        return u(w.name, int(w.ctype[1:]), w.doc, w.unit, allowed=w.allowed, kind=w.ctype[0])
+    return Field(w.name, w.spec_type, w.doc, w.unit, allowed=w.allowed, kind="array")
 
 
-#: Declarative form of one channel record (the spec table of docs/protocol.md reads it).
-RECORD_STRUCT = cs.Struct(*(_construct_field(w) for w in WIRE_FIELDS))
-
-#: Declarative form of the whole COLUMN_RESULT payload (documentation and baseline codec).
-COLUMN_STRUCT = cs.Struct(
-    *COLUMN_HEADER.subcons,
-    "records" / cs.Array(cs.this.channels, RECORD_STRUCT),
-)
+#: The channel record's fields in wire order (the spec's table; the codec is record_dtype).
+RECORD_FIELDS = tuple(_record_field(w) for w in WIRE_FIELDS)
 
 
 @lru_cache(maxsize=16)
@@ -271,8 +232,8 @@ class ColumnResult:
         for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
                             ("channels", k), ("angle_udeg", angle_udeg),
                             ("timestamp_us", timestamp_us)):  # the header's declared ranges
-            meta = getattr(COLUMN_HEADER, name).meta
-            check_int(name, value, meta.lo, meta.hi, cls=FieldError)
+            f = COLUMN_HEADER.field(name)
+            check_int(name, value, f.lo, f.hi, cls=FieldError)
         first_extra = fields.get(_FIRST_EXTRA.name)
         e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]
         rec = np.zeros(k, dtype=record_dtype(e + 1))
@@ -304,8 +265,6 @@ class ColumnResult:
                   if has_extra or not f.per_extra_peak}
         return cls.from_arrays(frame, column, angle_deg, calibration=calibration,
                                timestamp_us=timestamp_us, **arrays)
-
-
 
 
 def _check_names(fields: dict[str, Any]) -> None:
@@ -370,32 +329,3 @@ def decode_column(payload: bytes) -> ColumnResult:
     col.__dict__.update(frame=frame, column=column, angle_udeg=angle, records=rec, uid_bits=n,
                         calibration=bool(flags & FLAG_CALIBRATION), timestamp_us=ts)
     return col
-
-
-# ---- declarative codec (construct) --------------------------------------------------
-def encode_column_construct(col: ColumnResult) -> bytes:
-    """COLUMN_RESULT payload bytes built through :data:`COLUMN_STRUCT` (baseline path)."""
-    names = [w.name for w in WIRE_FIELDS]
-    per_field = [col.records[name].tolist() for name in names]  # Python ints and lists
-    recs = [dict(zip(names, values, strict=True)) for values in zip(*per_field, strict=True)]
-    return COLUMN_STRUCT.build({
-        "frame": col.frame, "column": col.column,
-        "flags": FLAG_CALIBRATION if col.calibration else 0, "uid_bits": col.uid_bits,
-        "peaks": col.peaks, "channels": col.channels, "angle_udeg": col.angle_udeg,
-        "timestamp_us": col.timestamp_us, "records": recs})
-
-
-def decode_column_construct(payload: bytes) -> ColumnResult:
-    """Parse a COLUMN_RESULT payload through :data:`COLUMN_STRUCT` (baseline path)."""
-    try:
-        c = COLUMN_STRUCT.parse(payload)
-    except cs.ConstructError as exc:
-        raise FrameError(f"column: {exc}") from None
-    if not 1 <= c.peaks <= MAX_PEAKS:
-        raise FrameError(f"column: peaks {c.peaks}")
-    rec = np.zeros(c.channels, dtype=record_dtype(c.peaks))
-    for idx, r in enumerate(c.records):
-        rec[idx] = tuple(list(r[w.name]) if w.axes else r[w.name] for w in WIRE_FIELDS)
-    rec.flags.writeable = False
-    return ColumnResult(c.frame, c.column, c.angle_udeg, rec, c.uid_bits,
-                        bool(c.flags & FLAG_CALIBRATION), c.timestamp_us)

@@ -14,16 +14,17 @@ an unknown key without the flag is refused with NAK UNKNOWN_KEY naming the key.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import construct as cs
 import numpy as np
 
 from cdma_lidar.checks import is_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.poly import mask_to_poly, tap_mask
+from cdma_lidar.protocol.schema import Field, Layout
 from cdma_lidar.rounding import ROUNDING_MODES
 
 __all__ = ["CONFIG_KEYS", "CONFIG_OPTIONAL", "MODES", "ConfigKey", "DecodedConfig", "config_key",
@@ -86,9 +87,9 @@ class ConfigKey:
     from_wire: Callable[[Any], Any] = _ident
 
     @property
-    def sub(self) -> cs.Construct:
-        """The construct of the value (it fills the item's whole length)."""
-        return cs.FocusedSeq("v", "v" / _SUBS[self.ctype], cs.Terminated)
+    def sub(self) -> Layout:
+        """The layout of the value (one field ``v`` that fills the item's whole length)."""
+        return _SUBS[self.ctype]
 
     def outside(self, w: Any) -> Any:
         """The first wire value of ``w`` outside lo..hi (None: all within, or no range)."""
@@ -116,21 +117,20 @@ class ConfigKey:
             raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}..{self.hi} on "
                                "the wire)", value, FieldError)
         try:
-            return self.sub.build(w)
-        except (cs.ConstructError, TypeError, ValueError) as exc:
+            return self.sub.build({"v": w})
+        except (struct.error, TypeError, ValueError, KeyError) as exc:
             raise out_of_range(self.name, self.allowed, value, FieldError) from exc
 
     def decode(self, data: bytes) -> Any:
         """Python value of the wire bytes; raises FrameError if malformed or out of range
         (the receiving side's one check of the wire range)."""
         try:
-            w = self.sub.parse(data)
-        except cs.ConstructError:
+            w = self.sub.parse(data, self.name)["v"]
+        except FrameError:
             raise FrameError(f"{self.name}: malformed value ({len(data)} bytes)",
                              field=self.name) from None
         if isinstance(w, list):
-            w = [tuple(int(x) for x in (e.start, e.length)) if isinstance(e, dict) else int(e)
-                 for e in w]
+            w = [(e["start"], e["length"]) if isinstance(e, dict) else e for e in w]
         if (bad := self.outside(w)) is not None:
             raise FrameError(f"{self.name}: {bad} not in {self.lo}..{self.hi}", field=self.name)
         return self.from_wire(w)
@@ -153,9 +153,12 @@ def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey
                      doc, 0, len(names) - 1, to_wire=to_wire, from_wire=from_wire)
 
 
-_WINDOW = cs.Struct("start" / cs.Int32ul, "length" / cs.Int32ul)
-_SUBS = {"u8": cs.Int8ul, "u16": cs.Int16ul, "u32": cs.Int32ul,
-         "u16 x K": cs.GreedyRange(cs.Int16ul), "(u32 start, u32 len) x n": cs.GreedyRange(_WINDOW)}
+#: Each value encoding (ConfigKey.ctype) as a layout of one field ``v``.
+_SUBS = {"u8": Layout(Field("v", "u8", "", fmt="B")), "u16": Layout(Field("v", "u16", "", fmt="H")),
+         "u32": Layout(Field("v", "u32", "", fmt="I")),
+         "u16 x K": Layout(Field("v", "u16 x K", "", kind="array", fmt="H")),
+         "(u32 start, u32 len) x n": Layout(Field("v", "", "", kind="array", fmt="II",
+                                                  names=("start", "length")))}
 
 
 def _windows_to_wire(v: Any) -> list[dict[str, int]]:

@@ -24,6 +24,7 @@ from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import cobs, fec
 from cdma_lidar.protocol.fec import coded_len
+from cdma_lidar.protocol.schema import Layout, u
 
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
@@ -37,19 +38,19 @@ log = logging.getLogger(__name__)
 #: (docs/protocol.md).
 PROTOCOL_VERSION = 4
 DELIMITER = b"\x00"
-#: Header fields in wire order: (name, struct format, description). Frozen in every version.
-HEADER_FIELDS = (
-    ("version", "B", "protocol version; this document: 4"),
-    ("incompat_flags", "B", "bit 0: signed (24-byte signature before the CRC); a receiver "
-     "drops (device: NAKs) a frame with an unknown bit set"),
-    ("compat_flags", "B", "bit 0: retransmitted (a resent column); unknown bits are ignored"),
-    ("msg_type", "B", "message type (table below)"),
-    ("seq", "H", "request: host counter; reply: the request's seq; stream: device counter"),
-    ("payload_len", "H", "payload bytes that follow the header"),
-    ("session_id", "I", "session, random per HELLO the device accepts, never 0; host sends 0 "
-     "before HELLO"),
+#: Header fields in wire order. Frozen in every version.
+HEADER_FIELDS = Layout(
+    u("version", 8, "protocol version; this document: 4"),
+    u("incompat_flags", 8, "bit 0: signed (24-byte signature before the CRC); a receiver "
+      "drops (device: NAKs) a frame with an unknown bit set"),
+    u("compat_flags", 8, "bit 0: retransmitted (a resent column); unknown bits are ignored"),
+    u("msg_type", 8, "message type (table below)"),
+    u("seq", 16, "request: host counter; reply: the request's seq; stream: device counter"),
+    u("payload_len", 16, "payload bytes that follow the header"),
+    u("session_id", 32, "session, random per HELLO the device accepts, never 0; host sends 0 "
+      "before HELLO"),
 )
-HEADER = struct.Struct("<" + "".join(f for _, f, _ in HEADER_FIELDS))
+HEADER = struct.Struct("<" + "".join(f.fmt for f in HEADER_FIELDS.fields))  # the hot path
 HEADER_SIZE = HEADER.size  # 12
 CRC_SIZE = 4
 OVERHEAD = HEADER_SIZE + CRC_SIZE  # 16 bytes around every payload

@@ -1,11 +1,11 @@
-"""Message catalogue: every payload declared once with construct, with units and ranges.
+"""Message catalogue: every payload declared once, with units and ranges.
 
 The type byte's range says who sends it (request 0x01..0x7F, reply 0x80..0xBF, stream
 0xC0..0xFF; :func:`kind_of`). Fields are declared with :mod:`~cdma_lidar.protocol.schema`;
-from that one declaration come the encoder's range checks (:func:`encode_payload` raises
-FieldError naming the field), the strict decoder (:func:`decode_payload` raises
-FrameError only), the tables of ``docs/protocol.md`` (:mod:`~cdma_lidar.protocol.spec`)
-and :data:`SCHEMA_CRC`.
+from that one declaration come the codec and the encoder's range checks
+(:func:`encode_payload` raises FieldError naming the field), the strict decoder
+(:func:`decode_payload` raises FrameError only), the tables of ``docs/protocol.md``
+(:mod:`~cdma_lidar.protocol.spec`) and :data:`SCHEMA_CRC`.
 """
 
 from __future__ import annotations
@@ -15,16 +15,17 @@ import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
-import construct as cs
-import numpy as np
-
-from cdma_lidar.checks import check_int
 from cdma_lidar.errors import DeviceError, FieldError, FrameError, out_of_range
-from cdma_lidar.protocol import columns as _columns
-from cdma_lidar.protocol.columns import COLUMN_STRUCT, ColumnResult, decode_column, encode_column
+from cdma_lidar.protocol.columns import (
+    COLUMN_HEADER,
+    ColumnResult,
+    decode_column,
+    encode_column,
+    record_dtype,
+)
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import Frame
-from cdma_lidar.protocol.schema import FieldMeta, array, blob, nbytes, text, u, wire_fields
+from cdma_lidar.protocol.schema import Field, Layout, array, nbytes, text, u, wire_fields
 from cdma_lidar.protocol.views import Info, Status
 
 __all__ = ["DEVICE_RULES", "ERROR_DOCS", "FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO",
@@ -90,44 +91,36 @@ class MsgType(enum.IntEnum):
 
 
 class ErrorCode(enum.IntEnum):
-    """NAK error codes (u16); meanings in :data:`ERROR_DOCS`."""
+    """NAK error codes (u16); ``doc``: what each means (the spec's error table)."""
 
-    MALFORMED = 1
-    UNKNOWN_TYPE = 2
-    UNKNOWN_KEY = 3
-    OUT_OF_RANGE = 4
-    READ_ONLY = 5
-    BUSY = 6
-    NOT_AVAILABLE = 7
-    TOO_LARGE = 8
-    VERSION = 9
-    UNSUPPORTED_FLAGS = 10
-    WRONG_SESSION = 11
-    INTERNAL = 12
-    AUTH_REQUIRED = 13
-    AUTH_FAILED = 14
+    doc: str
+
+    def __new__(cls, value: int, doc: str) -> ErrorCode:
+        code = int.__new__(cls, value)
+        code._value_, code.doc = value, doc
+        return code
+
+    MALFORMED = 1, "payload does not parse, or a field is outside its wire range"
+    UNKNOWN_TYPE = 2, "request type not implemented by this device"
+    UNKNOWN_KEY = 3, "CONFIG key unknown and not flagged optional (field: `key N`)"
+    OUT_OF_RANGE = 4, "value outside what this device supports (field names it)"
+    READ_ONLY = 5, "CONFIG_SET of a read-only key"
+    BUSY = 6, ("not allowed while a scan or calibration runs: abort it first; for HELLO "
+               "(field `session`): another host owns a live session, the detail gives its age "
+               "and idle time (seconds)")
+    NOT_AVAILABLE = 7, "RESEND of a column no longer kept, or capture not available"
+    TOO_LARGE = 8, "the result would exceed the max frame size"
+    VERSION = 9, ("protocol version not supported; sent plain in the request's version "
+                  "(section 9), field `version`, detail `device speaks protocol version N`")
+    UNSUPPORTED_FLAGS = 10, "an incompat flag bit this device does not know"
+    WRONG_SESSION = 11, "request carries another session id: send HELLO again"
+    INTERNAL = 12, "the device failed while acting on the request"
+    AUTH_REQUIRED = 13, "the device requires signed frames: HELLO with its key first"
+    AUTH_FAILED = 14, "HELLO's MAC is wrong (the host's key differs from the device's)"
 
 
 #: What each NAK code means (the spec's error table).
-ERROR_DOCS = {
-    ErrorCode.MALFORMED: "payload does not parse, or a field is outside its wire range",
-    ErrorCode.UNKNOWN_TYPE: "request type not implemented by this device",
-    ErrorCode.UNKNOWN_KEY: "CONFIG key unknown and not flagged optional (field: `key N`)",
-    ErrorCode.OUT_OF_RANGE: "value outside what this device supports (field names it)",
-    ErrorCode.READ_ONLY: "CONFIG_SET of a read-only key",
-    ErrorCode.BUSY: "not allowed while a scan or calibration runs: abort it first; for HELLO "
-    "(field `session`): another host owns a live session, the detail gives its age and idle "
-    "time (seconds)",
-    ErrorCode.NOT_AVAILABLE: "RESEND of a column no longer kept, or capture not available",
-    ErrorCode.TOO_LARGE: "the result would exceed the max frame size",
-    ErrorCode.VERSION: "protocol version not supported; sent plain in the request's version "
-    "(section 9), field `version`, detail `device speaks protocol version N`",
-    ErrorCode.UNSUPPORTED_FLAGS: "an incompat flag bit this device does not know",
-    ErrorCode.WRONG_SESSION: "request carries another session id: send HELLO again",
-    ErrorCode.INTERNAL: "the device failed while acting on the request",
-    ErrorCode.AUTH_REQUIRED: "the device requires signed frames: HELLO with its key first",
-    ErrorCode.AUTH_FAILED: "HELLO's MAC is wrong (the host's key differs from the device's)",
-}
+ERROR_DOCS = {c: c.doc for c in ErrorCode}
 
 
 class ScanEndReason(enum.IntEnum):
@@ -173,7 +166,7 @@ class MessageSpec:
     """One message type: its payload declaration and, for requests, the reply type."""
 
     type: MsgType
-    struct: cs.Struct
+    struct: Layout  # the payload's fields in wire order, and their codec
     doc: str
     reply: MsgType | None = None
 
@@ -182,20 +175,23 @@ class MessageSpec:
         return kind_of(self.type)
 
     @property
-    def fields(self) -> list[cs.Renamed]:
-        """Declared fields in wire order (the terminator excluded)."""
-        return [sc for sc in self.struct.subcons if getattr(sc, "name", None)]
+    def fields(self) -> tuple[Field, ...]:
+        """Declared fields in wire order."""
+        return self.struct.fields
 
 
-def _msg(t: MsgType, doc: str, *fields_: cs.Renamed, reply: MsgType | None = None) -> MessageSpec:
-    return MessageSpec(t, cs.Struct(*fields_, cs.Terminated), doc, reply)
+def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None) -> MessageSpec:
+    return MessageSpec(t, Layout(*fields_), doc, reply)
 
 
-def _klv(doc: str) -> cs.Renamed:
+def _klv(doc: str) -> Field:
     """CONFIG_SET's and CONFIG's key-length-value items."""
-    return blob("items", cs.GreedyRange(cs.Struct(
-        "key" / cs.Int8ul, "value" / cs.Prefixed(cs.Int16ul, cs.GreedyBytes))),
-        "KLV items (rest)", doc)
+    return Field("items", "KLV items (rest)", doc, kind="klv")
+
+
+def _rest(name: str, doc: str, allowed: str = "") -> Field:
+    """Opaque bytes to the end of the payload."""
+    return Field(name, "bytes (rest)", doc, allowed=allowed, kind="bytes")
 
 
 #: The power-matrix rectangle of POWER_SET, POWER_GET and POWER, and its values.
@@ -203,8 +199,8 @@ _RECT = (u("channel_start", 16, "first channel of the rectangle"),
          u("column_start", 16, "first column of the rectangle"),
          u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
          u("columns", 16, "columns in the rectangle", lo=1, hi=65535))
-_POWER = blob("power", cs.Array(cs.this.channels * cs.this.columns, cs.Int16ul),
-              "u16 x channels*columns", "per-pixel laser power", "1/65535 of max", "0..65535")
+_POWER = Field("power", "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
+               allowed="0..65535", kind="array", fmt="H", count="channels*columns")
 
 _MESSAGE_LIST = [
     _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
@@ -220,7 +216,7 @@ _MESSAGE_LIST = [
          nbytes("mac", 32, "HMAC-SHA256 proof of the key (see Access control); zeros if none"),
          reply=MsgType.INFO),
     _msg(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
-         blob("keys", cs.GreedyRange(cs.Int8ul), "u8 x n (rest)", "key ids to read"),
+         Field("keys", "u8 x n (rest)", "key ids to read", kind="array", fmt="B"),
          reply=MsgType.CONFIG),
     _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
          _klv("key u8, length u16, value (see CONFIG keys)"),
@@ -243,10 +239,9 @@ _MESSAGE_LIST = [
          u("frame", 32, "frame id"),
          array("columns", 8, "u", 16, "whole columns to send again", lo=0, hi=65535,
                max_items=255, allowed="0..255 items"),
-         blob("fragments", cs.PrefixedArray(cs.Int8ul, cs.Struct("column" / cs.Int16ul,
-                                                                 "index" / cs.Int8ul)),
-              "u8 n + n x (u16 column, u8 index)", "single fragments to send again",
-              allowed="0..255 items; columns + fragments >= 1"),
+         Field("fragments", "u8 n + n x (u16 column, u8 index)",
+               "single fragments to send again", allowed="0..255 items; columns + fragments "
+               ">= 1", kind="array", fmt="HB", count="B", names=("column", "index"), max_items=255),
          reply=MsgType.ACK),
     _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
          "the calibration flag (column = shot index), then SCAN_END.",
@@ -287,13 +282,13 @@ _MESSAGE_LIST = [
          u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
          u("total", 32, "elements in the whole capture", "elements"),
          u("offset", 32, "index of the first element in this chunk", "elements"),
-         blob("data", cs.GreedyBytes, "bytes (rest)", "elements, signed little-endian")),
+         _rest("data", "elements, signed little-endian")),
     _msg(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
          "a key: say HELLO again with this nonce and the MAC.",
          nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
     _msg(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
          *_RECT, _POWER),
-    MessageSpec(MsgType.COLUMN_RESULT, COLUMN_STRUCT,
+    MessageSpec(MsgType.COLUMN_RESULT, COLUMN_HEADER,
                 "Receiver outputs of one column, all channels (layout below)."),
     _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
          "STATUS).", *wire_fields(Status)),
@@ -312,8 +307,8 @@ _MESSAGE_LIST = [
          u("column", 16, "COLUMN_RESULT: column index; else 0"),
          u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
-         blob("data", cs.GreedyBytes, "bytes (rest)", "bytes index*L .. of the whole payload",
-              allowed="1..L bytes (L = max_frame-27, -24 when signed)")),
+         _rest("data", "bytes index*L .. of the whole payload",
+               "1..L bytes (L = max_frame-27, -24 when signed)")),
     _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
          "information only (section 6.4): a host words its timeout diagnosis with it.",
          u("rx_errors", 32, "rejected chunks since boot")),
@@ -330,7 +325,7 @@ MESSAGES: dict[MsgType, MessageSpec] = {m.type: m for m in _MESSAGE_LIST}
 
 def head_size(msg_type: MsgType) -> int:
     """Payload bytes before the trailing data field (FRAGMENT, CAPTURE_DATA)."""
-    return sum(sc.sizeof() for sc in MESSAGES[msg_type].fields[:-1])
+    return sum(f.size for f in MESSAGES[msg_type].fields[:-1])  # type: ignore[misc]
 #: FRAGMENT payload bytes before the data (11).
 FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
 #: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
@@ -422,27 +417,6 @@ DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
 
 
 # ---- encode / decode ------------------------------------------------------------------
-def _check_value(path: str, meta: FieldMeta, value: Any) -> None:
-    if meta.kind == "int":
-        check_int(path, value, meta.lo, meta.hi, cls=FieldError)
-    elif meta.kind == "text":
-        if not isinstance(value, str) or len(value.encode("utf-8")) > 255:
-            raise out_of_range(path, "a string of at most 255 UTF-8 bytes", value, FieldError)
-    elif meta.kind == "bytes":
-        if not isinstance(value, bytes | bytearray) or len(value) != meta.max_items:
-            raise out_of_range(path, f"{meta.max_items} bytes", value, FieldError)
-    elif meta.kind == "array":
-        try:
-            items = list(value)
-        except TypeError:
-            raise out_of_range(path, "a sequence of integers", value, FieldError) from None
-        if not meta.min_items <= len(items) <= (meta.max_items or 0):
-            raise out_of_range(path, f"{meta.min_items} to {meta.max_items} items",
-                               len(items), FieldError)
-        for k, v in enumerate(items):
-            check_int(f"{path}[{k}]", v, meta.lo, meta.hi, cls=FieldError)
-
-
 def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None = None) -> bytes:
     """Payload bytes of one message; raises FieldError naming the first bad field."""
     try:
@@ -454,30 +428,7 @@ def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None 
             raise out_of_range("COLUMN_RESULT", "a ColumnResult", type(fields_).__name__,
                                FieldError)
         return encode_column(fields_)
-    values = dict(fields_ or {})
-    name = spec.type.name
-    for sc in spec.fields:
-        if sc.name not in values:
-            raise FieldError(f"{name}.{sc.name} is required", field=sc.name)
-        _check_value(f"{name}.{sc.name}", sc.meta, values[sc.name])
-    extra = set(values) - {sc.name for sc in spec.fields}
-    if extra:
-        raise out_of_range(f"{name}.{sorted(extra)[0]}", "a declared field of " + name,
-                           "unknown field", FieldError)
-    if spec.type in (MsgType.POWER_SET, MsgType.POWER):
-        n = values["channels"] * values["columns"]
-        power = np.asarray(values["power"]).ravel()
-        if power.size != n or power.dtype.kind not in "iu" or \
-                (n and (power.min() < 0 or power.max() > 65535)):
-            raise out_of_range(f"{name}.power", f"{n} integers from 0 to 65535",
-                               f"{power.size} values of {power.dtype}", FieldError)
-        values["power"] = power.tolist()
-    try:
-        return spec.struct.build(values)
-    except cs.ConstructError as exc:
-        path = str(exc.path or "").split("->")[-1].strip() if hasattr(exc, "path") else ""
-        raise FieldError(f"{name}.{path or '?'} cannot be encoded: {exc}",
-                         field=path or None) from None
+    return spec.struct.encode(dict(fields_ or {}), spec.type.name)
 
 
 def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResult:
@@ -492,22 +443,7 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         spec = MESSAGES[MsgType(msg_type)]
     except ValueError:
         raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
-    try:
-        c = spec.struct.parse(payload)
-    except (cs.ConstructError, UnicodeDecodeError, ValueError) as exc:
-        raise FrameError(f"{spec.type.name}: malformed payload ({type(exc).__name__})") \
-            from None
-    out: dict[str, Any] = {}
-    for sc in spec.fields:
-        v = c[sc.name]
-        if isinstance(v, list):
-            v = [dict((k, x) for k, x in e.items() if not k.startswith("_"))
-                 if isinstance(e, dict) else e for e in v]
-        try:
-            _check_value(sc.name, sc.meta, v)
-        except FieldError as exc:
-            raise FrameError(f"{spec.type.name}: {exc}", field=sc.name) from None
-        out[sc.name] = v
+    out = spec.struct.decode(payload, spec.type.name)
     if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
         raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")
     return out
@@ -518,12 +454,12 @@ def _schema_text() -> str:
     lines = []
     for m in _MESSAGE_LIST:
         if m.type == MsgType.COLUMN_RESULT:
-            names = [sc.name for sc in _columns.COLUMN_HEADER.subcons]
-            rec = _columns.record_dtype(2)
+            names = [f.name for f in COLUMN_HEADER.fields]
+            rec = record_dtype(2)
             lines.append(f"{m.type:#04x} {m.type.name} {names} {rec.descr}")
             continue
         lines.append(f"{m.type:#04x} {m.type.name} " +
-                     " ".join(f"{sc.name}:{sc.meta.ctype}" for sc in m.fields))
+                     " ".join(f"{f.name}:{f.ctype}" for f in m.fields))
     for k in CONFIG_KEYS:
         lines.append(f"key {k.id} {k.name} {k.ctype} ro={k.read_only}")
     return "\n".join(lines)

@@ -1,53 +1,125 @@
-"""Field declarations shared by every payload: a construct subcon plus what the spec says.
+"""The wire's one declaration: payload fields (type, unit, range, meaning) and their codec.
 
-:func:`u`, :func:`i`, :func:`text`, :func:`array` and :func:`blob` each return a
-named construct field (``"name" / subcon * "doc"``) with a :class:`FieldMeta`
-attached as ``.meta``: its C-like type, unit, allowed range and description. The
-encoders' range checks, the strict decoders and the tables of ``docs/protocol.md``
-(:mod:`cdma_lidar.protocol.spec`) all read that one declaration.
+A :class:`Field` says what the spec says about one payload field: its C-like wire type,
+unit, allowed range and meaning. A :class:`Layout` (the fields of one payload, in wire
+order) is also the payload's codec: plain ``struct`` packing, little-endian, no
+padding. From these declarations come the encoders' checks (:meth:`Field.check` raises
+FieldError naming the field and its range), the strict decoders (:meth:`Layout.parse`
+raises FrameError only), the tables of ``docs/protocol.md``
+(:mod:`cdma_lidar.protocol.spec`) and the schema CRC. Field kinds and their bytes:
+
+    int    one integer, ``u8`` .. ``u64`` or ``i16`` .. ``i64`` (two's complement)
+    text   ``u8 len + UTF-8``: a byte count, then at most 255 bytes of UTF-8
+    bytes  opaque bytes: a fixed number (nonces, MACs, ``max_items``), or all that remain
+    array  integers (or small structs, given ``names``) after a ``u8``/``u16`` count, or
+           filling the rest of the payload (``count`` ""), or as many as the product of
+           earlier fields (``count`` "channels*columns")
+    klv    key-length-value items to the end: ``u8 key, u16 length, value``
 """
 
 from __future__ import annotations
 
 import dataclasses
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import construct as cs
+import numpy as np
 
-__all__ = ["FieldMeta", "array", "blob", "i", "nbytes", "text", "u", "wire", "wire_fields"]
+from cdma_lidar.checks import check_int, is_int
+from cdma_lidar.errors import FieldError, FrameError, out_of_range
+
+__all__ = ["INTS", "Field", "Layout", "array", "i", "nbytes", "text", "u", "wire", "wire_fields"]
+
+#: C type -> (struct format, lowest, highest).
+INTS = {"u8": ("B", 0, 2**8 - 1), "u16": ("H", 0, 2**16 - 1), "u32": ("I", 0, 2**32 - 1),
+        "u64": ("Q", 0, 2**64 - 1), "i16": ("h", -(2**15), 2**15 - 1),
+        "i32": ("i", -(2**31), 2**31 - 1), "i64": ("q", -(2**63), 2**63 - 1)}
+_LIMITS = {fmt: (lo, hi) for fmt, lo, hi in INTS.values()}
+_KLV = struct.Struct("<BH")
 
 
 @dataclass(frozen=True)
-class FieldMeta:
-    """What the spec says about one field."""
+class Field:
+    """One payload field: what the spec says about it, and how it travels."""
 
-    ctype: str  # C-like wire type, e.g. "u16", "i32", "u8 len + UTF-8"
-    unit: str
-    lo: int | None
-    hi: int | None
+    name: str
+    ctype: str  # C-like wire type as the spec writes it, e.g. "u16", "u8 len + UTF-8"
     doc: str
-    kind: str = "int"  # int | text | array | blob
-    max_items: int | None = None
+    unit: str = ""
+    lo: int | None = None  # range of an int, or of each integer of an array
+    hi: int | None = None
     allowed: str = ""  # range text for the spec; derived from lo/hi when empty
+    kind: str = "int"  # int | text | bytes | array | klv (module docstring)
+    fmt: str = ""  # struct format of an int or of one array element ("H", "HB")
+    count: str = ""  # array count: its prefix's format ("B", "H"), "" (rest) or "a*b"
+    names: tuple[str, ...] = ()  # an array of structs: the element's fields (dicts)
     min_items: int = 0
+    max_items: int | None = None  # most array items; a bytes field's size (None: the rest)
 
     @property
     def range_text(self) -> str:
-        if self.allowed:
-            return self.allowed
-        if self.lo is None:
-            return ""
-        return f"{_num(self.lo)}..{_num(self.hi)}"
+        """The range column of the spec: ``allowed``, else ``lo..hi`` (``2^32-1``)."""
+        return self.allowed or ("" if self.lo is None else f"{_num(self.lo)}..{_num(self.hi)}")
+
+    @property
+    def size(self) -> int | None:
+        """Bytes of the field, None when they vary."""
+        return struct.calcsize("<" + self.fmt) if self.kind == "int" else \
+            self.max_items if self.kind == "bytes" else None
+
+    def check(self, path: str, value: Any) -> Any:
+        """``value`` as it is packed; raises FieldError naming ``path`` and the range."""
+        if self.kind == "int":
+            return check_int(path, value, self.lo, self.hi, cls=FieldError)  # type: ignore[arg-type]
+        if self.kind == "text" and (not isinstance(value, str) or len(value.encode()) > 255):
+            raise out_of_range(path, "a string of at most 255 UTF-8 bytes", value, FieldError)
+        if self.kind == "bytes" and (not isinstance(value, bytes | bytearray) or
+                                     len(value) != (self.max_items or len(value))):
+            raise out_of_range(path, f"{self.max_items or 'any number of'} bytes", value,
+                               FieldError)
+        if self.kind in ("text", "bytes"):
+            return value
+        if isinstance(value, np.ndarray):
+            value = value.ravel().tolist()
+        if isinstance(value, str | dict) or not hasattr(value, "__iter__"):
+            raise out_of_range(path, "a sequence", value, FieldError)
+        items = list(value)
+        if not self.min_items <= len(items) <= (self.max_items or len(items)):
+            raise out_of_range(path, f"{self.min_items} to {self.max_items} items", len(items),
+                               FieldError)
+        try:
+            if self.kind == "klv":
+                for k, e in enumerate(items):
+                    check_int(f"{path}[{k}].key", e["key"], 0, 255, cls=FieldError)
+                    if not isinstance(e["value"], bytes | bytearray) or len(e["value"]) > 65535:
+                        raise out_of_range(f"{path}[{k}].value", "at most 65535 bytes",
+                                           e["value"], FieldError)
+                return items
+            if self.names:  # small structs: each a dict of the element's fields
+                return [{n: check_int(f"{path}[{k}].{n}", e[n], *_LIMITS[fmt], cls=FieldError)
+                         for n, fmt in zip(self.names, self.fmt, strict=True)}
+                        for k, e in enumerate(items)]
+        except (TypeError, KeyError, IndexError):
+            raise out_of_range(path, "items with the fields " + ", ".join(
+                self.names or ("key", "value")), value, FieldError) from None
+        lo, hi = (self.lo, self.hi) if self.lo is not None else _LIMITS[self.fmt]
+        for k, v in enumerate(items):
+            if not is_int(v) or not lo <= v <= hi:  # type: ignore[operator]
+                raise out_of_range(f"{path}[{k}]", f"an integer in {lo}..{hi}", v, FieldError)
+        return items
+
+
+def _repeat(fmt: str, n: int) -> str:
+    """struct format of ``n`` elements of format ``fmt``."""
+    return f"<{n}{fmt}" if len(fmt) == 1 else "<" + fmt * n
 
 
 def _num(v: int | None) -> str:
     """Spec form of a bound: powers of two for big ones (2^32-1, -2^31)."""
-    if v is None:
-        return ""
-    if abs(v) < 1 << 17:
-        return str(v)
+    if v is None or abs(v) < 1 << 17:
+        return "" if v is None else str(v)
     if v > 0 and (v + 1) & v == 0:
         return f"2^{(v + 1).bit_length() - 1}-1"
     if v < 0 and -v & (-v - 1) == 0:
@@ -55,79 +127,182 @@ def _num(v: int | None) -> str:
     return str(v)
 
 
-_INT = {  # (construct subcon, C type, natural lo, natural hi)
-    ("u", 8): (cs.Int8ul, "u8", 0, 2**8 - 1),
-    ("u", 16): (cs.Int16ul, "u16", 0, 2**16 - 1),
-    ("u", 32): (cs.Int32ul, "u32", 0, 2**32 - 1),
-    ("u", 64): (cs.Int64ul, "u64", 0, 2**64 - 1),
-    ("i", 16): (cs.Int16sl, "i16", -(2**15), 2**15 - 1),
-    ("i", 32): (cs.Int32sl, "i32", -(2**31), 2**31 - 1),
-    ("i", 64): (cs.Int64sl, "i64", -(2**63), 2**63 - 1),
-}
+class Layout:
+    """The fields of one payload in wire order, and its codec (plain ``struct``).
+
+    :meth:`encode` checks every value and packs it; :meth:`decode` reads every byte and
+    checks every range. :meth:`build` and :meth:`parse` are the unchecked halves (a value
+    its wire type cannot hold raises ``struct.error``; :meth:`parse` raises FrameError).
+    """
+
+    def __init__(self, *fields: Field) -> None:
+        self.fields = fields
+
+    def field(self, name: str) -> Field:
+        """The field called ``name``."""
+        return next(f for f in self.fields if f.name == name)
+
+    def sizeof(self) -> int:
+        """Bytes of a payload whose fields all have a fixed size."""
+        return sum(f.size for f in self.fields)  # type: ignore[misc]
+
+    def encode(self, values: dict[str, Any], what: str) -> bytes:
+        """Payload bytes of ``values``; FieldError naming ``what.field`` and its range when
+        a field is missing, unknown or outside its range."""
+        checked: dict[str, Any] = {}
+        for f in self.fields:
+            if f.name not in values:
+                raise FieldError(f"{what}.{f.name} is required", field=f.name)
+            checked[f.name] = v = f.check(f"{what}.{f.name}", values[f.name])
+            if "*" in f.count and len(v) != (n := self._product(f, checked)):
+                raise out_of_range(f"{what}.{f.name}", f"{n} items ({f.count})", len(v),
+                                   FieldError)
+        if extra := sorted(set(values) - set(checked)):
+            raise out_of_range(f"{what}.{extra[0]}", f"a declared field of {what}",
+                               "unknown field", FieldError)
+        return self.build(checked)
+
+    def decode(self, payload: bytes, what: str) -> dict[str, Any]:
+        """Field values of ``payload``, each within its declared range; FrameError (only)
+        naming the field otherwise."""
+        out = self.parse(payload, what)
+        for f in self.fields:
+            if f.kind == "int" or (f.kind == "array" and f.lo is not None):
+                try:
+                    f.check(f.name, out[f.name])
+                except FieldError as exc:
+                    raise FrameError(f"{what}: {exc}", field=f.name) from None
+        return out
+
+    def build(self, values: dict[str, Any]) -> bytes:
+        """Payload bytes of ``values`` (one per field, by name), unchecked."""
+        out = bytearray()
+        for f in self.fields:
+            v = values[f.name]
+            if f.kind == "int":
+                out += struct.pack("<" + f.fmt, v)
+            elif f.kind in ("text", "bytes"):
+                data = v.encode() if f.kind == "text" else v
+                out += bytes([len(data)]) + data if f.kind == "text" else data
+            elif f.kind == "klv":
+                for e in v:
+                    out += _KLV.pack(e["key"], len(e["value"])) + e["value"]
+            else:
+                v = v.ravel().tolist() if isinstance(v, np.ndarray) else list(v)
+                if f.count in ("B", "H"):
+                    out += struct.pack("<" + f.count, len(v))
+                flat = [e[n] for e in v for n in f.names] if f.names else v
+                out += struct.pack(_repeat(f.fmt, len(v)), *flat)
+        return bytes(out)
+
+    def parse(self, payload: bytes, what: str = "payload") -> dict[str, Any]:
+        """Field values of ``payload``, unchecked; FrameError naming ``what`` and the field
+        that does not parse (short, not UTF-8, or bytes left after the last field)."""
+        out: dict[str, Any] = {}
+        off, end, at = 0, len(payload), "end"
+        try:
+            for f in self.fields:
+                at = f.name
+                if f.kind == "int":
+                    (out[f.name],) = struct.unpack_from("<" + f.fmt, payload, off)
+                    off += f.size  # type: ignore[operator]
+                elif f.kind in ("text", "bytes"):
+                    n = payload[off] if f.kind == "text" else f.max_items or end - off
+                    off += f.kind == "text"
+                    data = bytes(payload[off:off + n])
+                    if len(data) != n:
+                        raise FrameError("short")
+                    out[f.name] = data.decode() if f.kind == "text" else data
+                    off += n
+                elif f.kind == "klv":
+                    out[f.name] = items = []
+                    while off < end:
+                        key, n = _KLV.unpack_from(payload, off)
+                        off += _KLV.size + n
+                        if off > end:
+                            raise FrameError("short")
+                        items.append({"key": key, "value": bytes(payload[off - n:off])})
+                else:
+                    out[f.name], off = self._array(f, payload, off, out)
+            at = "end"
+            if off != end:
+                raise FrameError("trailing bytes")
+        except (struct.error, ValueError, IndexError, FrameError) as exc:  # not UTF-8: ValueError
+            why = exc if isinstance(exc, FrameError) else "short" if isinstance(
+                exc, struct.error | IndexError) else type(exc).__name__
+            raise FrameError(f"{what}: malformed payload at {at} ({why})",
+                             field=None if at == "end" else at) from None
+        return out
+
+    @staticmethod
+    def _product(f: Field, done: dict[str, Any]) -> int:
+        """Items of an array whose count is the product of earlier fields."""
+        return int(np.prod([done[name] for name in f.count.split("*")]))
+
+    def _array(self, f: Field, payload: bytes, off: int, done: dict[str, Any]
+               ) -> tuple[list, int]:
+        size = struct.calcsize("<" + f.fmt)
+        if f.count in ("B", "H"):
+            (n,) = struct.unpack_from("<" + f.count, payload, off)
+            off += struct.calcsize(f.count)
+        elif f.count:
+            n = self._product(f, done)
+        elif (len(payload) - off) % size:
+            raise FrameError("not whole items")
+        else:
+            n = (len(payload) - off) // size
+        flat = struct.unpack_from(_repeat(f.fmt, n), payload, off)
+        k = len(f.names)
+        items = [dict(zip(f.names, flat[j:j + k], strict=True))
+                 for j in range(0, n * k, k)] if k else list(flat)
+        return items, off + n * size
 
 
-def _named(name: str, sub: cs.Construct, meta: FieldMeta) -> cs.Renamed:
-    r = name / sub * meta.doc
-    r.meta = meta  # read by the validator and by cdma_lidar.protocol.spec
-    return r
-
-
+# ---- declaring fields ----------------------------------------------------------------------
 def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "", kind: str = "u") -> cs.Renamed:
+      hi: int | None = None, allowed: str = "", kind: str = "u") -> Field:
     """Little-endian integer field of ``bits`` bits, unsigned (``kind`` "u") or two's
     complement ("i"), optionally limited to [lo, hi]."""
-    sub, ctype, nlo, nhi = _INT[(kind, bits)]
-    return _named(name, sub, FieldMeta(ctype, unit, nlo if lo is None else lo,
-                                       nhi if hi is None else hi, doc, allowed=allowed))
+    fmt, nlo, nhi = INTS[f"{kind}{bits}"]
+    return Field(name, f"{kind}{bits}", doc, unit, nlo if lo is None else lo,
+                 nhi if hi is None else hi, allowed, fmt=fmt)
 
 
 def i(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> cs.Renamed:
+      hi: int | None = None, allowed: str = "") -> Field:
     """Signed two's-complement little-endian integer field."""
     return u(name, bits, doc, unit, lo, hi, allowed, kind="i")
 
 
-def text(name: str, doc: str) -> cs.Renamed:
+def text(name: str, doc: str) -> Field:
     """UTF-8 string with a u8 byte-length prefix (at most 255 bytes)."""
-    return _named(name, cs.PascalString(cs.Int8ul, "utf8"),
-                  FieldMeta("u8 len + UTF-8", "", None, None, doc, kind="text",
-                            allowed="0..255 bytes"))
+    return Field(name, "u8 len + UTF-8", doc, allowed="0..255 bytes", kind="text")
+
+
+def nbytes(name: str, size: int, doc: str) -> Field:
+    """Fixed-size opaque bytes (nonces, MACs): ``size`` bytes, any values."""
+    return Field(name, f"u8 x {size}", doc, allowed=f"{size} bytes", kind="bytes",
+                 max_items=size)
 
 
 def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit: str = "",
           lo: int | None = None, hi: int | None = None, max_items: int | None = None,
-          allowed: str = "", min_items: int = 0) -> cs.Renamed:
+          allowed: str = "", min_items: int = 0) -> Field:
     """Count-prefixed array of integers: ``u<count_bits>`` count, then the elements."""
-    csub, cctype, _, cmax = _INT[("u", count_bits)]
-    esub, ectype, nlo, nhi = _INT[(elem, elem_bits)]
-    return _named(name, cs.PrefixedArray(csub, esub),
-                  FieldMeta(f"{cctype} n + n x {ectype}", unit, nlo if lo is None else lo,
-                            nhi if hi is None else hi, doc, kind="array",
-                            max_items=cmax if max_items is None else max_items,
-                            allowed=allowed, min_items=min_items))
+    cfmt, _, cmax = INTS[f"u{count_bits}"]  # at most as many items as the count holds
+    efmt, nlo, nhi = INTS[f"{elem}{elem_bits}"]
+    return Field(name, f"u{count_bits} n + n x {elem}{elem_bits}", doc, unit,
+                 nlo if lo is None else lo, nhi if hi is None else hi, allowed, "array", efmt,
+                 cfmt, min_items=min_items, max_items=cmax if max_items is None else max_items)
 
 
-def blob(name: str, sub: cs.Construct, ctype: str, doc: str, unit: str = "",
-         allowed: str = "") -> cs.Renamed:
-    """Any other construct (validated by construct itself)."""
-    return _named(name, sub, FieldMeta(ctype, unit, None, None, doc, kind="blob",
-                                       allowed=allowed))
-
-
-def nbytes(name: str, size: int, doc: str) -> cs.Renamed:
-    """Fixed-size opaque bytes (nonces, MACs): ``size`` bytes, any values."""
-    return _named(name, cs.Bytes(size), FieldMeta(f"u8 x {size}", "", None, None, doc,
-                                                  kind="bytes", max_items=size,
-                                                  allowed=f"{size} bytes"))
-
-
-def wire(default: Any, make: Callable[..., cs.Renamed], *args: Any, **kw: Any) -> Any:
+def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:
     """A dataclass field that is a payload field too: ``make(name, *args, **kw)`` (``u``,
     ``text``, ...) named as the dataclass field; ``default`` MISSING: required."""
     return dataclasses.field(default=default, metadata={"wire": (make, args, kw)})
 
 
-def wire_fields(cls: type) -> list[cs.Renamed]:
+def wire_fields(cls: type) -> list[Field]:
     """The payload fields of a dataclass declared with :func:`wire`, in field order."""
     return [f.metadata["wire"][0](f.name, *f.metadata["wire"][1], **f.metadata["wire"][2])
             for f in dataclasses.fields(cls)]

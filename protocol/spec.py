@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +29,7 @@ from cdma_lidar.protocol.columns import (
     COLUMN_HEADER,
     FLAG_CALIBRATION,
     NO_PEAK,
-    RECORD_STRUCT,
+    RECORD_FIELDS,
     ColumnResult,
     column_payload_size,
 )
@@ -47,14 +47,13 @@ from cdma_lidar.protocol.messages import (
     encode_payload,
     split_message,
 )
+from cdma_lidar.protocol.schema import Field
 from cdma_lidar.protocol.views import TILT_AUTO
 
 __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
-_SIZES = {"u8": 1, "u16": 2, "u32": 4, "u64": 8, "i16": 2, "i32": 4, "i64": 8}
-_FMT = {"B": "u8", "H": "u16", "I": "u32"}
 
 
 def _row(*cells: object) -> str:
@@ -70,10 +69,9 @@ def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
 def header_table() -> str:
     """Frame header fields with offsets."""
     rows, off = [], 0
-    for name, fmt, doc in framing.HEADER_FIELDS:
-        size = framing.struct.calcsize("<" + fmt)
-        rows.append((off, size, f"`{name}`", _FMT[fmt], doc))
-        off += size
+    for f in framing.HEADER_FIELDS.fields:
+        rows.append((off, f.size, f"`{f.name}`", f.ctype, f.doc))
+        off += f.size
     return _table(("offset", "size", "field", "type", "meaning"), rows)
 
 
@@ -87,7 +85,7 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.host_max_frame.meta.lo,
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.field("host_max_frame").lo,
          "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
@@ -117,10 +115,9 @@ def ranges_table() -> str:
     for t, m in MESSAGES.items():
         if m.kind is not MsgKind.REQUEST:
             continue
-        for sc in m.fields:
-            rule, code = DEVICE_RULES.get((t, sc.name), ("", None))
-            wire = sc.meta.range_text or "any"
-            rows.append((t.name, f"`{sc.name}`", wire, rule or "none",
+        for f in m.fields:
+            rule, code = DEVICE_RULES.get((t, f.name), ("", None))
+            rows.append((t.name, f"`{f.name}`", f.range_text or "any", rule or "none",
                          f"`{code.name}`" if code is not None else ""))
     for k in CONFIG_KEYS:
         wire = f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses"
@@ -142,16 +139,14 @@ def messages_table() -> str:
     return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
 
 
-def _fields_table(subcons: list, offsets: list | None = None) -> str:
+def _fields_table(fields: Sequence[Field], offsets: list | None = None) -> str:
     """Field rows; offsets summed from the sizes unless given."""
     rows: list[tuple] = []
     off: int | str = 0
-    for k, sc in enumerate(subcons):
-        m = sc.meta
-        rows.append((off if offsets is None else offsets[k], f"`{sc.name}`", m.ctype, m.unit,
-                     m.range_text, m.doc))
-        size = _SIZES.get(m.ctype)
-        off = off + size if isinstance(off, int) and size else "var"
+    for k, f in enumerate(fields):
+        rows.append((off if offsets is None else offsets[k], f"`{f.name}`", f.ctype, f.unit,
+                     f.range_text, f.doc))
+        off = off + f.size if isinstance(off, int) and f.size else "var"
     return _table(("offset", "field", "type", "unit", "range", "meaning"), rows)
 
 
@@ -171,8 +166,8 @@ def message_fields() -> str:
 
 def column_table() -> str:
     """COLUMN_RESULT header and per-channel record (offsets of the record in terms of P)."""
-    head = _fields_table(list(COLUMN_HEADER.subcons))
-    rec = _fields_table(list(RECORD_STRUCT.subcons), [
+    head = _fields_table(COLUMN_HEADER.fields)
+    rec = _fields_table(RECORD_FIELDS, [
         f"{at.offset} + {at.offset_per_extra}(P-1)" if at.offset_per_extra else at.offset
         for at in wire_layout()])
     return (f"Column header ({COLUMN_HEADER.sizeof()} bytes):\n\n{head}\n\n"

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from wire_oracle import RECORD_STRUCT, decode_column_construct, encode_column_construct
 
 from cdma_lidar import column_record
 from cdma_lidar.column_record import (
@@ -34,13 +35,11 @@ from cdma_lidar.protocol.columns import (
     _HEAD,
     _LIMITS,
     COLUMN_HEADER,
-    RECORD_STRUCT,
+    RECORD_FIELDS,
     ColumnResult,
     column_payload_size,
     decode_column,
-    decode_column_construct,
     encode_column,
-    encode_column_construct,
     record_dtype,
 )
 
@@ -94,6 +93,7 @@ def test_receiver_output_dtypes_and_shapes_are_the_records() -> None:
 @pytest.mark.parametrize("peaks", PEAKS)
 def test_wire_dtype_and_construct_record_list_the_wire_fields(peaks: int) -> None:
     assert list(record_dtype(peaks).names) == WIRE_NAMES
+    assert [f.name for f in RECORD_FIELDS] == WIRE_NAMES
     assert [sc.name for sc in RECORD_STRUCT.subcons] == WIRE_NAMES
 
 

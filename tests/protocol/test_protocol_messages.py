@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import construct as cs
 import numpy as np
 import pytest
+import wire_oracle
 from hypothesis import given
 from hypothesis import strategies as st
 from protocol_fixtures import expected_column, hello_fields
@@ -15,9 +17,7 @@ from cdma_lidar.protocol.columns import (
     ColumnResult,
     column_payload_size,
     decode_column,
-    decode_column_construct,
     encode_column,
-    encode_column_construct,
 )
 from cdma_lidar.protocol.config_keys import (
     CONFIG_KEYS,
@@ -34,50 +34,92 @@ from cdma_lidar.protocol.messages import (
     decode_payload,
     encode_payload,
 )
+from cdma_lidar.protocol.schema import INTS, Field
 from cdma_lidar.protocol.views import Info, Status
+
+_LIMITS = {fmt: (lo, hi) for fmt, lo, hi in INTS.values()}
 
 
 # ---- strategies derived from the declarations ------------------------------------------------
-def _field_strategy(msg: MsgType, sc) -> st.SearchStrategy:
-    meta = sc.meta
-    if meta.kind == "int":
-        return st.integers(meta.lo, meta.hi)
-    if meta.kind == "text":
+def _field_strategy(f: Field) -> st.SearchStrategy:
+    if f.kind == "int":
+        return st.integers(f.lo, f.hi)
+    if f.kind == "text":
         return st.text(max_size=40).filter(lambda s: len(s.encode()) <= 255)
-    if meta.kind == "array":
-        return st.lists(st.integers(meta.lo, meta.hi), min_size=meta.min_items,
-                        max_size=min(meta.max_items, 30))
-    if meta.kind == "bytes":
-        return st.binary(min_size=meta.max_items, max_size=meta.max_items)
-    special = {
-        "keys": st.lists(st.integers(0, 255), max_size=20),
-        "items": st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
-                                                 "value": st.binary(max_size=40)}),
-                          max_size=6),
-        "data": st.binary(min_size=1, max_size=300),
-        "fragments": st.lists(st.fixed_dictionaries({"column": st.integers(0, 65535),
-                                                     "index": st.integers(0, 255)}),
-                              max_size=10),
-    }
-    return special[sc.name]
+    if f.kind == "bytes":
+        return st.binary(min_size=f.max_items or 1, max_size=f.max_items or 300)
+    if f.kind == "klv":
+        return st.lists(st.fixed_dictionaries({"key": st.integers(0, 255),
+                                                "value": st.binary(max_size=40)}), max_size=6)
+    if f.names:
+        elem = st.fixed_dictionaries({n: st.integers(*_LIMITS[c])
+                                      for n, c in zip(f.names, f.fmt, strict=True)})
+    else:
+        elem = st.integers(*((f.lo, f.hi) if f.lo is not None else _LIMITS[f.fmt]))
+    return st.lists(elem, min_size=f.min_items, max_size=min(f.max_items or 30, 30))
 
 
 @st.composite
 def message_fields(draw, msg: MsgType) -> dict:
     spec = MESSAGES[msg]
-    if msg in (MsgType.POWER_SET, MsgType.POWER):
-        r, c = draw(st.integers(1, 6)), draw(st.integers(1, 6))
-        return {"channel_start": draw(st.integers(0, 65535)),
-                "column_start": draw(st.integers(0, 65535)), "channels": r, "columns": c,
-                "power": draw(st.lists(st.integers(0, 65535), min_size=r * c,
-                                       max_size=r * c))}
-    fields = {sc.name: draw(_field_strategy(msg, sc)) for sc in spec.fields}
+    fields = {f.name: draw(_field_strategy(f)) for f in spec.fields if "*" not in f.count}
+    for f in spec.fields:
+        if "*" in f.count:  # as many as the product of earlier fields (POWER_SET.power)
+            a, b = f.count.split("*")
+            fields[a], fields[b] = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+            fields[f.name] = draw(st.lists(st.integers(*_LIMITS[f.fmt]),
+                                           min_size=fields[a] * fields[b],
+                                           max_size=fields[a] * fields[b]))
     if msg == MsgType.FRAGMENT:  # a piece of the message: index below count
         fields["index"] = draw(st.integers(0, fields["count"] - 1))
     return fields
 
 
 CONTROL = [t for t in MESSAGES if t != MsgType.COLUMN_RESULT]
+
+
+@pytest.mark.parametrize("msg", CONTROL, ids=lambda t: t.name)
+@given(data=st.data())
+def test_codec_and_construct_oracle_agree_byte_for_byte(msg: MsgType, data) -> None:
+    """The run-time codec (struct) and the oracle (construct) build the same bytes from
+    random valid fields and read them back alike."""
+    fields = data.draw(message_fields(msg))
+    payload = encode_payload(msg, fields)
+    assert payload == wire_oracle.build(msg, fields)
+    assert decode_payload(msg, payload) == wire_oracle.parse(msg, payload)
+
+
+@pytest.mark.parametrize("msg", CONTROL, ids=lambda t: t.name)
+@given(payload=st.binary(max_size=120))
+def test_codec_and_oracle_agree_on_random_payloads(msg: MsgType, payload: bytes) -> None:
+    """What the oracle cannot parse, the decoder refuses; what the decoder accepts, the
+    oracle reads the same."""
+    try:
+        got = decode_payload(msg, payload)
+    except FrameError:
+        got = None
+    try:
+        want = wire_oracle.parse(msg, payload)
+    except (cs.ConstructError, UnicodeDecodeError):
+        assert got is None
+        return
+    if got is not None:
+        assert got == want
+
+
+@pytest.mark.parametrize("key", CONFIG_KEYS, ids=lambda k: k.name)
+@given(data=st.binary(max_size=24))
+def test_config_values_agree_with_the_oracle(key, data: bytes) -> None:
+    value = wire_oracle.field_construct(key.sub.field("v"))
+    oracle = cs.FocusedSeq("v", "v" / value, cs.Terminated)
+    try:
+        want = wire_oracle.plain(oracle.parse(data))
+    except cs.ConstructError:
+        with pytest.raises(FrameError):
+            key.sub.parse(data)
+        return
+    got = key.sub.parse(data)["v"]
+    assert got == want and key.sub.build({"v": got}) == oracle.build(want)
 
 
 @pytest.mark.parametrize("msg", CONTROL, ids=lambda t: t.name)
@@ -102,22 +144,22 @@ def test_decoder_raises_only_frame_error(msg: MsgType, payload: bytes) -> None:
 def test_decoder_rejects_trailing_and_missing_bytes(msg: MsgType) -> None:
     fields = _minimal(msg)
     payload = encode_payload(msg, fields)
-    if MESSAGES[msg].fields and MESSAGES[msg].fields[-1].meta.kind != "blob":
+    last = MESSAGES[msg].fields[-1] if MESSAGES[msg].fields else None
+    open_ended = last is not None and (last.kind == "klv" or (last.kind == "bytes" and not
+                                       last.max_items) or (last.kind == "array" and not last.count))
+    if not open_ended:
         with pytest.raises(FrameError):
             decode_payload(msg, payload + b"\x01")
-    if payload:
-        last = MESSAGES[msg].fields[-1].meta.kind
-        if last != "blob":
-            with pytest.raises(FrameError):
-                decode_payload(msg, payload[:-1])
+    if payload and not open_ended:
+        with pytest.raises(FrameError):
+            decode_payload(msg, payload[:-1])
 
 
 def _minimal(msg: MsgType) -> dict:
     out = {}
-    for sc in MESSAGES[msg].fields:
-        m = sc.meta
-        out[sc.name] = {"int": m.lo, "text": "x", "array": [m.lo or 0],
-                        "bytes": bytes(m.max_items or 0)}.get(m.kind, None)
+    for f in MESSAGES[msg].fields:
+        out[f.name] = {"int": f.lo, "text": "x", "array": [f.lo or 0],
+                       "bytes": bytes(f.max_items or 0)}.get(f.kind, None)
     if msg in (MsgType.POWER_SET, MsgType.POWER):
         out.update(channels=1, columns=1, power=[7])
     for name in ("keys", "items", "fragments"):
@@ -165,10 +207,10 @@ def test_encoder_names_the_bad_field(msg: MsgType, fields: dict, name: str) -> N
 # ---- INFO / STATUS views ------------------------------------------------------------------------
 def test_info_and_status_mirror_their_declarations() -> None:
     info_fields = {f.name for f in dataclasses.fields(Info)}
-    assert info_fields == {sc.name for sc in MESSAGES[MsgType.INFO].fields}
+    assert info_fields == {f.name for f in MESSAGES[MsgType.INFO].fields}
     status_fields = {f.name for f in dataclasses.fields(Status)}
-    assert status_fields == {sc.name for sc in MESSAGES[MsgType.STATUS].fields}
-    assert status_fields == {sc.name for sc in MESSAGES[MsgType.HEARTBEAT].fields}
+    assert status_fields == {f.name for f in MESSAGES[MsgType.STATUS].fields}
+    assert status_fields == {f.name for f in MESSAGES[MsgType.HEARTBEAT].fields}
 
 
 def test_info_nominal_units() -> None:
@@ -251,16 +293,16 @@ def test_poly_mask_round_trip_up_to_degree_32(exps: set[int]) -> None:
     assert key.encode((32, 22, 2, 1)) == (0x80200003).to_bytes(4, "little")
 
 
-# ---- COLUMN_RESULT: numpy path == construct path ------------------------------------------
+# ---- COLUMN_RESULT: numpy codec == construct oracle ------------------------------------------
 @given(st.integers(0, 2**32 - 1), st.integers(0, 65535), st.integers(1, 40),
        st.integers(1, 8), st.integers(1, 8), st.booleans())
 def test_column_fast_and_construct_paths_agree(frame: int, column: int, k: int, p: int, n: int,
                                                cal: bool) -> None:
     col = expected_column(frame, column, k, p, n, cal)
     fast = encode_column(col)
-    assert fast == encode_column_construct(col)
+    assert fast == wire_oracle.encode_column_construct(col)
     assert len(fast) == column_payload_size(k, p)
-    assert decode_column(fast) == col == decode_column_construct(fast)
+    assert decode_column(fast) == col == wire_oracle.decode_column_construct(fast)
     back = decode_column(fast)
     assert back.uid_signs.shape == (k, n) and back.extra_signs.shape == (k, p - 1, n)
     np.testing.assert_array_equal(back.uid_signs, col.uid_signs)
