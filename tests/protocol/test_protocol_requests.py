@@ -62,8 +62,9 @@ def test_a_reply_just_before_the_deadline_is_taken_without_a_retry() -> None:
     assert link.stats.retries == 0 and len(port.log) == 1
 
 
-def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -> None:
-    """Columns 0 and 2 arrive, 1 never does: RESENDs a quarter timeout apart, then a
+def test_a_lost_column_is_asked_for_again_after_a_round_trip_doubling_per_try() -> None:
+    """Columns 0 and 2 arrive, 1 never does: RESENDs a measured round trip apart (at least
+    MIN_TIMEOUT_S), twice as long after each try up to a quarter timeout, then a
     LinkTimeout naming column 1; SCAN_ABORT goes out as the scan is left."""
     def answer(req: Frame) -> bytes:
         if req.msg_type != MsgType.SCAN_START:
@@ -72,7 +73,7 @@ def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -
                                          0) for c in (0, 2))
 
     port = _logged(answer)
-    link = scripted_link(port, timeout_s=0.4, retries=1, column_retries=4)
+    link = scripted_link(port, timeout_s=1.6, retries=1, column_retries=5)
     got = []
     with pytest.raises(LinkTimeout) as exc:
         for c in link.scan(columns=3, frame=5):
@@ -80,11 +81,14 @@ def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -
     assert got == [0] and "column 1 of frame 5" in str(exc.value)
     assert exc.value.diagnosis == DIAG_NO_ANSWER
     resends = [f for _, f in port.log if f.msg_type == MsgType.RESEND]
-    assert len(resends) == 4
+    assert len(resends) == 5
     assert all(decode_payload(MsgType.RESEND, f.payload)["columns"] == [1] for f in resends)
     gaps = np.diff(_times(port, MsgType.RESEND))
-    quarter = 0.4 / 4  # a quarter of the reply timeout
-    assert all(quarter - 1e-9 <= g <= quarter + port.timeout + 1e-9 for g in gaps)
+    # The ACK came at once: the wait is its floor, 20 ms, then 40, 80, 160 ms (not the
+    # quarter timeout, 0.4 s), each as the host's poll (port.timeout) sees it.
+    want = [0.02, 0.04, 0.08, 0.16]
+    assert all(w - 1e-9 <= g <= w + port.timeout + 1e-9
+               for g, w in zip(gaps, want, strict=True)), gaps
     assert _times(port, MsgType.SCAN_ABORT)  # leaving the scan stops it on the device
 
 
