@@ -23,12 +23,7 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import (
-    FRAME_LIMIT,
-    OVERHEAD,
-    SIGNATURE_SIZE,
-    frame_size,
-)
+from cdma_lidar.protocol.framing import FRAME_LIMIT, frame_size
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
@@ -298,10 +293,6 @@ class HostLink(Requests):
         self._next_frame_id = (frame + 1) & 0xFFFFFFFF
         return frame
 
-    def _room(self) -> int:
-        """Payload bytes of a request frame (bytes)."""
-        return self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self.signer else 0)
-
     def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
                         count: int) -> Iterator[ColumnResult]:
         """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
@@ -404,21 +395,20 @@ class HostLink(Requests):
     def _resend(self, asm: ColumnReassembler, due: list[Any], now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most
         and as many as fit a request."""
-        room = self._room() - 6
+        room = self.max_frame - frame_size(6, self.signer is not None)  # the counts: 6 bytes
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][
             :min(255, (room - 2 * len(cols)) // 3)]
         for key in cols + pieces:
             if (tries := asm.tries(key)) >= self.column_retries:
-                damaged = self.decoder.stats.damaged
+                st = self.decoder.stats
+                diag = DIAG_NOISY if st.damaged else DIAG_NO_ANSWER
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
-                why, diag = (f"arrived intact after {tries} resend requests on "
-                             f"{self.port_name}: a noisy line, {damaged} damaged "
-                             "frames of "
-                             f"{damaged + self.decoder.stats.frames}", DIAG_NOISY) \
-                    if damaged else (f"arrived after {tries} resend requests on "
-                                     f"{self.port_name}: {DIAG_NO_ANSWER}", DIAG_NO_ANSWER)
+                why = f"arrived intact after {tries} resend requests on {self.port_name}: " \
+                    f"a noisy line, {st.damaged} damaged frames of {st.damaged + st.frames}" \
+                    if st.damaged else \
+                    f"arrived after {tries} resend requests on {self.port_name}: {diag}"
                 raise LinkTimeout(f"{what} of frame {asm.fid} never {why}; {DIAG_HINTS[diag]}",
                                   diag)
         asm.ask(cols + pieces, now)

@@ -1,24 +1,15 @@
-"""Host side of what comes in pieces: FRAGMENTs joined by their key, a stream's columns
-put back together in order, and what to ask again.
+"""Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
-:class:`Joiner` is the one place FRAGMENTs are joined, keyed by (type, seq, frame,
-column) as docs/protocol.md section 2.4 cuts them: replies, notices and columns alike.
-:class:`ColumnReassembler` holds the state of one scan or calibration stream and
-nothing else (no port, no clock of its own: the caller passes ``now``)::
-
-    feed(frame)              a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of
-                             the stream (authenticated, not yet decoded)
-    ready()                  the columns now complete in order, each once
-    due(now)                 columns (int) and fragments ((column, index)) that were
-                             sent, have not arrived, and are due to be asked (again)
-    ask(keys, now)           they were asked for (counts tries per key)
-
-``horizon``: every column below it was sent whole; ``edge`` = (column, k): fragments
-below k of that column were sent too. A later column or fragment, a HEARTBEAT's
-``next_column`` or SCAN_END's count moves them. A key asked for is due again after
-``resend_s`` seconds, twice as long after each further try (at most ``max_resend_s``).
-An early end (SCAN_END aborted or error, a lying column) keeps the columns before it
-and leaves ``failure`` set.
+:class:`Joiner` is the one place the host joins FRAGMENTs, keyed by (type, seq, frame,
+column) as docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one
+scan or calibration stream (no port, no clock: the caller passes ``now``): ``feed(frame)``
+takes a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of the stream; ``ready()``
+gives the columns complete in order, each once; ``due(now)`` the columns (int) and
+fragments ((column, index)) sent, missing and due to be asked for; ``ask(keys, now)``
+counts that they were. ``horizon``: every column below it was sent whole; ``edge`` =
+(column, k): fragments below k of that column were sent too (moved by a later column or
+fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end (SCAN_END
+aborted or error, a lying column) keeps the columns before it and sets ``failure``.
 """
 
 from __future__ import annotations

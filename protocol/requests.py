@@ -1,21 +1,17 @@
-"""Host requests over a port: the session (HELLO), one request at a time waited for on an
-injected clock and sent again, and the one receive path for every frame the device sends.
+"""Host requests: the session, each request waited for and sent again, one receive path.
 
 :class:`Requests` owns the port, the receive buffer (a
 :class:`~cdma_lidar.protocol.framing.FrameDecoder`), the request counter ``seq`` and the
-session: HELLO with this host's nonce, frame limit and flags (TAKE_OVER, KEEP_CONFIG,
-FEC); with a key, a CHALLENGE answered with the HELLO MAC, INFO checked to prove the
-device holds the key and signed with the session key, every later frame signed and
-checked (:mod:`cdma_lidar.protocol.auth`). It only ever blocks in ``port.read`` (at
-most ``port.timeout``) and measures every wait on ``clock``, so a test drives it with a
-fake port whose reads move a fake clock.
-
-Receiving: every frame is checked (session, signature) on its own, FRAGMENTs are then
-joined by their key in one :class:`~cdma_lidar.protocol.reassembly.Joiner`, and only
-whole messages are handled: the pending reply, a NAK to an unawaited RESEND, notices.
-A stream's frames go, undecoded, to the ``stream`` queue for
-:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler` (a column's pieces are joined
-there, in the same Joiner, once the stream takes them). Retransmission follows
+session: HELLO with this host's nonce, frame limit and flags; with a key, the CHALLENGE
+answered with the HELLO MAC, INFO checked to prove the device holds the key, every later
+frame signed and checked (:mod:`cdma_lidar.protocol.auth`). It blocks only in
+``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so a test
+drives it with a fake port whose reads move a fake clock. Every frame received is checked
+(session, signature) on its own, FRAGMENTs are joined by their key in one
+:class:`~cdma_lidar.protocol.reassembly.Joiner`, then the whole message is handled; a
+stream's frames queue in ``stream`` for its
+:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`, which joins a column's pieces
+in the same Joiner once it takes them (a repair it did not ask for is not). Retransmission follows
 docs/protocol.md section 6.1; a :class:`LinkTimeout` after the last try carries a
 ``DIAG_*`` diagnosis (section 6.7) and ends with its :data:`DIAG_HINTS`.
 """
@@ -119,6 +115,53 @@ class LinkStats:
     resend_requests: int = 0
     resent_columns: int = 0
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
+
+
+def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
+    """The error of a NAK (decoded) to ``msg_type``: code, field and detail, escaped."""
+    try:
+        cname = ErrorCode(nak["code"]).name
+    except ValueError:
+        cname = f"error {nak['code']}"
+    fld = escape(nak["field"])
+    where = f" (field {fld})" if fld else ""
+    detail = f": {escape(nak['detail'])}" if nak["detail"] else ""
+    if nak["code"] == ErrorCode.WRONG_SESSION:
+        detail += " (the device restarted, or another host took it over)"
+    return DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
+                       code=nak["code"], field=fld or None)
+
+
+def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
+    """(DIAG_* string, what to say) of what the line showed between two readings of
+    (bytes, frames, wrong session, other version, damaged, LINE_ERRORs) counters."""
+    nbytes, frames, wrong, version, damaged, reported = (b - a for a, b in zip(before, now,
+                                                                                strict=True))
+    if not nbytes:
+        diag = DIAG_SILENT
+    elif not frames and not reported:
+        diag = DIAG_VERSION if version else DIAG_GARBAGE
+    elif wrong and frames == wrong and not reported:
+        diag = DIAG_WRONG_SESSION
+    else:
+        diag = DIAG_NOISY if reported or damaged else DIAG_NO_ANSWER
+    if diag not in (DIAG_NOISY, DIAG_GARBAGE):
+        return diag, diag
+    return diag, (f"{diag} ({damaged} damaged frames of {damaged + frames} received, "
+                  f"{reported} reported by the device)")
+
+
+def session_lost(frame: Frame, port: str) -> SessionLost:
+    """The error (one line) of a SESSION_LOST frame heard on ``port``."""
+    try:
+        body = decode_payload(frame.msg_type, frame.payload)
+        assert isinstance(body, dict)
+        reason, detail = int(body["reason"]), escape(body["detail"])
+    except Exception:  # FrameError: still lost, say so without the device's words
+        reason, detail = 0, "no reason given"
+    what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+            SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
+    return SessionLost(f"session lost on {port}: {detail or what}", reason)
 
 
 class Requests:
@@ -288,9 +331,7 @@ class Requests:
         payload = encode_payload(msg_type, fields_)
         retries = self.retries if retries is None else retries
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        st = self.decoder.stats
-        before = (st.bytes, st.frames, self.stats.wrong_session, self._other_version(),
-                  st.damaged, self.line_errors)
+        before = self._counters()
         self.stats.requests += 1
         self._pending, self._pending_type = seq, int(msg_type)
         self.reply = self._reply_version = None
@@ -325,7 +366,7 @@ class Requests:
         finally:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
-        diag, what = self._diagnose(*before)
+        diag, what = diagnose(before, self._counters())
         raise LinkTimeout(f"{msg_type.name} got no answer from {self.port_name} after "
                           f"{tries} tries in {waited:.3g} s: {what}; "
                           f"{DIAG_HINTS[diag]}", diag)
@@ -387,29 +428,12 @@ class Requests:
             self._unawaited.popitem(last=False)
         return self._send(msg_type, encode_payload(msg_type, fields_), seq)
 
-    def _diagnose(self, nbytes: int, frames: int, wrong: int, version: int, damaged: int,
-                  line_errors: int) -> tuple[str, str]:
-        """(DIAG_* string, what to say) of what the line showed since those counters."""
+    def _counters(self) -> tuple[int, ...]:
+        """What :func:`diagnose` compares: bytes, frames, wrong session, other version
+        (rejected for version or incompat flags), damaged, LINE_ERRORs so far."""
         st = self.decoder.stats
-        reported = self.line_errors - line_errors  # the device saw our frames damaged
-        hurt = st.damaged - damaged
-        if st.bytes == nbytes:
-            diag = DIAG_SILENT
-        elif st.frames == frames and not reported:
-            diag = DIAG_VERSION if self._other_version() > version else DIAG_GARBAGE
-        elif (n := self.stats.wrong_session - wrong) and st.frames - frames == n and \
-                not reported:
-            diag = DIAG_WRONG_SESSION
-        else:
-            diag = DIAG_NOISY if reported or hurt else DIAG_NO_ANSWER
-        if diag not in (DIAG_NOISY, DIAG_GARBAGE):
-            return diag, diag
-        return diag, (f"{diag} ({hurt} damaged frames of {hurt + st.frames - frames} "
-                      f"received, {reported} reported by the device)")
-
-    def _other_version(self) -> int:
-        """CRC-valid frames rejected for their version or incompat flags so far."""
-        return self.decoder.stats.version + self.decoder.stats.incompat
+        return (st.bytes, st.frames, self.stats.wrong_session, st.version + st.incompat,
+                st.damaged, self.line_errors)
 
     def accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         """The decoded reply; DeviceError for a NAK, LinkError for anything else amiss."""
@@ -421,17 +445,7 @@ class Requests:
                             f"{exc}") from None
         assert isinstance(body, dict)
         if frame.msg_type == MsgType.NAK:
-            try:
-                cname = ErrorCode(body["code"]).name
-            except ValueError:
-                cname = f"error {body['code']}"
-            fld = escape(body["field"])
-            where = f" (field {fld})" if fld else ""
-            detail = f": {escape(body['detail'])}" if body["detail"] else ""
-            if body["code"] == ErrorCode.WRONG_SESSION:
-                detail += " (the device restarted, or another host took it over)"
-            raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                              code=body["code"], field=fld or None)
+            raise refused(msg_type, body)
         if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
             return body
         expected = REPLY_TO[msg_type]
@@ -504,8 +518,9 @@ class Requests:
         mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
-        elif mtype == MsgType.SESSION_LOST:
-            self._session_lost(frame)
+        elif mtype == MsgType.SESSION_LOST:  # the device ended our session
+            self._forget()
+            raise session_lost(frame, self.port_name)
         elif kind_of(mtype) is MsgKind.REPLY:
             self._on_reply(frame, parts)
         elif mtype != MsgType.HEARTBEAT or (body := self._decoded(frame)) is not None:
@@ -537,19 +552,6 @@ class Requests:
             self.reply, self.reply_parts = frame, parts
         else:
             self.stats.stale_replies += 1
-
-    def _session_lost(self, frame: Frame) -> None:
-        """The device ended our session: forget it and raise SessionLost (one line)."""
-        try:
-            body = decode_payload(frame.msg_type, frame.payload)
-            assert isinstance(body, dict)
-            reason, detail = int(body["reason"]), escape(body["detail"])
-        except Exception:  # FrameError: still lost, say so without the device's words
-            reason, detail = 0, "no reason given"
-        self._forget()
-        what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
-                SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-        raise SessionLost(f"session lost on {self.port_name}: {detail or what}", reason)
 
     def start_stream(self) -> None:
         """Stream frames go to :attr:`stream` from now on (a late NAK to a RESEND of an
