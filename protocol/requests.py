@@ -483,14 +483,12 @@ class Requests:
         if kind_of(mtype) is MsgKind.REQUEST:
             self.stats.ignored += 1
             return
-        body = None
-        column = mtype == MsgType.FRAGMENT and \
-            frame.payload[:1] == bytes([MsgType.COLUMN_RESULT])  # msg_type comes first
-        if mtype == MsgType.FRAGMENT and not column and (body := self._decoded(frame)) is None:
+        body = None  # a FRAGMENT's fields (msg_type comes first; a column's: the stream's)
+        if mtype == MsgType.FRAGMENT and frame.payload[:1] != bytes([MsgType.COLUMN_RESULT]) \
+                and (body := self._decoded(frame)) is None:
             return
-        hello = body if body is not None else {"seq": frame.seq, "msg_type": mtype}
-        if self._hello_seq is not None and hello["seq"] == self._hello_seq and \
-                hello["msg_type"] in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
+        seq, what = (body["seq"], body["msg_type"]) if body else (frame.seq, mtype)
+        if seq == self._hello_seq and what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
             pass
         elif mtype == MsgType.LINE_ERROR and self.verifier is None:
             self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
@@ -558,9 +556,10 @@ class Requests:
         earlier stream is not this one's)."""
         self.end_stream()
         self._unawaited.clear()
-        self.refusal = None
-        self.streaming = True
+        self.refusal, self.streaming = None, True
 
     def end_stream(self) -> None:
+        """No stream: its frames go, and the pieces held (the next may reuse a frame id)."""
         self.streaming = False
         self.stream.clear()
+        self.joiner.held.clear()

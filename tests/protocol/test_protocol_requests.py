@@ -111,3 +111,32 @@ def test_a_silent_stream_is_probed_with_status_after_one_timeout() -> None:
     assert [c.column for c in cols] == [0, 1, 2]
     start, probe = _times(port, MsgType.SCAN_START)[0], _times(port, MsgType.STATUS_GET)[0]
     assert 0.4 - 1e-9 <= probe - start <= 0.4 + port.timeout + 1e-9
+
+
+def test_a_new_stream_of_the_same_frame_id_joins_none_of_the_last_ones_pieces() -> None:
+    """Scan 1 of frame 5 ends (aborted) with half of column 0 held; scan 2 of frame 5, with
+    two peaks a column, sends the other half first: it must not complete the old half."""
+    from cdma_lidar.protocol.columns import encode_column
+    from cdma_lidar.protocol.framing import encode_frame
+    from cdma_lidar.protocol.messages import ScanEndReason, split_message
+    from cdma_lidar.protocol.reassembly import StreamEnded
+
+    def pieces(peaks: int) -> list[bytes]:
+        data = encode_column(expected_column(5, 0, 8, peaks, 1))
+        return [encode_frame(MsgType.FRAGMENT, p, 0, 0x42) for p in
+                split_message(MsgType.COLUMN_RESULT, data, len(data) // 2 + 1, 0, (5, 0))]
+
+    def end(reason: ScanEndReason, columns: int) -> bytes:
+        return reply(MsgType.SCAN_END, {"frame": 5, "first_column": 0, "columns": columns,
+                                        "calibration": 0, "reason": int(reason)}, 0)
+
+    scans = iter([pieces(1)[0] + end(ScanEndReason.ABORTED, 0),
+                  pieces(2)[1] + pieces(2)[0] + end(ScanEndReason.COMPLETE, 1)])
+    port = ScriptedPort(lambda req: ack(req) + next(scans)
+                        if req.msg_type == MsgType.SCAN_START else ack(req))
+    link = scripted_link(port, timeout_s=0.4)
+    with pytest.raises(StreamEnded):
+        list(link.scan(columns=1, frame=5))
+    link.config = {**link.config, "peaks": 2}
+    assert list(link.scan(columns=1, frame=5)) == [expected_column(5, 0, 8, 2, 1)]
+    assert link.stats.malformed == 0
