@@ -14,8 +14,8 @@ byte-exact spec). Modules, bottom up:
   it needs: ``device_sessions.DeviceSession`` (HELLO, keys, take-over; the shared
   ``DeviceCore``), ``streams.Streams`` (scans, ring, RESEND), ``handlers.AppRequests``
   (the other requests) and ``transmit.Transmitter`` (the transmit queue, replies);
-* host end: ``link.HostLink`` (requests and scans) holds a ``host_session.Session``
-  (HELLO, keys, take-over) and a ``requests.Requests`` (send, await, retry on an
-  injected clock; frame routing); ``reassembly`` (one stream's columns: ``feed``,
-  ``ready``, ``due(now)``).
+* host end: ``link.HostLink`` (requests and scans) is a ``requests.Requests`` (the
+  session: HELLO, keys, take-over; send, await, retry on an injected clock; the one
+  receive path); ``reassembly`` (``Joiner``: every FRAGMENT joined by its key;
+  ``ColumnReassembler``: one stream's columns, ``feed``, ``ready``, ``due(now)``).
 """

@@ -23,13 +23,7 @@ from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import (
-    FRAME_LIMIT,
-    OVERHEAD,
-    SIGNATURE_SIZE,
-    frame_size,
-)
-from cdma_lidar.protocol.host_session import Session
+from cdma_lidar.protocol.framing import FRAME_LIMIT, frame_size
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
@@ -92,7 +86,7 @@ def power_codes(matrix: ArrayLike) -> NDArray[np.int64]:
     return m.astype(np.int64)
 
 
-class HostLink:
+class HostLink(Requests):
     """Host end of the protocol over a port-like object.
 
     Args:
@@ -129,24 +123,14 @@ class HostLink:
                  key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
                  fec: bool | None = None, progress_timeout_s: float = 10.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        #: The request layer: port, receive path, retries, the session id and keys.
-        self.requests = Requests(port, timeout_s, retries, max_frame=max_frame, fec=fec,
-                                 clock=clock)
-        #: The session: HELLO, INFO and the configuration read in it.
-        self.session_layer = Session(self.requests, max_frame=max_frame, key=key,
-                                     take_over=take_over, keep_config=keep_config)
-        rq = self.requests  # what never changes, read directly:
-        self.port, self.stats, self.decoder, self.clock = rq.port, rq.stats, rq.decoder, rq.clock
-        self.timeout_s, self.retries = rq.timeout_s, rq.retries
+        super().__init__(port, timeout_s, retries, max_frame=max_frame, key=key,
+                         take_over=take_over, keep_config=keep_config, fec=fec, clock=clock)
         self.column_retries = 10 * (self.retries + 1) if column_retries is None \
             else check_int("column_retries", column_retries, 0, 1000)
         if not progress_timeout_s > 0:
             raise out_of_range("progress_timeout_s", "a positive number of seconds",
                                progress_timeout_s)
         self.progress_timeout_s = float(progress_timeout_s)
-        #: A column or fragment asked for again is asked once more after this long (s):
-        #: its answer comes ahead of new columns, so a quarter of the reply timeout.
-        self.resend_s = self.timeout_s / 4
         self._next_frame_id = secrets.randbits(31)
 
     def __enter__(self) -> Self:
@@ -155,73 +139,20 @@ class HostLink:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self) -> None:
-        """End the session (SESSION_END, one short try) and close the port."""
-        self.session_layer.close()
-
-    def hello(self) -> Info:
-        """Open a session (:meth:`~cdma_lidar.protocol.host_session.Session.hello`):
-        identity, limits, geometry and session id; a request without a session says it."""
-        return self.session_layer.hello()
-
-    # What a caller reads of the link (the layers own it).
     @property
-    def session(self) -> int | None:
-        """The session id; None without a session."""
-        return self.requests.session
-
-    @property
-    def info(self) -> Info | None:
-        """INFO of the session (None before HELLO)."""
-        return self.session_layer.info
-
-    @property
-    def config(self) -> dict[str, Any] | None:
-        """The last full configuration read (checked against INFO)."""
-        return self.session_layer.config
-
-    @config.setter
-    def config(self, value: dict[str, Any] | None) -> None:
-        self.session_layer.config = value
-
-    @property
-    def coded(self) -> bool:
-        """This session's frames are Reed-Solomon coded."""
-        return self.requests.coded
-
-    @property
-    def max_frame(self) -> int:
-        """Largest request frame (bytes)."""
-        return self.requests.max_frame
-
-    @property
-    def rtt(self) -> float | None:
-        """Smoothed round trip of a request (s); None until the first reply."""
-        return self.requests.rtt
-
-    @property
-    def line_errors(self) -> int:
-        return self.requests.line_errors
-
-    @property
-    def last_status(self) -> Status | None:
-        """The last HEARTBEAT's status."""
-        return self.requests.last_status
-
-    def _request(self, msg_type: MsgType, fields_: dict[str, Any]) -> dict[str, Any]:
-        return self.session_layer.request(msg_type, fields_)
+    def requests(self) -> Requests:
+        """The request layer: this link itself (its base class)."""
+        return self
 
     def _need_info(self) -> Info:
-        return self.session_layer.need_info()
-
-    def _pump(self) -> None:
-        self.requests.pump()
+        """INFO of the session (HELLO first when there is none)."""
+        return self.info if self.info is not None else self.hello()
 
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""
         keys = [config_key(n).id for n in names]
-        reply = self._request(MsgType.CONFIG_GET, {"keys": keys})
+        reply = self.request(MsgType.CONFIG_GET, {"keys": keys})
         try:
             values = decode_config(reply["items"]).values
         except Exception as exc:  # FrameError from the strict decoder
@@ -241,7 +172,7 @@ class HostLink:
         if not values:
             return
         self.config = None  # read again (checked) before the next stream
-        self._request(MsgType.CONFIG_SET, {"items": encode_config(values,
+        self.request(MsgType.CONFIG_SET, {"items": encode_config(values,
                                                                   allow_read_only=False)})
 
     def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
@@ -254,14 +185,14 @@ class HostLink:
         self._need_info()  # the size of a piece depends on the session's max frame
         m = power_codes(matrix)
         rows, cols = m.shape
-        signed = self.requests.signer is not None
+        signed = self.signer is not None
         room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, signed)) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
             for c0 in range(0, cols, step_c):
                 block = m[r0:r0 + step_r, c0:c0 + step_c]
-                self._request(MsgType.POWER_SET, {
+                self.request(MsgType.POWER_SET, {
                     "channel_start": channel_start + r0, "column_start": column_start + c0,
                     "channels": block.shape[0], "columns": block.shape[1],
                     "power": block.ravel()})
@@ -278,7 +209,7 @@ class HostLink:
         rows = max(1, min(k, 16384 // max(c, 1)))
         for r0 in range(0, k, rows):
             n = min(rows, k - r0)
-            d = self._request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
+            d = self.request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
                                                   "channels": n, "columns": c})
             if (d["channel_start"], d["column_start"], d["channels"], d["columns"]) != \
                     (r0, 0, n, c):
@@ -289,11 +220,11 @@ class HostLink:
 
     def status(self) -> Status:
         """Device status."""
-        return Status(**self._request(MsgType.STATUS_GET, {}))
+        return Status(**self.request(MsgType.STATUS_GET, {}))
 
     def abort(self) -> None:
         """Stop a running scan or calibration (harmless when idle)."""
-        self._request(MsgType.SCAN_ABORT, {})
+        self.request(MsgType.SCAN_ABORT, {})
 
     def capture(self, kind: str | int = "raw", column: int = 0, channel: int = 0) -> NDArray:
         """Debug capture of one column: raw ADC samples or a channel's correlation trace.
@@ -309,7 +240,7 @@ class HostLink:
         parts: list[NDArray] = []
         offset, total = 0, None
         while total is None or offset < total:
-            d = self._request(MsgType.CAPTURE, {"kind": int(kind), "column": column,
+            d = self.request(MsgType.CAPTURE, {"kind": int(kind), "column": column,
                                                 "channel": channel, "offset": offset,
                                                 "max_count": 65535})
             dt = {2: "<i2", 4: "<i4", 8: "<i8"}.get(d["elem_bytes"])
@@ -362,10 +293,6 @@ class HostLink:
         self._next_frame_id = (frame + 1) & 0xFFFFFFFF
         return frame
 
-    def _room(self) -> int:
-        """Payload bytes of a request frame (bytes)."""
-        return self.max_frame - OVERHEAD - (SIGNATURE_SIZE if self.requests.signer else 0)
-
     def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
                         count: int) -> Iterator[ColumnResult]:
         """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
@@ -379,11 +306,11 @@ class HostLink:
         assert self.info is not None and self.config is not None
         checker = ColumnChecker(self.info, self.config, fid, first, first + count,
                                 req == MsgType.CALIBRATE)
-        self.requests.start_stream()
+        self.start_stream()
         finished = False
         try:
             try:
-                self._request(req, fields_)
+                self.request(req, fields_)
             except DeviceError as exc:
                 if exc.code != ErrorCode.BUSY:
                     raise
@@ -391,13 +318,17 @@ class HostLink:
                 # columns reached us before the device had sent them all (repairs of the
                 # same frame id, asked for earlier). Let it end, then ask once more.
                 self._await_idle(exc)
-                self.requests.stream.clear()
-                self._request(req, fields_)
-            asm = ColumnReassembler(fid, first, first + count, checker, self.resend_s)
+                self.stream.clear()
+                self.request(req, fields_)
+            # A key asked for is asked again after a round trip (doubled per try): its
+            # answer comes ahead of new columns. At most a quarter of the reply timeout.
+            top = self.timeout_s / 4
+            asm = ColumnReassembler(fid, first, first + count, checker,
+                                    self.reply_wait(0, 0, top), top, self.joiner)
             yield from self._drive(asm)
             finished = True
         finally:
-            self.requests.end_stream()
+            self.end_stream()
             if not finished and self.session is not None:
                 with contextlib.suppress(LinkError):
                     self.abort()
@@ -409,14 +340,14 @@ class HostLink:
         progress = asm.progress
         while not asm.done:
             alive = False  # heard something of this frame (other frames are no sign of life)
-            while self.requests.stream:
-                alive = asm.feed(self.requests.stream.popleft()) or alive
+            while self.stream:
+                alive = asm.feed(self.stream.popleft()) or alive
             self.stats.duplicates += asm.duplicates
             self.stats.malformed += asm.malformed
             asm.duplicates = asm.malformed = 0
-            if self.requests.refusal is not None:  # the device refused a RESEND: say why
-                (mtype, frame), self.requests.refusal = self.requests.refusal, None
-                self.requests.accept_reply(mtype, frame)
+            if self.refusal is not None:  # the device refused a RESEND: say why
+                (mtype, frame), self.refusal = self.refusal, None
+                self.accept_reply(mtype, frame)
             for col in asm.ready():
                 self.stats.columns += 1
                 yield col
@@ -426,10 +357,10 @@ class HostLink:
             if asm.progress != progress:
                 progress, moved = asm.progress, now
             elif now - moved >= (limit := patience_s(self.progress_timeout_s,
-                                                      self.requests.last_status)):
+                                                      self.last_status)):
                 raise ScanStalled(
                     f"frame {asm.fid} made no progress for {limit:g} s on "
-                    f"{self.requests.port_name}: the device says it is still working but column "
+                    f"{self.port_name}: the device says it is still working but column "
                     f"{asm.nxt} never came; {asm.nxt - asm.first} columns were delivered",
                     frame=asm.fid, next_column=asm.nxt)
             if alive:
@@ -448,7 +379,7 @@ class HostLink:
             if due := asm.due(now):  # one RESEND, then read: its answer is in the stream
                 self._resend(asm, due, now)
                 heard = self.clock()
-            self._pump()
+            self.pump()
         if asm.failure is not None:
             raise asm.failure
 
@@ -459,26 +390,25 @@ class HostLink:
         while self.status().state != State.IDLE:
             if self.clock() >= deadline:
                 raise busy
-            self._pump()
+            self.pump()
 
     def _resend(self, asm: ColumnReassembler, due: list[Any], now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most
         and as many as fit a request."""
-        room = self._room() - 6
+        room = self.max_frame - frame_size(6, self.signer is not None)  # the counts: 6 bytes
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][
             :min(255, (room - 2 * len(cols)) // 3)]
         for key in cols + pieces:
             if (tries := asm.tries(key)) >= self.column_retries:
-                damaged = self.decoder.stats.damaged
+                st = self.decoder.stats
+                diag = DIAG_NOISY if st.damaged else DIAG_NO_ANSWER
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
-                why, diag = (f"arrived intact after {tries} resend requests on "
-                             f"{self.requests.port_name}: a noisy line, {damaged} damaged "
-                             "frames of "
-                             f"{damaged + self.decoder.stats.frames}", DIAG_NOISY) \
-                    if damaged else (f"arrived after {tries} resend requests on "
-                                     f"{self.requests.port_name}: {DIAG_NO_ANSWER}", DIAG_NO_ANSWER)
+                why = f"arrived intact after {tries} resend requests on {self.port_name}: " \
+                    f"a noisy line, {st.damaged} damaged frames of {st.damaged + st.frames}" \
+                    if st.damaged else \
+                    f"arrived after {tries} resend requests on {self.port_name}: {diag}"
                 raise LinkTimeout(f"{what} of frame {asm.fid} never {why}; {DIAG_HINTS[diag]}",
                                   diag)
         asm.ask(cols + pieces, now)
@@ -487,7 +417,7 @@ class HostLink:
         log.debug("frame %d: asking again for %d columns and %d fragments", asm.fid,
                   len(cols), len(pieces))
         # Not waited for: the columns are the answer, and the stream goes on meanwhile.
-        # A lost RESEND is asked again once resend_s passes.
-        self.requests.send_unawaited(MsgType.RESEND, {
+        # A lost RESEND is asked again once its wait (ColumnReassembler.due) passes.
+        self.send_unawaited(MsgType.RESEND, {
             "frame": asm.fid, "columns": cols,
             "fragments": [{"column": c, "index": k} for c, k in pieces]})

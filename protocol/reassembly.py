@@ -1,24 +1,20 @@
-"""Host side of one stream: columns put back together, in order, and what to ask again.
+"""Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
-:class:`ColumnReassembler` holds the state of one scan or calibration stream and
-nothing else (no port, no clock of its own: the caller passes ``now``)::
-
-    feed(frame)              a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of
-                             the stream (authenticated, not yet decoded)
-    ready()                  the columns now complete in order, each once
-    due(now)                 columns (int) and fragments ((column, index)) that were
-                             sent, have not arrived, and were not asked for in the last
-                             ``resend_s`` seconds: the next RESEND
-    ask(keys, now)           they were asked for (counts tries per key)
-
-``horizon``: every column below it was sent whole; ``edge`` = (column, k): fragments
-below k of that column were sent too. A later column or fragment, a HEARTBEAT's
-``next_column`` or SCAN_END's count moves them. An early end (SCAN_END aborted or
-error, a lying column) keeps the columns before it and leaves ``failure`` set.
+:class:`Joiner` is the one place the host joins FRAGMENTs, keyed by (type, seq, frame,
+column) as docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one
+scan or calibration stream (no port, no clock: the caller passes ``now``): ``feed(frame)``
+takes a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of the stream; ``ready()``
+gives the columns complete in order, each once; ``due(now)`` the columns (int) and
+fragments ((column, index)) sent, missing and due to be asked for; ``ask(keys, now)``
+counts that they were. ``horizon``: every column below it was sent whole; ``edge`` =
+(column, k): fragments below k of that column were sent too (moved by a later column or
+fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end (SCAN_END
+aborted or error, a lying column) keeps the columns before it and sets ``failure``.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Iterator
 from typing import Any
 
@@ -29,7 +25,7 @@ from cdma_lidar.protocol.messages import ErrorCode, MsgType, Pieces, ScanEndReas
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
 from cdma_lidar.protocol.views import Status
 
-__all__ = ["ColumnReassembler", "StreamEnded", "early_end"]
+__all__ = ["ColumnReassembler", "Joiner", "StreamEnded", "early_end"]
 
 
 class StreamEnded(DeviceError):
@@ -56,21 +52,46 @@ def early_end(fid: int, reason: int, sent: int) -> StreamEnded:
                        frame=fid, next_column=sent, reason=reason)
 
 
-class ColumnReassembler:
-    """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``.
+class Joiner:
+    """FRAGMENTs of at most ``limit`` messages at once, each kept under its key (type,
+    seq, frame, column); the oldest message is dropped when one more starts."""
 
-    ``resend_s``: a key asked for is not due again for this long (s).
-    """
+    def __init__(self, limit: int = 64) -> None:
+        self.limit = limit
+        self.held: OrderedDict[tuple[int, int, int, int], Pieces] = OrderedDict()
+
+    def add(self, frame: Frame, body: dict[str, Any]) -> tuple[Frame, list[Frame]] | None:
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); once every piece is
+        in, the whole message (type and seq from the pieces, their session) and its
+        pieces."""
+        key = (body["msg_type"], body["seq"], body["frame"], body["column"])
+        pc = self.held.get(key)
+        if pc is None or pc.count != body["count"]:  # the first piece, or of another cut
+            pc = self.held[key] = Pieces(body["count"])
+            while len(self.held) > self.limit:
+                self.held.popitem(last=False)
+        if (payload := pc.add(frame, body)) is None:
+            return None
+        del self.held[key]
+        return Frame(key[0], key[1], frame.session, payload, version=frame.version,
+                     fec=frame.fec, joined=True), pc.frames
+
+
+class ColumnReassembler:
+    """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
+    pieces joined in ``joiner``; a key asked for is due again after ``resend_s`` (s),
+    doubled at each further try up to ``max_resend_s`` (s; default ``resend_s``)."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
-                 resend_s: float) -> None:
-        self.fid, self.first, self.end = fid, first, end
-        self.checker, self.resend_s = checker, resend_s
-        self.nxt = first  # next column to deliver
-        self.horizon = first
+                 resend_s: float, max_resend_s: float | None = None,
+                 joiner: Joiner | None = None) -> None:
+        self.fid, self.first, self.end, self.checker = fid, first, end, checker
+        self.resend_s = resend_s
+        self.max_resend_s = resend_s if max_resend_s is None else max(resend_s, max_resend_s)
+        self.joiner = joiner or Joiner()
+        self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
         self.edge: tuple[int, int] = (first, 0)
         self.received: dict[int, ColumnResult] = {}
-        self.parts: dict[int, Pieces] = {}
         self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
         self.stored = 0  # columns and fragments kept (progress)
         self.duplicates = self.malformed = 0
@@ -98,6 +119,9 @@ class ColumnReassembler:
         if idle_reason is not None and sent < self.end:
             self._stop(sent, early_end(self.fid, idle_reason, sent))
 
+    def _pieces(self, column: int) -> Pieces | None:
+        return self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, column))
+
     def feed(self, frame: Frame) -> bool:
         """One stream frame; True when it was of this stream (a sign of life)."""
         mtype = frame.msg_type
@@ -112,45 +136,35 @@ class ColumnReassembler:
             self.duplicates += 1  # a repair this stream did not ask for: a late one
             return False
         if mtype == MsgType.FRAGMENT:
-            if item["frame"] != self.fid:
-                return False
-            col = self._piece(frame, item)
-            if col is None:
-                return True
-            item, mtype = col, MsgType.COLUMN_RESULT
+            return item["frame"] == self.fid and self._piece(frame, item)
         if mtype == MsgType.COLUMN_RESULT:
             return self._column(item)
         if mtype == MsgType.HEARTBEAT and item.frame == self.fid:
             self.sent(item.next_column)
             return True
         if mtype == MsgType.SCAN_END and item["frame"] == self.fid:
-            self.sent(item["first_column"] + item["columns"])
+            sent = min(self.end, item["first_column"] + item["columns"])
+            self.sent(sent)
             if item["reason"] != ScanEndReason.COMPLETE:
-                sent = min(self.end, item["first_column"] + item["columns"])
                 self._stop(sent, early_end(self.fid, item["reason"], sent))
             return True
         return False
 
-    def _piece(self, frame: Frame, item: dict[str, Any]) -> ColumnResult | None:
+    def _piece(self, frame: Frame, item: dict[str, Any]) -> bool:
         c, k = item["column"], item["index"]
         self.asked.pop((c, k), None)
         self.horizon = max(self.horizon, c)
         self.edge = max(self.edge, (c, k + 1))
         if not self.nxt <= c < self.end or c in self.received:
             self.duplicates += 1
-            return None
-        pc = self.parts.get(c)
-        if pc is None or pc.count != item["count"]:
-            pc = self.parts[c] = Pieces(item["count"])  # the first piece, or of another cut
+            return True
         self.stored += 1
-        if (payload := pc.add(frame, item)) is None:
-            return None
-        del self.parts[c]
-        try:
-            return decode_column(payload)
-        except FrameError:
-            self.malformed += 1
-            return None
+        if (whole := self.joiner.add(frame, item)) is not None:
+            try:
+                self._column(decode_column(whole[0].payload))
+            except FrameError:
+                self.malformed += 1
+        return True
 
     def _column(self, c: ColumnResult) -> bool:
         if c.frame != self.fid or not self.nxt <= c.column < self.end or \
@@ -165,7 +179,7 @@ class ColumnReassembler:
         self.asked.pop(c.column, None)
         self.received[c.column] = c
         self.stored += 1
-        self.parts.pop(c.column, None)
+        self.joiner.held.pop((MsgType.COLUMN_RESULT, 0, self.fid, c.column), None)
         self.horizon = max(self.horizon, c.column + 1)
         return True
 
@@ -182,25 +196,28 @@ class ColumnReassembler:
             yield self.received.pop(self.nxt)
             self.nxt += 1
 
+    def _waiting(self, key: Any, now: float) -> bool:
+        """``key`` was asked for and its answer may still come."""
+        if key not in self.asked:
+            return False
+        at, tries = self.asked[key]
+        return now - at < min(self.max_resend_s, self.resend_s * 2 ** (tries - 1))
+
     def due(self, now: float) -> list[Any]:
         """Columns (int) and fragments ((column, index)) sent, missing, due to ask (at
         most 255)."""
         stop = min(self.end, max(self.horizon, self.edge[0] + 1))
         due: list[Any] = []
         for c in range(self.nxt, stop):
-            if c in self.received:
+            if c in self.received or self._waiting(c, now):  # asked whole: pieces coming
                 continue
-            pc = self.parts.get(c)
-            if c in self.asked and now - self.asked[c][0] < self.resend_s:
-                keys: list[Any] = []  # asked for whole: its fragments are on their way
-            elif pc is None:
-                keys = [c] if c < self.horizon else []  # else: in progress, nothing yet
+            if (pc := self._pieces(c)) is None:
+                keys: list[Any] = [c] if c < self.horizon else []  # else: nothing sent yet
             else:
                 sent = pc.count if c < self.horizon else \
                     min(pc.count, self.edge[1]) if c == self.edge[0] else 0
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
-            due += [k for k in keys
-                    if k not in self.asked or now - self.asked[k][0] >= self.resend_s]
+            due += [k for k in keys if not self._waiting(k, now)]
             if len(due) >= 255:
                 break
         return due

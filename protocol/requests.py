@@ -1,19 +1,26 @@
-"""Host requests: send one, wait for its reply on an injected clock, send it again; route
-every frame the device sends.
+"""Host requests: the session, each request waited for and sent again, one receive path.
 
 :class:`Requests` owns the port, the receive buffer (a
-:class:`~cdma_lidar.protocol.framing.FrameDecoder`) and the request counter ``seq``. It
-only ever blocks in ``port.read`` (at most ``port.timeout``) and measures every wait on
-``clock``, so a test drives it with a fake port whose reads move a fake clock.
-Retransmission follows docs/protocol.md section 6.1; a :class:`LinkTimeout` after the
-last try carries a ``DIAG_*`` diagnosis (section 6.7) and ends with its
-:data:`DIAG_HINTS`. Frames of a running stream go, undecoded, to the ``stream`` queue
-for :class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`.
+:class:`~cdma_lidar.protocol.framing.FrameDecoder`), the request counter ``seq`` and the
+session: HELLO with this host's nonce, frame limit and flags; with a key, the CHALLENGE
+answered with the HELLO MAC, INFO checked to prove the device holds the key, every later
+frame signed and checked (:mod:`cdma_lidar.protocol.auth`). It blocks only in
+``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so a test
+drives it with a fake port whose reads move a fake clock. Every frame received is checked
+(session, signature) on its own, FRAGMENTs are joined by their key in one
+:class:`~cdma_lidar.protocol.reassembly.Joiner`, then the whole message is handled; a
+stream's frames queue in ``stream`` for its
+:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`, which joins a column's pieces
+in the same Joiner once it takes them (a repair it did not ask for is not). Retransmission follows
+docs/protocol.md section 6.1; a :class:`LinkTimeout` after the last try carries a
+``DIAG_*`` diagnosis (section 6.7) and ends with its :data:`DIAG_HINTS`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import secrets
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,10 +47,12 @@ from cdma_lidar.protocol.framing import (
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     REPLY_TO,
+    SCHEMA_CRC,
+    Auth,
     ErrorCode,
+    HelloFlags,
     MsgKind,
     MsgType,
-    Pieces,
     SessionLostReason,
     decode_payload,
     encode_payload,
@@ -51,8 +60,9 @@ from cdma_lidar.protocol.messages import (
     split_message,
 )
 from cdma_lidar.protocol.ports import byte_time_s, default_fec, port_name
-from cdma_lidar.protocol.trust import escape
-from cdma_lidar.protocol.views import Status
+from cdma_lidar.protocol.reassembly import Joiner
+from cdma_lidar.protocol.trust import DeviceLied, check_info, escape
+from cdma_lidar.protocol.views import Info, Status
 
 __all__ = ["DIAG_GARBAGE", "DIAG_HINTS", "DIAG_NOISY", "DIAG_NO_ANSWER", "DIAG_SILENT",
            "DIAG_VERSION", "DIAG_WRONG_SESSION", "LinkStats", "Requests", "SessionLost"]
@@ -78,8 +88,6 @@ DIAG_HINTS = {
 }
 #: Shortest wait for one reply (s), however fast the line answered so far.
 MIN_TIMEOUT_S = 0.02
-#: Messages in pieces kept at once (a lost piece leaves its message behind).
-_MAX_PIECES = 8
 #: RESENDs remembered while their NAK may still come.
 _MAX_UNAWAITED = 256
 
@@ -109,27 +117,81 @@ class LinkStats:
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
+def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
+    """The error of a NAK (decoded) to ``msg_type``: code, field and detail, escaped."""
+    try:
+        cname = ErrorCode(nak["code"]).name
+    except ValueError:
+        cname = f"error {nak['code']}"
+    fld = escape(nak["field"])
+    where = f" (field {fld})" if fld else ""
+    detail = f": {escape(nak['detail'])}" if nak["detail"] else ""
+    if nak["code"] == ErrorCode.WRONG_SESSION:
+        detail += " (the device restarted, or another host took it over)"
+    return DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
+                       code=nak["code"], field=fld or None)
+
+
+def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
+    """(DIAG_* string, what to say) of what the line showed between two readings of
+    (bytes, frames, wrong session, other version, damaged, LINE_ERRORs) counters."""
+    nbytes, frames, wrong, version, damaged, reported = (b - a for a, b in zip(before, now,
+                                                                                strict=True))
+    if not nbytes:
+        diag = DIAG_SILENT
+    elif not frames and not reported:
+        diag = DIAG_VERSION if version else DIAG_GARBAGE
+    elif wrong and frames == wrong and not reported:
+        diag = DIAG_WRONG_SESSION
+    else:
+        diag = DIAG_NOISY if reported or damaged else DIAG_NO_ANSWER
+    if diag not in (DIAG_NOISY, DIAG_GARBAGE):
+        return diag, diag
+    return diag, (f"{diag} ({damaged} damaged frames of {damaged + frames} received, "
+                  f"{reported} reported by the device)")
+
+
+def session_lost(frame: Frame, port: str) -> SessionLost:
+    """The error (one line) of a SESSION_LOST frame heard on ``port``."""
+    try:
+        body = decode_payload(frame.msg_type, frame.payload)
+        assert isinstance(body, dict)
+        reason, detail = int(body["reason"]), escape(body["detail"])
+    except Exception:  # FrameError: still lost, say so without the device's words
+        reason, detail = 0, "no reason given"
+    what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+            SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
+    return SessionLost(f"session lost on {port}: {detail or what}", reason)
+
+
 class Requests:
-    """Requests and frame routing over a port (see the module docstring); the arguments
-    are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
+    """The session and its requests over a port (see the module docstring); the
+    arguments are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
 
     def __init__(self, port: Any, timeout_s: float, retries: int, *, max_frame: int,
-                 fec: bool | None, clock: Callable[[], float]) -> None:
+                 key: bytes | None, take_over: bool, keep_config: bool, fec: bool | None,
+                 clock: Callable[[], float]) -> None:
         if not timeout_s > 0:
             raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
-        self.port, self.clock = port, clock
+        if key is not None and len(key) != auth.KEY_BYTES:
+            raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
+        self.port, self.clock, self.port_name = port, clock, port_name(port)
         self.timeout_s = float(timeout_s)
         self.retries = check_int("retries", retries, 0, 100)
+        self.key, self.take_over, self.keep_config = key, bool(take_over), bool(keep_config)
         self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
-        self.fec = default_fec(port) if fec is None else bool(fec)
-        self.decoder.fec = self.fec
+        self.fec = self.decoder.fec = default_fec(port) if fec is None else bool(fec)
         self.coded = False  # this session's frames are coded (the device agreed in HELLO)
         self.stats = LinkStats()
         self.session: int | None = None
+        self.info: Info | None = None
+        self.config: dict[str, Any] | None = None  # last full CONFIG, checked against INFO
+        self._host_max = max_frame
         self.max_frame = 4096  # until INFO says more; every request fits
         self.last_status: Status | None = None
         self.line_errors = 0  # LINE_ERRORs heard so far
-        self.seq = 0  # the last request seq used
+        self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
+        self.seq = int.from_bytes(self._nonce[:2], "little")  # the last request seq used
         self.signer: auth.FrameSigner | None = None  # signs our requests (keyed session)
         self.verifier: auth.FrameVerifier | None = None  # checks the device's frames
         self._pending: int | None = None  # seq of the request waiting for its reply
@@ -137,15 +199,13 @@ class Requests:
         self.reply: Frame | None = None
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
-        self._parts: list[Frame] = []  # those of the last message put together
-        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
-        self.hello_seq: int | None = None  # HELLO pending: its replies open a new session
-        self._early: list[Frame] = []  # frames that came with INFO, before it was ours
+        self.joiner = Joiner()
+        self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
+        self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
         self.streaming = False
         self.stream: deque[Frame] = deque()  # stream frames for the reassembler
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
-        self.port_name = port_name(port)
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
         #: Smoothed round trip of a request and its reply and its mean deviation (s),
         #: measured on first tries; None until the first reply.
@@ -155,23 +215,123 @@ class Requests:
         self.min_timeout_s = min(MIN_TIMEOUT_S, self.timeout_s)
         #: Seconds one byte takes on the line (0: unknown, or no line to speak of).
         self.byte_s = byte_time_s(port)
-        #: Called whenever the session is forgotten (SESSION_LOST, a new HELLO).
-        self.on_forget: Callable[[], None] = lambda: None
 
-    # ---- sending --------------------------------------------------------------------------
+    # ---- the session ------------------------------------------------------------------
+    def hello(self) -> Info:
+        """Open a session: learn the device's identity, limits, geometry and session id.
+
+        With a key, answers the device's CHALLENGE and checks that INFO is signed with
+        the session key (so the device holds the key too). Raises DeviceError (code
+        BUSY, field ``session``) when another host owns the device and ``take_over``
+        is off; DeviceLied when INFO contradicts itself.
+        """
+        self._forget()
+        self.coded = False
+        flags = int((HelloFlags.TAKE_OVER if self.take_over else 0) |
+                    (HelloFlags.KEEP_CONFIG if self.keep_config else 0) |
+                    (HelloFlags.FEC if self.fec else 0))
+        fields_ = {"host_max_frame": self._host_max, "flags": flags, "host_nonce": self._nonce,
+                   "device_nonce": bytes(auth.NONCE_BYTES), "mac": bytes(auth.MAC_BYTES)}
+        for _ in range(2):
+            self._hello_seq = self.new_seq()
+            try:
+                reply = self.transact(MsgType.HELLO, fields_, self._hello_seq)
+            finally:
+                self._hello_seq = None
+            if self.reply is not None and self.reply.msg_type == MsgType.INFO:
+                return self._open(reply, bytes(fields_["device_nonce"]))
+            if self.key is None:
+                raise LinkError(f"device on {self.port_name} requires a key: pass --key-file "
+                                "FILE or set CDMA_LIDAR_KEY_FILE to the device's key file")
+            fields_["device_nonce"] = bytes(reply["device_nonce"])
+            fields_["mac"] = auth.hello_mac(self.key, fields_["device_nonce"], self._nonce,
+                                            flags, self._host_max)
+        raise LinkError("device answered the authenticated HELLO with another CHALLENGE: "
+                        "it does not accept this host's key")
+
+    def _open(self, reply: dict[str, Any], device_nonce: bytes) -> Info:
+        """Check INFO and make its session ours: requests within what the device accepts
+        and this host asked for the line, coded when the device coded its INFO."""
+        try:
+            info = Info.from_fields(reply)
+        except (TypeError, ValueError) as exc:
+            raise DeviceLied(f"device sent an invalid INFO: {exc}") from None
+        if info.protocol_version != PROTOCOL_VERSION:
+            raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
+                            f"{PROTOCOL_VERSION}; update the host or the firmware")
+        if self.key is not None:
+            self.signer, self.verifier = self._authenticate(info, device_nonce)
+        elif info.auth != Auth.NONE:
+            raise DeviceLied("device announced signed frames (INFO.auth = "
+                             f"{info.auth}) without asking this host for a key", "auth")
+        self.info = check_info(info)
+        if info.schema_crc != SCHEMA_CRC:
+            log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
+                        "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
+        assert self.reply is not None
+        self.session = info.session_id
+        self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
+        self.coded = self.fec and self.reply.fec
+        log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
+                 info.session_id, self.info.serial, self.info.firmware_version, info.channels,
+                 info.max_frame, ", signed" if self.signer else "")
+        return self.info
+
+    def _authenticate(self, info: Info, device_nonce: bytes
+                      ) -> tuple[auth.FrameSigner, auth.FrameVerifier]:
+        """Check the device's proof and INFO's signature; the session's signing keys."""
+        assert self.reply is not None and self.key is not None
+        if info.auth != Auth.HMAC_SHA256 or not auth.equal(
+                info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
+                                                 info.session_id)):
+            raise LinkError(f"device on {self.port_name} did not prove it holds the key "
+                            f"(INFO.auth = {info.auth}): it is not the device the key file "
+                            "belongs to, or it holds no key (then drop --key-file)")
+        to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
+                                            info.session_id)
+        rx = auth.FrameVerifier(to_host)
+        parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each one is signed
+        if any(p.session != info.session_id for p in parts) or not all(map(rx.check, parts)):
+            raise LinkError(f"device on {self.port_name} sent an INFO not signed with the "
+                            "session key")
+        return auth.FrameSigner(to_dev), rx
+
+    def _forget(self) -> None:
+        """No session any more: its keys, INFO and configuration go with it."""
+        self.session = self.info = self.config = None
+        self.signer = self.verifier = None
+
+    def close(self) -> None:
+        """End the session (SESSION_END, one short try: another host may then say HELLO
+        without take-over) and close the port."""
+        if self.session is not None:
+            try:
+                self.transact(MsgType.SESSION_END, {}, self.new_seq(), retries=0,
+                              timeout_s=min(self.timeout_s, 0.2))
+            except Exception:  # LinkError, SessionLost: the device forgets us when idle
+                log.debug("SESSION_END got no answer; the session expires when idle")
+            self.session = None
+        with contextlib.suppress(Exception):
+            self.port.close()
+
+    # ---- sending ------------------------------------------------------------------------
     def new_seq(self) -> int:
         self.seq = (self.seq + 1) & 0xFFFF
         return self.seq
 
+    def request(self, msg_type: MsgType, fields_: dict[str, Any]) -> dict[str, Any]:
+        """A request of the session (HELLO first when there is none)."""
+        if self.session is None:
+            self.hello()
+        return self.transact(msg_type, fields_, self.new_seq())
+
     def transact(self, msg_type: MsgType, fields_: dict[str, Any], seq: int, *,
-                  retries: int | None = None, timeout_s: float | None = None) -> dict[str, Any]:
+                 retries: int | None = None, timeout_s: float | None = None) -> dict[str, Any]:
         """Send a request and wait for its reply (decoded), retrying on the clock."""
         payload = encode_payload(msg_type, fields_)
         retries = self.retries if retries is None else retries
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        st = self.decoder.stats
-        before = (st.bytes, st.frames, self.stats.wrong_session, self._other_version(),
-                  st.damaged, self.line_errors)
+        before = self._counters()
         self.stats.requests += 1
         self._pending, self._pending_type = seq, int(msg_type)
         self.reply = self._reply_version = None
@@ -206,7 +366,7 @@ class Requests:
         finally:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
-        diag, what = self._diagnose(*before)
+        diag, what = diagnose(before, self._counters())
         raise LinkTimeout(f"{msg_type.name} got no answer from {self.port_name} after "
                           f"{tries} tries in {waited:.3g} s: {what}; "
                           f"{DIAG_HINTS[diag]}", diag)
@@ -232,11 +392,20 @@ class Requests:
             self.rtt += (rtt - self.rtt) / 8
 
     def _send(self, msg_type: MsgType, payload: bytes, seq: int) -> int:
-        """Write one try of a request, signed afresh (new counter, same seq and payload);
-        returns the bytes written."""
+        """Write one try of a request, signed afresh (new counter, same seq and payload),
+        whole or in FRAGMENTs of at most ``max_frame`` bytes (docs/protocol.md section
+        2.4); returns the bytes written."""
+        signed = self.signer is not None
+        pieces = [(msg_type, payload)]
+        if frame_size(len(payload), signed) > self.max_frame:
+            room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
+            try:
+                pieces = [(MsgType.FRAGMENT, p)
+                          for p in split_message(msg_type, payload, room, seq)]
+            except DeviceError as exc:
+                raise FieldError(str(exc), "payload") from None
         wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self.signer,
-                                     coded=self.coded)
-                        for t, p in self._pieces_of(msg_type, payload, seq))
+                                     coded=self.coded) for t, p in pieces)
         if msg_type == MsgType.HELLO and self.fec:
             # Coded (gets through a noisy line), then plain (a device that cannot decode
             # it, or an older one, reads this copy): the device acts once, the replay
@@ -249,50 +418,22 @@ class Requests:
                             "still connected?") from None
         return len(wire)
 
-    def _pieces_of(self, msg_type: MsgType, payload: bytes, seq: int) -> list[tuple[int, bytes]]:
-        """(type, payload) of each frame of one request: whole, or in FRAGMENTs of at most
-        ``max_frame`` bytes (docs/protocol.md section 2.4)."""
-        signed = self.signer is not None
-        if frame_size(len(payload), signed) <= self.max_frame:
-            return [(msg_type, payload)]
-        room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
-        try:
-            return [(MsgType.FRAGMENT, p) for p in split_message(msg_type, payload, room, seq)]
-        except DeviceError as exc:
-            raise FieldError(str(exc), "payload") from None
-
-    def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> None:
-        """Send a request whose reply is not waited for (a NAK to it still fails the scan)."""
+    def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> int:
+        """Send a request whose reply is not waited for (a NAK to it still fails the
+        scan); returns the bytes written."""
         seq = self.new_seq()
         self.stats.requests += 1
         self._unawaited[seq] = msg_type
         while len(self._unawaited) > _MAX_UNAWAITED:
             self._unawaited.popitem(last=False)
-        self._send(msg_type, encode_payload(msg_type, fields_), seq)
+        return self._send(msg_type, encode_payload(msg_type, fields_), seq)
 
-    def _diagnose(self, nbytes: int, frames: int, wrong: int, version: int, damaged: int,
-                  line_errors: int) -> tuple[str, str]:
-        """(DIAG_* string, what to say) of what the line showed since those counters."""
+    def _counters(self) -> tuple[int, ...]:
+        """What :func:`diagnose` compares: bytes, frames, wrong session, other version
+        (rejected for version or incompat flags), damaged, LINE_ERRORs so far."""
         st = self.decoder.stats
-        reported = self.line_errors - line_errors  # the device saw our frames damaged
-        hurt = st.damaged - damaged
-        if st.bytes == nbytes:
-            diag = DIAG_SILENT
-        elif st.frames == frames and not reported:
-            diag = DIAG_VERSION if self._other_version() > version else DIAG_GARBAGE
-        elif (n := self.stats.wrong_session - wrong) and st.frames - frames == n and \
-                not reported:
-            diag = DIAG_WRONG_SESSION
-        else:
-            diag = DIAG_NOISY if reported or hurt else DIAG_NO_ANSWER
-        if diag not in (DIAG_NOISY, DIAG_GARBAGE):
-            return diag, diag
-        return diag, (f"{diag} ({hurt} damaged frames of {hurt + st.frames - frames} "
-                      f"received, {reported} reported by the device)")
-
-    def _other_version(self) -> int:
-        """CRC-valid frames rejected for their version or incompat flags so far."""
-        return self.decoder.stats.version + self.decoder.stats.incompat
+        return (st.bytes, st.frames, self.stats.wrong_session, st.version + st.incompat,
+                st.damaged, self.line_errors)
 
     def accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         """The decoded reply; DeviceError for a NAK, LinkError for anything else amiss."""
@@ -304,17 +445,7 @@ class Requests:
                             f"{exc}") from None
         assert isinstance(body, dict)
         if frame.msg_type == MsgType.NAK:
-            try:
-                cname = ErrorCode(body["code"]).name
-            except ValueError:
-                cname = f"error {body['code']}"
-            fld = escape(body["field"])
-            where = f" (field {fld})" if fld else ""
-            detail = f": {escape(body['detail'])}" if body["detail"] else ""
-            if body["code"] == ErrorCode.WRONG_SESSION:
-                detail += " (the device restarted, or another host took it over)"
-            raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                              code=body["code"], field=fld or None)
+            raise refused(msg_type, body)
         if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
             return body
         expected = REPLY_TO[msg_type]
@@ -323,85 +454,78 @@ class Requests:
             raise LinkError(f"device answered {msg_type.name} with {frame.msg_type:#04x}")
         return body
 
-    # ---- receiving ------------------------------------------------------------------------
+    # ---- receiving ----------------------------------------------------------------------
     def pump(self) -> None:
-        """One blocking read (at most ``port.timeout``) and dispatch of what it completes."""
-        try:
-            n = self.port.in_waiting
-            data = self.port.read(n if n else 1)
-        except Exception as exc:
-            raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
-                            "still connected?") from None
-        if data:
-            for frame in self.decoder.feed(data):
-                self.dispatch(frame)
+        """Handle the frames read behind the last reply, else one blocking read (at most
+        ``port.timeout``) and the frames it completes, up to the pending reply."""
+        if not self._inbox:
+            try:
+                n = self.port.in_waiting
+                data = self.port.read(n if n else 1)
+            except Exception as exc:
+                raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
+                                "still connected?") from None
+            self._inbox.extend(self.decoder.feed(data) if data else ())
             while self.decoder.rejected:  # frames of another version or incompat flags
                 frame = self.decoder.rejected.pop(0)
                 if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
                     self._reply_version = frame
+        # Stop at the reply: what follows it may need the session it opens (INFO).
+        while self._inbox and (self.reply is None or self._pending is None):
+            self._receive(self._inbox.popleft())
 
-    def dispatch(self, frame: Frame, checked: bool = False) -> None:
-        """Route one frame; ``checked``: a notice put together from authenticated pieces."""
-        mtype, kind = frame.msg_type, kind_of(frame.msg_type)
-        if kind is MsgKind.REQUEST:
+    def _receive(self, frame: Frame) -> None:
+        """Check one frame (session, signature), join it with its pieces, handle it whole.
+
+        The replies to our HELLO (INFO, CHALLENGE, NAK, or FRAGMENTs of them) are of a
+        session we do not know yet: INFO's is checked when it opens (:meth:`_open`)."""
+        mtype = frame.msg_type
+        if kind_of(mtype) is MsgKind.REQUEST:
             self.stats.ignored += 1
             return
-        hello_reply = kind is MsgKind.REPLY and frame.seq == self.hello_seq and \
-            mtype in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE)
-        if self.hello_seq is not None and not hello_reply:
-            if mtype == MsgType.FRAGMENT and self.reply is None:
-                body = self._decoded(frame)
-                if body is not None and body["seq"] == self.hello_seq and \
-                        body["msg_type"] in (MsgType.INFO, MsgType.NAK):
-                    self._reply_piece(frame, body)  # INFO of a session we do not know yet
-                    return
-            elif self.reply is not None and frame.session == self.reply.session:
-                self._early.append(frame)  # of the session INFO opens: read once it is ours
-                return
-        if mtype == MsgType.LINE_ERROR and self.verifier is None:
+        body = None  # a FRAGMENT's fields (msg_type comes first; a column's: the stream's)
+        if mtype == MsgType.FRAGMENT and frame.payload[:1] != bytes([MsgType.COLUMN_RESULT]) \
+                and (body := self._decoded(frame)) is None:
+            return
+        seq, what = (body["seq"], body["msg_type"]) if body else (frame.seq, mtype)
+        if seq == self._hello_seq and what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
+            pass
+        elif mtype == MsgType.LINE_ERROR and self.verifier is None:
             self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
             return
-        if not hello_reply and frame.session != self.session:
+        elif frame.session != self.session:
             self.stats.wrong_session += 1
             if (mtype == MsgType.NAK and frame.seq == self._pending and self.reply is None
                     and self.verifier is None and
                     frame.payload[1:3] == ErrorCode.WRONG_SESSION.to_bytes(2, "little")):
                 self.reply = frame  # the device says it restarted: fail fast
             return
-        if self.verifier is not None and not hello_reply and not checked and \
-                not self.verifier.check(frame):
+        elif self.verifier is not None and not self.verifier.check(frame):
             self.stats.unauthenticated += 1  # forged, replayed or unsigned: not from the device
             log.debug("dropped an unauthenticated %#04x frame", mtype)
             return
+        parts: list[Frame] = []
+        if body is not None:
+            if (whole := self.joiner.add(frame, body)) is None:
+                return
+            frame, parts = whole
+        self._dispatch(frame, parts)
+
+    def _dispatch(self, frame: Frame, parts: list[Frame]) -> None:
+        """A whole message, checked; ``parts``: the FRAGMENTs it came in."""
+        mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
-        elif mtype == MsgType.SESSION_LOST:
-            self._session_lost(frame)
-        elif mtype == MsgType.FRAGMENT:
-            self._fragment(frame)
-        elif kind is MsgKind.REPLY:
-            self._on_reply(frame)
-        else:
+        elif mtype == MsgType.SESSION_LOST:  # the device ended our session
+            self._forget()
+            raise session_lost(frame, self.port_name)
+        elif kind_of(mtype) is MsgKind.REPLY:
+            self._on_reply(frame, parts)
+        elif mtype != MsgType.HEARTBEAT or (body := self._decoded(frame)) is not None:
             if mtype == MsgType.HEARTBEAT:
-                if (body := self._decoded(frame)) is None:
-                    return
                 self.last_status = Status(**body)
             if self.streaming:
                 self.stream.append(frame)
-
-    def _fragment(self, frame: Frame) -> None:
-        """An authenticated FRAGMENT of a column (the stream's), a reply or a notice."""
-        if frame.payload[:1] == bytes([MsgType.COLUMN_RESULT]):  # field msg_type comes first
-            if self.streaming:
-                self.stream.append(frame)
-            return
-        body = self._decoded(frame)
-        if body is None:
-            return
-        if kind_of(body["msg_type"]) is MsgKind.REPLY:
-            self._reply_piece(frame, body)
-        elif (whole := self._piece(frame, body)) is not None:  # a notice longer than a frame
-            self.dispatch(whole._replace(seq=0), checked=True)
 
     def _decoded(self, frame: Frame) -> dict[str, Any] | None:
         """The decoded payload of a FRAGMENT or HEARTBEAT; None (counted) if malformed."""
@@ -411,32 +535,8 @@ class Requests:
             self.stats.malformed += 1
             return None
 
-    def _piece(self, frame: Frame, body: dict[str, Any]) -> Frame | None:
-        """Keep one piece; the whole message (unsigned, of the piece's session) once all
-        are in (its pieces then in ``_parts``)."""
-        key = (body["msg_type"], body["seq"])
-        pc = self._pieces.get(key)
-        if pc is None or pc.count != body["count"]:
-            pc = self._pieces[key] = Pieces(body["count"])
-            while len(self._pieces) > _MAX_PIECES:
-                self._pieces.popitem(last=False)
-        if (payload := pc.add(frame, body)) is None:
-            return None
-        del self._pieces[key]
-        self._parts = pc.frames
-        return Frame(key[0], key[1], frame.session, payload, 0, 0, frame.version)
-
-    def _reply_piece(self, frame: Frame, body: dict[str, Any]) -> None:
-        """A piece of a reply: once all are in, handle the whole reply."""
-        if body["seq"] != self._pending:
-            self.stats.stale_replies += 1
-        elif (whole := self._piece(frame, body)) is not None:
-            if self.reply is None:
-                self.reply_parts = self._parts
-            self._on_reply(whole)
-
-    def _on_reply(self, frame: Frame) -> None:
-        """A reply of our session, authenticated: the pending one, a RESEND's, or stale."""
+    def _on_reply(self, frame: Frame, parts: list[Frame]) -> None:
+        """A reply, checked: the pending one, a RESEND's, or stale."""
         # ACK and NAK echo the request type: a reply to another request that happens
         # to carry the same seq (a previous link, a wrapped counter) is not ours.
         echoed = frame.payload[:1] if frame.msg_type in (MsgType.ACK, MsgType.NAK) else b""
@@ -447,54 +547,19 @@ class Requests:
                 self.refusal = (unawaited, frame)
         elif frame.seq == self._pending and self.reply is None and \
                 echoed in (b"", bytes([self._pending_type])):
-            self.reply = frame
+            self.reply, self.reply_parts = frame, parts
         else:
             self.stats.stale_replies += 1
-
-    def _session_lost(self, frame: Frame) -> None:
-        """The device ended our session: forget it and raise SessionLost (one line)."""
-        try:
-            body = decode_payload(frame.msg_type, frame.payload)
-            assert isinstance(body, dict)
-            reason, detail = int(body["reason"]), escape(body["detail"])
-        except Exception:  # FrameError: still lost, say so without the device's words
-            reason, detail = 0, "no reason given"
-        self.forget()
-        what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
-                SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-        raise SessionLost(f"session lost on {self.port_name}: {detail or what}", reason)
-
-    def forget(self) -> None:
-        """No session any more (keys with it); then :attr:`on_forget`."""
-        self.session = None
-        self.signer = self.verifier = None
-        self.on_forget()
-
-    def before_hello(self) -> None:
-        """A HELLO is about to go: no session, uncoded, nothing held from the last one."""
-        self.forget()
-        self._early = []
-        self.coded = False
-
-    def open_session(self, session: int, max_frame: int, coded: bool,
-                     keys: tuple[auth.FrameSigner, auth.FrameVerifier] | None) -> None:
-        """INFO opened ``session``: requests within ``max_frame`` (bytes), ``coded`` or not,
-        signed and checked with ``keys``; then the frames that came with INFO are read."""
-        self.session, self.max_frame, self.coded = session, max_frame, coded
-        if keys is not None:
-            self.signer, self.verifier = keys
-        early, self._early = self._early, []
-        for frame in early:  # e.g. SESSION_LOST right behind INFO
-            self.dispatch(frame)
 
     def start_stream(self) -> None:
         """Stream frames go to :attr:`stream` from now on (a late NAK to a RESEND of an
         earlier stream is not this one's)."""
-        self.stream.clear()
+        self.end_stream()
         self._unawaited.clear()
-        self.refusal = None
-        self.streaming = True
+        self.refusal, self.streaming = None, True
 
     def end_stream(self) -> None:
+        """No stream: its frames go, and the pieces held (the next may reuse a frame id)."""
         self.streaming = False
         self.stream.clear()
+        self.joiner.held.clear()

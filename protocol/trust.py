@@ -10,7 +10,6 @@ device are escaped (:func:`escape`) before they can reach a terminal.
 
 from __future__ import annotations
 
-import unicodedata
 from dataclasses import replace
 from typing import Any
 
@@ -41,18 +40,15 @@ def escape(text: str) -> str:
     (bidirectional overrides) and separators other than the space become ``\\xNN`` or
     ``\\uNNNN``; a backslash is doubled so the result is unambiguous.
     """
-    out = []
-    for ch in text:
+    def one(ch: str) -> str:
         if ch == "\\":
-            out.append("\\\\")
-        elif ch == " " or (ch.isprintable() and unicodedata.category(ch) not in ("Cf", "Zl",
-                                                                                 "Zp")):
-            out.append(ch)
-        elif ord(ch) < 0x100:
-            out.append(f"\\x{ord(ch):02x}")
-        else:
-            out.append(f"\\u{ord(ch):04x}" if ord(ch) < 0x10000 else f"\\U{ord(ch):08x}")
-    return "".join(out)
+            return "\\\\"
+        if ch.isprintable():  # no C* (control, format) or Z* (separator) but the space
+            return ch
+        n = ord(ch)
+        return f"\\x{n:02x}" if n < 0x100 else f"\\u{n:04x}" if n < 0x10000 else f"\\U{n:08x}"
+
+    return "".join(map(one, text))
 
 
 def _lie(what: str, field: str, value: object, allowed: str) -> DeviceLied:

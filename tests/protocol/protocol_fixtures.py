@@ -223,7 +223,7 @@ def scripted_link(port: ScriptedPort, session: int = 0x42, **kw: Any) -> HostLin
     if HELLO and CONFIG_GET had gone before."""
     link = HostLink(port, clock=port.clock, **kw)
     link.requests.session = session
-    link.session_layer.info = SyntheticApp().info()
+    link.info = SyntheticApp().info()
     link.config = SyntheticApp().get_config()
     return link
 

@@ -115,7 +115,7 @@ def test_a_second_host_hears_busy_while_the_application_computes() -> None:
         with RunningDevice(a_dev, None, core=core), RunningDevice(b_dev, None, core=core):
             a = HostLink(a_host, timeout_s=2.0)
             a.hello()
-            a._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
+            a.request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
             b = HostLink(b_host, timeout_s=2.0, retries=0)
             with pytest.raises(DeviceError) as exc:
                 b.hello()
@@ -139,13 +139,13 @@ def test_busy_comes_from_the_scan_state_while_the_application_computes() -> None
         with RunningDevice(dev, app):
             link = HostLink(host, timeout_s=2.0, retries=0)
             link.hello()
-            link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
+            link.request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 4})
             for req, fields in ((MsgType.CONFIG_SET, {"items": []}),
                                 (MsgType.SCAN_START, {"frame": 2, "first_column": 0,
                                                       "columns": 1}),
                                 (MsgType.CALIBRATE, {"frame": 3, "shots": 1})):
                 with pytest.raises(DeviceError) as exc:
-                    link._request(req, fields)
+                    link.request(req, fields)
                 assert exc.value.code == ErrorCode.BUSY, req
             assert not app.release.is_set()  # all answered while the column was stuck
     finally:

@@ -224,7 +224,7 @@ def test_resend_of_a_column_no_longer_kept(rig) -> None:
     ep.streams.ring_columns = 4
     cols = list(link.scan(columns=10))
     with pytest.raises(DeviceError) as exc:
-        link._request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0],
+        link.request(MsgType.RESEND, {"frame": cols[0].frame, "columns": [9, 0],
                                        "fragments": []})
     assert exc.value.code == ErrorCode.NOT_AVAILABLE and exc.value.field == "columns[1]"
 

@@ -35,7 +35,7 @@ def test_cap_announced_matrix_read_back_and_checked_in_exact_integers() -> None:
         link.set_power(np.full((4, 1), 500), column_start=2)  # lowering is always fine
         assert (link.get_power()[:, 2] == 500).all()
         with pytest.raises(DeviceError) as exc:
-            link._request(MsgType.POWER_GET, {"channel_start": 3, "column_start": 0,
+            link.request(MsgType.POWER_GET, {"channel_start": 3, "column_start": 0,
                                                "channels": 2, "columns": 1})
         assert exc.value.field == "channels"
 

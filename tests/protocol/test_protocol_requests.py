@@ -62,8 +62,9 @@ def test_a_reply_just_before_the_deadline_is_taken_without_a_retry() -> None:
     assert link.stats.retries == 0 and len(port.log) == 1
 
 
-def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -> None:
-    """Columns 0 and 2 arrive, 1 never does: RESENDs a quarter timeout apart, then a
+def test_a_lost_column_is_asked_for_again_after_a_round_trip_doubling_per_try() -> None:
+    """Columns 0 and 2 arrive, 1 never does: RESENDs a measured round trip apart (at least
+    MIN_TIMEOUT_S), twice as long after each try up to a quarter timeout, then a
     LinkTimeout naming column 1; SCAN_ABORT goes out as the scan is left."""
     def answer(req: Frame) -> bytes:
         if req.msg_type != MsgType.SCAN_START:
@@ -72,7 +73,7 @@ def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -
                                          0) for c in (0, 2))
 
     port = _logged(answer)
-    link = scripted_link(port, timeout_s=0.4, retries=1, column_retries=4)
+    link = scripted_link(port, timeout_s=1.6, retries=1, column_retries=5)
     got = []
     with pytest.raises(LinkTimeout) as exc:
         for c in link.scan(columns=3, frame=5):
@@ -80,11 +81,14 @@ def test_a_lost_column_is_asked_for_every_resend_s_until_its_budget_is_spent() -
     assert got == [0] and "column 1 of frame 5" in str(exc.value)
     assert exc.value.diagnosis == DIAG_NO_ANSWER
     resends = [f for _, f in port.log if f.msg_type == MsgType.RESEND]
-    assert len(resends) == 4
+    assert len(resends) == 5
     assert all(decode_payload(MsgType.RESEND, f.payload)["columns"] == [1] for f in resends)
     gaps = np.diff(_times(port, MsgType.RESEND))
-    quarter = 0.4 / 4  # a quarter of the reply timeout
-    assert all(quarter - 1e-9 <= g <= quarter + port.timeout + 1e-9 for g in gaps)
+    # The ACK came at once: the wait is its floor, 20 ms, then 40, 80, 160 ms (not the
+    # quarter timeout, 0.4 s), each as the host's poll (port.timeout) sees it.
+    want = [0.02, 0.04, 0.08, 0.16]
+    assert all(w - 1e-9 <= g <= w + port.timeout + 1e-9
+               for g, w in zip(gaps, want, strict=True)), gaps
     assert _times(port, MsgType.SCAN_ABORT)  # leaving the scan stops it on the device
 
 
@@ -107,3 +111,32 @@ def test_a_silent_stream_is_probed_with_status_after_one_timeout() -> None:
     assert [c.column for c in cols] == [0, 1, 2]
     start, probe = _times(port, MsgType.SCAN_START)[0], _times(port, MsgType.STATUS_GET)[0]
     assert 0.4 - 1e-9 <= probe - start <= 0.4 + port.timeout + 1e-9
+
+
+def test_a_new_stream_of_the_same_frame_id_joins_none_of_the_last_ones_pieces() -> None:
+    """Scan 1 of frame 5 ends (aborted) with half of column 0 held; scan 2 of frame 5, with
+    two peaks a column, sends the other half first: it must not complete the old half."""
+    from cdma_lidar.protocol.columns import encode_column
+    from cdma_lidar.protocol.framing import encode_frame
+    from cdma_lidar.protocol.messages import ScanEndReason, split_message
+    from cdma_lidar.protocol.reassembly import StreamEnded
+
+    def pieces(peaks: int) -> list[bytes]:
+        data = encode_column(expected_column(5, 0, 8, peaks, 1))
+        return [encode_frame(MsgType.FRAGMENT, p, 0, 0x42) for p in
+                split_message(MsgType.COLUMN_RESULT, data, len(data) // 2 + 1, 0, (5, 0))]
+
+    def end(reason: ScanEndReason, columns: int) -> bytes:
+        return reply(MsgType.SCAN_END, {"frame": 5, "first_column": 0, "columns": columns,
+                                        "calibration": 0, "reason": int(reason)}, 0)
+
+    scans = iter([pieces(1)[0] + end(ScanEndReason.ABORTED, 0),
+                  pieces(2)[1] + pieces(2)[0] + end(ScanEndReason.COMPLETE, 1)])
+    port = ScriptedPort(lambda req: ack(req) + next(scans)
+                        if req.msg_type == MsgType.SCAN_START else ack(req))
+    link = scripted_link(port, timeout_s=0.4)
+    with pytest.raises(StreamEnded):
+        list(link.scan(columns=1, frame=5))
+    link.config = {**link.config, "peaks": 2}
+    assert list(link.scan(columns=1, frame=5)) == [expected_column(5, 0, 8, 2, 1)]
+    assert link.stats.malformed == 0
