@@ -33,11 +33,13 @@ def test_paced_pipe_holds_bytes_for_their_time_on_the_line() -> None:
 
 
 def test_paced_writer_waits_while_the_driver_buffer_is_full() -> None:
-    pipe = BytePipe(baud=1000, tx_buffer=4)
+    pipe = BytePipe(baud=100, tx_buffer=4)
     pipe.write(b"abcd")  # fills the buffer: returns at once
     done = threading.Event()
     threading.Thread(target=lambda: (pipe.write(b"efgh"), done.set()), daemon=True).start()
-    assert not done.wait(0.01)  # 4 bytes are 40 ms on the line: the writer still waits
+    # 4 bytes are 0.4 s on the line (long enough that a loaded machine's scheduling delay
+    # cannot drain them first): the writer still waits
+    assert not done.wait(0.01)
     assert pipe.read(8, 5.0) == b"abcdefgh"
     assert done.wait(5.0)
 
