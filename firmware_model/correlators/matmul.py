@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import collections
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -223,7 +223,8 @@ class MatmulCorrelator(Correlator):
             windows = sliding_window_view(np.concatenate((code, code)), n)  # a view
             dst[(kk - k0) * width : (kk - k0 + 1) * width] = windows[starts]
 
-    def _hankel(self, width: int, dtype: type) -> list[tuple[int, int, NDArray[np.floating]]]:
+    def _hankel(self, width: int, dtype: type
+                ) -> Iterable[tuple[int, int, NDArray[np.floating]]]:
         """``B[i, k, t] = bip_k[(i - q0 - t) mod N]`` for t < width in chunks of channels:
         ``(k0, k1, an (N, (k1 - k0) width) view)`` each.
 
