@@ -263,7 +263,7 @@ def random_cases(seed: int) -> Iterator[Case]:
 
 #: ``--wide``: the ranges of issue 40's target (degrees, S, K, gate lags, R), the seed
 #: (one the constants were never fitted on: --fit used 0, 1, 2, 5 and 7, --fit --wide
-#: 100; seed 44 is another such check), and a
+#: 100; seeds 44 and 45 are other such checks), and a
 #: configuration whose best prediction is over WIDE_MAX_SECONDS is drawn again (printed).
 WIDE_DEGREES, WIDE_S, WIDE_K, WIDE_GATES, WIDE_R = (6, 15), (1, 16), (1, 1200), (16, 1024), \
     (1, 10)
