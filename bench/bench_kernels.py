@@ -262,7 +262,8 @@ def random_cases(seed: int) -> Iterator[Case]:
 
 
 #: ``--wide``: the ranges of issue 40's target (degrees, S, K, gate lags, R), the seed
-#: (one the constants were never fitted on: --fit used 0, 1, 2, 5 and 7), and a
+#: (one the constants were never fitted on: --fit used 0, 1, 2, 5 and 7, --fit --wide
+#: 100; seeds 44 and 45 are other such checks), and a
 #: configuration whose best prediction is over WIDE_MAX_SECONDS is drawn again (printed).
 WIDE_DEGREES, WIDE_S, WIDE_K, WIDE_GATES, WIDE_R = (6, 15), (1, 16), (1, 1200), (16, 1024), \
     (1, 10)
@@ -394,22 +395,31 @@ def _features(plan: GatePlan, ram: float) -> dict[str, np.ndarray]:
     return out
 
 
-def fit(seed: int, random_n: int) -> None:
+def fit(seed: int, random_n: int, wide: bool = False) -> None:
     """``--fit``: time the kernels on the quick grid (degree <= 13, K <= 400) and
     ``random_n`` random configurations, then fit :data:`.costs.COEFFICIENTS` and each
     kernel's ``fixed_calls`` (non-negative least squares on the relative errors, the
-    ``ram`` of FIT_RAMS that puts the most plans within 1.25x) and print them."""
+    ``ram`` of FIT_RAMS that puts the most plans within 1.25x) and print them.
+    ``wide``: ``random_n`` configurations of :func:`wide_cases` of ``seed`` instead (one
+    column, one thread: the plans ``--wide`` checks; fit on one seed, check on another)."""
     from scipy.optimize import nnls
 
-    cases = [c for c in quick_grid() if c.degree <= 13 and c.k <= 400]
-    draws = random_cases(seed)
-    cases += [next(draws) for _ in range(random_n)]
-    print(f"--fit: {len(cases)} plans (quick grid, {random_n} random of seed {seed}); "
-          f"load average {os.getloadavg()[0]:.2f}", flush=True)
+    if wide:
+        draws = wide_cases(seed)
+        cases = [next(draws) for _ in range(random_n)]
+        what = f"{random_n} --wide configurations of seed {seed}"
+    else:
+        cases = [c for c in quick_grid() if c.degree <= 13 and c.k <= 400]
+        draws = random_cases(seed)
+        cases += [next(draws) for _ in range(random_n)]
+        what = f"quick grid, {random_n} random of seed {seed}"
+    print(f"--fit: {len(cases)} plans ({what}); load average {os.getloadavg()[0]:.2f}",
+          flush=True)
     data = []
     for case in cases:
         cfg, codes, _ = _setup(case)
-        plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False).plan
+        plan = FastReceiver(cfg, codes, columns=case.columns, prepare=False,
+                            **({"threads": 1} if wide else {})).plan
         if min(e.seconds for e in estimates(plan).values()) > FIT_MAX_SECONDS:
             continue
         times = kernel_times(plan)
@@ -554,13 +564,13 @@ def main() -> None:
             sys.exit(2)
         run_row_threads(case)
         return
+    if "--fit" in sys.argv:
+        fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")), "--wide" in sys.argv)
+        return
     if "--wide" in sys.argv:
         at = sys.argv.index("--wide") + 1
         count = int(sys.argv[at]) if at < len(sys.argv) and sys.argv[at].isdigit() else 40
         run_wide(int(os.environ.get("CDMA_LIDAR_BENCH_SEED", str(WIDE_SEED))), count)
-        return
-    if "--fit" in sys.argv:
-        fit(seed, int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "30")))
         return
     clock = time.process_time if "--cpu" in sys.argv else time.perf_counter
     if "--cpu" in sys.argv:

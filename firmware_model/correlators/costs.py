@@ -30,6 +30,8 @@ __all__ = [
     "LLC_FACTOR",
     "PACK_BYTES",
     "RAM_FACTOR",
+    "SMALL_MACS",
+    "SMALL_OUTPUT",
     "TILE_ROWS",
     "Coefficients",
     "Estimate",
@@ -140,17 +142,33 @@ def stream_bytes(size: float, uses: float, ram: float = RAM_FACTOR,
     return size * uses * factor
 
 
-def packs(m: float, p: float) -> bool:
+#: A float product (m, n) @ (n, p) of at most SMALL_MACS multiply-adds and SMALL_OUTPUT
+#: output elements runs BLAS's small-matrix kernel, which packs nothing (OpenBLAS's
+#: ``gemm_small_kernel_permit`` for the transposed operand numpy hands it: ``M N K <=
+#: 100^3`` and ``M N <= 1200``). Measured on the 2-core machine (OpenBLAS, one thread, CPU
+#: time): (4, 1023) @ (1023, 173) took 34 us, (4, 1023) @ (1023, 240) 47 us (48 ps per
+#: multiply-add, no tile), (2, 255) @ (255, 600) 20 us; (2, 255) @ (255, 620), 1,240
+#: outputs, 69 us and (8, 1023) @ (1023, 173) 163 us: packed. Charging the packing to the
+#: small ones priced the windows kernel's products of a few lags at 2-3x their time and
+#: sent degree-10, 173-channel and degree-8, 20-channel columns to kernels 1.2-1.4x slower
+#: (``bench kernels --fit --wide``, seed 100).
+SMALL_MACS = 100.0**3
+SMALL_OUTPUT = 1200.0
+
+
+def packs(m: float, n: float, p: float) -> bool:
     """Whether a float64 product (m, n) @ (n, p) packs its operands into blocks and panels.
 
     Only a true matrix product does: one row (m = 1) or one output column (p = 1) is a
-    matrix-vector product, which BLAS (gemv) streams without a copy. (Charging the
-    packing to the direct kernel's 95 per-lag (2, 16383) @ (16383, 1) products of a
-    one-channel pair of columns predicted them level with matmul's one (2, 16383) @
-    (16383, 95) product, where direct measured 0.4-0.7x matmul's time, kernel alone:
-    ``bench kernels``' random row d14 S1 K1 G93 R1024 n16 b16 C2, auto off target.)
+    matrix-vector product, which BLAS (gemv) streams without a copy, and a product of at
+    most :data:`SMALL_MACS` multiply-adds and :data:`SMALL_OUTPUT` outputs runs the
+    small-matrix kernel, which reads its operands in place. (Charging the packing to the
+    direct kernel's 95 per-lag (2, 16383) @ (16383, 1) products of a one-channel pair of
+    columns predicted them level with matmul's one (2, 16383) @ (16383, 95) product,
+    where direct measured 0.4-0.7x matmul's time, kernel alone: ``bench kernels``'
+    random row d14 S1 K1 G93 R1024 n16 b16 C2, auto off target.)
     """
-    return m > 1 and p > 1
+    return m > 1 and p > 1 and (m * n * p > SMALL_MACS or m * p > SMALL_OUTPUT)
 
 
 def gemm_seconds(m: float, n: float, p: float, co: Coefficients, item: float = 8.0) -> float:
@@ -173,7 +191,7 @@ def gemm_seconds(m: float, n: float, p: float, co: Coefficients, item: float = 8
     moved = sum(stream_bytes(item * size, 1, co.ram, co.llc_bytes)
                 for size in (m * n, n * p, m * p))
     rows = m
-    if packs(m, p):
+    if packs(m, n, p):
         moved += PACK_BYTES * (m * n + n * p)
         rows = -(-m // TILE_ROWS) * TILE_ROWS
     return co.mac * item / 8.0 * rows * n * p + co.byte * moved + co.call

@@ -73,7 +73,7 @@ class DirectCorrelator(Correlator):
             """One block of ``rows`` columns, every lag and phase."""
             # the (K, N) codes, read on every lag
             codes = stream_bytes(8.0 * n * k, plan.count, co.ram, co.llc_bytes)
-            if packs(rows, k):  # a product of several rows and channels packs both
+            if packs(rows, n, k):  # a product of several rows and channels packs both
                 codes += PACK_BYTES * (rows * n + n * k) * plan.count  # operands (gemm_seconds)
             return (plan.count * (co.mac * rows * n * k + co.byte * 8.0 * (rows * n + rows * k)
                                   + 3 * co.call)  # slice, product, store

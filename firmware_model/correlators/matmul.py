@@ -29,10 +29,11 @@ order of the BLAS:
 from __future__ import annotations
 
 import collections
-import math
 import threading
+from collections.abc import Iterable, Iterator
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from cdma_lidar.firmware_model.correlators.base import (
@@ -47,7 +48,7 @@ from cdma_lidar.firmware_model.correlators.costs import (
     gemm_seconds,
 )
 
-__all__ = ["MAX_HANKEL_BYTES", "MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
+__all__ = ["HANKEL_BYTES", "MERGE_WASTE", "MatmulCorrelator", "phase_groups"]
 
 
 def _block(plan: GatePlan) -> int:
@@ -87,16 +88,39 @@ def _seconds(plan: GatePlan, co: Coefficients, merged: bool, rows: int, item: fl
 #: L = 5 (10 %) tied; L = 2 with 1 short (12.5 %) took 1.01-1.06x.
 MERGE_WASTE = 1 / 8
 
+#: Cache bytes per element of a Hankel block built on a call (a gathered int8 cast to a
+#: float), charged where the blocks are not kept (:data:`HANKEL_BYTES`).
+BUILD_BYTES = 16.0
+
 #: Bytes of output scattered per step: the 4 phases writing every 4th lag of a paper frame
 #: (3.4 MB of int64) took 0.58-0.82 ms in one pass each, 0.41-0.45 ms in steps of 12
 #: columns (this size), on the 2-core development machine.
 SCATTER_BYTES = 1 << 18
 
-#: ``"auto"`` never prepares Hankel blocks larger than this (bytes; ``method="matmul"``
-#: still does): a degree-15, 1200-channel column would hold 5.3 GB of them, where the
-#: direct kernel needs 32 MB; the cost model counts time only, so this bound keeps auto
-#: from trading gigabytes for it.
-MAX_HANKEL_BYTES = 1 << 30
+#: The Hankel blocks of one float type are prepared once and kept while they take at most
+#: this many bytes (every group's together); beyond it (a degree-15 code, 400 channels and
+#: a 64-lag gate at S = 2 would keep 3.4 GB of them, and a bench process reached 6 GB) the
+#: kernel builds them on every call in chunks of channels of at most HANKEL_BYTES / 8
+#: bytes each, in a per-thread buffer: its memory is then O(chunk N), whatever K, and the
+#: cost model charges the build (:meth:`MatmulCorrelator.estimate`).
+HANKEL_BYTES = 256 << 20
+
+
+def _hankel_width(plan: GatePlan) -> int:
+    """Offsets of every product's Hankel block together (K times this many rows of N)."""
+    return sum(w for _, w in _products(plan, phase_groups(plan), 1))
+
+
+def _cached(plan: GatePlan, item: float) -> bool:
+    """Whether the Hankel blocks of ``item``-byte floats are prepared once and kept."""
+    return item * plan.k * _hankel_width(plan) * plan.n <= HANKEL_BYTES
+
+
+def _chunk(plan: GatePlan, width: int, item: float) -> int:
+    """Channels per Hankel block: all when the blocks are kept, else HANKEL_BYTES / 8."""
+    if _cached(plan, item):
+        return plan.k
+    return max(1, min(plan.k, int(HANKEL_BYTES // 8 // (item * width * plan.n))))
 
 
 def phase_groups(plan: GatePlan) -> bool:
@@ -149,16 +173,20 @@ class MatmulCorrelator(Correlator):
             # float32 bound test: on data too large for it, usually one phase copied, summed
             check = 0.0 if single or not plan.float32_limit() else \
                 co.byte * 12.0 * rows * n + 6 * co.call
-            return parts * (prods + moves) + check
+            return parts * (prods + moves + build) + check
 
+        hankel = sum(w for _, w in shapes)
+        kept = _cached(plan, item)
+        # Hankel blocks beyond HANKEL_BYTES: built per block of columns and limb, each
+        # element a gathered int8 cast to a float (BUILD_BYTES cache bytes)
+        build = 0.0 if kept else co.byte * BUILD_BYTES * k * hankel * n \
+            + co.call * 2 * k * len(shapes)
         full, rest = divmod(c, cb)  # the last block holds only the columns left
         seconds = full * block(cb) + (block(rest) if rest else 0.0) \
             + cls.fixed_calls * co.call
-        hankel = sum(w for _, w in shapes)
-        peak = item * n * k * hankel + item * active * cb * n + item * cb * k * width \
-            + 8.0 * c * k * plan.count
-        if item * n * k * hankel > MAX_HANKEL_BYTES:
-            return Estimate(math.inf, peak)  # not a candidate for auto (see the constant)
+        chunk = k if kept else max(_chunk(plan, w, item) * w for _, w in shapes)
+        peak = item * n * (k * hankel if kept else chunk) + item * active * cb * n \
+            + item * cb * (k * width if kept else chunk) + 8.0 * c * k * plan.count
         return Estimate(seconds, peak)
 
     def __init__(self, plan: GatePlan) -> None:
@@ -181,27 +209,54 @@ class MatmulCorrelator(Correlator):
         self._local = threading.local()  # per-thread operand and output buffers
         self.products: collections.Counter[str] = collections.Counter()
         for width, _ in self._groups:  # the float64 blocks now, float32 ones on first use
-            self._hankel(width, np.float32 if plan.float32_certain() else np.float64)
+            if _cached(plan, 4 if plan.float32_certain() else 8):
+                self._hankel(width, np.float32 if plan.float32_certain() else np.float64)
 
-    def _hankel(self, width: int, dtype: type) -> NDArray[np.floating]:
-        """``B[i, k, t] = bip_k[(i - q0 - t) mod N]`` for t < width, as an (N, K width) view.
+    def _fill_hankel(self, dst: NDArray[np.floating], k0: int, k1: int, width: int) -> None:
+        """``dst[(k - k0) width + t, i] = bip_k[(i - q0 - t) mod N]`` for k0 <= k < k1, t <
+        width: rows of channel k's codes rotated by ``q0 + t``, channel by channel (no
+        (K, width, N) int8 copy; per channel a (width, N) int8 one)."""
+        plan, n = self.plan, self.plan.n
+        starts = (-plan.q0 - np.arange(width)) % n  # row t: the code from chip starts[t] on
+        for kk in range(k0, k1):
+            code = plan.bip[kk]
+            windows = sliding_window_view(np.concatenate((code, code)), n)  # a view
+            dst[(kk - k0) * width : (kk - k0 + 1) * width] = windows[starts]
+
+    def _hankel(self, width: int, dtype: type
+                ) -> Iterable[tuple[int, int, NDArray[np.floating]]]:
+        """``B[i, k, t] = bip_k[(i - q0 - t) mod N]`` for t < width in chunks of channels:
+        ``(k0, k1, an (N, (k1 - k0) width) view)`` each.
 
         Stored as its C-contiguous transpose (K width, N): BLAS reads it as a transposed
         operand, up to 1.7x faster than an (N, K width) matrix for products of few rows.
+        Kept whole when the blocks fit :data:`HANKEL_BYTES`; else each chunk is built when
+        the caller iterates to it, in one per-thread buffer (use it before the next).
         """
+        plan, n = self.plan, self.plan.n
+        if not _cached(plan, np.dtype(dtype).itemsize):
+            return self._hankel_chunks(width, dtype)
         key = (width, dtype)
         b = self._hankels.get(key)
         if b is None:
             with self._lock:
                 b = self._hankels.get(key)
                 if b is None:
-                    plan, n = self.plan, self.plan.n
-                    idx = (np.arange(n)[None, :] - plan.q0 - np.arange(width)[:, None]) % n
-                    b = np.empty((plan.k, width, n), dtype=dtype)
-                    for kk in range(plan.k):  # channel by channel: no (K, width, N) int8 copy
-                        b[kk] = plan.bip[kk][idx]
-                    b = self._hankels[key] = b.reshape(plan.k * width, n)
-        return b.T
+                    b = np.empty((plan.k * width, n), dtype=dtype)
+                    self._fill_hankel(b, 0, plan.k, width)
+                    self._hankels[key] = b
+        return [(0, plan.k, b.T)]
+
+    def _hankel_chunks(self, width: int, dtype: type
+                       ) -> Iterator[tuple[int, int, NDArray[np.floating]]]:
+        """The chunks of :meth:`_hankel` built one at a time in a per-thread buffer."""
+        plan = self.plan
+        step = _chunk(plan, width, np.dtype(dtype).itemsize)
+        for k0 in range(0, plan.k, step):
+            k1 = min(plan.k, k0 + step)
+            b = self._buffer("hankel", ((k1 - k0) * width, plan.n), dtype)
+            self._fill_hankel(b, k0, k1, width)
+            yield k0, k1, b.T
 
     def _buffer(self, name: str, shape: tuple[int, int], dtype: type) -> NDArray[np.floating]:
         """A reused per-thread buffer (no fresh pages to fault in on every call)."""
@@ -273,26 +328,29 @@ class MatmulCorrelator(Correlator):
              single: bool, first: bool) -> None:
         """Run each group's product and scatter its lags into ``dst`` (cb, K, count)."""
         plan = self.plan
-        cb, k = dst.shape[0], plan.k
+        cb = dst.shape[0]
         s = plan.s
         for g, ((width, phases), lf) in enumerate(zip(self._groups, operands, strict=True)):
-            o = self._buffer(f"out{g}", (lf.shape[0], k * width), dtype)
-            np.matmul(lf, self._hankel(width, dtype), out=o)  # exact integers (module doc)
-            o4 = o.reshape(len(phases), cb, k, width)
-            # the phases interleave in dst's lags: a few columns at a time, so that every
-            # phase's strided writes find those columns' lines of dst still in the cache
-            step = max(1, SCATTER_BYTES // (8 * k * plan.count))
-            for c0 in range(0, cb, step):
-                for i, r in enumerate(phases):
-                    sel = plan.sel[r]
-                    d = dst[c0 : c0 + step, :, int(sel[0]) :: s]  # phase r's lags: strided
-                    src = o4[i, c0 : c0 + step, :, : self._len[r]]
-                    if single:
-                        np.copyto(d, src, casting="unsafe")  # exact integers: an exact cast
-                    elif first:
-                        np.left_shift(src.astype(np.int64), shift, out=d)
-                    else:
-                        d += src.astype(np.int64) << shift
+            for k0, k1, hankel in self._hankel(width, dtype):
+                kc = k1 - k0
+                o = self._buffer(f"out{g}", (lf.shape[0], kc * width), dtype)
+                np.matmul(lf, hankel, out=o)  # exact integers (module doc)
+                o4 = o.reshape(len(phases), cb, kc, width)
+                # the phases interleave in dst's lags: a few columns at a time, so that
+                # every phase's strided writes find those columns' lines of dst cached
+                step = max(1, SCATTER_BYTES // (8 * kc * plan.count))
+                for c0 in range(0, cb, step):
+                    for i, r in enumerate(phases):
+                        sel = plan.sel[r]
+                        # phase r's lags: strided
+                        d = dst[c0 : c0 + step, k0:k1, int(sel[0]) :: s]
+                        src = o4[i, c0 : c0 + step, :, : self._len[r]]
+                        if single:
+                            np.copyto(d, src, casting="unsafe")  # exact: an exact cast
+                        elif first:
+                            np.left_shift(src.astype(np.int64), shift, out=d)
+                        else:
+                            d += src.astype(np.int64) << shift
             with self._lock:  # called from several column threads at once
                 self.products[np.dtype(dtype).name] += 1
 

@@ -23,11 +23,13 @@ from cdma_lidar.firmware_model.correlators.base import measure_correlators
 from cdma_lidar.firmware_model.correlators.costs import (
     COEFFICIENTS,
     PACK_BYTES,
+    SMALL_MACS,
     TILE_ROWS,
     Coefficients,
     Estimate,
     choose,
     gemm_seconds,
+    packs,
 )
 
 
@@ -77,14 +79,33 @@ def test_streaming_from_main_memory_costs_the_ram_ratio():
 def test_only_a_true_matrix_product_pays_for_packing_its_operands():
     """Bytes moved by (m, n) @ (n, p): each operand and the output once, plus a read and a
     write of both operands into BLAS's blocks and panels, which a matrix-vector product
-    (one row, or one output column) does not do."""
+    (one row, or one output column) and a product of at most SMALL_MACS multiply-adds
+    (BLAS's small-matrix kernel) do not do."""
     bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
     assert gemm_seconds(1, 100, 7, bytes_only) == 8 * (100 + 700 + 7)
     assert gemm_seconds(4, 100, 1, bytes_only) == 8 * (400 + 100 + 4)
-    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28) + PACK_BYTES * (400 + 700)
+    assert gemm_seconds(4, 100, 7, bytes_only) == 8 * (400 + 700 + 28)  # small: in place
+    # 8 x 400 x 400 multiply-adds: 1.28 M, over SMALL_MACS (operands in the cache)
+    assert 8 * 400 * 400 > SMALL_MACS
+    assert gemm_seconds(8, 400, 400, bytes_only) == \
+        8 * (3200 + 160000 + 3200) + PACK_BYTES * (3200 + 160000)
     # float32 streams half the bytes but packs at the same cost per element
-    assert gemm_seconds(4, 100, 7, bytes_only, 4.0) == \
-        4 * (400 + 700 + 28) + PACK_BYTES * (400 + 700)
+    assert gemm_seconds(8, 400, 400, bytes_only, 4.0) == \
+        4 * (3200 + 160000 + 3200) + PACK_BYTES * (3200 + 160000)
+
+
+def test_a_few_lags_of_a_few_hundred_channels_run_the_small_matrix_kernel():
+    """``bench kernels --wide`` seed 100, d10 S5 K173 G17: the windows kernel's per-phase
+    products (4, 1023) @ (1023, 173), 0.7 M multiply-adds, pack nothing (39 us measured,
+    0.22 ns per code element; charging the packing predicted 137 us): the windows kernel
+    (0.55 ms alone) wins over direct (0.65 ms) and matmul (1.03 ms), as measured."""
+    rng = np.random.default_rng(2)
+    bip = np.where(rng.random((173, 1023)) < 0.5, -1, 1).astype(np.int8)
+    plan = GatePlan(bip, 5, 5 * 1023 // 3, 17, y_bound=5 * 2 * 2048)
+    est = estimates(plan)
+    assert est["windows"].seconds < est["direct"].seconds < est["matmul"].seconds
+    assert choose_correlator(plan) == "windows"
+    assert not packs(4, 1023, 173) and packs(8, 1023, 173)
 
 
 def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
@@ -97,12 +118,13 @@ def test_a_one_channel_column_pair_takes_the_per_lag_matrix_vector_products():
     est = estimates(plan)
     assert est["direct"].seconds < est["matmul"].seconds
     assert choose_correlator(plan) == "direct"
-    # with more channels the codes are a true matrix again and direct pays for packing
+    # with enough channels the codes are a true matrix past the small-matrix kernel, and
+    # direct pays for packing both operands on every lag: the (2, N) window and the codes
+    assert not packs(2, 16383, 30) and packs(2, 16383, 31)
     bytes_only = Coefficients(mac=0.0, byte=1.0, fft=0.0, call=0.0, ram=1.0)
-    one, two = (estimates(_plan(16383, k, 1, 95, columns=2), bytes_only)["direct"].seconds
-                for k in (1, 2))
-    # packing both operands on every lag: the (2, N) window and the (N, 2) codes
-    assert two - one >= 16 * (2 * 16383 + 2 * 16383) * 95
+    k30, k31 = (estimates(_plan(16383, k, 1, 95, columns=2), bytes_only)["direct"].seconds
+                for k in (30, 31))
+    assert k31 - k30 >= PACK_BYTES * (2 * 16383 + 31 * 16383) * 95
 
 
 @st.composite

@@ -10,13 +10,19 @@ wrong there (float32 cannot hold it).
 
 from __future__ import annotations
 
+import tracemalloc
 from unittest import mock
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cdma_lidar.firmware_model.correlators import GatePlan, MatmulCorrelator
+from cdma_lidar.firmware_model.correlators import (
+    DirectCorrelator,
+    GatePlan,
+    MatmulCorrelator,
+    matmul,
+)
 from cdma_lidar.firmware_model.correlators.matmul import phase_groups
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig, reference
 
@@ -249,3 +255,46 @@ def test_data_too_large_skips_the_sum_and_hands_the_trivial_bound():
     with mock.patch.object(type(kernel), "__call__", spy):
         rx.frame(small)
     assert seen and all((b < rx.plan.float32_limit()).all() for b in seen)
+
+
+# -- Hankel blocks beyond HANKEL_BYTES: built per call in chunks of channels ---------------
+
+
+@settings(max_examples=80, deadline=None)
+@given(kernel_cases(), st.integers(1, 3))
+def test_hankel_blocks_in_chunks_of_channels_give_the_same_integers(case, per_chunk):
+    """With the blocks' budget shrunk to ``per_chunk`` channels' float32 blocks (a chunk
+    then holds one channel or a few), the chunks are built on the call: the same exact
+    integers, and the same float type as the rule says."""
+    plan, y = case
+    whole = MatmulCorrelator(plan)(y)
+    budget = 4 * matmul._hankel_width(plan) * plan.n * per_chunk
+    with mock.patch.object(matmul, "HANKEL_BYTES", budget):
+        if plan.k > per_chunk:
+            assert not matmul._cached(plan, 4)
+        kern = MatmulCorrelator(plan)
+        got = kern(y)
+        assert got.tolist() == whole.tolist() == _exact(plan, y)
+        assert not kern._hankels or plan.k <= per_chunk
+        want = "float32" if _float32_allowed(plan, y) else "float64"
+        assert set(kern.products) == {want}
+
+
+def test_a_large_plan_holds_a_chunk_of_its_hankel_blocks_not_all():
+    """Degree 13 (N = 8191), 400 channels, a 64-lag gate at S = 2: 0.84 GB of float64 Hankel
+    blocks if kept whole; in chunks the call's peak stays under 4 chunks of HANKEL_BYTES / 8
+    (and the same integers as the direct kernel)."""
+    rng = np.random.default_rng(5)
+    n, k = 8191, 400
+    bip = np.where(rng.random((k, n)) < 0.5, -1, 1).astype(np.int8)
+    plan = GatePlan(bip, 2, 1000, 64)
+    assert 4 * k * 32 * n > matmul.HANKEL_BYTES  # float32 too: 0.4 GB
+    y = rng.integers(-2000, 2001, (1, 2, n))
+    tracemalloc.start()
+    kern = MatmulCorrelator(plan)
+    got = kern(y)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert not kern._hankels
+    assert peak < 4 * matmul.HANKEL_BYTES / 8, peak
+    assert np.array_equal(got, DirectCorrelator(plan)(y))

@@ -15,7 +15,13 @@ from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import run_study
 from cdma_lidar.study.mai import snr_ss_eq43
-from cdma_lidar.study.massive import STUDY, flat_wall_scene, massive_task, predicted_error
+from cdma_lidar.study.massive import (
+    STUDY,
+    flat_wall_scene,
+    massive_task,
+    predicted_error,
+    scene_shares,
+)
 from cdma_lidar.study.paperlab import wilson
 
 
@@ -65,4 +71,40 @@ def test_the_study_runs_and_judges_each_channel_count(tmp_path):
     assert list(res.table.column("agrees_with_fig11")) == [1, 1]
     assert res.summary["wrong_fraction_k80"]["verdict"] == "agrees"
     assert res.summary["agreeing_channel_counts"]["ours"] == 2
+    # paper-massive's own scene over --quick's 4 columns: every pixel right at K = 80
+    right = res.summary["scene_right_fraction_k80"]
+    assert right["ours"] == 1.0 and right["ci95"][0] < 1.0
+    assert list(res.table.column("scene_pixels")) == [160, 320]
+    assert "scene_valid_fraction_k40" in res.summary
     assert (tmp_path / "massive.png").stat().st_size > 5000
+
+
+def test_the_scenes_near_far_spread_loses_pixels_to_the_threshold_not_to_the_peak():
+    """paper-massive's scene (5-10 m) at K = 400 over 4 columns: nearly every peak at the
+    right range, but a share of them falls under the host's default threshold (the wall
+    at 10 m: 70 % kept, the letters and the box at 5-6.5 m: all but one; seed 3); none it
+    keeps is wrong. At K = 40 all are kept."""
+    few = scene_shares(40, 2, 3)
+    assert few["scene_pixels"] == few["scene_right_pixels"] == few["scene_valid_pixels"] == 80
+    many = scene_shares(400, 4, 3)
+    assert many["scene_pixels"] == 1600 and many["threshold_db"] == 16.0
+    assert many["scene_right_pixels"] > 0.95 * 1600
+    assert many["scene_valid_pixels"] < 0.9 * many["scene_right_pixels"]
+    assert many["scene_valid_wrong_pixels"] == 0
+
+
+def test_the_paper_report_has_the_instrument_check_of_fig11s_order_15(tmp_path):
+    """``study run paper`` runs ``massive`` and reports its row: a prediction, judged by its
+    criterion (fig11's prediction inside the interval at each of three channel counts)."""
+    from cdma_lidar.study import paper
+
+    res = run_study(paper.STUDY, tmp_path / "p", quick=True, workers=0, progress=False,
+                    overrides={"studies": "massive", "sub_set": "massive.channels=40,60,80,"
+                               "massive.columns=1,massive.scene_columns=0"})
+    h = res.summary["massive.agreeing_channel_counts"]
+    assert h["kind"] == "prediction" and h["ours"] == 3 and h["verdict"] == "reproduced"
+    assert "K = 40 (0 of 40 wrong" in h["cause"] and h["cause"].endswith("outside at K = none")
+    assert res.summary["massive.wrong_fraction_k60"]["agrees"]
+    report = (tmp_path / "p" / "report.md").read_text()
+    assert "`massive.agreeing_channel_counts`" in report
+    assert "(massive/massive.png)" in report
