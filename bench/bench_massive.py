@@ -64,15 +64,14 @@ from cdma_lidar.scene.acquire import BATCH_VALUES
 from cdma_lidar.scene.instrument import SUM_TYPE
 from cdma_lidar.virtual.board import VirtualFirmware
 
-#: channel counts, and per K the columns each kernel is timed on by name
+#: channel counts, and per K the columns each kernel is timed on by name (and the GEMM
+#: floor's product: GATE x this many right-hand columns, as the floor was first measured)
 KERNEL_COLUMNS = {40: 8, 400: 2, 1200: 1}
 GATE = 64
 COLUMNS = 160
 #: runs per timing (best of), per K
 REPEAT = {40: 3, 400: 2, 1200: 1}
 GIB = 1 << 30
-#: columns of the GEMM floor's product (GATE x this many right-hand columns)
-GEMM_COLUMNS = 4
 #: matmul's exact operand is a Hankel block of the codes, N x K x ceil(gate / S) floats
 #: (firmware_model/correlators/matmul.py): 10 GB at K = 1,200 in float64, 15 GB of RSS
 #: measured. It is timed only where that block stays under this many bytes (the
@@ -106,17 +105,17 @@ def _scene(k: int, level: str) -> str:
     return f"paper-massive?channels={k}&fidelity={level}"
 
 
-def _gemm(k: int, n: int, dtype: type, repeat: int) -> float:
-    """CPU s per column of a (K, N) @ (N, GATE * GEMM_COLUMNS) product in ``dtype``, on
-    one BLAS thread: the work itself (idle BLAS threads spin, and on a shared machine
-    their CPU time swings with the load)."""
+def _gemm(k: int, n: int, cols: int, dtype: type, repeat: int) -> float:
+    """CPU s per column of a (K, N) @ (N, GATE * cols) product in ``dtype``, on one BLAS
+    thread: the work itself (idle BLAS threads spin, and on a shared machine their CPU
+    time swings with the load)."""
     from threadpoolctl import threadpool_limits  # deferred, as in the receive chain
 
     rng = np.random.default_rng(0)
     a = rng.choice(np.array([-1.0, 1.0], dtype=dtype), size=(k, n))
-    b = rng.integers(-2048, 2048, size=(n, GATE * GEMM_COLUMNS)).astype(dtype)
+    b = rng.integers(-2048, 2048, size=(n, GATE * cols)).astype(dtype)
     with threadpool_limits(1):
-        return _cpu(lambda: a @ b, repeat) / GEMM_COLUMNS
+        return _cpu(lambda: a @ b, repeat) / cols
 
 
 def _kernel_apart(cfg: ReceiverConfig, codes: np.ndarray, method: str, sums: np.ndarray,
@@ -199,8 +198,8 @@ def _device_costs(k: int) -> dict[str, float]:
         del fw, inst, sums
         gc.collect()
     n = (1 << 15) - 1
-    out["gemm32"] = _gemm(k, n, np.float32, repeat)
-    out["gemm64"] = _gemm(k, n, np.float64, repeat)
+    out["gemm32"] = _gemm(k, n, KERNEL_COLUMNS[k], np.float32, repeat)
+    out["gemm64"] = _gemm(k, n, KERNEL_COLUMNS[k], np.float64, repeat)
     gc.collect()
     return out
 
