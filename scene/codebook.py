@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.firmware_model.gold import gold_codes
-from cdma_lidar.scene.echo_kernel import synthesis_kernel
+from cdma_lidar.scene.echo_kernel import single_synthesis_kernel, synthesis_kernel
 from cdma_lidar.scene.model import InstrumentSpec
 
 __all__ = ["SHARED_SPECTRA_BYTES", "TABLE_PHASES", "ChipSpectra", "Codebook", "RenderSettings",
@@ -359,9 +359,10 @@ class Codebook:
 
         Every complex product is numpy's (one rounding per part: ``re = fma(xr, yr,
         -(xi yi))``, ``im = fma(xr, yi, xi yr)``) and every sum a plain add, in this
-        order; with numba (the ``fast`` extra), complex128 sums run in one compiled call
-        doing the same operations (:func:`cdma_lidar.scene.echo_kernel.synthesis_kernel`;
-        the same values bit for bit, tests/scene/test_echo_kernel.py).
+        order; with numba (the ``fast`` extra), the sums run in one compiled call doing the
+        same operations (:func:`cdma_lidar.scene.echo_kernel.synthesis_kernel`, complex64:
+        ``single_synthesis_kernel``; the same values bit for bit,
+        tests/scene/test_echo_kernel.py).
         """
         m = weight.size
         a, b = spectra.shape[1:]
@@ -373,7 +374,7 @@ class Codebook:
         starts = range(0, m, period)  # the first bin of each period of bins
         turns = np.exp(1j * np.outer(w, starts[1:])).astype(dtype, copy=False)
         total = np.empty(m, dtype=dtype) if out is None else out
-        kernel = synthesis_kernel() if dtype == np.complex128 else None
+        kernel = synthesis_kernel() if dtype == np.complex128 else single_synthesis_kernel()
         if kernel is not None:
             if not total.flags.c_contiguous:  # (the kernel writes into its 2-D view)
                 raise ConfigError("out must be C-contiguous", "out")

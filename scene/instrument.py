@@ -41,7 +41,11 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int, is_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.scene.codebook import Codebook, RenderSettings
-from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
+from cdma_lidar.scene.echo_kernel import (
+    single_synthesis_kernel,
+    synthesis_kernel,
+    terms_kernel,
+)
 from cdma_lidar.scene.echoes import ECHO_CACHE_BYTES, Echoes
 from cdma_lidar.scene.linkbudget import LinkBudget
 from cdma_lidar.scene.model import FIDELITY_LEVELS, Scene
@@ -101,7 +105,9 @@ class Instrument:
         self.fidelity = scene.fidelity
         # the level's compiled kernels, loaded (numba's import and its cached code, once
         # per process) here, not in a frame
-        for kernel in ((row_kernel, terms_kernel) if self.fidelity == "accumulated"
+        tabulated = Echoes.echo_tabulated(RenderSettings.from_spec(spec))
+        for kernel in ((row_kernel, terms_kernel if tabulated else single_synthesis_kernel)
+                       if self.fidelity == "accumulated"
                        else (synthesis_kernel, repetition_kernel)):
             kernel()
         cal_gain = self.echoes.calibration_gain_v_per_w()

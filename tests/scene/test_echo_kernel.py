@@ -13,12 +13,16 @@ from hypothesis import strategies as st
 
 from cdma_lidar.scene import codebook, echoes, sums
 from cdma_lidar.scene.codebook import Codebook
-from cdma_lidar.scene.echo_kernel import synthesis_kernel, terms_kernel
+from cdma_lidar.scene.echo_kernel import (
+    single_synthesis_kernel,
+    synthesis_kernel,
+    terms_kernel,
+)
 from cdma_lidar.scene.instrument import Instrument
 
 #: The module whose compiled kernel of each name the rendering calls.
-KERNEL_HOMES = {"synthesis_kernel": codebook, "terms_kernel": echoes,
-                "repetition_kernel": sums, "row_kernel": sums}
+KERNEL_HOMES = {"synthesis_kernel": codebook, "single_synthesis_kernel": codebook,
+                "terms_kernel": echoes, "repetition_kernel": sums, "row_kernel": sums}
 
 
 def _blas_fuses() -> bool:
@@ -213,4 +217,71 @@ def test_exact_render_is_the_same_with_or_without_the_synthesis_kernel(url):
 
     for got, want in zip(*_with_and_without("synthesis_kernel", "exact", url, take),
                          strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def _numpy_fuses_single_complex_products() -> bool:
+    """:func:`_numpy_fuses_complex_products` for complex64: with x = (1 + 2^-12)(1 + i),
+    the real part of x x is fma(xr, xr, -(xi xi)) = 2^-24 in float32 (exact product
+    1 + 2^-11 + 2^-24), and 0 when both products are rounded first."""
+    x = np.complex64(complex(1 + 2.0**-12, 1 + 2.0**-12))
+    for n in (3, 67):
+        row = np.full(n, x)
+        if not (np.all((row * row).real == 2.0**-24) and np.all((row * x).real == 2.0**-24)):
+            return False
+    return True
+
+
+needs_single_synthesis = pytest.mark.skipif(
+    single_synthesis_kernel() is None or not _numpy_fuses_single_complex_products(),
+    reason="numba (extra 'fast') not installed, or numpy's complex64 product does not fuse")
+
+
+@needs_single_synthesis
+@settings(max_examples=60, deadline=None)
+@given(a=st.integers(1, 9), b=st.integers(1, 9), cut=st.integers(0, 8),
+       bins=st.integers(1, 200), rows=st.integers(1, 4), terms=st.integers(0, 12),
+       members=st.integers(1, 3), seed=st.integers(0, 2**32 - 1),
+       scale=st.sampled_from([1e-30, 1e-3, 1.0, 1e15]), zero=st.booleans())
+def test_the_single_synthesis_kernel_is_numpys_complex64_products_and_sums(
+        a, b, cut, bins, rows, terms, members, seed, scale, zero):
+    """The complex64 twin of the test above: every product and sum rounded to float32
+    as numpy's complex64 passes round them (a product computed in double and rounded
+    once would differ), bit for bit, -0.0 included."""
+    period = max(1, a * b - min(cut, a * b - 1))
+    rng = np.random.default_rng(seed)
+    spectra = ((rng.standard_normal((members, a, b)) + 1j * rng.standard_normal((members, a, b)))
+               * scale).astype(np.complex64)
+    which = rng.integers(0, members, terms)
+    amps = rng.standard_normal(terms) * (0.0 if zero else 1.0)
+    taus = rng.uniform(0.0, 2e-6, terms)
+    where = rng.integers(0, rows, terms).tolist()
+    weight = rng.uniform(0.0, 2.0, bins)
+    out = []
+    for kernel in (single_synthesis_kernel, lambda: None):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(codebook, "single_synthesis_kernel", kernel)
+            got = np.full((rows, bins), np.nan + 0j, dtype=np.complex64)
+            Codebook.sum_delayed(3.1e4, amps, taus, spectra, which, period, weight,
+                                 out=got, rows=where)
+            out.append(got)
+    np.testing.assert_array_equal(out[0].view(np.uint32), out[1].view(np.uint32))
+
+
+@needs_single_synthesis
+def test_accumulated_fourier_render_is_the_same_with_or_without_the_single_kernel(monkeypatch):
+    """Where accumulated's waveform tables would not fit (paper-massive's case, made
+    here by a small cache), its
+    echoes come from the single-precision Fourier synthesis: whole frames, calibration
+    shots and one echo, the same with the compiled kernel as with numpy's passes."""
+    monkeypatch.setattr(echoes, "ECHO_CACHE_BYTES", 1 << 16)
+
+    def take(inst, cfg, cols):
+        assert not inst.echo_tabulated(cfg)
+        return [*inst.render_sums(cols, cfg, 1),
+                *inst.render_sums([0, 1], cfg, 1, calibration=True),
+                inst.echo(1, cfg, single=True)]
+
+    for got, want in zip(*_with_and_without("single_synthesis_kernel", "accumulated",
+                                            "paper-scene1", take), strict=True):
         np.testing.assert_array_equal(got, want)
