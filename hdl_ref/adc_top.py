@@ -74,12 +74,14 @@ def adc_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
 
 
 def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
-                  fab_ps: int | None = None, phase_ps: int = 0,
+                  fab_ps: int | None = None, phase_ps: int = 0, gap: tuple[int, int] = (0, 0),
                   timeout_s: float = 3600.0) -> str:
     """Compile and run the fixed-rate ADC bench on a vector folder; its verdict line.
 
     ``adc_ps``, ``fab_ps`` (default P_IN ADC periods), ``phase_ps``: the ADC clock's and
-    the fabric clock's periods and the fabric clock's start offset, picoseconds. The line
+    the fabric clock's periods and the fabric clock's start offset, picoseconds; ``gap =
+    (every, length)``: the ADC's valid drops for ``length`` ADC clocks after every
+    ``every`` samples (0: never). The line
     starts ``rx_adc_top vectors: PASS``, ``FAIL`` or ``REFUSED`` (the tb's header).
     """
     vec_dir, work_dir = Path(vec_dir), Path(work_dir)
@@ -90,6 +92,7 @@ def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
                     *(str(rtl / n) for n in ADC_SOURCES)], check=True, capture_output=True,
                    text=True)
     args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+PHASE_PS={phase_ps}",
+            f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}",
             *([f"+FAB_PS={fab_ps}"] if fab_ps else [])]
     out = subprocess.run(["vvp", "-n", str(vvp), *args], check=True, capture_output=True,
                          text=True, timeout=timeout_s).stdout

@@ -2,11 +2,13 @@
 // files into rx_adc_top from an ADC clock unrelated to the fabric clock, and compares.
 //
 // Plain Verilog-2005, no Python: compile with -I <vector folder> (params.vh) and run with
-//   +VEC=<folder>/ [+ADC_PS=4000] [+FAB_PS=<ps>] [+PHASE_PS=<ps>]
+//   +VEC=<folder>/ [+ADC_PS=4000] [+FAB_PS=<ps>] [+PHASE_PS=<ps>] [+GAP_EVERY=<n>
+//   +GAP_LEN=<clocks>]
 // (ADC and fabric clock periods and the fabric clock's start offset, picoseconds; the
 // fabric period defaults to P_IN ADC periods). The ADC source cannot wait: from the first
 // adc_clk edge after rx_adc_top is started, one sample every adc_clk clock, every sample
-// of adc.hex, then nothing. Prints one line
+// of adc.hex, then nothing; with GAP_EVERY, adc_valid drops for GAP_LEN adc_clk clocks
+// after every GAP_EVERY samples (a converter whose data-valid pauses). Prints one line
 //   rx_adc_top vectors: PASS <words> words compared, <n> samples taken
 // or FAIL (first differences before it; "overflow" when err_overflow rises, "no done"
 // after VEC_MAX_CLOCKS fabric clocks, twice the model's schedule), or
@@ -89,12 +91,14 @@ module rx_adc_top_vectors_tb;
     );
 
     // ---- two unrelated clocks ----
-    integer adc_ps = 4000, fab_ps = 0, phase_ps = 0;
+    integer adc_ps = 4000, fab_ps = 0, phase_ps = 0, gap_every = 0, gap_len = 0;
     realtime adc_half, fab_half;
     initial begin
         if (!$value$plusargs("ADC_PS=%d", adc_ps)) adc_ps = 4000;
         if (!$value$plusargs("FAB_PS=%d", fab_ps)) fab_ps = P * adc_ps;
         if (!$value$plusargs("PHASE_PS=%d", phase_ps)) phase_ps = 0;
+        if (!$value$plusargs("GAP_EVERY=%d", gap_every)) gap_every = 0;
+        if (!$value$plusargs("GAP_LEN=%d", gap_len)) gap_len = 0;
         adc_half = adc_ps / 2000.0;
         fab_half = fab_ps / 2000.0;
         fork
@@ -146,12 +150,21 @@ module rx_adc_top_vectors_tb;
         started <= 1'b1;
     end
 
-    // the ADC: one sample every adc_clk clock once started, never waiting
+    // the ADC: one sample every adc_clk clock once started, never waiting (but pausing
+    // GAP_LEN clocks after every GAP_EVERY samples when asked)
+    integer gap_left = 0;
     always @(posedge adc_clk) begin
-        adc_valid <= started && (n_adc < `VEC_N_ADC);
-        if (started && n_adc < `VEC_N_ADC) begin
-            adc_data <= adc_mem[n_adc];
-            n_adc = n_adc + 1;
+        if (gap_left > 0) begin
+            adc_valid <= 1'b0;
+            gap_left = gap_left - 1;
+        end else begin
+            adc_valid <= started && (n_adc < `VEC_N_ADC);
+            if (started && n_adc < `VEC_N_ADC) begin
+                adc_data <= adc_mem[n_adc];
+                n_adc = n_adc + 1;
+                if (gap_every > 0 && n_adc % gap_every == 0)
+                    gap_left = gap_len;
+            end
         end
     end
 

@@ -153,6 +153,15 @@ def test_other_fabric_clocks_and_phases(small_vectors, tmp_path, fab_ps, phase_p
 
 
 @pytest.mark.hdl
+def test_source_pauses(small_vectors, tmp_path):
+    """adc_valid drops for 37 ADC clocks after every 1 001 samples (mid-word too): the FIFO
+    runs empty, and no word is read twice or early."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    line = adc_top.run_adc_bench(vec, tmp_path, ADC_PS, FAB_PS, PHASE_PS, gap=(1001, 37))
+    assert line.startswith("rx_adc_top vectors: PASS") and "4536 samples taken" in line
+
+
+@pytest.mark.hdl
 def test_slow_fabric_clock_flags_overflow(small_vectors, tmp_path):
     """A fabric clock of 20 ns takes 200 MS/s of a 250 MS/s stream: err_overflow rises."""
     vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
