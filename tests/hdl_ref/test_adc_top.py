@@ -44,7 +44,9 @@ SWEEP = [SMALL, PAPER_P4, PAPER_P1,
          cosim.TopParams(channels=9, lanes=4, max_deg=7, max_s=3, max_uid=2, max_r=64,
                          max_g=31, max_p=2),
          cosim.TopParams(channels=8, lanes=5, max_deg=9, max_s=8, max_r=1024, max_g=256,
-                         max_p=8, samples_per_clock=8)]
+                         max_p=8, samples_per_clock=8),
+         # at degree 3, process is a whole number of columns: R_MIN's "+ 1" decides there
+         cosim.TopParams(channels=1, lanes=1, max_deg=5, max_s=2, max_r=64, max_g=31)]
 
 
 def _verilog_table(params: cosim.TopParams, tmp: Path) -> tuple[int, dict]:
@@ -67,7 +69,8 @@ def _verilog_table(params: cosim.TopParams, tmp: Path) -> tuple[int, dict]:
 @pytest.mark.parametrize("params", SWEEP, ids=lambda p: f"K{p.channels}L{p.lanes}P"
                          f"{p.samples_per_clock}D{p.max_deg}")
 def test_r_min_verilog_equals_python(params, tmp_path):
-    """Every degree and samples_per_chip code of the build: the same R_MIN both sides."""
+    """Every degree and samples_per_chip code of the build: the same R_MIN both sides (eight
+    builds: the paper's at P_IN = 1 and 4, other P_IN, lanes, gates and peaks)."""
     head, table = _verilog_table(params, tmp_path)
     assert head == adc_top.r_min(params, params.max_deg, params.max_s)
     assert len(table) == (1 << params.max_deg.bit_length()) * (1 << params.max_s.bit_length())
@@ -86,6 +89,7 @@ def test_r_min_is_the_real_time_edge():
     t = cosim.top_timing(paper, PAPER_P4)
     post = t["process"] - t["stream"] - 40 * 16 - 17
     assert (t["column_clocks"], post) == (2047, 5560)
+    exact = 0               # entries whose process is a whole number of R = 1 columns
     for params in SWEEP:
         for d in range(3, params.max_deg + 1):
             for s in range(1, params.max_s + 1):
@@ -97,6 +101,8 @@ def test_r_min_is_the_real_time_edge():
                 t = [cosim.top_timing({**worst, "cfg_averages": x}, params) for x in (r - 1, r)]
                 assert t[1]["process"] + 1 <= t[1]["column_clocks"]
                 assert r == 1 or t[0]["process"] + 1 > t[0]["column_clocks"]
+                exact += t[1]["process"] % (t[1]["column_clocks"] // r) == 0
+    assert exact > 0        # the sweep reaches the boundary where process + 1 matters
 
 
 def _spec(averages: int, params: cosim.TopParams = SMALL) -> VectorSpec:
