@@ -45,6 +45,7 @@ LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
 _CHAIN = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v", "rx_chain.v")
 _TOP = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v", "rx_post.v",
         "rx_top.v")
+_ADC_TOP = (*_TOP, "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
 for _name in [n for n in LINT_SETS if n.startswith("rx_chain")]:
     LINT_SETS[_name] = ("rx_chain", _CHAIN, LINT_SETS[_name][2])
 LINT_SETS |= {
@@ -66,6 +67,14 @@ LINT_SETS |= {
     "rx_top-p4-paper": ("rx_top", _TOP, {
         "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
         "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
+    "adc_rx-p1": ("adc_rx", ("adc_rx.v",), {"P_IN": 1, "AW": 2}),
+    "adc_rx-p4": ("adc_rx", ("adc_rx.v",), {"P_IN": 4, "ADC_W": 12, "AW": 4}),
+    "rx_adc_top-default": ("rx_adc_top", _ADC_TOP, {}),
+    "rx_adc_top-p4-paper": ("rx_adc_top", _ADC_TOP, {
+        "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
+        "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
+    "rx_adc_top-p2-small": ("rx_adc_top", _ADC_TOP, {
+        "K": 2, "L": 4, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 8, "MAX_R": 8, "FIFO_AW": 2}),
     "rx_top-wide": ("rx_top", _TOP, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
                                      "MAX_R": 1024, "MAX_G": 256, "MAX_P": 8, "NGHOST": 8,
                                      "ADC_W": 16, "OUT_W": 32}),

@@ -15,6 +15,10 @@ The tests of the mutated file run first (the cheapest kill).
     python -m cdma_lidar.hdl_ref.mutate --jobs 2        # two faults at a time
     python -m cdma_lidar.hdl_ref.mutate --write-doc     # and the table in docs/hdl.md
 
+With ``--only`` and ``--write-doc`` the rows of the faults run replace theirs in the
+table and the other rows stay as the earlier runs wrote them (the tally is counted
+from the rows); a fault without a row is "not run".
+
 Exit status 0 when every non-equivalent fault is killed, 1 otherwise, 2 for an
 unknown ``--only`` name.
 """
@@ -48,7 +52,7 @@ DOC_PATH = ROOT / "docs" / "hdl.md"
 BEGIN, END = "<!-- mutate:begin -->", "<!-- mutate:end -->"
 #: simulation test files, and which of them to try first for a fault in each RTL file
 SIM_TESTS = ("test_gold_gen.py", "test_sdp_ram.py", "test_out_scale.py", "test_rx_top.py",
-             "test_rx_chain.py", "test_vectors.py")
+             "test_rx_chain.py", "test_vectors.py", "test_adc_top.py")
 #: (the rx_top cases that kill most faults before the long hypothesis and Verilator runs)
 _TOP_FIRST = ("test_rx_top.py::test_top_equals_model",
               "test_rx_top.py::test_sweep_build_equals_model",
@@ -57,7 +61,8 @@ FIRST: dict[str, tuple[str, ...]] = {
     "lfsr_fib.v": ("test_gold_gen.py",), "gold_gen.v": ("test_gold_gen.py",),
     "sdp_ram.v": ("test_sdp_ram.py",), "out_scale.v": ("test_out_scale.py",),
     "rx_post.v": (*_TOP_FIRST, "test_rx_chain.py"), "rx_top.v": _TOP_FIRST,
-    "rx_chain.v": ("test_rx_chain.py",),
+    "rx_chain.v": ("test_rx_chain.py",), "adc_rx.v": ("test_adc_top.py",),
+    "r_min_rom.v": ("test_adc_top.py",), "rx_adc_top.v": ("test_adc_top.py",),
 }
 #: tests that are not a simulation of the mutated RTL (the per-mutant tests build their
 #: own mutant from the unchanged sources; the tool checks count cells or lint)
@@ -119,23 +124,43 @@ def run_mutant(mutant: Mutant, tests: Sequence[str] | None = None,
     return Outcome(mutant)
 
 
-def table(outcomes: Sequence[Outcome]) -> str:
-    """The markdown table of every fault and its killer, and the tally."""
-    killed = sum(o.status == "killed" for o in outcomes)
-    equivalent = sum(o.status == "equivalent" for o in outcomes)
-    not_run = sum(o.status == "not run" for o in outcomes)
-    lines = ["| mutant | file | fault | result |", "|---|---|---|---|"]
-    for o in outcomes:
-        what = (f"killed by `{o.killer}`" if o.status == "killed"
-                else f"equivalent: {o.detail}" if o.status == "equivalent"
-                else "not run" if o.status == "not run"
-                else f"**survived** {o.detail}".rstrip())
-        lines.append(f"| `{o.mutant.name}` | `{o.mutant.file}` | {o.mutant.why} | {what} |")
-    lines.append("")
-    survived = len(outcomes) - killed - equivalent - not_run
-    lines.append(f"Killed {killed} of {len(outcomes)} faults ({equivalent} equivalent, "
+def _row(o: Outcome) -> str:
+    what = (f"killed by `{o.killer}`" if o.status == "killed"
+            else f"equivalent: {o.detail}" if o.status == "equivalent"
+            else "not run" if o.status == "not run"
+            else f"**survived** {o.detail}".rstrip())
+    return f"| `{o.mutant.name}` | `{o.mutant.file}` | {o.mutant.why} | {what} |"
+
+
+#: a row's result cell -> its status (the inverse of _row)
+_STATUS = (("killed by", "killed"), ("equivalent:", "equivalent"), ("not run", "not run"),
+           ("**survived**", "SURVIVED"))
+
+
+def _rows_table(rows: Sequence[str]) -> str:
+    statuses = [next(s for head, s in _STATUS if r.rsplit(" | ", 1)[1].startswith(head))
+                for r in rows]
+    killed, equivalent, not_run, survived = (statuses.count(s) for s in (
+        "killed", "equivalent", "not run", "SURVIVED"))
+    lines = ["| mutant | file | fault | result |", "|---|---|---|---|", *rows, ""]
+    lines.append(f"Killed {killed} of {len(rows)} faults ({equivalent} equivalent, "
                  f"{survived} survived" + (f", {not_run} not run" if not_run else "") + ").")
     return "\n".join(lines) + "\n"
+
+
+def table(outcomes: Sequence[Outcome]) -> str:
+    """The markdown table of every fault and its killer, and the tally."""
+    return _rows_table([_row(o) for o in outcomes])
+
+
+def merged_table(block: str, outcomes: Sequence[Outcome]) -> str:
+    """The table of every fault of MUTANTS: the rows of ``outcomes``, the other faults'
+    rows as ``block`` (an earlier table) has them, "not run" for a fault it lacks."""
+    old = {line.split("`")[1]: line for line in block.splitlines()
+           if line.startswith("| `")}
+    new = {o.mutant.name: _row(o) for o in outcomes}
+    return _rows_table([new.get(m.name) or old.get(m.name) or _row(Outcome(m, ran=False))
+                        for m in MUTANTS])
 
 
 def update_doc(text: str, block: str) -> str:
@@ -176,7 +201,10 @@ def main(argv: list[str] | None = None) -> int:
         outcomes = list(pool.map(one, chosen))
     text = table(outcomes)
     if args.write_doc:
-        atomic_write_text(DOC_PATH, update_doc(DOC_PATH.read_text(), text))
+        doc = DOC_PATH.read_text()
+        if args.only:
+            text = merged_table(doc[doc.find(BEGIN):doc.find(END)], outcomes)
+        atomic_write_text(DOC_PATH, update_doc(doc, text))
     sys.stdout.write(text)
     return 0 if all(o.status != "SURVIVED" for o in outcomes) else 1
 

@@ -192,12 +192,16 @@ def _port_widths(params: TopParams) -> dict[str, int]:
     }
 
 
-def write_vectors(spec: VectorSpec, columns: int, seed: int, out_dir: str | Path) -> Path:
-    """Write the vector files for ``columns`` columns of seeded echoes into ``out_dir``."""
+def write_vectors(spec: VectorSpec, columns: int, seed: int, out_dir: str | Path,
+                  params: TopParams | None = None) -> Path:
+    """Write the vector files for ``columns`` columns of seeded echoes into ``out_dir``.
+
+    ``params``: the build (default ``spec.params()``, the smallest that runs ``spec``).
+    """
     check_int("columns", columns, 1, 1000)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    params = spec.params()
+    params = params or spec.params()
     cfg = spec.cfg
     poly_u, poly_v = spec.polys()
     indices = spec.indices()

@@ -1,21 +1,20 @@
 """cocotb bench for ``rx_top``: plays every case of a job and records every output word.
 
-Run through :func:`cdma_lidar.hdl_ref.cosim.run_job`. A case gives the
-configuration ports (``cfg_columns`` of them) and the columns' samples; the
-bench streams all columns back to back, one sample per clock whenever
-``s_ready`` is high, ``p`` samples per clock (``s_valid`` low on every ``gap``-th
-clock when the case has ``"gap"``; ``stop`` high in clock ``stop_clock``, ``clear_err``
-in ``clear_clock``; ``spare``
-samples offered after the columns, which must not be taken), and records, clock
-by clock (a clock's values are read at the rising
-edge that ends it): every ``corr_*`` word, every ``res_*`` word at ``res_valid``,
-the clocks of ``col_start`` and of every column's last sample, the clocks where
-the source offered a sample that was not taken (back-pressure), every clock with
-``s_refused``, the samples taken, the ``done`` clock, and the sticky flags before
-and after one ``clear_err`` clock. A case whose ``done`` has not come after
-``max_clocks`` clocks (the caller's watchdog: twice the schedule's) ends there with
-``hung`` set. Words with X or Z bits are recorded as null. Comparison with the model
-happens in the caller.
+Run through :func:`cdma_lidar.hdl_ref.cosim.run_job`. A case gives the configuration
+ports (``cfg_columns`` of them) and the columns' samples; the bench streams all columns
+back to back, one sample per clock whenever ``s_ready`` is high, ``p`` samples per clock
+(``s_valid`` low on every ``gap``-th clock when the case has ``"gap"``; with
+``"wait_ready"`` the source offers nothing before it has seen ``s_ready`` high, as a
+fixed-rate source should begin; ``stop`` high in clock ``stop_clock``, ``clear_err`` in
+``clear_clock``; ``spare`` samples offered after the columns, which must not be taken),
+and records, clock by clock (a clock's values are read at the rising edge that ends it):
+every ``corr_*`` word, every ``res_*`` word at ``res_valid``, the clocks of
+``col_start`` and of every column's last sample, the clocks where the source offered a
+sample that was not taken (back-pressure), every clock with ``s_refused``, the samples
+taken, the ``done`` clock, and the sticky flags before and after one ``clear_err``
+clock. A case whose ``done`` has not come after ``max_clocks`` clocks (the caller's
+watchdog: twice the schedule's) ends there with ``hung`` set. Words with X or Z bits are
+recorded as null. Comparison with the model happens in the caller.
 """
 
 from __future__ import annotations
@@ -53,6 +52,7 @@ async def _run_case(dut, case: dict) -> dict:
     stop_clock = case.get("stop_clock")
     clear_clock = case.get("clear_clock")
     max_clocks = int(case.get("max_clocks", 10_000_000))
+    seen_ready = not case.get("wait_ready", False)
     for name, value in ports.items():
         getattr(dut, name).value = int(value)
     dut.start.value = 1
@@ -65,7 +65,7 @@ async def _run_case(dut, case: dict) -> dict:
     done, done_clock, hung = False, None, False
 
     def offer(c: int) -> bool:
-        return taken < len(samples) and not (gap and c % gap == gap - 1)
+        return seen_ready and taken < len(samples) and not (gap and c % gap == gap - 1)
 
     def drive(c: int) -> bool:
         valid = offer(c)
@@ -83,6 +83,8 @@ async def _run_case(dut, case: dict) -> dict:
         await RisingEdge(dut.clk)      # values read now are those of clock `clock`
         if dut.s_refused.value:
             refused.append(clock)
+        if dut.s_ready.value:
+            seen_ready = True
         if valid:
             if dut.s_ready.value:
                 if first_take is None:
@@ -115,7 +117,7 @@ async def _run_case(dut, case: dict) -> dict:
     dut.s_valid.value = 0
     dut.stop.value = 0
     dut.clear_err.value = 0
-    flags = {"overrun": int(dut.err_overrun.value), "refused": int(dut.err_refused.value)}
+    flags = {"overrun": _int(dut.err_overrun), "refused": _int(dut.err_refused)}
     # software clears the sticky flags: one clear_err clock, then both are low
     dut.clear_err.value = 1
     await RisingEdge(dut.clk)

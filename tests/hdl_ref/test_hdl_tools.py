@@ -15,7 +15,7 @@ import pytest
 from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.firmware_model.lfsr import mseq
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
-from cdma_lidar.hdl_ref import cosim, lint, synth
+from cdma_lidar.hdl_ref import adc_top, cosim, lint, synth
 from cdma_lidar.poly import tap_mask
 
 
@@ -129,6 +129,8 @@ _CHECKED = {
     "rx_top g31": ("rx_top", {"K": 4, "L": 2, "MAX_DEG": 6, "MAX_S": 2, "MAX_G": 31,
                               "MAX_P": 2}),
     "rx_chain": ("rx_chain", {}),
+    "rx_adc_top": ("rx_adc_top", {"K": 2, "L": 4, "P_IN": 4, "MAX_DEG": 6, "MAX_G": 8,
+                                  "MAX_R": 8}),
 }
 
 
@@ -140,7 +142,8 @@ def test_yosys_check_clean(name):
     sources = (*[s for s in synth.TOP_SOURCES if s != "rx_top_pnr.v" and top == "rx_top"],
                *(("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v",
                   "rx_chain.v") if top == "rx_chain"
-                 else ()))
+                 else ()),
+               *(adc_top.ADC_SOURCES if top == "rx_adc_top" else ()))
     synth.yosys_check(synth.Design(name, top, sources, params, ""))
 
 

@@ -31,6 +31,22 @@ def test_one_fault_is_killed_and_reported():
     assert "Killed 1 of 2 faults (1 equivalent, 0 survived)" in text
 
 
+def test_partial_run_merges_into_the_table():
+    """--only with --write-doc: the faults run replace their rows, the others keep theirs,
+    a fault without a row is "not run", and the tally is counted from the rows."""
+    a, b, c = MUTANTS[:3]
+    old = mutate.table([mutate.Outcome(a, killer="t.py::x"), mutate.Outcome(b)])
+    assert "1 survived" in old
+    new = mutate.merged_table(old, [mutate.Outcome(b, killer="t.py::y")])
+    rows = [r for r in new.splitlines() if r.startswith("| `")]
+    assert rows[:3] == [mutate._row(mutate.Outcome(a, killer="t.py::x")),
+                        mutate._row(mutate.Outcome(b, killer="t.py::y")),
+                        mutate._row(mutate.Outcome(c, ran=False))]
+    eq = sum(bool(m.equivalent) for m in MUTANTS)       # listed as equivalent, never run
+    assert f"Killed 2 of {len(MUTANTS)} faults ({eq} equivalent, 0 survived, " \
+           f"{len(MUTANTS) - 2 - eq} not run)." in new
+
+
 def test_unknown_name_exits_2(capsys):
     assert mutate.main(["--only", "no-such-fault"]) == 2
     assert "no-such-fault" in capsys.readouterr().err

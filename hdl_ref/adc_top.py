@@ -1,0 +1,99 @@
+"""The receive chain from the ADC pins (``rx_adc_top``): R_MIN and the fixed-rate ADC bench.
+
+``rx_adc_top`` (``hdl_ref/rtl/rx_adc_top.v``) puts ``adc_rx`` (one sample per ADC
+clock, packed P_IN to a word, carried into the fabric clock by an asynchronous FIFO)
+in front of an unchanged ``rx_top``, and refuses at ``start`` a configuration that
+``rx_top`` cannot process as fast as a fixed-rate ADC delivers it. :func:`r_min` is the
+Python side of that bound, the Verilog side is ``r_min_rom.v``; the tests check that
+both give the same number for every degree and ``samples_per_chip`` of a sweep of
+builds. A valid/ready source that can wait (``rx_top`` alone, the RTL engine) is not
+bound by it: ``rx_top`` applies back-pressure and stays exact at any R.
+
+:func:`run_adc_bench` plays ``cdma-lidar hdl vectors`` files through
+``hdl_ref/tb/rx_adc_top_vectors_tb.v`` (Icarus, two unrelated clocks) and returns its
+verdict line.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from cdma_lidar.errors import out_of_range
+from cdma_lidar.hdl_ref.cosim import TopParams, default_rtl_dir, top_ports, top_timing
+
+__all__ = ["ADC_SOURCES", "TB", "adc_ports", "r_min", "run_adc_bench"]
+
+#: the sources of ``rx_adc_top`` (rx_top's and the three of the ADC side)
+ADC_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
+               "rx_post.v", "rx_top.v", "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
+TB = Path(__file__).resolve().parent / "tb" / "rx_adc_top_vectors_tb.v"
+
+
+def r_min(params: TopParams, degree: int, spc: int) -> int:
+    """The smallest averages R with which ``rx_top`` keeps up with a fixed-rate source.
+
+    Real time holds when ``process + 1 <= column_clocks`` (:func:`cosim.top_timing
+    <cdma_lidar.hdl_ref.cosim.top_timing>`, clocks); ``process`` is taken at the build's
+    largest gate and peak count and one UID period, the worst case (more gate lags or
+    peaks add clocks; more periods add samples faster than clocks), so every
+    configuration of the build at this degree and ``spc`` (samples per chip) with
+    ``R >= r_min`` keeps up. Returns ``params.max_r + 1`` when no R of the build does,
+    or when the build cannot run the degree and ``spc`` at all (degree outside
+    3..max_deg, ``spc`` outside 1..max_s or not a multiple of P_IN, or K L > N - 2).
+    """
+    n_chips = (1 << degree) - 1
+    p_in = params.samples_per_clock
+    if (not 3 <= degree <= params.max_deg or not 1 <= spc <= params.max_s or spc % p_in
+            or params.channels * params.lanes > n_chips - 2):
+        return params.max_r + 1
+    worst = {"cfg_degree": degree, "cfg_spc": spc, "cfg_uid_bits": 1, "cfg_averages": 1,
+             "cfg_gate_len": params.max_g, "cfg_peaks": params.max_p}
+    clocks_per_r = top_timing(worst, params)["column_clocks"]      # N S / P_IN
+    r = -(-(top_timing(worst, params)["process"] + 1) // clocks_per_r)
+    return r if r <= params.max_r else params.max_r + 1
+
+
+def adc_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
+              indices: Sequence[int], params: TopParams, columns: int = 1) -> dict[str, int]:
+    """``rx_adc_top`` port values (those of :func:`cosim.top_ports
+    <cdma_lidar.hdl_ref.cosim.top_ports>`); ConfigError naming ``averages`` when R is
+    below :func:`r_min`, the configuration the RTL refuses at ``start`` (``err_config``)."""
+    ports = top_ports(cfg, poly_u, poly_v, indices, params, columns=columns)
+    lo = r_min(params, int(poly_u[0]), cfg.samples_per_chip)
+    if lo > params.max_r:
+        raise out_of_range("averages", f"in R_MIN..{params.max_r}, and this build keeps up "
+                           f"with no R at degree {poly_u[0]}, samples_per_chip "
+                           f"{cfg.samples_per_chip}", cfg.averages)
+    if not lo <= cfg.averages <= params.max_r:
+        raise out_of_range("averages", f"{lo}..{params.max_r} (R_MIN of this build: below it "
+                           "rx_top falls behind a fixed-rate ADC)", cfg.averages)
+    return ports
+
+
+def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
+                  fab_ps: int | None = None, phase_ps: int = 0, gap: tuple[int, int] = (0, 0),
+                  timeout_s: float = 3600.0) -> str:
+    """Compile and run the fixed-rate ADC bench on a vector folder; its verdict line.
+
+    ``adc_ps``, ``fab_ps`` (default P_IN ADC periods), ``phase_ps``: the ADC clock's and
+    the fabric clock's periods and the fabric clock's start offset, picoseconds; ``gap =
+    (every, length)``: the ADC's valid drops for ``length`` ADC clocks after every
+    ``every`` samples (0: never). The line
+    starts ``rx_adc_top vectors: PASS``, ``FAIL`` or ``REFUSED`` (the tb's header).
+    """
+    vec_dir, work_dir = Path(vec_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    vvp = work_dir / "adc_tb.vvp"
+    rtl = default_rtl_dir()
+    subprocess.run(["iverilog", "-g2005", "-I", str(vec_dir), "-o", str(vvp), str(TB),
+                    *(str(rtl / n) for n in ADC_SOURCES)], check=True, capture_output=True,
+                   text=True)
+    args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+PHASE_PS={phase_ps}",
+            f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}",
+            *([f"+FAB_PS={fab_ps}"] if fab_ps else [])]
+    out = subprocess.run(["vvp", "-n", str(vvp), *args], check=True, capture_output=True,
+                         text=True, timeout=timeout_s).stdout
+    return [line for line in out.splitlines() if line.startswith("rx_adc_top vectors:")][-1]
