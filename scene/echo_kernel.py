@@ -195,33 +195,31 @@ def terms_kernel() -> Callable[..., None] | None:
     return compile_kernel(_terms, signature, "accumulated echoes call BLAS saxpy")
 
 
-@functools.cache
-def synthesis_kernel() -> Callable[..., None] | None:
-    """``_synthesis`` compiled for complex128 (None without numba).
+def _synthesis_kernel(dtype: str, fallback: str) -> Callable[..., None] | None:
+    """``_synthesis`` compiled for ``dtype`` (numba's name: complex128 or complex64).
 
     The signature is fixed (read-only spectra and ramps, int64 indices, a writable (R, m)
     sum), as :func:`terms_kernel`'s. Compiled once per process, cached on disk by numba.
     """
     def signature(t: object, readonly: Callable[..., object]) -> object:
         _register()
-        c = t.complex128
+        c = getattr(t, dtype)
         return t.void(readonly(c, 2), readonly(t.int64), readonly(t.int64), readonly(c, 2),
                       readonly(c, 2), readonly(c, 2), t.int64, t.Array(c, 2, "C"))
 
-    return compile_kernel(_synthesis, signature, "exact echoes run on numpy")
+    return compile_kernel(_synthesis, signature, fallback)
+
+
+@functools.cache
+def synthesis_kernel() -> Callable[..., None] | None:
+    """``_synthesis`` compiled for complex128 (``exact``; None without numba)."""
+    return _synthesis_kernel("complex128", "exact echoes run on numpy")
 
 
 @functools.cache
 def single_synthesis_kernel() -> Callable[..., None] | None:
-    """``_synthesis`` compiled for complex64 (None without numba), as
-    :func:`synthesis_kernel`."""
-    def signature(t: object, readonly: Callable[..., object]) -> object:
-        _register()
-        c = t.complex64
-        return t.void(readonly(c, 2), readonly(t.int64), readonly(t.int64), readonly(c, 2),
-                      readonly(c, 2), readonly(c, 2), t.int64, t.Array(c, 2, "C"))
-
-    return compile_kernel(_synthesis, signature, "accumulated's Fourier echoes run on numpy")
+    """``_synthesis`` compiled for complex64 (``accumulated``; None without numba)."""
+    return _synthesis_kernel("complex64", "accumulated's Fourier echoes run on numpy")
 
 
 @functools.cache
