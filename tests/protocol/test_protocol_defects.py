@@ -58,13 +58,13 @@ def test_notices_longer_than_a_small_frame_go_out_in_fragments(caplog) -> None:
     """64-byte frames in a signed session: heartbeats and SESSION_LOST still arrive whole."""
     import logging
 
-    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.endpoint import DeviceCore, Engine
     from cdma_lidar.protocol.link import SessionLost
 
     now = [100.0]
     app = SyntheticApp(channels=2, columns=6)
     app.tick = lambda: now.__setitem__(0, now[0] + 0.05)  # 50 ms per column, injected
-    core = DeviceCore(app, key=KEY, clock=lambda: now[0])
+    core = DeviceCore(app, key=KEY, clock=lambda: now[0], engine=Engine(threaded=False))
     a_port = SteppedDevice(None, core=core, now=now, heartbeat_s=0.01)
     b_port = SteppedDevice(None, core=core, now=now)
     with caplog.at_level(logging.ERROR), a_port, b_port:

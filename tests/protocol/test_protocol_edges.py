@@ -22,7 +22,7 @@ from protocol_fixtures import (
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.protocol import cobs, framing
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
@@ -67,7 +67,7 @@ def test_garbage_is_still_garbage_with_the_version_diagnosis_in_place() -> None:
 
 
 @pytest.mark.parametrize(("kw", "name"), [
-    ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0, "threads": False}, "poll_s"),
+    ({"poll_s": 1.5}, "poll_s"), ({"poll_s": -1.0}, "poll_s"),
     ({"heartbeat_s": 0}, "heartbeat_s"), ({"heartbeat_s": 100.0}, "heartbeat_s"),
     ({"ring_columns": -1}, "ring_columns"),
     ({"ring_columns": 70000}, "ring_columns"),
@@ -177,7 +177,7 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
     a time, so the window is looked at exactly."""
     host, dev = pipe_pair()
     app = SyntheticApp(columns=4)
-    ep = DeviceEndpoint(dev, app, session_id=0x77, poll_s=0.0, threads=False)
+    ep = DeviceEndpoint(dev, app, session_id=0x77, poll_s=0.0, engine=Engine(threaded=False))
     dec = FrameDecoder()
 
     def send(t: MsgType, fields: dict, seq: int) -> None:
