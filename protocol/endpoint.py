@@ -34,6 +34,7 @@ import time
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from concurrent.futures import wait
 from typing import Any
 
 import numpy as np
@@ -92,8 +93,9 @@ _REPLAY_DEPTH = 32
 FAULT_HEALTH = 0x8000_0000
 #: Bytes of columns the loop sends per poll while a stream runs before it reads again.
 _POLL_BYTES = 4096
-#: A step of the engine this young (s) is waited for instead of the port.
-_QUICK_STEP_S = 0.002
+#: A step of the engine this young (s) is waited for (``poll_s`` at a time) rather than
+#: the port, which is then only looked at between waits: most steps are quicker.
+_QUICK_STEP_S = 0.05
 
 
 class DeviceApp(abc.ABC):
@@ -233,21 +235,6 @@ class DeviceEndpoint:
         self._held: list[tuple[Frame, int]] = []
         port.timeout = poll_s
 
-    # What the TCP server and the tests read of the connection.
-    @property
-    def peer(self) -> str:
-        """Who is on the other end (an IP address over TCP), for the logs."""
-        return self.session.peer
-
-    @property
-    def session_open(self) -> bool:
-        return self.session.open
-
-    @property
-    def sessionless_since(self) -> float:
-        """Since when this connection has had no session (core clock, s)."""
-        return self.session.sessionless_since
-
     def _forget(self) -> None:
         """The session ended: its capture and held requests go with it."""
         self.requests.capture = None
@@ -320,14 +307,14 @@ class DeviceEndpoint:
 
     def _read(self) -> bytes:
         """What arrived; blocks (up to ``poll_s``) only when there is nothing to send. A
-        step of the engine just handed over is waited for a moment first: a quick one
-        is then taken at once, a long one noticed within ``poll_s``."""
+        step of the engine younger than ``_QUICK_STEP_S`` is waited for instead (so it
+        is taken at once), an older one noticed within ``poll_s``."""
         n = self.port.in_waiting
         if n:
             return self.port.read(n)
         job = self.streams.latest.job if self.streams.latest is not None else None
         if job is not None and time.monotonic() - job.started < _QUICK_STEP_S and \
-                job.done.wait(min(self.poll_s, _QUICK_STEP_S)):
+                wait([job], self.poll_s).done:
             return b""
         if self.tx.pending(CONTROL) or (self.streams.stream is not None and any(
                 self.tx.pending(c) for c in range(1, 3))):

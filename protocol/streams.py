@@ -20,6 +20,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,26 +29,9 @@ from cdma_lidar.protocol.framing import Frame
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, encode_payload
 from cdma_lidar.protocol.transmit import FRESH, MAX_PIECES, REPAIR, Reply, Transmitter
 
-__all__ = ["Engine", "Job", "Stream", "Streams"]
+__all__ = ["Engine", "Stream", "Streams"]
 
 log = logging.getLogger(__name__)
-
-
-class Job:
-    """One call into the application run by the :class:`Engine`: ``done`` is set once
-    it returned (``result``) or raised (``error``); ``started``: when submitted
-    (``time.monotonic``, s)."""
-
-    def __init__(self, fn: Callable[[], Any]) -> None:
-        self.fn, self.result, self.error = fn, None, None
-        self.done, self.started = threading.Event(), time.monotonic()
-
-    def run(self) -> None:
-        try:
-            self.result = self.fn()
-        except Exception as exc:  # the loop that collects the job decides
-            self.error = exc
-        self.done.set()
 
 
 class Engine:
@@ -59,45 +43,55 @@ class Engine:
     0.1-0.2 s on a 2-core machine, the virtual board computes columns in batches of
     seconds, the RTL engine far longer. So the steps run on the engine's own thread
     (the device's only thread besides the connections' loops), which touches nothing
-    but the application; the loops hand it a job only while it is :attr:`idle` (or, for a
-    clean-up, behind the job it runs) and read a job's outcome when ``done``.
-    ``threaded=False``: each job runs at once in the caller (a test stepping a device on
-    a fake clock), through the same code otherwise.
+    but the application; the loops call the application themselves only while it is
+    :attr:`idle`. ``threaded=False``: each job runs at once in the caller (a test
+    stepping a device on a fake clock), through the same code otherwise.
     """
 
     def __init__(self, threaded: bool = True) -> None:
         self.threaded = threaded
-        self.last: Job | None = None  # the last job submitted
-        self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
+        self.last: Future | None = None  # the last job submitted
+        self._jobs: queue.SimpleQueue[tuple[Future, Callable[[], Any]] | None] = \
+            queue.SimpleQueue()
         self._thread: threading.Thread | None = None
 
     @property
     def idle(self) -> bool:
         """Every job submitted is done: the application may be called directly."""
-        return self.last is None or self.last.done.is_set()
+        return self.last is None or self.last.done()
 
-    def submit(self, fn: Callable[[], Any]) -> Job:
-        """Run ``fn`` after the jobs before it (at once when not threaded)."""
-        job = self.last = Job(fn)
+    def submit(self, fn: Callable[[], Any]) -> Future:
+        """Run ``fn`` after the jobs before it (at once when not threaded); its future
+        carries ``started``, when it was submitted (``time.monotonic``, s)."""
+        job = self.last = Future()
+        job.started = time.monotonic()  # type: ignore[attr-defined]
         if not self.threaded:
-            job.run()
-            return job
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, daemon=True,
-                                            name="cdma-lidar-engine")
-            self._thread.start()
-        self._jobs.put(job)
+            _run(job, fn)
+        else:
+            if self._thread is None:  # a daemon: a column never holds up the exit
+                self._thread = threading.Thread(target=self._serve, args=(self._jobs,),
+                                                daemon=True, name="cdma-lidar-engine")
+                self._thread.start()
+            self._jobs.put((job, fn))
         return job
 
-    def _run(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            job.run()
+    @staticmethod
+    def _serve(jobs: queue.SimpleQueue) -> None:
+        while (item := jobs.get()) is not None:
+            _run(*item)
 
     def close(self) -> None:
         """Let the thread end after the jobs queued (a later job starts a new one)."""
         if self._thread is not None:
             self._jobs.put(None)
-            self._thread = None
+            self._jobs, self._thread = queue.SimpleQueue(), None
+
+
+def _run(job: Future, fn: Callable[[], Any]) -> None:
+    try:
+        job.set_result(fn())
+    except Exception as exc:  # the loop that collects the job decides
+        job.set_exception(exc)
 
 
 @dataclass
@@ -111,7 +105,7 @@ class Stream:
     calibration: bool
     produced: int = 0
     stopped: bool = False  # ended for any reason (its clean-up is then submitted)
-    job: Job | None = None  # the column the engine computes, not yet collected
+    job: Future | None = None  # the column the engine computes, not yet collected
 
     @property
     def next_column(self) -> int:
@@ -211,21 +205,22 @@ class Streams:
     def collect(self) -> None:
         """Keep and queue the column the engine computed (if it is done)."""
         st = self.latest
-        if st is None or st.job is None or not st.job.done.is_set():
+        if st is None or st.job is None or not st.job.done():
             return
         job, st.job = st.job, None
         if st.stopped:
             return  # aborted meanwhile: the column goes nowhere
-        if isinstance(job.error, StopIteration):
+        error = job.exception()
+        if isinstance(error, StopIteration):
             log.warning("application ended frame %d after %d of %d columns", st.frame,
                         st.produced, st.count)
             self.stop(ScanEndReason.ERROR)
             return
-        if job.error is not None:
-            log.error("application failed during frame %d", st.frame, exc_info=job.error)
+        if error is not None:
+            log.error("application failed during frame %d", st.frame, exc_info=error)
             self.stop(ScanEndReason.ERROR)
             return
-        column, payload = job.result  # type: ignore[misc]
+        column, payload = job.result()
         if not self.tx.fits(len(payload)):
             log.error("frame %d column %d: %d bytes need more than %d fragments at max frame "
                       "%d", st.frame, column, len(payload), MAX_PIECES, self.tx.max_frame)

@@ -238,8 +238,8 @@ def reply(t: MsgType, fields: Any, seq: int, session: int = 0x42) -> bytes:
 def ack(req: Frame, session: int = 0x42) -> bytes:
     """The ACK of request ``req``."""
     return encode_frame(MsgType.ACK, bytes([req.msg_type]), req.seq, session)
-#: The endpoints of SteppedDevices, by the core they share.
-_LOOPS: weakref.WeakKeyDictionary[Any, list[DeviceEndpoint]] = weakref.WeakKeyDictionary()
+#: The endpoints of SteppedDevices (weakly: a test need not close them), by their core.
+_LOOPS: weakref.WeakKeyDictionary[Any, list[weakref.ref]] = weakref.WeakKeyDictionary()
 
 
 class SteppedDevice:
@@ -267,10 +267,11 @@ class SteppedDevice:
             kw["engine"] = Engine(threaded=False)
         self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, poll_s=0.0, **kw)
         self.loops = _LOOPS.setdefault(self.endpoint.core, [])  # of the core's devices
-        self.loops.append(self.endpoint)
+        self.loops.append(weakref.ref(self.endpoint))
 
     def _poll(self) -> None:
-        for ep in [e for e in self.loops if e is not self.endpoint] + [self.endpoint]:
+        others = [e for e in (r() for r in self.loops) if e not in (None, self.endpoint)]
+        for ep in [*others, self.endpoint]:
             ep.poll()
 
     def clock(self) -> float:
@@ -308,5 +309,4 @@ class SteppedDevice:
 
     def __exit__(self, *exc: object) -> None:
         self.endpoint.close()
-        if self.endpoint in self.loops:
-            self.loops.remove(self.endpoint)
+        self.loops[:] = [r for r in self.loops if r() not in (None, self.endpoint)]

@@ -181,10 +181,12 @@ def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
 
 
 class _Ep:
-    """What Connections reads of an endpoint."""
+    """What Connections reads of an endpoint: its session."""
 
     def __init__(self, since: float, session: bool = False) -> None:
-        self.sessionless_since, self.session_open, self.peer = since, session, "peer"
+        from types import SimpleNamespace
+
+        self.session = SimpleNamespace(sessionless_since=since, open=session, peer="peer")
 
 
 def test_silent_connections_are_closed_after_the_hello_deadline_and_make_room() -> None:

@@ -401,7 +401,7 @@ def test_the_loop_answers_within_50_ms_while_the_engine_is_inside_a_column() -> 
         aborted, took = ask(MsgType.SCAN_ABORT, {}, 6)
         assert aborted.msg_type == MsgType.ACK and took <= 0.05
         assert any(f.msg_type == MsgType.SCAN_END for _, f in heard[-3:])
-        assert not st.job.done.is_set()  # all of it while the engine was inside the column
+        assert not st.job.done()  # all of it while the engine was inside the column
     finally:
         app.release.set()
     step(lambda: ep.core.engine.idle)

@@ -257,4 +257,4 @@ def test_a_version_1_host_gets_nak_version_in_its_own_version() -> None:
         body = decode_payload(nak.msg_type, nak.payload)
         assert nak.version == 1 and nak.msg_type == MsgType.NAK and nak.seq == 5
         assert body["code"] == ErrorCode.VERSION
-        assert not ep.session_open and ep.stats.sessions == 0
+        assert not ep.session.open and ep.stats.sessions == 0
