@@ -245,6 +245,9 @@ class DeviceSession:
                 self.lose(*lost)
             else:
                 owner.lost, self._previous = lost, owner
+        # A stream of this connection ends now, so the engine has cleaned it up by the
+        # time the HELLO calls the application.
+        self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         core.owner, core.owner_nonce = self, nonce
 
     @property

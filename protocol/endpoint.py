@@ -306,18 +306,19 @@ class DeviceEndpoint:
         self.tx.flush(_POLL_BYTES if streams.stream is not None else None)
 
     def _read(self) -> bytes:
-        """What arrived; blocks (up to ``poll_s``) only when there is nothing to send. A
-        step of the engine younger than ``_QUICK_STEP_S`` is waited for instead (so it
-        is taken at once), an older one noticed within ``poll_s``."""
+        """What arrived; blocks (up to ``poll_s``) only when there is nothing to send and
+        no column to hand over. A step of the engine younger than ``_QUICK_STEP_S`` is
+        waited for instead (so it is taken at once), an older one noticed within
+        ``poll_s``."""
         n = self.port.in_waiting
         if n:
             return self.port.read(n)
-        job = self.streams.latest.job if self.streams.latest is not None else None
+        st, job = self.streams.stream, self.streams.latest and self.streams.latest.job
         if job is not None and time.monotonic() - job.started < _QUICK_STEP_S and \
                 wait([job], self.poll_s).done:
             return b""
-        if self.tx.pending(CONTROL) or (self.streams.stream is not None and any(
-                self.tx.pending(c) for c in range(1, 3))):
+        if self.tx.pending(CONTROL) or (st is not None and (job is None or any(
+                self.tx.pending(c) for c in range(1, 3)))):
             return b""
         data = self.port.read(1)
         if data and self.port.in_waiting:
