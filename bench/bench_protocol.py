@@ -233,11 +233,12 @@ def bench_lines(paper_seeds: int = 10, short_seeds: int = 30) -> None:
           "noisy scan over a clean one run just before it)")
 
 
-def bench_latency(seconds: float = 6.0) -> None:
+def bench_latency(seconds: float = 6.0, aborts: int = 3) -> None:
     """What a host hears while paper-scene1 scans at averages 1024, S 16 (columns take
-    seconds each): the reply times of STATUS_GET, SCAN_ABORT-free BUSY refusals
-    (CONFIG_SET, SCAN_START) and CONFIG_GET, and the gaps between the device's stream
-    frames (heartbeats), over ``seconds`` of probing through a real pty."""
+    seconds each): the reply times of STATUS_GET, the BUSY refusals (CONFIG_SET,
+    SCAN_START) and CONFIG_GET, and the gaps between the device's stream frames
+    (heartbeats), over ``seconds`` of probing through a real pty; then the reply times
+    of ``aborts`` SCAN_ABORTs, each 0.3 s into a new frame's first batch."""
     from cdma_lidar.scene import load_scene
     from cdma_lidar.virtual.board import VirtualFirmware
 
@@ -279,6 +280,16 @@ def bench_latency(seconds: float = 6.0) -> None:
                     now = time.perf_counter()
                     gaps.append(now - heard)
                     heard, seen = now, link.decoder.stats.frames
+        # SCAN_ABORT while a batch computes: the ACK's reply time, then the next frame
+        # starts (its SCAN_START waits for the engine to let the aborted batch go).
+        times["SCAN_ABORT"] = []
+        for frame in range(3, 3 + aborts):
+            time.sleep(0.3)  # into the batch
+            t0 = time.perf_counter()
+            link._request(MsgType.SCAN_ABORT, {})
+            times["SCAN_ABORT"].append(time.perf_counter() - t0)
+            link._request(MsgType.SCAN_START, {"frame": frame, "first_column": 0,
+                                                "columns": 160})
         link.abort()
     finally:
         stop.set()

@@ -8,7 +8,9 @@ from. A connection's :class:`DeviceSession` owns its session: open or not, its k
 the challenge sent, the failed authentications, the INFO sent. HELLO
 opens a session (docs/protocol.md, Sessions and Access control): another host gets
 NAK BUSY unless it takes over or the session expired, and the old owner then gets
-SESSION_LOST.
+SESSION_LOST. Each connection's loop changes only its own session: a HELLO that takes
+the device marks the old owner :attr:`DeviceSession.lost`, that connection's loop ends
+its session at its next poll, and the HELLO is answered once it has.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ import contextlib
 import dataclasses
 import logging
 import secrets
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from cdma_lidar.protocol.messages import (
     SessionLostReason,
     encode_payload,
 )
-from cdma_lidar.protocol.streams import Streams
+from cdma_lidar.protocol.streams import Engine, Streams
 from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, clip
 from cdma_lidar.protocol.views import Info
 
@@ -65,7 +66,7 @@ class EndpointStats:
 
 
 class DeviceCore:
-    """What every connection to one device shares: the application, its lock, the session.
+    """What every connection to one device shares: the application, its engine, the session.
 
     Args:
         app: the device application.
@@ -74,10 +75,12 @@ class DeviceCore:
         session_idle_s: a session idle this long (no request from its host, no stream
             running) may be taken by another host's HELLO without take-over (s).
         clock: monotonic clock (s).
+        engine: the measurement engine (default: one on its own thread).
     """
 
     def __init__(self, app: Any, *, key: bytes | None = None, session_idle_s: float = 10.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 engine: Engine | None = None) -> None:
         if not 0.001 <= session_idle_s <= 4_294_967.295:
             raise out_of_range("session_idle_s", "0.001 to 4294967 s (INFO.session_idle_ms)",
                                session_idle_s)
@@ -85,9 +88,7 @@ class DeviceCore:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.app, self.key, self.clock = app, key, clock
         self.session_idle_s = float(session_idle_s)
-        #: Serialises every call into the application. Lock order: app_lock before any
-        #: endpoint's lock, never the reverse.
-        self.app_lock = threading.RLock()
+        self.engine = engine or Engine()
         self.owner: DeviceSession | None = None
         self.owner_nonce = b""
         self.opened = self.last_active = 0.0
@@ -116,7 +117,7 @@ class DeviceCore:
 
     def restore_defaults(self, keep: bool) -> None:
         """Remember the boot configuration and power once; unless ``keep``, put them back
-        (caller holds app_lock)."""
+        (the engine is idle)."""
         if self._boot is None:
             try:
                 power: NDArray | None = np.array(self.app.get_power(), dtype=np.uint16)
@@ -151,8 +152,6 @@ class DeviceSession:
         tx: the connection's transmitter (its session id, max frame, signing, coding).
         streams: the connection's streams, ended with the session.
         stats: the connection's counters.
-        lock: the connection's lock (another connection's HELLO takes it, after the
-            core's ``app_lock``, to end this session).
         max_frame, fec, ring_columns, heartbeat_s: the connection's, as
             :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` takes them (INFO says them).
         peer: who is on the other end, for the log of failed authentication.
@@ -160,10 +159,9 @@ class DeviceSession:
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
-                 stats: EndpointStats, lock: Any, *, max_frame: int, fec: bool,
-                 ring_columns: int, heartbeat_s: float, peer: str,
-                 on_end: Callable[[], None]) -> None:
-        self.core, self.tx, self.streams, self.stats, self.lock = core, tx, streams, stats, lock
+                 stats: EndpointStats, *, max_frame: int, fec: bool, ring_columns: int,
+                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
+        self.core, self.tx, self.streams, self.stats = core, tx, streams, stats
         self.max_frame, self.fec, self.ring_columns, self.heartbeat_s = \
             max_frame, fec, ring_columns, heartbeat_s
         self.peer, self._on_end = peer, on_end
@@ -177,22 +175,22 @@ class DeviceSession:
         #: (wrong HELLO MACs on this connection since its last success, the last one's time)
         self.auth_failures: tuple[int, float] = (0, 0.0)
         self.info: Info | None = None  # as sent in the last INFO
+        #: Set by another connection's HELLO that took the device: (reason, detail).
+        self.lost: tuple[SessionLostReason, str] | None = None
+        self._previous: DeviceSession | None = None  # the owner a claimed HELLO waits for
 
     @property
     def id(self) -> int:
         """The current (or first) session id."""
         return self.tx.session
 
-    def handlers(self) -> dict[MsgType, Callable[[Frame, dict, list], Reply]]:
-        return {MsgType.HELLO: self._hello, MsgType.SESSION_END: self._session_end}
+    def handlers(self) -> dict[MsgType, Callable[[Frame, dict], Reply]]:
+        return {MsgType.HELLO: self._hello, MsgType.SESSION_END: lambda req, f: self.tx.ack(req)}
 
     def hello_gate(self, req: Frame, f: dict) -> Reply | None:
-        """What HELLO gets without the application: a CHALLENGE, AUTH_FAILED (a wrong MAC,
-        or one sent during this connection's back-off) or BUSY; None: open a session.
-
-        Runs in the polling thread, so a HELLO is refused at once whatever the application
-        is computing, and again in the request worker.
-        """
+        """What HELLO gets from the session state alone, at once: a CHALLENGE,
+        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY;
+        None: the HELLO may open a session (:meth:`claim`)."""
         core = self.core
         if core.key is not None:
             if not any(f["mac"]) or self.challenge is None or \
@@ -230,18 +228,10 @@ class DeviceSession:
                            f"(expires after {core.session_idle_s:g} s idle); say HELLO with "
                            "take-over to end it", False)
 
-    def _hello(self, req: Frame, f: dict, after: list) -> Reply:
-        """Challenge (with a key), check ownership, then open a fresh session.
-
-        Runs in the request worker, holding app_lock and the endpoint's lock.
-        """
-        refusal = self.hello_gate(req, f)
-        if refusal is not None:
-            return refusal
-        core = self.core
-        self.auth_failures = (0, 0.0)
-        nonce = bytes(f["host_nonce"])
-        now = core.clock()
+    def claim(self, f: dict) -> None:
+        """A HELLO passed the gate: take the device from its owner (which hears
+        SESSION_LOST: at once on this connection, at its next poll on another)."""
+        core, nonce, now = self.core, bytes(f["host_nonce"]), self.core.clock()
         owner = core.owner
         if owner is not None and not (owner is self and core.owner_nonce == nonce):
             idle = core.idle_s(now)
@@ -254,18 +244,35 @@ class DeviceSession:
             if owner is self:
                 self.lose(*lost)
             else:
-                with owner.lock:  # lock order: app_lock, then one connection's lock
-                    owner.lose(*lost)
+                owner.lost, self._previous = lost, owner
+        # A stream of this connection ends now, so the engine has cleaned it up by the
+        # time the HELLO calls the application.
+        self.streams.stop(ScanEndReason.ABORTED, send_end=False)
+        core.owner, core.owner_nonce = self, nonce
+
+    @property
+    def ready(self) -> bool:
+        """This connection may call the application: it owns the device, and the owner
+        its HELLO took the device from has ended its session."""
+        prev = self._previous  # its loop clears ``lost`` once it has ended its session
+        return self.core.owner is self and (prev is None or not (prev.open or prev.lost))
+
+    def _hello(self, req: Frame, f: dict) -> Reply:
+        """Open a fresh session (after :meth:`claim`, the engine idle)."""
+        core = self.core
+        if core.owner is not self:
+            return self.tx.nak(req, ErrorCode.BUSY, "session",
+                               "another host took over the device meanwhile", False)
         self.end()
-        device_nonce = self.challenge or bytes(auth.NONCE_BYTES)
+        core.owner, self.auth_failures, self._previous = self, (0, 0.0), None
+        nonce, device_nonce = core.owner_nonce, self.challenge or bytes(auth.NONCE_BYTES)
         self.challenge = None
         core.restore_defaults(keep=bool(f["flags"] & HelloFlags.KEEP_CONFIG))
         if self.stats.sessions:
             self.tx.session = new_session_id(self.id)
         self.stats.sessions += 1
         self.open = True
-        core.owner, core.owner_nonce = self, nonce
-        core.opened = core.last_active = now
+        core.opened = core.last_active = core.clock()
         self.tx.max_frame = min(self.max_frame, f["host_max_frame"])
         self.tx.coded = self.fec and bool(f["flags"] & HelloFlags.FEC)
         mac = bytes(auth.MAC_BYTES)
@@ -286,11 +293,9 @@ class DeviceSession:
                 self.tx.signer is not None)
 
     def end(self) -> None:
-        """Forget the session's stream, ring, capture, keys and ownership; end the last
-        stream for the application (caller holds app_lock and the connection's lock)."""
+        """Forget the session's stream (its clean-up goes to the engine), ring, capture,
+        keys and ownership."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
-        if self.streams.latest is not None:
-            self.streams.finish(self.streams.latest)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
         self._on_end()
@@ -304,20 +309,11 @@ class DeviceSession:
         self.core.release(self)
 
     def lose(self, reason: SessionLostReason, detail: str) -> None:
-        """Another connection's HELLO ends this session: tell its host (caller holds the
-        core's app_lock and this connection's lock)."""
+        """Another HELLO ended this session: tell its host, then end it."""
         if self.open:
             log.info("session 0x%08x lost: %s", self.id, detail)
             with contextlib.suppress(OSError):  # that host is gone anyway
                 self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
                     MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         self.end()
-
-    def _session_end(self, req: Frame, f: dict, after: list) -> Reply:
-        """The host closes its link: ACK (signed), then forget the session."""
-        def end() -> None:
-            self.end()
-            log.info("session 0x%08x ended by its host", self.id)
-
-        after.append(end)
-        return self.tx.ack(req)
+        self.lost = None

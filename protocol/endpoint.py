@@ -9,14 +9,19 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> signed session: MAC and counter ok? --no--> dropped (unsigned: NAK AUTH_REQUIRED)
             -> same seq + same bytes as a cached request? --yes--> the stored reply again
             -> older seq than the last? --yes--> dropped as stale
-            -> needs the application? --yes--> request worker thread (in arrival order)
+            -> needs the application while the engine computes? --yes--> held (in order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-The polling thread answers STATUS_GET, RESEND and SCAN_ABORT and sends a HEARTBEAT
-every ``heartbeat_s / 2`` while a stream runs, whatever the application computes; the
-application is called by one thread at a time. Run :meth:`DeviceEndpoint.serve_forever`
-in a thread behind any port-like object (``read(n)``, ``write(b)``, ``in_waiting``,
-``timeout``).
+One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits
+for the application: the columns are computed by the device's
+:class:`~cdma_lidar.protocol.streams.Engine`, one step at a time, and the loop answers
+from its state meanwhile: STATUS_GET, RESEND, SCAN_ABORT, CONFIG_GET, a refused HELLO
+and BUSY (CONFIG_SET, SCAN_START, CALIBRATE while a stream runs) at once, a HEARTBEAT
+every ``heartbeat_s / 2`` while a stream runs. Requests that need the application
+(POWER_SET, POWER_GET, CAPTURE, and the rest when idle) are held, in arrival order,
+until the column in progress is done, and handled before the next one starts. Run
+:meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like object
+(``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
 """
 
 from __future__ import annotations
@@ -24,12 +29,12 @@ from __future__ import annotations
 import abc
 import logging
 import math
-import queue
 import threading
 import time
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from concurrent.futures import wait
 from typing import Any
 
 import numpy as np
@@ -58,48 +63,50 @@ from cdma_lidar.protocol.messages import (
     MsgKind,
     MsgType,
     Pieces,
-    ScanEndReason,
     decode_payload,
     encode_payload,
     kind_of,
     type_name,
 )
 from cdma_lidar.protocol.ports import port_name
-from cdma_lidar.protocol.streams import Streams
-from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
+from cdma_lidar.protocol.streams import Engine, Streams
+from cdma_lidar.protocol.transmit import CONTROL, Reply, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
-__all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint",
-           "EndpointStats"]
+__all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
+           "Engine"]
 
 log = logging.getLogger(__name__)
 
-# Requests answered without calling the application (never wait for a column to compute).
-_WITHOUT_APP = frozenset({MsgType.STATUS_GET, MsgType.RESEND, MsgType.SCAN_ABORT})
-# Requests answered NAK BUSY from the stream's state while it runs (their handlers check
-# it before they call the application).
-_BUSY_WHILE_SCANNING = frozenset({MsgType.CONFIG_SET, MsgType.SCAN_START, MsgType.CALIBRATE})
+#: Requests that call the application (CONFIG_*, SCAN_START and CALIBRATE only when no
+#: stream runs: then they are answered from its state).
+_APP = frozenset({MsgType.HELLO, MsgType.POWER_SET, MsgType.POWER_GET, MsgType.CAPTURE})
+_APP_IDLE = frozenset({MsgType.CONFIG_GET, MsgType.CONFIG_SET, MsgType.SCAN_START,
+                       MsgType.CALIBRATE})
 #: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
-#: between stream frames stays within INFO.heartbeat_ms when the polling thread runs late
-#: (by up to half of it: a loaded machine).
+#: between stream frames stays within INFO.heartbeat_ms when the loop runs late (by up
+#: to half of it: a loaded machine).
 _HEARTBEAT_EARLY = 0.5
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
 #: STATUS.faults bit set by the endpoint when the application's health() fails.
 FAULT_HEALTH = 0x8000_0000
-#: Repair bytes the polling thread sends per poll while a column worker runs (it then
-#: reads again; the worker sends the rest between its columns' frames).
-_POLL_REPAIR_BYTES = 2048
+#: Bytes of columns the loop sends per poll while a stream runs before it reads again.
+_POLL_BYTES = 4096
+#: A step of the engine this young (s) is waited for (``poll_s`` at a time) rather than
+#: the port, which is then only looked at between waits: most steps are quicker.
+_QUICK_STEP_S = 0.05
 
 
 class DeviceApp(abc.ABC):
     """What a device application implements behind a :class:`DeviceEndpoint`.
 
-    Methods are called one at a time (the endpoint serialises them), though not always
-    from the same thread: the scan generator and :meth:`abort` run in the endpoint's
-    column worker. A generator may take long per column: meanwhile the endpoint keeps
-    answering STATUS_GET, RESEND and SCAN_ABORT and sending heartbeats; other requests
-    wait for the column in progress. Refuse a request by raising
+    Methods are called one at a time, though not always from the same thread: the scan
+    generator and :meth:`abort` run in the device's
+    :class:`~cdma_lidar.protocol.streams.Engine`, the others in a connection's loop
+    while the engine is idle. A generator may take long per column: meanwhile the
+    endpoint keeps answering from its state and sending heartbeats; requests that need
+    the application wait for the column in progress. Refuse a request by raising
     ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming the field) or
     ``DeviceError(message, code=ErrorCode..., field=...)``.
     """
@@ -141,14 +148,15 @@ class DeviceApp(abc.ABC):
         """Called when a running scan or calibration is stopped early."""
 
     def health(self) -> tuple[int, int]:
-        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits)."""
+        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a
+        scan runs, as :meth:`column_time_s`: read state only, never block."""
         return TEMPERATURE_UNKNOWN, 0
 
     def column_time_s(self) -> float:
         """Longest the next column may take with the current configuration (s), batching
         included; 0.0: not stated. STATUS and every HEARTBEAT carry it, and the host's
-        no-progress limit follows it. Called while a scan runs, without the serialising
-        lock: read state only, never block."""
+        no-progress limit follows it. Called while a scan runs (the engine computing):
+        read state only, never block."""
         return 0.0
 
 
@@ -160,65 +168,61 @@ class DeviceEndpoint:
         app: the device application (ignored when ``core`` is given).
         core: shared device state when several connections serve one device.
         key: shared secret for a new core (see :class:`DeviceCore`).
+        engine: measurement engine of a new core (default: one on its own thread; a
+            test stepping the device on a fake clock gives ``Engine(threaded=False)``).
         session_id: id of the first session (u32, not 0); random when None. Every
             later HELLO gets a fresh random id.
         session_idle_s: idle time after which another host may take the session (s).
         max_frame: largest frame this end sends or accepts (bytes, 256..65535).
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
-        poll_s: longest blocking read when idle (s).
+        poll_s: longest blocking read when idle (s, 0..1; 0: never block, for a caller
+            that steps the device itself).
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
             (a serial line); False on TCP, where a damaged frame is not worth the CPU.
         peer: who is on the other end (an IP address), for the log of failed
             authentication; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
-        threads: False: no worker threads; each :meth:`poll` also handles the queued
-            requests and one column of a running stream (tests step the device with
-            an injected clock; ``poll_s`` may then be 0).
     """
 
     def __init__(self, port: Any, app: DeviceApp | None = None, *,
                  core: DeviceCore | None = None, key: bytes | None = None,
-                 session_id: int | None = None, session_idle_s: float = 10.0,
-                 max_frame: int = 16384, ring_columns: int = 1024, heartbeat_s: float = 0.2,
-                 poll_s: float = 0.01, peer: str | None = None,
-                 fec: bool = True, clock: Callable[[], float] = time.monotonic,
-                 threads: bool = True) -> None:
+                 engine: Engine | None = None, session_id: int | None = None,
+                 session_idle_s: float = 10.0, max_frame: int = 16384,
+                 ring_columns: int = 1024, heartbeat_s: float = 0.2, poll_s: float = 0.01,
+                 peer: str | None = None, fec: bool = True,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
         check_int("ring_columns", ring_columns, 0, 65535)
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
-        if not (0 < poll_s <= 1 or (poll_s == 0 and not threads)):
-            raise out_of_range("poll_s", "above 0 and at most 1 s (0 would spin; allowed "
-                               "with threads=False)", poll_s)
+        if not 0 <= poll_s <= 1:
+            raise out_of_range("poll_s", "0 to 1 s", poll_s)
         if session_id is not None:  # 0 or None: random
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
+        self._own_core = core is None
         if core is None:
             if app is None:
                 raise out_of_range("app", "a DeviceApp (or a DeviceCore)", app)
-            core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock)
+            core = DeviceCore(app, key=key, session_idle_s=session_idle_s, clock=clock,
+                              engine=engine)
         self.core, self.app, self.port = core, core.app, port
-        self.clock, self.threads = clock, threads
-        self.heartbeat_s = heartbeat_s
+        self.clock, self.heartbeat_s, self.poll_s = clock, heartbeat_s, poll_s
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
         self.tx = Transmitter(port, session_id or new_session_id(), max_frame,
                               (self.stats, core.totals))
-        # lock guards the connection's state (its session, streams, replay cache); the
-        # core's app_lock serialises calls into the application and is always taken first.
-        self.lock = threading.Lock()
-        self.streams = Streams(core.app, self.tx, core.app_lock, self.lock,
-                               ring_columns=ring_columns, threads=threads, clock=clock,
-                               counted=self._count_column,
+        self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
+                               clock=clock, counted=self._count_column,
                                stopped=lambda: core.touch(self.session))
         self.requests = AppRequests(core.app, self.tx, self.streams, self.status)
-        self.session = DeviceSession(core, self.tx, self.streams, self.stats, self.lock,
+        self.session = DeviceSession(core, self.tx, self.streams, self.stats,
                                      max_frame=max_frame, fec=fec, ring_columns=ring_columns,
                                      heartbeat_s=heartbeat_s, peer=peer or port_name(port),
-                                     on_end=self._forget_capture)
-        #: Request handler of each request type, ``(request, fields, after) -> reply``.
-        self.handlers: dict[MsgType, Callable[[Frame, dict, list], Reply]] = {
+                                     on_end=self._forget)
+        #: Request handler of each request type, ``(request, fields) -> reply``.
+        self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
             **self.session.handlers(), **self.streams.handlers(), **self.requests.handlers()}
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
@@ -227,28 +231,14 @@ class DeviceEndpoint:
         #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
         self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
         self._health = (TEMPERATURE_UNKNOWN, 0)
-        self._queue: queue.SimpleQueue[tuple[Frame, bool] | None] = queue.SimpleQueue()
-        self._queued = 0  # requests queued for the request worker and not yet handled
-        self._worker: threading.Thread | None = None
+        #: Requests waiting for the application, in arrival order: (request, its CRC).
+        self._held: list[tuple[Frame, int]] = []
         port.timeout = poll_s
 
-    # What the TCP server and the tests read of the connection.
-    @property
-    def peer(self) -> str:
-        """Who is on the other end (an IP address over TCP), for the logs."""
-        return self.session.peer
-
-    @property
-    def session_open(self) -> bool:
-        return self.session.open
-
-    @property
-    def sessionless_since(self) -> float:
-        """Since when this connection has had no session (core clock, s)."""
-        return self.session.sessionless_since
-
-    def _forget_capture(self) -> None:
+    def _forget(self) -> None:
+        """The session ended: its capture and held requests go with it."""
         self.requests.capture = None
+        self._held.clear()
 
     def serve_forever(self, stop: threading.Event) -> None:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
@@ -265,72 +255,80 @@ class DeviceEndpoint:
             self.close()
 
     def close(self) -> None:
-        """Stop a running stream (no SCAN_END), end this connection's session, stop the
-        request worker. The port is left open."""
-        with self.lock:
-            self.streams.stop(ScanEndReason.ABORTED, send_end=False)
-            self.core.release(self.session)
-            self.session.open = False
-        if not self.threads and self.streams.latest is not None:  # no worker to end it
-            with self.core.app_lock:
-                self.streams.finish(self.streams.latest)
-        if self._worker is not None:
-            self._queue.put(None)
-            if self._worker is not threading.current_thread():
-                self._worker.join(timeout=5.0)
-            self._worker = None
+        """Stop a running stream (no SCAN_END; its clean-up goes to the engine), end this
+        connection's session; let the engine's thread go if this endpoint made it. The
+        port is left open."""
+        self.session.lost = None
+        self.session.end()
+        if self._own_core:
+            self.core.engine.close()
 
     def poll(self) -> None:
-        """Read what arrived (blocking at most ``poll_s``), answer requests, send heartbeats.
+        """One turn of the connection's loop: read what arrived (blocking at most
+        ``poll_s`` when there is nothing to do), answer requests, take a computed column,
+        serve held requests at a column boundary, hand the engine the next column, send
+        a heartbeat when due, send what is queued. Never waits for the application."""
+        sess, streams = self.session, self.streams
+        if sess.lost is not None:  # another connection's HELLO took the device
+            sess.lose(*sess.lost)
+        data = self._read()
+        if data:
+            damaged = self.decoder.stats.damaged
+            for piece in self.decoder.feed(data):
+                frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
+                    else piece
+                if frame is None:
+                    continue
+                if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+                    self.stats.ignored += 1
+                else:
+                    self._process(frame)
+            while self.decoder.rejected:
+                self._on_rejected(self.decoder.rejected.pop(0))
+            self._count_rx()
+            if self.decoder.stats.damaged > damaged:
+                # Say so at once (information only: it words the host's diagnosis).
+                self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
+                    MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
+                                         & 0xFFFFFFFF}))
+        streams.collect()
+        while self._held and self._app_free():
+            self._respond(*self._held.pop(0))
+        if not self._held:  # held requests go before the next column
+            streams.advance()
+            streams.collect()  # done at once when the engine is quick (or not threaded)
+        now = self.clock()
+        if streams.stream is not None and \
+                now - streams.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
+            streams.last_heartbeat = now
+            self.tx.send(CONTROL, MsgType.HEARTBEAT,
+                         encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
+        self.tx.flush(_POLL_BYTES if streams.stream is not None else None)
 
-        Never waits for the application: columns come from a stream worker and the
-        requests that need the application from the request worker.
-        """
+    def _read(self) -> bytes:
+        """What arrived; blocks (up to ``poll_s``) only when there is nothing to send and
+        no column to hand over. A step of the engine younger than ``_QUICK_STEP_S`` is
+        waited for instead (so it is taken at once), an older one noticed within
+        ``poll_s``."""
         n = self.port.in_waiting
-        data = self.port.read(n or 1)
-        if data and not n and self.port.in_waiting:
+        if n:
+            return self.port.read(n)
+        st, job = self.streams.stream, self.streams.latest and self.streams.latest.job
+        if job is not None and time.monotonic() - job.started < _QUICK_STEP_S and \
+                wait([job], self.poll_s).done:
+            return b""
+        if self.tx.pending(CONTROL) or (st is not None and (job is None or any(
+                self.tx.pending(c) for c in range(1, 3)))):
+            return b""
+        data = self.port.read(1)
+        if data and self.port.in_waiting:
             data += self.port.read(self.port.in_waiting)
-        with self.lock:
-            if data:
-                damaged = self.decoder.stats.damaged
-                for piece in self.decoder.feed(data):
-                    frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
-                        else piece
-                    # While the request worker has work, every request queues behind it,
-                    # so requests are always handled in the order they arrived.
-                    if frame is None:
-                        continue
-                    if kind_of(frame.msg_type) is not MsgKind.REQUEST:
-                        self.stats.ignored += 1
-                    elif self._queued:
-                        self._enqueue(frame, False)
-                    else:
-                        self._process(frame, False)
-                while self.decoder.rejected:
-                    self._on_rejected(self.decoder.rejected.pop(0))
-                self._count_rx()
-                if self.decoder.stats.damaged > damaged:
-                    # Say so at once (information only: it words the host's diagnosis).
-                    self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
-                        MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
-                                             & 0xFFFFFFFF}))
-            now, streams = self.clock(), self.streams
-            if streams.stream is not None and \
-                    now - streams.last_heartbeat >= _HEARTBEAT_EARLY * self.heartbeat_s:
-                streams.last_heartbeat = now
-                self.tx.send(CONTROL, MsgType.HEARTBEAT,
-                               encode_payload(MsgType.HEARTBEAT, self.status().to_fields()))
-            worker = streams.stream is not None
-        # Replies and notices now; repairs in a bounded share while a column worker runs
-        # (it sends the rest); everything when no stream runs.
-        self.tx.flush(REPAIR if worker else FRESH, _POLL_REPAIR_BYTES if worker else None)
-        if not self.threads:  # what the workers would do meanwhile
-            while not self._queue.empty():
-                item = self._queue.get()
-                assert item is not None
-                self._serve_one(*item)
-            if streams.latest is not None and not streams.latest.finished:
-                streams.step(streams.latest)
+        return data
+
+    def _app_free(self) -> bool:
+        """This connection may call the application now: it owns the device (its HELLO
+        took it and the old owner let go) and the engine is idle."""
+        return self.session.ready and self.core.engine.idle
 
     def _count_rx(self) -> None:
         """Add what the decoder counted since the last call to the core's totals."""
@@ -348,14 +346,11 @@ class DeviceEndpoint:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
         st, streams = self.streams.stream, self.streams
-        if self.core.app_lock.acquire(blocking=False):  # else: the last reading
-            try:
-                self._health = self.app.health()
-            except Exception:  # a health sensor must not take the link down
-                log.exception("application health() failed")
-                self._health = (TEMPERATURE_UNKNOWN, FAULT_HEALTH)
-            finally:
-                self.core.app_lock.release()
+        try:
+            self._health = self.app.health()
+        except Exception:  # a health sensor must not take the link down
+            log.exception("application health() failed")
+            self._health = (TEMPERATURE_UNKNOWN, FAULT_HEALTH)
         temp, faults = self._health
         core, mask = self.core, 0xFFFFFFFF
         return Status(
@@ -385,12 +380,14 @@ class DeviceEndpoint:
             # In the requester's version, so that an older host reads it: the header and
             # the NAK payload are laid out alike in every version.
             reply = self.tx.nak(frame, ErrorCode.VERSION, "version",
-                        f"device speaks protocol version {PROTOCOL_VERSION}", False)
+                                f"device speaks protocol version {PROTOCOL_VERSION}", False)
             self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
                         coded=frame.fec, version=frame.version)
             return
-        self._send_reply(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
-                                    f"unknown incompat flags 0x{frame.incompat:02x}", False))
+        self._send_reply(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS,
+                                            "incompat_flags",
+                                            f"unknown incompat flags 0x{frame.incompat:02x}",
+                                            False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
@@ -420,16 +417,8 @@ class DeviceEndpoint:
         del self._pieces[key]
         return Frame(key[0], key[1], frame.session, payload, fec=frame.fec, joined=ours)
 
-    def _enqueue(self, frame: Frame, checked: bool) -> None:
-        self._queued += 1
-        if self._worker is None and self.threads:
-            self._worker = threading.Thread(target=self._serve_requests, daemon=True,
-                                            name="cdma-lidar-requests")
-            self._worker.start()
-        self._queue.put((frame, checked))
-
-    def _process(self, frame: Frame, in_worker: bool) -> None:
-        """Check one request and answer, replay, drop or (poll thread) queue it."""
+    def _process(self, frame: Frame) -> None:
+        """Check one request; answer, replay, drop or hold it."""
         self.stats.rx_requests += 1
         is_hello, sess = frame.msg_type == MsgType.HELLO, self.session
         if not is_hello:
@@ -465,73 +454,53 @@ class DeviceEndpoint:
             self.core.totals.replays += 1
             self._send_reply(frame, cached[1])
             return
+        if any(h.seq == frame.seq and k == key for h, k in self._held):
+            return  # a retransmission of a held request: its reply comes
         if not is_hello and self.last_seq is not None:
             age = (self.last_seq - frame.seq) & 0xFFFF
             if 0 < age < 0x8000:
                 self.stats.stale += 1
                 log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
                 return
-        if is_hello and not in_worker:
-            try:  # the gate's answer, at once whatever the application is computing
-                refusal = sess.hello_gate(frame, decode_payload(MsgType.HELLO, frame.payload))
+        if is_hello:
+            try:
+                f = decode_payload(MsgType.HELLO, frame.payload)
             except FrameError:
-                refusal = None  # the worker NAKs it MALFORMED
+                self._respond(frame, key)  # NAK MALFORMED
+                return
+            refusal = sess.hello_gate(frame, f)  # at once, whatever the engine computes
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-        if in_worker or frame.msg_type in _WITHOUT_APP or (self.streams.stream is not None and (
-                frame.msg_type in _BUSY_WHILE_SCANNING or frame.msg_type == MsgType.CONFIG_GET)):
-            self._respond(frame, key)
+            sess.claim(f)
+        t = frame.msg_type
+        if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
+                (self._held or not self._app_free()):
+            self._held.append((frame, key))
+            if not is_hello:
+                self.last_seq = frame.seq
         else:
-            self._enqueue(frame, True)
-
-    def _serve_requests(self) -> None:
-        """Request worker: handles, in order, the requests that need the application."""
-        while True:
-            item = self._queue.get()
-            if item is None or not self._serve_one(*item):
-                return
-
-    def _serve_one(self, frame: Frame, checked: bool) -> bool:
-        """Handle one queued request; False when the port went away."""
-        try:
-            with self.core.app_lock, self.lock:
-                self._queued -= 1
-                if checked:
-                    self._respond(frame, zlib.crc32(bytes([frame.msg_type]) + frame.payload))
-                else:
-                    self._process(frame, True)
-                idle = self.streams.stream is None
-            self.tx.flush(FRESH if idle else CONTROL)
-        except OSError as exc:
-            log.warning("request worker stops: %s", exc)
-            return False
-        except Exception:  # a bug must not take the device off the line
-            log.exception("request worker failed on %s", type_name(frame.msg_type))
-        return True
+            self._respond(frame, key)
 
     def _respond(self, frame: Frame, key: int, reply: Reply | None = None) -> None:
         """Act on one request (or send ``reply``, decided already), cache and send its
-        reply, then run what the handler left for after it (caller holds the lock)."""
-        after: list[Callable[[], None]] = []
+        reply; end the session after the ACK of SESSION_END."""
         try:
             if reply is None:
                 handler = self.handlers.get(frame.msg_type)  # type: ignore[call-overload]
                 if handler is None:
                     raise DeviceError(f"{type_name(frame.msg_type)} is not a request this "
                                       "device knows", ErrorCode.UNKNOWN_TYPE, "msg_type")
-                reply = handler(frame, decode_payload(frame.msg_type, frame.payload), after)
+                reply = handler(frame, decode_payload(frame.msg_type, frame.payload))
         except FrameError as exc:
             reply = self.tx.nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
         except (DeviceError, ConfigError) as exc:
             code = exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
             reply = self.tx.nak(frame, ErrorCode(code) if code in set(ErrorCode) else
-                        ErrorCode.INTERNAL, exc.field or "", str(exc))
-            after.clear()
+                                ErrorCode.INTERNAL, exc.field or "", str(exc))
         except Exception as exc:  # the device must never die on a request
             log.exception("device application failed on %s", type_name(frame.msg_type))
             reply = self.tx.nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
-            after.clear()
         if frame.msg_type == MsgType.HELLO:
             if reply[0] == MsgType.INFO:  # a new session: its requests count afresh
                 self._replay.clear()
@@ -543,10 +512,6 @@ class DeviceEndpoint:
         while len(self._replay) > _REPLAY_DEPTH:
             self._replay.popitem(last=False)
         self._send_reply(frame, reply)
-        for action in after:
-            try:
-                action()
-            except OSError:
-                raise  # the port failed
-            except Exception:  # a bug must not take the device off the line
-                log.exception("action after %s failed", type_name(frame.msg_type))
+        if frame.msg_type == MsgType.SESSION_END and reply[0] == MsgType.ACK:
+            self.session.end()
+            log.info("session 0x%08x ended by its host", self.session.id)

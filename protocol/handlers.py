@@ -1,10 +1,10 @@
 """Device requests that need no session or stream logic: configuration, power, capture,
 status.
 
-A handler is ``(request, fields, after) -> Reply``: it acts on the decoded fields,
-returns the reply, and appends to ``after`` what must happen once the reply is queued.
-It refuses by returning a NAK (:meth:`~cdma_lidar.protocol.transmit.Transmitter.nak`)
-or raising ``ConfigError`` / ``DeviceError`` (answered NAK by the endpoint). Sessions
+A handler is ``(request, fields) -> Reply``: it acts on the decoded fields and
+returns the reply. It refuses by returning a NAK
+(:meth:`~cdma_lidar.protocol.transmit.Transmitter.nak`) or raising ``ConfigError`` /
+``DeviceError`` (answered NAK by the endpoint). Sessions
 and HELLO are in :mod:`~cdma_lidar.protocol.device_sessions`, streams and RESEND in
 :mod:`~cdma_lidar.protocol.streams`.
 """
@@ -51,12 +51,12 @@ class AppRequests:
         #: The capture being read out: ((kind, column, channel), its data).
         self.capture: tuple[tuple[int, int, int], NDArray] | None = None
 
-    def handlers(self) -> dict[MsgType, Callable[[Frame, dict, list], Reply]]:
+    def handlers(self) -> dict[MsgType, Callable[[Frame, dict], Reply]]:
         return {MsgType.CONFIG_GET: self._config_get, MsgType.CONFIG_SET: self._config_set,
                 MsgType.POWER_SET: self._power_set, MsgType.POWER_GET: self._power_get,
                 MsgType.CAPTURE: self._capture, MsgType.STATUS_GET: self._status_get}
 
-    def _config_get(self, req: Frame, f: dict, after: list) -> Reply:
+    def _config_get(self, req: Frame, f: dict) -> Reply:
         if self.streams.stream is not None and self.streams.config is not None:
             values = dict(self.streams.config)  # no CONFIG_SET while streaming: still current
         else:
@@ -76,7 +76,7 @@ class AppRequests:
                                "ask for fewer keys per CONFIG_GET")
         return self.tx.reply(req, MsgType.CONFIG, payload)
 
-    def _config_set(self, req: Frame, f: dict, after: list) -> Reply:
+    def _config_set(self, req: Frame, f: dict) -> Reply:
         if self.streams.stream is not None:
             return self.tx.nak(req, ErrorCode.BUSY, "", "abort the running scan first")
         cfg = decode_config(f["items"])
@@ -89,12 +89,12 @@ class AppRequests:
         self.app.set_config(cfg.values)
         return self.tx.ack(req)
 
-    def _power_set(self, req: Frame, f: dict, after: list) -> Reply:
+    def _power_set(self, req: Frame, f: dict) -> Reply:
         power = np.asarray(f["power"], dtype=np.uint16).reshape(f["channels"], f["columns"])
         self.app.set_power(f["channel_start"], f["column_start"], power)
         return self.tx.ack(req)
 
-    def _power_get(self, req: Frame, f: dict, after: list) -> Reply:
+    def _power_get(self, req: Frame, f: dict) -> Reply:
         m = np.asarray(self.app.get_power(), dtype=np.uint16)
         r0, c0, nr, nc = f["channel_start"], f["column_start"], f["channels"], f["columns"]
         for name, start, n, have in (("channels", r0, nr, m.shape[0]),
@@ -110,7 +110,7 @@ class AppRequests:
                        "ask for a smaller rectangle per POWER_GET")
         return self.tx.reply(req, MsgType.POWER, payload)
 
-    def _capture(self, req: Frame, f: dict, after: list) -> Reply:
+    def _capture(self, req: Frame, f: dict) -> Reply:
         key = (f["kind"], f["column"], f["channel"])
         if f["offset"] == 0 or self.capture is None or self.capture[0] != key:
             if f["offset"] != 0:
@@ -138,6 +138,6 @@ class AppRequests:
             "data": arr[off:off + n].tobytes()})
         return self.tx.reply(req, MsgType.CAPTURE_DATA, payload)
 
-    def _status_get(self, req: Frame, f: dict, after: list) -> Reply:
+    def _status_get(self, req: Frame, f: dict) -> Reply:
         return self.tx.reply(req, MsgType.STATUS,
                              encode_payload(MsgType.STATUS, self.status().to_fields()))

@@ -1,20 +1,26 @@
-"""Device column streams: SCAN_START, CALIBRATE, SCAN_ABORT, RESEND and the column worker.
+"""Device column streams: SCAN_START, CALIBRATE, SCAN_ABORT, RESEND, and the measurement
+engine that computes their columns.
 
 :class:`Streams` owns one connection's streams: the running one, the ring of recent
-columns (for RESEND) and what STATUS says of the last one. A stream's worker thread
-pulls columns from the application's generator, keeps each in the ring and queues it
-on the :class:`~cdma_lidar.protocol.transmit.Transmitter`; it sends replies and
-repairs first and never runs ahead of the line. The application is called under the
-core's ``app_lock`` only.
+columns (for RESEND) and what STATUS says of the last one. The connection's loop calls
+:meth:`Streams.collect` and :meth:`Streams.advance` between its reads: once the line has
+taken a stream's last column, the :class:`Engine` is handed the next one, and the
+column it returns is kept in the ring and queued on the
+:class:`~cdma_lidar.protocol.transmit.Transmitter`, so a stream never runs ahead of the
+line. A stream that ends has its generator closed (and ``app.abort()`` called when it
+ended early) by the engine too, after the column in progress.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,9 +29,69 @@ from cdma_lidar.protocol.framing import Frame
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, encode_payload
 from cdma_lidar.protocol.transmit import FRESH, MAX_PIECES, REPAIR, Reply, Transmitter
 
-__all__ = ["Stream", "Streams"]
+__all__ = ["Engine", "Stream", "Streams"]
 
 log = logging.getLogger(__name__)
+
+
+class Engine:
+    """The measurement engine of one device: runs the application's column steps and
+    stream clean-ups one at a time, in the order submitted.
+
+    A step cannot be bounded below the 50 ms in which the connections' loops must
+    answer: one column of paper-scene1 at averages 1024 and samples per chip 16 takes
+    0.1-0.2 s on a 2-core machine, the virtual board computes columns in batches of
+    seconds, the RTL engine far longer. So the steps run on the engine's own thread
+    (the device's only thread besides the connections' loops), which touches nothing
+    but the application; the loops call the application themselves only while it is
+    :attr:`idle`. ``threaded=False``: each job runs at once in the caller (a test
+    stepping a device on a fake clock), through the same code otherwise.
+    """
+
+    def __init__(self, threaded: bool = True) -> None:
+        self.threaded = threaded
+        self.last: Future | None = None  # the last job submitted
+        self._jobs: queue.SimpleQueue[tuple[Future, Callable[[], Any]] | None] = \
+            queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def idle(self) -> bool:
+        """Every job submitted is done: the application may be called directly."""
+        return self.last is None or self.last.done()
+
+    def submit(self, fn: Callable[[], Any]) -> Future:
+        """Run ``fn`` after the jobs before it (at once when not threaded); its future
+        carries ``started``, when it was submitted (``time.monotonic``, s)."""
+        job = self.last = Future()
+        job.started = time.monotonic()  # type: ignore[attr-defined]
+        if not self.threaded:
+            _run(job, fn)
+        else:
+            if self._thread is None:  # a daemon: a column never holds up the exit
+                self._thread = threading.Thread(target=self._serve, args=(self._jobs,),
+                                                daemon=True, name="cdma-lidar-engine")
+                self._thread.start()
+            self._jobs.put((job, fn))
+        return job
+
+    @staticmethod
+    def _serve(jobs: queue.SimpleQueue) -> None:
+        while (item := jobs.get()) is not None:
+            _run(*item)
+
+    def close(self) -> None:
+        """Let the thread end after the jobs queued (a later job starts a new one)."""
+        if self._thread is not None:
+            self._jobs.put(None)
+            self._jobs, self._thread = queue.SimpleQueue(), None
+
+
+def _run(job: Future, fn: Callable[[], Any]) -> None:
+    try:
+        job.set_result(fn())
+    except Exception as exc:  # the loop that collects the job decides
+        job.set_exception(exc)
 
 
 @dataclass
@@ -38,8 +104,8 @@ class Stream:
     count: int
     calibration: bool
     produced: int = 0
-    stopped: bool = False  # set (under the endpoint lock) when the stream ends for any reason
-    finished: bool = False  # generator closed and app.abort() called if due (under app_lock)
+    stopped: bool = False  # ended for any reason (its clean-up is then submitted)
+    job: Future | None = None  # the column the engine computes, not yet collected
 
     @property
     def next_column(self) -> int:
@@ -50,23 +116,20 @@ class Streams:
     """The streams of one connection (see the module docstring).
 
     Args:
-        app: the device application (called under ``app_lock`` only).
+        app: the device application (called only while the engine is idle, or by it).
         tx: the connection's transmitter.
-        app_lock: the core's lock around every call into the application.
-        lock: the connection's lock, held while stream state changes (taken after
-            ``app_lock``, never before).
+        engine: the device's measurement engine.
         ring_columns: recent columns kept for RESEND.
-        threads: start a worker thread per stream; False: the owner calls :meth:`step`.
         clock: monotonic clock (s).
         counted: called for every COLUMN_RESULT queued (new or resent).
         stopped: called when a stream ends (its idle time counts from then).
     """
 
-    def __init__(self, app: Any, tx: Transmitter, app_lock: Any, lock: Any, *,
-                 ring_columns: int, threads: bool, clock: Callable[[], float],
-                 counted: Callable[[], None], stopped: Callable[[], None]) -> None:
-        self.app, self.tx, self.app_lock, self.lock = app, tx, app_lock, lock
-        self.ring_columns, self.threads, self.clock = ring_columns, threads, clock
+    def __init__(self, app: Any, tx: Transmitter, engine: Engine, *, ring_columns: int,
+                 clock: Callable[[], float], counted: Callable[[], None],
+                 stopped: Callable[[], None]) -> None:
+        self.app, self.tx, self.engine = app, tx, engine
+        self.ring_columns, self.clock = ring_columns, clock
         self._counted, self._stopped = counted, stopped
         self.stream: Stream | None = None
         self.latest: Stream | None = None  # the last stream started, running or not
@@ -77,17 +140,14 @@ class Streams:
         #: Recent columns (frame, column) -> payload, for RESEND.
         self.ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
 
-    def handlers(self) -> dict[MsgType, Callable[[Frame, dict, list], Reply]]:
+    def handlers(self) -> dict[MsgType, Callable[[Frame, dict], Reply]]:
         return {MsgType.SCAN_START: self._scan_start, MsgType.CALIBRATE: self._calibrate,
                 MsgType.SCAN_ABORT: self._scan_abort, MsgType.RESEND: self._resend}
 
     def _start(self, req: Frame, gen_factory: Callable[[], Iterator[ColumnResult]],
-               frame: int, first: int, count: int, calibration: bool,
-               after: list[Callable[[], None]]) -> Reply:
+               frame: int, first: int, count: int, calibration: bool) -> Reply:
         if self.stream is not None:
             return self.tx.nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
-        if self.latest is not None:  # we hold app_lock: its generator is not running
-            self.finish(self.latest)  # close it (and abort) before the app starts another
         channels = self.app.info().channels
         self.config = self.app.get_config()
         peaks = int(self.config.get("peaks", 1))
@@ -97,30 +157,24 @@ class Streams:
                                f"a column of {channels} channels x {peaks} peaks ({size} bytes) "
                                f"needs more than {MAX_PIECES} fragments at max frame "
                                f"{self.tx.max_frame}")
-        st = Stream(iter(gen_factory()), frame, first, count, calibration)
-        self.stream = self.latest = st
-        self.last_frame = frame
-        self.last_heartbeat = self.clock()
-        if self.threads:
-            worker = threading.Thread(target=self._produce, args=(st,), daemon=True,
-                                      name=f"cdma-lidar-frame-{frame}")
-            after.append(worker.start)  # after the ACK is on the wire
+        self.stream = self.latest = Stream(iter(gen_factory()), frame, first, count,
+                                           calibration)
+        self.last_frame, self.last_heartbeat = frame, self.clock()
         return self.tx.ack(req)
 
-    def _scan_start(self, req: Frame, f: dict, after: list) -> Reply:
+    def _scan_start(self, req: Frame, f: dict) -> Reply:
         return self._start(req, lambda: self.app.scan(f["frame"], f["first_column"], f["columns"]),
-                      f["frame"], f["first_column"], f["columns"], False, after)
+                           f["frame"], f["first_column"], f["columns"], False)
 
-    def _calibrate(self, req: Frame, f: dict, after: list) -> Reply:
+    def _calibrate(self, req: Frame, f: dict) -> Reply:
         return self._start(req, lambda: self.app.calibrate(f["frame"], f["shots"]),
-                      f["frame"], 0, f["shots"], True, after)
+                           f["frame"], 0, f["shots"], True)
 
-    def _scan_abort(self, req: Frame, f: dict, after: list) -> Reply:
-        if self.stream is not None:
-            after.append(lambda: self.stop(ScanEndReason.ABORTED))
+    def _scan_abort(self, req: Frame, f: dict) -> Reply:
+        self.stop(ScanEndReason.ABORTED)  # its SCAN_END goes after the ACK (class FRESH)
         return self.tx.ack(req)
 
-    def _resend(self, req: Frame, f: dict, after: list) -> Reply:
+    def _resend(self, req: Frame, f: dict) -> Reply:
         frame, st = f["frame"], self.stream
         if not f["columns"] and not f["fragments"]:
             return self.tx.nak(req, ErrorCode.MALFORMED, "columns",
@@ -136,102 +190,68 @@ class Streams:
                       st.next_column <= col < st.first + st.count):
                 return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, name,
                                    f"column {col} of frame {frame} is no longer kept")
-
-        def resend() -> None:
-            for key, payload, only in todo:
-                self._counted()
-                self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
-
-        after.append(resend)
+        for key, payload, only in todo:  # class REPAIR: after the ACK
+            self._counted()
+            self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
         return self.tx.ack(req)
 
-    def _produce(self, st: Stream) -> None:
-        """Worker thread of one stream."""
-        while self.step(st):
-            pass
+    def _compute(self, st: Stream) -> tuple[int, bytes]:
+        """The engine's step: the stream's next column, encoded."""
+        col = next(st.gen)
+        if col.frame != st.frame or col.calibration != st.calibration:
+            col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
+        return col.column, encode_column(col)
 
-    def step(self, st: Stream) -> bool:
-        """Pull one column from the app and send it; False once the stream is over and
-        finished (its worker then exits). Never runs ahead of the line."""
-        try:
-            if not st.stopped and st.produced < st.count:
-                reason = self._next_column(st)
-                if reason is None:
-                    self.tx.flush(FRESH, wait=True)  # replies and repairs first, then this one
-                    return True
-            else:
-                reason = ScanEndReason.COMPLETE
-            with self.lock:
-                if not st.stopped:
-                    self.stop(reason)
-            self.tx.flush(FRESH, wait=True)
-        except OSError as exc:  # the port went away under us
-            log.warning("column stream of frame %d stops: %s", st.frame, exc)
-            with self.lock:
-                if self.stream is st:
-                    self.stream = None
-                st.stopped = True
-        except Exception:  # e.g. a column the frame size cannot carry: end it, stay alive
-            log.exception("column stream of frame %d failed", st.frame)
-            with self.lock:
-                if not st.stopped:
-                    try:  # marks it stopped before it sends SCAN_END
-                        self.stop(ScanEndReason.ERROR)
-                    except Exception:
-                        log.exception("cannot send SCAN_END of frame %d", st.frame)
-        with self.app_lock:
-            self.finish(st)
-        return False
-
-    def _next_column(self, st: Stream) -> ScanEndReason | None:
-        """Compute, keep and queue the next column; the reason to end the stream, or None."""
-        try:
-            with self.app_lock:
-                if st.stopped:
-                    return ScanEndReason.COMPLETE
-                col = next(st.gen)
-            if col.frame != st.frame or col.calibration != st.calibration:
-                col = dataclasses.replace(col, frame=st.frame, calibration=st.calibration)
-            payload = encode_column(col)
-            if not self.tx.fits(len(payload)):
-                log.error("frame %d column %d: %d bytes need more than %d fragments at max "
-                          "frame %d", st.frame, col.column, len(payload), MAX_PIECES,
-                          self.tx.max_frame)
-                return ScanEndReason.ERROR
-        except StopIteration:
+    def collect(self) -> None:
+        """Keep and queue the column the engine computed (if it is done)."""
+        st = self.latest
+        if st is None or st.job is None or not st.job.done():
+            return
+        job, st.job = st.job, None
+        if st.stopped:
+            return  # aborted meanwhile: the column goes nowhere
+        error = job.exception()
+        if isinstance(error, StopIteration):
             log.warning("application ended frame %d after %d of %d columns", st.frame,
                         st.produced, st.count)
-            return ScanEndReason.ERROR
-        except Exception:
-            log.exception("application failed during frame %d", st.frame)
-            return ScanEndReason.ERROR
-        with self.lock:
-            if st.stopped:
-                return ScanEndReason.COMPLETE
-            key = (st.frame, col.column)
-            self.ring[key] = payload
-            self.ring.move_to_end(key)
-            while len(self.ring) > self.ring_columns:
-                self.ring.popitem(last=False)
-            st.produced += 1
-            self._counted()
-            self.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=key)
-            if st.produced >= st.count:
-                # End the stream under the same lock that queued its last column: a
-                # SCAN_START arriving right after must not find it still busy.
-                self.stop(ScanEndReason.COMPLETE)
-        return None
-
-    def finish(self, st: Stream) -> None:
-        """Close the generator of an ended stream; call ``app.abort()`` if it ended early.
-
-        Caller holds app_lock. Runs once per stream: in its worker when it exits, or
-        earlier in the next SCAN_START / CALIBRATE / HELLO, so the application never sees
-        the clean-up of an old stream after it was asked for a new one.
-        """
-        if st.finished or not st.stopped:
+            self.stop(ScanEndReason.ERROR)
             return
-        st.finished = True
+        if error is not None:
+            log.error("application failed during frame %d", st.frame, exc_info=error)
+            self.stop(ScanEndReason.ERROR)
+            return
+        column, payload = job.result()
+        if not self.tx.fits(len(payload)):
+            log.error("frame %d column %d: %d bytes need more than %d fragments at max frame "
+                      "%d", st.frame, column, len(payload), MAX_PIECES, self.tx.max_frame)
+            self.stop(ScanEndReason.ERROR)
+            return
+        key = (st.frame, column)
+        self.ring[key] = payload
+        self.ring.move_to_end(key)
+        while len(self.ring) > self.ring_columns:
+            self.ring.popitem(last=False)
+        st.produced += 1
+        self._counted()
+        self.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=key)
+        if st.produced >= st.count:
+            self.stop(ScanEndReason.COMPLETE)
+
+    def advance(self) -> None:
+        """Hand the engine the running stream's next column once the line has taken the
+        last one (and the engine is free)."""
+        st = self.stream
+        if st is None or st.job is not None or self.tx.pending(FRESH) or \
+                not self.engine.idle:
+            return
+        if st.produced >= st.count:
+            self.stop(ScanEndReason.COMPLETE)
+        else:
+            st.job = self.engine.submit(lambda: self._compute(st))
+
+    def _finish(self, st: Stream) -> None:
+        """The engine's clean-up of an ended stream: close its generator, and call
+        ``app.abort()`` if it ended early."""
         try:
             close = getattr(st.gen, "close", None)
             if close is not None:
@@ -242,7 +262,8 @@ class Streams:
             log.exception("application failed while ending frame %d", st.frame)
 
     def stop(self, reason: ScanEndReason, send_end: bool = True) -> None:
-        """End the current stream (caller holds ``self.lock``); its worker notices and exits."""
+        """End the current stream (if any) and hand its clean-up to the engine, behind
+        the column in progress, so the application never sees it after a new request."""
         st = self.stream
         if st is None:
             return
@@ -250,6 +271,7 @@ class Streams:
         self.stream = None
         self.last_next, self.last_end = st.next_column, reason
         self._stopped()  # idle time counts from the end of the stream
+        self.engine.submit(lambda: self._finish(st))
         if reason != ScanEndReason.COMPLETE:
             self.tx.drop(FRESH)  # aborted: its queued columns need not go (the ring keeps them)
         if send_end:  # after the columns queued before it

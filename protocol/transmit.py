@@ -5,13 +5,12 @@ this order: replies and notices (:data:`CONTROL`), retransmitted columns
 (:data:`REPAIR`), new columns and SCAN_END (:data:`FRESH`). On a UART at 921600 baud a
 1.6 kB column takes 18 ms, so a reply or a repair waits for at most the frame on the
 wire. Frames are encoded and signed when they leave, so signature counters rise in
-wire order whatever the class. One thread writes at a time (:meth:`Transmitter.flush`).
+wire order whatever the class. The connection's loop is the only writer.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -84,8 +83,6 @@ class Transmitter:
         self.coded = False
         self.counters = tuple(counters)
         self._q: tuple[deque[_Job], ...] = (deque(), deque(), deque())
-        self._cv = threading.Condition()
-        self._writing = False
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
@@ -116,72 +113,52 @@ class Transmitter:
         job = _Job(msg_type, payload, seq, self.session, self.max_frame,
                    self.signer if signer is _SESSION else signer, repair,
                    self.coded if coded is _SESSION else coded, version)
-        with self._cv:
-            if repair is not None:
-                if repair in self._repairs:
-                    return
-                self._repairs.add(repair)
-            self._q[cls].append(job)
-
-    def flush(self, upto: int, budget: int | None = None, wait: bool = False) -> None:
-        """Send queued frames of classes 0..``upto``, highest priority first.
-
-        If another thread is writing, return at once unless ``wait`` (that writer sends
-        replies and notices before it gives up its role). ``budget``: stop after about
-        this many bytes of classes above CONTROL (replies and notices all go).
-        """
-        with self._cv:
-            if self._writing and not wait:
+        if repair is not None:
+            if repair in self._repairs:
                 return
-            while self._writing:
-                self._cv.wait()
-            self._writing = True
+            self._repairs.add(repair)
+        self._q[cls].append(job)
+
+    def flush(self, budget: int | None = None) -> None:
+        """Send the queued frames, highest priority first; ``budget``: stop after about
+        this many bytes of classes above CONTROL (replies and notices all go), so that
+        the loop reads again between a stream's frames."""
         sent = 0
-        try:
-            while True:
-                with self._cv:
-                    cls = next((c for c in range(upto + 1) if self._q[c]), None)
-                    if cls is None or (cls > CONTROL and budget is not None and sent >= budget):
-                        # Give up the writer's role in the same breath as the last look
-                        # at the queue: a frame queued after it finds no writer.
-                        self._writing = False
-                        self._cv.notify_all()
-                        return
-                    job = self._q[cls].popleft()
-                    self._repairs.discard(job.repair)  # type: ignore[arg-type]
+        for cls, queue in enumerate(self._q):  # nothing is queued meanwhile: one loop
+            while queue:
+                if cls > CONTROL and budget is not None and sent >= budget:
+                    return
+                job = queue.popleft()
+                self._repairs.discard(job.repair)  # type: ignore[arg-type]
                 seq = job.seq
                 if seq is None:
                     self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
                 try:
                     wire = encode_frame(job.msg_type, job.payload, seq, job.session,
                                         compat=COMPAT_RETRANSMIT if cls == REPAIR else 0,
-                                        max_frame=job.max_frame,
-                                        signer=job.signer, coded=job.coded, version=job.version)
+                                        max_frame=job.max_frame, signer=job.signer,
+                                        coded=job.coded, version=job.version)
                 except FieldError:  # a bug must not take the device off the line
                     log.exception("cannot send a %s frame", type_name(job.msg_type))
                     continue
                 self.port.write(wire)
                 for c in self.counters:
                     c.tx_frames += 1
-                if cls > CONTROL:
-                    sent += len(wire)
-        except BaseException:  # the port failed: let the next writer try
-            with self._cv:
-                self._writing = False
-                self._cv.notify_all()
-            raise
+                sent += len(wire) if cls > CONTROL else 0
+
+    def pending(self, cls: int) -> bool:
+        """Frames of class ``cls`` wait to be sent."""
+        return bool(self._q[cls])
 
     def fresh_pending(self) -> int:
         """1 while frames of a new column wait in the queue (that column is not sent yet)."""
-        with self._cv:
-            return int(any(j.msg_type != MsgType.SCAN_END for j in self._q[FRESH]))
+        return int(any(j.msg_type != MsgType.SCAN_END for j in self._q[FRESH]))
 
     def drop(self, cls: int) -> None:
         """Forget the queued frames of one class (an ended stream's new columns)."""
-        with self._cv:
-            self._q[cls].clear()
-            if cls == REPAIR:
-                self._repairs.clear()
+        self._q[cls].clear()
+        if cls == REPAIR:
+            self._repairs.clear()
 
     def fits(self, payload_len: int) -> bool:
         """A payload of this session goes out whole or in at most MAX_PIECES FRAGMENTs."""

@@ -116,11 +116,11 @@ class Connections:
         now = self.clock()
         dropped = [c for c in self.items if c.stop.is_set() or
                    (c.thread is not None and not c.thread.is_alive()) or
-                   (not c.endpoint.session_open and
-                    now - c.endpoint.sessionless_since >= self.hello_deadline_s)]
+                   (not c.endpoint.session.open and
+                    now - c.endpoint.session.sessionless_since >= self.hello_deadline_s)]
         for c in dropped:
             if not c.stop.is_set():
-                log.info("closing %s: no session for %g s", c.endpoint.peer,
+                log.info("closing %s: no session for %g s", c.endpoint.session.peer,
                          self.hello_deadline_s)
                 c.stop.set()
             self.items.remove(c)
@@ -133,11 +133,11 @@ class Connections:
         """
         self.sweep()
         if len(self.items) >= self.limit:
-            idle = [c for c in self.items if not c.endpoint.session_open]
+            idle = [c for c in self.items if not c.endpoint.session.open]
             if not idle:
                 return False
-            oldest = min(idle, key=lambda c: c.endpoint.sessionless_since)
-            log.info("closing %s to make room: no session", oldest.endpoint.peer)
+            oldest = min(idle, key=lambda c: c.endpoint.session.sessionless_since)
+            log.info("closing %s to make room: no session", oldest.endpoint.session.peer)
             oldest.stop.set()
             self.items.remove(oldest)
         self.items.append(conn)
@@ -172,8 +172,9 @@ def serve_tcp(scene: Scene, seed: int, host: str, port_no: int,
 
 def serve_connections(server: socket.socket, core: DeviceCore, stop: threading.Event,
                       conns: Connections | None = None) -> None:
-    """Accept connections on ``server`` until ``stop``; serve each in a thread. Closes
-    ``server`` and waits for the connections' threads when done."""
+    """Accept connections on ``server`` until ``stop``; serve each in a thread (its
+    loop) in front of ``core`` (and its engine). Closes ``server`` and waits for the
+    connections' threads when done."""
     conns = conns or Connections(clock=core.clock)
     server.settimeout(0.2)
     try:
@@ -203,6 +204,7 @@ def serve_connections(server: socket.socket, core: DeviceCore, stop: threading.E
         for c in conns.items:
             if c.thread is not None:
                 c.thread.join(timeout=2.0)
+        core.engine.close()
 
 
 def _serve_connection(conn: _Conn, peer: tuple) -> None:

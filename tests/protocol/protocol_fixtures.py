@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -18,7 +19,7 @@ import numpy as np
 
 from cdma_lidar.errors import ConfigError, DeviceError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
+from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload
@@ -237,14 +238,21 @@ def reply(t: MsgType, fields: Any, seq: int, session: int = 0x42) -> bytes:
 def ack(req: Frame, session: int = 0x42) -> bytes:
     """The ACK of request ``req``."""
     return encode_frame(MsgType.ACK, bytes([req.msg_type]), req.seq, session)
-class SteppedDevice:
-    """A threadless DeviceEndpoint behind the host end of a pipe, on an injected clock.
+#: The endpoints of SteppedDevices (weakly: a test need not close them), by their core.
+_LOOPS: weakref.WeakKeyDictionary[Any, list[weakref.ref]] = weakref.WeakKeyDictionary()
 
-    The object is the host's port: every ``read`` or ``in_waiting`` first polls the
-    device once (it reads the requests, answers them, sends one column of a running
-    stream). A read that finds nothing moves the shared clock ``now`` on by
-    ``tick_s``, so host timeouts, heartbeats and idle limits come due without real
-    waiting and without a second thread. Give the host ``clock=dev.clock``.
+
+class SteppedDevice:
+    """A DeviceEndpoint behind the host end of a pipe, stepped by the host's reads on an
+    injected clock, with no thread: its engine runs each step at once.
+
+    The object is the host's port: every ``read`` or ``in_waiting`` first runs one turn
+    of the device's loop (:meth:`DeviceEndpoint.poll`: it reads the requests, answers
+    them, computes and sends the next column of a running stream), and of every other
+    SteppedDevice's on the same core first, as their loops would run meanwhile. A read
+    that finds nothing moves the shared clock ``now`` on by ``tick_s``, so host
+    timeouts, heartbeats and idle limits come due without real waiting. Give the host
+    ``clock=dev.clock``.
     """
 
     def __init__(self, app: DeviceApp | None, *, tick_s: float = 0.001,
@@ -255,8 +263,16 @@ class SteppedDevice:
         self.host, dev = pipe_pair(faults, faults, seed=seed)  # the same Faults both ways
         self.name = "stepped://device"
         self.timeout: float | None = 0.0
-        self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, threads=False, poll_s=0.0,
-                                       **kw)
+        if "core" not in kw:
+            kw["engine"] = Engine(threaded=False)
+        self.endpoint = DeviceEndpoint(dev, app, clock=self.clock, poll_s=0.0, **kw)
+        self.loops = _LOOPS.setdefault(self.endpoint.core, [])  # of the core's devices
+        self.loops.append(weakref.ref(self.endpoint))
+
+    def _poll(self) -> None:
+        others = [e for e in (r() for r in self.loops) if e not in (None, self.endpoint)]
+        for ep in [*others, self.endpoint]:
+            ep.poll()
 
     def clock(self) -> float:
         return self.now[0]
@@ -268,11 +284,11 @@ class SteppedDevice:
 
     @property
     def in_waiting(self) -> int:
-        self.endpoint.poll()
+        self._poll()
         return self.host.rx.available()
 
     def read(self, n: int = 1) -> bytes:
-        self.endpoint.poll()
+        self._poll()
         data = self.host.rx.read(min(n, self.max_read or n), 0)
         if not data:
             self.now[0] += self.tick_s
@@ -285,7 +301,7 @@ class SteppedDevice:
         """Nothing to flush."""
 
     def close(self) -> None:
-        self.endpoint.close()
+        self.__exit__()
         self.host.close()
 
     def __enter__(self) -> DeviceEndpoint:
@@ -293,3 +309,4 @@ class SteppedDevice:
 
     def __exit__(self, *exc: object) -> None:
         self.endpoint.close()
+        self.loops[:] = [r for r in self.loops if r() not in (None, self.endpoint)]

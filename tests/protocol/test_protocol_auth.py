@@ -191,10 +191,11 @@ def test_a_flood_of_wrong_macs_from_the_key_holders_address_never_keeps_it_out()
     """Guessers on 127.0.0.1 (one connection guessing fast, 30 more guessing once each)
     are slowed per connection and by the global budget; the key holder on the same
     address is checked at once (fake clock, no thread)."""
-    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.endpoint import DeviceCore, Engine
 
     now = [100.0]
-    core = DeviceCore(SyntheticApp(channels=2, columns=4), key=KEY, clock=lambda: now[0])
+    core = DeviceCore(SyntheticApp(channels=2, columns=4), key=KEY, clock=lambda: now[0],
+                      engine=Engine(threaded=False))
 
     def conn() -> SteppedDevice:
         return SteppedDevice(None, core=core, now=now, peer="127.0.0.1")

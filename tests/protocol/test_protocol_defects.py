@@ -58,13 +58,13 @@ def test_notices_longer_than_a_small_frame_go_out_in_fragments(caplog) -> None:
     """64-byte frames in a signed session: heartbeats and SESSION_LOST still arrive whole."""
     import logging
 
-    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.endpoint import DeviceCore, Engine
     from cdma_lidar.protocol.link import SessionLost
 
     now = [100.0]
     app = SyntheticApp(channels=2, columns=6)
     app.tick = lambda: now.__setitem__(0, now[0] + 0.05)  # 50 ms per column, injected
-    core = DeviceCore(app, key=KEY, clock=lambda: now[0])
+    core = DeviceCore(app, key=KEY, clock=lambda: now[0], engine=Engine(threaded=False))
     a_port = SteppedDevice(None, core=core, now=now, heartbeat_s=0.01)
     b_port = SteppedDevice(None, core=core, now=now)
     with caplog.at_level(logging.ERROR), a_port, b_port:
@@ -181,10 +181,12 @@ def test_failed_authentication_backs_off_per_peer_and_logs_once(caplog) -> None:
 
 
 class _Ep:
-    """What Connections reads of an endpoint."""
+    """What Connections reads of an endpoint: its session."""
 
     def __init__(self, since: float, session: bool = False) -> None:
-        self.sessionless_since, self.session_open, self.peer = since, session, "peer"
+        from types import SimpleNamespace
+
+        self.session = SimpleNamespace(sessionless_since=since, open=session, peer="peer")
 
 
 def test_silent_connections_are_closed_after_the_hello_deadline_and_make_room() -> None:

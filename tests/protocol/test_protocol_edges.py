@@ -22,10 +22,10 @@ from protocol_fixtures import (
 from cdma_lidar.errors import LinkError, LinkTimeout
 from cdma_lidar.protocol import cobs, framing
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, encode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
 from cdma_lidar.protocol.ports import FdPort
 from cdma_lidar.protocol.requests import DIAG_GARBAGE, DIAG_VERSION
 from cdma_lidar.protocol.views import Status
@@ -67,7 +67,7 @@ def test_garbage_is_still_garbage_with_the_version_diagnosis_in_place() -> None:
 
 
 @pytest.mark.parametrize(("kw", "name"), [
-    ({"poll_s": 0}, "poll_s"), ({"poll_s": -1.0, "threads": False}, "poll_s"),
+    ({"poll_s": 1.5}, "poll_s"), ({"poll_s": -1.0}, "poll_s"),
     ({"heartbeat_s": 0}, "heartbeat_s"), ({"heartbeat_s": 100.0}, "heartbeat_s"),
     ({"ring_columns": -1}, "ring_columns"),
     ({"ring_columns": 70000}, "ring_columns"),
@@ -177,7 +177,7 @@ def test_back_to_back_scans_are_never_refused_busy() -> None:
     a time, so the window is looked at exactly."""
     host, dev = pipe_pair()
     app = SyntheticApp(columns=4)
-    ep = DeviceEndpoint(dev, app, session_id=0x77, poll_s=0.0, threads=False)
+    ep = DeviceEndpoint(dev, app, session_id=0x77, poll_s=0.0, engine=Engine(threaded=False))
     dec = FrameDecoder()
 
     def send(t: MsgType, fields: dict, seq: int) -> None:
@@ -328,3 +328,82 @@ def test_a_small_host_frame_cuts_every_column_to_it() -> None:
         assert [c.column for c in link.scan(frame=4)] == [0, 1, 2]
         sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
         assert len(sizes) > 3 * 20 and max(sizes) <= 96  # 1.6 kB columns in pieces
+
+
+class _InsideColumn(SyntheticApp):
+    """Its engine stays inside column 1 of every scan until ``release`` is set."""
+
+    def __init__(self) -> None:
+        super().__init__(channels=4, columns=8)
+        self.release = threading.Event()
+
+    def _columns(self, frame, first, count, calibration):  # type: ignore[override]
+        for col in super()._columns(frame, first, count, calibration):
+            if col.column == 1:
+                self.release.wait(60.0)
+            yield col
+
+
+def test_the_loop_answers_within_50_ms_while_the_engine_is_inside_a_column() -> None:
+    """STATUS_GET, the BUSY refusals and SCAN_ABORT are answered, and heartbeats keep
+    coming, while the engine's thread is inside a column that ends only when the test
+    says so. Times on the device's injected clock: one poll of its loop per 1 ms."""
+    now = [0.0]
+    host, dev = pipe_pair()
+    app = _InsideColumn()
+    ep = DeviceEndpoint(dev, app, session_id=0x77, poll_s=0.0, heartbeat_s=0.2,
+                        clock=lambda: now[0])
+    dec = FrameDecoder()
+    heard: list[tuple[float, Frame]] = []
+
+    def step(until) -> float:
+        """Poll (1 ms a turn) until ``until()``; the device time it took (s)."""
+        t0 = now[0]
+        for _ in range(100_000):  # a bound on turns, not a time
+            ep.poll()
+            if host.in_waiting:
+                heard.extend((now[0], f) for f in dec.feed(host.read(host.in_waiting)))
+            if until():
+                return now[0] - t0
+            now[0] += 0.001
+        raise AssertionError("no answer")
+
+    def ask(t: MsgType, fields: dict, seq: int) -> tuple[Frame, float]:
+        host.write(encode_frame(t, encode_payload(t, fields), seq, 0x77))
+        n = len(heard)
+        took = step(lambda: any(f.seq == seq and f.msg_type in (MsgType.ACK, MsgType.NAK,
+                                                                MsgType.STATUS, MsgType.INFO)
+                                for _, f in heard[n:]))
+        return next(f for _, f in heard[n:] if f.seq == seq and
+                    f.msg_type in (MsgType.ACK, MsgType.NAK, MsgType.STATUS, MsgType.INFO)), took
+
+    try:
+        assert ask(MsgType.HELLO, hello_fields(1), 1)[0].msg_type == MsgType.INFO
+        assert ask(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 8},
+                   2)[0].msg_type == MsgType.ACK
+        st = ep.streams.latest
+        step(lambda: st.produced == 1 and st.job is not None)  # the engine is in column 1
+        start = now[0]
+        status, took = ask(MsgType.STATUS_GET, {}, 3)
+        assert took <= 0.05
+        assert decode_payload(MsgType.STATUS, status.payload)["state"] == 1  # scanning
+        for seq, (t, fields) in enumerate([
+                (MsgType.CONFIG_SET, {"items": []}),
+                (MsgType.SCAN_START, {"frame": 2, "first_column": 0, "columns": 1})], 4):
+            busy, took = ask(t, fields, seq)
+            assert busy.msg_type == MsgType.NAK
+            assert decode_payload(MsgType.NAK, busy.payload)["code"] == ErrorCode.BUSY
+            assert took <= 0.05
+        step(lambda: now[0] >= start + 1.0)  # a second inside the column
+        beats = [t for t, f in heard if f.msg_type == MsgType.HEARTBEAT and t >= start]
+        gaps = [b - a for a, b in zip([start, *beats[:-1]], beats, strict=True)]
+        assert len(beats) >= 5 and max(gaps) <= 0.2
+        aborted, took = ask(MsgType.SCAN_ABORT, {}, 6)
+        assert aborted.msg_type == MsgType.ACK and took <= 0.05
+        assert any(f.msg_type == MsgType.SCAN_END for _, f in heard[-3:])
+        assert not st.job.done()  # all of it while the engine was inside the column
+    finally:
+        app.release.set()
+    step(lambda: ep.core.engine.idle)
+    assert app.aborts == 1
+    ep.close()

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from protocol_fixtures import SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import CdmaLidarError, FrameError
-from cdma_lidar.protocol.endpoint import DeviceEndpoint
+from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.messages import REPLY_TO, MsgType, decode_payload, encode_payload
@@ -46,7 +46,7 @@ def test_device_survives_hostile_frames_and_still_answers(frames: list, noise: b
     host.timeout = 0.01
     app = SyntheticApp(channels=4, columns=16)
     # Threadless: each poll also handles the queued requests (no worker thread to wait for).
-    ep = DeviceEndpoint(dev, app, session_id=SESSION, poll_s=0.0, threads=False,
+    ep = DeviceEndpoint(dev, app, session_id=SESSION, poll_s=0.0, engine=Engine(threaded=False),
                         heartbeat_s=10.0)
     try:
         wire = noise + b"".join(encode_frame(t, p, seq, sess, incompat=inc)

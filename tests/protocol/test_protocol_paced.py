@@ -93,7 +93,7 @@ def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 0), key=(1, 0))  # several fragments
     ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 9), key=(1, 9))  # a repair
     ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     frames = list(port.frames())
     kinds = [("notice" if f.msg_type == MsgType.LINE_ERROR else
               "repair" if f.compat & COMPAT_RETRANSMIT else "new") for f in frames]
@@ -102,16 +102,16 @@ def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
     assert all(verifier.check(f) for f in frames)  # counters rise in wire order
 
 
-def test_poll_thread_sends_a_bounded_share_of_repairs() -> None:
+def test_the_loop_sends_a_bounded_share_of_repairs() -> None:
     ep, port = _device()
     for c in range(10):
         ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, c), key=(1, c))
     ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)
-    ep.tx.flush(CONTROL + 1, budget=1000)
+    ep.tx.flush(budget=1000)
     sent = list(port.frames())
     assert sent[0].msg_type == MsgType.LINE_ERROR
     assert 1 < len(sent) < 1 + 80  # some repairs, not all 80 fragments
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     assert len(list(port.frames())) == 1 + 80
 
 
@@ -119,15 +119,15 @@ def test_a_repair_already_queued_is_not_queued_twice() -> None:
     ep, port = _device()
     ep.streams.ring[(1, 2)] = _column(1, 2)
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2))  # first cut: 8 fragments
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     port.out.clear()
     for _ in range(3):  # the host asked three times before the first answer reached it
         ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2), only=[3, 5])
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     got = [decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()]
     assert got == [3, 5]
     ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 2), key=(1, 2), only=[3])  # sent: again
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     assert len(list(port.frames())) == 3
 
 
@@ -137,18 +137,18 @@ def test_a_piece_asked_by_index_is_the_piece_first_sent() -> None:
     ep, port = _device(max_frame=256)
     payload = _column(1, 0)
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=(1, 0))
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     first = {b["index"]: b for b in (decode_payload(f.msg_type, f.payload)
                                      for f in port.frames())}
     port.out.clear()
     ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=(1, 0), only=[2])
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     (again,) = [decode_payload(f.msg_type, f.payload) for f in port.frames()]
     assert (again["index"], again["count"], again["data"]) == \
         (2, first[2]["count"], first[2]["data"])
     port.out.clear()
     ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=(1, 0), only=[len(first)])
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     assert sorted(decode_payload(f.msg_type, f.payload)["index"] for f in port.frames()) == \
         sorted(first)
 
@@ -159,7 +159,7 @@ def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
     ep.tx.put(CONTROL, MsgType.LINE_ERROR, bytes(300))
     ep.tx.max_frame = size
     ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)
-    ep.tx.flush(FRESH)
+    ep.tx.flush()
     assert [f.msg_type for f in port.frames()] == [MsgType.LINE_ERROR]
     assert "cannot send" in caplog.text
 

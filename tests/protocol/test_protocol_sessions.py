@@ -14,7 +14,7 @@ import pytest
 from protocol_fixtures import RunningDevice, SteppedDevice, SyntheticApp, hello_fields
 
 from cdma_lidar.errors import DeviceError
-from cdma_lidar.protocol.endpoint import DeviceCore
+from cdma_lidar.protocol.endpoint import DeviceCore, Engine
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink, SessionLost
 from cdma_lidar.protocol.messages import (
@@ -39,7 +39,8 @@ class Device:
     def __init__(self, app: SyntheticApp, idle_s: float = 10.0) -> None:
         self.app = app
         self.now = [100.0]
-        self.core = DeviceCore(app, session_idle_s=idle_s, clock=lambda: self.now[0])
+        self.core = DeviceCore(app, session_idle_s=idle_s, clock=lambda: self.now[0],
+                               engine=Engine(threaded=False))
         self.ports: list[SteppedDevice] = []
 
     def host(self, **kw: object) -> HostLink:
@@ -256,4 +257,4 @@ def test_a_version_1_host_gets_nak_version_in_its_own_version() -> None:
         body = decode_payload(nak.msg_type, nak.payload)
         assert nak.version == 1 and nak.msg_type == MsgType.NAK and nak.seq == 5
         assert body["code"] == ErrorCode.VERSION
-        assert not ep.session_open and ep.stats.sessions == 0
+        assert not ep.session.open and ep.stats.sessions == 0

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 import cdma_lidar.virtual  # noqa: F401 - registers virtual:// with pyserial
 from cdma_lidar.errors import ConfigError, DeviceError, LinkError
 from cdma_lidar.firmware_model.snr import snr_xc_db
-from cdma_lidar.protocol.endpoint import DeviceApp
+from cdma_lidar.protocol.endpoint import DeviceApp, Engine
 from cdma_lidar.protocol.link import HostLink
 from cdma_lidar.protocol.ports import open_port
 from cdma_lidar.scene import load_scene
@@ -427,7 +427,8 @@ def test_the_board_states_its_column_time_and_status_carries_it():
     assert fw.column_time_s() >= before
     assert fw.column_time_s() <= batch * (2 * acq + max(took, COMPUTE_S_PER_VALUE["model"]
                                                          * k * cfg.frame_samples)) + 1e-9
-    ep = DeviceEndpoint(_NullPort(), fw, session_id=1, poll_s=0.0, threads=False)
+    ep = DeviceEndpoint(_NullPort(), fw, session_id=1, poll_s=0.0,
+                        engine=Engine(threaded=False))
     assert ep.status().column_time_ms == math.ceil(fw.column_time_s() * 1000)
 
 
