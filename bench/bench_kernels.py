@@ -550,7 +550,9 @@ def run_set(cases, label: str, repeats: int, max_pred: float, want: int | None,
 
 
 def main() -> None:
-    """The grid, then random configurations off it (``--grid``, ``--random``: one only)."""
+    """The grid, random configurations off it, then issue 40's check: ``--wide`` 40 on
+    :data:`WIDE_SEED`, which no constant was fitted on (``--grid``, ``--random``: one
+    only; ``--wide [N]``: the check alone)."""
     full = os.environ.get("CDMA_LIDAR_BENCH_FULL") == "1"
     only_random = "--random" in sys.argv
     random_n = int(os.environ.get("CDMA_LIDAR_BENCH_RANDOM", "24" if only_random else "12"))
@@ -582,6 +584,8 @@ def main() -> None:
     if "--grid" not in sys.argv and random_n > 0:
         run_set(random_cases(seed), f"{random_n} random configurations (seed {seed})", 7,
                 RANDOM_MAX_SECONDS, random_n, clock)
+    if "--grid" not in sys.argv and not only_random:
+        run_wide(WIDE_SEED, 40)
 
 
 if __name__ == "__main__":
