@@ -188,27 +188,61 @@ _LOG = np.array(reedsolo.gf_log[:256], np.int64)
 
 
 _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
+_EXPONENTS = np.arange(BLOCK)  # e of every position x = 2^e a Chien search tries
 
 
 def _gmul(x: int, y: int) -> int:
     return 0 if x == 0 or y == 0 else _EXP_LIST[(_LOG_LIST[x] + _LOG_LIST[y]) % 255]
 
 
+def _locator(syn: list[int]) -> list[int]:
+    """The error locator Lambda (highest degree first, no leading zero) of syndromes
+    ``S_0 .. S_47``: Berlekamp-Massey on the log tables (``reedsolo``'s
+    ``rs_find_error_locator``, which a test holds it to, does the same on generic
+    polynomial helpers at about three times the cost). ReedSolomonError above 24 errors."""
+    c, b, big_l, m, last = [1], [1], 0, 1, 1  # Lambda, previous Lambda, L, shift, its d
+    log, exp = _LOG_LIST, _EXP_LIST
+    for n, s_n in enumerate(syn):
+        d = s_n
+        for i in range(1, min(big_l, len(c) - 1) + 1):
+            if c[i] and syn[n - i]:
+                d ^= exp[(log[c[i]] + log[syn[n - i]]) % 255]
+        if d == 0:
+            m += 1
+            continue
+        scale = (log[d] - log[last]) % 255  # d / last
+        new = c + [0] * max(0, len(b) + m - len(c))
+        for i, bi in enumerate(b):
+            if bi:
+                new[i + m] ^= exp[(log[bi] + scale) % 255]
+        if 2 * big_l <= n:
+            big_l, b, last, m = n + 1 - big_l, c, d, 1
+        else:
+            m += 1
+        c = new
+    loc = c[:big_l + 1][::-1]
+    while loc and loc[0] == 0:
+        loc = loc[1:]
+    if len(loc) - 1 > NSYM // 2:
+        raise reedsolo.ReedSolomonError("Too many errors to correct")
+    return loc
+
+
 def _correct(block: np.ndarray, syn: list[int]) -> None:
     """Correct one block in place from its syndromes ``S_0 .. S_47`` (not all zero).
 
-    The error locator comes from ``reedsolo``'s Berlekamp-Massey; its roots are found
+    The error locator comes from Berlekamp-Massey (:func:`_locator`); its roots are found
     for all positions at once (Chien search in tables) and the error values by Forney's
     formula (first consecutive root 1: ``Y = X Omega(1/X) / Lambda'(1/X)``). Raises
     ReedSolomonError when the roots are not as many as the locator's degree (more than
     24 damaged symbols)."""
     n = block.size
-    loc = reedsolo.rs_find_error_locator([0, *syn], NSYM)  # Lambda, highest degree first
+    loc = _locator(syn)  # Lambda, highest degree first
     deg = len(loc) - 1
     # Chien: x^deg Lambda(1/x), highest degree first, at x = 2^e for every exponent e.
     rev = np.array(loc[::-1], np.int64)
     k = np.flatnonzero(rev)
-    e = np.arange(n)
+    e = _EXPONENTS[:n]
     terms = _EXP[(_LOG[rev[k]][:, None] + e[None, :] * (deg - k)[:, None]) % 255]
     roots = np.flatnonzero(np.bitwise_xor.reduce(terms, axis=0) == 0)
     if deg == 0 or roots.size != deg:
