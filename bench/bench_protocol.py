@@ -253,7 +253,7 @@ def bench_latency(seconds: float = 6.0, aborts: int = 3) -> None:
     try:
         link.hello()
         link.set_config(averages=1024, samples_per_chip=16)
-        link._request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 160})
+        link.request(MsgType.SCAN_START, {"frame": 1, "first_column": 0, "columns": 160})
         times: dict[str, list[float]] = {"STATUS_GET": [], "CONFIG_GET": [],
                                          "CONFIG_SET (BUSY)": [], "SCAN_START (BUSY)": []}
         gaps: list[float] = []
@@ -269,13 +269,13 @@ def bench_latency(seconds: float = 6.0, aborts: int = 3) -> None:
                      {"frame": 2, "first_column": 0, "columns": 1})):
                 t0 = time.perf_counter()
                 try:
-                    link._request(req, fields)
+                    link.request(req, fields)
                 except DeviceError:
                     pass
                 times[name].append(time.perf_counter() - t0)
             t_end = time.perf_counter() + 0.1  # listen: every stream frame ends a gap
             while time.perf_counter() < t_end:
-                link._pump()
+                link.pump()
                 if link.decoder.stats.frames != seen:
                     now = time.perf_counter()
                     gaps.append(now - heard)
@@ -286,9 +286,9 @@ def bench_latency(seconds: float = 6.0, aborts: int = 3) -> None:
         for frame in range(3, 3 + aborts):
             time.sleep(0.3)  # into the batch
             t0 = time.perf_counter()
-            link._request(MsgType.SCAN_ABORT, {})
+            link.request(MsgType.SCAN_ABORT, {})
             times["SCAN_ABORT"].append(time.perf_counter() - t0)
-            link._request(MsgType.SCAN_START, {"frame": frame, "first_column": 0,
+            link.request(MsgType.SCAN_START, {"frame": frame, "first_column": 0,
                                                 "columns": 160})
         link.abort()
     finally:
