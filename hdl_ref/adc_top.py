@@ -9,27 +9,39 @@ both give the same number for every degree and ``samples_per_chip`` of a sweep o
 builds. A valid/ready source that can wait (``rx_top`` alone, the RTL engine) is not
 bound by it: ``rx_top`` applies back-pressure and stays exact at any R.
 
-:func:`run_adc_bench` plays ``cdma-lidar hdl vectors`` files through
-``hdl_ref/tb/rx_adc_top_vectors_tb.v`` (Icarus, two unrelated clocks) and returns its
-verdict line.
+:func:`run_adc_bench` plays ``cdma-lidar hdl vectors`` files through the fixed-rate ADC
+bench (two unrelated clocks) and returns its verdict line. Its stimulus and checks are one
+delay-free module, ``hdl_ref/tb/rx_adc_top_vectors_check.v``; the clocks come from
+Verilog delays under Icarus (``rx_adc_top_vectors_tb.v``, seconds to build: the small
+builds) or from a picosecond loop in C++ under Verilator without ``--timing``
+(``rx_adc_top_vectors_main.cpp``; built once per vector geometry, a minute or more, and
+cached under ``$XDG_CACHE_HOME/cdma-lidar/adc-bench/``: the paper build, whose 640 lanes
+take Icarus hours).
 """
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from cdma_lidar.errors import out_of_range
+from cdma_lidar.hdl_ref import engine
 from cdma_lidar.hdl_ref.cosim import TopParams, default_rtl_dir, top_ports, top_timing
 
-__all__ = ["ADC_SOURCES", "TB", "adc_ports", "r_min", "run_adc_bench"]
+__all__ = ["ADC_SOURCES", "CHECK", "MAIN", "SIMULATORS", "TB", "adc_ports", "r_min",
+           "run_adc_bench"]
 
 #: the sources of ``rx_adc_top`` (rx_top's and the three of the ADC side)
 ADC_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
                "rx_post.v", "rx_top.v", "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
 TB = Path(__file__).resolve().parent / "tb" / "rx_adc_top_vectors_tb.v"
+#: the bench's stimulus and checks (no delays), and the Verilator bench's C++ clocks
+CHECK = TB.with_name("rx_adc_top_vectors_check.v")
+MAIN = TB.with_name("rx_adc_top_vectors_main.cpp")
+SIMULATORS = ("icarus", "verilator")
 
 
 def r_min(params: TopParams, degree: int, spc: int) -> int:
@@ -75,25 +87,57 @@ def adc_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
 
 def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
                   fab_ps: int | None = None, phase_ps: int = 0, gap: tuple[int, int] = (0, 0),
-                  timeout_s: float = 3600.0) -> str:
+                  timeout_s: float = 3600.0, simulator: str = "icarus") -> str:
     """Compile and run the fixed-rate ADC bench on a vector folder; its verdict line.
 
     ``adc_ps``, ``fab_ps`` (default P_IN ADC periods), ``phase_ps``: the ADC clock's and
     the fabric clock's periods and the fabric clock's start offset, picoseconds; ``gap =
     (every, length)``: the ADC's valid drops for ``length`` ADC clocks after every
-    ``every`` samples (0: never). The line
-    starts ``rx_adc_top vectors: PASS``, ``FAIL`` or ``REFUSED`` (the tb's header).
+    ``every`` samples (0: never). ``simulator``: ``"icarus"`` (built in ``work_dir``) or
+    ``"verilator"`` (built once per ``params.vh`` into the cache; raises
+    ``cosim.SimulatorMissing`` without Verilator or g++). The line starts ``rx_adc_top
+    vectors: PASS``, ``FAIL`` or ``REFUSED`` (``rx_adc_top_vectors_check.v``'s header).
     """
+    if simulator not in SIMULATORS:
+        raise out_of_range("simulator", " or ".join(SIMULATORS), simulator)
     vec_dir, work_dir = Path(vec_dir), Path(work_dir)
-    work_dir.mkdir(parents=True, exist_ok=True)
-    vvp = work_dir / "adc_tb.vvp"
     rtl = default_rtl_dir()
-    subprocess.run(["iverilog", "-g2005", "-I", str(vec_dir), "-o", str(vvp), str(TB),
-                    *(str(rtl / n) for n in ADC_SOURCES)], check=True, capture_output=True,
-                   text=True)
-    args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+PHASE_PS={phase_ps}",
-            f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}",
-            *([f"+FAB_PS={fab_ps}"] if fab_ps else [])]
-    out = subprocess.run(["vvp", "-n", str(vvp), *args], check=True, capture_output=True,
-                         text=True, timeout=timeout_s).stdout
+    sources = [*(rtl / n for n in ADC_SOURCES), CHECK]
+    if fab_ps is None:
+        fab_ps = _define(vec_dir, "VEC_P") * adc_ps
+    args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+FAB_PS={fab_ps}",
+            f"+PHASE_PS={phase_ps}", f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}"]
+    if simulator == "icarus":
+        work_dir.mkdir(parents=True, exist_ok=True)
+        vvp = work_dir / "adc_tb.vvp"
+        subprocess.run(["iverilog", "-g2005", "-I", str(vec_dir), "-o", str(vvp), str(TB),
+                        *map(str, sources)], check=True, capture_output=True, text=True)
+        cmd = ["vvp", "-n", str(vvp), *args]
+    else:
+        cmd = [str(_verilator_bench(vec_dir, sources)), *args]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True,
+                         timeout=timeout_s).stdout
     return [line for line in out.splitlines() if line.startswith("rx_adc_top vectors:")][-1]
+
+
+def _define(vec_dir: Path, name: str) -> int:
+    """The value of ``name`` in the vector folder's ``params.vh``."""
+    for line in (vec_dir / "params.vh").read_text().splitlines():
+        f = line.split()
+        if len(f) == 3 and f[0] == "`define" and f[1] == name:
+            return int(f[2])
+    raise out_of_range("params.vh", f"a vector folder's file that defines {name}", vec_dir)
+
+
+def _verilator_bench(vec_dir: Path, sources: Sequence[Path]) -> Path:
+    """The Verilator bench for the vector folder's ``params.vh`` (cached: the build depends
+    on the sources and on params.vh only; the hex files are read at run time)."""
+    params_vh = (vec_dir / "params.vh").read_text()
+    h = hashlib.sha256(params_vh.encode())
+    for path in (*sources, MAIN):
+        h.update(path.read_bytes())
+    folder = engine.cache_root().parent / "adc-bench" / h.hexdigest()[:20]
+    # -O1: the paper build's C++ is large; compiling it at -O2 costs more than it saves
+    return engine.verilate(folder, "rx_adc_top_vectors_check",
+                           [*map(str, sources), str(MAIN)], vec_dir.name,
+                           files={"params.vh": params_vh}, c_opt="-O1")

@@ -38,7 +38,8 @@ from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
 from cdma_lidar.hdl_ref import cosim
 
-__all__ = ["ENGINE_SRC", "RtlReceiver", "cache_root", "engine_params", "missing_simulator"]
+__all__ = ["ENGINE_SRC", "RtlReceiver", "cache_root", "engine_params", "missing_simulator",
+           "verilate"]
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,24 @@ def build(params: cosim.TopParams) -> Path:
     Raises ``cosim.SimulatorMissing`` (one line naming what to install) without Verilator
     or a C++ compiler, ``RuntimeError`` with the compiler's last lines when the build fails.
     """
-    folder = cache_root() / f"{params.tag()}-{_key(params)}"
-    exe = folder / "Vrx_top"
+    return verilate(cache_root() / f"{params.tag()}-{_key(params)}", "rx_top",
+                    [*(f"-G{k}={v}" for k, v in params.generics().items()),
+                     *(str(cosim.RTL_DIR / n) for n in TOP_FILES), str(ENGINE_SRC)],
+                    params.tag())
+
+
+def verilate(folder: Path, top: str, args: Sequence[str], what: str,
+             files: dict[str, str] | None = None, c_opt: str = "-O2") -> Path:
+    """The Verilator executable ``folder/V<top>``: from the cache, else built and cached.
+
+    ``args``: Verilator's sources and options after the common ones (``--cc --exe
+    --build``, warnings not fatal); ``files``: text files written into an include folder
+    of the build first (name: text); ``c_opt``: the C++ compiler's optimisation flag. The
+    build runs in a temporary folder beside ``folder`` and is renamed into place (a whole
+    build or none). Raises ``cosim.SimulatorMissing`` without Verilator or a C++
+    compiler, ``RuntimeError`` with the compiler's last lines when the build fails.
+    """
+    exe = folder / f"V{top}"
     if exe.exists():
         return exe
     why = missing_simulator()
@@ -113,16 +130,20 @@ def build(params: cosim.TopParams) -> Path:
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=folder.parent))
     (tmp / "out").mkdir()
+    (tmp / "inc").mkdir()
+    for name, text in (files or {}).items():
+        (tmp / "inc" / name).write_text(text)
     try:
         cmd = ["verilator", "--cc", "--exe", "--build", "-O3", "-Wno-fatal", "-Wno-lint",
-               "-Wno-style", "--top-module", "rx_top", "--Mdir", str(tmp / "obj"),
-               "-o", str(tmp / "out" / "Vrx_top"), "-CFLAGS", "-O2",
-               *(f"-G{k}={v}" for k, v in params.generics().items()),
-               *(str(cosim.RTL_DIR / n) for n in TOP_FILES), str(ENGINE_SRC)]
-        log.info("building the RTL engine for %s (once per parameter set)", params.tag())
+               "-Wno-style", "--top-module", top, "--Mdir", str(tmp / "obj"),
+               "-o", str(tmp / "out" / f"V{top}"), "-CFLAGS", c_opt, f"-I{tmp / 'inc'}",
+               # the PyPI wheel's verilated.mk leaves the precompiled-header flag empty,
+               # which breaks every model large enough to be split into several files
+               "-MAKEFLAGS", "CFG_CXXFLAGS_PCH_I=-include", *args]
+        log.info("building %s for %s with Verilator (once per parameter set)", top, what)
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-        if proc.returncode != 0 or not (tmp / "out" / "Vrx_top").exists():
-            raise RuntimeError("verilator build of the RTL engine failed:\n"
+        if proc.returncode != 0 or not (tmp / "out" / f"V{top}").exists():
+            raise RuntimeError(f"verilator build of {top} failed:\n"
                                + (proc.stderr or proc.stdout)[-2000:])
         try:
             os.replace(tmp / "out", folder)           # atomic: a whole build or none
