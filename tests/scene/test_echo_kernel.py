@@ -138,15 +138,17 @@ def test_accumulated_render_is_the_same_with_or_without_the_echo_kernel(url):
         np.testing.assert_array_equal(got, want)
 
 
-def _numpy_fuses_complex_products() -> bool:
-    """Whether numpy's complex product rounds each part once, in its SIMD body, its tail
-    and its loop over one scalar: with x = (1 + 2^-30)(1 + i), the real part of x x is
-    fma(xr, xr, -(xi xi)) = xr^2 - round(xr^2) = 2^-60, the rounding error of xr^2 (exact
-    product 1 + 2^-29 + 2^-60), and 0 when both products are rounded first."""
-    x = complex(1 + 2.0**-30, 1 + 2.0**-30)
+def _numpy_fuses_complex_products(dtype: type = np.complex128, h: int = 30) -> bool:
+    """Whether numpy's complex product (of ``dtype``) rounds each part once, in its SIMD
+    body, its tail and its loop over one scalar: with x = (1 + 2^-h)(1 + i), the real part
+    of x x is fma(xr, xr, -(xi xi)) = xr^2 - round(xr^2) = 2^-2h, the rounding error of
+    xr^2 (exact product 1 + 2^(1-h) + 2^-2h; h = 30 for float64, 12 for float32), and 0
+    when both products are rounded first."""
+    x = dtype(complex(1 + 2.0**-h, 1 + 2.0**-h))
     for n in (3, 67):
         row = np.full(n, x)
-        if not (np.all((row * row).real == 2.0**-60) and np.all((row * x).real == 2.0**-60)):
+        if not (np.all((row * row).real == 2.0**(-2 * h))
+                and np.all((row * x).real == 2.0**(-2 * h))):
             return False
     return True
 
@@ -220,20 +222,8 @@ def test_exact_render_is_the_same_with_or_without_the_synthesis_kernel(url):
         np.testing.assert_array_equal(got, want)
 
 
-def _numpy_fuses_single_complex_products() -> bool:
-    """:func:`_numpy_fuses_complex_products` for complex64: with x = (1 + 2^-12)(1 + i),
-    the real part of x x is fma(xr, xr, -(xi xi)) = 2^-24 in float32 (exact product
-    1 + 2^-11 + 2^-24), and 0 when both products are rounded first."""
-    x = np.complex64(complex(1 + 2.0**-12, 1 + 2.0**-12))
-    for n in (3, 67):
-        row = np.full(n, x)
-        if not (np.all((row * row).real == 2.0**-24) and np.all((row * x).real == 2.0**-24)):
-            return False
-    return True
-
-
 needs_single_synthesis = pytest.mark.skipif(
-    single_synthesis_kernel() is None or not _numpy_fuses_single_complex_products(),
+    single_synthesis_kernel() is None or not _numpy_fuses_complex_products(np.complex64, 12),
     reason="numba (extra 'fast') not installed, or numpy's complex64 product does not fuse")
 
 
