@@ -331,8 +331,9 @@ def _slow_scan(app: _Slow, release_at_s: float) -> tuple[list[int], str]:
     got: list[int] = []
     host, dev = pipe_pair()
     try:
+        # timeout 20 s: 100 readings of silence before a reply counts as lost
         with RunningDevice(dev, app, heartbeat_s=0.01):
-            link = HostLink(host, timeout_s=5.0, progress_timeout_s=20.0, clock=clock)
+            link = HostLink(host, timeout_s=20.0, progress_timeout_s=20.0, clock=clock)
             links.append(link)
             link.hello()
             try:
