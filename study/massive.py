@@ -42,7 +42,13 @@ whole period would give), ``snr_ss_median_db`` (eq. 43, median pixel), ``gate_la
 threshold); of the scene: ``scene_pixels`` (pixels with an echo), ``scene_right_pixels``
 (peak within half a chip of the truth, no threshold), ``scene_valid_pixels`` (kept at the
 default threshold), ``scene_valid_wrong_pixels`` (kept, yet off by more than half a chip),
-``threshold_db`` (that threshold); and, measuring the machine, ``time_s``.
+``threshold_db`` (that threshold); ``scene_wall_pixels``, ``scene_wall_right_pixels`` and
+``scene_wall_valid_pixels`` (the same for the back wall's pixels alone);
+``scene_equalised_right_pixels`` and ``scene_equalised_valid_pixels`` (again, with every
+echo above the median echo amplitude lowered to it by its pixel's laser power: the most a
+near-far control that lowers near pixels can equalise); and, measuring the machine,
+``time_s``. The report adds ``wall_valid_fraction_k*`` (the flat wall's pixels kept: where
+every echo is alike, what the threshold alone costs against multiple access).
 
 The full run (K = 400, 800, 1,200 x 160 columns of the wall and of the scene, 768,000
 pixels) is 27 to 80 times the columns of ``--quick`` (2 of the wall and 4 of the scene per
@@ -64,14 +70,14 @@ import numpy as np
 
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
-from cdma_lidar.host.ranging import estimate_ranges
+from cdma_lidar.host.ranging import estimate_ranges, mai_ceiling_db
 from cdma_lidar.scene import load_scene
 from cdma_lidar.scene.instrument import Instrument
 from cdma_lidar.study.engine import RunContext, Setting, Study, Table, grid_product
 from cdma_lidar.study.figures import new_figure, save_figure
 from cdma_lidar.study.mai import sga_error_rate, snr_ss_eq43
 from cdma_lidar.study.paperlab import entry, wilson
-from cdma_lidar.study.simulate import SimulatedScan, simulate_frame
+from cdma_lidar.study.simulate import SimulatedScan, device_power_w, simulate_frame
 from cdma_lidar.units import SPEED_OF_LIGHT_M_S
 
 __all__ = ["REPORT_NOTE", "STUDY", "flat_wall_scene", "massive_task", "predicted_error",
@@ -95,7 +101,10 @@ REPORT_NOTE = (
     "right range whatever their SNR_XC, and the share a scan keeps at the host's default "
     "threshold with the boot power and no near-far control; a scan of the preset is to "
     "keep 90 %, and the gap between the two shares is what near-far control and the "
-    "threshold have to close.")
+    "threshold have to close. The scene's shares are also given for the back wall alone, for "
+    "the objects before it, and with every echo above the median lowered to it (the most a "
+    "near-far control that lowers near pixels could equalise); the flat wall's kept share "
+    "is what the threshold costs where every echo is alike.")
 
 
 def flat_wall_scene(channels: int, columns: int, distance_m: float,
@@ -164,13 +173,32 @@ def scene_shares(channels: int, columns: int, seed: int) -> dict[str, Any]:
     """``paper-massive``'s own scene at K ``channels`` over ``columns`` columns (spread over
     its azimuth): pixels with an echo, those whose peak is within half a chip of the truth
     at no threshold, those a scan keeps at the host's default threshold (its SNR_XC
-    threshold and neighbour support, the boot power), and those kept yet wrong."""
-    sim = simulate_frame(f"{PRESET}?channels={channels}&columns={columns}", seed=seed)
+    threshold and neighbour support, the boot power), and those kept yet wrong; the same
+    counts for the pixels on the back wall (the scene's planes) alone; and, with every echo
+    above the median echo amplitude lowered to it (each pixel's laser power scaled down by
+    its amplitude over the median: the most a near-far control that lowers near pixels
+    can equalise, knowing the truth), the right and kept pixels again."""
+    name = f"{PRESET}?channels={channels}&columns={columns}"
+    sim = simulate_frame(name, seed=seed)
     right, valid, threshold = _ranged(sim)
     lit = np.isfinite(sim.truth_range_m)
+    inst = Instrument(load_scene(name), seed=seed)
+    planes = [i for i, o in enumerate(inst.scene.objects) if o.kind == "plane"]
+    wall = lit & np.isin(inst.truth.hits.object_id, planes)
+    amp = inst.gain_v_per_w * inst.default_power_w                          # (K, C) V
+    top = float(np.median(amp[lit])) if lit.any() else 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(amp > top, top / amp, 1.0)
+    even = simulate_frame(name, seed=seed, power_w=device_power_w(inst) * scale)
+    even_right, even_valid, _ = _ranged(even)
     return {"scene_pixels": int(lit.sum()), "scene_right_pixels": int(np.sum(right & lit)),
             "scene_valid_pixels": int(np.sum(valid & lit)),
             "scene_valid_wrong_pixels": int(np.sum(valid & lit & ~right)),
+            "scene_wall_pixels": int(wall.sum()),
+            "scene_wall_right_pixels": int(np.sum(right & wall)),
+            "scene_wall_valid_pixels": int(np.sum(valid & wall)),
+            "scene_equalised_right_pixels": int(np.sum(even_right & lit)),
+            "scene_equalised_valid_pixels": int(np.sum(even_valid & lit)),
             "threshold_db": threshold}
 
 
@@ -206,8 +234,11 @@ def massive_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     whole, _ = predicted_error(inst, spec.code_length - 3)
     scene_columns = int(params.get("scene_columns", 0))
     scene = scene_shares(k, scene_columns, scene_seed) if scene_columns else {
-        "scene_pixels": 0, "scene_right_pixels": 0, "scene_valid_pixels": 0,
-        "scene_valid_wrong_pixels": 0, "threshold_db": threshold}
+        key: 0 for key in ("scene_pixels", "scene_right_pixels", "scene_valid_pixels",
+                           "scene_valid_wrong_pixels", "scene_wall_pixels",
+                           "scene_wall_right_pixels", "scene_wall_valid_pixels",
+                           "scene_equalised_right_pixels", "scene_equalised_valid_pixels")}
+    scene.setdefault("threshold_db", threshold)
     return {"wrong_fraction": float(np.mean(~right)), "wrong_pixels": int(np.sum(~right)),
             "pixels": int(right.size), "predicted_fraction": predicted,
             "predicted_per_chip": per_chip,
@@ -240,7 +271,8 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     if scene.any():
         n = table.column("scene_pixels")[o][scene]
         for key, mark, label in (("right", "v", "scene: peak not at the right range"),
-                                 ("valid", "x", "scene: not kept at the default threshold")):
+                                 ("valid", "x", "scene: not kept at the default threshold"),
+                                 ("equalised_valid", "+", "scene, echoes equalised: not kept")):
             ax.plot(k[o][scene], 1 - table.column(f"scene_{key}_pixels")[o][scene] / n, mark,
                     color="tab:blue", label=label)
     ax.set_xlabel("channels K (order 15, S = 2)")
@@ -268,17 +300,41 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             f"{int(k[i])} ({int(wrong[i])} of {int(pixels[i])} wrong, {pred[i]:.2g} "
             "predicted)" for i in o if agree[i]) + "; outside at K = "
         + (", ".join(str(int(k[i])) for i in o if not agree[i]) or "none"))
+    rejected = table.column("rejected_fraction")
     for i in np.argsort(k):
+        kk = int(k[i])
+        out[f"wall_valid_fraction_k{kk}"] = entry(
+            float(1 - rejected[i]), None, "1", verdict=None,
+            cause=f"the flat wall's pixels kept at the host's default "
+                  f"{float(table.column('threshold_db')[i]):.1f} dB at K = {kk}: every echo "
+                  f"alike, so what the threshold costs where multiple access alone limits "
+                  f"SNR_XC (ceiling {mai_ceiling_db(kk, 2**15 - 1):.1f} dB)")
         n = int(table.column("scene_pixels")[i])
         if not n:
             continue
-        kk, thr = int(k[i]), float(table.column("threshold_db")[i])
-        for key, what in (("right", "peaks within half a chip of the truth at no threshold"),
-                          ("valid", f"pixels kept at the host's default {thr:.1f} dB")):
-            hits = int(table.column(f"scene_{key}_pixels")[i])
+        thr = float(table.column("threshold_db")[i])
+        nw = int(table.column("scene_wall_pixels")[i])
+        for key, what, hits, of in (
+                ("right", "peaks within half a chip of the truth at no threshold",
+                 int(table.column("scene_right_pixels")[i]), n),
+                ("valid", f"pixels kept at the host's default {thr:.1f} dB",
+                 int(table.column("scene_valid_pixels")[i]), n),
+                ("wall_valid", f"pixels of the back wall (10 m) kept at {thr:.1f} dB",
+                 int(table.column("scene_wall_valid_pixels")[i]), nw),
+                ("objects_valid", f"pixels of the objects before the wall kept at "
+                 f"{thr:.1f} dB", int(table.column("scene_valid_pixels")[i]
+                                      - table.column("scene_wall_valid_pixels")[i]), n - nw),
+                ("equalised_right", "peaks at the right range with every echo above the "
+                 "median lowered to it (the most a near-far control could equalise)",
+                 int(table.column("scene_equalised_right_pixels")[i]), n),
+                ("equalised_valid", f"pixels kept at {thr:.1f} dB with every echo above "
+                 "the median lowered to it",
+                 int(table.column("scene_equalised_valid_pixels")[i]), n)):
+            if not of:
+                continue
             out[f"scene_{key}_fraction_k{kk}"] = entry(
-                hits / n, None, "1", ci95=wilson(hits, n), verdict=None,
-                cause=f"paper-massive's scene (5-10 m) at K = {kk}: {hits} of {n} {what}"
+                hits / of, None, "1", ci95=wilson(hits, of), verdict=None,
+                cause=f"paper-massive's scene (5-10 m) at K = {kk}: {hits} of {of} {what}"
                       + (f" ({int(table.column('scene_valid_wrong_pixels')[i])} of them off "
                          "by more than half a chip); a scan is to keep 90 %"
                          if key == "valid" else ""))

@@ -76,6 +76,8 @@ def test_the_study_runs_and_judges_each_channel_count(tmp_path):
     assert right["ours"] == 1.0 and right["ci95"][0] < 1.0
     assert list(res.table.column("scene_pixels")) == [160, 320]
     assert "scene_valid_fraction_k40" in res.summary
+    assert res.summary["wall_valid_fraction_k80"]["ours"] == 1.0
+    assert res.summary["scene_equalised_valid_fraction_k80"]["ours"] == 1.0
     assert (tmp_path / "massive.png").stat().st_size > 5000
 
 
@@ -91,6 +93,14 @@ def test_the_scenes_near_far_spread_loses_pixels_to_the_threshold_not_to_the_pea
     assert many["scene_right_pixels"] > 0.95 * 1600
     assert many["scene_valid_pixels"] < 0.9 * many["scene_right_pixels"]
     assert many["scene_valid_wrong_pixels"] == 0
+    # the loss is the back wall's: the near objects' echoes (1/r^2 in amplitude, 4x at
+    # 5 m) raise the interference under it; lowered to the median echo, nearly all are kept
+    wall, objects = many["scene_wall_pixels"], 1600 - many["scene_wall_pixels"]
+    assert 1200 < wall < 1500
+    assert many["scene_wall_valid_pixels"] < 0.75 * wall
+    assert many["scene_valid_pixels"] - many["scene_wall_valid_pixels"] >= objects - 2
+    assert many["scene_equalised_right_pixels"] >= many["scene_right_pixels"]
+    assert many["scene_equalised_valid_pixels"] >= 1600 - 4
 
 
 def test_the_paper_report_has_the_instrument_check_of_fig11s_order_15(tmp_path):
