@@ -35,8 +35,6 @@ from cdma_lidar.protocol.columns import (
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, config_key
 from cdma_lidar.protocol.messages import (
-    DEVICE_RULES,
-    ERROR_DOCS,
     FRAGMENT_HEADER,
     MAX_PIECES,
     MESSAGES,
@@ -116,7 +114,7 @@ def ranges_table() -> str:
         if m.kind is not MsgKind.REQUEST:
             continue
         for f in m.fields:
-            rule, code = DEVICE_RULES.get((t, f.name), ("", None))
+            rule, code = m.rules.get(f.name, ("", None))
             rows.append((t.name, f"`{f.name}`", f.range_text or "any", rule or "none",
                          f"`{code.name}`" if code is not None else ""))
     for k in CONFIG_KEYS:
@@ -202,7 +200,7 @@ def info_ranges_table() -> str:
 def errors_table() -> str:
     """NAK error codes."""
     return _table(("code", "name", "meaning"),
-                  [(int(c), f"`{c.name}`", d) for c, d in ERROR_DOCS.items()])
+                  [(int(c), f"`{c.name}`", c.doc) for c in ErrorCode])
 
 
 def examples() -> str:
