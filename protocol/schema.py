@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from cdma_lidar.checks import check_int, is_int
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 
 __all__ = ["INTS", "Field", "Layout", "array", "i", "nbytes", "text", "u", "wire", "wire_fields"]
@@ -105,10 +105,8 @@ class Field:
             raise out_of_range(path, "items with the fields " + ", ".join(
                 self.names or ("key", "value")), value, FieldError) from None
         lo, hi = (self.lo, self.hi) if self.lo is not None else _LIMITS[self.fmt]
-        for k, v in enumerate(items):
-            if not is_int(v) or not lo <= v <= hi:  # type: ignore[operator]
-                raise out_of_range(f"{path}[{k}]", f"an integer in {lo}..{hi}", v, FieldError)
-        return items
+        return [check_int(f"{path}[{k}]", v, lo, hi, cls=FieldError)  # type: ignore[arg-type]
+                for k, v in enumerate(items)]
 
 
 def _repeat(fmt: str, n: int) -> str:

@@ -53,7 +53,6 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
 
-
 def _row(*cells: object) -> str:
     return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
 
@@ -335,16 +334,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path", type=Path, default=DOC_PATH)
     args = ap.parse_args(argv)
     text = args.path.read_text(encoding="utf-8")
-    new = render(text)
-    if args.check:
-        if new != text:
-            sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
-            return 1
+    if (new := render(text)) == text:
         return 0
-    if new != text:
-        atomic_write_text(args.path, new)
+    if args.check:
+        sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
+        return 1
+    atomic_write_text(args.path, new)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
