@@ -196,14 +196,12 @@ class ColumnResult:
         """Grating rotation angle (deg)."""
         return self.angle_udeg * 1e-6
 
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, ColumnResult):
-            return NotImplemented
+    def _key(self) -> tuple:
         return (self.frame, self.column, self.angle_udeg, self.uid_bits, self.calibration,
-                self.timestamp_us) == (other.frame, other.column, other.angle_udeg,
-                                       other.uid_bits, other.calibration, other.timestamp_us) \
-            and self.records.dtype == other.records.dtype \
-            and self.records.tobytes() == other.records.tobytes()
+                self.timestamp_us, self.records.dtype, self.records.tobytes())
+
+    def __eq__(self, other: object) -> bool:
+        return self._key() == other._key() if isinstance(other, ColumnResult) else NotImplemented
 
     __hash__ = None  # type: ignore[assignment]
 

@@ -86,11 +86,10 @@ class ConfigKey:
 
     def outside(self, w: Any) -> Any:
         """The first wire value of ``w`` outside lo..hi (None: all within, or no range)."""
-        lo, hi = self.lo, self.hi
-        if lo is None or hi is None:
+        if self.lo is None or self.hi is None:
             return None
         return next((v for v in (w if isinstance(w, list | tuple | np.ndarray) else [w])
-                     if not is_int(v) or not lo <= int(v) <= hi), None)
+                     if not is_int(v) or not self.lo <= int(v) <= self.hi), None)
 
     def encode(self, value: Any, *, check: bool = True) -> bytes:
         """Value bytes; raises FieldError naming the key.

@@ -116,7 +116,6 @@ class ErrorCode(enum.IntEnum):
     AUTH_FAILED = 14, "HELLO's MAC is wrong (the host's key differs from the device's)"
 
 
-
 class ScanEndReason(enum.IntEnum):
     """Why a scan or calibration stream ended (SCAN_END.reason)."""
 

@@ -58,9 +58,7 @@ def _row(*cells: object) -> str:
 
 
 def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
-    out = [_row(*head), _row(*("---" for _ in head))]
-    out += [_row(*r) for r in rows]
-    return "\n".join(out)
+    return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
 
 
 def header_table() -> str:
