@@ -20,6 +20,7 @@ raises FrameError only), the tables of ``docs/protocol.md``
 from __future__ import annotations
 
 import dataclasses
+import functools
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -266,10 +267,8 @@ def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
                  nhi if hi is None else hi, allowed, fmt=fmt)
 
 
-def i(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> Field:
-    """Signed two's-complement little-endian integer field."""
-    return u(name, bits, doc, unit, lo, hi, allowed, kind="i")
+#: Signed two's-complement little-endian integer field: :func:`u` with ``kind`` "i".
+i = functools.partial(u, kind="i")
 
 
 def text(name: str, doc: str) -> Field:
