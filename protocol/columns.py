@@ -33,6 +33,7 @@ from cdma_lidar.column_record import (
     RECORD,
     WIRE_FIELDS,
     WireField,
+    record_field,
     record_size,
 )
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
@@ -104,31 +105,27 @@ def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
     return np.where(zero_b == 1, 0, np.where(neg_b == 1, -1, 1)).astype(np.int8)
 
 
+_FORMS = {"lag": "int64, -1 where the wire says NO_PEAK", "flag": "bool",
+          "signs": "int8 in {-1, 0, +1}"}
+
+
 def _view(name: str) -> property:
     """Read-only property of ColumnResult presenting record field ``name`` in the receiver's
-    form."""
-    f = next(f for f in RECORD if f.name == name)
-    if f.encoding == "lag":
-        def get(self: ColumnResult) -> NDArray:
-            lags = self.records[name]
-            return np.where(lags == NO_PEAK, -1, lags.astype(np.int64))
-        form = "int64, -1 where the wire says NO_PEAK"
-    elif f.encoding == "flag":
-        def get(self: ColumnResult) -> NDArray:
-            return self.records[name].astype(bool)
-        form = "bool"
-    elif f.encoding == "signs":
-        neg, zero = (w.name for w in f.wire)
+    form (:data:`_FORMS`; plain integers as on the wire)."""
+    f = record_field(name)
+    wire = [w.name for w in f.wire]  # signs: the -1 mask, then the 0 mask
 
-        def get(self: ColumnResult) -> NDArray:
-            return _signs(self.records[neg], self.records[zero], self.uid_bits)
-        form = "int8 in {-1, 0, +1}"
-    else:
-        def get(self: ColumnResult) -> NDArray:
-            return self.records[name]
-        form = f"{f.wire[0].ctype} as on the wire"
+    def get(self: ColumnResult) -> NDArray:
+        r = self.records[wire[0]]
+        if f.encoding == "lag":
+            return np.where(r == NO_PEAK, -1, r.astype(np.int64))
+        if f.encoding == "signs":
+            return _signs(r, self.records[wire[1]], self.uid_bits)
+        return r.astype(bool) if f.encoding == "flag" else r
+
     get.__name__ = name
     unit = f" ({f.unit})" if f.unit else ""
+    form = _FORMS.get(f.encoding, f"{f.wire[0].ctype} as on the wire")
     get.__doc__ = f"(K{''.join(', ' + str(a) for a in f.axes)}) {f.doc}{unit}; {form}."
     return property(get)
 
@@ -199,14 +196,12 @@ class ColumnResult:
         """Grating rotation angle (deg)."""
         return self.angle_udeg * 1e-6
 
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, ColumnResult):
-            return NotImplemented
+    def _key(self) -> tuple:
         return (self.frame, self.column, self.angle_udeg, self.uid_bits, self.calibration,
-                self.timestamp_us) == (other.frame, other.column, other.angle_udeg,
-                                       other.uid_bits, other.calibration, other.timestamp_us) \
-            and self.records.dtype == other.records.dtype \
-            and self.records.tobytes() == other.records.tobytes()
+                self.timestamp_us, self.records.dtype, self.records.tobytes())
+
+    def __eq__(self, other: object) -> bool:
+        return self._key() == other._key() if isinstance(other, ColumnResult) else NotImplemented
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -232,8 +227,7 @@ class ColumnResult:
         for name, value in (("frame", frame), ("column", column), ("uid_bits", n),
                             ("channels", k), ("angle_udeg", angle_udeg),
                             ("timestamp_us", timestamp_us)):  # the header's declared ranges
-            f = COLUMN_HEADER.field(name)
-            check_int(name, value, f.lo, f.hi, cls=FieldError)
+            COLUMN_HEADER.field(name).check(name, value)
         first_extra = fields.get(_FIRST_EXTRA.name)
         e = 0 if first_extra is None else np.asarray(first_extra).reshape(k, -1).shape[1]
         rec = np.zeros(k, dtype=record_dtype(e + 1))

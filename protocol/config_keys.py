@@ -1,15 +1,12 @@
 """CONFIG keys: the key-length-value set carried by CONFIG_SET and CONFIG.
 
-Each key is declared once as a :class:`ConfigKey`: id, name, value encoding, C type,
-unit, allowed range and, for keys whose host value is not the wire value, the mapping
-between the two (exponent tuples <-> polynomial masks, rounding and mode names <->
-codes, window pairs <-> structs). The encoder (:func:`encode_config`), the strict
-decoder (:func:`decode_config`), the spec table in ``docs/protocol.md`` and the
-schema CRC all read that one declaration.
-
-Keys can be added without a new protocol version. Bit 7 of a key id is the *optional*
-flag (:data:`CONFIG_OPTIONAL`): a device that does not know an optional key ignores it;
-an unknown key without the flag is refused with NAK UNKNOWN_KEY naming the key.
+Each key is declared once as a :class:`ConfigKey` (id, name, value encoding, C type, unit,
+allowed range and, where the host value is not the wire value, the mapping: exponent
+tuples <-> polynomial masks, rounding and mode names <-> codes, window pairs <-> structs),
+read by :func:`encode_config`, the strict :func:`decode_config`, the spec's table and the
+schema CRC. Keys can be added without a new protocol version: bit 7 of a key id is the
+*optional* flag (:data:`CONFIG_OPTIONAL`); a device ignores an unknown optional key and
+refuses an unknown other one with NAK UNKNOWN_KEY naming it.
 """
 
 from __future__ import annotations
@@ -66,10 +63,6 @@ def _wire_to_poly(mask: int) -> tuple[int, ...]:
     return mask_to_poly(int(mask) << 1)
 
 
-def _ident(v: Any) -> Any:
-    return v
-
-
 @dataclass(frozen=True)
 class ConfigKey:
     """One key of the CONFIG key-length-value set."""
@@ -83,8 +76,8 @@ class ConfigKey:
     lo: int | None = None
     hi: int | None = None
     read_only: bool = False
-    to_wire: Callable[[Any], Any] = _ident
-    from_wire: Callable[[Any], Any] = _ident
+    to_wire: Callable[[Any], Any] = lambda v: v  # host value -> wire value
+    from_wire: Callable[[Any], Any] = lambda v: v
 
     @property
     def sub(self) -> Layout:
@@ -93,11 +86,10 @@ class ConfigKey:
 
     def outside(self, w: Any) -> Any:
         """The first wire value of ``w`` outside lo..hi (None: all within, or no range)."""
-        lo, hi = self.lo, self.hi
-        if lo is None or hi is None:
+        if self.lo is None or self.hi is None:
             return None
         return next((v for v in (w if isinstance(w, list | tuple | np.ndarray) else [w])
-                     if not is_int(v) or not lo <= int(v) <= hi), None)
+                     if not is_int(v) or not self.lo <= int(v) <= self.hi), None)
 
     def encode(self, value: Any, *, check: bool = True) -> bytes:
         """Value bytes; raises FieldError naming the key.
@@ -129,8 +121,6 @@ class ConfigKey:
         except FrameError:
             raise FrameError(f"{self.name}: malformed value ({len(data)} bytes)",
                              field=self.name) from None
-        if isinstance(w, list):
-            w = [(e["start"], e["length"]) if isinstance(e, dict) else e for e in w]
         if (bad := self.outside(w)) is not None:
             raise FrameError(f"{self.name}: {bad} not in {self.lo}..{self.hi}", field=self.name)
         return self.from_wire(w)
@@ -201,7 +191,8 @@ CONFIG_KEYS: tuple[ConfigKey, ...] = (
               0, 2**32 - 1),
     ConfigKey(12, "ghost_windows", "(u32 start, u32 len) x n", "samples", "lags mod N*S",
               "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
-              to_wire=_windows_to_wire, from_wire=tuple),
+              to_wire=_windows_to_wire,
+              from_wire=lambda w: tuple((e["start"], e["length"]) for e in w)),
     ConfigKey(13, "out_shift", "u8", "bits", "0..63", "out = round(raw / 2^out_shift)", 0, 63),
     _enum_key(14, "rounding", ROUNDING_MODES, "rounding of the output shift"),
     ConfigKey(15, "out_bits", "u8", "bits", "8..32", "outputs saturate to signed out_bits", 8,

@@ -28,7 +28,7 @@ from cdma_lidar.protocol.framing import Frame
 from cdma_lidar.protocol.schema import Field, Layout, array, nbytes, text, u, wire_fields
 from cdma_lidar.protocol.views import Info, Status
 
-__all__ = ["DEVICE_RULES", "ERROR_DOCS", "FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO",
+__all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO",
            "SCHEMA_CRC", "Auth", "CaptureKind", "ErrorCode", "HelloFlags", "MessageSpec",
            "MsgKind", "MsgType", "Pieces", "ScanEndReason", "SessionLostReason", "decode_payload",
            "encode_payload", "head_size", "kind_of", "split_message", "type_name"]
@@ -52,11 +52,8 @@ def type_name(msg_type: int) -> str:
 
 def kind_of(msg_type: int) -> MsgKind:
     """Kind of a message type from its range (works for unknown types too)."""
-    if msg_type >= 0xC0:
-        return MsgKind.STREAM
-    if msg_type >= 0x80:
-        return MsgKind.REPLY
-    return MsgKind.REQUEST
+    return MsgKind.STREAM if msg_type >= 0xC0 else MsgKind.REPLY if msg_type >= 0x80 \
+        else MsgKind.REQUEST
 
 
 class MsgType(enum.IntEnum):
@@ -119,10 +116,6 @@ class ErrorCode(enum.IntEnum):
     AUTH_FAILED = 14, "HELLO's MAC is wrong (the host's key differs from the device's)"
 
 
-#: What each NAK code means (the spec's error table).
-ERROR_DOCS = {c: c.doc for c in ErrorCode}
-
-
 class ScanEndReason(enum.IntEnum):
     """Why a scan or calibration stream ended (SCAN_END.reason)."""
 
@@ -163,12 +156,16 @@ class CaptureKind(enum.IntEnum):
 
 @dataclass(frozen=True)
 class MessageSpec:
-    """One message type: its payload declaration and, for requests, the reply type."""
+    """One message type: its payload declaration, for requests the reply type, and what a
+    device checks beyond each field's wire range: ``rules``, field -> (rule, NAK code a
+    violation gets; a value outside the wire range is always MALFORMED). The spec's table
+    "Wire ranges and NAK codes" is generated from both."""
 
     type: MsgType
     struct: Layout  # the payload's fields in wire order, and their codec
     doc: str
     reply: MsgType | None = None
+    rules: dict[str, tuple[str, ErrorCode]] = field(default_factory=dict)
 
     @property
     def kind(self) -> MsgKind:
@@ -180,8 +177,12 @@ class MessageSpec:
         return self.struct.fields
 
 
-def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None) -> MessageSpec:
-    return MessageSpec(t, Layout(*fields_), doc, reply)
+def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None,
+         rules: dict[str, str | tuple[str, ErrorCode]] | None = None) -> MessageSpec:
+    """A message; a rule given as text alone gets OUT_OF_RANGE."""
+    return MessageSpec(t, Layout(*fields_), doc, reply, {
+        k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
+        for k, r in (rules or {}).items()})
 
 
 def _klv(doc: str) -> Field:
@@ -214,23 +215,40 @@ _MESSAGE_LIST = [
                 "retransmission or the owner's own new HELLO; the host's challenge"),
          nbytes("device_nonce", 16, "the nonce of the device's last CHALLENGE; zeros if none"),
          nbytes("mac", 32, "HMAC-SHA256 proof of the key (see Access control); zeros if none"),
-         reply=MsgType.INFO),
+         reply=MsgType.INFO,
+         rules={"flags": ("another host owns a live session and bit 0 (take over) is clear",
+                          ErrorCode.BUSY),
+                "mac": ("with a key: not HMAC(key, ...) of this HELLO and the last "
+                        "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
+                        ErrorCode.AUTH_FAILED)}),
     _msg(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
          Field("keys", "u8 x n (rest)", "key ids to read", kind="array", fmt="B"),
-         reply=MsgType.CONFIG),
+         reply=MsgType.CONFIG,
+         rules={"keys": ("a key id this device does not know", ErrorCode.UNKNOWN_KEY)}),
     _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
          _klv("key u8, length u16, value (see CONFIG keys)"),
-         reply=MsgType.ACK),
+         reply=MsgType.ACK,
+         rules={"items": "a key unknown and not optional: UNKNOWN_KEY; read-only: READ_ONLY; "
+                "a key twice or a value outside the key's wire range: MALFORMED; outside the "
+                "key's device range (CONFIG keys table, range column): OUT_OF_RANGE; while a "
+                "scan runs: BUSY"}),
     _msg(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
          "(row-major, channel by channel); large matrices are sent in several requests.",
          *_RECT, _POWER,
-         reply=MsgType.ACK),
+         reply=MsgType.ACK,
+         rules={"channel_start": "channel_start + channels > K",
+                "column_start": "column_start + columns > INFO.column_count",
+                "power": "the sum over a column's channels above the cap "
+                "(INFO.column_power_cap_uw; field `power`)"}),
     _msg(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
          "order, then SCAN_END. A retransmitted SCAN_START is answered, not restarted.",
          u("frame", 32, "frame id chosen by the host, echoed in every column"),
          u("first_column", 16, "first column index"),
          u("columns", 16, "number of columns", lo=1, hi=65535),
-         reply=MsgType.ACK),
+         reply=MsgType.ACK,
+         rules={"first_column": "first_column >= INFO.column_count",
+                "columns": "first_column + columns > INFO.column_count, or columns > "
+                "INFO.max_columns; while a scan runs: BUSY"}),
     _msg(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
          reply=MsgType.ACK),
     _msg(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
@@ -242,12 +260,16 @@ _MESSAGE_LIST = [
          Field("fragments", "u8 n + n x (u16 column, u8 index)",
                "single fragments to send again", allowed="0..255 items; columns + fragments "
                ">= 1", kind="array", fmt="HB", count="B", names=("column", "index"), max_items=255),
-         reply=MsgType.ACK),
+         reply=MsgType.ACK,
+         rules={"columns": ("neither kept in the ring nor still to come in the running scan "
+                            "(field `columns[i]` / `fragments[i]`); both lists empty: "
+                            "MALFORMED", ErrorCode.NOT_AVAILABLE)}),
     _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
          "the calibration flag (column = shot index), then SCAN_END.",
          u("frame", 32, "frame id chosen by the host"),
          u("shots", 16, "number of shots", lo=1, hi=65535),
-         reply=MsgType.ACK),
+         reply=MsgType.ACK,
+         rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
     _msg(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
          "capture, later offsets read the same capture.",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
@@ -255,11 +277,17 @@ _MESSAGE_LIST = [
          u("channel", 16, "channel (kind 1 only; 0 for kind 0)"),
          u("offset", 32, "first element to read", "elements"),
          u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
-         reply=MsgType.CAPTURE_DATA),
+         reply=MsgType.CAPTURE_DATA,
+         rules={"column": "column >= INFO.column_count",
+                "channel": "kind 1 and channel >= K",
+                "offset": "offset > total: OUT_OF_RANGE; offset > 0 with no capture of this "
+                "(kind, column, channel) held: NOT_AVAILABLE"}),
     _msg(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
     _msg(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
          *_RECT,
-         reply=MsgType.POWER),
+         reply=MsgType.POWER,
+         rules={"channels": "channel_start + channels > K",
+                "columns": "column_start + columns > INFO.column_count"}),
     _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
          "without SCAN_END, another host's HELLO then needs no take-over.",
          reply=MsgType.ACK),
@@ -374,48 +402,6 @@ def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,
 REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.reply}
 
 
-#: What a device checks beyond each field's wire range, and the NAK code a violation
-#: gets (a value outside the wire range of the tables is always MALFORMED). The spec's
-#: table "Wire ranges and NAK codes" is generated from this and the declarations.
-DEVICE_RULES: dict[tuple[MsgType, str], tuple[str, ErrorCode]] = {
-    (MsgType.HELLO, "flags"): ("another host owns a live session and bit 0 (take over) is "
-                               "clear", ErrorCode.BUSY),
-    (MsgType.HELLO, "mac"): ("with a key: not HMAC(key, ...) of this HELLO and the last "
-                             "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
-                             ErrorCode.AUTH_FAILED),
-    (MsgType.CONFIG_GET, "keys"): ("a key id this device does not know", ErrorCode.UNKNOWN_KEY),
-    (MsgType.CONFIG_SET, "items"): ("a key unknown and not optional: UNKNOWN_KEY; read-only: "
-                                    "READ_ONLY; a key twice or a value outside the key's wire "
-                                    "range: MALFORMED; outside the key's device range "
-                                    "(CONFIG keys table, range column): OUT_OF_RANGE; while "
-                                    "a scan runs: BUSY", ErrorCode.OUT_OF_RANGE),
-    (MsgType.POWER_SET, "channel_start"): ("channel_start + channels > K",
-                                           ErrorCode.OUT_OF_RANGE),
-    (MsgType.POWER_SET, "column_start"): ("column_start + columns > INFO.column_count",
-                                          ErrorCode.OUT_OF_RANGE),
-    (MsgType.POWER_SET, "power"): ("the sum over a column's channels above the cap "
-                                   "(INFO.column_power_cap_uw; field `power`)",
-                                   ErrorCode.OUT_OF_RANGE),
-    (MsgType.POWER_GET, "channels"): ("channel_start + channels > K", ErrorCode.OUT_OF_RANGE),
-    (MsgType.POWER_GET, "columns"): ("column_start + columns > INFO.column_count",
-                                     ErrorCode.OUT_OF_RANGE),
-    (MsgType.SCAN_START, "first_column"): ("first_column >= INFO.column_count",
-                                           ErrorCode.OUT_OF_RANGE),
-    (MsgType.SCAN_START, "columns"): ("first_column + columns > INFO.column_count, or columns "
-                                      "> INFO.max_columns; while a scan runs: BUSY",
-                                      ErrorCode.OUT_OF_RANGE),
-    (MsgType.RESEND, "columns"): ("neither kept in the ring nor still to come in the running "
-                                  "scan (field `columns[i]` / `fragments[i]`); both lists "
-                                  "empty: MALFORMED", ErrorCode.NOT_AVAILABLE),
-    (MsgType.CALIBRATE, "shots"): ("while a scan runs: BUSY", ErrorCode.BUSY),
-    (MsgType.CAPTURE, "column"): ("column >= INFO.column_count", ErrorCode.OUT_OF_RANGE),
-    (MsgType.CAPTURE, "channel"): ("kind 1 and channel >= K", ErrorCode.OUT_OF_RANGE),
-    (MsgType.CAPTURE, "offset"): ("offset > total: OUT_OF_RANGE; offset > 0 with no capture of "
-                                  "this (kind, column, channel) held: NOT_AVAILABLE",
-                                  ErrorCode.OUT_OF_RANGE),
-}
-
-
 # ---- encode / decode ------------------------------------------------------------------
 def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None = None) -> bytes:
     """Payload bytes of one message; raises FieldError naming the first bad field."""
@@ -451,18 +437,13 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
 
 # ---- schema hash ------------------------------------------------------------------------------
 def _schema_text() -> str:
-    lines = []
-    for m in _MESSAGE_LIST:
-        if m.type == MsgType.COLUMN_RESULT:
-            names = [f.name for f in COLUMN_HEADER.fields]
-            rec = record_dtype(2)
-            lines.append(f"{m.type:#04x} {m.type.name} {names} {rec.descr}")
-            continue
-        lines.append(f"{m.type:#04x} {m.type.name} " +
-                     " ".join(f"{f.name}:{f.ctype}" for f in m.fields))
-    for k in CONFIG_KEYS:
-        lines.append(f"key {k.id} {k.name} {k.ctype} ro={k.read_only}")
-    return "\n".join(lines)
+    """What SCHEMA_CRC covers: each message's fields and wire types (COLUMN_RESULT: its
+    header's names and the record's dtype at P = 2), then each CONFIG key."""
+    col = f"{[f.name for f in COLUMN_HEADER.fields]} {record_dtype(2).descr}"
+    return "\n".join([f"{m.type:#04x} {m.type.name} " + (
+        col if m.type == MsgType.COLUMN_RESULT else
+        " ".join(f"{f.name}:{f.ctype}" for f in m.fields)) for m in _MESSAGE_LIST] +
+        [f"key {k.id} {k.name} {k.ctype} ro={k.read_only}" for k in CONFIG_KEYS])
 
 
 #: CRC-32 of the declared schema (message layouts and config keys), announced in INFO.

@@ -20,6 +20,7 @@ raises FrameError only), the tables of ``docs/protocol.md``
 from __future__ import annotations
 
 import dataclasses
+import functools
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from cdma_lidar.checks import check_int, is_int
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 
 __all__ = ["INTS", "Field", "Layout", "array", "i", "nbytes", "text", "u", "wire", "wire_fields"]
@@ -105,10 +106,8 @@ class Field:
             raise out_of_range(path, "items with the fields " + ", ".join(
                 self.names or ("key", "value")), value, FieldError) from None
         lo, hi = (self.lo, self.hi) if self.lo is not None else _LIMITS[self.fmt]
-        for k, v in enumerate(items):
-            if not is_int(v) or not lo <= v <= hi:  # type: ignore[operator]
-                raise out_of_range(f"{path}[{k}]", f"an integer in {lo}..{hi}", v, FieldError)
-        return items
+        return [check_int(f"{path}[{k}]", v, lo, hi, cls=FieldError)  # type: ignore[arg-type]
+                for k, v in enumerate(items)]
 
 
 def _repeat(fmt: str, n: int) -> str:
@@ -268,10 +267,8 @@ def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
                  nhi if hi is None else hi, allowed, fmt=fmt)
 
 
-def i(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
-      hi: int | None = None, allowed: str = "") -> Field:
-    """Signed two's-complement little-endian integer field."""
-    return u(name, bits, doc, unit, lo, hi, allowed, kind="i")
+#: Signed two's-complement little-endian integer field: :func:`u` with ``kind`` "i".
+i = functools.partial(u, kind="i")
 
 
 def text(name: str, doc: str) -> Field:

@@ -35,8 +35,6 @@ from cdma_lidar.protocol.columns import (
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, config_key
 from cdma_lidar.protocol.messages import (
-    DEVICE_RULES,
-    ERROR_DOCS,
     FRAGMENT_HEADER,
     MAX_PIECES,
     MESSAGES,
@@ -55,15 +53,12 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
 
-
 def _row(*cells: object) -> str:
     return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
 
 
 def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
-    out = [_row(*head), _row(*("---" for _ in head))]
-    out += [_row(*r) for r in rows]
-    return "\n".join(out)
+    return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
 
 
 def header_table() -> str:
@@ -116,7 +111,7 @@ def ranges_table() -> str:
         if m.kind is not MsgKind.REQUEST:
             continue
         for f in m.fields:
-            rule, code = DEVICE_RULES.get((t, f.name), ("", None))
+            rule, code = m.rules.get(f.name, ("", None))
             rows.append((t.name, f"`{f.name}`", f.range_text or "any", rule or "none",
                          f"`{code.name}`" if code is not None else ""))
     for k in CONFIG_KEYS:
@@ -202,7 +197,7 @@ def info_ranges_table() -> str:
 def errors_table() -> str:
     """NAK error codes."""
     return _table(("code", "name", "meaning"),
-                  [(int(c), f"`{c.name}`", d) for c, d in ERROR_DOCS.items()])
+                  [(int(c), f"`{c.name}`", c.doc) for c in ErrorCode])
 
 
 def examples() -> str:
@@ -337,16 +332,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path", type=Path, default=DOC_PATH)
     args = ap.parse_args(argv)
     text = args.path.read_text(encoding="utf-8")
-    new = render(text)
-    if args.check:
-        if new != text:
-            sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
-            return 1
+    if (new := render(text)) == text:
         return 0
-    if new != text:
-        atomic_write_text(args.path, new)
+    if args.check:
+        sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
+        return 1
+    atomic_write_text(args.path, new)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

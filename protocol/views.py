@@ -1,12 +1,11 @@
 """INFO and STATUS: their payload fields declared once, as typed dataclasses.
 
 :class:`Info` (reply to HELLO) and :class:`Status` (reply to STATUS_GET, and the
-HEARTBEAT stream) hold the wire fields in wire units (pm, µdeg, m°C, ms, 0.001
-lines/mm) and in wire order; each field carries its payload declaration
-(:func:`~cdma_lidar.protocol.schema.wire`), from which
-:mod:`~cdma_lidar.protocol.messages` builds the INFO, STATUS and HEARTBEAT payloads.
-``to_fields`` gives the dict :func:`cdma_lidar.protocol.messages.encode_payload` takes,
-``from_fields`` / ``Status(**fields)`` read a decoded payload.
+HEARTBEAT stream) hold the fields in wire units (pm, µdeg, m°C, ms, 0.001 lines/mm) and
+wire order; each carries its payload declaration (:func:`~cdma_lidar.protocol.schema.wire`),
+from which :mod:`~cdma_lidar.protocol.messages` builds those payloads. ``to_fields`` gives
+what :func:`~cdma_lidar.protocol.messages.encode_payload` takes; ``from_fields`` /
+``Status(**fields)`` read a decoded payload.
 """
 
 from __future__ import annotations
@@ -153,9 +152,8 @@ class Info:
         """Wavelength made horizontal by the default tilt (m)."""
         return self.reference_wavelength_pm * 1e-12
 
-    def to_fields(self) -> dict[str, Any]:
-        """Field dict for :func:`encode_payload` (MsgType.INFO)."""
-        return dataclasses.asdict(self)
+    #: The field dict encode_payload(MsgType.INFO, ...) takes.
+    to_fields = dataclasses.asdict
 
     @classmethod
     def from_fields(cls, d: dict[str, Any]) -> Info:
@@ -205,6 +203,5 @@ class Status:
         return math.nan if self.temperature_mc == TEMPERATURE_UNKNOWN else \
             self.temperature_mc * 1e-3
 
-    def to_fields(self) -> dict[str, Any]:
-        """Field dict for :func:`encode_payload`."""
-        return dataclasses.asdict(self)
+    #: The field dict encode_payload(MsgType.STATUS or HEARTBEAT, ...) takes.
+    to_fields = dataclasses.asdict
