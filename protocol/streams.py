@@ -121,16 +121,13 @@ class Streams:
         engine: the device's measurement engine.
         ring_columns: recent columns kept for RESEND.
         clock: monotonic clock (s).
-        counted: called for every COLUMN_RESULT queued (new or resent).
         stopped: called when a stream ends (its idle time counts from then).
     """
 
     def __init__(self, app: Any, tx: Transmitter, engine: Engine, *, ring_columns: int,
-                 clock: Callable[[], float], counted: Callable[[], None],
-                 stopped: Callable[[], None]) -> None:
+                 clock: Callable[[], float], stopped: Callable[[], None]) -> None:
         self.app, self.tx, self.engine = app, tx, engine
-        self.ring_columns, self.clock = ring_columns, clock
-        self._counted, self._stopped = counted, stopped
+        self.ring_columns, self.clock, self._stopped = ring_columns, clock, stopped
         self.stream: Stream | None = None
         self.latest: Stream | None = None  # the last stream started, running or not
         self.config: dict[str, Any] | None = None  # the app's config when it started
@@ -191,7 +188,6 @@ class Streams:
                 return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, name,
                                    f"column {col} of frame {frame} is no longer kept")
         for key, payload, only in todo:  # class REPAIR: after the ACK
-            self._counted()
             self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
         return self.tx.ack(req)
 
@@ -232,7 +228,6 @@ class Streams:
         while len(self.ring) > self.ring_columns:
             self.ring.popitem(last=False)
         st.produced += 1
-        self._counted()
         self.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=key)
         if st.produced >= st.count:
             self.stop(ScanEndReason.COMPLETE)
