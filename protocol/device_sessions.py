@@ -1,21 +1,18 @@
-"""Device sessions: who owns the device, HELLO (with its challenge-response), take-over,
-and what a session asks of the application.
+"""Device sessions: who owns the device, HELLO (with its challenge-response), take-over.
 
 One device may be reached over several connections at once (the TCP server gives each
 its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`). :class:`DeviceCore`,
 shared by them, knows which connection's :class:`DeviceSession` owns the device, since
 when and how long it has been idle, and the boot configuration a new session starts
 from. A connection's :class:`DeviceSession` owns its session: open or not, its keys,
-the challenge sent, the failed authentications, the INFO sent, the capture being read.
-HELLO opens a session (docs/protocol.md, Sessions and Access control): another host
-gets NAK BUSY unless it takes over or the session expired, and the old owner then gets
-SESSION_LOST. Each connection's loop changes only its own session: a HELLO that takes
-the device marks the old owner :attr:`DeviceSession.lost`, that connection's loop ends
-its session at its next poll, and the HELLO is answered once it has.
-
-A request handler is ``(request, fields) -> Reply``; it refuses by returning a NAK
-(:meth:`~cdma_lidar.protocol.transmit.Transmitter.nak`) or raising ``ConfigError`` /
-``DeviceError`` (answered NAK by the endpoint).
+the challenge sent, the failed authentications, the capture being read, and the
+requests it makes of the application. HELLO opens a session (docs/protocol.md,
+Sessions and Access control): another host gets NAK BUSY unless it takes over or the
+session expired, and the old owner then gets SESSION_LOST. Each connection's loop
+changes only its own session: a HELLO that takes the device marks the old owner
+:attr:`DeviceSession.lost`, whose loop ends its session at its next poll, and the
+HELLO is answered once it has. A handler is ``(request, fields) -> Reply``; it refuses
+by returning a NAK or raising ``ConfigError`` / ``DeviceError`` (answered NAK).
 """
 
 from __future__ import annotations
@@ -49,7 +46,6 @@ from cdma_lidar.protocol.messages import (
 )
 from cdma_lidar.protocol.streams import Engine, Streams
 from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, clip
-from cdma_lidar.protocol.views import Info
 
 __all__ = ["DeviceCore", "DeviceSession", "EndpointStats", "new_session_id"]
 
@@ -179,7 +175,6 @@ class DeviceSession:
         self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
         #: (wrong HELLO MACs on this connection since its last success, the last one's time)
         self.auth_failures: tuple[int, float] = (0, 0.0)
-        self.info: Info | None = None  # as sent in the last INFO
         #: Set by another connection's HELLO that took the device: (reason, detail).
         self.lost: tuple[SessionLostReason, str] | None = None
         self._previous: DeviceSession | None = None  # the owner a claimed HELLO waits for
@@ -322,7 +317,7 @@ class DeviceSession:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
             self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
-        self.info = info = dataclasses.replace(
+        info = dataclasses.replace(
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
             schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
             ring_columns=min(self.streams.ring_columns, 65535),
@@ -365,7 +360,7 @@ class DeviceSession:
     # ---- what the session asks of the application -------------------------------------
     def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
                detail: str) -> Reply:
-        """The reply, or NAK TOO_LARGE naming ``fld`` if it needs too many FRAGMENTs."""
+        """The reply, or NAK TOO_LARGE naming ``fld`` when it needs too many FRAGMENTs."""
         if not self.tx.fits(len(payload)):
             return self.tx.nak(req, ErrorCode.TOO_LARGE, fld, detail)
         return self.tx.reply(req, msg_type, payload)

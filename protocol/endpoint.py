@@ -365,10 +365,8 @@ class DeviceEndpoint:
             self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
                         coded=frame.fec, version=frame.version)
             return
-        self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS,
-                                            "incompat_flags",
-                                            f"unknown incompat flags 0x{frame.incompat:02x}",
-                                            False))
+        self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                                          f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
