@@ -177,7 +177,7 @@ class DeviceSession:
         self.auth_failures: tuple[int, float] = (0, 0.0)
         #: Set by another connection's HELLO that took the device: (reason, detail).
         self.lost: tuple[SessionLostReason, str] | None = None
-        self._previous: DeviceSession | None = None  # the owner a claimed HELLO waits for
+        self._previous: DeviceSession | None = None  # the owner a passed HELLO waits for
         #: The capture being read out: ((kind, column, channel), its data).
         self.capture: tuple[tuple[int, int, int], NDArray] | None = None
 
@@ -202,13 +202,11 @@ class DeviceSession:
                       if self.open else "no session is open here: send HELLO")
             refusal = self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail, False)
             sid, signer, verifier = self.ended or (None, None, None)
-            if req.session == sid and verifier is not None and verifier.check(req):
-                # A request of the signed session that ended here: its host hears it
-                # signed with that session's key (it drops unsigned frames).
-                self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq, signer=signer,
-                             coded=self.tx.coded or req.fec)
-            else:
-                self.tx.answer(req, refusal)
+            # A request of the signed session that ended here: its host hears the NAK
+            # signed with that session's key (it drops unsigned frames).
+            ended = req.session == sid and verifier is not None and verifier.check(req)
+            self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
+                         signer=signer if ended else None, coded=self.tx.coded or req.fec)
             return False
         if self.verifier is not None and not req.joined:
             if not req.sig:
@@ -226,8 +224,10 @@ class DeviceSession:
 
     def hello_gate(self, req: Frame, f: dict) -> Reply | None:
         """What HELLO gets from the session state alone, at once: a CHALLENGE,
-        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY;
-        None: the HELLO may open a session (:meth:`claim`)."""
+        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY.
+        None: the HELLO passed and took the device from its owner, which hears
+        SESSION_LOST (at once on this connection, at its next poll on another); the
+        session opens when the HELLO is handled."""
         core = self.core
         if core.key is not None:
             if not any(f["mac"]) or self.challenge is None or \
@@ -252,32 +252,21 @@ class DeviceSession:
                                     "HELLO with a wrong MAC (the host holds another key)")
                 return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac",
                                    "the MAC does not match this device's key", False)
-        owner = core.owner
-        if owner is None or (owner is self and core.owner_nonce == bytes(f["host_nonce"])):
-            return None
-        now = core.clock()
-        idle = core.idle_s(now)
-        if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
-            return None
-        return self.tx.nak(req, ErrorCode.BUSY, "session",
-                           f"another host owns the device: its session opened "
-                           f"{now - core.opened:.1f} s ago and has been idle {idle:.1f} s "
-                           f"(expires after {core.session_idle_s:g} s idle); say HELLO with "
-                           "take-over to end it", False)
-
-    def claim(self, f: dict) -> None:
-        """A HELLO passed the gate: take the device from its owner (which hears
-        SESSION_LOST: at once on this connection, at its next poll on another)."""
-        core, nonce, now = self.core, bytes(f["host_nonce"]), self.core.clock()
-        owner = core.owner
+        owner, nonce, now = core.owner, bytes(f["host_nonce"]), core.clock()
         if owner is not None and not (owner is self and core.owner_nonce == nonce):
             idle = core.idle_s(now)
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
-            else:
+            elif f["flags"] & HelloFlags.TAKE_OVER:
                 lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
                         f"after {now - core.opened:.1f} s")
+            else:
+                return self.tx.nak(req, ErrorCode.BUSY, "session",
+                                   f"another host owns the device: its session opened "
+                                   f"{now - core.opened:.1f} s ago and has been idle "
+                                   f"{idle:.1f} s (expires after {core.session_idle_s:g} s "
+                                   "idle); say HELLO with take-over to end it", False)
             if owner is self:
                 self.lose(*lost)
             else:
@@ -286,6 +275,7 @@ class DeviceSession:
         # time the HELLO calls the application.
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         core.owner, core.owner_nonce = self, nonce
+        return None
 
     @property
     def ready(self) -> bool:
@@ -295,7 +285,7 @@ class DeviceSession:
         return self.core.owner is self and (prev is None or not (prev.open or prev.lost))
 
     def _hello(self, req: Frame, f: dict) -> Reply:
-        """Open a fresh session (after :meth:`claim`, the engine idle)."""
+        """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
         core = self.core
         if core.owner is not self:
             return self.tx.nak(req, ErrorCode.BUSY, "session",

@@ -427,7 +427,6 @@ class DeviceEndpoint:
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-            sess.claim(f)
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
                 (self._held or not self._app_free()):
