@@ -5,12 +5,14 @@ its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`). :class:`DeviceCo
 shared by them, knows which connection's :class:`DeviceSession` owns the device, since
 when and how long it has been idle, and the boot configuration a new session starts
 from. A connection's :class:`DeviceSession` owns its session: open or not, its keys,
-the challenge sent, the failed authentications, the INFO sent. HELLO
-opens a session (docs/protocol.md, Sessions and Access control): another host gets
-NAK BUSY unless it takes over or the session expired, and the old owner then gets
-SESSION_LOST. Each connection's loop changes only its own session: a HELLO that takes
-the device marks the old owner :attr:`DeviceSession.lost`, that connection's loop ends
-its session at its next poll, and the HELLO is answered once it has.
+the challenge sent, the failed authentications, the capture being read, and the
+requests it makes of the application. HELLO opens a session (docs/protocol.md,
+Sessions and Access control): another host gets NAK BUSY unless it takes over or the
+session expired, and the old owner then gets SESSION_LOST. Each connection's loop
+changes only its own session: a HELLO that takes the device marks the old owner
+:attr:`DeviceSession.lost`, whose loop ends its session at its next poll, and the
+HELLO is answered once it has. A handler is ``(request, fields) -> Reply``; it refuses
+by returning a NAK or raising ``ConfigError`` / ``DeviceError`` (answered NAK).
 """
 
 from __future__ import annotations
@@ -21,35 +23,39 @@ import logging
 import secrets
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import DeviceError, out_of_range
+from cdma_lidar.errors import DeviceError, FieldError, out_of_range
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, frame_size
 from cdma_lidar.protocol.messages import (
     SCHEMA_CRC,
     Auth,
+    CaptureKind,
     ErrorCode,
     HelloFlags,
     MsgType,
     ScanEndReason,
     SessionLostReason,
     encode_payload,
+    head_size,
 )
 from cdma_lidar.protocol.streams import Engine, Streams
 from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, clip
-from cdma_lidar.protocol.views import Info
 
 __all__ = ["DeviceCore", "DeviceSession", "EndpointStats", "new_session_id"]
 
 log = logging.getLogger(__name__)
 
+_READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
+_CAPTURE_HEADER = head_size(MsgType.CAPTURE_DATA)  # bytes before the data (14)
 
-@dataclass
+
+@dataclasses.dataclass
 class EndpointStats:
     """Counters of one connection (or, as ``DeviceCore.totals``, of all since boot)."""
 
@@ -110,11 +116,6 @@ class DeviceCore:
         if self.owner is session:
             self.last_active = self.clock()
 
-    def release(self, session: DeviceSession) -> None:
-        """``session``'s connection closed, or it ended: the device is free at once."""
-        if self.owner is session:
-            self.owner = None
-
     def restore_defaults(self, keep: bool) -> None:
         """Remember the boot configuration and power once; unless ``keep``, put them back
         (the engine is idle)."""
@@ -152,18 +153,18 @@ class DeviceSession:
         tx: the connection's transmitter (its session id, max frame, signing, coding).
         streams: the connection's streams, ended with the session.
         stats: the connection's counters.
-        max_frame, fec, ring_columns, heartbeat_s: the connection's, as
+        max_frame, fec, heartbeat_s: the connection's, as
             :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` takes them (INFO says them).
         peer: who is on the other end, for the log of failed authentication.
         on_end: called when the session ends (the connection forgets what it held).
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
-                 stats: EndpointStats, *, max_frame: int, fec: bool, ring_columns: int,
-                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
-        self.core, self.tx, self.streams, self.stats = core, tx, streams, stats
-        self.max_frame, self.fec, self.ring_columns, self.heartbeat_s = \
-            max_frame, fec, ring_columns, heartbeat_s
+                 stats: EndpointStats, *, max_frame: int, fec: bool, heartbeat_s: float,
+                 peer: str, on_end: Callable[[], None]) -> None:
+        self.core, self.app, self.tx, self.streams, self.stats = \
+            core, core.app, tx, streams, stats
+        self.max_frame, self.fec, self.heartbeat_s = max_frame, fec, heartbeat_s
         self.peer, self._on_end = peer, on_end
         self.open = False
         #: Since when this connection has had no session (core clock, s).
@@ -174,10 +175,11 @@ class DeviceSession:
         self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
         #: (wrong HELLO MACs on this connection since its last success, the last one's time)
         self.auth_failures: tuple[int, float] = (0, 0.0)
-        self.info: Info | None = None  # as sent in the last INFO
         #: Set by another connection's HELLO that took the device: (reason, detail).
         self.lost: tuple[SessionLostReason, str] | None = None
-        self._previous: DeviceSession | None = None  # the owner a claimed HELLO waits for
+        self._previous: DeviceSession | None = None  # the owner a passed HELLO waits for
+        #: The capture being read out: ((kind, column, channel), its data).
+        self.capture: tuple[tuple[int, int, int], NDArray] | None = None
 
     @property
     def id(self) -> int:
@@ -185,12 +187,47 @@ class DeviceSession:
         return self.tx.session
 
     def handlers(self) -> dict[MsgType, Callable[[Frame, dict], Reply]]:
-        return {MsgType.HELLO: self._hello, MsgType.SESSION_END: lambda req, f: self.tx.ack(req)}
+        return {MsgType.HELLO: self._hello, MsgType.SESSION_END: lambda req, f: self.tx.ack(req),
+                MsgType.CONFIG_GET: self._config_get, MsgType.CONFIG_SET: self._config_set,
+                MsgType.POWER_SET: self._power_set, MsgType.POWER_GET: self._power_get,
+                MsgType.CAPTURE: self._capture}
+
+    def admit(self, req: Frame) -> bool:
+        """A request other than HELLO may go on: it names this open session and, in a
+        signed session, is signed (a joined request's pieces were checked). Otherwise it
+        is refused (NAK WRONG_SESSION, or AUTH_REQUIRED unsigned) or dropped (forged or
+        replayed: no answer at all, and the guess counts against the back-off)."""
+        if not self.open or req.session != self.id:
+            detail = (f"this connection's session is 0x{self.id:08x}; send HELLO"
+                      if self.open else "no session is open here: send HELLO")
+            refusal = self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail, False)
+            sid, signer, verifier = self.ended or (None, None, None)
+            # A request of the signed session that ended here: its host hears the NAK
+            # signed with that session's key (it drops unsigned frames).
+            ended = req.session == sid and verifier is not None and verifier.check(req)
+            self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
+                         signer=signer if ended else None, coded=self.tx.coded or req.fec)
+            return False
+        if self.verifier is not None and not req.joined:
+            if not req.sig:
+                self.tx.answer(req, self.tx.nak(
+                    req, ErrorCode.AUTH_REQUIRED, "incompat_flags",
+                    "this device accepts only signed frames: HELLO with its key", False))
+                return False
+            if not self.verifier.check(req):
+                self.stats.auth_rejected += 1
+                self.core.backoff.failed(f"{self.peer} (session frames)",
+                                         "a frame failed authentication")
+                return False
+        self.core.touch(self)
+        return True
 
     def hello_gate(self, req: Frame, f: dict) -> Reply | None:
         """What HELLO gets from the session state alone, at once: a CHALLENGE,
-        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY;
-        None: the HELLO may open a session (:meth:`claim`)."""
+        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY.
+        None: the HELLO passed and took the device from its owner, which hears
+        SESSION_LOST (at once on this connection, at its next poll on another); the
+        session opens when the HELLO is handled."""
         core = self.core
         if core.key is not None:
             if not any(f["mac"]) or self.challenge is None or \
@@ -215,32 +252,21 @@ class DeviceSession:
                                     "HELLO with a wrong MAC (the host holds another key)")
                 return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac",
                                    "the MAC does not match this device's key", False)
-        owner = core.owner
-        if owner is None or (owner is self and core.owner_nonce == bytes(f["host_nonce"])):
-            return None
-        now = core.clock()
-        idle = core.idle_s(now)
-        if idle >= core.session_idle_s or f["flags"] & HelloFlags.TAKE_OVER:
-            return None
-        return self.tx.nak(req, ErrorCode.BUSY, "session",
-                           f"another host owns the device: its session opened "
-                           f"{now - core.opened:.1f} s ago and has been idle {idle:.1f} s "
-                           f"(expires after {core.session_idle_s:g} s idle); say HELLO with "
-                           "take-over to end it", False)
-
-    def claim(self, f: dict) -> None:
-        """A HELLO passed the gate: take the device from its owner (which hears
-        SESSION_LOST: at once on this connection, at its next poll on another)."""
-        core, nonce, now = self.core, bytes(f["host_nonce"]), self.core.clock()
-        owner = core.owner
+        owner, nonce, now = core.owner, bytes(f["host_nonce"]), core.clock()
         if owner is not None and not (owner is self and core.owner_nonce == nonce):
             idle = core.idle_s(now)
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
-            else:
+            elif f["flags"] & HelloFlags.TAKE_OVER:
                 lost = (SessionLostReason.TAKEN_OVER, "another host took over the device "
                         f"after {now - core.opened:.1f} s")
+            else:
+                return self.tx.nak(req, ErrorCode.BUSY, "session",
+                                   f"another host owns the device: its session opened "
+                                   f"{now - core.opened:.1f} s ago and has been idle "
+                                   f"{idle:.1f} s (expires after {core.session_idle_s:g} s "
+                                   "idle); say HELLO with take-over to end it", False)
             if owner is self:
                 self.lose(*lost)
             else:
@@ -249,6 +275,7 @@ class DeviceSession:
         # time the HELLO calls the application.
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         core.owner, core.owner_nonce = self, nonce
+        return None
 
     @property
     def ready(self) -> bool:
@@ -258,7 +285,7 @@ class DeviceSession:
         return self.core.owner is self and (prev is None or not (prev.open or prev.lost))
 
     def _hello(self, req: Frame, f: dict) -> Reply:
-        """Open a fresh session (after :meth:`claim`, the engine idle)."""
+        """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
         core = self.core
         if core.owner is not self:
             return self.tx.nak(req, ErrorCode.BUSY, "session",
@@ -280,10 +307,10 @@ class DeviceSession:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
             self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
-        self.info = info = dataclasses.replace(
-            self.core.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
+        info = dataclasses.replace(
+            self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
             schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
-            ring_columns=min(self.ring_columns, 65535),
+            ring_columns=min(self.streams.ring_columns, 65535),
             heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))),
             session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),
             auth=int(Auth.HMAC_SHA256 if core.key is not None else Auth.NONE), device_mac=mac)
@@ -294,10 +321,11 @@ class DeviceSession:
 
     def end(self) -> None:
         """Forget the session's stream (its clean-up goes to the engine), ring, capture,
-        keys and ownership."""
+        keys and ownership: the device is free at once."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
+        self.capture = None
         self._on_end()
         if self.open and self.verifier is not None:  # to sign its NAK WRONG_SESSION
             self.ended = (self.id, self.tx.signer, self.verifier)
@@ -306,7 +334,8 @@ class DeviceSession:
         if self.open:
             self.sessionless_since = self.core.clock()
         self.open = False
-        self.core.release(self)
+        if self.core.owner is self:
+            self.core.owner = None
 
     def lose(self, reason: SessionLostReason, detail: str) -> None:
         """Another HELLO ended this session: tell its host, then end it."""
@@ -317,3 +346,88 @@ class DeviceSession:
                     MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         self.end()
         self.lost = None
+
+    # ---- what the session asks of the application -------------------------------------
+    def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
+               detail: str) -> Reply:
+        """The reply, or NAK TOO_LARGE naming ``fld`` when it needs too many FRAGMENTs."""
+        if not self.tx.fits(len(payload)):
+            return self.tx.nak(req, ErrorCode.TOO_LARGE, fld, detail)
+        return self.tx.reply(req, msg_type, payload)
+
+    def _config_get(self, req: Frame, f: dict) -> Reply:
+        if self.streams.stream is not None and self.streams.config is not None:
+            values = dict(self.streams.config)  # no CONFIG_SET while streaming: still current
+        else:
+            values = self.app.get_config()
+        if f["keys"]:
+            want = []
+            for kid in f["keys"]:
+                try:
+                    want.append(config_key(kid).name)
+                except FieldError:
+                    return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
+            values = {n: values[n] for n in want if n in values}
+        # The model checked its configuration: encoded as it is (the host checks it).
+        payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values, check=False)})
+        return self._sized(req, MsgType.CONFIG, payload, "keys",
+                           "ask for fewer keys per CONFIG_GET")
+
+    def _config_set(self, req: Frame, f: dict) -> Reply:
+        if self.streams.stream is not None:
+            return self.tx.nak(req, ErrorCode.BUSY, "", "abort the running scan first")
+        cfg = decode_config(f["items"])
+        if cfg.unknown:
+            return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {cfg.unknown[0]}",
+                               "key not known to this device")
+        for name in cfg.values:
+            if name in _READ_ONLY:
+                return self.tx.nak(req, ErrorCode.READ_ONLY, name, f"{name} is read-only")
+        self.app.set_config(cfg.values)
+        return self.tx.ack(req)
+
+    def _power_set(self, req: Frame, f: dict) -> Reply:
+        power = np.asarray(f["power"], dtype=np.uint16).reshape(f["channels"], f["columns"])
+        self.app.set_power(f["channel_start"], f["column_start"], power)
+        return self.tx.ack(req)
+
+    def _power_get(self, req: Frame, f: dict) -> Reply:
+        m = np.asarray(self.app.get_power(), dtype=np.uint16)
+        r0, c0, nr, nc = f["channel_start"], f["column_start"], f["channels"], f["columns"]
+        for name, start, n, have in (("channels", r0, nr, m.shape[0]),
+                                     ("columns", c0, nc, m.shape[1])):
+            if start + n > have:
+                return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, name,
+                                   f"{name[:-1]}_start + {name} must be at most {have}")
+        payload = encode_payload(MsgType.POWER, {
+            "channel_start": r0, "column_start": c0, "channels": nr, "columns": nc,
+            "power": m[r0:r0 + nr, c0:c0 + nc]})
+        return self._sized(req, MsgType.POWER, payload, "columns",
+                           "ask for a smaller rectangle per POWER_GET")
+
+    def _capture(self, req: Frame, f: dict) -> Reply:
+        key = (f["kind"], f["column"], f["channel"])
+        if f["offset"] == 0 or self.capture is None or self.capture[0] != key:
+            if f["offset"] != 0:
+                return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, "offset",
+                                   "read offset 0 first to take a capture")
+            data = np.asarray(self.app.capture(CaptureKind(f["kind"]), f["column"],
+                                               f["channel"])).ravel()
+            if data.dtype.kind not in "iu":
+                raise DeviceError("capture is not integer data", code=ErrorCode.INTERNAL)
+            lo, hi = (int(data.min()), int(data.max())) if data.size else (0, 0)
+            dt = next(t for t in (np.int16, np.int32, np.int64)
+                      if np.iinfo(t).min <= lo and hi <= np.iinfo(t).max)
+            self.capture = (key, data.astype(np.dtype(dt).newbyteorder("<")))
+        arr = self.capture[1]
+        total, off = arr.size, f["offset"]
+        if off > total:
+            return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, "offset",
+                               f"offset must be 0..{total}, not {off}")
+        room = (self.tx.max_frame - frame_size(_CAPTURE_HEADER, self.tx.signer is not None)) \
+            // arr.itemsize
+        n = max(0, min(f["max_count"], room, total - off))
+        return self.tx.reply(req, MsgType.CAPTURE_DATA, encode_payload(MsgType.CAPTURE_DATA, {
+            "kind": f["kind"], "column": f["column"], "channel": f["channel"],
+            "elem_bytes": arr.itemsize, "total": total, "offset": off,
+            "data": arr[off:off + n].tobytes()}))

@@ -13,11 +13,11 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
 One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits
-for the application: the columns are computed by the device's
-:class:`~cdma_lidar.protocol.streams.Engine`, one step at a time, and the loop answers
-from its state meanwhile: STATUS_GET, RESEND, SCAN_ABORT, CONFIG_GET, a refused HELLO
-and BUSY (CONFIG_SET, SCAN_START, CALIBRATE while a stream runs) at once, a HEARTBEAT
-every ``heartbeat_s / 2`` while a stream runs. Requests that need the application
+for the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes
+the columns one step at a time, and the loop answers from its state meanwhile:
+STATUS_GET, RESEND, SCAN_ABORT, CONFIG_GET, a refused HELLO and BUSY (CONFIG_SET,
+SCAN_START, CALIBRATE while a stream runs) at once, a HEARTBEAT every
+``heartbeat_s / 2`` while a stream runs. Requests that need the application
 (POWER_SET, POWER_GET, CAPTURE, and the rest when idle) are held, in arrival order,
 until the column in progress is done, and handled before the next one starts. Run
 :meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like object
@@ -56,7 +56,6 @@ from cdma_lidar.protocol.framing import (
     Frame,
     FrameDecoder,
 )
-from cdma_lidar.protocol.handlers import AppRequests
 from cdma_lidar.protocol.messages import (
     CaptureKind,
     ErrorCode,
@@ -211,34 +210,27 @@ class DeviceEndpoint:
         self.clock, self.heartbeat_s, self.poll_s = clock, heartbeat_s, poll_s
         self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
+        #: Requests waiting for the application, in arrival order: (request, its CRC).
+        self._held: list[tuple[Frame, int]] = []
         self.tx = Transmitter(port, session_id or new_session_id(), max_frame,
                               (self.stats, core.totals))
         self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
-                               clock=clock, counted=self._count_column,
-                               stopped=lambda: core.touch(self.session))
-        self.requests = AppRequests(core.app, self.tx, self.streams, self.status)
+                               clock=clock, stopped=lambda: core.touch(self.session))
         self.session = DeviceSession(core, self.tx, self.streams, self.stats,
-                                     max_frame=max_frame, fec=fec, ring_columns=ring_columns,
-                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port),
-                                     on_end=self._forget)
+                                     max_frame=max_frame, fec=fec, heartbeat_s=heartbeat_s,
+                                     peer=peer or port_name(port), on_end=self._held.clear)
         #: Request handler of each request type, ``(request, fields) -> reply``.
         self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
-            **self.session.handlers(), **self.streams.handlers(), **self.requests.handlers()}
+            **self.session.handlers(), **self.streams.handlers(),
+            MsgType.STATUS_GET: lambda req, f: self.tx.reply(
+                req, MsgType.STATUS, encode_payload(MsgType.STATUS, self.status().to_fields()))}
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
         #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
         self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
-        self._health = (TEMPERATURE_UNKNOWN, 0)
-        #: Requests waiting for the application, in arrival order: (request, its CRC).
-        self._held: list[tuple[Frame, int]] = []
         port.timeout = poll_s
-
-    def _forget(self) -> None:
-        """The session ended: its capture and held requests go with it."""
-        self.requests.capture = None
-        self._held.clear()
 
     def serve_forever(self, stop: threading.Event) -> None:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
@@ -337,21 +329,15 @@ class DeviceEndpoint:
         self.core.rx_errors += ds.errors - errors
         self._rx_counted = (ds.frames, ds.errors)
 
-    def _count_column(self) -> None:
-        """One more COLUMN_RESULT queued (new or resent)."""
-        self.stats.columns_sent += 1
-        self.core.totals.columns_sent += 1
-
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
         st, streams = self.streams.stream, self.streams
         try:
-            self._health = self.app.health()
+            temp, faults = self.app.health()
         except Exception:  # a health sensor must not take the link down
             log.exception("application health() failed")
-            self._health = (TEMPERATURE_UNKNOWN, FAULT_HEALTH)
-        temp, faults = self._health
+            temp, faults = TEMPERATURE_UNKNOWN, FAULT_HEALTH
         core, mask = self.core, 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
@@ -368,11 +354,6 @@ class DeviceEndpoint:
             column_time_ms=min(math.ceil(self.app.column_time_s() * 1000), mask))
 
     # ---- receiving ------------------------------------------------------------------
-    def _send_reply(self, req: Frame, reply: Reply) -> None:
-        # A coded request gets a coded reply.
-        self.tx.send(CONTROL, reply[0], reply[1], req.seq, coded=self.tx.coded or req.fec,
-                     signer=self.tx.signer if reply[2] else None)
-
     def _on_rejected(self, frame: Frame) -> None:
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
             return
@@ -384,10 +365,8 @@ class DeviceEndpoint:
             self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
                         coded=frame.fec, version=frame.version)
             return
-        self._send_reply(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS,
-                                            "incompat_flags",
-                                            f"unknown incompat flags 0x{frame.incompat:02x}",
-                                            False))
+        self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                                          f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
@@ -421,38 +400,14 @@ class DeviceEndpoint:
         """Check one request; answer, replay, drop or hold it."""
         self.stats.rx_requests += 1
         is_hello, sess = frame.msg_type == MsgType.HELLO, self.session
-        if not is_hello:
-            if not sess.open or frame.session != sess.id:
-                detail = (f"this connection's session is 0x{sess.id:08x}; send HELLO"
-                          if sess.open else "no session is open here: send HELLO")
-                refusal = self.tx.nak(frame, ErrorCode.WRONG_SESSION, "session", detail, False)
-                sid, signer, verifier = sess.ended or (None, None, None)
-                if frame.session == sid and verifier is not None and verifier.check(frame):
-                    # A request of the signed session that ended here: its host hears it
-                    # signed with that session's key (it drops unsigned frames).
-                    self.tx.send(CONTROL, MsgType.NAK, refusal[1], frame.seq, signer=signer,
-                                 coded=self.tx.coded or frame.fec)
-                else:
-                    self._send_reply(frame, refusal)
-                return
-            if sess.verifier is not None and not frame.joined:
-                if not frame.sig:
-                    self._send_reply(frame, self.tx.nak(
-                        frame, ErrorCode.AUTH_REQUIRED, "incompat_flags",
-                        "this device accepts only signed frames: HELLO with its key", False))
-                    return
-                if not sess.verifier.check(frame):  # forged or replayed: no answer at all
-                    self.stats.auth_rejected += 1
-                    self.core.backoff.failed(f"{sess.peer} (session frames)",
-                                             "a frame failed authentication")
-                    return
-            self.core.touch(sess)
+        if not is_hello and not sess.admit(frame):
+            return
         key = zlib.crc32(bytes([frame.msg_type]) + frame.payload)
         cached = self._replay.get(frame.seq)
         if cached is not None and cached[0] == key:
             self.stats.replays += 1
             self.core.totals.replays += 1
-            self._send_reply(frame, cached[1])
+            self.tx.answer(frame, cached[1])
             return
         if any(h.seq == frame.seq and k == key for h, k in self._held):
             return  # a retransmission of a held request: its reply comes
@@ -472,7 +427,6 @@ class DeviceEndpoint:
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
-            sess.claim(f)
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
                 (self._held or not self._app_free()):
@@ -511,7 +465,7 @@ class DeviceEndpoint:
         self._replay.move_to_end(frame.seq)
         while len(self._replay) > _REPLAY_DEPTH:
             self._replay.popitem(last=False)
-        self._send_reply(frame, reply)
+        self.tx.answer(frame, reply)
         if frame.msg_type == MsgType.SESSION_END and reply[0] == MsgType.ACK:
             self.session.end()
             log.info("session 0x%08x ended by its host", self.session.id)

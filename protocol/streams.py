@@ -39,13 +39,12 @@ class Engine:
     stream clean-ups one at a time, in the order submitted.
 
     A step cannot be bounded below the 50 ms in which the connections' loops must
-    answer: one column of paper-scene1 at averages 1024 and samples per chip 16 takes
-    0.1-0.2 s on a 2-core machine, the virtual board computes columns in batches of
-    seconds, the RTL engine far longer. So the steps run on the engine's own thread
-    (the device's only thread besides the connections' loops), which touches nothing
-    but the application; the loops call the application themselves only while it is
-    :attr:`idle`. ``threaded=False``: each job runs at once in the caller (a test
-    stepping a device on a fake clock), through the same code otherwise.
+    answer (one column of paper-scene1 at averages 1024 and samples per chip 16 takes
+    0.1-0.2 s on a 2-core machine; the virtual board computes columns in batches of
+    seconds), so the steps run on the engine's own thread, which touches nothing but
+    the application; the loops call the application only while it is :attr:`idle`.
+    ``threaded=False``: each job runs at once in the caller (a test stepping a device on
+    a fake clock), through the same code otherwise.
     """
 
     def __init__(self, threaded: bool = True) -> None:
@@ -121,16 +120,13 @@ class Streams:
         engine: the device's measurement engine.
         ring_columns: recent columns kept for RESEND.
         clock: monotonic clock (s).
-        counted: called for every COLUMN_RESULT queued (new or resent).
         stopped: called when a stream ends (its idle time counts from then).
     """
 
     def __init__(self, app: Any, tx: Transmitter, engine: Engine, *, ring_columns: int,
-                 clock: Callable[[], float], counted: Callable[[], None],
-                 stopped: Callable[[], None]) -> None:
+                 clock: Callable[[], float], stopped: Callable[[], None]) -> None:
         self.app, self.tx, self.engine = app, tx, engine
-        self.ring_columns, self.clock = ring_columns, clock
-        self._counted, self._stopped = counted, stopped
+        self.ring_columns, self.clock, self._stopped = ring_columns, clock, stopped
         self.stream: Stream | None = None
         self.latest: Stream | None = None  # the last stream started, running or not
         self.config: dict[str, Any] | None = None  # the app's config when it started
@@ -191,7 +187,6 @@ class Streams:
                 return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, name,
                                    f"column {col} of frame {frame} is no longer kept")
         for key, payload, only in todo:  # class REPAIR: after the ACK
-            self._counted()
             self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
         return self.tx.ack(req)
 
@@ -211,19 +206,17 @@ class Streams:
         if st.stopped:
             return  # aborted meanwhile: the column goes nowhere
         error = job.exception()
-        if isinstance(error, StopIteration):
-            log.warning("application ended frame %d after %d of %d columns", st.frame,
-                        st.produced, st.count)
-            self.stop(ScanEndReason.ERROR)
-            return
-        if error is not None:
-            log.error("application failed during frame %d", st.frame, exc_info=error)
-            self.stop(ScanEndReason.ERROR)
-            return
-        column, payload = job.result()
-        if not self.tx.fits(len(payload)):
-            log.error("frame %d column %d: %d bytes need more than %d fragments at max frame "
-                      "%d", st.frame, column, len(payload), MAX_PIECES, self.tx.max_frame)
+        column, payload = (0, b"") if error is not None else job.result()
+        if error is not None or not self.tx.fits(len(payload)):
+            if isinstance(error, StopIteration):
+                log.warning("application ended frame %d after %d of %d columns", st.frame,
+                            st.produced, st.count)
+            elif error is not None:
+                log.error("application failed during frame %d", st.frame, exc_info=error)
+            else:
+                log.error("frame %d column %d: %d bytes need more than %d fragments at max "
+                          "frame %d", st.frame, column, len(payload), MAX_PIECES,
+                          self.tx.max_frame)
             self.stop(ScanEndReason.ERROR)
             return
         key = (st.frame, column)
@@ -232,7 +225,6 @@ class Streams:
         while len(self.ring) > self.ring_columns:
             self.ring.popitem(last=False)
         st.produced += 1
-        self._counted()
         self.tx.send(FRESH, MsgType.COLUMN_RESULT, payload, key=key)
         if st.produced >= st.count:
             self.stop(ScanEndReason.COMPLETE)
@@ -253,9 +245,7 @@ class Streams:
         """The engine's clean-up of an ended stream: close its generator, and call
         ``app.abort()`` if it ended early."""
         try:
-            close = getattr(st.gen, "close", None)
-            if close is not None:
-                close()
+            getattr(st.gen, "close", lambda: None)()
             if st.produced < st.count:
                 self.app.abort()
         except Exception:  # the device must not die on an application's clean-up

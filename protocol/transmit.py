@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from functools import partial
 from typing import Any
 
 from cdma_lidar.errors import FieldError
@@ -52,28 +52,14 @@ def clip(s: str, limit: int = 255) -> str:
     return s.encode("utf-8")[:limit].decode("utf-8", errors="ignore")
 
 
-@dataclass(frozen=True)
-class _Job:
-    """One frame waiting to be sent; encoded (and signed) when it goes out."""
-
-    msg_type: MsgType
-    payload: bytes
-    seq: int | None  # None: the next stream seq, taken when sent
-    session: int
-    max_frame: int  # bytes, decoded frame
-    signer: FrameSigner | None
-    repair: tuple[int, int, int] | None  # (frame, column, fragment or -1) of a repair
-    coded: bool  # Reed-Solomon coded
-    version: int  # another only for NAK VERSION to an older host
-
-
 class Transmitter:
     """The transmit side of one connection.
 
     ``session``, ``max_frame`` (largest frame sent, bytes), ``signer`` and ``coded``
     describe the current session's frames; a frame takes them when it is queued.
-    ``counters``: objects whose ``tx_frames`` count every frame written; the first
-    (the connection's) also counts the NAKs made by :meth:`nak`.
+    ``counters``: objects whose ``tx_frames`` count every frame written and
+    ``columns_sent`` every COLUMN_RESULT queued (new or resent); the first (the
+    connection's) also counts the NAKs made by :meth:`nak`.
     """
 
     def __init__(self, port: Any, session: int, max_frame: int, counters: Iterable[Any]) -> None:
@@ -82,7 +68,10 @@ class Transmitter:
         self.signer: FrameSigner | None = None
         self.coded = False
         self.counters = tuple(counters)
-        self._q: tuple[deque[_Job], ...] = (deque(), deque(), deque())
+        #: Per class: (type, repair, seq or None: the next stream seq, the frame's encoder
+        #: given its seq), encoded (and signed) when it goes out.
+        self._q: tuple[deque[tuple[MsgType, Any, int | None, Callable[..., bytes]]], ...] = \
+            (deque(), deque(), deque())
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
@@ -105,19 +94,27 @@ class Transmitter:
         return self.reply(req, MsgType.NAK, payload) if signed is None else \
             (MsgType.NAK, payload, signed)
 
+    def answer(self, req: Frame, reply: Reply) -> None:
+        """Queue ``reply`` to ``req`` first (class CONTROL, the request's seq), coded if
+        the session or the request is, signed if the reply is."""
+        self.send(CONTROL, reply[0], reply[1], req.seq, coded=self.coded or req.fec,
+                  signer=self.signer if reply[2] else None)
+
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
             signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
             coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
         """Queue one frame of class ``cls`` (REPAIR frames go out marked retransmitted);
-        a ``repair`` already queued is not queued twice."""
-        job = _Job(msg_type, payload, seq, self.session, self.max_frame,
-                   self.signer if signer is _SESSION else signer, repair,
-                   self.coded if coded is _SESSION else coded, version)
+        a ``repair`` = (frame, column, fragment or -1) already queued is not queued twice;
+        ``version``: another only for NAK VERSION to an older host."""
         if repair is not None:
             if repair in self._repairs:
                 return
             self._repairs.add(repair)
-        self._q[cls].append(job)
+        self._q[cls].append((msg_type, repair, seq, partial(
+            encode_frame, msg_type, payload, session=self.session, max_frame=self.max_frame,
+            compat=COMPAT_RETRANSMIT if cls == REPAIR else 0, version=version,
+            signer=self.signer if signer is _SESSION else signer,
+            coded=self.coded if coded is _SESSION else coded)))
 
     def flush(self, budget: int | None = None) -> None:
         """Send the queued frames, highest priority first; ``budget``: stop after about
@@ -128,18 +125,14 @@ class Transmitter:
             while queue:
                 if cls > CONTROL and budget is not None and sent >= budget:
                     return
-                job = queue.popleft()
-                self._repairs.discard(job.repair)  # type: ignore[arg-type]
-                seq = job.seq
+                msg_type, repair, seq, encode = queue.popleft()
+                self._repairs.discard(repair)
                 if seq is None:
                     self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
                 try:
-                    wire = encode_frame(job.msg_type, job.payload, seq, job.session,
-                                        compat=COMPAT_RETRANSMIT if cls == REPAIR else 0,
-                                        max_frame=job.max_frame, signer=job.signer,
-                                        coded=job.coded, version=job.version)
+                    wire = encode(seq=seq)
                 except FieldError:  # a bug must not take the device off the line
-                    log.exception("cannot send a %s frame", type_name(job.msg_type))
+                    log.exception("cannot send a %s frame", type_name(msg_type))
                     continue
                 self.port.write(wire)
                 for c in self.counters:
@@ -152,7 +145,7 @@ class Transmitter:
 
     def fresh_pending(self) -> int:
         """1 while frames of a new column wait in the queue (that column is not sent yet)."""
-        return int(any(j.msg_type != MsgType.SCAN_END for j in self._q[FRESH]))
+        return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH]))
 
     def drop(self, cls: int) -> None:
         """Forget the queued frames of one class (an ended stream's new columns)."""
@@ -177,6 +170,9 @@ class Transmitter:
         not queued twice: a host that asks again before the first answer reached it
         costs the line nothing.
         """
+        if msg_type == MsgType.COLUMN_RESULT:
+            for c in self.counters:
+                c.columns_sent += 1
         signer = self.signer if signer is _SESSION else signer
         if frame_size(len(payload), signer is not None) <= self.max_frame:
             self.put(cls, msg_type, payload, seq, signer=signer, coded=coded,
