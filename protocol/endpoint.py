@@ -228,8 +228,9 @@ class DeviceEndpoint:
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
-        #: Requests arriving in FRAGMENTs: (type, seq) -> the pieces so far.
-        self._pieces: OrderedDict[tuple[int, int], Pieces] = OrderedDict()
+        #: Requests arriving in FRAGMENTs: (type, seq, session) -> (the pieces so far,
+        #: every one of them checked as this open session's).
+        self._pieces: OrderedDict[tuple[int, int, int], tuple[Pieces, bool]] = OrderedDict()
         port.timeout = poll_s
 
     def serve_forever(self, stop: threading.Event) -> None:
@@ -371,7 +372,9 @@ class DeviceEndpoint:
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
         signed requests with a bad signature is dropped); the whole request once every
-        piece is in, keyed by (type, seq). Two requests in pieces are kept at most."""
+        piece is in, keyed by (type, seq, session), so a piece of another session never
+        joins this session's request. The request counts as checked (``joined``) only
+        when every piece was. Two requests in pieces are kept at most."""
         sess = self.session
         ours = sess.open and frame.session == sess.id
         if ours and sess.verifier is not None and not sess.verifier.check(frame):
@@ -385,16 +388,18 @@ class DeviceEndpoint:
         if kind_of(body["msg_type"]) is not MsgKind.REQUEST:
             self.stats.ignored += 1
             return None
-        key = (body["msg_type"], body["seq"])
-        pc = self._pieces.get(key)
+        key = (body["msg_type"], body["seq"], frame.session)
+        pc, checked = self._pieces.get(key, (None, True))
         if pc is None or pc.count != body["count"]:
-            pc = self._pieces[key] = Pieces(body["count"])
-            while len(self._pieces) > 2:
-                self._pieces.popitem(last=False)
+            pc, checked = Pieces(body["count"]), True
+        self._pieces[key] = (pc, checked and ours)
+        while len(self._pieces) > 2:
+            self._pieces.popitem(last=False)
         if (payload := pc.add(frame, body)) is None:
             return None
         del self._pieces[key]
-        return Frame(key[0], key[1], frame.session, payload, fec=frame.fec, joined=ours)
+        return Frame(key[0], key[1], frame.session, payload, fec=frame.fec,
+                     joined=checked and ours)
 
     def _process(self, frame: Frame) -> None:
         """Check one request; answer, replay, drop or hold it."""

@@ -250,3 +250,31 @@ def test_a_request_of_an_ended_signed_session_gets_a_signed_wrong_session() -> N
         link.status()
     assert exc.value.code == ErrorCode.WRONG_SESSION
     assert link.stats.retries == 0 and link.stats.unauthenticated == 0
+
+
+def test_a_piece_from_outside_the_session_cannot_replace_part_of_a_signed_request() -> None:
+    """A signed CONFIG_SET in FRAGMENTs of one byte: after its genuine pieces but the last,
+    a man in the middle sends a piece of the same (type, seq) that carries another session
+    id and another value. The device never joins it into the signed request: the request
+    it applies is the key holder's."""
+    from cdma_lidar.protocol.messages import split_message
+
+    rd, link, host, _dev, _app = _rig(KEY, KEY)
+    with rd as ep:
+        info = link.hello()
+        sess, signer = info.session_id, link.requests.signer
+        payload = encode_payload(MsgType.CONFIG_SET, {"items": [   # peaks 3, out_shift 0
+            {"key": 16, "value": b"\x03"}, {"key": 13, "value": b"\x00"}]})
+        seq = link.requests.seq = (link.requests.seq + 1) & 0xFFFF  # the host's next
+        pieces = split_message(MsgType.CONFIG_SET, payload, 1, seq)
+        at = payload.index(b"\x03")   # the first item's value: a piece before the last
+        assert at < len(pieces) - 1
+        for p in pieces[:-1]:
+            host.write(encode_frame(MsgType.FRAGMENT, p, seq, sess, signer=signer))
+        evil = split_message(MsgType.CONFIG_SET, payload[:at] + b"\x02" + payload[at + 1:],
+                             1, seq)[at]
+        host.write(encode_frame(MsgType.FRAGMENT, evil, seq, sess ^ 1))
+        host.write(encode_frame(MsgType.FRAGMENT, pieces[-1], seq, sess, signer=signer))
+        ep.poll()
+        assert ep.stats.naks == 0
+        assert link.get_config()["peaks"] == 3
