@@ -77,45 +77,32 @@ def whiten(data: bytes) -> bytes:
     return (np.frombuffer(data, np.uint8) ^ _WHITE[:len(data)]).tobytes()
 
 
-def _gf_tables() -> tuple[np.ndarray, np.ndarray]:
-    """(MUL, U): GF(2^8) products (reedsolo's tables, poly 0x11D) and the parity of each
-    unit message.
+_EXP = np.array(reedsolo.gf_exp[:255], np.int64)  # 2^i, poly 0x11D
+_LOG = np.array(reedsolo.gf_log[:256], np.int64)
+_EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
+#: GF(2^8) products: ``_MUL[a, b] = a * b``.
+_MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255].astype(np.uint8)
+_MUL[0, :] = _MUL[:, 0] = 0
+#: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
+#: syndrome j (the block polynomial at the root 2^j).
+_POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255].astype(np.uint8)
 
-    ``U[e]`` is the remainder of ``x^(NSYM + e)`` modulo the generator
-    ``g(x) = prod_{i<16} (x - 2^i)``, highest degree first: the parity of a message whose
-    only non-zero byte is a 1, ``e`` bytes before its end. The code is linear over
-    GF(2^8), so a message's parity is the XOR of ``m_i * U[e_i]``.
-    """
-    exp = np.frombuffer(bytes(reedsolo.gf_exp[:255]), np.uint8).astype(np.int64)
-    log_ = np.frombuffer(bytes(reedsolo.gf_log), np.uint8).astype(np.int64)
-    mul = exp[(log_[:, None] + log_[None, :]) % 255].astype(np.uint8)
-    mul[0, :] = mul[:, 0] = 0
-    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^16 + low
+
+def _unit_parity() -> np.ndarray:
+    """Row ``e`` (highest degree first): the remainder of ``x^(NSYM + e)`` modulo the
+    generator ``g(x) = prod_{i<48} (x - 2^i)``, the parity of a message whose only
+    non-zero byte is a 1, ``e`` bytes before its end. The code is linear over GF(2^8),
+    so a message's parity is the XOR of ``m_i * U[e_i]``."""
+    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
     u = np.zeros((DATA, NSYM), np.uint8)
     u[0] = low
     for e in range(1, DATA):  # x * U[e-1] mod g
-        u[e] = np.append(u[e - 1, 1:], 0).astype(np.uint8) ^ mul[u[e - 1, 0], low]
-    return mul, u
+        u[e] = np.append(u[e - 1, 1:], 0).astype(np.uint8) ^ _MUL[u[e - 1, 0], low]
+    return u
 
 
-_MUL, _UNIT = _gf_tables()
-
-
-def _powers() -> np.ndarray:
-    """``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
-    syndrome j (the block polynomial at the root 2^j)."""
-    a = np.ones((BLOCK, NSYM), np.uint8)
-    roots = np.ones(NSYM, np.uint8)
-    for j in range(1, NSYM):
-        roots[j] = _MUL[roots[j - 1], 2]
-    for p in range(BLOCK - 2, -1, -1):
-        a[p] = _MUL[a[p + 1], roots]
-    return a
-
-
-_POWERS = _powers()
 #: Parity contribution rows by position in a full block (position 0 is e = DATA - 1).
-_UNIT_BY_POS = _UNIT[::-1].copy()
+_UNIT_BY_POS = _unit_parity()[::-1].copy()
 
 
 def _blocks(data: np.ndarray, width: int) -> np.ndarray:
@@ -144,11 +131,13 @@ def _unspread(spread: np.ndarray) -> np.ndarray:
 
 
 def _cut(coded: bytes) -> tuple[list[np.ndarray], np.ndarray]:
-    """(data bytes of each block, (blocks, SPREAD) spread parity) of a valid coded length."""
+    """(data bytes of each block, (blocks, SPREAD) spread parity) of coded bytes; FrameError
+    when nothing codes to their length."""
+    if body_len(len(coded)) < 0:
+        raise FrameError(f"fec: {len(coded)} bytes is no coded length")
     arr = np.frombuffer(coded, np.uint8)
-    starts = range(0, arr.size, WIRE_BLOCK)
-    data = [arr[i:i + WIRE_BLOCK][:-SPREAD] for i in starts]
-    return data, np.stack([arr[i:i + WIRE_BLOCK][-SPREAD:] for i in starts])
+    blocks = [arr[i:i + WIRE_BLOCK] for i in range(0, arr.size, WIRE_BLOCK)]
+    return [b[:-SPREAD] for b in blocks], np.stack([b[-SPREAD:] for b in blocks])
 
 
 def encode(stuffed: bytes) -> bytes:
@@ -170,25 +159,16 @@ def plausible(coded: bytes) -> bool:
     """``coded`` has a coded length and every block's spread parity has at most 4 bytes
     without their high bit: the bytes are where a coded frame puts them (a piece of a
     frame, or one a byte longer or shorter, fails this at once, without decoding)."""
-    if body_len(len(coded)) < 0:
+    try:
+        return bool(((_cut(coded)[1] < 0x80).sum(axis=1) <= 4).all())
+    except FrameError:
         return False
-    _, spread = _cut(coded)
-    return bool(((spread < 0x80).sum(axis=1) <= 4).all())
 
 
 def strip(coded: bytes) -> bytes:
-    """The data bytes of ``coded`` as they arrived (no correction); b"" if no valid length."""
-    if body_len(len(coded)) < 0:
-        return b""
-    return b"".join(coded[i:i + WIRE_BLOCK][:-SPREAD] for i in range(0, len(coded), WIRE_BLOCK))
-
-
-_EXP = np.array(reedsolo.gf_exp[:255], np.int64)
-_LOG = np.array(reedsolo.gf_log[:256], np.int64)
-
-
-_EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
-_EXPONENTS = np.arange(BLOCK)  # e of every position x = 2^e a Chien search tries
+    """The data bytes of ``coded`` as they arrived (no correction); FrameError when
+    nothing codes to its length."""
+    return b"".join(d.tobytes() for d in _cut(coded)[0])
 
 
 def _gmul(x: int, y: int) -> int:
@@ -242,16 +222,14 @@ def _correct(block: np.ndarray, syn: list[int]) -> None:
     # Chien: x^deg Lambda(1/x), highest degree first, at x = 2^e for every exponent e.
     rev = np.array(loc[::-1], np.int64)
     k = np.flatnonzero(rev)
-    e = _EXPONENTS[:n]
+    e = np.arange(n)
     terms = _EXP[(_LOG[rev[k]][:, None] + e[None, :] * (deg - k)[:, None]) % 255]
     roots = np.flatnonzero(np.bitwise_xor.reduce(terms, axis=0) == 0)
     if deg == 0 or roots.size != deg:
         raise reedsolo.ReedSolomonError(f"{roots.size} error positions for a locator of "
                                         f"degree {deg}")
     xs = [_EXP_LIST[r] for r in roots.tolist()]  # X_l = 2^e_l
-    lam = [1]  # Lambda(x) = prod (1 + X_l x), lowest degree first
-    for x in xs:
-        lam = [a ^ _gmul(x, b) for a, b in zip([*lam, 0], [0, *lam], strict=True)]
+    lam = loc[::-1]  # Lambda(x) = prod (1 + X_l x), lowest degree first
     omega = [0] * deg  # S(x) Lambda(x) mod x^deg, lowest degree first
     for i in range(deg):
         for j in range(i + 1):
@@ -259,14 +237,10 @@ def _correct(block: np.ndarray, syn: list[int]) -> None:
     for r, x in zip(roots.tolist(), xs, strict=True):
         xinv = _EXP_LIST[(255 - r) % 255]
         num = den = 0
-        p = 1
-        for i in range(deg):
-            num ^= _gmul(omega[i], p)
-            p = _gmul(p, xinv)
-        p = 1
-        for i in range(1, deg + 1, 2):  # Lambda'(x): the odd terms, one degree down
-            den ^= _gmul(lam[i], p)
-            p = _gmul(p, _gmul(xinv, xinv))
+        for c in reversed(omega):  # Horner: Omega(1/X)
+            num = _gmul(num, xinv) ^ c
+        for c in reversed(lam[1::2]):  # Lambda'(1/X): the odd terms, one degree down
+            den = _gmul(den, _gmul(xinv, xinv)) ^ c
         if den == 0:
             raise reedsolo.ReedSolomonError("Forney: zero derivative")
         y = _gmul(x, _gmul(num, _EXP_LIST[(255 - _LOG_LIST[den]) % 255]))
@@ -280,8 +254,6 @@ def decode(coded: bytes) -> bytes:
     The syndromes of every block are computed at once (tables); a block whose
     syndromes show damage is corrected by :func:`_correct`. A block with more than 24
     damaged symbols fails there, or is miscorrected and then fails the frame's CRC."""
-    if body_len(len(coded)) < 0:
-        raise FrameError(f"fec: {len(coded)} bytes is no coded length")
     data, spread = _cut(coded)
     parity = _unspread(spread)
     plain = np.concatenate([np.concatenate([d, p]) for d, p in zip(data, parity, strict=True)])
