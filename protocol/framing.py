@@ -14,7 +14,6 @@ stream into :class:`Frame` objects and counts what it rejects in :class:`Decoder
 
 from __future__ import annotations
 
-import logging
 import struct
 import zlib
 from dataclasses import dataclass
@@ -30,8 +29,6 @@ __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER"
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
            "crc32", "decode_frame", "encode_frame", "frame_size"]
-
-log = logging.getLogger(__name__)
 
 #: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
 #: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
