@@ -151,9 +151,11 @@ def _power(frame: int, shape: tuple[int, int]) -> np.ndarray:
     return np.random.default_rng(frame).integers(4_000, 16_000, shape)  # within the column cap
 
 
-def virtual_scan(url: str, frames: int = 1, near_far: bool = False) -> tuple[float, list[bytes]]:
-    """(seconds after HELLO, column payloads) of ``frames`` scans of ``url``; with
-    ``near_far`` a whole power matrix (POWER_SET) goes before every frame."""
+def virtual_scan(url: str, frames: int = 1, near_far: bool = False
+                 ) -> tuple[float, list[bytes], int]:
+    """(seconds after HELLO, column payloads, repairs: request retries and RESENDs) of
+    ``frames`` scans of ``url``; with ``near_far`` a whole power matrix (POWER_SET) goes
+    before every frame."""
     import cdma_lidar.virtual  # noqa: F401 - registers virtual://
 
     with HostLink(open_port(url), timeout_s=0.5) as link:
@@ -164,7 +166,7 @@ def virtual_scan(url: str, frames: int = 1, near_far: bool = False) -> tuple[flo
             if near_far:
                 link.set_power(_power(f, (info.channels, info.column_count)))
             cols += [encode_column(c) for c in link.scan(frame=7 + f)]
-        return time.perf_counter() - t0, cols
+        return time.perf_counter() - t0, cols, link.stats.retries + link.stats.resend_requests
 
 
 def bench_delivery(tries: int = 20, max_frame: int = 16_384) -> None:
@@ -191,36 +193,52 @@ def bench_delivery(tries: int = 20, max_frame: int = 16_384) -> None:
         print(f"{size:>8} {len(pieces):>6}  " + "  ".join(f"{c:>16}" for c in cells))
 
 
-def bench_lines(paper_seeds: int = 10, short_seeds: int = 30) -> None:
+def bench_lines(paper_seeds: int = 10, short_seeds: int = 30, repeats: int = 3) -> None:
     """Issue 42's targets as a table: noisy ``virtual://`` scans against clean ones.
 
     paper-scene1 (160 columns of 40 channels) with near-far control (a whole power
     matrix before each of 2 frames), unpaced (time is the code's): at bit error rates
     1e-3 and 3e-3 every one of ``paper_seeds`` line seeds must give the clean scan's
-    bytes. flat-wall, 16 columns, ``short_seeds`` line seeds (101 on) at 1e-3: the
-    median and the worst time against the clean scan (targets 1.5 and 3: a lost frame
-    costs a round trip, not a second). Each noisy scan is timed against a clean scan run
-    right before it (the shared machine's load moves both alike); the reference row
-    gives the median clean time.
+    bytes; each noisy scan is timed against a clean scan run right before it.
+    flat-wall, 16 columns, ``short_seeds`` line seeds (101 on) at 1e-3: the median and
+    the worst time against the clean scan (targets 1.5 and 3: a lost frame costs a round
+    trip, not a second). A 50 ms scan on a shared machine moves by a few times from one
+    run to the next, so for each line seed a clean scan, the noisy one and a second
+    clean one run ``repeats`` times in turn: the best noisy time goes over the best of
+    the first clean ones, and the ``clean`` row gives the best of the second over the
+    best of the first (what the machine alone moves that ratio by). A line seed damages
+    the same bit positions each time, so a wait the protocol makes is in every repeat;
+    ``repairs`` counts the request retries and RESENDs of all of them.
     """
     print(f"{'scene':<22} {'BER':>6} {'median s':>8} {'x clean':>8} {'worst':>8}  verdict")
-    for scene, base, n, bers, kw in (
+    for scene, base, n, bers, kw, reps in (
             ("paper-scene1 near-far", PAPER, paper_seeds, (1e-3, 3e-3),
-             {"frames": 2, "near_far": True}),
-            ("flat-wall 16 col", SHORT, short_seeds, (1e-3,), {})):
-        _, clean = virtual_scan(base, **kw)
-        rows, cleans = [], []
+             {"frames": 2, "near_far": True}, 1),
+            ("flat-wall 16 col", SHORT, short_seeds, (1e-3,), {}, repeats)):
+        if not n:
+            continue
+        clean = virtual_scan(base, **kw)[1]
+        rows, cleans, spread = [], [], []
         for ber in bers:
-            times, ratios, same = [], [], 0
+            times, ratios, same, repairs = [], [], 0, 0
             for seed in range(101, 101 + n):
-                clean_t = virtual_scan(base, **kw)[0]
-                dt, cols = virtual_scan(f"{base}&line_error_rate={ber:g}&line_seed={seed}", **kw)
-                cleans.append(clean_t)
-                times.append(dt)
-                ratios.append(dt / clean_t)
-                same += cols == clean
+                t: list[list[float]] = [[], [], []]  # clean, noisy, clean again
+                for _ in range(reps):
+                    t[0].append(virtual_scan(base, **kw)[0])
+                    dt, cols, fixes = virtual_scan(
+                        f"{base}&line_error_rate={ber:g}&line_seed={seed}", **kw)
+                    t[1].append(dt)
+                    same += cols == clean
+                    repairs += fixes
+                    if reps > 1:
+                        t[2].append(virtual_scan(base, **kw)[0])
+                best = [min(x) if x else 0.0 for x in t]
+                cleans.append(best[0])
+                times.append(best[1])
+                ratios.append(best[1] / best[0])
+                spread.append(best[2] / best[0])
             med, worst = float(np.median(ratios)), max(ratios)
-            verdict = f"{same}/{n} byte-identical"
+            verdict = f"{same}/{n * reps} byte-identical, {repairs} repairs"
             if scene.startswith("flat"):
                 verdict += (f", median <= 1.5: {'met' if med <= 1.5 else 'NOT met'}, worst <= 3: "
                             f"{'met' if worst <= 3 else 'NOT met'}")
@@ -228,9 +246,15 @@ def bench_lines(paper_seeds: int = 10, short_seeds: int = 30) -> None:
                         f"{worst:>8.2f}  {verdict}")
         print(f"{scene:<22} {0:>6g} {float(np.median(cleans)):>8.3f} {1:>8.2f} {1:>8.2f}  "
               "reference")
+        if reps > 1:
+            print(f"{scene:<22} {'clean':>6} {float(np.median(cleans)):>8.3f} "
+                  f"{float(np.median(spread)):>8.2f} {max(spread):>8.2f}  the machine's "
+                  "own spread: clean over clean")
         print("\n".join(rows))
-    print("(unpaced line; Reed-Solomon FEC on, the default for a serial line; x clean: each "
-          "noisy scan over a clean one run just before it)")
+    print(f"(unpaced line; Reed-Solomon FEC on, the default for a serial line; x clean: "
+          f"paper-scene1: each noisy scan over a clean one run just before it; flat-wall: "
+          f"the best of {repeats} noisy scans over the best of {repeats} clean ones run in "
+          f"turn with them)")
 
 
 def bench_latency(seconds: float = 6.0, aborts: int = 3) -> None:

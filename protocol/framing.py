@@ -14,7 +14,6 @@ stream into :class:`Frame` objects and counts what it rejects in :class:`Decoder
 
 from __future__ import annotations
 
-import logging
 import struct
 import zlib
 from dataclasses import dataclass
@@ -30,8 +29,6 @@ __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER"
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
            "crc32", "decode_frame", "encode_frame", "frame_size"]
-
-log = logging.getLogger(__name__)
 
 #: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
 #: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
@@ -327,49 +324,38 @@ class FrameDecoder:
         return None
 
     def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:
-        """(frame, corrected by FEC), or the name of the counter its rejection goes to."""
+        """(frame, corrected by FEC), or the name of the counter its rejection goes to:
+        read plain, then (with ``fec``) coded; the plain reading's reason counts."""
         if len(chunk) > self._max_chunk:
             return "oversize"
-        try:
+        reason = ""
+        for coded, read in ((False, self._plain), (True, self._coded))[:1 + self.fec]:
             try:
-                return self._plain(cobs.decode(chunk)), False
-            except _Rejected:
-                raise
+                return read(chunk)
+            except _Rejected as exc:
+                if len(self.rejected) < 64:
+                    self.rejected.append(exc.frame._replace(fec=coded))
+                return exc.reason
             except FrameError as exc:
-                if not self.fec:
-                    raise
-                try:
-                    return self._coded(chunk)
-                except _Rejected:
-                    raise
-                except FrameError:
-                    raise exc from None
-        except _Rejected as exc:
-            if len(self.rejected) < 64:
-                self.rejected.append(exc.frame)
-            return exc.reason
-        except FrameError as exc:
-            return str(exc).split(":", 1)[0].lower()
+                reason = reason or str(exc).split(":", 1)[0].lower()
+        return reason
 
-    def _plain(self, body: bytes) -> Frame:
+    def _frame(self, body: bytes) -> Frame:
         if len(body) > self.max_frame:
             raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
         return decode_frame(body)
 
+    def _plain(self, chunk: bytes) -> tuple[Frame, bool]:
+        return self._frame(cobs.decode(chunk)), False
+
     def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
-        """Read ``chunk`` as a coded frame; raises FrameError if it is not one."""
+        """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
+        fail; raises FrameError if it is not one."""
         if not fec.plausible(chunk):
             raise FrameError("cobs: not a coded frame")
         try:
-            return self._plain(fec.whiten(cobs.decode(fec.strip(chunk))))._replace(fec=True), False
-        except _Rejected as exc:
-            exc.frame = exc.frame._replace(fec=True)
+            return self._frame(fec.whiten(cobs.decode(fec.strip(chunk))))._replace(fec=True), False
+        except _Rejected:
             raise
         except FrameError:
-            pass
-        try:
-            frame = self._plain(fec.whiten(cobs.decode(fec.decode(chunk))))
-        except _Rejected as exc:
-            exc.frame = exc.frame._replace(fec=True)
-            raise
-        return frame._replace(fec=True), True
+            return self._frame(fec.whiten(cobs.decode(fec.decode(chunk))))._replace(fec=True), True

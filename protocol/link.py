@@ -35,9 +35,9 @@ from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import (
     DIAG_HINTS,
     DIAG_NO_ANSWER,
-    DIAG_NOISY,
     Requests,
     SessionLost,
+    diagnose,
 )
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 from cdma_lidar.protocol.views import Info, State, Status
@@ -138,11 +138,6 @@ class HostLink(Requests):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    @property
-    def requests(self) -> Requests:
-        """The request layer: this link itself (its base class)."""
-        return self
 
     def _need_info(self) -> Info:
         """INFO of the session (HELLO first when there is none)."""
@@ -401,16 +396,11 @@ class HostLink(Requests):
             :min(255, (room - 2 * len(cols)) // 3)]
         for key in cols + pieces:
             if (tries := asm.tries(key)) >= self.column_retries:
-                st = self.decoder.stats
-                diag = DIAG_NOISY if st.damaged else DIAG_NO_ANSWER
+                diag, why = diagnose((0,) * 6, self._counters())  # over the whole link
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
-                why = f"arrived intact after {tries} resend requests on {self.port_name}: " \
-                    f"a noisy line, {st.damaged} damaged frames of {st.damaged + st.frames}" \
-                    if st.damaged else \
-                    f"arrived after {tries} resend requests on {self.port_name}: {diag}"
-                raise LinkTimeout(f"{what} of frame {asm.fid} never {why}; {DIAG_HINTS[diag]}",
-                                  diag)
+                raise LinkTimeout(f"{what} of frame {asm.fid} never arrived after {tries} resend "
+                                  f"requests on {self.port_name}: {why}; {DIAG_HINTS[diag]}", diag)
         asm.ask(cols + pieces, now)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols) + len(pieces)

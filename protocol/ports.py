@@ -169,9 +169,6 @@ class FdPort:
             view = view[k:]
         return len(data)
 
-    def flush(self) -> None:
-        """Nothing buffered in user space."""
-
     def close(self) -> None:
         """Close the descriptor (once)."""
         if not self._closed:

@@ -23,7 +23,6 @@ from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
 from cdma_lidar.protocol.messages import ErrorCode, MsgType, Pieces, ScanEndReason, decode_payload
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
-from cdma_lidar.protocol.views import Status
 
 __all__ = ["ColumnReassembler", "Joiner", "StreamEnded", "early_end"]
 
@@ -130,8 +129,6 @@ class ColumnReassembler:
         except FrameError:
             self.malformed += 1
             return False
-        if mtype == MsgType.HEARTBEAT:
-            item = Status(**item)
         if frame.compat & COMPAT_RETRANSMIT and not self._asked_for(item):
             self.duplicates += 1  # a repair this stream did not ask for: a late one
             return False
@@ -139,8 +136,8 @@ class ColumnReassembler:
             return item["frame"] == self.fid and self._piece(frame, item)
         if mtype == MsgType.COLUMN_RESULT:
             return self._column(item)
-        if mtype == MsgType.HEARTBEAT and item.frame == self.fid:
-            self.sent(item.next_column)
+        if mtype == MsgType.HEARTBEAT and item["frame"] == self.fid:
+            self.sent(item["next_column"])
             return True
         if mtype == MsgType.SCAN_END and item["frame"] == self.fid:
             sent = min(self.end, item["first_column"] + item["columns"])

@@ -6,12 +6,11 @@ session: HELLO with this host's nonce, frame limit and flags; with a key, the CH
 answered with the HELLO MAC, INFO checked to prove the device holds the key, every later
 frame signed and checked (:mod:`cdma_lidar.protocol.auth`). It blocks only in
 ``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so a test
-drives it with a fake port whose reads move a fake clock. Every frame received is checked
+drives it with a fake port whose reads move a fake clock. Each frame received is checked
 (session, signature) on its own, FRAGMENTs are joined by their key in one
-:class:`~cdma_lidar.protocol.reassembly.Joiner`, then the whole message is handled; a
-stream's frames queue in ``stream`` for its
-:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`, which joins a column's pieces
-in the same Joiner once it takes them (a repair it did not ask for is not). Retransmission follows
+:class:`~cdma_lidar.protocol.reassembly.Joiner`, then the whole message is handled; stream
+frames queue in ``stream`` for the scan's
+:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`. Retransmission follows
 docs/protocol.md section 6.1; a :class:`LinkTimeout` after the last try carries a
 ``DIAG_*`` diagnosis (section 6.7) and ends with its :data:`DIAG_HINTS`.
 """

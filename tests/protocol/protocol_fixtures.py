@@ -223,7 +223,7 @@ def scripted_link(port: ScriptedPort, session: int = 0x42, **kw: Any) -> HostLin
     """A HostLink on ``port``'s clock, in session ``session`` of a SyntheticApp device, as
     if HELLO and CONFIG_GET had gone before."""
     link = HostLink(port, clock=port.clock, **kw)
-    link.requests.session = session
+    link.session = session
     link.info = SyntheticApp().info()
     link.config = SyntheticApp().get_config()
     return link

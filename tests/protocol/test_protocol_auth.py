@@ -71,7 +71,7 @@ def test_signed_info_in_fragments_opens_a_session() -> None:
     link = HostLink(port, timeout_s=TIMEOUT, retries=2, key=KEY, max_frame=96, clock=port.clock)
     with port:
         info = link.hello()
-        assert info.auth == 1 and len(link.requests.reply_parts) > 1
+        assert info.auth == 1 and len(link.reply_parts) > 1
         assert [c for c in link.scan(frame=3)] == [expected_column(3, c, 40, 1, 1)
                                                    for c in range(3)]
 
@@ -244,7 +244,7 @@ def test_a_request_of_an_ended_signed_session_gets_a_signed_wrong_session() -> N
     dev = SteppedDevice(SyntheticApp(channels=2, columns=4), key=KEY)
     link = HostLink(dev, clock=dev.clock, key=KEY, timeout_s=TIMEOUT)
     link.hello()
-    rq = link.requests
+    rq = link
     rq.transact(MsgType.SESSION_END, {}, rq.new_seq())  # the link keeps its keys
     with pytest.raises(DeviceError) as exc:
         link.status()

@@ -87,7 +87,7 @@ def test_host_raises_only_its_own_errors_on_hostile_frames(frames: list, other_s
     with port:
         link = HostLink(port, timeout_s=0.05, retries=1, clock=port.clock)
         link.hello()
-        pending = (link.requests.seq + 1) & 0xFFFF  # the seq of the next request
+        pending = (link.seq + 1) & 0xFFFF  # the seq of the next request
         if other_seq in (pending, (pending + 1) & 0xFFFF):
             other_seq = (pending + 2) & 0xFFFF
         dev.write(b"".join(

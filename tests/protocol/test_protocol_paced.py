@@ -182,17 +182,17 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
         link = HostLink(host, timeout_s=2.0)  # then 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
-        link.requests.send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
-        link.requests.streaming = True
+        link.send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
+        link.streaming = True
         for _ in range(100):
-            link.requests.pump()
-            if link.requests.refusal is not None:
+            link.pump()
+            if link.refusal is not None:
                 break
-        mtype, frame = link.requests.refusal
+        mtype, frame = link.refusal
         with pytest.raises(DeviceError) as exc:
-            link.requests.accept_reply(mtype, frame)
+            link.accept_reply(mtype, frame)
         assert exc.value.code == ErrorCode.NOT_AVAILABLE
-        link.requests.streaming = False
+        link.streaming = False
         link.close()
 
 
@@ -228,9 +228,9 @@ def test_status_overtakes_the_column_stream_on_a_slow_line() -> None:
         link.hello()
         scan = link.scan(frame=6)
         first = [next(scan) for _ in range(3)]
-        before = len(link.requests.stream)
+        before = len(link.stream)
         status = link.status()
-        between = len(link.requests.stream) - before
+        between = len(link.stream) - before
         rest = list(scan)
         link.close()
     assert status.state_name == "scanning" and status.frame == 6

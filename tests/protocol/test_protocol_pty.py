@@ -36,7 +36,7 @@ def test_handshake_configure_scan_over_pty(pty_pair) -> None:
     with RunningDevice(device_port, app, heartbeat_s=0.05):
         port = open_port(path, baudrate=921600, timeout=0.02)
         with HostLink(port, timeout_s=2.0, retries=3) as link:
-            link.requests.min_timeout_s = 2.0  # real threads: no retry unless 2 s pass
+            link.min_timeout_s = 2.0  # real threads: no retry unless 2 s pass
             info = link.hello()
             assert info.channels == 40 and info.serial == "SYN-0001"
             link.set_config(peaks=2, uid_bits=2, rounding="convergent")
@@ -88,7 +88,7 @@ def test_handshake_and_scan_over_tcp_with_a_true_in_waiting() -> None:
     try:
         with RunningDevice(dev_port, app, heartbeat_s=0.05), \
                 HostLink(port, timeout_s=2.0, retries=3) as link:
-            link.requests.min_timeout_s = 2.0  # real threads: no retry unless 2 s pass
+            link.min_timeout_s = 2.0  # real threads: no retry unless 2 s pass
             assert link.hello().channels == 40
             cols = list(link.scan())
             assert [c.column for c in cols] == list(range(200))

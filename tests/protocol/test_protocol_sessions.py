@@ -93,7 +93,7 @@ def test_take_over_tells_the_first_host_in_one_line_even_mid_scan(device) -> Non
     assert "took over" in str(exc.value) and "\n" not in str(exc.value)
     assert a.session is None
     assert b.status().state == 0  # the first host's scan stopped; b owns an idle device
-    a.requests.session = info_a.session_id  # a host that ignores SESSION_LOST is refused
+    a.session = info_a.session_id  # a host that ignores SESSION_LOST is refused
     with pytest.raises(DeviceError) as refused:
         a.status()
     assert refused.value.code == ErrorCode.WRONG_SESSION
