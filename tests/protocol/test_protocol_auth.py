@@ -262,10 +262,10 @@ def test_a_piece_from_outside_the_session_cannot_replace_part_of_a_signed_reques
     rd, link, host, _dev, _app = _rig(KEY, KEY)
     with rd as ep:
         info = link.hello()
-        sess, signer = info.session_id, link.requests.signer
+        sess, signer = info.session_id, link.signer
         payload = encode_payload(MsgType.CONFIG_SET, {"items": [   # peaks 3, out_shift 0
             {"key": 16, "value": b"\x03"}, {"key": 13, "value": b"\x00"}]})
-        seq = link.requests.seq = (link.requests.seq + 1) & 0xFFFF  # the host's next
+        seq = link.seq = (link.seq + 1) & 0xFFFF  # the host's next
         pieces = split_message(MsgType.CONFIG_SET, payload, 1, seq)
         at = payload.index(b"\x03")   # the first item's value: a piece before the last
         assert at < len(pieces) - 1
