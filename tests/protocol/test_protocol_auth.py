@@ -278,3 +278,17 @@ def test_a_piece_from_outside_the_session_cannot_replace_part_of_a_signed_reques
         ep.poll()
         assert ep.stats.naks == 0
         assert link.get_config()["peaks"] == 3
+
+
+def test_a_request_in_pieces_of_an_ended_signed_session_gets_a_signed_wrong_session() -> None:
+    """As a whole request: a POWER_SET longer than the frame, sent in signed FRAGMENTs
+    after the session ended, gets its NAK WRONG_SESSION signed with the ended session's
+    key, so the host hears it at once instead of timing out."""
+    dev = SteppedDevice(SyntheticApp(channels=8, columns=300), key=KEY, max_frame=512)
+    link = HostLink(dev, clock=dev.clock, key=KEY, timeout_s=TIMEOUT)
+    link.hello()
+    link.transact(MsgType.SESSION_END, {}, link.new_seq())  # the link keeps its keys
+    with pytest.raises(DeviceError) as exc:
+        link.set_power(np.ones((8, 300), np.uint16))
+    assert exc.value.code == ErrorCode.WRONG_SESSION
+    assert link.stats.retries == 0 and link.stats.unauthenticated == 0
