@@ -371,12 +371,12 @@ class DeviceEndpoint:
 
     def _request_piece(self, frame: Frame) -> Frame | None:
         """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
-        signed requests with a bad signature is dropped); the whole request once every
-        piece is in, keyed by (type, seq, session), so a piece of another session never
-        joins this session's request. The request counts as checked (``joined``) only
-        when every piece was, as the open session's or (its NAK WRONG_SESSION is then
-        signed) as the signed session that ended here. Two requests in pieces are kept
-        at most."""
+        signed requests with a bad signature is dropped, and counts against the back-off);
+        the whole request once every piece is in, keyed by (type, seq, session), so a
+        piece of another session never joins this session's request. The request counts
+        as checked (``joined``) only when every piece was, as the open session's or (its
+        NAK WRONG_SESSION is then signed) as the signed session that ended here. Two
+        requests in pieces are kept at most."""
         sess = self.session
         sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
@@ -384,6 +384,9 @@ class DeviceEndpoint:
         good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
         if ours and not good:
             self.stats.auth_rejected += 1
+            if frame.sig:  # forged or replayed: as a whole frame in DeviceSession.admit
+                self.core.backoff.failed(f"{sess.peer} (session frames)",
+                                         "a frame failed authentication")
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)

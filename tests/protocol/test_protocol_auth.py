@@ -292,3 +292,25 @@ def test_a_request_in_pieces_of_an_ended_signed_session_gets_a_signed_wrong_sess
         link.set_power(np.ones((8, 300), np.uint16))
     assert exc.value.code == ErrorCode.WRONG_SESSION
     assert link.stats.retries == 0 and link.stats.unauthenticated == 0
+
+
+def test_a_forged_piece_of_a_signed_request_counts_against_the_back_off(caplog) -> None:
+    """As a forged whole frame does: a FRAGMENT of the open signed session with a wrong
+    signature is dropped, logged once, and drawn on the global budget of checked MACs."""
+    import logging
+
+    from cdma_lidar.protocol.messages import split_message
+
+    rd, link, host, _dev, _app = _rig(KEY, KEY)
+    with rd as ep, caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol"):
+        sess = link.hello().session_id
+        payload = encode_payload(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x03"}]})
+        piece = split_message(MsgType.CONFIG_SET, payload, 2, 900)[0]
+        forger = auth.FrameSigner(bytes(32))  # another key
+        for _ in range(40):
+            host.write(encode_frame(MsgType.FRAGMENT, piece, 900, sess, signer=forger))
+        ep.poll()
+        assert ep.stats.auth_rejected == 40
+        # 40 at once spend the budget (10 at once): a connection that failed waits for it.
+        assert ep.core.backoff.wait_s(1, ep.clock() - 10.0) > 5.0
+    assert "a frame failed authentication" in caplog.text
