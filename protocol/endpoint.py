@@ -370,23 +370,23 @@ class DeviceEndpoint:
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
-        signed requests with a bad signature is dropped, and counts against the back-off);
-        the whole request once every piece is in, keyed by (type, seq, session), so a
-        piece of another session never joins this session's request. The request counts
-        as checked (``joined``) only when every piece was, as the open session's or (its
-        NAK WRONG_SESSION is then signed) as the signed session that ended here. Two
-        requests in pieces are kept at most."""
+        """Keep one FRAGMENT of a request (checked as it comes: a piece of this signed
+        session with a wrong signature is dropped and counts against the back-off, an
+        unsigned one makes its request AUTH_REQUIRED); the whole request once every
+        piece is in, keyed by (type, seq, session), so a piece of another session never
+        joins this session's request. The request counts as checked (``joined``) only
+        when every piece was, as the open session's or (its NAK WRONG_SESSION is then
+        signed) as the signed session that ended here. Two requests in pieces are kept
+        at most."""
         sess = self.session
         sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
         verifier = sess.verifier if ours else ended if frame.session == sid else None
         good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
-        if ours and not good:
+        if ours and not good and frame.sig:  # forged or replayed: as DeviceSession.admit
             self.stats.auth_rejected += 1
-            if frame.sig:  # forged or replayed: as a whole frame in DeviceSession.admit
-                self.core.backoff.failed(f"{sess.peer} (session frames)",
-                                         "a frame failed authentication")
+            self.core.backoff.failed(f"{sess.peer} (session frames)",
+                                     "a frame failed authentication")
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)
