@@ -204,7 +204,8 @@ class DeviceSession:
             sid, signer, verifier = self.ended or (None, None, None)
             # A request of the signed session that ended here: its host hears the NAK
             # signed with that session's key (it drops unsigned frames).
-            ended = req.session == sid and verifier is not None and verifier.check(req)
+            ended = req.session == sid and verifier is not None and \
+                (req.joined or verifier.check(req))  # joined: every piece was checked
             self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
                          signer=signer if ended else None, coded=self.tx.coded or req.fec)
             return False

@@ -370,15 +370,23 @@ class DeviceEndpoint:
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request (checked as it comes: a piece of this session's
-        signed requests with a bad signature is dropped); the whole request once every
+        """Keep one FRAGMENT of a request (checked as it comes: a piece of this signed
+        session with a wrong signature is dropped and counts against the back-off, an
+        unsigned one makes its request AUTH_REQUIRED); the whole request once every
         piece is in, keyed by (type, seq, session), so a piece of another session never
         joins this session's request. The request counts as checked (``joined``) only
-        when every piece was. Two requests in pieces are kept at most."""
+        when every piece was, as the open session's or (its NAK WRONG_SESSION is then
+        signed) as the signed session that ended here. Two requests in pieces are kept
+        at most."""
         sess = self.session
+        sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
-        if ours and sess.verifier is not None and not sess.verifier.check(frame):
+        verifier = sess.verifier if ours else ended if frame.session == sid else None
+        good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
+        if ours and not good and frame.sig:  # forged or replayed: as DeviceSession.admit
             self.stats.auth_rejected += 1
+            self.core.backoff.failed(f"{sess.peer} (session frames)",
+                                     "a frame failed authentication")
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)
@@ -392,14 +400,14 @@ class DeviceEndpoint:
         pc, checked = self._pieces.get(key, (None, True))
         if pc is None or pc.count != body["count"]:
             pc, checked = Pieces(body["count"]), True
-        self._pieces[key] = (pc, checked and ours)
+        self._pieces[key] = (pc, checked and good)
         while len(self._pieces) > 2:
             self._pieces.popitem(last=False)
         if (payload := pc.add(frame, body)) is None:
             return None
         del self._pieces[key]
         return Frame(key[0], key[1], frame.session, payload, fec=frame.fec,
-                     joined=checked and ours)
+                     joined=checked and good)
 
     def _process(self, frame: Frame) -> None:
         """Check one request; answer, replay, drop or hold it."""

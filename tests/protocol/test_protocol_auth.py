@@ -95,6 +95,22 @@ def test_unsigned_requests_are_refused_auth_required() -> None:
         assert ep.stats.naks == 1  # refused AUTH_REQUIRED, not dropped unseen
 
 
+def test_unsigned_requests_in_pieces_are_refused_auth_required() -> None:
+    """As a whole unsigned request: one in unsigned FRAGMENTs of the open signed session
+    (an implementer who signs whole frames only) is refused, not dropped unseen."""
+    from cdma_lidar.protocol.messages import split_message
+
+    rd, link, host, _dev, app = _rig(KEY, KEY)
+    with rd as ep:
+        info = link.hello()
+        payload = encode_payload(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x03"}]})
+        for piece in split_message(MsgType.CONFIG_SET, payload, 2, 999):
+            host.write(encode_frame(MsgType.FRAGMENT, piece, 999, info.session_id))
+        ep.poll()
+        assert link.get_config()["peaks"] == 1 and app.set_config_calls == 0
+        assert ep.stats.naks == 1 and ep.stats.auth_rejected == 0
+
+
 def test_wrong_key_is_refused_auth_failed() -> None:
     rd, link, *_ = _rig(KEY, bytes(32))
     with rd, pytest.raises(DeviceError) as exc:
@@ -278,3 +294,64 @@ def test_a_piece_from_outside_the_session_cannot_replace_part_of_a_signed_reques
         ep.poll()
         assert ep.stats.naks == 0
         assert link.get_config()["peaks"] == 3
+
+
+def test_a_request_in_pieces_of_an_ended_signed_session_gets_a_signed_wrong_session() -> None:
+    """As a whole request: a POWER_SET longer than the frame, sent in signed FRAGMENTs
+    after the session ended, gets its NAK WRONG_SESSION signed with the ended session's
+    key, so the host hears it at once instead of timing out."""
+    dev = SteppedDevice(SyntheticApp(channels=8, columns=300), key=KEY, max_frame=512)
+    link = HostLink(dev, clock=dev.clock, key=KEY, timeout_s=TIMEOUT)
+    link.hello()
+    link.transact(MsgType.SESSION_END, {}, link.new_seq())  # the link keeps its keys
+    with pytest.raises(DeviceError) as exc:
+        link.set_power(np.ones((8, 300), np.uint16))
+    assert exc.value.code == ErrorCode.WRONG_SESSION
+    assert link.stats.retries == 0 and link.stats.unauthenticated == 0
+
+
+def test_a_forged_piece_of_a_signed_request_counts_against_the_back_off(caplog) -> None:
+    """As a forged whole frame does: a FRAGMENT of the open signed session with a wrong
+    signature is dropped, logged once, and drawn on the global budget of checked MACs."""
+    import logging
+
+    from cdma_lidar.protocol.messages import split_message
+
+    rd, link, host, _dev, _app = _rig(KEY, KEY)
+    with rd as ep, caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol"):
+        sess = link.hello().session_id
+        payload = encode_payload(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x03"}]})
+        piece = split_message(MsgType.CONFIG_SET, payload, 2, 900)[0]
+        forger = auth.FrameSigner(bytes(32))  # another key
+        for _ in range(40):
+            host.write(encode_frame(MsgType.FRAGMENT, piece, 900, sess, signer=forger))
+        ep.poll()
+        assert ep.stats.auth_rejected == 40
+        # 40 at once spend the budget (10 at once): a connection that failed waits for it.
+        assert ep.core.backoff.wait_s(1, ep.clock() - 10.0) > 5.0
+    assert "a frame failed authentication" in caplog.text
+
+
+def test_an_unsigned_piece_in_the_session_cannot_replace_part_of_a_signed_request() -> None:
+    """The same man in the middle with the open session's own id: his unsigned piece
+    replaces a genuine one, so the joined request is refused AUTH_REQUIRED, never applied
+    with his value."""
+    from cdma_lidar.protocol.messages import split_message
+
+    rd, link, host, _dev, app = _rig(KEY, KEY)
+    with rd as ep:
+        info = link.hello()
+        sess, signer = info.session_id, link.signer
+        payload = encode_payload(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x03"}]})
+        seq = link.seq = (link.seq + 1) & 0xFFFF  # the host's next
+        pieces = split_message(MsgType.CONFIG_SET, payload, 1, seq)
+        at = payload.index(b"\x03")
+        for p in pieces[:-1]:
+            host.write(encode_frame(MsgType.FRAGMENT, p, seq, sess, signer=signer))
+        evil = split_message(MsgType.CONFIG_SET, payload[:at] + b"\x02" + payload[at + 1:],
+                             1, seq)[at]
+        host.write(encode_frame(MsgType.FRAGMENT, evil, seq, sess))
+        host.write(encode_frame(MsgType.FRAGMENT, pieces[-1], seq, sess, signer=signer))
+        ep.poll()
+        assert ep.stats.naks == 1 and app.set_config_calls == 0
+        assert link.get_config()["peaks"] == 1

@@ -8,6 +8,7 @@ import reedsolo
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cdma_lidar.errors import FrameError
 from cdma_lidar.protocol import fec
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.virtual.line import LineNoise
@@ -74,6 +75,81 @@ def test_twelve_damaged_bytes_per_block_are_corrected(data: bytes, seed: int) ->
         for i in rng.choice(block, size=min(12, block), replace=False):
             coded[start + int(i)] ^= int(rng.integers(1, 256))
     assert fec.decode(bytes(coded)) == data
+
+
+def _decode_reference(coded: bytes) -> bytes | None:
+    """fec.decode with reedsolo's decoder, block by block; None where it cannot."""
+    codec = reedsolo.RSCodec(fec.NSYM, nsize=fec.BLOCK)
+    data, spread = fec._cut(coded)
+    try:
+        return b"".join(bytes(codec.decode(d.tobytes() + p.tobytes())[0])
+                        for d, p in zip(data, fec._unspread(spread), strict=True))
+    except reedsolo.ReedSolomonError:
+        return None
+
+
+@settings(max_examples=120)
+@given(st.sampled_from([1, 30, fec.DATA - 1, fec.DATA, fec.DATA + 1, 2 * fec.DATA + 150]),
+       st.sampled_from([0, 1, 24, 25, 26, 40, fec.WIRE_BLOCK]), st.booleans(),
+       st.integers(0, 2**32 - 1))
+def test_damage_at_the_edges_is_decoded_as_reedsolo_decodes_it(
+        n: int, errors: int, last: bool, seed: int) -> None:
+    """0, 1, 24 (as many as a block corrects), 25, 26, 40 damaged wire bytes or all of
+    one block (the last, often short, or the first; the other end block gets 5): the
+    table-driven decoder corrects exactly what reedsolo's decoder corrects and fails
+    (FrameError) where it fails."""
+    rng = np.random.default_rng(seed)
+    data = bytes(rng.integers(1, 256, n, dtype=np.uint8))
+    coded = bytearray(fec.encode(data))
+    end = (len(coded) - 1) // fec.WIRE_BLOCK * fec.WIRE_BLOCK  # the last block's start
+    for start, k in ((end, errors), (0, 5)) if last else ((0, errors), (end, 5)):
+        block = min(fec.WIRE_BLOCK, len(coded) - start)
+        for i in rng.choice(block, size=min(k, block), replace=False):
+            coded[start + int(i)] ^= int(rng.integers(1, 128))  # a spread byte keeps bit 7
+        if not end:
+            break  # one block
+    want = _decode_reference(bytes(coded))
+    try:
+        got = fec.decode(bytes(coded))
+    except FrameError:
+        got = None
+    assert got == want
+    if errors <= 7:  # a damaged spread byte damages at most two parity symbols
+        assert got == data
+
+
+def test_a_short_block_is_not_corrected_at_positions_it_does_not_have() -> None:
+    """A 78-symbol block (30 data bytes) with 25 errors whose syndromes are those of 24
+    errors, one at a position (degree 83) only a full block has: the decoder refuses it,
+    as reedsolo does, instead of "correcting" 23 symbols and returning wrong bytes. The
+    25 errors are 25 of the 49 symbols of a weight-49 codeword (solved over GF(2^8))
+    whose 49th symbol sits at degree 83."""
+    gmul, gpow = reedsolo.gf_mul, reedsolo.gf_pow
+    rng = np.random.default_rng(5)
+    data = bytes(rng.integers(1, 256, 30, dtype=np.uint8))
+    n, pad = 30 + fec.NSYM, 30 + fec.NSYM + 5  # the block's symbols; the degree beyond it
+    (d,), spread = fec._cut(fec.encode(data))
+    sym = list(d.tobytes() + fec._unspread(spread)[0].tobytes())  # degrees n-1 .. 0
+    degrees = [int(e) for e in rng.choice(n, fec.NSYM, replace=False)]
+    # Solve sum_e c_e 2^(j e) = 2^(j pad), j < 48: c plus 1 at degree pad is a codeword.
+    a = [[gpow(2, j * e % 255) for e in degrees] + [gpow(2, j * pad % 255)]
+         for j in range(fec.NSYM)]
+    for col in range(fec.NSYM):  # Gauss-Jordan over GF(2^8)
+        piv = next(r for r in range(col, fec.NSYM) if a[r][col])
+        a[col], a[piv] = a[piv], a[col]
+        inv = reedsolo.gf_inverse(a[col][col])
+        a[col] = [gmul(v, inv) for v in a[col]]
+        for r in range(fec.NSYM):
+            if r != col and a[r][col]:
+                f = a[r][col]
+                a[r] = [v ^ gmul(f, w) for v, w in zip(a[r], a[col], strict=True)]
+    for e, row in list(zip(degrees, a, strict=True))[:25]:
+        sym[n - 1 - e] ^= row[-1]
+    parity = np.frombuffer(bytes(sym[-fec.NSYM:]), np.uint8)[None, :]
+    coded = bytes(sym[:-fec.NSYM]) + fec._spread(parity).tobytes()
+    assert _decode_reference(coded) is None
+    with pytest.raises(FrameError, match="23 error positions for a locator of degree 24"):
+        fec.decode(coded)
 
 
 def test_a_piece_of_a_coded_frame_is_not_plausible() -> None:
