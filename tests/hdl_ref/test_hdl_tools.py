@@ -145,6 +145,22 @@ def test_seed_and_router_are_nextpnr_arguments_keys_and_rows():
         f"| {design.name}, seed 2, router1 | 62.5"]
 
 
+def test_cached_only_reads_every_seed_and_router_asked_for(tmp_path, monkeypatch):
+    """--cached-only with seeds and routers takes each variant's cache entry, and only those."""
+    monkeypatch.setattr(synth, "CACHE", tmp_path)
+    monkeypatch.setattr(synth, "yosys_version", lambda: "Y")
+    monkeypatch.setattr(synth, "_version", lambda name: "N")
+    design = synth.PAPER_P4_DESIGN
+    for fmax, v in enumerate((design, synth.variant(design, 2),
+                              synth.variant(design, 1, "router1"),
+                              synth.variant(design, 3, "router1"))):
+        synth._store(v, "pnr", "Y N", {"fmax": float(fmax)})
+    results, _ = synth.run_all(cached_only=True, seeds=(1, 2), routers=("router2", "router1"))
+    got = {name: cells["fmax"] for (name, flow), cells in results.items() if flow == "pnr"}
+    assert got == {design.name: 0.0, f"{design.name}, seed 2": 1.0,
+                   f"{design.name}, router1": 2.0}
+
+
 def test_seed_below_one_exits_2(capsys):
     with pytest.raises(SystemExit) as exc:
         synth.main(["--seed", "0", "--cached-only"])
