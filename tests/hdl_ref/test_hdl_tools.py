@@ -116,25 +116,49 @@ def test_doc_lists_every_design_and_the_placed_and_routed_rows():
     assert "**placed and routed**" in section and "| rx_top small |" in section
 
 
-def test_seed_is_nextpnr_argument_key_and_row():
-    """A placement seed other than 1: nextpnr's --seed, its own P&R cache key and table row;
-    seed 1 is the design itself (the cache keys of before seeds)."""
+def test_seed_and_router_are_nextpnr_arguments_keys_and_rows():
+    """A placement seed other than 1 or router1: nextpnr's --seed / --router, their own P&R
+    cache key and table row; seed 1 with router2 is the design itself (the cache keys of
+    before seeds)."""
     design = synth.PAPER_P4_DESIGN
-    assert synth.seeded(design, 1) is design
-    two = synth.seeded(design, 2)
-    args = synth.pnr_args(two)
-    assert args[args.index("--seed") + 1] == "2"
+    assert synth.variant(design) is design
     assert synth.pnr_args(design) == synth.PNR_ARGS
-    assert synth._key(two, "pnr", "v") != synth._key(design, "pnr", "v")
-    assert synth._key(two, "ecp5", "v") == synth._key(design, "ecp5", "v")   # same netlist
+    two, r1, both = (synth.variant(design, 2), synth.variant(design, router="router1"),
+                     synth.variant(design, 2, "router1"))
+    for v, seed, router in ((two, "2", "router2"), (r1, "1", "router1"),
+                            (both, "2", "router1")):
+        args = synth.pnr_args(v)
+        assert (args[args.index("--seed") + 1], args[args.index("--router") + 1]) == (seed, router)
+    keys = {synth._key(v, "pnr", "v") for v in (design, two, r1, both)}
+    assert len(keys) == 4
+    assert synth._key(both, "ecp5", "v") == synth._key(design, "ecp5", "v")   # same netlist
     cells = {"TRELLIS_COMB": 10, "TRELLIS_FF": 5, "fmax": 62.5}
     table = synth.markdown({(design.name, "pnr"): cells, (two.name, "pnr"): {**cells, "fmax": 60},
-                            (synth.seeded(design, 10).name, "pnr"): cells}, ["v"])
+                            (synth.variant(design, 10).name, "pnr"): cells,
+                            (r1.name, "pnr"): cells, (both.name, "pnr"): cells}, ["v"])
     rows = [line for line in table.splitlines()
-            if line.startswith((f"| {design.name} |", f"| {design.name}, seed "))]
-    assert rows[-3:] == [f"| {design.name} | 10 | 5 | 0 | 0 | 62.5 | 250 |",
-                         f"| {design.name}, seed 2 | 10 | 5 | 0 | 0 | 60 | 240 |",
-                         f"| {design.name}, seed 10 | 10 | 5 | 0 | 0 | 62.5 | 250 |"]
+            if line.startswith((f"| {design.name} |", f"| {design.name}, seed ",
+                                f"| {design.name}, router"))][-5:]
+    assert [" | ".join(row.split(" | ")[::5]) for row in rows] == [
+        f"| {design.name} | 62.5", f"| {design.name}, seed 2 | 60",
+        f"| {design.name}, seed 10 | 62.5", f"| {design.name}, router1 | 62.5",
+        f"| {design.name}, seed 2, router1 | 62.5"]
+
+
+def test_cached_only_reads_every_seed_and_router_asked_for(tmp_path, monkeypatch):
+    """--cached-only with seeds and routers takes each variant's cache entry, and only those."""
+    monkeypatch.setattr(synth, "CACHE", tmp_path)
+    monkeypatch.setattr(synth, "yosys_version", lambda: "Y")
+    monkeypatch.setattr(synth, "_version", lambda name: "N")
+    design = synth.PAPER_P4_DESIGN
+    for fmax, v in enumerate((design, synth.variant(design, 2),
+                              synth.variant(design, 1, "router1"),
+                              synth.variant(design, 3, "router1"))):
+        synth._store(v, "pnr", "Y N", {"fmax": float(fmax)})
+    results, _ = synth.run_all(cached_only=True, seeds=(1, 2), routers=("router2", "router1"))
+    got = {name: cells["fmax"] for (name, flow), cells in results.items() if flow == "pnr"}
+    assert got == {design.name: 0.0, f"{design.name}, seed 2": 1.0,
+                   f"{design.name}, router1": 2.0}
 
 
 def test_seed_below_one_exits_2(capsys):
