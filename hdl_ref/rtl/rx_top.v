@@ -477,7 +477,7 @@ module rx_top #(
     reg  [JJ_W-1:0]         latch_jj;
     reg  [UID_W-1:0]        latch_p;
     reg                     latch_last;
-    reg  [KL*PER_W-1:0]     h_per;          // entry 0 at the bottom
+    wire [KL*PER_W-1:0]     h_per;          // entry 0 at the bottom
     reg  [PER_W-1:0]        h_all;
     reg                     ser_busy, ser_fst, ser_last, ln_fst;
     reg  [UID_W-1:0]        ser_p;
@@ -590,12 +590,8 @@ module rx_top #(
         x3_nz  <= (x2_p0 ? {MAX_UID{1'b0}} : x2_nz)
                   | ((x2_c != {PER_W{1'b0}}) ? x2_sel : {MAX_UID{1'b0}});
 
-        if (latch_v) begin
-            h_per <= ln_per;
+        if (latch_v)
             h_all <= all_sum;
-        end else if (ser_busy) begin
-            h_per <= h_per >> PER_W;
-        end
         if (rst) begin
             x0_v <= 1'b0;
             x1_v <= 1'b0;
@@ -603,6 +599,25 @@ module rx_top #(
             x3_v <= 1'b0;
         end
     end
+
+    // The hold chain: each channel's L entries load the lane values in the latch clock
+    // and otherwise shift down one entry a clock (zeros in at the top). Between walks it
+    // shifts what no stage reads, so it needs no clock enable; its load select is a
+    // register copy per channel (latch_v's, a gen_strobe instance each), so no one net
+    // reaches the K L PER_W flip-flops of the chain across the die.
+    wire [KL*PER_W-1:0]     h_dn = h_per >> PER_W;
+    wire [K-1:0]            h_ld;
+    generate
+        for (gk = 0; gk < K; gk = gk + 1) begin : g_hold
+            reg [L*PER_W-1:0] h;
+            wire              unused_en;
+            gen_strobe ld (.clk(clk), .rst(rst), .load_nx(v2 && gend2), .en_nx(1'b0),
+                           .load(h_ld[gk]), .en(unused_en));
+            always @(posedge clk)
+                h <= h_ld[gk] ? ln_per[gk*L*PER_W +: L*PER_W] : h_dn[gk*L*PER_W +: L*PER_W];
+            assign h_per[gk*L*PER_W +: L*PER_W] = h;
+        end
+    endgenerate
 
     wire                    sc_v;
     wire signed [OUT_W-1:0] sc_word;
