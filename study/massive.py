@@ -301,6 +301,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             "predicted)" for i in o if agree[i]) + "; outside at K = "
         + (", ".join(str(int(k[i])) for i in o if not agree[i]) or "none"))
     rejected = table.column("rejected_fraction")
+    chips = 2 ** load_scene(PRESET).instrument.code_degree - 1   # N of the preset's codes
     for i in np.argsort(k):
         kk = int(k[i])
         out[f"wall_valid_fraction_k{kk}"] = entry(
@@ -308,7 +309,7 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
             cause=f"the flat wall's pixels kept at the host's default "
                   f"{float(table.column('threshold_db')[i]):.1f} dB at K = {kk}: every echo "
                   f"alike, so what the threshold costs where multiple access alone limits "
-                  f"SNR_XC (ceiling {mai_ceiling_db(kk, 2**15 - 1):.1f} dB)")
+                  f"SNR_XC (ceiling {mai_ceiling_db(kk, chips):.1f} dB)")
         n = int(table.column("scene_pixels")[i])
         if not n:
             continue
