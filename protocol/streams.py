@@ -34,14 +34,12 @@ log = logging.getLogger(__name__)
 
 class Engine:
     """The measurement engine of one device: runs the application's column steps and
-    stream clean-ups one at a time, in the order submitted.
-
-    A step cannot be bounded below the 50 ms in which the loops must answer (a column of
-    paper-scene1 at averages 1024 and samples per chip 16 takes 0.1-0.2 s on 2 cores; the
-    virtual board computes batches of seconds), so steps run on the engine's own thread,
-    which touches nothing but the application; the loops call the application only while
-    the engine is :attr:`idle`. ``threaded=False``: each job runs at once in the caller (a
-    test stepping a device on a fake clock), otherwise the same code.
+    stream clean-ups one at a time, in the order submitted, on its own thread, which
+    touches nothing but the application: a step cannot be bounded below the 50 ms in which
+    the loops must answer (0.1-0.2 s for a column of paper-scene1 at averages 1024 and
+    samples per chip 16 on 2 cores; the virtual board computes batches of seconds). The
+    loops call the application only while the engine is :attr:`idle`. ``threaded=False``:
+    each job runs at once in the caller (a test on a fake clock), otherwise the same code.
     """
 
     def __init__(self, threaded: bool = True) -> None:
