@@ -1,29 +1,27 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-Scans: :meth:`HostLink.scan` yields columns in column order exactly once and asks for
-missing ones again (RESEND) as soon as a later column, a HEARTBEAT or SCAN_END shows they
-were sent. After ``timeout_s`` of silence it asks STATUS how far the device got. It fails
-with LinkTimeout after ``column_retries`` fruitless RESENDs of one column, and with
-:class:`ScanStalled` when the device stays alive but nothing moves.
+A scan yields columns in order, each once, and asks again (RESEND) for missing ones as soon
+as a later column, a HEARTBEAT or SCAN_END shows they were sent; after ``timeout_s`` of
+silence it asks STATUS how far the device got. It fails with LinkTimeout after
+``column_retries`` fruitless RESENDs of one column, with :class:`ScanStalled` when the
+device stays alive but nothing moves.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import secrets
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdma_lidar.checks import check_int, is_int
+from cdma_lidar.checks import is_int
 from cdma_lidar.errors import DeviceError, FieldError, LinkError, LinkTimeout, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
-from cdma_lidar.protocol.framing import FRAME_LIMIT, frame_size
+from cdma_lidar.protocol.framing import frame_size
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
@@ -32,13 +30,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
-from cdma_lidar.protocol.requests import (
-    DIAG_HINTS,
-    DIAG_NO_ANSWER,
-    Requests,
-    SessionLost,
-    diagnose,
-)
+from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 from cdma_lidar.protocol.views import Info, State, Status
 
@@ -47,23 +39,20 @@ __all__ = ["PATIENCE", "HostLink", "ScanStalled", "SessionLost", "StreamEnded", 
 
 log = logging.getLogger(__name__)
 
-
-#: How many of the device's stated column times (STATUS.column_time_ms) a stream may go
-#: without progress, on top of the host's own floor.
+#: Column times (STATUS.column_time_ms) a stream may go without progress, beyond the floor.
 PATIENCE = 3.0
 
 
 def patience_s(floor_s: float, status: Status | None) -> float:
-    """The no-progress limit of a stream (s): ``floor_s`` (the link's latency and the
-    host's own work) plus :data:`PATIENCE` times the column time the device last stated
-    in STATUS or HEARTBEAT (nothing when it states none). A column that takes minutes is
-    waited for; a device that goes on heartbeating without moving is still caught."""
+    """The no-progress limit of a stream (s): ``floor_s`` (latency, the host's own work)
+    plus :data:`PATIENCE` column times as last stated in STATUS or HEARTBEAT, so a column
+    of minutes is waited for and a device heartbeating without moving is still caught."""
     return floor_s + (PATIENCE * status.column_time_s if status is not None else 0.0)
 
 
 class ScanStalled(StreamEnded, LinkTimeout):
-    """The device kept the stream alive (heartbeats, STATUS "scanning") but no column
-    and no ``next_column`` moved for the no-progress limit (:func:`patience_s`)."""
+    """The device kept the stream alive (heartbeats, STATUS "scanning") but nothing moved
+    for the no-progress limit (:func:`patience_s`)."""
 
     def __init__(self, message: str, *, frame: int, next_column: int) -> None:
         StreamEnded.__init__(self, message, frame=frame, next_column=next_column, reason=None)
@@ -87,51 +76,29 @@ def power_codes(matrix: ArrayLike) -> NDArray[np.int64]:
 
 
 class HostLink(Requests):
-    """Host end of the protocol over a port-like object.
+    """Host end of the protocol over a port; one HostLink per port, one thread at a time.
 
     Args:
-        port: from :func:`~cdma_lidar.protocol.ports.open_port`, a
-            :class:`~cdma_lidar.protocol.ports.FdPort`, or anything with ``read``,
-            ``write``, ``in_waiting`` and ``timeout``.
+        port: from :func:`~cdma_lidar.protocol.ports.open_port`, an ``FdPort``, or anything
+            with ``read``, ``write``, ``in_waiting`` and ``timeout``.
         timeout_s: wait for one reply, and longest silence in a scan (s).
         retries: retransmissions of a request before LinkTimeout.
         column_retries: RESENDs of one missing column before LinkTimeout; default
             ``10 * (retries + 1)``.
         max_frame: largest frame the device may send (bytes, 64..65535), announced in
-            HELLO: longer replies and columns come in FRAGMENTs. Requests stay within
+            HELLO; longer replies and columns come in FRAGMENTs. Requests stay within
             min(INFO.max_frame, max(max_frame, 256)).
-        key: shared secret of a device that requires one (32 bytes,
-            :func:`cdma_lidar.protocol.auth.load_key`); then HELLO answers the device's
-            challenge, the device must prove it holds the key too, and every frame of the
-            session is signed. None: the device must not ask for a key.
+        key: shared secret (32 bytes, :func:`cdma_lidar.protocol.auth.load_key`) of a
+            device that requires one: HELLO answers its challenge, it must prove it holds
+            the key too, every frame is signed. None: the device must not ask for a key.
         take_over: HELLO ends another host's live session instead of failing BUSY.
-        keep_config: the new session keeps the previous session's configuration and
-            power instead of starting from the device's defaults.
-        fec: Reed-Solomon coded frames both ways (:mod:`cdma_lidar.protocol.fec`), asked
-            for in HELLO; None: on for a serial line, off for ``socket://`` and USB
-            (``/dev/ttyACM*``) (:func:`cdma_lidar.protocol.ports.default_fec`).
-        progress_timeout_s: the floor of the no-progress limit (:func:`patience_s`, s): a
-            live stream (heartbeats) that moves nothing for longer fails ScanStalled.
-        clock: monotonic clock (s) every wait and deadline is measured on; tests pass a
-            fake one that their port moves.
-
-    One HostLink per port, used from one thread at a time.
+        keep_config: the new session keeps the previous one's configuration and power.
+        fec: Reed-Solomon coded frames both ways, asked for in HELLO; None:
+            :func:`~cdma_lidar.protocol.ports.default_fec` (on for a serial line).
+        progress_timeout_s: floor of the no-progress limit (:func:`patience_s`, s).
+        clock: monotonic clock (s) of every wait and deadline; tests pass a fake one that
+            their port moves.
     """
-
-    def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
-                 column_retries: int | None = None, max_frame: int = FRAME_LIMIT,
-                 key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
-                 fec: bool | None = None, progress_timeout_s: float = 10.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(port, timeout_s, retries, max_frame=max_frame, key=key,
-                         take_over=take_over, keep_config=keep_config, fec=fec, clock=clock)
-        self.column_retries = 10 * (self.retries + 1) if column_retries is None \
-            else check_int("column_retries", column_retries, 0, 1000)
-        if not progress_timeout_s > 0:
-            raise out_of_range("progress_timeout_s", "a positive number of seconds",
-                               progress_timeout_s)
-        self.progress_timeout_s = float(progress_timeout_s)
-        self._next_frame_id = secrets.randbits(31)
 
     def __enter__(self) -> Self:
         return self
@@ -142,6 +109,14 @@ class HostLink(Requests):
     def _need_info(self) -> Info:
         """INFO of the session (HELLO first when there is none)."""
         return self.info if self.info is not None else self.hello()
+
+    def _need_config(self) -> dict[str, Any]:
+        """The session's full configuration, checked (CONFIG_GET first when unknown)."""
+        self._need_info()
+        if self.config is None:
+            self.get_config()
+        assert self.config is not None
+        return self.config
 
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
@@ -159,11 +134,8 @@ class HostLink(Requests):
         return values
 
     def set_config(self, **values: Any) -> None:
-        """Set configuration keys (python values, see ``CONFIG_KEYS``); all or none.
-
-        Raises FieldError for a key or value the wire cannot carry and DeviceError
-        (``code``, ``field``) when the device refuses.
-        """
+        """Set configuration keys (python values, see ``CONFIG_KEYS``), all or none:
+        FieldError for what the wire cannot carry, DeviceError when the device refuses."""
         if not values:
             return
         self.config = None  # read again (checked) before the next stream
@@ -171,12 +143,8 @@ class HostLink(Requests):
                                                                   allow_read_only=False)})
 
     def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
-        """Send a (channels, columns) laser-power matrix: one POWER_SET, in FRAGMENTs when
-        longer than a frame, or several when longer than MAX_PIECES fragments.
-
-        Integer matrices are in units of 1/65535 of the per-pixel maximum (0..65535);
-        float matrices are fractions 0..1 and are rounded to that grid.
-        """
+        """Send a (channels, columns) laser-power matrix (:func:`power_codes`): one
+        POWER_SET, in FRAGMENTs when longer than a frame, several beyond MAX_PIECES."""
         self._need_info()  # the size of a piece depends on the session's max frame
         m = power_codes(matrix)
         rows, cols = m.shape
@@ -193,11 +161,8 @@ class HostLink(Requests):
                     "power": block.ravel()})
 
     def get_power(self) -> NDArray[np.uint16]:
-        """The device's (K, C) power matrix (1/65535 of the per-pixel maximum), read back.
-
-        C is INFO.column_count; read in rectangles of whole rows that fit a reply (a
-        longer reply would come in FRAGMENTs anyway).
-        """
+        """The device's (K, C = INFO.column_count) power matrix (1/65535 of the per-pixel
+        maximum), read in blocks of whole rows (16384 values, or one row)."""
         info = self._need_info()
         k, c = info.channels, info.column_count
         out = np.zeros((k, c), dtype=np.uint16)
@@ -214,7 +179,6 @@ class HostLink(Requests):
         return out
 
     def status(self) -> Status:
-        """Device status."""
         return Status(**self.request(MsgType.STATUS_GET, {}))
 
     def abort(self) -> None:
@@ -222,16 +186,12 @@ class HostLink(Requests):
         self.request(MsgType.SCAN_ABORT, {})
 
     def capture(self, kind: str | int = "raw", column: int = 0, channel: int = 0) -> NDArray:
-        """Debug capture of one column: raw ADC samples or a channel's correlation trace.
-
-        ``kind`` is ``"raw"`` / ``"corr"`` (or a CaptureKind). Read in chunks under the
-        frame size; returns an int16/int32/int64 array.
-        """
+        """Debug capture of one column, read in chunks: raw ADC samples or a channel's
+        correlation trace (``kind`` ``"raw"``, ``"corr"`` or a CaptureKind), int16/32/64."""
         if isinstance(kind, str):
-            names = {k.name.lower(): k for k in CaptureKind}
-            if kind not in names:
+            if kind not in ("raw", "corr"):
                 raise out_of_range("kind", "'raw' or 'corr'", kind, FieldError)
-            kind = names[kind]
+            kind = CaptureKind[kind.upper()]
         parts: list[NDArray] = []
         offset, total = 0, None
         while total is None or offset < total:
@@ -252,54 +212,33 @@ class HostLink(Requests):
 
     def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
              frame: int | None = None) -> Iterator[ColumnResult]:
-        """Scan ``frames`` frames of ``columns`` columns from ``first_column``.
-
-        Yields ColumnResults in column order, each exactly once, repairing gaps. By
-        default a frame is a full scan: ``columns_per_frame`` columns (configuration).
-        Leaving the loop early aborts the scan on the device.
-        """
+        """Scan ``frames`` frames of ``columns`` columns (default: ``columns_per_frame``)
+        from ``first_column``: ColumnResults in order, each once, gaps repaired. Leaving
+        the loop early aborts the scan on the device."""
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
-        info = self._need_info()
         if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
-            if self.config is None:
-                self.get_config()
-            assert self.config is not None
-            columns = min(int(self.config["columns_per_frame"]), info.column_count) - \
-                first_column
+            columns = min(int(self._need_config()["columns_per_frame"]),
+                          self._need_info().column_count) - first_column
         for k in range(frames):
-            fid = self._frame_id(frame if k == 0 else None)
-            yield from self._stream_columns(
-                MsgType.SCAN_START,
-                {"frame": fid, "first_column": first_column, "columns": columns},
-                fid, first_column, columns)
+            yield from self._stream_columns(MsgType.SCAN_START, frame if k == 0 else None,
+                                            first_column, columns, first_column=first_column,
+                                            columns=columns)
 
     def calibrate(self, shots: int, frame: int | None = None) -> list[ColumnResult]:
         """Zeroth-order calibration: ``shots`` columns flagged ``calibration``."""
-        self._need_info()
-        fid = self._frame_id(frame)
-        return list(self._stream_columns(MsgType.CALIBRATE, {"frame": fid, "shots": shots},
-                                         fid, 0, shots))
+        return list(self._stream_columns(MsgType.CALIBRATE, frame, 0, shots, shots=shots))
 
     # ---- streams ------------------------------------------------------------------------
-    def _frame_id(self, frame: int | None) -> int:
-        if frame is None:
-            frame = self._next_frame_id
-        self._next_frame_id = (frame + 1) & 0xFFFFFFFF
-        return frame
-
-    def _stream_columns(self, req: MsgType, fields_: dict[str, Any], fid: int, first: int,
-                        count: int) -> Iterator[ColumnResult]:
-        """Start a stream with ``req``; yield columns first..first+count-1 in order, once each.
-
-        If the device ends the stream early (SCAN_END aborted or error, or idle short of
-        the end), every column it did send is still delivered before the error is raised.
-        Leaving early aborts the stream on the device.
-        """
-        if self.config is None:
-            self.get_config()
-        assert self.info is not None and self.config is not None
-        checker = ColumnChecker(self.info, self.config, fid, first, first + count,
+    def _stream_columns(self, req: MsgType, frame: int | None, first: int, count: int,
+                        **fields_: Any) -> Iterator[ColumnResult]:
+        """Start a stream with ``req`` (frame id ``frame``, default: the next one); yield
+        columns first..first+count-1 in order, once each. A stream the device ends early
+        still delivers every column it sent before the error; leaving early aborts it."""
+        fid = fields_["frame"] = self._next_frame_id if frame is None else frame
+        self._next_frame_id = (fid + 1) & 0xFFFFFFFF
+        config = self._need_config()
+        checker = ColumnChecker(self._need_info(), config, fid, first, first + count,
                                 req == MsgType.CALIBRATE)
         self.start_stream()
         finished = False
@@ -309,14 +248,13 @@ class HostLink(Requests):
             except DeviceError as exc:
                 if exc.code != ErrorCode.BUSY:
                     raise
-                # In one session only our own previous stream can be running: its last
-                # columns reached us before the device had sent them all (repairs of the
-                # same frame id, asked for earlier). Let it end, then ask once more.
+                # Only our own previous stream can be running (repairs asked for earlier
+                # still going out): let it end, then ask once more.
                 self._await_idle(exc)
                 self.stream.clear()
                 self.request(req, fields_)
-            # A key asked for is asked again after a round trip (doubled per try): its
-            # answer comes ahead of new columns. At most a quarter of the reply timeout.
+            # A key is asked again after a round trip (doubled per try; repairs go ahead
+            # of new columns), at most a quarter of the reply timeout.
             top = self.timeout_s / 4
             asm = ColumnReassembler(fid, first, first + count, checker,
                                     self.reply_wait(0, 0, top), top, self.joiner)
@@ -361,9 +299,7 @@ class HostLink(Requests):
             if alive:
                 heard = now
             elif now - heard >= self.timeout_s:
-                # Silence: ask the device how far it got (LinkTimeout with a diagnosis if
-                # it does not answer either).
-                st = self.status()
+                st = self.status()  # silence: how far did it get? (else LinkTimeout)
                 if st.frame != asm.fid:
                     raise LinkError(f"device is {st.state_name} with frame {st.frame}, not "
                                     f"frame {asm.fid}: it lost the scan (restarted or "
@@ -388,8 +324,8 @@ class HostLink(Requests):
             self.pump()
 
     def _resend(self, asm: ColumnReassembler, due: list[Any], now: float) -> None:
-        """RESEND the due columns (ints) and fragments ((column, index)), 255 of each at most
-        and as many as fit a request."""
+        """RESEND the due columns (ints) and fragments ((column, index)), at most 255 of
+        each and what fits a request."""
         room = self.max_frame - frame_size(6, self.signer is not None)  # the counts: 6 bytes
         cols = [k for k in due if isinstance(k, int)][:min(255, room // 2)]
         pieces = [k for k in due if not isinstance(k, int)][
@@ -406,8 +342,8 @@ class HostLink(Requests):
         self.stats.resent_columns += len(cols) + len(pieces)
         log.debug("frame %d: asking again for %d columns and %d fragments", asm.fid,
                   len(cols), len(pieces))
-        # Not waited for: the columns are the answer, and the stream goes on meanwhile.
-        # A lost RESEND is asked again once its wait (ColumnReassembler.due) passes.
+        # Not waited for: the columns are the answer; a lost RESEND is asked again once
+        # its wait (ColumnReassembler.due) passes.
         self.send_unawaited(MsgType.RESEND, {
             "frame": asm.fid, "columns": cols,
             "fragments": [{"column": c, "index": k} for c, k in pieces]})

@@ -1,11 +1,10 @@
 """Ports onto the operating system: pyserial URLs, TCP, and raw file descriptors.
 
-The protocol needs only a small port surface: ``read(n)`` that waits at most
-``timeout`` seconds, ``write(data)``, ``in_waiting`` (bytes ready) and ``close()``.
-:func:`open_port` gives one for any pyserial URL (a device path, a pty, ``socket://``,
-``loop://``, or a scheme some imported package registered with pyserial, such as the
-virtual device's); :class:`FdPort` gives one around a file descriptor (a pty master,
-an accepted TCP socket). The simulated in-process line is :mod:`cdma_lidar.virtual.line`.
+A port needs only ``read(n)`` waiting at most ``timeout`` s, ``write(data)``,
+``in_waiting`` (bytes ready) and ``close()``. :func:`open_port` opens any pyserial URL
+(device path, pty, ``socket://``, ``loop://``, or a scheme an imported package registered,
+such as ``virtual://``); :class:`FdPort` wraps a file descriptor (a pty master, an accepted
+socket). The simulated in-process line is :mod:`cdma_lidar.virtual.line`.
 """
 
 from __future__ import annotations
@@ -26,15 +25,13 @@ from cdma_lidar.errors import LinkError
 __all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "byte_time_s", "default_fec", "open_port",
            "port_name"]
 
+#: Serial line rate the protocol uses unless told otherwise (bit/s, 8N1); USB CDC ignores it.
+DEFAULT_BAUD = 921600
+
 
 def _bytes_ready(fd: int) -> int:
     """FIONREAD: bytes readable on ``fd`` without blocking (pty, pipe or socket)."""
-    buf = fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0")
-    return struct.unpack("i", buf)[0]
-
-
-#: Serial line rate the protocol uses unless told otherwise (bit/s, 8N1); USB CDC ignores it.
-DEFAULT_BAUD = 921600
+    return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
 
 
 def port_name(port: Any) -> str:
@@ -45,10 +42,8 @@ def port_name(port: Any) -> str:
 
 def default_fec(port: Any) -> bool:
     """Whether frames on ``port`` are Reed-Solomon coded by default: yes on a serial line
-    (a device path such as ``/dev/ttyUSB0`` or a pty, and ``virtual://``, which stands for
-    one), no where the transport delivers intact bytes (TCP ``socket://``, USB bulk
-    ``/dev/ttyACM*``) and on anything else (``loop://``, in-process pipes: the caller
-    says)."""
+    (a device path such as ``/dev/ttyUSB0``, a pty, ``virtual://``), no where bytes arrive
+    intact (``socket://``, USB ``/dev/ttyACM*``) and elsewhere (``loop://``, pipes)."""
     if isinstance(port, TcpPort):
         return False
     name = port_name(port)
@@ -58,8 +53,7 @@ def default_fec(port: Any) -> bool:
 
 def byte_time_s(port: Any) -> float:
     """Seconds one byte takes on ``port``'s line (8N1: 10 bit times), 0 when unknown: a
-    serial line's ``baudrate``, a port's ``line_baud`` (``virtual://``), a paced pipe's
-    ``tx.baud``; nothing for TCP and unpaced pipes."""
+    serial line's ``baudrate``, ``line_baud`` (``virtual://``), a paced pipe's ``tx.baud``."""
     baud = getattr(port, "line_baud", None) or getattr(getattr(port, "tx", None), "baud", None)
     if baud is None and default_fec(port) and not port_name(port).startswith("virtual://"):
         baud = getattr(port, "baudrate", None)
@@ -67,12 +61,8 @@ def byte_time_s(port: Any) -> float:
 
 
 def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **kw: Any) -> Any:
-    """Open any pyserial URL (device path, pty, ``socket://``, ``loop://``, registered schemes).
-
-    ``socket://`` opens a :class:`TcpPort`. Raises LinkError with a one-line hint when
-    the port does not exist or cannot be opened, or when no handler is registered
-    for the URL's scheme (the message names the scheme).
-    """
+    """Open any pyserial URL (``socket://`` as a :class:`TcpPort`); LinkError with a
+    one-line hint when it cannot (naming the scheme when no handler is registered)."""
     try:
         if url.lower().startswith("socket://"):
             return TcpPort(url, baudrate=baudrate, timeout=timeout, **kw)
@@ -91,82 +81,63 @@ def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **k
 
 
 class TcpPort(SocketSerial):
-    """``socket://HOST:PORT`` as pyserial opens it, with a true ``in_waiting`` (bytes).
-
-    pyserial's handler reports 1 whenever anything is readable, so a reader that asks
-    for ``in_waiting`` bytes gets one byte per call: about 80 columns/s instead of
-    thousands. FIONREAD on the socket gives the real count.
-    """
+    """``socket://HOST:PORT`` with a true ``in_waiting`` (bytes, from FIONREAD): pyserial's
+    says 1 whenever anything is readable, so reads of ``in_waiting`` bytes got one byte
+    per call (about 80 columns/s instead of thousands)."""
 
     @property
     def in_waiting(self) -> int:
-        """Bytes ready to read."""
         if not self.is_open:
             raise serial.PortNotOpenError()
         return _bytes_ready(self._socket.fileno())
 
 
 class FdPort:
-    """Minimal port over a file descriptor (a pty master from ``os.openpty``, a socket).
-
-    Same surface as a pyserial port as far as the protocol uses it: ``read(n)``
-    blocks until ``n`` bytes or ``timeout`` seconds, ``write``, ``in_waiting``,
-    ``timeout``, ``close``. The fd is put in non-blocking mode; the port owns it and
-    closes it in :meth:`close` (for a socket, pass ``sock.detach()``).
-    """
+    """The port surface over a file descriptor (a pty master from ``os.openpty``, a socket:
+    pass ``sock.detach()``), put in non-blocking mode, owned and closed by the port.
+    ``timeout``: longest wait of one read (s, None: forever); ``write_timeout``: see
+    :meth:`write`."""
 
     def __init__(self, fd: int, timeout: float | None = 0.05,
                  write_timeout: float = 5.0) -> None:
-        self.fd = fd
-        self.timeout = timeout
-        self.write_timeout = write_timeout
+        self.fd, self.timeout, self.write_timeout = fd, timeout, write_timeout
         os.set_blocking(fd, False)
         self._closed = False
 
     @property
     def in_waiting(self) -> int:
-        """Bytes ready to read without blocking."""
         return _bytes_ready(self.fd)
 
     def read(self, n: int = 1) -> bytes:
-        """Up to ``n`` bytes; returns early with fewer when ``timeout`` expires.
-
-        Raises OSError at end of file, like pyserial, so a caller never spins on a
-        descriptor that is always readable but empty.
-        """
+        """Up to ``n`` bytes, fewer when ``timeout`` expires; OSError at end of file (as
+        pyserial), so a caller never spins on a descriptor readable but empty."""
         out = bytearray()
         deadline = None if self.timeout is None else time.monotonic() + self.timeout
         while len(out) < n:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            r, _, _ = select.select([self.fd], [], [], left)
-            if not r:
+            if not select.select([self.fd], [], [], left)[0]:
                 break
             try:
                 chunk = os.read(self.fd, n - len(out))
             except BlockingIOError:
                 continue
-            if not chunk:  # end of file: readable but nothing to read
+            if not chunk:
                 raise OSError(f"fd {self.fd}: end of file (the other side closed)")
             out += chunk
         return bytes(out)
 
     def write(self, data: bytes) -> int:
-        """Write all of ``data``, waiting while the pty or socket buffer is full.
-
-        Raises OSError when no byte could be written for ``write_timeout`` seconds: a
-        peer that stopped reading must not hold the device (and every other host) up.
-        """
+        """Write all of ``data``, waiting while the buffer is full; OSError when no byte
+        went for ``write_timeout`` s: a peer that stopped reading must not hold the device
+        (and every other host) up."""
         view = memoryview(data)
         while view:
             try:
-                k = os.write(self.fd, view)
+                view = view[os.write(self.fd, view):]
             except BlockingIOError:
-                _, w, _ = select.select([], [self.fd], [], self.write_timeout)
-                if not w:
+                if not select.select([], [self.fd], [], self.write_timeout)[1]:
                     raise OSError(f"fd {self.fd}: no byte written for {self.write_timeout:g} "
                                   "s (the other side does not read)") from None
-                continue
-            view = view[k:]
         return len(data)
 
     def close(self) -> None:

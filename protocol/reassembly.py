@@ -1,15 +1,12 @@
 """Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
-:class:`Joiner` is the one place the host joins FRAGMENTs, keyed by (type, seq, frame,
-column) as docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one
-scan or calibration stream (no port, no clock: the caller passes ``now``): ``feed(frame)``
-takes a COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END frame of the stream; ``ready()``
-gives the columns complete in order, each once; ``due(now)`` the columns (int) and
-fragments ((column, index)) sent, missing and due to be asked for; ``ask(keys, now)``
-counts that they were. ``horizon``: every column below it was sent whole; ``edge`` =
-(column, k): fragments below k of that column were sent too (moved by a later column or
-fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end (SCAN_END
-aborted or error, a lying column) keeps the columns before it and sets ``failure``.
+:class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
+docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one scan or
+calibration stream (no port, no clock: the caller passes ``now``). ``horizon``: every
+column below it was sent whole; ``edge`` = (column, k): fragments below k of that column
+were sent too (moved by a later column or fragment, a HEARTBEAT's ``next_column``,
+SCAN_END's count). An early end (SCAN_END aborted or error, a lying column) keeps the
+columns before it and sets ``failure``.
 """
 
 from __future__ import annotations
@@ -28,13 +25,10 @@ __all__ = ["ColumnReassembler", "Joiner", "StreamEnded", "early_end"]
 
 
 class StreamEnded(DeviceError):
-    """A scan or calibration ended before its last column; every column before
-    ``next_column`` was delivered (yielded), none from it on.
-
-    ``frame``: the stream's frame id; ``reason``: the device's ScanEndReason (ABORTED,
-    ERROR), or None when the host gave up (``ScanStalled``). ``code`` is
-    ErrorCode.INTERNAL when the device failed.
-    """
+    """A scan or calibration (frame id ``frame``) ended before its last column; every
+    column before ``next_column`` was delivered, none from it on. ``reason``: the
+    device's ScanEndReason (ABORTED, ERROR; then ``code`` INTERNAL), None when the host
+    gave up (``ScanStalled``)."""
 
     def __init__(self, message: str, *, frame: int, next_column: int,
                  reason: int | None, code: int = 0) -> None:
@@ -60,9 +54,8 @@ class Joiner:
         self.held: OrderedDict[tuple[int, int, int, int], Pieces] = OrderedDict()
 
     def add(self, frame: Frame, body: dict[str, Any]) -> tuple[Frame, list[Frame]] | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); once every piece is
-        in, the whole message (type and seq from the pieces, their session) and its
-        pieces."""
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the last one gives
+        the whole message (type and seq from the pieces, their session) and its pieces."""
         key = (body["msg_type"], body["seq"], body["frame"], body["column"])
         pc = self.held.get(key)
         if pc is None or pc.count != body["count"]:  # the first piece, or of another cut
@@ -98,12 +91,12 @@ class ColumnReassembler:
 
     @property
     def done(self) -> bool:
-        """Every column up to the end (or to an early end) was delivered."""
+        """Every column up to the end (or an early end) was delivered."""
         return self.nxt >= self.end
 
     @property
     def progress(self) -> tuple:
-        """Changes whenever anything of the stream moves on."""
+        """Changes whenever anything of the stream moves."""
         return (self.nxt, self.horizon, self.edge, self.stored)
 
     def _stop(self, column: int, exc: Exception) -> None:
@@ -122,7 +115,8 @@ class ColumnReassembler:
         return self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, column))
 
     def feed(self, frame: Frame) -> bool:
-        """One stream frame; True when it was of this stream (a sign of life)."""
+        """One COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END; True when of this stream
+        (a sign of life)."""
         mtype = frame.msg_type
         try:
             item: Any = decode_payload(mtype, frame.payload)
@@ -188,7 +182,7 @@ class ColumnReassembler:
         return True
 
     def ready(self) -> Iterator[ColumnResult]:
-        """The columns complete in order from the next one to deliver."""
+        """The columns complete in order from the next one to deliver, each once."""
         while self.nxt in self.received:
             yield self.received.pop(self.nxt)
             self.nxt += 1
@@ -201,8 +195,8 @@ class ColumnReassembler:
         return now - at < min(self.max_resend_s, self.resend_s * 2 ** (tries - 1))
 
     def due(self, now: float) -> list[Any]:
-        """Columns (int) and fragments ((column, index)) sent, missing, due to ask (at
-        most 255)."""
+        """Columns (int) and fragments ((column, index)) sent, missing and due to be asked
+        for (the search stops once 255 are found)."""
         stop = min(self.end, max(self.horizon, self.edge[0] + 1))
         due: list[Any] = []
         for c in range(self.nxt, stop):
@@ -220,10 +214,10 @@ class ColumnReassembler:
         return due
 
     def tries(self, key: Any) -> int:
-        """How often ``key`` was asked for."""
+        """How often ``key`` (of :meth:`due`) was asked for."""
         return self.asked.get(key, (0.0, 0))[1]
 
     def ask(self, keys: list[Any], now: float) -> None:
-        """``keys`` were asked for at ``now``."""
+        """``keys`` were asked for at ``now`` (s)."""
         for key in keys:
             self.asked[key] = (now, self.tries(key) + 1)

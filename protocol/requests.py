@@ -1,18 +1,14 @@
 """Host requests: the session, each request waited for and sent again, one receive path.
 
-:class:`Requests` owns the port, the receive buffer (a
-:class:`~cdma_lidar.protocol.framing.FrameDecoder`), the request counter ``seq`` and the
-session: HELLO with this host's nonce, frame limit and flags; with a key, the CHALLENGE
-answered with the HELLO MAC, INFO checked to prove the device holds the key, every later
-frame signed and checked (:mod:`cdma_lidar.protocol.auth`). It blocks only in
-``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so a test
-drives it with a fake port whose reads move a fake clock. Each frame received is checked
-(session, signature) on its own, FRAGMENTs are joined by their key in one
-:class:`~cdma_lidar.protocol.reassembly.Joiner`, then the whole message is handled; stream
-frames queue in ``stream`` for the scan's
-:class:`~cdma_lidar.protocol.reassembly.ColumnReassembler`. Retransmission follows
-docs/protocol.md section 6.1; a :class:`LinkTimeout` after the last try carries a
-``DIAG_*`` diagnosis (section 6.7) and ends with its :data:`DIAG_HINTS`.
+:class:`Requests` owns the port, the receive buffer (a ``FrameDecoder``), the request
+counter ``seq`` and the session: HELLO with this host's nonce, frame limit and flags; with
+a key, the CHALLENGE answered with the HELLO MAC, INFO checked to prove the device holds
+the key, every later frame signed and checked (:mod:`~cdma_lidar.protocol.auth`). It blocks
+only in ``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so
+tests drive it with a fake port whose reads move a fake clock. Each frame is checked
+(session, signature), FRAGMENTs are joined by key in one ``Joiner``, then the message is
+handled; stream frames queue in ``stream``. Retransmission: docs/protocol.md section 6.1;
+a LinkTimeout after the last try carries a ``DIAG_*`` diagnosis (section 6.7) and its hint.
 """
 
 from __future__ import annotations
@@ -20,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import secrets
+import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,6 +33,7 @@ from cdma_lidar.errors import (
 )
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.framing import (
+    FRAME_LIMIT,
     MIN_MAX_FRAME,
     PROTOCOL_VERSION,
     Frame,
@@ -132,8 +130,8 @@ def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
 
 
 def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
-    """(DIAG_* string, what to say) of what the line showed between two readings of
-    (bytes, frames, wrong session, other version, damaged, LINE_ERRORs) counters."""
+    """(DIAG_*, what to say) of what the line showed between two readings of
+    :meth:`Requests._counters`."""
     nbytes, frames, wrong, version, damaged, reported = (b - a for a, b in zip(before, now,
                                                                                 strict=True))
     if not nbytes:
@@ -164,19 +162,25 @@ def session_lost(frame: Frame, port: str) -> SessionLost:
 
 
 class Requests:
-    """The session and its requests over a port (see the module docstring); the
-    arguments are :class:`~cdma_lidar.protocol.link.HostLink`'s."""
+    """The session and its requests over a port; the arguments are ``HostLink``'s."""
 
-    def __init__(self, port: Any, timeout_s: float, retries: int, *, max_frame: int,
-                 key: bytes | None, take_over: bool, keep_config: bool, fec: bool | None,
-                 clock: Callable[[], float]) -> None:
-        if not timeout_s > 0:
-            raise out_of_range("timeout_s", "a positive number of seconds", timeout_s)
+    def __init__(self, port: Any, timeout_s: float = 0.5, retries: int = 3, *,
+                 column_retries: int | None = None, max_frame: int = FRAME_LIMIT,
+                 key: bytes | None = None, take_over: bool = False, keep_config: bool = False,
+                 fec: bool | None = None, progress_timeout_s: float = 10.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        for name, value in (("timeout_s", timeout_s), ("progress_timeout_s", progress_timeout_s)):
+            if not value > 0:
+                raise out_of_range(name, "a positive number of seconds", value)
         if key is not None and len(key) != auth.KEY_BYTES:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.port, self.clock, self.port_name = port, clock, port_name(port)
         self.timeout_s = float(timeout_s)
         self.retries = check_int("retries", retries, 0, 100)
+        self.column_retries = 10 * (self.retries + 1) if column_retries is None \
+            else check_int("column_retries", column_retries, 0, 1000)
+        self.progress_timeout_s = float(progress_timeout_s)
+        self._next_frame_id = secrets.randbits(31)  # of the next stream
         self.key, self.take_over, self.keep_config = key, bool(take_over), bool(keep_config)
         self.decoder = FrameDecoder(max(max_frame, MIN_MAX_FRAME))
         self.fec = self.decoder.fec = default_fec(port) if fec is None else bool(fec)
@@ -206,23 +210,20 @@ class Requests:
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
-        #: Smoothed round trip of a request and its reply and its mean deviation (s),
-        #: measured on first tries; None until the first reply.
+        #: Smoothed round trip and its mean deviation (s), of first tries; None until one.
         self.rtt: float | None = None
         self.rtt_var = 0.0
         #: Shortest wait for a reply (s): below it a busy host's scheduling is the noise.
         self.min_timeout_s = min(MIN_TIMEOUT_S, self.timeout_s)
-        #: Seconds one byte takes on the line (0: unknown, or no line to speak of).
-        self.byte_s = byte_time_s(port)
+        self.byte_s = byte_time_s(port)  # s per byte on the line (0: unknown or none)
 
     # ---- the session ------------------------------------------------------------------
     def hello(self) -> Info:
-        """Open a session: learn the device's identity, limits, geometry and session id.
+        """Open a session: the device's identity, limits, geometry and session id.
 
-        With a key, answers the device's CHALLENGE and checks that INFO is signed with
-        the session key (so the device holds the key too). Raises DeviceError (code
-        BUSY, field ``session``) when another host owns the device and ``take_over``
-        is off; DeviceLied when INFO contradicts itself.
+        With a key, answers the CHALLENGE and checks that INFO is signed with the session
+        key. DeviceError (code BUSY, field ``session``) when another host owns the device
+        and ``take_over`` is off; DeviceLied when INFO contradicts itself.
         """
         self._forget()
         self.coded = False
@@ -249,8 +250,8 @@ class Requests:
                         "it does not accept this host's key")
 
     def _open(self, reply: dict[str, Any], device_nonce: bytes) -> Info:
-        """Check INFO and make its session ours: requests within what the device accepts
-        and this host asked for the line, coded when the device coded its INFO."""
+        """Check INFO and make its session ours (requests within both ends' max frame,
+        coded when the device coded its INFO)."""
         try:
             info = Info.from_fields(reply)
         except (TypeError, ValueError) as exc:
@@ -301,8 +302,8 @@ class Requests:
         self.signer = self.verifier = None
 
     def close(self) -> None:
-        """End the session (SESSION_END, one short try: another host may then say HELLO
-        without take-over) and close the port."""
+        """End the session (SESSION_END, one short try, so another host may HELLO without
+        take-over) and close the port."""
         if self.session is not None:
             try:
                 self.transact(MsgType.SESSION_END, {}, self.new_seq(), retries=0,
@@ -372,9 +373,8 @@ class Requests:
 
     def reply_wait(self, nbytes: int, attempt: int, timeout_s: float | None = None) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
-        for its reply (s): the measured round trip plus four of its mean deviations and
-        the request's transmit time, at least ``min_timeout_s``, doubled at each retry,
-        at most ``timeout_s``; ``timeout_s`` before the line has been measured."""
+        (s): round trip + 4 mean deviations + transmit time, at least ``min_timeout_s``,
+        doubled per retry, at most ``timeout_s`` (that before the line is measured)."""
         top = self.timeout_s if timeout_s is None else timeout_s
         if self.rtt is None:
             return top
@@ -391,9 +391,8 @@ class Requests:
             self.rtt += (rtt - self.rtt) / 8
 
     def _send(self, msg_type: MsgType, payload: bytes, seq: int) -> int:
-        """Write one try of a request, signed afresh (new counter, same seq and payload),
-        whole or in FRAGMENTs of at most ``max_frame`` bytes (docs/protocol.md section
-        2.4); returns the bytes written."""
+        """Write one try of a request (bytes written), signed afresh (same seq), whole or
+        in FRAGMENTs of at most ``max_frame`` bytes (docs/protocol.md section 2.4)."""
         signed = self.signer is not None
         pieces = [(msg_type, payload)]
         if frame_size(len(payload), signed) > self.max_frame:
@@ -406,9 +405,8 @@ class Requests:
         wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self.signer,
                                      coded=self.coded) for t, p in pieces)
         if msg_type == MsgType.HELLO and self.fec:
-            # Coded (gets through a noisy line), then plain (a device that cannot decode
-            # it, or an older one, reads this copy): the device acts once, the replay
-            # cache answers the copy.
+            # Coded (gets through a noisy line), then plain (for a device that cannot
+            # decode it): the device acts once, its replay cache answers the copy.
             wire = encode_frame(msg_type, payload, seq, 0, coded=True) + wire
         try:
             self.port.write(wire)
@@ -418,8 +416,8 @@ class Requests:
         return len(wire)
 
     def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> int:
-        """Send a request whose reply is not waited for (a NAK to it still fails the
-        scan); returns the bytes written."""
+        """Send a request whose reply is not waited for (bytes written); a NAK to it
+        still fails the scan."""
         seq = self.new_seq()
         self.stats.requests += 1
         self._unawaited[seq] = msg_type
@@ -429,7 +427,7 @@ class Requests:
 
     def _counters(self) -> tuple[int, ...]:
         """What :func:`diagnose` compares: bytes, frames, wrong session, other version
-        (rejected for version or incompat flags), damaged, LINE_ERRORs so far."""
+        or incompat flags, damaged, LINE_ERRORs so far."""
         st = self.decoder.stats
         return (st.bytes, st.frames, self.stats.wrong_session, st.version + st.incompat,
                 st.damaged, self.line_errors)
@@ -455,8 +453,8 @@ class Requests:
 
     # ---- receiving ----------------------------------------------------------------------
     def pump(self) -> None:
-        """Handle the frames read behind the last reply, else one blocking read (at most
-        ``port.timeout``) and the frames it completes, up to the pending reply."""
+        """Handle the frames read behind the last reply, else one read (at most
+        ``port.timeout`` s) and its frames, up to the pending reply."""
         if not self._inbox:
             try:
                 n = self.port.in_waiting
@@ -474,10 +472,8 @@ class Requests:
             self._receive(self._inbox.popleft())
 
     def _receive(self, frame: Frame) -> None:
-        """Check one frame (session, signature), join it with its pieces, handle it whole.
-
-        The replies to our HELLO (INFO, CHALLENGE, NAK, or FRAGMENTs of them) are of a
-        session we do not know yet: INFO's is checked when it opens (:meth:`_open`)."""
+        """Check one frame (session, signature), join its pieces, handle it whole. Replies
+        to our HELLO (or their FRAGMENTs) are of a session not known yet (see :meth:`_open`)."""
         mtype = frame.msg_type
         if kind_of(mtype) is MsgKind.REQUEST:
             self.stats.ignored += 1
@@ -551,14 +547,14 @@ class Requests:
             self.stats.stale_replies += 1
 
     def start_stream(self) -> None:
-        """Stream frames go to :attr:`stream` from now on (a late NAK to a RESEND of an
-        earlier stream is not this one's)."""
+        """Stream frames go to :attr:`stream` from now on (NAKs to an earlier stream's
+        RESENDs are not this one's)."""
         self.end_stream()
         self._unawaited.clear()
         self.refusal, self.streaming = None, True
 
     def end_stream(self) -> None:
-        """No stream: its frames go, and the pieces held (the next may reuse a frame id)."""
+        """No stream: its frames and pieces go (the next may reuse a frame id)."""
         self.streaming = False
         self.stream.clear()
         self.joiner.held.clear()

@@ -1,14 +1,12 @@
 """Device column streams: SCAN_START, CALIBRATE, SCAN_ABORT, RESEND, and the measurement
 engine that computes their columns.
 
-:class:`Streams` owns one connection's streams: the running one, the ring of recent
-columns (for RESEND) and what STATUS says of the last one. The connection's loop calls
-:meth:`Streams.collect` and :meth:`Streams.advance` between its reads: once the line has
-taken a stream's last column, the :class:`Engine` is handed the next one, and the
-column it returns is kept in the ring and queued on the
-:class:`~cdma_lidar.protocol.transmit.Transmitter`, so a stream never runs ahead of the
-line. A stream that ends has its generator closed (and ``app.abort()`` called when it
-ended early) by the engine too, after the column in progress.
+:class:`Streams` owns one connection's streams: the running one, the ring of recent columns
+(for RESEND) and what STATUS says of the last one. Between its reads the connection's loop
+calls :meth:`Streams.collect` and :meth:`Streams.advance`: once the line has taken a
+stream's last column the :class:`Engine` computes the next, which is kept in the ring and
+queued on the ``Transmitter``, so a stream never runs ahead of the line. The engine also
+ends a stream (closes its generator, ``app.abort()`` if early) after the column in progress.
 """
 
 from __future__ import annotations
@@ -36,23 +34,18 @@ log = logging.getLogger(__name__)
 
 class Engine:
     """The measurement engine of one device: runs the application's column steps and
-    stream clean-ups one at a time, in the order submitted.
-
-    A step cannot be bounded below the 50 ms in which the connections' loops must
-    answer (one column of paper-scene1 at averages 1024 and samples per chip 16 takes
-    0.1-0.2 s on a 2-core machine; the virtual board computes columns in batches of
-    seconds), so the steps run on the engine's own thread, which touches nothing but
-    the application; the loops call the application only while it is :attr:`idle`.
-    ``threaded=False``: each job runs at once in the caller (a test stepping a device on
-    a fake clock), through the same code otherwise.
+    stream clean-ups one at a time, in the order submitted, on its own thread, which
+    touches nothing but the application: a step cannot be bounded below the 50 ms in which
+    the loops must answer (0.1-0.2 s for a column of paper-scene1 at averages 1024 and
+    samples per chip 16 on 2 cores; the virtual board computes batches of seconds). The
+    loops call the application only while the engine is :attr:`idle`. ``threaded=False``:
+    each job runs at once in the caller (a test on a fake clock), otherwise the same code.
     """
 
     def __init__(self, threaded: bool = True) -> None:
         self.threaded = threaded
         self.last: Future | None = None  # the last job submitted
-        self._jobs: queue.SimpleQueue[tuple[Future, Callable[[], Any]] | None] = \
-            queue.SimpleQueue()
-        self._thread: threading.Thread | None = None
+        self._jobs: queue.SimpleQueue | None = None  # the running thread's
 
     @property
     def idle(self) -> bool:
@@ -66,12 +59,12 @@ class Engine:
         job.started = time.monotonic()  # type: ignore[attr-defined]
         if not self.threaded:
             _run(job, fn)
-        else:
-            if self._thread is None:  # a daemon: a column never holds up the exit
-                self._thread = threading.Thread(target=self._serve, args=(self._jobs,),
-                                                daemon=True, name="cdma-lidar-engine")
-                self._thread.start()
-            self._jobs.put((job, fn))
+            return job
+        if self._jobs is None:  # a daemon: a column never holds up the exit
+            self._jobs = queue.SimpleQueue()
+            threading.Thread(target=self._serve, args=(self._jobs,), daemon=True,
+                             name="cdma-lidar-engine").start()
+        self._jobs.put((job, fn))
         return job
 
     @staticmethod
@@ -81,9 +74,9 @@ class Engine:
 
     def close(self) -> None:
         """Let the thread end after the jobs queued (a later job starts a new one)."""
-        if self._thread is not None:
+        if self._jobs is not None:
             self._jobs.put(None)
-            self._jobs, self._thread = queue.SimpleQueue(), None
+            self._jobs = None
 
 
 def _run(job: Future, fn: Callable[[], Any]) -> None:
@@ -112,23 +105,17 @@ class Stream:
 
 
 class Streams:
-    """The streams of one connection (see the module docstring).
-
-    Args:
-        app: the device application (called only while the engine is idle, or by it).
-        tx: the connection's transmitter.
-        engine: the device's measurement engine.
-        ring_columns: recent columns kept for RESEND.
-        clock: monotonic clock (s).
-        stopped: called when a stream ends (its idle time counts from then).
+    """The streams of one connection (see the module docstring): ``app`` is called only
+    while ``engine`` is idle, or by it; ``ring_columns`` recent columns are kept for RESEND;
+    ``clock`` is monotonic (s); ``stopped()`` when a stream ends (idle time counts from then).
     """
 
     def __init__(self, app: Any, tx: Transmitter, engine: Engine, *, ring_columns: int,
                  clock: Callable[[], float], stopped: Callable[[], None]) -> None:
         self.app, self.tx, self.engine = app, tx, engine
         self.ring_columns, self.clock, self._stopped = ring_columns, clock, stopped
-        self.stream: Stream | None = None
-        self.latest: Stream | None = None  # the last stream started, running or not
+        self.stream: Stream | None = None  # the running one
+        self.latest: Stream | None = None  # the last started, running or not
         self.config: dict[str, Any] | None = None  # the app's config when it started
         self.last_frame = self.last_next = 0
         self.last_end = ScanEndReason.COMPLETE
@@ -137,11 +124,12 @@ class Streams:
         self.ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
 
     def handlers(self) -> dict[MsgType, Callable[[Frame, dict], Reply]]:
-        return {MsgType.SCAN_START: self._scan_start, MsgType.CALIBRATE: self._calibrate,
+        return {MsgType.SCAN_START: self._start, MsgType.CALIBRATE: self._start,
                 MsgType.SCAN_ABORT: self._scan_abort, MsgType.RESEND: self._resend}
 
-    def _start(self, req: Frame, gen_factory: Callable[[], Iterator[ColumnResult]],
-               frame: int, first: int, count: int, calibration: bool) -> Reply:
+    def _start(self, req: Frame, f: dict) -> Reply:
+        """SCAN_START or CALIBRATE (column = shot); the application is asked only when
+        the stream is accepted."""
         if self.stream is not None:
             return self.tx.nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
         channels = self.app.info().channels
@@ -153,18 +141,15 @@ class Streams:
                                f"a column of {channels} channels x {peaks} peaks ({size} bytes) "
                                f"needs more than {MAX_PIECES} fragments at max frame "
                                f"{self.tx.max_frame}")
-        self.stream = self.latest = Stream(iter(gen_factory()), frame, first, count,
-                                           calibration)
+        frame = f["frame"]
+        if req.msg_type == MsgType.CALIBRATE:
+            st = Stream(iter(self.app.calibrate(frame, f["shots"])), frame, 0, f["shots"], True)
+        else:
+            st = Stream(iter(self.app.scan(frame, f["first_column"], f["columns"])), frame,
+                        f["first_column"], f["columns"], False)
+        self.stream = self.latest = st
         self.last_frame, self.last_heartbeat = frame, self.clock()
         return self.tx.ack(req)
-
-    def _scan_start(self, req: Frame, f: dict) -> Reply:
-        return self._start(req, lambda: self.app.scan(f["frame"], f["first_column"], f["columns"]),
-                           f["frame"], f["first_column"], f["columns"], False)
-
-    def _calibrate(self, req: Frame, f: dict) -> Reply:
-        return self._start(req, lambda: self.app.calibrate(f["frame"], f["shots"]),
-                           f["frame"], 0, f["shots"], True)
 
     def _scan_abort(self, req: Frame, f: dict) -> Reply:
         self.stop(ScanEndReason.ABORTED)  # its SCAN_END goes after the ACK (class FRESH)

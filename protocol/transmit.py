@@ -1,11 +1,10 @@
 """Device transmit queue: three priority classes, FRAGMENTs, signing at send time.
 
-Frames of one connection wait in three classes, each first-in first-out, sent in
-this order: replies and notices (:data:`CONTROL`), retransmitted columns
-(:data:`REPAIR`), new columns and SCAN_END (:data:`FRESH`). On a UART at 921600 baud a
-1.6 kB column takes 18 ms, so a reply or a repair waits for at most the frame on the
-wire. Frames are encoded and signed when they leave, so signature counters rise in
-wire order whatever the class. The connection's loop is the only writer.
+Frames of one connection wait first-in first-out in three classes, sent in this order:
+replies and notices (:data:`CONTROL`), retransmitted columns (:data:`REPAIR`), new columns
+and SCAN_END (:data:`FRESH`). At 921600 baud a 1.6 kB column takes 18 ms, so a reply or a
+repair waits at most for the frame on the wire. Frames are encoded and signed as they
+leave, so signature counters rise in wire order. The connection's loop is the only writer.
 """
 
 from __future__ import annotations
@@ -55,21 +54,19 @@ def clip(s: str, limit: int = 255) -> str:
 class Transmitter:
     """The transmit side of one connection.
 
-    ``session``, ``max_frame`` (largest frame sent, bytes), ``signer`` and ``coded``
-    describe the current session's frames; a frame takes them when it is queued.
-    ``counters``: objects whose ``tx_frames`` count every frame written and
-    ``columns_sent`` every COLUMN_RESULT queued (new or resent); the first (the
-    connection's) also counts the NAKs made by :meth:`nak`.
+    ``session``, ``max_frame`` (largest frame sent, bytes), ``signer`` and ``coded`` are the
+    current session's; a frame takes them when queued. ``counters``: objects whose
+    ``tx_frames`` count frames written and ``columns_sent`` COLUMN_RESULTs queued (new or
+    resent); the first (the connection's) also counts in ``naks`` the NAKs of :meth:`nak`.
     """
 
     def __init__(self, port: Any, session: int, max_frame: int, counters: Iterable[Any]) -> None:
-        self.port = port
-        self.session, self.max_frame = session, max_frame
+        self.port, self.session, self.max_frame = port, session, max_frame
         self.signer: FrameSigner | None = None
         self.coded = False
         self.counters = tuple(counters)
-        #: Per class: (type, repair, seq or None: the next stream seq, the frame's encoder
-        #: given its seq), encoded (and signed) when it goes out.
+        #: Per class: (type, repair key, seq (None: the next stream seq), the frame's
+        #: encoder given its seq).
         self._q: tuple[deque[tuple[MsgType, Any, int | None, Callable[..., bytes]]], ...] = \
             (deque(), deque(), deque())
         self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
@@ -95,16 +92,17 @@ class Transmitter:
             (MsgType.NAK, payload, signed)
 
     def answer(self, req: Frame, reply: Reply) -> None:
-        """Queue ``reply`` to ``req`` first (class CONTROL, the request's seq), coded if
-        the session or the request is, signed if the reply is."""
+        """Queue ``reply`` to ``req`` (class CONTROL, the request's seq), coded if the
+        session or the request is, signed if the reply is."""
         self.send(CONTROL, reply[0], reply[1], req.seq, coded=self.coded or req.fec,
                   signer=self.signer if reply[2] else None)
 
     def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
             signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
             coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
-        """Queue one frame of class ``cls`` (REPAIR frames go out marked retransmitted);
-        a ``repair`` = (frame, column, fragment or -1) already queued is not queued twice;
+        """Queue one frame of class ``cls`` (REPAIR frames marked retransmitted), unless
+        its ``repair`` = (frame, column, fragment or -1) is queued already: a host that
+        asks again before the first answer reached it costs the line nothing.
         ``version``: another only for NAK VERSION to an older host."""
         if repair is not None:
             if repair in self._repairs:
@@ -117,9 +115,9 @@ class Transmitter:
             coded=self.coded if coded is _SESSION else coded)))
 
     def flush(self, budget: int | None = None) -> None:
-        """Send the queued frames, highest priority first; ``budget``: stop after about
-        this many bytes of classes above CONTROL (replies and notices all go), so that
-        the loop reads again between a stream's frames."""
+        """Send the queued frames, highest class first; ``budget``: stop after about this
+        many bytes above CONTROL (replies and notices all go), so the loop reads between
+        a stream's frames."""
         sent = 0
         for cls, queue in enumerate(self._q):  # nothing is queued meanwhile: one loop
             while queue:
@@ -144,7 +142,7 @@ class Transmitter:
         return bool(self._q[cls])
 
     def fresh_pending(self) -> int:
-        """1 while frames of a new column wait in the queue (that column is not sent yet)."""
+        """1 while frames of a new column wait (that column is not sent yet), else 0."""
         return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH]))
 
     def drop(self, cls: int) -> None:
@@ -154,21 +152,19 @@ class Transmitter:
             self._repairs.clear()
 
     def fits(self, payload_len: int) -> bool:
-        """A payload of this session goes out whole or in at most MAX_PIECES FRAGMENTs."""
+        """A payload (bytes) of this session goes whole or in at most MAX_PIECES FRAGMENTs."""
         return payload_len <= MAX_PIECES * (self.max_frame - frame_size(
             FRAGMENT_HEADER, self.signer is not None))
 
     def send(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
              key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: Any = _SESSION,
              only: Iterable[int] | None = None) -> None:
-        """Queue one message of class ``cls``: whole, or as FRAGMENTs as long as the max
-        frame carries (all, or the indexes in ``only``; all when one is not a piece).
+        """Queue one message of class ``cls``, whole or in FRAGMENTs of the max frame (the
+        indexes in ``only``; all when it is None or names one beyond the last).
 
-        ``seq``: a reply's (the request's); None: a stream frame's (whole: the next
-        stream seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT,
-        whose FRAGMENTs name its ``key`` = (frame, column)). A REPAIR already queued is
-        not queued twice: a host that asks again before the first answer reached it
-        costs the line nothing.
+        ``seq``: a reply's (the request's); None: a stream frame's (whole: the next stream
+        seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT, whose
+        FRAGMENTs name ``key`` = (frame, column)).
         """
         if msg_type == MsgType.COLUMN_RESULT:
             for c in self.counters:
