@@ -181,11 +181,8 @@ class _Rejected(FrameError):
 
 @dataclass
 class DecoderStats:
-    """Counts of what a :class:`FrameDecoder` saw (every error event is one count).
-
-    ``frames`` are accepted frames; every other field except ``bytes`` counts a
-    rejected chunk between delimiters.
-    """
+    """Counts of what a :class:`FrameDecoder` saw: ``bytes`` fed, ``frames`` accepted; every
+    other field counts a rejected chunk between delimiters."""
 
     bytes: int = 0
     frames: int = 0
@@ -211,21 +208,17 @@ class DecoderStats:
 
 
 class FrameDecoder:
-    """Stream decoder: feed it any slices of the byte stream, get whole frames back.
-
-    It owns its receive buffer, so partial reads (pyserial ``read(n)`` may return
-    fewer bytes) are fine. A chunk longer than a coded ``max_frame`` after COBS is dropped
-    up to the next delimiter and counted as ``oversize`` without being buffered.
-    ``rejected`` lists frames that passed the CRC but had another version or unknown
-    incompatible flags (the device answers them with a NAK); the caller drains it.
+    """Stream decoder: feed it any slices of the byte stream (partial reads are fine), get
+    whole frames back. A chunk longer than a coded ``max_frame`` after COBS is dropped up
+    to the next delimiter (counted ``oversize``, never buffered). ``rejected`` lists
+    frames that passed the CRC but had another version or unknown incompat flags (the
+    device NAKs them); the caller drains it.
 
     ``fec``: a chunk that is not a valid plain frame is read as a Reed-Solomon coded one
-    (:mod:`cdma_lidar.protocol.fec`): its data bytes first (one CRC), corrected only if
-    they fail; a frame that arrived coded has ``fec`` set. A coded chunk that still
-    fails is tried without its first or last byte (a delimiter damaged into a data
-    byte joined it), and joined to the damaged chunks right before it (a data byte
-    damaged into 0x00 split it). Off by default: correcting costs about 3 ms per kB of
-    damaged chunk, which only a line that needs it pays.
+    (its data bytes first, corrected only if they fail; such a frame has ``fec`` set),
+    then without its first or last byte (a delimiter damaged into a data byte joined
+    it), then joined to the damaged chunks before it (a data byte damaged into 0x00 split
+    it). Off by default: correcting costs about 3 ms per kB of damaged chunk.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT, fec: bool = False) -> None:
@@ -247,11 +240,8 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the frames they complete, in order. Never raises.
-
         Linear in the bytes fed whatever the read sizes: each byte is searched for a
-        delimiter once and copied into the receive buffer at most once (``copied``
-        counts those copies, so a test can check it without a clock).
-        """
+        delimiter once and copied into the receive buffer at most once (``copied``)."""
         st = self.stats
         st.bytes += len(data)
         data = bytes(data)
@@ -329,9 +319,9 @@ class FrameDecoder:
         if len(chunk) > self._max_chunk:
             return "oversize"
         reason = ""
-        for coded, read in ((False, self._plain), (True, self._coded))[:1 + self.fec]:
+        for coded in (False, True)[:1 + self.fec]:
             try:
-                return read(chunk)
+                return self._coded(chunk) if coded else (self._frame(cobs.decode(chunk)), False)
             except _Rejected as exc:
                 if len(self.rejected) < 64:
                     self.rejected.append(exc.frame._replace(fec=coded))
@@ -344,9 +334,6 @@ class FrameDecoder:
         if len(body) > self.max_frame:
             raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
         return decode_frame(body)
-
-    def _plain(self, chunk: bytes) -> tuple[Frame, bool]:
-        return self._frame(cobs.decode(chunk)), False
 
     def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
         """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
