@@ -5,6 +5,14 @@ frozen in every protocol version)::
 
     00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
+COBS (Consistent Overhead Byte Stuffing, Cheshire and Baker 1999) removes every 0x00, so
+0x00 delimits frames: the data is cut at each zero into blocks, each sent as one code
+byte (block length + 1) and its non-zero bytes, the zero implied; a run of 254 non-zero
+bytes is code 0xFF and implies no zero; the last block's implied zero is dropped::
+
+    11 22 00 33 -> 03 11 22 02 33     00 -> 01 01     (empty) -> 01
+    254 x non-zero -> FF <254 bytes>
+
 The signature is there when incompat bit 0 (INCOMPAT_SIGNED) is set
 (:mod:`cdma_lidar.protocol.auth`). crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header,
 payload and signature, little-endian. A session with FEC Reed-Solomon codes the body
@@ -19,16 +27,19 @@ import zlib
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
+from cobs import cobs as _cobs
+
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from cdma_lidar.protocol import cobs, fec
+from cdma_lidar.protocol import fec
 from cdma_lidar.protocol.fec import coded_len
 from cdma_lidar.protocol.schema import Layout, u
 
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
-           "crc32", "decode_frame", "encode_frame", "frame_size"]
+           "cobs_decode", "cobs_encode", "cobs_max_len", "crc32", "decode_frame", "encode_frame",
+           "frame_size"]
 
 #: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
 #: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
@@ -66,6 +77,26 @@ INCOMPAT_KNOWN = INCOMPAT_SIGNED
 SIGNATURE_SIZE = 24
 
 _CRC = struct.Struct("<I")
+
+
+#: COBS-encode bytes, no delimiters (the ``cobs`` package's C extension; the tests hold it
+#: byte for byte to a pure-Python reference, ``tests/protocol/wire_oracle.py``).
+cobs_encode = _cobs.encode
+
+
+def cobs_decode(enc: bytes) -> bytes:
+    """COBS-decode ``enc`` (no delimiters); raises FrameError (only) if malformed."""
+    if not enc:
+        raise FrameError("COBS: empty input")
+    try:
+        return _cobs.decode(enc)
+    except _cobs.DecodeError as exc:
+        raise FrameError(f"COBS: {exc}") from None
+
+
+def cobs_max_len(n: int) -> int:
+    """Upper bound (bytes) of the COBS encoding of ``n`` data bytes, delimiters excluded."""
+    return n + 1 + n // 254
 
 
 def crc32(data: bytes) -> int:
@@ -138,8 +169,8 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
     if coded:  # a second delimiter after it: one damaged on the line still ends the frame
-        return b"".join((DELIMITER, fec.encode(cobs.encode(fec.whiten(body))), DELIMITER * 2))
-    return b"".join((DELIMITER, cobs.encode(body), DELIMITER))
+        return b"".join((DELIMITER, fec.encode(cobs_encode(fec.whiten(body))), DELIMITER * 2))
+    return b"".join((DELIMITER, cobs_encode(body), DELIMITER))
 
 
 def decode_frame(body: bytes) -> Frame:
@@ -231,7 +262,7 @@ class FrameDecoder:
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         #: Largest decoded frame accepted (bytes, header and CRC included).
         self.max_frame = check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
-        self._max_chunk = coded_len(cobs.max_encoded_len(max_frame)) + 1  # coded or not
+        self._max_chunk = coded_len(cobs_max_len(max_frame)) + 1  # coded or not
 
     @property
     def buffered(self) -> int:
@@ -321,7 +352,7 @@ class FrameDecoder:
         reason = ""
         for coded in (False, True)[:1 + self.fec]:
             try:
-                return self._coded(chunk) if coded else (self._frame(cobs.decode(chunk)), False)
+                return self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
             except _Rejected as exc:
                 if len(self.rejected) < 64:
                     self.rejected.append(exc.frame._replace(fec=coded))
@@ -341,8 +372,8 @@ class FrameDecoder:
         if not fec.plausible(chunk):
             raise FrameError("cobs: not a coded frame")
         try:
-            return self._frame(fec.whiten(cobs.decode(fec.strip(chunk))))._replace(fec=True), False
+            return self._frame(fec.whiten(cobs_decode(fec.strip(chunk))))._replace(fec=True), False
         except _Rejected:
             raise
         except FrameError:
-            return self._frame(fec.whiten(cobs.decode(fec.decode(chunk))))._replace(fec=True), True
+            return self._frame(fec.whiten(cobs_decode(fec.decode(chunk))))._replace(fec=True), True
