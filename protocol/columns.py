@@ -90,14 +90,6 @@ _LAG_FIELDS = frozenset(f.name for f in RECORD if f.encoding == "lag")
 _FIRST_EXTRA = next(f for f in RECORD if f.per_extra_peak)
 
 
-def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
-    """Sign array (..., n) in {-1, 0, +1} from the two masks."""
-    bits = np.arange(n, dtype=np.uint8)
-    neg_b = (np.asarray(neg)[..., None] >> bits) & 1
-    zero_b = (np.asarray(zero)[..., None] >> bits) & 1
-    return np.where(zero_b == 1, 0, np.where(neg_b == 1, -1, 1)).astype(np.int8)
-
-
 _FORMS = {"lag": "int64, -1 where the wire says NO_PEAK", "flag": "bool",
           "signs": "int8 in {-1, 0, +1}"}
 
@@ -112,8 +104,10 @@ def _view(name: str) -> property:
         r = self.records[wire[0]]
         if f.encoding == "lag":
             return np.where(r == NO_PEAK, -1, r.astype(np.int64))
-        if f.encoding == "signs":
-            return _signs(r, self.records[wire[1]], self.uid_bits)
+        if f.encoding == "signs":  # (..., n): bit p of the -1 mask and of the 0 mask
+            bits = np.arange(self.uid_bits, dtype=np.uint8)
+            neg, zero = ((self.records[w][..., None] >> bits) & 1 for w in wire)
+            return np.where(zero == 1, 0, np.where(neg == 1, -1, 1)).astype(np.int8)
         return r.astype(bool) if f.encoding == "flag" else r
 
     get.__name__ = name
@@ -225,9 +219,8 @@ class ColumnResult:
             arr = _checked_array(f.name, fields.get(f.name), (k, *f.shape(n, e + 1)))
             if f.encoding == "signs":  # two masks: bit p of each is period p
                 weights = (1 << np.arange(n)).astype(np.uint8)
-                neg, zero = f.wire
-                rec[neg.name] = (arr < 0).astype(np.uint8) @ weights
-                rec[zero.name] = (arr == 0).astype(np.uint8) @ weights
+                for w, mask in zip(f.wire, (arr < 0, arr == 0), strict=True):
+                    rec[w.name] = mask.astype(np.uint8) @ weights
             else:
                 rec[f.name] = arr
             if f.name == "uid_observed" and int(arr.max()) >= 1 << n:
