@@ -1,8 +1,9 @@
-"""Message catalogue: every payload declared once (:mod:`~cdma_lidar.protocol.schema`
-fields, with units and ranges), from which come the checked encoder (:func:`encode_payload`,
-FieldError naming the field), the strict decoder (:func:`decode_payload`, FrameError only),
-the spec's tables (:mod:`~cdma_lidar.protocol.spec`) and :data:`SCHEMA_CRC`. The type byte's
-range says who sends it: request 0x01..0x7F, reply 0x80..0xBF, stream 0xC0..0xFF.
+"""Message catalogue: every payload declared once, with units and ranges.
+
+From the :mod:`~cdma_lidar.protocol.schema` fields come the checked encoder (FieldError
+naming the field), the strict decoder (FrameError only), the spec's tables and
+:data:`SCHEMA_CRC`. The type byte says who sends it: request 0x01..0x7F, reply
+0x80..0xBF, stream 0xC0..0xFF.
 """
 
 from __future__ import annotations
