@@ -206,8 +206,7 @@ class _Rejected(FrameError):
     def __init__(self, reason: str, frame: Frame) -> None:
         super().__init__(f"{reason}: version {frame.version}, incompat flags "
                          f"0x{frame.incompat:02x}")
-        self.reason = reason
-        self.frame = frame
+        self.reason, self.frame = reason, frame
 
 
 @dataclass

@@ -354,9 +354,8 @@ class Pieces:
         if body["index"] not in self.data:
             self.frames.append(frame)
         self.data[body["index"]] = body["data"]
-        if len(self.data) < self.count:
-            return None
-        return b"".join(self.data[i] for i in range(self.count))
+        return None if len(self.data) < self.count else b"".join(
+            self.data[i] for i in range(self.count))
 
 
 def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,

@@ -230,9 +230,8 @@ def vectors() -> str:
     session, flags, host_max = 0xA1B2C3D4, 0x04, 4096
     to_dev, to_host = auth.session_keys(key, host_nonce, device_nonce, session)
     payload = encode_payload(MsgType.STATUS_GET, {})
-    signer = auth.FrameSigner(to_dev)
     signed = framing.encode_frame(int(MsgType.STATUS_GET), payload, 0x0102, session,
-                                  signer=signer)
+                                  signer=auth.FrameSigner(to_dev))
     head = framing.HEADER.pack(framing.PROTOCOL_VERSION, framing.INCOMPAT_SIGNED, 0,
                                int(MsgType.STATUS_GET), 0x0102, 0, session)
     sig = auth.FrameSigner(to_dev).sign(head)
