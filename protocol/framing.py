@@ -39,7 +39,7 @@ __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER"
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
            "cobs_decode", "cobs_encode", "cobs_max_len", "crc32", "decode_frame", "encode_frame",
-           "frame_size"]
+           "frame_size", "rejects"]
 
 #: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
 #: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
@@ -174,11 +174,9 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
 
 
 def decode_frame(body: bytes) -> Frame:
-    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid.
-
-    The reason is the first word of the message: ``short``, ``crc``, ``length``,
-    ``version`` or ``incompat``.
-    """
+    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid, the
+    reason the first word of the message: ``short``, ``crc`` or ``length``. A frame of
+    another version or with unknown incompat flags is returned (see :func:`rejects`)."""
     n = len(body)
     if n < OVERHEAD:
         raise FrameError(f"short: {n} bytes, a frame has at least {OVERHEAD}")
@@ -191,22 +189,15 @@ def decode_frame(body: bytes) -> Frame:
         raise FrameError(f"length: header says {plen} payload bytes, frame has "
                          f"{n - OVERHEAD - sig_len}")
     end = HEADER_SIZE + plen
-    frame = Frame(msg_type, seq, session, body[HEADER_SIZE:end], compat, incompat, version,
-                  body[end:end + sig_len])
-    if version != PROTOCOL_VERSION:
-        raise _Rejected("version", frame)
-    if incompat & ~INCOMPAT_KNOWN:
-        raise _Rejected("incompat", frame)
-    return frame
+    return Frame(msg_type, seq, session, body[HEADER_SIZE:end], compat, incompat, version,
+                 body[end:end + sig_len])
 
 
-class _Rejected(FrameError):
-    """A frame with a valid CRC that this version must not act on (version, incompat flags)."""
-
-    def __init__(self, reason: str, frame: Frame) -> None:
-        super().__init__(f"{reason}: version {frame.version}, incompat flags "
-                         f"0x{frame.incompat:02x}")
-        self.reason, self.frame = reason, frame
+def rejects(frame: Frame) -> str:
+    """Why this version must not act on a frame that passed the CRC: ``version``,
+    ``incompat`` (unknown incompat flags), or "" when it may."""
+    return "version" if frame.version != PROTOCOL_VERSION else \
+        "incompat" if frame.incompat & ~INCOMPAT_KNOWN else ""
 
 
 @dataclass
@@ -339,8 +330,9 @@ class FrameDecoder:
                     got = self._coded(candidate)
                 except FrameError:
                     continue
-                self.stats.rejoined += 1
-                return got
+                if not rejects(got[0]):
+                    self.stats.rejoined += 1
+                    return got
         return None
 
     def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:
@@ -351,13 +343,15 @@ class FrameDecoder:
         reason = ""
         for coded in (False, True)[:1 + self.fec]:
             try:
-                return self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
-            except _Rejected as exc:
-                if len(self.rejected) < 64:
-                    self.rejected.append(exc.frame._replace(fec=coded))
-                return exc.reason
+                got = self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
             except FrameError as exc:
                 reason = reason or str(exc).split(":", 1)[0].lower()
+                continue
+            if not (why := rejects(got[0])):
+                return got
+            if len(self.rejected) < 64:
+                self.rejected.append(got[0])
+            return why
         return reason
 
     def _frame(self, body: bytes) -> Frame:
@@ -372,7 +366,5 @@ class FrameDecoder:
             raise FrameError("cobs: not a coded frame")
         try:
             return self._frame(fec.whiten(cobs_decode(fec.strip(chunk))))._replace(fec=True), False
-        except _Rejected:
-            raise
         except FrameError:
             return self._frame(fec.whiten(cobs_decode(fec.decode(chunk))))._replace(fec=True), True
