@@ -1,8 +1,8 @@
 """Serial/USB frame protocol spoken by host and device (``docs/protocol.md`` is the
 byte-exact spec). Modules, bottom up:
 
-* wire: ``cobs`` (byte stuffing), ``fec`` (Reed-Solomon around the COBS frame),
-  ``framing`` (header, CRC-32, the stream decoder ``FrameDecoder``);
+* wire: ``fec`` (Reed-Solomon around the COBS frame), ``framing`` (COBS, header,
+  CRC-32, the stream decoder ``FrameDecoder``);
 * declarations: ``schema`` (fields: units, ranges, the codec), ``columns`` (COLUMN_RESULT),
   ``config_keys``, ``messages`` (every message type, the schema CRC), ``views`` (typed
   INFO and STATUS), ``spec`` (the spec's tables);

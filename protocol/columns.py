@@ -1,19 +1,15 @@
 """COLUMN_RESULT: the receiver's integer outputs for one grating column, all channels.
 
-The payload is a 19-byte column header (:data:`COLUMN_HEADER`) followed by one
-fixed-size record per channel (array of structs, little-endian, packed, no
-padding). The channel record is the one declared in :mod:`cdma_lidar.column_record`
-(its wire fields, in order); with P peaks it is ``41 + 10 * (P - 1)`` bytes. Every
-view here is derived from that declaration: the spec's rows, the numpy dtype, the
-encoder's range checks, the payload size and the per-field properties of
-:class:`ColumnResult`. ``docs/protocol.md`` (generated) shows the layout.
+The payload is a 19-byte column header (:data:`COLUMN_HEADER`) and one record per channel
+(little-endian, packed), the record declared in :mod:`cdma_lidar.column_record`: ``41 +
+10 * (P - 1)`` bytes with P peaks. The spec's rows, the numpy dtype (the codec, a few
+microseconds per 40-channel column; the tests hold it to a construct codec byte for
+byte), the range checks, the size and the properties of :class:`ColumnResult` all come
+from that declaration.
 
-UID signs travel as two masks: bit p of ``uid_neg`` is set where the per-period
-sign at the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag
-the receiver reports as -1 (no peak) travels as :data:`NO_PEAK`.
-
-The codec is a numpy structured dtype (a few microseconds per 40-channel column);
-``tests/protocol`` proves it equal, byte for byte, to an independent construct codec.
+UID signs travel as two masks: bit p of ``uid_neg`` is set where the sign of period p at
+the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag the receiver
+reports as -1 (no peak) travels as :data:`NO_PEAK`.
 """
 
 from __future__ import annotations
@@ -58,10 +54,7 @@ COLUMN_HEADER = Layout(
     i("angle_udeg", 32, "grating rotation angle of the column", "µdeg"),
     u("timestamp_us", 32, "device clock when the column was measured (wraps)", "µs"),
 )
-
-
-#: The column header as a struct (the codec); the same fields as COLUMN_HEADER.
-_HEAD = struct.Struct("<" + "".join(f.fmt for f in COLUMN_HEADER.fields))
+_HEAD = struct.Struct("<" + "".join(f.fmt for f in COLUMN_HEADER.fields))  # its codec
 
 
 def _record_field(w: WireField) -> Field:
@@ -97,14 +90,6 @@ _LAG_FIELDS = frozenset(f.name for f in RECORD if f.encoding == "lag")
 _FIRST_EXTRA = next(f for f in RECORD if f.per_extra_peak)
 
 
-def _signs(neg: NDArray, zero: NDArray, n: int) -> NDArray[np.int8]:
-    """Sign array (..., n) in {-1, 0, +1} from the two masks."""
-    bits = np.arange(n, dtype=np.uint8)
-    neg_b = (np.asarray(neg)[..., None] >> bits) & 1
-    zero_b = (np.asarray(zero)[..., None] >> bits) & 1
-    return np.where(zero_b == 1, 0, np.where(neg_b == 1, -1, 1)).astype(np.int8)
-
-
 _FORMS = {"lag": "int64, -1 where the wire says NO_PEAK", "flag": "bool",
           "signs": "int8 in {-1, 0, +1}"}
 
@@ -119,8 +104,10 @@ def _view(name: str) -> property:
         r = self.records[wire[0]]
         if f.encoding == "lag":
             return np.where(r == NO_PEAK, -1, r.astype(np.int64))
-        if f.encoding == "signs":
-            return _signs(r, self.records[wire[1]], self.uid_bits)
+        if f.encoding == "signs":  # (..., n): bit p of the -1 mask and of the 0 mask
+            bits = np.arange(self.uid_bits, dtype=np.uint8)
+            neg, zero = ((self.records[w][..., None] >> bits) & 1 for w in wire)
+            return np.where(zero == 1, 0, np.where(neg == 1, -1, 1)).astype(np.int8)
         return r.astype(bool) if f.encoding == "flag" else r
 
     get.__name__ = name
@@ -139,13 +126,11 @@ def udeg(angle_deg: float) -> int:
 class ColumnResult:
     """One column of receiver outputs: the payload of a COLUMN_RESULT frame.
 
-    Per-channel fields (one read-only property per field of
-    :data:`cdma_lidar.column_record.RECORD`, with the receiver's shapes) are views
-    of ``records`` (one structured record per channel, :func:`record_dtype`):
-    integers as their wire type, lags as int64 with -1 for :data:`NO_PEAK`, flags
-    as bool and signs as int8 in {-1, 0, +1}. Build one with :meth:`from_arrays`
-    or :meth:`from_receiver` (both check every value against its wire field);
-    :func:`decode_column` builds one straight from the wire bytes.
+    One read-only property per field of :data:`cdma_lidar.column_record.RECORD` (the
+    receiver's shapes) views ``records`` (:func:`record_dtype`): integers as their wire
+    type, lags as int64 with -1 for :data:`NO_PEAK`, flags as bool, signs as int8 in
+    {-1, 0, +1}. :meth:`from_arrays` and :meth:`from_receiver` check every value against
+    its wire field; :func:`decode_column` builds one from the wire bytes.
 
     Attributes:
         frame: frame id (u32) given by the host in SCAN_START / CALIBRATE.
@@ -210,13 +195,10 @@ class ColumnResult:
     def from_arrays(cls, frame: int, column: int, angle_deg: float, *,
                     calibration: bool = False, timestamp_us: int = 0,
                     **fields: ArrayLike | None) -> ColumnResult:
-        """Check every value against its wire field and pack the records.
-
-        ``fields`` are the record's fields by name (:data:`~cdma_lidar.column_record.
-        FIELD_NAMES`), shaped as in ``cdma_lidar.firmware_model.output.ReceiverOutput``
-        (K channels, n UID bits, P peaks); the ``extra_*`` ones may be left out (or
-        None) for P = 1. Raises FieldError naming the first bad field.
-        """
+        """Check every value against its wire field and pack the records. ``fields``: the
+        record's fields by name, shaped as in ``firmware_model.output.ReceiverOutput`` (K
+        channels, n UID bits, P peaks); the ``extra_*`` ones may be left out (or None) for
+        P = 1. Raises FieldError naming the first bad field."""
         _check_names(fields)
         signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
@@ -237,9 +219,8 @@ class ColumnResult:
             arr = _checked_array(f.name, fields.get(f.name), (k, *f.shape(n, e + 1)))
             if f.encoding == "signs":  # two masks: bit p of each is period p
                 weights = (1 << np.arange(n)).astype(np.uint8)
-                neg, zero = f.wire
-                rec[neg.name] = (arr < 0).astype(np.uint8) @ weights
-                rec[zero.name] = (arr == 0).astype(np.uint8) @ weights
+                for w, mask in zip(f.wire, (arr < 0, arr == 0), strict=True):
+                    rec[w.name] = mask.astype(np.uint8) @ weights
             else:
                 rec[f.name] = arr
             if f.name == "uid_observed" and int(arr.max()) >= 1 << n:
@@ -263,11 +244,9 @@ class ColumnResult:
 
 def _check_names(fields: dict[str, Any]) -> None:
     """TypeError, as for a bad keyword argument, unless ``fields`` are record fields."""
-    unknown = sorted(set(fields) - set(FIELD_NAMES))
-    if unknown:
+    if unknown := sorted(set(fields) - set(FIELD_NAMES)):
         raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
-    missing = [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]
-    if missing:
+    if missing := [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]:
         raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
 
 

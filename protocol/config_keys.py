@@ -1,12 +1,11 @@
 """CONFIG keys: the key-length-value set carried by CONFIG_SET and CONFIG.
 
-Each key is declared once as a :class:`ConfigKey` (id, name, value encoding, C type, unit,
-allowed range and, where the host value is not the wire value, the mapping: exponent
-tuples <-> polynomial masks, rounding and mode names <-> codes, window pairs <-> structs),
-read by :func:`encode_config`, the strict :func:`decode_config`, the spec's table and the
-schema CRC. Keys can be added without a new protocol version: bit 7 of a key id is the
-*optional* flag (:data:`CONFIG_OPTIONAL`); a device ignores an unknown optional key and
-refuses an unknown other one with NAK UNKNOWN_KEY naming it.
+Each key is declared once as a :class:`ConfigKey` (id, name, value type, unit, range and,
+where the host value is not the wire value, the mapping: exponent tuples <-> polynomial
+masks, names <-> codes, window pairs <-> structs) for :func:`encode_config`, the strict
+:func:`decode_config`, the spec's table and the schema CRC. Bit 7 of a key id is the
+*optional* flag (:data:`CONFIG_OPTIONAL`): a device ignores an unknown optional key and
+refuses another unknown one with NAK UNKNOWN_KEY naming it.
 """
 
 from __future__ import annotations
@@ -36,11 +35,9 @@ MODES: tuple[str, ...] = ("ranging", "calibration")
 
 # ---- host value <-> wire value -------------------------------------------------------------
 def _poly_to_wire(poly: Sequence[int] | int) -> int:
-    """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask.
-
-    The wire mask is the tap mask of :mod:`cdma_lidar.poly`: bit e - 1 is the x^e term
-    for e = 1..32, the constant term implied (``tap_mask(poly)``; (11, 2) is 0x402).
-    """
+    """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask: the
+    tap mask of :mod:`cdma_lidar.poly`, bit e - 1 the x^e term (e = 1..32), x^0 implied
+    ((11, 2) is 0x402)."""
     if is_int(poly):
         mask = int(poly)  # type: ignore[arg-type]
     else:
@@ -92,12 +89,9 @@ class ConfigKey:
                      if not is_int(v) or not self.lo <= int(v) <= self.hi), None)
 
     def encode(self, value: Any, *, check: bool = True) -> bytes:
-        """Value bytes; raises FieldError naming the key.
-
-        ``check``: hold the value to the key's range (the host's one check of what it
-        sends); False for a value already checked (the device's own configuration,
-        checked by its model), of which only what the wire type cannot hold fails.
-        """
+        """Value bytes; raises FieldError naming the key. ``check``: hold the value to the
+        key's range (the host's one check of what it sends); False for a value its model
+        already checked (the device's own configuration): only what the wire cannot hold fails."""
         try:
             w = self.to_wire(value)
         except FieldError as exc:
@@ -114,8 +108,8 @@ class ConfigKey:
             raise out_of_range(self.name, self.allowed, value, FieldError) from exc
 
     def decode(self, data: bytes) -> Any:
-        """Python value of the wire bytes; raises FrameError if malformed or out of range
-        (the receiving side's one check of the wire range)."""
+        """Python value of the wire bytes; FrameError if malformed or out of range (the
+        receiving side's one check of the wire range)."""
         try:
             w = self.sub.parse(data, self.name)["v"]
         except FrameError:
@@ -208,12 +202,9 @@ _KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}
 
 def encode_config(values: dict[str, Any], *, allow_read_only: bool = True,
                   check: bool = True) -> list[dict]:
-    """KLV items (for CONFIG_SET / CONFIG) of ``{name: python value}``.
-
-    Raises FieldError naming an unknown key, a read-only one (when not allowed) or a
-    value its key cannot hold (outside its range unless ``check`` is False: see
-    :meth:`ConfigKey.encode`).
-    """
+    """KLV items (for CONFIG_SET / CONFIG) of ``{name: python value}``; FieldError naming
+    an unknown key, a read-only one (when not allowed) or a value its key cannot hold
+    (outside its range unless ``check`` is False: :meth:`ConfigKey.encode`)."""
     items = []
     for name, value in values.items():
         key = _KEY_BY_NAME.get(name)
@@ -239,10 +230,8 @@ class DecodedConfig:
 
 
 def decode_config(items: list[dict]) -> DecodedConfig:
-    """Python values of KLV items; raises FrameError (``field`` = the key) on a bad value.
-
-    A key given twice is malformed (a device answers NAK MALFORMED naming it).
-    """
+    """Python values of KLV items; FrameError (``field`` = the key) on a bad value or a
+    key given twice (a device answers NAK MALFORMED naming it)."""
     out = DecodedConfig()
     for it in items:
         kid, data = int(it["key"]), bytes(it["value"])

@@ -1,33 +1,28 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
-A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section
-2.5) is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the framing's
-own bytes (the COBS code bytes too), so a bit error anywhere between the delimiters
-is repaired and a frame's chance to arrive no longer falls with its length.
-:func:`whiten` first makes the zero-rich column records look random, so few bytes are
-one bit error away from 0x00 (such a byte splits the frame in two; the receiver joins
-the pieces again, :class:`~cdma_lidar.protocol.framing.FrameDecoder`). ``rs`` cuts the
-COBS bytes (no 0x00 among them) into blocks of 207 bytes (the last one shorter) and
-follows each with its 48 parity bytes, spread over 55 bytes that are never 0x00::
+A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section 2.5)
+is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the COBS code bytes
+too, so a frame's chance to arrive no longer falls with its length. :func:`whiten` makes
+the zero-rich column records look random, so few bytes are one bit error away from 0x00
+(which splits the frame; :class:`~cdma_lidar.protocol.framing.FrameDecoder` joins the
+pieces). ``rs`` cuts the COBS bytes into blocks of 207 (the last one shorter), each
+followed by its 48 parity bytes spread over 55 bytes that are never 0x00::
 
     stuffed  s0 ........ s206 | s207 ...... s413 | s414 .. s(n-1)
     coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-Spreading: the 48 parity bytes, highest degree first, as one string of 384 bits (most
-significant bit of each byte first), are cut into 55 groups of 7 bits (the last one
-padded with 1 zero bit); each group ``g`` is sent as the byte ``0x80 | g``. A block
-corrects any 24 damaged symbols (a damaged spread byte damages at most two parity
-symbols; a bit error rate of 3e-3 damages about 6 of 262 bytes, and more than 24 in
-fewer than one block in a million). The code is
-systematic: a receiver first reads the data bytes alone (one CRC) and decodes only
-when they fail. The coded length ``t`` gives the stuffed length ``n`` back:
-``t = n + 55 * ceil(n / 207)``.
+Spreading: the 48 parity bytes, highest degree first, as 384 bits (most significant bit
+of each byte first), cut into 55 groups of 7 bits (the last padded with 1 zero bit); group
+``g`` is sent as ``0x80 | g``. A block corrects any 24 damaged symbols (a damaged spread
+byte damages at most two parity symbols; a bit error rate of 3e-3 damages about 6 of 262
+bytes, more than 24 in under one block in a million). The code is systematic: a receiver
+reads the data bytes alone first (one CRC) and decodes only when they fail. Coded length
+``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes.
 
-Code: narrow-sense RS over GF(2^8) with primitive polynomial 0x11D, generator roots
-alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it.
-Encoding and syndromes are table-driven numpy (the code is linear over GF(2^8); a test
-checks them against ``reedsolo``), and so are the Chien search and Forney's formula
-that correct a damaged block; the error locator is ``reedsolo``'s Berlekamp-Massey.
+Code: narrow-sense RS over GF(2^8), primitive polynomial 0x11D, generator roots alpha^0 ..
+alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
+syndromes, Chien search and Forney's formula are table-driven numpy (tests hold them to
+``reedsolo``); the error locator is Berlekamp-Massey on log tables.
 """
 
 from __future__ import annotations
@@ -45,14 +40,14 @@ __all__ = ["BLOCK", "DATA", "NSYM", "SPREAD", "WIRE_BLOCK", "body_len", "coded_l
 #: Parity bytes per block: corrects 24 damaged symbols per block.
 NSYM = 48
 #: Symbols of a code block (data + parity) and of its data.
-BLOCK = 255
-DATA = BLOCK - NSYM
-#: Bytes that carry one block's parity on the wire (7 bits each, high bit set).
+BLOCK, DATA = 255, 255 - NSYM
+#: Bytes that carry one block's parity on the wire (7 bits each, high bit set), and of a
+#: full block on the wire.
 SPREAD = -(-8 * NSYM // 7)
-#: Bytes of a full block on the wire.
 WIRE_BLOCK = DATA + SPREAD
 
 reedsolo.init_tables(0x11D)  # reedsolo's GF(2^8) tables (read below) for the polynomial 0x11D
+
 
 def coded_len(d: int) -> int:
     """Coded bytes of ``d`` stuffed (COBS) bytes."""
@@ -60,8 +55,7 @@ def coded_len(d: int) -> int:
 
 
 def body_len(t: int) -> int:
-    """Stuffed bytes (at least 1) of ``t`` coded bytes; -1 when nothing codes to that
-    length."""
+    """Stuffed bytes (at least 1) of ``t`` coded bytes; -1 when nothing codes to it."""
     blocks = -(-t // WIRE_BLOCK)
     d = t - SPREAD * blocks
     return d if d > max(0, DATA * (blocks - 1)) else -1
@@ -82,19 +76,19 @@ def whiten(data: bytes) -> bytes:
 _EXP = np.array(reedsolo.gf_exp[:255], np.int64)  # 2^i, poly 0x11D
 _LOG = np.array(reedsolo.gf_log[:256], np.int64)
 _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
-#: GF(2^8) products: ``_MUL[a, b] = a * b``.
+#: GF(2^8) products: ``_MUL[a, b] = a * b`` (``_GMUL[a][b]`` as lists, for scalars).
 _MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255].astype(np.uint8)
 _MUL[0, :] = _MUL[:, 0] = 0
+_GMUL = _MUL.tolist()
 #: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
 #: syndrome j (the block polynomial at the root 2^j).
 _POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255].astype(np.uint8)
 
 
 def _unit_parity() -> np.ndarray:
-    """Row ``e`` (highest degree first): the remainder of ``x^(NSYM + e)`` modulo the
-    generator ``g(x) = prod_{i<48} (x - 2^i)``, the parity of a message whose only
-    non-zero byte is a 1, ``e`` bytes before its end. The code is linear over GF(2^8),
-    so a message's parity is the XOR of ``m_i * U[e_i]``."""
+    """Row ``e`` (highest degree first): ``x^(NSYM + e)`` mod ``g(x) = prod_{i<48} (x - 2^i)``,
+    the parity of a message whose one non-zero byte, 1, is ``e`` bytes before its end; the
+    code is linear, so a message's parity is the XOR of ``m_i * U[e_i]``."""
     low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
     u = np.zeros((DATA, NSYM), np.uint8)
     u[0] = low
@@ -109,9 +103,9 @@ _UNIT_BY_POS = _unit_parity()[::-1].copy()
 
 @functools.cache
 def _by_byte() -> tuple[np.ndarray, np.ndarray]:
-    """``_POWERS`` and ``_UNIT_BY_POS`` times every byte value: ``[p, v] = v * row p``
-    (3.1 and 2.5 MB, built at first use), so a block's syndromes or parity are the XOR
-    of one contiguous row per byte (a tenth of the time of gathering products)."""
+    """``_POWERS`` and ``_UNIT_BY_POS`` times every byte value, ``[p, v] = v * row p`` (3.1
+    and 2.5 MB, built at first use): a block's syndromes or parity are the XOR of one
+    contiguous row per byte (a tenth of the time of gathering products)."""
     v = np.arange(256)[None, :, None]
     return _MUL[v, _POWERS[:, None, :]], _MUL[v, _UNIT_BY_POS[:, None, :]]
 
@@ -152,9 +146,8 @@ def _cut(coded: bytes) -> tuple[list[np.ndarray], np.ndarray]:
 
 
 def encode(stuffed: bytes) -> bytes:
-    """``stuffed`` (COBS bytes) with 55 spread parity bytes after every 207 (and after
-    the rest); no byte is 0x00 when ``stuffed`` has none. Table-driven (the code is
-    linear): byte-identical to ``reedsolo``'s encoder, which a test checks."""
+    """``stuffed`` (COBS bytes) with 55 spread parity bytes after every 207 (and after the
+    rest); no byte is 0x00 when ``stuffed`` has none. Byte-identical to ``reedsolo``."""
     if not stuffed:
         return b""
     data = np.frombuffer(stuffed, np.uint8)
@@ -177,35 +170,25 @@ def plausible(coded: bytes) -> bool:
 
 
 def strip(coded: bytes) -> bytes:
-    """The data bytes of ``coded`` as they arrived (no correction); FrameError when
-    nothing codes to its length."""
+    """The data bytes of ``coded`` as they arrived (no correction); FrameError as _cut."""
     return b"".join(d.tobytes() for d in _cut(coded)[0])
-
-
-def _gmul(x: int, y: int) -> int:
-    return 0 if x == 0 or y == 0 else _EXP_LIST[(_LOG_LIST[x] + _LOG_LIST[y]) % 255]
 
 
 def _locator(syn: list[int]) -> list[int]:
     """The error locator Lambda (highest degree first, no leading zero) of syndromes
-    ``S_0 .. S_47``: Berlekamp-Massey on the log tables (``reedsolo``'s
-    ``rs_find_error_locator``, which a test holds it to, does the same on generic
-    polynomial helpers at about three times the cost). ReedSolomonError above 24 errors."""
+    ``S_0 .. S_47``: Berlekamp-Massey in tables, a third of the cost of ``reedsolo``'s
+    ``rs_find_error_locator`` (a test holds the two equal). ReedSolomonError above 24."""
     c, b, big_l, m, last = [1], [1], 0, 1, 1  # Lambda, previous Lambda, L, shift, its d
-    log, exp = _LOG_LIST, _EXP_LIST
-    for n, s_n in enumerate(syn):
-        d = s_n
+    for n, d in enumerate(syn):
         for i in range(1, min(big_l, len(c) - 1) + 1):
-            if c[i] and syn[n - i]:
-                d ^= exp[(log[c[i]] + log[syn[n - i]]) % 255]
+            d ^= _GMUL[c[i]][syn[n - i]]
         if d == 0:
             m += 1
             continue
-        scale = (log[d] - log[last]) % 255  # d / last
+        q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
         new = c + [0] * max(0, len(b) + m - len(c))
         for i, bi in enumerate(b):
-            if bi:
-                new[i + m] ^= exp[(log[bi] + scale) % 255]
+            new[i + m] ^= _GMUL[bi][q]
         if 2 * big_l <= n:
             big_l, b, last, m = n + 1 - big_l, c, d, 1
         else:
@@ -220,14 +203,12 @@ def _locator(syn: list[int]) -> list[int]:
 
 
 def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> None:
-    """Correct the blocks ``bad`` of ``rows`` (one block a row, the last one, ``last``
-    symbols long, right-aligned after zeros) in place from their syndromes ``syn``.
-
-    Each block's error locator comes from Berlekamp-Massey (:func:`_locator`); the roots
-    of all of them are found at once (Chien search in tables: Lambda(2^-e) for every
-    exponent e) and the error values by Forney's formula (first consecutive root 1:
-    ``Y = X Omega(1/X) / Lambda'(1/X)``). Raises ReedSolomonError naming the block whose
-    roots are not as many as its locator's degree (more than 24 damaged symbols)."""
+    """Correct the blocks ``bad`` of ``rows`` (one block a row, the last one ``last``
+    symbols long, right-aligned after zeros) in place from their syndromes ``syn``: the
+    roots of every locator at once (Chien search in tables: Lambda(2^-e) for every e),
+    the error values by Forney (first consecutive root 1: ``Y = X Omega(1/X) /
+    Lambda'(1/X)``). ReedSolomonError naming a block with more than 24 damaged symbols
+    (roots not as many as its locator's degree)."""
     lams = [_locator(syn[b].tolist())[::-1] for b in bad]  # Lambda, lowest degree first
     width = max(map(len, lams))
     lam = np.zeros((len(bad), width), np.int64)
@@ -245,27 +226,24 @@ def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> No
         omega = [0] * deg  # S(x) Lambda(x) mod x^deg, lowest degree first
         for i in range(deg):
             for j in range(i + 1):
-                omega[i] ^= _gmul(s_b[i - j], coef[j])
+                omega[i] ^= _GMUL[s_b[i - j]][coef[j]]
         for r in roots:
             xinv = _EXP_LIST[(255 - r) % 255]  # 1/X, X = 2^r
             num = den = 0
             for c in reversed(omega):  # Horner: Omega(1/X)
-                num = _gmul(num, xinv) ^ c
+                num = _GMUL[num][xinv] ^ c
             for c in reversed(coef[1::2]):  # Lambda'(1/X): the odd terms, one degree down
-                den = _gmul(den, _gmul(xinv, xinv)) ^ c
+                den = _GMUL[den][_GMUL[xinv][xinv]] ^ c
             if den == 0:
                 raise reedsolo.ReedSolomonError(f"block {b}: Forney: zero derivative")
-            y = _gmul(_EXP_LIST[r], _gmul(num, _EXP_LIST[(255 - _LOG_LIST[den]) % 255]))
+            y = _GMUL[_EXP_LIST[r]][_GMUL[num][_EXP_LIST[(255 - _LOG_LIST[den]) % 255]]]
             rows[b, BLOCK - 1 - r] ^= y
 
 
 def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
-    cannot.
-
-    The syndromes of every block are computed at once (tables); the blocks whose
-    syndromes show damage are corrected by :func:`_correct`. A block with more than 24
-    damaged symbols fails there, or is miscorrected and then fails the frame's CRC."""
+    cannot. A block with more than 24 damaged symbols fails in :func:`_correct`, or is
+    miscorrected and then fails the frame's CRC."""
     data, spread = _cut(coded)
     parity = _unspread(spread)
     last = data[-1].size + NSYM

@@ -5,6 +5,14 @@ frozen in every protocol version)::
 
     00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
+COBS (Consistent Overhead Byte Stuffing, Cheshire and Baker 1999) removes every 0x00, so
+0x00 delimits frames: the data is cut at each zero into blocks, each sent as one code
+byte (block length + 1) and its non-zero bytes, the zero implied; a run of 254 non-zero
+bytes is code 0xFF and implies no zero; the last block's implied zero is dropped::
+
+    11 22 00 33 -> 03 11 22 02 33     00 -> 01 01     (empty) -> 01
+    254 x non-zero -> FF <254 bytes>
+
 The signature is there when incompat bit 0 (INCOMPAT_SIGNED) is set
 (:mod:`cdma_lidar.protocol.auth`). crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header,
 payload and signature, little-endian. A session with FEC Reed-Solomon codes the body
@@ -19,16 +27,19 @@ import zlib
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
+from cobs import cobs as _cobs
+
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
-from cdma_lidar.protocol import cobs, fec
+from cdma_lidar.protocol import fec
 from cdma_lidar.protocol.fec import coded_len
 from cdma_lidar.protocol.schema import Layout, u
 
 __all__ = ["COMPAT_RETRANSMIT", "CRC_SIZE", "DELIMITER", "FRAME_LIMIT", "HEADER", "HEADER_FIELDS",
            "HEADER_SIZE", "INCOMPAT_KNOWN", "INCOMPAT_SIGNED", "MIN_MAX_FRAME", "OVERHEAD",
            "PROTOCOL_VERSION", "SIGNATURE_SIZE", "DecoderStats", "Frame", "FrameDecoder", "Signer",
-           "crc32", "decode_frame", "encode_frame", "frame_size"]
+           "cobs_decode", "cobs_encode", "cobs_max_len", "crc32", "decode_frame", "encode_frame",
+           "frame_size", "rejects"]
 
 #: Version 4: v3 (sessions per HELLO, signed frames, FRAGMENTs, Reed-Solomon FEC negotiated
 #: in HELLO) with the code around COBS instead of inside it, and requests in FRAGMENTs too
@@ -66,6 +77,26 @@ INCOMPAT_KNOWN = INCOMPAT_SIGNED
 SIGNATURE_SIZE = 24
 
 _CRC = struct.Struct("<I")
+
+
+#: COBS-encode bytes, no delimiters (the ``cobs`` package's C extension; the tests hold it
+#: byte for byte to a pure-Python reference, ``tests/protocol/wire_oracle.py``).
+cobs_encode = _cobs.encode
+
+
+def cobs_decode(enc: bytes) -> bytes:
+    """COBS-decode ``enc`` (no delimiters); raises FrameError (only) if malformed."""
+    if not enc:
+        raise FrameError("COBS: empty input")
+    try:
+        return _cobs.decode(enc)
+    except _cobs.DecodeError as exc:
+        raise FrameError(f"COBS: {exc}") from None
+
+
+def cobs_max_len(n: int) -> int:
+    """Upper bound (bytes) of the COBS encoding of ``n`` data bytes, delimiters excluded."""
+    return n + 1 + n // 254
 
 
 def crc32(data: bytes) -> int:
@@ -138,16 +169,14 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
     if coded:  # a second delimiter after it: one damaged on the line still ends the frame
-        return b"".join((DELIMITER, fec.encode(cobs.encode(fec.whiten(body))), DELIMITER * 2))
-    return b"".join((DELIMITER, cobs.encode(body), DELIMITER))
+        return b"".join((DELIMITER, fec.encode(cobs_encode(fec.whiten(body))), DELIMITER * 2))
+    return b"".join((DELIMITER, cobs_encode(body), DELIMITER))
 
 
 def decode_frame(body: bytes) -> Frame:
-    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid.
-
-    The reason is the first word of the message: ``short``, ``crc``, ``length``,
-    ``version`` or ``incompat``.
-    """
+    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid, the
+    reason the first word of the message: ``short``, ``crc`` or ``length``. A frame of
+    another version or with unknown incompat flags is returned (see :func:`rejects`)."""
     n = len(body)
     if n < OVERHEAD:
         raise FrameError(f"short: {n} bytes, a frame has at least {OVERHEAD}")
@@ -160,32 +189,21 @@ def decode_frame(body: bytes) -> Frame:
         raise FrameError(f"length: header says {plen} payload bytes, frame has "
                          f"{n - OVERHEAD - sig_len}")
     end = HEADER_SIZE + plen
-    frame = Frame(msg_type, seq, session, body[HEADER_SIZE:end], compat, incompat, version,
-                  body[end:end + sig_len])
-    if version != PROTOCOL_VERSION:
-        raise _Rejected("version", frame)
-    if incompat & ~INCOMPAT_KNOWN:
-        raise _Rejected("incompat", frame)
-    return frame
+    return Frame(msg_type, seq, session, body[HEADER_SIZE:end], compat, incompat, version,
+                 body[end:end + sig_len])
 
 
-class _Rejected(FrameError):
-    """A frame with a valid CRC that this version must not act on (version, incompat flags)."""
-
-    def __init__(self, reason: str, frame: Frame) -> None:
-        super().__init__(f"{reason}: version {frame.version}, incompat flags "
-                         f"0x{frame.incompat:02x}")
-        self.reason = reason
-        self.frame = frame
+def rejects(frame: Frame) -> str:
+    """Why this version must not act on a frame that passed the CRC: ``version``,
+    ``incompat`` (unknown incompat flags), or "" when it may."""
+    return "version" if frame.version != PROTOCOL_VERSION else \
+        "incompat" if frame.incompat & ~INCOMPAT_KNOWN else ""
 
 
 @dataclass
 class DecoderStats:
-    """Counts of what a :class:`FrameDecoder` saw (every error event is one count).
-
-    ``frames`` are accepted frames; every other field except ``bytes`` counts a
-    rejected chunk between delimiters.
-    """
+    """Counts of what a :class:`FrameDecoder` saw: ``bytes`` fed, ``frames`` accepted; every
+    other field counts a rejected chunk between delimiters."""
 
     bytes: int = 0
     frames: int = 0
@@ -211,21 +229,17 @@ class DecoderStats:
 
 
 class FrameDecoder:
-    """Stream decoder: feed it any slices of the byte stream, get whole frames back.
-
-    It owns its receive buffer, so partial reads (pyserial ``read(n)`` may return
-    fewer bytes) are fine. A chunk longer than a coded ``max_frame`` after COBS is dropped
-    up to the next delimiter and counted as ``oversize`` without being buffered.
-    ``rejected`` lists frames that passed the CRC but had another version or unknown
-    incompatible flags (the device answers them with a NAK); the caller drains it.
+    """Stream decoder: feed it any slices of the byte stream (partial reads are fine), get
+    whole frames back. A chunk longer than a coded ``max_frame`` after COBS is dropped up
+    to the next delimiter (counted ``oversize``, never buffered). ``rejected`` lists
+    frames that passed the CRC but had another version or unknown incompat flags (the
+    device NAKs them); the caller drains it.
 
     ``fec``: a chunk that is not a valid plain frame is read as a Reed-Solomon coded one
-    (:mod:`cdma_lidar.protocol.fec`): its data bytes first (one CRC), corrected only if
-    they fail; a frame that arrived coded has ``fec`` set. A coded chunk that still
-    fails is tried without its first or last byte (a delimiter damaged into a data
-    byte joined it), and joined to the damaged chunks right before it (a data byte
-    damaged into 0x00 split it). Off by default: correcting costs about 3 ms per kB of
-    damaged chunk, which only a line that needs it pays.
+    (its data bytes first, corrected only if they fail; such a frame has ``fec`` set),
+    then without its first or last byte (a delimiter damaged into a data byte joined
+    it), then joined to the damaged chunks before it (a data byte damaged into 0x00 split
+    it). Off by default: correcting costs about 3 ms per kB of damaged chunk.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT, fec: bool = False) -> None:
@@ -238,7 +252,7 @@ class FrameDecoder:
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         #: Largest decoded frame accepted (bytes, header and CRC included).
         self.max_frame = check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
-        self._max_chunk = coded_len(cobs.max_encoded_len(max_frame)) + 1  # coded or not
+        self._max_chunk = coded_len(cobs_max_len(max_frame)) + 1  # coded or not
 
     @property
     def buffered(self) -> int:
@@ -247,11 +261,8 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the frames they complete, in order. Never raises.
-
         Linear in the bytes fed whatever the read sizes: each byte is searched for a
-        delimiter once and copied into the receive buffer at most once (``copied``
-        counts those copies, so a test can check it without a clock).
-        """
+        delimiter once and copied into the receive buffer at most once (``copied``)."""
         st = self.stats
         st.bytes += len(data)
         data = bytes(data)
@@ -319,8 +330,9 @@ class FrameDecoder:
                     got = self._coded(candidate)
                 except FrameError:
                     continue
-                self.stats.rejoined += 1
-                return got
+                if not rejects(got[0]):
+                    self.stats.rejoined += 1
+                    return got
         return None
 
     def _read(self, chunk: bytes) -> tuple[Frame, bool] | str:
@@ -329,15 +341,17 @@ class FrameDecoder:
         if len(chunk) > self._max_chunk:
             return "oversize"
         reason = ""
-        for coded, read in ((False, self._plain), (True, self._coded))[:1 + self.fec]:
+        for coded in (False, True)[:1 + self.fec]:
             try:
-                return read(chunk)
-            except _Rejected as exc:
-                if len(self.rejected) < 64:
-                    self.rejected.append(exc.frame._replace(fec=coded))
-                return exc.reason
+                got = self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
             except FrameError as exc:
                 reason = reason or str(exc).split(":", 1)[0].lower()
+                continue
+            if not (why := rejects(got[0])):
+                return got
+            if len(self.rejected) < 64:
+                self.rejected.append(got[0])
+            return why
         return reason
 
     def _frame(self, body: bytes) -> Frame:
@@ -345,17 +359,12 @@ class FrameDecoder:
             raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
         return decode_frame(body)
 
-    def _plain(self, chunk: bytes) -> tuple[Frame, bool]:
-        return self._frame(cobs.decode(chunk)), False
-
     def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
         """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
         fail; raises FrameError if it is not one."""
         if not fec.plausible(chunk):
             raise FrameError("cobs: not a coded frame")
         try:
-            return self._frame(fec.whiten(cobs.decode(fec.strip(chunk))))._replace(fec=True), False
-        except _Rejected:
-            raise
+            return self._frame(fec.whiten(cobs_decode(fec.strip(chunk))))._replace(fec=True), False
         except FrameError:
-            return self._frame(fec.whiten(cobs.decode(fec.decode(chunk))))._replace(fec=True), True
+            return self._frame(fec.whiten(cobs_decode(fec.decode(chunk))))._replace(fec=True), True

@@ -1,11 +1,9 @@
 """Message catalogue: every payload declared once, with units and ranges.
 
-The type byte's range says who sends it (request 0x01..0x7F, reply 0x80..0xBF, stream
-0xC0..0xFF; :func:`kind_of`). Fields are declared with :mod:`~cdma_lidar.protocol.schema`;
-from that one declaration come the codec and the encoder's range checks
-(:func:`encode_payload` raises FieldError naming the field), the strict decoder
-(:func:`decode_payload` raises FrameError only), the tables of ``docs/protocol.md``
-(:mod:`~cdma_lidar.protocol.spec`) and :data:`SCHEMA_CRC`.
+From the :mod:`~cdma_lidar.protocol.schema` fields come the checked encoder (FieldError
+naming the field), the strict decoder (FrameError only), the spec's tables and
+:data:`SCHEMA_CRC`. The type byte says who sends it: request 0x01..0x7F, reply
+0x80..0xBF, stream 0xC0..0xFF.
 """
 
 from __future__ import annotations
@@ -36,7 +34,6 @@ __all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO",
 
 class MsgKind(enum.Enum):
     """Who sends a message type and how it is matched."""
-
     REQUEST = "request"
     REPLY = "reply"
     STREAM = "stream"
@@ -58,7 +55,6 @@ def kind_of(msg_type: int) -> MsgKind:
 
 class MsgType(enum.IntEnum):
     """Message type byte (header offset 3)."""
-
     HELLO = 0x01
     CONFIG_GET = 0x02
     CONFIG_SET = 0x03
@@ -89,7 +85,6 @@ class MsgType(enum.IntEnum):
 
 class ErrorCode(enum.IntEnum):
     """NAK error codes (u16); ``doc``: what each means (the spec's error table)."""
-
     doc: str
 
     def __new__(cls, value: int, doc: str) -> ErrorCode:
@@ -118,7 +113,6 @@ class ErrorCode(enum.IntEnum):
 
 class ScanEndReason(enum.IntEnum):
     """Why a scan or calibration stream ended (SCAN_END.reason)."""
-
     COMPLETE = 0
     ABORTED = 1
     ERROR = 2
@@ -126,7 +120,6 @@ class ScanEndReason(enum.IntEnum):
 
 class HelloFlags(enum.IntFlag):
     """HELLO.flags bits."""
-
     TAKE_OVER = 0x01  #: end another host's live session and take the device
     KEEP_CONFIG = 0x02  #: keep configuration and power of the previous session
     FEC = 0x04  #: Reed-Solomon coded frames both ways in this session (a device that
@@ -135,31 +128,27 @@ class HelloFlags(enum.IntFlag):
 
 class SessionLostReason(enum.IntEnum):
     """SESSION_LOST.reason."""
-
     TAKEN_OVER = 1  #: another host said HELLO with TAKE_OVER
     EXPIRED = 2  #: the session was idle longer than INFO.session_idle_ms
 
 
 class Auth(enum.IntEnum):
     """INFO.auth: how the session is protected."""
-
     NONE = 0  #: no key (serial port, pty, loopback with --insecure)
     HMAC_SHA256 = 1  #: challenge-response HELLO, every frame signed
 
 
 class CaptureKind(enum.IntEnum):
     """What a CAPTURE reads."""
-
     RAW = 0  #: raw ADC samples of one column (all periods and averages, i16)
     CORR = 1  #: correlation trace ``out`` of one channel over the gate lags
 
 
 @dataclass(frozen=True)
 class MessageSpec:
-    """One message type: its payload declaration, for requests the reply type, and what a
-    device checks beyond each field's wire range: ``rules``, field -> (rule, NAK code a
-    violation gets; a value outside the wire range is always MALFORMED). The spec's table
-    "Wire ranges and NAK codes" is generated from both."""
+    """One message type: its payload declaration, a request's reply type, and ``rules``:
+    field -> (what a device checks beyond the field's wire range, NAK code a violation
+    gets); outside the wire range is always MALFORMED (the spec's "Wire ranges" table)."""
 
     type: MsgType
     struct: Layout  # the payload's fields in wire order, and their codec
@@ -183,16 +172,6 @@ def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None,
     return MessageSpec(t, Layout(*fields_), doc, reply, {
         k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
         for k, r in (rules or {}).items()})
-
-
-def _klv(doc: str) -> Field:
-    """CONFIG_SET's and CONFIG's key-length-value items."""
-    return Field("items", "KLV items (rest)", doc, kind="klv")
-
-
-def _rest(name: str, doc: str, allowed: str = "") -> Field:
-    """Opaque bytes to the end of the payload."""
-    return Field(name, "bytes (rest)", doc, allowed=allowed, kind="bytes")
 
 
 #: The power-matrix rectangle of POWER_SET, POWER_GET and POWER, and its values.
@@ -226,7 +205,8 @@ _MESSAGE_LIST = [
          reply=MsgType.CONFIG,
          rules={"keys": ("a key id this device does not know", ErrorCode.UNKNOWN_KEY)}),
     _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
-         _klv("key u8, length u16, value (see CONFIG keys)"),
+         Field("items", "KLV items (rest)", "key u8, length u16, value (see CONFIG keys)",
+               kind="klv"),
          reply=MsgType.ACK,
          rules={"items": "a key unknown and not optional: UNKNOWN_KEY; read-only: READ_ONLY; "
                 "a key twice or a value outside the key's wire range: MALFORMED; outside the "
@@ -301,7 +281,7 @@ _MESSAGE_LIST = [
     _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
          *wire_fields(Info)),
     _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
-         _klv("key u8, length u16, value")),
+         Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
     _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
@@ -310,7 +290,7 @@ _MESSAGE_LIST = [
          u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
          u("total", 32, "elements in the whole capture", "elements"),
          u("offset", 32, "index of the first element in this chunk", "elements"),
-         _rest("data", "elements, signed little-endian")),
+         Field("data", "bytes (rest)", "elements, signed little-endian", kind="bytes")),
     _msg(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
          "a key: say HELLO again with this nonce and the MAC.",
          nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
@@ -335,8 +315,8 @@ _MESSAGE_LIST = [
          u("column", 16, "COLUMN_RESULT: column index; else 0"),
          u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
-         _rest("data", "bytes index*L .. of the whole payload",
-               "1..L bytes (L = max_frame-27, -24 when signed)")),
+         Field("data", "bytes (rest)", "bytes index*L .. of the whole payload",
+               allowed="1..L bytes (L = max_frame-27, -24 when signed)", kind="bytes")),
     _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
          "information only (section 6.4): a host words its timeout diagnosis with it.",
          u("rx_errors", 32, "rejected chunks since boot")),
@@ -374,19 +354,15 @@ class Pieces:
         if body["index"] not in self.data:
             self.frames.append(frame)
         self.data[body["index"]] = body["data"]
-        if len(self.data) < self.count:
-            return None
-        return b"".join(self.data[i] for i in range(self.count))
+        return None if len(self.data) < self.count else b"".join(
+            self.data[i] for i in range(self.count))
 
 
 def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,
                   key: tuple[int, int] = (0, 0)) -> list[bytes]:
     """The FRAGMENT payloads of one message, ``room`` data bytes each but the last.
-
-    ``seq``: a request's or a reply's seq (a notice's counter, 0 for a COLUMN_RESULT);
-    ``key``: a COLUMN_RESULT's (frame, column), else (0, 0). Raises DeviceError
-    TOO_LARGE when more than MAX_PIECES pieces are needed.
-    """
+    ``seq``: a request's or reply's seq (a notice's counter, 0 for a COLUMN_RESULT); ``key``:
+    a COLUMN_RESULT's (frame, column), else (0, 0). DeviceError TOO_LARGE above MAX_PIECES."""
     count = -(-len(payload) // room)
     if count > MAX_PIECES:
         raise DeviceError(f"{type_name(msg_type)} of {len(payload)} bytes needs {count} "
@@ -418,11 +394,8 @@ def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None 
 
 
 def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResult:
-    """Decode one payload strictly; raises FrameError (only), whose ``args[0]`` names the field.
-
-    Unknown types, short or long payloads and out-of-range values are all errors.
-    Returns a plain dict (lists for arrays) or, for COLUMN_RESULT, a ColumnResult.
-    """
+    """A plain dict (lists for arrays) or, for COLUMN_RESULT, a ColumnResult; FrameError
+    (only) naming the field for an unknown type, a short or long payload, a value out of range."""
     if msg_type == MsgType.COLUMN_RESULT:  # the hot path: no enum lookup
         return decode_column(payload)
     try:

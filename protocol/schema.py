@@ -1,12 +1,10 @@
 """The wire's one declaration: payload fields (type, unit, range, meaning) and their codec.
 
-A :class:`Field` says what the spec says about one payload field: its C-like wire type,
-unit, allowed range and meaning. A :class:`Layout` (the fields of one payload, in wire
-order) is also the payload's codec: plain ``struct`` packing, little-endian, no
-padding. From these declarations come the encoders' checks (:meth:`Field.check` raises
-FieldError naming the field and its range), the strict decoders (:meth:`Layout.parse`
-raises FrameError only), the tables of ``docs/protocol.md``
-(:mod:`cdma_lidar.protocol.spec`) and the schema CRC. Field kinds and their bytes:
+A :class:`Field` is what the spec says about one payload field (C-like wire type, unit,
+allowed range, meaning); a :class:`Layout`, the fields of one payload in wire order, is
+also its codec (``struct``, little-endian, no padding). From them come the encoders'
+checks (FieldError naming the field and its range), the strict decoders (FrameError
+only), the tables of ``docs/protocol.md`` and the schema CRC. Field kinds and their bytes:
 
     int    one integer, ``u8`` .. ``u64`` or ``i16`` .. ``i64`` (two's complement)
     text   ``u8 len + UTF-8``: a byte count, then at most 255 bytes of UTF-8
@@ -127,12 +125,9 @@ def _num(v: int | None) -> str:
 
 
 class Layout:
-    """The fields of one payload in wire order, and its codec (plain ``struct``).
-
-    :meth:`encode` checks every value and packs it; :meth:`decode` reads every byte and
-    checks every range. :meth:`build` and :meth:`parse` are the unchecked halves (a value
-    its wire type cannot hold raises ``struct.error``; :meth:`parse` raises FrameError).
-    """
+    """The fields of one payload in wire order, and its codec: :meth:`encode` and
+    :meth:`decode` check every value; :meth:`build` (``struct.error`` for a value its wire
+    type cannot hold) and :meth:`parse` (FrameError) are their unchecked halves."""
 
     def __init__(self, *fields: Field) -> None:
         self.fields = fields
@@ -146,8 +141,8 @@ class Layout:
         return sum(f.size for f in self.fields)  # type: ignore[misc]
 
     def encode(self, values: dict[str, Any], what: str) -> bytes:
-        """Payload bytes of ``values``; FieldError naming ``what.field`` and its range when
-        a field is missing, unknown or outside its range."""
+        """Payload bytes of ``values``; FieldError naming ``what.field`` (and its range) for a
+        field missing, unknown or outside its range."""
         checked: dict[str, Any] = {}
         for f in self.fields:
             if f.name not in values:
@@ -162,8 +157,7 @@ class Layout:
         return self.build(checked)
 
     def decode(self, payload: bytes, what: str) -> dict[str, Any]:
-        """Field values of ``payload``, each within its declared range; FrameError (only)
-        naming the field otherwise."""
+        """Field values of ``payload``; FrameError (only) naming a field out of range."""
         out = self.parse(payload, what)
         for f in self.fields:
             if f.kind == "int" or (f.kind == "array" and f.lo is not None):
@@ -196,7 +190,7 @@ class Layout:
 
     def parse(self, payload: bytes, what: str = "payload") -> dict[str, Any]:
         """Field values of ``payload``, unchecked; FrameError naming ``what`` and the field
-        that does not parse (short, not UTF-8, or bytes left after the last field)."""
+        that does not parse (short, not UTF-8, bytes left after the last field)."""
         out: dict[str, Any] = {}
         off, end, at = 0, len(payload), "end"
         try:
@@ -260,8 +254,8 @@ class Layout:
 # ---- declaring fields ----------------------------------------------------------------------
 def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
       hi: int | None = None, allowed: str = "", kind: str = "u") -> Field:
-    """Little-endian integer field of ``bits`` bits, unsigned (``kind`` "u") or two's
-    complement ("i"), optionally limited to [lo, hi]."""
+    """Little-endian integer of ``bits`` bits, unsigned (``kind`` "u") or two's complement
+    ("i"), optionally limited to [lo, hi]."""
     fmt, nlo, nhi = INTS[f"{kind}{bits}"]
     return Field(name, f"{kind}{bits}", doc, unit, nlo if lo is None else lo,
                  nhi if hi is None else hi, allowed, fmt=fmt)
@@ -294,8 +288,8 @@ def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit:
 
 
 def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:
-    """A dataclass field that is a payload field too: ``make(name, *args, **kw)`` (``u``,
-    ``text``, ...) named as the dataclass field; ``default`` MISSING: required."""
+    """A dataclass field that is also the payload field ``make(name, *args, **kw)`` (``u``,
+    ``text``, ...) of the same name; ``default`` MISSING: required."""
     return dataclasses.field(default=default, metadata={"wire": (make, args, kw)})
 
 

@@ -1,15 +1,9 @@
 """Generate the tables of ``docs/protocol.md`` from the declarations in code.
 
-Every table of the spec page sits between two markers::
-
-    <!-- BEGIN GENERATED: name -->
-    ...
-    <!-- END GENERATED: name -->
-
-``python -m cdma_lidar.protocol.spec`` rewrites them in place;
-``python -m cdma_lidar.protocol.spec --check`` exits 1 when the committed page differs
-from the code (the test suite runs the same check), so the page and the code cannot
-drift apart.
+Every table of the spec page sits between ``<!-- BEGIN GENERATED: name -->`` and
+``<!-- END GENERATED: name -->``. ``python -m cdma_lidar.protocol.spec`` rewrites them in
+place; with ``--check`` it exits 1 when the committed page differs from the code (the
+test suite runs the same check).
 """
 
 from __future__ import annotations
@@ -33,7 +27,7 @@ from cdma_lidar.protocol.columns import (
     ColumnResult,
     column_payload_size,
 )
-from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, config_key
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, ConfigKey, config_key
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
@@ -115,8 +109,7 @@ def ranges_table() -> str:
             rows.append((t.name, f"`{f.name}`", f.range_text or "any", rule or "none",
                          f"`{code.name}`" if code is not None else ""))
     for k in CONFIG_KEYS:
-        wire = f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses"
-        rows.append((f"CONFIG_SET key {k.id}", f"`{k.name}`", wire,
+        rows.append((f"CONFIG_SET key {k.id}", f"`{k.name}`", _wire_range(k),
                      "read-only" if k.read_only else k.allowed,
                      "`READ_ONLY`" if k.read_only else "`OUT_OF_RANGE`"))
     return _table(("message", "field", "wire range (outside: `MALFORMED`)",
@@ -125,13 +118,10 @@ def ranges_table() -> str:
 
 def messages_table() -> str:
     """Overview of every message type."""
-    rows = []
-    for t, m in MESSAGES.items():
-        direction = "host → device" if m.kind is MsgKind.REQUEST else "device → host"
-        reply = m.reply.name if m.reply else ""
-        rows.append((f"0x{int(t):02X}", f"[{t.name}](#{t.name.lower()})", m.kind.value,
-                     direction, reply, m.doc))
-    return _table(("type", "name", "kind", "direction", "reply", "purpose"), rows)
+    return _table(("type", "name", "kind", "direction", "reply", "purpose"), [
+        (f"0x{int(t):02X}", f"[{t.name}](#{t.name.lower()})", m.kind.value,
+         "host → device" if m.kind is MsgKind.REQUEST else "device → host",
+         m.reply.name if m.reply else "", m.doc) for t, m in MESSAGES.items()])
 
 
 def _fields_table(fields: Sequence[Field], offsets: list | None = None) -> str:
@@ -172,19 +162,21 @@ def column_table() -> str:
 
 def column_size() -> str:
     """The payload size sentence of COLUMN_RESULT (derived from the record declaration)."""
-    head = COLUMN_HEADER.sizeof()
-    return (f"`{head} + K ({RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} (P-1))` bytes "
-            f"(40 channels, 1 peak: {column_payload_size(40, 1)} bytes; 40 channels, 8 "
-            f"peaks: {column_payload_size(40, 8)} bytes)")
+    return (f"`{COLUMN_HEADER.sizeof()} + K ({RECORD_FIXED_SIZE} + {RECORD_EXTRA_SIZE} "
+            f"(P-1))` bytes (40 channels, 1 peak: {column_payload_size(40, 1)} bytes; 40 "
+            f"channels, 8 peaks: {column_payload_size(40, 8)} bytes)")
 
 
 def config_table() -> str:
     """CONFIG keys."""
-    rows = [(k.id, f"`{k.name}`", k.ctype, k.unit,
-             f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses", k.allowed,
-             "yes" if k.read_only else "", k.doc) for k in CONFIG_KEYS]
     return _table(("key", "name", "value type", "unit", "wire range (else MALFORMED)",
-                   "device range (else OUT_OF_RANGE)", "read-only", "meaning"), rows)
+                   "device range (else OUT_OF_RANGE)", "read-only", "meaning"),
+                  [(k.id, f"`{k.name}`", k.ctype, k.unit, _wire_range(k), k.allowed,
+                    "yes" if k.read_only else "", k.doc) for k in CONFIG_KEYS])
+
+
+def _wire_range(k: ConfigKey) -> str:
+    return f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses"
 
 
 def info_ranges_table() -> str:
@@ -238,9 +230,8 @@ def vectors() -> str:
     session, flags, host_max = 0xA1B2C3D4, 0x04, 4096
     to_dev, to_host = auth.session_keys(key, host_nonce, device_nonce, session)
     payload = encode_payload(MsgType.STATUS_GET, {})
-    signer = auth.FrameSigner(to_dev)
     signed = framing.encode_frame(int(MsgType.STATUS_GET), payload, 0x0102, session,
-                                  signer=signer)
+                                  signer=auth.FrameSigner(to_dev))
     head = framing.HEADER.pack(framing.PROTOCOL_VERSION, framing.INCOMPAT_SIGNED, 0,
                                int(MsgType.STATUS_GET), 0x0102, 0, session)
     sig = auth.FrameSigner(to_dev).sign(head)

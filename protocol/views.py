@@ -1,11 +1,9 @@
 """INFO and STATUS: their payload fields declared once, as typed dataclasses.
 
-:class:`Info` (reply to HELLO) and :class:`Status` (reply to STATUS_GET, and the
-HEARTBEAT stream) hold the fields in wire units (pm, µdeg, m°C, ms, 0.001 lines/mm) and
-wire order; each carries its payload declaration (:func:`~cdma_lidar.protocol.schema.wire`),
-from which :mod:`~cdma_lidar.protocol.messages` builds those payloads. ``to_fields`` gives
-what :func:`~cdma_lidar.protocol.messages.encode_payload` takes; ``from_fields`` /
-``Status(**fields)`` read a decoded payload.
+:class:`Info` (reply to HELLO) and :class:`Status` (reply to STATUS_GET, and HEARTBEAT)
+hold the fields in wire units (pm, µdeg, m°C, ms, 0.001 lines/mm) and wire order, each
+with its payload declaration (:func:`~cdma_lidar.protocol.schema.wire`). ``to_fields``
+gives what ``encode_payload`` takes; ``from_fields`` / ``Status(**fields)`` read a payload.
 """
 
 from __future__ import annotations
@@ -25,11 +23,9 @@ from cdma_lidar.protocol.schema import array, i, nbytes, text, u, wire
 
 __all__ = ["TEMPERATURE_UNKNOWN", "TILT_AUTO", "Info", "State", "Status"]
 
-#: Sentinel of Info.tilt_udeg: no nominal tilt, the host derives it (reference wavelength
-#: horizontal at zero rotation).
-TILT_AUTO = -(2**31)
-#: Sentinel of Status.temperature_mc: no sensor.
-TEMPERATURE_UNKNOWN = -(2**31)
+#: Sentinels of Info.tilt_udeg (no nominal tilt: the host derives it, the reference
+#: wavelength horizontal at zero rotation) and Status.temperature_mc (no sensor).
+TILT_AUTO = TEMPERATURE_UNKNOWN = -(2**31)
 
 
 class State(enum.IntEnum):
@@ -42,12 +38,10 @@ class State(enum.IntEnum):
 
 @dataclass(frozen=True, kw_only=True)
 class Info:
-    """INFO payload: identity, limits and nominal geometry (wire units, see the spec).
-
-    The device endpoint fills ``protocol_version``, ``session_id``, ``schema_crc``,
-    ``max_frame``, ``ring_columns``, ``heartbeat_ms``, ``session_idle_ms``, ``auth`` and
-    ``device_mac``; the device application fills the rest (see :meth:`nominal`).
-    """
+    """INFO payload: identity, limits and nominal geometry (wire units, see the spec). The
+    device endpoint fills ``protocol_version``, ``session_id``, ``schema_crc``, ``max_frame``,
+    ``ring_columns``, ``heartbeat_ms``, ``session_idle_ms``, ``auth`` and ``device_mac``;
+    the device application the rest (:meth:`nominal`)."""
 
     protocol_version: int = wire(PROTOCOL_VERSION, u, 8,
                                  f"protocol version spoken ({PROTOCOL_VERSION})")

@@ -20,7 +20,7 @@ from protocol_fixtures import (
 )
 
 from cdma_lidar.errors import LinkError, LinkTimeout
-from cdma_lidar.protocol import cobs, framing
+from cdma_lidar.protocol import framing
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
@@ -232,7 +232,7 @@ def test_worker_failure_outside_the_application_ends_the_stream() -> None:
 def test_zero_length_decoded_frame_is_counted_as_short() -> None:
     """COBS of zero bytes (``01``) between delimiters is a frame of 0 bytes: an error event."""
     dec = FrameDecoder()
-    assert cobs.decode(b"\x01") == b""
+    assert framing.cobs_decode(b"\x01") == b""
     good = encode_frame(MsgType.ACK, b"\x05", 1, 2)
     assert dec.feed(b"\x00\x01\x00" + good) == [Frame(MsgType.ACK, 1, 2, b"\x05")]
     assert dec.stats.short == 1 and dec.stats.errors == 1
@@ -312,7 +312,7 @@ def test_a_capture_chunk_fills_the_frame_exactly() -> None:
         write = port.endpoint.port.write
         port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
         link.capture("raw", column=1)
-        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        sizes = [len(framing.cobs_decode(c)) for w in sent for c in w.split(b"\0") if c]
         assert max(sizes) == 256
 
 
@@ -326,7 +326,7 @@ def test_a_small_host_frame_cuts_every_column_to_it() -> None:
         write = port.endpoint.port.write
         port.endpoint.port.write = lambda data: (sent.append(bytes(data)), write(data))[1]
         assert [c.column for c in link.scan(frame=4)] == [0, 1, 2]
-        sizes = [len(cobs.decode(c)) for w in sent for c in w.split(b"\0") if c]
+        sizes = [len(framing.cobs_decode(c)) for w in sent for c in w.split(b"\0") if c]
         assert len(sizes) > 3 * 20 and max(sizes) <= 96  # 1.6 kB columns in pieces
 
 

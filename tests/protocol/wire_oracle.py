@@ -71,7 +71,7 @@ def parse(msg_type: MsgType, payload: bytes) -> dict:
     return plain(dict(STRUCTS[msg_type].parse(payload)))
 
 
-# ---- COBS: the pure-Python reference of cdma_lidar.protocol.cobs ---------------------------
+# ---- COBS: the pure-Python reference of framing.cobs_encode and cobs_decode -----------------
 def cobs_encode_py(data: bytes) -> bytes:
     """COBS-encode ``data`` (reference implementation; output has no 0x00 byte)."""
     out = bytearray()
