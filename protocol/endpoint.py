@@ -14,12 +14,9 @@ What a request goes through (docs/protocol.md, Device behaviour)::
 
 One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits
 for the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes
-the columns one step at a time, and the loop answers from its state meanwhile:
-STATUS_GET, RESEND, SCAN_ABORT, CONFIG_GET, a refused HELLO and BUSY (CONFIG_SET,
-SCAN_START, CALIBRATE while a stream runs) at once, a HEARTBEAT every
-``heartbeat_s / 2`` while a stream runs. Requests that need the application
-(POWER_SET, POWER_GET, CAPTURE, and the rest when idle) are held, in arrival order,
-until the column in progress is done, and handled before the next one starts. Run
+the columns one step at a time while the loop answers from its state (:data:`_APP`
+lists the requests held for the application until the column in progress is done) and
+sends a HEARTBEAT every ``heartbeat_s / 2`` during a stream. Run
 :meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like object
 (``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
 """
@@ -77,14 +74,14 @@ __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "Endpoin
 
 log = logging.getLogger(__name__)
 
-#: Requests that call the application (CONFIG_*, SCAN_START and CALIBRATE only when no
-#: stream runs: then they are answered from its state).
+#: Requests that call the application, held while the engine computes. CONFIG_GET,
+#: CONFIG_SET, SCAN_START and CALIBRATE do only when no stream runs: during one they are
+#: answered at once from its state (STATUS_GET, RESEND, SCAN_ABORT always are).
 _APP = frozenset({MsgType.HELLO, MsgType.POWER_SET, MsgType.POWER_GET, MsgType.CAPTURE})
 _APP_IDLE = frozenset({MsgType.CONFIG_GET, MsgType.CONFIG_SET, MsgType.SCAN_START,
                        MsgType.CALIBRATE})
-#: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
-#: between stream frames stays within INFO.heartbeat_ms when the loop runs late (by up
-#: to half of it: a loaded machine).
+#: A HEARTBEAT goes this share of heartbeat_s after the last, so that the gap between
+#: stream frames stays within INFO.heartbeat_ms with the loop up to half of it late.
 _HEARTBEAT_EARLY = 0.5
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
@@ -92,22 +89,19 @@ _REPLAY_DEPTH = 32
 FAULT_HEALTH = 0x8000_0000
 #: Bytes of columns the loop sends per poll while a stream runs before it reads again.
 _POLL_BYTES = 4096
-#: A step of the engine this young (s) is waited for (``poll_s`` at a time) rather than
-#: the port, which is then only looked at between waits: most steps are quicker.
+#: An engine step this young (s) is waited for (``poll_s`` at a time) rather than the
+#: port: most steps are quicker.
 _QUICK_STEP_S = 0.05
 
 
 class DeviceApp(abc.ABC):
     """What a device application implements behind a :class:`DeviceEndpoint`.
 
-    Methods are called one at a time, though not always from the same thread: the scan
-    generator and :meth:`abort` run in the device's
-    :class:`~cdma_lidar.protocol.streams.Engine`, the others in a connection's loop
-    while the engine is idle. A generator may take long per column: meanwhile the
-    endpoint keeps answering from its state and sending heartbeats; requests that need
-    the application wait for the column in progress. Refuse a request by raising
-    ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming the field) or
-    ``DeviceError(message, code=ErrorCode..., field=...)``.
+    Methods are called one at a time: the scan generator and :meth:`abort` in the
+    device's :class:`~cdma_lidar.protocol.streams.Engine`, the others in a connection's
+    loop while the engine is idle, so a generator may take long per column. Refuse a
+    request by raising ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE
+    naming the field) or ``DeviceError(message, code=ErrorCode..., field=...)``.
     """
 
     @abc.abstractmethod
@@ -147,15 +141,14 @@ class DeviceApp(abc.ABC):
         """Called when a running scan or calibration is stopped early."""
 
     def health(self) -> tuple[int, int]:
-        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a
-        scan runs, as :meth:`column_time_s`: read state only, never block."""
+        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a scan
+        runs, as :meth:`column_time_s`: read state only, never block."""
         return TEMPERATURE_UNKNOWN, 0
 
     def column_time_s(self) -> float:
         """Longest the next column may take with the current configuration (s), batching
         included; 0.0: not stated. STATUS and every HEARTBEAT carry it, and the host's
-        no-progress limit follows it. Called while a scan runs (the engine computing):
-        read state only, never block."""
+        no-progress limit follows it."""
         return 0.0
 
 
@@ -165,13 +158,12 @@ class DeviceEndpoint:
     Args:
         port: port-like object (``read``, ``write``, ``in_waiting``, ``timeout``).
         app: the device application (ignored when ``core`` is given).
-        core: shared device state when several connections serve one device.
-        key: shared secret for a new core (see :class:`DeviceCore`).
-        engine: measurement engine of a new core (default: one on its own thread; a
-            test stepping the device on a fake clock gives ``Engine(threaded=False)``).
+        core: shared device state when several connections serve one device; else one
+            is made of ``app``, ``key``, ``session_idle_s`` and ``engine`` (see
+            :class:`DeviceCore`; a test stepping the device on a fake clock gives
+            ``Engine(threaded=False)``).
         session_id: id of the first session (u32, not 0); random when None. Every
             later HELLO gets a fresh random id.
-        session_idle_s: idle time after which another host may take the session (s).
         max_frame: largest frame this end sends or accepts (bytes, 256..65535).
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
@@ -237,13 +229,10 @@ class DeviceEndpoint:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
         try:
             while not stop.is_set():
-                try:
-                    self.poll()
-                except (OSError, ValueError, TypeError) as exc:
-                    # A closed pty or pyserial port: the host side went away.
-                    if not stop.is_set():
-                        log.warning("device endpoint stops: port failed (%s)", exc)
-                    break
+                self.poll()
+        except (OSError, ValueError, TypeError) as exc:  # a closed pty or pyserial port
+            if not stop.is_set():
+                log.warning("device endpoint stops: port failed (%s)", exc)
         finally:
             self.close()
 
@@ -267,14 +256,12 @@ class DeviceEndpoint:
         data = self._read()
         if data:
             damaged = self.decoder.stats.damaged
-            for piece in self.decoder.feed(data):
-                frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
-                    else piece
-                if frame is None:
-                    continue
-                if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+            for frame in self.decoder.feed(data):
+                if frame.msg_type == MsgType.FRAGMENT:
+                    frame = self._request_piece(frame)  # None until the request is whole
+                if frame is not None and kind_of(frame.msg_type) is not MsgKind.REQUEST:
                     self.stats.ignored += 1
-                else:
+                elif frame is not None:
                     self._process(frame)
             while self.decoder.rejected:
                 self._on_rejected(self.decoder.rejected.pop(0))
@@ -384,16 +371,13 @@ class DeviceEndpoint:
         verifier = sess.verifier if ours else ended if frame.session == sid else None
         good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
         if ours and not good and frame.sig:  # forged or replayed: as DeviceSession.admit
-            self.stats.auth_rejected += 1
-            self.core.backoff.failed(f"{sess.peer} (session frames)",
-                                     "a frame failed authentication")
+            sess.forged()
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)
         except FrameError:
-            self.stats.ignored += 1
-            return None
-        if kind_of(body["msg_type"]) is not MsgKind.REQUEST:
+            body = None
+        if body is None or kind_of(body["msg_type"]) is not MsgKind.REQUEST:
             self.stats.ignored += 1
             return None
         key = (body["msg_type"], body["seq"], frame.session)
@@ -424,12 +408,11 @@ class DeviceEndpoint:
             return
         if any(h.seq == frame.seq and k == key for h, k in self._held):
             return  # a retransmission of a held request: its reply comes
-        if not is_hello and self.last_seq is not None:
-            age = (self.last_seq - frame.seq) & 0xFFFF
-            if 0 < age < 0x8000:
-                self.stats.stale += 1
-                log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
-                return
+        if not is_hello and self.last_seq is not None and \
+                0 < (self.last_seq - frame.seq) & 0xFFFF < 0x8000:
+            self.stats.stale += 1
+            log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
+            return
         if is_hello:
             try:
                 f = decode_payload(MsgType.HELLO, frame.payload)
@@ -459,21 +442,19 @@ class DeviceEndpoint:
                     raise DeviceError(f"{type_name(frame.msg_type)} is not a request this "
                                       "device knows", ErrorCode.UNKNOWN_TYPE, "msg_type")
                 reply = handler(frame, decode_payload(frame.msg_type, frame.payload))
-        except FrameError as exc:
-            reply = self.tx.nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
-        except (DeviceError, ConfigError) as exc:
-            code = exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
+        except (FrameError, DeviceError, ConfigError) as exc:
+            code = ErrorCode.MALFORMED if isinstance(exc, FrameError) else \
+                exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
             reply = self.tx.nak(frame, ErrorCode(code) if code in set(ErrorCode) else
                                 ErrorCode.INTERNAL, exc.field or "", str(exc))
         except Exception as exc:  # the device must never die on a request
             log.exception("device application failed on %s", type_name(frame.msg_type))
             reply = self.tx.nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
-        if frame.msg_type == MsgType.HELLO:
-            if reply[0] == MsgType.INFO:  # a new session: its requests count afresh
-                self._replay.clear()
-                self.last_seq = None
-        else:
+        if frame.msg_type != MsgType.HELLO:
             self.last_seq = frame.seq
+        elif reply[0] == MsgType.INFO:  # a new session: its requests count afresh
+            self._replay.clear()
+            self.last_seq = None
         self._replay[frame.seq] = (key, reply)
         self._replay.move_to_end(frame.seq)
         while len(self._replay) > _REPLAY_DEPTH:
