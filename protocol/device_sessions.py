@@ -141,18 +141,20 @@ class DeviceSession:
     authentications, the capture being read, and the requests it makes of the application.
 
     ``tx`` (session id, max frame, signing, coding), ``streams`` (ended with the session)
-    and ``stats`` are the connection's; ``max_frame``, ``fec`` and ``heartbeat_s`` as
-    :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` takes them (INFO says them);
-    ``peer`` names the other end in the log; ``on_end`` is called when the session ends.
+    and ``stats`` are the connection's; ``session_id`` (of the first session), ``max_frame``,
+    ``fec`` and ``heartbeat_s`` as :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`
+    takes them (INFO says them); ``peer`` names the other end in the log; ``on_end`` is
+    called when the session ends.
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
-                 stats: EndpointStats, *, max_frame: int, fec: bool, heartbeat_s: float,
-                 peer: str, on_end: Callable[[], None]) -> None:
+                 stats: EndpointStats, *, session_id: int | None, max_frame: int, fec: bool,
+                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
         self.core, self.app, self.tx, self.streams, self.stats = \
             core, core.app, tx, streams, stats
         self.max_frame, self.fec, self.heartbeat_s = max_frame, fec, heartbeat_s
         self.peer, self._on_end, self.open = peer, on_end, False
+        tx.session = session_id or new_session_id()  # the first session's (0, None: random)
         self.sessionless_since = core.clock()  # since when it has had no session (s)
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent

@@ -12,13 +12,12 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application while the engine computes? --yes--> held (in order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits
-for the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes
-the columns one step at a time while the loop answers from its state (:data:`_APP`
-lists the requests held for the application until the column in progress is done) and
-sends a HEARTBEAT every ``heartbeat_s / 2`` during a stream. Run
-:meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like object
-(``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
+One loop per connection (:meth:`DeviceEndpoint.poll`, run by
+:meth:`~DeviceEndpoint.serve_forever` in a thread behind any port-like object) does all
+of it and never waits for the application: the device's
+:class:`~cdma_lidar.protocol.streams.Engine` computes the columns one step at a time while
+the loop answers from its state, holds requests that need the application until the
+column in progress is done and sends a HEARTBEAT every ``heartbeat_s / 2`` in a stream.
 """
 
 from __future__ import annotations
@@ -40,19 +39,8 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.device_sessions import (
-    DeviceCore,
-    DeviceSession,
-    EndpointStats,
-    new_session_id,
-)
-from cdma_lidar.protocol.framing import (
-    FRAME_LIMIT,
-    MIN_MAX_FRAME,
-    PROTOCOL_VERSION,
-    Frame,
-    FrameDecoder,
-)
+from cdma_lidar.protocol.device_sessions import DeviceCore, DeviceSession, EndpointStats
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, FrameDecoder
 from cdma_lidar.protocol.messages import (
     CaptureKind,
     ErrorCode,
@@ -157,22 +145,18 @@ class DeviceEndpoint:
 
     Args:
         port: port-like object (``read``, ``write``, ``in_waiting``, ``timeout``).
-        app: the device application (ignored when ``core`` is given).
-        core: shared device state when several connections serve one device; else one
-            is made of ``app``, ``key``, ``session_idle_s`` and ``engine`` (see
-            :class:`DeviceCore`; a test stepping the device on a fake clock gives
-            ``Engine(threaded=False)``).
-        session_id: id of the first session (u32, not 0); random when None. Every
-            later HELLO gets a fresh random id.
+        app: the device application, unless ``core`` is given: the device state that
+            several connections share; else one is made of ``app``, ``key``,
+            ``session_idle_s`` and ``engine`` (:class:`DeviceCore`).
+        session_id: the first session's id (u32; 0 or None: random; later ones random).
         max_frame: largest frame this end sends or accepts (bytes, 256..65535).
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s, 0..1; 0: never block, for a caller
             that steps the device itself).
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
-            (a serial line); False on TCP, where a damaged frame is not worth the CPU.
-        peer: who is on the other end (an IP address), for the log of failed
-            authentication; default the port's name.
+            (a serial line; False on TCP: a damaged frame is not worth the CPU).
+        peer: the other end (an IP address) in the log; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
     """
 
@@ -183,14 +167,14 @@ class DeviceEndpoint:
                  ring_columns: int = 1024, heartbeat_s: float = 0.2, poll_s: float = 0.01,
                  peer: str | None = None, fec: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
+        self.decoder = FrameDecoder(max_frame, fec=fec)  # checks max_frame
         check_int("ring_columns", ring_columns, 0, 65535)
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
         if not 0 <= poll_s <= 1:
             raise out_of_range("poll_s", "0 to 1 s", poll_s)
-        if session_id is not None:  # 0 or None: random
+        if session_id is not None:
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
         self._own_core = core is None
         if core is None:
@@ -200,17 +184,16 @@ class DeviceEndpoint:
                               engine=engine)
         self.core, self.app, self.port = core, core.app, port
         self.clock, self.heartbeat_s, self.poll_s = clock, heartbeat_s, poll_s
-        self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
         #: Requests waiting for the application, in arrival order: (request, its CRC).
         self._held: list[tuple[Frame, int]] = []
-        self.tx = Transmitter(port, session_id or new_session_id(), max_frame,
-                              (self.stats, core.totals))
+        self.tx = Transmitter(port, 0, max_frame, (self.stats, core.totals))
         self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
                                clock=clock, stopped=lambda: core.touch(self.session))
         self.session = DeviceSession(core, self.tx, self.streams, self.stats,
-                                     max_frame=max_frame, fec=fec, heartbeat_s=heartbeat_s,
-                                     peer=peer or port_name(port), on_end=self._held.clear)
+                                     session_id=session_id, max_frame=max_frame, fec=fec,
+                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port),
+                                     on_end=self._held.clear)
         #: Request handler of each request type, ``(request, fields) -> reply``.
         self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
             **self.session.handlers(), **self.streams.handlers(),
@@ -237,9 +220,8 @@ class DeviceEndpoint:
             self.close()
 
     def close(self) -> None:
-        """Stop a running stream (no SCAN_END; its clean-up goes to the engine), end this
-        connection's session; let the engine's thread go if this endpoint made it. The
-        port is left open."""
+        """End this connection's session and its stream (no SCAN_END); let the engine's
+        thread go if this endpoint made it. The port is left open."""
         self.session.lost = None
         self.session.end()
         if self._own_core:
@@ -287,9 +269,7 @@ class DeviceEndpoint:
 
     def _read(self) -> bytes:
         """What arrived; blocks (up to ``poll_s``) only when there is nothing to send and
-        no column to hand over. A step of the engine younger than ``_QUICK_STEP_S`` is
-        waited for instead (so it is taken at once), an older one noticed within
-        ``poll_s``."""
+        no column to hand over, or waits for a young engine step (``_QUICK_STEP_S``)."""
         n = self.port.in_waiting
         if n:
             return self.port.read(n)
@@ -357,14 +337,12 @@ class DeviceEndpoint:
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request (checked as it comes: a piece of this signed
-        session with a wrong signature is dropped and counts against the back-off, an
-        unsigned one makes its request AUTH_REQUIRED); the whole request once every
-        piece is in, keyed by (type, seq, session), so a piece of another session never
-        joins this session's request. The request counts as checked (``joined``) only
-        when every piece was, as the open session's or (its NAK WRONG_SESSION is then
-        signed) as the signed session that ended here. Two requests in pieces are kept
-        at most."""
+        """Keep one FRAGMENT of a request; the whole request once every piece is in, keyed
+        by (type, seq, session) (at most two kept), so no piece of another session joins.
+        Each piece is checked as it comes: one of this signed session with a wrong
+        signature is dropped, an unsigned one makes its request AUTH_REQUIRED. The request
+        is ``joined`` (checked) only if every piece was, as the open session's or as the
+        signed session that ended here (its NAK WRONG_SESSION is then signed)."""
         sess = self.session
         sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
