@@ -261,18 +261,19 @@ class DeviceSession:
                 self.lose(*lost)
             else:
                 owner.lost, self._previous = lost, owner
-        # This connection's stream ends now, so the engine has cleaned it up by the time
-        # the HELLO calls the application.
+        # Its stream ends now: the engine has cleaned it up when the HELLO calls the app.
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         core.owner, core.owner_nonce = self, nonce
         return None
 
     @property
     def ready(self) -> bool:
-        """This connection may call the application: it owns the device, and the owner
-        its HELLO took the device from has ended its session (its loop clears ``lost``)."""
+        """This connection may call the application now: it owns the device, the owner its
+        HELLO took the device from has ended its session (its loop clears ``lost``), and
+        the engine is idle."""
         prev = self._previous
-        return self.core.owner is self and (prev is None or not (prev.open or prev.lost))
+        return self.core.owner is self and (prev is None or not (prev.open or prev.lost)) \
+            and self.core.engine.idle
 
     def _hello(self, req: Frame, f: dict) -> Reply:
         """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
@@ -386,9 +387,7 @@ class DeviceSession:
             if start + n > have:
                 return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, name,
                                    f"{name[:-1]}_start + {name} must be at most {have}")
-        payload = encode_payload(MsgType.POWER, {
-            "channel_start": r0, "column_start": c0, "channels": nr, "columns": nc,
-            "power": m[r0:r0 + nr, c0:c0 + nc]})
+        payload = encode_payload(MsgType.POWER, {**f, "power": m[r0:r0 + nr, c0:c0 + nc]})
         return self._sized(req, MsgType.POWER, payload, "columns",
                            "ask for a smaller rectangle per POWER_GET")
 

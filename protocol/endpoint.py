@@ -54,7 +54,7 @@ from cdma_lidar.protocol.messages import (
 )
 from cdma_lidar.protocol.ports import port_name
 from cdma_lidar.protocol.streams import Engine, Streams
-from cdma_lidar.protocol.transmit import CONTROL, Reply, Transmitter
+from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
@@ -254,7 +254,7 @@ class DeviceEndpoint:
                     MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                          & 0xFFFFFFFF}))
         streams.collect()
-        while self._held and self._app_free():
+        while self._held and self.session.ready:
             self._respond(*self._held.pop(0))
         if not self._held:  # held requests go before the next column
             streams.advance()
@@ -274,21 +274,15 @@ class DeviceEndpoint:
         if n:
             return self.port.read(n)
         st, job = self.streams.stream, self.streams.latest and self.streams.latest.job
-        if job is not None and time.monotonic() - job.started < _QUICK_STEP_S and \
-                wait([job], self.poll_s).done:
-            return b""
-        if self.tx.pending(CONTROL) or (st is not None and (job is None or any(
-                self.tx.pending(c) for c in range(1, 3)))):
+        quick = job is not None and time.monotonic() - job.started < _QUICK_STEP_S
+        busy = st is not None and (job is None or self.tx.pending(REPAIR) or
+                                   self.tx.pending(FRESH))  # a column to hand or send
+        if (quick and wait([job], self.poll_s).done) or self.tx.pending(CONTROL) or busy:
             return b""
         data = self.port.read(1)
         if data and self.port.in_waiting:
             data += self.port.read(self.port.in_waiting)
         return data
-
-    def _app_free(self) -> bool:
-        """This connection may call the application now: it owns the device (its HELLO
-        took it and the old owner let go) and the engine is idle."""
-        return self.session.ready and self.core.engine.idle
 
     def _count_rx(self) -> None:
         """Add what the decoder counted since the last call to the core's totals."""
@@ -306,18 +300,17 @@ class DeviceEndpoint:
         except Exception:  # a health sensor must not take the link down
             log.exception("application health() failed")
             temp, faults = TEMPERATURE_UNKNOWN, FAULT_HEALTH
-        core, mask = self.core, 0xFFFFFFFF
+        core, totals, mask = self.core, self.core.totals, 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(st.frame if st else streams.last_frame) & mask,
             next_column=(st.next_column - self.tx.fresh_pending() if st else streams.last_next)
             & 0xFFFF,
-            last_end=int(streams.last_end),
-            columns_sent=core.totals.columns_sent & mask,
+            last_end=int(streams.last_end), columns_sent=totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
-            tx_frames=core.totals.tx_frames & mask, replays=core.totals.replays & mask,
+            tx_frames=totals.tx_frames & mask, replays=totals.replays & mask,
             temperature_mc=temp, faults=faults & mask,
             column_time_ms=min(math.ceil(self.app.column_time_s() * 1000), mask))
 
@@ -403,7 +396,7 @@ class DeviceEndpoint:
                 return
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
-                (self._held or not self._app_free()):
+                (self._held or not self.session.ready):
             self._held.append((frame, key))
             if not is_hello:
                 self.last_seq = frame.seq
