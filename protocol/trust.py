@@ -130,13 +130,11 @@ class ColumnChecker:
 
     def __init__(self, info: Info, config: dict[str, Any], frame: int, first: int, end: int,
                  calibration: bool) -> None:
-        self.channels = info.channels
-        self.peaks = int(config["peaks"])
-        self.uid_bits = int(config["uid_bits"])
+        self.channels, self.frame, self.first, self.end = info.channels, frame, first, end
+        self.peaks, self.uid_bits, self.gate_len, out_bits = (
+            int(config[k]) for k in ("peaks", "uid_bits", "gate_len", "out_bits"))
         self.lags = ((1 << int(config["poly_u"][0])) - 1) * int(config["samples_per_chip"])
-        self.gate_len = int(config["gate_len"])
-        self.out_max = 1 << (int(config["out_bits"]) - 1)  # outputs lie in [-out_max, out_max)
-        self.frame, self.first, self.end = frame, first, end
+        self.out_max = 1 << (out_bits - 1)  # outputs lie in [-out_max, out_max)
         self.calibration = calibration
 
     def check(self, col: ColumnResult) -> None:
@@ -149,12 +147,10 @@ class ColumnChecker:
                 at = ", ".join(str(int(x)) for x in idx)
                 raise _lie(what, f"{field}[{at}]", int(values[tuple(idx)]), allowed)
 
-        for field, value, want in (("channels", col.channels, self.channels),
-                                   ("peaks", col.peaks, self.peaks),
-                                   ("uid_bits", col.uid_bits, self.uid_bits),
-                                   ("frame", col.frame, self.frame),
-                                   ("flags.calibration", int(col.calibration),
-                                    int(self.calibration))):
+        for field, value, want in (
+                ("channels", col.channels, self.channels), ("peaks", col.peaks, self.peaks),
+                ("uid_bits", col.uid_bits, self.uid_bits), ("frame", col.frame, self.frame),
+                ("flags.calibration", int(col.calibration), int(self.calibration))):
             if value != want:
                 raise _lie(what, field, value, f"{want} (this session)")
         if not self.first <= col.column < self.end:
