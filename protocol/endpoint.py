@@ -194,7 +194,6 @@ class DeviceEndpoint:
                                      session_id=session_id, max_frame=max_frame, fec=fec,
                                      heartbeat_s=heartbeat_s, peer=peer or port_name(port),
                                      on_end=self._held.clear)
-        #: Request handler of each request type, ``(request, fields) -> reply``.
         self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
             **self.session.handlers(), **self.streams.handlers(),
             MsgType.STATUS_GET: lambda req, f: self.tx.reply(
@@ -203,8 +202,7 @@ class DeviceEndpoint:
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
-        #: Requests arriving in FRAGMENTs: (type, seq, session) -> (the pieces so far,
-        #: every one of them checked as this open session's).
+        #: Requests in FRAGMENTs: (type, seq, session) -> (pieces so far, all checked).
         self._pieces: OrderedDict[tuple[int, int, int], tuple[Pieces, bool]] = OrderedDict()
         port.timeout = poll_s
 
