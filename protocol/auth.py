@@ -31,15 +31,10 @@ __all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameSigner", "F
 
 log = logging.getLogger(__name__)
 
-#: Bytes of the shared key.
-KEY_BYTES = 32
-#: Bytes of a nonce in HELLO and CHALLENGE.
-NONCE_BYTES = 16
-#: Bytes of the HELLO and INFO MACs (full HMAC-SHA256).
-MAC_BYTES = 32
-#: Bytes of the truncated MAC in a frame signature.
-SIG_MAC_BYTES = SIGNATURE_SIZE - 8
-_COUNTER = struct.Struct("<Q")
+#: Bytes of the shared key, of a nonce in HELLO and CHALLENGE, of the HELLO and INFO MACs
+#: (full HMAC-SHA256).
+KEY_BYTES, NONCE_BYTES, MAC_BYTES = 32, 16, 32
+_COUNTER = struct.Struct("<Q")  # the signature's counter; its truncated MAC follows
 
 
 # ---- key file --------------------------------------------------------------------------------
@@ -50,30 +45,31 @@ def load_key(path: str | Path) -> bytes:
     or readable by group or others (the key would not be secret).
     """
     p = Path(path)
+
+    def bad(what: str) -> ConfigError:
+        return ConfigError(f"key file {str(p)!r} {what}", "key_file")
+
     try:
         mode = p.stat().st_mode
         text = p.read_text(encoding="ascii").strip()
     except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"key file {str(p)!r} cannot be read ({exc})", "key_file") from None
+        raise bad(f"cannot be read ({exc})") from None
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(f"key file {str(p)!r} must be readable by its owner only (mode 0600), "
-                          f"not mode {stat.S_IMODE(mode):04o}: chmod 600 it", "key_file")
+        raise bad(f"must be readable by its owner only (mode 0600), not mode "
+                  f"{stat.S_IMODE(mode):04o}: chmod 600 it")
     try:
         key = bytes.fromhex(text)
     except ValueError:
         key = b""
     if len(key) != KEY_BYTES:
-        raise ConfigError(f"key file {str(p)!r} must hold {2 * KEY_BYTES} hex digits "
-                          f"({KEY_BYTES} bytes), not {len(text)} characters", "key_file")
+        raise bad(f"must hold {2 * KEY_BYTES} hex digits ({KEY_BYTES} bytes), not "
+                  f"{len(text)} characters")
     return key
 
 
 def load_or_create_key(path: str | Path) -> tuple[bytes, bool]:
-    """The key in ``path``; if absent, a fresh random key written there with mode 0600.
-
-    Returns (key, created). The file is created exclusively (never overwritten) and
-    only ever has mode 0600.
-    """
+    """(the key in ``path``, False); if absent, (a fresh random key, True), written there
+    exclusively (never overwritten) with mode 0600."""
     p = Path(path)
     try:
         fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -120,6 +116,7 @@ def equal(a: bytes, b: bytes) -> bool:
 
 
 # ---- frame signing ---------------------------------------------------------------------------
+@dataclass
 class _FrameMac:
     """HMAC-SHA256 of one session key, keyed once: each frame copies the keyed state
     (the key's two pad blocks are not hashed again per frame)."""
@@ -134,14 +131,13 @@ class _FrameMac:
         h = self._keyed.copy()
         h.update(data)
         h.update(counter)
-        return h.digest()[:SIG_MAC_BYTES]
+        return h.digest()[:SIGNATURE_SIZE - _COUNTER.size]
 
 
 @dataclass
 class FrameSigner(_FrameMac):
     """Signs the frames of one direction of a session (counter starts at 1)."""
 
-    key: bytes
     counter: int = 0
 
     def sign(self, data: bytes) -> bytes:
@@ -155,14 +151,13 @@ class FrameSigner(_FrameMac):
 class FrameVerifier(_FrameMac):
     """Checks the frames of one direction of a session: MAC, then a rising counter."""
 
-    key: bytes
     last: int = 0
 
     def check(self, frame: Frame) -> bool:
         """True if ``frame`` is signed with this key and newer than every frame accepted."""
-        c = frame.sig[:8]
+        c = frame.sig[:_COUNTER.size]
         if len(frame.sig) != SIGNATURE_SIZE or \
-                not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[8:]):
+                not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[_COUNTER.size:]):
             return False
         (counter,) = _COUNTER.unpack(c)
         if counter <= self.last:
@@ -174,27 +169,20 @@ class FrameVerifier(_FrameMac):
 class Backoff:
     """Back-off after failed authentication: it slows a guesser, never the key holder.
 
-    A MAC is always checked at once on a connection that has sent no wrong MAC, so the
-    key holder gets in from any address whatever its neighbours on that address send.
-    A guesser is slowed twice over:
-
-    * per connection: after ``n`` wrong MACs on one connection, its next MAC is not even
-      checked until ``min(max_s, base_s * 2**(n - 1))`` seconds after the last failure;
-    * globally: wrong MACs draw on a budget of ``rate`` checks per second (``burst`` at
-      once). While it is spent, a connection that has failed waits for it too, so many
-      connections give a guesser at most ``rate`` checked guesses per second plus one per
-      new connection.
-
-    Failures of one peer (an address) less than ``quiet_s`` apart are one burst, whose
-    first failure logs one WARNING (counts are in the caller's stats). ``clock`` is
-    monotonic seconds.
+    A MAC is checked at once on a connection with no wrong MAC yet, so the key holder gets
+    in from any address whatever its neighbours there send. A guesser is slowed twice over:
+    per connection, after ``n`` wrong MACs its next MAC is not checked until
+    ``min(max_s, base_s * 2**(n - 1))`` s after the last failure; globally, wrong MACs draw
+    on a budget of ``rate`` checks per second (``burst`` at once) that a failed connection
+    waits for too, so many connections give a guesser at most ``rate`` checked guesses per
+    second plus one per new connection. Failures of one peer (an address) less than
+    ``quiet_s`` apart are one burst, whose first logs one WARNING. ``clock``: monotonic s.
     """
 
     def __init__(self, clock: Callable[[], float], base_s: float = 0.1, max_s: float = 5.0,
                  rate: float = 2.0, burst: float = 10.0, quiet_s: float = 60.0) -> None:
-        self.clock = clock
-        self.base_s, self.max_s, self.quiet_s = base_s, max_s, quiet_s
-        self.rate, self.burst = rate, burst
+        self.clock, self.base_s, self.max_s = clock, base_s, max_s
+        self.rate, self.burst, self.quiet_s = rate, burst, quiet_s
         self._debt, self._at = 0.0, clock()  # wrong MACs not yet paid back, as of _at
         self._peers: dict[str, float] = {}  # peer -> its last failure (for the log)
 

@@ -1,12 +1,9 @@
 """Device sessions: who owns the device, HELLO (with its challenge-response), take-over.
 
 One device may be reached over several connections at once (the TCP server gives each
-its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`). :class:`DeviceCore`,
-shared by them, knows which connection's :class:`DeviceSession` owns the device, since
-when and how long it has been idle, and the boot configuration a new session starts
-from. A connection's :class:`DeviceSession` owns its session: open or not, its keys,
-the challenge sent, the failed authentications, the capture being read, and the
-requests it makes of the application. HELLO opens a session (docs/protocol.md,
+its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`); they share one
+:class:`DeviceCore`, which knows whose :class:`DeviceSession` owns the device and the
+boot configuration a new session starts from. HELLO opens a session (docs/protocol.md,
 Sessions and Access control): another host gets NAK BUSY unless it takes over or the
 session expired, and the old owner then gets SESSION_LOST. Each connection's loop
 changes only its own session: a HELLO that takes the device marks the old owner
@@ -72,16 +69,13 @@ class EndpointStats:
 
 
 class DeviceCore:
-    """What every connection to one device shares: the application, its engine, the session.
+    """What every connection to one device shares: the application, its ``engine``
+    (default: one on its own thread), the session, the counters since boot.
 
-    Args:
-        app: the device application.
-        key: shared secret (32 bytes, :mod:`cdma_lidar.protocol.auth`); None: no access
-            control (serial ports, ptys, loopback with ``--insecure``).
-        session_idle_s: a session idle this long (no request from its host, no stream
-            running) may be taken by another host's HELLO without take-over (s).
-        clock: monotonic clock (s).
-        engine: the measurement engine (default: one on its own thread).
+    ``key``: the shared secret (32 bytes, :mod:`cdma_lidar.protocol.auth`); None: no access
+    control (serial ports, ptys, loopback with ``--insecure``). A session idle
+    ``session_idle_s`` (s: no request from its host, no stream running) may be taken by
+    another host's HELLO without take-over. ``clock``: monotonic (s).
     """
 
     def __init__(self, app: Any, *, key: bytes | None = None, session_idle_s: float = 10.0,
@@ -93,17 +87,14 @@ class DeviceCore:
         if key is not None and len(key) != auth.KEY_BYTES:
             raise out_of_range("key", f"{auth.KEY_BYTES} bytes", len(key))
         self.app, self.key, self.clock = app, key, clock
-        self.session_idle_s = float(session_idle_s)
-        self.engine = engine or Engine()
+        self.session_idle_s, self.engine = float(session_idle_s), engine or Engine()
         self.owner: DeviceSession | None = None
-        self.owner_nonce = b""
+        self.owner_nonce = b""  # the owner's HELLO host nonce
         self.opened = self.last_active = 0.0
         self._boot: tuple[dict[str, Any], NDArray | None] | None = None
         self.backoff = auth.Backoff(clock)  # failed authentication: the global budget
         #: Since boot (the core's creation), over every connection: what STATUS reports.
-        self.booted = clock()
-        self.totals = EndpointStats()
-        self.rx_frames = self.rx_errors = 0
+        self.booted, self.totals, self.rx_frames, self.rx_errors = clock(), EndpointStats(), 0, 0
 
     def idle_s(self, now: float) -> float:
         """Seconds the owner's session has been idle (0 while it streams)."""
@@ -146,29 +137,25 @@ def new_session_id(old: int = 0) -> int:
 
 
 class DeviceSession:
-    """The session of one connection (see the module docstring).
+    """The session of one connection: open or not, its keys, the challenge sent, failed
+    authentications, the capture being read, and the requests it makes of the application.
 
-    Args:
-        core: what every connection to the device shares.
-        tx: the connection's transmitter (its session id, max frame, signing, coding).
-        streams: the connection's streams, ended with the session.
-        stats: the connection's counters.
-        max_frame, fec, heartbeat_s: the connection's, as
-            :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint` takes them (INFO says them).
-        peer: who is on the other end, for the log of failed authentication.
-        on_end: called when the session ends (the connection forgets what it held).
+    ``tx`` (session id, max frame, signing, coding), ``streams`` (ended with the session)
+    and ``stats`` are the connection's; ``session_id`` (of the first session), ``max_frame``,
+    ``fec`` and ``heartbeat_s`` as :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`
+    takes them (INFO says them); ``peer`` names the other end in the log; ``on_end`` is
+    called when the session ends.
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
-                 stats: EndpointStats, *, max_frame: int, fec: bool, heartbeat_s: float,
-                 peer: str, on_end: Callable[[], None]) -> None:
+                 stats: EndpointStats, *, session_id: int | None, max_frame: int, fec: bool,
+                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
         self.core, self.app, self.tx, self.streams, self.stats = \
             core, core.app, tx, streams, stats
         self.max_frame, self.fec, self.heartbeat_s = max_frame, fec, heartbeat_s
-        self.peer, self._on_end = peer, on_end
-        self.open = False
-        #: Since when this connection has had no session (core clock, s).
-        self.sessionless_since = core.clock()
+        self.peer, self._on_end, self.open = peer, on_end, False
+        tx.session = session_id or new_session_id()  # the first session's (0, None: random)
+        self.sessionless_since = core.clock()  # since when it has had no session (s)
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
         #: The last signed session that ended on this connection: (id, signer, verifier).
@@ -201,11 +188,11 @@ class DeviceSession:
             detail = (f"this connection's session is 0x{self.id:08x}; send HELLO"
                       if self.open else "no session is open here: send HELLO")
             refusal = self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail, False)
+            # A request of the signed session that ended here hears the NAK signed with
+            # that session's key (its host drops unsigned frames; joined: pieces checked).
             sid, signer, verifier = self.ended or (None, None, None)
-            # A request of the signed session that ended here: its host hears the NAK
-            # signed with that session's key (it drops unsigned frames).
             ended = req.session == sid and verifier is not None and \
-                (req.joined or verifier.check(req))  # joined: every piece was checked
+                (req.joined or verifier.check(req))
             self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
                          signer=signer if ended else None, coded=self.tx.coded or req.fec)
             return False
@@ -216,12 +203,15 @@ class DeviceSession:
                     "this device accepts only signed frames: HELLO with its key", False))
                 return False
             if not self.verifier.check(req):
-                self.stats.auth_rejected += 1
-                self.core.backoff.failed(f"{self.peer} (session frames)",
-                                         "a frame failed authentication")
+                self.forged()
                 return False
         self.core.touch(self)
         return True
+
+    def forged(self) -> None:
+        """A frame of this signed session failed its MAC or counter (dropped unanswered)."""
+        self.stats.auth_rejected += 1
+        self.core.backoff.failed(f"{self.peer} (session frames)", "a frame failed authentication")
 
     def hello_gate(self, req: Frame, f: dict) -> Reply | None:
         """What HELLO gets from the session state alone, at once: a CHALLENGE,
@@ -236,17 +226,16 @@ class DeviceSession:
                 self.challenge = secrets.token_bytes(auth.NONCE_BYTES)
                 return (MsgType.CHALLENGE, encode_payload(
                     MsgType.CHALLENGE, {"device_nonce": self.challenge}), False)
-            wait = core.backoff.wait_s(*self.auth_failures)
-            if wait > 0:
+            wait = core.backoff.wait_s(*self.auth_failures)  # > 0: the MAC is not checked
+            if wait > 0 or not auth.equal(f["mac"], auth.hello_mac(
+                    core.key, self.challenge, bytes(f["host_nonce"]), f["flags"],
+                    f["host_max_frame"])):
                 self.challenge = None
-                self.stats.auth_throttled += 1
-                return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
-                                   f"authentications on this connection: retry in {wait:.1f} s",
-                                   False)
-            want = auth.hello_mac(core.key, self.challenge, bytes(f["host_nonce"]), f["flags"],
-                                  f["host_max_frame"])
-            if not auth.equal(want, f["mac"]):
-                self.challenge = None
+                if wait > 0:
+                    self.stats.auth_throttled += 1
+                    return self.tx.nak(req, ErrorCode.AUTH_FAILED, "mac", "too many failed "
+                                       "authentications on this connection: retry in "
+                                       f"{wait:.1f} s", False)
                 self.stats.auth_rejected += 1
                 self.auth_failures = (self.auth_failures[0] + 1, core.clock())
                 core.backoff.failed(self.peer,
@@ -272,18 +261,19 @@ class DeviceSession:
                 self.lose(*lost)
             else:
                 owner.lost, self._previous = lost, owner
-        # A stream of this connection ends now, so the engine has cleaned it up by the
-        # time the HELLO calls the application.
+        # Its stream ends now: the engine has cleaned it up when the HELLO calls the app.
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         core.owner, core.owner_nonce = self, nonce
         return None
 
     @property
     def ready(self) -> bool:
-        """This connection may call the application: it owns the device, and the owner
-        its HELLO took the device from has ended its session."""
-        prev = self._previous  # its loop clears ``lost`` once it has ended its session
-        return self.core.owner is self and (prev is None or not (prev.open or prev.lost))
+        """This connection may call the application now: it owns the device, the owner its
+        HELLO took the device from has ended its session (its loop clears ``lost``), and
+        the engine is idle."""
+        prev = self._previous
+        return self.core.owner is self and (prev is None or not (prev.open or prev.lost)) \
+            and self.core.engine.idle
 
     def _hello(self, req: Frame, f: dict) -> Reply:
         """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
@@ -326,15 +316,13 @@ class DeviceSession:
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
-        self.capture = None
         self._on_end()
-        if self.open and self.verifier is not None:  # to sign its NAK WRONG_SESSION
-            self.ended = (self.id, self.tx.signer, self.verifier)
-        self.tx.signer = self.verifier = None
-        self.tx.coded = False
         if self.open:
             self.sessionless_since = self.core.clock()
-        self.open = False
+            if self.verifier is not None:  # to sign its NAK WRONG_SESSION
+                self.ended = (self.id, self.tx.signer, self.verifier)
+        self.open, self.capture, self.verifier = False, None, None
+        self.tx.signer, self.tx.coded = None, False
         if self.core.owner is self:
             self.core.owner = None
 
@@ -357,10 +345,9 @@ class DeviceSession:
         return self.tx.reply(req, msg_type, payload)
 
     def _config_get(self, req: Frame, f: dict) -> Reply:
-        if self.streams.stream is not None and self.streams.config is not None:
-            values = dict(self.streams.config)  # no CONFIG_SET while streaming: still current
-        else:
-            values = self.app.get_config()
+        # While streaming (no CONFIG_SET then) the stream's configuration is still current.
+        streaming = self.streams.stream is not None and self.streams.config is not None
+        values = dict(self.streams.config) if streaming else self.app.get_config()
         if f["keys"]:
             want = []
             for kid in f["keys"]:
@@ -400,9 +387,7 @@ class DeviceSession:
             if start + n > have:
                 return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, name,
                                    f"{name[:-1]}_start + {name} must be at most {have}")
-        payload = encode_payload(MsgType.POWER, {
-            "channel_start": r0, "column_start": c0, "channels": nr, "columns": nc,
-            "power": m[r0:r0 + nr, c0:c0 + nc]})
+        payload = encode_payload(MsgType.POWER, {**f, "power": m[r0:r0 + nr, c0:c0 + nc]})
         return self._sized(req, MsgType.POWER, payload, "columns",
                            "ask for a smaller rectangle per POWER_GET")
 

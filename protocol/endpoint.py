@@ -12,16 +12,12 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application while the engine computes? --yes--> held (in order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits
-for the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes
-the columns one step at a time, and the loop answers from its state meanwhile:
-STATUS_GET, RESEND, SCAN_ABORT, CONFIG_GET, a refused HELLO and BUSY (CONFIG_SET,
-SCAN_START, CALIBRATE while a stream runs) at once, a HEARTBEAT every
-``heartbeat_s / 2`` while a stream runs. Requests that need the application
-(POWER_SET, POWER_GET, CAPTURE, and the rest when idle) are held, in arrival order,
-until the column in progress is done, and handled before the next one starts. Run
-:meth:`DeviceEndpoint.serve_forever` in a thread behind any port-like object
-(``read(n)``, ``write(b)``, ``in_waiting``, ``timeout``).
+One loop per connection (:meth:`DeviceEndpoint.poll`, run by
+:meth:`~DeviceEndpoint.serve_forever` in a thread behind any port-like object) does all
+of it and never waits for the application: the device's
+:class:`~cdma_lidar.protocol.streams.Engine` computes the columns one step at a time while
+the loop answers from its state, holds requests that need the application until the
+column in progress is done and sends a HEARTBEAT every ``heartbeat_s / 2`` in a stream.
 """
 
 from __future__ import annotations
@@ -43,19 +39,8 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, DeviceError, FrameError, out_of_range
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.device_sessions import (
-    DeviceCore,
-    DeviceSession,
-    EndpointStats,
-    new_session_id,
-)
-from cdma_lidar.protocol.framing import (
-    FRAME_LIMIT,
-    MIN_MAX_FRAME,
-    PROTOCOL_VERSION,
-    Frame,
-    FrameDecoder,
-)
+from cdma_lidar.protocol.device_sessions import DeviceCore, DeviceSession, EndpointStats
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, FrameDecoder
 from cdma_lidar.protocol.messages import (
     CaptureKind,
     ErrorCode,
@@ -69,7 +54,7 @@ from cdma_lidar.protocol.messages import (
 )
 from cdma_lidar.protocol.ports import port_name
 from cdma_lidar.protocol.streams import Engine, Streams
-from cdma_lidar.protocol.transmit import CONTROL, Reply, Transmitter
+from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
 from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
@@ -77,14 +62,14 @@ __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "Endpoin
 
 log = logging.getLogger(__name__)
 
-#: Requests that call the application (CONFIG_*, SCAN_START and CALIBRATE only when no
-#: stream runs: then they are answered from its state).
+#: Requests that call the application, held while the engine computes. CONFIG_GET,
+#: CONFIG_SET, SCAN_START and CALIBRATE do only when no stream runs: during one they are
+#: answered at once from its state (STATUS_GET, RESEND, SCAN_ABORT always are).
 _APP = frozenset({MsgType.HELLO, MsgType.POWER_SET, MsgType.POWER_GET, MsgType.CAPTURE})
 _APP_IDLE = frozenset({MsgType.CONFIG_GET, MsgType.CONFIG_SET, MsgType.SCAN_START,
                        MsgType.CALIBRATE})
-#: A HEARTBEAT goes out this share of heartbeat_s after the last one, so that the gap
-#: between stream frames stays within INFO.heartbeat_ms when the loop runs late (by up
-#: to half of it: a loaded machine).
+#: A HEARTBEAT goes this share of heartbeat_s after the last, so that the gap between
+#: stream frames stays within INFO.heartbeat_ms with the loop up to half of it late.
 _HEARTBEAT_EARLY = 0.5
 #: Requests remembered for retransmission replay.
 _REPLAY_DEPTH = 32
@@ -92,22 +77,19 @@ _REPLAY_DEPTH = 32
 FAULT_HEALTH = 0x8000_0000
 #: Bytes of columns the loop sends per poll while a stream runs before it reads again.
 _POLL_BYTES = 4096
-#: A step of the engine this young (s) is waited for (``poll_s`` at a time) rather than
-#: the port, which is then only looked at between waits: most steps are quicker.
+#: An engine step this young (s) is waited for (``poll_s`` at a time) rather than the
+#: port: most steps are quicker.
 _QUICK_STEP_S = 0.05
 
 
 class DeviceApp(abc.ABC):
     """What a device application implements behind a :class:`DeviceEndpoint`.
 
-    Methods are called one at a time, though not always from the same thread: the scan
-    generator and :meth:`abort` run in the device's
-    :class:`~cdma_lidar.protocol.streams.Engine`, the others in a connection's loop
-    while the engine is idle. A generator may take long per column: meanwhile the
-    endpoint keeps answering from its state and sending heartbeats; requests that need
-    the application wait for the column in progress. Refuse a request by raising
-    ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE naming the field) or
-    ``DeviceError(message, code=ErrorCode..., field=...)``.
+    Methods are called one at a time: the scan generator and :meth:`abort` in the
+    device's :class:`~cdma_lidar.protocol.streams.Engine`, the others in a connection's
+    loop while the engine is idle, so a generator may take long per column. Refuse a
+    request by raising ``ConfigError(message, field=name)`` (answered NAK OUT_OF_RANGE
+    naming the field) or ``DeviceError(message, code=ErrorCode..., field=...)``.
     """
 
     @abc.abstractmethod
@@ -147,15 +129,14 @@ class DeviceApp(abc.ABC):
         """Called when a running scan or calibration is stopped early."""
 
     def health(self) -> tuple[int, int]:
-        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a
-        scan runs, as :meth:`column_time_s`: read state only, never block."""
+        """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a scan
+        runs, as :meth:`column_time_s`: read state only, never block."""
         return TEMPERATURE_UNKNOWN, 0
 
     def column_time_s(self) -> float:
         """Longest the next column may take with the current configuration (s), batching
         included; 0.0: not stated. STATUS and every HEARTBEAT carry it, and the host's
-        no-progress limit follows it. Called while a scan runs (the engine computing):
-        read state only, never block."""
+        no-progress limit follows it."""
         return 0.0
 
 
@@ -164,23 +145,18 @@ class DeviceEndpoint:
 
     Args:
         port: port-like object (``read``, ``write``, ``in_waiting``, ``timeout``).
-        app: the device application (ignored when ``core`` is given).
-        core: shared device state when several connections serve one device.
-        key: shared secret for a new core (see :class:`DeviceCore`).
-        engine: measurement engine of a new core (default: one on its own thread; a
-            test stepping the device on a fake clock gives ``Engine(threaded=False)``).
-        session_id: id of the first session (u32, not 0); random when None. Every
-            later HELLO gets a fresh random id.
-        session_idle_s: idle time after which another host may take the session (s).
+        app: the device application, unless ``core`` is given: the device state that
+            several connections share; else one is made of ``app``, ``key``,
+            ``session_idle_s`` and ``engine`` (:class:`DeviceCore`).
+        session_id: the first session's id (u32; 0 or None: random; later ones random).
         max_frame: largest frame this end sends or accepts (bytes, 256..65535).
         ring_columns: recent columns kept for RESEND.
         heartbeat_s: HEARTBEAT interval while scanning (s).
         poll_s: longest blocking read when idle (s, 0..1; 0: never block, for a caller
             that steps the device itself).
         fec: accept Reed-Solomon coded frames and code a session whose HELLO asks for it
-            (a serial line); False on TCP, where a damaged frame is not worth the CPU.
-        peer: who is on the other end (an IP address), for the log of failed
-            authentication; default the port's name.
+            (a serial line; False on TCP: a damaged frame is not worth the CPU).
+        peer: the other end (an IP address) in the log; default the port's name.
         clock: monotonic clock (s), replaceable in tests.
     """
 
@@ -191,14 +167,14 @@ class DeviceEndpoint:
                  ring_columns: int = 1024, heartbeat_s: float = 0.2, poll_s: float = 0.01,
                  peer: str | None = None, fec: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        check_int("max_frame", max_frame, MIN_MAX_FRAME, FRAME_LIMIT)
+        self.decoder = FrameDecoder(max_frame, fec=fec)  # checks max_frame
         check_int("ring_columns", ring_columns, 0, 65535)
         if not 0.001 <= heartbeat_s <= 65.535:
             raise out_of_range("heartbeat_s", "0.001 to 65.535 s (INFO.heartbeat_ms)",
                                heartbeat_s)
         if not 0 <= poll_s <= 1:
             raise out_of_range("poll_s", "0 to 1 s", poll_s)
-        if session_id is not None:  # 0 or None: random
+        if session_id is not None:
             check_int("session_id", session_id, 0, 0xFFFFFFFF)
         self._own_core = core is None
         if core is None:
@@ -208,18 +184,16 @@ class DeviceEndpoint:
                               engine=engine)
         self.core, self.app, self.port = core, core.app, port
         self.clock, self.heartbeat_s, self.poll_s = clock, heartbeat_s, poll_s
-        self.decoder = FrameDecoder(max_frame, fec=fec)
         self.stats = EndpointStats()
         #: Requests waiting for the application, in arrival order: (request, its CRC).
         self._held: list[tuple[Frame, int]] = []
-        self.tx = Transmitter(port, session_id or new_session_id(), max_frame,
-                              (self.stats, core.totals))
+        self.tx = Transmitter(port, 0, max_frame, (self.stats, core.totals))
         self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
                                clock=clock, stopped=lambda: core.touch(self.session))
         self.session = DeviceSession(core, self.tx, self.streams, self.stats,
-                                     max_frame=max_frame, fec=fec, heartbeat_s=heartbeat_s,
-                                     peer=peer or port_name(port), on_end=self._held.clear)
-        #: Request handler of each request type, ``(request, fields) -> reply``.
+                                     session_id=session_id, max_frame=max_frame, fec=fec,
+                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port),
+                                     on_end=self._held.clear)
         self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
             **self.session.handlers(), **self.streams.handlers(),
             MsgType.STATUS_GET: lambda req, f: self.tx.reply(
@@ -228,8 +202,7 @@ class DeviceEndpoint:
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
-        #: Requests arriving in FRAGMENTs: (type, seq, session) -> (the pieces so far,
-        #: every one of them checked as this open session's).
+        #: Requests in FRAGMENTs: (type, seq, session) -> (pieces so far, all checked).
         self._pieces: OrderedDict[tuple[int, int, int], tuple[Pieces, bool]] = OrderedDict()
         port.timeout = poll_s
 
@@ -237,20 +210,16 @@ class DeviceEndpoint:
         """Poll until ``stop`` is set or the port fails (logged); then stop any stream."""
         try:
             while not stop.is_set():
-                try:
-                    self.poll()
-                except (OSError, ValueError, TypeError) as exc:
-                    # A closed pty or pyserial port: the host side went away.
-                    if not stop.is_set():
-                        log.warning("device endpoint stops: port failed (%s)", exc)
-                    break
+                self.poll()
+        except (OSError, ValueError, TypeError) as exc:  # a closed pty or pyserial port
+            if not stop.is_set():
+                log.warning("device endpoint stops: port failed (%s)", exc)
         finally:
             self.close()
 
     def close(self) -> None:
-        """Stop a running stream (no SCAN_END; its clean-up goes to the engine), end this
-        connection's session; let the engine's thread go if this endpoint made it. The
-        port is left open."""
+        """End this connection's session and its stream (no SCAN_END); let the engine's
+        thread go if this endpoint made it. The port is left open."""
         self.session.lost = None
         self.session.end()
         if self._own_core:
@@ -267,14 +236,12 @@ class DeviceEndpoint:
         data = self._read()
         if data:
             damaged = self.decoder.stats.damaged
-            for piece in self.decoder.feed(data):
-                frame = self._request_piece(piece) if piece.msg_type == MsgType.FRAGMENT \
-                    else piece
-                if frame is None:
-                    continue
-                if kind_of(frame.msg_type) is not MsgKind.REQUEST:
+            for frame in self.decoder.feed(data):
+                if frame.msg_type == MsgType.FRAGMENT:
+                    frame = self._request_piece(frame)  # None until the request is whole
+                if frame is not None and kind_of(frame.msg_type) is not MsgKind.REQUEST:
                     self.stats.ignored += 1
-                else:
+                elif frame is not None:
                     self._process(frame)
             while self.decoder.rejected:
                 self._on_rejected(self.decoder.rejected.pop(0))
@@ -285,7 +252,7 @@ class DeviceEndpoint:
                     MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
                                          & 0xFFFFFFFF}))
         streams.collect()
-        while self._held and self._app_free():
+        while self._held and self.session.ready:
             self._respond(*self._held.pop(0))
         if not self._held:  # held requests go before the next column
             streams.advance()
@@ -300,28 +267,20 @@ class DeviceEndpoint:
 
     def _read(self) -> bytes:
         """What arrived; blocks (up to ``poll_s``) only when there is nothing to send and
-        no column to hand over. A step of the engine younger than ``_QUICK_STEP_S`` is
-        waited for instead (so it is taken at once), an older one noticed within
-        ``poll_s``."""
+        no column to hand over, or waits for a young engine step (``_QUICK_STEP_S``)."""
         n = self.port.in_waiting
         if n:
             return self.port.read(n)
         st, job = self.streams.stream, self.streams.latest and self.streams.latest.job
-        if job is not None and time.monotonic() - job.started < _QUICK_STEP_S and \
-                wait([job], self.poll_s).done:
-            return b""
-        if self.tx.pending(CONTROL) or (st is not None and (job is None or any(
-                self.tx.pending(c) for c in range(1, 3)))):
+        quick = job is not None and time.monotonic() - job.started < _QUICK_STEP_S
+        busy = st is not None and (job is None or self.tx.pending(REPAIR) or
+                                   self.tx.pending(FRESH))  # a column to hand or send
+        if (quick and wait([job], self.poll_s).done) or self.tx.pending(CONTROL) or busy:
             return b""
         data = self.port.read(1)
         if data and self.port.in_waiting:
             data += self.port.read(self.port.in_waiting)
         return data
-
-    def _app_free(self) -> bool:
-        """This connection may call the application now: it owns the device (its HELLO
-        took it and the old owner let go) and the engine is idle."""
-        return self.session.ready and self.core.engine.idle
 
     def _count_rx(self) -> None:
         """Add what the decoder counted since the last call to the core's totals."""
@@ -339,18 +298,17 @@ class DeviceEndpoint:
         except Exception:  # a health sensor must not take the link down
             log.exception("application health() failed")
             temp, faults = TEMPERATURE_UNKNOWN, FAULT_HEALTH
-        core, mask = self.core, 0xFFFFFFFF
+        core, totals, mask = self.core, self.core.totals, 0xFFFFFFFF
         return Status(
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(st.frame if st else streams.last_frame) & mask,
             next_column=(st.next_column - self.tx.fresh_pending() if st else streams.last_next)
             & 0xFFFF,
-            last_end=int(streams.last_end),
-            columns_sent=core.totals.columns_sent & mask,
+            last_end=int(streams.last_end), columns_sent=totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
-            tx_frames=core.totals.tx_frames & mask, replays=core.totals.replays & mask,
+            tx_frames=totals.tx_frames & mask, replays=totals.replays & mask,
             temperature_mc=temp, faults=faults & mask,
             column_time_ms=min(math.ceil(self.app.column_time_s() * 1000), mask))
 
@@ -370,30 +328,25 @@ class DeviceEndpoint:
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request (checked as it comes: a piece of this signed
-        session with a wrong signature is dropped and counts against the back-off, an
-        unsigned one makes its request AUTH_REQUIRED); the whole request once every
-        piece is in, keyed by (type, seq, session), so a piece of another session never
-        joins this session's request. The request counts as checked (``joined``) only
-        when every piece was, as the open session's or (its NAK WRONG_SESSION is then
-        signed) as the signed session that ended here. Two requests in pieces are kept
-        at most."""
+        """Keep one FRAGMENT of a request; the whole request once every piece is in, keyed
+        by (type, seq, session) (at most two kept), so no piece of another session joins.
+        Each piece is checked as it comes: one of this signed session with a wrong
+        signature is dropped, an unsigned one makes its request AUTH_REQUIRED. The request
+        is ``joined`` (checked) only if every piece was, as the open session's or as the
+        signed session that ended here (its NAK WRONG_SESSION is then signed)."""
         sess = self.session
         sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
         verifier = sess.verifier if ours else ended if frame.session == sid else None
         good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
         if ours and not good and frame.sig:  # forged or replayed: as DeviceSession.admit
-            self.stats.auth_rejected += 1
-            self.core.backoff.failed(f"{sess.peer} (session frames)",
-                                     "a frame failed authentication")
+            sess.forged()
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)
         except FrameError:
-            self.stats.ignored += 1
-            return None
-        if kind_of(body["msg_type"]) is not MsgKind.REQUEST:
+            body = None
+        if body is None or kind_of(body["msg_type"]) is not MsgKind.REQUEST:
             self.stats.ignored += 1
             return None
         key = (body["msg_type"], body["seq"], frame.session)
@@ -424,12 +377,11 @@ class DeviceEndpoint:
             return
         if any(h.seq == frame.seq and k == key for h, k in self._held):
             return  # a retransmission of a held request: its reply comes
-        if not is_hello and self.last_seq is not None:
-            age = (self.last_seq - frame.seq) & 0xFFFF
-            if 0 < age < 0x8000:
-                self.stats.stale += 1
-                log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
-                return
+        if not is_hello and self.last_seq is not None and \
+                0 < (self.last_seq - frame.seq) & 0xFFFF < 0x8000:
+            self.stats.stale += 1
+            log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
+            return
         if is_hello:
             try:
                 f = decode_payload(MsgType.HELLO, frame.payload)
@@ -442,7 +394,7 @@ class DeviceEndpoint:
                 return
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
-                (self._held or not self._app_free()):
+                (self._held or not self.session.ready):
             self._held.append((frame, key))
             if not is_hello:
                 self.last_seq = frame.seq
@@ -459,21 +411,19 @@ class DeviceEndpoint:
                     raise DeviceError(f"{type_name(frame.msg_type)} is not a request this "
                                       "device knows", ErrorCode.UNKNOWN_TYPE, "msg_type")
                 reply = handler(frame, decode_payload(frame.msg_type, frame.payload))
-        except FrameError as exc:
-            reply = self.tx.nak(frame, ErrorCode.MALFORMED, exc.field or "", str(exc))
-        except (DeviceError, ConfigError) as exc:
-            code = exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
+        except (FrameError, DeviceError, ConfigError) as exc:
+            code = ErrorCode.MALFORMED if isinstance(exc, FrameError) else \
+                exc.code if isinstance(exc, DeviceError) else ErrorCode.OUT_OF_RANGE
             reply = self.tx.nak(frame, ErrorCode(code) if code in set(ErrorCode) else
                                 ErrorCode.INTERNAL, exc.field or "", str(exc))
         except Exception as exc:  # the device must never die on a request
             log.exception("device application failed on %s", type_name(frame.msg_type))
             reply = self.tx.nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
-        if frame.msg_type == MsgType.HELLO:
-            if reply[0] == MsgType.INFO:  # a new session: its requests count afresh
-                self._replay.clear()
-                self.last_seq = None
-        else:
+        if frame.msg_type != MsgType.HELLO:
             self.last_seq = frame.seq
+        elif reply[0] == MsgType.INFO:  # a new session: its requests count afresh
+            self._replay.clear()
+            self.last_seq = None
         self._replay[frame.seq] = (key, reply)
         self._replay.move_to_end(frame.seq)
         while len(self._replay) > _REPLAY_DEPTH:

@@ -33,18 +33,13 @@ class DeviceLied(LinkError):
 
 
 def escape(text: str) -> str:
-    """``text`` safe for a terminal: every non-printable character as an escape.
-
-    Printable characters (letters, digits, punctuation, spaces) pass; control
-    characters (C0, DEL, C1: ESC starts terminal escape sequences), format characters
-    (bidirectional overrides) and separators other than the space become ``\\xNN`` or
-    ``\\uNNNN``; a backslash is doubled so the result is unambiguous.
-    """
+    """``text`` safe for a terminal: a backslash doubled, and every character that is not
+    printable (control characters, C0, DEL and C1: ESC starts terminal escape sequences;
+    format characters: bidirectional overrides; separators but the space) as ``\\xNN``,
+    ``\\uNNNN`` or ``\\UNNNNNNNN``."""
     def one(ch: str) -> str:
-        if ch == "\\":
-            return "\\\\"
-        if ch.isprintable():  # no C* (control, format) or Z* (separator) but the space
-            return ch
+        if ch.isprintable():
+            return "\\\\" if ch == "\\" else ch
         n = ord(ch)
         return f"\\x{n:02x}" if n < 0x100 else f"\\u{n:04x}" if n < 0x10000 else f"\\U{n:08x}"
 
@@ -75,24 +70,21 @@ INFO_RANGES: dict[str, tuple[int, int, str]] = {
 def check_info(info: Info) -> Info:
     """Check INFO's fields against each other and their physical ranges (the decoder
     checked each wire range); returns it with its strings escaped."""
-    def need(ok: bool, field: str, allowed: str) -> None:
-        if not ok:
-            raise _lie("INFO", field, getattr(info, field, "?"), allowed)
-
     k = len(info.wavelengths_pm)
     if not 1 <= k <= info.max_channels:
         raise _lie("INFO", "wavelengths_pm", f"{k} channels",
                    f"1 to max_channels = {info.max_channels}")
-    need(info.spc_min <= info.spc_max, "spc_min", f"at most spc_max = {info.spc_max}")
+    if info.spc_min > info.spc_max:
+        raise _lie("INFO", "spc_min", info.spc_min, f"at most spc_max = {info.spc_max}")
     for field, (lo, hi, unit) in INFO_RANGES.items():
         value = getattr(info, field)
         if field == "tilt_udeg" and value == TILT_AUTO:
             continue
-        values = value if isinstance(value, tuple) else (value,)
-        if not all(lo <= v <= hi for v in values):
+        if not all(lo <= v <= hi for v in (value if isinstance(value, tuple) else (value,))):
             raise _lie("INFO", field, value, f"{lo} to {hi} {unit} (physical range)")
-    need(info.column_power_cap_uw == 0 or info.pixel_power_max_uw > 0, "pixel_power_max_uw",
-         "above 0 when a column power cap is announced")
+    if info.column_power_cap_uw != 0 and not info.pixel_power_max_uw > 0:
+        raise _lie("INFO", "pixel_power_max_uw", info.pixel_power_max_uw,
+                   "above 0 when a column power cap is announced")
     return replace(info, serial=escape(info.serial),
                    firmware_version=escape(info.firmware_version))
 
@@ -108,116 +100,96 @@ def check_config(config: dict[str, Any], info: Info) -> None:
         if key.name not in config:
             raise DeviceLied(f"device's CONFIG lacks key {key.name!r} (every key must be "
                              "present in a CONFIG of all keys)", key.name)
-    c = config
-
-    def need(ok: bool, field: str, allowed: str) -> None:
+    c, i = config, info
+    degree = int(c["poly_u"][0]) if len(c["poly_u"]) else 0
+    ns = ((1 << degree) - 1) * int(c["samples_per_chip"])
+    gate_max = min(ns, i.max_gate_len)
+    for ok, field, allowed in (
+            (2 <= degree <= i.max_degree, "poly_u", f"degree 2 to max_degree = {i.max_degree}"),
+            (len(c["code_index"]) == i.channels, "code_index",
+             f"{i.channels} items (one per channel)"),
+            (c["uid_bits"] <= i.max_uid_bits, "uid_bits", f"1 to max_uid_bits = {i.max_uid_bits}"),
+            (c["uid"] < 1 << c["uid_bits"], "uid",
+             f"0 to 2^uid_bits - 1 = {(1 << c['uid_bits']) - 1}"),
+            (i.spc_min <= c["samples_per_chip"] <= i.spc_max, "samples_per_chip",
+             f"{i.spc_min} to {i.spc_max}"),
+            (c["averages"] <= i.max_averages, "averages", f"1 to {i.max_averages}"),
+            (c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}"),
+            (c["gate_len"] <= gate_max, "gate_len", f"1 to min(N*S, max_gate_len) = {gate_max}"),
+            (c["peaks"] <= i.max_peaks, "peaks", f"1 to max_peaks = {i.max_peaks}"),
+            (c["columns_per_frame"] <= i.column_count, "columns_per_frame",
+             f"1 to column_count = {i.column_count}")):
         if not ok:
             raise _lie("CONFIG", field, c[field], allowed)
 
-    degree = int(c["poly_u"][0]) if len(c["poly_u"]) else 0
-    need(2 <= degree <= info.max_degree, "poly_u", f"degree 2 to max_degree = {info.max_degree}")
-    ns = ((1 << degree) - 1) * int(c["samples_per_chip"])
-    need(len(c["code_index"]) == info.channels, "code_index",
-         f"{info.channels} items (one per channel)")
-    need(c["uid_bits"] <= info.max_uid_bits, "uid_bits",
-         f"1 to max_uid_bits = {info.max_uid_bits}")
-    need(c["uid"] < 1 << c["uid_bits"], "uid", f"0 to 2^uid_bits - 1 = "
-         f"{(1 << c['uid_bits']) - 1}")
-    need(info.spc_min <= c["samples_per_chip"] <= info.spc_max, "samples_per_chip",
-         f"{info.spc_min} to {info.spc_max}")
-    need(c["averages"] <= info.max_averages, "averages", f"1 to {info.max_averages}")
-    need(c["gate_start"] < ns, "gate_start", f"0 to N*S - 1 = {ns - 1}")
-    need(c["gate_len"] <= min(ns, info.max_gate_len), "gate_len",
-         f"1 to min(N*S, max_gate_len) = {min(ns, info.max_gate_len)}")
-    need(c["peaks"] <= info.max_peaks, "peaks", f"1 to max_peaks = {info.max_peaks}")
-    need(c["columns_per_frame"] <= info.column_count, "columns_per_frame",
-         f"1 to column_count = {info.column_count}")
-
 
 class ColumnChecker:
-    """Checks every column of one stream against the session's INFO and configuration.
-
-    Args:
-        info: the session's INFO.
-        config: the device configuration during the stream (all keys).
-        frame: the stream's frame id.
-        first, end: columns (or shots) first..end-1 are expected.
-        calibration: True for a calibration stream.
-    """
+    """Checks every column of one stream against the session's ``info`` and ``config``
+    (all keys, during the stream): frame id ``frame``, columns (or shots, for a
+    ``calibration`` stream) ``first`` to ``end - 1``."""
 
     def __init__(self, info: Info, config: dict[str, Any], frame: int, first: int, end: int,
                  calibration: bool) -> None:
-        self.channels = info.channels
-        self.peaks = int(config["peaks"])
-        self.uid_bits = int(config["uid_bits"])
+        self.channels, self.frame, self.first, self.end = info.channels, frame, first, end
+        self.peaks, self.uid_bits, self.gate_len, out_bits = (
+            int(config[k]) for k in ("peaks", "uid_bits", "gate_len", "out_bits"))
         self.lags = ((1 << int(config["poly_u"][0])) - 1) * int(config["samples_per_chip"])
-        self.gate_len = int(config["gate_len"])
-        self.out_max = 1 << (int(config["out_bits"]) - 1)  # outputs lie in [-out_max, out_max)
-        self.frame, self.first, self.end = frame, first, end
+        self.out_max = 1 << (out_bits - 1)  # outputs lie in [-out_max, out_max)
         self.calibration = calibration
 
     def check(self, col: ColumnResult) -> None:
         """Raise DeviceLied naming the first field of ``col`` that cannot be true."""
-        where = f"column {col.column} of frame {col.frame}"
+        what = f"column (column {col.column} of frame {col.frame})"
 
-        def lie(field: str, value: object, allowed: str) -> DeviceLied:
-            return _lie(f"column ({where})", field, value, allowed)
+        def none(field: str, values: np.ndarray, bad: np.ndarray, allowed: str) -> None:
+            if np.any(bad):  # names the first bad element
+                idx = np.argwhere(bad)[0]
+                at = ", ".join(str(int(x)) for x in idx)
+                raise _lie(what, f"{field}[{at}]", int(values[tuple(idx)]), allowed)
 
-        for field, value, want in (("channels", col.channels, self.channels),
-                                   ("peaks", col.peaks, self.peaks),
-                                   ("uid_bits", col.uid_bits, self.uid_bits),
-                                   ("frame", col.frame, self.frame),
-                                   ("flags.calibration", int(col.calibration),
-                                    int(self.calibration))):
+        for field, value, want in (
+                ("channels", col.channels, self.channels), ("peaks", col.peaks, self.peaks),
+                ("uid_bits", col.uid_bits, self.uid_bits), ("frame", col.frame, self.frame),
+                ("flags.calibration", int(col.calibration), int(self.calibration))):
             if value != want:
-                raise lie(field, value, f"{want} (this session)")
+                raise _lie(what, field, value, f"{want} (this session)")
         if not self.first <= col.column < self.end:
-            raise lie("column", col.column, f"{self.first} to {self.end - 1}")
-        rec = col.records
-        n_mask, out = 1 << self.uid_bits, self.out_max
+            raise _lie(what, "column", col.column, f"{self.first} to {self.end - 1}")
+        rec, n_mask, out = col.records, 1 << self.uid_bits, self.out_max
         for f in RECORD:
             if f.encoding == "signs":
                 neg, zero = (w.name for w in f.wire)
-                self._none(lie, neg, rec[neg], rec[neg] >= n_mask, f"below 2^n = {n_mask}")
-                self._none(lie, zero, rec[zero], rec[zero] >= n_mask, f"below 2^n = {n_mask}")
-                self._none(lie, zero, rec[zero], (rec[neg] & rec[zero]) != 0,
-                           f"disjoint from {neg} (a sign is -1 or 0, not both)")
+                for name in (neg, zero):
+                    none(name, rec[name], rec[name] >= n_mask, f"below 2^n = {n_mask}")
+                none(zero, rec[zero], (rec[neg] & rec[zero]) != 0,
+                     f"disjoint from {neg} (a sign is -1 or 0, not both)")
                 continue
             v = rec[f.name]
             if f.encoding == "lag":
-                self._none(lie, f.name, v, (v >= self.lags) & (v != NO_PEAK),
-                           f"0 to N*S - 1 = {self.lags - 1} or {NO_PEAK:#x} (no peak)")
+                none(f.name, v, (v >= self.lags) & (v != NO_PEAK),
+                     f"0 to N*S - 1 = {self.lags - 1} or {NO_PEAK:#x} (no peak)")
             elif f.encoding == "flag":
-                self._none(lie, f.name, v, v > 1, "0 or 1")
+                none(f.name, v, v > 1, "0 or 1")
             if f.allowed == "signed out_bits":
-                self._none(lie, f.name, v, (v < -out) | (v >= out),
-                           f"signed out_bits: {-out} to {out - 1}")
-        self._none(lie, "uid_observed", rec["uid_observed"], rec["uid_observed"] >= n_mask,
-                   f"below 2^n = {n_mask}")
+                none(f.name, v, (v < -out) | (v >= out), f"signed out_bits: {-out} to {out - 1}")
+        none("uid_observed", rec["uid_observed"], rec["uid_observed"] >= n_mask,
+             f"below 2^n = {n_mask}")
         count, total, sumsq = rec["noise_count"], rec["noise_sum"], rec["noise_sumsq"]
-        self._none(lie, "noise_count", count, count > self.gate_len,
-                   f"at most gate_len = {self.gate_len}")
-        self._none(lie, "noise_count", count, (count == 0) & (rec["peak_lag"] != NO_PEAK),
-                   "at least 1 where a peak is reported (the SNR needs a noise floor)")
+        none("noise_count", count, count > self.gate_len, f"at most gate_len = {self.gate_len}")
+        none("noise_count", count, (count == 0) & (rec["peak_lag"] != NO_PEAK),
+             "at least 1 where a peak is reported (the SNR needs a noise floor)")
         # Each noise lag is an output: |sum| <= count * out, sumsq <= count * out^2; and
         # count * sumsq >= sum^2 for any real noise floor (Cauchy-Schwarz). Exact integers.
         c, s, q = (a.astype(np.float64) for a in (count, total, sumsq))
-        self._none(lie, "noise_sum", total, _above(
+        none("noise_sum", total, _above(
             np.abs(s), c * out, lambda i: abs(int(total[i])) > int(count[i]) * out),
             f"at most noise_count * 2^(out_bits-1) = noise_count * {out} in magnitude")
-        self._none(lie, "noise_sumsq", sumsq, _above(
+        none("noise_sumsq", sumsq, _above(
             q, c * float(out) ** 2, lambda i: int(sumsq[i]) > int(count[i]) * out ** 2),
             f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {out ** 2}")
-        self._none(lie, "noise_sumsq", sumsq, _above(
+        none("noise_sumsq", sumsq, _above(
             s * s, c * q, lambda i: int(total[i]) ** 2 > int(count[i]) * int(sumsq[i])),
             "at least noise_sum^2 / noise_count")
-
-    @staticmethod
-    def _none(lie: Any, field: str, values: np.ndarray, bad: np.ndarray, allowed: str) -> None:
-        if np.any(bad):
-            idx = np.argwhere(bad)[0]
-            at = ", ".join(str(int(x)) for x in idx)
-            raise lie(f"{field}[{at}]", int(values[tuple(idx)]), allowed)
 
 
 def _above(lhs: np.ndarray, rhs: np.ndarray, exact: Any) -> np.ndarray:
