@@ -130,13 +130,14 @@ class DeviceApp(abc.ABC):
 
     def health(self) -> tuple[int, int]:
         """(temperature in m°C or TEMPERATURE_UNKNOWN, fault bits). Called while a scan
-        runs, as :meth:`column_time_s`: read state only, never block."""
+        runs: read state only, never block."""
         return TEMPERATURE_UNKNOWN, 0
 
     def column_time_s(self) -> float:
         """Longest the next column may take with the current configuration (s), batching
         included; 0.0: not stated. STATUS and every HEARTBEAT carry it, and the host's
-        no-progress limit follows it."""
+        no-progress limit follows it. Called while a scan runs: read state only, never
+        block."""
         return 0.0
 
 
