@@ -42,11 +42,15 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.device_sessions import DeviceCore, DeviceSession, EndpointStats
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, FrameDecoder
 from cdma_lidar.protocol.messages import (
+    TEMPERATURE_UNKNOWN,
     CaptureKind,
     ErrorCode,
+    Info,
     MsgKind,
     MsgType,
     Pieces,
+    State,
+    Status,
     decode_payload,
     encode_payload,
     kind_of,
@@ -55,7 +59,6 @@ from cdma_lidar.protocol.messages import (
 from cdma_lidar.protocol.ports import port_name
 from cdma_lidar.protocol.streams import Engine, Streams
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
-from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
            "Engine"]
