@@ -32,12 +32,12 @@ from cdma_lidar.protocol.columns import (
     record_dtype,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION
 from cdma_lidar.protocol.schema import Field, Layout, array, i, nbytes, text, u, wire, wire_fields
 
 __all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO", "SCHEMA_CRC",
            "TEMPERATURE_UNKNOWN", "TILT_AUTO", "Auth", "CaptureKind", "ErrorCode", "HelloFlags",
-           "Info", "MessageSpec", "MsgKind", "MsgType", "Pieces", "ScanEndReason",
+           "Info", "MessageSpec", "MsgKind", "MsgType", "ScanEndReason",
            "SessionLostReason", "State", "Status", "decode_payload", "encode_payload",
            "head_size", "kind_of", "split_message", "type_name"]
 
@@ -526,24 +526,6 @@ def head_size(msg_type: MsgType) -> int:
 FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
 #: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
 MAX_PIECES = 254
-
-
-@dataclass
-class Pieces:
-    """FRAGMENTs of one message (a column, a reply, a notice) received so far."""
-
-    count: int
-    data: dict[int, bytes] = field(default_factory=dict)
-    frames: list[Frame] = field(default_factory=list)  # the pieces as they came
-
-    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
-        once every piece is in."""
-        if body["index"] not in self.data:
-            self.frames.append(frame)
-        self.data[body["index"]] = body["data"]
-        return None if len(self.data) < self.count else b"".join(
-            self.data[i] for i in range(self.count))
 
 
 def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,
