@@ -30,9 +30,8 @@ from cdma_lidar.protocol.columns import ColumnResult, decode_column, encode_colu
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import MsgType
+from cdma_lidar.protocol.messages import Info, MsgType
 from cdma_lidar.protocol.ports import FdPort, open_port
-from cdma_lidar.protocol.views import Info
 
 K = 40
 #: A whole configuration (the host checks every key and every column against it).

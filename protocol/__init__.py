@@ -4,8 +4,8 @@ byte-exact spec). Modules, bottom up:
 * wire: ``fec`` (Reed-Solomon around the COBS frame), ``framing`` (COBS, header,
   CRC-32, the stream decoder ``FrameDecoder``);
 * declarations: ``schema`` (fields: units, ranges, the codec), ``columns`` (COLUMN_RESULT),
-  ``config_keys``, ``messages`` (every message type, the schema CRC), ``views`` (typed
-  INFO and STATUS), ``spec`` (the spec's tables);
+  ``config_keys``, ``messages`` (every message type, typed INFO and STATUS, the schema
+  CRC), ``spec`` (the spec's tables);
 * security: ``auth`` (keys, HELLO challenge-response, frame signing), ``trust`` (what the
   host checks in everything a device sends); ``ports``: pyserial URLs, ptys, TCP;
 * device end: ``endpoint.DeviceEndpoint`` (one per connection) in front of a ``DeviceApp``,

@@ -42,20 +42,23 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.device_sessions import DeviceCore, DeviceSession, EndpointStats
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, FrameDecoder
 from cdma_lidar.protocol.messages import (
+    TEMPERATURE_UNKNOWN,
     CaptureKind,
     ErrorCode,
+    Info,
     MsgKind,
     MsgType,
-    Pieces,
+    State,
+    Status,
     decode_payload,
     encode_payload,
     kind_of,
     type_name,
 )
 from cdma_lidar.protocol.ports import port_name
+from cdma_lidar.protocol.reassembly import Joiner
 from cdma_lidar.protocol.streams import Engine, Streams
 from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
-from cdma_lidar.protocol.views import TEMPERATURE_UNKNOWN, Info, State, Status
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
            "Engine"]
@@ -203,8 +206,7 @@ class DeviceEndpoint:
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
         self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
-        #: Requests in FRAGMENTs: (type, seq, session) -> (pieces so far, all checked).
-        self._pieces: OrderedDict[tuple[int, int, int], tuple[Pieces, bool]] = OrderedDict()
+        self._pieces = Joiner(limit=2)  # requests in FRAGMENTs, by (type, seq, session)
         port.timeout = poll_s
 
     def serve_forever(self, stop: threading.Event) -> None:
@@ -329,12 +331,11 @@ class DeviceEndpoint:
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request; the whole request once every piece is in, keyed
-        by (type, seq, session) (at most two kept), so no piece of another session joins.
-        Each piece is checked as it comes: one of this signed session with a wrong
-        signature is dropped, an unsigned one makes its request AUTH_REQUIRED. The request
-        is ``joined`` (checked) only if every piece was, as the open session's or as the
-        signed session that ended here (its NAK WRONG_SESSION is then signed)."""
+        """Keep one FRAGMENT of a request; the whole request once every piece is in (at most
+        two requests kept). Each piece is checked as it comes: one of this signed session
+        with a wrong signature is dropped, an unsigned one makes its request AUTH_REQUIRED.
+        The request is ``joined`` (checked) only if every piece was, as the open session's or
+        as the signed session that ended here (its NAK WRONG_SESSION is then signed)."""
         sess = self.session
         sid, _, ended = sess.ended or (None, None, None)
         ours = sess.open and frame.session == sess.id
@@ -350,18 +351,9 @@ class DeviceEndpoint:
         if body is None or kind_of(body["msg_type"]) is not MsgKind.REQUEST:
             self.stats.ignored += 1
             return None
-        key = (body["msg_type"], body["seq"], frame.session)
-        pc, checked = self._pieces.get(key, (None, True))
-        if pc is None or pc.count != body["count"]:
-            pc, checked = Pieces(body["count"]), True
-        self._pieces[key] = (pc, checked and good)
-        while len(self._pieces) > 2:
-            self._pieces.popitem(last=False)
-        if (payload := pc.add(frame, body)) is None:
-            return None
-        del self._pieces[key]
-        return Frame(key[0], key[1], frame.session, payload, fec=frame.fec,
-                     joined=checked and good)
+        whole = self._pieces.add(frame, body, (body["msg_type"], body["seq"], frame.session),
+                                 good)
+        return None if whole is None else whole[0]
 
     def _process(self, frame: Frame) -> None:
         """Check one request; answer, replay, drop or hold it."""

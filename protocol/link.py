@@ -27,12 +27,14 @@ from cdma_lidar.protocol.messages import (
     MAX_PIECES,
     CaptureKind,
     ErrorCode,
+    Info,
     MsgType,
+    State,
+    Status,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
-from cdma_lidar.protocol.views import Info, State, Status
 
 __all__ = ["PATIENCE", "HostLink", "ScanStalled", "SessionLost", "StreamEnded", "patience_s",
            "power_codes"]

@@ -13,15 +13,16 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 from cdma_lidar.errors import DeviceError, FrameError
 from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, Pieces, ScanEndReason, decode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, decode_payload
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
 
-__all__ = ["ColumnReassembler", "Joiner", "StreamEnded", "early_end"]
+__all__ = ["ColumnReassembler", "Joiner", "Pieces", "StreamEnded", "early_end"]
 
 
 class StreamEnded(DeviceError):
@@ -45,28 +46,52 @@ def early_end(fid: int, reason: int, sent: int) -> StreamEnded:
                        frame=fid, next_column=sent, reason=reason)
 
 
+@dataclass
+class Pieces:
+    """FRAGMENTs of one message (a column, a reply, a notice, a request) received so far;
+    ``checked``: every piece that came was (session, signature)."""
+
+    count: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    frames: list[Frame] = field(default_factory=list)  # the pieces as they came
+    checked: bool = True
+
+    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
+        once every piece is in."""
+        if body["index"] not in self.data:
+            self.frames.append(frame)
+        self.data[body["index"]] = body["data"]
+        return None if len(self.data) < self.count else b"".join(
+            self.data[i] for i in range(self.count))
+
+
 class Joiner:
     """FRAGMENTs of at most ``limit`` messages at once, each kept under its key (type,
-    seq, frame, column); the oldest message is dropped when one more starts."""
+    seq, frame, column; the device's requests: type, seq, session, so that no piece of
+    another session joins); the oldest message is dropped when one more starts."""
 
     def __init__(self, limit: int = 64) -> None:
         self.limit = limit
-        self.held: OrderedDict[tuple[int, int, int, int], Pieces] = OrderedDict()
+        self.held: OrderedDict[tuple[int, ...], Pieces] = OrderedDict()
 
-    def add(self, frame: Frame, body: dict[str, Any]) -> tuple[Frame, list[Frame]] | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the last one gives
-        the whole message (type and seq from the pieces, their session) and its pieces."""
-        key = (body["msg_type"], body["seq"], body["frame"], body["column"])
+    def add(self, frame: Frame, body: dict[str, Any], key: tuple[int, ...] | None = None,
+            checked: bool = True) -> tuple[Frame, list[Frame]] | None:
+        """Keep one piece (``body``: the decoded FRAGMENT ``frame``, ``checked`` or not);
+        the last one gives the whole message (type and seq from the pieces, their session,
+        ``joined`` when every piece was checked) and its pieces."""
+        key = key or (body["msg_type"], body["seq"], body["frame"], body["column"])
         pc = self.held.get(key)
         if pc is None or pc.count != body["count"]:  # the first piece, or of another cut
             pc = self.held[key] = Pieces(body["count"])
             while len(self.held) > self.limit:
                 self.held.popitem(last=False)
+        pc.checked = pc.checked and checked
         if (payload := pc.add(frame, body)) is None:
             return None
         del self.held[key]
         return Frame(key[0], key[1], frame.session, payload, version=frame.version,
-                     fec=frame.fec, joined=True), pc.frames
+                     fec=frame.fec, joined=pc.checked), pc.frames
 
 
 class ColumnReassembler:

@@ -48,9 +48,11 @@ from cdma_lidar.protocol.messages import (
     Auth,
     ErrorCode,
     HelloFlags,
+    Info,
     MsgKind,
     MsgType,
     SessionLostReason,
+    Status,
     decode_payload,
     encode_payload,
     kind_of,
@@ -59,7 +61,6 @@ from cdma_lidar.protocol.messages import (
 from cdma_lidar.protocol.ports import byte_time_s, default_fec, port_name
 from cdma_lidar.protocol.reassembly import Joiner
 from cdma_lidar.protocol.trust import DeviceLied, check_info, escape
-from cdma_lidar.protocol.views import Info, Status
 
 __all__ = ["DIAG_GARBAGE", "DIAG_HINTS", "DIAG_NOISY", "DIAG_NO_ANSWER", "DIAG_SILENT",
            "DIAG_VERSION", "DIAG_WRONG_SESSION", "LinkStats", "Requests", "SessionLost"]

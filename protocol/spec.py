@@ -33,6 +33,7 @@ from cdma_lidar.protocol.messages import (
     MAX_PIECES,
     MESSAGES,
     SCHEMA_CRC,
+    TILT_AUTO,
     ErrorCode,
     MsgKind,
     MsgType,
@@ -40,7 +41,6 @@ from cdma_lidar.protocol.messages import (
     split_message,
 )
 from cdma_lidar.protocol.schema import Field
-from cdma_lidar.protocol.views import TILT_AUTO
 
 __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 

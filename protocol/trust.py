@@ -19,7 +19,7 @@ from cdma_lidar.column_record import NO_PEAK, RECORD
 from cdma_lidar.errors import LinkError
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.views import TILT_AUTO, Info
+from cdma_lidar.protocol.messages import TILT_AUTO, Info
 
 __all__ = ["INFO_RANGES", "ColumnChecker", "DeviceLied", "check_config", "check_info", "escape"]
 

@@ -54,8 +54,7 @@ from cdma_lidar.hdl_ref.engine import RtlReceiver, missing_simulator
 from cdma_lidar.protocol.columns import ColumnResult, udeg
 from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
-from cdma_lidar.protocol.messages import CaptureKind
-from cdma_lidar.protocol.views import Info
+from cdma_lidar.protocol.messages import CaptureKind, Info
 from cdma_lidar.scene.acquire import (
     acquire,
     boot_power_codes,

@@ -22,8 +22,7 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, MsgType, encode_payload
-from cdma_lidar.protocol.views import Info
+from cdma_lidar.protocol.messages import CaptureKind, ErrorCode, Info, MsgType, encode_payload
 from cdma_lidar.virtual.line import pipe_pair
 
 

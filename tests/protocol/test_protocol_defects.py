@@ -360,7 +360,7 @@ def test_a_device_that_overruns_its_own_column_time_is_caught() -> None:
 
 def test_the_no_progress_limit_is_the_floor_plus_three_stated_column_times() -> None:
     from cdma_lidar.protocol.link import patience_s
-    from cdma_lidar.protocol.views import Status
+    from cdma_lidar.protocol.messages import Status
 
     assert patience_s(10.0, None) == 10.0
     assert patience_s(10.0, Status()) == 10.0

@@ -25,10 +25,9 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, decode_payload, encode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, Status, decode_payload, encode_payload
 from cdma_lidar.protocol.ports import FdPort
 from cdma_lidar.protocol.requests import DIAG_GARBAGE, DIAG_VERSION
-from cdma_lidar.protocol.views import Status
 from cdma_lidar.virtual.line import pipe_pair
 
 

@@ -16,8 +16,7 @@ from cdma_lidar.errors import CdmaLidarError, FrameError
 from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
 from cdma_lidar.protocol.framing import FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink
-from cdma_lidar.protocol.messages import REPLY_TO, MsgType, decode_payload, encode_payload
-from cdma_lidar.protocol.views import Status
+from cdma_lidar.protocol.messages import REPLY_TO, MsgType, Status, decode_payload, encode_payload
 from cdma_lidar.virtual.line import pipe_pair
 
 SESSION = 0xABCD

@@ -32,6 +32,7 @@ from cdma_lidar.protocol.messages import (
     ErrorCode,
     MsgKind,
     MsgType,
+    Status,
     decode_payload,
     encode_payload,
     kind_of,
@@ -44,7 +45,6 @@ from cdma_lidar.protocol.requests import (
     DIAG_SILENT,
     DIAG_WRONG_SESSION,
 )
-from cdma_lidar.protocol.views import Status
 from cdma_lidar.virtual.line import Faults, pipe_pair
 
 #: Reply timeout (s), on the threadless device's fake clock: waited out only by the tests

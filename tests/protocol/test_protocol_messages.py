@@ -29,13 +29,14 @@ from cdma_lidar.protocol.config_keys import (
 from cdma_lidar.protocol.messages import (
     MESSAGES,
     REPLY_TO,
+    Info,
     MsgKind,
     MsgType,
+    Status,
     decode_payload,
     encode_payload,
 )
 from cdma_lidar.protocol.schema import INTS, Field
-from cdma_lidar.protocol.views import Info, Status
 
 _LIMITS = {fmt: (lo, hi) for fmt, lo, hi in INTS.values()}
 

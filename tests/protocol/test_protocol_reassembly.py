@@ -67,7 +67,7 @@ def test_a_missing_fragment_is_asked_for_alone_and_a_late_repair_is_not_taken() 
 
 
 def test_heartbeat_and_scan_end_show_what_was_sent_and_an_early_end_fails_after_delivery() -> None:
-    from cdma_lidar.protocol.views import Status
+    from cdma_lidar.protocol.messages import Status
 
     asm = _asm()
     asm.feed(_frame(MsgType.HEARTBEAT, Status(frame=9, next_column=2)))
@@ -89,5 +89,5 @@ def test_progress_changes_only_when_something_of_the_stream_moves() -> None:
 
 
 def _status(frame: int, nxt: int):
-    from cdma_lidar.protocol.views import Status
+    from cdma_lidar.protocol.messages import Status
     return Status(frame=frame, next_column=nxt)

@@ -13,9 +13,8 @@ from protocol_fixtures import ScriptedPort, ack, expected_column, reply, scripte
 
 from cdma_lidar.errors import LinkTimeout
 from cdma_lidar.protocol.framing import Frame
-from cdma_lidar.protocol.messages import MsgType, decode_payload
+from cdma_lidar.protocol.messages import MsgType, Status, decode_payload
 from cdma_lidar.protocol.requests import DIAG_NO_ANSWER, DIAG_SILENT
-from cdma_lidar.protocol.views import Status
 
 
 def _times(port: ScriptedPort, msg_type: MsgType) -> list[float]:
