@@ -29,14 +29,19 @@ from typing import Any
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.hdl_ref import engine
-from cdma_lidar.hdl_ref.cosim import TopParams, default_rtl_dir, top_ports, top_timing
+from cdma_lidar.hdl_ref.cosim import (
+    TOP_FILES,
+    TopParams,
+    default_rtl_dir,
+    top_ports,
+    top_timing,
+)
 
 __all__ = ["ADC_SOURCES", "CHECK", "MAIN", "SIMULATORS", "TB", "adc_ports", "r_min",
            "run_adc_bench"]
 
 #: the sources of ``rx_adc_top`` (rx_top's and the three of the ADC side)
-ADC_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
-               "rx_post.v", "rx_top.v", "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
+ADC_SOURCES = (*TOP_FILES, "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
 TB = Path(__file__).resolve().parent / "tb" / "rx_adc_top_vectors_tb.v"
 #: the bench's stimulus and checks (no delays), and the Verilator bench's C++ clocks
 CHECK = TB.with_name("rx_adc_top_vectors_check.v")

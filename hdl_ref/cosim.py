@@ -80,9 +80,10 @@ RTL_DIR = Path(__file__).resolve().parent / "rtl"
 #: Environment variable naming another RTL folder for every default build (the mutation
 #: script, ``python -m cdma_lidar.hdl_ref.mutate``, points it at a changed copy).
 RTL_ENV = "HDL_REF_RTL_DIR"
-RTL_SOURCES = ("lfsr_fib.v", "gold_gen.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v",
-               "out_scale.v", "rx_post.v", "rx_chain.v",
-               "rx_top.v")
+#: rx_top's RTL files, in an order every tool takes (each module after those it instantiates)
+TOP_FILES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "lane_feed.v",
+             "out_scale.v", "rx_post.v", "rx_top.v")
+RTL_SOURCES = ("gold_gen.v", "rx_chain.v", *TOP_FILES)
 RX_TOP = "rx_chain"
 MULTI_TOP = "rx_top"
 GOLD_TOP = "gold_gen"

@@ -45,8 +45,7 @@ log = logging.getLogger(__name__)
 
 ENGINE_SRC = Path(__file__).resolve().parent / "engine_src" / "rx_top_engine.cpp"
 #: the RTL files of rx_top, in compile order
-TOP_FILES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
-             "rx_post.v", "rx_top.v")
+TOP_FILES = cosim.TOP_FILES
 #: the most lanes a build gets, all channels together (more lanes: fewer clocks, but a
 #: larger C++ model that compiles for minutes)
 MAX_LANES = 64

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cdma_lidar.errors import MissingExtra
-from cdma_lidar.hdl_ref.cosim import RTL_DIR
+from cdma_lidar.hdl_ref.cosim import RTL_DIR, TOP_FILES
 
 __all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
 
@@ -43,8 +43,7 @@ LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
         "NGHOST": 8, "ADC_W": 16, "OUT_W": 32}),
 }
 _CHAIN = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v", "rx_chain.v")
-_TOP = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v", "rx_post.v",
-        "rx_top.v")
+_TOP = TOP_FILES
 _ADC_TOP = (*_TOP, "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
 for _name in [n for n in LINT_SETS if n.startswith("rx_chain")]:
     LINT_SETS[_name] = ("rx_chain", _CHAIN, LINT_SETS[_name][2])

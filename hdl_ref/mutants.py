@@ -5,7 +5,7 @@ plausible mistake; :func:`mutated_copy` writes a copy of ``hdl_ref/rtl`` with
 that change into a folder, for :func:`cdma_lidar.hdl_ref.cosim.build` to compile.
 The tests of the module a mutant changes build it and assert that the
 co-simulation against the model reports a difference: ``tests/hdl_ref/test_rx_top.py``
-(``rx_top.v``, ``rx_post.v``, ``lfsr_fib.v``, ``sdp_ram.v``),
+(``rx_top.v``, ``lane_feed.v``, ``rx_post.v``, ``lfsr_fib.v``, ``sdp_ram.v``),
 ``tests/hdl_ref/test_rx_chain.py`` (``rx_chain.v``) and ``tests/hdl_ref/test_out_scale.py``
 (``out_scale.v``); ``tests/hdl_ref/test_rx_top.py::test_every_mutant_is_simulated``
 checks that each mutant belongs to one of them.
@@ -122,9 +122,13 @@ MUTANTS: tuple[Mutant, ...] = (
            "            err_overrun <= 1'b0;\n        end\n        if (s_refused)",
            "clear_err does not clear err_refused"),
     Mutant("lane-code-delay-off-by-one", "rx_top.v",
-           "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};",
-           "assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], sr_code[gk*L]};",
+           "assign e_code = {sr_code, code2[gk]};",
+           "assign e_code = {sr_code, sr_code[0]};",
            "lane 0 uses the previous chip of the Gold code"),
+    Mutant("lane-feed-reads-other-buffer", "lane_feed.v",
+           "q   <= pb ? rd[MAX_S*AVG_W +: MAX_S*AVG_W] : rd[0 +: MAX_S*AVG_W];",
+           "q   <= pb ? rd[0 +: MAX_S*AVG_W] : rd[MAX_S*AVG_W +: MAX_S*AVG_W];",
+           "a channel's lanes sum the RAM words of the buffer being averaged"),
     Mutant("lane-state-stale-after-start", "rx_top.v",
            "x0_fst <= ser_fst;",
            "x0_fst <= 1'b0;",

@@ -46,7 +46,7 @@ from pathlib import Path
 
 from cdma_lidar.errors import ConfigError, MissingExtra
 from cdma_lidar.fileio import atomic_write_text
-from cdma_lidar.hdl_ref.cosim import RTL_DIR
+from cdma_lidar.hdl_ref.cosim import RTL_DIR, TOP_FILES
 
 __all__ = [
     "DESIGNS", "FLOWS", "Design", "main", "markdown", "place_and_route", "pnr_args",
@@ -116,9 +116,7 @@ def pnr_freq(design: Design) -> float:
     return TARGET_MSPS / design.params.get("P_IN", 1)
 
 
-TOP_SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v",
-               "rx_post.v", "rx_top.v",
-               "rx_top_pnr.v")
+TOP_SOURCES = (*TOP_FILES, "rx_top_pnr.v")
 #: The co-simulated builds: TOP4 of tests/hdl_ref/test_rx_top.py and its PAPER_TOP.
 SMALL_TOP = {"K": 4, "L": 2, "MAX_DEG": 7, "MAX_S": 4, "MAX_UID": 3, "MAX_R": 4, "MAX_G": 32,
              "MAX_P": 3, "NGHOST": 2, "ADC_W": 16, "OUT_W": 32}

@@ -314,7 +314,7 @@ Run with the plain Verilog testbench of the repository (no Python needed):
 ```
 iverilog -g2005 -I <this folder> -o tb.vvp hdl_ref/tb/rx_top_vectors_tb.v hdl_ref/rtl/lfsr_fib.v \\
     hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/cfg_latch.v hdl_ref/rtl/gen_strobe.v \\
-    hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
+    hdl_ref/rtl/lane_feed.v hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
 vvp tb.vvp +VEC=<this folder>/
 ```
 """

@@ -401,34 +401,23 @@ module rx_top #(
     reg [MAX_S*AVG_W-1:0] rdq;
     reg signed [BOX_W-1:0] box1;
     integer bsi, si, sj;    // bsi: the combinational loop; si, sj: two clocked blocks' loops
+    // s_on[s]: bank s is summed (s < S), a register, so the configuration's S is off the
+    // box sum's clock (it changes only while the configuration is latched)
+    reg [MAX_S-1:0] s_on;
+    generate
+        for (gs = 0; gs < MAX_S; gs = gs + 1) begin : g_s_on
+            localparam [31:0] GS32 = gs;
+            always @(posedge clk)
+                s_on[gs] <= ({1'b0, GS32[S_W-1:0]} < {1'b0, c_spc});
+        end
+    endgenerate
     always @(*) begin
         box1 = {BOX_W{1'b0}};
         for (bsi = 0; bsi < MAX_S; bsi = bsi + 1)
-            if (bsi < c_spc)
+            if (s_on[bsi])
                 box1 = box1 + {{(BOX_W-AVG_W){rdq[bsi*AVG_W + AVG_W-1]}},
                                rdq[bsi*AVG_W +: AVG_W]};
     end
-
-    // ---- lane control delay line: entry j = step k - j ----
-    wire [L-1:0]       e_a;
-    wire [K*L-1:0]     e_code;              // [k*L + j]
-    reg  [L-1:0]       sr_a;                // sr[j] = step k - 1 - j
-    reg  [K*L-1:0]     sr_code;
-
-    genvar gj;
-    generate
-        if (L == 1) begin : g_l1
-            assign e_a = a2;
-            for (gk = 0; gk < K; gk = gk + 1) begin : g_c
-                assign e_code[gk] = code2[gk];
-            end
-        end else begin : g_ln
-            assign e_a = {sr_a[L-2:0], a2};
-            for (gk = 0; gk < K; gk = gk + 1) begin : g_c
-                assign e_code[gk*L +: L] = {sr_code[gk*L +: L-1], code2[gk]};
-            end
-        end
-    endgenerate
 
     // ---- lanes: c_p = 2 * plus - all ----
     // With chips b in {0 -> +1, 1 -> -1}, sum_c (-1)^b_c box = 2 * (sum of the boxes whose
@@ -438,21 +427,53 @@ module rx_top #(
     // end (PER_W-bit arithmetic wraps, the difference is exact). `all_sum` sums every
     // box of the stream's first N steps (lane 0's window: every chip once), the same for
     // every lane. Lane k*L + j at [(k*L + j)*PER_W +: PER_W].
+    //
+    // Each channel's lanes read their own copy of stage 2 (a lane_feed: box sum, valid,
+    // "all" flag, clear) and delay its "all" flag and chip along their own line (entry j
+    // = step k - j), so no net reaches the K L lane adders from one register.
     wire [KL*PER_W-1:0]     ln_per;
     wire [PER_W-1:0]        bx = {{(PER_W-BOX_W){box2[BOX_W-1]}}, box2};
     reg                     ln_clr;         // start of a run: every lane to 0
     reg  [PER_W-1:0]        all_sum;
-
+    wire [2*MAX_S*AVG_W-1:0] rd_all;
+    genvar gj;
     generate
+        for (gj = 0; gj < 2 * MAX_S; gj = gj + 1) begin : g_rd
+            assign rd_all[gj*AVG_W +: AVG_W] = rd[gj];
+        end
         for (gk = 0; gk < K; gk = gk + 1) begin : g_lk
+            wire signed [BOX_W-1:0] f_box;
+            wire                    f_v, f_a, f_clr;
+            wire [PER_W-1:0]        f_bx = {{(PER_W-BOX_W){f_box[BOX_W-1]}}, f_box};
+            wire [L-1:0]            e_a, e_code;
+            lane_feed #(.MAX_S(MAX_S), .AVG_W(AVG_W), .BOX_W(BOX_W)) feed (
+                .clk(clk), .rst(rst), .rd(rd_all), .proc_buf(proc_buf), .s_on(s_on),
+                .vq(vq), .aq(aq), .clr_nx(tstate == T_INIT2),
+                .box(f_box), .v(f_v), .a(f_a), .clr(f_clr));
+            if (L == 1) begin : g_l1
+                assign e_a = f_a;
+                assign e_code = code2[gk];
+            end else begin : g_ln
+                reg [L-2:0] sr_a, sr_code;  // sr[j] = step k - 1 - j
+                assign e_a = {sr_a, f_a};
+                assign e_code = {sr_code, code2[gk]};
+                always @(posedge clk) begin
+                    if (f_v) begin
+                        sr_a <= e_a[L-2:0];
+                        sr_code <= e_code[L-2:0];
+                    end
+                    if (rst)
+                        sr_a <= {(L-1){1'b0}};
+                end
+            end
             for (gj = 0; gj < L; gj = gj + 1) begin : g_lj
                 localparam integer IX = gk * L + gj;
                 reg [PER_W-1:0] per;
                 always @(posedge clk) begin
-                    if (ln_clr)
+                    if (f_clr)
                         per <= {PER_W{1'b0}};
-                    else if (v2 && e_a[gj] && !e_code[IX])
-                        per <= per + bx;
+                    else if (f_v && e_a[gj] && !e_code[gj])
+                        per <= per + f_bx;
                 end
                 assign ln_per[IX*PER_W +: PER_W] = per;
             end
@@ -837,10 +858,6 @@ module rx_top #(
             box2  <= box1;
         end
         if (v2) begin
-            if (L > 1) begin
-                sr_a <= e_a[L-1:0];
-                sr_code <= e_code;
-            end
             if (gend2) begin
                 latch_v    <= 1'b1;
                 latch_jj   <= gjj2;
@@ -855,7 +872,6 @@ module rx_top #(
             vq      <= 1'b0;
             v2      <= 1'b0;
             latch_v <= 1'b0;
-            sr_a    <= {L{1'b0}};
         end
     end
 
@@ -1063,7 +1079,7 @@ module rx_top #(
         end
     end
 
-    wire unused_ok = &{1'b0, lo_sh[LAG_W-1:1], sr_a, sr_code, x1_d[PER_W-1], g_q_dif[MAX_DEG], div_d[S_W+1],
+    wire unused_ok = &{1'b0, lo_sh[LAG_W-1:1], x1_d[PER_W-1], g_q_dif[MAX_DEG], div_d[S_W+1],
                        ns_full[MAX_DEG+S_W:LAG_W], n_chips[MAX_DEG],
                        g_jj_nx[JJ_W+S_W:JJ_W], ser_jj[JJ_W+S_W:CA_W], g_q_sum[MAX_DEG],
                        div_q};

@@ -5,7 +5,9 @@
 // cfg_shift: one bit per clock) and folds every result and correlation word
 // into one 32-bit register by XOR, so no logic of rx_top can be optimised away
 // and the design fits in a package. The ADC stream and the handshakes are real
-// pins. Resource and clock figures in docs/hdl.md are of this harness; the
+// pins, each through a register beside its pad (as an ADC's input registers, or
+// rx_adc_top's FIFO, would feed it), so where the placer puts a pad does not lengthen
+// a path inside rx_top. Resource and clock figures in docs/hdl.md are of this harness; the
 // shift register and the XOR fold add about (config bits) flip-flops and a few
 // hundred LUTs to rx_top itself.
 `default_nettype none
@@ -33,8 +35,8 @@ module rx_top_pnr #(
     input  wire              cfg_shift,
     input  wire              s_valid,
     input  wire [P_IN*ADC_W-1:0] s_data,
-    output wire              s_ready,
-    output wire              s_refused,
+    output reg               s_ready,
+    output reg               s_refused,
     output wire              err_refused,
     output reg               res_valid,
     output reg  [31:0]       fold,
@@ -71,6 +73,15 @@ module rx_top_pnr #(
     wire              rv;
     wire [RES_W-2:0]  res;
     wire              col_start;
+    reg               in_valid;
+    reg [P_IN*ADC_W-1:0] in_data;
+    wire              ready, refused;
+    always @(posedge clk) begin
+        in_valid  <= s_valid;
+        in_data   <= s_data;
+        s_ready   <= ready;
+        s_refused <= refused;
+    end
 
     rx_top #(.K(K), .L(L), .P_IN(P_IN), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID), .MAX_R(MAX_R),
              .MAX_G(MAX_G), .MAX_P(MAX_P), .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W)) dut (
@@ -94,7 +105,7 @@ module rx_top_pnr #(
         .cfg_rounding(cfg[CFG_W - P_W - 8 +: 2]),
         .cfg_out_bits(cfg[CFG_W - P_W - 6 +: 6]),
         .cfg_peaks(cfg[CFG_W - P_W +: P_W]),
-        .s_valid(s_valid), .s_data(s_data), .s_ready(s_ready), .s_refused(s_refused),
+        .s_valid(in_valid), .s_data(in_data), .s_ready(ready), .s_refused(refused),
         .err_refused(err_refused),
         .corr_valid(corr_valid), .corr_channel(corr_channel), .corr_index(corr_index),
         .corr_data(corr_data),

@@ -362,6 +362,7 @@ MUTANT_CASES = {  # mutant -> the crafted case that must expose it
     "ghost-window-one-long": "wrapping-gate-ghost-edge",
     "box-sum-no-chip-wrap": "wrapping-gate-ghost-edge",
     "lane-code-delay-off-by-one": "uid-period-zero-sign",
+    "lane-feed-reads-other-buffer": "uid-period-zero-sign",
     "lane-state-stale-after-start": "zero-input-ties",
     "uid-fold-restarts-every-period": "uid-period-zero-sign",
     "all-sum-misses-first-box": "wrapping-gate-ghost-edge",
@@ -370,7 +371,7 @@ MUTANT_CASES = {  # mutant -> the crafted case that must expose it
 
 
 #: RTL files whose mutants this module simulates (rx_chain.v and out_scale.v have their own)
-TOP_FILES = ("rx_top.v", "rx_post.v")
+TOP_FILES = ("rx_top.v", "lane_feed.v", "rx_post.v")
 
 
 def test_every_mutant_is_simulated():

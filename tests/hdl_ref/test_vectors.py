@@ -18,8 +18,7 @@ from cdma_lidar.cli import main
 from cdma_lidar.hdl_ref import cosim
 
 TB = Path(cosim.RTL_DIR).parent / "tb" / "rx_top_vectors_tb.v"
-SOURCES = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "gen_strobe.v", "out_scale.v", "rx_post.v",
-           "rx_top.v")
+SOURCES = cosim.TOP_FILES
 SETTINGS = ["degree=6", "channels=4", "lanes=2", "uid_bits=2", "uid=1", "peaks=2",
             "ghost=50:3", "out_shift=3", "rounding=convergent", "averages=3"]
 
