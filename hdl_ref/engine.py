@@ -44,8 +44,6 @@ __all__ = ["ENGINE_SRC", "RtlReceiver", "cache_root", "engine_params", "missing_
 log = logging.getLogger(__name__)
 
 ENGINE_SRC = Path(__file__).resolve().parent / "engine_src" / "rx_top_engine.cpp"
-#: the RTL files of rx_top, in compile order
-TOP_FILES = cosim.TOP_FILES
 #: the most lanes a build gets, all channels together (more lanes: fewer clocks, but a
 #: larger C++ model that compiles for minutes)
 MAX_LANES = 64
@@ -89,7 +87,7 @@ def engine_params(cfg: ReceiverConfig, channels: int, degree: int) -> cosim.TopP
 
 def _key(params: cosim.TopParams) -> str:
     h = hashlib.sha256()
-    for name in TOP_FILES:
+    for name in cosim.TOP_FILES:
         h.update((cosim.RTL_DIR / name).read_bytes())
     h.update(ENGINE_SRC.read_bytes())
     h.update(json.dumps(params.generics(), sort_keys=True).encode())
@@ -104,7 +102,7 @@ def build(params: cosim.TopParams) -> Path:
     """
     return verilate(cache_root() / f"{params.tag()}-{_key(params)}", "rx_top",
                     [*(f"-G{k}={v}" for k, v in params.generics().items()),
-                     *(str(cosim.RTL_DIR / n) for n in TOP_FILES), str(ENGINE_SRC)],
+                     *(str(cosim.RTL_DIR / n) for n in cosim.TOP_FILES), str(ENGINE_SRC)],
                     params.tag())
 
 

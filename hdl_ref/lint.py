@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cdma_lidar.errors import MissingExtra
+from cdma_lidar.hdl_ref.adc_top import ADC_SOURCES
 from cdma_lidar.hdl_ref.cosim import RTL_DIR, TOP_FILES
 
 __all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
@@ -43,38 +44,36 @@ LINT_SETS: dict[str, tuple[str, tuple[str, ...], dict[str, int]]] = {
         "NGHOST": 8, "ADC_W": 16, "OUT_W": 32}),
 }
 _CHAIN = ("lfsr_fib.v", "sdp_ram.v", "cfg_latch.v", "out_scale.v", "rx_post.v", "rx_chain.v")
-_TOP = TOP_FILES
-_ADC_TOP = (*_TOP, "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
 for _name in [n for n in LINT_SETS if n.startswith("rx_chain")]:
     LINT_SETS[_name] = ("rx_chain", _CHAIN, LINT_SETS[_name][2])
 LINT_SETS |= {
-    "rx_top-default": ("rx_top", _TOP, {}),
-    "rx_top-paper": ("rx_top", _TOP, {
+    "rx_top-default": ("rx_top", TOP_FILES, {}),
+    "rx_top-paper": ("rx_top", TOP_FILES, {
         "K": 40, "L": 2, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16, "MAX_G": 64,
         "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
-    "rx_top-minimal": ("rx_top", _TOP, {
+    "rx_top-minimal": ("rx_top", TOP_FILES, {
         "K": 1, "L": 1, "MAX_DEG": 5, "MAX_S": 1, "MAX_UID": 1, "MAX_R": 1, "MAX_G": 8,
         "MAX_P": 1, "NGHOST": 1, "ADC_W": 8, "OUT_W": 16}),
-    "rx_top-g15": ("rx_top", _TOP, {"K": 2, "L": 3, "MAX_DEG": 5, "MAX_S": 1, "MAX_G": 15,
+    "rx_top-g15": ("rx_top", TOP_FILES, {"K": 2, "L": 3, "MAX_DEG": 5, "MAX_S": 1, "MAX_G": 15,
                                     "MAX_P": 2, "OUT_W": 16}),
-    "rx_top-g31": ("rx_top", _TOP, {"K": 4, "L": 2, "MAX_DEG": 6, "MAX_S": 2, "MAX_G": 31,
+    "rx_top-g31": ("rx_top", TOP_FILES, {"K": 4, "L": 2, "MAX_DEG": 6, "MAX_S": 2, "MAX_G": 31,
                                     "MAX_P": 2, "MAX_UID": 2}),
-    "rx_top-g63": ("rx_top", _TOP, {"K": 3, "L": 4, "MAX_DEG": 7, "MAX_S": 4, "MAX_G": 63,
+    "rx_top-g63": ("rx_top", TOP_FILES, {"K": 3, "L": 4, "MAX_DEG": 7, "MAX_S": 4, "MAX_G": 63,
                                     "MAX_P": 3, "MAX_UID": 3, "NGHOST": 2}),
-    "rx_top-p2": ("rx_top", _TOP, {"K": 3, "L": 3, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 31,
+    "rx_top-p2": ("rx_top", TOP_FILES, {"K": 3, "L": 3, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 31,
                                    "MAX_P": 2, "MAX_UID": 2, "OUT_W": 16}),
-    "rx_top-p4-paper": ("rx_top", _TOP, {
+    "rx_top-p4-paper": ("rx_top", TOP_FILES, {
         "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
         "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
     "adc_rx-p1": ("adc_rx", ("adc_rx.v",), {"P_IN": 1, "AW": 2}),
     "adc_rx-p4": ("adc_rx", ("adc_rx.v",), {"P_IN": 4, "ADC_W": 12, "AW": 4}),
-    "rx_adc_top-default": ("rx_adc_top", _ADC_TOP, {}),
-    "rx_adc_top-p4-paper": ("rx_adc_top", _ADC_TOP, {
+    "rx_adc_top-default": ("rx_adc_top", ADC_SOURCES, {}),
+    "rx_adc_top-p4-paper": ("rx_adc_top", ADC_SOURCES, {
         "K": 40, "L": 16, "P_IN": 4, "MAX_DEG": 11, "MAX_S": 4, "MAX_UID": 1, "MAX_R": 16,
         "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
-    "rx_adc_top-p2-small": ("rx_adc_top", _ADC_TOP, {
+    "rx_adc_top-p2-small": ("rx_adc_top", ADC_SOURCES, {
         "K": 2, "L": 4, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 8, "MAX_R": 8, "FIFO_AW": 2}),
-    "rx_top-wide": ("rx_top", _TOP, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
+    "rx_top-wide": ("rx_top", TOP_FILES, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
                                      "MAX_R": 1024, "MAX_G": 256, "MAX_P": 8, "NGHOST": 8,
                                      "ADC_W": 16, "OUT_W": 32}),
 }

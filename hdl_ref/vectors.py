@@ -26,7 +26,7 @@ from cdma_lidar.firmware_model.gold import gold_code
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.pairs import preferred_pairs
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
-from cdma_lidar.hdl_ref.cosim import TopParams, top_ports, top_schedule
+from cdma_lidar.hdl_ref.cosim import TOP_FILES, TopParams, top_ports, top_schedule
 from cdma_lidar.hdl_ref.stimuli import echo_column
 
 __all__ = ["CFG_ORDER", "RESULT_ORDER", "VectorSpec", "cmd_vectors", "expected_words",
@@ -279,6 +279,8 @@ def _readme(spec: VectorSpec, columns: int, seed: int, d: Mapping[str, int],
          f"zero-extended): column, then channel, then the {len(RESULT_ORDER)} ports below, "
          "valid in the clock `res_valid` is high"),
     ]
+    rtl_files = " \\\n    ".join(" ".join(f"hdl_ref/rtl/{name}" for name in TOP_FILES[i:i + 4])
+                                  for i in range(0, len(TOP_FILES), 4))
     file_rows = "| file | lines | layout |\n|---|---|---|\n" + "\n".join(
         f"| `{name}` | {lines} | {text} |" for name, lines, text in files)
     return f"""# rx_top test vectors
@@ -312,9 +314,8 @@ Result order (line within a channel's block: port, width in bits):
 Run with the plain Verilog testbench of the repository (no Python needed):
 
 ```
-iverilog -g2005 -I <this folder> -o tb.vvp hdl_ref/tb/rx_top_vectors_tb.v hdl_ref/rtl/lfsr_fib.v \\
-    hdl_ref/rtl/sdp_ram.v hdl_ref/rtl/cfg_latch.v hdl_ref/rtl/gen_strobe.v \\
-    hdl_ref/rtl/lane_feed.v hdl_ref/rtl/out_scale.v hdl_ref/rtl/rx_post.v hdl_ref/rtl/rx_top.v
+iverilog -g2005 -I <this folder> -o tb.vvp hdl_ref/tb/rx_top_vectors_tb.v \\
+    {rtl_files}
 vvp tb.vvp +VEC=<this folder>/
 ```
 """
