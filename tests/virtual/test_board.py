@@ -461,6 +461,9 @@ def test_the_chains_interference_cancellation_travels_over_the_wire(link):
     assert len(list(link.scan(columns=1))) == 1
     with pytest.raises(ConfigError, match="cancel_rounds"):
         link.set_config(cancel_rounds=5)
+    with pytest.raises(DeviceError) as refused:   # the own-echo table's longest gate
+        link.set_config(gate_len=4097)
+    assert refused.value.field == "gate_len"
     assert link.get_config()["cancel_rounds"] == 2
 
 
