@@ -97,7 +97,7 @@ def autocorrelation_table(bip: NDArray[np.int8], s: int, g: int) -> NDArray[np.i
         c = np.fft.irfft(f * np.conj(f), n=n, axis=1)[:, need]
         exact = np.rint(c)
         if np.max(np.abs(c - exact), initial=0.0) >= 0.25:  # never: the bound above
-            raise ArithmeticError("chip autocorrelation not exact in float64")
+            raise RuntimeError("chip autocorrelation not exact in float64")
         chips[k0:k0 + _FFT_BLOCK] = exact.astype(np.int64)
     at = np.searchsorted(need, q % n), np.searchsorted(need, (q + 1) % n)
     return (s - r) * chips[:, at[0]] + r * chips[:, at[1]]
