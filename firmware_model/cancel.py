@@ -71,10 +71,10 @@ def subtracts(cfg: ReceiverConfig, peak: int, count: int, total: int, sumsq: int
 def amplitude(cfg: ReceiverConfig, peak: int, ns: int) -> int:
     """b = sat_acc(floor(peak 2^out_shift / (n NS) + 1/2)): the echo's amplitude per
     period in accumulator codes, from its ``out`` peak (LSB)."""
-    lo, hi = adc_limits(cfg.adc_bits)
+    top = cfg.averages << (cfg.adc_bits - 1)  # R 2^(b-1): the accumulators' range
     d = cfg.uid_bits * ns
     b = (2 * (peak << cfg.out_shift) + d) // (2 * d)
-    return min(max(b, cfg.averages * lo), cfg.averages * hi)
+    return min(max(b, -top), top - cfg.averages)
 
 
 def autocorrelation_table(bip: NDArray[np.int8], s: int, g: int) -> NDArray[np.int64]:
