@@ -71,10 +71,10 @@ def subtracts(cfg: ReceiverConfig, peak: int, count: int, total: int, sumsq: int
 def amplitude(cfg: ReceiverConfig, peak: int, ns: int) -> int:
     """b = sat_acc(floor(peak 2^out_shift / (n NS) + 1/2)): the echo's amplitude per
     period in accumulator codes, from its ``out`` peak (LSB)."""
-    lo, hi = adc_limits(cfg.adc_bits)
+    top = cfg.averages << (cfg.adc_bits - 1)  # R 2^(b-1): the accumulators' range
     d = cfg.uid_bits * ns
     b = (2 * (peak << cfg.out_shift) + d) // (2 * d)
-    return min(max(b, cfg.averages * lo), cfg.averages * hi)
+    return min(max(b, -top), top - cfg.averages)
 
 
 def autocorrelation_table(bip: NDArray[np.int8], s: int, g: int) -> NDArray[np.int64]:
@@ -97,7 +97,7 @@ def autocorrelation_table(bip: NDArray[np.int8], s: int, g: int) -> NDArray[np.i
         c = np.fft.irfft(f * np.conj(f), n=n, axis=1)[:, need]
         exact = np.rint(c)
         if np.max(np.abs(c - exact), initial=0.0) >= 0.25:  # never: the bound above
-            raise ArithmeticError("chip autocorrelation not exact in float64")
+            raise RuntimeError("chip autocorrelation not exact in float64")
         chips[k0:k0 + _FFT_BLOCK] = exact.astype(np.int64)
     at = np.searchsorted(need, q % n), np.searchsorted(need, (q + 1) % n)
     return (s - r) * chips[:, at[0]] + r * chips[:, at[1]]
@@ -138,6 +138,9 @@ class Canceller:
                              dtype=np.int64)
         lo, hi = adc_limits(cfg.adc_bits)
         self.acc_lo, self.acc_hi = cfg.averages * lo, cfg.averages * hi
+        # |acc| + |echo sum| <= (K + 1) R 2^(b-1): int32 when that fits (half the traffic)
+        big = (bip.shape[0] + 1) * cfg.averages << (cfg.adc_bits - 1)
+        self.work_type = np.int32 if big < 2**31 else np.int64
 
     def pick(self, outputs: list[ReceiverOutput]) -> Subtraction:
         """The echoes to subtract, from the previous pass's outputs (one per column)."""
@@ -159,26 +162,28 @@ class Canceller:
                  out: NDArray[np.signedinteger]) -> None:
         """``out`` (C, n, NS) = the accumulators ``acc`` minus the subtracted echoes,
         saturated to the accumulator range (rows of ``sub`` match ``acc``'s columns)."""
-        s, n = self.cfg.samples_per_chip, self.n_chips
+        s, n, wt = self.cfg.samples_per_chip, self.n_chips, self.work_type
+        echo = np.empty(n, dtype=wt)
         for c in range(acc.shape[0]):
             chans = np.flatnonzero(sub.b[c])
             lag = (sub.jp[c, chans] + self.gate_lo) % self.ns
             q, phase = np.divmod(lag, s)
             # E(jS + t) = sum over phases f of chip[f][j - (t < f)], where
             # chip[f][j] = sum_{k: lag_k = q_k S + f} b_k c_k[(j - q_k) mod N]
-            chip = np.zeros((s, n), dtype=np.int64)
+            chip = np.zeros((s, n), dtype=wt)
             for ch, qk, fk, bk in zip(chans.tolist(), q.tolist(), phase.tolist(),
                                       sub.b[c, chans].tolist(), strict=True):
-                row, echo = chip[fk], np.multiply(self.bip[ch], bk, dtype=np.int64)
+                row = chip[fk]
+                np.multiply(self.bip[ch], bk, out=echo, dtype=wt)
                 row[qk:] += echo[:n - qk]
                 row[:qk] += echo[n - qk:]
-            e = np.zeros((n, s), dtype=np.int64)
+            e = np.zeros((n, s), dtype=wt)
             for f in range(s):
                 e[:, f:] += chip[f][:, None]
                 e[:, :f] += np.roll(chip[f], 1)[:, None]
             e = e.reshape(-1)
             for p, sign in enumerate(self.sign.tolist()):
-                r = acc[c, p].astype(np.int64) - sign * e
+                r = acc[c, p].astype(wt) - sign * e
                 np.clip(r, self.acc_lo, self.acc_hi, out=r)
                 out[c, p] = r
 

@@ -182,3 +182,16 @@ def test_a_gate_beyond_the_table_is_refused_with_cancellation_only():
         FastReceiver(cfg.replace(cancel_rounds=1), codes, prepare=False)
     with pytest.raises(ConfigError, match="gate_len"):
         ReferenceReceiver(cfg.replace(cancel_rounds=1), codes)
+
+
+def test_wide_sums_take_the_int64_path_and_stay_exact():
+    """64 channels at 16 bits and R = 1024: the echo sum may pass 2^31, so the residual
+    is built in int64; full-scale data saturates amplitudes and residuals."""
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, 2, (64, 7), dtype=np.uint8)
+    cfg = ReceiverConfig(adc_bits=16, samples_per_chip=1, averages=1024, gate_len=7,
+                         peak_exclude=0, cancel_rounds=2, cancel_snr_q8=0)
+    rx = FastReceiver(cfg, codes)
+    assert rx._cancel.work_type is np.int64
+    x = rng.choice([-(1 << 15), (1 << 15) - 1], cfg.column_samples(7)).astype(np.int32)
+    assert rx.column(x).mismatches(reference(cfg, codes, x)) == []
