@@ -39,7 +39,7 @@ CONFIG = {"poly_u": (11, 2), "poly_v": (11, 8, 5, 2), "code_index": tuple(range(
           "uid_bits": 1, "uid": 0, "samples_per_chip": 4, "averages": 10, "adc_bits": 12,
           "gate_start": 0, "gate_len": 8188, "peak_exclude": 8, "ghost_windows": (),
           "out_shift": 0, "rounding": "truncate", "out_bits": 32, "peaks": 1,
-          "columns_per_frame": 1, "mode": "ranging"}
+          "columns_per_frame": 1, "mode": "ranging", "cancel_rounds": 0, "cancel_snr_q8": 10192}
 
 
 def make_column(channels: int = K, peaks: int = 1, uid_bits: int = 1) -> ColumnResult:

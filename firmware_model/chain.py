@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
+from cdma_lidar.firmware_model.cancel import Canceller, Subtraction
 from cdma_lidar.firmware_model.correlators import (
     AUTO,
     Correlator,
@@ -97,6 +98,7 @@ class FastReceiver:
         self._lag_lo = (cfg.gate_start - 1) % ns
         self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
         self._search = PeakSearch(cfg, self.widths, self._bip)
+        self._cancel = Canceller(cfg, self._bip, self._search.lags) if cfg.cancel_rounds else None
         self._despread = self._search.despread
         wd = self.widths
         s = cfg.samples_per_chip
@@ -273,7 +275,27 @@ class FastReceiver:
 
     def _chain(self, acc: NDArray[np.signedinteger], accumulate: Callable[[int, int], None],
                size: int, column_bytes: int) -> list[ReceiverOutput]:
-        """The chain after ``accumulate(c0, c1)`` has filled ``acc[c0:c1]`` (C, n, NS).
+        """The chain after ``accumulate(c0, c1)`` has filled ``acc[c0:c1]`` (C, n, NS): one
+        pass (:meth:`_pass`), then ``cancel_rounds`` passes on the accumulators minus the
+        echoes the previous pass found (:mod:`cdma_lidar.firmware_model.cancel`)."""
+        outs = self._pass(acc, accumulate, size, column_bytes)
+        if self._cancel is None:
+            return outs
+        res = np.empty(acc.shape, dtype=acc.dtype)
+        for _ in range(self.cfg.cancel_rounds):
+            sub = self._cancel.pick(outs)
+            outs = self._pass(
+                res, lambda c0, c1, sub=sub: self._cancel.residual(acc[c0:c1], sub.rows(c0, c1),
+                                                                   res[c0:c1]),
+                size, column_bytes, sub)
+        return outs
+
+    def _pass(self, acc: NDArray[np.signedinteger], accumulate: Callable[[int, int], None],
+              size: int, column_bytes: int, sub: Subtraction | None = None
+              ) -> list[ReceiverOutput]:
+        """One pass of the chain after ``accumulate(c0, c1)`` has filled ``acc[c0:c1]``
+        (C, n, NS); ``sub``: the echoes a cancellation round subtracted, added back where
+        each is correlated with its own code.
 
         The columns are split into :attr:`threads` contiguous ranges, each run through
         the whole chain (R-sum, despread, chip sums, the kernel, scaling, peaks) in its
@@ -303,9 +325,14 @@ class FastReceiver:
             return w[c0:c1].reshape(c1 - c0, n, s).transpose(0, 2, 1)  # (C, S, N), a view
 
         def post(c0: int, c1: int, raw: NDArray[np.int64]) -> None:
+            own = None
+            if sub is not None:
+                rows = sub.rows(c0, c1)
+                self._cancel.add_own(raw, rows)
+                own = lambda j: self._cancel.own(rows, j)  # noqa: E731
             out = self._scale_raw(raw)
             parts[c0] = self._search(raw, out, acc[c0:c1],
-                                     self._scratch(out[..., 1:-1].shape))
+                                     self._scratch(out[..., 1:-1].shape), own)
 
         def run(y: NDArray[np.signedinteger], c0: int, c1: int) -> NDArray[np.int64]:
             if kernel.takes_bound:

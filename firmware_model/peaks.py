@@ -10,6 +10,8 @@ minus peaks +-W and ghost lags); the per-period UID signs at each peak.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -50,11 +52,16 @@ class PeakSearch:
         )
 
     def __call__(self, raw: NDArray[np.int64], out: NDArray[np.int64],
-                 acc: NDArray[np.signedinteger], work: NDArray[np.int64]
+                 acc: NDArray[np.signedinteger], work: NDArray[np.int64],
+                 own: Callable[[NDArray[np.int64]], NDArray[np.int64]] | None = None
                  ) -> list[ReceiverOutput]:
         """The outputs of C columns from the kernel's ``raw`` and the scaled ``out``
         (C, K, G + 2) int64 (lags gate_start - 1 .. gate_start + G), the accumulators
         ``acc`` (C, n, NS) and a (C, K, G) int64 ``work`` array (overwritten).
+
+        ``own`` (a cancellation round): the per-period correlation each channel's own
+        subtracted echo adds at gate indices j (C, K, P), before the UID sign of period p
+        (times (-1)^bit_p(uid)); ``raw`` already holds it.
 
         ``corr`` of each output is a view of ``out``."""
         cfg = self.cfg
@@ -107,7 +114,7 @@ class PeakSearch:
             nsq = _sum_squares(cz, None, True)
         else:  # every square and their sum fit int64 (noise_sumsq <= 63 bits): one pass
             nsq = np.einsum("ckj,ckj->ck", cz, cz)
-        signs = self._uid_signs(raw, acc, jsafe, found)  # (C, K, P, n)
+        signs = self._uid_signs(raw, acc, jsafe, found, own)  # (C, K, P, n)
         observed = ((signs[:, :, 0, :] < 0).astype(np.int64) << np.arange(n)).sum(axis=-1)
         match = found[..., 0] & np.all(signs[:, :, 0, :] != 0, axis=-1) & (observed == cfg.uid)
         uid0 = np.ascontiguousarray(signs[:, :, 0, :])
@@ -129,6 +136,7 @@ class PeakSearch:
         acc: NDArray[np.int64],
         jsafe: NDArray[np.int64],
         found: NDArray[np.bool_],
+        own: Callable[[NDArray[np.int64]], NDArray[np.int64]] | None = None,
     ) -> NDArray[np.int8]:
         """sign(sum_i ref_k[i] acc[p][(i + lag) mod NS]) at each peak lag -> (C, K, P, n) int8."""
         cfg = self.cfg
@@ -138,7 +146,10 @@ class PeakSearch:
             s = np.sign(r)[..., None]
         else:
             lags = self.lags[1:-1][jsafe]  # (C, K, P)
-            s = np.sign(correlate_at(self.bip, acc, lags, cfg.samples_per_chip))
+            v = correlate_at(self.bip, acc, lags, cfg.samples_per_chip)
+            if own is not None:
+                v += own(jsafe)[..., None] * self.despread
+            s = np.sign(v)
         return np.where(found[..., None], s, 0).astype(np.int8)
 
 

@@ -19,6 +19,8 @@ from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
 __all__ = [
     "INT64_BITS",
+    "MAX_CANCEL_ROUNDS",
+    "MAX_CANCEL_SNR_Q8",
     "MAX_CHANNELS",
     "MAX_CODE_LENGTH",
     "MAX_GHOST_WINDOWS",
@@ -35,6 +37,8 @@ MAX_CODE_LENGTH = 2**20 - 1  # degree 20; any length 3..MAX_CODE_LENGTH is accep
 MIN_CODE_LENGTH = 3
 MAX_CHANNELS = 2048
 MAX_GHOST_WINDOWS = 8
+MAX_CANCEL_ROUNDS = 4
+MAX_CANCEL_SNR_Q8 = 2**32 - 1  # a u32 register: up to 72.2 dB
 INT64_BITS = 63  # magnitude bits of an int64
 
 
@@ -94,6 +98,12 @@ class ReceiverConfig:
 
     ``uid_bits`` may be 1..16 here (and in ``hdl_ref``); a device is narrower: the
     protocol carries 1..``max_uid_bits`` and the virtual device announces 8 in INFO.
+
+    ``cancel_rounds`` (0..MAX_CANCEL_ROUNDS; 0: the paper's receiver) repeats the chain that
+    many times on the accumulators minus the echoes the previous pass found (parallel
+    interference cancellation, :mod:`cdma_lidar.firmware_model.cancel`); a found peak is
+    subtracted when its SNR_XC is at least ``cancel_snr_q8`` / 256 (a power ratio in
+    Q8: 10192 = 16.0 dB, 5731 = 13.5 dB: :func:`cdma_lidar.firmware_model.snr.snr_q8`).
     """
 
     adc_bits: int = 12
@@ -109,6 +119,8 @@ class ReceiverConfig:
     rounding: Rounding = "truncate"
     out_bits: int = 32
     peaks: int = 1
+    cancel_rounds: int = 0
+    cancel_snr_q8: int = 10192
 
     def __post_init__(self) -> None:
         check_int("adc_bits", self.adc_bits, 8, 16)
@@ -122,6 +134,8 @@ class ReceiverConfig:
         check_int("out_shift", self.out_shift, 0, 62)
         check_int("out_bits", self.out_bits, 8, 32)
         check_int("peaks", self.peaks, 1, 8)
+        check_int("cancel_rounds", self.cancel_rounds, 0, MAX_CANCEL_ROUNDS)
+        check_int("cancel_snr_q8", self.cancel_snr_q8, 0, MAX_CANCEL_SNR_Q8)
         if self.rounding not in ROUNDING_MODES:
             raise out_of_range("rounding", "one of " + ", ".join(ROUNDING_MODES), self.rounding)
         try:
@@ -175,7 +189,9 @@ class ReceiverConfig:
                 )
         b, r, n_uid = self.adc_bits, self.averages, self.uid_bits
         s = self.out_shift
-        raw = b + bitlen(ns * r * n_uid)
+        # cancellation adds each subtracted echo back at its own lags: |raw| at most doubles
+        cancel = 1 if self.cancel_rounds else 0
+        raw = b + bitlen(ns * r * n_uid) + cancel
         rounded = raw if s == 0 else max(raw - s + 1, 2)
         out = min(self.out_bits, rounded)
         g = self.gate_len
@@ -184,7 +200,7 @@ class ReceiverConfig:
             acc=b + clog2(r),
             desp=b + bitlen(n_uid * r),
             raw=raw,
-            uid=b + bitlen(ns * r),
+            uid=b + bitlen(ns * r) + cancel,
             rounded=rounded,
             out=out,
             noise_count=bitlen(g),

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
+from cdma_lidar.firmware_model.cancel import amplitude, check_cancel_gate, subtracts
 from cdma_lidar.firmware_model.output import FIELDS, ReceiverOutput, saturated_flags
 from cdma_lidar.firmware_model.receiver_config import ReceiverConfig, as_samples, check_codes
 
@@ -35,6 +36,7 @@ class ReferenceReceiver:
         bits = check_codes(codes)
         self.n_chips = int(bits.shape[1])
         self.widths = cfg.widths(self.n_chips)
+        check_cancel_gate(cfg)
         s = cfg.samples_per_chip
         self._ns = self.n_chips * s
         self._ref = [[1 - 2 * int(row[i // s]) for i in range(self._ns)] for row in bits.tolist()]
@@ -64,13 +66,36 @@ class ReferenceReceiver:
             self._t = t + 1
 
     def finish(self) -> ReceiverOutput:
-        """Despread, correlate, scale and search; return the column's output."""
+        """Despread, correlate, scale and search; with ``cancel_rounds``, again on the
+        accumulators minus the echoes the previous pass found
+        (:mod:`cdma_lidar.firmware_model.cancel`); return the column's output."""
         if self._t != self._total:
             raise out_of_range("samples", f"{self._total} ADC codes per column", self._t)
         cfg, ns = self.cfg, self._ns
+        out = self._pass(self._acc, {})
+        lo, hi = cfg.averages * self._lo, cfg.averages * self._hi
+        for _ in range(cfg.cancel_rounds):
+            sub = {}  # channel -> (amplitude b in accumulator codes, lag in samples)
+            for k in range(len(self._ref)):
+                if out.peak_lag[k] >= 0 and out.uid_match[k] and subtracts(
+                        cfg, int(out.peak[k]), int(out.noise_count[k]),
+                        int(out.noise_sum[k]), int(out.noise_sumsq[k])):
+                    sub[k] = (amplitude(cfg, int(out.peak[k]), ns), int(out.peak_lag[k]))
+            echo = [sum(b * self._ref[k][(i - lag) % ns] for k, (b, lag) in sub.items())
+                    for i in range(ns)]
+            res = [[min(max(self._acc[p][i] - (-echo[i] if (cfg.uid >> p) & 1 else echo[i]),
+                            lo), hi) for i in range(ns)] for p in range(cfg.uid_bits)]
+            out = self._pass(res, sub)
+        return out
+
+    def _pass(self, acc: list[list[int]], sub: dict[int, tuple[int, int]]) -> ReceiverOutput:
+        """One pass of the chain on the accumulators ``acc`` (n lists of NS integers); each
+        channel k of ``sub`` (amplitude b, lag l) has its own echo, b ref_k[i - l] in every
+        period with the UID's polarity, added back to its correlations."""
+        cfg, ns = self.cfg, self._ns
         n, uid, g = cfg.uid_bits, cfg.uid, cfg.gate_len
         d = [
-            sum(-self._acc[p][i] if (uid >> p) & 1 else self._acc[p][i] for p in range(n))
+            sum(-acc[p][i] if (uid >> p) & 1 else acc[p][i] for p in range(n))
             for i in range(ns)
         ]
         lags = [(cfg.gate_start + j) % ns for j in range(g)]
@@ -80,10 +105,17 @@ class ReferenceReceiver:
         ]
         w = cfg.peak_exclude
         rows: dict[str, list] = {name: [] for name in FIELDS}
-        for ref in self._ref:
+        for k, ref in enumerate(self._ref):
 
-            def corr_at(data: list[int], lag: int, ref: list[int] = ref) -> int:
-                return sum(ref[i] * data[(i + lag) % ns] for i in range(ns))
+            def own(lag: int, ref: list[int] = ref, k: int = k) -> int:
+                """b A_k(lag - l): this channel's subtracted echo on its own code."""
+                if k not in sub:
+                    return 0
+                b, l0 = sub[k]
+                return b * sum(ref[i] * ref[(i + lag - l0) % ns] for i in range(ns))
+
+            def corr_at(data: list[int], lag: int, ref: list[int] = ref, times: int = n) -> int:
+                return sum(ref[i] * data[(i + lag) % ns] for i in range(ns)) + times * own(lag)
 
             out = [self._scale(corr_at(d, lag)) for lag in lags]
             found: list[int] = []
@@ -100,7 +132,8 @@ class ReferenceReceiver:
             peak_lags = [lags[j] for j in found] + [-1] * (cfg.peaks - len(found))
             peak_vals = [out[j] for j in found] + [0] * (cfg.peaks - len(found))
             signs = [
-                [_sign(corr_at(self._acc[p], lag)) for p in range(n)] if lag >= 0 else [0] * n
+                [_sign(corr_at(acc[p], lag, times=-1 if (uid >> p) & 1 else 1))
+                 for p in range(n)] if lag >= 0 else [0] * n
                 for lag in peak_lags
             ]
             noise = [

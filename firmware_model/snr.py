@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdma_lidar.errors import out_of_range
 
-__all__ = ["snr_xc_db"]
+__all__ = ["snr_q8", "snr_xc_db"]
 
 log = logging.getLogger(__name__)
 
@@ -70,3 +70,11 @@ def _one(peak: int, count: int, total: int, sumsq: int) -> float:
         return 10.0 * math.log10(12 * p2)
     # 10 log10(p2 * count^2 / var_num), each factor an exact integer (log10 takes big ints)
     return 10.0 * (math.log10(p2 * count * count) - math.log10(var_num))
+
+
+def snr_q8(db: float) -> int:
+    """The SNR_XC threshold ``db`` (dB) as the receive chain's cancellation register: the
+    power ratio 10^(db/10) in Q8, rounded (``ReceiverConfig.cancel_snr_q8``; 16 dB -> 10192)."""
+    if not math.isfinite(db) or not 0.0 <= db <= 72.0:
+        raise out_of_range("cancel threshold (dB)", "0..72", db)
+    return round(256 * 10.0 ** (db / 10.0))

@@ -38,8 +38,8 @@ from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
 from cdma_lidar.hdl_ref import cosim
 
-__all__ = ["ENGINE_SRC", "RtlReceiver", "cache_root", "engine_params", "missing_simulator",
-           "verilate"]
+__all__ = ["ENGINE_SRC", "RtlReceiver", "cache_root", "check_rtl_config", "engine_params",
+           "missing_simulator", "verilate"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,14 @@ def missing_simulator() -> str | None:
             or shutil.which("make") is None:
         return INSTALL
     return None
+
+
+def check_rtl_config(cfg: ReceiverConfig) -> None:
+    """Refuse what the RTL cannot compute: ``rx_top`` correlates once, it has no
+    interference-cancellation stage, so ``cancel_rounds`` must be 0 (ConfigError naming it)."""
+    if cfg.cancel_rounds:
+        raise out_of_range("cancel_rounds", "0 on the RTL engine (the RTL has no "
+                           "interference-cancellation stage)", cfg.cancel_rounds)
 
 
 def cache_root() -> Path:
@@ -163,6 +171,7 @@ class RtlReceiver:
 
     def __init__(self, cfg: ReceiverConfig, poly_u: Sequence[int], poly_v: Sequence[int],
                  indices: Sequence[int]) -> None:
+        check_rtl_config(cfg)
         self.cfg = cfg
         degree = int(poly_u[0])
         self.params = engine_params(cfg, len(indices), degree)

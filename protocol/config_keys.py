@@ -195,6 +195,11 @@ CONFIG_KEYS: tuple[ConfigKey, ...] = (
     ConfigKey(17, "columns_per_frame", "u16", "columns", "1..max_columns",
               "columns in a default scan frame", 1, 65535),
     _enum_key(18, "mode", MODES, "measurement mode (calibration = zeroth-order beam)"),
+    ConfigKey(19, "cancel_rounds", "u8", "rounds", "0..4",
+              "rounds of parallel interference cancellation; 0: none", 0, 4),
+    ConfigKey(20, "cancel_snr_q8", "u32", "Q8 power ratio", "0..2^32-1",
+              "SNR_XC power ratio in Q8 at which a found echo is subtracted "
+              "(10192 = 16 dB)", 0, 2**32 - 1),
 )
 _KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
 _KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}

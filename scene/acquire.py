@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import ReceiverConfig
+from cdma_lidar.firmware_model.snr import snr_q8
 from cdma_lidar.scene.instrument import Instrument, RenderSettings
 from cdma_lidar.scene.model import InstrumentSpec
 
@@ -144,14 +145,19 @@ def receiver_config(inst: Instrument, settings: RenderSettings | None = None, *,
 
     ``gate`` (start, length) in samples defaults to :meth:`Instrument.default_gate`; the
     output is :func:`out_bits_for_gate` wide with no shift (every width then fits: the
-    noise's sum of squares in 63 bits); the other fields are ReceiverConfig's defaults.
+    noise's sum of squares in 63 bits); the interference cancellation is the scene's
+    (``cancel_rounds``, ``cancel_snr_db`` as the chain's Q8 power ratio); the other fields
+    are ReceiverConfig's defaults.
     """
-    s = settings or RenderSettings.from_spec(inst.spec)
+    spec = inst.spec
+    s = settings or RenderSettings.from_spec(spec)
     start, length = gate if gate is not None else inst.default_gate(s.samples_per_chip)
-    cfg = ReceiverConfig(adc_bits=inst.spec.adc_bits, samples_per_chip=s.samples_per_chip,
+    cfg = ReceiverConfig(adc_bits=spec.adc_bits, samples_per_chip=s.samples_per_chip,
                          averages=s.averages, uid_bits=s.uid_bits, uid=s.uid,
                          gate_start=start, gate_len=length, out_shift=0,
-                         out_bits=out_bits_for_gate(length), peaks=peaks)
+                         out_bits=out_bits_for_gate(length), peaks=peaks,
+                         cancel_rounds=spec.cancel_rounds,
+                         cancel_snr_q8=snr_q8(spec.cancel_snr_db))
     return cfg, gold_codes(s.poly_u, s.poly_v, s.code_index, field="code_index")
 
 

@@ -216,6 +216,11 @@ class InstrumentSpec:
     noise_rms_v: float | None = None
     system_delay_s: float = 37.3e-9
     detector_bandwidth_hz: float = 200e6
+    # -- the receive chain's interference cancellation (cdma_lidar.firmware_model.cancel) --
+    #: rounds of parallel interference cancellation, 0..4 (0: the paper's receiver, which
+    #: correlates once) and the SNR_XC (dB) at which a found echo is subtracted
+    cancel_rounds: int = 0
+    cancel_snr_db: float = 16.0
     min_range_m: float | None = None
     max_range_m: float | None = None
     ghosts: tuple[Ghost, ...] = ()

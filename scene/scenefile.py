@@ -46,6 +46,7 @@ from cdma_lidar.checks import check_int
 from cdma_lidar.errors import ConfigError, out_of_range
 from cdma_lidar.firmware_model.pairs import pair_degrees, preferred_pairs
 from cdma_lidar.firmware_model.receiver import MAX_CHANNELS
+from cdma_lidar.firmware_model.receiver_config import MAX_CANCEL_ROUNDS
 from cdma_lidar.optics.grating import GratingGeometry
 from cdma_lidar.scene.model import (
     FIDELITY_LEVELS,
@@ -405,6 +406,9 @@ def _parse_instrument(table: Any) -> InstrumentSpec:
         system_delay_s=r.num("system_delay_s", 0.0, 1e-3, d("system_delay_s"), unit="s"),
         detector_bandwidth_hz=r.num("detector_bandwidth_hz", 0.0, 1e12,
                                     d("detector_bandwidth_hz"), unit="Hz", open_lo=True),
+        cancel_rounds=r.int("cancel_rounds", 0, MAX_CANCEL_ROUNDS, d("cancel_rounds")),
+        # 0..72 dB: what the chain's u32 Q8 register holds (firmware_model.snr.snr_q8)
+        cancel_snr_db=r.num("cancel_snr_db", 0.0, 72.0, d("cancel_snr_db"), unit="dB"),
         min_range_m=min_r, max_range_m=max_r,
         ghosts=_parse_ghosts(r.raw("ghosts"), "instrument.ghosts", k, c),
         other_users=_parse_users(r.raw("other_users"), "instrument.other_users", n_codes, c),

@@ -25,14 +25,19 @@ predicts 0.54, 0.80 and 0.91 and one per chip 0.45, 0.73 and 0.87; tests/study).
 are given; the two agree when the per-lag prediction lies in the measured fraction's
 95 % Wilson interval.
 
-The wall isolates multiple access: every echo has about the same power. ``paper-massive``'s
-own scene (letters at 5 m, a box at 6.5 m, a ball at 8 m, the wall at 10 m behind: a
-1/r^2 spread of echo powers, the near-far problem) is ranged too, at the same K over
-``scene_columns`` columns spread over its field (``--quick``: 4): the share of its
-pixels whose peak lies at the right range (half a chip) whatever its SNR_XC, and the share
-a scan keeps at the host's default threshold
+The wall is received by the paper's receiver whatever the preset says
+(``instrument.cancel_rounds=0``: ``fig11`` models a single correlation, so the check of
+its prediction runs one), and it isolates multiple access: every echo has about the same
+power. ``paper-massive``'s own scene (letters at 5 m, a box at 6.5 m, a ball at 8 m, the
+wall at 10 m behind: a 1/r^2 spread of echo powers, the near-far problem) is ranged too,
+at the same K over ``scene_columns`` columns spread over its field (``--quick``: 4): the
+share of its pixels whose peak lies at the right range (half a chip) whatever its SNR_XC,
+and the share a scan keeps at the host's default threshold
 (:func:`cdma_lidar.host.ranging.default_snr_threshold_db` with its neighbour support, the
-boot power, no near-far control). A scan of the preset is to keep 90 % of its pixels.
+boot power, no near-far control). A scan of the preset is to keep 90 % of its pixels. The
+scene runs twice: with the preset's own receive chain (its interference cancellation,
+``cancel_rounds`` rounds: assumed, not the paper's) and with one correlation, the
+paper's receiver (the columns and entries ending in ``_single``).
 
 Columns: ``wrong_fraction``, ``wrong_pixels``, ``pixels``, ``predicted_fraction`` (one
 competitor per lag), ``predicted_per_chip`` (``fig11``'s count over the gate),
@@ -46,15 +51,19 @@ default threshold), ``scene_valid_wrong_pixels`` (kept, yet off by more than hal
 ``scene_wall_valid_pixels`` (the same for the back wall's pixels alone);
 ``scene_equalised_right_pixels`` and ``scene_equalised_valid_pixels`` (again, with every
 echo above the median echo amplitude lowered to it by its pixel's laser power: the most a
-near-far control that lowers near pixels can equalise); and, measuring the machine,
-``time_s``. The report adds ``wall_valid_fraction_k*`` (the flat wall's pixels kept: where
-every echo is alike, what the threshold alone costs against multiple access).
+near-far control that lowers near pixels can equalise); ``scene_cancel_rounds`` (the
+rounds of interference cancellation the preset's chain ran them with) and every
+``scene_*_pixels`` again with one correlation (``scene_*_pixels_single``); and, measuring
+the machine, ``time_s``. The report adds ``wall_valid_fraction_k*`` (the flat wall's
+pixels kept: where every echo is alike, what the threshold alone costs against multiple
+access).
 
 The full run (K = 400, 800, 1,200 x 160 columns of the wall and of the scene, 768,000
 pixels) is 27 to 80 times the columns of ``--quick`` (2 of the wall and 4 of the scene per
 K); the wall's 2 columns per K took 22 CPU seconds on the shared 2-core machine (3 minutes
 of wall time at a load of 14), so the full run is about half an hour to an hour of CPU,
-most of it the 1,200-channel columns' receive chain (``python -m bench massive``).
+most of it the 1,200-channel columns' receive chain (``python -m bench massive``), more
+with the scene's cancellation (each round correlates again).
 """
 
 from __future__ import annotations
@@ -96,8 +105,12 @@ REPORT_NOTE = (
     "pixels (a peak more than half a chip off, or none) is compared with fig11's Gaussian "
     "approximation at the same K, order and SNR, counting the gate's lags as the "
     "competitors. The row is reproduced when that prediction lies in the measured share's "
-    "95 % interval at every K. The `scene_*` quantities range paper-massive's own scene "
-    "(objects at 5-10 m before a wall at 10 m) at the same K: the share of peaks at the "
+    "95 % interval at every K; the wall is received by one correlation, the paper's "
+    "receiver, as fig11 models it. The `scene_*` quantities range paper-massive's own scene "
+    "(objects at 5-10 m before a wall at 10 m) at the same K with the preset's receive "
+    "chain, which cancels the echoes it found and correlates again (an assumption, not the "
+    "paper's receiver), and, in the entries ending in `_single`, with one correlation: the "
+    "share of peaks at the "
     "right range whatever their SNR_XC, and the share a scan keeps at the host's default "
     "threshold with the boot power and no near-far control; a scan of the preset is to "
     "keep 90 %, and the gap between the two shares is what near-far control and the "
@@ -107,14 +120,23 @@ REPORT_NOTE = (
     "is what the threshold costs where every echo is alike.")
 
 
+#: The pixel counts of :func:`scene_shares` (each given again with one correlation, ``_single``).
+SCENE_COUNTS = ("scene_pixels", "scene_right_pixels", "scene_valid_pixels",
+                "scene_valid_wrong_pixels", "scene_wall_pixels", "scene_wall_right_pixels",
+                "scene_wall_valid_pixels", "scene_equalised_right_pixels",
+                "scene_equalised_valid_pixels")
+
+
 def flat_wall_scene(channels: int, columns: int, distance_m: float,
                     snr_db: float | None = None) -> str:
-    """``paper-massive`` at K ``channels`` and ``columns``, facing one flat wall (a scene
-    name for :func:`~cdma_lidar.study.simulate.simulate_frame`); ``snr_db`` replaces the
-    link budget's noise (per-sample SNR of the median echo, dB)."""
+    """``paper-massive`` at K ``channels`` and ``columns``, facing one flat wall, received
+    by the paper's receiver (one correlation: ``instrument.cancel_rounds=0``, as ``fig11``
+    models it), a scene name for :func:`~cdma_lidar.study.simulate.simulate_frame`;
+    ``snr_db`` replaces the link budget's noise (per-sample SNR of the median echo, dB)."""
     wall = (f'[{{kind = "plane", name = "wall", position_m = [{distance_m!r}, 0.0, 0.0], '
             'size_m = [40.0, 40.0], reflectivity = 0.5}]')
-    options: dict[str, Any] = {"channels": channels, "columns": columns, "objects": wall}
+    options: dict[str, Any] = {"channels": channels, "columns": columns, "objects": wall,
+                               "instrument.cancel_rounds": 0}
     if snr_db is not None:
         options["instrument.snr_db"] = snr_db
     return f"{PRESET}?{urllib.parse.urlencode(options)}"
@@ -169,16 +191,21 @@ def _grid(options: Any) -> list[dict]:
                         scene_columns=[scene])
 
 
-def scene_shares(channels: int, columns: int, seed: int) -> dict[str, Any]:
+def scene_shares(channels: int, columns: int, seed: int, single: bool = False
+                 ) -> dict[str, Any]:
     """``paper-massive``'s own scene at K ``channels`` over ``columns`` columns (spread over
-    its azimuth): pixels with an echo, those whose peak is within half a chip of the truth
-    at no threshold, those a scan keeps at the host's default threshold (its SNR_XC
-    threshold and neighbour support, the boot power), and those kept yet wrong; the same
+    its azimuth), received by the preset's chain (``single``: by one correlation, the
+    paper's receiver, whatever the preset's ``cancel_rounds``): pixels with an echo,
+    those whose peak is within half a chip of the truth at no threshold, those a scan
+    keeps at the host's default threshold (its SNR_XC threshold and neighbour support,
+    the boot power), and those kept yet wrong; the same
     counts for the pixels on the back wall (the scene's planes) alone; and, with every echo
     above the median echo amplitude lowered to it (each pixel's laser power scaled down by
     its amplitude over the median: the most a near-far control that lowers near pixels
-    can equalise, knowing the truth), the right and kept pixels again."""
-    name = f"{PRESET}?channels={channels}&columns={columns}"
+    can equalise, knowing the truth), the right and kept pixels again; and the rounds of
+    cancellation the chain ran (``scene_cancel_rounds``)."""
+    name = f"{PRESET}?channels={channels}&columns={columns}" + (
+        "&instrument.cancel_rounds=0" if single else "")
     sim = simulate_frame(name, seed=seed)
     right, valid, threshold = _ranged(sim)
     lit = np.isfinite(sim.truth_range_m)
@@ -199,7 +226,7 @@ def scene_shares(channels: int, columns: int, seed: int) -> dict[str, Any]:
             "scene_wall_valid_pixels": int(np.sum(valid & wall)),
             "scene_equalised_right_pixels": int(np.sum(even_right & lit)),
             "scene_equalised_valid_pixels": int(np.sum(even_valid & lit)),
-            "threshold_db": threshold}
+            "scene_cancel_rounds": inst.spec.cancel_rounds, "threshold_db": threshold}
 
 
 def _ranged(sim: SimulatedScan) -> tuple[np.ndarray, np.ndarray, float]:
@@ -233,11 +260,13 @@ def massive_task(params: dict, seed: np.random.SeedSequence) -> dict[str, Any]:
     per_chip, _ = predicted_error(inst, max(gate_lags // s - 3, 1))
     whole, _ = predicted_error(inst, spec.code_length - 3)
     scene_columns = int(params.get("scene_columns", 0))
-    scene = scene_shares(k, scene_columns, scene_seed) if scene_columns else {
-        key: 0 for key in ("scene_pixels", "scene_right_pixels", "scene_valid_pixels",
-                           "scene_valid_wrong_pixels", "scene_wall_pixels",
-                           "scene_wall_right_pixels", "scene_wall_valid_pixels",
-                           "scene_equalised_right_pixels", "scene_equalised_valid_pixels")}
+    scene: dict[str, Any] = dict.fromkeys((*SCENE_COUNTS, "scene_cancel_rounds"), 0)
+    if scene_columns:   # the preset's chain, then the paper's (the same seed: the same light)
+        scene = scene_shares(k, scene_columns, scene_seed)
+        single = scene_shares(k, scene_columns, scene_seed, single=True)
+    else:
+        single = dict.fromkeys(SCENE_COUNTS, 0)
+    scene.update({f"{key}_single": single[key] for key in SCENE_COUNTS})
     scene.setdefault("threshold_db", threshold)
     return {"wrong_fraction": float(np.mean(~right)), "wrong_pixels": int(np.sum(~right)),
             "pixels": int(right.size), "predicted_fraction": predicted,
@@ -270,11 +299,15 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
     scene = table.column("scene_pixels")[o] > 0
     if scene.any():
         n = table.column("scene_pixels")[o][scene]
-        for key, mark, label in (("right", "v", "scene: peak not at the right range"),
-                                 ("valid", "x", "scene: not kept at the default threshold"),
-                                 ("equalised_valid", "+", "scene, echoes equalised: not kept")):
-            ax.plot(k[o][scene], 1 - table.column(f"scene_{key}_pixels")[o][scene] / n, mark,
-                    color="tab:blue", label=label)
+        for key, mark, color, label in (
+                ("right", "v", "tab:blue", "scene: peak not at the right range"),
+                ("valid", "x", "tab:blue", "scene: not kept at the default threshold"),
+                ("equalised_valid", "+", "tab:blue", "scene, echoes equalised: not kept"),
+                ("valid_pixels_single", "x", "tab:green",
+                 "scene, one correlation (the paper's receiver): not kept")):
+            column = key if key.endswith("single") else f"{key}_pixels"
+            ax.plot(k[o][scene], 1 - table.column(f"scene_{column}")[o][scene] / n, mark,
+                    color=color, label=label)
     ax.set_xlabel("channels K (order 15, S = 2)")
     ax.set_ylabel("fraction of pixels")
     ax.set_yscale("symlog", linthresh=1e-4)
@@ -310,35 +343,36 @@ def _reduce(table: Table, ctx: RunContext) -> dict[str, Any]:
                   f"{float(table.column('threshold_db')[i]):.1f} dB at K = {kk}: every echo "
                   f"alike, so what the threshold costs where multiple access alone limits "
                   f"SNR_XC (ceiling {mai_ceiling_db(kk, chips):.1f} dB)")
-        n = int(table.column("scene_pixels")[i])
-        if not n:
-            continue
         thr = float(table.column("threshold_db")[i])
-        nw = int(table.column("scene_wall_pixels")[i])
-        for key, what, hits, of in (
-                ("right", "peaks within half a chip of the truth at no threshold",
-                 int(table.column("scene_right_pixels")[i]), n),
-                ("valid", f"pixels kept at the host's default {thr:.1f} dB",
-                 int(table.column("scene_valid_pixels")[i]), n),
-                ("wall_valid", f"pixels of the back wall (10 m) kept at {thr:.1f} dB",
-                 int(table.column("scene_wall_valid_pixels")[i]), nw),
-                ("objects_valid", f"pixels of the objects before the wall kept at "
-                 f"{thr:.1f} dB", int(table.column("scene_valid_pixels")[i]
-                                      - table.column("scene_wall_valid_pixels")[i]), n - nw),
-                ("equalised_right", "peaks at the right range with every echo above the "
-                 "median lowered to it (the most a near-far control could equalise)",
-                 int(table.column("scene_equalised_right_pixels")[i]), n),
-                ("equalised_valid", f"pixels kept at {thr:.1f} dB with every echo above "
-                 "the median lowered to it",
-                 int(table.column("scene_equalised_valid_pixels")[i]), n)):
-            if not of:
-                continue
-            out[f"scene_{key}_fraction_k{kk}"] = entry(
-                hits / of, None, "1", ci95=wilson(hits, of), verdict=None,
-                cause=f"paper-massive's scene (5-10 m) at K = {kk}: {hits} of {of} {what}"
-                      + (f" ({int(table.column('scene_valid_wrong_pixels')[i])} of them off "
-                         "by more than half a chip); a scan is to keep 90 %"
-                         if key == "valid" else ""))
+        rounds = int(table.column("scene_cancel_rounds")[i])
+        for tail, chain in (("", f"the preset's receive chain ({rounds} rounds of "
+                             "interference cancellation)"),
+                            ("_single", "one correlation (the paper's receiver)")):
+            counts = {key: int(table.column(f"{key}{tail}")[i]) for key in SCENE_COUNTS}
+            n, nw = counts["scene_pixels"], counts["scene_wall_pixels"]
+            valid, wall_valid = counts["scene_valid_pixels"], counts["scene_wall_valid_pixels"]
+            for key, what, hits, of in (
+                    ("right", "peaks within half a chip of the truth at no threshold",
+                     counts["scene_right_pixels"], n),
+                    ("valid", f"pixels kept at the host's default {thr:.1f} dB", valid, n),
+                    ("wall_valid", f"pixels of the back wall (10 m) kept at {thr:.1f} dB",
+                     wall_valid, nw),
+                    ("objects_valid", f"pixels of the objects before the wall kept at "
+                     f"{thr:.1f} dB", valid - wall_valid, n - nw),
+                    ("equalised_right", "peaks at the right range with every echo above the "
+                     "median lowered to it (the most a near-far control could equalise)",
+                     counts["scene_equalised_right_pixels"], n),
+                    ("equalised_valid", f"pixels kept at {thr:.1f} dB with every echo above "
+                     "the median lowered to it", counts["scene_equalised_valid_pixels"], n)):
+                if not of:
+                    continue
+                out[f"scene_{key}_fraction_k{kk}{tail}"] = entry(
+                    hits / of, None, "1", ci95=wilson(hits, of), verdict=None,
+                    cause=f"paper-massive's scene (5-10 m) at K = {kk}, {chain}: {hits} of "
+                          f"{of} {what}"
+                          + (f" ({counts['scene_valid_wrong_pixels']} of them off by more "
+                             "than half a chip); a scan is to keep 90 %"
+                             if key == "valid" else ""))
     return out
 
 

@@ -47,10 +47,11 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
+from cdma_lidar.firmware_model.cancel import check_cancel_gate
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
-from cdma_lidar.hdl_ref.engine import RtlReceiver, missing_simulator
+from cdma_lidar.hdl_ref.engine import RtlReceiver, check_rtl_config, missing_simulator
 from cdma_lidar.protocol.columns import ColumnResult, udeg
 from cdma_lidar.protocol.config_keys import MODES
 from cdma_lidar.protocol.endpoint import DeviceApp
@@ -172,6 +173,7 @@ class VirtualFirmware(DeviceApp):
             "peak_exclude": rc.peak_exclude, "ghost_windows": rc.ghost_windows,
             "out_shift": rc.out_shift, "rounding": rc.rounding, "out_bits": rc.out_bits,
             "peaks": rc.peaks, "columns_per_frame": c, "mode": "ranging",
+            "cancel_rounds": rc.cancel_rounds, "cancel_snr_q8": rc.cancel_snr_q8,
         }
         self._check(self._config)
         # Power in exact integers: codes (1/65535 of the pixel maximum) and whole µW.
@@ -232,8 +234,9 @@ class VirtualFirmware(DeviceApp):
         """Check a merged configuration once: the board's own limits here (code pair and
         members, UID length, samples per chip, peak exclusion, columns, mode, samples per
         column), the receive chain's fields where the chain's configuration is built
-        (``ReceiverConfig``, then ``widths``: the gate inside the period); each error
-        names the field and its range."""
+        (``ReceiverConfig``, then ``widths``: the gate inside the period) and, on the RTL
+        engine, what the RTL cannot compute (``cancel_rounds`` 0); each error names the
+        field and its range."""
         pu, _ = check_pair(c["poly_u"], c["poly_v"])
         degree = pu[0]
         if not 3 <= degree <= LIMITS["max_degree"]:
@@ -251,7 +254,11 @@ class VirtualFirmware(DeviceApp):
         check_int("columns_per_frame", c["columns_per_frame"], 1, self.columns)
         if c["mode"] not in MODES:
             raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
-        self._receiver_config(c).widths(n)
+        rc = self._receiver_config(c)
+        rc.widths(n)
+        check_cancel_gate(rc)
+        if self.engine == "rtl":
+            check_rtl_config(rc)
         ns = n * c["samples_per_chip"]
         check_int("peak_exclude", c["peak_exclude"], 0, ns)
         samples = c["averages"] * c["uid_bits"] * ns
@@ -267,7 +274,8 @@ class VirtualFirmware(DeviceApp):
             gate_start=c["gate_start"], gate_len=c["gate_len"],
             peak_exclude=c["peak_exclude"], ghost_windows=tuple(c["ghost_windows"]),
             out_shift=c["out_shift"], rounding=c["rounding"], out_bits=c["out_bits"],
-            peaks=c["peaks"])
+            peaks=c["peaks"], cancel_rounds=c["cancel_rounds"],
+            cancel_snr_q8=c["cancel_snr_q8"])
 
     def render_settings(self) -> RenderSettings:
         """What the instrument emits and samples under the current configuration."""

@@ -59,7 +59,8 @@ class SyntheticApp(DeviceApp):
             "uid_bits": 1, "uid": 0, "samples_per_chip": 4, "averages": 10, "adc_bits": 12,
             "gate_start": 0, "gate_len": 64, "peak_exclude": 8, "ghost_windows": (),
             "out_shift": 0, "rounding": "truncate", "out_bits": 32, "peaks": 1,
-            "columns_per_frame": columns, "mode": "ranging"}
+            "columns_per_frame": columns, "mode": "ranging", "cancel_rounds": 0,
+            "cancel_snr_q8": 10192}
         self.power = np.full((channels, columns), 65535, dtype=np.uint16)
         self.set_config_calls = 0
         self.scan_calls = 0

@@ -237,6 +237,7 @@ CONFIG_EXAMPLES = {
     "gate_start": 123, "gate_len": 4000, "peak_exclude": 8,
     "ghost_windows": ((10, 3), (4000, 20)), "out_shift": 7, "rounding": "convergent",
     "out_bits": 24, "peaks": 8, "columns_per_frame": 500, "mode": "calibration",
+    "cancel_rounds": 4, "cancel_snr_q8": 5731,
 }
 
 
@@ -257,7 +258,8 @@ def test_config_round_trip_through_config_set() -> None:
     ("uid_bits", 0), ("uid_bits", 9), ("peaks", 9), ("out_bits", 7), ("out_bits", 33),
     ("rounding", "nearest"), ("mode", "sleep"), ("poly_u", (40, 2)), ("poly_u", (3, 3)),
     ("code_index", [1, -1]), ("ghost_windows", [(1, 2, 3)]), ("out_shift", 64),
-    ("averages", 0), ("samples_per_chip", 70000), ("bogus_key", 1),
+    ("averages", 0), ("samples_per_chip", 70000), ("bogus_key", 1), ("cancel_rounds", 5),
+    ("cancel_rounds", -1), ("cancel_snr_q8", 2**32), ("cancel_snr_q8", -1),
 ])
 def test_config_encoder_names_the_key(name: str, value: object) -> None:
     with pytest.raises(FieldError, match=name.split("_key")[0]):
@@ -278,11 +280,13 @@ def test_config_unknown_and_optional_keys() -> None:
 
 
 @pytest.mark.parametrize(("key", "value"), [(16, b""), (16, b"\x01\x02"), (16, b"\x09"),
-                                            (3, b"\x01"), (14, b"\x03")])
+                                            (3, b"\x01"), (14, b"\x03"), (19, b"\x05"),
+                                            (20, b"\x01\x02")])
 def test_config_decoder_names_key_of_bad_value(key: int, value: bytes) -> None:
     with pytest.raises(FrameError) as exc:
         decode_config([{"key": key, "value": value}])
-    assert exc.value.field == {16: "peaks", 3: "code_index", 14: "rounding"}[key]
+    assert exc.value.field == {16: "peaks", 3: "code_index", 14: "rounding", 19: "cancel_rounds",
+                               20: "cancel_snr_q8"}[key]
 
 
 @given(st.sets(st.integers(1, 32), min_size=1, max_size=8))

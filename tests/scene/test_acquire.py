@@ -10,7 +10,7 @@ import pytest
 
 from cdma_lidar.column_record import RECORD
 from cdma_lidar.firmware_model.receiver import FastReceiver
-from cdma_lidar.scene import load_scene
+from cdma_lidar.scene import PRESETS, load_scene
 from cdma_lidar.scene.acquire import (
     acquire,
     boot_power_codes,
@@ -33,7 +33,9 @@ def test_out_bits_keep_the_noise_sum_of_squares_in_63_bits():
         assert 2 * b - 2 + gate.bit_length() <= 63 or b == 8
 
 
-@pytest.mark.parametrize("scene", [WALL, "multi-user?instrument.columns=3"])
+@pytest.mark.parametrize("scene", [WALL, "multi-user?instrument.columns=3",
+                                   WALL + "&instrument.cancel_rounds=3"
+                                   "&instrument.cancel_snr_db=13.5"])
 def test_the_device_boots_with_the_receiver_configuration_every_study_uses(scene):
     fw = VirtualFirmware(load_scene(scene), 2)
     cfg, codes = receiver_config(fw.instrument)
@@ -41,6 +43,19 @@ def test_the_device_boots_with_the_receiver_configuration_every_study_uses(scene
     assert np.array_equal(fw.receiver().codes, codes)
     assert np.array_equal(fw.get_power(), boot_power_codes(fw.instrument))
     assert np.array_equal(fw.power_w(), power_w_of_codes(fw.spec, fw.get_power()))
+
+
+def test_the_scene_sets_the_receive_chains_interference_cancellation():
+    """Two optional [instrument] keys (default: none, 16 dB) become the chain's rounds and
+    its Q8 power ratio; paper-massive cancels twice at 13.5 dB, no other preset at all."""
+    def chain(name: str) -> tuple[int, int]:
+        cfg, _ = receiver_config(Instrument(load_scene(name), seed=0))
+        return cfg.cancel_rounds, cfg.cancel_snr_q8
+
+    assert chain(WALL) == (0, 10192)
+    assert chain(WALL + "&instrument.cancel_rounds=4&instrument.cancel_snr_db=10") == (4, 2560)
+    assert chain("paper-massive?channels=8&columns=2") == (2, 5731)
+    assert [n for n in PRESETS if load_scene(n).instrument.cancel_rounds] == ["paper-massive"]
 
 
 def test_a_study_frame_equals_the_devices_scan_pixel_for_pixel():

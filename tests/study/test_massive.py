@@ -32,6 +32,8 @@ def test_the_flat_wall_is_paper_massive_facing_one_plane():
         (400, 2, 15, 2)
     assert [o.kind for o in scene.objects] == ["plane"]
     assert scene.objects[0].position_m[0] == 7.5
+    # fig11 models one correlation: the wall gets the paper's receiver, not the preset's
+    assert spec.cancel_rounds == 0 < load_scene("paper-massive").instrument.cancel_rounds
 
 
 def test_the_prediction_is_eq43_of_the_walls_own_echoes_and_noise():
@@ -76,19 +78,29 @@ def test_the_study_runs_and_judges_each_channel_count(tmp_path):
     assert right["ours"] == 1.0 and right["ci95"][0] < 1.0
     assert list(res.table.column("scene_pixels")) == [160, 320]
     assert "scene_valid_fraction_k40" in res.summary
+    # the scene with the preset's cancellation, and again with one correlation
+    assert list(res.table.column("scene_cancel_rounds")) == [2, 2]
+    assert list(res.table.column("scene_pixels_single")) == [160, 320]
+    single = res.summary["scene_objects_valid_fraction_k80_single"]
+    assert "one correlation" in single["cause"] and single["ours"] == 1.0
+    assert "2 rounds of interference cancellation" in \
+        res.summary["scene_objects_valid_fraction_k80"]["cause"]
     assert res.summary["wall_valid_fraction_k80"]["ours"] == 1.0
     assert res.summary["scene_equalised_valid_fraction_k80"]["ours"] == 1.0
     assert (tmp_path / "massive.png").stat().st_size > 5000
 
 
 def test_the_scenes_near_far_spread_loses_pixels_to_the_threshold_not_to_the_peak():
-    """paper-massive's scene (5-10 m) at K = 400 over 4 columns: nearly every peak at the
-    right range, but a share of them falls under the host's default threshold (the wall
-    at 10 m: 70 % kept, the letters and the box at 5-6.5 m: all but one; seed 3); none it
-    keeps is wrong. At K = 40 all are kept."""
+    """paper-massive's scene (5-10 m) at K = 400 over 4 columns, received by one
+    correlation (the paper's receiver): nearly every peak at the right range, but a share
+    of them falls under the host's default threshold (the wall at 10 m: 70 % kept, the
+    letters and the box at 5-6.5 m: all but one; seed 3); none it keeps is wrong. At
+    K = 40 all are kept. The preset's own chain (two rounds of interference cancellation)
+    keeps the wall's pixels too (1599 of 1600, seed 3)."""
     few = scene_shares(40, 2, 3)
     assert few["scene_pixels"] == few["scene_right_pixels"] == few["scene_valid_pixels"] == 80
-    many = scene_shares(400, 4, 3)
+    many = scene_shares(400, 4, 3, single=True)
+    assert many["scene_cancel_rounds"] == 0
     assert many["scene_pixels"] == 1600 and many["threshold_db"] == 16.0
     assert many["scene_right_pixels"] > 0.95 * 1600
     assert many["scene_valid_pixels"] < 0.9 * many["scene_right_pixels"]
@@ -101,6 +113,11 @@ def test_the_scenes_near_far_spread_loses_pixels_to_the_threshold_not_to_the_pea
     assert many["scene_valid_pixels"] - many["scene_wall_valid_pixels"] >= objects - 2
     assert many["scene_equalised_right_pixels"] >= many["scene_right_pixels"]
     assert many["scene_equalised_valid_pixels"] >= 1600 - 4
+    cancelled = scene_shares(400, 4, 3)
+    assert cancelled["scene_cancel_rounds"] == 2 and cancelled["scene_pixels"] == 1600
+    assert cancelled["scene_wall_valid_pixels"] >= wall - 2
+    assert cancelled["scene_valid_pixels"] >= 1600 - 2
+    assert cancelled["scene_valid_wrong_pixels"] == 0
 
 
 def test_the_paper_report_has_the_instrument_check_of_fig11s_order_15(tmp_path):

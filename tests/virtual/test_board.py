@@ -390,7 +390,9 @@ def test_batched_column_results_equal_the_one_column_path(config, monkeypatch):
     ({"averages": 0}, "averages", "1024"), ({"uid": 2}, "uid", "1"),
     ({"gate_len": 2047 * 4 + 1}, "gate_len", str(2047 * 4)),
     ({"samples_per_chip": 17}, "samples_per_chip", "16"),
-    ({"peak_exclude": 2047 * 4 + 1}, "peak_exclude", str(2047 * 4))])
+    ({"peak_exclude": 2047 * 4 + 1}, "peak_exclude", str(2047 * 4)),
+    ({"cancel_rounds": 5}, "cancel_rounds", "0..4"),
+    ({"cancel_snr_q8": -1}, "cancel_snr_q8", str(2**32 - 1))])
 def test_a_bad_key_is_refused_once_naming_the_field_and_its_range(change, field, allowed):
     """The board checks its own limits, the receive chain's configuration checks its
     fields (ReceiverConfig): each refusal names the field and the allowed range, and
@@ -446,3 +448,47 @@ class _NullPort:
 
     def flush(self) -> None:
         pass
+
+
+def test_the_chains_interference_cancellation_travels_over_the_wire(link):
+    """CONFIG_SET takes the two keys, CONFIG returns them, the board's chain runs them;
+    the host refuses a value outside the key's range before it is sent."""
+    cfg = link.get_config()
+    assert (cfg["cancel_rounds"], cfg["cancel_snr_q8"]) == (0, 10192)   # the scene's
+    link.set_config(cancel_rounds=2, cancel_snr_q8=5731)
+    cfg = link.get_config()
+    assert (cfg["cancel_rounds"], cfg["cancel_snr_q8"]) == (2, 5731)
+    assert len(list(link.scan(columns=1))) == 1
+    with pytest.raises(ConfigError, match="cancel_rounds"):
+        link.set_config(cancel_rounds=5)
+    with pytest.raises(DeviceError) as refused:   # the own-echo table's longest gate
+        link.set_config(gate_len=4097)
+    assert refused.value.field == "gate_len"
+    assert link.get_config()["cancel_rounds"] == 2
+
+
+def test_the_rtl_engine_refuses_interference_cancellation(monkeypatch):
+    """The RTL correlates once: cancel_rounds > 0 is refused at boot (a scene that sets
+    it, as paper-massive does) and by CONFIG_SET, naming the field and the value allowed,
+    before anything is built (no simulator needed)."""
+    import cdma_lidar.virtual.board as board
+    from cdma_lidar.firmware_model.receiver import ReceiverConfig
+    from cdma_lidar.hdl_ref.engine import RtlReceiver
+
+    monkeypatch.setattr(board, "missing_simulator", lambda: None)
+    with pytest.raises(LinkError) as info:
+        open_port("virtual://flat-wall?engine=rtl&instrument.cancel_rounds=1")
+    text = str(info.value)
+    assert "\n" not in text and "cancel_rounds must be 0" in text and "RTL" in text
+    with pytest.raises(ConfigError, match="cancel_rounds must be 0"):
+        VirtualFirmware(load_scene("paper-massive?channels=4&columns=1"), 0, engine="rtl")
+    fw = VirtualFirmware(load_scene("flat-wall?instrument.columns=2"), 0, engine="rtl")
+    before = fw.get_config()
+    with pytest.raises(ConfigError) as refused:
+        fw.set_config({"cancel_rounds": 2})
+    assert refused.value.field == "cancel_rounds" and "0 on the RTL engine" in str(refused.value)
+    assert fw.get_config() == before
+    fw.set_config({"cancel_snr_q8": 5731})   # the threshold alone changes nothing there
+    with pytest.raises(ConfigError, match="cancel_rounds"):
+        RtlReceiver(ReceiverConfig(cancel_rounds=1), (11, 2), (11, 8, 5, 2), (0, 1))
+    VirtualFirmware(load_scene("paper-massive?channels=4&columns=1"), 0)   # the model runs it
