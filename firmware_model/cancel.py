@@ -39,7 +39,8 @@ from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver_config import ReceiverConfig
 
-__all__ = ["MAX_CANCEL_GATE", "Canceller", "Subtraction", "autocorrelation_table", "subtracts"]
+__all__ = ["MAX_CANCEL_GATE", "Canceller", "Subtraction", "autocorrelation_table",
+           "check_cancel_gate", "subtracts"]
 
 #: The longest gate (lags) cancellation runs with: the own-echo table is K (2G + 1) words.
 MAX_CANCEL_GATE = 4096

@@ -20,7 +20,7 @@ from typing import Any
 import serial
 from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
-from cdma_lidar.errors import LinkError
+from cdma_lidar.errors import ConfigError, LinkError
 
 __all__ = ["DEFAULT_BAUD", "FdPort", "TcpPort", "byte_time_s", "default_fec", "open_port",
            "port_name"]
@@ -69,6 +69,8 @@ def open_port(url: str, baudrate: int = DEFAULT_BAUD, timeout: float = 0.05, **k
         return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kw)
     except (serial.SerialException, OSError, ValueError) as exc:
         scheme = url.split("://", 1)[0] if "://" in url else ""
+        if isinstance(exc.__cause__ or exc, ConfigError):  # a setting: the error names it
+            raise LinkError(f"cannot open port {url!r}: {exc}") from None
         if scheme and "invalid URL" in str(exc):
             hint = (f"unknown URL scheme {scheme!r}: no handler is registered for "
                     f"{scheme}://; use a device path or socket://, or import the package "

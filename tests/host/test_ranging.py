@@ -234,8 +234,10 @@ def test_the_false_alarm_rate_falls_with_the_threshold_and_grows_with_the_gate()
 
 @pytest.fixture(scope="module")
 def noise_only_frame():
-    """2,000 pixels of paper-massive's receive chain (degree 15, S = 2, R = 1, 128 lags)
-    that see no echo: 100 of its codes, 20 columns of Gaussian ADC noise (seeded)."""
+    """2,000 pixels of paper-massive's receive chain (degree 15, S = 2, R = 1, 128 lags,
+    and its two rounds of interference cancellation: a noise peak it subtracts must not
+    raise the false alarms) that see no echo: 100 of its codes, 20 columns of Gaussian
+    ADC noise (seeded)."""
     from cdma_lidar.firmware_model.receiver import fast_frame
     from cdma_lidar.host.frame import FrameData
     from cdma_lidar.scene import load_scene
