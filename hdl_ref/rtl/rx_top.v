@@ -101,7 +101,7 @@ module rx_top #(
 
     input  wire                         s_valid,
     input  wire [P_IN*ADC_W-1:0]        s_data,         // sample k of the clock at [k*ADC_W]
-    output wire                         s_ready,
+    output reg                          s_ready,        // a register: see "ADC handshake"
     output wire                         s_refused,      // s_valid && !s_ready while busy
     output reg                          err_refused,    // sticky: a sample was refused
 
@@ -246,8 +246,9 @@ module rx_top #(
     reg [UID_W-1:0]   a_p;
     reg [ADDR_W-1:0]  a_base;
     reg [R_W-1:0]     a_r;
+    // a_X_last == (a_X is at its wrap value), registered with the counter (below)
+    reg               a_s_last, a_c_last, a_p_last, a_r_last;
 
-    assign s_ready   = (tstate == T_RUN) && !full[acc_buf] && (c_free || cols_in != c_columns);
     assign busy      = (tstate != T_IDLE);
     assign s_refused = busy && s_valid && !s_ready;
     wire a_take      = s_valid && s_ready;
@@ -910,6 +911,51 @@ module rx_top #(
     end
 
     // ------------------------------------------------------------------
+    // ADC handshake: s_ready is a register, computed one clock ahead from the
+    // next values of what it reads (tstate, full, acc_buf, cols_in, c_free,
+    // c_columns; every writer of those is here), so in every clock it equals
+    //   (tstate == T_RUN) && !full[acc_buf] && (c_free || cols_in != c_columns).
+    // The averaging counters keep registered "last" flags (a_X_last: a_X is at its
+    // wrap value, recomputed at T_INIT2 from the configuration latched at start),
+    // so a column's end (a_wrap) is one AND of a_take and four flags.
+    // ------------------------------------------------------------------
+    wire t_init = (tstate == T_INIT2);
+    wire t_end  = !c_free && cols_out == c_columns;                // T_RUN: the last column is out
+    wire a_wrap = a_take && a_s_last && a_c_last && a_p_last && a_r_last;  // a column's last take
+    wire p_free = (pstate == P_POST) && post_last && (pk_ch == K_LAST);    // proc_buf processed
+    wire t_load = (tstate == T_IDLE) && start;
+    wire s_stop = stop && tstate != T_IDLE;   // take the column begun (if any) to its end, no more
+    wire [S_W-1:0]     a_s_nx = (t_init || a_s_last) ? {S_W{1'b0}} : a_s + P_STEP;
+    wire [MAX_DEG-1:0] a_c_nx = (t_init || a_c_last) ? {MAX_DEG{1'b0}} : a_c + 1'b1;
+    wire [UID_W-1:0]   a_p_nx = (t_init || a_p_last) ? {UID_W{1'b0}} : a_p + 1'b1;
+    wire [R_W-1:0]     a_r_nx = (t_init || a_r_last) ? {R_W{1'b0}} : a_r + 1'b1;
+
+    wire [1:0] tstate_nx = rst ? T_IDLE
+                         : (tstate == T_IDLE) ? (start ? T_INIT1 : T_IDLE)
+                         : (tstate == T_INIT1) ? T_INIT2
+                         : (tstate == T_INIT2 || !t_end) ? T_RUN : T_IDLE;
+    wire [1:0] full_set  = {a_wrap && acc_buf, a_wrap && !acc_buf};    // full[acc_buf] <= 1
+    wire [1:0] full_clr  = {p_free && proc_buf, p_free && !proc_buf};  // full[proc_buf] <= 0
+    wire [1:0] full_nx   = (rst || t_init) ? 2'b00 : (full | full_set) & ~full_clr;
+    wire       acc_buf_nx = !t_init && (acc_buf ^ a_wrap);
+    wire [COL_W-1:0] cols_in_nx = t_init ? {COL_W{1'b0}} : cols_in + {{(COL_W-1){1'b0}}, a_wrap};
+    wire       c_free_nx = s_stop ? 1'b0 : t_load ? (cfg_columns == {COL_W{1'b0}}) : c_free;
+    wire [COL_W-1:0] c_columns_nx = t_load ? cfg_columns : !s_stop ? c_columns
+                                  : (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
+                                  : {COL_W{1'b0}};
+
+    always @(posedge clk) begin
+        tstate    <= tstate_nx;
+        full      <= full_nx;
+        acc_buf   <= acc_buf_nx;
+        cols_in   <= cols_in_nx;
+        c_free    <= c_free_nx;
+        c_columns <= c_columns_nx;
+        s_ready   <= (tstate_nx == T_RUN) && !full_nx[acc_buf_nx]
+                     && (c_free_nx || cols_in_nx != c_columns_nx);
+    end
+
+    // ------------------------------------------------------------------
     // Control: run and column count, averaging counters and buffers, processing engine
     // ------------------------------------------------------------------
     always @(posedge clk) begin
@@ -917,72 +963,41 @@ module rx_top #(
         col_start  <= 1'b0;
         ln_clr     <= 1'b0;
 
-        // ---- run: configuration (cfg_latch, above) and column count ----
+        // ---- run: configuration (cfg_latch, above) and column count; tstate is
+        //      written by the ADC handshake block (above) ----
         case (tstate)
-        T_IDLE: if (start) begin
-            c_columns    <= cfg_columns;
-            c_free       <= (cfg_columns == {COL_W{1'b0}});
-            tstate       <= T_INIT1;
-        end
         T_INIT1: begin
             nn     <= n_chips[MAX_DEG-1:0];
             ns     <= ns_full[LAG_W-1:0];
-            tstate <= T_INIT2;
         end
         T_INIT2: begin
             lo          <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
-            acc_buf     <= 1'b0;
             proc_buf    <= 1'b0;
-            full        <= 2'b00;
-            cols_in     <= {COL_W{1'b0}};
             cols_out    <= {COL_W{1'b0}};
-            a_s <= {S_W{1'b0}}; a_c <= {MAX_DEG{1'b0}}; a_p <= {UID_W{1'b0}};
-            a_base <= {ADDR_W{1'b0}}; a_r <= {R_W{1'b0}};
             ln_clr      <= 1'b1;
-            tstate      <= T_RUN;
         end
-        T_RUN: begin
-            if (!c_free && cols_out == c_columns) begin
-                done   <= 1'b1;
-                tstate <= T_IDLE;
-            end
-        end
-        default: tstate <= T_IDLE;
+        T_RUN: if (t_end) done <= 1'b1;
+        default: ;
         endcase
-        if (stop && tstate != T_IDLE) begin
-            // take the column already begun (if any) to its end, then no more
-            c_free    <= 1'b0;
-            c_columns <= (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
-                                           : {COL_W{1'b0}};
-        end
 
-        // ---- averaging counters: bank, chip, period, repetition; buffer switch ----
-        if (a_take) begin
-            if (a_s != c_spc - P_STEP) begin
-                a_s <= a_s + P_STEP;
-            end else begin
-                a_s <= {S_W{1'b0}};
-                if (a_c != nn - 1'b1) begin
-                    a_c <= a_c + 1'b1;
-                end else begin
-                    a_c <= {MAX_DEG{1'b0}};
-                    if (a_p != c_uid_bits - 1'b1) begin
-                        a_p    <= a_p + 1'b1;
-                        a_base <= a_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
-                    end else begin
-                        a_p    <= {UID_W{1'b0}};
-                        a_base <= {ADDR_W{1'b0}};
-                        if (a_r != c_averages - 1'b1) begin
-                            a_r <= a_r + 1'b1;
-                        end else begin
-                            a_r           <= {R_W{1'b0}};
-                            full[acc_buf] <= 1'b1;
-                            acc_buf       <= ~acc_buf;
-                            cols_in       <= cols_in + 1'b1;
-                        end
-                    end
-                end
-            end
+        // ---- averaging counters: bank, chip, period, repetition (0 at T_INIT2) ----
+        if (t_init || a_take) begin
+            a_s      <= a_s_nx;
+            a_s_last <= (a_s_nx == c_spc - P_STEP);
+        end
+        if (t_init || (a_take && a_s_last)) begin
+            a_c      <= a_c_nx;
+            a_c_last <= (a_c_nx == nn - 1'b1);
+        end
+        if (t_init || (a_take && a_s_last && a_c_last)) begin
+            a_p      <= a_p_nx;
+            a_base   <= (t_init || a_p_last) ? {ADDR_W{1'b0}}
+                                             : a_base + {{(ADDR_W-MAX_DEG){1'b0}}, nn};
+            a_p_last <= (a_p_nx == c_uid_bits - 1'b1);
+        end
+        if (t_init || (a_take && a_s_last && a_c_last && a_p_last)) begin
+            a_r      <= a_r_nx;
+            a_r_last <= (a_r_nx == c_averages - 1'b1);
         end
 
         // ---- processing engine: phases, groups, UID periods, stream steps; rx_post ----
@@ -1052,9 +1067,8 @@ module rx_top #(
         end
         P_POST: if (post_last) begin
             res_channel <= pk_ch;
-            if (pk_ch == K_LAST) begin
+            if (pk_ch == K_LAST) begin      // p_free: full[proc_buf] is cleared above
                 cols_out       <= cols_out + 1'b1;
-                full[proc_buf] <= 1'b0;
                 proc_buf       <= ~proc_buf;
                 proc_on        <= 1'b0;
                 pstate         <= P_IDLE;
@@ -1069,11 +1083,9 @@ module rx_top #(
         corr_channel <= pk_ch;
 
         if (rst) begin
-            tstate      <= T_IDLE;
             pstate      <= P_IDLE;
             done        <= 1'b0;
             ln_clr      <= 1'b0;
-            full        <= 2'b00;
             proc_on     <= 1'b0;
             post_go     <= 1'b0;
         end
