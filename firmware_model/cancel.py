@@ -34,25 +34,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver_config import ReceiverConfig
 
-__all__ = ["MAX_CANCEL_GATE", "Canceller", "Subtraction", "autocorrelation_table",
-           "check_cancel_gate", "subtracts"]
+__all__ = ["Canceller", "Subtraction", "autocorrelation_table", "subtracts"]
 
-#: The longest gate (lags) cancellation runs with: the own-echo table is K (2G + 1) words.
-MAX_CANCEL_GATE = 4096
 #: Channels per block of FFTs in :func:`autocorrelation_table`.
 _FFT_BLOCK = 64
-
-
-def check_cancel_gate(cfg: ReceiverConfig) -> None:
-    """ConfigError unless the gate fits the own-echo table (only with cancel_rounds > 0)."""
-    if cfg.cancel_rounds and cfg.gate_len > MAX_CANCEL_GATE:
-        raise out_of_range("gate_len", f"1..{MAX_CANCEL_GATE} lags with cancel_rounds > 0",
-                           cfg.gate_len)
 
 
 def subtracts(cfg: ReceiverConfig, peak: int, count: int, total: int, sumsq: int) -> bool:
@@ -124,19 +113,18 @@ class Canceller:
     """The cancellation stage of one configuration and code set (vectorised over columns).
 
     ``bip`` (K, N) int8 are the codes as +-1; ``lags`` (G + 2,) the lags, in samples, of
-    the chain's ``out[..., m]`` (gate_start - 1 + m mod NS).
+    the chain's ``out[..., m]`` (gate_start - 1 + m mod NS); ``despread`` (n,) int64
+    (-1)^bit_p(uid) per period (the chain's :class:`~.peaks.PeakSearch` holds both).
     """
 
-    def __init__(self, cfg: ReceiverConfig, bip: NDArray[np.int8], lags: NDArray[np.int64]
-                 ) -> None:
-        check_cancel_gate(cfg)
+    def __init__(self, cfg: ReceiverConfig, bip: NDArray[np.int8], lags: NDArray[np.int64],
+                 despread: NDArray[np.int64]) -> None:
         self.cfg, self.bip = cfg, bip
         self.n_chips = bip.shape[1]
         self.ns = self.n_chips * cfg.samples_per_chip
         self.gate_lo = int(lags[1])
         self.table = autocorrelation_table(bip, cfg.samples_per_chip, cfg.gate_len)
-        self.sign = np.array([-1 if (cfg.uid >> p) & 1 else 1 for p in range(cfg.uid_bits)],
-                             dtype=np.int64)
+        self.sign = despread
         lo, hi = adc_limits(cfg.adc_bits)
         self.acc_lo, self.acc_hi = cfg.averages * lo, cfg.averages * hi
         # |acc| + |echo sum| <= (K + 1) R 2^(b-1): int32 when that fits (half the traffic)

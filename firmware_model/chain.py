@@ -98,7 +98,8 @@ class FastReceiver:
         self._lag_lo = (cfg.gate_start - 1) % ns
         self._bip = (1 - 2 * bits.astype(np.int8)).astype(np.int8)
         self._search = PeakSearch(cfg, self.widths, self._bip)
-        self._cancel = Canceller(cfg, self._bip, self._search.lags) if cfg.cancel_rounds else None
+        self._cancel = (Canceller(cfg, self._bip, self._search.lags, self._search.despread)
+                        if cfg.cancel_rounds else None)
         self._despread = self._search.despread
         wd = self.widths
         s = cfg.samples_per_chip

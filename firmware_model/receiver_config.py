@@ -19,6 +19,7 @@ from cdma_lidar.rounding import ROUNDING_MODES, Rounding
 
 __all__ = [
     "INT64_BITS",
+    "MAX_CANCEL_GATE",
     "MAX_CANCEL_ROUNDS",
     "MAX_CANCEL_SNR_Q8",
     "MAX_CHANNELS",
@@ -38,6 +39,8 @@ MIN_CODE_LENGTH = 3
 MAX_CHANNELS = 2048
 MAX_GHOST_WINDOWS = 8
 MAX_CANCEL_ROUNDS = 4
+#: The longest gate (lags) cancellation runs with: its own-echo table is K (2G + 1) words.
+MAX_CANCEL_GATE = 4096
 MAX_CANCEL_SNR_Q8 = 2**32 - 1  # a u32 register: up to 72.2 dB
 INT64_BITS = 63  # magnitude bits of an int64
 
@@ -172,9 +175,10 @@ class ReceiverConfig:
         """Check the config against code length ``n_chips`` and derive every width.
 
         Raises ConfigError when the gate or a ghost window does not fit in the
-        period. Every configuration of the parameter ranges is accepted: the only
-        width that can exceed int64, ``noise_sumsq`` (up to 89 bits), is carried
-        exactly as Python integers (:attr:`Widths.wide_sumsq`).
+        period, or the gate is longer than :data:`MAX_CANCEL_GATE` with cancellation.
+        Every other configuration of the parameter ranges is accepted: the only width
+        that can exceed int64, ``noise_sumsq`` (up to 89 bits), is carried exactly as
+        Python integers (:attr:`Widths.wide_sumsq`).
         """
         check_int("code length (codes.shape[1])", n_chips, MIN_CODE_LENGTH, MAX_CODE_LENGTH)
         ns = self.period_samples(n_chips)
@@ -182,6 +186,9 @@ class ReceiverConfig:
             raise out_of_range("gate_start", f"0..{ns - 1} (N*S - 1)", self.gate_start)
         if self.gate_len > ns:
             raise out_of_range("gate_len", f"1..{ns} (N*S)", self.gate_len)
+        if self.cancel_rounds and self.gate_len > MAX_CANCEL_GATE:
+            raise out_of_range("gate_len", f"1..{MAX_CANCEL_GATE} lags with cancel_rounds > 0",
+                               self.gate_len)
         for s, n in self.ghost_windows:
             if s >= ns or n > ns:
                 raise out_of_range(

@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.firmware_model.adc import adc_limits
-from cdma_lidar.firmware_model.cancel import amplitude, check_cancel_gate, subtracts
+from cdma_lidar.firmware_model.cancel import amplitude, subtracts
 from cdma_lidar.firmware_model.output import FIELDS, ReceiverOutput, saturated_flags
 from cdma_lidar.firmware_model.receiver_config import ReceiverConfig, as_samples, check_codes
 
@@ -36,7 +36,6 @@ class ReferenceReceiver:
         bits = check_codes(codes)
         self.n_chips = int(bits.shape[1])
         self.widths = cfg.widths(self.n_chips)
-        check_cancel_gate(cfg)
         s = cfg.samples_per_chip
         self._ns = self.n_chips * s
         self._ref = [[1 - 2 * int(row[i // s]) for i in range(self._ns)] for row in bits.tolist()]

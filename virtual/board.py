@@ -47,7 +47,6 @@ from numpy.typing import NDArray
 from cdma_lidar.checks import check_int
 from cdma_lidar.column_record import RECORD
 from cdma_lidar.errors import ConfigError, out_of_range
-from cdma_lidar.firmware_model.cancel import check_cancel_gate
 from cdma_lidar.firmware_model.gold import check_pair, gold_codes
 from cdma_lidar.firmware_model.output import ReceiverOutput
 from cdma_lidar.firmware_model.receiver import FastReceiver, ReceiverConfig
@@ -256,7 +255,6 @@ class VirtualFirmware(DeviceApp):
             raise out_of_range("mode", "one of " + ", ".join(MODES), c["mode"])
         rc = self._receiver_config(c)
         rc.widths(n)
-        check_cancel_gate(rc)
         if self.engine == "rtl":
             check_rtl_config(rc)
         ns = n * c["samples_per_chip"]

@@ -17,11 +17,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cdma_lidar.errors import ConfigError
-from cdma_lidar.firmware_model.cancel import (
-    MAX_CANCEL_GATE,
-    autocorrelation_table,
-    subtracts,
-)
+from cdma_lidar.firmware_model.cancel import autocorrelation_table, subtracts
 from cdma_lidar.firmware_model.gold import gold_codes
 from cdma_lidar.firmware_model.receiver import (
     FastReceiver,
@@ -30,6 +26,7 @@ from cdma_lidar.firmware_model.receiver import (
     correlator_methods,
     reference,
 )
+from cdma_lidar.firmware_model.receiver_config import MAX_CANCEL_GATE
 from cdma_lidar.firmware_model.snr import snr_q8
 
 
