@@ -73,16 +73,17 @@ def whiten(data: bytes) -> bytes:
     return (np.frombuffer(data, np.uint8) ^ _WHITE[:len(data)]).tobytes()
 
 
-_EXP = np.array(reedsolo.gf_exp[:255], np.int64)  # 2^i, poly 0x11D
-_LOG = np.array(reedsolo.gf_log[:256], np.int64)
+_EXP = np.array(reedsolo.gf_exp[:255], np.uint8)  # 2^i, poly 0x11D
+_LOG = np.array(reedsolo.gf_log[:256], np.int16)  # narrow: the Chien search holds
+# (blocks, 25, 255) of them (7 MB, not 27, for 64 kB with every block damaged)
 _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
 #: GF(2^8) products: ``_MUL[a, b] = a * b`` (``_GMUL[a][b]`` as lists, for scalars).
-_MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255].astype(np.uint8)
+_MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255]
 _MUL[0, :] = _MUL[:, 0] = 0
 _GMUL = _MUL.tolist()
 #: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
 #: syndrome j (the block polynomial at the root 2^j).
-_POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255].astype(np.uint8)
+_POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
 
 
 def _unit_parity() -> np.ndarray:
@@ -211,10 +212,10 @@ def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> No
     (roots not as many as its locator's degree)."""
     lams = [_locator(syn[b].tolist())[::-1] for b in bad]  # Lambda, lowest degree first
     width = max(map(len, lams))
-    lam = np.zeros((len(bad), width), np.int64)
+    lam = np.zeros((len(bad), width), np.uint8)
     for k, coef in enumerate(lams):
         lam[k, :len(coef)] = coef
-    powers = np.arange(width)[:, None] * np.arange(BLOCK)  # i * e
+    powers = (np.arange(width)[:, None] * np.arange(BLOCK)).astype(np.int16)  # i * e
     terms = np.where(lam[:, :, None] > 0, _EXP[(_LOG[lam][:, :, None] - powers) % 255], 0)
     found = np.bitwise_xor.reduce(terms, axis=1) == 0
     for k, b in enumerate(bad):
