@@ -8,7 +8,11 @@
 // The ADC source cannot wait: from the first adc_clk edge after rx_adc_top is started, one
 // sample every adc_clk clock, every sample of adc.hex, then nothing; with GAP_EVERY,
 // adc_valid drops for GAP_LEN adc_clk clocks after every GAP_EVERY samples (a converter
-// whose data-valid pauses). Prints one line
+// whose data-valid pauses). With -DVEC_PINS (rx_adc_top's PINS = 1, P_IN = 4) adc_clk is
+// the converter's DDR data clock and the source sends one sample on every edge of it, never
+// stopping (zeros before and after adc.hex): sample 0 leaves on the first falling edge at
+// which adc_pins' run_s reads 1, as from a transmitter started by that sclk edge (adc_pins.v,
+// "Word alignment"); no gaps. Prints one line
 //   rx_adc_top vectors: PASS <words> words compared, <n> samples taken
 // or FAIL (first differences before it; "overflow" when err_overflow rises, "no done"
 // after VEC_MAX_CLOCKS fabric clocks, twice the model's schedule), or
@@ -39,6 +43,11 @@ module rx_adc_top_vectors_check (
     localparam integer P_W = $clog2(MAX_P + 1), K_W = (K > 1) ? $clog2(K) : 1;
     localparam integer NRP = `VEC_N_RES_PORTS;
     localparam integer P = `VEC_P;
+`ifdef VEC_PINS
+    localparam integer PINS = 1;
+`else
+    localparam integer PINS = 0;
+`endif
 
     reg [`VEC_CFG_W-1:0] cfg_mem  [0:`VEC_N_CFG-1];
     reg [ADC_W-1:0]      adc_mem  [0:`VEC_N_ADC-1];
@@ -66,7 +75,7 @@ module rx_adc_top_vectors_check (
 
     rx_adc_top #(.K(K), .L(`VEC_L), .P_IN(P), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S),
                  .MAX_UID(MAX_UID), .MAX_R(MAX_R), .MAX_G(MAX_G), .MAX_P(MAX_P),
-                 .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W)) dut (
+                 .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W), .PINS(PINS)) dut (
         .adc_clk(adc_clk), .adc_valid(adc_valid), .adc_data(adc_data),
         .clk(clk), .rst(rst), .start(start), .stop(1'b0), .clear_err(1'b0),
         .cfg_columns(cfg_mem[0][15:0]), .cfg_degree(cfg_mem[1][DEG_W-1:0]),
@@ -125,6 +134,21 @@ module rx_adc_top_vectors_check (
     // the ADC: one sample every adc_clk clock once started, never waiting (but pausing
     // GAP_LEN clocks after every GAP_EVERY samples when asked)
     integer gap_left = 0;
+`ifdef VEC_PINS
+    // the DDR pins: a sample on every edge from the acquisition's first one on (a macro,
+    // not a generate branch: Verilator resolves the reference to run_s in either)
+    reg go = 1'b0;
+    always @(posedge adc_clk or negedge adc_clk) begin
+        if (!adc_clk && dut.g_pins.pins.run_s)
+            go = 1'b1;
+        if (go && n_adc < `VEC_N_ADC) begin
+            adc_data <= adc_mem[n_adc];
+            n_adc = n_adc + 1;
+        end else begin
+            adc_data <= {ADC_W{1'b0}};
+        end
+    end
+`else
     always @(posedge adc_clk) begin
         if (gap_left > 0) begin
             adc_valid <= 1'b0;
@@ -139,6 +163,7 @@ module rx_adc_top_vectors_check (
             end
         end
     end
+`endif
 
     // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th; watchdog
     integer clocks = 0;

@@ -141,15 +141,9 @@ def test_two_clocks_every_sample_arrives_exact(small_vectors, tmp_path, sim):
     vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
     line = adc_top.run_adc_bench(vec, tmp_path, ADC_PS, FAB_PS, PHASE_PS, simulator=sim)
     assert line.startswith("rx_adc_top vectors: PASS") and "4536 samples taken" in line
-    lines = (vec / "corr.hex").read_text().splitlines()
-    lines[5] = format(int(lines[5], 16) ^ 1, f"0{len(lines[5])}x")
-    bad = tmp_path / "bad"
-    bad.mkdir()
-    for f in vec.iterdir():
-        (bad / f.name).write_text(f.read_text())
-    (bad / "corr.hex").write_text("\n".join(lines) + "\n")
-    assert adc_top.run_adc_bench(bad, tmp_path, ADC_PS, FAB_PS, PHASE_PS,
-                                 simulator=sim).startswith("rx_adc_top vectors: FAIL 1 of")
+    assert adc_top.run_adc_bench(_changed_word(vec, tmp_path), tmp_path, ADC_PS, FAB_PS,
+                                 PHASE_PS, simulator=sim).startswith(
+        "rx_adc_top vectors: FAIL 1 of")
 
 
 @pytest.mark.hdl
@@ -187,6 +181,73 @@ def test_r_min_minus_one_is_refused_by_the_rtl(small_vectors, tmp_path):
     vec = small_vectors[adc_top.r_min(SMALL, 6, 4) - 1]
     assert adc_top.run_adc_bench(vec, tmp_path, ADC_PS, FAB_PS, PHASE_PS) == \
         "rx_adc_top vectors: REFUSED (err_config)"
+
+
+#: the DDR pins: the converter's data clock at 8.000 ns (125 MHz, 250 MS/s on both edges)
+DCO_PS = 8000
+
+
+def _changed_word(vec: Path, tmp_path: Path) -> Path:
+    """A copy of the vector folder whose 6th expected correlation word has its LSB flipped."""
+    lines = (vec / "corr.hex").read_text().splitlines()
+    lines[5] = format(int(lines[5], 16) ^ 1, f"0{len(lines[5])}x")
+    bad = tmp_path / "bad"
+    bad.mkdir(exist_ok=True)
+    for f in vec.iterdir():
+        (bad / f.name).write_text(f.read_text())
+    (bad / "corr.hex").write_text("\n".join(lines) + "\n")
+    return bad
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_every_sample_arrives_exact(small_vectors, tmp_path, sim):
+    """PINS = 1: the samples on the 12 DDR pins of a 125 MHz data clock (both edges, never
+    stopping) through IDDRX2F (our model), the FIFO and rx_top at 312 ppm fast and 1.3 ns
+    late: every sample taken in order, every word the model's, no overflow although the
+    FIFO drops the words nobody wants after the last column; a changed word fails."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, simulator=sim,
+                                 pins=True)
+    assert line == "rx_adc_top vectors: PASS 132 words compared, 4536 samples taken"
+    assert adc_top.run_adc_bench(_changed_word(vec, tmp_path), tmp_path, DCO_PS, FAB_PS,
+                                 PHASE_PS, simulator=sim, pins=True).startswith(
+        "rx_adc_top vectors: FAIL 1 of")
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("fab_ps, phase_ps", [(16_000, 0), (15_996, 3_700), (16_005, 2_100),
+                                              (12_000, 900)])
+def test_ddr_pins_other_fabric_clocks(small_vectors, tmp_path, fab_ps, phase_ps):
+    """The DDR pins into other fabric phases and rates (in phase with sclk, 312 ppm slow,
+    much faster): the same words."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    assert adc_top.run_adc_bench(vec, tmp_path, DCO_PS, fab_ps, phase_ps, pins=True) == \
+        "rx_adc_top vectors: PASS 132 words compared, 4536 samples taken"
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_slow_fabric_clock_flags_overflow(small_vectors, tmp_path, sim):
+    """A 20 ns fabric clock behind the 250 MS/s pins: a word is lost while rx_top still
+    takes them, and err_overflow rises."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, 20_000, PHASE_PS, simulator=sim,
+                                 pins=True)
+    assert line.startswith("rx_adc_top vectors: FAIL overflow (err_overflow)")
+
+
+def test_ddr_pins_refuse_what_the_pins_cannot_do(small_vectors, tmp_path):
+    """The DDR pins make words of 4 samples and never pause: other P_IN or a gap is refused
+    by name before anything is compiled."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    with pytest.raises(ConfigError, match="gap must be"):
+        adc_top.run_adc_bench(vec, tmp_path, DCO_PS, pins=True, gap=(1001, 37))
+    p2 = tmp_path / "p2"
+    p2.mkdir()
+    (p2 / "params.vh").write_text("`define VEC_P 2\n")
+    with pytest.raises(ConfigError, match=r"samples_per_clock must be 4 .*, not 2"):
+        adc_top.run_adc_bench(p2, tmp_path, DCO_PS, pins=True)
 
 
 @pytest.mark.hdl
