@@ -139,7 +139,7 @@ module rx_adc_top_vectors_check (
     // not a generate branch: Verilator resolves the reference to run_s in either)
     reg go = 1'b0;
     always @(posedge adc_clk or negedge adc_clk) begin
-        if (!adc_clk && dut.g_pins.pins.run_s)
+        if (!adc_clk && !rst && dut.g_pins.pins.run_s)
             go = 1'b1;
         if (go && n_adc < `VEC_N_ADC) begin
             adc_data <= adc_mem[n_adc];
@@ -165,13 +165,16 @@ module rx_adc_top_vectors_check (
     end
 `endif
 
-    // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th; watchdog
+    // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th (with the
+    // DDR pins IDLE = 40 clocks later: the converter runs from reset on, and none of the
+    // words it sends before start may reach rx_top); watchdog
+    localparam integer IDLE = PINS ? 40 : 0;
     integer clocks = 0;
     always @(posedge clk) begin
         clocks = clocks + 1;
         if (clocks == 8) rst <= 1'b0;
-        start <= (clocks == 10);
-        if (clocks == 14) begin
+        start <= (clocks == 10 + IDLE);
+        if (clocks == 14 + IDLE) begin
             if (!busy) begin
                 $display("rx_adc_top vectors: %0s", err_config ? "REFUSED (err_config)"
                                                                 : "FAIL not started");
