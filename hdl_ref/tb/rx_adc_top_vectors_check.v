@@ -3,7 +3,7 @@
 // Its two clocks come from outside, so one copy serves both simulators:
 // rx_adc_top_vectors_tb.v (Icarus, Verilog delays) and rx_adc_top_vectors_main.cpp
 // (Verilator without --timing, a picosecond loop in C++). Compile with -I <vector folder>
-// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>].
+// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>] [+RUNS=<n>].
 //
 // The ADC source cannot wait: from the first adc_clk edge after rx_adc_top is started, one
 // sample every adc_clk clock, every sample of adc.hex, then nothing; with GAP_EVERY,
@@ -125,6 +125,7 @@ module rx_adc_top_vectors_check (
             dir = "";
         if (!$value$plusargs("GAP_EVERY=%d", gap_every)) gap_every = 0;
         if (!$value$plusargs("GAP_LEN=%d", gap_len)) gap_len = 0;
+        if (!$value$plusargs("RUNS=%d", runs)) runs = 1;
         $readmemh({dir, "config.hex"}, cfg_mem);
         $readmemh({dir, "adc.hex"}, adc_mem);
         $readmemh({dir, "corr.hex"}, corr_mem);
@@ -137,10 +138,17 @@ module rx_adc_top_vectors_check (
 `ifdef VEC_PINS
     // the DDR pins: a sample on every edge from the acquisition's first one on (a macro,
     // not a generate branch: Verilator resolves the reference to run_s in either)
-    reg go = 1'b0;
+    reg go = 1'b0, armed = 1'b1;
     always @(posedge adc_clk or negedge adc_clk) begin
-        if (!adc_clk && !rst && dut.g_pins.pins.run_s)
-            go = 1'b1;
+        if (!adc_clk && !rst) begin
+            if (!dut.g_pins.pins.run_s) begin
+                armed = 1'b1;
+            end else if (armed) begin           // an acquisition starts: sample 0 now
+                go = 1'b1;
+                armed = 1'b0;
+                n_adc = 0;
+            end
+        end
         if (go && n_adc < `VEC_N_ADC) begin
             adc_data <= adc_mem[n_adc];
             n_adc = n_adc + 1;
@@ -167,14 +175,18 @@ module rx_adc_top_vectors_check (
 
     // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th (with the
     // DDR pins IDLE = 40 clocks later: the converter runs from reset on, and none of the
-    // words it sends before start may reach rx_top); watchdog
+    // words it sends before start may reach rx_top); with +RUNS=<n> (DDR pins only) the
+    // acquisition is started again RESTART clocks after each done, the same samples
+    // from the pins and the same words expected (adc_pins.v: a start waits 2^FIFO_AW + 8
+    // clocks for the last capture's words to be drained); watchdog
     localparam integer IDLE = PINS ? 40 : 0;
-    integer clocks = 0;
+    localparam integer RESTART = 24;
+    integer clocks = 0, start_at = 10 + IDLE, runs = 1, run_no = 0, total = 0;
     always @(posedge clk) begin
         clocks = clocks + 1;
         if (clocks == 8) rst <= 1'b0;
-        start <= (clocks == 10 + IDLE);
-        if (clocks == 14 + IDLE) begin
+        start <= (clocks == start_at);
+        if (clocks == start_at + 4) begin
             if (!busy) begin
                 $display("rx_adc_top vectors: %0s", err_config ? "REFUSED (err_config)"
                                                                 : "FAIL not started");
@@ -182,7 +194,7 @@ module rx_adc_top_vectors_check (
             end
             started <= 1'b1;
         end
-        if (clocks > `VEC_MAX_CLOCKS + 100) begin
+        if (clocks - start_at > `VEC_MAX_CLOCKS + 100) begin
             $display("rx_adc_top vectors: FAIL no done in %0d clocks (watchdog; corr %0d of %0d, results %0d of %0d)",
                      clocks - 1, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES);
             $finish;
@@ -215,14 +227,23 @@ module rx_adc_top_vectors_check (
             if (n_corr != `VEC_N_CORR || n_res != `VEC_N_RES || err_overrun
                 || taken != `VEC_N_ADC)
                 errors = errors + 1;
-            if (errors == 0)
-                $display("rx_adc_top vectors: PASS %0d words compared, %0d samples taken",
-                         words, taken);
-            else
-                $display("rx_adc_top vectors: FAIL %0d of %0d words differ (corr %0d of %0d, results %0d of %0d, samples %0d of %0d)",
-                         errors, words, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES, taken,
-                         `VEC_N_ADC);
-            $finish;
+            total = total + taken;
+            if (errors == 0 && run_no + 1 < runs) begin     // the next acquisition
+                run_no = run_no + 1;
+                taken = 0;
+                n_corr = 0;
+                n_res = 0;
+                start_at = clocks + RESTART;
+            end else begin
+                if (errors == 0)
+                    $display("rx_adc_top vectors: PASS %0d words compared, %0d samples taken",
+                             words, total);
+                else
+                    $display("rx_adc_top vectors: FAIL %0d of %0d words differ (corr %0d of %0d, results %0d of %0d, samples %0d of %0d)",
+                             errors, words, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES, taken,
+                             `VEC_N_ADC);
+                $finish;
+            end
         end
     end
 endmodule

@@ -237,12 +237,25 @@ def test_ddr_pins_slow_fabric_clock_flags_overflow(small_vectors, tmp_path, sim)
     assert line.startswith("rx_adc_top vectors: FAIL overflow (err_overflow)")
 
 
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_restart(small_vectors, tmp_path, sim):
+    """Three acquisitions through the never-stopping pins, each started 24 clocks after the
+    last one's done: the FIFO is drained while idle, so each gives the model's words."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    assert adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, simulator=sim,
+                                 pins=True, runs=3) == \
+        "rx_adc_top vectors: PASS 396 words compared, 13608 samples taken"
+
+
 def test_ddr_pins_refuse_what_the_pins_cannot_do(small_vectors, tmp_path):
     """The DDR pins make words of 4 samples and never pause: other P_IN or a gap is refused
-    by name before anything is compiled."""
+    by name before anything is compiled, and so are restarts without the pins."""
     vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
     with pytest.raises(ConfigError, match="gap must be"):
         adc_top.run_adc_bench(vec, tmp_path, DCO_PS, pins=True, gap=(1001, 37))
+    with pytest.raises(ConfigError, match="runs must be"):
+        adc_top.run_adc_bench(vec, tmp_path, ADC_PS, runs=2)
     p2 = tmp_path / "p2"
     p2.mkdir()
     (p2 / "params.vh").write_text("`define VEC_P 2\n")
