@@ -269,7 +269,8 @@ def test_ddr_pins_refuse_what_the_pins_cannot_do(small_vectors, tmp_path):
 def test_paper_p4_build_at_r_min(tmp_path):
     """The P = 4 paper build (40 channels x 16 lanes) at R = R_MIN = 10: three columns
     from a 250 MS/s ADC through the FIFO, nothing lost, every word the model's (Verilator:
-    25 s with its build; Icarus takes about 17 minutes on the 640 lanes)."""
+    25 s with its build; Icarus takes about 17 minutes on the 640 lanes); and the same
+    from the DDR pins through adc_pins (a second Verilator build)."""
     r = adc_top.r_min(PAPER_P4, 11, 4)
     cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=r, gate_len=64,
                          gate_start=3000, out_shift=6, rounding="convergent", out_bits=16)
@@ -286,3 +287,7 @@ def test_paper_p4_build_at_r_min(tmp_path):
     # at or above a quarter of the ADC's
     line = adc_top.run_adc_bench(vec, tmp_path, ADC_PS, 16_005, 2_100, simulator="verilator")
     assert line.startswith("rx_adc_top vectors: FAIL overflow (err_overflow)")
+    # the same three columns from the DDR pins (125 MHz data clock, IDDRX2F models): exact
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, timeout_s=1800,
+                                 simulator="verilator", pins=True)
+    assert line.startswith("rx_adc_top vectors: PASS") and f"{3 * r * 2047 * 4} samples" in line
