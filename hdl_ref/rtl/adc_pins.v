@@ -24,7 +24,8 @@
 // the behavioural models of hdl_ref/tb/ecp5_gearing_models.v: a transmitter started by
 // that sclk edge lines up with the acquisition's sample 0; on a board the primitives' own
 // latency is calibrated with the range offset). Words are written while run_d is high,
-// one every sclk clock: the FIFO's full flag and sticky overflow are those of adc_rx.
+// one every sclk clock, into adc_rx's FIFO (a full FIFO writes nothing).
+//
 // Overflow: the converter never stops, so words arrive that nobody wants (while rx_top
 // processes its last column, and while it is idle, when the FIFO is drained). A lost word
 // matters only if the consumer takes a later one: a word that is not written (FIFO full)
@@ -34,6 +35,7 @@
 // crossing of its own: it rides with the data. While `run` is low the FIFO is drained
 // (read without m_ready): a start must wait for the words of the last capture to pass
 // (2^AW + 8 clk clocks after run falls, with sclk and clk near the same rate).
+//
 // Resets: rst (clk) reaches sclk through two flip-flops, as in the one-sample path.
 `default_nettype none
 
