@@ -37,12 +37,16 @@ from cdma_lidar.hdl_ref.cosim import (
     top_timing,
 )
 
-__all__ = ["ADC_SOURCES", "CHECK", "MAIN", "SIMULATORS", "TB", "adc_ports", "r_min",
-           "run_adc_bench"]
+__all__ = ["ADC_SOURCES", "CHECK", "GEARING_MODELS", "MAIN", "PIN_SOURCES", "SIMULATORS",
+           "TB", "adc_ports", "r_min", "run_adc_bench"]
 
 #: the sources of ``rx_adc_top`` (rx_top's and the three of the ADC side)
 ADC_SOURCES = (*TOP_FILES, "adc_rx.v", "r_min_rom.v", "rx_adc_top.v")
+#: ... and with ``PINS = 1``, the DDR pin front end (its primitives: :data:`GEARING_MODELS`)
+PIN_SOURCES = (*ADC_SOURCES, "adc_pins.v")
 TB = Path(__file__).resolve().parent / "tb" / "rx_adc_top_vectors_tb.v"
+#: our behavioural models of the ECP5's IDDRX2F, ECLKSYNCB and CLKDIVF (simulation only)
+GEARING_MODELS = TB.with_name("ecp5_gearing_models.v")
 #: the bench's stimulus and checks (no delays), and the Verilator bench's C++ clocks
 CHECK = TB.with_name("rx_adc_top_vectors_check.v")
 MAIN = TB.with_name("rx_adc_top_vectors_main.cpp")
@@ -92,13 +96,19 @@ def adc_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
 
 def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
                   fab_ps: int | None = None, phase_ps: int = 0, gap: tuple[int, int] = (0, 0),
-                  timeout_s: float = 3600.0, simulator: str = "icarus") -> str:
+                  timeout_s: float = 3600.0, simulator: str = "icarus",
+                  pins: bool = False, runs: int = 1) -> str:
     """Compile and run the fixed-rate ADC bench on a vector folder; its verdict line.
 
-    ``adc_ps``, ``fab_ps`` (default P_IN ADC periods), ``phase_ps``: the ADC clock's and
+    ``adc_ps``, ``fab_ps`` (default P_IN samples), ``phase_ps``: the ADC clock's and
     the fabric clock's periods and the fabric clock's start offset, picoseconds; ``gap =
     (every, length)``: the ADC's valid drops for ``length`` ADC clocks after every
-    ``every`` samples (0: never). ``simulator``: ``"icarus"`` (built in ``work_dir``) or
+    ``every`` samples (0: never). ``pins``: ``rx_adc_top`` with ``PINS = 1``, the DDR
+    pins through ``adc_pins`` and our models of the ECP5 gearing (P_IN must be 4, no gaps);
+    ``adc_ps`` is then the DDR data clock's period, two samples (8 000 for 250 MS/s);
+    ``runs``: with the pins, start the acquisition that many times (24 fabric clocks after
+    each ``done``), the same samples and words each time.
+    ``simulator``: ``"icarus"`` (built in ``work_dir``) or
     ``"verilator"`` (built once per ``params.vh`` into the cache; raises
     ``cosim.SimulatorMissing`` without Verilator or g++). The line starts ``rx_adc_top
     vectors: PASS``, ``FAIL`` or ``REFUSED`` (``rx_adc_top_vectors_check.v``'s header).
@@ -107,19 +117,29 @@ def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
         raise out_of_range("simulator", " or ".join(SIMULATORS), simulator)
     vec_dir, work_dir = Path(vec_dir), Path(work_dir)
     rtl = default_rtl_dir()
-    sources = [*(rtl / n for n in ADC_SOURCES), CHECK]
+    p_in = _define(vec_dir, "VEC_P")
+    if pins and p_in != 4:
+        raise out_of_range("samples_per_clock", "4 with the DDR pins (one IDDRX2F word)", p_in)
+    if pins and gap != (0, 0):
+        raise out_of_range("gap", "(0, 0) with the DDR pins (the converter never pauses)", gap)
+    if not (1 <= runs if pins else runs == 1):
+        raise out_of_range("runs", "1 or more with the DDR pins, else 1", runs)
+    sources = [*(rtl / n for n in (PIN_SOURCES if pins else ADC_SOURCES)),
+               *([GEARING_MODELS] if pins else []), CHECK]
     if fab_ps is None:
-        fab_ps = _define(vec_dir, "VEC_P") * adc_ps
+        fab_ps = (p_in // 2 if pins else p_in) * adc_ps
     args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+FAB_PS={fab_ps}",
-            f"+PHASE_PS={phase_ps}", f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}"]
+            f"+PHASE_PS={phase_ps}", f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}",
+            f"+RUNS={runs}"]
     if simulator == "icarus":
         work_dir.mkdir(parents=True, exist_ok=True)
         vvp = work_dir / "adc_tb.vvp"
-        subprocess.run(["iverilog", "-g2005", "-I", str(vec_dir), "-o", str(vvp), str(TB),
-                        *map(str, sources)], check=True, capture_output=True, text=True)
+        subprocess.run(["iverilog", "-g2005", "-I", str(vec_dir), *(["-DVEC_PINS"] if pins
+                        else []), "-o", str(vvp), str(TB), *map(str, sources)],
+                       check=True, capture_output=True, text=True)
         cmd = ["vvp", "-n", str(vvp), *args]
     else:
-        cmd = [str(_verilator_bench(vec_dir, sources)), *args]
+        cmd = [str(_verilator_bench(vec_dir, sources, pins)), *args]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True,
                          timeout=timeout_s).stdout
     return [line for line in out.splitlines() if line.startswith("rx_adc_top vectors:")][-1]
@@ -134,10 +154,10 @@ def _define(vec_dir: Path, name: str) -> int:
     raise out_of_range("params.vh", f"a vector folder's file that defines {name}", vec_dir)
 
 
-def _verilator_bench(vec_dir: Path, sources: Sequence[Path]) -> Path:
+def _verilator_bench(vec_dir: Path, sources: Sequence[Path], pins: bool = False) -> Path:
     """The Verilator bench for the vector folder's ``params.vh`` (cached: the build depends
     on the sources and on params.vh only; the hex files are read at run time)."""
-    params_vh = (vec_dir / "params.vh").read_text()
+    params_vh = (vec_dir / "params.vh").read_text() + ("`define VEC_PINS\n" if pins else "")
     h = hashlib.sha256(params_vh.encode())
     for path in (*sources, MAIN):
         h.update(path.read_bytes())

@@ -311,6 +311,15 @@ MUTANTS: tuple[Mutant, ...] = (
            "(period == uid_bits - 1'b1) ? {UID_W{1'b0}} : period + 1'b1;",
            "period + 1'b1;",
            "the UID period counter does not wrap at uid_bits"),
+    # ---- the DDR pins (adc_pins through rx_adc_top's PINS = 1) ----
+    Mutant("pins-capture-while-idle", "rx_adc_top.v",
+           ".run(busy)",
+           ".run(1'b1)",
+           "the pins write words from reset on, not from the acquisition's start"),
+    Mutant("pins-loss-never-seen", "adc_rx.v",
+           "assign adc_full     = full;",
+           "assign adc_full     = 1'b0;",
+           "the pin path never learns that a word was not written: no gap bit, no flag"),
 )
 
 

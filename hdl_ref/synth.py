@@ -84,6 +84,16 @@ class Design:
     seed: int = 1
     #: nextpnr's router (router2: the router of PNR_ARGS)
     router: str = "router2"
+    #: a constraints file in hdl_ref/rtl for nextpnr (``--lpf``: pins, I/O types, clocks),
+    #: part of the P&R key; empty: none (every port placed by nextpnr)
+    lpf: str = ""
+    #: samples per fabric clock of a top without a P_IN parameter (0: its P_IN, else 1)
+    per_clock: int = 0
+
+    @property
+    def samples_per_clock(self) -> int:
+        """Samples the design takes per fabric clock (the MS/s column's factor)."""
+        return self.per_clock or self.params.get("P_IN", 1)
 
 
 ROUTERS = ("router1", "router2")
@@ -113,7 +123,7 @@ def pnr_freq(design: Design) -> float:
     Asking for the clock the build needs, not 250 MHz for every build, keeps the
     timing-driven placer from trading wire length for slack the build has no use for.
     """
-    return TARGET_MSPS / design.params.get("P_IN", 1)
+    return TARGET_MSPS / design.samples_per_clock
 
 
 TOP_SOURCES = (*TOP_FILES, "rx_top_pnr.v")
@@ -144,6 +154,16 @@ DESIGNS: tuple[Design, ...] = (
            "(LFE5U-85F-8)", pnr=True, speed=8, synth=False),
 )
 PAPER_P4_DESIGN = DESIGNS[-2]
+#: The DDR pin front end alone (adc_pins: 12 IDDRX2F, ECLKSYNCB, CLKDIVF, the FIFO), its
+#: pins in bank 3 (adc_pins.lpf), 4 samples per clock at 62.5 MHz (P&R only: the gearing
+#: cells are ECP5's, so there is no xc7 row)
+DESIGNS += (
+    Design("adc_pins", "adc_pins", ("adc_rx.v", "adc_pins.v"), {"ADC_W": 12, "AW": 4},
+           "the ADC's 12 LVDS DDR pins and its 125 MHz data clock through the ECP5 I/O "
+           "gearing (an IDDRX2F per pin) into 4-sample words at 62.5 MHz, and the FIFO into "
+           "the fabric clock; Fmax of the fabric clocks: nextpnr does not time the pins",
+           pnr=True, synth=False, lpf="adc_pins.lpf", per_clock=4),
+)
 
 FLOWS: dict[str, str] = {
     "ecp5": "synth_ecp5 -top {top} -json {json}",
@@ -201,7 +221,10 @@ def _key(design: Design, flow: str, version: str) -> str:
                          # seed 1 and router2 (the defaults) leave the key as it was
                          *([design.seed] if flow == "pnr" and design.seed != 1 else []),
                          *([design.router] if flow == "pnr" and design.router != "router2"
-                           else [])]).encode())
+                           else []),
+                         # no constraints file (every design before them) leaves it as it was
+                         *([(RTL_DIR / design.lpf).read_text()] if design.lpf else [])]
+                        ).encode())
     return h.hexdigest()[:20]
 
 
@@ -293,7 +316,11 @@ def place_and_route(design: Design, version: str | None = None) -> dict[str, flo
         cells = _synth_in(folder, design, "ecp5")
         if version is not None:
             _store(design, "ecp5", version, cells)
-        proc = subprocess.run([tool("nextpnr-ecp5"), *pnr_args(design),
+        lpf = []
+        if design.lpf:
+            shutil.copyfile(RTL_DIR / design.lpf, folder / design.lpf)
+            lpf = ["--lpf", design.lpf, "--lpf-allow-unconstrained"]
+        proc = subprocess.run([tool("nextpnr-ecp5"), *pnr_args(design), *lpf,
                                "--freq", f"{pnr_freq(design):g}",
                                "--speed", str(design.speed), "--json", "netlist.json",
                                "--log", "nextpnr.log",
@@ -317,7 +344,7 @@ def _sum(cells: Mapping[str, float], pattern: str) -> float:
 
 def table_row(design: Design, flow: str, cells: Mapping[str, float]) -> str:
     """One Markdown table row: the design's name and the flow's resource columns."""
-    per_clock = design.params.get("P_IN", 1)      # MS/s: samples per clock x Fmax
+    per_clock = design.samples_per_clock          # MS/s: samples per clock x Fmax
     vals = [_sum(cells, p) * (per_clock if title == "MS/s" else 1)
             for title, p in COLUMNS[flow]]
     return f"| {design.name} | " + " | ".join(

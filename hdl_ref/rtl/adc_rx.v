@@ -39,7 +39,8 @@ module adc_rx #(
     output wire [P_IN*ADC_W-1:0]  m_data,      // sample k of the word at [k*ADC_W +: ADC_W]
     input  wire                   m_ready,
     input  wire                   clear_ovf,   // clk: clears err_overflow (one-clock pulse)
-    output wire                   err_overflow // clk: sticky, a word was lost
+    output wire                   err_overflow,// clk: sticky, a word was lost
+    output wire                   adc_full     // adc_clk: a word completed now is not written
 );
     localparam integer WW = P_IN * ADC_W;
     localparam integer CW = (P_IN > 1) ? $clog2(P_IN) : 1;
@@ -131,6 +132,7 @@ module adc_rx #(
     assign m_valid      = !empty;
     assign m_data       = mem[rbin[AW-1:0]];
     assign err_overflow = ovf_sync[1];
+    assign adc_full     = full;
 endmodule
 
 `default_nettype wire

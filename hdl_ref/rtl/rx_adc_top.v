@@ -2,8 +2,14 @@
 // asynchronous FIFO from adc_clk into clk) in front of an unchanged rx_top, and the
 // real-time check of the configuration (docs/hdl.md, "From the ADC pins").
 //
-//   adc_clk: adc_valid, adc_data (1 sample/clock) --> adc_rx --> s_valid/s_data/s_ready
-//                                                   (P_IN samples per clk)  --> rx_top
+//   PINS = 0: adc_clk: adc_valid, adc_data (1 sample/clock) --> adc_rx --+
+//   PINS = 1: adc_clk = the converter's DDR data clock, adc_data its      |
+//             DDR pins --> adc_pins (IDDRX2F gearing, P_IN = 4, adc_rx's  |
+//             FIFO; adc_valid unused)                                     |
+//                        s_valid/s_data/s_ready (P_IN samples per clk) <--+--> rx_top
+//   With PINS = 1 words are captured while rx_top is busy and the FIFO is drained while
+//   it is idle (the converter never stops; adc_pins.v: the overflow flag, and how long
+//   after busy falls a start must wait).
 //   start --> [R >= r_min(degree, S)?] --yes--> rx_top.start
 //                                      --no---> err_config (sticky), rx_top stays idle
 //
@@ -30,6 +36,7 @@ module rx_adc_top #(
     parameter integer ADC_W     = 12,
     parameter integer OUT_W     = 32,
     parameter integer FIFO_AW   = 4,    // adc_rx FIFO: 2^FIFO_AW words of P_IN samples
+    parameter integer PINS      = 0,    // 1: DDR pins through adc_pins (P_IN must be 4)
     // ---- derived, do not override ----
     parameter integer DEG_W     = $clog2(MAX_DEG + 1),
     parameter integer MAX_NS    = ((1 << MAX_DEG) - 1) * MAX_S,
@@ -43,8 +50,8 @@ module rx_adc_top #(
     parameter integer COL_W     = 16
 ) (
     input  wire                         adc_clk,
-    input  wire                         adc_valid,
-    input  wire [ADC_W-1:0]             adc_data,
+    input  wire                         adc_valid,  // PINS = 0 only
+    input  wire [ADC_W-1:0]             adc_data,   // PINS = 1: one bit a pin, DDR
 
     input  wire                         clk,
     input  wire                         rst,        // both domains (synchronised to adc_clk)
@@ -109,18 +116,37 @@ module rx_adc_top #(
         end
     endgenerate
 
-    // ---- the ADC domain's reset: rst through two adc_clk flip-flops ----
-    reg [1:0] adc_rst_s;
-    always @(posedge adc_clk)
-        adc_rst_s <= {adc_rst_s[0], rst};
-
     wire                  s_valid, s_ready;
     wire [P_IN*ADC_W-1:0] s_data;
-    adc_rx #(.ADC_W(ADC_W), .P_IN(P_IN), .AW(FIFO_AW)) rx (
-        .adc_clk(adc_clk), .adc_rst(adc_rst_s[1]), .adc_valid(adc_valid), .adc_data(adc_data),
-        .clk(clk), .rst(rst), .m_valid(s_valid), .m_data(s_data), .m_ready(s_ready),
-        .clear_ovf(clear_err), .err_overflow(err_overflow)
-    );
+    generate
+        if (PINS != 0) begin : g_pins
+            if (P_IN != 4) begin : g_p_in_not_4
+                rx_adc_top_pins_need_p_in_4 bad ();
+            end
+            /* verilator lint_off UNUSEDSIGNAL */
+            wire unused = adc_valid;        // the pins carry no valid: run is rx_top's busy
+            /* verilator lint_on UNUSEDSIGNAL */
+            adc_pins #(.ADC_W(ADC_W), .AW(FIFO_AW)) pins (
+                .dco(adc_clk), .d(adc_data), .clk(clk), .rst(rst), .run(busy),
+                .m_valid(s_valid), .m_data(s_data), .m_ready(s_ready),
+                .clear_ovf(clear_err), .err_overflow(err_overflow)
+            );
+        end else begin : g_one
+            // ---- the ADC domain's reset: rst through two adc_clk flip-flops ----
+            reg [1:0] adc_rst_s;
+            /* verilator lint_off UNUSEDSIGNAL */
+            wire      adc_full;             // the sticky err_overflow says it all here
+            /* verilator lint_on UNUSEDSIGNAL */
+            always @(posedge adc_clk)
+                adc_rst_s <= {adc_rst_s[0], rst};
+            adc_rx #(.ADC_W(ADC_W), .P_IN(P_IN), .AW(FIFO_AW)) rx (
+                .adc_clk(adc_clk), .adc_rst(adc_rst_s[1]), .adc_valid(adc_valid),
+                .adc_data(adc_data), .clk(clk), .rst(rst), .m_valid(s_valid),
+                .m_data(s_data), .m_ready(s_ready), .clear_ovf(clear_err),
+                .err_overflow(err_overflow), .adc_full(adc_full)
+            );
+        end
+    endgenerate
 
     // ---- real-time check at start ----
     wire [R_W:0] r_min;

@@ -3,12 +3,16 @@
 // Its two clocks come from outside, so one copy serves both simulators:
 // rx_adc_top_vectors_tb.v (Icarus, Verilog delays) and rx_adc_top_vectors_main.cpp
 // (Verilator without --timing, a picosecond loop in C++). Compile with -I <vector folder>
-// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>].
+// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>] [+RUNS=<n>].
 //
 // The ADC source cannot wait: from the first adc_clk edge after rx_adc_top is started, one
 // sample every adc_clk clock, every sample of adc.hex, then nothing; with GAP_EVERY,
 // adc_valid drops for GAP_LEN adc_clk clocks after every GAP_EVERY samples (a converter
-// whose data-valid pauses). Prints one line
+// whose data-valid pauses). With -DVEC_PINS (rx_adc_top's PINS = 1, P_IN = 4) adc_clk is
+// the converter's DDR data clock and the source sends one sample on every edge of it, never
+// stopping (zeros before and after adc.hex): sample 0 leaves on the first falling edge at
+// which adc_pins' run_s reads 1, as from a transmitter started by that sclk edge (adc_pins.v,
+// "Word alignment"); no gaps. Prints one line
 //   rx_adc_top vectors: PASS <words> words compared, <n> samples taken
 // or FAIL (first differences before it; "overflow" when err_overflow rises, "no done"
 // after VEC_MAX_CLOCKS fabric clocks, twice the model's schedule), or
@@ -39,6 +43,11 @@ module rx_adc_top_vectors_check (
     localparam integer P_W = $clog2(MAX_P + 1), K_W = (K > 1) ? $clog2(K) : 1;
     localparam integer NRP = `VEC_N_RES_PORTS;
     localparam integer P = `VEC_P;
+`ifdef VEC_PINS
+    localparam integer PINS = 1;
+`else
+    localparam integer PINS = 0;
+`endif
 
     reg [`VEC_CFG_W-1:0] cfg_mem  [0:`VEC_N_CFG-1];
     reg [ADC_W-1:0]      adc_mem  [0:`VEC_N_ADC-1];
@@ -66,7 +75,7 @@ module rx_adc_top_vectors_check (
 
     rx_adc_top #(.K(K), .L(`VEC_L), .P_IN(P), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S),
                  .MAX_UID(MAX_UID), .MAX_R(MAX_R), .MAX_G(MAX_G), .MAX_P(MAX_P),
-                 .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W)) dut (
+                 .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W), .PINS(PINS)) dut (
         .adc_clk(adc_clk), .adc_valid(adc_valid), .adc_data(adc_data),
         .clk(clk), .rst(rst), .start(start), .stop(1'b0), .clear_err(1'b0),
         .cfg_columns(cfg_mem[0][15:0]), .cfg_degree(cfg_mem[1][DEG_W-1:0]),
@@ -116,6 +125,7 @@ module rx_adc_top_vectors_check (
             dir = "";
         if (!$value$plusargs("GAP_EVERY=%d", gap_every)) gap_every = 0;
         if (!$value$plusargs("GAP_LEN=%d", gap_len)) gap_len = 0;
+        if (!$value$plusargs("RUNS=%d", runs)) runs = 1;
         $readmemh({dir, "config.hex"}, cfg_mem);
         $readmemh({dir, "adc.hex"}, adc_mem);
         $readmemh({dir, "corr.hex"}, corr_mem);
@@ -125,6 +135,28 @@ module rx_adc_top_vectors_check (
     // the ADC: one sample every adc_clk clock once started, never waiting (but pausing
     // GAP_LEN clocks after every GAP_EVERY samples when asked)
     integer gap_left = 0;
+`ifdef VEC_PINS
+    // the DDR pins: a sample on every edge from the acquisition's first one on (a macro,
+    // not a generate branch: Verilator resolves the reference to run_s in either)
+    reg go = 1'b0, armed = 1'b1;
+    always @(posedge adc_clk or negedge adc_clk) begin
+        if (!adc_clk && !rst) begin
+            if (!dut.g_pins.pins.run_s) begin
+                armed = 1'b1;
+            end else if (armed) begin           // an acquisition starts: sample 0 now
+                go = 1'b1;
+                armed = 1'b0;
+                n_adc = 0;
+            end
+        end
+        if (go && n_adc < `VEC_N_ADC) begin
+            adc_data <= adc_mem[n_adc];
+            n_adc = n_adc + 1;
+        end else begin
+            adc_data <= {ADC_W{1'b0}};
+        end
+    end
+`else
     always @(posedge adc_clk) begin
         if (gap_left > 0) begin
             adc_valid <= 1'b0;
@@ -139,14 +171,22 @@ module rx_adc_top_vectors_check (
             end
         end
     end
+`endif
 
-    // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th; watchdog
-    integer clocks = 0;
+    // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th (with the
+    // DDR pins IDLE = 40 clocks later: the converter runs from reset on, and none of the
+    // words it sends before start may reach rx_top); with +RUNS=<n> (DDR pins only) the
+    // acquisition is started again RESTART clocks after each done, the same samples
+    // from the pins and the same words expected (adc_pins.v: a start waits 2^FIFO_AW + 8
+    // clocks for the last capture's words to be drained); watchdog
+    localparam integer IDLE = PINS ? 40 : 0;
+    localparam integer RESTART = 24;
+    integer clocks = 0, start_at = 10 + IDLE, runs = 1, run_no = 0, total = 0;
     always @(posedge clk) begin
         clocks = clocks + 1;
         if (clocks == 8) rst <= 1'b0;
-        start <= (clocks == 10);
-        if (clocks == 14) begin
+        start <= (clocks == start_at);
+        if (clocks == start_at + 4) begin
             if (!busy) begin
                 $display("rx_adc_top vectors: %0s", err_config ? "REFUSED (err_config)"
                                                                 : "FAIL not started");
@@ -154,7 +194,7 @@ module rx_adc_top_vectors_check (
             end
             started <= 1'b1;
         end
-        if (clocks > `VEC_MAX_CLOCKS + 100) begin
+        if (clocks - start_at > `VEC_MAX_CLOCKS + 100) begin
             $display("rx_adc_top vectors: FAIL no done in %0d clocks (watchdog; corr %0d of %0d, results %0d of %0d)",
                      clocks - 1, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES);
             $finish;
@@ -187,14 +227,23 @@ module rx_adc_top_vectors_check (
             if (n_corr != `VEC_N_CORR || n_res != `VEC_N_RES || err_overrun
                 || taken != `VEC_N_ADC)
                 errors = errors + 1;
-            if (errors == 0)
-                $display("rx_adc_top vectors: PASS %0d words compared, %0d samples taken",
-                         words, taken);
-            else
-                $display("rx_adc_top vectors: FAIL %0d of %0d words differ (corr %0d of %0d, results %0d of %0d, samples %0d of %0d)",
-                         errors, words, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES, taken,
-                         `VEC_N_ADC);
-            $finish;
+            total = total + taken;
+            if (errors == 0 && run_no + 1 < runs) begin     // the next acquisition
+                run_no = run_no + 1;
+                taken = 0;
+                n_corr = 0;
+                n_res = 0;
+                start_at = clocks + RESTART;
+            end else begin
+                if (errors == 0)
+                    $display("rx_adc_top vectors: PASS %0d words compared, %0d samples taken",
+                             words, total);
+                else
+                    $display("rx_adc_top vectors: FAIL %0d of %0d words differ (corr %0d of %0d, results %0d of %0d, samples %0d of %0d)",
+                             errors, words, n_corr, `VEC_N_CORR, n_res, `VEC_N_RES, taken,
+                             `VEC_N_ADC);
+                $finish;
+            end
         end
     end
 endmodule

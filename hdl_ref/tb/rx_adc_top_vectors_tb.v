@@ -6,7 +6,8 @@
 //   +VEC=<folder>/ [+ADC_PS=4000] [+FAB_PS=<ps>] [+PHASE_PS=<ps>] [+GAP_EVERY=<n>
 //   +GAP_LEN=<clocks>]
 // (ADC and fabric clock periods and the fabric clock's start offset, picoseconds; the
-// fabric period defaults to P_IN ADC periods).
+// fabric period defaults to P_IN samples: P_IN ADC periods, P_IN / 2 with -DVEC_PINS, where
+// the ADC clock is the DDR data clock).
 `timescale 1ns/1ps
 `default_nettype none
 
@@ -19,7 +20,8 @@ module rx_adc_top_vectors_tb;
 
     initial begin
         if (!$value$plusargs("ADC_PS=%d", adc_ps)) adc_ps = 4000;
-        if (!$value$plusargs("FAB_PS=%d", fab_ps)) fab_ps = check.P * adc_ps;
+        if (!$value$plusargs("FAB_PS=%d", fab_ps))   // P_IN samples: 2 per DDR clock
+            fab_ps = (check.PINS ? check.P / 2 : check.P) * adc_ps;
         if (!$value$plusargs("PHASE_PS=%d", phase_ps)) phase_ps = 0;
         adc_half = adc_ps / 2000.0;
         fab_half = fab_ps / 2000.0;

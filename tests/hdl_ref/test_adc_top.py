@@ -141,15 +141,9 @@ def test_two_clocks_every_sample_arrives_exact(small_vectors, tmp_path, sim):
     vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
     line = adc_top.run_adc_bench(vec, tmp_path, ADC_PS, FAB_PS, PHASE_PS, simulator=sim)
     assert line.startswith("rx_adc_top vectors: PASS") and "4536 samples taken" in line
-    lines = (vec / "corr.hex").read_text().splitlines()
-    lines[5] = format(int(lines[5], 16) ^ 1, f"0{len(lines[5])}x")
-    bad = tmp_path / "bad"
-    bad.mkdir()
-    for f in vec.iterdir():
-        (bad / f.name).write_text(f.read_text())
-    (bad / "corr.hex").write_text("\n".join(lines) + "\n")
-    assert adc_top.run_adc_bench(bad, tmp_path, ADC_PS, FAB_PS, PHASE_PS,
-                                 simulator=sim).startswith("rx_adc_top vectors: FAIL 1 of")
+    assert adc_top.run_adc_bench(_changed_word(vec, tmp_path), tmp_path, ADC_PS, FAB_PS,
+                                 PHASE_PS, simulator=sim).startswith(
+        "rx_adc_top vectors: FAIL 1 of")
 
 
 @pytest.mark.hdl
@@ -189,13 +183,94 @@ def test_r_min_minus_one_is_refused_by_the_rtl(small_vectors, tmp_path):
         "rx_adc_top vectors: REFUSED (err_config)"
 
 
+#: the DDR pins: the converter's data clock at 8.000 ns (125 MHz, 250 MS/s on both edges)
+DCO_PS = 8000
+
+
+def _changed_word(vec: Path, tmp_path: Path) -> Path:
+    """A copy of the vector folder whose 6th expected correlation word has its LSB flipped."""
+    lines = (vec / "corr.hex").read_text().splitlines()
+    lines[5] = format(int(lines[5], 16) ^ 1, f"0{len(lines[5])}x")
+    bad = tmp_path / "bad"
+    bad.mkdir(exist_ok=True)
+    for f in vec.iterdir():
+        (bad / f.name).write_text(f.read_text())
+    (bad / "corr.hex").write_text("\n".join(lines) + "\n")
+    return bad
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_every_sample_arrives_exact(small_vectors, tmp_path, sim):
+    """PINS = 1: the samples on the 12 DDR pins of a 125 MHz data clock (both edges, never
+    stopping) through IDDRX2F (our model), the FIFO and rx_top at 312 ppm fast and 1.3 ns
+    late: every sample taken in order, every word the model's, no overflow although the
+    FIFO drops the words nobody wants after the last column; a changed word fails."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, simulator=sim,
+                                 pins=True)
+    assert line == "rx_adc_top vectors: PASS 132 words compared, 4536 samples taken"
+    assert adc_top.run_adc_bench(_changed_word(vec, tmp_path), tmp_path, DCO_PS, FAB_PS,
+                                 PHASE_PS, simulator=sim, pins=True).startswith(
+        "rx_adc_top vectors: FAIL 1 of")
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("fab_ps, phase_ps", [(16_000, 0), (15_996, 3_700), (16_005, 2_100),
+                                              (12_000, 900)])
+def test_ddr_pins_other_fabric_clocks(small_vectors, tmp_path, fab_ps, phase_ps):
+    """The DDR pins into other fabric phases and rates (in phase with sclk, 312 ppm slow,
+    much faster): the same words."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    assert adc_top.run_adc_bench(vec, tmp_path, DCO_PS, fab_ps, phase_ps, pins=True) == \
+        "rx_adc_top vectors: PASS 132 words compared, 4536 samples taken"
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_slow_fabric_clock_flags_overflow(small_vectors, tmp_path, sim):
+    """A 20 ns fabric clock behind the 250 MS/s pins: a word is lost while rx_top still
+    takes them, and err_overflow rises."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, 20_000, PHASE_PS, simulator=sim,
+                                 pins=True)
+    assert line.startswith("rx_adc_top vectors: FAIL overflow (err_overflow)")
+
+
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_restart(small_vectors, tmp_path, sim):
+    """Three acquisitions through the never-stopping pins, each started 24 clocks after the
+    last one's done: the FIFO is drained while idle, so each gives the model's words."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    assert adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, simulator=sim,
+                                 pins=True, runs=3) == \
+        "rx_adc_top vectors: PASS 396 words compared, 13608 samples taken"
+
+
+def test_ddr_pins_refuse_what_the_pins_cannot_do(small_vectors, tmp_path):
+    """The DDR pins make words of 4 samples and never pause: other P_IN or a gap is refused
+    by name before anything is compiled, and so are restarts without the pins."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    with pytest.raises(ConfigError, match="gap must be"):
+        adc_top.run_adc_bench(vec, tmp_path, DCO_PS, pins=True, gap=(1001, 37))
+    with pytest.raises(ConfigError, match="runs must be"):
+        adc_top.run_adc_bench(vec, tmp_path, ADC_PS, runs=2)
+    p2 = tmp_path / "p2"
+    p2.mkdir()
+    (p2 / "params.vh").write_text("`define VEC_P 2\n")
+    with pytest.raises(ConfigError, match=r"samples_per_clock must be 4 .*, not 2"):
+        adc_top.run_adc_bench(p2, tmp_path, DCO_PS, pins=True)
+
+
 @pytest.mark.hdl
 @pytest.mark.slow
 @pytest.mark.skipif(not cosim.verilator_available(), reason="Verilator or g++ is not installed")
 def test_paper_p4_build_at_r_min(tmp_path):
     """The P = 4 paper build (40 channels x 16 lanes) at R = R_MIN = 10: three columns
     from a 250 MS/s ADC through the FIFO, nothing lost, every word the model's (Verilator:
-    25 s with its build; Icarus takes about 17 minutes on the 640 lanes)."""
+    25 s with its build; Icarus takes about 17 minutes on the 640 lanes); and the same
+    from the DDR pins through adc_pins (a second Verilator build)."""
     r = adc_top.r_min(PAPER_P4, 11, 4)
     cfg = ReceiverConfig(adc_bits=12, samples_per_chip=4, averages=r, gate_len=64,
                          gate_start=3000, out_shift=6, rounding="convergent", out_bits=16)
@@ -212,3 +287,7 @@ def test_paper_p4_build_at_r_min(tmp_path):
     # at or above a quarter of the ADC's
     line = adc_top.run_adc_bench(vec, tmp_path, ADC_PS, 16_005, 2_100, simulator="verilator")
     assert line.startswith("rx_adc_top vectors: FAIL overflow (err_overflow)")
+    # the same three columns from the DDR pins (125 MHz data clock, IDDRX2F models): exact
+    line = adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, timeout_s=1800,
+                                 simulator="verilator", pins=True)
+    assert line.startswith("rx_adc_top vectors: PASS") and f"{3 * r * 2047 * 4} samples" in line

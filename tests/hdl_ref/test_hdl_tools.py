@@ -7,6 +7,7 @@ yosys is, each skipped with the reason otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -114,6 +115,19 @@ def test_doc_lists_every_design_and_the_placed_and_routed_rows():
     for d in synth.DESIGNS:
         assert f"| {d.name} |" in section
     assert "**placed and routed**" in section and "| rx_top small |" in section
+
+
+def test_constraints_file_and_samples_per_clock_of_the_pin_design():
+    """adc_pins: its LPF is part of its P&R key (a changed pin is a new row), nextpnr is
+    asked for 250 MS/s / 4 samples per clock, and its MS/s column is 4 x Fmax; a design
+    without a constraints file keys as before (the key of PAPER_P4 does not read one)."""
+    pins = next(d for d in synth.DESIGNS if d.name == "adc_pins")
+    assert pins.lpf and (synth.RTL_DIR / pins.lpf).exists() and "P_IN" not in pins.params
+    no_lpf = dataclasses.replace(pins, lpf="")
+    assert synth._key(pins, "pnr", "v") != synth._key(no_lpf, "pnr", "v")
+    assert synth.pnr_freq(pins) == 62.5 and pins.samples_per_clock == 4
+    assert synth.table_row(pins, "pnr", {"fmax": 100.0}).endswith("| 100 | 400 |")
+    assert synth.PAPER_P4_DESIGN.samples_per_clock == 4 and not synth.PAPER_P4_DESIGN.lpf
 
 
 def test_seed_and_router_are_nextpnr_arguments_keys_and_rows():
