@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from cdma_lidar.checks import check_int
 from cdma_lidar.errors import out_of_range
 from cdma_lidar.hdl_ref import engine
 from cdma_lidar.hdl_ref.cosim import (
@@ -97,7 +98,7 @@ def adc_ports(cfg: Any, poly_u: Sequence[int], poly_v: Sequence[int],
 def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
                   fab_ps: int | None = None, phase_ps: int = 0, gap: tuple[int, int] = (0, 0),
                   timeout_s: float = 3600.0, simulator: str = "icarus",
-                  pins: bool = False, runs: int = 1) -> str:
+                  pins: bool = False, runs: int = 1, restart: int = 24) -> str:
     """Compile and run the fixed-rate ADC bench on a vector folder; its verdict line.
 
     ``adc_ps``, ``fab_ps`` (default P_IN samples), ``phase_ps``: the ADC clock's and
@@ -106,8 +107,9 @@ def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
     ``every`` samples (0: never). ``pins``: ``rx_adc_top`` with ``PINS = 1``, the DDR
     pins through ``adc_pins`` and our models of the ECP5 gearing (P_IN must be 4, no gaps);
     ``adc_ps`` is then the DDR data clock's period, two samples (8 000 for 250 MS/s);
-    ``runs``: with the pins, start the acquisition that many times (24 fabric clocks after
-    each ``done``), the same samples and words each time.
+    ``runs``: with the pins, start the acquisition that many times (``restart`` fabric
+    clocks after each ``done``; ``rx_adc_top`` refuses a start sooner than 2^FIFO_AW + 8),
+    the same samples and words each time.
     ``simulator``: ``"icarus"`` (built in ``work_dir``) or
     ``"verilator"`` (built once per ``params.vh`` into the cache; raises
     ``cosim.SimulatorMissing`` without Verilator or g++). The line starts ``rx_adc_top
@@ -124,13 +126,14 @@ def run_adc_bench(vec_dir: str | Path, work_dir: str | Path, adc_ps: int = 4000,
         raise out_of_range("gap", "(0, 0) with the DDR pins (the converter never pauses)", gap)
     if not (1 <= runs if pins else runs == 1):
         raise out_of_range("runs", "1 or more with the DDR pins, else 1", runs)
+    check_int("restart", restart, 1, 1_000_000)
     sources = [*(rtl / n for n in (PIN_SOURCES if pins else ADC_SOURCES)),
                *([GEARING_MODELS] if pins else []), CHECK]
     if fab_ps is None:
         fab_ps = (p_in // 2 if pins else p_in) * adc_ps
     args = [f"+VEC={vec_dir}/", f"+ADC_PS={adc_ps}", f"+FAB_PS={fab_ps}",
             f"+PHASE_PS={phase_ps}", f"+GAP_EVERY={gap[0]}", f"+GAP_LEN={gap[1]}",
-            f"+RUNS={runs}"]
+            f"+RUNS={runs}", f"+RESTART={restart}"]
     if simulator == "icarus":
         work_dir.mkdir(parents=True, exist_ok=True)
         vvp = work_dir / "adc_tb.vvp"

@@ -320,6 +320,10 @@ MUTANTS: tuple[Mutant, ...] = (
            "assign adc_full     = full;",
            "assign adc_full     = 1'b0;",
            "the pin path never learns that a word was not written: no gap bit, no flag"),
+    Mutant("pins-start-before-drained", "rx_adc_top.v",
+           "&& idle_clocks == DRAINED;",
+           "&& 1'b1;",
+           "a start right after done is taken: a stale word of the FIFO becomes sample 0"),
 )
 
 

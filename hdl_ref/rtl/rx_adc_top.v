@@ -10,13 +10,15 @@
 //   With PINS = 1 words are captured while rx_top is busy and the FIFO is drained while
 //   it is idle (the converter never stops; adc_pins.v: the overflow flag, and how long
 //   after busy falls a start must wait).
-//   start --> [R >= r_min(degree, S)?] --yes--> rx_top.start
-//                                      --no---> err_config (sticky), rx_top stays idle
+//   start --> [R >= r_min(degree, S)? pins: FIFO drained?] --yes--> rx_top.start
+//                                                         --no---> err_config (sticky),
+//                                                                  rx_top stays idle
 //
 // A fixed-rate ADC cannot wait, so rx_top must never hold s_ready low for long: the
 // configuration is refused at `start` (rx_top is not started, err_config set) when
 // cfg_averages is below r_min_rom's bound for its degree and samples_per_chip (or
-// the build cannot run that degree and S at all), or above MAX_R. Everything else is
+// the build cannot run that degree and S at all), or above MAX_R; with the pins also when
+// it comes sooner than 2^FIFO_AW + 8 clocks after busy fell. Everything else is
 // rx_top's, ports and timing included; its s_refused/err_refused are internal here
 // (the FIFO holds the samples offered in rx_top's two set-up clocks): a lost sample
 // is err_overflow. clear_err clears err_config, err_overflow and rx_top's flags.
@@ -155,7 +157,18 @@ module rx_adc_top #(
         .degree(cfg_degree), .spc(cfg_spc), .r_min(r_min)
     );
     localparam [31:0] MAX_R32 = MAX_R;
-    wire cfg_ok    = ({1'b0, cfg_averages} >= r_min) && (cfg_averages <= MAX_R32[R_W-1:0]);
+    // With the pins a start also waits until the last capture's words have left the FIFO
+    // (drained while idle, one a clock: 2^FIFO_AW words and the crossing's few clocks);
+    // an earlier start would take a stale word as sample 0, so it is refused instead.
+    localparam integer DRAIN = (PINS != 0) ? (1 << FIFO_AW) + 8 : 0;
+    localparam integer DR_W  = $clog2(DRAIN + 2);
+    localparam [DR_W-1:0] DRAINED = DRAIN[DR_W-1:0];
+    reg [DR_W-1:0] idle_clocks;                 // clocks since busy fell, up to DRAIN
+    always @(posedge clk)
+        idle_clocks <= rst ? DRAINED : busy ? {DR_W{1'b0}}
+                     : idle_clocks + {{(DR_W-1){1'b0}}, idle_clocks != DRAINED};
+    wire cfg_ok    = ({1'b0, cfg_averages} >= r_min) && (cfg_averages <= MAX_R32[R_W-1:0])
+                     && idle_clocks == DRAINED;
     wire start_req = start && !busy;
     always @(posedge clk) begin
         if (rst)

@@ -3,7 +3,8 @@
 // Its two clocks come from outside, so one copy serves both simulators:
 // rx_adc_top_vectors_tb.v (Icarus, Verilog delays) and rx_adc_top_vectors_main.cpp
 // (Verilator without --timing, a picosecond loop in C++). Compile with -I <vector folder>
-// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>] [+RUNS=<n>].
+// (params.vh) and run with +VEC=<folder>/ [+GAP_EVERY=<n> +GAP_LEN=<clocks>] [+RUNS=<n>
+// [+RESTART=<clocks>]].
 //
 // The ADC source cannot wait: from the first adc_clk edge after rx_adc_top is started, one
 // sample every adc_clk clock, every sample of adc.hex, then nothing; with GAP_EVERY,
@@ -126,6 +127,7 @@ module rx_adc_top_vectors_check (
         if (!$value$plusargs("GAP_EVERY=%d", gap_every)) gap_every = 0;
         if (!$value$plusargs("GAP_LEN=%d", gap_len)) gap_len = 0;
         if (!$value$plusargs("RUNS=%d", runs)) runs = 1;
+        if (!$value$plusargs("RESTART=%d", restart)) restart = 24;
         $readmemh({dir, "config.hex"}, cfg_mem);
         $readmemh({dir, "adc.hex"}, adc_mem);
         $readmemh({dir, "corr.hex"}, corr_mem);
@@ -176,12 +178,11 @@ module rx_adc_top_vectors_check (
     // the fabric side: reset for 8 clocks, start in the 11th, busy by the 15th (with the
     // DDR pins IDLE = 40 clocks later: the converter runs from reset on, and none of the
     // words it sends before start may reach rx_top); with +RUNS=<n> (DDR pins only) the
-    // acquisition is started again RESTART clocks after each done, the same samples
+    // acquisition is started again +RESTART=<n> clocks (24) after each done, the same samples
     // from the pins and the same words expected (adc_pins.v: a start waits 2^FIFO_AW + 8
     // clocks for the last capture's words to be drained); watchdog
     localparam integer IDLE = PINS ? 40 : 0;
-    localparam integer RESTART = 24;
-    integer clocks = 0, start_at = 10 + IDLE, runs = 1, run_no = 0, total = 0;
+    integer clocks = 0, start_at = 10 + IDLE, runs = 1, run_no = 0, total = 0, restart = 24;
     always @(posedge clk) begin
         clocks = clocks + 1;
         if (clocks == 8) rst <= 1'b0;
@@ -233,7 +234,7 @@ module rx_adc_top_vectors_check (
                 taken = 0;
                 n_corr = 0;
                 n_res = 0;
-                start_at = clocks + RESTART;
+                start_at = clocks + restart;
             end else begin
                 if (errors == 0)
                     $display("rx_adc_top vectors: PASS %0d words compared, %0d samples taken",

@@ -248,6 +248,18 @@ def test_ddr_pins_restart(small_vectors, tmp_path, sim):
         "rx_adc_top vectors: PASS 396 words compared, 13608 samples taken"
 
 
+@pytest.mark.hdl
+@pytest.mark.parametrize("sim", SIMS)
+def test_ddr_pins_early_restart_is_refused(small_vectors, tmp_path, sim):
+    """A start sooner than 2^FIFO_AW + 8 = 24 clocks after done would take a word of the
+    last capture still in the FIFO as sample 0: rx_adc_top refuses it (err_config), and
+    the first acquisition's words were the model's."""
+    vec = small_vectors[adc_top.r_min(SMALL, 6, 4)]
+    assert adc_top.run_adc_bench(vec, tmp_path, DCO_PS, FAB_PS, PHASE_PS, simulator=sim,
+                                 pins=True, runs=2, restart=10) == \
+        "rx_adc_top vectors: REFUSED (err_config)"
+
+
 def test_ddr_pins_refuse_what_the_pins_cannot_do(small_vectors, tmp_path):
     """The DDR pins make words of 4 samples and never pause: other P_IN or a gap is refused
     by name before anything is compiled, and so are restarts without the pins."""
