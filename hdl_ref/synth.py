@@ -163,6 +163,11 @@ DESIGNS += (
            "gearing (an IDDRX2F per pin) into 4-sample words at 62.5 MHz, and the FIFO into "
            "the fabric clock; Fmax of the fabric clocks: nextpnr does not time the pins",
            pnr=True, synth=False, lpf="adc_pins.lpf", per_clock=4),
+    Design("rx_top paper P=4 from the pins", "rx_adc_top_pnr",
+           (*TOP_SOURCES, "adc_rx.v", "adc_pins.v", "rx_adc_top_pnr.v"), PAPER_P4,
+           "the P=4 paper build fed from the ADC's DDR pins: adc_pins (gearing and FIFO) in "
+           "front of the rx_top harness on one die, the pins placed by adc_pins.lpf",
+           pnr=True, synth=False, lpf="adc_pins.lpf"),
 )
 
 FLOWS: dict[str, str] = {
