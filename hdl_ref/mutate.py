@@ -6,8 +6,10 @@ fast co-simulation suite (``tests/hdl_ref`` without the ``slow`` tests, the
 mutant tests themselves and the tool checks: simulation only) then runs against
 that copy (``$HDL_REF_RTL_DIR``, read by :func:`cdma_lidar.hdl_ref.cosim.build`
 and the vectors test) and stops at the first failing test, which is reported as
-the fault's killer. A fault that no test fails "survives"; one marked
-``equivalent`` (it changes no output, with the reason) is listed and not run.
+the fault's killer. A fault that no test fails "survives"; so does one whose run
+outlasts the time limit ("timeout": a hang must be caught by the bench's cycle
+watchdog, which fails a test, not by the clock); one marked ``equivalent`` (it
+changes no output, with the reason) is listed and not run.
 The tests of the mutated file run first (the cheapest kill).
 
     python -m cdma_lidar.hdl_ref.mutate                 # every fault (tens of minutes)
@@ -75,7 +77,8 @@ _FAILED = re.compile(r"^(?:FAILED|ERROR) (\S+)", re.MULTILINE)
 @dataclass(frozen=True)
 class Outcome:
     """What the fast suite did with one fault: ``killer`` is the first failing test's id,
-    empty when every test passed (the fault survived) or the fault is equivalent."""
+    empty when no test failed (the fault survived: every test passed, or the run timed
+    out, said in ``detail``) or the fault is equivalent."""
 
     mutant: Mutant
     killer: str = ""
@@ -113,8 +116,8 @@ def run_mutant(mutant: Mutant, tests: Sequence[str] | None = None,
         try:
             proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
                                   timeout=timeout_s, check=False)
-        except subprocess.TimeoutExpired:
-            return Outcome(mutant, killer="(timeout)", detail=f"no result in {timeout_s:g} s")
+        except subprocess.TimeoutExpired:    # not a kill: no test failed
+            return Outcome(mutant, detail=f"timeout: no result in {timeout_s:g} s")
     found = _FAILED.search(proc.stdout)
     if found:
         return Outcome(mutant, killer=found.group(1).replace(str(TESTS) + "/", ""))

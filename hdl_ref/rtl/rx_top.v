@@ -252,8 +252,10 @@ module rx_top #(
     assign busy      = (tstate != T_IDLE);
     assign s_refused = busy && s_valid && !s_ready;
     wire a_take      = s_valid && s_ready;
-    wire a_mid       = a_take || (a_s != {S_W{1'b0}}) || (a_c != {MAX_DEG{1'b0}})
-                       || (a_p != {UID_W{1'b0}}) || (a_r != {R_W{1'b0}});  // a column is open
+    // a_open: a column is open (some sample of it taken, not its last), i.e. the averaging
+    // counters are not all 0; a register updated with them (below), so `stop` needs no OR
+    // of the counters
+    reg  a_open;
     localparam [31:0]    P_IN32 = P_IN;
     localparam [S_W-1:0] P_STEP = P_IN32[S_W-1:0];
 
@@ -310,23 +312,31 @@ module rx_top #(
     reg  [KST_W-1:0]   st_k;            // 0 .. N+L-2
     reg  [MAX_DEG-1:0] st_t;            // (g_q + k) mod N
     wire [MAX_DEG-1:0] st_t1 = chip_inc(st_t, nn);
-    wire [KST_W-1:0]   k_last = {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0]
-                                 - {{(KST_W-2){1'b0}}, 2'd2};
+    // k_end: the stream's last step less one, N + L - 3 (set at T_INIT2 from nn), so the
+    // last-step test is one equality with st_k, no adder
+    reg  [KST_W-1:0]   k_end;
     // st_end (the stream's last step) is a register, set one clock ahead, so the
     // generators' enables below need no comparator in front of them.
     reg                st_end;
-    wire               st_end_nx = (pstate == P_STREAM) && !st_end
-                                   && (st_k + 1'b1 == k_last);
+    wire               st_end_nx = (pstate == P_STREAM) && !st_end && (st_k == k_end);
     wire               st_lastp = (st_p == c_uid_bits - 1'b1);
     localparam [JJ_W+S_W:0] L_JJ = L_M1[JJ_W+S_W:0];
     wire [JJ_W+S_W:0]  g_jj_nx  = {{(S_W+1){1'b0}}, g_jj} + L_JJ * {{(JJ_W+1){1'b0}}, c_spc};
-    wire               g_more   = g_jj_nx <= {{(S_W+1){1'b0}}, jj_last};
+    // g_more (another group of this phase) and ph_more (another phase) are registers: the
+    // compares of g_jj_nx and ph_nx with the gate, one clock behind g_jj and ph. Those
+    // change only at a stream's end (P_START for the first), and the next end, which reads
+    // the flags, is N + L - 1 >= 7 clocks later: the delay is never seen, and no carry
+    // chain from c_spc sits in front of stream_done and the generators' strobes.
+    reg                g_more, ph_more;
     wire [MAX_DEG:0]   g_q_sum  = {1'b0, g_q} + L[MAX_DEG:0];
     wire [MAX_DEG:0]   g_q_dif  = g_q_sum - {1'b0, nn};
     wire [MAX_DEG-1:0] g_q_nx   = (g_q_sum >= {1'b0, nn}) ? g_q_dif[MAX_DEG-1:0]
                                                           : g_q_sum[MAX_DEG-1:0];
     wire [S_W-1:0]     ph_nx    = ph + 1'b1;
-    wire               ph_more  = (ph_nx < c_spc) && ({{(JJ_W-S_W){1'b0}}, ph_nx} <= jj_last);
+    always @(posedge clk) begin
+        g_more  <= g_jj_nx <= {{(S_W+1){1'b0}}, jj_last};
+        ph_more <= (ph_nx < c_spc) && ({{(JJ_W-S_W){1'b0}}, ph_nx} <= jj_last);
+    end
     wire               ph_s_wrap = (ph_s == c_spc - 1'b1);
 
     integer bi;
@@ -755,36 +765,30 @@ module rx_top #(
     // ------------------------------------------------------------------
     // Averaging read-modify-write pipeline: read, RAM output register, add and write
     // ------------------------------------------------------------------
+    // Only the valid bits (r_v, rr_v, w_v) follow a_take; the data registers load every
+    // clock and are read only while their valid bit is high, so a_take (a net from
+    // s_ready, across the die) drives no clock enable of the P_IN * ADC_W sample bits.
     always @(posedge clk) begin
-        r_v  <= 1'b0;
-        rr_v <= 1'b0;
-        w_v  <= 1'b0;
-        if (a_take) begin
-            r_v     <= 1'b1;
-            r_buf   <= acc_buf;
-            r_bank  <= a_s;
-            r_addr  <= a_addr;
-            r_first <= (a_r == {R_W{1'b0}});
-            r_x     <= s_data;
-        end
-        if (r_v) begin
-            rr_v     <= 1'b1;
-            rr_buf   <= r_buf;
-            rr_bank  <= r_bank;
-            rr_addr  <= r_addr;
-            rr_first <= r_first;
-            rr_x     <= r_x;
-        end
-        if (rr_v) begin
-            w_v     <= 1'b1;
-            w_buf   <= rr_buf;
-            w_bank  <= rr_bank;
-            w_addr  <= rr_addr;
-            w_first <= rr_first;
-            w_x     <= rr_x;
-            for (si = 0; si < MAX_S; si = si + 1)
-                w_old[si*AVG_W +: AVG_W] <= rr_buf ? rd[MAX_S + si] : rd[si];
-        end
+        r_v      <= a_take;
+        r_buf    <= acc_buf;
+        r_bank   <= a_s;
+        r_addr   <= a_addr;
+        r_first  <= (a_r == {R_W{1'b0}});
+        r_x      <= s_data;
+        rr_v     <= r_v;
+        rr_buf   <= r_buf;
+        rr_bank  <= r_bank;
+        rr_addr  <= r_addr;
+        rr_first <= r_first;
+        rr_x     <= r_x;
+        w_v      <= rr_v;
+        w_buf    <= rr_buf;
+        w_bank   <= rr_bank;
+        w_addr   <= rr_addr;
+        w_first  <= rr_first;
+        w_x      <= rr_x;
+        for (si = 0; si < MAX_S; si = si + 1)
+            w_old[si*AVG_W +: AVG_W] <= rr_buf ? rd[MAX_S + si] : rd[si];
         if (rst) begin
             r_v  <= 1'b0;
             rr_v <= 1'b0;
@@ -917,7 +921,9 @@ module rx_top #(
     //   (tstate == T_RUN) && !full[acc_buf] && (c_free || cols_in != c_columns).
     // The averaging counters keep registered "last" flags (a_X_last: a_X is at its
     // wrap value, recomputed at T_INIT2 from the configuration latched at start),
-    // so a column's end (a_wrap) is one AND of a_take and four flags.
+    // so a column's end (a_wrap) is one AND of a_take and four flags; a_open (a column
+    // is open) and cols_in1 = cols_in + 1 keep adders and the counters' OR off the path
+    // from a_take, which reaches s_ready and c_columns only as a select (more_nx).
     // ------------------------------------------------------------------
     wire t_init = (tstate == T_INIT2);
     wire t_end  = !c_free && cols_out == c_columns;                // T_RUN: the last column is out
@@ -938,11 +944,20 @@ module rx_top #(
     wire [1:0] full_clr  = {p_free && proc_buf, p_free && !proc_buf};  // full[proc_buf] <= 0
     wire [1:0] full_nx   = (rst || t_init) ? 2'b00 : (full | full_set) & ~full_clr;
     wire       acc_buf_nx = !t_init && (acc_buf ^ a_wrap);
-    wire [COL_W-1:0] cols_in_nx = t_init ? {COL_W{1'b0}} : cols_in + {{(COL_W-1){1'b0}}, a_wrap};
+    wire [COL_W-1:0] cols_in1 = cols_in + 1'b1;      // from registers: ready before a_take
+    wire [COL_W-1:0] cols_in_nx = t_init ? {COL_W{1'b0}} : a_wrap ? cols_in1 : cols_in;
+    wire       a_open_nx = !t_init && (a_take ? !a_wrap : a_open);
     wire       c_free_nx = s_stop ? 1'b0 : t_load ? (cfg_columns == {COL_W{1'b0}}) : c_free;
+    // stop: the columns begun, this clock's take included (a_take selects, adds nothing)
     wire [COL_W-1:0] c_columns_nx = t_load ? cfg_columns : !s_stop ? c_columns
-                                  : (tstate == T_RUN) ? cols_in + {{(COL_W-1){1'b0}}, a_mid}
+                                  : (tstate == T_RUN) ? ((a_take || a_open) ? cols_in1 : cols_in)
                                   : {COL_W{1'b0}};
+    // More columns to take after this clock, (c_free_nx || cols_in_nx != c_columns_nx)
+    // wherever tstate_nx == T_RUN, with a_take only behind selects: after a stop, exactly
+    // while a column stays open; otherwise the count compared from registers.
+    wire       more_nx = s_stop ? (tstate == T_RUN) && a_open_nx
+                       : c_free || (t_init ? c_columns != {COL_W{1'b0}}
+                                    : a_wrap ? cols_in1 != c_columns : cols_in != c_columns);
 
     always @(posedge clk) begin
         tstate    <= tstate_nx;
@@ -951,8 +966,8 @@ module rx_top #(
         cols_in   <= cols_in_nx;
         c_free    <= c_free_nx;
         c_columns <= c_columns_nx;
-        s_ready   <= (tstate_nx == T_RUN) && !full_nx[acc_buf_nx]
-                     && (c_free_nx || cols_in_nx != c_columns_nx);
+        a_open    <= a_open_nx;
+        s_ready   <= (tstate_nx == T_RUN) && !full_nx[acc_buf_nx] && more_nx;
     end
 
     // ------------------------------------------------------------------
@@ -972,6 +987,8 @@ module rx_top #(
         end
         T_INIT2: begin
             lo          <= (c_gate_start == {LAG_W{1'b0}}) ? ns - 1'b1 : c_gate_start - 1'b1;
+            k_end       <= {{(KST_W-MAX_DEG){1'b0}}, nn} + L[KST_W-1:0]
+                           - {{(KST_W-2){1'b0}}, 2'd3};
             proc_buf    <= 1'b0;
             cols_out    <= {COL_W{1'b0}};
             ln_clr      <= 1'b1;

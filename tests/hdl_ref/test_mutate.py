@@ -31,6 +31,15 @@ def test_one_fault_is_killed_and_reported():
     assert "Killed 1 of 2 faults (1 equivalent, 0 survived)" in text
 
 
+def test_a_timeout_is_not_a_kill():
+    """A run cut off by the time limit failed no test: the fault survives, "timeout" says why
+    (a hang must fail a test through the bench's cycle watchdog)."""
+    (m,) = [m for m in MUTANTS if m.name == "lfsr-output-stage-off-by-one"]
+    out = mutate.run_mutant(m, tests=["test_gold_gen.py"], timeout_s=0)
+    assert out.status == "SURVIVED" and out.killer == "" and out.detail.startswith("timeout")
+    assert "**survived** timeout" in mutate.table([out])
+
+
 def test_partial_run_merges_into_the_table():
     """--only with --write-doc: the faults run replace their rows, the others keep theirs,
     a fault without a row is "not run", and the tally is counted from the rows."""
