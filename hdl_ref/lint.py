@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cdma_lidar.errors import MissingExtra
-from cdma_lidar.hdl_ref.adc_top import ADC_SOURCES, PIN_SOURCES
+from cdma_lidar.hdl_ref.adc_top import ADC_SOURCES, GEARING_MODELS, PIN_SOURCES
 from cdma_lidar.hdl_ref.cosim import RTL_DIR, TOP_FILES
 
 __all__ = ["LINT_SETS", "LintResult", "lint", "main", "verilator_command"]
@@ -73,8 +73,8 @@ LINT_SETS |= {
         "MAX_G": 64, "MAX_P": 1, "NGHOST": 1, "ADC_W": 12, "OUT_W": 32}),
     "rx_adc_top-p2-small": ("rx_adc_top", ADC_SOURCES, {
         "K": 2, "L": 4, "P_IN": 2, "MAX_DEG": 6, "MAX_G": 8, "MAX_R": 8, "FIFO_AW": 2}),
-    # the DDR pins, with our models of the ECP5 gearing primitives (hdl_ref/tb)
-    "rx_adc_top-pins": ("rx_adc_top", (*PIN_SOURCES, "../tb/ecp5_gearing_models.v"), {
+    # the DDR pins, with our models of the ECP5 gearing primitives (an absolute path)
+    "rx_adc_top-pins": ("rx_adc_top", (*PIN_SOURCES, str(GEARING_MODELS)), {
         "K": 2, "L": 4, "P_IN": 4, "MAX_DEG": 6, "MAX_G": 8, "MAX_R": 8, "PINS": 1}),
     "rx_top-wide": ("rx_top", TOP_FILES, {"K": 8, "L": 5, "MAX_DEG": 13, "MAX_S": 8, "MAX_UID": 8,
                                      "MAX_R": 1024, "MAX_G": 256, "MAX_P": 8, "NGHOST": 8,
