@@ -83,6 +83,14 @@ module adc_pins #(
         lost  <= run_d && full;             // this clock's word is not written
     end
 
+    // clk: a registered copy of run drives the drain, so rx_top's busy, wherever the
+    // placer puts its source, reaches the FIFO's read side through one flip-flop: the
+    // drain starts and stops one clock after busy changes (the FIFO is empty when busy
+    // rises, since a start waits for the drain, and its first word is clocks away)
+    reg run_c;
+    always @(posedge clk)
+        run_c <= !rst && run;
+
     // one word a clock: adc_rx with one "sample" of 4 ADC_W bits (no packing) and the
     // gap bit on top: "the word before this one was lost"
     wire [WW:0] word;
@@ -91,7 +99,7 @@ module adc_pins #(
     /* verilator lint_on UNUSEDSIGNAL */
     adc_rx #(.ADC_W(WW + 1), .P_IN(1), .AW(AW)) fifo (
         .adc_clk(sclk), .adc_rst(rst_s[1]), .adc_valid(run_d), .adc_data({lost, q}),
-        .clk(clk), .rst(rst), .m_valid(m_valid), .m_data(word), .m_ready(m_ready || !run),
+        .clk(clk), .rst(rst), .m_valid(m_valid), .m_data(word), .m_ready(m_ready || !run_c),
         .clear_ovf(clear_ovf), .err_overflow(any_loss), .adc_full(full)
     );
     assign m_data = word[WW-1:0];

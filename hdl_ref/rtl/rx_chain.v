@@ -309,6 +309,9 @@ module rx_chain #(
     reg  [2:0]        wait_cnt;
     wire              post_go = (state == S_CWAIT) && (wait_cnt == 3'd5);
     wire              post_last;
+    /* verilator lint_off UNUSEDSIGNAL */
+    wire              post_last_nx;     // rx_top's early buffer release; one channel here
+    /* verilator lint_on UNUSEDSIGNAL */
 
     rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
               .OUT_W(OUT_W), .LAG_W(LAG_W), .G_W(G_W), .CA_W(CA_W), .P_W(P_W), .OB_W(OB_W),
@@ -317,7 +320,7 @@ module rx_chain #(
         .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
         .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
         .uid_mask(uid_mask), .out_bits(c_out_bits),
-        .raddr(cr_raddr), .rdata(cr_rdata), .last(post_last),
+        .raddr(cr_raddr), .rdata(cr_rdata), .last(post_last), .last_nx(post_last_nx),
         .corr_valid(corr_valid), .corr_index(corr_index), .corr_data(corr_data),
         .res_valid(done), .res_found(res_found), .res_lag(res_lag),
         .res_index(res_index), .res_peak(res_peak), .res_neg(res_neg), .res_nz(res_nz),

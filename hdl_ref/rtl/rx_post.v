@@ -53,6 +53,7 @@ module rx_post #(
     input  wire [CW-1:0]                rdata,
     // outputs
     output wire                         last,       // a channel's final clock
+    output wire                         last_nx,    // `last` in the next clock
     output reg                          corr_valid,
     output reg  [G_W-1:0]               corr_index,
     output reg  signed [OUT_W-1:0]      corr_data,
@@ -100,7 +101,8 @@ module rx_post #(
     wire [P_W-1:0]    q_k_last = peaks - 1'b1;
     wire [MAX_P-1:0]  q_bit    = P_ONE << q_k;
     wire [G_W-1:0]    q_j_last = gate_len - 1'b1;
-    assign last = (state == T_WAIT) && noise && (cnt == 2'd3);
+    assign last    = (state == T_WAIT) && noise && (cnt == 2'd3);
+    assign last_nx = (state == T_WAIT) && noise && (cnt == 2'd2);   // cnt counts up in T_WAIT
 
     // gate indices as RAM addresses (CA_W is G_W + 1 when MAX_G = 2^k - 1)
     wire [G_W+CA_W-1:0] q_jj = {{CA_W{1'b0}}, q_j} + {{(G_W+CA_W-1){1'b0}}, 1'b1};

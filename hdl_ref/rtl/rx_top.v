@@ -695,7 +695,7 @@ module rx_top #(
             fl_ser <= 1'b0;
         end
     end
-    wire              post_last;
+    wire              post_last, post_last_nx;
     wire [CA_W-1:0]   post_raddr;
 
     rx_post #(.MAX_G(MAX_G), .MAX_P(MAX_P), .MAX_UID(MAX_UID), .NGHOST(NGHOST),
@@ -705,7 +705,7 @@ module rx_top #(
         .ns(ns), .gate_start(c_gate_start), .gate_len(c_gate_len), .excl(c_excl),
         .gh_start(c_gh_start), .gh_len(c_gh_len), .peaks(c_peaks), .uid(c_uid),
         .uid_mask(uid_mask), .out_bits(c_out_bits),
-        .raddr(post_raddr), .rdata(cr_rdata), .last(post_last),
+        .raddr(post_raddr), .rdata(cr_rdata), .last(post_last), .last_nx(post_last_nx),
         .corr_valid(corr_valid), .corr_index(corr_index), .corr_data(corr_data),
         .res_valid(res_valid), .res_found(res_found), .res_lag(res_lag),
         .res_index(res_index), .res_peak(res_peak), .res_neg(res_neg), .res_nz(res_nz),
@@ -925,10 +925,16 @@ module rx_top #(
     // is open) and cols_in1 = cols_in + 1 keep adders and the counters' OR off the path
     // from a_take, which reaches s_ready and c_columns only as a select (more_nx).
     // ------------------------------------------------------------------
+    // p_free (proc_buf processed: the last channel's last post-processing clock) is a
+    // register set one clock ahead from rx_post's last_nx; pstate and pk_ch hold until
+    // `last`, so it equals (pstate == P_POST) && post_last && (pk_ch == K_LAST) every clock
+    // and keeps the channel counter's compare off the path into s_ready's next value.
+    reg  p_free;
+    always @(posedge clk)
+        p_free <= !rst && (pstate == P_POST) && post_last_nx && (pk_ch == K_LAST);
     wire t_init = (tstate == T_INIT2);
     wire t_end  = !c_free && cols_out == c_columns;                // T_RUN: the last column is out
     wire a_wrap = a_take && a_s_last && a_c_last && a_p_last && a_r_last;  // a column's last take
-    wire p_free = (pstate == P_POST) && post_last && (pk_ch == K_LAST);    // proc_buf processed
     wire t_load = (tstate == T_IDLE) && start;
     wire s_stop = stop && tstate != T_IDLE;   // take the column begun (if any) to its end, no more
     wire [S_W-1:0]     a_s_nx = (t_init || a_s_last) ? {S_W{1'b0}} : a_s + P_STEP;

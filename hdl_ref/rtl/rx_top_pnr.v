@@ -6,8 +6,9 @@
 // into one 32-bit register by XOR, so no logic of rx_top can be optimised away
 // and the design fits in a package. The ADC stream and the handshakes are real
 // pins, each through a register beside its pad (as an ADC's input registers, or
-// rx_adc_top's FIFO, would feed it), so where the placer puts a pad does not lengthen
-// a path inside rx_top. Resource and clock figures in docs/hdl.md are of this harness; the
+// rx_adc_top's FIFO, would feed it), and so are start, stop and clear_err (as a control
+// block in front of rx_top would drive them), so where the placer puts a pad does not
+// lengthen a path inside rx_top. Resource and clock figures in docs/hdl.md are of this harness; the
 // shift register and the XOR fold add about (config bits) flip-flops and a few
 // hundred LUTs to rx_top itself.
 `default_nettype none
@@ -76,7 +77,11 @@ module rx_top_pnr #(
     reg               in_valid;
     reg [P_IN*ADC_W-1:0] in_data;
     wire              ready, refused;
+    reg               start_q, stop_q, clear_q;
     always @(posedge clk) begin
+        start_q   <= start;
+        stop_q    <= stop;
+        clear_q   <= clear_err;
         in_valid  <= s_valid;
         in_data   <= s_data;
         s_ready   <= ready;
@@ -85,7 +90,7 @@ module rx_top_pnr #(
 
     rx_top #(.K(K), .L(L), .P_IN(P_IN), .MAX_DEG(MAX_DEG), .MAX_S(MAX_S), .MAX_UID(MAX_UID), .MAX_R(MAX_R),
              .MAX_G(MAX_G), .MAX_P(MAX_P), .NGHOST(NGHOST), .ADC_W(ADC_W), .OUT_W(OUT_W)) dut (
-        .clk(clk), .rst(rst), .start(start), .stop(stop), .clear_err(clear_err),
+        .clk(clk), .rst(rst), .start(start_q), .stop(stop_q), .clear_err(clear_q),
         .cfg_columns(cfg[15:0]),
         .cfg_degree(cfg[16 +: DEG_W]),
         .cfg_taps_u(cfg[16 + DEG_W +: MAX_DEG]),
