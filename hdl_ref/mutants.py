@@ -100,6 +100,11 @@ MUTANTS: tuple[Mutant, ...] = (
            "&& !full_nx[acc_buf_nx]",
            "&& !full_nx[acc_buf_nx] && !p_free",
            "sampling resumes one clock after the buffer is freed"),
+    Mutant("buffer-freed-one-clock-late", "rx_top.v",
+           "(pstate == P_POST) && post_last_nx && (pk_ch == K_LAST)",
+           "(pstate == P_POST) && post_last && (pk_ch == K_LAST)",
+           "the early release of a processed buffer (p_free) is set from `last`, not one "
+           "clock ahead of it"),
     Mutant("noise-square-two-bits-short", "rx_post.v",
            "sq4[2*OUT_W-1:0]};",
            "2'b00, sq4[2*OUT_W-3:0]};",

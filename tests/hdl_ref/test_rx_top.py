@@ -593,6 +593,8 @@ SWEEP_MUTANTS = {
     "clear-leaves-refused": ((1, 1, 16), "back-pressure"),
     # the registered s_ready: a buffer freed by the engine is taken one clock late
     "ready-from-current-full": ((1, 1, 16), "back-pressure"),
+    # p_free, set one clock ahead: a late one holds s_ready low one more clock
+    "buffer-freed-one-clock-late": ((1, 1, 16), "back-pressure"),
 }
 _FAST_SWEEP_MUTANTS = ("chip-index-drops-carry", "resume-one-clock-late")
 
