@@ -1,27 +1,18 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
-A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section 2.5)
-is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the COBS code bytes
-too, so a frame's chance to arrive no longer falls with its length. :func:`whiten` makes
-the zero-rich column records look random, so few bytes are one bit error away from 0x00
-(which splits the frame; :class:`~cdma_lidar.protocol.framing.FrameDecoder` joins the
-pieces). ``rs`` cuts the COBS bytes into blocks of 207 (the last one shorter), each
-followed by its 48 parity bytes spread over 55 bytes that are never 0x00::
+docs/protocol.md section 2.5 is the contract. A frame of a FEC session is sent as
+``00 | rs(COBS(whiten(body))) | 00 00``: :func:`whiten` makes the zero-rich column records
+look random (few bytes one bit error away from 0x00, which splits a frame); ``rs`` follows
+every 207 stuffed bytes (the last block shorter) with the block's 48 parity bytes, highest
+degree first, spread 7 bits a byte over 55 bytes ``0x80 | g`` that are never 0x00::
 
-    stuffed  s0 ........ s206 | s207 ...... s413 | s414 .. s(n-1)
     coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-Spreading: the 48 parity bytes, highest degree first, as 384 bits (most significant bit
-of each byte first), cut into 55 groups of 7 bits (the last padded with 1 zero bit); group
-``g`` is sent as ``0x80 | g``. A block corrects any 24 damaged symbols (a damaged spread
-byte damages at most two parity symbols; a bit error rate of 3e-3 damages about 6 of 262
-bytes, more than 24 in under one block in a million). The code is systematic: a receiver
-reads the data bytes alone first (one CRC) and decodes only when they fail. Coded length
-``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes.
-
-Code: narrow-sense RS over GF(2^8), primitive polynomial 0x11D, generator roots alpha^0 ..
-alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding and
-syndromes, which every frame and block pays, are table-driven numpy (tests hold them to
+Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes; a block corrects 24
+damaged symbols. The code is systematic: a receiver reads the data bytes alone first (one
+CRC) and decodes only when they fail. Code: primitive polynomial 0x11D, generator roots
+alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding
+and syndromes, which every frame and block pays, are table-driven numpy (tests hold them to
 ``reedsolo``); a damaged block is corrected by ``reedsolo`` itself.
 """
 

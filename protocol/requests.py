@@ -1,14 +1,13 @@
 """Host requests: the session, each request waited for and sent again, one receive path.
 
 :class:`Requests` owns the port, the receive buffer (a ``FrameDecoder``), the request
-counter ``seq`` and the session: HELLO with this host's nonce, frame limit and flags; with
-a key, the CHALLENGE answered with the HELLO MAC, INFO checked to prove the device holds
-the key, every later frame signed and checked (:mod:`~cdma_lidar.protocol.auth`). It blocks
-only in ``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so
-tests drive it with a fake port whose reads move a fake clock. Each frame is checked
-(session, signature), FRAGMENTs are joined by key in one ``Joiner``, then the message is
-handled; stream frames queue in ``stream``. Retransmission: docs/protocol.md section 6.1;
-a LinkTimeout after the last try carries a ``DIAG_*`` diagnosis (section 6.7) and its hint.
+counter ``seq`` and the session (docs/protocol.md sections 4 and 5: HELLO, with a key its
+challenge-response and signed frames). It blocks only in ``port.read`` (at most
+``port.timeout``) and measures every wait on ``clock``, so tests drive it with a fake port
+whose reads move a fake clock. Each frame is checked (session, signature), FRAGMENTs are
+joined by key in one ``Joiner``, then the message is handled; stream frames queue in
+``stream``. Retransmission: section 6.1; a LinkTimeout after the last try carries a
+``DIAG_*`` diagnosis (section 6.7) and its hint.
 """
 
 from __future__ import annotations
