@@ -321,8 +321,8 @@ class DeviceEndpoint:
             # the NAK payload are laid out alike in every version.
             reply = self.tx.nak(frame, ErrorCode.VERSION, "version",
                                 f"device speaks protocol version {PROTOCOL_VERSION}", False)
-            self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
-                        coded=frame.fec, version=frame.version)
+            self.tx.send(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
+                         coded=frame.fec, version=frame.version)
             return
         self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))

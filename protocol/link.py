@@ -23,7 +23,6 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import frame_size
 from cdma_lidar.protocol.messages import (
-    FRAGMENT_HEADER,
     MAX_PIECES,
     CaptureKind,
     ErrorCode,
@@ -31,6 +30,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     State,
     Status,
+    piece_room,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
@@ -150,8 +150,7 @@ class HostLink(Requests):
         self._need_info()  # the size of a piece depends on the session's max frame
         m = power_codes(matrix)
         rows, cols = m.shape
-        signed = self.signer is not None
-        room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, signed)) - 8) // 2
+        room = (MAX_PIECES * piece_room(self.max_frame, self.signer is not None) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):

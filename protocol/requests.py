@@ -41,7 +41,6 @@ from cdma_lidar.protocol.framing import (
     frame_size,
 )
 from cdma_lidar.protocol.messages import (
-    FRAGMENT_HEADER,
     REPLY_TO,
     SCHEMA_CRC,
     Auth,
@@ -55,6 +54,7 @@ from cdma_lidar.protocol.messages import (
     decode_payload,
     encode_payload,
     kind_of,
+    piece_room,
     split_message,
 )
 from cdma_lidar.protocol.ports import byte_time_s, default_fec, port_name
@@ -396,10 +396,9 @@ class Requests:
         signed = self.signer is not None
         pieces = [(msg_type, payload)]
         if frame_size(len(payload), signed) > self.max_frame:
-            room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
             try:
-                pieces = [(MsgType.FRAGMENT, p)
-                          for p in split_message(msg_type, payload, room, seq)]
+                pieces = [(MsgType.FRAGMENT, p) for p in split_message(
+                    msg_type, payload, piece_room(self.max_frame, signed), seq)]
             except DeviceError as exc:
                 raise FieldError(str(exc), "payload") from None
         wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self.signer,

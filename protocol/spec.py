@@ -38,6 +38,7 @@ from cdma_lidar.protocol.messages import (
     MsgKind,
     MsgType,
     encode_payload,
+    piece_room,
     split_message,
 )
 from cdma_lidar.protocol.schema import Field
@@ -241,7 +242,7 @@ def vectors() -> str:
     power = encode_payload(MsgType.POWER_SET, {
         "channel_start": 0, "column_start": 0, "channels": 1, "columns": 120,
         "power": np.arange(120, dtype=np.uint16) * 500})
-    room = 256 - framing.frame_size(FRAGMENT_HEADER)
+    room = piece_room(256, False)
     pieces = [framing.encode_frame(int(MsgType.FRAGMENT), p, 0x0102, session)
               for p in split_message(MsgType.POWER_SET, power, room, 0x0102)]
     nak = encode_payload(MsgType.NAK, {"request_type": int(MsgType.STATUS_GET),
