@@ -1,10 +1,9 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-A scan yields columns in order, each once, and asks again (RESEND) for missing ones as soon
-as a later column, a HEARTBEAT or SCAN_END shows they were sent; after ``timeout_s`` of
-silence it asks STATUS how far the device got. It fails with LinkTimeout after
-``column_retries`` fruitless RESENDs of one column, with :class:`ScanStalled` when the
-device stays alive but nothing moves.
+A scan repairs gaps as docs/protocol.md section 6.2 says (RESEND at once, STATUS after
+``timeout_s`` of silence); it fails with LinkTimeout after ``column_retries`` fruitless
+RESENDs of one column, with :class:`ScanStalled` when the device stays alive but nothing
+moves.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
 :class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
-docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one scan or
+docs/protocol.md section 6.3 cuts them. :class:`ColumnReassembler` holds one scan or
 calibration stream (no port, no clock: the caller passes ``now``). ``horizon``: every
 column below it was sent whole; ``edge`` = (column, k): fragments below k of that column
 were sent too (moved by a later column or fragment, a HEARTBEAT's ``next_column``,

@@ -203,7 +203,6 @@ class Requests:
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self.joiner = Joiner()
-        self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
         self.streaming = False
         self.stream: deque[Frame] = deque()  # stream frames for the reassembler
@@ -233,11 +232,7 @@ class Requests:
         fields_ = {"host_max_frame": self._host_max, "flags": flags, "host_nonce": self._nonce,
                    "device_nonce": bytes(auth.NONCE_BYTES), "mac": bytes(auth.MAC_BYTES)}
         for _ in range(2):
-            self._hello_seq = self.new_seq()
-            try:
-                reply = self.transact(MsgType.HELLO, fields_, self._hello_seq)
-            finally:
-                self._hello_seq = None
+            reply = self.transact(MsgType.HELLO, fields_, self.new_seq())
             if self.reply is not None and self.reply.msg_type == MsgType.INFO:
                 return self._open(reply, bytes(fields_["device_nonce"]))
             if self.key is None:
@@ -482,7 +477,8 @@ class Requests:
                 and (body := self._decoded(frame)) is None:
             return
         seq, what = (body["seq"], body["msg_type"]) if body else (frame.seq, mtype)
-        if seq == self._hello_seq and what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
+        if seq == self._pending and self._pending_type == MsgType.HELLO and \
+                what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
             pass
         elif mtype == MsgType.LINE_ERROR and self.verifier is None:
             self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session

@@ -1,10 +1,10 @@
 """Device transmit queue: three priority classes, FRAGMENTs, signing at send time.
 
-Frames of one connection wait first-in first-out in three classes, sent in this order:
-replies and notices (:data:`CONTROL`), retransmitted columns (:data:`REPAIR`), new columns
-and SCAN_END (:data:`FRESH`). At 921600 baud a 1.6 kB column takes 18 ms, so a reply or a
-repair waits at most for the frame on the wire. Frames are encoded and signed as they
-leave, so signature counters rise in wire order. The connection's loop is the only writer.
+Frames of one connection wait first-in first-out in three classes, sent in this order
+(docs/protocol.md section 6.2, transmit order): replies and notices (:data:`CONTROL`),
+retransmitted columns (:data:`REPAIR`), new columns and SCAN_END (:data:`FRESH`). Frames
+are encoded and signed as they leave, so signature counters rise in wire order. The
+connection's loop is the only writer.
 """
 
 from __future__ import annotations
