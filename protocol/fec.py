@@ -11,9 +11,9 @@ degree first, spread 7 bits a byte over 55 bytes ``0x80 | g`` that are never 0x0
 Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes; a block corrects 24
 damaged symbols. The code is systematic: a receiver reads the data bytes alone first (one
 CRC) and decodes only when they fail. Code: primitive polynomial 0x11D, generator roots
-alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding
-and syndromes, which every frame and block pays, are table-driven numpy (tests hold them to
-``reedsolo``); a damaged block is corrected by ``reedsolo`` itself.
+alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
+syndromes, the Chien search and Forney's formula are table-driven numpy (tests hold them to
+``reedsolo``); the error locator is ``reedsolo``'s Berlekamp-Massey.
 """
 
 from __future__ import annotations
@@ -65,10 +65,13 @@ def whiten(data: bytes) -> bytes:
 
 
 _EXP = np.array(reedsolo.gf_exp[:255], np.uint8)  # 2^i, poly 0x11D
-_LOG = np.array(reedsolo.gf_log[:256], np.int64)
-#: GF(2^8) products: ``_MUL[a, b] = a * b``.
+_LOG = np.array(reedsolo.gf_log[:256], np.int16)  # narrow: the Chien search holds
+# (blocks, 25, 255) of them (7 MB, not 27, for 64 kB with every block damaged)
+_EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
+#: GF(2^8) products: ``_MUL[a, b] = a * b`` (``_GMUL[a][b]`` as lists, for scalars).
 _MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255]
 _MUL[0, :] = _MUL[:, 0] = 0
+_GMUL = _MUL.tolist()
 #: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
 #: syndrome j (the block polynomial at the root 2^j).
 _POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
@@ -163,34 +166,59 @@ def strip(coded: bytes) -> bytes:
     return b"".join(d.tobytes() for d in _cut(coded)[0])
 
 
-def _syndromes(rows: np.ndarray) -> np.ndarray:
-    """(blocks, NSYM) syndromes of (blocks, BLOCK) rows: syndrome j of a block is the block
-    polynomial at the root 2^j (all zero: a codeword)."""
-    return np.bitwise_xor.reduce(_by_byte()[0][np.arange(BLOCK), rows], axis=1)
+def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> None:
+    """Correct the blocks ``bad`` of ``rows`` (one block a row, the last one ``last``
+    symbols long, right-aligned after zeros) in place from their syndromes ``syn``: the
+    roots of every locator at once (Chien search in tables: Lambda(2^-e) for every e),
+    the error values by Forney (first consecutive root 1: ``Y = X Omega(1/X) /
+    Lambda'(1/X)``). ReedSolomonError naming a block with more than 24 damaged symbols
+    (roots not as many as its locator's degree)."""
+    lams = [reedsolo.rs_find_error_locator(syn[b].tolist(), NSYM)[::-1]  # lowest degree first
+            for b in bad]
+    width = max(map(len, lams))
+    lam = np.zeros((len(bad), width), np.uint8)
+    for k, coef in enumerate(lams):
+        lam[k, :len(coef)] = coef
+    powers = (np.arange(width)[:, None] * np.arange(BLOCK)).astype(np.int16)  # i * e
+    terms = np.where(lam[:, :, None] > 0, _EXP[(_LOG[lam][:, :, None] - powers) % 255], 0)
+    found = np.bitwise_xor.reduce(terms, axis=1) == 0
+    for k, b in enumerate(bad):
+        s_b, coef, deg = syn[b].tolist(), lams[k], len(lams[k]) - 1
+        roots = np.flatnonzero(found[k, :last if b == len(rows) - 1 else BLOCK]).tolist()
+        if deg == 0 or len(roots) != deg:
+            raise reedsolo.ReedSolomonError(f"block {b}: {len(roots)} error positions for a "
+                                            f"locator of degree {deg}")
+        omega = [0] * deg  # S(x) Lambda(x) mod x^deg, lowest degree first
+        for i in range(deg):
+            for j in range(i + 1):
+                omega[i] ^= _GMUL[s_b[i - j]][coef[j]]
+        for r in roots:
+            xinv = _EXP_LIST[(255 - r) % 255]  # 1/X, X = 2^r
+            num = den = 0
+            for c in reversed(omega):  # Horner: Omega(1/X)
+                num = _GMUL[num][xinv] ^ c
+            for c in reversed(coef[1::2]):  # Lambda'(1/X): the odd terms, one degree down
+                den = _GMUL[den][_GMUL[xinv][xinv]] ^ c
+            if den == 0:
+                raise reedsolo.ReedSolomonError(f"block {b}: Forney: zero derivative")
+            y = _GMUL[_EXP_LIST[r]][_GMUL[num][_EXP_LIST[(255 - _LOG_LIST[den]) % 255]]]
+            rows[b, BLOCK - 1 - r] ^= y
 
 
 def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
-    cannot. A block whose syndromes are not all zero is corrected as ``reedsolo``'s
-    ``rs_correct_msg`` does (Berlekamp-Massey, Chien search over the block's own length,
-    Forney) and must then have zero syndromes: more than 24 damaged symbols fail here, or
-    are miscorrected and then fail the frame's CRC."""
+    cannot. A block with more than 24 damaged symbols fails in :func:`_correct`, or is
+    miscorrected and then fails the frame's CRC."""
     data, spread = _cut(coded)
     parity = _unspread(spread)
     last = data[-1].size + NSYM
     rows = _blocks(np.concatenate([np.concatenate([d, p]) for d, p in
                                    zip(data, parity, strict=True)]), BLOCK)
-    syn = _syndromes(rows)
-    bad = np.flatnonzero(syn.any(axis=1))
-    try:
-        for b in bad.tolist():
-            block = rows[b, BLOCK - last:] if b == len(rows) - 1 else rows[b]  # a view
-            loc = reedsolo.rs_find_error_locator(syn[b].tolist(), NSYM)
-            pos = reedsolo.rs_find_errors(loc[::-1], block.size)
-            block[:] = np.frombuffer(reedsolo.rs_correct_errata(
-                block.tobytes(), [0, *syn[b].tolist()], pos), np.uint8)
-    except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
-        raise FrameError(f"fec: {exc}") from None
-    if bad.size and _syndromes(rows[bad]).any():
-        raise FrameError("fec: a block has more damaged symbols than the code corrects")
+    # Syndrome j of a block: the block polynomial at the root 2^j (all zero: a codeword).
+    syn = np.bitwise_xor.reduce(_by_byte()[0][np.arange(BLOCK), rows], axis=1)
+    if (bad := np.flatnonzero(syn.any(axis=1)).tolist()):
+        try:
+            _correct(rows, bad, syn, last)
+        except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
+            raise FrameError(f"fec: {exc}") from None
     return rows[:-1, :DATA].tobytes() + rows[-1, BLOCK - last:-NSYM].tobytes()
