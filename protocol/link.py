@@ -274,7 +274,7 @@ class HostLink(Requests):
         while not asm.done:
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
-                alive = asm.feed(self.stream.popleft()) or alive
+                alive = asm.feed(*self.stream.popleft()) or alive
             self.stats.duplicates += asm.duplicates
             self.stats.malformed += asm.malformed
             asm.duplicates = asm.malformed = 0

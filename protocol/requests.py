@@ -205,7 +205,7 @@ class Requests:
         self.joiner = Joiner()
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
         self.streaming = False
-        self.stream: deque[Frame] = deque()  # stream frames for the reassembler
+        self.stream: deque[tuple[Frame, Any]] = deque()  # (frame, decoded) for the reassembler
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
@@ -472,9 +472,8 @@ class Requests:
         if kind_of(mtype) is MsgKind.REQUEST:
             self.stats.ignored += 1
             return
-        body = None  # a FRAGMENT's fields (msg_type comes first; a column's: the stream's)
-        if mtype == MsgType.FRAGMENT and frame.payload[:1] != bytes([MsgType.COLUMN_RESULT]) \
-                and (body := self._decoded(frame)) is None:
+        body = None  # a FRAGMENT's fields (the whole message's type and seq first)
+        if mtype == MsgType.FRAGMENT and (body := self._decoded(frame)) is None:
             return
         seq, what = (body["seq"], body["msg_type"]) if body else (frame.seq, mtype)
         if seq == self._pending and self._pending_type == MsgType.HELLO and \
@@ -495,14 +494,16 @@ class Requests:
             log.debug("dropped an unauthenticated %#04x frame", mtype)
             return
         parts: list[Frame] = []
-        if body is not None:
+        # A column's pieces go to the stream one by one: its reassembler joins them.
+        if body is not None and body["msg_type"] != MsgType.COLUMN_RESULT:
             if (whole := self.joiner.add(frame, body)) is None:
                 return
-            frame, parts = whole
-        self._dispatch(frame, parts)
+            (frame, parts), body = whole, None
+        self._dispatch(frame, parts, body)
 
-    def _dispatch(self, frame: Frame, parts: list[Frame]) -> None:
-        """A whole message, checked; ``parts``: the FRAGMENTs it came in."""
+    def _dispatch(self, frame: Frame, parts: list[Frame], body: Any) -> None:
+        """A whole message (or a column's FRAGMENT), checked; ``parts``: the FRAGMENTs it
+        came in; ``body``: its decoded payload if known."""
         mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
@@ -511,16 +512,18 @@ class Requests:
             raise session_lost(frame, self.port_name)
         elif kind_of(mtype) is MsgKind.REPLY:
             self._on_reply(frame, parts)
-        elif mtype != MsgType.HEARTBEAT or (body := self._decoded(frame)) is not None:
+        elif self.streaming or mtype == MsgType.HEARTBEAT:
+            if body is None and (body := self._decoded(frame)) is None:
+                return
             if mtype == MsgType.HEARTBEAT:
                 self.last_status = Status(**body)
             if self.streaming:
-                self.stream.append(frame)
+                self.stream.append((frame, body))
 
-    def _decoded(self, frame: Frame) -> dict[str, Any] | None:
-        """The decoded payload of a FRAGMENT or HEARTBEAT; None (counted) if malformed."""
+    def _decoded(self, frame: Frame) -> Any:
+        """The decoded payload of a stream frame or FRAGMENT; None (counted) if malformed."""
         try:
-            return decode_payload(frame.msg_type, frame.payload)  # type: ignore[return-value]
+            return decode_payload(frame.msg_type, frame.payload)
         except FrameError:  # dropped
             self.stats.malformed += 1
             return None
