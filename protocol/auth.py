@@ -1,13 +1,10 @@
 """Access control: the shared key, HELLO's challenge-response and per-session frame signing.
 
-docs/protocol.md section 5 is the contract. A device reachable over a network holds a
-32-byte key (a file, mode 0600: :func:`load_or_create_key`); a host must hold the same
-key, which never travels. HELLO proves it with HMAC-SHA256 both ways
-(:func:`hello_mac`, :func:`device_mac`); both sides then derive one key per direction
-(:func:`session_keys`) and sign every later frame: a u64 counter, strictly increasing
-per direction, and the first 16 bytes of HMAC(direction key, header | payload |
-counter) between payload and CRC (:class:`FrameSigner`, :class:`FrameVerifier`). A
-retransmission is signed afresh, so the replay cache still recognises it.
+docs/protocol.md section 5 is the contract: a 32-byte key in a file of mode 0600
+(:func:`load_or_create_key`), HELLO proved with HMAC-SHA256 both ways (:func:`hello_mac`,
+:func:`device_mac`), one key per direction (:func:`session_keys`), and every later frame
+signed with a u64 counter and a 16-byte truncated MAC (:class:`FrameSigner`,
+:class:`FrameVerifier`); :class:`Backoff` slows a guesser, never the key holder.
 """
 
 from __future__ import annotations

@@ -1,15 +1,12 @@
 """Device sessions: who owns the device, HELLO (with its challenge-response), take-over.
 
-One device may be reached over several connections at once (the TCP server gives each
-its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`); they share one
-:class:`DeviceCore`, which knows whose :class:`DeviceSession` owns the device and the
-boot configuration a new session starts from. HELLO opens a session (docs/protocol.md,
-Sessions and Access control): another host gets NAK BUSY unless it takes over or the
-session expired, and the old owner then gets SESSION_LOST. Each connection's loop
-changes only its own session: a HELLO that takes the device marks the old owner
-:attr:`DeviceSession.lost`, whose loop ends its session at its next poll, and the
-HELLO is answered once it has. A handler is ``(request, fields) -> Reply``; it refuses
-by returning a NAK or raising ``ConfigError`` / ``DeviceError`` (answered NAK).
+docs/protocol.md sections 4 and 5 are the contract. The connections to one device (the TCP
+server gives each its own :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`) share one
+:class:`DeviceCore`: whose :class:`DeviceSession` owns the device, and the boot configuration
+a new session starts from. Each connection's loop changes only its own session: a HELLO that
+takes the device marks the old owner :attr:`DeviceSession.lost`, whose loop ends its session
+at its next poll, and the HELLO is answered once it has. A handler is ``(request, fields) ->
+Reply``; it refuses by returning a NAK or raising ``ConfigError`` / ``DeviceError``.
 """
 
 from __future__ import annotations

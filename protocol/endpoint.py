@@ -2,7 +2,7 @@
 :class:`DeviceApp` (e.g. ``cdma_lidar.virtual.board``), which only answers decoded
 requests and produces columns.
 
-What a request goes through (docs/protocol.md, Device behaviour)::
+What a request goes through (docs/protocol.md, sections 2.3, 4, 5 and 6.1)::
 
     port bytes -> FrameDecoder -> damaged chunk? --> LINE_ERROR at once
     request -> session ok? --no--> NAK WRONG_SESSION (HELLO always passes)
@@ -12,12 +12,9 @@ What a request goes through (docs/protocol.md, Device behaviour)::
             -> needs the application while the engine computes? --yes--> held (in order)
             -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
 
-One loop per connection (:meth:`DeviceEndpoint.poll`, run by
-:meth:`~DeviceEndpoint.serve_forever` in a thread behind any port-like object) does all
-of it and never waits for the application: the device's
-:class:`~cdma_lidar.protocol.streams.Engine` computes the columns one step at a time while
-the loop answers from its state, holds requests that need the application until the
-column in progress is done and sends a HEARTBEAT every ``heartbeat_s / 2`` in a stream.
+One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits for
+the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes the
+columns one step at a time while the loop answers from its state.
 """
 
 from __future__ import annotations
@@ -324,8 +321,8 @@ class DeviceEndpoint:
             # the NAK payload are laid out alike in every version.
             reply = self.tx.nak(frame, ErrorCode.VERSION, "version",
                                 f"device speaks protocol version {PROTOCOL_VERSION}", False)
-            self.tx.put(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
-                        coded=frame.fec, version=frame.version)
+            self.tx.send(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
+                         coded=frame.fec, version=frame.version)
             return
         self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
                                           f"unknown incompat flags 0x{frame.incompat:02x}", False))

@@ -1,28 +1,19 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
-A frame of a session that negotiated FEC (HELLO flag FEC, docs/protocol.md section 2.5)
-is sent as ``00 | rs(COBS(whiten(body))) | 00 00``: the code covers the COBS code bytes
-too, so a frame's chance to arrive no longer falls with its length. :func:`whiten` makes
-the zero-rich column records look random, so few bytes are one bit error away from 0x00
-(which splits the frame; :class:`~cdma_lidar.protocol.framing.FrameDecoder` joins the
-pieces). ``rs`` cuts the COBS bytes into blocks of 207 (the last one shorter), each
-followed by its 48 parity bytes spread over 55 bytes that are never 0x00::
+docs/protocol.md section 2.5 is the contract. A frame of a FEC session is sent as
+``00 | rs(COBS(whiten(body))) | 00 00``: :func:`whiten` makes the zero-rich column records
+look random (few bytes one bit error away from 0x00, which splits a frame); ``rs`` follows
+every 207 stuffed bytes (the last block shorter) with the block's 48 parity bytes, highest
+degree first, spread 7 bits a byte over 55 bytes ``0x80 | g`` that are never 0x00::
 
-    stuffed  s0 ........ s206 | s207 ...... s413 | s414 .. s(n-1)
     coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-Spreading: the 48 parity bytes, highest degree first, as 384 bits (most significant bit
-of each byte first), cut into 55 groups of 7 bits (the last padded with 1 zero bit); group
-``g`` is sent as ``0x80 | g``. A block corrects any 24 damaged symbols (a damaged spread
-byte damages at most two parity symbols; a bit error rate of 3e-3 damages about 6 of 262
-bytes, more than 24 in under one block in a million). The code is systematic: a receiver
-reads the data bytes alone first (one CRC) and decodes only when they fail. Coded length
-``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes.
-
-Code: narrow-sense RS over GF(2^8), primitive polynomial 0x11D, generator roots alpha^0 ..
-alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
-syndromes, Chien search and Forney's formula are table-driven numpy (tests hold them to
-``reedsolo``); the error locator is Berlekamp-Massey on log tables.
+Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes; a block corrects 24
+damaged symbols. The code is systematic: a receiver reads the data bytes alone first (one
+CRC) and decodes only when they fail. Code: primitive polynomial 0x11D, generator roots
+alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
+syndromes, the Chien search and Forney's formula are table-driven numpy (tests hold them to
+``reedsolo``); the error locator is ``reedsolo``'s Berlekamp-Massey.
 """
 
 from __future__ import annotations
@@ -175,34 +166,6 @@ def strip(coded: bytes) -> bytes:
     return b"".join(d.tobytes() for d in _cut(coded)[0])
 
 
-def _locator(syn: list[int]) -> list[int]:
-    """The error locator Lambda (highest degree first, no leading zero) of syndromes
-    ``S_0 .. S_47``: Berlekamp-Massey in tables, a third of the cost of ``reedsolo``'s
-    ``rs_find_error_locator`` (a test holds the two equal). ReedSolomonError above 24."""
-    c, b, big_l, m, last = [1], [1], 0, 1, 1  # Lambda, previous Lambda, L, shift, its d
-    for n, d in enumerate(syn):
-        for i in range(1, min(big_l, len(c) - 1) + 1):
-            d ^= _GMUL[c[i]][syn[n - i]]
-        if d == 0:
-            m += 1
-            continue
-        q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
-        new = c + [0] * max(0, len(b) + m - len(c))
-        for i, bi in enumerate(b):
-            new[i + m] ^= _GMUL[bi][q]
-        if 2 * big_l <= n:
-            big_l, b, last, m = n + 1 - big_l, c, d, 1
-        else:
-            m += 1
-        c = new
-    loc = c[:big_l + 1][::-1]
-    while loc and loc[0] == 0:
-        loc = loc[1:]
-    if len(loc) - 1 > NSYM // 2:
-        raise reedsolo.ReedSolomonError("Too many errors to correct")
-    return loc
-
-
 def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> None:
     """Correct the blocks ``bad`` of ``rows`` (one block a row, the last one ``last``
     symbols long, right-aligned after zeros) in place from their syndromes ``syn``: the
@@ -210,7 +173,8 @@ def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> No
     the error values by Forney (first consecutive root 1: ``Y = X Omega(1/X) /
     Lambda'(1/X)``). ReedSolomonError naming a block with more than 24 damaged symbols
     (roots not as many as its locator's degree)."""
-    lams = [_locator(syn[b].tolist())[::-1] for b in bad]  # Lambda, lowest degree first
+    lams = [reedsolo.rs_find_error_locator(syn[b].tolist(), NSYM)[::-1]  # lowest degree first
+            for b in bad]
     width = max(map(len, lams))
     lam = np.zeros((len(bad), width), np.uint8)
     for k, coef in enumerate(lams):

@@ -1,23 +1,15 @@
 """Frame layer: header, CRC-32 and COBS with 0x00 delimiters; a stream decoder that never raises.
 
-One frame on the wire (docs/protocol.md section 2; the header is :data:`HEADER_FIELDS`,
-frozen in every protocol version)::
+One frame on the wire (docs/protocol.md section 2: COBS, the header :data:`HEADER_FIELDS`,
+frozen in every version, the CRC and the acceptance rules)::
 
     00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
-COBS (Consistent Overhead Byte Stuffing, Cheshire and Baker 1999) removes every 0x00, so
-0x00 delimits frames: the data is cut at each zero into blocks, each sent as one code
-byte (block length + 1) and its non-zero bytes, the zero implied; a run of 254 non-zero
-bytes is code 0xFF and implies no zero; the last block's implied zero is dropped::
-
-    11 22 00 33 -> 03 11 22 02 33     00 -> 01 01     (empty) -> 01
-    254 x non-zero -> FF <254 bytes>
-
-The signature is there when incompat bit 0 (INCOMPAT_SIGNED) is set
-(:mod:`cdma_lidar.protocol.auth`). crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header,
-payload and signature, little-endian. A session with FEC Reed-Solomon codes the body
-around COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
-stream into :class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
+The signature (:mod:`cdma_lidar.protocol.auth`) is there when incompat bit 0
+(INCOMPAT_SIGNED) is set. crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header, payload and
+signature, little-endian. A FEC session codes the body around COBS
+(:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte stream into
+:class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
 """
 
 from __future__ import annotations

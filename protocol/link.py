@@ -1,10 +1,9 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-A scan yields columns in order, each once, and asks again (RESEND) for missing ones as soon
-as a later column, a HEARTBEAT or SCAN_END shows they were sent; after ``timeout_s`` of
-silence it asks STATUS how far the device got. It fails with LinkTimeout after
-``column_retries`` fruitless RESENDs of one column, with :class:`ScanStalled` when the
-device stays alive but nothing moves.
+A scan repairs gaps as docs/protocol.md section 6.2 says (RESEND at once, STATUS after
+``timeout_s`` of silence); it fails with LinkTimeout after ``column_retries`` fruitless
+RESENDs of one column, with :class:`ScanStalled` when the device stays alive but nothing
+moves.
 """
 
 from __future__ import annotations
@@ -23,7 +22,6 @@ from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import frame_size
 from cdma_lidar.protocol.messages import (
-    FRAGMENT_HEADER,
     MAX_PIECES,
     CaptureKind,
     ErrorCode,
@@ -31,6 +29,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     State,
     Status,
+    piece_room,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
@@ -150,8 +149,7 @@ class HostLink(Requests):
         self._need_info()  # the size of a piece depends on the session's max frame
         m = power_codes(matrix)
         rows, cols = m.shape
-        signed = self.signer is not None
-        room = (MAX_PIECES * (self.max_frame - frame_size(FRAGMENT_HEADER, signed)) - 8) // 2
+        room = (MAX_PIECES * piece_room(self.max_frame, self.signer is not None) - 8) // 2
         step_c = min(cols, room)
         step_r = max(1, min(rows, room // step_c))
         for r0 in range(0, rows, step_r):
@@ -276,7 +274,7 @@ class HostLink(Requests):
         while not asm.done:
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
-                alive = asm.feed(self.stream.popleft()) or alive
+                alive = asm.feed(*self.stream.popleft()) or alive
             self.stats.duplicates += asm.duplicates
             self.stats.malformed += asm.malformed
             asm.duplicates = asm.malformed = 0

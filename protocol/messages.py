@@ -32,14 +32,14 @@ from cdma_lidar.protocol.columns import (
     record_dtype,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
-from cdma_lidar.protocol.framing import PROTOCOL_VERSION
+from cdma_lidar.protocol.framing import PROTOCOL_VERSION, frame_size
 from cdma_lidar.protocol.schema import Field, Layout, array, i, nbytes, text, u, wire, wire_fields
 
 __all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO", "SCHEMA_CRC",
            "TEMPERATURE_UNKNOWN", "TILT_AUTO", "Auth", "CaptureKind", "ErrorCode", "HelloFlags",
            "Info", "MessageSpec", "MsgKind", "MsgType", "ScanEndReason",
            "SessionLostReason", "State", "Status", "decode_payload", "encode_payload",
-           "head_size", "kind_of", "split_message", "type_name"]
+           "head_size", "kind_of", "piece_room", "split_message", "type_name"]
 
 
 class MsgKind(enum.Enum):
@@ -526,6 +526,12 @@ def head_size(msg_type: MsgType) -> int:
 FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
 #: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
 MAX_PIECES = 254
+
+
+def piece_room(max_frame: int, signed: bool) -> int:
+    """Data bytes of one FRAGMENT in a frame of ``max_frame`` bytes (docs/protocol.md
+    section 6.3: ``max_frame - FRAGMENT_OVERHEAD``, less SIGNATURE_SIZE when signed)."""
+    return max_frame - frame_size(FRAGMENT_HEADER, signed)
 
 
 def split_message(msg_type: int, payload: bytes, room: int, seq: int = 0,

@@ -1,7 +1,7 @@
 """Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
 :class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
-docs/protocol.md section 2.4 cuts them. :class:`ColumnReassembler` holds one scan or
+docs/protocol.md section 6.3 cuts them. :class:`ColumnReassembler` holds one scan or
 calibration stream (no port, no clock: the caller passes ``now``). ``horizon``: every
 column below it was sent whole; ``edge`` = (column, k): fragments below k of that column
 were sent too (moved by a later column or fragment, a HEARTBEAT's ``next_column``,
@@ -19,7 +19,7 @@ from typing import Any
 from cdma_lidar.errors import DeviceError, FrameError
 from cdma_lidar.protocol.columns import ColumnResult, decode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
-from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason, decode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, ScanEndReason
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied
 
 __all__ = ["ColumnReassembler", "Joiner", "Pieces", "StreamEnded", "early_end"]
@@ -139,15 +139,10 @@ class ColumnReassembler:
     def _pieces(self, column: int) -> Pieces | None:
         return self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, column))
 
-    def feed(self, frame: Frame) -> bool:
-        """One COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END; True when of this stream
-        (a sign of life)."""
+    def feed(self, frame: Frame, item: Any) -> bool:
+        """One COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END and its decoded payload
+        ``item``; True when of this stream (a sign of life)."""
         mtype = frame.msg_type
-        try:
-            item: Any = decode_payload(mtype, frame.payload)
-        except FrameError:
-            self.malformed += 1
-            return False
         if frame.compat & COMPAT_RETRANSMIT and not self._asked_for(item):
             self.duplicates += 1  # a repair this stream did not ask for: a late one
             return False

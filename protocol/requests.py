@@ -1,14 +1,13 @@
 """Host requests: the session, each request waited for and sent again, one receive path.
 
 :class:`Requests` owns the port, the receive buffer (a ``FrameDecoder``), the request
-counter ``seq`` and the session: HELLO with this host's nonce, frame limit and flags; with
-a key, the CHALLENGE answered with the HELLO MAC, INFO checked to prove the device holds
-the key, every later frame signed and checked (:mod:`~cdma_lidar.protocol.auth`). It blocks
-only in ``port.read`` (at most ``port.timeout``) and measures every wait on ``clock``, so
-tests drive it with a fake port whose reads move a fake clock. Each frame is checked
-(session, signature), FRAGMENTs are joined by key in one ``Joiner``, then the message is
-handled; stream frames queue in ``stream``. Retransmission: docs/protocol.md section 6.1;
-a LinkTimeout after the last try carries a ``DIAG_*`` diagnosis (section 6.7) and its hint.
+counter ``seq`` and the session (docs/protocol.md sections 4 and 5: HELLO, with a key its
+challenge-response and signed frames). It blocks only in ``port.read`` (at most
+``port.timeout``) and measures every wait on ``clock``, so tests drive it with a fake port
+whose reads move a fake clock. Each frame is checked (session, signature), FRAGMENTs are
+joined by key in one ``Joiner``, then the message is handled; stream frames queue in
+``stream``. Retransmission: section 6.1; a LinkTimeout after the last try carries a
+``DIAG_*`` diagnosis (section 6.7) and its hint.
 """
 
 from __future__ import annotations
@@ -42,7 +41,6 @@ from cdma_lidar.protocol.framing import (
     frame_size,
 )
 from cdma_lidar.protocol.messages import (
-    FRAGMENT_HEADER,
     REPLY_TO,
     SCHEMA_CRC,
     Auth,
@@ -56,6 +54,7 @@ from cdma_lidar.protocol.messages import (
     decode_payload,
     encode_payload,
     kind_of,
+    piece_room,
     split_message,
 )
 from cdma_lidar.protocol.ports import byte_time_s, default_fec, port_name
@@ -204,10 +203,9 @@ class Requests:
         self._reply_version: Frame | None = None  # reply to the pending seq we must not read
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self.joiner = Joiner()
-        self._hello_seq: int | None = None  # HELLO pending: its replies open a new session
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
         self.streaming = False
-        self.stream: deque[Frame] = deque()  # stream frames for the reassembler
+        self.stream: deque[tuple[Frame, Any]] = deque()  # (frame, decoded) for the reassembler
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
@@ -234,11 +232,7 @@ class Requests:
         fields_ = {"host_max_frame": self._host_max, "flags": flags, "host_nonce": self._nonce,
                    "device_nonce": bytes(auth.NONCE_BYTES), "mac": bytes(auth.MAC_BYTES)}
         for _ in range(2):
-            self._hello_seq = self.new_seq()
-            try:
-                reply = self.transact(MsgType.HELLO, fields_, self._hello_seq)
-            finally:
-                self._hello_seq = None
+            reply = self.transact(MsgType.HELLO, fields_, self.new_seq())
             if self.reply is not None and self.reply.msg_type == MsgType.INFO:
                 return self._open(reply, bytes(fields_["device_nonce"]))
             if self.key is None:
@@ -397,10 +391,9 @@ class Requests:
         signed = self.signer is not None
         pieces = [(msg_type, payload)]
         if frame_size(len(payload), signed) > self.max_frame:
-            room = self.max_frame - frame_size(FRAGMENT_HEADER, signed)
             try:
-                pieces = [(MsgType.FRAGMENT, p)
-                          for p in split_message(msg_type, payload, room, seq)]
+                pieces = [(MsgType.FRAGMENT, p) for p in split_message(
+                    msg_type, payload, piece_room(self.max_frame, signed), seq)]
             except DeviceError as exc:
                 raise FieldError(str(exc), "payload") from None
         wire = b"".join(encode_frame(t, p, seq, self.session or 0, signer=self.signer,
@@ -479,12 +472,12 @@ class Requests:
         if kind_of(mtype) is MsgKind.REQUEST:
             self.stats.ignored += 1
             return
-        body = None  # a FRAGMENT's fields (msg_type comes first; a column's: the stream's)
-        if mtype == MsgType.FRAGMENT and frame.payload[:1] != bytes([MsgType.COLUMN_RESULT]) \
-                and (body := self._decoded(frame)) is None:
+        body = None  # a FRAGMENT's fields (the whole message's type and seq first)
+        if mtype == MsgType.FRAGMENT and (body := self._decoded(frame)) is None:
             return
         seq, what = (body["seq"], body["msg_type"]) if body else (frame.seq, mtype)
-        if seq == self._hello_seq and what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
+        if seq == self._pending and self._pending_type == MsgType.HELLO and \
+                what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
             pass
         elif mtype == MsgType.LINE_ERROR and self.verifier is None:
             self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
@@ -501,14 +494,16 @@ class Requests:
             log.debug("dropped an unauthenticated %#04x frame", mtype)
             return
         parts: list[Frame] = []
-        if body is not None:
+        # A column's pieces go to the stream one by one: its reassembler joins them.
+        if body is not None and body["msg_type"] != MsgType.COLUMN_RESULT:
             if (whole := self.joiner.add(frame, body)) is None:
                 return
-            frame, parts = whole
-        self._dispatch(frame, parts)
+            (frame, parts), body = whole, None
+        self._dispatch(frame, parts, body)
 
-    def _dispatch(self, frame: Frame, parts: list[Frame]) -> None:
-        """A whole message, checked; ``parts``: the FRAGMENTs it came in."""
+    def _dispatch(self, frame: Frame, parts: list[Frame], body: Any) -> None:
+        """A whole message (or a column's FRAGMENT), checked; ``parts``: the FRAGMENTs it
+        came in; ``body``: its decoded payload if known."""
         mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
@@ -517,16 +512,18 @@ class Requests:
             raise session_lost(frame, self.port_name)
         elif kind_of(mtype) is MsgKind.REPLY:
             self._on_reply(frame, parts)
-        elif mtype != MsgType.HEARTBEAT or (body := self._decoded(frame)) is not None:
+        elif self.streaming or mtype == MsgType.HEARTBEAT:
+            if body is None and (body := self._decoded(frame)) is None:
+                return
             if mtype == MsgType.HEARTBEAT:
                 self.last_status = Status(**body)
             if self.streaming:
-                self.stream.append(frame)
+                self.stream.append((frame, body))
 
-    def _decoded(self, frame: Frame) -> dict[str, Any] | None:
-        """The decoded payload of a FRAGMENT or HEARTBEAT; None (counted) if malformed."""
+    def _decoded(self, frame: Frame) -> Any:
+        """The decoded payload of a stream frame or FRAGMENT; None (counted) if malformed."""
         try:
-            return decode_payload(frame.msg_type, frame.payload)  # type: ignore[return-value]
+            return decode_payload(frame.msg_type, frame.payload)
         except FrameError:  # dropped
             self.stats.malformed += 1
             return None

@@ -38,6 +38,7 @@ from cdma_lidar.protocol.messages import (
     MsgKind,
     MsgType,
     encode_payload,
+    piece_room,
     split_message,
 )
 from cdma_lidar.protocol.schema import Field
@@ -213,13 +214,12 @@ def examples() -> str:
     ]
     out = []
     for title, t, f in cases:
-        payload = encode_payload(t, f)
-        body = framing.HEADER.pack(framing.PROTOCOL_VERSION, 0, 0, int(t), 0x0102,
-                                   len(payload), 0xA1B2C3D4) + payload
-        crc = framing.crc32(body)
-        wire = framing.encode_frame(int(t), payload, 0x0102, 0xA1B2C3D4)
-        out.append(f"{title}:\n\n```text\nframe  {body.hex(' ')} | crc {crc:08x} (LE "
-                   f"{crc.to_bytes(4, 'little').hex(' ')})\nwire   {wire.hex(' ')}\n```")
+        wire = framing.encode_frame(int(t), encode_payload(t, f), 0x0102, 0xA1B2C3D4)
+        body = framing.cobs_decode(wire[1:-1])  # header, payload, CRC (little-endian)
+        crc = body[-framing.CRC_SIZE:]
+        out.append(f"{title}:\n\n```text\nframe  {body[:-framing.CRC_SIZE].hex(' ')} | crc "
+                   f"{int.from_bytes(crc, 'little'):08x} (LE {crc.hex(' ')})\nwire   "
+                   f"{wire.hex(' ')}\n```")
     return "\n\n".join(out)
 
 
@@ -232,16 +232,14 @@ def vectors() -> str:
     payload = encode_payload(MsgType.STATUS_GET, {})
     signed = framing.encode_frame(int(MsgType.STATUS_GET), payload, 0x0102, session,
                                   signer=auth.FrameSigner(to_dev))
-    head = framing.HEADER.pack(framing.PROTOCOL_VERSION, framing.INCOMPAT_SIGNED, 0,
-                               int(MsgType.STATUS_GET), 0x0102, 0, session)
-    sig = auth.FrameSigner(to_dev).sign(head)
+    sent = framing.decode_frame(framing.cobs_decode(signed[1:-1]))
     ack = encode_payload(MsgType.ACK, {"request_type": int(MsgType.SCAN_START)})
     coded = framing.encode_frame(int(MsgType.ACK), ack, 0x0102, session, coded=True)
     # A request longer than the frame: POWER_SET of 1 x 120 at max frame 256, in pieces.
     power = encode_payload(MsgType.POWER_SET, {
         "channel_start": 0, "column_start": 0, "channels": 1, "columns": 120,
         "power": np.arange(120, dtype=np.uint16) * 500})
-    room = 256 - framing.frame_size(FRAGMENT_HEADER)
+    room = piece_room(256, False)
     pieces = [framing.encode_frame(int(MsgType.FRAGMENT), p, 0x0102, session)
               for p in split_message(MsgType.POWER_SET, power, room, 0x0102)]
     nak = encode_payload(MsgType.NAK, {"request_type": int(MsgType.STATUS_GET),
@@ -260,8 +258,8 @@ def vectors() -> str:
         f"key to device {to_dev.hex()}",
         f"key to host   {to_host.hex()}",
         f"STATUS_GET seq 0x0102, signed host -> device, counter 1:\n"
-        f"  header  {head.hex(' ')}\n"
-        f"  sig     {sig.hex(' ')}\n"
+        f"  header  {sent.signed_bytes().hex(' ')}\n"
+        f"  sig     {sent.sig.hex(' ')}\n"
         f"  wire    {signed.hex(' ')}",
         f"ACK of SCAN_START, seq 0x0102, FEC-coded (whitened, COBS, then RS parity spread):\n"
         f"  wire    {coded.hex(' ')}",

@@ -1,12 +1,11 @@
 """Device column streams: SCAN_START, CALIBRATE, SCAN_ABORT, RESEND, and the measurement
-engine that computes their columns.
+engine that computes their columns (docs/protocol.md section 6.2).
 
 :class:`Streams` owns one connection's streams: the running one, the ring of recent columns
 (for RESEND) and what STATUS says of the last one. Between its reads the connection's loop
 calls :meth:`Streams.collect` and :meth:`Streams.advance`: once the line has taken a
-stream's last column the :class:`Engine` computes the next, which is kept in the ring and
-queued on the ``Transmitter``, so a stream never runs ahead of the line. The engine also
-ends a stream (closes its generator, ``app.abort()`` if early) after the column in progress.
+stream's last column the :class:`Engine` computes the next, so a stream never runs ahead of
+the line.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """Device transmit queue: three priority classes, FRAGMENTs, signing at send time.
 
-Frames of one connection wait first-in first-out in three classes, sent in this order:
-replies and notices (:data:`CONTROL`), retransmitted columns (:data:`REPAIR`), new columns
-and SCAN_END (:data:`FRESH`). At 921600 baud a 1.6 kB column takes 18 ms, so a reply or a
-repair waits at most for the frame on the wire. Frames are encoded and signed as they
-leave, so signature counters rise in wire order. The connection's loop is the only writer.
+Frames of one connection wait first-in first-out in three classes, sent in this order
+(docs/protocol.md section 6.2, transmit order): replies and notices (:data:`CONTROL`),
+retransmitted columns (:data:`REPAIR`), new columns and SCAN_END (:data:`FRESH`). Frames
+are encoded and signed as they leave, so signature counters rise in wire order. The
+connection's loop is the only writer.
 """
 
 from __future__ import annotations
@@ -25,16 +25,16 @@ from cdma_lidar.protocol.framing import (
     frame_size,
 )
 from cdma_lidar.protocol.messages import (
-    FRAGMENT_HEADER,
     MAX_PIECES,
     ErrorCode,
     MsgType,
     encode_payload,
+    piece_room,
     split_message,
     type_name,
 )
 
-__all__ = ["CONTROL", "FRAGMENT_HEADER", "FRESH", "MAX_PIECES", "REPAIR", "Reply", "Transmitter",
+__all__ = ["CONTROL", "FRESH", "MAX_PIECES", "REPAIR", "Reply", "Transmitter",
            "clip"]
 
 log = logging.getLogger(__name__)
@@ -97,23 +97,6 @@ class Transmitter:
         self.send(CONTROL, reply[0], reply[1], req.seq, coded=self.coded or req.fec,
                   signer=self.signer if reply[2] else None)
 
-    def put(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
-            signer: Any = _SESSION, repair: tuple[int, int, int] | None = None,
-            coded: Any = _SESSION, version: int = PROTOCOL_VERSION) -> None:
-        """Queue one frame of class ``cls`` (REPAIR frames marked retransmitted), unless
-        its ``repair`` = (frame, column, fragment or -1) is queued already: a host that
-        asks again before the first answer reached it costs the line nothing.
-        ``version``: another only for NAK VERSION to an older host."""
-        if repair is not None:
-            if repair in self._repairs:
-                return
-            self._repairs.add(repair)
-        self._q[cls].append((msg_type, repair, seq, partial(
-            encode_frame, msg_type, payload, session=self.session, max_frame=self.max_frame,
-            compat=COMPAT_RETRANSMIT if cls == REPAIR else 0, version=version,
-            signer=self.signer if signer is _SESSION else signer,
-            coded=self.coded if coded is _SESSION else coded)))
-
     def flush(self, budget: int | None = None) -> None:
         """Send the queued frames, highest class first; ``budget``: stop after about this
         many bytes above CONTROL (replies and notices all go), so the loop reads between
@@ -153,33 +136,42 @@ class Transmitter:
 
     def fits(self, payload_len: int) -> bool:
         """A payload (bytes) of this session goes whole or in at most MAX_PIECES FRAGMENTs."""
-        return payload_len <= MAX_PIECES * (self.max_frame - frame_size(
-            FRAGMENT_HEADER, self.signer is not None))
+        return payload_len <= MAX_PIECES * piece_room(self.max_frame, self.signer is not None)
 
     def send(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
              key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: Any = _SESSION,
-             only: Iterable[int] | None = None) -> None:
-        """Queue one message of class ``cls``, whole or in FRAGMENTs of the max frame (the
-        indexes in ``only``; all when it is None or names one beyond the last).
+             only: Iterable[int] | None = None, version: int = PROTOCOL_VERSION) -> None:
+        """Queue one message of class ``cls`` (REPAIR frames marked retransmitted), whole or
+        in FRAGMENTs of the max frame (the indexes in ``only``; all when it is None or names
+        one beyond the last); ``signer`` and ``coded`` default to the session's.
 
         ``seq``: a reply's (the request's); None: a stream frame's (whole: the next stream
         seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT, whose
-        FRAGMENTs name ``key`` = (frame, column)).
+        FRAGMENTs name ``key`` = (frame, column)). A REPAIR frame (frame, column, fragment
+        or -1) already queued is not queued again: a host that asks again before the first
+        answer reached it costs the line nothing. ``version``: another only for NAK VERSION
+        to an older host.
         """
         if msg_type == MsgType.COLUMN_RESULT:
             for c in self.counters:
                 c.columns_sent += 1
         signer = self.signer if signer is _SESSION else signer
-        if frame_size(len(payload), signer is not None) <= self.max_frame:
-            self.put(cls, msg_type, payload, seq, signer=signer, coded=coded,
-                     repair=(*key, -1) if cls == REPAIR else None)
-            return
-        if seq is None and msg_type != MsgType.COLUMN_RESULT:
-            self._notice_id = seq = (self._notice_id + 1) & 0xFFFF
-        room = self.max_frame - frame_size(FRAGMENT_HEADER, signer is not None)
-        pieces = split_message(msg_type, payload, room, seq or 0, key)
-        if only is None or not all(0 <= k < len(pieces) for k in only):
-            only = range(len(pieces))
-        for k in only:
-            self.put(cls, MsgType.FRAGMENT, pieces[k], signer=signer, coded=coded,
-                     repair=(*key, k) if cls == REPAIR else None)
+        frames = [(msg_type, payload, seq, -1)]
+        if frame_size(len(payload), signer is not None) > self.max_frame:
+            if seq is None and msg_type != MsgType.COLUMN_RESULT:
+                self._notice_id = seq = (self._notice_id + 1) & 0xFFFF
+            room = piece_room(self.max_frame, signer is not None)
+            pieces = split_message(msg_type, payload, room, seq or 0, key)
+            if only is None or not all(0 <= k < len(pieces) for k in only):
+                only = range(len(pieces))
+            frames = [(MsgType.FRAGMENT, pieces[k], None, k) for k in only]
+        for mtype, data, fseq, k in frames:
+            repair = (*key, k) if cls == REPAIR else None
+            if repair in self._repairs:
+                continue
+            if repair is not None:
+                self._repairs.add(repair)
+            self._q[cls].append((mtype, repair, fseq, partial(
+                encode_frame, mtype, data, session=self.session, max_frame=self.max_frame,
+                compat=COMPAT_RETRANSMIT if cls == REPAIR else 0, version=version,
+                signer=signer, coded=self.coded if coded is _SESSION else coded)))

@@ -355,3 +355,36 @@ def test_an_unsigned_piece_in_the_session_cannot_replace_part_of_a_signed_reques
         ep.poll()
         assert ep.stats.naks == 1 and app.set_config_calls == 0
         assert link.get_config()["peaks"] == 1
+
+
+def test_a_hello_in_unsigned_pieces_of_the_open_signed_session_is_answered_as_a_whole_one(
+        ) -> None:
+    """HELLO is the one request accepted in any session (docs/protocol.md section 4): one
+    sent in unsigned FRAGMENTs that carry the open signed session's id gets its CHALLENGE,
+    then with the MAC takes the device, as the same HELLO sent whole does (never NAK
+    AUTH_REQUIRED)."""
+    from protocol_fixtures import hello_fields
+
+    from cdma_lidar.protocol.messages import decode_payload, split_message
+
+    rd, link, host, _dev, _app = _rig(KEY, KEY)
+    with rd as ep:
+        sess = link.hello().session_id
+        dec = FrameDecoder()
+
+        def hello(fields: dict, seq: int) -> list[tuple[int, dict]]:
+            payload = encode_payload(MsgType.HELLO, fields)
+            for piece in split_message(MsgType.HELLO, payload, 20, seq):
+                host.write(encode_frame(MsgType.FRAGMENT, piece, seq, sess))
+            ep.poll()
+            return [(f.msg_type, decode_payload(f.msg_type, f.payload))
+                    for f in dec.feed(host.rx.read(1 << 16, 0)) if f.seq == seq]
+
+        fields = hello_fields(7, flags=1)  # take over
+        ((kind, challenge),) = hello(fields, 999)
+        assert kind == MsgType.CHALLENGE
+        fields["device_nonce"] = challenge["device_nonce"]
+        fields["mac"] = auth.hello_mac(KEY, challenge["device_nonce"], fields["host_nonce"],
+                                       fields["flags"], fields["host_max_frame"])
+        ((kind, info),) = hello(fields, 1000)
+        assert kind == MsgType.INFO and info["session_id"] != sess and ep.stats.naks == 0

@@ -155,9 +155,7 @@ def test_a_piece_asked_by_index_is_the_piece_first_sent() -> None:
 
 def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
     ep, port = _device()
-    ep.tx.max_frame, size = 64, ep.tx.max_frame
-    ep.tx.put(CONTROL, MsgType.LINE_ERROR, bytes(300))
-    ep.tx.max_frame = size
+    ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE, seq=0x10000)  # seq is a u16
     ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)
     ep.tx.flush()
     assert [f.msg_type for f in port.frames()] == [MsgType.LINE_ERROR]

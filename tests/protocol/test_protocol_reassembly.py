@@ -6,7 +6,7 @@ from protocol_fixtures import SyntheticApp, expected_column
 
 from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
-from cdma_lidar.protocol.messages import MsgType, ScanEndReason, encode_payload
+from cdma_lidar.protocol.messages import MsgType, ScanEndReason, decode_payload, encode_payload
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
 from cdma_lidar.protocol.trust import ColumnChecker
 
@@ -23,11 +23,13 @@ def _col(c: int):
     return expected_column(9, c, 4, 1, 1)
 
 
-def _frame(mtype: MsgType, item, again: bool = False) -> Frame:
-    """The stream frame carrying ``item`` (a column, a Status or a dict of fields)."""
+def _frame(mtype: MsgType, item, again: bool = False) -> tuple[Frame, object]:
+    """The stream frame carrying ``item`` (a column, a Status or a dict of fields), and its
+    decoded payload (what the host's receive path queues for the reassembler)."""
     fields = item.to_fields() if hasattr(item, "to_fields") else item
-    return Frame(mtype, 0, 1, encode_payload(mtype, fields),
-                 COMPAT_RETRANSMIT if again else 0)
+    payload = encode_payload(mtype, fields)
+    return Frame(mtype, 0, 1, payload, COMPAT_RETRANSMIT if again else 0), \
+        decode_payload(mtype, payload)
 
 
 def _pieces(c: int, count: int = 3) -> list[dict]:
@@ -40,29 +42,29 @@ def _pieces(c: int, count: int = 3) -> list[dict]:
 def test_columns_come_out_in_order_once_and_gaps_are_due_at_once_then_after_resend_s() -> None:
     asm = _asm()
     for c in (0, 2, 3):
-        assert asm.feed(_frame(MsgType.COLUMN_RESULT, _col(c)))
+        assert asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(c)))
     assert [c.column for c in asm.ready()] == [0]
     assert asm.due(10.0) == [1]  # column 2 arrived: 1 was sent and lost
     asm.ask([1], 10.0)
     assert asm.due(10.0 + RESEND_S / 2) == []  # asked, not yet due again
     assert asm.due(10.0 + RESEND_S) == [1]
     assert asm.tries(1) == 1
-    assert asm.feed(_frame(MsgType.COLUMN_RESULT, _col(1), again=True))  # the repair asked for
+    assert asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(1), again=True))  # the repair asked for
     assert [c.column for c in asm.ready()] == [1, 2, 3]
-    asm.feed(_frame(MsgType.COLUMN_RESULT, _col(3)))
+    asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(3)))
     assert asm.duplicates == 1
 
 
 def test_a_missing_fragment_is_asked_for_alone_and_a_late_repair_is_not_taken() -> None:
     asm = _asm()
     p = _pieces(0)
-    asm.feed(_frame(MsgType.FRAGMENT, p[0]))
-    asm.feed(_frame(MsgType.FRAGMENT, p[2]))
+    asm.feed(*_frame(MsgType.FRAGMENT, p[0]))
+    asm.feed(*_frame(MsgType.FRAGMENT, p[2]))
     assert asm.due(0.0) == [(0, 1)]
     # Not asked for: an older scan's.
-    assert not asm.feed(_frame(MsgType.FRAGMENT, p[1], again=True))
+    assert not asm.feed(*_frame(MsgType.FRAGMENT, p[1], again=True))
     asm.ask([(0, 1)], 0.0)
-    asm.feed(_frame(MsgType.FRAGMENT, p[1], again=True))
+    asm.feed(*_frame(MsgType.FRAGMENT, p[1], again=True))
     assert [c.column for c in asm.ready()] == [0]
 
 
@@ -70,10 +72,10 @@ def test_heartbeat_and_scan_end_show_what_was_sent_and_an_early_end_fails_after_
     from cdma_lidar.protocol.messages import Status
 
     asm = _asm()
-    asm.feed(_frame(MsgType.HEARTBEAT, Status(frame=9, next_column=2)))
+    asm.feed(*_frame(MsgType.HEARTBEAT, Status(frame=9, next_column=2)))
     assert asm.due(0.0) == [0, 1]
-    asm.feed(_frame(MsgType.COLUMN_RESULT, _col(0)))
-    asm.feed(_frame(MsgType.SCAN_END, {"frame": 9, "first_column": 0, "columns": 1,
+    asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(0)))
+    asm.feed(*_frame(MsgType.SCAN_END, {"frame": 9, "first_column": 0, "columns": 1,
                                        "calibration": 0, "reason": int(ScanEndReason.ABORTED)}))
     assert [c.column for c in asm.ready()] == [0] and asm.done
     assert isinstance(asm.failure, StreamEnded) and asm.failure.next_column == 1
@@ -82,9 +84,9 @@ def test_heartbeat_and_scan_end_show_what_was_sent_and_an_early_end_fails_after_
 def test_progress_changes_only_when_something_of_the_stream_moves() -> None:
     asm = _asm()
     before = asm.progress
-    asm.feed(_frame(MsgType.HEARTBEAT, _status(9, 0)))
+    asm.feed(*_frame(MsgType.HEARTBEAT, _status(9, 0)))
     assert asm.progress == before  # alive, but nothing moved
-    asm.feed(_frame(MsgType.FRAGMENT, _pieces(0)[0]))
+    asm.feed(*_frame(MsgType.FRAGMENT, _pieces(0)[0]))
     assert asm.progress != before
 
 
