@@ -42,6 +42,26 @@ def test_table_driven_encoder_equals_reedsolo(data: bytes) -> None:
     assert fec.encode(data) == _encode_reference(data)
 
 
+@settings(max_examples=300)
+@given(st.lists(st.tuples(st.integers(0, fec.BLOCK - 1), st.integers(1, 255)), max_size=30,
+                unique_by=lambda e: e[0]))
+def test_the_error_locator_is_reedsolos(errors: list[tuple[int, int]]) -> None:
+    """The table-driven Berlekamp-Massey gives reedsolo's locator for any error pattern
+    (value Y at exponent e: S_j = sum Y 2^(e j)), and refuses the same ones (> 24)."""
+    syn = [0] * fec.NSYM
+    for e, y in errors:
+        for j in range(fec.NSYM):
+            syn[j] ^= reedsolo.gf_mul(y, reedsolo.gf_pow(2, e * j % 255))
+
+    def locator(find):  # the locator, or the error it raised
+        try:
+            return find()
+        except reedsolo.ReedSolomonError as exc:
+            return type(exc)
+    assert locator(lambda: fec._locator(syn)) == \
+        locator(lambda: reedsolo.rs_find_error_locator([0, *syn], fec.NSYM))
+
+
 @settings(max_examples=50)
 @given(st.binary(min_size=1, max_size=1200), st.integers(0, 2**32 - 1))
 def test_twelve_damaged_bytes_per_block_are_corrected(data: bytes, seed: int) -> None:
