@@ -171,10 +171,10 @@ def virtual_scan(url: str, frames: int = 1, near_far: bool = False
 def bench_delivery(tries: int = 20, max_frame: int = 16_384) -> None:
     """One message of each size through a noisy line once, coded as a FEC session sends
     it (in FRAGMENTs of ``max_frame`` when longer): how often every frame arrives."""
-    from cdma_lidar.protocol.messages import split_message
+    from cdma_lidar.protocol.messages import piece_room, split_message
     from cdma_lidar.virtual.line import LineNoise
 
-    room = max_frame - 16 - 11
+    room = piece_room(max_frame, signed=False)
     print(f"one message through the line once, Reed-Solomon coded, max frame {max_frame}:")
     print(f"{'bytes':>8} {'frames':>6}  " + "  ".join(f"{f'BER {b:g}':>16}" for b in (1e-3, 3e-3)))
     for size in SIZES:
