@@ -225,7 +225,6 @@ class Requests:
         and ``take_over`` is off; DeviceLied when INFO contradicts itself.
         """
         self._forget()
-        self.coded = False
         flags = int((HelloFlags.TAKE_OVER if self.take_over else 0) |
                     (HelloFlags.KEEP_CONFIG if self.keep_config else 0) |
                     (HelloFlags.FEC if self.fec else 0))
@@ -292,9 +291,9 @@ class Requests:
         return auth.FrameSigner(to_dev), rx
 
     def _forget(self) -> None:
-        """No session any more: its keys, INFO and configuration go with it."""
+        """No session any more: its keys, coding, INFO and configuration go with it."""
         self.session = self.info = self.config = None
-        self.signer = self.verifier = None
+        self.signer, self.verifier, self.coded = None, None, False
 
     def close(self) -> None:
         """End the session (SESSION_END, one short try, so another host may HELLO without
