@@ -20,7 +20,7 @@ import numpy as np
 from cdma_lidar.checks import is_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.poly import mask_to_poly, tap_mask
-from cdma_lidar.protocol.schema import Field, Layout
+from cdma_lidar.protocol.schema import Field, Layout, u
 from cdma_lidar.rounding import ROUNDING_MODES
 
 __all__ = ["CONFIG_KEYS", "CONFIG_OPTIONAL", "MODES", "ConfigKey", "DecodedConfig", "config_key",
@@ -138,8 +138,7 @@ def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey
 
 
 #: Each value encoding (ConfigKey.ctype) as a layout of one field ``v``.
-_SUBS = {"u8": Layout(Field("v", "u8", "", fmt="B")), "u16": Layout(Field("v", "u16", "", fmt="H")),
-         "u32": Layout(Field("v", "u32", "", fmt="I")),
+_SUBS = {**{f"u{bits}": Layout(u("v", bits, "")) for bits in (8, 16, 32)},
          "u16 x K": Layout(Field("v", "u16 x K", "", kind="array", fmt="H")),
          "(u32 start, u32 len) x n": Layout(Field("v", "", "", kind="array", fmt="II",
                                                   names=("start", "length")))}

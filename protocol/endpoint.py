@@ -292,7 +292,8 @@ class DeviceEndpoint:
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
-        st, streams = self.streams.stream, self.streams
+        st, last = self.streams.stream, self.streams.latest  # running, last started
+        queued = self.tx.fresh_pending() if st else 0  # its column not sent yet (0 or 1)
         try:
             temp, faults = self.app.health()
         except Exception:  # a health sensor must not take the link down
@@ -302,10 +303,9 @@ class DeviceEndpoint:
         return Status(
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
-            frame=(st.frame if st else streams.last_frame) & mask,
-            next_column=(st.next_column - self.tx.fresh_pending() if st else streams.last_next)
-            & 0xFFFF,
-            last_end=int(streams.last_end), columns_sent=totals.columns_sent & mask,
+            frame=(last.frame if last else 0) & mask,
+            next_column=(last.next_column - queued if last else 0) & 0xFFFF,
+            last_end=int(self.streams.last_end), columns_sent=totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
             tx_frames=totals.tx_frames & mask, replays=totals.replays & mask,

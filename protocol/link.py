@@ -112,8 +112,7 @@ class HostLink(Requests):
         return self.info if self.info is not None else self.hello()
 
     def _need_config(self) -> dict[str, Any]:
-        """The session's full configuration, checked (CONFIG_GET first when unknown)."""
-        self._need_info()
+        """The session's full configuration, checked (when unknown CONFIG_GET, HELLO first)."""
         if self.config is None:
             self.get_config()
         assert self.config is not None

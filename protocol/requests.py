@@ -39,6 +39,7 @@ from cdma_lidar.protocol.framing import (
     FrameDecoder,
     encode_frame,
     frame_size,
+    rejects,
 )
 from cdma_lidar.protocol.messages import (
     REPLY_TO,
@@ -199,8 +200,7 @@ class Requests:
         self.verifier: auth.FrameVerifier | None = None  # checks the device's frames
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
-        self.reply: Frame | None = None
-        self._reply_version: Frame | None = None  # reply to the pending seq we must not read
+        self.reply: Frame | None = None  # to the pending seq (of another version: refused)
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self.joiner = Joiner()
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
@@ -225,7 +225,6 @@ class Requests:
         and ``take_over`` is off; DeviceLied when INFO contradicts itself.
         """
         self._forget()
-        self.coded = False
         flags = int((HelloFlags.TAKE_OVER if self.take_over else 0) |
                     (HelloFlags.KEEP_CONFIG if self.keep_config else 0) |
                     (HelloFlags.FEC if self.fec else 0))
@@ -292,9 +291,9 @@ class Requests:
         return auth.FrameSigner(to_dev), rx
 
     def _forget(self) -> None:
-        """No session any more: its keys, INFO and configuration go with it."""
+        """No session any more: its keys, coding, INFO and configuration go with it."""
         self.session = self.info = self.config = None
-        self.signer = self.verifier = None
+        self.signer, self.verifier, self.coded = None, None, False
 
     def close(self) -> None:
         """End the session (SESSION_END, one short try, so another host may HELLO without
@@ -329,7 +328,7 @@ class Requests:
         before = self._counters()
         self.stats.requests += 1
         self._pending, self._pending_type = seq, int(msg_type)
-        self.reply = self._reply_version = None
+        self.reply = None
         self.reply_parts = []
         tries, waited = 0, 0.0
         try:
@@ -343,21 +342,20 @@ class Requests:
                 wait = self.reply_wait(nbytes, tries, timeout_s)
                 sent = self.clock()
                 self.port.timeout = min(0.05, wait / 4)  # longest blocking read (s)
-                while self.reply is None and self._reply_version is None and \
-                        self.clock() < sent + wait:
+                while self.reply is None and self.clock() < sent + wait:
                     self.pump()
                 tries += 1
                 waited += wait
-                if self.reply is not None:
-                    if tries == 1:  # Karn: only a first try's reply measures the line
-                        self._measured(self.clock() - sent - nbytes * self.byte_s)
-                    return self.accept_reply(msg_type, self.reply)
-                if (f := self._reply_version) is not None:
+                if (f := self.reply) is not None and rejects(f):
                     raise LinkError(
                         f"device answered {msg_type.name} in protocol version {f.version} "
                         f"with incompat flags 0x{f.incompat:02x}; this host speaks version "
                         f"{PROTOCOL_VERSION} and knows no incompat flags: "
                         f"{DIAG_HINTS[DIAG_VERSION]}")
+                if f is not None:
+                    if tries == 1:  # Karn: only a first try's reply measures the line
+                        self._measured(self.clock() - sent - nbytes * self.byte_s)
+                    return self.accept_reply(msg_type, f)
         finally:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
@@ -457,13 +455,13 @@ class Requests:
                 raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
                                 "still connected?") from None
             self._inbox.extend(self.decoder.feed(data) if data else ())
-            while self.decoder.rejected:  # frames of another version or incompat flags
-                frame = self.decoder.rejected.pop(0)
-                if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
-                    self._reply_version = frame
         # Stop at the reply: what follows it may need the session it opens (INFO).
         while self._inbox and (self.reply is None or self._pending is None):
             self._receive(self._inbox.popleft())
+        while self.decoder.rejected:  # frames of another version or incompat flags
+            frame = self.decoder.rejected.pop(0)
+            if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
+                self.reply = self.reply or frame  # refused in transact (a valid one wins)
 
     def _receive(self, frame: Frame) -> None:
         """Check one frame (session, signature), join its pieces, handle it whole. Replies

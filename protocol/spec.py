@@ -329,5 +329,6 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(args.path, new)
     return 0
 
+
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -116,8 +116,7 @@ class Streams:
         self.stream: Stream | None = None  # the running one
         self.latest: Stream | None = None  # the last started, running or not
         self.config: dict[str, Any] | None = None  # the app's config when it started
-        self.last_frame = self.last_next = 0
-        self.last_end = ScanEndReason.COMPLETE
+        self.last_end = ScanEndReason.COMPLETE  # SCAN_END reason of the last ended stream
         self.last_heartbeat = 0.0  # when the running stream's last HEARTBEAT went (s)
         #: Recent columns (frame, column) -> payload, for RESEND.
         self.ring: OrderedDict[tuple[int, int], bytes] = OrderedDict()
@@ -147,7 +146,7 @@ class Streams:
             st = Stream(iter(self.app.scan(frame, f["first_column"], f["columns"])), frame,
                         f["first_column"], f["columns"], False)
         self.stream = self.latest = st
-        self.last_frame, self.last_heartbeat = frame, self.clock()
+        self.last_heartbeat = self.clock()
         return self.tx.ack(req)
 
     def _scan_abort(self, req: Frame, f: dict) -> Reply:
@@ -243,7 +242,7 @@ class Streams:
             return
         st.stopped = True
         self.stream = None
-        self.last_next, self.last_end = st.next_column, reason
+        self.last_end = reason
         self._stopped()  # idle time counts from the end of the stream
         self.engine.submit(lambda: self._finish(st))
         if reason != ScanEndReason.COMPLETE:

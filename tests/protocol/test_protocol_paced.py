@@ -164,7 +164,8 @@ def test_a_frame_that_cannot_be_encoded_is_dropped_not_fatal(caplog) -> None:
 
 def test_heartbeat_counts_a_queued_column_as_not_sent() -> None:
     ep, _port = _device()
-    ep.streams.stream = type("S", (), {"next_column": 5, "frame": 1, "calibration": False})()
+    ep.streams.stream = ep.streams.latest = type(
+        "S", (), {"next_column": 5, "frame": 1, "calibration": False})()
     assert ep.status().next_column == 5
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 4), key=(1, 4))  # waits in the queue
     assert ep.status().next_column == 4
