@@ -25,7 +25,6 @@ from cdma_lidar.protocol.messages import (
     MAX_PIECES,
     CaptureKind,
     ErrorCode,
-    Info,
     MsgType,
     State,
     Status,
@@ -107,17 +106,6 @@ class HostLink(Requests):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _need_info(self) -> Info:
-        """INFO of the session (HELLO first when there is none)."""
-        return self.info if self.info is not None else self.hello()
-
-    def _need_config(self) -> dict[str, Any]:
-        """The session's full configuration, checked (when unknown CONFIG_GET, HELLO first)."""
-        if self.config is None:
-            self.get_config()
-        assert self.config is not None
-        return self.config
-
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""
@@ -145,7 +133,8 @@ class HostLink(Requests):
     def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
         """Send a (channels, columns) laser-power matrix (:func:`power_codes`): one
         POWER_SET, in FRAGMENTs when longer than a frame, several beyond MAX_PIECES."""
-        self._need_info()  # the size of a piece depends on the session's max frame
+        if self.info is None:  # the size of a piece depends on the session's max frame
+            self.hello()
         m = power_codes(matrix)
         rows, cols = m.shape
         room = (MAX_PIECES * piece_room(self.max_frame, self.signer is not None) - 8) // 2
@@ -162,10 +151,10 @@ class HostLink(Requests):
     def get_power(self) -> NDArray[np.uint16]:
         """The device's (K, C = INFO.column_count) power matrix (1/65535 of the per-pixel
         maximum), read in blocks of whole rows (16384 values, or one row)."""
-        info = self._need_info()
+        info = self.info or self.hello()
         k, c = info.channels, info.column_count
         out = np.zeros((k, c), dtype=np.uint16)
-        rows = max(1, min(k, 16384 // max(c, 1)))
+        rows = max(1, 16384 // c)  # c >= 1: the decoder's
         for r0 in range(0, k, rows):
             n = min(rows, k - r0)
             d = self.request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
@@ -207,7 +196,7 @@ class HostLink(Requests):
                 raise LinkError("CAPTURE_DATA chunk is empty before the end of the capture")
             parts.append(chunk)
             offset += chunk.size
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int16)
+        return np.concatenate(parts)  # the loop runs at least once
 
     def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
              frame: int | None = None) -> Iterator[ColumnResult]:
@@ -217,8 +206,8 @@ class HostLink(Requests):
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
         if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
-            columns = min(int(self._need_config()["columns_per_frame"]),
-                          self._need_info().column_count) - first_column
+            columns = min(int((self.config or self.get_config())["columns_per_frame"]),
+                          (self.info or self.hello()).column_count) - first_column
         for k in range(frames):
             yield from self._stream_columns(MsgType.SCAN_START, frame if k == 0 else None,
                                             first_column, columns, first_column=first_column,
@@ -236,9 +225,8 @@ class HostLink(Requests):
         still delivers every column it sent before the error; leaving early aborts it."""
         fid = fields_["frame"] = self._next_frame_id if frame is None else frame
         self._next_frame_id = (fid + 1) & 0xFFFFFFFF
-        config = self._need_config()
-        checker = ColumnChecker(self._need_info(), config, fid, first, first + count,
-                                req == MsgType.CALIBRATE)
+        config = self.config or self.get_config()  # all keys, checked (HELLO first)
+        checker = ColumnChecker(self.info or self.hello(), config, req == MsgType.CALIBRATE)
         self.start_stream()
         finished = False
         try:
