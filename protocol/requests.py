@@ -149,19 +149,6 @@ def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
                   f"{reported} reported by the device)")
 
 
-def session_lost(frame: Frame, port: str) -> SessionLost:
-    """The error (one line) of a SESSION_LOST frame heard on ``port``."""
-    try:
-        body = decode_payload(frame.msg_type, frame.payload)
-        assert isinstance(body, dict)
-        reason, detail = int(body["reason"]), escape(body["detail"])
-    except Exception:  # FrameError: still lost, say so without the device's words
-        reason, detail = 0, "no reason given"
-    what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
-            SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-    return SessionLost(f"session lost on {port}: {detail or what}", reason)
-
-
 class Requests:
     """The session and its requests over a port; the arguments are ``HostLink``'s."""
 
@@ -204,8 +191,8 @@ class Requests:
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self.joiner = Joiner()
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
-        self.streaming = False
-        self.stream: deque[tuple[Frame, Any]] = deque()  # (frame, decoded) for the reassembler
+        #: (frame, decoded) of the running stream, for its reassembler; None: no stream.
+        self.stream: deque[tuple[Frame, Any]] | None = None
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
         self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
@@ -364,15 +351,14 @@ class Requests:
                           f"{tries} tries in {waited:.3g} s: {what}; "
                           f"{DIAG_HINTS[diag]}", diag)
 
-    def reply_wait(self, nbytes: int, attempt: int, timeout_s: float | None = None) -> float:
+    def reply_wait(self, nbytes: int, attempt: int, timeout_s: float) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
         (s): round trip + 4 mean deviations + transmit time, at least ``min_timeout_s``,
         doubled per retry, at most ``timeout_s`` (that before the line is measured)."""
-        top = self.timeout_s if timeout_s is None else timeout_s
         if self.rtt is None:
-            return top
+            return timeout_s
         base = max(self.min_timeout_s, self.rtt + 4 * self.rtt_var + nbytes * self.byte_s)
-        return min(top, base * 2 ** attempt)
+        return min(timeout_s, base * 2 ** attempt)
 
     def _measured(self, rtt: float) -> None:
         """One round trip (s): smoothed as TCP does (RFC 6298: gains 1/8 and 1/4)."""
@@ -506,16 +492,21 @@ class Requests:
         if mtype == MsgType.LINE_ERROR:
             self.line_errors += 1  # our session's, authenticated: the device saw damage
         elif mtype == MsgType.SESSION_LOST:  # the device ended our session
-            self._forget()
-            raise session_lost(frame, self.port_name)
+            self._forget()  # malformed: still lost, said without the device's words
+            body = self._decoded(frame) or {"reason": 0, "detail": "no reason given"}
+            what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+                    SessionLostReason.EXPIRED: "the session expired"}.get(body["reason"])
+            raise SessionLost(f"session lost on {self.port_name}: "
+                              f"{escape(body['detail']) or what or 'session ended'}",
+                              body["reason"])
         elif kind_of(mtype) is MsgKind.REPLY:
             self._on_reply(frame, parts)
-        elif self.streaming or mtype == MsgType.HEARTBEAT:
+        elif self.stream is not None or mtype == MsgType.HEARTBEAT:
             if body is None and (body := self._decoded(frame)) is None:
                 return
             if mtype == MsgType.HEARTBEAT:
                 self.last_status = Status(**body)
-            if self.streaming:
+            if self.stream is not None:
                 self.stream.append((frame, body))
 
     def _decoded(self, frame: Frame) -> Any:
@@ -547,10 +538,9 @@ class Requests:
         RESENDs are not this one's)."""
         self.end_stream()
         self._unawaited.clear()
-        self.refusal, self.streaming = None, True
+        self.refusal, self.stream = None, deque()
 
     def end_stream(self) -> None:
         """No stream: its frames and pieces go (the next may reuse a frame id)."""
-        self.streaming = False
-        self.stream.clear()
+        self.stream = None
         self.joiner.held.clear()
