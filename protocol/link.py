@@ -31,7 +31,7 @@ from cdma_lidar.protocol.messages import (
     piece_room,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
-from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
+from cdma_lidar.protocol.requests import DIAG_NO_ANSWER, Requests, SessionLost, diagnose
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 
 __all__ = ["PATIENCE", "HostLink", "ScanStalled", "SessionLost", "StreamEnded", "patience_s",
@@ -265,9 +265,6 @@ class HostLink(Requests):
             self.stats.duplicates += asm.duplicates
             self.stats.malformed += asm.malformed
             asm.duplicates = asm.malformed = 0
-            if self.refusal is not None:  # the device refused a RESEND: say why
-                (mtype, frame), self.refusal = self.refusal, None
-                self.accept_reply(mtype, frame)
             for col in asm.ready():
                 self.stats.columns += 1
                 yield col
@@ -323,7 +320,7 @@ class HostLink(Requests):
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
                 raise LinkTimeout(f"{what} of frame {asm.fid} never arrived after {tries} resend "
-                                  f"requests on {self.port_name}: {why}; {DIAG_HINTS[diag]}", diag)
+                                  f"requests on {self.port_name}: {why}", diag)
         asm.ask(cols + pieces, now)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols) + len(pieces)

@@ -131,8 +131,8 @@ def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
 
 
 def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
-    """(DIAG_*, what to say) of what the line showed between two readings of
-    :meth:`Requests._counters`."""
+    """(DIAG_*, what to say: the diagnosis, its counts where they help, its hint) of what
+    the line showed between two readings of :meth:`Requests._counters`."""
     nbytes, frames, wrong, version, damaged, reported = (b - a for a, b in zip(before, now,
                                                                                 strict=True))
     if not nbytes:
@@ -143,10 +143,9 @@ def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
         diag = DIAG_WRONG_SESSION
     else:
         diag = DIAG_NOISY if reported or damaged else DIAG_NO_ANSWER
-    if diag not in (DIAG_NOISY, DIAG_GARBAGE):
-        return diag, diag
-    return diag, (f"{diag} ({damaged} damaged frames of {damaged + frames} received, "
-                  f"{reported} reported by the device)")
+    counts = (f" ({damaged} damaged frames of {damaged + frames} received, {reported} "
+              "reported by the device)") if diag in (DIAG_NOISY, DIAG_GARBAGE) else ""
+    return diag, f"{diag}{counts}; {DIAG_HINTS[diag]}"
 
 
 class Requests:
@@ -194,7 +193,6 @@ class Requests:
         #: (frame, decoded) of the running stream, for its reassembler; None: no stream.
         self.stream: deque[tuple[Frame, Any]] | None = None
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
-        self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
         #: Smoothed round trip and its mean deviation (s), of first tries; None until one.
         self.rtt: float | None = None
@@ -348,8 +346,7 @@ class Requests:
             self.port.timeout = min(0.05, self.timeout_s / 4)
         diag, what = diagnose(before, self._counters())
         raise LinkTimeout(f"{msg_type.name} got no answer from {self.port_name} after "
-                          f"{tries} tries in {waited:.3g} s: {what}; "
-                          f"{DIAG_HINTS[diag]}", diag)
+                          f"{tries} tries in {waited:.3g} s: {what}", diag)
 
     def reply_wait(self, nbytes: int, attempt: int, timeout_s: float) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
@@ -394,8 +391,8 @@ class Requests:
         return len(wire)
 
     def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> int:
-        """Send a request whose reply is not waited for (bytes written); a NAK to it
-        still fails the scan."""
+        """Send a request of the stream whose reply is not waited for (bytes written); a
+        NAK to it still fails the scan (raised by the :meth:`pump` that reads it)."""
         seq = self.new_seq()
         self.stats.requests += 1
         self._unawaited[seq] = msg_type
@@ -435,8 +432,7 @@ class Requests:
         ``port.timeout`` s) and its frames, up to the pending reply."""
         if not self._inbox:
             try:
-                n = self.port.in_waiting
-                data = self.port.read(n if n else 1)
+                data = self.port.read(self.port.in_waiting or 1)
             except Exception as exc:
                 raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
                                 "still connected?") from None
@@ -464,8 +460,7 @@ class Requests:
                 what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
             pass
         elif mtype == MsgType.LINE_ERROR and self.verifier is None:
-            self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
-            return
+            pass  # unsigned: a hint only (diagnosis), from any session
         elif frame.session != self.session:
             self.stats.wrong_session += 1
             if (mtype == MsgType.NAK and frame.seq == self._pending and self.reply is None
@@ -490,7 +485,7 @@ class Requests:
         came in; ``body``: its decoded payload if known."""
         mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
-            self.line_errors += 1  # our session's, authenticated: the device saw damage
+            self.line_errors += 1  # the device saw damage (signed session: ours, checked)
         elif mtype == MsgType.SESSION_LOST:  # the device ended our session
             self._forget()  # malformed: still lost, said without the device's words
             body = self._decoded(frame) or {"reason": 0, "detail": "no reason given"}
@@ -525,8 +520,8 @@ class Requests:
         unawaited = self._unawaited.get(frame.seq)
         if unawaited is not None and echoed == bytes([unawaited]):
             del self._unawaited[frame.seq]
-            if frame.msg_type == MsgType.NAK and self.refusal is None:
-                self.refusal = (unawaited, frame)
+            if frame.msg_type == MsgType.NAK:  # the device refused a RESEND: say why
+                self.accept_reply(unawaited, frame)
         elif frame.seq == self._pending and self.reply is None and \
                 echoed in (b"", bytes([self._pending_type])):
             self.reply, self.reply_parts = frame, parts
@@ -534,13 +529,13 @@ class Requests:
             self.stats.stale_replies += 1
 
     def start_stream(self) -> None:
-        """Stream frames go to :attr:`stream` from now on (NAKs to an earlier stream's
-        RESENDs are not this one's)."""
+        """Stream frames go to :attr:`stream` from now on."""
         self.end_stream()
-        self._unawaited.clear()
-        self.refusal, self.stream = None, deque()
+        self.stream = deque()
 
     def end_stream(self) -> None:
-        """No stream: its frames and pieces go (the next may reuse a frame id)."""
+        """No stream: its frames, pieces and RESENDs go (the next may reuse a frame id; a
+        NAK to an earlier stream's RESEND is stale)."""
         self.stream = None
+        self._unawaited.clear()
         self.joiner.held.clear()
