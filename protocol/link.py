@@ -225,8 +225,8 @@ class HostLink(Requests):
         still delivers every column it sent before the error; leaving early aborts it."""
         fid = fields_["frame"] = self._next_frame_id if frame is None else frame
         self._next_frame_id = (fid + 1) & 0xFFFFFFFF
-        config = self.config or self.get_config()  # all keys, checked (HELLO first)
-        checker = ColumnChecker(self.info or self.hello(), config, req == MsgType.CALIBRATE)
+        checker = ColumnChecker(self.info or self.hello(),  # HELLO, then CONFIG of all keys
+                                self.config or self.get_config(), req == MsgType.CALIBRATE)
         self.start_stream()
         finished = False
         try:
@@ -236,15 +236,20 @@ class HostLink(Requests):
                 if exc.code != ErrorCode.BUSY:
                     raise
                 # Only our own previous stream can be running (repairs asked for earlier
-                # still going out): let it end, then ask once more.
-                self._await_idle(exc)
+                # still going out): let it end (within the reply timeout times the retries,
+                # else BUSY stands), then ask once more.
+                deadline = self.clock() + self.timeout_s * (self.retries + 1)
+                while self.status().state != State.IDLE:
+                    if self.clock() >= deadline:
+                        raise exc
+                    self.pump()
                 self.stream.clear()
                 self.request(req, fields_)
-            # A key is asked again after a round trip (doubled per try; repairs go ahead
-            # of new columns), at most a quarter of the reply timeout.
-            top = self.timeout_s / 4
-            asm = ColumnReassembler(fid, first, first + count, checker,
-                                    self.reply_wait(0, 0, top), top, self.joiner)
+            # A key is asked again after a request's reply wait (doubled per try; repairs
+            # go ahead of new columns), at most a quarter of the reply timeout.
+            asm = ColumnReassembler(fid, first, first + count, checker, lambda tries:
+                                    self.reply_wait(0, tries - 1, self.timeout_s / 4),
+                                    self.joiner)
             yield from self._drive(asm)
             finished = True
         finally:
@@ -297,15 +302,6 @@ class HostLink(Requests):
             self.pump()
         if asm.failure is not None:
             raise asm.failure
-
-    def _await_idle(self, busy: DeviceError) -> None:
-        """STATUS_GET until the device's running stream has ended (re-raise ``busy`` if it
-        has not within the reply timeout times the retries)."""
-        deadline = self.clock() + self.timeout_s * (self.retries + 1)
-        while self.status().state != State.IDLE:
-            if self.clock() >= deadline:
-                raise busy
-            self.pump()
 
     def _resend(self, asm: ColumnReassembler, due: list[Any], now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), at most 255 of

@@ -12,7 +12,7 @@ columns before it and sets ``failure``.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,15 +96,13 @@ class Joiner:
 
 class ColumnReassembler:
     """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
-    pieces joined in ``joiner``; a key asked for is due again after ``resend_s`` (s),
-    doubled at each further try up to ``max_resend_s`` (s; default ``resend_s``)."""
+    pieces joined in ``joiner``; a key asked for ``tries`` times is due again after
+    ``resend_wait(tries)`` (s)."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
-                 resend_s: float, max_resend_s: float | None = None,
-                 joiner: Joiner | None = None) -> None:
+                 resend_wait: Callable[[int], float], joiner: Joiner | None = None) -> None:
         self.fid, self.first, self.end, self.checker = fid, first, end, checker
-        self.resend_s = resend_s
-        self.max_resend_s = resend_s if max_resend_s is None else max(resend_s, max_resend_s)
+        self.resend_wait = resend_wait
         self.joiner = joiner or Joiner()
         self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
         self.edge: tuple[int, int] = (first, 0)
@@ -212,7 +210,7 @@ class ColumnReassembler:
         if key not in self.asked:
             return False
         at, tries = self.asked[key]
-        return now - at < min(self.max_resend_s, self.resend_s * 2 ** (tries - 1))
+        return now - at < self.resend_wait(tries)
 
     def due(self, now: float) -> list[Any]:
         """Columns (int) and fragments ((column, index)) sent, missing and due to be asked

@@ -231,10 +231,7 @@ class Requests:
     def _open(self, reply: dict[str, Any], device_nonce: bytes) -> Info:
         """Check INFO and make its session ours (requests within both ends' max frame,
         coded when the device coded its INFO)."""
-        try:
-            info = Info.from_fields(reply)
-        except (TypeError, ValueError) as exc:
-            raise DeviceLied(f"device sent an invalid INFO: {exc}") from None
+        info = Info.from_fields(reply)  # the strict decoder gave every field, in range
         if info.protocol_version != PROTOCOL_VERSION:
             raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
                             f"{PROTOCOL_VERSION}; update the host or the firmware")

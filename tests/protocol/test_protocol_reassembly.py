@@ -16,7 +16,7 @@ RESEND_S = 0.125
 def _asm(first: int = 0, end: int = 6) -> ColumnReassembler:
     app = SyntheticApp(channels=4, columns=8)
     checker = ColumnChecker(app.info(), app.get_config(), False)
-    return ColumnReassembler(9, first, end, checker, RESEND_S)
+    return ColumnReassembler(9, first, end, checker, lambda tries: RESEND_S * 2 ** (tries - 1))
 
 
 def _col(c: int):
