@@ -249,7 +249,7 @@ class HostLink(Requests):
             # go ahead of new columns), at most a quarter of the reply timeout.
             asm = ColumnReassembler(fid, first, first + count, checker, lambda tries:
                                     self.reply_wait(0, tries - 1, self.timeout_s / 4),
-                                    self.joiner)
+                                    self.stats, self.joiner)
             yield from self._drive(asm)
             finished = True
         finally:
@@ -267,9 +267,6 @@ class HostLink(Requests):
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
                 alive = asm.feed(*self.stream.popleft()) or alive
-            self.stats.duplicates += asm.duplicates
-            self.stats.malformed += asm.malformed
-            asm.duplicates = asm.malformed = 0
             for col in asm.ready():
                 self.stats.columns += 1
                 yield col

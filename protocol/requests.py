@@ -115,21 +115,6 @@ class LinkStats:
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
-def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
-    """The error of a NAK (decoded) to ``msg_type``: code, field and detail, escaped."""
-    try:
-        cname = ErrorCode(nak["code"]).name
-    except ValueError:
-        cname = f"error {nak['code']}"
-    fld = escape(nak["field"])
-    where = f" (field {fld})" if fld else ""
-    detail = f": {escape(nak['detail'])}" if nak["detail"] else ""
-    if nak["code"] == ErrorCode.WRONG_SESSION:
-        detail += " (the device restarted, or another host took it over)"
-    return DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                       code=nak["code"], field=fld or None)
-
-
 def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
     """(DIAG_*, what to say: the diagnosis, its counts where they help, its hint) of what
     the line showed between two readings of :meth:`Requests._counters`."""
@@ -413,8 +398,18 @@ class Requests:
             raise LinkError(f"malformed {frame.msg_type:#04x} reply to {msg_type.name}: "
                             f"{exc}") from None
         assert isinstance(body, dict)
-        if frame.msg_type == MsgType.NAK:
-            raise refused(msg_type, body)
+        if frame.msg_type == MsgType.NAK:  # code, field and detail, escaped
+            code, fld = body["code"], escape(body["field"])
+            try:
+                cname = ErrorCode(code).name
+            except ValueError:
+                cname = f"error {code}"
+            where = f" (field {fld})" if fld else ""
+            detail = f": {escape(body['detail'])}" if body["detail"] else ""
+            if code == ErrorCode.WRONG_SESSION:
+                detail += " (the device restarted, or another host took it over)"
+            raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
+                              code=code, field=fld or None)
         if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
             return body
         expected = REPLY_TO[msg_type]
