@@ -486,8 +486,20 @@ class Requests:
             raise SessionLost(f"session lost on {self.port_name}: "
                               f"{escape(body['detail']) or what or 'session ended'}",
                               body["reason"])
-        elif kind_of(mtype) is MsgKind.REPLY:
-            self._on_reply(frame, parts)
+        elif kind_of(mtype) is MsgKind.REPLY:  # the pending one, a RESEND's, or stale
+            # ACK and NAK echo the request type: a reply to another request that happens
+            # to carry the same seq (a previous link, a wrapped counter) is not ours.
+            echoed = frame.payload[:1] if mtype in (MsgType.ACK, MsgType.NAK) else b""
+            unawaited = self._unawaited.get(frame.seq)
+            if unawaited is not None and echoed == bytes([unawaited]):
+                del self._unawaited[frame.seq]
+                if mtype == MsgType.NAK:  # the device refused a RESEND: say why
+                    self.accept_reply(unawaited, frame)
+            elif frame.seq == self._pending and self.reply is None and \
+                    echoed in (b"", bytes([self._pending_type])):
+                self.reply, self.reply_parts = frame, parts
+            else:
+                self.stats.stale_replies += 1
         elif self.stream is not None or mtype == MsgType.HEARTBEAT:
             if body is None and (body := self._decoded(frame)) is None:
                 return
@@ -503,22 +515,6 @@ class Requests:
         except FrameError:  # dropped
             self.stats.malformed += 1
             return None
-
-    def _on_reply(self, frame: Frame, parts: list[Frame]) -> None:
-        """A reply, checked: the pending one, a RESEND's, or stale."""
-        # ACK and NAK echo the request type: a reply to another request that happens
-        # to carry the same seq (a previous link, a wrapped counter) is not ours.
-        echoed = frame.payload[:1] if frame.msg_type in (MsgType.ACK, MsgType.NAK) else b""
-        unawaited = self._unawaited.get(frame.seq)
-        if unawaited is not None and echoed == bytes([unawaited]):
-            del self._unawaited[frame.seq]
-            if frame.msg_type == MsgType.NAK:  # the device refused a RESEND: say why
-                self.accept_reply(unawaited, frame)
-        elif frame.seq == self._pending and self.reply is None and \
-                echoed in (b"", bytes([self._pending_type])):
-            self.reply, self.reply_parts = frame, parts
-        else:
-            self.stats.stale_replies += 1
 
     def start_stream(self) -> None:
         """Stream frames go to :attr:`stream` from now on."""
