@@ -1,9 +1,6 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-A scan repairs gaps as docs/protocol.md section 6.2 says (RESEND at once, STATUS after
-``timeout_s`` of silence); it fails with LinkTimeout after ``column_retries`` fruitless
-RESENDs of one column, with :class:`ScanStalled` when the device stays alive but nothing
-moves.
+A scan repairs its gaps, and gives up, as docs/protocol.md section 6.2 says.
 """
 
 from __future__ import annotations

@@ -214,14 +214,30 @@ class Requests:
                         "it does not accept this host's key")
 
     def _open(self, reply: dict[str, Any], device_nonce: bytes) -> Info:
-        """Check INFO and make its session ours (requests within both ends' max frame,
-        coded when the device coded its INFO)."""
+        """Check INFO (with a key: the device's proof, INFO's signature) and make its
+        session ours (requests within both ends' max frame, coded when the device coded
+        its INFO)."""
         info = Info.from_fields(reply)  # the strict decoder gave every field, in range
+        assert self.reply is not None
         if info.protocol_version != PROTOCOL_VERSION:
             raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
                             f"{PROTOCOL_VERSION}; update the host or the firmware")
         if self.key is not None:
-            self.signer, self.verifier = self._authenticate(info, device_nonce)
+            if info.auth != Auth.HMAC_SHA256 or not auth.equal(
+                    info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
+                                                     info.session_id)):
+                raise LinkError(f"device on {self.port_name} did not prove it holds the key "
+                                f"(INFO.auth = {info.auth}): it is not the device the key "
+                                "file belongs to, or it holds no key (then drop --key-file)")
+            to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
+                                                info.session_id)
+            rx = auth.FrameVerifier(to_host)
+            parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each is signed
+            if any(p.session != info.session_id for p in parts) or \
+                    not all(map(rx.check, parts)):
+                raise LinkError(f"device on {self.port_name} sent an INFO not signed with "
+                                "the session key")
+            self.signer, self.verifier = auth.FrameSigner(to_dev), rx
         elif info.auth != Auth.NONE:
             raise DeviceLied("device announced signed frames (INFO.auth = "
                              f"{info.auth}) without asking this host for a key", "auth")
@@ -229,7 +245,6 @@ class Requests:
         if info.schema_crc != SCHEMA_CRC:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
-        assert self.reply is not None
         self.session = info.session_id
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         self.coded = self.fec and self.reply.fec
@@ -237,25 +252,6 @@ class Requests:
                  info.session_id, self.info.serial, self.info.firmware_version, info.channels,
                  info.max_frame, ", signed" if self.signer else "")
         return self.info
-
-    def _authenticate(self, info: Info, device_nonce: bytes
-                      ) -> tuple[auth.FrameSigner, auth.FrameVerifier]:
-        """Check the device's proof and INFO's signature; the session's signing keys."""
-        assert self.reply is not None and self.key is not None
-        if info.auth != Auth.HMAC_SHA256 or not auth.equal(
-                info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
-                                                 info.session_id)):
-            raise LinkError(f"device on {self.port_name} did not prove it holds the key "
-                            f"(INFO.auth = {info.auth}): it is not the device the key file "
-                            "belongs to, or it holds no key (then drop --key-file)")
-        to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
-                                            info.session_id)
-        rx = auth.FrameVerifier(to_host)
-        parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each one is signed
-        if any(p.session != info.session_id for p in parts) or not all(map(rx.check, parts)):
-            raise LinkError(f"device on {self.port_name} sent an INFO not signed with the "
-                            "session key")
-        return auth.FrameSigner(to_dev), rx
 
     def _forget(self) -> None:
         """No session any more: its keys, coding, INFO and configuration go with it."""
