@@ -246,7 +246,7 @@ class HostLink(Requests):
             # go ahead of new columns), at most a quarter of the reply timeout.
             asm = ColumnReassembler(fid, first, first + count, checker, lambda tries:
                                     self.reply_wait(0, tries - 1, self.timeout_s / 4),
-                                    self.stats, self.joiner)
+                                    self.stats)
             yield from self._drive(asm)
             finished = True
         finally:

@@ -96,16 +96,15 @@ class Joiner:
 
 class ColumnReassembler:
     """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
-    pieces joined in ``joiner``; a key asked for ``tries`` times is due again after
-    ``resend_wait(tries)`` (s); ``stats`` (the link's LinkStats) counts ``duplicates``
-    and ``malformed``."""
+    pieces joined in its own :class:`Joiner` (they go with the stream); a key asked for
+    ``tries`` times is due again after ``resend_wait(tries)`` (s); ``stats`` (the link's
+    LinkStats) counts ``duplicates`` and ``malformed``."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
-                 resend_wait: Callable[[int], float], stats: Any,
-                 joiner: Joiner | None = None) -> None:
+                 resend_wait: Callable[[int], float], stats: Any) -> None:
         self.fid, self.first, self.end, self.checker = fid, first, end, checker
         self.resend_wait, self.stats = resend_wait, stats
-        self.joiner = joiner or Joiner()
+        self.joiner = Joiner()
         self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
         self.edge: tuple[int, int] = (first, 0)
         self.received: dict[int, ColumnResult] = {}

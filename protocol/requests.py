@@ -518,8 +518,7 @@ class Requests:
         self.stream = deque()
 
     def end_stream(self) -> None:
-        """No stream: its frames, pieces and RESENDs go (the next may reuse a frame id; a
-        NAK to an earlier stream's RESEND is stale)."""
+        """No stream: its frames and RESENDs go (a NAK to an earlier stream's RESEND is
+        stale; its column pieces went with its reassembler)."""
         self.stream = None
         self._unawaited.clear()
-        self.joiner.held.clear()
