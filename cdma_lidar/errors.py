@@ -73,10 +73,10 @@ class LinkError(CdmaLidarError, OSError):
 class LinkTimeout(LinkError, TimeoutError):
     """A request got no valid answer within its timeout and retries.
 
-    ``diagnosis`` says what was seen on the line, one of ``cdma_lidar.protocol.link``'s
+    ``diagnosis`` says what was seen on the line, one of ``cdma_lidar.protocol.requests``'s
     ``DIAG_*`` strings: no bytes at all, bytes but no valid frame, frames but wrong
     session, frames but no answer, or frames of another protocol version
-    (``cdma_lidar.protocol.link.DIAG_HINTS`` maps each to what the user should check).
+    (``cdma_lidar.protocol.requests.DIAG_HINTS`` maps each to what the user should check).
     """
 
     def __init__(self, message: str, diagnosis: str = "") -> None:

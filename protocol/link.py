@@ -1,9 +1,6 @@
 """Host end of the link: :class:`HostLink`, the requests a host makes and its scans.
 
-A scan repairs gaps as docs/protocol.md section 6.2 says (RESEND at once, STATUS after
-``timeout_s`` of silence); it fails with LinkTimeout after ``column_retries`` fruitless
-RESENDs of one column, with :class:`ScanStalled` when the device stays alive but nothing
-moves.
+A scan repairs its gaps, and gives up, as docs/protocol.md section 6.2 says.
 """
 
 from __future__ import annotations
@@ -25,14 +22,13 @@ from cdma_lidar.protocol.messages import (
     MAX_PIECES,
     CaptureKind,
     ErrorCode,
-    Info,
     MsgType,
     State,
     Status,
     piece_room,
 )
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
-from cdma_lidar.protocol.requests import DIAG_HINTS, DIAG_NO_ANSWER, Requests, SessionLost, diagnose
+from cdma_lidar.protocol.requests import DIAG_NO_ANSWER, Requests, SessionLost, diagnose
 from cdma_lidar.protocol.trust import ColumnChecker, DeviceLied, check_config
 
 __all__ = ["PATIENCE", "HostLink", "ScanStalled", "SessionLost", "StreamEnded", "patience_s",
@@ -107,17 +103,6 @@ class HostLink(Requests):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _need_info(self) -> Info:
-        """INFO of the session (HELLO first when there is none)."""
-        return self.info if self.info is not None else self.hello()
-
-    def _need_config(self) -> dict[str, Any]:
-        """The session's full configuration, checked (when unknown CONFIG_GET, HELLO first)."""
-        if self.config is None:
-            self.get_config()
-        assert self.config is not None
-        return self.config
-
     # ---- requests ---------------------------------------------------------------------
     def get_config(self, *names: str) -> dict[str, Any]:
         """Configuration values by key name (all keys when no names are given)."""
@@ -145,7 +130,8 @@ class HostLink(Requests):
     def set_power(self, matrix: ArrayLike, channel_start: int = 0, column_start: int = 0) -> None:
         """Send a (channels, columns) laser-power matrix (:func:`power_codes`): one
         POWER_SET, in FRAGMENTs when longer than a frame, several beyond MAX_PIECES."""
-        self._need_info()  # the size of a piece depends on the session's max frame
+        if self.info is None:  # the size of a piece depends on the session's max frame
+            self.hello()
         m = power_codes(matrix)
         rows, cols = m.shape
         room = (MAX_PIECES * piece_room(self.max_frame, self.signer is not None) - 8) // 2
@@ -162,10 +148,10 @@ class HostLink(Requests):
     def get_power(self) -> NDArray[np.uint16]:
         """The device's (K, C = INFO.column_count) power matrix (1/65535 of the per-pixel
         maximum), read in blocks of whole rows (16384 values, or one row)."""
-        info = self._need_info()
+        info = self.info or self.hello()
         k, c = info.channels, info.column_count
         out = np.zeros((k, c), dtype=np.uint16)
-        rows = max(1, min(k, 16384 // max(c, 1)))
+        rows = max(1, 16384 // c)  # c >= 1: the decoder's
         for r0 in range(0, k, rows):
             n = min(rows, k - r0)
             d = self.request(MsgType.POWER_GET, {"channel_start": r0, "column_start": 0,
@@ -207,7 +193,7 @@ class HostLink(Requests):
                 raise LinkError("CAPTURE_DATA chunk is empty before the end of the capture")
             parts.append(chunk)
             offset += chunk.size
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int16)
+        return np.concatenate(parts)  # the loop runs at least once
 
     def scan(self, first_column: int = 0, columns: int | None = None, frames: int = 1,
              frame: int | None = None) -> Iterator[ColumnResult]:
@@ -217,8 +203,8 @@ class HostLink(Requests):
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
         if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
-            columns = min(int(self._need_config()["columns_per_frame"]),
-                          self._need_info().column_count) - first_column
+            columns = min(int((self.config or self.get_config())["columns_per_frame"]),
+                          (self.info or self.hello()).column_count) - first_column
         for k in range(frames):
             yield from self._stream_columns(MsgType.SCAN_START, frame if k == 0 else None,
                                             first_column, columns, first_column=first_column,
@@ -236,9 +222,8 @@ class HostLink(Requests):
         still delivers every column it sent before the error; leaving early aborts it."""
         fid = fields_["frame"] = self._next_frame_id if frame is None else frame
         self._next_frame_id = (fid + 1) & 0xFFFFFFFF
-        config = self._need_config()
-        checker = ColumnChecker(self._need_info(), config, fid, first, first + count,
-                                req == MsgType.CALIBRATE)
+        checker = ColumnChecker(self.info or self.hello(),  # HELLO, then CONFIG of all keys
+                                self.config or self.get_config(), req == MsgType.CALIBRATE)
         self.start_stream()
         finished = False
         try:
@@ -248,15 +233,20 @@ class HostLink(Requests):
                 if exc.code != ErrorCode.BUSY:
                     raise
                 # Only our own previous stream can be running (repairs asked for earlier
-                # still going out): let it end, then ask once more.
-                self._await_idle(exc)
+                # still going out): let it end (within the reply timeout times the retries,
+                # else BUSY stands), then ask once more.
+                deadline = self.clock() + self.timeout_s * (self.retries + 1)
+                while self.status().state != State.IDLE:
+                    if self.clock() >= deadline:
+                        raise exc
+                    self.pump()
                 self.stream.clear()
                 self.request(req, fields_)
-            # A key is asked again after a round trip (doubled per try; repairs go ahead
-            # of new columns), at most a quarter of the reply timeout.
-            top = self.timeout_s / 4
-            asm = ColumnReassembler(fid, first, first + count, checker,
-                                    self.reply_wait(0, 0, top), top, self.joiner)
+            # A key is asked again after a request's reply wait (doubled per try; repairs
+            # go ahead of new columns), at most a quarter of the reply timeout.
+            asm = ColumnReassembler(fid, first, first + count, checker, lambda tries:
+                                    self.reply_wait(0, tries - 1, self.timeout_s / 4),
+                                    self.stats)
             yield from self._drive(asm)
             finished = True
         finally:
@@ -274,12 +264,6 @@ class HostLink(Requests):
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
                 alive = asm.feed(*self.stream.popleft()) or alive
-            self.stats.duplicates += asm.duplicates
-            self.stats.malformed += asm.malformed
-            asm.duplicates = asm.malformed = 0
-            if self.refusal is not None:  # the device refused a RESEND: say why
-                (mtype, frame), self.refusal = self.refusal, None
-                self.accept_reply(mtype, frame)
             for col in asm.ready():
                 self.stats.columns += 1
                 yield col
@@ -313,15 +297,6 @@ class HostLink(Requests):
         if asm.failure is not None:
             raise asm.failure
 
-    def _await_idle(self, busy: DeviceError) -> None:
-        """STATUS_GET until the device's running stream has ended (re-raise ``busy`` if it
-        has not within the reply timeout times the retries)."""
-        deadline = self.clock() + self.timeout_s * (self.retries + 1)
-        while self.status().state != State.IDLE:
-            if self.clock() >= deadline:
-                raise busy
-            self.pump()
-
     def _resend(self, asm: ColumnReassembler, due: list[Any], now: float) -> None:
         """RESEND the due columns (ints) and fragments ((column, index)), at most 255 of
         each and what fits a request."""
@@ -335,7 +310,7 @@ class HostLink(Requests):
                 what = f"column {key}" if isinstance(key, int) else \
                     f"fragment {key[1]} of column {key[0]}"
                 raise LinkTimeout(f"{what} of frame {asm.fid} never arrived after {tries} resend "
-                                  f"requests on {self.port_name}: {why}; {DIAG_HINTS[diag]}", diag)
+                                  f"requests on {self.port_name}: {why}", diag)
         asm.ask(cols + pieces, now)
         self.stats.resend_requests += 1
         self.stats.resent_columns += len(cols) + len(pieces)

@@ -12,7 +12,7 @@ columns before it and sets ``failure``.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,22 +96,20 @@ class Joiner:
 
 class ColumnReassembler:
     """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
-    pieces joined in ``joiner``; a key asked for is due again after ``resend_s`` (s),
-    doubled at each further try up to ``max_resend_s`` (s; default ``resend_s``)."""
+    pieces joined in its own :class:`Joiner` (they go with the stream); a key asked for
+    ``tries`` times is due again after ``resend_wait(tries)`` (s); ``stats`` (the link's
+    LinkStats) counts ``duplicates`` and ``malformed``."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
-                 resend_s: float, max_resend_s: float | None = None,
-                 joiner: Joiner | None = None) -> None:
+                 resend_wait: Callable[[int], float], stats: Any) -> None:
         self.fid, self.first, self.end, self.checker = fid, first, end, checker
-        self.resend_s = resend_s
-        self.max_resend_s = resend_s if max_resend_s is None else max(resend_s, max_resend_s)
-        self.joiner = joiner or Joiner()
+        self.resend_wait, self.stats = resend_wait, stats
+        self.joiner = Joiner()
         self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
         self.edge: tuple[int, int] = (first, 0)
         self.received: dict[int, ColumnResult] = {}
         self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
         self.stored = 0  # columns and fragments kept (progress)
-        self.duplicates = self.malformed = 0
         self.failure: Exception | None = None
 
     @property
@@ -136,15 +134,12 @@ class ColumnReassembler:
         if idle_reason is not None and sent < self.end:
             self._stop(sent, early_end(self.fid, idle_reason, sent))
 
-    def _pieces(self, column: int) -> Pieces | None:
-        return self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, column))
-
     def feed(self, frame: Frame, item: Any) -> bool:
         """One COLUMN_RESULT, FRAGMENT, HEARTBEAT or SCAN_END and its decoded payload
         ``item``; True when of this stream (a sign of life)."""
         mtype = frame.msg_type
         if frame.compat & COMPAT_RETRANSMIT and not self._asked_for(item):
-            self.duplicates += 1  # a repair this stream did not ask for: a late one
+            self.stats.duplicates += 1  # a repair this stream did not ask for: a late one
             return False
         if mtype == MsgType.FRAGMENT:
             return item["frame"] == self.fid and self._piece(frame, item)
@@ -167,20 +162,20 @@ class ColumnReassembler:
         self.horizon = max(self.horizon, c)
         self.edge = max(self.edge, (c, k + 1))
         if not self.nxt <= c < self.end or c in self.received:
-            self.duplicates += 1
+            self.stats.duplicates += 1
             return True
         self.stored += 1
         if (whole := self.joiner.add(frame, item)) is not None:
             try:
                 self._column(decode_column(whole[0].payload))
             except FrameError:
-                self.malformed += 1
+                self.stats.malformed += 1
         return True
 
     def _column(self, c: ColumnResult) -> bool:
         if c.frame != self.fid or not self.nxt <= c.column < self.end or \
                 c.column in self.received:
-            self.duplicates += 1
+            self.stats.duplicates += 1
             return c.frame == self.fid
         try:
             self.checker.check(c)
@@ -212,7 +207,7 @@ class ColumnReassembler:
         if key not in self.asked:
             return False
         at, tries = self.asked[key]
-        return now - at < min(self.max_resend_s, self.resend_s * 2 ** (tries - 1))
+        return now - at < self.resend_wait(tries)
 
     def due(self, now: float) -> list[Any]:
         """Columns (int) and fragments ((column, index)) sent, missing and due to be asked
@@ -222,7 +217,7 @@ class ColumnReassembler:
         for c in range(self.nxt, stop):
             if c in self.received or self._waiting(c, now):  # asked whole: pieces coming
                 continue
-            if (pc := self._pieces(c)) is None:
+            if (pc := self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, c))) is None:
                 keys: list[Any] = [c] if c < self.horizon else []  # else: nothing sent yet
             else:
                 sent = pc.count if c < self.horizon else \

@@ -115,24 +115,9 @@ class LinkStats:
     unauthenticated: int = 0  #: frames of our signed session dropped: bad MAC, replay, unsigned
 
 
-def refused(msg_type: MsgType, nak: dict[str, Any]) -> DeviceError:
-    """The error of a NAK (decoded) to ``msg_type``: code, field and detail, escaped."""
-    try:
-        cname = ErrorCode(nak["code"]).name
-    except ValueError:
-        cname = f"error {nak['code']}"
-    fld = escape(nak["field"])
-    where = f" (field {fld})" if fld else ""
-    detail = f": {escape(nak['detail'])}" if nak["detail"] else ""
-    if nak["code"] == ErrorCode.WRONG_SESSION:
-        detail += " (the device restarted, or another host took it over)"
-    return DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
-                       code=nak["code"], field=fld or None)
-
-
 def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
-    """(DIAG_*, what to say) of what the line showed between two readings of
-    :meth:`Requests._counters`."""
+    """(DIAG_*, what to say: the diagnosis, its counts where they help, its hint) of what
+    the line showed between two readings of :meth:`Requests._counters`."""
     nbytes, frames, wrong, version, damaged, reported = (b - a for a, b in zip(before, now,
                                                                                 strict=True))
     if not nbytes:
@@ -143,23 +128,9 @@ def diagnose(before: tuple[int, ...], now: tuple[int, ...]) -> tuple[str, str]:
         diag = DIAG_WRONG_SESSION
     else:
         diag = DIAG_NOISY if reported or damaged else DIAG_NO_ANSWER
-    if diag not in (DIAG_NOISY, DIAG_GARBAGE):
-        return diag, diag
-    return diag, (f"{diag} ({damaged} damaged frames of {damaged + frames} received, "
-                  f"{reported} reported by the device)")
-
-
-def session_lost(frame: Frame, port: str) -> SessionLost:
-    """The error (one line) of a SESSION_LOST frame heard on ``port``."""
-    try:
-        body = decode_payload(frame.msg_type, frame.payload)
-        assert isinstance(body, dict)
-        reason, detail = int(body["reason"]), escape(body["detail"])
-    except Exception:  # FrameError: still lost, say so without the device's words
-        reason, detail = 0, "no reason given"
-    what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
-            SessionLostReason.EXPIRED: "the session expired"}.get(reason, "session ended")
-    return SessionLost(f"session lost on {port}: {detail or what}", reason)
+    counts = (f" ({damaged} damaged frames of {damaged + frames} received, {reported} "
+              "reported by the device)") if diag in (DIAG_NOISY, DIAG_GARBAGE) else ""
+    return diag, f"{diag}{counts}; {DIAG_HINTS[diag]}"
 
 
 class Requests:
@@ -204,10 +175,9 @@ class Requests:
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
         self.joiner = Joiner()
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
-        self.streaming = False
-        self.stream: deque[tuple[Frame, Any]] = deque()  # (frame, decoded) for the reassembler
+        #: (frame, decoded) of the running stream, for its reassembler; None: no stream.
+        self.stream: deque[tuple[Frame, Any]] | None = None
         self._unawaited: OrderedDict[int, MsgType] = OrderedDict()  # seq -> RESEND sent
-        self.refusal: tuple[MsgType, Frame] | None = None  # a NAK to one of them
         port.timeout = min(0.05, self.timeout_s / 4)  # longest blocking read (s)
         #: Smoothed round trip and its mean deviation (s), of first tries; None until one.
         self.rtt: float | None = None
@@ -244,17 +214,30 @@ class Requests:
                         "it does not accept this host's key")
 
     def _open(self, reply: dict[str, Any], device_nonce: bytes) -> Info:
-        """Check INFO and make its session ours (requests within both ends' max frame,
-        coded when the device coded its INFO)."""
-        try:
-            info = Info.from_fields(reply)
-        except (TypeError, ValueError) as exc:
-            raise DeviceLied(f"device sent an invalid INFO: {exc}") from None
+        """Check INFO (with a key: the device's proof, INFO's signature) and make its
+        session ours (requests within both ends' max frame, coded when the device coded
+        its INFO)."""
+        info = Info.from_fields(reply)  # the strict decoder gave every field, in range
+        assert self.reply is not None
         if info.protocol_version != PROTOCOL_VERSION:
             raise LinkError(f"device speaks protocol version {info.protocol_version}, host "
                             f"{PROTOCOL_VERSION}; update the host or the firmware")
         if self.key is not None:
-            self.signer, self.verifier = self._authenticate(info, device_nonce)
+            if info.auth != Auth.HMAC_SHA256 or not auth.equal(
+                    info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
+                                                     info.session_id)):
+                raise LinkError(f"device on {self.port_name} did not prove it holds the key "
+                                f"(INFO.auth = {info.auth}): it is not the device the key "
+                                "file belongs to, or it holds no key (then drop --key-file)")
+            to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
+                                                info.session_id)
+            rx = auth.FrameVerifier(to_host)
+            parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each is signed
+            if any(p.session != info.session_id for p in parts) or \
+                    not all(map(rx.check, parts)):
+                raise LinkError(f"device on {self.port_name} sent an INFO not signed with "
+                                "the session key")
+            self.signer, self.verifier = auth.FrameSigner(to_dev), rx
         elif info.auth != Auth.NONE:
             raise DeviceLied("device announced signed frames (INFO.auth = "
                              f"{info.auth}) without asking this host for a key", "auth")
@@ -262,7 +245,6 @@ class Requests:
         if info.schema_crc != SCHEMA_CRC:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
-        assert self.reply is not None
         self.session = info.session_id
         self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
         self.coded = self.fec and self.reply.fec
@@ -270,25 +252,6 @@ class Requests:
                  info.session_id, self.info.serial, self.info.firmware_version, info.channels,
                  info.max_frame, ", signed" if self.signer else "")
         return self.info
-
-    def _authenticate(self, info: Info, device_nonce: bytes
-                      ) -> tuple[auth.FrameSigner, auth.FrameVerifier]:
-        """Check the device's proof and INFO's signature; the session's signing keys."""
-        assert self.reply is not None and self.key is not None
-        if info.auth != Auth.HMAC_SHA256 or not auth.equal(
-                info.device_mac, auth.device_mac(self.key, self._nonce, device_nonce,
-                                                 info.session_id)):
-            raise LinkError(f"device on {self.port_name} did not prove it holds the key "
-                            f"(INFO.auth = {info.auth}): it is not the device the key file "
-                            "belongs to, or it holds no key (then drop --key-file)")
-        to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
-                                            info.session_id)
-        rx = auth.FrameVerifier(to_host)
-        parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each one is signed
-        if any(p.session != info.session_id for p in parts) or not all(map(rx.check, parts)):
-            raise LinkError(f"device on {self.port_name} sent an INFO not signed with the "
-                            "session key")
-        return auth.FrameSigner(to_dev), rx
 
     def _forget(self) -> None:
         """No session any more: its keys, coding, INFO and configuration go with it."""
@@ -361,18 +324,16 @@ class Requests:
             self.port.timeout = min(0.05, self.timeout_s / 4)
         diag, what = diagnose(before, self._counters())
         raise LinkTimeout(f"{msg_type.name} got no answer from {self.port_name} after "
-                          f"{tries} tries in {waited:.3g} s: {what}; "
-                          f"{DIAG_HINTS[diag]}", diag)
+                          f"{tries} tries in {waited:.3g} s: {what}", diag)
 
-    def reply_wait(self, nbytes: int, attempt: int, timeout_s: float | None = None) -> float:
+    def reply_wait(self, nbytes: int, attempt: int, timeout_s: float) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
         (s): round trip + 4 mean deviations + transmit time, at least ``min_timeout_s``,
         doubled per retry, at most ``timeout_s`` (that before the line is measured)."""
-        top = self.timeout_s if timeout_s is None else timeout_s
         if self.rtt is None:
-            return top
+            return timeout_s
         base = max(self.min_timeout_s, self.rtt + 4 * self.rtt_var + nbytes * self.byte_s)
-        return min(top, base * 2 ** attempt)
+        return min(timeout_s, base * 2 ** attempt)
 
     def _measured(self, rtt: float) -> None:
         """One round trip (s): smoothed as TCP does (RFC 6298: gains 1/8 and 1/4)."""
@@ -408,8 +369,8 @@ class Requests:
         return len(wire)
 
     def send_unawaited(self, msg_type: MsgType, fields_: dict[str, Any]) -> int:
-        """Send a request whose reply is not waited for (bytes written); a NAK to it
-        still fails the scan."""
+        """Send a request of the stream whose reply is not waited for (bytes written); a
+        NAK to it still fails the scan (raised by the :meth:`pump` that reads it)."""
         seq = self.new_seq()
         self.stats.requests += 1
         self._unawaited[seq] = msg_type
@@ -433,8 +394,18 @@ class Requests:
             raise LinkError(f"malformed {frame.msg_type:#04x} reply to {msg_type.name}: "
                             f"{exc}") from None
         assert isinstance(body, dict)
-        if frame.msg_type == MsgType.NAK:
-            raise refused(msg_type, body)
+        if frame.msg_type == MsgType.NAK:  # code, field and detail, escaped
+            code, fld = body["code"], escape(body["field"])
+            try:
+                cname = ErrorCode(code).name
+            except ValueError:
+                cname = f"error {code}"
+            where = f" (field {fld})" if fld else ""
+            detail = f": {escape(body['detail'])}" if body["detail"] else ""
+            if code == ErrorCode.WRONG_SESSION:
+                detail += " (the device restarted, or another host took it over)"
+            raise DeviceError(f"device refused {msg_type.name}: {cname}{where}{detail}",
+                              code=code, field=fld or None)
         if msg_type == MsgType.HELLO and frame.msg_type == MsgType.CHALLENGE:
             return body
         expected = REPLY_TO[msg_type]
@@ -449,8 +420,7 @@ class Requests:
         ``port.timeout`` s) and its frames, up to the pending reply."""
         if not self._inbox:
             try:
-                n = self.port.in_waiting
-                data = self.port.read(n if n else 1)
+                data = self.port.read(self.port.in_waiting or 1)
             except Exception as exc:
                 raise LinkError(f"cannot read from {self.port_name}: {exc}; is the device "
                                 "still connected?") from None
@@ -478,8 +448,7 @@ class Requests:
                 what in (MsgType.INFO, MsgType.NAK, MsgType.CHALLENGE):
             pass
         elif mtype == MsgType.LINE_ERROR and self.verifier is None:
-            self.line_errors += 1  # unsigned: a hint only (diagnosis), from any session
-            return
+            pass  # unsigned: a hint only (diagnosis), from any session
         elif frame.session != self.session:
             self.stats.wrong_session += 1
             if (mtype == MsgType.NAK and frame.seq == self._pending and self.reply is None
@@ -504,18 +473,35 @@ class Requests:
         came in; ``body``: its decoded payload if known."""
         mtype = frame.msg_type
         if mtype == MsgType.LINE_ERROR:
-            self.line_errors += 1  # our session's, authenticated: the device saw damage
+            self.line_errors += 1  # the device saw damage (signed session: ours, checked)
         elif mtype == MsgType.SESSION_LOST:  # the device ended our session
-            self._forget()
-            raise session_lost(frame, self.port_name)
-        elif kind_of(mtype) is MsgKind.REPLY:
-            self._on_reply(frame, parts)
-        elif self.streaming or mtype == MsgType.HEARTBEAT:
+            self._forget()  # malformed: still lost, said without the device's words
+            body = self._decoded(frame) or {"reason": 0, "detail": "no reason given"}
+            what = {SessionLostReason.TAKEN_OVER: "another host took over the device",
+                    SessionLostReason.EXPIRED: "the session expired"}.get(body["reason"])
+            raise SessionLost(f"session lost on {self.port_name}: "
+                              f"{escape(body['detail']) or what or 'session ended'}",
+                              body["reason"])
+        elif kind_of(mtype) is MsgKind.REPLY:  # the pending one, a RESEND's, or stale
+            # ACK and NAK echo the request type: a reply to another request that happens
+            # to carry the same seq (a previous link, a wrapped counter) is not ours.
+            echoed = frame.payload[:1] if mtype in (MsgType.ACK, MsgType.NAK) else b""
+            unawaited = self._unawaited.get(frame.seq)
+            if unawaited is not None and echoed == bytes([unawaited]):
+                del self._unawaited[frame.seq]
+                if mtype == MsgType.NAK:  # the device refused a RESEND: say why
+                    self.accept_reply(unawaited, frame)
+            elif frame.seq == self._pending and self.reply is None and \
+                    echoed in (b"", bytes([self._pending_type])):
+                self.reply, self.reply_parts = frame, parts
+            else:
+                self.stats.stale_replies += 1
+        elif self.stream is not None or mtype == MsgType.HEARTBEAT:
             if body is None and (body := self._decoded(frame)) is None:
                 return
             if mtype == MsgType.HEARTBEAT:
                 self.last_status = Status(**body)
-            if self.streaming:
+            if self.stream is not None:
                 self.stream.append((frame, body))
 
     def _decoded(self, frame: Frame) -> Any:
@@ -526,31 +512,13 @@ class Requests:
             self.stats.malformed += 1
             return None
 
-    def _on_reply(self, frame: Frame, parts: list[Frame]) -> None:
-        """A reply, checked: the pending one, a RESEND's, or stale."""
-        # ACK and NAK echo the request type: a reply to another request that happens
-        # to carry the same seq (a previous link, a wrapped counter) is not ours.
-        echoed = frame.payload[:1] if frame.msg_type in (MsgType.ACK, MsgType.NAK) else b""
-        unawaited = self._unawaited.get(frame.seq)
-        if unawaited is not None and echoed == bytes([unawaited]):
-            del self._unawaited[frame.seq]
-            if frame.msg_type == MsgType.NAK and self.refusal is None:
-                self.refusal = (unawaited, frame)
-        elif frame.seq == self._pending and self.reply is None and \
-                echoed in (b"", bytes([self._pending_type])):
-            self.reply, self.reply_parts = frame, parts
-        else:
-            self.stats.stale_replies += 1
-
     def start_stream(self) -> None:
-        """Stream frames go to :attr:`stream` from now on (NAKs to an earlier stream's
-        RESENDs are not this one's)."""
+        """Stream frames go to :attr:`stream` from now on."""
         self.end_stream()
-        self._unawaited.clear()
-        self.refusal, self.streaming = None, True
+        self.stream = deque()
 
     def end_stream(self) -> None:
-        """No stream: its frames and pieces go (the next may reuse a frame id)."""
-        self.streaming = False
-        self.stream.clear()
-        self.joiner.held.clear()
+        """No stream: its frames and RESENDs go (a NAK to an earlier stream's RESEND is
+        stale; its column pieces went with its reassembler)."""
+        self.stream = None
+        self._unawaited.clear()

@@ -124,13 +124,12 @@ def check_config(config: dict[str, Any], info: Info) -> None:
 
 
 class ColumnChecker:
-    """Checks every column of one stream against the session's ``info`` and ``config``
-    (all keys, during the stream): frame id ``frame``, columns (or shots, for a
-    ``calibration`` stream) ``first`` to ``end - 1``."""
+    """Checks every column of one stream (a ``calibration`` one: shots) against the
+    session's ``info`` and ``config`` (all keys, during the stream). Its frame id and
+    column range are the reassembler's: a column outside them is not the stream's."""
 
-    def __init__(self, info: Info, config: dict[str, Any], frame: int, first: int, end: int,
-                 calibration: bool) -> None:
-        self.channels, self.frame, self.first, self.end = info.channels, frame, first, end
+    def __init__(self, info: Info, config: dict[str, Any], calibration: bool) -> None:
+        self.channels = info.channels
         self.peaks, self.uid_bits, self.gate_len, out_bits = (
             int(config[k]) for k in ("peaks", "uid_bits", "gate_len", "out_bits"))
         self.lags = ((1 << int(config["poly_u"][0])) - 1) * int(config["samples_per_chip"])
@@ -149,12 +148,10 @@ class ColumnChecker:
 
         for field, value, want in (
                 ("channels", col.channels, self.channels), ("peaks", col.peaks, self.peaks),
-                ("uid_bits", col.uid_bits, self.uid_bits), ("frame", col.frame, self.frame),
+                ("uid_bits", col.uid_bits, self.uid_bits),
                 ("flags.calibration", int(col.calibration), int(self.calibration))):
             if value != want:
                 raise _lie(what, field, value, f"{want} (this session)")
-        if not self.first <= col.column < self.end:
-            raise _lie(what, "column", col.column, f"{self.first} to {self.end - 1}")
         rec, n_mask, out = col.records, 1 << self.uid_bits, self.out_max
         for f in RECORD:
             if f.encoding == "signs":

@@ -181,17 +181,13 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
         link = HostLink(host, timeout_s=2.0)  # then 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
+        link.start_stream()
         link.send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
-        link.streaming = True
-        for _ in range(100):
-            link.pump()
-            if link.refusal is not None:
-                break
-        mtype, frame = link.refusal
         with pytest.raises(DeviceError) as exc:
-            link.accept_reply(mtype, frame)
+            for _ in range(100):
+                link.pump()  # raises the NAK when it reads it
         assert exc.value.code == ErrorCode.NOT_AVAILABLE
-        link.streaming = False
+        link.end_stream()
         link.close()
 
 

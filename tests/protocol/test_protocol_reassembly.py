@@ -8,6 +8,7 @@ from cdma_lidar.protocol.columns import encode_column
 from cdma_lidar.protocol.framing import COMPAT_RETRANSMIT, Frame
 from cdma_lidar.protocol.messages import MsgType, ScanEndReason, decode_payload, encode_payload
 from cdma_lidar.protocol.reassembly import ColumnReassembler, StreamEnded
+from cdma_lidar.protocol.requests import LinkStats
 from cdma_lidar.protocol.trust import ColumnChecker
 
 RESEND_S = 0.125
@@ -15,8 +16,9 @@ RESEND_S = 0.125
 
 def _asm(first: int = 0, end: int = 6) -> ColumnReassembler:
     app = SyntheticApp(channels=4, columns=8)
-    checker = ColumnChecker(app.info(), app.get_config(), 9, first, end, False)
-    return ColumnReassembler(9, first, end, checker, RESEND_S)
+    checker = ColumnChecker(app.info(), app.get_config(), False)
+    return ColumnReassembler(9, first, end, checker, lambda tries: RESEND_S * 2 ** (tries - 1),
+                             LinkStats())
 
 
 def _col(c: int):
@@ -52,7 +54,7 @@ def test_columns_come_out_in_order_once_and_gaps_are_due_at_once_then_after_rese
     assert asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(1), again=True))  # the repair asked for
     assert [c.column for c in asm.ready()] == [1, 2, 3]
     asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(3)))
-    assert asm.duplicates == 1
+    assert asm.stats.duplicates == 1
 
 
 def test_a_missing_fragment_is_asked_for_alone_and_a_late_repair_is_not_taken() -> None:
