@@ -54,14 +54,12 @@ def body_len(t: int) -> int:
 
 #: Whitening: body byte i is XORed with ``(WHITE_START + WHITE_STEP * i) mod 256``.
 WHITE_START, WHITE_STEP = 0x5A, 0x97
-_WHITE = ((WHITE_START + WHITE_STEP * np.arange(1 << 17)) & 0xFF).astype(np.uint8)
 
 
 def whiten(data: bytes) -> bytes:
     """``data`` XOR the whitening sequence (its own inverse)."""
-    if len(data) > _WHITE.size:
-        raise FrameError(f"fec: {len(data)} bytes is longer than any frame")
-    return (np.frombuffer(data, np.uint8) ^ _WHITE[:len(data)]).tobytes()
+    white = (WHITE_START + WHITE_STEP * np.arange(len(data))).astype(np.uint8)  # mod 256
+    return (np.frombuffer(data, np.uint8) ^ white).tobytes()
 
 
 _EXP = np.array(reedsolo.gf_exp[:255], np.uint8)  # 2^i, poly 0x11D
@@ -72,45 +70,38 @@ _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
 _MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255]
 _MUL[0, :] = _MUL[:, 0] = 0
 _GMUL = _MUL.tolist()
-#: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
-#: syndrome j (the block polynomial at the root 2^j).
-_POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
-
-
-def _unit_parity() -> np.ndarray:
-    """Row ``e`` (highest degree first): ``x^(NSYM + e)`` mod ``g(x) = prod_{i<48} (x - 2^i)``,
-    the parity of a message whose one non-zero byte, 1, is ``e`` bytes before its end; the
-    code is linear, so a message's parity is the XOR of ``m_i * U[e_i]``."""
-    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
-    u = np.zeros((DATA, NSYM), np.uint8)
-    u[0] = low
-    for e in range(1, DATA):  # x * U[e-1] mod g
-        u[e] = np.append(u[e - 1, 1:], 0).astype(np.uint8) ^ _MUL[u[e - 1, 0], low]
-    return u
-
-
-#: Parity contribution rows by position in a full block (position 0 is e = DATA - 1).
-_UNIT_BY_POS = _unit_parity()[::-1].copy()
 
 
 @functools.cache
 def _by_byte() -> tuple[np.ndarray, np.ndarray]:
-    """``_POWERS`` and ``_UNIT_BY_POS`` times every byte value, ``[p, v] = v * row p`` (3.1
-    and 2.5 MB, built at first use): a block's syndromes or parity are the XOR of one
-    contiguous row per byte (a tenth of the time of gathering products)."""
+    """The syndrome and parity rows of each byte position ``p`` of a block, times every byte
+    value, ``[p, v] = v * row p`` (3.1 and 2.5 MB, built at first use): a block's syndromes
+    or parity are the XOR of one contiguous row per byte (a tenth of the time of gathering
+    products). Syndrome row: ``(2^j)^(BLOCK - 1 - p)`` for j < 48 (the block polynomial at
+    the root 2^j is the XOR of them). Parity row of data byte p: ``x^(BLOCK - 1 - p)`` mod
+    ``g(x) = prod_{i<48} (x - 2^i)``, highest degree first, the parity of a block whose
+    one non-zero byte, 1, is byte p; the code is linear."""
+    powers = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
+    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
+    unit = np.zeros((DATA, NSYM), np.uint8)
+    unit[-1] = low  # x^48 mod g
+    for p in range(DATA - 2, -1, -1):  # x times row p+1, mod g
+        unit[p] = np.append(unit[p + 1, 1:], 0).astype(np.uint8) ^ _MUL[unit[p + 1, 0], low]
     v = np.arange(256)[None, :, None]
-    return _MUL[v, _POWERS[:, None, :]], _MUL[v, _UNIT_BY_POS[:, None, :]]
+    return _MUL[v, powers[:, None, :]], _MUL[v, unit[:, None, :]]
 
 
-def _blocks(data: np.ndarray, width: int) -> np.ndarray:
-    """``data`` (uint8) cut into rows of ``width`` bytes, the last one right-aligned after
-    zeros: leading zeros change neither a block's parity nor its syndromes."""
-    nb = -(-data.size // width)
-    rows = np.zeros((nb, width), np.uint8)
-    full = (nb - 1) * width
-    rows[:nb - 1] = data[:full].reshape(nb - 1, width)
-    rows[nb - 1, width - (data.size - full):] = data[full:]
-    return rows
+def _blocks(data: bytes, width: int) -> tuple[np.ndarray, int]:
+    """(``data`` cut into rows of ``width`` bytes, ``pad``): the last row is right-aligned
+    after ``pad`` zeros, which change neither a block's parity nor its syndromes."""
+    nb = -(-len(data) // width)
+    pad, cut = nb * width - len(data), (nb - 1) * width
+    return np.frombuffer(data[:cut] + bytes(pad) + data[cut:], np.uint8).reshape(nb, width), pad
+
+
+def _unblock(rows: np.ndarray, pad: int) -> bytes:
+    """The bytes of ``rows`` without the ``pad`` zeros :func:`_blocks` put before the last."""
+    return rows[:-1].tobytes() + rows[-1, pad:].tobytes()
 
 
 def _spread(parity: np.ndarray) -> np.ndarray:
@@ -127,14 +118,14 @@ def _unspread(spread: np.ndarray) -> np.ndarray:
     return np.packbits(bits.reshape(len(spread), 7 * SPREAD)[:, :8 * NSYM], axis=1)
 
 
-def _cut(coded: bytes) -> tuple[list[np.ndarray], np.ndarray]:
-    """(data bytes of each block, (blocks, SPREAD) spread parity) of coded bytes; FrameError
-    when nothing codes to their length."""
+def _cut(coded: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+    """(data, spread parity, pad) of coded bytes, one block a row: (blocks, DATA) data
+    bytes, the last block's right-aligned after ``pad`` zeros, and (blocks, SPREAD) spread
+    parity; FrameError when nothing codes to their length."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
-    arr = np.frombuffer(coded, np.uint8)
-    blocks = [arr[i:i + WIRE_BLOCK] for i in range(0, arr.size, WIRE_BLOCK)]
-    return [b[:-SPREAD] for b in blocks], np.stack([b[-SPREAD:] for b in blocks])
+    rows, pad = _blocks(coded, WIRE_BLOCK)
+    return rows[:, :DATA], rows[:, DATA:], pad
 
 
 def encode(stuffed: bytes) -> bytes:
@@ -142,13 +133,9 @@ def encode(stuffed: bytes) -> bytes:
     rest); no byte is 0x00 when ``stuffed`` has none. Byte-identical to ``reedsolo``."""
     if not stuffed:
         return b""
-    data = np.frombuffer(stuffed, np.uint8)
-    blocks = _blocks(data, DATA)
+    blocks, pad = _blocks(stuffed, DATA)
     parity = np.bitwise_xor.reduce(_by_byte()[1][np.arange(DATA), blocks], axis=1)
-    spread = _spread(parity)
-    full = (len(blocks) - 1) * DATA
-    return np.concatenate([np.hstack([blocks[:-1], spread[:-1]]).ravel(), data[full:],
-                           spread[-1]]).tobytes()
+    return _unblock(np.hstack([blocks, _spread(parity)]), pad)
 
 
 def plausible(coded: bytes) -> bool:
@@ -163,7 +150,8 @@ def plausible(coded: bytes) -> bool:
 
 def strip(coded: bytes) -> bytes:
     """The data bytes of ``coded`` as they arrived (no correction); FrameError as _cut."""
-    return b"".join(d.tobytes() for d in _cut(coded)[0])
+    data, _, pad = _cut(coded)
+    return _unblock(data, pad)
 
 
 def _locator(syn: list[int]) -> list[int]:
@@ -236,16 +224,13 @@ def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
     cannot. A block with more than 24 damaged symbols fails in :func:`_correct`, or is
     miscorrected and then fails the frame's CRC."""
-    data, spread = _cut(coded)
-    parity = _unspread(spread)
-    last = data[-1].size + NSYM
-    rows = _blocks(np.concatenate([np.concatenate([d, p]) for d, p in
-                                   zip(data, parity, strict=True)]), BLOCK)
+    data, spread, pad = _cut(coded)
+    rows = np.hstack([data, _unspread(spread)])
     # Syndrome j of a block: the block polynomial at the root 2^j (all zero: a codeword).
     syn = np.bitwise_xor.reduce(_by_byte()[0][np.arange(BLOCK), rows], axis=1)
     if (bad := np.flatnonzero(syn.any(axis=1)).tolist()):
         try:
-            _correct(rows, bad, syn, last)
+            _correct(rows, bad, syn, BLOCK - pad)
         except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: {exc}") from None
-    return rows[:-1, :DATA].tobytes() + rows[-1, BLOCK - last:-NSYM].tobytes()
+    return _unblock(rows[:, :DATA], pad)
