@@ -165,13 +165,16 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     return b"".join((DELIMITER, cobs_encode(body), DELIMITER))
 
 
-def decode_frame(body: bytes) -> Frame:
-    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid, the
-    reason the first word of the message: ``short``, ``crc`` or ``length``. A frame of
-    another version or with unknown incompat flags is returned (see :func:`rejects`)."""
+def decode_frame(body: bytes, max_frame: int = FRAME_LIMIT) -> Frame:
+    """Check and split one COBS-decoded frame of at most ``max_frame`` bytes; raises
+    FrameError (only) if invalid, the reason the first word of the message: ``short``,
+    ``oversize``, ``crc`` or ``length``. A frame of another version or with unknown
+    incompat flags is returned (see :func:`rejects`)."""
     n = len(body)
     if n < OVERHEAD:
         raise FrameError(f"short: {n} bytes, a frame has at least {OVERHEAD}")
+    if n > max_frame:
+        raise FrameError(f"oversize: {n} bytes, at most {max_frame}")
     (crc,) = _CRC.unpack_from(body, n - CRC_SIZE)
     if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) & 0xFFFFFFFF != crc:
         raise FrameError("crc: CRC-32 mismatch")
@@ -266,14 +269,10 @@ class FrameDecoder:
                 break
             if self._skipping:  # the delimiter ends an oversize chunk
                 self._skipping = False
-            elif self._buf:
-                self._buf += data[start:end]
-                self.copied += end - start
-                chunk = bytes(self._buf)
+            elif self._buf or end > start:
+                chunk = bytes(self._buf) + data[start:end]
                 self._buf.clear()
                 self._chunk(chunk, out)
-            elif end > start:
-                self._chunk(data[start:end], out)
             else:
                 self._split = []  # "00 00": a frame boundary, not a damaged byte
             start = end + 1
@@ -284,7 +283,7 @@ class FrameDecoder:
             self._skipping = True
             self._buf.clear()
         else:
-            self._buf += data[start:] if start else data
+            self._buf += data[start:]
             self.copied += len(data) - start
         return out
 
@@ -318,11 +317,7 @@ class FrameDecoder:
         for k in range(1, len(self._split) + 1):
             whole = b"\x01".join(self._split[-k:])
             for candidate in (whole, whole[1:], whole[:-1])[k == 1:]:
-                try:
-                    got = self._coded(candidate)
-                except FrameError:
-                    continue
-                if not rejects(got[0]):
+                if (got := self._coded(candidate)) and not rejects(got[0]):
                     self.stats.rejoined += 1
                     return got
         return None
@@ -332,31 +327,26 @@ class FrameDecoder:
         read plain, then (with ``fec``) coded; the plain reading's reason counts."""
         if len(chunk) > self._max_chunk:
             return "oversize"
-        reason = ""
-        for coded in (False, True)[:1 + self.fec]:
-            try:
-                got = self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
-            except FrameError as exc:
-                reason = reason or str(exc).split(":", 1)[0].lower()
-                continue
-            if not (why := rejects(got[0])):
-                return got
-            if len(self.rejected) < 64:
-                self.rejected.append(got[0])
-            return why
-        return reason
-
-    def _frame(self, body: bytes) -> Frame:
-        if len(body) > self.max_frame:
-            raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
-        return decode_frame(body)
-
-    def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
-        """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
-        fail; raises FrameError if it is not one."""
-        if not fec.plausible(chunk):
-            raise FrameError("cobs: not a coded frame")
         try:
-            return self._frame(fec.whiten(cobs_decode(fec.strip(chunk))))._replace(fec=True), False
-        except FrameError:
-            return self._frame(fec.whiten(cobs_decode(fec.decode(chunk))))._replace(fec=True), True
+            got = decode_frame(cobs_decode(chunk), self.max_frame), False
+        except FrameError as exc:
+            got = self._coded(chunk) if self.fec else None
+            if got is None:
+                return str(exc).split(":", 1)[0].lower()
+        if not (why := rejects(got[0])):
+            return got
+        if len(self.rejected) < 64:
+            self.rejected.append(got[0])
+        return why
+
+    def _coded(self, chunk: bytes) -> tuple[Frame, bool] | None:
+        """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
+        fail: (frame, corrected), or None if it is not one."""
+        if fec.plausible(chunk):
+            for corrected, data in ((False, fec.strip), (True, fec.decode)):
+                try:
+                    body = fec.whiten(cobs_decode(data(chunk)))
+                    return decode_frame(body, self.max_frame)._replace(fec=True), corrected
+                except FrameError:
+                    pass
+        return None
