@@ -142,10 +142,7 @@ def plausible(coded: bytes) -> bool:
     """``coded`` has a coded length and every block's spread parity has at most 4 bytes
     without their high bit: the bytes are where a coded frame puts them (a piece of a
     frame, or one a byte longer or shorter, fails this at once, without decoding)."""
-    try:
-        return bool(((_cut(coded)[1] < 0x80).sum(axis=1) <= 4).all())
-    except FrameError:
-        return False
+    return body_len(len(coded)) > 0 and bool(((_cut(coded)[1] < 0x80).sum(axis=1) <= 4).all())
 
 
 def strip(coded: bytes) -> bytes:
@@ -191,9 +188,7 @@ def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> No
     (roots not as many as its locator's degree)."""
     lams = [_locator(syn[b].tolist())[::-1] for b in bad]  # Lambda, lowest degree first
     width = max(map(len, lams))
-    lam = np.zeros((len(bad), width), np.uint8)
-    for k, coef in enumerate(lams):
-        lam[k, :len(coef)] = coef
+    lam = np.array([coef + [0] * (width - len(coef)) for coef in lams], np.uint8)
     powers = (np.arange(width)[:, None] * np.arange(BLOCK)).astype(np.int16)  # i * e
     terms = np.where(lam[:, :, None] > 0, _EXP[(_LOG[lam][:, :, None] - powers) % 255], 0)
     found = np.bitwise_xor.reduce(terms, axis=1) == 0

@@ -231,10 +231,9 @@ class FrameDecoder:
     device NAKs them); the caller drains it.
 
     ``fec``: a chunk that is not a valid plain frame is read as a Reed-Solomon coded one
-    (its data bytes first, corrected only if they fail; such a frame has ``fec`` set),
-    then without its first or last byte (a delimiter damaged into a data byte joined
-    it), then joined to the damaged chunks before it (a data byte damaged into 0x00 split
-    it). Off by default: correcting costs about 3 ms per kB of damaged chunk.
+    (such a frame has ``fec`` set), then as one whose delimiters the line moved
+    (docs/protocol.md section 2.5). Off by default: correcting costs about 3 ms per kB of
+    damaged chunk.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT, fec: bool = False) -> None:
@@ -306,11 +305,9 @@ class FrameDecoder:
         out.append(frame)
 
     def _retry(self, chunk: bytes) -> tuple[Frame, bool] | None:
-        """A damaged chunk read again as a coded frame whose delimiters the line moved:
-        joined to the damaged chunks since the last frame boundary (the last 1 to 8 of
-        them: a damaged boundary may leave a stray chunk before the frame), each join
-        also without its first or its last byte. Only candidates :func:`fec.plausible`
-        passes are decoded."""
+        """A damaged chunk read again as a coded frame whose delimiters the line moved
+        (section 2.5): joined to the last 1 to 8 damaged chunks since the last boundary,
+        each join also without its first or its last byte."""
         self._split = [*self._split[-7:], chunk]
         while sum(map(len, self._split)) > self._max_chunk:
             self._split.pop(0)
