@@ -1,19 +1,16 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
 docs/protocol.md section 2.5 is the contract. A frame of a FEC session is sent as
-``00 | rs(COBS(whiten(body))) | 00 00``: :func:`whiten` makes the zero-rich column records
-look random (few bytes one bit error away from 0x00, which splits a frame); ``rs`` follows
-every 207 stuffed bytes (the last block shorter) with the block's 48 parity bytes, highest
-degree first, spread 7 bits a byte over 55 bytes ``0x80 | g`` that are never 0x00::
+``00 | rs(COBS(whiten(body))) | 00 00``; ``rs`` follows every 207 stuffed bytes (the last
+block shorter) with the block's 48 parity bytes, highest degree first, spread 7 bits a byte
+over 55 bytes ``0x80 | g`` that are never 0x00::
 
     coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes; a block corrects 24
-damaged symbols. The code is systematic: a receiver reads the data bytes alone first (one
-CRC) and decodes only when they fail. Code: primitive polynomial 0x11D, generator roots
-alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
-syndromes, the Chien search and Forney's formula are table-driven numpy (tests hold them to
-``reedsolo``); the error locator is Berlekamp-Massey on log tables.
+Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes. Code: primitive
+polynomial 0x11D, generator roots 2^0 .. 2^47, as ``reedsolo.RSCodec(48, nsize=255)``
+builds it. Encoding, syndromes, the Chien search and Forney's formula are table-driven
+numpy (tests hold them to ``reedsolo``); the error locator is Berlekamp-Massey on log tables.
 """
 
 from __future__ import annotations
@@ -57,7 +54,8 @@ WHITE_START, WHITE_STEP = 0x5A, 0x97
 
 
 def whiten(data: bytes) -> bytes:
-    """``data`` XOR the whitening sequence (its own inverse)."""
+    """``data`` XOR the whitening sequence (its own inverse): zero-rich column records come
+    out with few bytes one bit error away from 0x00 (which would split the frame)."""
     white = (WHITE_START + WHITE_STEP * np.arange(len(data))).astype(np.uint8)  # mod 256
     return (np.frombuffer(data, np.uint8) ^ white).tobytes()
 
@@ -74,13 +72,11 @@ _GMUL = _MUL.tolist()
 
 @functools.cache
 def _by_byte() -> tuple[np.ndarray, np.ndarray]:
-    """The syndrome and parity rows of each byte position ``p`` of a block, times every byte
+    """Syndrome and parity rows of each byte position ``p`` of a block times every byte
     value, ``[p, v] = v * row p`` (3.1 and 2.5 MB, built at first use): a block's syndromes
-    or parity are the XOR of one contiguous row per byte (a tenth of the time of gathering
-    products). Syndrome row: ``(2^j)^(BLOCK - 1 - p)`` for j < 48 (the block polynomial at
-    the root 2^j is the XOR of them). Parity row of data byte p: ``x^(BLOCK - 1 - p)`` mod
-    ``g(x) = prod_{i<48} (x - 2^i)``, highest degree first, the parity of a block whose
-    one non-zero byte, 1, is byte p; the code is linear."""
+    or parity are the XOR of one row per byte (a tenth of the time of gathering products).
+    Syndrome row p: ``(2^j)^(BLOCK - 1 - p)``, j < 48; parity row p (of a data byte):
+    ``x^(BLOCK - 1 - p) mod g(x)``, ``g = prod_{i<48} (x - 2^i)``, highest degree first."""
     powers = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
     low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
     unit = np.zeros((DATA, NSYM), np.uint8)
@@ -159,18 +155,15 @@ def _locator(syn: list[int]) -> list[int]:
     for n, d in enumerate(syn):
         for i in range(1, min(big_l, len(c) - 1) + 1):
             d ^= _GMUL[c[i]][syn[n - i]]
-        if d == 0:
-            m += 1
-            continue
-        q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
-        new = c + [0] * max(0, len(b) + m - len(c))
-        for i, bi in enumerate(b):
-            new[i + m] ^= _GMUL[bi][q]
-        if 2 * big_l <= n:
-            big_l, b, last, m = n + 1 - big_l, c, d, 1
-        else:
-            m += 1
-        c = new
+        if d:
+            q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
+            new = c + [0] * max(0, len(b) + m - len(c))
+            for i, bi in enumerate(b):
+                new[i + m] ^= _GMUL[bi][q]
+            if 2 * big_l <= n:
+                big_l, b, last, m = n + 1 - big_l, c, d, 0
+            c = new
+        m += 1
     loc = c[:big_l + 1][::-1]
     while loc and loc[0] == 0:
         loc = loc[1:]
