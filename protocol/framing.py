@@ -91,9 +91,8 @@ def cobs_max_len(n: int) -> int:
     return n + 1 + n // 254
 
 
-def crc32(data: bytes) -> int:
-    """CRC-32/ISO-HDLC of ``data`` (check value of b"123456789" is 0xCBF43926)."""
-    return zlib.crc32(data) & 0xFFFFFFFF
+#: CRC-32/ISO-HDLC of bytes (check value of b"123456789" is 0xCBF43926).
+crc32 = zlib.crc32
 
 
 class Frame(NamedTuple):
@@ -149,14 +148,13 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
         raise out_of_range("payload", f"at most {max_frame - size + len(payload)} bytes (max "
                            f"frame {max_frame})", f"{len(payload)} bytes", FieldError)
     try:
-        head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
+        body = Frame(msg_type, seq, session, payload, compat, incompat, version).signed_bytes()
     except struct.error:  # checked only on failure: every column frame is packed here
         for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
                                 ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
                                 ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
             check_int(f"frame.{name}", value, 0, hi, cls=FieldError)
         raise
-    body = head + payload
     if signer is not None:
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
@@ -176,7 +174,7 @@ def decode_frame(body: bytes, max_frame: int = FRAME_LIMIT) -> Frame:
     if n > max_frame:
         raise FrameError(f"oversize: {n} bytes, at most {max_frame}")
     (crc,) = _CRC.unpack_from(body, n - CRC_SIZE)
-    if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) & 0xFFFFFFFF != crc:
+    if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) != crc:
         raise FrameError("crc: CRC-32 mismatch")
     version, incompat, compat, msg_type, seq, plen, session = HEADER.unpack_from(body)
     sig_len = SIGNATURE_SIZE if incompat & INCOMPAT_SIGNED else 0
@@ -240,8 +238,8 @@ class FrameDecoder:
         self.stats = DecoderStats()
         self.fec = fec
         self.rejected: list[Frame] = []
-        self._buf = bytearray()
-        self._skipping = False  # inside an oversize chunk: drop until the next delimiter
+        #: None inside an oversize chunk: dropped up to the next delimiter.
+        self._buf: bytearray | None = bytearray()
         self._split: list[bytes] = []  # the damaged chunks right before this one
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         #: Largest decoded frame accepted (bytes, header and CRC included).
@@ -251,7 +249,7 @@ class FrameDecoder:
     @property
     def buffered(self) -> int:
         """Bytes held back waiting for a delimiter."""
-        return len(self._buf)
+        return len(self._buf or b"")
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the frames they complete, in order. Never raises.
@@ -266,8 +264,8 @@ class FrameDecoder:
             end = data.find(DELIMITER, start)
             if end < 0:
                 break
-            if self._skipping:  # the delimiter ends an oversize chunk
-                self._skipping = False
+            if self._buf is None:  # the delimiter ends an oversize chunk
+                self._buf = bytearray()
             elif self._buf or end > start:
                 chunk = bytes(self._buf) + data[start:end]
                 self._buf.clear()
@@ -275,12 +273,11 @@ class FrameDecoder:
             else:
                 self._split = []  # "00 00": a frame boundary, not a damaged byte
             start = end + 1
-        if self._skipping or start >= len(data):
+        if self._buf is None or start >= len(data):
             return out  # inside an oversize chunk (dropped), or nothing left over
         if len(self._buf) + len(data) - start > self._max_chunk:
             st.oversize += 1
-            self._skipping = True
-            self._buf.clear()
+            self._buf = None
         else:
             self._buf += data[start:]
             self.copied += len(data) - start
