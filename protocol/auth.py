@@ -108,9 +108,8 @@ def session_keys(key: bytes, host_nonce: bytes, device_nonce: bytes,
             _mac(key, b"cdma-lidar to host", host_nonce, device_nonce, s))
 
 
-def equal(a: bytes, b: bytes) -> bool:
-    """Constant-time comparison."""
-    return hmac.compare_digest(a, b)
+#: Constant-time comparison of two MACs (or nonces).
+equal = hmac.compare_digest
 
 
 # ---- frame signing ---------------------------------------------------------------------------
