@@ -34,7 +34,9 @@ BLOCK, DATA = 255, 255 - NSYM
 SPREAD = -(-8 * NSYM // 7)
 WIRE_BLOCK = DATA + SPREAD
 
-reedsolo.init_tables(0x11D)  # reedsolo's GF(2^8) tables (read below) for the polynomial 0x11D
+# reedsolo's GF(2^8) tables for the polynomial 0x11D, read below at import: they are
+# process-global, and any later init_tables (a RSCodec of other parameters) changes them.
+reedsolo.init_tables(0x11D)
 
 
 def coded_len(d: int) -> int:
@@ -68,6 +70,7 @@ _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
 _MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255]
 _MUL[0, :] = _MUL[:, 0] = 0
 _GMUL = _MUL.tolist()
+_LOW = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
 
 
 @functools.cache
@@ -78,11 +81,10 @@ def _by_byte() -> tuple[np.ndarray, np.ndarray]:
     Syndrome row p: ``(2^j)^(BLOCK - 1 - p)``, j < 48; parity row p (of a data byte):
     ``x^(BLOCK - 1 - p) mod g(x)``, ``g = prod_{i<48} (x - 2^i)``, highest degree first."""
     powers = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
-    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
     unit = np.zeros((DATA, NSYM), np.uint8)
-    unit[-1] = low  # x^48 mod g
+    unit[-1] = _LOW  # x^48 mod g
     for p in range(DATA - 2, -1, -1):  # x times row p+1, mod g
-        unit[p] = np.append(unit[p + 1, 1:], 0).astype(np.uint8) ^ _MUL[unit[p + 1, 0], low]
+        unit[p] = np.append(unit[p + 1, 1:], 0).astype(np.uint8) ^ _MUL[unit[p + 1, 0], _LOW]
     v = np.arange(256)[None, :, None]
     return _MUL[v, powers[:, None, :]], _MUL[v, unit[:, None, :]]
 

@@ -42,6 +42,19 @@ def test_table_driven_encoder_equals_reedsolo(data: bytes) -> None:
     assert fec.encode(data) == _encode_reference(data)
 
 
+def test_the_code_does_not_follow_reedsolos_tables_after_import() -> None:
+    """reedsolo's GF tables are process-global: an init_tables of another polynomial
+    after import (the lazily built encoder tables included) does not change the code."""
+    want = fec.encode(bytes(range(1, 256)) * 2)
+    fec._by_byte.cache_clear()
+    reedsolo.init_tables(0x187)
+    try:
+        assert fec.encode(bytes(range(1, 256)) * 2) == want
+    finally:
+        reedsolo.init_tables(0x11D)
+        fec._by_byte.cache_clear()
+
+
 @settings(max_examples=300)
 @given(st.lists(st.tuples(st.integers(0, fec.BLOCK - 1), st.integers(1, 255)), max_size=30,
                 unique_by=lambda e: e[0]))
