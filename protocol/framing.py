@@ -5,11 +5,10 @@ frozen in every version, the CRC and the acceptance rules)::
 
     00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
-The signature (:mod:`cdma_lidar.protocol.auth`) is there when incompat bit 0
-(INCOMPAT_SIGNED) is set. crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header, payload and
-signature, little-endian. A FEC session codes the body around COBS
-(:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte stream into
-:class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
+crc32 is CRC-32/ISO-HDLC (``zlib.crc32``), little-endian, over header, payload and the
+signature (:mod:`cdma_lidar.protocol.auth`) when INCOMPAT_SIGNED is set. A FEC session codes
+the body around COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
+stream into :class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
 """
 
 from __future__ import annotations
@@ -253,8 +252,7 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the frames they complete, in order. Never raises.
-        Linear in the bytes fed whatever the read sizes: each byte is searched for a
-        delimiter once and copied into the receive buffer at most once (``copied``)."""
+        Linear in the bytes fed whatever the read sizes (section 2.1; ``copied``)."""
         st = self.stats
         st.bytes += len(data)
         data = bytes(data)
