@@ -23,8 +23,9 @@ from pathlib import Path
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
-__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameSigner", "FrameVerifier",
-           "device_mac", "hello_mac", "load_key", "load_or_create_key", "session_keys"]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameMac", "FrameSigner",
+           "FrameVerifier", "device_mac", "hello_mac", "load_key", "load_or_create_key",
+           "session_keys"]
 
 log = logging.getLogger(__name__)
 
@@ -107,18 +108,19 @@ def session_keys(key: bytes, host_nonce: bytes, device_nonce: bytes,
             _mac(key, b"cdma-lidar to host", host_nonce, device_nonce, s))
 
 
-def equal(a: bytes, b: bytes) -> bool:
-    """Constant-time comparison."""
-    return hmac.compare_digest(a, b)
+#: Constant-time comparison of two MACs (or nonces).
+equal = hmac.compare_digest
 
 
 # ---- frame signing ---------------------------------------------------------------------------
 @dataclass
-class _FrameMac:
-    """HMAC-SHA256 of one session key, keyed once: each frame copies the keyed state
-    (the key's two pad blocks are not hashed again per frame)."""
+class FrameMac:
+    """One direction of a session: its key, keyed once (each frame copies the keyed
+    HMAC-SHA256 state: the key's two pad blocks are not hashed again per frame), and
+    ``counter``, the counter of the last frame signed (the first is 1) or accepted."""
 
     key: bytes
+    counter: int = 0
 
     def __post_init__(self) -> None:
         self._keyed = hmac.new(self.key, digestmod=hashlib.sha256)
@@ -130,25 +132,11 @@ class _FrameMac:
         h.update(counter)
         return h.digest()[:SIGNATURE_SIZE - _COUNTER.size]
 
-
-@dataclass
-class FrameSigner(_FrameMac):
-    """Signs the frames of one direction of a session (counter starts at 1)."""
-
-    counter: int = 0
-
     def sign(self, data: bytes) -> bytes:
-        """Signature of ``data`` (header + payload): counter + truncated HMAC."""
+        """Signature of ``data`` (header + payload): the next counter + truncated HMAC."""
         self.counter += 1
         c = _COUNTER.pack(self.counter)
         return c + self._frame_mac(data, c)
-
-
-@dataclass
-class FrameVerifier(_FrameMac):
-    """Checks the frames of one direction of a session: MAC, then a rising counter."""
-
-    last: int = 0
 
     def check(self, frame: Frame) -> bool:
         """True if ``frame`` is signed with this key and newer than every frame accepted."""
@@ -157,10 +145,16 @@ class FrameVerifier(_FrameMac):
                 not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[_COUNTER.size:]):
             return False
         (counter,) = _COUNTER.unpack(c)
-        if counter <= self.last:
+        if counter <= self.counter:
             return False
-        self.last = counter
+        self.counter = counter
         return True
+
+
+#: Signs the frames of one direction (:meth:`FrameMac.sign`).
+FrameSigner = FrameMac
+#: Checks the frames of one direction: MAC, then a rising counter (:meth:`FrameMac.check`).
+FrameVerifier = FrameMac
 
 
 class Backoff:

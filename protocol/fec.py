@@ -1,19 +1,16 @@
 """Forward error correction around the COBS frame: Reed-Solomon RS(255, 207) over GF(2^8).
 
 docs/protocol.md section 2.5 is the contract. A frame of a FEC session is sent as
-``00 | rs(COBS(whiten(body))) | 00 00``: :func:`whiten` makes the zero-rich column records
-look random (few bytes one bit error away from 0x00, which splits a frame); ``rs`` follows
-every 207 stuffed bytes (the last block shorter) with the block's 48 parity bytes, highest
-degree first, spread 7 bits a byte over 55 bytes ``0x80 | g`` that are never 0x00::
+``00 | rs(COBS(whiten(body))) | 00 00``; ``rs`` follows every 207 stuffed bytes (the last
+block shorter) with the block's 48 parity bytes, highest degree first, spread 7 bits a byte
+over 55 bytes ``0x80 | g`` that are never 0x00::
 
     coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
 
-Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes; a block corrects 24
-damaged symbols. The code is systematic: a receiver reads the data bytes alone first (one
-CRC) and decodes only when they fail. Code: primitive polynomial 0x11D, generator roots
-alpha^0 .. alpha^47 (alpha = 2), as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
-syndromes, the Chien search and Forney's formula are table-driven numpy (tests hold them to
-``reedsolo``); the error locator is Berlekamp-Massey on log tables.
+Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes. Code: primitive
+polynomial 0x11D, generator roots 2^0 .. 2^47, as ``reedsolo.RSCodec(48, nsize=255)``
+builds it. Encoding, syndromes, the Chien search and Forney's formula are table-driven
+numpy (tests hold them to ``reedsolo``); the error locator is Berlekamp-Massey on log tables.
 """
 
 from __future__ import annotations
@@ -37,7 +34,9 @@ BLOCK, DATA = 255, 255 - NSYM
 SPREAD = -(-8 * NSYM // 7)
 WIRE_BLOCK = DATA + SPREAD
 
-reedsolo.init_tables(0x11D)  # reedsolo's GF(2^8) tables (read below) for the polynomial 0x11D
+# reedsolo's GF(2^8) tables for the polynomial 0x11D, read below at import: they are
+# process-global, and any later init_tables (a RSCodec of other parameters) changes them.
+reedsolo.init_tables(0x11D)
 
 
 def coded_len(d: int) -> int:
@@ -54,14 +53,13 @@ def body_len(t: int) -> int:
 
 #: Whitening: body byte i is XORed with ``(WHITE_START + WHITE_STEP * i) mod 256``.
 WHITE_START, WHITE_STEP = 0x5A, 0x97
-_WHITE = ((WHITE_START + WHITE_STEP * np.arange(1 << 17)) & 0xFF).astype(np.uint8)
 
 
 def whiten(data: bytes) -> bytes:
-    """``data`` XOR the whitening sequence (its own inverse)."""
-    if len(data) > _WHITE.size:
-        raise FrameError(f"fec: {len(data)} bytes is longer than any frame")
-    return (np.frombuffer(data, np.uint8) ^ _WHITE[:len(data)]).tobytes()
+    """``data`` XOR the whitening sequence (its own inverse): zero-rich column records come
+    out with few bytes one bit error away from 0x00 (which would split the frame)."""
+    white = (WHITE_START + WHITE_STEP * np.arange(len(data))).astype(np.uint8)  # mod 256
+    return (np.frombuffer(data, np.uint8) ^ white).tobytes()
 
 
 _EXP = np.array(reedsolo.gf_exp[:255], np.uint8)  # 2^i, poly 0x11D
@@ -72,45 +70,36 @@ _EXP_LIST, _LOG_LIST = _EXP.tolist(), _LOG.tolist()
 _MUL = _EXP[(_LOG[:, None] + _LOG[None, :]) % 255]
 _MUL[0, :] = _MUL[:, 0] = 0
 _GMUL = _MUL.tolist()
-#: ``[p, j] = (2^j)^(BLOCK - 1 - p)``: byte p of a block times it, XORed over p, is
-#: syndrome j (the block polynomial at the root 2^j).
-_POWERS = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
-
-
-def _unit_parity() -> np.ndarray:
-    """Row ``e`` (highest degree first): ``x^(NSYM + e)`` mod ``g(x) = prod_{i<48} (x - 2^i)``,
-    the parity of a message whose one non-zero byte, 1, is ``e`` bytes before its end; the
-    code is linear, so a message's parity is the XOR of ``m_i * U[e_i]``."""
-    low = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
-    u = np.zeros((DATA, NSYM), np.uint8)
-    u[0] = low
-    for e in range(1, DATA):  # x * U[e-1] mod g
-        u[e] = np.append(u[e - 1, 1:], 0).astype(np.uint8) ^ _MUL[u[e - 1, 0], low]
-    return u
-
-
-#: Parity contribution rows by position in a full block (position 0 is e = DATA - 1).
-_UNIT_BY_POS = _unit_parity()[::-1].copy()
+_LOW = np.frombuffer(bytes(reedsolo.rs_generator_poly(NSYM)[1:]), np.uint8)  # g = x^48 + low
 
 
 @functools.cache
 def _by_byte() -> tuple[np.ndarray, np.ndarray]:
-    """``_POWERS`` and ``_UNIT_BY_POS`` times every byte value, ``[p, v] = v * row p`` (3.1
-    and 2.5 MB, built at first use): a block's syndromes or parity are the XOR of one
-    contiguous row per byte (a tenth of the time of gathering products)."""
+    """Syndrome and parity rows of each byte position ``p`` of a block times every byte
+    value, ``[p, v] = v * row p`` (3.1 and 2.5 MB, built at first use): a block's syndromes
+    or parity are the XOR of one row per byte (a tenth of the time of gathering products).
+    Syndrome row p: ``(2^j)^(BLOCK - 1 - p)``, j < 48; parity row p (of a data byte):
+    ``x^(BLOCK - 1 - p) mod g(x)``, ``g = prod_{i<48} (x - 2^i)``, highest degree first."""
+    powers = _EXP[(np.arange(NSYM) * (BLOCK - 1 - np.arange(BLOCK))[:, None]) % 255]
+    unit = np.zeros((DATA, NSYM), np.uint8)
+    unit[-1] = _LOW  # x^48 mod g
+    for p in range(DATA - 2, -1, -1):  # x times row p+1, mod g
+        unit[p] = np.append(unit[p + 1, 1:], 0).astype(np.uint8) ^ _MUL[unit[p + 1, 0], _LOW]
     v = np.arange(256)[None, :, None]
-    return _MUL[v, _POWERS[:, None, :]], _MUL[v, _UNIT_BY_POS[:, None, :]]
+    return _MUL[v, powers[:, None, :]], _MUL[v, unit[:, None, :]]
 
 
-def _blocks(data: np.ndarray, width: int) -> np.ndarray:
-    """``data`` (uint8) cut into rows of ``width`` bytes, the last one right-aligned after
-    zeros: leading zeros change neither a block's parity nor its syndromes."""
-    nb = -(-data.size // width)
-    rows = np.zeros((nb, width), np.uint8)
-    full = (nb - 1) * width
-    rows[:nb - 1] = data[:full].reshape(nb - 1, width)
-    rows[nb - 1, width - (data.size - full):] = data[full:]
-    return rows
+def _blocks(data: bytes, width: int) -> tuple[np.ndarray, int]:
+    """(``data`` cut into rows of ``width`` bytes, ``pad``): the last row is right-aligned
+    after ``pad`` zeros, which change neither a block's parity nor its syndromes."""
+    nb = -(-len(data) // width)
+    pad, cut = nb * width - len(data), (nb - 1) * width
+    return np.frombuffer(data[:cut] + bytes(pad) + data[cut:], np.uint8).reshape(nb, width), pad
+
+
+def _unblock(rows: np.ndarray, pad: int) -> bytes:
+    """The bytes of ``rows`` without the ``pad`` zeros :func:`_blocks` put before the last."""
+    return rows[:-1].tobytes() + rows[-1, pad:].tobytes()
 
 
 def _spread(parity: np.ndarray) -> np.ndarray:
@@ -127,14 +116,14 @@ def _unspread(spread: np.ndarray) -> np.ndarray:
     return np.packbits(bits.reshape(len(spread), 7 * SPREAD)[:, :8 * NSYM], axis=1)
 
 
-def _cut(coded: bytes) -> tuple[list[np.ndarray], np.ndarray]:
-    """(data bytes of each block, (blocks, SPREAD) spread parity) of coded bytes; FrameError
-    when nothing codes to their length."""
+def _cut(coded: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+    """(data, spread parity, pad) of coded bytes, one block a row: (blocks, DATA) data
+    bytes, the last block's right-aligned after ``pad`` zeros, and (blocks, SPREAD) spread
+    parity; FrameError when nothing codes to their length."""
     if body_len(len(coded)) < 0:
         raise FrameError(f"fec: {len(coded)} bytes is no coded length")
-    arr = np.frombuffer(coded, np.uint8)
-    blocks = [arr[i:i + WIRE_BLOCK] for i in range(0, arr.size, WIRE_BLOCK)]
-    return [b[:-SPREAD] for b in blocks], np.stack([b[-SPREAD:] for b in blocks])
+    rows, pad = _blocks(coded, WIRE_BLOCK)
+    return rows[:, :DATA], rows[:, DATA:], pad
 
 
 def encode(stuffed: bytes) -> bytes:
@@ -142,28 +131,22 @@ def encode(stuffed: bytes) -> bytes:
     rest); no byte is 0x00 when ``stuffed`` has none. Byte-identical to ``reedsolo``."""
     if not stuffed:
         return b""
-    data = np.frombuffer(stuffed, np.uint8)
-    blocks = _blocks(data, DATA)
+    blocks, pad = _blocks(stuffed, DATA)
     parity = np.bitwise_xor.reduce(_by_byte()[1][np.arange(DATA), blocks], axis=1)
-    spread = _spread(parity)
-    full = (len(blocks) - 1) * DATA
-    return np.concatenate([np.hstack([blocks[:-1], spread[:-1]]).ravel(), data[full:],
-                           spread[-1]]).tobytes()
+    return _unblock(np.hstack([blocks, _spread(parity)]), pad)
 
 
 def plausible(coded: bytes) -> bool:
     """``coded`` has a coded length and every block's spread parity has at most 4 bytes
     without their high bit: the bytes are where a coded frame puts them (a piece of a
     frame, or one a byte longer or shorter, fails this at once, without decoding)."""
-    try:
-        return bool(((_cut(coded)[1] < 0x80).sum(axis=1) <= 4).all())
-    except FrameError:
-        return False
+    return body_len(len(coded)) > 0 and bool(((_cut(coded)[1] < 0x80).sum(axis=1) <= 4).all())
 
 
 def strip(coded: bytes) -> bytes:
     """The data bytes of ``coded`` as they arrived (no correction); FrameError as _cut."""
-    return b"".join(d.tobytes() for d in _cut(coded)[0])
+    data, _, pad = _cut(coded)
+    return _unblock(data, pad)
 
 
 def _locator(syn: list[int]) -> list[int]:
@@ -174,18 +157,15 @@ def _locator(syn: list[int]) -> list[int]:
     for n, d in enumerate(syn):
         for i in range(1, min(big_l, len(c) - 1) + 1):
             d ^= _GMUL[c[i]][syn[n - i]]
-        if d == 0:
-            m += 1
-            continue
-        q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
-        new = c + [0] * max(0, len(b) + m - len(c))
-        for i, bi in enumerate(b):
-            new[i + m] ^= _GMUL[bi][q]
-        if 2 * big_l <= n:
-            big_l, b, last, m = n + 1 - big_l, c, d, 1
-        else:
-            m += 1
-        c = new
+        if d:
+            q = _EXP_LIST[(_LOG_LIST[d] - _LOG_LIST[last]) % 255]  # d / last
+            new = c + [0] * max(0, len(b) + m - len(c))
+            for i, bi in enumerate(b):
+                new[i + m] ^= _GMUL[bi][q]
+            if 2 * big_l <= n:
+                big_l, b, last, m = n + 1 - big_l, c, d, 0
+            c = new
+        m += 1
     loc = c[:big_l + 1][::-1]
     while loc and loc[0] == 0:
         loc = loc[1:]
@@ -203,9 +183,7 @@ def _correct(rows: np.ndarray, bad: list[int], syn: np.ndarray, last: int) -> No
     (roots not as many as its locator's degree)."""
     lams = [_locator(syn[b].tolist())[::-1] for b in bad]  # Lambda, lowest degree first
     width = max(map(len, lams))
-    lam = np.zeros((len(bad), width), np.uint8)
-    for k, coef in enumerate(lams):
-        lam[k, :len(coef)] = coef
+    lam = np.array([coef + [0] * (width - len(coef)) for coef in lams], np.uint8)
     powers = (np.arange(width)[:, None] * np.arange(BLOCK)).astype(np.int16)  # i * e
     terms = np.where(lam[:, :, None] > 0, _EXP[(_LOG[lam][:, :, None] - powers) % 255], 0)
     found = np.bitwise_xor.reduce(terms, axis=1) == 0
@@ -236,16 +214,13 @@ def decode(coded: bytes) -> bytes:
     """Correct ``coded`` and return the stuffed (COBS) bytes; FrameError (only) when it
     cannot. A block with more than 24 damaged symbols fails in :func:`_correct`, or is
     miscorrected and then fails the frame's CRC."""
-    data, spread = _cut(coded)
-    parity = _unspread(spread)
-    last = data[-1].size + NSYM
-    rows = _blocks(np.concatenate([np.concatenate([d, p]) for d, p in
-                                   zip(data, parity, strict=True)]), BLOCK)
+    data, spread, pad = _cut(coded)
+    rows = np.hstack([data, _unspread(spread)])
     # Syndrome j of a block: the block polynomial at the root 2^j (all zero: a codeword).
     syn = np.bitwise_xor.reduce(_by_byte()[0][np.arange(BLOCK), rows], axis=1)
     if (bad := np.flatnonzero(syn.any(axis=1)).tolist()):
         try:
-            _correct(rows, bad, syn, last)
+            _correct(rows, bad, syn, BLOCK - pad)
         except (reedsolo.ReedSolomonError, ValueError, IndexError, ZeroDivisionError) as exc:
             raise FrameError(f"fec: {exc}") from None
-    return rows[:-1, :DATA].tobytes() + rows[-1, BLOCK - last:-NSYM].tobytes()
+    return _unblock(rows[:, :DATA], pad)

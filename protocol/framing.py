@@ -5,11 +5,10 @@ frozen in every version, the CRC and the acceptance rules)::
 
     00 | COBS( header(12) | payload(payload_len) | [signature(24)] | crc32(4) ) | 00
 
-The signature (:mod:`cdma_lidar.protocol.auth`) is there when incompat bit 0
-(INCOMPAT_SIGNED) is set. crc32 is CRC-32/ISO-HDLC (``zlib.crc32``) over header, payload and
-signature, little-endian. A FEC session codes the body around COBS
-(:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte stream into
-:class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
+crc32 is CRC-32/ISO-HDLC (``zlib.crc32``), little-endian, over header, payload and the
+signature (:mod:`cdma_lidar.protocol.auth`) when INCOMPAT_SIGNED is set. A FEC session codes
+the body around COBS (:mod:`cdma_lidar.protocol.fec`). :class:`FrameDecoder` turns any byte
+stream into :class:`Frame` objects and counts what it rejects in :class:`DecoderStats`.
 """
 
 from __future__ import annotations
@@ -91,9 +90,8 @@ def cobs_max_len(n: int) -> int:
     return n + 1 + n // 254
 
 
-def crc32(data: bytes) -> int:
-    """CRC-32/ISO-HDLC of ``data`` (check value of b"123456789" is 0xCBF43926)."""
-    return zlib.crc32(data) & 0xFFFFFFFF
+#: CRC-32/ISO-HDLC of bytes (check value of b"123456789" is 0xCBF43926).
+crc32 = zlib.crc32
 
 
 class Frame(NamedTuple):
@@ -149,14 +147,13 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
         raise out_of_range("payload", f"at most {max_frame - size + len(payload)} bytes (max "
                            f"frame {max_frame})", f"{len(payload)} bytes", FieldError)
     try:
-        head = HEADER.pack(version, incompat, compat, msg_type, seq, len(payload), session)
+        body = Frame(msg_type, seq, session, payload, compat, incompat, version).signed_bytes()
     except struct.error:  # checked only on failure: every column frame is packed here
         for name, value, hi in (("msg_type", msg_type, 0xFF), ("seq", seq, 0xFFFF),
                                 ("session", session, 0xFFFFFFFF), ("compat", compat, 0xFF),
                                 ("incompat", incompat, 0xFF), ("version", version, 0xFF)):
             check_int(f"frame.{name}", value, 0, hi, cls=FieldError)
         raise
-    body = head + payload
     if signer is not None:
         body += signer.sign(body)
     body += _CRC.pack(zlib.crc32(body))
@@ -165,15 +162,18 @@ def encode_frame(msg_type: int, payload: bytes, seq: int, session: int, *,
     return b"".join((DELIMITER, cobs_encode(body), DELIMITER))
 
 
-def decode_frame(body: bytes) -> Frame:
-    """Check and split one COBS-decoded frame; raises FrameError (only) if invalid, the
-    reason the first word of the message: ``short``, ``crc`` or ``length``. A frame of
-    another version or with unknown incompat flags is returned (see :func:`rejects`)."""
+def decode_frame(body: bytes, max_frame: int = FRAME_LIMIT) -> Frame:
+    """Check and split one COBS-decoded frame of at most ``max_frame`` bytes; raises
+    FrameError (only) if invalid, the reason the first word of the message: ``short``,
+    ``oversize``, ``crc`` or ``length``. A frame of another version or with unknown
+    incompat flags is returned (see :func:`rejects`)."""
     n = len(body)
     if n < OVERHEAD:
         raise FrameError(f"short: {n} bytes, a frame has at least {OVERHEAD}")
+    if n > max_frame:
+        raise FrameError(f"oversize: {n} bytes, at most {max_frame}")
     (crc,) = _CRC.unpack_from(body, n - CRC_SIZE)
-    if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) & 0xFFFFFFFF != crc:
+    if zlib.crc32(memoryview(body)[: n - CRC_SIZE]) != crc:
         raise FrameError("crc: CRC-32 mismatch")
     version, incompat, compat, msg_type, seq, plen, session = HEADER.unpack_from(body)
     sig_len = SIGNATURE_SIZE if incompat & INCOMPAT_SIGNED else 0
@@ -228,18 +228,17 @@ class FrameDecoder:
     device NAKs them); the caller drains it.
 
     ``fec``: a chunk that is not a valid plain frame is read as a Reed-Solomon coded one
-    (its data bytes first, corrected only if they fail; such a frame has ``fec`` set),
-    then without its first or last byte (a delimiter damaged into a data byte joined
-    it), then joined to the damaged chunks before it (a data byte damaged into 0x00 split
-    it). Off by default: correcting costs about 3 ms per kB of damaged chunk.
+    (such a frame has ``fec`` set), then as one whose delimiters the line moved
+    (docs/protocol.md section 2.5). Off by default: correcting costs about 3 ms per kB of
+    damaged chunk.
     """
 
     def __init__(self, max_frame: int = FRAME_LIMIT, fec: bool = False) -> None:
         self.stats = DecoderStats()
         self.fec = fec
         self.rejected: list[Frame] = []
-        self._buf = bytearray()
-        self._skipping = False  # inside an oversize chunk: drop until the next delimiter
+        #: None inside an oversize chunk: dropped up to the next delimiter.
+        self._buf: bytearray | None = bytearray()
         self._split: list[bytes] = []  # the damaged chunks right before this one
         self.copied = 0  # bytes moved into the receive buffer (linear-time check)
         #: Largest decoded frame accepted (bytes, header and CRC included).
@@ -249,12 +248,11 @@ class FrameDecoder:
     @property
     def buffered(self) -> int:
         """Bytes held back waiting for a delimiter."""
-        return len(self._buf)
+        return len(self._buf or b"")
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the frames they complete, in order. Never raises.
-        Linear in the bytes fed whatever the read sizes: each byte is searched for a
-        delimiter once and copied into the receive buffer at most once (``copied``)."""
+        Linear in the bytes fed whatever the read sizes (section 2.1; ``copied``)."""
         st = self.stats
         st.bytes += len(data)
         data = bytes(data)
@@ -264,27 +262,22 @@ class FrameDecoder:
             end = data.find(DELIMITER, start)
             if end < 0:
                 break
-            if self._skipping:  # the delimiter ends an oversize chunk
-                self._skipping = False
-            elif self._buf:
-                self._buf += data[start:end]
-                self.copied += end - start
-                chunk = bytes(self._buf)
+            if self._buf is None:  # the delimiter ends an oversize chunk
+                self._buf = bytearray()
+            elif self._buf or end > start:
+                chunk = bytes(self._buf) + data[start:end]
                 self._buf.clear()
                 self._chunk(chunk, out)
-            elif end > start:
-                self._chunk(data[start:end], out)
             else:
                 self._split = []  # "00 00": a frame boundary, not a damaged byte
             start = end + 1
-        if self._skipping or start >= len(data):
+        if self._buf is None or start >= len(data):
             return out  # inside an oversize chunk (dropped), or nothing left over
         if len(self._buf) + len(data) - start > self._max_chunk:
             st.oversize += 1
-            self._skipping = True
-            self._buf.clear()
+            self._buf = None
         else:
-            self._buf += data[start:] if start else data
+            self._buf += data[start:]
             self.copied += len(data) - start
         return out
 
@@ -307,22 +300,16 @@ class FrameDecoder:
         out.append(frame)
 
     def _retry(self, chunk: bytes) -> tuple[Frame, bool] | None:
-        """A damaged chunk read again as a coded frame whose delimiters the line moved:
-        joined to the damaged chunks since the last frame boundary (the last 1 to 8 of
-        them: a damaged boundary may leave a stray chunk before the frame), each join
-        also without its first or its last byte. Only candidates :func:`fec.plausible`
-        passes are decoded."""
+        """A damaged chunk read again as a coded frame whose delimiters the line moved
+        (section 2.5): joined to the last 1 to 8 damaged chunks since the last boundary,
+        each join also without its first or its last byte."""
         self._split = [*self._split[-7:], chunk]
         while sum(map(len, self._split)) > self._max_chunk:
             self._split.pop(0)
         for k in range(1, len(self._split) + 1):
             whole = b"\x01".join(self._split[-k:])
             for candidate in (whole, whole[1:], whole[:-1])[k == 1:]:
-                try:
-                    got = self._coded(candidate)
-                except FrameError:
-                    continue
-                if not rejects(got[0]):
+                if (got := self._coded(candidate)) and not rejects(got[0]):
                     self.stats.rejoined += 1
                     return got
         return None
@@ -332,31 +319,26 @@ class FrameDecoder:
         read plain, then (with ``fec``) coded; the plain reading's reason counts."""
         if len(chunk) > self._max_chunk:
             return "oversize"
-        reason = ""
-        for coded in (False, True)[:1 + self.fec]:
-            try:
-                got = self._coded(chunk) if coded else (self._frame(cobs_decode(chunk)), False)
-            except FrameError as exc:
-                reason = reason or str(exc).split(":", 1)[0].lower()
-                continue
-            if not (why := rejects(got[0])):
-                return got
-            if len(self.rejected) < 64:
-                self.rejected.append(got[0])
-            return why
-        return reason
-
-    def _frame(self, body: bytes) -> Frame:
-        if len(body) > self.max_frame:
-            raise FrameError(f"oversize: {len(body)} bytes, at most {self.max_frame}")
-        return decode_frame(body)
-
-    def _coded(self, chunk: bytes) -> tuple[Frame, bool]:
-        """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
-        fail; raises FrameError if it is not one."""
-        if not fec.plausible(chunk):
-            raise FrameError("cobs: not a coded frame")
         try:
-            return self._frame(fec.whiten(cobs_decode(fec.strip(chunk))))._replace(fec=True), False
-        except FrameError:
-            return self._frame(fec.whiten(cobs_decode(fec.decode(chunk))))._replace(fec=True), True
+            got = decode_frame(cobs_decode(chunk), self.max_frame), False
+        except FrameError as exc:
+            got = self._coded(chunk) if self.fec else None
+            if got is None:
+                return str(exc).split(":", 1)[0].lower()
+        if not (why := rejects(got[0])):
+            return got
+        if len(self.rejected) < 64:
+            self.rejected.append(got[0])
+        return why
+
+    def _coded(self, chunk: bytes) -> tuple[Frame, bool] | None:
+        """Read ``chunk`` as a coded frame, its data bytes first, corrected only if they
+        fail: (frame, corrected), or None if it is not one."""
+        if fec.plausible(chunk):
+            for corrected, data in ((False, fec.strip), (True, fec.decode)):
+                try:
+                    body = fec.whiten(cobs_decode(data(chunk)))
+                    return decode_frame(body, self.max_frame)._replace(fec=True), corrected
+                except FrameError:
+                    pass
+        return None

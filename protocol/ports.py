@@ -44,8 +44,6 @@ def default_fec(port: Any) -> bool:
     """Whether frames on ``port`` are Reed-Solomon coded by default: yes on a serial line
     (a device path such as ``/dev/ttyUSB0``, a pty, ``virtual://``), no where bytes arrive
     intact (``socket://``, USB ``/dev/ttyACM*``) and elsewhere (``loop://``, pipes)."""
-    if isinstance(port, TcpPort):
-        return False
     name = port_name(port)
     return (name.startswith("/dev/") and "ttyACM" not in name) or \
         name.lower().startswith("virtual://")
