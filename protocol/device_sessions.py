@@ -88,33 +88,22 @@ class DeviceCore:
         self.owner: DeviceSession | None = None
         self.owner_nonce = b""  # the owner's HELLO host nonce
         self.opened = self.last_active = 0.0
-        self._boot: tuple[dict[str, Any], NDArray | None] | None = None
+        try:
+            power: NDArray | None = np.array(app.get_power(), dtype=np.uint16)
+        except DeviceError:
+            power = None
+        self._boot = (app.get_config(), power)  # what a new session starts from
         self.backoff = auth.Backoff(clock)  # failed authentication: the global budget
         #: Since boot (the core's creation), over every connection: what STATUS reports.
         self.booted, self.totals, self.rx_frames, self.rx_errors = clock(), EndpointStats(), 0, 0
-
-    def idle_s(self, now: float) -> float:
-        """Seconds the owner's session has been idle (0 while it streams)."""
-        if self.owner is None or self.owner.streams.stream is not None:
-            return 0.0
-        return max(0.0, now - self.last_active)
 
     def touch(self, session: DeviceSession) -> None:
         """The owner was heard from (or its stream ended)."""
         if self.owner is session:
             self.last_active = self.clock()
 
-    def restore_defaults(self, keep: bool) -> None:
-        """Remember the boot configuration and power once; unless ``keep``, put them back
-        (the engine is idle)."""
-        if self._boot is None:
-            try:
-                power: NDArray | None = np.array(self.app.get_power(), dtype=np.uint16)
-            except DeviceError:
-                power = None
-            self._boot = (self.app.get_config(), power)
-        if keep:
-            return
+    def restore_defaults(self) -> None:
+        """Put the boot configuration and power back (the engine is idle)."""
         cfg, power = self._boot
         try:
             if self.app.get_config() != cfg:
@@ -178,37 +167,43 @@ class DeviceSession:
 
     def admit(self, req: Frame) -> bool:
         """A request other than HELLO may go on: it names this open session and, in a
-        signed session, is signed (a joined request's pieces were checked). Otherwise it
-        is refused (NAK WRONG_SESSION, or AUTH_REQUIRED unsigned) or dropped (forged or
-        replayed: no answer at all, and the guess counts against the back-off)."""
+        signed session, is :meth:`verified`. Otherwise it is refused (NAK WRONG_SESSION, or
+        AUTH_REQUIRED unsigned) or dropped (forged or replayed)."""
+        good = self.verified(req)
         if not self.open or req.session != self.id:
             detail = (f"this connection's session is 0x{self.id:08x}; send HELLO"
                       if self.open else "no session is open here: send HELLO")
-            refusal = self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail, False)
             # A request of the signed session that ended here hears the NAK signed with
-            # that session's key (its host drops unsigned frames; joined: pieces checked).
-            sid, signer, verifier = self.ended or (None, None, None)
-            ended = req.session == sid and verifier is not None and \
-                (req.joined or verifier.check(req))
-            self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
-                         signer=signer if ended else None, coded=self.tx.coded or req.fec)
+            # that session's key (its host drops unsigned frames).
+            self.tx.answer(req, self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail,
+                                            bool(good)), self.ended and self.ended[1])
             return False
-        if self.verifier is not None and not req.joined:
-            if not req.sig:
+        if self.verifier is not None and not good:
+            if good is False:
                 self.tx.answer(req, self.tx.nak(
                     req, ErrorCode.AUTH_REQUIRED, "incompat_flags",
                     "this device accepts only signed frames: HELLO with its key", False))
-                return False
-            if not self.verifier.check(req):
-                self.forged()
-                return False
+            return False
         self.core.touch(self)
         return True
 
-    def forged(self) -> None:
-        """A frame of this signed session failed its MAC or counter (dropped unanswered)."""
+    def verified(self, req: Frame) -> bool | None:
+        """True: ``req`` (joined: each piece) passed the MAC and counter check of the open
+        signed session or of the signed session that ended here; None: a signed frame of the
+        open one failed (forged or replayed: dropped unanswered, counted against the
+        back-off); else False."""
+        if req.joined:
+            return True
+        ours = self.open and req.session == self.id
+        sid, _, ended = self.ended or (None, None, None)
+        verifier = self.verifier if ours else ended if req.session == sid else None
+        if verifier is not None and verifier.check(req):
+            return True
+        if verifier is None or not (ours and req.sig):
+            return False
         self.stats.auth_rejected += 1
         self.core.backoff.failed(f"{self.peer} (session frames)", "a frame failed authentication")
+        return None
 
     def hello_gate(self, req: Frame, f: dict) -> Reply | None:
         """What HELLO gets from the session state alone, at once: a CHALLENGE,
@@ -241,7 +236,7 @@ class DeviceSession:
                                    "the MAC does not match this device's key", False)
         owner, nonce, now = core.owner, bytes(f["host_nonce"]), core.clock()
         if owner is not None and not (owner is self and core.owner_nonce == nonce):
-            idle = core.idle_s(now)
+            idle = 0.0 if owner.streams.stream is not None else max(0.0, now - core.last_active)
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
@@ -282,7 +277,8 @@ class DeviceSession:
         core.owner, self.auth_failures, self._previous = self, (0, 0.0), None
         nonce, device_nonce = core.owner_nonce, self.challenge or bytes(auth.NONCE_BYTES)
         self.challenge = None
-        core.restore_defaults(keep=bool(f["flags"] & HelloFlags.KEEP_CONFIG))
+        if not f["flags"] & HelloFlags.KEEP_CONFIG:
+            core.restore_defaults()
         if self.stats.sessions:
             self.tx.session = new_session_id(self.id)
         self.stats.sessions += 1
@@ -297,10 +293,10 @@ class DeviceSession:
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
         info = dataclasses.replace(
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
-            schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
-            ring_columns=min(self.streams.ring_columns, 65535),
-            heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))),
-            session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),
+            # The endpoint and the core checked these within their fields' ranges.
+            schema_crc=SCHEMA_CRC, max_frame=self.max_frame, ring_columns=self.streams.ring_columns,
+            heartbeat_ms=round(self.heartbeat_s * 1000),
+            session_idle_ms=round(core.session_idle_s * 1000),
             auth=int(Auth.HMAC_SHA256 if core.key is not None else Auth.NONE), device_mac=mac)
         log.info("HELLO from host %s: session 0x%08x, max frame %d%s", nonce[:4].hex(),
                  self.id, self.tx.max_frame, ", signed" if self.tx.signer else "")
@@ -309,7 +305,7 @@ class DeviceSession:
 
     def end(self) -> None:
         """Forget the session's stream (its clean-up goes to the engine), ring, capture,
-        keys and ownership: the device is free at once."""
+        keys, ownership and a loss not yet acted on: the device is free at once."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
@@ -318,7 +314,7 @@ class DeviceSession:
             self.sessionless_since = self.core.clock()
             if self.verifier is not None:  # to sign its NAK WRONG_SESSION
                 self.ended = (self.id, self.tx.signer, self.verifier)
-        self.open, self.capture, self.verifier = False, None, None
+        self.open, self.capture, self.verifier, self.lost = False, None, None, None
         self.tx.signer, self.tx.coded = None, False
         if self.core.owner is self:
             self.core.owner = None
@@ -331,7 +327,6 @@ class DeviceSession:
                 self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
                     MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         self.end()
-        self.lost = None
 
     # ---- what the session asks of the application -------------------------------------
     def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
@@ -342,9 +337,8 @@ class DeviceSession:
         return self.tx.reply(req, msg_type, payload)
 
     def _config_get(self, req: Frame, f: dict) -> Reply:
-        # While streaming (no CONFIG_SET then) the stream's configuration is still current.
-        streaming = self.streams.stream is not None and self.streams.config is not None
-        values = dict(self.streams.config) if streaming else self.app.get_config()
+        st = self.streams.stream  # its configuration is still current (no CONFIG_SET)
+        values = dict(st.config) if st is not None else self.app.get_config()
         if f["keys"]:
             want = []
             for kid in f["keys"]:

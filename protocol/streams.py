@@ -87,8 +87,10 @@ def _run(job: Future, fn: Callable[[], Any]) -> None:
 
 @dataclass
 class Stream:
-    """One scan (or calibration: column = shot) of ``count`` columns from ``first``."""
+    """One scan (or calibration: column = shot) of ``count`` columns from ``first``, with
+    the application's ``config`` when it started (no CONFIG_SET while it runs)."""
 
+    config: dict[str, Any]
     gen: Iterator[ColumnResult]
     frame: int
     first: int
@@ -115,7 +117,6 @@ class Streams:
         self.ring_columns, self.clock, self._stopped = ring_columns, clock, stopped
         self.stream: Stream | None = None  # the running one
         self.latest: Stream | None = None  # the last started, running or not
-        self.config: dict[str, Any] | None = None  # the app's config when it started
         self.last_end = ScanEndReason.COMPLETE  # SCAN_END reason of the last ended stream
         self.last_heartbeat = 0.0  # when the running stream's last HEARTBEAT went (s)
         #: Recent columns (frame, column) -> payload, for RESEND.
@@ -131,8 +132,8 @@ class Streams:
         if self.stream is not None:
             return self.tx.nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
         channels = self.app.info().channels
-        self.config = self.app.get_config()
-        peaks = int(self.config.get("peaks", 1))
+        config = self.app.get_config()
+        peaks = int(config.get("peaks", 1))
         size = column_payload_size(channels, peaks)
         if not self.tx.fits(size):
             return self.tx.nak(req, ErrorCode.TOO_LARGE, "peaks",
@@ -141,10 +142,11 @@ class Streams:
                                f"{self.tx.max_frame}")
         frame = f["frame"]
         if req.msg_type == MsgType.CALIBRATE:
-            st = Stream(iter(self.app.calibrate(frame, f["shots"])), frame, 0, f["shots"], True)
+            st = Stream(config, iter(self.app.calibrate(frame, f["shots"])), frame, 0,
+                        f["shots"], True)
         else:
-            st = Stream(iter(self.app.scan(frame, f["first_column"], f["columns"])), frame,
-                        f["first_column"], f["columns"], False)
+            st = Stream(config, iter(self.app.scan(frame, f["first_column"], f["columns"])),
+                        frame, f["first_column"], f["columns"], False)
         self.stream = self.latest = st
         self.last_heartbeat = self.clock()
         return self.tx.ack(req)
@@ -215,13 +217,9 @@ class Streams:
     def advance(self) -> None:
         """Hand the engine the running stream's next column once the line has taken the
         last one (and the engine is free)."""
-        st = self.stream
-        if st is None or st.job is not None or self.tx.pending(FRESH) or \
-                not self.engine.idle:
-            return
-        if st.produced >= st.count:
-            self.stop(ScanEndReason.COMPLETE)
-        else:
+        st = self.stream  # never complete here: collect stops it at its last column
+        if st is not None and st.job is None and not self.tx.pending(FRESH) and \
+                self.engine.idle:
             st.job = self.engine.submit(lambda: self._compute(st))
 
     def _finish(self, st: Stream) -> None:
