@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import DeviceError, FieldError, out_of_range
+from cdma_lidar.errors import DeviceError, FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
+from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, frame_size
 from cdma_lidar.protocol.messages import (
     SCHEMA_CRC,
@@ -35,6 +35,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     ScanEndReason,
     SessionLostReason,
+    decode_payload,
     encode_payload,
     head_size,
 )
@@ -44,9 +45,6 @@ from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, cl
 __all__ = ["DeviceCore", "DeviceSession", "EndpointStats", "new_session_id"]
 
 log = logging.getLogger(__name__)
-
-_READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
-_CAPTURE_HEADER = head_size(MsgType.CAPTURE_DATA)  # bytes before the data (14)
 
 
 @dataclasses.dataclass
@@ -205,13 +203,16 @@ class DeviceSession:
         self.core.backoff.failed(f"{self.peer} (session frames)", "a frame failed authentication")
         return None
 
-    def hello_gate(self, req: Frame, f: dict) -> Reply | None:
-        """What HELLO gets from the session state alone, at once: a CHALLENGE,
-        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY.
-        None: the HELLO passed and took the device from its owner, which hears
-        SESSION_LOST (at once on this connection, at its next poll on another); the
-        session opens when the HELLO is handled."""
+    def hello_gate(self, req: Frame) -> Reply | None:
+        """What HELLO gets from the session state alone, at once: MALFORMED, a CHALLENGE,
+        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY. None:
+        the HELLO passed and took the device from its owner, which hears SESSION_LOST (at once
+        on this connection, at its next poll on another); the session opens when it is handled."""
         core = self.core
+        try:
+            f = decode_payload(MsgType.HELLO, req.payload)
+        except FrameError as exc:
+            return self.tx.nak(req, ErrorCode.MALFORMED, exc.field or "", str(exc))
         if core.key is not None:
             if not any(f["mac"]) or self.challenge is None or \
                     not auth.equal(f["device_nonce"], self.challenge):
@@ -360,7 +361,7 @@ class DeviceSession:
             return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {cfg.unknown[0]}",
                                "key not known to this device")
         for name in cfg.values:
-            if name in _READ_ONLY:
+            if config_key(name).read_only:
                 return self.tx.nak(req, ErrorCode.READ_ONLY, name, f"{name} is read-only")
         self.app.set_config(cfg.values)
         return self.tx.ack(req)
@@ -401,8 +402,8 @@ class DeviceSession:
         if off > total:
             return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, "offset",
                                f"offset must be 0..{total}, not {off}")
-        room = (self.tx.max_frame - frame_size(_CAPTURE_HEADER, self.tx.signer is not None)) \
-            // arr.itemsize
+        room = (self.tx.max_frame - frame_size(head_size(MsgType.CAPTURE_DATA),
+                                               self.tx.signer is not None)) // arr.itemsize
         n = max(0, min(f["max_count"], room, total - off))
         return self.tx.reply(req, MsgType.CAPTURE_DATA, encode_payload(MsgType.CAPTURE_DATA, {
             "kind": f["kind"], "column": f["column"], "channel": f["channel"],

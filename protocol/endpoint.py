@@ -287,7 +287,6 @@ class DeviceEndpoint:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
         st, last = self.streams.stream, self.streams.latest  # running, last started
-        queued = self.tx.fresh_pending() if st else 0  # its column not sent yet (0 or 1)
         try:
             temp, faults = self.app.health()
         except Exception:  # a health sensor must not take the link down
@@ -298,7 +297,7 @@ class DeviceEndpoint:
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(last.frame if last else 0) & mask,
-            next_column=(last.next_column - queued if last else 0) & 0xFFFF,
+            next_column=(last.next_column - self.tx.fresh_pending() if last else 0) & 0xFFFF,
             last_end=int(self.streams.last_end), columns_sent=totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
@@ -356,12 +355,7 @@ class DeviceEndpoint:
         if any(h.seq == frame.seq and k == key for h, k in self._held):
             return  # a retransmission of a held request: its reply comes
         if is_hello:
-            try:
-                f = decode_payload(MsgType.HELLO, frame.payload)
-            except FrameError:
-                self._respond(frame, key)  # NAK MALFORMED
-                return
-            refusal = sess.hello_gate(frame, f)  # at once, whatever the engine computes
+            refusal = sess.hello_gate(frame)  # at once, whatever the engine computes
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return

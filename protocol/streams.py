@@ -160,19 +160,17 @@ class Streams:
         if not f["columns"] and not f["fragments"]:
             return self.tx.nak(req, ErrorCode.MALFORMED, "columns",
                                "name at least one column or fragment")
-        wanted = [(f"columns[{k}]", col, None) for k, col in enumerate(f["columns"])] + \
+        wanted = [(f"columns[{k}]", col, -1) for k, col in enumerate(f["columns"])] + \
             [(f"fragments[{k}]", p["column"], p["index"]) for k, p in enumerate(f["fragments"])]
-        todo = []
-        for name, col, piece in wanted:
-            payload = self.ring.get((frame, col))
-            if payload is not None:
-                todo.append(((frame, col), payload, None if piece is None else [piece]))
-            elif not (st is not None and st.frame == frame and
-                      st.next_column <= col < st.first + st.count):
+        for name, col, _ in wanted:  # all are kept or still to come, or none is sent
+            if (frame, col) not in self.ring and not (st is not None and st.frame == frame and
+                                                   st.next_column <= col < st.first + st.count):
                 return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, name,
                                    f"column {col} of frame {frame} is no longer kept")
-        for key, payload, only in todo:  # class REPAIR: after the ACK
-            self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
+        for _, col, piece in wanted:  # class REPAIR: after the ACK
+            if (frame, col) in self.ring:
+                self.tx.send(REPAIR, MsgType.COLUMN_RESULT, self.ring[frame, col],
+                             key=(frame, col), only=[piece])
         return self.tx.ack(req)
 
     def _compute(self, st: Stream) -> tuple[int, bytes]:

@@ -143,8 +143,8 @@ class Transmitter:
              only: Iterable[int] | None = None, version: int = PROTOCOL_VERSION) -> None:
         """Queue one message of class ``cls`` (REPAIR frames marked retransmitted), whole or
         in FRAGMENTs of the max frame (the indexes in ``only``; all when it is None or names
-        one beyond the last); ``signer`` defaults to the session's; coded when the session
-        is or ``coded``.
+        one out of range, as -1); ``signer`` defaults to the session's; coded when the
+        session is or ``coded``.
 
         ``seq``: a reply's (the request's); None: a stream frame's (whole: the next stream
         seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT, whose
