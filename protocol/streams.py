@@ -140,14 +140,10 @@ class Streams:
                                f"a column of {channels} channels x {peaks} peaks ({size} bytes) "
                                f"needs more than {MAX_PIECES} fragments at max frame "
                                f"{self.tx.max_frame}")
-        frame = f["frame"]
-        if req.msg_type == MsgType.CALIBRATE:
-            st = Stream(config, iter(self.app.calibrate(frame, f["shots"])), frame, 0,
-                        f["shots"], True)
-        else:
-            st = Stream(config, iter(self.app.scan(frame, f["first_column"], f["columns"])),
-                        frame, f["first_column"], f["columns"], False)
-        self.stream = self.latest = st
+        frame, cal = f["frame"], req.msg_type == MsgType.CALIBRATE
+        first, count = (0, f["shots"]) if cal else (f["first_column"], f["columns"])
+        gen = self.app.calibrate(frame, count) if cal else self.app.scan(frame, first, count)
+        self.stream = self.latest = Stream(config, iter(gen), frame, first, count, cal)
         self.last_heartbeat = self.clock()
         return self.tx.ack(req)
 
