@@ -11,7 +11,6 @@ Reply``; it refuses by returning a NAK or raising ``ConfigError`` / ``DeviceErro
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import secrets
@@ -292,9 +291,8 @@ class DeviceSession:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
             self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
-        info = dataclasses.replace(
+        info = dataclasses.replace(  # the link fields' ranges were checked when given
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
-            # The endpoint and the core checked these within their fields' ranges.
             schema_crc=SCHEMA_CRC, max_frame=self.max_frame, ring_columns=self.streams.ring_columns,
             heartbeat_ms=round(self.heartbeat_s * 1000),
             session_idle_ms=round(core.session_idle_s * 1000),
@@ -324,9 +322,8 @@ class DeviceSession:
         """Another HELLO ended this session: tell its host, then end it."""
         if self.open:
             log.info("session 0x%08x lost: %s", self.id, detail)
-            with contextlib.suppress(OSError):  # that host is gone anyway
-                self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
-                    MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
+            self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(  # queued: never fails
+                MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         self.end()
 
     # ---- what the session asks of the application -------------------------------------

@@ -10,7 +10,7 @@ connection's loop is the only writer.
 from __future__ import annotations
 
 import logging
-from collections import deque
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
@@ -65,11 +65,10 @@ class Transmitter:
         self.signer: FrameSigner | None = None
         self.coded = False
         self.counters = tuple(counters)
-        #: Per class: (type, repair key, seq (None: the next stream seq), the frame's
-        #: encoder given its seq).
-        self._q: tuple[deque[tuple[MsgType, Any, int | None, Callable[..., bytes]]], ...] = \
-            (deque(), deque(), deque())
-        self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
+        #: Per class, first in first out: a REPAIR frame's (frame, column, fragment or -1), any
+        #: other's object() -> (type, seq (None: the next stream seq), its encoder given seq).
+        self._q: tuple[OrderedDict[Any, tuple[MsgType, int | None, Callable[..., bytes]]], ...] \
+            = (OrderedDict(), OrderedDict(), OrderedDict())
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
 
@@ -106,8 +105,7 @@ class Transmitter:
             while queue:
                 if cls > CONTROL and budget is not None and sent >= budget:
                     return
-                msg_type, repair, seq, encode = queue.popleft()
-                self._repairs.discard(repair)
+                msg_type, seq, encode = queue.popitem(last=False)[1]
                 if seq is None:
                     self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
                 try:
@@ -126,13 +124,11 @@ class Transmitter:
 
     def fresh_pending(self) -> int:
         """1 while frames of a new column wait (that column is not sent yet), else 0."""
-        return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH]))
+        return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH].values()))
 
     def drop(self, cls: int) -> None:
         """Forget the queued frames of one class (an ended stream's new columns)."""
         self._q[cls].clear()
-        if cls == REPAIR:
-            self._repairs.clear()
 
     def fits(self, payload_len: int) -> bool:
         """A payload (bytes) of this session goes whole or in at most MAX_PIECES FRAGMENTs."""
@@ -167,12 +163,7 @@ class Transmitter:
                 only = range(len(pieces))
             frames = [(MsgType.FRAGMENT, pieces[k], None, k) for k in only]
         for mtype, data, fseq, k in frames:
-            repair = (*key, k) if cls == REPAIR else None
-            if repair in self._repairs:
-                continue
-            if repair is not None:
-                self._repairs.add(repair)
-            self._q[cls].append((mtype, repair, fseq, partial(
+            self._q[cls].setdefault((*key, k) if cls == REPAIR else object(), (mtype, fseq, partial(
                 encode_frame, mtype, data, session=self.session, max_frame=self.max_frame,
                 compat=COMPAT_RETRANSMIT if cls == REPAIR else 0, version=version,
                 signer=signer, coded=self.coded or coded)))
