@@ -321,10 +321,9 @@ class DeviceEndpoint:
         self.tx.answer(frame, self.tx.nak(frame, *nak, False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request; the whole request once every piece is in (at most
-        two requests kept), ``joined`` (checked) only if every piece was
-        :meth:`~DeviceSession.verified` (a forged one is dropped, an unsigned one makes its
-        request AUTH_REQUIRED, or its NAK WRONG_SESSION unsigned)."""
+        """Keep one FRAGMENT of a request (at most two requests kept); the whole request once
+        every piece is in, ``joined`` (checked) if each was :meth:`~DeviceSession.verified`
+        (a forged piece is dropped; an unchecked request is answered as an unsigned one)."""
         good = self.session.verified(frame)
         if good is None:
             return None

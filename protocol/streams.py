@@ -87,10 +87,9 @@ def _run(job: Future, fn: Callable[[], Any]) -> None:
 
 @dataclass
 class Stream:
-    """One scan (or calibration: column = shot) of ``count`` columns from ``first``, with
-    the application's ``config`` when it started (no CONFIG_SET while it runs)."""
+    """One scan (or calibration: column = shot) of ``count`` columns from ``first``."""
 
-    config: dict[str, Any]
+    config: dict[str, Any]  # the application's when it started (no CONFIG_SET while it runs)
     gen: Iterator[ColumnResult]
     frame: int
     first: int
