@@ -263,9 +263,8 @@ class DeviceSession:
         """This connection may call the application now: it owns the device, the owner its
         HELLO took the device from has ended its session (its loop clears ``lost``), and
         the engine is idle."""
-        prev = self._previous
-        return self.core.owner is self and (prev is None or not (prev.open or prev.lost)) \
-            and self.core.engine.idle
+        prev = self._previous  # its end() clears lost (and open with it)
+        return self.core.owner is self and not (prev and prev.lost) and self.core.engine.idle
 
     def _hello(self, req: Frame, f: dict) -> Reply:
         """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
