@@ -2,19 +2,14 @@
 :class:`DeviceApp` (e.g. ``cdma_lidar.virtual.board``), which only answers decoded
 requests and produces columns.
 
-What a request goes through (docs/protocol.md, sections 2.3, 4, 5 and 6.1)::
-
-    port bytes -> FrameDecoder -> damaged chunk? --> LINE_ERROR at once
-    request -> session ok? --no--> NAK WRONG_SESSION (HELLO always passes)
-            -> signed session: MAC and counter ok? --no--> dropped (unsigned: NAK AUTH_REQUIRED)
-            -> same seq + same bytes as a cached request? --yes--> the stored reply again
-            -> older seq than the last? --yes--> dropped as stale
-            -> needs the application while the engine computes? --yes--> held (in order)
-            -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
-
-One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits for
-the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes the
-columns one step at a time while the loop answers from its state.
+A request passes, in this order, the frame checks (docs/protocol.md section 2.3, a damaged
+chunk: LINE_ERROR at once), its session (4; HELLO always passes), its signature (5), the
+replay cache and the stale-seq rule (6.1); one that needs the application while the engine
+computes is held, in order (6.6); a handler's reply goes through
+:mod:`~cdma_lidar.protocol.transmit` with the request's seq. One loop per connection
+(:meth:`DeviceEndpoint.poll`) does all of it and never waits for the application: the
+device's :class:`~cdma_lidar.protocol.streams.Engine` computes the columns one step at a
+time while the loop answers from its state.
 """
 
 from __future__ import annotations
