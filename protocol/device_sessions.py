@@ -11,7 +11,6 @@ Reply``; it refuses by returning a NAK or raising ``ConfigError`` / ``DeviceErro
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import secrets
@@ -22,9 +21,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cdma_lidar.errors import DeviceError, FieldError, out_of_range
+from cdma_lidar.errors import DeviceError, FieldError, FrameError, out_of_range
 from cdma_lidar.protocol import auth
-from cdma_lidar.protocol.config_keys import CONFIG_KEYS, config_key, decode_config, encode_config
+from cdma_lidar.protocol.config_keys import config_key, decode_config, encode_config
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, Frame, frame_size
 from cdma_lidar.protocol.messages import (
     SCHEMA_CRC,
@@ -35,6 +34,7 @@ from cdma_lidar.protocol.messages import (
     MsgType,
     ScanEndReason,
     SessionLostReason,
+    decode_payload,
     encode_payload,
     head_size,
 )
@@ -44,9 +44,6 @@ from cdma_lidar.protocol.transmit import CONTROL, REPAIR, Reply, Transmitter, cl
 __all__ = ["DeviceCore", "DeviceSession", "EndpointStats", "new_session_id"]
 
 log = logging.getLogger(__name__)
-
-_READ_ONLY = {k.name for k in CONFIG_KEYS if k.read_only}
-_CAPTURE_HEADER = head_size(MsgType.CAPTURE_DATA)  # bytes before the data (14)
 
 
 @dataclasses.dataclass
@@ -88,33 +85,22 @@ class DeviceCore:
         self.owner: DeviceSession | None = None
         self.owner_nonce = b""  # the owner's HELLO host nonce
         self.opened = self.last_active = 0.0
-        self._boot: tuple[dict[str, Any], NDArray | None] | None = None
+        try:
+            power: NDArray | None = np.array(app.get_power(), dtype=np.uint16)
+        except DeviceError:
+            power = None
+        self._boot = (app.get_config(), power)  # what a new session starts from
         self.backoff = auth.Backoff(clock)  # failed authentication: the global budget
         #: Since boot (the core's creation), over every connection: what STATUS reports.
         self.booted, self.totals, self.rx_frames, self.rx_errors = clock(), EndpointStats(), 0, 0
-
-    def idle_s(self, now: float) -> float:
-        """Seconds the owner's session has been idle (0 while it streams)."""
-        if self.owner is None or self.owner.streams.stream is not None:
-            return 0.0
-        return max(0.0, now - self.last_active)
 
     def touch(self, session: DeviceSession) -> None:
         """The owner was heard from (or its stream ended)."""
         if self.owner is session:
             self.last_active = self.clock()
 
-    def restore_defaults(self, keep: bool) -> None:
-        """Remember the boot configuration and power once; unless ``keep``, put them back
-        (the engine is idle)."""
-        if self._boot is None:
-            try:
-                power: NDArray | None = np.array(self.app.get_power(), dtype=np.uint16)
-            except DeviceError:
-                power = None
-            self._boot = (self.app.get_config(), power)
-        if keep:
-            return
+    def restore_defaults(self) -> None:
+        """Put the boot configuration and power back (the engine is idle)."""
         cfg, power = self._boot
         try:
             if self.app.get_config() != cfg:
@@ -178,45 +164,54 @@ class DeviceSession:
 
     def admit(self, req: Frame) -> bool:
         """A request other than HELLO may go on: it names this open session and, in a
-        signed session, is signed (a joined request's pieces were checked). Otherwise it
-        is refused (NAK WRONG_SESSION, or AUTH_REQUIRED unsigned) or dropped (forged or
-        replayed: no answer at all, and the guess counts against the back-off)."""
+        signed session, is :meth:`verified`. Otherwise it is refused (NAK WRONG_SESSION, or
+        AUTH_REQUIRED unsigned) or dropped (forged or replayed)."""
+        good = self.verified(req)
         if not self.open or req.session != self.id:
             detail = (f"this connection's session is 0x{self.id:08x}; send HELLO"
                       if self.open else "no session is open here: send HELLO")
-            refusal = self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail, False)
             # A request of the signed session that ended here hears the NAK signed with
-            # that session's key (its host drops unsigned frames; joined: pieces checked).
-            sid, signer, verifier = self.ended or (None, None, None)
-            ended = req.session == sid and verifier is not None and \
-                (req.joined or verifier.check(req))
-            self.tx.send(CONTROL, MsgType.NAK, refusal[1], req.seq,
-                         signer=signer if ended else None, coded=self.tx.coded or req.fec)
+            # that session's key (its host drops unsigned frames).
+            self.tx.answer(req, self.tx.nak(req, ErrorCode.WRONG_SESSION, "session", detail,
+                                            bool(good)), self.ended and self.ended[1])
             return False
-        if self.verifier is not None and not req.joined:
-            if not req.sig:
+        if self.verifier is not None and not good:
+            if good is False:
                 self.tx.answer(req, self.tx.nak(
                     req, ErrorCode.AUTH_REQUIRED, "incompat_flags",
                     "this device accepts only signed frames: HELLO with its key", False))
-                return False
-            if not self.verifier.check(req):
-                self.forged()
-                return False
+            return False
         self.core.touch(self)
         return True
 
-    def forged(self) -> None:
-        """A frame of this signed session failed its MAC or counter (dropped unanswered)."""
+    def verified(self, req: Frame) -> bool | None:
+        """True: ``req`` (joined: each piece) passed the MAC and counter check of the open
+        signed session or of the signed session that ended here; None: a signed frame of the
+        open one failed (forged or replayed: dropped unanswered, counted against the
+        back-off); else False."""
+        if req.joined:
+            return True
+        ours = self.open and req.session == self.id
+        sid, _, ended = self.ended or (None, None, None)
+        verifier = self.verifier if ours else ended if req.session == sid else None
+        if verifier is not None and verifier.check(req):
+            return True
+        if verifier is None or not (ours and req.sig):
+            return False
         self.stats.auth_rejected += 1
         self.core.backoff.failed(f"{self.peer} (session frames)", "a frame failed authentication")
+        return None
 
-    def hello_gate(self, req: Frame, f: dict) -> Reply | None:
-        """What HELLO gets from the session state alone, at once: a CHALLENGE,
-        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY.
-        None: the HELLO passed and took the device from its owner, which hears
-        SESSION_LOST (at once on this connection, at its next poll on another); the
-        session opens when the HELLO is handled."""
+    def hello_gate(self, req: Frame) -> Reply | None:
+        """What HELLO gets from the session state alone, at once: MALFORMED, a CHALLENGE,
+        AUTH_FAILED (a wrong MAC, or one sent during this connection's back-off) or BUSY. None:
+        the HELLO passed and took the device from its owner, which hears SESSION_LOST (at once
+        on this connection, at its next poll on another); the session opens when it is handled."""
         core = self.core
+        try:
+            f = decode_payload(MsgType.HELLO, req.payload)
+        except FrameError as exc:
+            return self.tx.nak(req, ErrorCode.MALFORMED, exc.field or "", str(exc))
         if core.key is not None:
             if not any(f["mac"]) or self.challenge is None or \
                     not auth.equal(f["device_nonce"], self.challenge):
@@ -241,7 +236,7 @@ class DeviceSession:
                                    "the MAC does not match this device's key", False)
         owner, nonce, now = core.owner, bytes(f["host_nonce"]), core.clock()
         if owner is not None and not (owner is self and core.owner_nonce == nonce):
-            idle = core.idle_s(now)
+            idle = 0.0 if owner.streams.stream is not None else max(0.0, now - core.last_active)
             if idle >= core.session_idle_s:
                 lost = (SessionLostReason.EXPIRED, f"idle {idle:.1f} s, longer than "
                         f"{core.session_idle_s:g} s: another host opened a session")
@@ -268,9 +263,8 @@ class DeviceSession:
         """This connection may call the application now: it owns the device, the owner its
         HELLO took the device from has ended its session (its loop clears ``lost``), and
         the engine is idle."""
-        prev = self._previous
-        return self.core.owner is self and (prev is None or not (prev.open or prev.lost)) \
-            and self.core.engine.idle
+        prev = self._previous  # its end() clears lost (and open with it)
+        return self.core.owner is self and not (prev and prev.lost) and self.core.engine.idle
 
     def _hello(self, req: Frame, f: dict) -> Reply:
         """Open a fresh session (after :meth:`hello_gate`, the engine idle)."""
@@ -282,7 +276,8 @@ class DeviceSession:
         core.owner, self.auth_failures, self._previous = self, (0, 0.0), None
         nonce, device_nonce = core.owner_nonce, self.challenge or bytes(auth.NONCE_BYTES)
         self.challenge = None
-        core.restore_defaults(keep=bool(f["flags"] & HelloFlags.KEEP_CONFIG))
+        if not f["flags"] & HelloFlags.KEEP_CONFIG:
+            core.restore_defaults()
         if self.stats.sessions:
             self.tx.session = new_session_id(self.id)
         self.stats.sessions += 1
@@ -295,12 +290,11 @@ class DeviceSession:
             to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
             self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
-        info = dataclasses.replace(
+        info = dataclasses.replace(  # the link fields' ranges were checked when given
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,
-            schema_crc=SCHEMA_CRC, max_frame=self.max_frame,
-            ring_columns=min(self.streams.ring_columns, 65535),
-            heartbeat_ms=max(1, min(65535, round(self.heartbeat_s * 1000))),
-            session_idle_ms=max(1, min(2**32 - 1, round(core.session_idle_s * 1000))),
+            schema_crc=SCHEMA_CRC, max_frame=self.max_frame, ring_columns=self.streams.ring_columns,
+            heartbeat_ms=round(self.heartbeat_s * 1000),
+            session_idle_ms=round(core.session_idle_s * 1000),
             auth=int(Auth.HMAC_SHA256 if core.key is not None else Auth.NONE), device_mac=mac)
         log.info("HELLO from host %s: session 0x%08x, max frame %d%s", nonce[:4].hex(),
                  self.id, self.tx.max_frame, ", signed" if self.tx.signer else "")
@@ -309,7 +303,7 @@ class DeviceSession:
 
     def end(self) -> None:
         """Forget the session's stream (its clean-up goes to the engine), ring, capture,
-        keys and ownership: the device is free at once."""
+        keys, ownership and a loss not yet acted on: the device is free at once."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
@@ -318,7 +312,7 @@ class DeviceSession:
             self.sessionless_since = self.core.clock()
             if self.verifier is not None:  # to sign its NAK WRONG_SESSION
                 self.ended = (self.id, self.tx.signer, self.verifier)
-        self.open, self.capture, self.verifier = False, None, None
+        self.open, self.capture, self.verifier, self.lost = False, None, None, None
         self.tx.signer, self.tx.coded = None, False
         if self.core.owner is self:
             self.core.owner = None
@@ -327,11 +321,9 @@ class DeviceSession:
         """Another HELLO ended this session: tell its host, then end it."""
         if self.open:
             log.info("session 0x%08x lost: %s", self.id, detail)
-            with contextlib.suppress(OSError):  # that host is gone anyway
-                self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(
-                    MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
+            self.tx.send(CONTROL, MsgType.SESSION_LOST, encode_payload(  # queued: never fails
+                MsgType.SESSION_LOST, {"reason": int(reason), "detail": clip(detail)}))
         self.end()
-        self.lost = None
 
     # ---- what the session asks of the application -------------------------------------
     def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
@@ -342,9 +334,8 @@ class DeviceSession:
         return self.tx.reply(req, msg_type, payload)
 
     def _config_get(self, req: Frame, f: dict) -> Reply:
-        # While streaming (no CONFIG_SET then) the stream's configuration is still current.
-        streaming = self.streams.stream is not None and self.streams.config is not None
-        values = dict(self.streams.config) if streaming else self.app.get_config()
+        st = self.streams.stream  # its configuration is still current (no CONFIG_SET)
+        values = dict(st.config) if st is not None else self.app.get_config()
         if f["keys"]:
             want = []
             for kid in f["keys"]:
@@ -366,7 +357,7 @@ class DeviceSession:
             return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {cfg.unknown[0]}",
                                "key not known to this device")
         for name in cfg.values:
-            if name in _READ_ONLY:
+            if config_key(name).read_only:
                 return self.tx.nak(req, ErrorCode.READ_ONLY, name, f"{name} is read-only")
         self.app.set_config(cfg.values)
         return self.tx.ack(req)
@@ -407,8 +398,8 @@ class DeviceSession:
         if off > total:
             return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, "offset",
                                f"offset must be 0..{total}, not {off}")
-        room = (self.tx.max_frame - frame_size(_CAPTURE_HEADER, self.tx.signer is not None)) \
-            // arr.itemsize
+        room = (self.tx.max_frame - frame_size(head_size(MsgType.CAPTURE_DATA),
+                                               self.tx.signer is not None)) // arr.itemsize
         n = max(0, min(f["max_count"], room, total - off))
         return self.tx.reply(req, MsgType.CAPTURE_DATA, encode_payload(MsgType.CAPTURE_DATA, {
             "kind": f["kind"], "column": f["column"], "channel": f["channel"],

@@ -2,19 +2,14 @@
 :class:`DeviceApp` (e.g. ``cdma_lidar.virtual.board``), which only answers decoded
 requests and produces columns.
 
-What a request goes through (docs/protocol.md, sections 2.3, 4, 5 and 6.1)::
-
-    port bytes -> FrameDecoder -> damaged chunk? --> LINE_ERROR at once
-    request -> session ok? --no--> NAK WRONG_SESSION (HELLO always passes)
-            -> signed session: MAC and counter ok? --no--> dropped (unsigned: NAK AUTH_REQUIRED)
-            -> same seq + same bytes as a cached request? --yes--> the stored reply again
-            -> older seq than the last? --yes--> dropped as stale
-            -> needs the application while the engine computes? --yes--> held (in order)
-            -> handler -> reply (:mod:`~cdma_lidar.protocol.transmit`) with the request's seq
-
-One loop per connection (:meth:`DeviceEndpoint.poll`) does all of it and never waits for
-the application: the device's :class:`~cdma_lidar.protocol.streams.Engine` computes the
-columns one step at a time while the loop answers from its state.
+A request passes, in this order, the frame checks (docs/protocol.md section 2.3, a damaged
+chunk: LINE_ERROR at once), its session (4; HELLO always passes), its signature (5), the
+replay cache and the stale-seq rule (6.1); one that needs the application while the engine
+computes is held, in order (6.6); a handler's reply goes through
+:mod:`~cdma_lidar.protocol.transmit` with the request's seq. One loop per connection
+(:meth:`DeviceEndpoint.poll`) does all of it and never waits for the application: the
+device's :class:`~cdma_lidar.protocol.streams.Engine` computes the columns one step at a
+time while the loop answers from its state.
 """
 
 from __future__ import annotations
@@ -55,7 +50,7 @@ from cdma_lidar.protocol.messages import (
 from cdma_lidar.protocol.ports import port_name
 from cdma_lidar.protocol.reassembly import Joiner
 from cdma_lidar.protocol.streams import Engine, Streams
-from cdma_lidar.protocol.transmit import CONTROL, FRESH, REPAIR, Reply, Transmitter
+from cdma_lidar.protocol.transmit import CONTROL, Reply, Transmitter
 
 __all__ = ["FAULT_HEALTH", "DeviceApp", "DeviceCore", "DeviceEndpoint", "EndpointStats",
            "Engine"]
@@ -188,7 +183,7 @@ class DeviceEndpoint:
         self.stats = EndpointStats()
         #: Requests waiting for the application, in arrival order: (request, its CRC).
         self._held: list[tuple[Frame, int]] = []
-        self.tx = Transmitter(port, 0, max_frame, (self.stats, core.totals))
+        self.tx = Transmitter(port, max_frame, (self.stats, core.totals))
         self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
                                clock=clock, stopped=lambda: core.touch(self.session))
         self.session = DeviceSession(core, self.tx, self.streams, self.stats,
@@ -220,7 +215,6 @@ class DeviceEndpoint:
     def close(self) -> None:
         """End this connection's session and its stream (no SCAN_END); let the engine's
         thread go if this endpoint made it. The port is left open."""
-        self.session.lost = None
         self.session.end()
         if self._own_core:
             self.core.engine.close()
@@ -233,24 +227,21 @@ class DeviceEndpoint:
         sess, streams = self.session, self.streams
         if sess.lost is not None:  # another connection's HELLO took the device
             sess.lose(*sess.lost)
-        data = self._read()
-        if data:
-            damaged = self.decoder.stats.damaged
-            for frame in self.decoder.feed(data):
-                if frame.msg_type == MsgType.FRAGMENT:
-                    frame = self._request_piece(frame)  # None until the request is whole
-                if frame is not None and kind_of(frame.msg_type) is not MsgKind.REQUEST:
-                    self.stats.ignored += 1
-                elif frame is not None:
-                    self._process(frame)
-            while self.decoder.rejected:
-                self._on_rejected(self.decoder.rejected.pop(0))
-            self._count_rx()
-            if self.decoder.stats.damaged > damaged:
-                # Say so at once (information only: it words the host's diagnosis).
-                self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
-                    MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors
-                                         & 0xFFFFFFFF}))
+        damaged = self.decoder.stats.damaged
+        for frame in self.decoder.feed(self._read()):
+            if frame.msg_type == MsgType.FRAGMENT:
+                frame = self._request_piece(frame)  # None until the request is whole
+            if frame is not None and kind_of(frame.msg_type) is not MsgKind.REQUEST:
+                self.stats.ignored += 1
+            elif frame is not None:
+                self._process(frame)
+        while self.decoder.rejected:
+            self._on_rejected(self.decoder.rejected.pop(0))
+        self._count_rx()
+        if self.decoder.stats.damaged > damaged:
+            # Say so at once (information only: it words the host's diagnosis).
+            self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
+                MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors & 0xFFFFFFFF}))
         streams.collect()
         while self._held and self.session.ready:
             self._respond(*self._held.pop(0))
@@ -266,18 +257,16 @@ class DeviceEndpoint:
         self.tx.flush(_POLL_BYTES if streams.stream is not None else None)
 
     def _read(self) -> bytes:
-        """What arrived; blocks (up to ``poll_s``) only when there is nothing to send and
-        no column to hand over, or waits for a young engine step (``_QUICK_STEP_S``)."""
-        n = self.port.in_waiting
-        if n:
-            return self.port.read(n)
-        st, job = self.streams.stream, self.streams.latest and self.streams.latest.job
+        """What arrived; when nothing has, blocks (up to ``poll_s``) only when there is
+        nothing to send and no column to hand over, or waits for a young engine step
+        (``_QUICK_STEP_S``)."""
+        n, st = self.port.in_waiting, self.streams.stream
+        job = self.streams.latest and self.streams.latest.job
         quick = job is not None and time.monotonic() - job.started < _QUICK_STEP_S
-        busy = st is not None and (job is None or self.tx.pending(REPAIR) or
-                                   self.tx.pending(FRESH))  # a column to hand or send
-        if (quick and wait([job], self.poll_s).done) or self.tx.pending(CONTROL) or busy:
+        busy = (st is not None and job is None) or self.tx.pending()  # a column or a frame
+        if not n and ((quick and wait([job], self.poll_s).done) or busy):
             return b""
-        data = self.port.read(1)
+        data = self.port.read(n or 1)
         if data and self.port.in_waiting:
             data += self.port.read(self.port.in_waiting)
         return data
@@ -293,7 +282,6 @@ class DeviceEndpoint:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
         self._count_rx()
         st, last = self.streams.stream, self.streams.latest  # running, last started
-        queued = self.tx.fresh_pending() if st else 0  # its column not sent yet (0 or 1)
         try:
             temp, faults = self.app.health()
         except Exception:  # a health sensor must not take the link down
@@ -304,7 +292,7 @@ class DeviceEndpoint:
             state=(State.IDLE if st is None else
                    State.CALIBRATING if st.calibration else State.SCANNING),
             frame=(last.frame if last else 0) & mask,
-            next_column=(last.next_column - queued if last else 0) & 0xFFFF,
+            next_column=(last.next_column - self.tx.fresh_pending() if last else 0) & 0xFFFF,
             last_end=int(self.streams.last_end), columns_sent=totals.columns_sent & mask,
             uptime_ms=int((self.clock() - core.booted) * 1000) & mask,
             rx_frames=core.rx_frames & mask, rx_errors=core.rx_errors & mask,
@@ -314,32 +302,25 @@ class DeviceEndpoint:
 
     # ---- receiving ------------------------------------------------------------------
     def _on_rejected(self, frame: Frame) -> None:
+        """NAK VERSION a request of another version (in its version, so that an older host
+        reads it: the header and the NAK payload are laid out alike in every version), NAK
+        UNSUPPORTED_FLAGS one with unknown incompat flags."""
         if kind_of(frame.msg_type) is not MsgKind.REQUEST:
             return
         if frame.version != PROTOCOL_VERSION:
-            # In the requester's version, so that an older host reads it: the header and
-            # the NAK payload are laid out alike in every version.
-            reply = self.tx.nak(frame, ErrorCode.VERSION, "version",
-                                f"device speaks protocol version {PROTOCOL_VERSION}", False)
-            self.tx.send(CONTROL, MsgType.NAK, reply[1], frame.seq, signer=None,
-                         coded=frame.fec, version=frame.version)
-            return
-        self.tx.answer(frame, self.tx.nak(frame, ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
-                                          f"unknown incompat flags 0x{frame.incompat:02x}", False))
+            nak = (ErrorCode.VERSION, "version",
+                   f"device speaks protocol version {PROTOCOL_VERSION}")
+        else:
+            nak = (ErrorCode.UNSUPPORTED_FLAGS, "incompat_flags",
+                   f"unknown incompat flags 0x{frame.incompat:02x}")
+        self.tx.answer(frame, self.tx.nak(frame, *nak, False))
 
     def _request_piece(self, frame: Frame) -> Frame | None:
-        """Keep one FRAGMENT of a request; the whole request once every piece is in (at most
-        two requests kept). Each piece is checked as it comes: one of this signed session
-        with a wrong signature is dropped, an unsigned one makes its request AUTH_REQUIRED.
-        The request is ``joined`` (checked) only if every piece was, as the open session's or
-        as the signed session that ended here (its NAK WRONG_SESSION is then signed)."""
-        sess = self.session
-        sid, _, ended = sess.ended or (None, None, None)
-        ours = sess.open and frame.session == sess.id
-        verifier = sess.verifier if ours else ended if frame.session == sid else None
-        good = verifier.check(frame) if verifier is not None else ours  # or ours unsigned
-        if ours and not good and frame.sig:  # forged or replayed: as DeviceSession.admit
-            sess.forged()
+        """Keep one FRAGMENT of a request (at most two requests kept); the whole request once
+        every piece is in, ``joined`` (checked) if each was :meth:`~DeviceSession.verified`
+        (a forged piece is dropped; an unchecked request is answered as an unsigned one)."""
+        good = self.session.verified(frame)
+        if good is None:
             return None
         try:
             body = decode_payload(MsgType.FRAGMENT, frame.payload)
@@ -367,27 +348,21 @@ class DeviceEndpoint:
             return
         if any(h.seq == frame.seq and k == key for h, k in self._held):
             return  # a retransmission of a held request: its reply comes
-        if not is_hello and self.last_seq is not None and \
-                0 < (self.last_seq - frame.seq) & 0xFFFF < 0x8000:
-            self.stats.stale += 1
-            log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
-            return
         if is_hello:
-            try:
-                f = decode_payload(MsgType.HELLO, frame.payload)
-            except FrameError:
-                self._respond(frame, key)  # NAK MALFORMED
-                return
-            refusal = sess.hello_gate(frame, f)  # at once, whatever the engine computes
+            refusal = sess.hello_gate(frame)  # at once, whatever the engine computes
             if refusal is not None:
                 self._respond(frame, key, refusal)
                 return
+        elif self.last_seq is not None and 0 < (self.last_seq - frame.seq) & 0xFFFF < 0x8000:
+            self.stats.stale += 1
+            log.debug("dropped stale request seq %d (last %d)", frame.seq, self.last_seq)
+            return
+        else:
+            self.last_seq = frame.seq  # in arrival order, held or answered
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
                 (self._held or not self.session.ready):
             self._held.append((frame, key))
-            if not is_hello:
-                self.last_seq = frame.seq
         else:
             self._respond(frame, key)
 
@@ -409,9 +384,7 @@ class DeviceEndpoint:
         except Exception as exc:  # the device must never die on a request
             log.exception("device application failed on %s", type_name(frame.msg_type))
             reply = self.tx.nak(frame, ErrorCode.INTERNAL, "", f"{type(exc).__name__}: {exc}")
-        if frame.msg_type != MsgType.HELLO:
-            self.last_seq = frame.seq
-        elif reply[0] == MsgType.INFO:  # a new session: its requests count afresh
+        if reply[0] == MsgType.INFO:  # a new session: its requests count afresh
             self._replay.clear()
             self.last_seq = None
         self._replay[frame.seq] = (key, reply)

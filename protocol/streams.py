@@ -89,6 +89,7 @@ def _run(job: Future, fn: Callable[[], Any]) -> None:
 class Stream:
     """One scan (or calibration: column = shot) of ``count`` columns from ``first``."""
 
+    config: dict[str, Any]  # the application's when it started (no CONFIG_SET while it runs)
     gen: Iterator[ColumnResult]
     frame: int
     first: int
@@ -115,7 +116,6 @@ class Streams:
         self.ring_columns, self.clock, self._stopped = ring_columns, clock, stopped
         self.stream: Stream | None = None  # the running one
         self.latest: Stream | None = None  # the last started, running or not
-        self.config: dict[str, Any] | None = None  # the app's config when it started
         self.last_end = ScanEndReason.COMPLETE  # SCAN_END reason of the last ended stream
         self.last_heartbeat = 0.0  # when the running stream's last HEARTBEAT went (s)
         #: Recent columns (frame, column) -> payload, for RESEND.
@@ -131,21 +131,18 @@ class Streams:
         if self.stream is not None:
             return self.tx.nak(req, ErrorCode.BUSY, "", "a scan is running; abort it first")
         channels = self.app.info().channels
-        self.config = self.app.get_config()
-        peaks = int(self.config.get("peaks", 1))
+        config = self.app.get_config()
+        peaks = int(config.get("peaks", 1))
         size = column_payload_size(channels, peaks)
         if not self.tx.fits(size):
             return self.tx.nak(req, ErrorCode.TOO_LARGE, "peaks",
                                f"a column of {channels} channels x {peaks} peaks ({size} bytes) "
                                f"needs more than {MAX_PIECES} fragments at max frame "
                                f"{self.tx.max_frame}")
-        frame = f["frame"]
-        if req.msg_type == MsgType.CALIBRATE:
-            st = Stream(iter(self.app.calibrate(frame, f["shots"])), frame, 0, f["shots"], True)
-        else:
-            st = Stream(iter(self.app.scan(frame, f["first_column"], f["columns"])), frame,
-                        f["first_column"], f["columns"], False)
-        self.stream = self.latest = st
+        frame, cal = f["frame"], req.msg_type == MsgType.CALIBRATE
+        first, count = (0, f["shots"]) if cal else (f["first_column"], f["columns"])
+        gen = self.app.calibrate(frame, count) if cal else self.app.scan(frame, first, count)
+        self.stream = self.latest = Stream(config, iter(gen), frame, first, count, cal)
         self.last_heartbeat = self.clock()
         return self.tx.ack(req)
 
@@ -158,19 +155,17 @@ class Streams:
         if not f["columns"] and not f["fragments"]:
             return self.tx.nak(req, ErrorCode.MALFORMED, "columns",
                                "name at least one column or fragment")
-        wanted = [(f"columns[{k}]", col, None) for k, col in enumerate(f["columns"])] + \
+        wanted = [(f"columns[{k}]", col, -1) for k, col in enumerate(f["columns"])] + \
             [(f"fragments[{k}]", p["column"], p["index"]) for k, p in enumerate(f["fragments"])]
-        todo = []
-        for name, col, piece in wanted:
-            payload = self.ring.get((frame, col))
-            if payload is not None:
-                todo.append(((frame, col), payload, None if piece is None else [piece]))
-            elif not (st is not None and st.frame == frame and
-                      st.next_column <= col < st.first + st.count):
+        for name, col, _ in wanted:  # all are kept or still to come, or none is sent
+            if (frame, col) not in self.ring and not (st is not None and st.frame == frame and
+                                                   st.next_column <= col < st.first + st.count):
                 return self.tx.nak(req, ErrorCode.NOT_AVAILABLE, name,
                                    f"column {col} of frame {frame} is no longer kept")
-        for key, payload, only in todo:  # class REPAIR: after the ACK
-            self.tx.send(REPAIR, MsgType.COLUMN_RESULT, payload, key=key, only=only)
+        for _, col, piece in wanted:  # class REPAIR: after the ACK
+            if (frame, col) in self.ring:
+                self.tx.send(REPAIR, MsgType.COLUMN_RESULT, self.ring[frame, col],
+                             key=(frame, col), only=[piece])
         return self.tx.ack(req)
 
     def _compute(self, st: Stream) -> tuple[int, bytes]:
@@ -215,13 +210,9 @@ class Streams:
     def advance(self) -> None:
         """Hand the engine the running stream's next column once the line has taken the
         last one (and the engine is free)."""
-        st = self.stream
-        if st is None or st.job is not None or self.tx.pending(FRESH) or \
-                not self.engine.idle:
-            return
-        if st.produced >= st.count:
-            self.stop(ScanEndReason.COMPLETE)
-        else:
+        st = self.stream  # never complete here: collect stops it at its last column
+        if st is not None and st.job is None and not self.tx.pending(FRESH) and \
+                self.engine.idle:
             st.job = self.engine.submit(lambda: self._compute(st))
 
     def _finish(self, st: Stream) -> None:

@@ -10,7 +10,7 @@ connection's loop is the only writer.
 from __future__ import annotations
 
 import logging
-from collections import deque
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 #: Transmit classes, sent in this order.
 CONTROL, REPAIR, FRESH = 0, 1, 2
-_SESSION = object()  # "the session's signer / coding", resolved when queued
+_SESSION = object()  # "the session's signer", resolved when queued
 #: A reply as cached for replay: (type, payload, signed); signed afresh each time sent.
 Reply = tuple[MsgType, bytes, bool]
 
@@ -60,16 +60,15 @@ class Transmitter:
     resent); the first (the connection's) also counts in ``naks`` the NAKs of :meth:`nak`.
     """
 
-    def __init__(self, port: Any, session: int, max_frame: int, counters: Iterable[Any]) -> None:
-        self.port, self.session, self.max_frame = port, session, max_frame
+    def __init__(self, port: Any, max_frame: int, counters: Iterable[Any]) -> None:
+        self.port, self.session, self.max_frame = port, 0, max_frame
         self.signer: FrameSigner | None = None
         self.coded = False
         self.counters = tuple(counters)
-        #: Per class: (type, repair key, seq (None: the next stream seq), the frame's
-        #: encoder given its seq).
-        self._q: tuple[deque[tuple[MsgType, Any, int | None, Callable[..., bytes]]], ...] = \
-            (deque(), deque(), deque())
-        self._repairs: set[tuple[int, int, int]] = set()  # queued, not yet sent
+        #: Per class, first in first out: a REPAIR frame's (frame, column, fragment or -1), any
+        #: other's object() -> (type, seq (None: the next stream seq), its encoder given seq).
+        self._q: tuple[OrderedDict[Any, tuple[MsgType, int | None, Callable[..., bytes]]], ...] \
+            = (OrderedDict(), OrderedDict(), OrderedDict())
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
 
@@ -91,11 +90,11 @@ class Transmitter:
         return self.reply(req, MsgType.NAK, payload) if signed is None else \
             (MsgType.NAK, payload, signed)
 
-    def answer(self, req: Frame, reply: Reply) -> None:
-        """Queue ``reply`` to ``req`` (class CONTROL, the request's seq), coded if the
-        session or the request is, signed if the reply is."""
-        self.send(CONTROL, reply[0], reply[1], req.seq, coded=self.coded or req.fec,
-                  signer=self.signer if reply[2] else None)
+    def answer(self, req: Frame, reply: Reply, signer: FrameSigner | None = None) -> None:
+        """Queue ``reply`` to ``req`` (class CONTROL, its seq and version), coded if the
+        session or the request is, signed if the reply is (by ``signer`` or the session's)."""
+        self.send(CONTROL, reply[0], reply[1], req.seq, coded=req.fec,
+                  signer=(signer or self.signer) if reply[2] else None, version=req.version)
 
     def flush(self, budget: int | None = None) -> None:
         """Send the queued frames, highest class first; ``budget``: stop after about this
@@ -106,8 +105,7 @@ class Transmitter:
             while queue:
                 if cls > CONTROL and budget is not None and sent >= budget:
                     return
-                msg_type, repair, seq, encode = queue.popleft()
-                self._repairs.discard(repair)
+                msg_type, seq, encode = queue.popitem(last=False)[1]
                 if seq is None:
                     self._stream_seq = seq = (self._stream_seq + 1) & 0xFFFF
                 try:
@@ -120,30 +118,29 @@ class Transmitter:
                     c.tx_frames += 1
                 sent += len(wire) if cls > CONTROL else 0
 
-    def pending(self, cls: int) -> bool:
-        """Frames of class ``cls`` wait to be sent."""
-        return bool(self._q[cls])
+    def pending(self, cls: int | None = None) -> bool:
+        """Frames of class ``cls`` (None: of any) wait to be sent."""
+        return any(self._q) if cls is None else bool(self._q[cls])
 
     def fresh_pending(self) -> int:
         """1 while frames of a new column wait (that column is not sent yet), else 0."""
-        return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH]))
+        return int(any(j[0] != MsgType.SCAN_END for j in self._q[FRESH].values()))
 
     def drop(self, cls: int) -> None:
         """Forget the queued frames of one class (an ended stream's new columns)."""
         self._q[cls].clear()
-        if cls == REPAIR:
-            self._repairs.clear()
 
     def fits(self, payload_len: int) -> bool:
         """A payload (bytes) of this session goes whole or in at most MAX_PIECES FRAGMENTs."""
         return payload_len <= MAX_PIECES * piece_room(self.max_frame, self.signer is not None)
 
     def send(self, cls: int, msg_type: MsgType, payload: bytes, seq: int | None = None, *,
-             key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: Any = _SESSION,
+             key: tuple[int, int] = (0, 0), signer: Any = _SESSION, coded: bool = False,
              only: Iterable[int] | None = None, version: int = PROTOCOL_VERSION) -> None:
         """Queue one message of class ``cls`` (REPAIR frames marked retransmitted), whole or
         in FRAGMENTs of the max frame (the indexes in ``only``; all when it is None or names
-        one beyond the last); ``signer`` and ``coded`` default to the session's.
+        one out of range, as -1); ``signer`` defaults to the session's; coded when the
+        session is or ``coded``.
 
         ``seq``: a reply's (the request's); None: a stream frame's (whole: the next stream
         seq; in pieces: a counter of fragmented notices, 0 for a COLUMN_RESULT, whose
@@ -166,12 +163,7 @@ class Transmitter:
                 only = range(len(pieces))
             frames = [(MsgType.FRAGMENT, pieces[k], None, k) for k in only]
         for mtype, data, fseq, k in frames:
-            repair = (*key, k) if cls == REPAIR else None
-            if repair in self._repairs:
-                continue
-            if repair is not None:
-                self._repairs.add(repair)
-            self._q[cls].append((mtype, repair, fseq, partial(
+            self._q[cls].setdefault((*key, k) if cls == REPAIR else object(), (mtype, fseq, partial(
                 encode_frame, mtype, data, session=self.session, max_frame=self.max_frame,
                 compat=COMPAT_RETRANSMIT if cls == REPAIR else 0, version=version,
-                signer=signer, coded=self.coded if coded is _SESSION else coded)))
+                signer=signer, coded=self.coded or coded)))
