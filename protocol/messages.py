@@ -17,7 +17,7 @@ import enum
 import math
 import zlib
 from collections.abc import Sequence
-from dataclasses import MISSING, dataclass, field
+from dataclasses import MISSING, dataclass
 from typing import Any
 
 import numpy as np
@@ -332,34 +332,18 @@ class Status:
     to_fields = dataclasses.asdict
 
 
-@dataclass(frozen=True)
-class MessageSpec:
-    """One message type: its payload declaration, a request's reply type, and ``rules``:
-    field -> (what a device checks beyond the field's wire range, NAK code a violation
-    gets); outside the wire range is always MALFORMED (the spec's "Wire ranges" table)."""
+class MessageSpec(Layout):
+    """One message type: its payload's fields in wire order and their codec (a Layout), a
+    request's reply type, and ``rules``: field -> (what a device checks beyond the field's wire
+    range, NAK code a violation gets; text alone: OUT_OF_RANGE); outside the wire range is
+    always MALFORMED (the spec's "Wire ranges" table)."""
 
-    type: MsgType
-    struct: Layout  # the payload's fields in wire order, and their codec
-    doc: str
-    reply: MsgType | None = None
-    rules: dict[str, tuple[str, ErrorCode]] = field(default_factory=dict)
-
-    @property
-    def kind(self) -> MsgKind:
-        return kind_of(self.type)
-
-    @property
-    def fields(self) -> tuple[Field, ...]:
-        """Declared fields in wire order."""
-        return self.struct.fields
-
-
-def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None,
-         rules: dict[str, str | tuple[str, ErrorCode]] | None = None) -> MessageSpec:
-    """A message; a rule given as text alone gets OUT_OF_RANGE."""
-    return MessageSpec(t, Layout(*fields_), doc, reply, {
-        k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
-        for k, r in (rules or {}).items()})
+    def __init__(self, type_: MsgType, doc: str, *fields: Field, reply: MsgType | None = None,
+                 rules: dict[str, str | tuple[str, ErrorCode]] | None = None) -> None:
+        super().__init__(*fields)
+        self.type, self.doc, self.reply, self.kind = type_, doc, reply, kind_of(type_)
+        self.rules = {k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
+                      for k, r in (rules or {}).items()}
 
 
 #: The power-matrix rectangle of POWER_SET, POWER_GET and POWER, and its values.
@@ -371,7 +355,7 @@ _POWER = Field("power", "u16 x channels*columns", "per-pixel laser power", "1/65
                allowed="0..65535", kind="array", fmt="H", count="channels*columns")
 
 _MESSAGE_LIST = [
-    _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
+    MessageSpec(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
          "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
          u("host_max_frame", 16, "largest frame the device may send in this session; longer "
            "messages come as FRAGMENTs", "bytes", 64, 65535),
@@ -388,11 +372,11 @@ _MESSAGE_LIST = [
                 "mac": ("with a key: not HMAC(key, ...) of this HELLO and the last "
                         "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
                         ErrorCode.AUTH_FAILED)}),
-    _msg(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
+    MessageSpec(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
          Field("keys", "u8 x n (rest)", "key ids to read", kind="array", fmt="B"),
          reply=MsgType.CONFIG,
          rules={"keys": ("a key id this device does not know", ErrorCode.UNKNOWN_KEY)}),
-    _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
+    MessageSpec(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
          Field("items", "KLV items (rest)", "key u8, length u16, value (see CONFIG keys)",
                kind="klv"),
          reply=MsgType.ACK,
@@ -400,7 +384,7 @@ _MESSAGE_LIST = [
                 "a key twice or a value outside the key's wire range: MALFORMED; outside the "
                 "key's device range (CONFIG keys table, range column): OUT_OF_RANGE; while a "
                 "scan runs: BUSY"}),
-    _msg(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
+    MessageSpec(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
          "(row-major, channel by channel); large matrices are sent in several requests.",
          *_RECT, _POWER,
          reply=MsgType.ACK,
@@ -408,7 +392,7 @@ _MESSAGE_LIST = [
                 "column_start": "column_start + columns > INFO.column_count",
                 "power": "the sum over a column's channels above the cap "
                 "(INFO.column_power_cap_uw; field `power`)"}),
-    _msg(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
+    MessageSpec(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
          "order, then SCAN_END. A retransmitted SCAN_START is answered, not restarted.",
          u("frame", 32, "frame id chosen by the host, echoed in every column"),
          u("first_column", 16, "first column index"),
@@ -417,9 +401,9 @@ _MESSAGE_LIST = [
          rules={"first_column": "first_column >= INFO.column_count",
                 "columns": "first_column + columns > INFO.column_count, or columns > "
                 "INFO.max_columns; while a scan runs: BUSY"}),
-    _msg(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
+    MessageSpec(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
          reply=MsgType.ACK),
-    _msg(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
+    MessageSpec(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
          "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
          "NOT_AVAILABLE names the first lost one.",
          u("frame", 32, "frame id"),
@@ -432,13 +416,13 @@ _MESSAGE_LIST = [
          rules={"columns": ("neither kept in the ring nor still to come in the running scan "
                             "(field `columns[i]` / `fragments[i]`); both lists empty: "
                             "MALFORMED", ErrorCode.NOT_AVAILABLE)}),
-    _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
+    MessageSpec(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
          "the calibration flag (column = shot index), then SCAN_END.",
          u("frame", 32, "frame id chosen by the host"),
          u("shots", 16, "number of shots", lo=1, hi=65535),
          reply=MsgType.ACK,
          rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
-    _msg(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
+    MessageSpec(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
          "capture, later offsets read the same capture.",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
          u("column", 16, "column index"),
@@ -450,28 +434,28 @@ _MESSAGE_LIST = [
                 "channel": "kind 1 and channel >= K",
                 "offset": "offset > total: OUT_OF_RANGE; offset > 0 with no capture of this "
                 "(kind, column, channel) held: NOT_AVAILABLE"}),
-    _msg(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
-    _msg(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
+    MessageSpec(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
+    MessageSpec(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
          *_RECT,
          reply=MsgType.POWER,
          rules={"channels": "channel_start + channels > K",
                 "columns": "column_start + columns > INFO.column_count"}),
-    _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
+    MessageSpec(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
          "without SCAN_END, another host's HELLO then needs no take-over.",
          reply=MsgType.ACK),
-    _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
+    MessageSpec(MsgType.ACK, "Request accepted (header seq = request seq).",
          u("request_type", 8, "type of the request answered")),
-    _msg(MsgType.NAK, "Request refused (header seq = request seq).",
+    MessageSpec(MsgType.NAK, "Request refused (header seq = request seq).",
          u("request_type", 8, "type of the request answered"),
          u("code", 16, "error code (table below)", lo=1, hi=65535),
          text("field", "offending field or key name, empty if none"),
          text("detail", "human-readable reason (may be empty)")),
-    _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
+    MessageSpec(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
          *wire_fields(Info)),
-    _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
+    MessageSpec(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
          Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
-    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
-    _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
+    MessageSpec(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
+    MessageSpec(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
          u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
          u("column", 16, "column index"),
          u("channel", 16, "channel (kind 1)"),
@@ -479,22 +463,22 @@ _MESSAGE_LIST = [
          u("total", 32, "elements in the whole capture", "elements"),
          u("offset", 32, "index of the first element in this chunk", "elements"),
          Field("data", "bytes (rest)", "elements, signed little-endian", kind="bytes")),
-    _msg(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
+    MessageSpec(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
          "a key: say HELLO again with this nonce and the MAC.",
          nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
-    _msg(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
+    MessageSpec(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
          *_RECT, _POWER),
-    MessageSpec(MsgType.COLUMN_RESULT, COLUMN_HEADER,
-                "Receiver outputs of one column, all channels (layout below)."),
-    _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
+    MessageSpec(MsgType.COLUMN_RESULT, "Receiver outputs of one column, all channels (layout "
+                "below).", *COLUMN_HEADER.fields),
+    MessageSpec(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
          "STATUS).", *wire_fields(Status)),
-    _msg(MsgType.SCAN_END, "End of a scan or calibration stream.",
+    MessageSpec(MsgType.SCAN_END, "End of a scan or calibration stream.",
          u("frame", 32, "frame id"),
          u("first_column", 16, "first column (or shot) of the scan"),
          u("columns", 16, "columns (or shots) produced"),
          u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
          u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
-    _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
+    MessageSpec(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
          "COLUMN_RESULT, a reply such as INFO, or a notice): `count` = ceil(len / L) pieces, "
          "in order, of L = max_frame - 27 bytes (- 24 more when signed) each but the last.",
          u("msg_type", 8, "type of the whole message"),
@@ -505,10 +489,10 @@ _MESSAGE_LIST = [
          u("count", 8, "pieces of the whole message", lo=2, hi=254),
          Field("data", "bytes (rest)", "bytes index*L .. of the whole payload",
                allowed="1..L bytes (L = max_frame-27, -24 when signed)", kind="bytes")),
-    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
+    MessageSpec(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
          "information only (section 6.4): a host words its timeout diagnosis with it.",
          u("rx_errors", 32, "rejected chunks since boot")),
-    _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
+    MessageSpec(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
          "answer its requests NAK WRONG_SESSION.",
          u("reason", 8, "1 another host took over, 2 expired after session_idle_ms", lo=1,
            hi=2),
@@ -566,7 +550,7 @@ def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None 
             raise out_of_range("COLUMN_RESULT", "a ColumnResult", type(fields_).__name__,
                                FieldError)
         return encode_column(fields_)
-    return spec.struct.encode(dict(fields_ or {}), spec.type.name)
+    return spec.encode(dict(fields_ or {}), spec.type.name)
 
 
 def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResult:
@@ -578,7 +562,7 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         spec = MESSAGES[MsgType(msg_type)]
     except ValueError:
         raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
-    out = spec.struct.decode(payload, spec.type.name)
+    out = spec.decode(payload, spec.type.name)
     if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
         raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")
     return out

@@ -56,15 +56,6 @@ def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
     return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
 
 
-def header_table() -> str:
-    """Frame header fields with offsets."""
-    rows, off = [], 0
-    for f in framing.HEADER_FIELDS.fields:
-        rows.append((off, f.size, f"`{f.name}`", f.ctype, f.doc))
-        off += f.size
-    return _table(("offset", "size", "field", "type", "meaning"), rows)
-
-
 def constants_table() -> str:
     """Protocol constants."""
     rows = [
@@ -75,7 +66,7 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.field("host_max_frame").lo,
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].field("host_max_frame").lo,
          "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
@@ -279,7 +270,7 @@ def vectors() -> str:
 #: Generated sections by marker name.
 SECTIONS: dict[str, Callable[[], str]] = {
     "constants": constants_table,
-    "header": header_table,
+    "header": lambda: _fields_table(framing.HEADER_FIELDS.fields),
     "messages": messages_table,
     "fields": message_fields,
     "column": column_table,
