@@ -108,11 +108,6 @@ class Field:
                 for k, v in enumerate(items)]
 
 
-def _repeat(fmt: str, n: int) -> str:
-    """struct format of ``n`` elements of format ``fmt``."""
-    return f"<{n}{fmt}" if len(fmt) == 1 else "<" + fmt * n
-
-
 def _num(v: int | None) -> str:
     """Spec form of a bound: powers of two for big ones (2^32-1, -2^31)."""
     if v is None or abs(v) < 1 << 17:
@@ -181,11 +176,10 @@ class Layout:
                 for e in v:
                     out += _KLV.pack(e["key"], len(e["value"])) + e["value"]
             else:
-                v = v.ravel().tolist() if isinstance(v, np.ndarray) else list(v)
                 if f.count in ("B", "H"):
                     out += struct.pack("<" + f.count, len(v))
                 flat = [e[n] for e in v for n in f.names] if f.names else v
-                out += struct.pack(_repeat(f.fmt, len(v)), *flat)
+                out += struct.pack("<" + f.fmt * len(v), *flat)
         return bytes(out)
 
     def parse(self, payload: bytes, what: str = "payload") -> dict[str, Any]:
@@ -240,11 +234,11 @@ class Layout:
             off += struct.calcsize(f.count)
         elif f.count:
             n = self._product(f, done)
-        elif (len(payload) - off) % size:
-            raise FrameError("not whole items")
-        else:
+        else:  # the rest; a part item left over fails as trailing bytes
             n = (len(payload) - off) // size
-        flat = struct.unpack_from(_repeat(f.fmt, n), payload, off)
+        if off + n * size > len(payload):  # before building a format of n items
+            raise FrameError("short")
+        flat = struct.unpack_from("<" + f.fmt * n, payload, off)
         k = len(f.names)
         items = [dict(zip(f.names, flat[j:j + k], strict=True))
                  for j in range(0, n * k, k)] if k else list(flat)
