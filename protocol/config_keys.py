@@ -37,19 +37,19 @@ MODES: tuple[str, ...] = ("ranging", "calibration")
 def _poly_to_wire(poly: Sequence[int] | int) -> int:
     """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask: the
     tap mask of :mod:`cdma_lidar.poly`, bit e - 1 the x^e term (e = 1..32), x^0 implied
-    ((11, 2) is 0x402). ValueError: what it takes."""
+    ((11, 2) is 0x402). FieldError: what it takes."""
     if is_int(poly):
         mask = int(poly)  # type: ignore[arg-type]
     else:
         try:
             exps = [int(e) for e in poly]  # type: ignore[union-attr]
         except (TypeError, ValueError):
-            raise ValueError("a tuple of exponents like (11, 2)") from None
+            raise FieldError("a tuple of exponents like (11, 2)") from None
         if len(set(exps)) != len(exps) or any(not 1 <= e <= 32 for e in exps):
-            raise ValueError("distinct exponents from 1 to 32")
+            raise FieldError("distinct exponents from 1 to 32")
         mask = tap_mask(exps)
     if not 0 < mask < 2**32:
-        raise ValueError("a nonzero mask of bits 0..31 (bit e - 1: the x^e term)")
+        raise FieldError("a nonzero mask of bits 0..31 (bit e - 1: the x^e term)")
     return mask
 
 
@@ -71,7 +71,7 @@ class ConfigKey:
     lo: int | None = None
     hi: int | None = None
     read_only: bool = False
-    to_wire: Callable[[Any], Any] = lambda v: v  # host -> wire value; ValueError(what it takes)
+    to_wire: Callable[[Any], Any] = lambda v: v  # host -> wire value; FieldError(what it takes)
     from_wire: Callable[[Any], Any] = lambda v: v
 
     @property
@@ -92,7 +92,7 @@ class ConfigKey:
         already checked (the device's own configuration): only what the wire cannot hold fails."""
         try:
             w = self.to_wire(value)
-        except ValueError as exc:
+        except FieldError as exc:
             raise out_of_range(self.name, str(exc), value, FieldError) from None
         if check and self.outside(w) is not None:
             # Not check_int: the message gives the device's limit and the wire range.
@@ -123,7 +123,7 @@ def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey
     def to_wire(v: Any) -> int:
         if isinstance(v, str):
             if v not in names:
-                raise ValueError("one of " + ", ".join(names))
+                raise FieldError("one of " + ", ".join(names))
             return names.index(v)
         return v
 
@@ -142,9 +142,9 @@ def _windows_to_wire(v: Any) -> list[dict[str, int]]:
     try:
         pairs = [(int(s), int(n)) for s, n in v]
     except (TypeError, ValueError):
-        raise ValueError("a list of (start, length) pairs") from None
+        raise FieldError("a list of (start, length) pairs") from None
     if any(not 0 <= s < 2**32 or not 0 <= n < 2**32 for s, n in pairs):
-        raise ValueError("u32 starts and lengths (samples)")
+        raise FieldError("u32 starts and lengths (samples)")
     return [{"start": s, "length": n} for s, n in pairs]
 
 
