@@ -518,8 +518,7 @@ MAX_PIECES = 254
 
 
 def piece_room(max_frame: int, signed: bool) -> int:
-    """Data bytes of one FRAGMENT in a frame of ``max_frame`` bytes (docs/protocol.md
-    section 6.3: ``max_frame - FRAGMENT_OVERHEAD``, less SIGNATURE_SIZE when signed)."""
+    """Data bytes of one FRAGMENT in a frame of ``max_frame`` bytes (spec section 6.3)."""
     return max_frame - frame_size(FRAGMENT_HEADER, signed)
 
 
