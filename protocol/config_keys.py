@@ -120,12 +120,10 @@ class ConfigKey:
 def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey:
     """A u8 key whose wire code is the index of its name in ``names`` (spec range text:
     ``0 truncate, 1 half_up, 2 convergent``)."""
-    def to_wire(v: Any) -> int:
-        if isinstance(v, str):
-            if v not in names:
-                raise FieldError("one of " + ", ".join(names))
-            return names.index(v)
-        return v
+    def to_wire(v: Any) -> int:  # a name, or its code as it is
+        if isinstance(v, str) and v not in names:
+            raise FieldError("one of " + ", ".join(names))
+        return names.index(v) if isinstance(v, str) else v
 
     return ConfigKey(kid, key, "u8", "", ", ".join(f"{c} {n}" for c, n in enumerate(names)),
                      doc, 0, len(names) - 1, to_wire=to_wire, from_wire=names.__getitem__)

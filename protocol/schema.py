@@ -80,11 +80,9 @@ class Field:
                                FieldError)
         if self.kind in ("text", "bytes"):
             return value
-        if isinstance(value, np.ndarray):
-            value = value.ravel().tolist()
         if isinstance(value, str | dict) or not hasattr(value, "__iter__"):
             raise out_of_range(path, "a sequence", value, FieldError)
-        items = list(value)
+        items = value.ravel().tolist() if isinstance(value, np.ndarray) else list(value)
         if not self.min_items <= len(items) <= (self.max_items or len(items)):
             raise out_of_range(path, f"{self.min_items} to {self.max_items} items", len(items),
                                FieldError)
