@@ -33,7 +33,7 @@ from cdma_lidar.protocol.columns import (
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, frame_size
-from cdma_lidar.protocol.schema import Field, Layout, array, i, nbytes, text, u, wire, wire_fields
+from cdma_lidar.protocol.schema import Field, Layout, i, nbytes, text, u, wire, wire_fields
 
 __all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO", "SCHEMA_CRC",
            "TEMPERATURE_UNKNOWN", "TILT_AUTO", "Auth", "CaptureKind", "ErrorCode", "HelloFlags",
@@ -220,8 +220,9 @@ class Info:
     firmware_version: str = wire(MISSING, text, "firmware version string")
     serial: str = wire(MISSING, text, "device serial number")
     wavelengths_pm: tuple[int, ...] = wire(
-        MISSING, array, 16, "u", 32, "nominal wavelength of each channel (count K)", "pm", 1,
-        max_items=65535, allowed="K = 1..max_channels items", min_items=1)
+        MISSING, Field, "u16 n + n x u32", "nominal wavelength of each channel (count K)", "pm",
+        1, 2**32 - 1, "K = 1..max_channels items", "array", "I", "H", min_items=1,
+        max_items=65535)
 
     @classmethod
     def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
@@ -410,8 +411,8 @@ _MESSAGE_LIST = [
                 "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
                 "NOT_AVAILABLE names the first lost one.",
                 u("frame", 32, "frame id"),
-                array("columns", 8, "u", 16, "whole columns to send again", lo=0, hi=65535,
-                      max_items=255, allowed="0..255 items"),
+                Field("columns", "u8 n + n x u16", "whole columns to send again",
+                      allowed="0..255 items", kind="array", fmt="H", count="B", max_items=255),
                 Field("fragments", "u8 n + n x (u16 column, u8 index)",
                       "single fragments to send again", allowed="0..255 items; columns + "
                       "fragments >= 1", kind="array", fmt="HB", count="B",

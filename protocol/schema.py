@@ -29,7 +29,7 @@ import numpy as np
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 
-__all__ = ["INTS", "Field", "Layout", "array", "i", "nbytes", "text", "u", "wire", "wire_fields"]
+__all__ = ["INTS", "Field", "Layout", "i", "nbytes", "text", "u", "wire", "wire_fields"]
 
 #: C type -> (struct format, lowest, highest).
 INTS = {"u8": ("B", 0, 2**8 - 1), "u16": ("H", 0, 2**16 - 1), "u32": ("I", 0, 2**32 - 1),
@@ -266,17 +266,6 @@ def nbytes(name: str, size: int, doc: str) -> Field:
     """Fixed-size opaque bytes (nonces, MACs): ``size`` bytes, any values."""
     return Field(name, f"u8 x {size}", doc, allowed=f"{size} bytes", kind="bytes",
                  max_items=size)
-
-
-def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit: str = "",
-          lo: int | None = None, hi: int | None = None, max_items: int | None = None,
-          allowed: str = "", min_items: int = 0) -> Field:
-    """Count-prefixed array of integers: ``u<count_bits>`` count, then the elements."""
-    cfmt, _, cmax = INTS[f"u{count_bits}"]  # at most as many items as the count holds
-    efmt, nlo, nhi = INTS[f"{elem}{elem_bits}"]
-    return Field(name, f"u{count_bits} n + n x {elem}{elem_bits}", doc, unit,
-                 nlo if lo is None else lo, nhi if hi is None else hi, allowed, "array", efmt,
-                 cfmt, min_items=min_items, max_items=cmax if max_items is None else max_items)
 
 
 def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:
