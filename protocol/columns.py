@@ -233,13 +233,11 @@ class ColumnResult:
     @classmethod
     def from_receiver(cls, frame: int, column: int, angle_deg: float, out: Any, *,
                       calibration: bool = False, timestamp_us: int = 0) -> ColumnResult:
-        """Pack a ``ReceiverOutput`` (every field but ``corr``) into a column."""
-        extra = getattr(out, _FIRST_EXTRA.name, None)
-        has_extra = extra is not None and np.asarray(extra).size > 0
-        arrays = {f.name: getattr(out, f.name) for f in RECORD
-                  if has_extra or not f.per_extra_peak}
+        """Pack a ``ReceiverOutput`` (every field but ``corr``; extras of P = 1 empty or
+        absent) into a column."""
         return cls.from_arrays(frame, column, angle_deg, calibration=calibration,
-                               timestamp_us=timestamp_us, **arrays)
+                               timestamp_us=timestamp_us,
+                               **{f.name: getattr(out, f.name, None) for f in RECORD})
 
 
 def _check_names(fields: dict[str, Any]) -> None:

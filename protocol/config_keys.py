@@ -37,21 +37,19 @@ MODES: tuple[str, ...] = ("ranging", "calibration")
 def _poly_to_wire(poly: Sequence[int] | int) -> int:
     """Exponent tuple ``(11, 2)`` (x^11 + x^2 + 1), or a wire mask, to the wire mask: the
     tap mask of :mod:`cdma_lidar.poly`, bit e - 1 the x^e term (e = 1..32), x^0 implied
-    ((11, 2) is 0x402)."""
+    ((11, 2) is 0x402). FieldError: what it takes."""
     if is_int(poly):
         mask = int(poly)  # type: ignore[arg-type]
     else:
         try:
             exps = [int(e) for e in poly]  # type: ignore[union-attr]
         except (TypeError, ValueError):
-            raise out_of_range("poly", "a tuple of exponents like (11, 2)", poly,
-                               FieldError) from None
+            raise FieldError("a tuple of exponents like (11, 2)") from None
         if len(set(exps)) != len(exps) or any(not 1 <= e <= 32 for e in exps):
-            raise out_of_range("poly", "distinct exponents from 1 to 32", poly, FieldError)
+            raise FieldError("distinct exponents from 1 to 32")
         mask = tap_mask(exps)
     if not 0 < mask < 2**32:
-        raise out_of_range("poly", "a mask of bits 0..31 (bit e - 1: the x^e term), not 0",
-                           mask, FieldError)
+        raise FieldError("a nonzero mask of bits 0..31 (bit e - 1: the x^e term)")
     return mask
 
 
@@ -73,7 +71,7 @@ class ConfigKey:
     lo: int | None = None
     hi: int | None = None
     read_only: bool = False
-    to_wire: Callable[[Any], Any] = lambda v: v  # host value -> wire value
+    to_wire: Callable[[Any], Any] = lambda v: v  # host -> wire value; FieldError(what it takes)
     from_wire: Callable[[Any], Any] = lambda v: v
 
     @property
@@ -95,8 +93,7 @@ class ConfigKey:
         try:
             w = self.to_wire(value)
         except FieldError as exc:
-            msg = str(exc) if str(exc).startswith(self.name) else f"{self.name}: {exc}"
-            raise FieldError(msg, field=self.name) from None
+            raise out_of_range(self.name, str(exc), value, FieldError) from None
         if check and self.outside(w) is not None:
             # Not check_int: the message gives the device's limit and the wire range.
             each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
@@ -123,18 +120,13 @@ class ConfigKey:
 def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey:
     """A u8 key whose wire code is the index of its name in ``names`` (spec range text:
     ``0 truncate, 1 half_up, 2 convergent``)."""
-    def to_wire(v: Any) -> int:
-        if isinstance(v, str):
-            if v not in names:
-                raise out_of_range(key, "one of " + ", ".join(names), v, FieldError)
-            return names.index(v)
-        return v
-
-    def from_wire(v: int) -> str | int:
-        return names[v] if 0 <= v < len(names) else v
+    def to_wire(v: Any) -> int:  # a name, or its code as it is
+        if isinstance(v, str) and v not in names:
+            raise FieldError("one of " + ", ".join(names))
+        return names.index(v) if isinstance(v, str) else v
 
     return ConfigKey(kid, key, "u8", "", ", ".join(f"{c} {n}" for c, n in enumerate(names)),
-                     doc, 0, len(names) - 1, to_wire=to_wire, from_wire=from_wire)
+                     doc, 0, len(names) - 1, to_wire=to_wire, from_wire=names.__getitem__)
 
 
 #: Each value encoding (ConfigKey.ctype) as a layout of one field ``v``.
@@ -148,10 +140,9 @@ def _windows_to_wire(v: Any) -> list[dict[str, int]]:
     try:
         pairs = [(int(s), int(n)) for s, n in v]
     except (TypeError, ValueError):
-        raise out_of_range("ghost_windows", "a list of (start, length) pairs", v,
-                           FieldError) from None
+        raise FieldError("a list of (start, length) pairs") from None
     if any(not 0 <= s < 2**32 or not 0 <= n < 2**32 for s, n in pairs):
-        raise out_of_range("ghost_windows", "u32 starts and lengths (samples)", v, FieldError)
+        raise FieldError("u32 starts and lengths (samples)")
     return [{"start": s, "length": n} for s, n in pairs]
 
 
@@ -165,7 +156,7 @@ CONFIG_KEYS: tuple[ConfigKey, ...] = (
               from_wire=_wire_to_poly),
     ConfigKey(3, "code_index", "u16 x K", "", "0..2^m (N+1), K items",
               "Gold family member of each channel", 0, 65535,
-              to_wire=lambda v: [int(x) for x in v], from_wire=tuple),
+              to_wire=list, from_wire=tuple),
     ConfigKey(4, "uid_bits", "u8", "code periods", "1..max_uid_bits", "UID length n", 1, 8),
     ConfigKey(5, "uid", "u8", "", "0..2^uid_bits-1",
               "this device's UID (bit p = polarity of period p)", 0, 255),
@@ -211,16 +202,10 @@ def encode_config(values: dict[str, Any], *, allow_read_only: bool = True,
     (outside its range unless ``check`` is False: :meth:`ConfigKey.encode`)."""
     items = []
     for name, value in values.items():
-        key = _KEY_BY_NAME.get(name)
-        if key is None:
-            raise out_of_range(name, "a configuration key (" + ", ".join(_KEY_BY_NAME) + ")",
-                               "unknown key", FieldError)
+        key = config_key(name)
         if key.read_only and not allow_read_only:
             raise FieldError(f"{name} is read-only", field=name)
-        data = key.encode(value, check=check)
-        if len(data) > 65535:
-            raise out_of_range(name, "at most 65535 value bytes", len(data), FieldError)
-        items.append({"key": key.id, "value": data})
+        items.append({"key": key.id, "value": key.encode(value, check=check)})
     return items
 
 
@@ -250,9 +235,10 @@ def decode_config(items: list[dict]) -> DecodedConfig:
 
 
 def config_key(name_or_id: str | int) -> ConfigKey:
-    """The :class:`ConfigKey` of a name or id; raises FieldError if unknown."""
+    """The :class:`ConfigKey` of a name or id; raises FieldError naming it if unknown."""
     k = _KEY_BY_NAME.get(name_or_id) if isinstance(name_or_id, str) else \
         _KEY_BY_ID.get(int(name_or_id) & ~CONFIG_OPTIONAL)
     if k is None:
-        raise out_of_range("key", "a configuration key", name_or_id, FieldError)
+        raise out_of_range(str(name_or_id), "a configuration key (" + ", ".join(_KEY_BY_NAME)
+                           + ")", "unknown key", FieldError)
     return k

@@ -17,7 +17,7 @@ import enum
 import math
 import zlib
 from collections.abc import Sequence
-from dataclasses import MISSING, dataclass, field
+from dataclasses import MISSING, dataclass
 from typing import Any
 
 import numpy as np
@@ -33,7 +33,7 @@ from cdma_lidar.protocol.columns import (
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, frame_size
-from cdma_lidar.protocol.schema import Field, Layout, array, i, nbytes, text, u, wire, wire_fields
+from cdma_lidar.protocol.schema import Field, Layout, i, nbytes, text, u, wire, wire_fields
 
 __all__ = ["FRAGMENT_HEADER", "MAX_PIECES", "MESSAGES", "REPLY_TO", "SCHEMA_CRC",
            "TEMPERATURE_UNKNOWN", "TILT_AUTO", "Auth", "CaptureKind", "ErrorCode", "HelloFlags",
@@ -220,8 +220,9 @@ class Info:
     firmware_version: str = wire(MISSING, text, "firmware version string")
     serial: str = wire(MISSING, text, "device serial number")
     wavelengths_pm: tuple[int, ...] = wire(
-        MISSING, array, 16, "u", 32, "nominal wavelength of each channel (count K)", "pm", 1,
-        max_items=65535, allowed="K = 1..max_channels items", min_items=1)
+        MISSING, Field, "u16 n + n x u32", "nominal wavelength of each channel (count K)", "pm",
+        1, 2**32 - 1, "K = 1..max_channels items", "array", "I", "H", min_items=1,
+        max_items=65535)
 
     @classmethod
     def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
@@ -332,34 +333,18 @@ class Status:
     to_fields = dataclasses.asdict
 
 
-@dataclass(frozen=True)
-class MessageSpec:
-    """One message type: its payload declaration, a request's reply type, and ``rules``:
-    field -> (what a device checks beyond the field's wire range, NAK code a violation
-    gets); outside the wire range is always MALFORMED (the spec's "Wire ranges" table)."""
+class MessageSpec(Layout):
+    """One message type: its payload's fields in wire order and their codec (a Layout), a
+    request's reply type, and ``rules``: field -> (what a device checks beyond the field's wire
+    range, NAK code a violation gets; text alone: OUT_OF_RANGE); outside the wire range is
+    always MALFORMED (the spec's "Wire ranges" table)."""
 
-    type: MsgType
-    struct: Layout  # the payload's fields in wire order, and their codec
-    doc: str
-    reply: MsgType | None = None
-    rules: dict[str, tuple[str, ErrorCode]] = field(default_factory=dict)
-
-    @property
-    def kind(self) -> MsgKind:
-        return kind_of(self.type)
-
-    @property
-    def fields(self) -> tuple[Field, ...]:
-        """Declared fields in wire order."""
-        return self.struct.fields
-
-
-def _msg(t: MsgType, doc: str, *fields_: Field, reply: MsgType | None = None,
-         rules: dict[str, str | tuple[str, ErrorCode]] | None = None) -> MessageSpec:
-    """A message; a rule given as text alone gets OUT_OF_RANGE."""
-    return MessageSpec(t, Layout(*fields_), doc, reply, {
-        k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
-        for k, r in (rules or {}).items()})
+    def __init__(self, type_: MsgType, doc: str, *fields: Field, reply: MsgType | None = None,
+                 rules: dict[str, str | tuple[str, ErrorCode]] | None = None) -> None:
+        super().__init__(*fields)
+        self.type, self.doc, self.reply, self.kind = type_, doc, reply, kind_of(type_)
+        self.rules = {k: (r, ErrorCode.OUT_OF_RANGE) if isinstance(r, str) else r
+                      for k, r in (rules or {}).items()}
 
 
 #: The power-matrix rectangle of POWER_SET, POWER_GET and POWER, and its values.
@@ -371,148 +356,153 @@ _POWER = Field("power", "u16 x channels*columns", "per-pixel laser power", "1/65
                allowed="0..65535", kind="array", fmt="H", count="channels*columns")
 
 _MESSAGE_LIST = [
-    _msg(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO (or "
-         "CHALLENGE when it holds a key, or NAK BUSY when another host owns a live session).",
-         u("host_max_frame", 16, "largest frame the device may send in this session; longer "
-           "messages come as FRAGMENTs", "bytes", 64, 65535),
-         u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
-           "session's configuration and power; bit 2: Reed-Solomon coded frames (FEC) both "
-           "ways, if the device can", lo=0, hi=7),
-         nbytes("host_nonce", 16, "random per host link: tells a new host from a "
-                "retransmission or the owner's own new HELLO; the host's challenge"),
-         nbytes("device_nonce", 16, "the nonce of the device's last CHALLENGE; zeros if none"),
-         nbytes("mac", 32, "HMAC-SHA256 proof of the key (see Access control); zeros if none"),
-         reply=MsgType.INFO,
-         rules={"flags": ("another host owns a live session and bit 0 (take over) is clear",
-                          ErrorCode.BUSY),
-                "mac": ("with a key: not HMAC(key, ...) of this HELLO and the last "
-                        "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
-                        ErrorCode.AUTH_FAILED)}),
-    _msg(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
-         Field("keys", "u8 x n (rest)", "key ids to read", kind="array", fmt="B"),
-         reply=MsgType.CONFIG,
-         rules={"keys": ("a key id this device does not know", ErrorCode.UNKNOWN_KEY)}),
-    _msg(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
-         Field("items", "KLV items (rest)", "key u8, length u16, value (see CONFIG keys)",
-               kind="klv"),
-         reply=MsgType.ACK,
-         rules={"items": "a key unknown and not optional: UNKNOWN_KEY; read-only: READ_ONLY; "
-                "a key twice or a value outside the key's wire range: MALFORMED; outside the "
-                "key's device range (CONFIG keys table, range column): OUT_OF_RANGE; while a "
-                "scan runs: BUSY"}),
-    _msg(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
-         "(row-major, channel by channel); large matrices are sent in several requests.",
-         *_RECT, _POWER,
-         reply=MsgType.ACK,
-         rules={"channel_start": "channel_start + channels > K",
-                "column_start": "column_start + columns > INFO.column_count",
-                "power": "the sum over a column's channels above the cap "
-                "(INFO.column_power_cap_uw; field `power`)"}),
-    _msg(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
-         "order, then SCAN_END. A retransmitted SCAN_START is answered, not restarted.",
-         u("frame", 32, "frame id chosen by the host, echoed in every column"),
-         u("first_column", 16, "first column index"),
-         u("columns", 16, "number of columns", lo=1, hi=65535),
-         reply=MsgType.ACK,
-         rules={"first_column": "first_column >= INFO.column_count",
-                "columns": "first_column + columns > INFO.column_count, or columns > "
-                "INFO.max_columns; while a scan runs: BUSY"}),
-    _msg(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
-         reply=MsgType.ACK),
-    _msg(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
-         "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
-         "NOT_AVAILABLE names the first lost one.",
-         u("frame", 32, "frame id"),
-         array("columns", 8, "u", 16, "whole columns to send again", lo=0, hi=65535,
-               max_items=255, allowed="0..255 items"),
-         Field("fragments", "u8 n + n x (u16 column, u8 index)",
-               "single fragments to send again", allowed="0..255 items; columns + fragments "
-               ">= 1", kind="array", fmt="HB", count="B", names=("column", "index"), max_items=255),
-         reply=MsgType.ACK,
-         rules={"columns": ("neither kept in the ring nor still to come in the running scan "
-                            "(field `columns[i]` / `fragments[i]`); both lists empty: "
-                            "MALFORMED", ErrorCode.NOT_AVAILABLE)}),
-    _msg(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
-         "the calibration flag (column = shot index), then SCAN_END.",
-         u("frame", 32, "frame id chosen by the host"),
-         u("shots", 16, "number of shots", lo=1, hi=65535),
-         reply=MsgType.ACK,
-         rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
-    _msg(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
-         "capture, later offsets read the same capture.",
-         u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-         u("column", 16, "column index"),
-         u("channel", 16, "channel (kind 1 only; 0 for kind 0)"),
-         u("offset", 32, "first element to read", "elements"),
-         u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
-         reply=MsgType.CAPTURE_DATA,
-         rules={"column": "column >= INFO.column_count",
-                "channel": "kind 1 and channel >= K",
-                "offset": "offset > total: OUT_OF_RANGE; offset > 0 with no capture of this "
-                "(kind, column, channel) held: NOT_AVAILABLE"}),
-    _msg(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
-    _msg(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
-         *_RECT,
-         reply=MsgType.POWER,
-         rules={"channels": "channel_start + channels > K",
-                "columns": "column_start + columns > INFO.column_count"}),
-    _msg(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
-         "without SCAN_END, another host's HELLO then needs no take-over.",
-         reply=MsgType.ACK),
-    _msg(MsgType.ACK, "Request accepted (header seq = request seq).",
-         u("request_type", 8, "type of the request answered")),
-    _msg(MsgType.NAK, "Request refused (header seq = request seq).",
-         u("request_type", 8, "type of the request answered"),
-         u("code", 16, "error code (table below)", lo=1, hi=65535),
-         text("field", "offending field or key name, empty if none"),
-         text("detail", "human-readable reason (may be empty)")),
-    _msg(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
-         *wire_fields(Info)),
-    _msg(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
-         Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
-    _msg(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
-    _msg(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
-         u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-         u("column", 16, "column index"),
-         u("channel", 16, "channel (kind 1)"),
-         u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
-         u("total", 32, "elements in the whole capture", "elements"),
-         u("offset", 32, "index of the first element in this chunk", "elements"),
-         Field("data", "bytes (rest)", "elements, signed little-endian", kind="bytes")),
-    _msg(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
-         "a key: say HELLO again with this nonce and the MAC.",
-         nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
-    _msg(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
-         *_RECT, _POWER),
-    MessageSpec(MsgType.COLUMN_RESULT, COLUMN_HEADER,
-                "Receiver outputs of one column, all channels (layout below)."),
-    _msg(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
-         "STATUS).", *wire_fields(Status)),
-    _msg(MsgType.SCAN_END, "End of a scan or calibration stream.",
-         u("frame", 32, "frame id"),
-         u("first_column", 16, "first column (or shot) of the scan"),
-         u("columns", 16, "columns (or shots) produced"),
-         u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
-         u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
-    _msg(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame (a "
-         "COLUMN_RESULT, a reply such as INFO, or a notice): `count` = ceil(len / L) pieces, "
-         "in order, of L = max_frame - 27 bytes (- 24 more when signed) each but the last.",
-         u("msg_type", 8, "type of the whole message"),
-         u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
-         u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
-         u("column", 16, "COLUMN_RESULT: column index; else 0"),
-         u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
-         u("count", 8, "pieces of the whole message", lo=2, hi=254),
-         Field("data", "bytes (rest)", "bytes index*L .. of the whole payload",
-               allowed="1..L bytes (L = max_frame-27, -24 when signed)", kind="bytes")),
-    _msg(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
-         "information only (section 6.4): a host words its timeout diagnosis with it.",
-         u("rx_errors", 32, "rejected chunks since boot")),
-    _msg(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
-         "answer its requests NAK WRONG_SESSION.",
-         u("reason", 8, "1 another host took over, 2 expired after session_idle_ms", lo=1,
-           hi=2),
-         text("detail", "human-readable reason")),
+    MessageSpec(MsgType.HELLO, "Open a session: a fresh session id; the device answers INFO "
+                "(or CHALLENGE when it holds a key, or NAK BUSY when another host owns a live "
+                "session).",
+                u("host_max_frame", 16, "largest frame the device may send in this session; "
+                  "longer messages come as FRAGMENTs", "bytes", 64, 65535),
+                u("flags", 8, "bit 0: take over another host's session; bit 1: keep the previous "
+                  "session's configuration and power; bit 2: Reed-Solomon coded frames (FEC) both "
+                  "ways, if the device can", lo=0, hi=7),
+                nbytes("host_nonce", 16, "random per host link: tells a new host from a "
+                       "retransmission or the owner's own new HELLO; the host's challenge"),
+                nbytes("device_nonce", 16, "the nonce of the device's last CHALLENGE; zeros if "
+                       "none"),
+                nbytes("mac", 32, "HMAC-SHA256 proof of the key (see Access control); zeros "
+                       "if none"),
+                reply=MsgType.INFO,
+                rules={"flags": ("another host owns a live session and bit 0 (take over) is clear",
+                                 ErrorCode.BUSY),
+                       "mac": ("with a key: not HMAC(key, ...) of this HELLO and the last "
+                               "CHALLENGE's nonce (a wrong nonce gets a new CHALLENGE)",
+                               ErrorCode.AUTH_FAILED)}),
+    MessageSpec(MsgType.CONFIG_GET, "Read configuration keys (empty list: all keys).",
+                Field("keys", "u8 x n (rest)", "key ids to read", kind="array", fmt="B"),
+                reply=MsgType.CONFIG,
+                rules={"keys": ("a key id this device does not know", ErrorCode.UNKNOWN_KEY)}),
+    MessageSpec(MsgType.CONFIG_SET, "Write configuration keys; all items are applied or none.",
+                Field("items", "KLV items (rest)", "key u8, length u16, value (see CONFIG keys)",
+                      kind="klv"),
+                reply=MsgType.ACK,
+                rules={"items": "a key unknown and not optional: UNKNOWN_KEY; read-only: "
+                       "READ_ONLY; a key twice or a value outside the key's wire range: "
+                       "MALFORMED; outside the key's device range (CONFIG keys table, range "
+                       "column): OUT_OF_RANGE; while a scan runs: BUSY"}),
+    MessageSpec(MsgType.POWER_SET, "Set laser power for a rectangle of the K x C power matrix "
+                "(row-major, channel by channel); large matrices are sent in several requests.",
+                *_RECT, _POWER,
+                reply=MsgType.ACK,
+                rules={"channel_start": "channel_start + channels > K",
+                       "column_start": "column_start + columns > INFO.column_count",
+                       "power": "the sum over a column's channels above the cap "
+                       "(INFO.column_power_cap_uw; field `power`)"}),
+    MessageSpec(MsgType.SCAN_START, "Start a scan; columns then stream as COLUMN_RESULT in column "
+                "order, then SCAN_END. A retransmitted SCAN_START is answered, not restarted.",
+                u("frame", 32, "frame id chosen by the host, echoed in every column"),
+                u("first_column", 16, "first column index"),
+                u("columns", 16, "number of columns", lo=1, hi=65535),
+                reply=MsgType.ACK,
+                rules={"first_column": "first_column >= INFO.column_count",
+                       "columns": "first_column + columns > INFO.column_count, or columns > "
+                       "INFO.max_columns; while a scan runs: BUSY"}),
+    MessageSpec(MsgType.SCAN_ABORT, "Stop a running scan or calibration (ACK even when idle).",
+                reply=MsgType.ACK),
+    MessageSpec(MsgType.RESEND, "Send listed columns (all their fragments) and listed fragments of "
+                "a frame again from the ring buffer. ACK when each is resent or still to come; NAK "
+                "NOT_AVAILABLE names the first lost one.",
+                u("frame", 32, "frame id"),
+                Field("columns", "u8 n + n x u16", "whole columns to send again",
+                      allowed="0..255 items", kind="array", fmt="H", count="B", max_items=255),
+                Field("fragments", "u8 n + n x (u16 column, u8 index)",
+                      "single fragments to send again", allowed="0..255 items; columns + "
+                      "fragments >= 1", kind="array", fmt="HB", count="B",
+                      names=("column", "index"), max_items=255),
+                reply=MsgType.ACK,
+                rules={"columns": ("neither kept in the ring nor still to come in the running scan "
+                                   "(field `columns[i]` / `fragments[i]`); both lists empty: "
+                                   "MALFORMED", ErrorCode.NOT_AVAILABLE)}),
+    MessageSpec(MsgType.CALIBRATE, "Zeroth-order calibration: stream `shots` COLUMN_RESULTs with "
+                "the calibration flag (column = shot index), then SCAN_END.",
+                u("frame", 32, "frame id chosen by the host"),
+                u("shots", 16, "number of shots", lo=1, hi=65535),
+                reply=MsgType.ACK,
+                rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
+    MessageSpec(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
+                "capture, later offsets read the same capture.",
+                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
+                u("column", 16, "column index"),
+                u("channel", 16, "channel (kind 1 only; 0 for kind 0)"),
+                u("offset", 32, "first element to read", "elements"),
+                u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
+                reply=MsgType.CAPTURE_DATA,
+                rules={"column": "column >= INFO.column_count",
+                       "channel": "kind 1 and channel >= K",
+                       "offset": "offset > total: OUT_OF_RANGE; offset > 0 with no capture of this "
+                       "(kind, column, channel) held: NOT_AVAILABLE"}),
+    MessageSpec(MsgType.STATUS_GET, "Read the device status.", reply=MsgType.STATUS),
+    MessageSpec(MsgType.POWER_GET, "Read back a rectangle of the K x C power matrix.",
+                *_RECT,
+                reply=MsgType.POWER,
+                rules={"channels": "channel_start + channels > K",
+                       "columns": "column_start + columns > INFO.column_count"}),
+    MessageSpec(MsgType.SESSION_END, "End this session (a host closing its link): any scan stops "
+                "without SCAN_END, another host's HELLO then needs no take-over.",
+                reply=MsgType.ACK),
+    MessageSpec(MsgType.ACK, "Request accepted (header seq = request seq).",
+                u("request_type", 8, "type of the request answered")),
+    MessageSpec(MsgType.NAK, "Request refused (header seq = request seq).",
+                u("request_type", 8, "type of the request answered"),
+                u("code", 16, "error code (table below)", lo=1, hi=65535),
+                text("field", "offending field or key name, empty if none"),
+                text("detail", "human-readable reason (may be empty)")),
+    MessageSpec(MsgType.INFO, "Device identity, limits and nominal geometry (reply to HELLO).",
+                *wire_fields(Info)),
+    MessageSpec(MsgType.CONFIG, "Configuration values (reply to CONFIG_GET).",
+                Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
+    MessageSpec(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
+    MessageSpec(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
+                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
+                u("column", 16, "column index"),
+                u("channel", 16, "channel (kind 1)"),
+                u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
+                u("total", 32, "elements in the whole capture", "elements"),
+                u("offset", 32, "index of the first element in this chunk", "elements"),
+                Field("data", "bytes (rest)", "elements, signed little-endian", kind="bytes")),
+    MessageSpec(MsgType.CHALLENGE, "Reply to a HELLO without a valid MAC from a device that holds "
+                "a key: say HELLO again with this nonce and the MAC.",
+                nbytes("device_nonce", 16, "fresh random nonce; valid for the next HELLO only")),
+    MessageSpec(MsgType.POWER, "A rectangle of the power matrix (reply to POWER_GET).",
+                *_RECT, _POWER),
+    MessageSpec(MsgType.COLUMN_RESULT, "Receiver outputs of one column, all channels (layout "
+                       "below).", *COLUMN_HEADER.fields),
+    MessageSpec(MsgType.HEARTBEAT, "Status sent every heartbeat_ms while scanning (same fields as "
+                "STATUS).", *wire_fields(Status)),
+    MessageSpec(MsgType.SCAN_END, "End of a scan or calibration stream.",
+                u("frame", 32, "frame id"),
+                u("first_column", 16, "first column (or shot) of the scan"),
+                u("columns", 16, "columns (or shots) produced"),
+                u("calibration", 8, "1 for a calibration stream", lo=0, hi=1),
+                u("reason", 8, "0 complete, 1 aborted, 2 device error", lo=0, hi=2)),
+    MessageSpec(MsgType.FRAGMENT, "One piece of a message longer than the session's max frame "
+                "(a COLUMN_RESULT, a reply such as INFO, or a notice): `count` = ceil(len / L) "
+                "pieces, in order, of L = max_frame - 27 bytes (- 24 more when signed) each but "
+                "the last.",
+                u("msg_type", 8, "type of the whole message"),
+                u("seq", 16, "reply: the request's seq; COLUMN_RESULT: 0"),
+                u("frame", 32, "COLUMN_RESULT: frame id; else 0"),
+                u("column", 16, "COLUMN_RESULT: column index; else 0"),
+                u("index", 8, "this piece, 0..count-1", lo=0, hi=253),
+                u("count", 8, "pieces of the whole message", lo=2, hi=254),
+                Field("data", "bytes (rest)", "bytes index*L .. of the whole payload",
+                      allowed="1..L bytes (L = max_frame-27, -24 when signed)", kind="bytes")),
+    MessageSpec(MsgType.LINE_ERROR, "The device rejected a damaged chunk (CRC, COBS, length); "
+                "information only (section 6.4): a host words its timeout diagnosis with it.",
+                u("rx_errors", 32, "rejected chunks since boot")),
+    MessageSpec(MsgType.SESSION_LOST, "The session in the header has ended; the device will "
+                "answer its requests NAK WRONG_SESSION.",
+                u("reason", 8, "1 another host took over, 2 expired after session_idle_ms", lo=1,
+                  hi=2),
+                text("detail", "human-readable reason")),
 ]
 
 #: Every message type, by type.
@@ -529,8 +519,7 @@ MAX_PIECES = 254
 
 
 def piece_room(max_frame: int, signed: bool) -> int:
-    """Data bytes of one FRAGMENT in a frame of ``max_frame`` bytes (docs/protocol.md
-    section 6.3: ``max_frame - FRAGMENT_OVERHEAD``, less SIGNATURE_SIZE when signed)."""
+    """Data bytes of one FRAGMENT in a frame of ``max_frame`` bytes (spec section 6.3)."""
     return max_frame - frame_size(FRAGMENT_HEADER, signed)
 
 
@@ -566,7 +555,7 @@ def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None 
             raise out_of_range("COLUMN_RESULT", "a ColumnResult", type(fields_).__name__,
                                FieldError)
         return encode_column(fields_)
-    return spec.struct.encode(dict(fields_ or {}), spec.type.name)
+    return spec.encode(dict(fields_ or {}), spec.type.name)
 
 
 def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResult:
@@ -578,7 +567,7 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
         spec = MESSAGES[MsgType(msg_type)]
     except ValueError:
         raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
-    out = spec.struct.decode(payload, spec.type.name)
+    out = spec.decode(payload, spec.type.name)
     if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
         raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")
     return out

@@ -29,7 +29,7 @@ import numpy as np
 from cdma_lidar.checks import check_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 
-__all__ = ["INTS", "Field", "Layout", "array", "i", "nbytes", "text", "u", "wire", "wire_fields"]
+__all__ = ["INTS", "Field", "Layout", "i", "nbytes", "text", "u", "wire", "wire_fields"]
 
 #: C type -> (struct format, lowest, highest).
 INTS = {"u8": ("B", 0, 2**8 - 1), "u16": ("H", 0, 2**16 - 1), "u32": ("I", 0, 2**32 - 1),
@@ -80,11 +80,9 @@ class Field:
                                FieldError)
         if self.kind in ("text", "bytes"):
             return value
-        if isinstance(value, np.ndarray):
-            value = value.ravel().tolist()
         if isinstance(value, str | dict) or not hasattr(value, "__iter__"):
             raise out_of_range(path, "a sequence", value, FieldError)
-        items = list(value)
+        items = value.ravel().tolist() if isinstance(value, np.ndarray) else list(value)
         if not self.min_items <= len(items) <= (self.max_items or len(items)):
             raise out_of_range(path, f"{self.min_items} to {self.max_items} items", len(items),
                                FieldError)
@@ -106,11 +104,6 @@ class Field:
         lo, hi = (self.lo, self.hi) if self.lo is not None else _LIMITS[self.fmt]
         return [check_int(f"{path}[{k}]", v, lo, hi, cls=FieldError)  # type: ignore[arg-type]
                 for k, v in enumerate(items)]
-
-
-def _repeat(fmt: str, n: int) -> str:
-    """struct format of ``n`` elements of format ``fmt``."""
-    return f"<{n}{fmt}" if len(fmt) == 1 else "<" + fmt * n
 
 
 def _num(v: int | None) -> str:
@@ -181,11 +174,10 @@ class Layout:
                 for e in v:
                     out += _KLV.pack(e["key"], len(e["value"])) + e["value"]
             else:
-                v = v.ravel().tolist() if isinstance(v, np.ndarray) else list(v)
                 if f.count in ("B", "H"):
                     out += struct.pack("<" + f.count, len(v))
                 flat = [e[n] for e in v for n in f.names] if f.names else v
-                out += struct.pack(_repeat(f.fmt, len(v)), *flat)
+                out += struct.pack("<" + f.fmt * len(v), *flat)
         return bytes(out)
 
     def parse(self, payload: bytes, what: str = "payload") -> dict[str, Any]:
@@ -240,11 +232,11 @@ class Layout:
             off += struct.calcsize(f.count)
         elif f.count:
             n = self._product(f, done)
-        elif (len(payload) - off) % size:
-            raise FrameError("not whole items")
-        else:
+        else:  # the rest; a part item left over fails as trailing bytes
             n = (len(payload) - off) // size
-        flat = struct.unpack_from(_repeat(f.fmt, n), payload, off)
+        if off + n * size > len(payload):  # before building a format of n items
+            raise FrameError("short")
+        flat = struct.unpack_from("<" + f.fmt * n, payload, off)
         k = len(f.names)
         items = [dict(zip(f.names, flat[j:j + k], strict=True))
                  for j in range(0, n * k, k)] if k else list(flat)
@@ -274,17 +266,6 @@ def nbytes(name: str, size: int, doc: str) -> Field:
     """Fixed-size opaque bytes (nonces, MACs): ``size`` bytes, any values."""
     return Field(name, f"u8 x {size}", doc, allowed=f"{size} bytes", kind="bytes",
                  max_items=size)
-
-
-def array(name: str, count_bits: int, elem: str, elem_bits: int, doc: str, unit: str = "",
-          lo: int | None = None, hi: int | None = None, max_items: int | None = None,
-          allowed: str = "", min_items: int = 0) -> Field:
-    """Count-prefixed array of integers: ``u<count_bits>`` count, then the elements."""
-    cfmt, _, cmax = INTS[f"u{count_bits}"]  # at most as many items as the count holds
-    efmt, nlo, nhi = INTS[f"{elem}{elem_bits}"]
-    return Field(name, f"u{count_bits} n + n x {elem}{elem_bits}", doc, unit,
-                 nlo if lo is None else lo, nhi if hi is None else hi, allowed, "array", efmt,
-                 cfmt, min_items=min_items, max_items=cmax if max_items is None else max_items)
 
 
 def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:

@@ -27,7 +27,7 @@ from cdma_lidar.protocol.columns import (
     ColumnResult,
     column_payload_size,
 )
-from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, ConfigKey, config_key
+from cdma_lidar.protocol.config_keys import CONFIG_KEYS, CONFIG_OPTIONAL, config_key
 from cdma_lidar.protocol.messages import (
     FRAGMENT_HEADER,
     MAX_PIECES,
@@ -56,15 +56,6 @@ def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
     return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
 
 
-def header_table() -> str:
-    """Frame header fields with offsets."""
-    rows, off = [], 0
-    for f in framing.HEADER_FIELDS.fields:
-        rows.append((off, f.size, f"`{f.name}`", f.ctype, f.doc))
-        off += f.size
-    return _table(("offset", "size", "field", "type", "meaning"), rows)
-
-
 def constants_table() -> str:
     """Protocol constants."""
     rows = [
@@ -75,7 +66,7 @@ def constants_table() -> str:
          "largest max frame size a device may announce (bytes, header + payload + CRC)"),
         ("`MIN_MAX_FRAME`", framing.MIN_MAX_FRAME,
          "smallest max frame a device announces; every request fits (bytes)"),
-        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].struct.field("host_max_frame").lo,
+        ("`MIN_HOST_FRAME`", MESSAGES[MsgType.HELLO].field("host_max_frame").lo,
          "smallest HELLO.host_max_frame (bytes)"),
         ("`SIGNATURE_SIZE`", framing.SIGNATURE_SIZE,
          "bytes between payload and CRC of a signed frame: u64 counter + 16-byte MAC"),
@@ -100,7 +91,8 @@ def constants_table() -> str:
 
 
 def ranges_table() -> str:
-    """Every request field and CONFIG key: wire range (else MALFORMED), device rule, code."""
+    """Every request field: wire range (else MALFORMED), device rule, code (CONFIG keys'
+    ranges: :func:`config_table`)."""
     rows = []
     for t, m in MESSAGES.items():
         if m.kind is not MsgKind.REQUEST:
@@ -109,10 +101,6 @@ def ranges_table() -> str:
             rule, code = m.rules.get(f.name, ("", None))
             rows.append((t.name, f"`{f.name}`", f.range_text or "any", rule or "none",
                          f"`{code.name}`" if code is not None else ""))
-    for k in CONFIG_KEYS:
-        rows.append((f"CONFIG_SET key {k.id}", f"`{k.name}`", _wire_range(k),
-                     "read-only" if k.read_only else k.allowed,
-                     "`READ_ONLY`" if k.read_only else "`OUT_OF_RANGE`"))
     return _table(("message", "field", "wire range (outside: `MALFORMED`)",
                    "device check", "NAK code"), rows)
 
@@ -172,12 +160,9 @@ def config_table() -> str:
     """CONFIG keys."""
     return _table(("key", "name", "value type", "unit", "wire range (else MALFORMED)",
                    "device range (else OUT_OF_RANGE)", "read-only", "meaning"),
-                  [(k.id, f"`{k.name}`", k.ctype, k.unit, _wire_range(k), k.allowed,
+                  [(k.id, f"`{k.name}`", k.ctype, k.unit,
+                    "any that parses" if k.lo is None else f"{k.lo}..{k.hi}", k.allowed,
                     "yes" if k.read_only else "", k.doc) for k in CONFIG_KEYS])
-
-
-def _wire_range(k: ConfigKey) -> str:
-    return f"{k.lo}..{k.hi}" if k.lo is not None else "any that parses"
 
 
 def info_ranges_table() -> str:
@@ -279,7 +264,7 @@ def vectors() -> str:
 #: Generated sections by marker name.
 SECTIONS: dict[str, Callable[[], str]] = {
     "constants": constants_table,
-    "header": header_table,
+    "header": lambda: _fields_table(framing.HEADER_FIELDS.fields),
     "messages": messages_table,
     "fields": message_fields,
     "column": column_table,

@@ -154,7 +154,7 @@ def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() ->
     fields = SyntheticApp().info().to_fields()
     spec = MESSAGES[MsgType.INFO]
     fields["wavelengths_pm"] = []
-    payload = spec.struct.build(fields)  # what the encoder itself would refuse to send
+    payload = spec.build(fields)  # what the encoder itself would refuse to send
 
     link, stop = _raw_device(lambda f: encode_frame(MsgType.INFO, payload, f.seq, 5))
     try:
@@ -180,7 +180,7 @@ def test_info_with_zero_channels_and_a_nak_with_escapes_are_one_line_errors() ->
 def test_info_outside_a_wire_range_is_refused_where_it_is_decoded(field, value) -> None:
     """Fields whose wire range is their physical one: one check, by the decoder."""
     fields = replace(SyntheticApp().info(), session_id=5).to_fields()
-    payload = MESSAGES[MsgType.INFO].struct.build({**fields, field: value})
+    payload = MESSAGES[MsgType.INFO].build({**fields, field: value})
     link, _ = _raw_device(lambda f: encode_frame(MsgType.INFO, payload, f.seq, 5))
     with pytest.raises(LinkError) as exc:
         link.hello()

@@ -55,7 +55,7 @@ def _fmt(section: str) -> tuple[str, list[str]]:
     return fmt, names
 
 
-HEADER_FMT = "<" + "".join(_CT[r[3]] for r in _rows("### 2.1 Header"))
+HEADER_FMT = "<" + "".join(_CT[r[2]] for r in _rows("### 2.1 Header"))
 HELLO = _fmt("#### HELLO")
 SCAN_START = _fmt("#### SCAN_START")
 FRAGMENT = _fmt("#### FRAGMENT")
