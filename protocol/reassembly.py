@@ -52,18 +52,9 @@ class Pieces:
     ``checked``: every piece that came was (session, signature)."""
 
     count: int
-    data: dict[int, bytes] = field(default_factory=dict)
+    data: dict[int, bytes] = field(default_factory=dict)  # index -> the piece's data
     frames: list[Frame] = field(default_factory=list)  # the pieces as they came
     checked: bool = True
-
-    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
-        once every piece is in."""
-        if body["index"] not in self.data:
-            self.frames.append(frame)
-        self.data[body["index"]] = body["data"]
-        return None if len(self.data) < self.count else b"".join(
-            self.data[i] for i in range(self.count))
 
 
 class Joiner:
@@ -87,9 +78,13 @@ class Joiner:
             while len(self.held) > self.limit:
                 self.held.popitem(last=False)
         pc.checked = pc.checked and checked
-        if (payload := pc.add(frame, body)) is None:
+        if body["index"] not in pc.data:
+            pc.frames.append(frame)
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
             return None
         del self.held[key]
+        payload = b"".join(pc.data[i] for i in range(pc.count))
         return Frame(key[0], key[1], frame.session, payload, version=frame.version,
                      fec=frame.fec, joined=pc.checked), pc.frames
 
