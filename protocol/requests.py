@@ -396,10 +396,7 @@ class Requests:
         assert isinstance(body, dict)
         if frame.msg_type == MsgType.NAK:  # code, field and detail, escaped
             code, fld = body["code"], escape(body["field"])
-            try:
-                cname = ErrorCode(code).name
-            except ValueError:
-                cname = f"error {code}"
+            cname = ErrorCode(code).name if code in iter(ErrorCode) else f"error {code}"
             where = f" (field {fld})" if fld else ""
             detail = f": {escape(body['detail'])}" if body["detail"] else ""
             if code == ErrorCode.WRONG_SESSION:
