@@ -44,7 +44,7 @@ def patience_s(floor_s: float, status: Status | None) -> float:
     """The no-progress limit of a stream (s): ``floor_s`` (latency, the host's own work)
     plus :data:`PATIENCE` column times as last stated in STATUS or HEARTBEAT, so a column
     of minutes is waited for and a device heartbeating without moving is still caught."""
-    return floor_s + (PATIENCE * status.column_time_s if status is not None else 0.0)
+    return floor_s + (PATIENCE * (status.column_time_ms * 1e-3) if status is not None else 0.0)
 
 
 class ScanStalled(StreamEnded, LinkTimeout):
@@ -202,9 +202,8 @@ class HostLink(Requests):
         the loop early aborts the scan on the device."""
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
-        if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
-            columns = min(int((self.config or self.get_config())["columns_per_frame"]),
-                          (self.info or self.hello()).column_count) - first_column
+        if columns is None:  # columns_per_frame (section 6.2; check_config: <= column_count)
+            columns = int((self.config or self.get_config())["columns_per_frame"]) - first_column
         for k in range(frames):
             yield from self._stream_columns(MsgType.SCAN_START, frame if k == 0 else None,
                                             first_column, columns, first_column=first_column,
