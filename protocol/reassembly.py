@@ -2,11 +2,10 @@
 
 :class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
 docs/protocol.md section 6.3 cuts them. :class:`ColumnReassembler` holds one scan or
-calibration stream (no port, no clock: the caller passes ``now``). ``horizon``: every
-column below it was sent whole; ``edge`` = (column, k): fragments below k of that column
-were sent too (moved by a later column or fragment, a HEARTBEAT's ``next_column``,
-SCAN_END's count). An early end (SCAN_END aborted or error, a lying column) keeps the
-columns before it and sets ``failure``.
+calibration stream (no port, no clock: the caller passes ``now``). ``edge`` = (column,
+k): every column below it was sent whole, and its fragments below k (moved by a later
+column or fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end
+(SCAN_END aborted or error, a lying column) keeps the columns before it and sets ``failure``.
 """
 
 from __future__ import annotations
@@ -100,8 +99,8 @@ class ColumnReassembler:
         self.fid, self.first, self.end, self.checker = fid, first, end, checker
         self.resend_wait, self.stats = resend_wait, stats
         self.joiner = Joiner()
-        self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
-        self.edge: tuple[int, int] = (first, 0)
+        self.nxt = first  # next column to deliver
+        self.edge = (first, 0)  # (column, fragment) the device sent up to
         self.received: dict[int, ColumnResult] = {}
         self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
         self.stored = 0  # columns and fragments kept (progress)
@@ -115,7 +114,7 @@ class ColumnReassembler:
     @property
     def progress(self) -> tuple:
         """Changes whenever anything of the stream moves."""
-        return (self.nxt, self.horizon, self.edge, self.stored)
+        return (self.nxt, self.edge, self.stored)
 
     def _stop(self, column: int, exc: Exception) -> None:
         if self.failure is None:
@@ -125,7 +124,7 @@ class ColumnReassembler:
         """The device sent columns below ``count``; ``idle_reason``: it is idle (a STATUS
         probe), the stream ended for that reason."""
         sent = min(self.end, count)
-        self.horizon = max(self.horizon, sent)
+        self.edge = max(self.edge, (sent, 0))
         if idle_reason is not None and sent < self.end:
             self._stop(sent, early_end(self.fid, idle_reason, sent))
 
@@ -154,7 +153,6 @@ class ColumnReassembler:
     def _piece(self, frame: Frame, item: dict[str, Any]) -> bool:
         c, k = item["column"], item["index"]
         self.asked.pop((c, k), None)
-        self.horizon = max(self.horizon, c)
         self.edge = max(self.edge, (c, k + 1))
         if not self.nxt <= c < self.end or c in self.received:
             self.stats.duplicates += 1
@@ -181,7 +179,7 @@ class ColumnReassembler:
         self.received[c.column] = c
         self.stored += 1
         self.joiner.held.pop((MsgType.COLUMN_RESULT, 0, self.fid, c.column), None)
-        self.horizon = max(self.horizon, c.column + 1)
+        self.edge = max(self.edge, (c.column + 1, 0))
         return True
 
     def _asked_for(self, item: Any) -> bool:
@@ -207,16 +205,15 @@ class ColumnReassembler:
     def due(self, now: float) -> list[Any]:
         """Columns (int) and fragments ((column, index)) sent, missing and due to be asked
         for (the search stops once 255 are found)."""
-        stop = min(self.end, max(self.horizon, self.edge[0] + 1))
+        col, sent_k = self.edge  # columns below col sent whole, its fragments below sent_k
         due: list[Any] = []
-        for c in range(self.nxt, stop):
+        for c in range(self.nxt, min(self.end, col + 1)):
             if c in self.received or self._waiting(c, now):  # asked whole: pieces coming
                 continue
             if (pc := self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, c))) is None:
-                keys: list[Any] = [c] if c < self.horizon else []  # else: nothing sent yet
+                keys: list[Any] = [c] if c < col else []  # else: nothing sent yet
             else:
-                sent = pc.count if c < self.horizon else \
-                    min(pc.count, self.edge[1]) if c == self.edge[0] else 0
+                sent = pc.count if c < col else min(pc.count, sent_k)
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
             due += [k for k in keys if not self._waiting(k, now)]
             if len(due) >= 255:
