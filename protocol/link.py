@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from collections import deque
 from collections.abc import Iterator
 from typing import Any, Self
 
@@ -223,7 +224,7 @@ class HostLink(Requests):
         self._next_frame_id = (fid + 1) & 0xFFFFFFFF
         checker = ColumnChecker(self.info or self.hello(),  # HELLO, then CONFIG of all keys
                                 self.config or self.get_config(), req == MsgType.CALIBRATE)
-        self.start_stream()
+        self.stream = deque()  # stream frames go there from now on
         finished = False
         try:
             try:

@@ -309,16 +309,10 @@ class Requests:
                     self.pump()
                 tries += 1
                 waited += wait
-                if (f := self.reply) is not None and rejects(f):
-                    raise LinkError(
-                        f"device answered {msg_type.name} in protocol version {f.version} "
-                        f"with incompat flags 0x{f.incompat:02x}; this host speaks version "
-                        f"{PROTOCOL_VERSION} and knows no incompat flags: "
-                        f"{DIAG_HINTS[DIAG_VERSION]}")
-                if f is not None:
+                if self.reply is not None:
                     if tries == 1:  # Karn: only a first try's reply measures the line
                         self._measured(self.clock() - sent - nbytes * self.byte_s)
-                    return self.accept_reply(msg_type, f)
+                    return self.accept_reply(msg_type, self.reply)
         finally:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
@@ -387,6 +381,11 @@ class Requests:
 
     def accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         """The decoded reply; DeviceError for a NAK, LinkError for anything else amiss."""
+        if rejects(frame):  # of another version or with incompat flags (see pump)
+            raise LinkError(
+                f"device answered {msg_type.name} in protocol version {frame.version} with "
+                f"incompat flags 0x{frame.incompat:02x}; this host speaks version "
+                f"{PROTOCOL_VERSION} and knows no incompat flags: {DIAG_HINTS[DIAG_VERSION]}")
         try:
             body = decode_payload(frame.msg_type, frame.payload)
         except Exception as exc:  # FrameError; the decoder raises nothing else
@@ -508,11 +507,6 @@ class Requests:
         except FrameError:  # dropped
             self.stats.malformed += 1
             return None
-
-    def start_stream(self) -> None:
-        """Stream frames go to :attr:`stream` from now on."""
-        self.end_stream()
-        self.stream = deque()
 
     def end_stream(self) -> None:
         """No stream: its frames and RESENDs go (a NAK to an earlier stream's RESEND is
