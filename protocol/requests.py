@@ -246,7 +246,7 @@ class Requests:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
         self.session = info.session_id
-        self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
+        self.max_frame = min(info.max_frame, self.decoder.max_frame)
         self.coded = self.fec and self.reply.fec
         log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
                  info.session_id, self.info.serial, self.info.firmware_version, info.channels,
@@ -322,8 +322,7 @@ class Requests:
 
     def reply_wait(self, nbytes: int, attempt: int, timeout_s: float) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
-        (s): round trip + 4 mean deviations + transmit time, at least ``min_timeout_s``,
-        doubled per retry, at most ``timeout_s`` (that before the line is measured)."""
+        (s), at least ``min_timeout_s``, at most ``timeout_s`` (docs/protocol.md 6.1)."""
         if self.rtt is None:
             return timeout_s
         base = max(self.min_timeout_s, self.rtt + 4 * self.rtt_var + nbytes * self.byte_s)
