@@ -10,6 +10,7 @@ column or fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early e
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -197,9 +198,7 @@ class ColumnReassembler:
 
     def _waiting(self, key: Any, now: float) -> bool:
         """``key`` was asked for and its answer may still come."""
-        if key not in self.asked:
-            return False
-        at, tries = self.asked[key]
+        at, tries = self.asked.get(key, (-math.inf, 1))  # never asked: not waiting
         return now - at < self.resend_wait(tries)
 
     def due(self, now: float) -> list[Any]:
