@@ -43,7 +43,7 @@ PATIENCE = 3.0
 
 def patience_s(floor_s: float, status: Status | None) -> float:
     """The no-progress limit of a stream (s): ``floor_s`` (latency, the host's own work)
-    plus :data:`PATIENCE` column times as last stated in STATUS or HEARTBEAT, so a column
+    plus :data:`PATIENCE` column times as ``status`` (the last HEARTBEAT) states, so a column
     of minutes is waited for and a device heartbeating without moving is still caught."""
     return floor_s + (PATIENCE * (status.column_time_ms * 1e-3) if status is not None else 0.0)
 
