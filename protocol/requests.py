@@ -426,7 +426,7 @@ class Requests:
         while self.decoder.rejected:  # frames of another version or incompat flags
             frame = self.decoder.rejected.pop(0)
             if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
-                self.reply = self.reply or frame  # refused in transact (a valid one wins)
+                self.reply = self.reply or frame  # accept_reply refuses it (a valid one wins)
 
     def _receive(self, frame: Frame) -> None:
         """Check one frame (session, signature), join its pieces, handle it whole. Replies
