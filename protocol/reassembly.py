@@ -1,10 +1,9 @@
 """Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
-:class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
-docs/protocol.md section 6.3 cuts them. :class:`ColumnReassembler` holds one scan or
-calibration stream (no port, no clock: the caller passes ``now``). ``edge`` = (column,
-k): every column below it was sent whole, and its fragments below k (moved by a later
-column or fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end
+:class:`Joiner`: FRAGMENTs by key (docs/protocol.md section 6.3). :class:`ColumnReassembler`:
+one scan or calibration stream (no port, no clock: the caller passes ``now``). ``edge`` =
+(column, k): every column below it was sent whole, and its fragments below k (moved by a
+later column or fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end
 (SCAN_END aborted or error, a lying column) keeps the columns before it and sets ``failure``.
 """
 
