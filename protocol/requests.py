@@ -4,10 +4,9 @@
 counter ``seq`` and the session (docs/protocol.md sections 4 and 5: HELLO, with a key its
 challenge-response and signed frames). It blocks only in ``port.read`` (at most
 ``port.timeout``) and measures every wait on ``clock``, so tests drive it with a fake port
-whose reads move a fake clock. Each frame is checked (session, signature), FRAGMENTs are
-joined by key in one ``Joiner``, then the message is handled; stream frames queue in
-``stream``. Retransmission: section 6.1; a LinkTimeout after the last try carries a
-``DIAG_*`` diagnosis (section 6.7) and its hint.
+whose reads move a fake clock. Retransmission: section 6.1; a LinkTimeout after the last
+try carries a ``DIAG_*`` diagnosis (section 6.7) and its hint. Every frame read goes
+through :meth:`Requests.pump`.
 """
 
 from __future__ import annotations
