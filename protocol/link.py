@@ -264,9 +264,7 @@ class HostLink(Requests):
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
                 alive = asm.feed(*self.stream.popleft()) or alive
-            for col in asm.ready():
-                self.stats.columns += 1
-                yield col
+            yield from asm.ready()
             if asm.done:
                 break
             now = self.clock()

@@ -92,7 +92,7 @@ class ColumnReassembler:
     """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
     pieces joined in its own :class:`Joiner` (they go with the stream); a key asked for
     ``tries`` times is due again after ``resend_wait(tries)`` (s); ``stats`` (the link's
-    LinkStats) counts ``duplicates`` and ``malformed``."""
+    LinkStats) counts ``duplicates``, ``malformed`` and the ``columns`` delivered."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
                  resend_wait: Callable[[int], float], stats: Any) -> None:
@@ -192,6 +192,7 @@ class ColumnReassembler:
     def ready(self) -> Iterator[ColumnResult]:
         """The columns complete in order from the next one to deliver, each once."""
         while self.nxt in self.received:
+            self.stats.columns += 1
             yield self.received.pop(self.nxt)
             self.nxt += 1
 
