@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from collections import deque
 from collections.abc import Iterator
 from typing import Any, Self
 
@@ -42,9 +43,9 @@ PATIENCE = 3.0
 
 def patience_s(floor_s: float, status: Status | None) -> float:
     """The no-progress limit of a stream (s): ``floor_s`` (latency, the host's own work)
-    plus :data:`PATIENCE` column times as last stated in STATUS or HEARTBEAT, so a column
+    plus :data:`PATIENCE` column times as ``status`` (the last HEARTBEAT) states, so a column
     of minutes is waited for and a device heartbeating without moving is still caught."""
-    return floor_s + (PATIENCE * status.column_time_s if status is not None else 0.0)
+    return floor_s + (PATIENCE * (status.column_time_ms * 1e-3) if status is not None else 0.0)
 
 
 class ScanStalled(StreamEnded, LinkTimeout):
@@ -202,9 +203,8 @@ class HostLink(Requests):
         the loop early aborts the scan on the device."""
         if not is_int(frames) or frames < 1:
             raise out_of_range("frames", "an integer of at least 1", frames)
-        if columns is None:  # a full scan: columns_per_frame (docs/protocol.md, 6.2)
-            columns = min(int((self.config or self.get_config())["columns_per_frame"]),
-                          (self.info or self.hello()).column_count) - first_column
+        if columns is None:  # columns_per_frame (section 6.2; check_config: <= column_count)
+            columns = int((self.config or self.get_config())["columns_per_frame"]) - first_column
         for k in range(frames):
             yield from self._stream_columns(MsgType.SCAN_START, frame if k == 0 else None,
                                             first_column, columns, first_column=first_column,
@@ -224,7 +224,7 @@ class HostLink(Requests):
         self._next_frame_id = (fid + 1) & 0xFFFFFFFF
         checker = ColumnChecker(self.info or self.hello(),  # HELLO, then CONFIG of all keys
                                 self.config or self.get_config(), req == MsgType.CALIBRATE)
-        self.start_stream()
+        self.stream = deque()  # stream frames go there from now on
         finished = False
         try:
             try:
@@ -264,9 +264,7 @@ class HostLink(Requests):
             alive = False  # heard something of this frame (other frames are no sign of life)
             while self.stream:
                 alive = asm.feed(*self.stream.popleft()) or alive
-            for col in asm.ready():
-                self.stats.columns += 1
-                yield col
+            yield from asm.ready()
             if asm.done:
                 break
             now = self.clock()

@@ -36,8 +36,7 @@ def _bytes_ready(fd: int) -> int:
 
 def port_name(port: Any) -> str:
     """What a port calls itself (its URL or path), for messages and logs; else its type."""
-    return str(getattr(port, "portstr", None) or getattr(port, "name", None)
-               or type(port).__name__)
+    return str(getattr(port, "name", None) or type(port).__name__)  # pyserial: = portstr
 
 
 def default_fec(port: Any) -> bool:

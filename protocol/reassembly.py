@@ -1,16 +1,15 @@
 """Host side of what comes in pieces: FRAGMENTs joined by key, a stream's columns in order.
 
-:class:`Joiner` is where the host joins FRAGMENTs, keyed by (type, seq, frame, column) as
-docs/protocol.md section 6.3 cuts them. :class:`ColumnReassembler` holds one scan or
-calibration stream (no port, no clock: the caller passes ``now``). ``horizon``: every
-column below it was sent whole; ``edge`` = (column, k): fragments below k of that column
-were sent too (moved by a later column or fragment, a HEARTBEAT's ``next_column``,
-SCAN_END's count). An early end (SCAN_END aborted or error, a lying column) keeps the
-columns before it and sets ``failure``.
+:class:`Joiner`: FRAGMENTs by key (docs/protocol.md section 6.3). :class:`ColumnReassembler`:
+one scan or calibration stream (no port, no clock: the caller passes ``now``). ``edge`` =
+(column, k): every column below it was sent whole, and its fragments below k (moved by a
+later column or fragment, a HEARTBEAT's ``next_column``, SCAN_END's count). An early end
+(SCAN_END aborted or error, a lying column) keeps the columns before it and sets ``failure``.
 """
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -52,18 +51,9 @@ class Pieces:
     ``checked``: every piece that came was (session, signature)."""
 
     count: int
-    data: dict[int, bytes] = field(default_factory=dict)
+    data: dict[int, bytes] = field(default_factory=dict)  # index -> the piece's data
     frames: list[Frame] = field(default_factory=list)  # the pieces as they came
     checked: bool = True
-
-    def add(self, frame: Frame, body: dict[str, Any]) -> bytes | None:
-        """Keep one piece (``body``: the decoded FRAGMENT ``frame``); the whole payload
-        once every piece is in."""
-        if body["index"] not in self.data:
-            self.frames.append(frame)
-        self.data[body["index"]] = body["data"]
-        return None if len(self.data) < self.count else b"".join(
-            self.data[i] for i in range(self.count))
 
 
 class Joiner:
@@ -87,9 +77,13 @@ class Joiner:
             while len(self.held) > self.limit:
                 self.held.popitem(last=False)
         pc.checked = pc.checked and checked
-        if (payload := pc.add(frame, body)) is None:
+        if body["index"] not in pc.data:
+            pc.frames.append(frame)
+        pc.data[body["index"]] = body["data"]
+        if len(pc.data) < pc.count:
             return None
         del self.held[key]
+        payload = b"".join(pc.data[i] for i in range(pc.count))
         return Frame(key[0], key[1], frame.session, payload, version=frame.version,
                      fec=frame.fec, joined=pc.checked), pc.frames
 
@@ -98,15 +92,15 @@ class ColumnReassembler:
     """Columns ``first .. end - 1`` of frame ``fid``, checked by ``checker``; their
     pieces joined in its own :class:`Joiner` (they go with the stream); a key asked for
     ``tries`` times is due again after ``resend_wait(tries)`` (s); ``stats`` (the link's
-    LinkStats) counts ``duplicates`` and ``malformed``."""
+    LinkStats) counts ``duplicates``, ``malformed`` and the ``columns`` delivered."""
 
     def __init__(self, fid: int, first: int, end: int, checker: ColumnChecker,
                  resend_wait: Callable[[int], float], stats: Any) -> None:
         self.fid, self.first, self.end, self.checker = fid, first, end, checker
         self.resend_wait, self.stats = resend_wait, stats
         self.joiner = Joiner()
-        self.nxt = self.horizon = first  # next column to deliver; all below horizon sent
-        self.edge: tuple[int, int] = (first, 0)
+        self.nxt = first  # next column to deliver
+        self.edge = (first, 0)  # (column, fragment) the device sent up to
         self.received: dict[int, ColumnResult] = {}
         self.asked: dict[Any, tuple[float, int]] = {}  # key -> (last asked, tries)
         self.stored = 0  # columns and fragments kept (progress)
@@ -120,7 +114,7 @@ class ColumnReassembler:
     @property
     def progress(self) -> tuple:
         """Changes whenever anything of the stream moves."""
-        return (self.nxt, self.horizon, self.edge, self.stored)
+        return (self.nxt, self.edge, self.stored)
 
     def _stop(self, column: int, exc: Exception) -> None:
         if self.failure is None:
@@ -130,7 +124,7 @@ class ColumnReassembler:
         """The device sent columns below ``count``; ``idle_reason``: it is idle (a STATUS
         probe), the stream ended for that reason."""
         sent = min(self.end, count)
-        self.horizon = max(self.horizon, sent)
+        self.edge = max(self.edge, (sent, 0))
         if idle_reason is not None and sent < self.end:
             self._stop(sent, early_end(self.fid, idle_reason, sent))
 
@@ -159,7 +153,6 @@ class ColumnReassembler:
     def _piece(self, frame: Frame, item: dict[str, Any]) -> bool:
         c, k = item["column"], item["index"]
         self.asked.pop((c, k), None)
-        self.horizon = max(self.horizon, c)
         self.edge = max(self.edge, (c, k + 1))
         if not self.nxt <= c < self.end or c in self.received:
             self.stats.duplicates += 1
@@ -186,7 +179,7 @@ class ColumnReassembler:
         self.received[c.column] = c
         self.stored += 1
         self.joiner.held.pop((MsgType.COLUMN_RESULT, 0, self.fid, c.column), None)
-        self.horizon = max(self.horizon, c.column + 1)
+        self.edge = max(self.edge, (c.column + 1, 0))
         return True
 
     def _asked_for(self, item: Any) -> bool:
@@ -199,29 +192,27 @@ class ColumnReassembler:
     def ready(self) -> Iterator[ColumnResult]:
         """The columns complete in order from the next one to deliver, each once."""
         while self.nxt in self.received:
+            self.stats.columns += 1
             yield self.received.pop(self.nxt)
             self.nxt += 1
 
     def _waiting(self, key: Any, now: float) -> bool:
         """``key`` was asked for and its answer may still come."""
-        if key not in self.asked:
-            return False
-        at, tries = self.asked[key]
+        at, tries = self.asked.get(key, (-math.inf, 1))  # never asked: not waiting
         return now - at < self.resend_wait(tries)
 
     def due(self, now: float) -> list[Any]:
         """Columns (int) and fragments ((column, index)) sent, missing and due to be asked
         for (the search stops once 255 are found)."""
-        stop = min(self.end, max(self.horizon, self.edge[0] + 1))
+        col, sent_k = self.edge  # columns below col sent whole, its fragments below sent_k
         due: list[Any] = []
-        for c in range(self.nxt, stop):
+        for c in range(self.nxt, min(self.end, col + 1)):
             if c in self.received or self._waiting(c, now):  # asked whole: pieces coming
                 continue
             if (pc := self.joiner.held.get((MsgType.COLUMN_RESULT, 0, self.fid, c))) is None:
-                keys: list[Any] = [c] if c < self.horizon else []  # else: nothing sent yet
+                keys: list[Any] = [c] if c < col else []  # else: nothing sent yet
             else:
-                sent = pc.count if c < self.horizon else \
-                    min(pc.count, self.edge[1]) if c == self.edge[0] else 0
+                sent = pc.count if c < col else min(pc.count, sent_k)
                 keys = [(c, k) for k in range(sent) if k not in pc.data]
             due += [k for k in keys if not self._waiting(k, now)]
             if len(due) >= 255:

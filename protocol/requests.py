@@ -4,10 +4,9 @@
 counter ``seq`` and the session (docs/protocol.md sections 4 and 5: HELLO, with a key its
 challenge-response and signed frames). It blocks only in ``port.read`` (at most
 ``port.timeout``) and measures every wait on ``clock``, so tests drive it with a fake port
-whose reads move a fake clock. Each frame is checked (session, signature), FRAGMENTs are
-joined by key in one ``Joiner``, then the message is handled; stream frames queue in
-``stream``. Retransmission: section 6.1; a LinkTimeout after the last try carries a
-``DIAG_*`` diagnosis (section 6.7) and its hint.
+whose reads move a fake clock. Retransmission: section 6.1; a LinkTimeout after the last
+try carries a ``DIAG_*`` diagnosis (section 6.7) and its hint. Every frame read goes
+through :meth:`Requests.pump`.
 """
 
 from __future__ import annotations
@@ -246,7 +245,7 @@ class Requests:
             log.warning("device schema 0x%08x differs from host schema 0x%08x: host and "
                         "firmware come from different revisions", info.schema_crc, SCHEMA_CRC)
         self.session = info.session_id
-        self.max_frame = min(info.max_frame, max(self._host_max, MIN_MAX_FRAME))
+        self.max_frame = min(info.max_frame, self.decoder.max_frame)
         self.coded = self.fec and self.reply.fec
         log.info("session 0x%08x with %s (firmware %s, %d channels, max frame %d%s)",
                  info.session_id, self.info.serial, self.info.firmware_version, info.channels,
@@ -309,16 +308,10 @@ class Requests:
                     self.pump()
                 tries += 1
                 waited += wait
-                if (f := self.reply) is not None and rejects(f):
-                    raise LinkError(
-                        f"device answered {msg_type.name} in protocol version {f.version} "
-                        f"with incompat flags 0x{f.incompat:02x}; this host speaks version "
-                        f"{PROTOCOL_VERSION} and knows no incompat flags: "
-                        f"{DIAG_HINTS[DIAG_VERSION]}")
-                if f is not None:
+                if self.reply is not None:
                     if tries == 1:  # Karn: only a first try's reply measures the line
                         self._measured(self.clock() - sent - nbytes * self.byte_s)
-                    return self.accept_reply(msg_type, f)
+                    return self.accept_reply(msg_type, self.reply)
         finally:
             self._pending = None
             self.port.timeout = min(0.05, self.timeout_s / 4)
@@ -328,8 +321,7 @@ class Requests:
 
     def reply_wait(self, nbytes: int, attempt: int, timeout_s: float) -> float:
         """How long try ``attempt`` (0 first) of a request of ``nbytes`` wire bytes waits
-        (s): round trip + 4 mean deviations + transmit time, at least ``min_timeout_s``,
-        doubled per retry, at most ``timeout_s`` (that before the line is measured)."""
+        (s), at least ``min_timeout_s``, at most ``timeout_s`` (docs/protocol.md 6.1)."""
         if self.rtt is None:
             return timeout_s
         base = max(self.min_timeout_s, self.rtt + 4 * self.rtt_var + nbytes * self.byte_s)
@@ -387,6 +379,11 @@ class Requests:
 
     def accept_reply(self, msg_type: MsgType, frame: Frame) -> dict[str, Any]:
         """The decoded reply; DeviceError for a NAK, LinkError for anything else amiss."""
+        if rejects(frame):  # of another version or with incompat flags (see pump)
+            raise LinkError(
+                f"device answered {msg_type.name} in protocol version {frame.version} with "
+                f"incompat flags 0x{frame.incompat:02x}; this host speaks version "
+                f"{PROTOCOL_VERSION} and knows no incompat flags: {DIAG_HINTS[DIAG_VERSION]}")
         try:
             body = decode_payload(frame.msg_type, frame.payload)
         except Exception as exc:  # FrameError; the decoder raises nothing else
@@ -396,10 +393,7 @@ class Requests:
         assert isinstance(body, dict)
         if frame.msg_type == MsgType.NAK:  # code, field and detail, escaped
             code, fld = body["code"], escape(body["field"])
-            try:
-                cname = ErrorCode(code).name
-            except ValueError:
-                cname = f"error {code}"
+            cname = ErrorCode(code).name if code in iter(ErrorCode) else f"error {code}"
             where = f" (field {fld})" if fld else ""
             detail = f": {escape(body['detail'])}" if body["detail"] else ""
             if code == ErrorCode.WRONG_SESSION:
@@ -431,7 +425,7 @@ class Requests:
         while self.decoder.rejected:  # frames of another version or incompat flags
             frame = self.decoder.rejected.pop(0)
             if kind_of(frame.msg_type) is MsgKind.REPLY and frame.seq == self._pending:
-                self.reply = self.reply or frame  # refused in transact (a valid one wins)
+                self.reply = self.reply or frame  # accept_reply refuses it (a valid one wins)
 
     def _receive(self, frame: Frame) -> None:
         """Check one frame (session, signature), join its pieces, handle it whole. Replies
@@ -511,11 +505,6 @@ class Requests:
         except FrameError:  # dropped
             self.stats.malformed += 1
             return None
-
-    def start_stream(self) -> None:
-        """Stream frames go to :attr:`stream` from now on."""
-        self.end_stream()
-        self.stream = deque()
 
     def end_stream(self) -> None:
         """No stream: its frames and RESENDs go (a NAK to an earlier stream's RESEND is

@@ -10,6 +10,7 @@ device are escaped (:func:`escape`) before they can reach a terminal.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -177,22 +178,21 @@ class ColumnChecker:
              "at least 1 where a peak is reported (the SNR needs a noise floor)")
         # Each noise lag is an output: |sum| <= count * out, sumsq <= count * out^2; and
         # count * sumsq >= sum^2 for any real noise floor (Cauchy-Schwarz). Exact integers.
-        c, s, q = (a.astype(np.float64) for a in (count, total, sumsq))
-        none("noise_sum", total, _above(
-            np.abs(s), c * out, lambda i: abs(int(total[i])) > int(count[i]) * out),
-            f"at most noise_count * 2^(out_bits-1) = noise_count * {out} in magnitude")
-        none("noise_sumsq", sumsq, _above(
-            q, c * float(out) ** 2, lambda i: int(sumsq[i]) > int(count[i]) * out ** 2),
-            f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {out ** 2}")
-        none("noise_sumsq", sumsq, _above(
-            s * s, c * q, lambda i: int(total[i]) ** 2 > int(count[i]) * int(sumsq[i])),
-            "at least noise_sum^2 / noise_count")
+        noise = (count, total, sumsq)
+        none("noise_sum", total, _above(lambda c, s, q: (abs(s), c * out), noise),
+             f"at most noise_count * 2^(out_bits-1) = noise_count * {out} in magnitude")
+        none("noise_sumsq", sumsq, _above(lambda c, s, q: (q, c * out ** 2), noise),
+             f"at most noise_count * 2^(2 out_bits - 2) = noise_count * {out ** 2}")
+        none("noise_sumsq", sumsq, _above(lambda c, s, q: (s * s, c * q), noise),
+             "at least noise_sum^2 / noise_count")
 
 
-def _above(lhs: np.ndarray, rhs: np.ndarray, exact: Any) -> np.ndarray:
-    """Where ``lhs > rhs`` (both >= 0, 1-D): floats decide where they are more than 1e-9
-    apart (they are good to 1e-15), ``exact(i)`` in integers decides the rest."""
+def _above(sides: Callable[..., Any], arrays: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Where ``lhs > rhs``, ``sides(*arrays)`` of 1-D integer arrays (both >= 0): in floats
+    where more than 1e-9 apart (they are good to 1e-15), in exact integers elsewhere."""
+    lhs, rhs = sides(*(a.astype(np.float64) for a in arrays))
     bad = lhs > rhs * (1 + 1e-9)
-    for i in np.flatnonzero(~bad & (lhs > rhs * (1 - 1e-9))):
-        bad[i] = exact(int(i))
+    if (near := np.flatnonzero(~bad & (lhs > rhs * (1 - 1e-9)))).size:
+        lhs, rhs = sides(*(a[near].astype(object) for a in arrays))
+        bad[near] = lhs > rhs
     return bad

@@ -9,6 +9,7 @@ the order of the frames it writes.
 from __future__ import annotations
 
 import threading
+from collections import deque
 
 import pytest
 from protocol_fixtures import RunningDevice, SyntheticApp, expected_column
@@ -181,7 +182,7 @@ def test_a_refused_resend_fails_the_scan_with_the_device_reason() -> None:
         link = HostLink(host, timeout_s=2.0)  # then 100 reads of 0.05 s at most for the NAK
         link.hello()
         link.get_config()
-        link.start_stream()
+        link.stream = deque()
         link.send_unawaited(MsgType.RESEND, {"frame": 77, "columns": [3], "fragments": []})
         with pytest.raises(DeviceError) as exc:
             for _ in range(100):

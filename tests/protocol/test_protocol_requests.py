@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from protocol_fixtures import ScriptedPort, ack, expected_column, reply, scripted_link
 
-from cdma_lidar.errors import LinkTimeout
+from cdma_lidar.errors import DeviceError, LinkTimeout
 from cdma_lidar.protocol.framing import Frame
-from cdma_lidar.protocol.messages import MsgType, Status, decode_payload
+from cdma_lidar.protocol.messages import ErrorCode, MsgType, Status, decode_payload
 from cdma_lidar.protocol.requests import DIAG_NO_ANSWER, DIAG_SILENT
 
 
@@ -139,3 +139,17 @@ def test_a_new_stream_of_the_same_frame_id_joins_none_of_the_last_ones_pieces() 
     link.config = {**link.config, "peaks": 2}
     assert list(link.scan(columns=1, frame=5)) == [expected_column(5, 0, 8, 2, 1)]
     assert link.stats.malformed == 0
+
+
+@pytest.mark.parametrize(("code", "named"), [(ErrorCode.BUSY, "BUSY"), (999, "error 999")])
+def test_a_nak_names_its_code_and_a_code_the_host_does_not_know_by_its_number(code,
+                                                                           named) -> None:
+    def answer(req: Frame) -> bytes:
+        return reply(MsgType.NAK, {"request_type": req.msg_type, "code": code,
+                                   "field": "x", "detail": "d"}, req.seq)
+
+    link = scripted_link(ScriptedPort(answer))
+    with pytest.raises(DeviceError) as exc:
+        link.status()
+    assert exc.value.code == code
+    assert str(exc.value) == f"device refused STATUS_GET: {named} (field x): d"
