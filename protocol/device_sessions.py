@@ -121,22 +121,22 @@ def new_session_id(old: int = 0) -> int:
 
 class DeviceSession:
     """The session of one connection: open or not, its keys, the challenge sent, failed
-    authentications, the capture being read, and the requests it makes of the application.
+    authentications, the capture being read, the requests it makes of the application and
+    those held until it is :attr:`ready`.
 
     ``tx`` (session id, max frame, signing, coding), ``streams`` (ended with the session)
     and ``stats`` are the connection's; ``session_id`` (of the first session), ``max_frame``,
     ``fec`` and ``heartbeat_s`` as :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`
-    takes them (INFO says them); ``peer`` names the other end in the log; ``on_end`` is
-    called when the session ends.
+    takes them (INFO says them); ``peer`` names the other end in the log.
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
                  stats: EndpointStats, *, session_id: int | None, max_frame: int, fec: bool,
-                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
+                 heartbeat_s: float, peer: str) -> None:
         self.core, self.app, self.tx, self.streams, self.stats = \
             core, core.app, tx, streams, stats
         self.max_frame, self.fec, self.heartbeat_s = max_frame, fec, heartbeat_s
-        self.peer, self._on_end, self.open = peer, on_end, False
+        self.peer, self.open = peer, False
         tx.session = session_id or new_session_id()  # the first session's (0, None: random)
         self.sessionless_since = core.clock()  # since when it has had no session (s)
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
@@ -150,6 +150,8 @@ class DeviceSession:
         self._previous: DeviceSession | None = None  # the owner a passed HELLO waits for
         #: The capture being read out: ((kind, column, channel), its data).
         self.capture: tuple[tuple[int, int, int], NDArray] | None = None
+        #: Requests waiting for the application, in arrival order: (request, its CRC).
+        self.held: list[tuple[Frame, int]] = []
 
     @property
     def id(self) -> int:
@@ -302,12 +304,12 @@ class DeviceSession:
                 self.tx.signer is not None)
 
     def end(self) -> None:
-        """Forget the session's stream (its clean-up goes to the engine), ring, capture,
-        keys, ownership and a loss not yet acted on: the device is free at once."""
+        """Forget the session's stream (its clean-up goes to the engine), ring, held requests,
+        capture, keys, ownership and a loss not yet acted on: the device is free at once."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
-        self._on_end()
+        self.held.clear()
         if self.open:
             self.sessionless_since = self.core.clock()
             if self.verifier is not None:  # to sign its NAK WRONG_SESSION
