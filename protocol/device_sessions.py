@@ -328,28 +328,19 @@ class DeviceSession:
         self.end()
 
     # ---- what the session asks of the application -------------------------------------
-    def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
-               detail: str) -> Reply:
-        """The reply, or NAK TOO_LARGE naming ``fld`` when it needs too many FRAGMENTs."""
-        if not self.tx.fits(len(payload)):
-            return self.tx.nak(req, ErrorCode.TOO_LARGE, fld, detail)
-        return self.tx.reply(req, msg_type, payload)
-
     def _config_get(self, req: Frame, f: dict) -> Reply:
         st = self.streams.stream  # its configuration is still current (no CONFIG_SET)
         values = dict(st.config) if st is not None else self.app.get_config()
         if f["keys"]:
-            want = []
-            for kid in f["keys"]:
-                try:
-                    want.append(config_key(kid).name)
-                except FieldError:
-                    return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
+            try:
+                want = [config_key(kid).name for kid in f["keys"]]
+            except FieldError as exc:  # it names the key's id
+                return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {exc.field}")
             values = {n: values[n] for n in want if n in values}
         # The model checked its configuration: encoded as it is (the host checks it).
         payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values, check=False)})
-        return self._sized(req, MsgType.CONFIG, payload, "keys",
-                           "ask for fewer keys per CONFIG_GET")
+        return self.tx.reply(req, MsgType.CONFIG, payload, "keys",
+                             "ask for fewer keys per CONFIG_GET")
 
     def _config_set(self, req: Frame, f: dict) -> Reply:
         if self.streams.stream is not None:
@@ -378,8 +369,8 @@ class DeviceSession:
                 return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, name,
                                    f"{name[:-1]}_start + {name} must be at most {have}")
         payload = encode_payload(MsgType.POWER, {**f, "power": m[r0:r0 + nr, c0:c0 + nc]})
-        return self._sized(req, MsgType.POWER, payload, "columns",
-                           "ask for a smaller rectangle per POWER_GET")
+        return self.tx.reply(req, MsgType.POWER, payload, "columns",
+                             "ask for a smaller rectangle per POWER_GET")
 
     def _capture(self, req: Frame, f: dict) -> Reply:
         key = (f["kind"], f["column"], f["channel"])
