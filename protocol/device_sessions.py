@@ -67,9 +67,8 @@ class DeviceCore:
     (default: one on its own thread), the session, the counters since boot.
 
     ``key``: the shared secret (32 bytes, :mod:`cdma_lidar.protocol.auth`); None: no access
-    control (serial ports, ptys, loopback with ``--insecure``). A session idle
-    ``session_idle_s`` (s: no request from its host, no stream running) may be taken by
-    another host's HELLO without take-over. ``clock``: monotonic (s).
+    control (serial ports, ptys, loopback with ``--insecure``). ``session_idle_s``: the
+    idle expiry (s, docs/protocol.md section 4). ``clock``: monotonic (s).
     """
 
     def __init__(self, app: Any, *, key: bytes | None = None, session_idle_s: float = 10.0,

@@ -18,7 +18,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any
 
 from cdma_lidar.protocol.columns import ColumnResult, column_payload_size, encode_column
@@ -85,7 +84,7 @@ def _run(job: Future, fn: Callable[[], Any]) -> None:
         job.set_exception(exc)
 
 
-@dataclass
+@dataclasses.dataclass
 class Stream:
     """One scan (or calibration: column = shot) of ``count`` columns from ``first``."""
 
