@@ -67,9 +67,8 @@ class DeviceCore:
     (default: one on its own thread), the session, the counters since boot.
 
     ``key``: the shared secret (32 bytes, :mod:`cdma_lidar.protocol.auth`); None: no access
-    control (serial ports, ptys, loopback with ``--insecure``). A session idle
-    ``session_idle_s`` (s: no request from its host, no stream running) may be taken by
-    another host's HELLO without take-over. ``clock``: monotonic (s).
+    control (serial ports, ptys, loopback with ``--insecure``). ``session_idle_s``: the
+    idle expiry (s, docs/protocol.md section 4). ``clock``: monotonic (s).
     """
 
     def __init__(self, app: Any, *, key: bytes | None = None, session_idle_s: float = 10.0,
@@ -121,22 +120,22 @@ def new_session_id(old: int = 0) -> int:
 
 class DeviceSession:
     """The session of one connection: open or not, its keys, the challenge sent, failed
-    authentications, the capture being read, and the requests it makes of the application.
+    authentications, the capture being read, the requests it makes of the application and
+    those held until it is :attr:`ready`.
 
     ``tx`` (session id, max frame, signing, coding), ``streams`` (ended with the session)
     and ``stats`` are the connection's; ``session_id`` (of the first session), ``max_frame``,
     ``fec`` and ``heartbeat_s`` as :class:`~cdma_lidar.protocol.endpoint.DeviceEndpoint`
-    takes them (INFO says them); ``peer`` names the other end in the log; ``on_end`` is
-    called when the session ends.
+    takes them (INFO says them); ``peer`` names the other end in the log.
     """
 
     def __init__(self, core: DeviceCore, tx: Transmitter, streams: Streams,
                  stats: EndpointStats, *, session_id: int | None, max_frame: int, fec: bool,
-                 heartbeat_s: float, peer: str, on_end: Callable[[], None]) -> None:
+                 heartbeat_s: float, peer: str) -> None:
         self.core, self.app, self.tx, self.streams, self.stats = \
             core, core.app, tx, streams, stats
         self.max_frame, self.fec, self.heartbeat_s = max_frame, fec, heartbeat_s
-        self.peer, self._on_end, self.open = peer, on_end, False
+        self.peer, self.open = peer, False
         tx.session = session_id or new_session_id()  # the first session's (0, None: random)
         self.sessionless_since = core.clock()  # since when it has had no session (s)
         self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
@@ -150,6 +149,8 @@ class DeviceSession:
         self._previous: DeviceSession | None = None  # the owner a passed HELLO waits for
         #: The capture being read out: ((kind, column, channel), its data).
         self.capture: tuple[tuple[int, int, int], NDArray] | None = None
+        #: Requests waiting for the application, in arrival order: (request, its CRC).
+        self.held: list[tuple[Frame, int]] = []
 
     @property
     def id(self) -> int:
@@ -302,12 +303,12 @@ class DeviceSession:
                 self.tx.signer is not None)
 
     def end(self) -> None:
-        """Forget the session's stream (its clean-up goes to the engine), ring, capture,
-        keys, ownership and a loss not yet acted on: the device is free at once."""
+        """Forget the session's stream (its clean-up goes to the engine), ring, held requests,
+        capture, keys, ownership and a loss not yet acted on: the device is free at once."""
         self.streams.stop(ScanEndReason.ABORTED, send_end=False)
         self.tx.drop(REPAIR)
         self.streams.ring.clear()
-        self._on_end()
+        self.held.clear()
         if self.open:
             self.sessionless_since = self.core.clock()
             if self.verifier is not None:  # to sign its NAK WRONG_SESSION
@@ -326,28 +327,19 @@ class DeviceSession:
         self.end()
 
     # ---- what the session asks of the application -------------------------------------
-    def _sized(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str,
-               detail: str) -> Reply:
-        """The reply, or NAK TOO_LARGE naming ``fld`` when it needs too many FRAGMENTs."""
-        if not self.tx.fits(len(payload)):
-            return self.tx.nak(req, ErrorCode.TOO_LARGE, fld, detail)
-        return self.tx.reply(req, msg_type, payload)
-
     def _config_get(self, req: Frame, f: dict) -> Reply:
         st = self.streams.stream  # its configuration is still current (no CONFIG_SET)
         values = dict(st.config) if st is not None else self.app.get_config()
         if f["keys"]:
-            want = []
-            for kid in f["keys"]:
-                try:
-                    want.append(config_key(kid).name)
-                except FieldError:
-                    return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {kid}")
+            try:
+                want = [config_key(kid).name for kid in f["keys"]]
+            except FieldError as exc:  # it names the key's id
+                return self.tx.nak(req, ErrorCode.UNKNOWN_KEY, f"key {exc.field}")
             values = {n: values[n] for n in want if n in values}
         # The model checked its configuration: encoded as it is (the host checks it).
         payload = encode_payload(MsgType.CONFIG, {"items": encode_config(values, check=False)})
-        return self._sized(req, MsgType.CONFIG, payload, "keys",
-                           "ask for fewer keys per CONFIG_GET")
+        return self.tx.reply(req, MsgType.CONFIG, payload, "keys",
+                             "ask for fewer keys per CONFIG_GET")
 
     def _config_set(self, req: Frame, f: dict) -> Reply:
         if self.streams.stream is not None:
@@ -376,8 +368,8 @@ class DeviceSession:
                 return self.tx.nak(req, ErrorCode.OUT_OF_RANGE, name,
                                    f"{name[:-1]}_start + {name} must be at most {have}")
         payload = encode_payload(MsgType.POWER, {**f, "power": m[r0:r0 + nr, c0:c0 + nc]})
-        return self._sized(req, MsgType.POWER, payload, "columns",
-                           "ask for a smaller rectangle per POWER_GET")
+        return self.tx.reply(req, MsgType.POWER, payload, "columns",
+                             "ask for a smaller rectangle per POWER_GET")
 
     def _capture(self, req: Frame, f: dict) -> Reply:
         key = (f["kind"], f["column"], f["channel"])

@@ -181,15 +181,12 @@ class DeviceEndpoint:
         self.core, self.app, self.port = core, core.app, port
         self.clock, self.heartbeat_s, self.poll_s = clock, heartbeat_s, poll_s
         self.stats = EndpointStats()
-        #: Requests waiting for the application, in arrival order: (request, its CRC).
-        self._held: list[tuple[Frame, int]] = []
         self.tx = Transmitter(port, max_frame, (self.stats, core.totals))
         self.streams = Streams(core.app, self.tx, core.engine, ring_columns=ring_columns,
                                clock=clock, stopped=lambda: core.touch(self.session))
         self.session = DeviceSession(core, self.tx, self.streams, self.stats,
                                      session_id=session_id, max_frame=max_frame, fec=fec,
-                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port),
-                                     on_end=self._held.clear)
+                                     heartbeat_s=heartbeat_s, peer=peer or port_name(port))
         self.handlers: dict[MsgType, Callable[[Frame, dict], Reply]] = {
             **self.session.handlers(), **self.streams.handlers(),
             MsgType.STATUS_GET: lambda req, f: self.tx.reply(
@@ -197,7 +194,6 @@ class DeviceEndpoint:
         #: seq -> (CRC of the request's type and payload, its reply), for replay.
         self._replay: OrderedDict[int, tuple[int, Reply]] = OrderedDict()
         self.last_seq: int | None = None
-        self._rx_counted = (0, 0)  # decoder (frames, errors) already in the core's totals
         self._pieces = Joiner(limit=2)  # requests in FRAGMENTs, by (type, seq, session)
         port.timeout = poll_s
 
@@ -227,8 +223,12 @@ class DeviceEndpoint:
         sess, streams = self.session, self.streams
         if sess.lost is not None:  # another connection's HELLO took the device
             sess.lose(*sess.lost)
-        damaged = self.decoder.stats.damaged
-        for frame in self.decoder.feed(self._read()):
+        ds = self.decoder.stats
+        damaged, frames, errors = ds.damaged, ds.frames, ds.errors
+        received = self.decoder.feed(self._read())
+        self.core.rx_frames += ds.frames - frames  # before a STATUS reply says them
+        self.core.rx_errors += ds.errors - errors
+        for frame in received:
             if frame.msg_type == MsgType.FRAGMENT:
                 frame = self._request_piece(frame)  # None until the request is whole
             if frame is not None and kind_of(frame.msg_type) is not MsgKind.REQUEST:
@@ -237,15 +237,14 @@ class DeviceEndpoint:
                 self._process(frame)
         while self.decoder.rejected:
             self._on_rejected(self.decoder.rejected.pop(0))
-        self._count_rx()
-        if self.decoder.stats.damaged > damaged:
+        if ds.damaged > damaged:
             # Say so at once (information only: it words the host's diagnosis).
             self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
-                MsgType.LINE_ERROR, {"rx_errors": self.decoder.stats.errors & 0xFFFFFFFF}))
+                MsgType.LINE_ERROR, {"rx_errors": ds.errors & 0xFFFFFFFF}))
         streams.collect()
-        while self._held and self.session.ready:
-            self._respond(*self._held.pop(0))
-        if not self._held:  # held requests go before the next column
+        while sess.held and sess.ready:
+            self._respond(*sess.held.pop(0))
+        if not sess.held:  # held requests go before the next column
             streams.advance()
             streams.collect()  # done at once when the engine is quick (or not threaded)
         now = self.clock()
@@ -271,16 +270,8 @@ class DeviceEndpoint:
             data += self.port.read(self.port.in_waiting)
         return data
 
-    def _count_rx(self) -> None:
-        """Add what the decoder counted since the last call to the core's totals."""
-        ds, (frames, errors) = self.decoder.stats, self._rx_counted
-        self.core.rx_frames += ds.frames - frames
-        self.core.rx_errors += ds.errors - errors
-        self._rx_counted = (ds.frames, ds.errors)
-
     def status(self) -> Status:
         """Current status (as sent in STATUS and HEARTBEAT); counters since boot."""
-        self._count_rx()
         st, last = self.streams.stream, self.streams.latest  # running, last started
         try:
             temp, faults = self.app.health()
@@ -346,7 +337,7 @@ class DeviceEndpoint:
             self.core.totals.replays += 1
             self.tx.answer(frame, cached[1])
             return
-        if any(h.seq == frame.seq and k == key for h, k in self._held):
+        if any(h.seq == frame.seq and k == key for h, k in sess.held):
             return  # a retransmission of a held request: its reply comes
         if is_hello:
             refusal = sess.hello_gate(frame)  # at once, whatever the engine computes
@@ -361,8 +352,8 @@ class DeviceEndpoint:
             self.last_seq = frame.seq  # in arrival order, held or answered
         t = frame.msg_type
         if (t in _APP or (t in _APP_IDLE and self.streams.stream is None)) and \
-                (self._held or not self.session.ready):
-            self._held.append((frame, key))
+                (sess.held or not sess.ready):
+            sess.held.append((frame, key))
         else:
             self._respond(frame, key)
 

@@ -258,10 +258,7 @@ class FrameDecoder:
         data = bytes(data)
         out: list[Frame] = []
         start = 0
-        while True:
-            end = data.find(DELIMITER, start)
-            if end < 0:
-                break
+        while (end := data.find(DELIMITER, start)) >= 0:
             if self._buf is None:  # the delimiter ends an oversize chunk
                 self._buf = bytearray()
             elif self._buf or end > start:

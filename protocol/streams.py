@@ -18,7 +18,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any
 
 from cdma_lidar.protocol.columns import ColumnResult, column_payload_size, encode_column
@@ -85,7 +84,7 @@ def _run(job: Future, fn: Callable[[], Any]) -> None:
         job.set_exception(exc)
 
 
-@dataclass
+@dataclasses.dataclass
 class Stream:
     """One scan (or calibration: column = shot) of ``count`` columns from ``first``."""
 
@@ -96,7 +95,6 @@ class Stream:
     count: int
     calibration: bool
     produced: int = 0
-    stopped: bool = False  # ended for any reason (its clean-up is then submitted)
     job: Future | None = None  # the column the engine computes, not yet collected
 
     @property
@@ -181,8 +179,8 @@ class Streams:
         if st is None or st.job is None or not st.job.done():
             return
         job, st.job = st.job, None
-        if st.stopped:
-            return  # aborted meanwhile: the column goes nowhere
+        if st is not self.stream:
+            return  # ended meanwhile: the column goes nowhere
         error = job.exception()
         column, payload = (0, b"") if error is not None else job.result()
         if error is not None or not self.tx.fits(len(payload)):
@@ -231,7 +229,6 @@ class Streams:
         st = self.stream
         if st is None:
             return
-        st.stopped = True
         self.stream = None
         self.last_end = reason
         self._stopped()  # idle time counts from the end of the stream

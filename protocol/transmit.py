@@ -72,8 +72,12 @@ class Transmitter:
         self._stream_seq = 0
         self._notice_id = 0  # FRAGMENT.seq of notices sent in pieces
 
-    def reply(self, req: Frame, msg_type: MsgType, payload: bytes) -> Reply:
-        """A reply, signed when the session and the request are."""
+    def reply(self, req: Frame, msg_type: MsgType, payload: bytes, fld: str = "",
+              detail: str = "") -> Reply:
+        """A reply, signed when the session and the request are; NAK TOO_LARGE naming
+        ``fld`` (``detail``: what to ask instead) when it needs too many FRAGMENTs."""
+        if not self.fits(len(payload)):
+            return self.nak(req, ErrorCode.TOO_LARGE, fld, detail)
         return (msg_type, payload, self.signer is not None and (bool(req.sig) or req.joined))
 
     def ack(self, req: Frame) -> Reply:
