@@ -240,7 +240,7 @@ class DeviceEndpoint:
         if ds.damaged > damaged:
             # Say so at once (information only: it words the host's diagnosis).
             self.tx.send(CONTROL, MsgType.LINE_ERROR, encode_payload(
-                MsgType.LINE_ERROR, {"rx_errors": ds.errors & 0xFFFFFFFF}))
+                MsgType.LINE_ERROR, {"rx_errors": self.core.rx_errors & 0xFFFFFFFF}))
         streams.collect()
         while sess.held and sess.ready:
             self._respond(*sess.held.pop(0))

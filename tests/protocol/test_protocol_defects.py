@@ -387,3 +387,23 @@ def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> N
     assert isinstance(exc.value, LinkError) and got == [0, 1, 2]
     assert (exc.value.frame, exc.value.next_column, exc.value.reason) == \
         (5, 3, ScanEndReason.ERROR)
+
+
+def test_line_error_counts_rejected_chunks_since_boot_as_status_does() -> None:
+    """LINE_ERROR.rx_errors is the device's count since boot (docs/protocol.md), the same
+    number STATUS gives, however many connections the damage came over."""
+    from cdma_lidar.protocol.endpoint import DeviceCore
+    from cdma_lidar.protocol.messages import Status, decode_payload
+
+    core = DeviceCore(SyntheticApp(channels=2, columns=4))
+    first = SteppedDevice(None, core=core)
+    second = SteppedDevice(None, core=core, now=first.now)
+    first.write(b"\x00\x05garbage\x00" * 3)  # three damaged chunks on the first connection
+    first.read(4096)
+    link = HostLink(second, timeout_s=1.0, clock=second.clock)
+    link.hello()
+    second.write(b"\x00\x07junk\x00")  # one more, on the second connection
+    heard = [f for f in link.decoder.feed(second.read(4096)) if f.msg_type == MsgType.LINE_ERROR]
+    (notice,) = heard
+    st = Status(**link.request(MsgType.STATUS_GET, {}))
+    assert decode_payload(MsgType.LINE_ERROR, notice.payload)["rx_errors"] == 4 == st.rx_errors
