@@ -158,15 +158,11 @@ FrameVerifier = FrameMac
 
 
 class Backoff:
-    """Back-off after failed authentication: it slows a guesser, never the key holder.
-
-    A MAC is checked at once on a connection with no wrong MAC yet, so the key holder gets
-    in from any address whatever its neighbours there send. A guesser is slowed twice over:
-    per connection, after ``n`` wrong MACs its next MAC is not checked until
-    ``min(max_s, base_s * 2**(n - 1))`` s after the last failure; globally, wrong MACs draw
-    on a budget of ``rate`` checks per second (``burst`` at once) that a failed connection
-    waits for too, so many connections give a guesser at most ``rate`` checked guesses per
-    second plus one per new connection. Failures of one peer (an address) less than
+    """Back-off after failed authentication, which slows a guesser, never the key holder
+    (docs/protocol.md section 5 gives the rule with these defaults): after ``n`` wrong MACs
+    on a connection its next MAC waits ``min(max_s, base_s * 2**(n - 1))`` s after the last
+    failure, and for a budget of ``rate`` checks per second (``burst`` at once) that wrong
+    MACs of all connections draw on. Failures of one peer (an address) less than
     ``quiet_s`` apart are one burst, whose first logs one WARNING. ``clock``: monotonic s.
     """
 

@@ -199,7 +199,10 @@ class ColumnResult:
         record's fields by name, shaped as in ``firmware_model.output.ReceiverOutput`` (K
         channels, n UID bits, P peaks); the ``extra_*`` ones may be left out (or None) for
         P = 1. Raises FieldError naming the first bad field."""
-        _check_names(fields)
+        if unknown := sorted(set(fields) - set(FIELD_NAMES)):  # as for a bad keyword argument
+            raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
+        if missing := [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]:
+            raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
         signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
@@ -238,14 +241,6 @@ class ColumnResult:
         return cls.from_arrays(frame, column, angle_deg, calibration=calibration,
                                timestamp_us=timestamp_us,
                                **{f.name: getattr(out, f.name, None) for f in RECORD})
-
-
-def _check_names(fields: dict[str, Any]) -> None:
-    """TypeError, as for a bad keyword argument, unless ``fields`` are record fields."""
-    if unknown := sorted(set(fields) - set(FIELD_NAMES)):
-        raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
-    if missing := [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]:
-        raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
 
 
 #: Fields whose exact value may exceed the wire word: the model carries noise_sumsq as exact

@@ -546,10 +546,8 @@ REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.
 # ---- encode / decode ------------------------------------------------------------------
 def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None = None) -> bytes:
     """Payload bytes of one message; raises FieldError naming the first bad field."""
-    try:
-        spec = MESSAGES[MsgType(msg_type)]
-    except ValueError:
-        raise out_of_range("msg_type", "a known message type", msg_type, FieldError) from None
+    if (spec := MESSAGES.get(msg_type)) is None:  # type: ignore[call-overload]
+        raise out_of_range("msg_type", "a known message type", msg_type, FieldError)
     if spec.type == MsgType.COLUMN_RESULT:
         if not isinstance(fields_, ColumnResult):
             raise out_of_range("COLUMN_RESULT", "a ColumnResult", type(fields_).__name__,
@@ -563,10 +561,8 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
     (only) naming the field for an unknown type, a short or long payload, a value out of range."""
     if msg_type == MsgType.COLUMN_RESULT:  # the hot path: no enum lookup
         return decode_column(payload)
-    try:
-        spec = MESSAGES[MsgType(msg_type)]
-    except ValueError:
-        raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
+    if (spec := MESSAGES.get(msg_type)) is None:  # type: ignore[call-overload]
+        raise FrameError(f"unknown message type 0x{msg_type:02x}")
     out = spec.decode(payload, spec.type.name)
     if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
         raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")

@@ -48,12 +48,9 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
 
-def _row(*cells: object) -> str:
-    return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
-
-
 def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
-    return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
+    return "\n".join("| " + " | ".join(str(c).replace("|", "\\|") for c in r) + " |"
+                     for r in [head, ("---",) * len(head), *rows])
 
 
 def constants_table() -> str:
