@@ -352,6 +352,10 @@ _RECT = (u("channel_start", 16, "first channel of the rectangle"),
          u("column_start", 16, "first column of the rectangle"),
          u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
          u("columns", 16, "columns in the rectangle", lo=1, hi=65535))
+#: What CAPTURE reads and CAPTURE_DATA carries.
+_CAPTURED = (u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
+             u("column", 16, "column index"),
+             u("channel", 16, "channel (kind 1 only; 0 for kind 0)"))
 _POWER = Field("power", "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
                allowed="0..65535", kind="array", fmt="H", count="channels*columns")
 
@@ -429,9 +433,7 @@ _MESSAGE_LIST = [
                 rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
     MessageSpec(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
                 "capture, later offsets read the same capture.",
-                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-                u("column", 16, "column index"),
-                u("channel", 16, "channel (kind 1 only; 0 for kind 0)"),
+                *_CAPTURED,
                 u("offset", 32, "first element to read", "elements"),
                 u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
                 reply=MsgType.CAPTURE_DATA,
@@ -461,9 +463,7 @@ _MESSAGE_LIST = [
                 Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
     MessageSpec(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     MessageSpec(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
-                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-                u("column", 16, "column index"),
-                u("channel", 16, "channel (kind 1)"),
+                *_CAPTURED,
                 u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
                 u("total", 32, "elements in the whole capture", "elements"),
                 u("offset", 32, "index of the first element in this chunk", "elements"),

@@ -303,12 +303,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path", type=Path, default=DOC_PATH)
     args = ap.parse_args(argv)
     text = args.path.read_text(encoding="utf-8")
-    if (new := render(text)) == text:
-        return 0
-    if args.check:
-        sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
-        return 1
-    atomic_write_text(args.path, new)
+    if (new := render(text)) != text:
+        if args.check:
+            sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
+            return 1
+        atomic_write_text(args.path, new)
     return 0
 
 
