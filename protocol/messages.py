@@ -30,6 +30,7 @@ from cdma_lidar.protocol.columns import (
     decode_column,
     encode_column,
     record_dtype,
+    udeg,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, frame_size
@@ -225,22 +226,19 @@ class Info:
         max_items=65535)
 
     @classmethod
-    def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
-                grooves_per_mm: float, incidence_deg: float, tilt_deg: float | None,
-                reference_wavelength_m: float, chip_rate_hz: float,
-                column_start_deg: float, column_step_deg: float, column_count: int,
-                **limits: int) -> Info:
-        """Build from SI units and degrees (rounded to the wire's pm / µdeg / 0.001 /mm)."""
+    def nominal(cls, *, wavelengths_m: Sequence[float], grooves_per_mm: float,
+                incidence_deg: float, tilt_deg: float | None, reference_wavelength_m: float,
+                chip_rate_hz: float, column_start_deg: float, column_step_deg: float,
+                **fields: Any) -> Info:
+        """Build from SI units and degrees (rounded to the wire's pm / µdeg / 0.001 /mm);
+        ``fields``: the others as on the wire (serial, firmware_version, column_count, limits)."""
         return cls(
-            firmware_version=firmware_version, serial=serial,
             wavelengths_pm=tuple(round(w * 1e12) for w in wavelengths_m),
-            grooves_per_mm_milli=round(grooves_per_mm * 1e3),
-            incidence_udeg=round(incidence_deg * 1e6),
-            tilt_udeg=TILT_AUTO if tilt_deg is None else round(tilt_deg * 1e6),
+            grooves_per_mm_milli=round(grooves_per_mm * 1e3), incidence_udeg=udeg(incidence_deg),
+            tilt_udeg=TILT_AUTO if tilt_deg is None else udeg(tilt_deg),
             reference_wavelength_pm=round(reference_wavelength_m * 1e12),
-            chip_rate_hz=round(chip_rate_hz), column_start_udeg=round(column_start_deg * 1e6),
-            column_step_udeg=round(column_step_deg * 1e6), column_count=column_count,
-            **limits)
+            chip_rate_hz=round(chip_rate_hz), column_start_udeg=udeg(column_start_deg),
+            column_step_udeg=udeg(column_step_deg), **fields)
 
     @property
     def channels(self) -> int:
@@ -514,8 +512,8 @@ def head_size(msg_type: MsgType) -> int:
     return sum(f.size for f in MESSAGES[msg_type].fields[:-1])  # type: ignore[misc]
 #: FRAGMENT payload bytes before the data (11).
 FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
-#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
-MAX_PIECES = 254
+#: Most FRAGMENTs one message may take (254, FRAGMENT.count's bound).
+MAX_PIECES: int = MESSAGES[MsgType.FRAGMENT].field("count").hi  # type: ignore[assignment]
 
 
 def piece_room(max_frame: int, signed: bool) -> int:
