@@ -145,10 +145,9 @@ class FrameMac:
                 not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[_COUNTER.size:]):
             return False
         (counter,) = _COUNTER.unpack(c)
-        if counter <= self.counter:
-            return False
-        self.counter = counter
-        return True
+        if newer := counter > self.counter:
+            self.counter = counter
+        return newer
 
 
 #: Signs the frames of one direction (:meth:`FrameMac.sign`).

@@ -7,9 +7,8 @@ microseconds per 40-channel column; the tests hold it to a construct codec byte 
 byte), the range checks, the size and the properties of :class:`ColumnResult` all come
 from that declaration.
 
-UID signs travel as two masks: bit p of ``uid_neg`` is set where the sign of period p at
-the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag the receiver
-reports as -1 (no peak) travels as :data:`NO_PEAK`.
+UID signs travel as two masks (``uid_neg``, ``uid_zero``) and a lag -1 (no peak) as
+:data:`NO_PEAK`: docs/protocol.md, "COLUMN_RESULT layout".
 """
 
 from __future__ import annotations

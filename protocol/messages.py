@@ -1,13 +1,10 @@
 """Message catalogue: every payload declared once, with units and ranges.
 
-From the :mod:`~cdma_lidar.protocol.schema` fields come the checked encoder (FieldError
-naming the field), the strict decoder (FrameError only), the spec's tables and
-:data:`SCHEMA_CRC`. The type byte says who sends it: request 0x01..0x7F, reply
-0x80..0xBF, stream 0xC0..0xFF. :class:`Info` (reply to HELLO) and :class:`Status` (STATUS,
-HEARTBEAT) are typed dataclasses whose fields, in wire units (pm, µdeg, m°C, ms, 0.001
-lines/mm) and wire order, carry their payload declaration (:func:`~.schema.wire`):
-``to_fields`` gives what ``encode_payload`` takes, ``Info.from_fields`` /
-``Status(**fields)`` read a payload.
+Its :mod:`~cdma_lidar.protocol.schema` fields give the codec, the spec's tables and
+:data:`SCHEMA_CRC`. :class:`Info` (reply to HELLO) and :class:`Status` (STATUS, HEARTBEAT)
+are typed dataclasses whose fields, in wire units (pm, µdeg, m°C, ms, 0.001 lines/mm) and
+wire order, carry their payload declaration (:func:`~.schema.wire`): ``to_fields`` gives
+what ``encode_payload`` takes, ``Info.from_fields`` / ``Status(**fields)`` read a payload.
 """
 
 from __future__ import annotations
@@ -59,7 +56,8 @@ def type_name(msg_type: int) -> str:
 
 
 def kind_of(msg_type: int) -> MsgKind:
-    """Kind of a message type from its range (works for unknown types too)."""
+    """Kind of a message type from its range, unknown types too: request 0x01..0x7F, reply
+    0x80..0xBF, stream 0xC0..0xFF."""
     return MsgKind.STREAM if msg_type >= 0xC0 else MsgKind.REPLY if msg_type >= 0x80 \
         else MsgKind.REQUEST
 

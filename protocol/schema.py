@@ -269,10 +269,10 @@ def nbytes(name: str, size: int, doc: str) -> Field:
 def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:
     """A dataclass field that is also the payload field ``make(name, *args, **kw)`` (``u``,
     ``text``, ...) of the same name; ``default`` MISSING: required."""
-    return dataclasses.field(default=default, metadata={"wire": (make, args, kw)})
+    return dataclasses.field(default=default,
+                             metadata={"wire": lambda name: make(name, *args, **kw)})
 
 
 def wire_fields(cls: type) -> list[Field]:
     """The payload fields of a dataclass declared with :func:`wire`, in field order."""
-    return [f.metadata["wire"][0](f.name, *f.metadata["wire"][1], **f.metadata["wire"][2])
-            for f in dataclasses.fields(cls)]
+    return [f.metadata["wire"](f.name) for f in dataclasses.fields(cls)]
