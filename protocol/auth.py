@@ -25,7 +25,7 @@ from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
 __all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameMac", "FrameSigner",
            "FrameVerifier", "device_mac", "hello_mac", "load_key", "load_or_create_key",
-           "session_keys"]
+           "session_keys", "session_macs"]
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +154,14 @@ class FrameMac:
 FrameSigner = FrameMac
 #: Checks the frames of one direction: MAC, then a rising counter (:meth:`FrameMac.check`).
 FrameVerifier = FrameMac
+
+
+def session_macs(key: bytes, host_nonce: bytes, device_nonce: bytes,
+                 session: int) -> tuple[FrameMac, FrameMac]:
+    """(host -> device, device -> host) :class:`FrameMac` of one session, keyed with its
+    :func:`session_keys`, counters 0: the host signs with the first, the device the second."""
+    to_dev, to_host = session_keys(key, host_nonce, device_nonce, session)
+    return FrameMac(to_dev), FrameMac(to_host)
 
 
 class Backoff:
