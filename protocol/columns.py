@@ -284,11 +284,9 @@ def decode_column(payload: bytes) -> ColumnResult:
     frame, column, flags, n, p, k, angle, ts = _HEAD.unpack_from(payload)
     if not 1 <= n <= MAX_UID_BITS or not 1 <= p <= MAX_PEAKS or k == 0 or flags & ~1:
         raise FrameError(f"column: uid_bits {n}, peaks {p}, channels {k}, flags {flags:#x}")
-    dt = record_dtype(p)
-    if len(payload) != _HEAD.size + k * dt.itemsize:
-        raise FrameError(f"column: {len(payload)} bytes, {k} channels x {p} peaks need "
-                         f"{_HEAD.size + k * dt.itemsize}")
-    rec = np.frombuffer(payload, dtype=dt, count=k, offset=_HEAD.size)
+    if len(payload) != (need := column_payload_size(k, p)):
+        raise FrameError(f"column: {len(payload)} bytes, {k} channels x {p} peaks need {need}")
+    rec = np.frombuffer(payload, dtype=record_dtype(p), count=k, offset=_HEAD.size)
     # Same as ColumnResult(...) minus the frozen-dataclass __setattr__ calls (hot path).
     col = object.__new__(ColumnResult)
     col.__dict__.update(frame=frame, column=column, angle_udeg=angle, records=rec, uid_bits=n,
