@@ -49,10 +49,8 @@ class MsgKind(enum.Enum):
 
 def type_name(msg_type: int) -> str:
     """The name of a message type, or its hex value when unknown."""
-    try:
-        return MsgType(msg_type).name
-    except ValueError:
-        return f"0x{msg_type:02x}"
+    spec = MESSAGES.get(msg_type)  # type: ignore[call-overload]
+    return f"0x{msg_type:02x}" if spec is None else spec.type.name
 
 
 def kind_of(msg_type: int) -> MsgKind:
