@@ -151,7 +151,7 @@ class Layout:
         """Field values of ``payload``; FrameError (only) naming a field out of range."""
         out = self.parse(payload, what)
         for f in self.fields:
-            if f.lo is not None:  # ints, and arrays limited to less than their wire type
+            if f.lo is not None:  # the ints, and the arrays declared with a range
                 try:
                     f.check(f.name, out[f.name])
                 except FieldError as exc:
