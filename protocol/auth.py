@@ -25,7 +25,7 @@ from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
 __all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameMac", "FrameSigner",
            "FrameVerifier", "device_mac", "hello_mac", "load_key", "load_or_create_key",
-           "session_keys"]
+           "session_keys", "session_macs"]
 
 log = logging.getLogger(__name__)
 
@@ -145,10 +145,9 @@ class FrameMac:
                 not equal(self._frame_mac(frame.signed_bytes(), c), frame.sig[_COUNTER.size:]):
             return False
         (counter,) = _COUNTER.unpack(c)
-        if counter <= self.counter:
-            return False
-        self.counter = counter
-        return True
+        if newer := counter > self.counter:
+            self.counter = counter
+        return newer
 
 
 #: Signs the frames of one direction (:meth:`FrameMac.sign`).
@@ -157,16 +156,20 @@ FrameSigner = FrameMac
 FrameVerifier = FrameMac
 
 
-class Backoff:
-    """Back-off after failed authentication: it slows a guesser, never the key holder.
+def session_macs(key: bytes, host_nonce: bytes, device_nonce: bytes,
+                 session: int) -> tuple[FrameMac, FrameMac]:
+    """(host -> device, device -> host) :class:`FrameMac` of one session, keyed with its
+    :func:`session_keys`, counters 0: the host signs with the first, the device the second."""
+    to_dev, to_host = session_keys(key, host_nonce, device_nonce, session)
+    return FrameMac(to_dev), FrameMac(to_host)
 
-    A MAC is checked at once on a connection with no wrong MAC yet, so the key holder gets
-    in from any address whatever its neighbours there send. A guesser is slowed twice over:
-    per connection, after ``n`` wrong MACs its next MAC is not checked until
-    ``min(max_s, base_s * 2**(n - 1))`` s after the last failure; globally, wrong MACs draw
-    on a budget of ``rate`` checks per second (``burst`` at once) that a failed connection
-    waits for too, so many connections give a guesser at most ``rate`` checked guesses per
-    second plus one per new connection. Failures of one peer (an address) less than
+
+class Backoff:
+    """Back-off after failed authentication, which slows a guesser, never the key holder
+    (docs/protocol.md section 5 gives the rule with these defaults): after ``n`` wrong MACs
+    on a connection its next MAC waits ``min(max_s, base_s * 2**(n - 1))`` s after the last
+    failure, and for a budget of ``rate`` checks per second (``burst`` at once) that wrong
+    MACs of all connections draw on. Failures of one peer (an address) less than
     ``quiet_s`` apart are one burst, whose first logs one WARNING. ``clock``: monotonic s.
     """
 

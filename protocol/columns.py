@@ -7,9 +7,8 @@ microseconds per 40-channel column; the tests hold it to a construct codec byte 
 byte), the range checks, the size and the properties of :class:`ColumnResult` all come
 from that declaration.
 
-UID signs travel as two masks: bit p of ``uid_neg`` is set where the sign of period p at
-the peak is -1, bit p of ``uid_zero`` where it is 0 (neither: +1). A lag the receiver
-reports as -1 (no peak) travels as :data:`NO_PEAK`.
+UID signs travel as two masks (``uid_neg``, ``uid_zero``) and a lag -1 (no peak) as
+:data:`NO_PEAK`: docs/protocol.md, "COLUMN_RESULT layout".
 """
 
 from __future__ import annotations
@@ -199,7 +198,10 @@ class ColumnResult:
         record's fields by name, shaped as in ``firmware_model.output.ReceiverOutput`` (K
         channels, n UID bits, P peaks); the ``extra_*`` ones may be left out (or None) for
         P = 1. Raises FieldError naming the first bad field."""
-        _check_names(fields)
+        if unknown := sorted(set(fields) - set(FIELD_NAMES)):  # as for a bad keyword argument
+            raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
+        if missing := [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]:
+            raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
         signs = np.asarray(fields["uid_signs"])
         if signs.ndim != 2:
             raise out_of_range("uid_signs", "a (K, n) array", f"shape {signs.shape}",
@@ -238,14 +240,6 @@ class ColumnResult:
         return cls.from_arrays(frame, column, angle_deg, calibration=calibration,
                                timestamp_us=timestamp_us,
                                **{f.name: getattr(out, f.name, None) for f in RECORD})
-
-
-def _check_names(fields: dict[str, Any]) -> None:
-    """TypeError, as for a bad keyword argument, unless ``fields`` are record fields."""
-    if unknown := sorted(set(fields) - set(FIELD_NAMES)):
-        raise TypeError(f"from_arrays() got an unexpected keyword argument {unknown[0]!r}")
-    if missing := [f.name for f in RECORD if not f.per_extra_peak and f.name not in fields]:
-        raise TypeError(f"from_arrays() missing required keyword-only argument {missing[0]!r}")
 
 
 #: Fields whose exact value may exceed the wire word: the model carries noise_sumsq as exact
@@ -290,11 +284,9 @@ def decode_column(payload: bytes) -> ColumnResult:
     frame, column, flags, n, p, k, angle, ts = _HEAD.unpack_from(payload)
     if not 1 <= n <= MAX_UID_BITS or not 1 <= p <= MAX_PEAKS or k == 0 or flags & ~1:
         raise FrameError(f"column: uid_bits {n}, peaks {p}, channels {k}, flags {flags:#x}")
-    dt = record_dtype(p)
-    if len(payload) != _HEAD.size + k * dt.itemsize:
-        raise FrameError(f"column: {len(payload)} bytes, {k} channels x {p} peaks need "
-                         f"{_HEAD.size + k * dt.itemsize}")
-    rec = np.frombuffer(payload, dtype=dt, count=k, offset=_HEAD.size)
+    if len(payload) != (need := column_payload_size(k, p)):
+        raise FrameError(f"column: {len(payload)} bytes, {k} channels x {p} peaks need {need}")
+    rec = np.frombuffer(payload, dtype=record_dtype(p), count=k, offset=_HEAD.size)
     # Same as ColumnResult(...) minus the frozen-dataclass __setattr__ calls (hot path).
     col = object.__new__(ColumnResult)
     col.__dict__.update(frame=frame, column=column, angle_udeg=angle, records=rec, uid_bits=n,

@@ -92,15 +92,13 @@ class ConfigKey:
         already checked (the device's own configuration): only what the wire cannot hold fails."""
         try:
             w = self.to_wire(value)
-        except FieldError as exc:
-            raise out_of_range(self.name, str(exc), value, FieldError) from None
-        if check and self.outside(w) is not None:
-            # Not check_int: the message gives the device's limit and the wire range.
-            each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
-            raise out_of_range(self.name, f"{self.allowed} ({each}{self.lo}..{self.hi} on "
-                               "the wire)", value, FieldError)
-        try:
+            if check and self.outside(w) is not None:
+                # Not check_int: the message gives the device's limit and the wire range.
+                each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
+                raise FieldError(f"{self.allowed} ({each}{self.lo}..{self.hi} on the wire)")
             return self.sub.build({"v": w})
+        except FieldError as exc:  # what to_wire takes, or the range
+            raise out_of_range(self.name, str(exc), value, FieldError) from None
         except (struct.error, TypeError, ValueError, KeyError) as exc:
             raise out_of_range(self.name, self.allowed, value, FieldError) from exc
 

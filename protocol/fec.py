@@ -3,14 +3,11 @@
 docs/protocol.md section 2.5 is the contract. A frame of a FEC session is sent as
 ``00 | rs(COBS(whiten(body))) | 00 00``; ``rs`` follows every 207 stuffed bytes (the last
 block shorter) with the block's 48 parity bytes, highest degree first, spread 7 bits a byte
-over 55 bytes ``0x80 | g`` that are never 0x00::
-
-    coded    [207 data | 55 spread parity] [207 | 55] [r data | 55 spread parity]
-
-Coded length ``t = n + 55 * ceil(n / 207)`` for ``n`` stuffed bytes. Code: primitive
-polynomial 0x11D, generator roots 2^0 .. 2^47, as ``reedsolo.RSCodec(48, nsize=255)``
-builds it. Encoding, syndromes, the Chien search and Forney's formula are table-driven
-numpy (tests hold them to ``reedsolo``); the error locator is Berlekamp-Massey on log tables.
+over 55 bytes ``0x80 | g`` that are never 0x00: ``[207 data | 55] ... [r data | 55]``, of
+``n + 55 * ceil(n / 207)`` bytes for ``n`` stuffed bytes. Code: primitive polynomial 0x11D,
+generator roots 2^0 .. 2^47, as ``reedsolo.RSCodec(48, nsize=255)`` builds it. Encoding,
+syndromes, the Chien search and Forney's formula are table-driven numpy (tests hold them
+to ``reedsolo``); the error locator is Berlekamp-Massey on log tables.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """Message catalogue: every payload declared once, with units and ranges.
 
-From the :mod:`~cdma_lidar.protocol.schema` fields come the checked encoder (FieldError
-naming the field), the strict decoder (FrameError only), the spec's tables and
-:data:`SCHEMA_CRC`. The type byte says who sends it: request 0x01..0x7F, reply
-0x80..0xBF, stream 0xC0..0xFF. :class:`Info` (reply to HELLO) and :class:`Status` (STATUS,
-HEARTBEAT) are typed dataclasses whose fields, in wire units (pm, µdeg, m°C, ms, 0.001
-lines/mm) and wire order, carry their payload declaration (:func:`~.schema.wire`):
-``to_fields`` gives what ``encode_payload`` takes, ``Info.from_fields`` /
-``Status(**fields)`` read a payload.
+Its :mod:`~cdma_lidar.protocol.schema` fields give the codec, the spec's tables and
+:data:`SCHEMA_CRC`. :class:`Info` (reply to HELLO) and :class:`Status` (STATUS, HEARTBEAT)
+are typed dataclasses whose fields, in wire units (pm, µdeg, m°C, ms, 0.001 lines/mm) and
+wire order, carry their payload declaration (:func:`~.schema.wire`): ``to_fields`` gives
+what ``encode_payload`` takes, ``Info.from_fields`` / ``Status(**fields)`` read a payload.
 """
 
 from __future__ import annotations
@@ -30,6 +27,7 @@ from cdma_lidar.protocol.columns import (
     decode_column,
     encode_column,
     record_dtype,
+    udeg,
 )
 from cdma_lidar.protocol.config_keys import CONFIG_KEYS
 from cdma_lidar.protocol.framing import PROTOCOL_VERSION, frame_size
@@ -51,14 +49,13 @@ class MsgKind(enum.Enum):
 
 def type_name(msg_type: int) -> str:
     """The name of a message type, or its hex value when unknown."""
-    try:
-        return MsgType(msg_type).name
-    except ValueError:
-        return f"0x{msg_type:02x}"
+    spec = MESSAGES.get(msg_type)  # type: ignore[call-overload]
+    return f"0x{msg_type:02x}" if spec is None else spec.type.name
 
 
 def kind_of(msg_type: int) -> MsgKind:
-    """Kind of a message type from its range (works for unknown types too)."""
+    """Kind of a message type from its range, unknown types too: request 0x01..0x7F, reply
+    0x80..0xBF, stream 0xC0..0xFF."""
     return MsgKind.STREAM if msg_type >= 0xC0 else MsgKind.REPLY if msg_type >= 0x80 \
         else MsgKind.REQUEST
 
@@ -225,22 +222,19 @@ class Info:
         max_items=65535)
 
     @classmethod
-    def nominal(cls, *, serial: str, firmware_version: str, wavelengths_m: Sequence[float],
-                grooves_per_mm: float, incidence_deg: float, tilt_deg: float | None,
-                reference_wavelength_m: float, chip_rate_hz: float,
-                column_start_deg: float, column_step_deg: float, column_count: int,
-                **limits: int) -> Info:
-        """Build from SI units and degrees (rounded to the wire's pm / µdeg / 0.001 /mm)."""
+    def nominal(cls, *, wavelengths_m: Sequence[float], grooves_per_mm: float,
+                incidence_deg: float, tilt_deg: float | None, reference_wavelength_m: float,
+                chip_rate_hz: float, column_start_deg: float, column_step_deg: float,
+                **fields: Any) -> Info:
+        """Build from SI units and degrees (rounded to the wire's pm / µdeg / 0.001 /mm);
+        ``fields``: the others as on the wire (serial, firmware_version, column_count, limits)."""
         return cls(
-            firmware_version=firmware_version, serial=serial,
             wavelengths_pm=tuple(round(w * 1e12) for w in wavelengths_m),
-            grooves_per_mm_milli=round(grooves_per_mm * 1e3),
-            incidence_udeg=round(incidence_deg * 1e6),
-            tilt_udeg=TILT_AUTO if tilt_deg is None else round(tilt_deg * 1e6),
+            grooves_per_mm_milli=round(grooves_per_mm * 1e3), incidence_udeg=udeg(incidence_deg),
+            tilt_udeg=TILT_AUTO if tilt_deg is None else udeg(tilt_deg),
             reference_wavelength_pm=round(reference_wavelength_m * 1e12),
-            chip_rate_hz=round(chip_rate_hz), column_start_udeg=round(column_start_deg * 1e6),
-            column_step_udeg=round(column_step_deg * 1e6), column_count=column_count,
-            **limits)
+            chip_rate_hz=round(chip_rate_hz), column_start_udeg=udeg(column_start_deg),
+            column_step_udeg=udeg(column_step_deg), **fields)
 
     @property
     def channels(self) -> int:
@@ -352,6 +346,10 @@ _RECT = (u("channel_start", 16, "first channel of the rectangle"),
          u("column_start", 16, "first column of the rectangle"),
          u("channels", 16, "rows in the rectangle", lo=1, hi=65535),
          u("columns", 16, "columns in the rectangle", lo=1, hi=65535))
+#: What CAPTURE reads and CAPTURE_DATA carries.
+_CAPTURED = (u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
+             u("column", 16, "column index"),
+             u("channel", 16, "channel (kind 1 only; 0 for kind 0)"))
 _POWER = Field("power", "u16 x channels*columns", "per-pixel laser power", "1/65535 of max",
                allowed="0..65535", kind="array", fmt="H", count="channels*columns")
 
@@ -429,9 +427,7 @@ _MESSAGE_LIST = [
                 rules={"shots": ("while a scan runs: BUSY", ErrorCode.BUSY)}),
     MessageSpec(MsgType.CAPTURE, "Read debug data of one column in chunks; offset 0 takes a fresh "
                 "capture, later offsets read the same capture.",
-                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-                u("column", 16, "column index"),
-                u("channel", 16, "channel (kind 1 only; 0 for kind 0)"),
+                *_CAPTURED,
                 u("offset", 32, "first element to read", "elements"),
                 u("max_count", 16, "largest number of elements wanted", "elements", 1, 65535),
                 reply=MsgType.CAPTURE_DATA,
@@ -461,9 +457,7 @@ _MESSAGE_LIST = [
                 Field("items", "KLV items (rest)", "key u8, length u16, value", kind="klv")),
     MessageSpec(MsgType.STATUS, "Device status (reply to STATUS_GET).", *wire_fields(Status)),
     MessageSpec(MsgType.CAPTURE_DATA, "One chunk of captured debug data (reply to CAPTURE).",
-                u("kind", 8, "0 raw ADC samples, 1 correlation trace", lo=0, hi=1),
-                u("column", 16, "column index"),
-                u("channel", 16, "channel (kind 1)"),
+                *_CAPTURED,
                 u("elem_bytes", 8, "bytes per element: 2 (i16), 4 (i32) or 8 (i64)", lo=2, hi=8),
                 u("total", 32, "elements in the whole capture", "elements"),
                 u("offset", 32, "index of the first element in this chunk", "elements"),
@@ -514,8 +508,8 @@ def head_size(msg_type: MsgType) -> int:
     return sum(f.size for f in MESSAGES[msg_type].fields[:-1])  # type: ignore[misc]
 #: FRAGMENT payload bytes before the data (11).
 FRAGMENT_HEADER = head_size(MsgType.FRAGMENT)
-#: Most FRAGMENTs one message may take (FRAGMENT.count is 2..254).
-MAX_PIECES = 254
+#: Most FRAGMENTs one message may take (254, FRAGMENT.count's bound).
+MAX_PIECES: int = MESSAGES[MsgType.FRAGMENT].field("count").hi  # type: ignore[assignment]
 
 
 def piece_room(max_frame: int, signed: bool) -> int:
@@ -546,10 +540,8 @@ REPLY_TO: dict[MsgType, MsgType] = {m.type: m.reply for m in _MESSAGE_LIST if m.
 # ---- encode / decode ------------------------------------------------------------------
 def encode_payload(msg_type: int, fields_: dict[str, Any] | ColumnResult | None = None) -> bytes:
     """Payload bytes of one message; raises FieldError naming the first bad field."""
-    try:
-        spec = MESSAGES[MsgType(msg_type)]
-    except ValueError:
-        raise out_of_range("msg_type", "a known message type", msg_type, FieldError) from None
+    if (spec := MESSAGES.get(msg_type)) is None:  # type: ignore[call-overload]
+        raise out_of_range("msg_type", "a known message type", msg_type, FieldError)
     if spec.type == MsgType.COLUMN_RESULT:
         if not isinstance(fields_, ColumnResult):
             raise out_of_range("COLUMN_RESULT", "a ColumnResult", type(fields_).__name__,
@@ -563,10 +555,8 @@ def decode_payload(msg_type: int, payload: bytes) -> dict[str, Any] | ColumnResu
     (only) naming the field for an unknown type, a short or long payload, a value out of range."""
     if msg_type == MsgType.COLUMN_RESULT:  # the hot path: no enum lookup
         return decode_column(payload)
-    try:
-        spec = MESSAGES[MsgType(msg_type)]
-    except ValueError:
-        raise FrameError(f"unknown message type 0x{msg_type:02x}") from None
+    if (spec := MESSAGES.get(msg_type)) is None:  # type: ignore[call-overload]
+        raise FrameError(f"unknown message type 0x{msg_type:02x}")
     out = spec.decode(payload, spec.type.name)
     if spec.type == MsgType.FRAGMENT and not (out["index"] < out["count"] and out["data"]):
         raise FrameError("FRAGMENT: index must be below count, data not empty", field="index")

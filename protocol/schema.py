@@ -60,7 +60,7 @@ class Field:
     @property
     def range_text(self) -> str:
         """The range column of the spec: ``allowed``, else ``lo..hi`` (``2^32-1``)."""
-        return self.allowed or ("" if self.lo is None else f"{_num(self.lo)}..{_num(self.hi)}")
+        return self.allowed or ("" if self.lo is None else f"{_num(self.lo)}..{_num(self.hi)}")  # type: ignore[arg-type]
 
     @property
     def size(self) -> int | None:
@@ -106,13 +106,11 @@ class Field:
                 for k, v in enumerate(items)]
 
 
-def _num(v: int | None) -> str:
+def _num(v: int) -> str:
     """Spec form of a bound: powers of two for big ones (2^32-1, -2^31)."""
-    if v is None or abs(v) < 1 << 17:
-        return "" if v is None else str(v)
-    if v > 0 and (v + 1) & v == 0:
-        return f"2^{(v + 1).bit_length() - 1}-1"
-    if v < 0 and -v & (-v - 1) == 0:
+    if v >= 1 << 17 and (v + 1) & v == 0:
+        return f"2^{v.bit_length()}-1"
+    if v <= -(1 << 17) and -v & (-v - 1) == 0:
         return f"-2^{(-v).bit_length() - 1}"
     return str(v)
 
@@ -153,7 +151,7 @@ class Layout:
         """Field values of ``payload``; FrameError (only) naming a field out of range."""
         out = self.parse(payload, what)
         for f in self.fields:
-            if f.kind == "int" or (f.kind == "array" and f.lo is not None):
+            if f.lo is not None:  # the ints, and the arrays declared with a range
                 try:
                     f.check(f.name, out[f.name])
                 except FieldError as exc:
@@ -271,10 +269,10 @@ def nbytes(name: str, size: int, doc: str) -> Field:
 def wire(default: Any, make: Callable[..., Field], *args: Any, **kw: Any) -> Any:
     """A dataclass field that is also the payload field ``make(name, *args, **kw)`` (``u``,
     ``text``, ...) of the same name; ``default`` MISSING: required."""
-    return dataclasses.field(default=default, metadata={"wire": (make, args, kw)})
+    return dataclasses.field(default=default,
+                             metadata={"wire": lambda name: make(name, *args, **kw)})
 
 
 def wire_fields(cls: type) -> list[Field]:
     """The payload fields of a dataclass declared with :func:`wire`, in field order."""
-    return [f.metadata["wire"][0](f.name, *f.metadata["wire"][1], **f.metadata["wire"][2])
-            for f in dataclasses.fields(cls)]
+    return [f.metadata["wire"](f.name) for f in dataclasses.fields(cls)]

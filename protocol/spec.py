@@ -48,12 +48,9 @@ __all__ = ["DOC_PATH", "SECTIONS", "check", "main", "render"]
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
 
-def _row(*cells: object) -> str:
-    return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
-
-
 def _table(head: tuple[str, ...], rows: list[tuple]) -> str:
-    return "\n".join(_row(*r) for r in [head, ("---",) * len(head), *rows])
+    return "\n".join("| " + " | ".join(str(c).replace("|", "\\|") for c in r) + " |"
+                     for r in [head, ("---",) * len(head), *rows])
 
 
 def constants_table() -> str:
@@ -306,12 +303,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path", type=Path, default=DOC_PATH)
     args = ap.parse_args(argv)
     text = args.path.read_text(encoding="utf-8")
-    if (new := render(text)) == text:
-        return 0
-    if args.check:
-        sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
-        return 1
-    atomic_write_text(args.path, new)
+    if (new := render(text)) != text:
+        if args.check:
+            sys.stderr.write(f"{args.path} is stale: run python -m cdma_lidar.protocol.spec\n")
+            return 1
+        atomic_write_text(args.path, new)
     return 0
 
 

@@ -40,6 +40,13 @@ def test_key_file_is_created_private_and_read_back(tmp_path) -> None:
         auth.load_key(path)
 
 
+def test_session_macs_are_the_session_keys_from_counter_zero() -> None:
+    nonces = bytes(range(16, 32)), bytes(range(32, 48))
+    to_dev, to_host = auth.session_macs(KEY, *nonces, 0xA1B2C3D4)
+    assert (to_dev.key, to_host.key) == auth.session_keys(KEY, *nonces, 0xA1B2C3D4)
+    assert to_dev.counter == to_host.counter == 0
+
+
 def _rig(key: bytes | None, host_key: bytes | None, app: SyntheticApp | None = None):
     """(device, host link, host port, device port, app): one thread, an injected clock."""
     app = app or SyntheticApp(channels=4, columns=20)

@@ -373,6 +373,7 @@ def test_config_decoder_raises_only_frame_error_naming_the_key(items: list[dict]
     ({"peaks": 9}, "peaks must be 1..max_peaks (1..8 on the wire), not 9"),
     ({"code_index": [1, 70000]}, "(each 0..65535 on the wire)"),
     ({"rounding": "nearest"}, "rounding must be one of truncate, half_up, convergent"),
+    ({"code_index": 5}, "code_index must be 0..2^m (N+1), K items, not 5"),  # not a list
 ])
 def test_config_encoder_message_says_the_wire_range(values: dict, text: str) -> None:
     with pytest.raises(FieldError) as exc:
