@@ -2,9 +2,9 @@
 
 docs/protocol.md section 5 is the contract: a 32-byte key in a file of mode 0600
 (:func:`load_or_create_key`), HELLO proved with HMAC-SHA256 both ways (:func:`hello_mac`,
-:func:`device_mac`), one key per direction (:func:`session_keys`), and every later frame
-signed with a u64 counter and a 16-byte truncated MAC (:class:`FrameSigner`,
-:class:`FrameVerifier`); :class:`Backoff` slows a guesser, never the key holder.
+:func:`device_mac`), one key per direction (:func:`session_macs`), and every later frame
+signed with a u64 counter and a 16-byte truncated MAC (:class:`FrameMac`); :class:`Backoff`
+slows a guesser, never the key holder.
 """
 
 from __future__ import annotations
@@ -23,9 +23,8 @@ from pathlib import Path
 from cdma_lidar.errors import ConfigError
 from cdma_lidar.protocol.framing import SIGNATURE_SIZE, Frame
 
-__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameMac", "FrameSigner",
-           "FrameVerifier", "device_mac", "hello_mac", "load_key", "load_or_create_key",
-           "session_keys", "session_macs"]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "NONCE_BYTES", "Backoff", "FrameMac", "device_mac",
+           "hello_mac", "load_key", "load_or_create_key", "session_macs"]
 
 log = logging.getLogger(__name__)
 
@@ -100,14 +99,6 @@ def device_mac(key: bytes, host_nonce: bytes, device_nonce: bytes, session: int)
     return _mac(key, b"cdma-lidar device", host_nonce, device_nonce, struct.pack("<I", session))
 
 
-def session_keys(key: bytes, host_nonce: bytes, device_nonce: bytes,
-                 session: int) -> tuple[bytes, bytes]:
-    """(host -> device key, device -> host key) of one session."""
-    s = struct.pack("<I", session)
-    return (_mac(key, b"cdma-lidar to device", host_nonce, device_nonce, s),
-            _mac(key, b"cdma-lidar to host", host_nonce, device_nonce, s))
-
-
 #: Constant-time comparison of two MACs (or nonces).
 equal = hmac.compare_digest
 
@@ -150,18 +141,13 @@ class FrameMac:
         return newer
 
 
-#: Signs the frames of one direction (:meth:`FrameMac.sign`).
-FrameSigner = FrameMac
-#: Checks the frames of one direction: MAC, then a rising counter (:meth:`FrameMac.check`).
-FrameVerifier = FrameMac
-
-
 def session_macs(key: bytes, host_nonce: bytes, device_nonce: bytes,
                  session: int) -> tuple[FrameMac, FrameMac]:
-    """(host -> device, device -> host) :class:`FrameMac` of one session, keyed with its
-    :func:`session_keys`, counters 0: the host signs with the first, the device the second."""
-    to_dev, to_host = session_keys(key, host_nonce, device_nonce, session)
-    return FrameMac(to_dev), FrameMac(to_host)
+    """(host -> device, device -> host) :class:`FrameMac` of one session, counters 0: the
+    host signs with the first and checks with the second, the device the other way round."""
+    s = struct.pack("<I", session)
+    return (FrameMac(_mac(key, b"cdma-lidar to device", host_nonce, device_nonce, s)),
+            FrameMac(_mac(key, b"cdma-lidar to host", host_nonce, device_nonce, s)))
 
 
 class Backoff:

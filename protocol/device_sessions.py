@@ -138,10 +138,10 @@ class DeviceSession:
         self.peer, self.open = peer, False
         tx.session = session_id or new_session_id()  # the first session's (0, None: random)
         self.sessionless_since = core.clock()  # since when it has had no session (s)
-        self.verifier: auth.FrameVerifier | None = None  # checks the host's signed frames
+        self.verifier: auth.FrameMac | None = None  # checks the host's signed frames
         self.challenge: bytes | None = None  # nonce of the last CHALLENGE sent
         #: The last signed session that ended on this connection: (id, signer, verifier).
-        self.ended: tuple[int, auth.FrameSigner | None, auth.FrameVerifier] | None = None
+        self.ended: tuple[int, auth.FrameMac | None, auth.FrameMac] | None = None
         #: (wrong HELLO MACs on this connection since its last success, the last one's time)
         self.auth_failures: tuple[int, float] = (0, 0.0)
         #: Set by another connection's HELLO that took the device: (reason, detail).
@@ -288,8 +288,8 @@ class DeviceSession:
         self.tx.coded = self.fec and bool(f["flags"] & HelloFlags.FEC)
         mac = bytes(auth.MAC_BYTES)
         if core.key is not None:
-            to_dev, to_host = auth.session_keys(core.key, nonce, device_nonce, self.id)
-            self.tx.signer, self.verifier = auth.FrameSigner(to_host), auth.FrameVerifier(to_dev)
+            self.verifier, self.tx.signer = auth.session_macs(core.key, nonce, device_nonce,
+                                                              self.id)
             mac = auth.device_mac(core.key, nonce, device_nonce, self.id)
         info = dataclasses.replace(  # the link fields' ranges were checked when given
             self.app.info(), protocol_version=PROTOCOL_VERSION, session_id=self.id,

@@ -313,11 +313,6 @@ class Status:
         return State(self.state).name.lower() if self.state in iter(State) else str(self.state)
 
     @property
-    def column_time_s(self) -> float:
-        """:attr:`column_time_ms` in seconds (0.0: not stated)."""
-        return self.column_time_ms * 1e-3
-
-    @property
     def temperature_c(self) -> float:
         """Board temperature (°C), NaN without a sensor."""
         return math.nan if self.temperature_mc == TEMPERATURE_UNKNOWN else \

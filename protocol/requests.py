@@ -166,8 +166,8 @@ class Requests:
         self.line_errors = 0  # LINE_ERRORs heard so far
         self._nonce = secrets.token_bytes(auth.NONCE_BYTES)
         self.seq = int.from_bytes(self._nonce[:2], "little")  # the last request seq used
-        self.signer: auth.FrameSigner | None = None  # signs our requests (keyed session)
-        self.verifier: auth.FrameVerifier | None = None  # checks the device's frames
+        self.signer: auth.FrameMac | None = None  # signs our requests (keyed session)
+        self.verifier: auth.FrameMac | None = None  # checks the device's frames
         self._pending: int | None = None  # seq of the request waiting for its reply
         self._pending_type = 0
         self.reply: Frame | None = None  # to the pending seq (of another version: refused)
@@ -228,15 +228,13 @@ class Requests:
                 raise LinkError(f"device on {self.port_name} did not prove it holds the key "
                                 f"(INFO.auth = {info.auth}): it is not the device the key "
                                 "file belongs to, or it holds no key (then drop --key-file)")
-            to_dev, to_host = auth.session_keys(self.key, self._nonce, device_nonce,
-                                                info.session_id)
-            rx = auth.FrameVerifier(to_host)
+            tx, rx = auth.session_macs(self.key, self._nonce, device_nonce, info.session_id)
             parts = self.reply_parts or [self.reply]  # an INFO in FRAGMENTs: each is signed
             if any(p.session != info.session_id for p in parts) or \
                     not all(map(rx.check, parts)):
                 raise LinkError(f"device on {self.port_name} sent an INFO not signed with "
                                 "the session key")
-            self.signer, self.verifier = auth.FrameSigner(to_dev), rx
+            self.signer, self.verifier = tx, rx
         elif info.auth != Auth.NONE:
             raise DeviceLied("device announced signed frames (INFO.auth = "
                              f"{info.auth}) without asking this host for a key", "auth")

@@ -210,10 +210,10 @@ def vectors() -> str:
     key = bytes(range(32))
     host_nonce, device_nonce = bytes(range(0x10, 0x20)), bytes(range(0x20, 0x30))
     session, flags, host_max = 0xA1B2C3D4, 0x04, 4096
-    to_dev, to_host = auth.session_keys(key, host_nonce, device_nonce, session)
+    to_dev, to_host = auth.session_macs(key, host_nonce, device_nonce, session)
     payload = encode_payload(MsgType.STATUS_GET, {})
     signed = framing.encode_frame(int(MsgType.STATUS_GET), payload, 0x0102, session,
-                                  signer=auth.FrameSigner(to_dev))
+                                  signer=to_dev)
     sent = framing.decode_frame(framing.cobs_decode(signed[1:-1]))
     ack = encode_payload(MsgType.ACK, {"request_type": int(MsgType.SCAN_START)})
     coded = framing.encode_frame(int(MsgType.ACK), ack, 0x0102, session, coded=True)
@@ -228,7 +228,7 @@ def vectors() -> str:
                                        "code": int(ErrorCode.WRONG_SESSION), "field": "session",
                                        "detail": ""})
     ended = framing.encode_frame(int(MsgType.NAK), nak, 0x0102, session,
-                                 signer=auth.FrameSigner(to_host, counter=6))
+                                 signer=auth.FrameMac(to_host.key, counter=6))
     lines = [
         f"key (the key file's 64 hex digits, decoded: the key is these 32 bytes)\n"
         f"             {key.hex()}",
@@ -237,8 +237,8 @@ def vectors() -> str:
         f"session_id   0x{session:08X}, HELLO flags 0x{flags:02X}, host_max_frame {host_max}",
         f"HELLO mac    {auth.hello_mac(key, device_nonce, host_nonce, flags, host_max).hex()}",
         f"INFO device_mac {auth.device_mac(key, host_nonce, device_nonce, session).hex()}",
-        f"key to device {to_dev.hex()}",
-        f"key to host   {to_host.hex()}",
+        f"key to device {to_dev.key.hex()}",
+        f"key to host   {to_host.key.hex()}",
         f"STATUS_GET seq 0x0102, signed host -> device, counter 1:\n"
         f"  header  {sent.signed_bytes().hex(' ')}\n"
         f"  sig     {sent.sig.hex(' ')}\n"

@@ -16,7 +16,7 @@ from functools import partial
 from typing import Any
 
 from cdma_lidar.errors import FieldError
-from cdma_lidar.protocol.auth import FrameSigner
+from cdma_lidar.protocol.auth import FrameMac
 from cdma_lidar.protocol.framing import (
     COMPAT_RETRANSMIT,
     PROTOCOL_VERSION,
@@ -62,7 +62,7 @@ class Transmitter:
 
     def __init__(self, port: Any, max_frame: int, counters: Iterable[Any]) -> None:
         self.port, self.session, self.max_frame = port, 0, max_frame
-        self.signer: FrameSigner | None = None
+        self.signer: FrameMac | None = None
         self.coded = False
         self.counters = tuple(counters)
         #: Per class, first in first out: a REPAIR frame's (frame, column, fragment or -1), any
@@ -94,7 +94,7 @@ class Transmitter:
         return self.reply(req, MsgType.NAK, payload) if signed is None else \
             (MsgType.NAK, payload, signed)
 
-    def answer(self, req: Frame, reply: Reply, signer: FrameSigner | None = None) -> None:
+    def answer(self, req: Frame, reply: Reply, signer: FrameMac | None = None) -> None:
         """Queue ``reply`` to ``req`` (class CONTROL, its seq and version), coded if the
         session or the request is, signed if the reply is (by ``signer`` or the session's)."""
         self.send(CONTROL, reply[0], reply[1], req.seq, coded=req.fec,

@@ -40,11 +40,11 @@ def test_key_file_is_created_private_and_read_back(tmp_path) -> None:
         auth.load_key(path)
 
 
-def test_session_macs_are_the_session_keys_from_counter_zero() -> None:
+def test_session_macs_are_one_key_per_direction_from_counter_zero() -> None:
     nonces = bytes(range(16, 32)), bytes(range(32, 48))
     to_dev, to_host = auth.session_macs(KEY, *nonces, 0xA1B2C3D4)
-    assert (to_dev.key, to_host.key) == auth.session_keys(KEY, *nonces, 0xA1B2C3D4)
-    assert to_dev.counter == to_host.counter == 0
+    assert to_dev.key != to_host.key and to_dev.counter == to_host.counter == 0
+    assert auth.session_macs(KEY, *nonces, 0xA1B2C3D5)[0].key != to_dev.key
 
 
 def _rig(key: bytes | None, host_key: bytes | None, app: SyntheticApp | None = None):
@@ -145,7 +145,7 @@ def test_forged_and_replayed_frames_are_dropped() -> None:
         assert app.set_config_calls == 2
         write(set_wire)  # replayed: a valid signature, an old counter
         forged = encode_frame(MsgType.SCAN_ABORT, b"", 500, info.session_id,
-                              signer=auth.FrameSigner(bytes(32), counter=10**6))
+                              signer=auth.FrameMac(bytes(32), counter=10**6))
         write(forged)  # signed with another key
         ep.poll()
         assert ep.stats.auth_rejected == 2
@@ -163,7 +163,7 @@ def test_a_column_injected_mid_scan_is_refused() -> None:
         rec = bad.records.copy()
         rec["peak_lag"][:] = 7  # a plausible lie: every channel at lag 7
         lie = replace(bad, records=rec)
-        for signer in (None, auth.FrameSigner(bytes(32), counter=10**6)):
+        for signer in (None, auth.FrameMac(bytes(32), counter=10**6)):
             host.rx.write(encode_frame(MsgType.COLUMN_RESULT, encode_column(lie), 1,
                                        info.session_id, signer=signer))
         rest = list(scan)
@@ -329,7 +329,7 @@ def test_a_forged_piece_of_a_signed_request_counts_against_the_back_off(caplog) 
         sess = link.hello().session_id
         payload = encode_payload(MsgType.CONFIG_SET, {"items": [{"key": 16, "value": b"\x03"}]})
         piece = split_message(MsgType.CONFIG_SET, payload, 2, 900)[0]
-        forger = auth.FrameSigner(bytes(32))  # another key
+        forger = auth.FrameMac(bytes(32))  # another key
         for _ in range(40):
             host.write(encode_frame(MsgType.FRAGMENT, piece, 900, sess, signer=forger))
         ep.poll()

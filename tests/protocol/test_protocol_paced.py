@@ -89,8 +89,8 @@ def _column(frame: int, column: int) -> bytes:
 
 def test_replies_then_repairs_then_new_columns_in_signature_order() -> None:
     ep, port = _device(key=bytes(range(32)))
-    ep.tx.signer = auth.FrameSigner(bytes(32))
-    verifier = auth.FrameVerifier(bytes(32))
+    ep.tx.signer = auth.FrameMac(bytes(32))
+    verifier = auth.FrameMac(bytes(32))
     ep.tx.send(FRESH, MsgType.COLUMN_RESULT, _column(1, 0), key=(1, 0))  # several fragments
     ep.tx.send(REPAIR, MsgType.COLUMN_RESULT, _column(1, 9), key=(1, 9))  # a repair
     ep.tx.send(CONTROL, MsgType.LINE_ERROR, _NOTICE)  # a notice, queued last
