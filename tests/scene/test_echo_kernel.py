@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fma_probes import blas_fuses
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -25,22 +26,8 @@ KERNEL_HOMES = {"synthesis_kernel": codebook, "single_synthesis_kernel": codeboo
                 "terms_kernel": echoes, "repetition_kernel": sums, "row_kernel": sums}
 
 
-def _blas_fuses() -> bool:
-    """Whether saxpy rounds a x + y once (FMA), in its vector body and in its tail: with
-    a = x = 1 + 2^-12 and y = -(1 + 2^-11), a x + y is 2^-24 exactly, 0 when a x is
-    rounded to float32 first."""
-    from scipy.linalg.blas import saxpy
-
-    one = np.float32(1 + 2.0**-12)
-    for n in (3, 67):
-        y = saxpy(np.full(n, one), np.full(n, -(1 + 2.0**-11), dtype=np.float32), a=one)
-        if not np.all(y == np.float32(2.0**-24)):
-            return False
-    return True
-
-
 needs_kernel = pytest.mark.skipif(
-    terms_kernel() is None or not _blas_fuses(),
+    terms_kernel() is None or not blas_fuses(),
     reason="numba (extra 'fast') not installed, or this BLAS's saxpy does not fuse")
 
 

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from fma_probes import blas_fuses
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -394,10 +395,18 @@ def test_batched_echo_terms_equal_the_columns_own(data):
 
 
 def _tabulated_reference(inst, cfg, column):
-    """tabulated_echo as first written: one column, its terms in their own order."""
+    """tabulated_echo as first written: one column, its terms in their own order by saxpy.
+    Where the numba kernel renders and this BLAS's saxpy does not fuse its multiply-adds
+    (the two round differently, both valid), the column alone through the kernel instead."""
     from scipy.linalg.blas import saxpy
 
+    from cdma_lidar.scene.echo_kernel import terms_kernel
+
     length = cfg.frame_samples
+    if terms_kernel() is not None and not blas_fuses():
+        alone = np.zeros((1, length), dtype=np.float32)
+        inst.echoes.tabulated_echoes(cfg, [(column, None)], False, alone)
+        return alone[0]
     out = np.zeros(length, dtype=np.float32)
     amps, taus, members, _ = inst.echoes.terms(column, cfg, None, False)
     steps = taus * (inst.spec.chip_rate_hz * cfg.samples_per_chip * codebook.TABLE_PHASES)
