@@ -217,9 +217,9 @@ class Info:
     firmware_version: str = wire(MISSING, text, "firmware version string")
     serial: str = wire(MISSING, text, "device serial number")
     wavelengths_pm: tuple[int, ...] = wire(
-        MISSING, Field, "u16 n + n x u32", "nominal wavelength of each channel (count K)", "pm",
-        1, 2**32 - 1, "K = 1..max_channels items", "array", "I", "H", min_items=1,
-        max_items=65535)
+        MISSING, Field, "u16 n + n x u32", "nominal wavelength of each channel (count K)",
+        unit="pm", lo=1, hi=2**32 - 1, allowed="K = 1..max_channels items", kind="array",
+        fmt="I", count="H", min_items=1, max_items=65535)
 
     @classmethod
     def nominal(cls, *, wavelengths_m: Sequence[float], grooves_per_mm: float,
