@@ -406,3 +406,38 @@ def test_the_loop_answers_within_50_ms_while_the_engine_is_inside_a_column() -> 
     step(lambda: ep.core.engine.idle)
     assert app.aborts == 1
     ep.close()
+
+
+def test_scan_start_refused_busy_waits_for_the_previous_stream_then_asks_once_more() -> None:
+    """Only our own previous stream can hold the device (repairs still going out): the
+    host asks STATUS until it is idle, then sends SCAN_START again (docs/protocol.md 6.2)."""
+    statuses = iter([Status(state=1, frame=6, next_column=3), Status(state=0, frame=6)])
+    starts: list[Frame] = []
+
+    def answer(f: Frame) -> bytes:
+        if f.msg_type == MsgType.STATUS_GET:
+            return reply(MsgType.STATUS, next(statuses), f.seq)
+        if f.msg_type != MsgType.SCAN_START:
+            return ack(f)
+        starts.append(f)
+        if len(starts) == 1:
+            return reply(MsgType.NAK, {"request_type": int(MsgType.SCAN_START),
+                                       "code": int(ErrorCode.BUSY), "field": "", "detail": ""},
+                         f.seq)
+        cols = [reply(MsgType.COLUMN_RESULT, _column(7, c), 0) for c in range(3)]
+        end = reply(MsgType.SCAN_END, {"frame": 7, "first_column": 0, "columns": 3,
+                                       "calibration": 0, "reason": 0}, 0)
+        return ack(f) + b"".join(cols) + end
+
+    link = scripted_link(ScriptedPort(answer), retries=1)
+    assert [c.column for c in link.scan(columns=3, frame=7)] == [0, 1, 2]
+    assert len(starts) == 2 and starts[0].seq != starts[1].seq
+
+
+def _column(frame: int, column: int) -> ColumnResult:
+    from protocol_fixtures import expected_column
+
+    app = SyntheticApp()
+    cfg = app.get_config()
+    return expected_column(frame, column, app.info().channels, int(cfg["peaks"]),
+                           int(cfg["uid_bits"]))

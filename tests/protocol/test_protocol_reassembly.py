@@ -95,3 +95,48 @@ def test_progress_changes_only_when_something_of_the_stream_moves() -> None:
 def _status(frame: int, nxt: int):
     from cdma_lidar.protocol.messages import Status
     return Status(frame=frame, next_column=nxt)
+
+
+def test_a_joiner_drops_the_oldest_message_when_one_more_starts() -> None:
+    """At most ``limit`` messages in pieces: the oldest unfinished one goes, the newer ones
+    still complete, and the dropped one's last piece no longer does."""
+    from cdma_lidar.protocol.reassembly import Joiner
+
+    joiner = Joiner(limit=2)
+    cols = {c: _pieces(c, 2) for c in (0, 1, 2)}
+    for c in (0, 1, 2):  # column 2's first piece pushes column 0 out
+        assert joiner.add(_frame(MsgType.FRAGMENT, cols[c][0])[0], cols[c][0]) is None
+    for c in (1, 2):
+        whole = joiner.add(_frame(MsgType.FRAGMENT, cols[c][1])[0], cols[c][1])
+        assert whole is not None and decode_payload(MsgType.COLUMN_RESULT, whole[0].payload) \
+            == _col(c)
+    assert joiner.add(_frame(MsgType.FRAGMENT, cols[0][1])[0], cols[0][1]) is None
+
+
+def test_a_piece_of_a_column_already_delivered_is_a_duplicate_and_is_not_kept() -> None:
+    asm = _asm()
+    asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(0)))
+    assert [c.column for c in asm.ready()] == [0]
+    stored = asm.stored
+    assert asm.feed(*_frame(MsgType.FRAGMENT, _pieces(0)[1]))  # of this stream: alive
+    assert asm.stats.duplicates == 1 and asm.stored == stored
+    assert not asm.joiner.held
+
+
+def test_a_joined_column_that_does_not_decode_is_counted_malformed_and_asked_for_again() -> None:
+    asm = _asm()
+    data = encode_column(_col(0))[:-3]  # three bytes short of its records: does not decode
+    half = len(data) // 2
+    for k, part in enumerate((data[:half], data[half:])):
+        asm.feed(*_frame(MsgType.FRAGMENT, {"frame": 9, "column": 0, "index": k, "count": 2,
+                                            "msg_type": 0xC0, "seq": 0, "data": part}))
+    assert asm.stats.malformed == 1 and list(asm.ready()) == []
+    asm.feed(*_frame(MsgType.COLUMN_RESULT, _col(1)))  # column 0 was sent: its repair is due
+    assert asm.due(0.0) == [0]
+
+
+def test_a_retransmitted_frame_that_is_no_column_is_taken_as_any_other() -> None:
+    """COMPAT_RETRANSMIT marks repairs; on a HEARTBEAT it says nothing about asking."""
+    asm = _asm()
+    assert asm.feed(*_frame(MsgType.HEARTBEAT, _status(9, 2), again=True))
+    assert asm.stats.duplicates == 0 and asm.due(0.0) == [0, 1]
