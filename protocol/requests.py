@@ -172,7 +172,7 @@ class Requests:
         self._pending_type = 0
         self.reply: Frame | None = None  # to the pending seq (of another version: refused)
         self.reply_parts: list[Frame] = []  # the FRAGMENTs the last reply came in
-        self.joiner = Joiner()
+        self.joiner = Joiner(limit=8)  # replies and notices in pieces (section 6.3)
         self._inbox: deque[Frame] = deque()  # frames read behind the reply, for the next pump
         #: (frame, decoded) of the running stream, for its reassembler; None: no stream.
         self.stream: deque[tuple[Frame, Any]] | None = None

@@ -119,3 +119,18 @@ def test_the_pages_fragmented_power_set_is_acted_on_by_the_device() -> None:
     frames = FrameDecoder().feed(dev.read(4096))
     assert [f.msg_type for f in frames] == [MsgType.ACK] and frames[0].seq == 0x0102
     np.testing.assert_array_equal(app.power[0], np.arange(120) * 500)
+
+
+def test_the_pieces_each_reference_end_keeps_are_what_the_page_says() -> None:
+    """Section 6.3: how many messages in pieces the reference device and host hold."""
+    from protocol_fixtures import ScriptedPort, SyntheticApp
+
+    from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
+
+    text = spec.DOC_PATH.read_text(encoding="utf-8")
+    m = re.search(r"reference device keeps the pieces of at most (\d+) requests, the\s+"
+                  r"reference host those of (\d+) replies or notices", text)
+    assert m is not None
+    device = DeviceEndpoint(ScriptedPort(), SyntheticApp(), engine=Engine(threaded=False))
+    assert device._pieces.limit == int(m[1])
+    assert HostLink(ScriptedPort()).joiner.limit == int(m[2])
