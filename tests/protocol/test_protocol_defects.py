@@ -389,6 +389,35 @@ def test_an_early_scan_end_is_a_link_error_carrying_the_delivered_columns() -> N
         (5, 3, ScanEndReason.ERROR)
 
 
+def test_a_column_too_large_for_the_session_ends_the_scan_not_the_device(caplog) -> None:
+    """The application yields columns of 8 peaks after SCAN_START was accepted at 1: the
+    first needs more than MAX_PIECES fragments of 256 bytes, so the scan ends with SCAN_END
+    reason 2 (nothing of it sent, nothing counted) and the device answers on."""
+    import logging
+
+    import pytest
+
+    from cdma_lidar.protocol.link import StreamEnded
+    from cdma_lidar.protocol.messages import ScanEndReason
+
+    class Grows(SyntheticApp):
+        def scan(self, frame: int, first_column: int, columns: int):  # type: ignore[override]
+            self.config["peaks"] = 8  # behind set_config's back: SCAN_START checked 1
+            return super().scan(frame, first_column, columns)
+
+    dev = SteppedDevice(Grows(channels=1000, columns=4), max_frame=256)
+    with dev, caplog.at_level(logging.ERROR, logger="cdma_lidar.protocol"):
+        link = HostLink(dev, timeout_s=1.0, max_frame=256, clock=dev.clock)
+        link.hello()
+        with pytest.raises(StreamEnded) as exc:
+            list(link.scan(frame=3))
+        assert (exc.value.frame, exc.value.next_column, exc.value.reason) == \
+            (3, 0, ScanEndReason.ERROR)
+        st = link.status()
+        assert st.state_name == "idle" and st.columns_sent == 0
+    assert "frame 3" in caplog.text
+
+
 def test_line_error_counts_rejected_chunks_since_boot_as_status_does() -> None:
     """LINE_ERROR.rx_errors is the device's count since boot (docs/protocol.md), the same
     number STATUS gives, however many connections the damage came over."""
