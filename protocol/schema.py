@@ -13,8 +13,6 @@ only), the tables of ``docs/protocol.md`` and the schema CRC. Field kinds and th
            filling the rest of the payload (``count`` ""), or as many as the product of
            earlier fields (``count`` "channels*columns")
     klv    key-length-value items to the end: ``u8 key, u16 length, value``
-
-All kinds but klv travel alike: a count (``count``), then that many items of ``fmt``.
 """
 
 from __future__ import annotations
@@ -53,15 +51,15 @@ class Field:
     hi: int | None = None
     allowed: str = ""  # range text for the spec; derived from lo/hi when empty
     kind: str = "int"  # int | text | bytes | array | klv (module docstring)
-    fmt: str = ""  # struct format of one array element ("H", "HB"); ints, text, bytes: derived
+    fmt: str = ""  # struct format of one array element ("H", "HB"); an int's: from ctype
     count: str = ""  # array count: its prefix's format ("B", "H"), "" (rest) or "a*b"
     names: tuple[str, ...] = ()  # an array of structs: the element's fields (dicts)
     min_items: int = 0
     max_items: int | None = None  # most array items; a bytes field's size (None: the rest)
 
     def __post_init__(self) -> None:
-        if self.kind in ("int", "text", "bytes"):  # an int's from its C type; bytes: "s"
-            object.__setattr__(self, "fmt", INTS[self.ctype][0] if self.kind == "int" else "s")
+        if self.kind == "int":  # the struct format of its C type
+            object.__setattr__(self, "fmt", INTS[self.ctype][0])
 
     @property
     def range_text(self) -> str:
@@ -145,7 +143,7 @@ class Layout:
             if f.name not in values:
                 raise FieldError(f"{what}.{f.name} is required", field=f.name)
             checked[f.name] = v = f.check(f"{what}.{f.name}", values[f.name])
-            if "*" in f.count and len(v) != (n := _product(f, checked)):
+            if "*" in f.count and len(v) != (n := self._product(f, checked)):
                 raise out_of_range(f"{what}.{f.name}", f"{n} items ({f.count})", len(v),
                                    FieldError)
         if extra := sorted(set(values) - set(checked)):
@@ -169,18 +167,17 @@ class Layout:
         out = bytearray()
         for f in self.fields:
             v = values[f.name]
-            if f.kind == "klv":
-                out += b"".join(_KLV.pack(e["key"], len(e["value"])) + e["value"] for e in v)
-                continue
-            if f.kind == "text":
-                v = v.encode()
-            if f.count in ("B", "H"):  # a count, then the items
-                out += struct.pack("<" + f.count, len(v))
             if f.kind == "int":
                 out += struct.pack("<" + f.fmt, v)
-            elif f.fmt == "s":  # text, bytes
-                out += v
-            else:  # integers, or small structs (dicts)
+            elif f.kind in ("text", "bytes"):
+                data = v.encode() if f.kind == "text" else v
+                out += bytes([len(data)]) + data if f.kind == "text" else data
+            elif f.kind == "klv":
+                for e in v:
+                    out += _KLV.pack(e["key"], len(e["value"])) + e["value"]
+            else:
+                if f.count in ("B", "H"):
+                    out += struct.pack("<" + f.count, len(v))
                 flat = [e[n] for e in v for n in f.names] if f.names else v
                 out += struct.pack("<" + f.fmt * len(v), *flat)
         return bytes(out)
@@ -193,7 +190,18 @@ class Layout:
         try:
             for f in self.fields:
                 at = f.name
-                if f.kind == "klv":
+                if f.kind == "int":
+                    (out[f.name],) = struct.unpack_from("<" + f.fmt, payload, off)
+                    off += f.size  # type: ignore[operator]
+                elif f.kind in ("text", "bytes"):
+                    n = payload[off] if f.kind == "text" else f.max_items or end - off
+                    off += f.kind == "text"
+                    data = bytes(payload[off:off + n])
+                    if len(data) != n:
+                        raise FrameError("short")
+                    out[f.name] = data.decode() if f.kind == "text" else data
+                    off += n
+                elif f.kind == "klv":
                     out[f.name] = items = []
                     while off < end:
                         key, n = _KLV.unpack_from(payload, off)
@@ -201,40 +209,40 @@ class Layout:
                         if off > end:
                             raise FrameError("short")
                         items.append({"key": key, "value": bytes(payload[off - n:off])})
-                    continue
-                n, size = 1, struct.calcsize("<" + f.fmt)
-                if f.count in ("B", "H"):  # a count, then the items
-                    (n,) = struct.unpack_from("<" + f.count, payload, off)
-                    off += struct.calcsize(f.count)
-                elif f.count:  # as many as the product of earlier fields
-                    n = _product(f, out)
-                elif f.kind != "int":  # a part item left over fails as trailing bytes
-                    n = f.max_items if f.kind == "bytes" and f.max_items else (end - off) // size
-                if off + n * size > end:  # before building a format of n items
-                    raise FrameError("short")
-                flat = struct.unpack_from("<" + (f"{n}s" if f.fmt == "s" else f.fmt * n),
-                                          payload, off)
-                off += n * size
-                if f.kind != "array":  # one value
-                    out[f.name] = flat[0].decode() if f.kind == "text" else flat[0]
-                else:  # integers, or small structs (dicts)
-                    k = len(f.names)
-                    out[f.name] = [dict(zip(f.names, flat[j:j + k], strict=True))
-                                   for j in range(0, n * k, k)] if k else list(flat)
+                else:
+                    out[f.name], off = self._array(f, payload, off, out)
             at = "end"
             if off != end:
                 raise FrameError("trailing bytes")
-        except (struct.error, ValueError, FrameError) as exc:  # not UTF-8: ValueError
+        except (struct.error, ValueError, IndexError, FrameError) as exc:  # not UTF-8: ValueError
             why = exc if isinstance(exc, FrameError) else "short" if isinstance(
-                exc, struct.error) else type(exc).__name__
+                exc, struct.error | IndexError) else type(exc).__name__
             raise FrameError(f"{what}: malformed payload at {at} ({why})",
                              field=None if at == "end" else at) from None
         return out
 
+    @staticmethod
+    def _product(f: Field, done: dict[str, Any]) -> int:
+        """Items of an array whose count is the product of earlier fields."""
+        return int(np.prod([done[name] for name in f.count.split("*")]))
 
-def _product(f: Field, done: dict[str, Any]) -> int:
-    """Items of an array whose count is the product of earlier fields."""
-    return int(np.prod([done[name] for name in f.count.split("*")]))
+    def _array(self, f: Field, payload: bytes, off: int, done: dict[str, Any]
+               ) -> tuple[list, int]:
+        size = struct.calcsize("<" + f.fmt)
+        if f.count in ("B", "H"):
+            (n,) = struct.unpack_from("<" + f.count, payload, off)
+            off += struct.calcsize(f.count)
+        elif f.count:
+            n = self._product(f, done)
+        else:  # the rest; a part item left over fails as trailing bytes
+            n = (len(payload) - off) // size
+        if off + n * size > len(payload):  # before building a format of n items
+            raise FrameError("short")
+        flat = struct.unpack_from("<" + f.fmt * n, payload, off)
+        k = len(f.names)
+        items = [dict(zip(f.names, flat[j:j + k], strict=True))
+                 for j in range(0, n * k, k)] if k else list(flat)
+        return items, off + n * size
 
 
 # ---- declaring fields ----------------------------------------------------------------------
@@ -253,7 +261,7 @@ i = functools.partial(u, kind="i")
 
 def text(name: str, doc: str) -> Field:
     """UTF-8 string with a u8 byte-length prefix (at most 255 bytes)."""
-    return Field(name, "u8 len + UTF-8", doc, allowed="0..255 bytes", kind="text", count="B")
+    return Field(name, "u8 len + UTF-8", doc, allowed="0..255 bytes", kind="text")
 
 
 def nbytes(name: str, size: int, doc: str) -> Field:
