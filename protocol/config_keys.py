@@ -1,8 +1,9 @@
 """CONFIG keys: the key-length-value set carried by CONFIG_SET and CONFIG.
 
-Each key is declared once as a :class:`ConfigKey` (id, name, value type, unit, range and,
-where the host value is not the wire value, the mapping: exponent tuples <-> polynomial
-masks, names <-> codes, window pairs <-> structs) for :func:`encode_config`, the strict
+Each key is declared once as a :class:`ConfigKey`, the payload field of its value (value
+type, unit, wire range ``lo..hi``, the device's range ``allowed``) with its id and, where the
+host value is not the wire value, the mapping (exponent tuples <-> polynomial masks, names
+<-> codes, window pairs <-> structs), for :func:`encode_config`, the strict
 :func:`decode_config`, the spec's table and the schema CRC. Bit 7 of a key id is the
 *optional* flag (:data:`CONFIG_OPTIONAL`): a device ignores an unknown optional key and
 refuses another unknown one with NAK UNKNOWN_KEY naming it.
@@ -15,12 +16,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from cdma_lidar.checks import is_int
 from cdma_lidar.errors import FieldError, FrameError, out_of_range
 from cdma_lidar.poly import mask_to_poly, tap_mask
-from cdma_lidar.protocol.schema import Field, Layout, u
+from cdma_lidar.protocol.schema import Field, Layout
 from cdma_lidar.rounding import ROUNDING_MODES
 
 __all__ = ["CONFIG_KEYS", "CONFIG_OPTIONAL", "MODES", "ConfigKey", "DecodedConfig", "config_key",
@@ -58,33 +57,24 @@ def _wire_to_poly(mask: int) -> tuple[int, ...]:
     return mask_to_poly(int(mask) << 1)
 
 
-@dataclass(frozen=True)
-class ConfigKey:
-    """One key of the CONFIG key-length-value set."""
+def _windows_to_wire(v: Any) -> list[dict[str, int]]:
+    """(start, length) pairs to the wire's structs; FieldError: what it takes."""
+    try:
+        return [{"start": int(s), "length": int(n)} for s, n in v]
+    except (TypeError, ValueError):
+        raise FieldError("a list of (start, length) pairs") from None
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfigKey(Field):
+    """One key of the CONFIG key-length-value set: the field of its value (which fills the
+    item's whole length; ``lo..hi``: its wire range, None: any that parses; ``allowed``:
+    the device's range), its ``id`` and the host value's mapping to the wire value."""
 
     id: int
-    name: str
-    ctype: str  # value encoding (fills the whole length): a key of _SUBS
-    unit: str
-    allowed: str
-    doc: str
-    lo: int | None = None
-    hi: int | None = None
     read_only: bool = False
     to_wire: Callable[[Any], Any] = lambda v: v  # host -> wire value; FieldError(what it takes)
     from_wire: Callable[[Any], Any] = lambda v: v
-
-    @property
-    def sub(self) -> Layout:
-        """The layout of the value (one field ``v`` that fills the item's whole length)."""
-        return _SUBS[self.ctype]
-
-    def outside(self, w: Any) -> Any:
-        """The first wire value of ``w`` outside lo..hi (None: all within, or no range)."""
-        if self.lo is None or self.hi is None:
-            return None
-        return next((v for v in (w if isinstance(w, list | tuple | np.ndarray) else [w])
-                     if not is_int(v) or not self.lo <= int(v) <= self.hi), None)
 
     def encode(self, value: Any, *, check: bool = True) -> bytes:
         """Value bytes; raises FieldError naming the key. ``check``: hold the value to the
@@ -92,27 +82,24 @@ class ConfigKey:
         already checked (the device's own configuration): only what the wire cannot hold fails."""
         try:
             w = self.to_wire(value)
-            if check and self.outside(w) is not None:
-                # Not check_int: the message gives the device's limit and the wire range.
-                each = "each " if isinstance(w, list | tuple | np.ndarray) else ""
-                raise FieldError(f"{self.allowed} ({each}{self.lo}..{self.hi} on the wire)")
-            return self.sub.build({"v": w})
-        except FieldError as exc:  # what to_wire takes, or the range
-            raise out_of_range(self.name, str(exc), value, FieldError) from None
+            if check and self.lo is not None:
+                self.check(self.name, w)
+            return Layout(self).build({self.name: w})
+        except FieldError as exc:  # to_wire's (no field): what it takes; check's: the range,
+            each = "each " if self.kind == "array" else ""  # as the device's and the wire's
+            why = str(exc) if exc.field is None else \
+                f"{self.allowed} ({each}{self.lo}..{self.hi} on the wire)"
+            raise out_of_range(self.name, why, value, FieldError) from None
         except (struct.error, TypeError, ValueError, KeyError) as exc:
             raise out_of_range(self.name, self.allowed, value, FieldError) from exc
 
     def decode(self, data: bytes) -> Any:
-        """Python value of the wire bytes; FrameError if malformed or out of range (the
-        receiving side's one check of the wire range)."""
+        """Python value of the wire bytes; FrameError naming the key if malformed or out of
+        its wire range (the receiving side's one check of the wire range)."""
         try:
-            w = self.sub.parse(data, self.name)["v"]
-        except FrameError:
-            raise FrameError(f"{self.name}: malformed value ({len(data)} bytes)",
-                             field=self.name) from None
-        if (bad := self.outside(w)) is not None:
-            raise FrameError(f"{self.name}: {bad} not in {self.lo}..{self.hi}", field=self.name)
-        return self.from_wire(w)
+            return self.from_wire(Layout(self).decode(data, f"CONFIG key {self.name}")[self.name])
+        except FrameError as exc:  # bytes left after the value name no field
+            raise FrameError(str(exc), field=self.name) from None
 
 
 def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey:
@@ -123,71 +110,55 @@ def _enum_key(kid: int, key: str, names: tuple[str, ...], doc: str) -> ConfigKey
             raise FieldError("one of " + ", ".join(names))
         return names.index(v) if isinstance(v, str) else v
 
-    return ConfigKey(kid, key, "u8", "", ", ".join(f"{c} {n}" for c, n in enumerate(names)),
-                     doc, 0, len(names) - 1, to_wire=to_wire, from_wire=names.__getitem__)
-
-
-#: Each value encoding (ConfigKey.ctype) as a layout of one field ``v``.
-_SUBS = {**{f"u{bits}": Layout(u("v", bits, "")) for bits in (8, 16, 32)},
-         "u16 x K": Layout(Field("v", "u16 x K", "", kind="array", fmt="H")),
-         "(u32 start, u32 len) x n": Layout(Field("v", "", "", kind="array", fmt="II",
-                                                  names=("start", "length")))}
-
-
-def _windows_to_wire(v: Any) -> list[dict[str, int]]:
-    try:
-        pairs = [(int(s), int(n)) for s, n in v]
-    except (TypeError, ValueError):
-        raise FieldError("a list of (start, length) pairs") from None
-    if any(not 0 <= s < 2**32 or not 0 <= n < 2**32 for s, n in pairs):
-        raise FieldError("u32 starts and lengths (samples)")
-    return [{"start": s, "length": n} for s, n in pairs]
+    return ConfigKey(key, "u8", doc, "", 0, len(names) - 1,
+                     ", ".join(f"{c} {n}" for c, n in enumerate(names)), id=kid,
+                     to_wire=to_wire, from_wire=names.__getitem__)
 
 
 CONFIG_KEYS: tuple[ConfigKey, ...] = (
-    ConfigKey(1, "poly_u", "u32", "", "mask, degree 2..max_degree",
-              "first Gold polynomial: bit e - 1 set = x^e term (e = 1..32), x^0 implied "
-              "(host: exponent tuple, highest first)", to_wire=_poly_to_wire,
+    ConfigKey("poly_u", "u32", "first Gold polynomial: bit e - 1 set = x^e term (e = 1..32), "
+              "x^0 implied (host: exponent tuple, highest first)",
+              allowed="mask, degree 2..max_degree", id=1, to_wire=_poly_to_wire,
               from_wire=_wire_to_poly),
-    ConfigKey(2, "poly_v", "u32", "", "mask, same degree as poly_u",
-              "second Gold polynomial, same encoding", to_wire=_poly_to_wire,
+    ConfigKey("poly_v", "u32", "second Gold polynomial, same encoding",
+              allowed="mask, same degree as poly_u", id=2, to_wire=_poly_to_wire,
               from_wire=_wire_to_poly),
-    ConfigKey(3, "code_index", "u16 x K", "", "0..2^m (N+1), K items",
-              "Gold family member of each channel", 0, 65535,
-              to_wire=list, from_wire=tuple),
-    ConfigKey(4, "uid_bits", "u8", "code periods", "1..max_uid_bits", "UID length n", 1, 8),
-    ConfigKey(5, "uid", "u8", "", "0..2^uid_bits-1",
-              "this device's UID (bit p = polarity of period p)", 0, 255),
-    ConfigKey(6, "samples_per_chip", "u16", "samples/chip", "spc_min..spc_max",
-              "ADC samples per chip S", 1, 65535),
-    ConfigKey(7, "averages", "u32", "repetitions", "1..max_averages",
-              "coherently summed code repetitions R", 1, 2**32 - 1),
-    ConfigKey(8, "adc_bits", "u8", "bits", "8..16, read-only", "ADC resolution", 8, 16,
+    ConfigKey("code_index", "u16 x K", "Gold family member of each channel", "", 0, 65535,
+              "0..2^m (N+1), K items", kind="array", fmt="H", id=3, to_wire=list,
+              from_wire=tuple),
+    ConfigKey("uid_bits", "u8", "UID length n", "code periods", 1, 8, "1..max_uid_bits", id=4),
+    ConfigKey("uid", "u8", "this device's UID (bit p = polarity of period p)", "", 0, 255,
+              "0..2^uid_bits-1", id=5),
+    ConfigKey("samples_per_chip", "u16", "ADC samples per chip S", "samples/chip", 1, 65535,
+              "spc_min..spc_max", id=6),
+    ConfigKey("averages", "u32", "coherently summed code repetitions R", "repetitions", 1,
+              2**32 - 1, "1..max_averages", id=7),
+    ConfigKey("adc_bits", "u8", "ADC resolution", "bits", 8, 16, "8..16, read-only", id=8,
               read_only=True),
-    ConfigKey(9, "gate_start", "u32", "samples", "0..N*S-1", "first lag of the gate", 0,
-              2**32 - 1),
-    ConfigKey(10, "gate_len", "u32", "samples", "1..min(N*S, max_gate_len)",
-              "lags in the gate", 1, 2**32 - 1),
-    ConfigKey(11, "peak_exclude", "u32", "samples", "0..N*S",
-              "W: peaks at least W+1 lags apart; noise excludes |j - j_peak| <= W",
-              0, 2**32 - 1),
-    ConfigKey(12, "ghost_windows", "(u32 start, u32 len) x n", "samples", "lags mod N*S",
-              "absolute lags (start, start+len-1, mod N*S) ignored by peak search and noise floor",
-              to_wire=_windows_to_wire,
+    ConfigKey("gate_start", "u32", "first lag of the gate", "samples", 0, 2**32 - 1,
+              "0..N*S-1", id=9),
+    ConfigKey("gate_len", "u32", "lags in the gate", "samples", 1, 2**32 - 1,
+              "1..min(N*S, max_gate_len)", id=10),
+    ConfigKey("peak_exclude", "u32", "W: peaks at least W+1 lags apart; noise excludes "
+              "|j - j_peak| <= W", "samples", 0, 2**32 - 1, "0..N*S", id=11),
+    ConfigKey("ghost_windows", "(u32 start, u32 len) x n", "absolute lags (start, "
+              "start+len-1, mod N*S) ignored by peak search and noise floor", "samples",
+              allowed="lags mod N*S", kind="array", fmt="II", names=("start", "length"),
+              id=12, to_wire=_windows_to_wire,
               from_wire=lambda w: tuple((e["start"], e["length"]) for e in w)),
-    ConfigKey(13, "out_shift", "u8", "bits", "0..63", "out = round(raw / 2^out_shift)", 0, 63),
+    ConfigKey("out_shift", "u8", "out = round(raw / 2^out_shift)", "bits", 0, 63, "0..63",
+              id=13),
     _enum_key(14, "rounding", ROUNDING_MODES, "rounding of the output shift"),
-    ConfigKey(15, "out_bits", "u8", "bits", "8..32", "outputs saturate to signed out_bits", 8,
-              32),
-    ConfigKey(16, "peaks", "u8", "", "1..max_peaks", "peaks reported per channel P", 1, 8),
-    ConfigKey(17, "columns_per_frame", "u16", "columns", "1..max_columns",
-              "columns in a default scan frame", 1, 65535),
+    ConfigKey("out_bits", "u8", "outputs saturate to signed out_bits", "bits", 8, 32, "8..32",
+              id=15),
+    ConfigKey("peaks", "u8", "peaks reported per channel P", "", 1, 8, "1..max_peaks", id=16),
+    ConfigKey("columns_per_frame", "u16", "columns in a default scan frame", "columns", 1,
+              65535, "1..max_columns", id=17),
     _enum_key(18, "mode", MODES, "measurement mode (calibration = zeroth-order beam)"),
-    ConfigKey(19, "cancel_rounds", "u8", "rounds", "0..4",
-              "rounds of parallel interference cancellation; 0: none", 0, 4),
-    ConfigKey(20, "cancel_snr_q8", "u32", "Q8 power ratio", "0..2^32-1",
-              "SNR_XC power ratio in Q8 at which a found echo is subtracted "
-              "(10192 = 16 dB)", 0, 2**32 - 1),
+    ConfigKey("cancel_rounds", "u8", "rounds of parallel interference cancellation; 0: none",
+              "rounds", 0, 4, "0..4", id=19),
+    ConfigKey("cancel_snr_q8", "u32", "SNR_XC power ratio in Q8 at which a found echo is "
+              "subtracted (10192 = 16 dB)", "Q8 power ratio", 0, 2**32 - 1, "0..2^32-1", id=20),
 )
 _KEY_BY_NAME = {k.name: k for k in CONFIG_KEYS}
 _KEY_BY_ID = {k.id: k for k in CONFIG_KEYS}

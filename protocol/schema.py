@@ -51,11 +51,15 @@ class Field:
     hi: int | None = None
     allowed: str = ""  # range text for the spec; derived from lo/hi when empty
     kind: str = "int"  # int | text | bytes | array | klv (module docstring)
-    fmt: str = ""  # struct format of an int or of one array element ("H", "HB")
+    fmt: str = ""  # struct format of one array element ("H", "HB"); an int's: from ctype
     count: str = ""  # array count: its prefix's format ("B", "H"), "" (rest) or "a*b"
     names: tuple[str, ...] = ()  # an array of structs: the element's fields (dicts)
     min_items: int = 0
     max_items: int | None = None  # most array items; a bytes field's size (None: the rest)
+
+    def __post_init__(self) -> None:
+        if self.kind == "int":  # the struct format of its C type
+            object.__setattr__(self, "fmt", INTS[self.ctype][0])
 
     @property
     def range_text(self) -> str:
@@ -246,9 +250,9 @@ def u(name: str, bits: int, doc: str, unit: str = "", lo: int | None = None,
       hi: int | None = None, allowed: str = "", kind: str = "u") -> Field:
     """Little-endian integer of ``bits`` bits, unsigned (``kind`` "u") or two's complement
     ("i"), optionally limited to [lo, hi]."""
-    fmt, nlo, nhi = INTS[f"{kind}{bits}"]
+    _, nlo, nhi = INTS[f"{kind}{bits}"]
     return Field(name, f"{kind}{bits}", doc, unit, nlo if lo is None else lo,
-                 nhi if hi is None else hi, allowed, fmt=fmt)
+                 nhi if hi is None else hi, allowed)
 
 
 #: Signed two's-complement little-endian integer field: :func:`u` with ``kind`` "i".
