@@ -106,6 +106,9 @@ class Field:
             raise out_of_range(path, "items with the fields " + ", ".join(
                 self.names or ("key", "value")), value, FieldError) from None
         lo, hi = (self.lo, self.hi) if self.lo is not None else _LIMITS[self.fmt]
+        if isinstance(value, np.ndarray) and value.dtype.kind in "iu" and \
+                (not value.size or (lo <= value.min() and value.max() <= hi)):  # type: ignore[operator]
+            return items  # a numpy array of integers in range: one check for all of them
         return [check_int(f"{path}[{k}]", v, lo, hi, cls=FieldError)  # type: ignore[arg-type]
                 for k, v in enumerate(items)]
 

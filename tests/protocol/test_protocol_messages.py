@@ -399,3 +399,28 @@ def test_column_result_declares_one_view_per_record_field() -> None:
     views = [n for n, v in vars(ColumnResult).items()
              if isinstance(v, property) and n not in ("channels", "peaks")]
     assert views[:len(RECORD)] == [f.name for f in RECORD]
+
+
+@given(st.sampled_from(["int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+                        "uint64"]), st.data())
+def test_a_numpy_array_of_integers_is_checked_as_its_list_is(dtype, data) -> None:
+    """Field.check takes a numpy integer array in one range check: the same values, and
+    the same error naming the first element outside the range, as item by item."""
+    from hypothesis.extra.numpy import arrays
+
+    info = np.iinfo(dtype)
+    edges = [v for v in (-4, -3, 0, 300, 301, 65535, 65536) if info.min <= v <= info.max]
+    edge = data.draw(st.lists(st.sampled_from(edges), max_size=4))
+    drawn = data.draw(arrays(np.dtype(dtype), st.integers(0, 12)))
+    arr = np.concatenate([drawn, np.array(edge, dtype=dtype)])
+    for f in (MESSAGES[MsgType.POWER_SET].field("power"),  # u16 items, no declared range
+              Field("v", "u16 x n", "", lo=-3, hi=300, kind="array", fmt="h")):
+        try:
+            want: object = f.check("v", arr.tolist())
+        except FieldError as exc:
+            want = str(exc)
+        try:
+            got: object = f.check("v", arr)
+        except FieldError as exc:
+            got = str(exc)
+        assert got == want
