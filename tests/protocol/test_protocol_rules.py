@@ -16,6 +16,7 @@ from protocol_fixtures import ScriptedPort, SteppedDevice, SyntheticApp, reply, 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import ColumnResult
+from cdma_lidar.protocol.endpoint import DeviceApp
 from cdma_lidar.protocol.framing import Frame, encode_frame
 from cdma_lidar.protocol.link import HostLink, StreamEnded
 from cdma_lidar.protocol.messages import (
@@ -290,3 +291,48 @@ def test_a_failing_port_is_one_line_naming_it(fail: str) -> None:
     with pytest.raises(LinkError, match=f"cannot {fail} (to|from) script://device: .*"
                                         "still connected"):
         link.status()
+
+
+# ---- a device application that implements only what it must ------------------------------
+class _MinimalApp(SyntheticApp):
+    """INFO, configuration and scans only: DeviceApp's defaults answer the rest."""
+
+    calibrate = DeviceApp.calibrate
+    set_power = DeviceApp.set_power
+    get_power = DeviceApp.get_power
+    capture = DeviceApp.capture
+
+
+def test_a_minimal_application_refuses_what_it_does_not_implement() -> None:
+    """CALIBRATE and POWER_SET: UNKNOWN_TYPE; POWER_GET and CAPTURE: NOT_AVAILABLE; a new
+    session still starts (no boot power to restore) and scans."""
+    app = _MinimalApp(channels=4, columns=10)
+    dev, link = _device(app)
+    with dev:
+        for t, fields, code in (
+                (MsgType.CALIBRATE, {"frame": 1, "shots": 2}, ErrorCode.UNKNOWN_TYPE),
+                (MsgType.POWER_SET, {"channel_start": 0, "column_start": 0, "channels": 1,
+                                     "columns": 1, "power": [7]}, ErrorCode.UNKNOWN_TYPE),
+                (MsgType.POWER_GET, {"channel_start": 0, "column_start": 0, "channels": 1,
+                                     "columns": 1}, ErrorCode.NOT_AVAILABLE),
+                (MsgType.CAPTURE, {"kind": 0, "column": 0, "channel": 0, "offset": 0,
+                                   "max_count": 10}, ErrorCode.NOT_AVAILABLE)):
+            assert _refused(link, t, fields).code == code, t.name
+        link.hello()  # a new session: configuration restored, no power matrix to restore
+        assert [c.column for c in link.scan(columns=2, frame=3)] == [0, 1]
+
+
+def test_a_new_session_starts_even_when_the_boot_configuration_cannot_be_restored(
+        caplog) -> None:
+    app = SyntheticApp(channels=4, columns=10)
+    dev, link = _device(app)
+    with dev, caplog.at_level(logging.ERROR, logger="cdma_lidar.protocol"):
+        link.set_config(peaks=2)
+        app.set_config = _raise  # type: ignore[method-assign]
+        assert link.hello().channels == 4
+        assert link.get_config("peaks") == {"peaks": 2}  # kept, and said in the log
+    assert "cannot restore the boot configuration" in caplog.text
+
+
+def _raise(*args: Any) -> None:
+    raise RuntimeError("configuration store is read-only now")
