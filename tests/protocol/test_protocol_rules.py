@@ -5,19 +5,28 @@ of a device that lies, and what each end survives. Each test fails when its rule
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
-from protocol_fixtures import ScriptedPort, SteppedDevice, SyntheticApp, reply, scripted_link
+from protocol_fixtures import (
+    ScriptedPort,
+    SteppedDevice,
+    SyntheticApp,
+    hello_fields,
+    reply,
+    scripted_link,
+)
 
 from cdma_lidar.errors import DeviceError, FieldError, LinkError
 from cdma_lidar.protocol import auth
 from cdma_lidar.protocol.columns import ColumnResult
-from cdma_lidar.protocol.endpoint import DeviceApp
-from cdma_lidar.protocol.framing import Frame, encode_frame
+from cdma_lidar.protocol.endpoint import DeviceApp, DeviceEndpoint
+from cdma_lidar.protocol.framing import Frame, FrameDecoder, encode_frame
 from cdma_lidar.protocol.link import HostLink, StreamEnded
 from cdma_lidar.protocol.messages import (
     CaptureKind,
@@ -29,6 +38,7 @@ from cdma_lidar.protocol.messages import (
     split_message,
 )
 from cdma_lidar.protocol.trust import DeviceLied
+from cdma_lidar.virtual.line import pipe_pair
 
 
 def _device(app: SyntheticApp | None = None, **kw: Any) -> tuple[SteppedDevice, HostLink]:
@@ -336,3 +346,58 @@ def test_a_new_session_starts_even_when_the_boot_configuration_cannot_be_restore
 
 def _raise(*args: Any) -> None:
     raise RuntimeError("configuration store is read-only now")
+
+
+class _GatedApp(SyntheticApp):
+    """Each column waits for ``go`` (set by the test): the engine is busy until then."""
+
+    def __init__(self) -> None:
+        super().__init__(channels=4, columns=10)
+        self.go = threading.Event()
+
+    def _columns(self, frame: int, first: int, count: int,
+                 calibration: bool) -> Iterator[ColumnResult]:
+        for col in super()._columns(frame, first, count, calibration):
+            assert self.go.wait(30.0), "the test never let the column go"
+            yield col
+
+
+def test_a_request_retransmitted_while_it_is_held_is_answered_once() -> None:
+    """POWER_GET needs the application, so it is held while the engine computes a column;
+    its retransmission meanwhile is not held a second time: one POWER answers both, and a
+    later copy is answered from the replay cache (docs/protocol.md 6.1 and 6.6)."""
+    app = _GatedApp()
+    host, port = pipe_pair()
+    ep = DeviceEndpoint(port, app, session_id=0x42, poll_s=0.0)  # the engine on its thread
+    decoder = FrameDecoder()
+    got: list[Frame] = []
+
+    def send(t: MsgType, fields: dict[str, Any], seq: int) -> None:
+        host.write(encode_frame(t, encode_payload(t, fields), seq, 0x42))
+
+    def until(done: Callable[[], bool]) -> None:
+        deadline = time.monotonic() + 30.0  # a condition to wait for, not a timing
+        while not done():
+            assert time.monotonic() < deadline, "the device never got there"
+            ep.poll()
+            got.extend(decoder.feed(host.read(host.in_waiting or 1)))
+
+    try:
+        host.write(encode_frame(MsgType.HELLO, encode_payload(MsgType.HELLO, hello_fields(1)),
+                                1, 0))
+        send(MsgType.SCAN_START, {"frame": 5, "first_column": 0, "columns": 3}, 2)
+        until(lambda: ep.streams.stream is not None and ep.streams.stream.job is not None)
+        rect = {"channel_start": 0, "column_start": 0, "channels": 2, "columns": 2}
+        send(MsgType.POWER_GET, rect, 3)
+        send(MsgType.POWER_GET, rect, 3)  # the host's retry, before the first is answered
+        until(lambda: ep.stats.rx_requests == 4)  # HELLO, SCAN_START, POWER_GET twice
+        assert len(ep.session.held) == 1
+        app.go.set()
+        until(lambda: any(f.msg_type == MsgType.POWER for f in got))
+        send(MsgType.POWER_GET, rect, 3)  # once more, now answered: from the replay cache
+        until(lambda: sum(f.msg_type == MsgType.POWER for f in got) == 2)
+        assert ep.stats.replays == 1
+        assert [f.seq for f in got if f.msg_type == MsgType.POWER] == [3, 3]
+    finally:
+        app.go.set()
+        ep.close()
