@@ -395,3 +395,30 @@ def test_a_hello_in_unsigned_pieces_of_the_open_signed_session_is_answered_as_a_
                                        fields["flags"], fields["host_max_frame"])
         ((kind, info),) = hello(fields, 1000)
         assert kind == MsgType.INFO and info["session_id"] != sess and ep.stats.naks == 0
+
+
+def test_a_key_file_that_cannot_be_read_or_created_is_one_error_naming_it(tmp_path) -> None:
+    with pytest.raises(ConfigError, match=f"key file '{tmp_path}' cannot be read") as exc:
+        auth.load_key(tmp_path)  # a directory
+    assert exc.value.field == "key_file"
+    missing = tmp_path / "no" / "such" / "dir" / "key"
+    with pytest.raises(ConfigError, match="cannot be created") as exc:
+        auth.load_or_create_key(missing)
+    assert exc.value.field == "key_file" and str(missing) in str(exc.value)
+
+
+def test_the_back_off_remembers_a_bounded_number_of_guessing_addresses(caplog) -> None:
+    """Wrong MACs from ever new addresses cost the device a bounded table: the oldest
+    address is forgotten (and warned about again if it comes back)."""
+    import logging
+
+    now = [0.0]
+    backoff = auth.Backoff(lambda: now[0])
+    with caplog.at_level(logging.WARNING, logger="cdma_lidar.protocol.auth"):
+        for k in range(5000):
+            backoff.failed(f"10.0.{k // 256}.{k % 256}", "HELLO with a wrong MAC")
+        assert len(backoff._peers) == 4096
+        warned = len(caplog.records)
+        backoff.failed("10.0.0.0", "HELLO with a wrong MAC")  # forgotten: a first failure again
+        backoff.failed("10.0.19.135", "HELLO with a wrong MAC")  # the newest: still quiet
+    assert warned == 5000 and len(caplog.records) == warned + 1
