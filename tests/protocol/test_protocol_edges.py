@@ -19,7 +19,7 @@ from protocol_fixtures import (
     scripted_link,
 )
 
-from cdma_lidar.errors import LinkError, LinkTimeout
+from cdma_lidar.errors import DeviceError, LinkError, LinkTimeout
 from cdma_lidar.protocol import framing
 from cdma_lidar.protocol.columns import ColumnResult
 from cdma_lidar.protocol.endpoint import DeviceEndpoint, Engine
@@ -441,3 +441,23 @@ def _column(frame: int, column: int) -> ColumnResult:
     cfg = app.get_config()
     return expected_column(frame, column, app.info().channels, int(cfg["peaks"]),
                            int(cfg["uid_bits"]))
+
+
+def test_scan_start_refused_busy_stands_when_the_device_stays_busy() -> None:
+    """The previous stream does not end within the reply timeout times the tries: the BUSY
+    is the caller's error, and the host sends one SCAN_ABORT as it leaves (the stream that
+    holds the device can only be its own previous one)."""
+    busy = Status(state=1, frame=6, next_column=3)
+    port = ScriptedPort(lambda f: reply(MsgType.STATUS, busy, f.seq)
+                        if f.msg_type == MsgType.STATUS_GET else
+                        reply(MsgType.NAK, {"request_type": int(f.msg_type),
+                                            "code": int(ErrorCode.BUSY), "field": "",
+                                            "detail": "a scan is running"}, f.seq))
+    link = scripted_link(port, retries=1, timeout_s=0.2)
+    with pytest.raises(DeviceError) as exc:
+        next(link.scan(columns=3, frame=7))
+    assert exc.value.code == ErrorCode.BUSY
+    assert 0.4 <= port.clock.now < 0.6  # (retries + 1) x timeout_s on the fake clock, no more
+    sent = [f.msg_type for f in port.requests]
+    assert sent.count(MsgType.SCAN_START) == 1 and sent.count(MsgType.STATUS_GET) >= 2
+    assert sent.count(MsgType.SCAN_ABORT) == 1
