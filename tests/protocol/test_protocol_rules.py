@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from protocol_fixtures import (
+    FakeClock,
     ScriptedPort,
     SteppedDevice,
     SyntheticApp,
@@ -368,7 +369,9 @@ def test_a_request_retransmitted_while_it_is_held_is_answered_once() -> None:
     later copy is answered from the replay cache (docs/protocol.md 6.1 and 6.6)."""
     app = _GatedApp()
     host, port = pipe_pair()
-    ep = DeviceEndpoint(port, app, session_id=0x42, poll_s=0.0)  # the engine on its thread
+    # The engine on its thread; the endpoint's clock stands still (no heartbeat, no idle
+    # expiry): only the Event moves the test on.
+    ep = DeviceEndpoint(port, app, session_id=0x42, poll_s=0.0, clock=FakeClock())
     decoder = FrameDecoder()
     got: list[Frame] = []
 
